@@ -1,0 +1,63 @@
+"""The lodbuilder exception hierarchy.
+
+Every error a user can cause is one of these. Each subclasses the matching built-in, so
+``except ValueError`` keeps working, and each message names the input, what was wrong with it
+and what to do about it, on one line.
+"""
+
+from __future__ import annotations
+
+
+class LodbuilderError(Exception):
+    """Base class of every error lodbuilder raises on purpose."""
+
+
+class InputError(LodbuilderError, ValueError):
+    """An argument (array, option, parameter) is not acceptable."""
+
+
+class FormatError(LodbuilderError, ValueError):
+    """A scan file is malformed, truncated or lacks what lodbuilder needs (e.g. x/y/z)."""
+
+
+class UnsupportedFormatError(LodbuilderError, ValueError):
+    """No reader or writer is registered for a file's suffix."""
+
+
+class MissingDependencyError(LodbuilderError, ImportError):
+    """An optional dependency needed for this feature is not installed."""
+
+
+class ScanFileError(LodbuilderError, OSError):
+    """A scan file is missing or cannot be read."""
+
+
+class ArchiveError(LodbuilderError, OSError):
+    """An archive cannot be opened, read or written."""
+
+
+class NotAnArchiveError(ArchiveError):
+    """The file exists but is not an lodbuilder archive."""
+
+
+class SchemaVersionError(ArchiveError):
+    """The archive was written by a newer lodbuilder with a schema this version cannot read."""
+
+
+class CorruptArchiveError(ArchiveError):
+    """The archive's data fails a checksum or an invariant."""
+
+
+class ScanNotFoundError(LodbuilderError, LookupError):
+    """A scan name is not in the archive."""
+
+    def __str__(self) -> str:  # LookupError would otherwise quote the message like a key
+        return str(self.args[0]) if self.args else ""
+
+
+class MemoryBudgetError(LodbuilderError, MemoryError):
+    """The requested grid would need more memory than the stated budget."""
+
+
+class BuildError(LodbuilderError, RuntimeError):
+    """One or more scans of a collection failed to build."""

@@ -1,0 +1,1 @@
+"""Band construction, FastFPS orchestration, and the Euclidean tail and baseline."""
