@@ -1,0 +1,103 @@
+"""Quality plots (matplotlib, Agg backend, imported only here): error vs size, radius vs rank."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, MissingDependencyError
+from .report import LevelReport
+
+
+def _pyplot():
+    try:
+        import matplotlib
+    except ImportError:
+        raise MissingDependencyError(
+            "plots need matplotlib; install it with: pip install matplotlib"
+        ) from None
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_quality(
+    reports: Sequence[LevelReport],
+    out: str | os.PathLike,
+    *,
+    radius: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
+    """Write a PNG with error vs size (log-log) and, when ``radius`` is given, insertion radius vs rank.
+
+    The file is written to a temporary name in the destination directory and renamed into place.
+    """
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise InputError(f"plot output {out} must end in .png")
+    if not reports:
+        raise InputError("no level to plot: give at least one size or rho")
+    plt = _pyplot()
+    ncols = 2 if radius is not None else 1
+    fig, axes = plt.subplots(1, ncols, figsize=(6.0 * ncols, 4.5), squeeze=False)
+    ax = axes[0, 0]
+    reps = sorted(reports, key=lambda r: r.size)
+    size = np.array([r.size for r in reps], dtype=float)
+    series = {
+        "covering radius": [r.covering_radius for r in reps],
+        "Hausdorff": [r.hausdorff for r in reps],
+        "Chamfer": [r.chamfer for r in reps],
+        f"surface error RMS ({reps[0].surface_method})": [r.surface_error["rms"] for r in reps],
+        "min spacing": [r.min_spacing for r in reps],
+    }
+    for name, vals in series.items():
+        v = np.asarray(vals, dtype=float)
+        ok = np.isfinite(v) & (v > 0)
+        if ok.any():
+            ax.plot(size[ok], v[ok], marker="o", ms=3, label=name)
+    claimed = [(r.size, r.rho) for r in reps if r.rho]
+    if claimed:
+        cs, cr = zip(*claimed)
+        ax.plot(cs, cr, ls="--", color="k", lw=0.8, label="claimed rho")
+    bad = [(r.size, r.covering_radius) for r in reps if r.meets_rho is False]
+    if bad:
+        bs, br = zip(*bad)
+        ax.scatter(bs, br, marker="x", s=60, color="red", zorder=5, label="violates rho")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("level size (points)")
+    ax.set_ylabel("distance (scan units)")
+    ax.set_title("error vs size")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    if radius is not None:
+        ax2 = axes[0, 1]
+        r = np.asarray(radius, dtype=float)
+        rank = np.arange(1, r.size + 1)
+        ok = np.isfinite(r) & (r > 0)
+        ax2.plot(rank[ok], r[ok], lw=1)
+        ax2.set_xscale("log")
+        ax2.set_yscale("log")
+        ax2.set_xlabel("rank (position in the ordering, 1-based)")
+        ax2.set_ylabel("insertion radius")
+        ax2.set_title("insertion radius vs rank")
+        ax2.grid(True, which="both", alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".png", dir=out.parent, prefix=f".{out.name}.")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110)
+        os.replace(tmp, out)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
