@@ -37,7 +37,9 @@ def fibonacci_sphere(n: int, r: float = 1.0) -> np.ndarray:
     i = np.arange(n) + 0.5
     phi = np.arccos(1 - 2 * i / n)
     theta = math.pi * (1 + 5**0.5) * i
-    return r * np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])
+    return r * np.column_stack(
+        [np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
+    )
 
 
 def test_grid_metrics_by_hand():
@@ -81,9 +83,9 @@ def test_octahedron_covers_sphere_by_hand():
     # farthest point of the sphere from the six axis points: a face centre (1,1,1)/sqrt(3)
     expected = math.sqrt(2 - 2 / math.sqrt(3))
     assert covering_radius(pts, lev) == pytest.approx(expected, rel=1e-12)
-    assert naive_covering_radius(np.vstack([pts, lev]), np.arange(pts.shape[0], pts.shape[0] + 6)) == (
-        pytest.approx(expected, rel=1e-12)
-    )
+    assert naive_covering_radius(
+        np.vstack([pts, lev]), np.arange(pts.shape[0], pts.shape[0] + 6)
+    ) == (pytest.approx(expected, rel=1e-12))
     # the level points lie on the input sphere up to the Fibonacci lattice's spacing
     assert hausdorff(pts, lev).level_to_input < 0.05
 
@@ -111,7 +113,9 @@ def test_surface_error_small_levels_fall_back():
 def test_matches_naive_covering_radius(rng):
     pts = rng.normal(size=(500, 3))
     kept = rng.choice(500, size=37, replace=False)
-    assert covering_radius(pts, pts[kept]) == pytest.approx(naive_covering_radius(pts, kept), rel=1e-12)
+    assert covering_radius(pts, pts[kept]) == pytest.approx(
+        naive_covering_radius(pts, kept), rel=1e-12
+    )
 
 
 def test_meets_rho():
@@ -177,7 +181,9 @@ def test_prefix_sizes():
     assert prefix_sizes(radius[:5], 8, sizes=[5]) == [(5, None)]
     with pytest.raises(InputError, match="finer than the ordering reaches"):
         prefix_sizes(radius[:5], 8, rhos=[0.1])
-    with pytest.raises(InputError, match=r"size must be between 1 and the number of points \(6\), got 7"):
+    with pytest.raises(
+        InputError, match=r"size must be between 1 and the number of points \(6\), got 7"
+    ):
         prefix_sizes(radius, 6, sizes=[7])
     with pytest.raises(InputError, match="rho must be a finite number > 0, got -1"):
         prefix_sizes(radius, 6, rhos=[-1])

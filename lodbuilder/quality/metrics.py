@@ -14,7 +14,9 @@ from scipy.spatial import cKDTree
 from .._validate import validate_points
 
 
-def nearest_distances(source: np.ndarray, target: np.ndarray, *, tree: cKDTree | None = None) -> np.ndarray:
+def nearest_distances(
+    source: np.ndarray, target: np.ndarray, *, tree: cKDTree | None = None
+) -> np.ndarray:
     """(len(source),) distance from every source point to its nearest target point.
 
     ``tree`` may pass a prebuilt ``cKDTree(target)`` to save rebuilding it.
@@ -116,4 +118,3 @@ def uniformity(min_spacing: float, cover: float) -> float:
     if cover == 0.0:
         return 1.0 if min_spacing == 0.0 else float("inf")
     return float(min_spacing / cover)
-

@@ -62,11 +62,11 @@ def plot_quality(
             ax.plot(size[ok], v[ok], marker="o", ms=3, label=name)
     claimed = [(r.size, r.rho) for r in reps if r.rho]
     if claimed:
-        cs, cr = zip(*claimed)
+        cs, cr = zip(*claimed, strict=True)
         ax.plot(cs, cr, ls="--", color="k", lw=0.8, label="claimed rho")
     bad = [(r.size, r.covering_radius) for r in reps if r.meets_rho is False]
     if bad:
-        bs, br = zip(*bad)
+        bs, br = zip(*bad, strict=True)
         ax.scatter(bs, br, marker="x", s=60, color="red", zorder=5, label="violates rho")
     ax.set_xscale("log")
     ax.set_yscale("log")

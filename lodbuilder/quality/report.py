@@ -207,14 +207,18 @@ def evaluate_prefixes(
     order = np.asarray(order, dtype=np.int64)
     radius = np.asarray(radius, dtype=np.float64)
     if order.shape != radius.shape:
-        raise InputError(f"order and radius must have the same shape, got {order.shape} and {radius.shape}")
+        raise InputError(
+            f"order and radius must have the same shape, got {order.shape} and {radius.shape}"
+        )
     if not sizes and not rhos and not fractions:
         sizes = default_sizes(order.shape[0])
     levels = prefix_sizes(radius, pts.shape[0], sizes=sizes, rhos=rhos, fractions=fractions)
     tree = cKDTree(pts)
     reports = []
     for i, (s, r) in enumerate(levels):
-        reports.append(evaluate_level(pts, pts[order[:s]], rho=r, surface=surface, k=k, input_tree=tree))
+        reports.append(
+            evaluate_level(pts, pts[order[:s]], rho=r, surface=surface, k=k, input_tree=tree)
+        )
         report(progress, "evaluate", i + 1, len(levels))
     return reports
 
