@@ -1,0 +1,67 @@
+"""File helpers shared by the readers and writers: input checks, atomic output, hashing."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from ..errors import ScanFileError
+
+
+def check_input_file(path: str | os.PathLike[str]) -> Path:
+    """Return ``path`` as a Path if it names a readable regular file, else raise ScanFileError."""
+    p = Path(path)
+    if not p.exists():
+        raise ScanFileError(f"{p}: no such file; check the path")
+    if p.is_dir():
+        raise ScanFileError(f"{p}: is a directory, not a scan file; pass a file (or a collection)")
+    if not os.access(p, os.R_OK):
+        raise ScanFileError(f"{p}: cannot be read (permission denied); fix its permissions")
+    return p
+
+
+def check_output_path(path: str | os.PathLike[str]) -> Path:
+    """Return ``path`` as a Path if its directory exists and is writable, else raise ScanFileError."""
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ScanFileError(f"{p}: output directory {parent} does not exist; create it first")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ScanFileError(f"{p}: output directory {parent} is not writable; choose another output path")
+    if p.is_dir():
+        raise ScanFileError(f"{p}: is a directory; give an output file name")
+    return p
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path in the destination directory; rename it onto ``path`` on success.
+
+    The temporary file keeps the destination's suffix (some libraries choose the encoding from it).
+    On any error the temporary file is removed and ``path`` is left untouched.
+    """
+    p = check_output_path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{p.name}.", suffix=".part" + "".join(p.suffixes[-1:]))
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp_path.unlink()
+        raise
+
+
+def file_sha256(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(chunk), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -1,0 +1,114 @@
+"""NumPy files.
+
+``.npy`` holds either a plain (N, 3) array of coordinates, or a structured array (one record per
+point) with fields ``x``, ``y``, ``z`` and any further fields as attributes. The writer produces the
+plain form when there are no attributes and the structured form otherwise (coordinates float64).
+
+``.npz`` holds named arrays: ``points`` (N, 3) (or ``x``, ``y``, ``z`` of shape (N,)); every other
+array whose first dimension is N is an attribute, and a ``metadata`` 0-d string array holds JSON
+metadata. Pickled objects are never loaded.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import FormatError
+from .base import Scan
+
+_XYZ = ("x", "y", "z")
+
+
+def _load(path: Path) -> Any:
+    try:
+        return np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        msg = " ".join(str(exc).split())
+        raise FormatError(f"{path}: not a readable NumPy file ({msg}); save it with numpy.save / numpy.savez") from None
+    except (EOFError, OSError) as exc:
+        msg = " ".join(str(exc).split())
+        raise FormatError(f"{path}: truncated or damaged NumPy file ({msg}); save it again") from None
+
+
+def _from_structured(path: Path, arr: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    names = arr.dtype.names or ()
+    missing = [c for c in _XYZ if c not in names]
+    if missing:
+        raise FormatError(f"{path}: structured array lacks field(s) {'/'.join(missing)} (fields: {', '.join(names)}); "
+                          "lodbuilder needs x, y and z")
+    arr = arr.reshape(-1)
+    pts = np.stack([np.asarray(arr[c], dtype=np.float64) for c in _XYZ], axis=1)
+    attrs = {n: np.ascontiguousarray(arr[n]) for n in names if n not in _XYZ}
+    return pts, attrs
+
+
+def read(path: Path) -> list[Scan]:
+    obj = _load(path)
+    meta: dict[str, Any] = {}
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.names:
+            pts, attrs = _from_structured(path, obj)
+        else:
+            if obj.ndim != 2 or obj.shape[1] != 3:
+                raise FormatError(f"{path}: array has shape {obj.shape}; expected (N, 3) coordinates or a structured "
+                                  "array with fields x, y, z")
+            _check_numeric(path, obj)
+            pts, attrs = np.asarray(obj, dtype=np.float64), {}
+    else:
+        with obj:
+            files = {k: obj[k] for k in obj.files}
+        if "metadata" in files and files["metadata"].ndim == 0:
+            try:
+                meta = json.loads(str(files.pop("metadata")))
+            except ValueError:
+                meta = {}
+        if "points" in files:
+            p = files.pop("points")
+            if p.ndim != 2 or p.shape[1] != 3:
+                raise FormatError(f"{path}: 'points' has shape {p.shape}; expected (N, 3)")
+            _check_numeric(path, p)
+            pts = np.asarray(p, dtype=np.float64)
+        elif all(c in files for c in _XYZ):
+            pts = np.stack([np.asarray(files.pop(c), dtype=np.float64).reshape(-1) for c in _XYZ], axis=1)
+        else:
+            raise FormatError(f"{path}: archive holds no 'points' (N, 3) array nor x/y/z arrays "
+                              f"(arrays: {', '.join(files) or 'none'}); save the coordinates as 'points'")
+        n = pts.shape[0]
+        attrs = {k: v for k, v in files.items() if v.ndim >= 1 and v.shape[0] == n}
+    meta.setdefault("npy_layout", "structured" if attrs else "plain")
+    return [Scan(points=np.ascontiguousarray(pts), attributes=attrs, name=path.stem, source=str(path),
+                 reader="npy", metadata=meta)]
+
+
+def _check_numeric(path: Path, arr: np.ndarray) -> None:
+    if arr.dtype.kind not in "iuf":
+        raise FormatError(f"{path}: coordinates have dtype {arr.dtype}; expected numbers")
+
+
+def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> None:
+    if path.suffix.lower() == ".npz":
+        arrays: dict[str, Any] = {"points": points}
+        arrays.update(attributes)
+        if metadata:
+            arrays["metadata"] = np.array(json.dumps(metadata, default=str))
+        with open(path, "wb") as f:
+            np.savez(f, **arrays)
+        return
+    if not attributes:
+        arr: np.ndarray = np.ascontiguousarray(points, dtype=np.float64)
+    else:
+        fields: list[Any] = [(c, "f8") for c in _XYZ]
+        for n, a in attributes.items():
+            a = np.asarray(a)
+            fields.append((n, a.dtype, a.shape[1:]) if a.ndim > 1 else (n, a.dtype))
+        arr = np.empty(points.shape[0], dtype=fields)
+        for j, c in enumerate(_XYZ):
+            arr[c] = points[:, j]
+        for n, a in attributes.items():
+            arr[n] = a
+    with open(path, "wb") as f:
+        np.save(f, arr, allow_pickle=False)

@@ -1,0 +1,82 @@
+"""Which module reads and writes which file suffix.
+
+A format module ``lodbuilder.io.<name>`` defines ``read(path: Path) -> list[Scan]`` (one Scan per scan
+in the file; the points already in world coordinates) and, when it can write,
+``write(path: Path, points, attributes, metadata) -> None`` (``path`` is a temporary file that the
+caller renames into place). Modules are imported only when a file of their kind is used, so optional
+dependencies (laspy, pye57) are needed only for their formats.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from pathlib import Path
+from types import ModuleType
+
+from ..errors import UnsupportedFormatError
+
+#: suffix -> format module name, for reading
+READERS: dict[str, str] = {
+    ".ply": "ply",
+    ".las": "las",
+    ".laz": "las",  # also COPC (.copc.laz): a COPC file is a valid LAZ file
+    ".e57": "e57",
+    ".xyz": "text",
+    ".pts": "text",
+    ".csv": "text",
+    ".txt": "text",
+    ".npy": "npy",
+    ".npz": "npy",
+}
+
+#: suffix -> format module name, for writing
+WRITERS: dict[str, str] = {
+    ".ply": "ply",
+    ".las": "las",
+    ".laz": "las",
+    ".npy": "npy",
+    ".npz": "npy",
+    ".csv": "text",
+    ".xyz": "text",
+}
+
+
+def register(suffix: str, module: str, *, read: bool = True, write: bool = False) -> None:
+    """Register a format module (a full dotted module path, or a name under lodbuilder.io)."""
+    suffix = suffix.lower() if suffix.startswith(".") else "." + suffix.lower()
+    if read:
+        READERS[suffix] = module
+    if write:
+        WRITERS[suffix] = module
+
+
+def suffix_of(path: str | Path) -> str:
+    return Path(path).suffix.lower()
+
+
+def _module(name: str) -> ModuleType:
+    return import_module(name if "." in name else f"lodbuilder.io.{name}")
+
+
+def reader_for(path: str | Path) -> tuple[str, ModuleType]:
+    """(format name, module) that reads ``path``, or UnsupportedFormatError."""
+    sfx = suffix_of(path)
+    name = READERS.get(sfx)
+    if name is None:
+        known = " ".join(sorted(READERS))
+        raise UnsupportedFormatError(
+            f"{path}: no reader for suffix {sfx or '(none)'!r}; known suffixes: {known}"
+        )
+    return name.rsplit(".", 1)[-1], _module(name)
+
+
+def writer_for(path: str | Path) -> tuple[str, ModuleType]:
+    """(format name, module) that writes ``path``, or UnsupportedFormatError."""
+    sfx = suffix_of(path)
+    name = WRITERS.get(sfx)
+    if name is None:
+        known = " ".join(sorted(WRITERS))
+        raise UnsupportedFormatError(
+            f"{path}: cannot write suffix {sfx or '(none)'!r}; known output suffixes: {known}"
+        )
+    return name.rsplit(".", 1)[-1], _module(name)
