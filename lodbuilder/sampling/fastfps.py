@@ -9,7 +9,7 @@ import numpy as np
 
 from .._validate import check_positive, check_size, validate_indices, validate_points
 from ..errors import InputError
-from ..progress import ProgressCallback
+from ..progress import ProgressCallback, report
 from .ordering import Ordering
 
 log = logging.getLogger(__name__)
@@ -109,7 +109,137 @@ def fastfps(
     Returns:
         An :class:`Ordering`.
     """
-    # Interim body: exact Euclidean ordering, replaced by the band engine.
     voxel_size = check_positive(voxel_size, "voxel_size")
     band_radius = check_positive(band_radius, "band_radius")
-    return euclidean_fps(points, rho=rho, size=size, seeds=seeds, cost=cost)
+    pts, n, rho, size, seed_arr = _prepare(points, rho, size, seeds)
+    c = None if cost is None else validate_cost(cost, n)
+    if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
+        raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
+    return _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+
+
+TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
+
+
+def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group exact duplicates. Returns (group id per point, representative input index per group).
+
+    The representative is the first listed seed of the group if any, else its lowest index.
+    """
+    n = pts.shape[0]
+    srt = np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
+    sp = pts[srt]
+    new = np.ones(n, dtype=bool)
+    new[1:] = (sp[1:] != sp[:-1]).any(axis=1)
+    gid_sorted = np.cumsum(new) - 1
+    gid = np.empty(n, dtype=np.int64)
+    gid[srt] = gid_sorted
+    rep = srt[new].copy()  # stable sort: lowest index of each group
+    claimed = np.zeros(rep.shape[0], dtype=bool)
+    for s in seeds:
+        g = gid[s]
+        if not claimed[g]:
+            rep[g] = s
+            claimed[g] = True
+    return gid, rep
+
+
+def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress):
+    import time
+
+    from .band import build_band, choose_parameters
+
+    t0 = time.perf_counter()
+    n = pts.shape[0]
+    gid, rep = _duplicate_groups(pts, seed_arr)
+    m = rep.shape[0]
+    upts = pts[rep]
+    # engine seeds: the groups of the seeds, first occurrence, in order
+    _, first = np.unique(gid[seed_arr], return_index=True)
+    useeds = gid[seed_arr][np.sort(first)]
+    h, r = choose_parameters(upts, voxel_size, band_radius)
+    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
+    k_max = m if size is None else min(m, size)
+    report(progress, "band", 0, 1)
+    band = build_band(upts, h, r, max_memory)
+    stats["band_voxels"] = band.n_voxels
+    stats["band_bytes"] = band.nbytes
+    t1 = time.perf_counter()
+    stats["time_band"] = t1 - t0
+    report(progress, "band", 1, 1)
+    weighted = cost is not None
+    inv = np.empty(m, dtype=np.int64)
+    inv[band.perm] = np.arange(m)
+    if weighted:
+        from scipy.spatial import cKDTree
+
+        ucost = cost[rep][band.perm]
+        _, near = cKDTree(band.u).query(band.coord, k=1, workers=-1)
+        vcost = ucost[near].astype(np.float32)
+        pcost = ucost
+        cmin = float(ucost.min())
+    else:
+        vcost = np.ones(band.n_voxels, dtype=np.float32)
+        pcost = np.ones(m)
+        cmin = 1.0
+    from .._kernels.march import euclid_tail, grid_phase
+
+    rho_g = -1.0 if rho is None else rho / h
+    report(progress, "ordering", 0, k_max)
+    order, radius, parent, k, val, lq, rank, pops = grid_phase(
+        band.u, band.coord, band.nbr, band.cs, band.hkeys, band.hvals, vcost, pcost, weighted,
+        inv[useeds], k_max, rho_g, TAIL_FACTOR * r / h,
+    )
+    t2 = time.perf_counter()
+    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1)
+    stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
+    report(progress, "ordering", int(k), k_max)
+    if k < k_max:
+        k = euclid_tail(
+            band.u, band.cs, band.hkeys, band.hvals, pcost, weighted, cmin, val, lq, rank,
+            order, radius, parent, k, k_max, rho_g,
+        )
+    t3 = time.perf_counter()
+    stats["time_tail"] = t3 - t2
+    report(progress, "ordering", int(k), k_max)
+    uorder = band.perm[order[:k]]  # distinct-point index
+    radius = radius[:k] * h
+    parent = parent[:k].copy()
+    return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats)
+
+
+def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats):
+    """Map the distinct-point ordering back to input indices; add duplicate seeds and duplicates."""
+    n = pts.shape[0]
+    m = rep.shape[0]
+    nseed_u = int(np.unique(gid[seed_arr]).size)
+    extra = seed_arr[rep[gid[seed_arr]] != seed_arr]  # seeds that are copies of an earlier seed
+    head = seed_arr  # all user seeds, in the given order, radius inf
+    body = rep[uorder[nseed_u:]]
+    order = np.concatenate([head, body])
+    # engine position -> final position
+    epos = np.empty(uorder.shape[0], dtype=np.int64)
+    final_pos_of_input = np.full(n, -1, dtype=np.int64)
+    final_pos_of_input[order] = np.arange(order.shape[0])
+    epos[:] = final_pos_of_input[rep[uorder]]
+    rad = np.concatenate([np.full(head.shape[0], np.inf), radius[nseed_u:]])
+    par_body = parent[nseed_u:]
+    par_body = np.where(par_body >= 0, epos[np.maximum(par_body, 0)], -1)
+    par = np.concatenate([np.full(head.shape[0], -1, dtype=np.int64), par_body])
+    complete = uorder.shape[0] == m
+    if complete and order.shape[0] < n and (rho is None or rho <= 0):
+        # exact duplicates: after every distinct point, by the rank of their representative
+        placed = np.zeros(n, dtype=bool)
+        placed[order] = True
+        dups = np.flatnonzero(~placed)
+        rk = final_pos_of_input[rep[gid[dups]]]
+        srt = np.lexsort((dups, rk))
+        dups = dups[srt]
+        order = np.concatenate([order, dups])
+        rad = np.concatenate([rad, np.zeros(dups.shape[0])])
+        par = np.concatenate([par, rk[srt]])
+    if size is not None and order.shape[0] > size:
+        order, rad, par = order[:size], rad[:size], par[:size]
+    stats["n_duplicates"] = int(n - m)
+    stats["n_duplicate_seeds"] = int(extra.size)
+    return Ordering(order.astype(np.int64), rad, par.astype(np.int64), h, r, seed_arr, n, stats)

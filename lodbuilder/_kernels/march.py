@@ -1,0 +1,371 @@
+"""Fast Marching in the voxel band and the farthest point ordering loops.
+
+All lengths are in grid units (one unit = the voxel size h). Points are indexed in cell order
+(sorted by the Morton key of their cell); ``cs[v]:cs[v + 1]`` are the points whose cell's lower corner
+is voxel v.
+
+Per-voxel state: arrival time ``T`` (float32, only ever lowered), the rank of the sample that set it
+(``vlab``) and a round stamp: ``stamp == 2 * rnd`` means "trial in round rnd", ``2 * rnd + 1``
+"accepted in round rnd", anything smaller "known from an earlier round". Nothing is re-initialised per
+sample: a new sample marches only where it lowers ``T``.
+
+Per-point state: ``dq`` = min over the 8 corner voxels v of the point's cell of T[v] + |u - v| * cost
+(an upper bound of the band distance to the samples), ``lq`` = the sample that achieved it, and the
+candidate value ``val``: for the uniform metric the certified upper bound of the Euclidean distance to
+the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric simply dq.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from . import JIT
+from .grid import lookup
+from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down, minheap_pop, minheap_push
+
+SEED_RADIUS = 2.0  # voxels around a new sample that get their exact distance
+
+
+@nb.njit(inline="always", **JIT)
+def _axis_min(T, stamp, trial, a, b):  # pragma: no cover - compiled
+    va = np.inf
+    if a >= 0 and stamp[a] != trial:
+        va = T[a]
+    if b >= 0 and stamp[b] != trial:
+        vb = T[b]
+        if vb < va:
+            va = vb
+    return va
+
+
+@nb.njit(inline="always", **JIT)
+def _solve(a, b, c, f):  # pragma: no cover - compiled
+    """First-order upwind update |grad T| = f from the three axis minima."""
+    if b < a:
+        a, b = b, a
+    if c < b:
+        b, c = c, b
+        if b < a:
+            a, b = b, a
+    t = a + f
+    if t <= b:
+        return t
+    t = 0.5 * (a + b + np.sqrt(2.0 * f * f - (a - b) * (a - b)))
+    if t <= c:
+        return t
+    s = a + b + c
+    q = a * a + b * b + c * c
+    return (s + np.sqrt(max(s * s - 3.0 * (q - f * f), 0.0))) / 3.0
+
+
+@nb.njit(inline="always", **JIT)
+def _dist(u, i, x, y, z):  # pragma: no cover - compiled
+    dx = u[i, 0] - x
+    dy = u[i, 1] - y
+    dz = u[i, 2] - z
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@nb.njit(**JIT)
+def march_round(
+    src, lab, rnd, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
+    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv,
+):  # pragma: no cover - compiled
+    """Propagate the front of sources ``src`` (point indices) labelled ``lab`` where it lowers T.
+
+    Updates dq/lq of points near lowered voxels and appends their cells to ``dirty`` (returns the new
+    count, the heap arrays and the number of pops).
+    """
+    trial = 2 * rnd
+    acc = 2 * rnd + 1
+    n = 0
+    for s in range(src.shape[0]):
+        i = src[s]
+        fx = int(np.floor(u[i, 0]))
+        fy = int(np.floor(u[i, 1]))
+        fz = int(np.floor(u[i, 2]))
+        for x in range(fx - 1, fx + 3):
+            for y in range(fy - 1, fy + 3):
+                for z in range(fz - 1, fz + 3):
+                    d = _dist(u, i, x, y, z)
+                    if d > SEED_RADIUS:
+                        continue
+                    v = lookup(hkeys, hvals, x, y, z)
+                    if v < 0:
+                        continue
+                    t = np.float32(d * vcost[v])
+                    if t < T[v]:
+                        T[v] = t
+                        vlab[v] = lab
+                        stamp[v] = trial
+                        hk, hv, n = minheap_push(hk, hv, n, t, v)
+    pops = 0
+    while n > 0:
+        t, v, n = minheap_pop(hk, hv, n)
+        if stamp[v] != trial or t != T[v]:
+            continue
+        stamp[v] = acc
+        pops += 1
+        tv = np.float64(T[v])
+        lv = vlab[v]
+        cx = np.float64(coord[v, 0])
+        cy = np.float64(coord[v, 1])
+        cz = np.float64(coord[v, 2])
+        # points of the 8 cells that have v as a corner
+        wx = nbr[v, 0]
+        for a in range(2):
+            wa = v if a == 0 else wx
+            if wa < 0:
+                continue
+            for b in range(2):
+                wb = wa if b == 0 else nbr[wa, 2]
+                if wb < 0:
+                    continue
+                for c in range(2):
+                    w = wb if c == 0 else nbr[wb, 4]
+                    if w < 0:
+                        continue
+                    cell = cellof[w]
+                    if cell < 0:
+                        continue
+                    for p in range(cs[w], cs[w + 1]):
+                        if rank[p] >= 0:
+                            continue
+                        dd = tv + _dist(u, p, cx, cy, cz) * pcost[p]
+                        if dd < dq[p]:
+                            dq[p] = dd
+                            lq[p] = lv
+                            if dstamp[cell] != rnd:
+                                dstamp[cell] = rnd
+                                dirty[nd] = cell
+                                nd += 1
+        # march to the 6 neighbours
+        for j in range(6):
+            m = nbr[v, j]
+            if m < 0 or stamp[m] == acc:
+                continue
+            ax = _axis_min(T, stamp, trial, nbr[m, 0], nbr[m, 1])
+            ay = _axis_min(T, stamp, trial, nbr[m, 2], nbr[m, 3])
+            az = _axis_min(T, stamp, trial, nbr[m, 4], nbr[m, 5])
+            tn = np.float32(_solve(np.float64(ax), np.float64(ay), np.float64(az), vcost[m]))
+            if tn < T[m]:
+                T[m] = tn
+                vlab[m] = lv
+                stamp[m] = trial
+                hk, hv, n = minheap_push(hk, hv, n, tn, m)
+    return nd, hk, hv, pops
+
+
+@nb.njit(**JIT)
+def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
+    w = cellv[cell]
+    best = -1.0
+    for p in range(cs[w], cs[w + 1]):
+        if rank[p] < 0 and val[p] > best:
+            best = val[p]
+    return best
+
+
+@nb.njit(**JIT)
+def grid_phase(
+    u, coord, nbr, cs, hkeys, hvals, vcost, pcost, weighted, seeds, k_max, rho_stop, r_stop,
+):  # pragma: no cover - compiled
+    """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
+
+    Returns (order, radius, parent, k, val, lq, rank, pops) where ``k`` points are ordered; the other
+    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop.
+    """
+    m = u.shape[0]
+    nv = coord.shape[0]
+    T = np.full(nv, np.inf, np.float32)
+    vlab = np.full(nv, -1, np.int64)
+    stamp = np.zeros(nv, np.int32)
+    cellof = np.full(nv, -1, np.int32)
+    ncell = 0
+    for v in range(nv):
+        if cs[v + 1] > cs[v]:
+            ncell += 1
+    cellv = np.empty(ncell, np.int32)
+    c = 0
+    for v in range(nv):
+        if cs[v + 1] > cs[v]:
+            cellof[v] = c
+            cellv[c] = v
+            c += 1
+    pcell = np.empty(m, np.int32)
+    for cc in range(ncell):
+        w = cellv[cc]
+        for p in range(cs[w], cs[w + 1]):
+            pcell[p] = cc
+    dq = np.full(m, np.inf)
+    val = np.full(m, np.inf)
+    lq = np.full(m, -1, np.int64)
+    rank = np.full(m, -1, np.int64)
+    dstamp = np.full(ncell, -1, np.int64)
+    dirty = np.empty(ncell, np.int64)
+    ckey = np.full(ncell, np.inf)
+    heap = np.arange(ncell).astype(np.int64)
+    hpos = np.empty(ncell, np.int64)
+    hn = ncell
+    maxheap_build(heap, hpos, ckey, hn)
+    hk = np.empty(max(1024, nv // 4), np.float32)
+    hv = np.empty(max(1024, nv // 4), np.int32)
+    order = np.empty(k_max, np.int64)
+    radius = np.empty(k_max, np.float64)
+    parent = np.empty(k_max, np.int64)
+    src = np.empty(1, np.int64)
+    pops = 0
+    k = 0
+    nseed = seeds.shape[0]
+    while k < k_max:
+        if k < nseed:
+            i = seeds[k]
+            rad = np.inf
+            par = -1
+        else:
+            if hn == 0:
+                break
+            top = heap[0]
+            kk = ckey[top]
+            if kk < 0.0 or kk <= rho_stop or kk < r_stop:
+                break
+            w = cellv[top]
+            i = -1
+            best = -1.0
+            for p in range(cs[w], cs[w + 1]):
+                if rank[p] < 0 and val[p] > best:
+                    best = val[p]
+                    i = p
+            rad = val[i]
+            par = lq[i]
+        rank[i] = k
+        order[k] = i
+        radius[k] = rad
+        parent[k] = par
+        ci = pcell[i]
+        ckey[ci] = _cell_key(ci, cellv, cs, rank, val)
+        if hpos[ci] >= 0:
+            if ckey[ci] < 0.0:
+                # move the exhausted cell to the end and drop it
+                maxheap_sift_down(heap, hpos, ckey, hpos[ci], hn)
+            else:
+                maxheap_sift_down(heap, hpos, ckey, hpos[ci], hn)
+        src[0] = i
+        nd, hk, hv, pp = march_round(
+            src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
+            T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv,
+        )
+        pops += pp
+        for j in range(nd):
+            cc = dirty[j]
+            w = cellv[cc]
+            best = -1.0
+            for p in range(cs[w], cs[w + 1]):
+                if rank[p] >= 0:
+                    continue
+                if weighted:
+                    val[p] = dq[p]
+                else:
+                    s = order[lq[p]]
+                    dx = u[p, 0] - u[s, 0]
+                    dy = u[p, 1] - u[s, 1]
+                    dz = u[p, 2] - u[s, 2]
+                    e = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    cand = dq[p] if dq[p] > e else e
+                    if cand < val[p]:
+                        val[p] = cand
+                if val[p] > best:
+                    best = val[p]
+            ckey[cc] = best
+            if hpos[cc] >= 0:
+                maxheap_sift_down(heap, hpos, ckey, hpos[cc], hn)
+        # drop exhausted cells from the top
+        while hn > 0 and ckey[heap[0]] < 0.0:
+            hn = maxheap_pop(heap, hpos, ckey, hn)
+        k += 1
+    return order, radius, parent, k, val, lq, rank, pops
+
+
+@nb.njit(**JIT)
+def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources):  # pragma: no cover
+    """dq of every point for one march from all ``sources`` at once (for tests and analysis)."""
+    m = u.shape[0]
+    nv = coord.shape[0]
+    T = np.full(nv, np.inf, np.float32)
+    vlab = np.full(nv, -1, np.int64)
+    stamp = np.zeros(nv, np.int32)
+    cellof = np.zeros(nv, np.int32)
+    ncell = 1
+    dq = np.full(m, np.inf)
+    lq = np.full(m, -1, np.int64)
+    rank = np.full(m, -1, np.int64)
+    dstamp = np.full(ncell, -1, np.int64)
+    dirty = np.empty(ncell, np.int64)
+    hk = np.empty(1024, np.float32)
+    hv = np.empty(1024, np.int32)
+    nd, hk, hv, pops = march_round(
+        sources, 0, 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
+        T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv,
+    )
+    return dq, lq, pops
+
+
+@nb.njit(**JIT)
+def euclid_tail(
+    u, cs, hkeys, hvals, pcost, weighted, cmin, d, lab, rank, order, radius, parent, k0, k_max,
+    rho_stop,
+):  # pragma: no cover - compiled
+    """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
+
+    ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite);
+    inserting a point q only lowers points within d[q] (/ cmin when weighted). Returns the new count.
+    """
+    m = u.shape[0]
+    heap = np.empty(m, np.int64)
+    pos = np.full(m, -1, np.int64)
+    hn = 0
+    for p in range(m):
+        if rank[p] < 0:
+            heap[hn] = p
+            hn += 1
+    maxheap_build(heap, pos, d, hn)
+    k = k0
+    while k < k_max and hn > 0:
+        i = heap[0]
+        kk = d[i]
+        if kk <= rho_stop:
+            break
+        hn = maxheap_pop(heap, pos, d, hn)
+        rank[i] = k
+        order[k] = i
+        radius[k] = kk
+        parent[k] = lab[i]
+        reach = kk / cmin if weighted else kk
+        x0 = int(np.floor(u[i, 0] - reach))
+        x1 = int(np.floor(u[i, 0] + reach))
+        y0 = int(np.floor(u[i, 1] - reach))
+        y1 = int(np.floor(u[i, 1] + reach))
+        z0 = int(np.floor(u[i, 2] - reach))
+        z1 = int(np.floor(u[i, 2] + reach))
+        for x in range(x0, x1 + 1):
+            for y in range(y0, y1 + 1):
+                for z in range(z0, z1 + 1):
+                    v = lookup(hkeys, hvals, x, y, z)
+                    if v < 0:
+                        continue
+                    for p in range(cs[v], cs[v + 1]):
+                        if rank[p] >= 0:
+                            continue
+                        dx = u[p, 0] - u[i, 0]
+                        dy = u[p, 1] - u[i, 1]
+                        dz = u[p, 2] - u[i, 2]
+                        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                        if weighted:
+                            dd *= 0.5 * (pcost[p] + pcost[i])
+                        if dd < d[p]:
+                            d[p] = dd
+                            lab[p] = k
+                            maxheap_sift_down(heap, pos, d, pos[p], hn)
+        k += 1
+    return k
