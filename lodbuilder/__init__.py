@@ -17,6 +17,10 @@ _LAZY = {
     "Ordering": "lodbuilder.sampling.ordering",
     "Scan": "lodbuilder.io.base",
     "errors": "lodbuilder.errors",
+    "build_archive": "lodbuilder.api",
+    "open_archive": "lodbuilder.api",
+    "Archive": "lodbuilder.api",
+    "Level": "lodbuilder.archive.levels",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]

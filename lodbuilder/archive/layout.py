@@ -1,0 +1,308 @@
+"""The archive layout: every group, dataset and attribute name, in one place.
+
+The writer, the reader, the validator and the JSON Schema (:mod:`lodbuilder.archive.schema`) all
+take their names from here. An archive is an HDF5 file::
+
+    /                          attrs: format="lodbuilder", schema_version, lodbuilder_version,
+                                      created_utc, modified_utc
+    /index/                    attrs: n_scans; one row per scan, in name order:
+        name                   (S,) fixed-length UTF-8 scan names
+        n_points               (S,) int64
+        bounds_min, bounds_max (S, 3) float64
+    /scans/<name>/             attrs: n_points, n_ordered, coordinate_encoding, bounds_min,
+                                      bounds_max, radius_index_step, build (JSON),
+                                      provenance (JSON), format_metadata (JSON)
+        points                 (N, 3) float64 | float32 | int32 | int64 (+ attrs offset, scale)
+        source_index           (N,) int64: input index of each stored point
+        radius                 (N,) float64: insertion radii, non-increasing; inf for seeds
+        parent                 (N,) int64: stored position of the parent, -1 for roots
+        radius_index           (ceil(N / step),) float64: radius[::step], to find a rho level
+                                                   without reading the whole radius array
+        seeds                  (S,) int64: input indices that started the ordering
+        attributes/<prop>      (N,) or (N, k), the input's dtype, same order as points
+        importance/<map>       (N,) float32, attrs: parameters (JSON)
+        orderings/<name>/      attrs: parameters (JSON), n_ordered
+            order              (K,) int64: positions into the stored points
+            radius             (K,) float64
+            parent             (K,) int64: position in this ordering, -1 for roots
+
+The stored order *is* the default (uniform) farthest point ordering, so a level is a prefix.
+Stored points beyond ``n_ordered`` (points left out of the ordering, e.g. outliers) come last with
+radius 0 and parent -1. Every dataset is chunked along its first axis and carries a fletcher32
+checksum; compression (shuffle + gzip) is used where it pays on the data.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+FORMAT = "lodbuilder"
+SCHEMA_VERSION = 1
+
+# root
+A_FORMAT = "format"
+A_SCHEMA_VERSION = "schema_version"
+A_VERSION = "lodbuilder_version"
+A_CREATED = "created_utc"
+A_MODIFIED = "modified_utc"
+
+# groups
+G_SCANS = "scans"
+G_INDEX = "index"
+G_ATTRIBUTES = "attributes"
+G_IMPORTANCE = "importance"
+G_ORDERINGS = "orderings"
+
+# index datasets
+I_NAME = "name"
+I_N_POINTS = "n_points"
+I_BOUNDS_MIN = "bounds_min"
+I_BOUNDS_MAX = "bounds_max"
+A_N_SCANS = "n_scans"
+
+# scan datasets
+D_POINTS = "points"
+D_SOURCE_INDEX = "source_index"
+D_RADIUS = "radius"
+D_PARENT = "parent"
+D_RADIUS_INDEX = "radius_index"
+D_SEEDS = "seeds"
+D_ORDER = "order"
+
+# scan attributes
+S_N_POINTS = "n_points"
+S_N_ORDERED = "n_ordered"
+S_ENCODING = "coordinate_encoding"
+S_BOUNDS_MIN = "bounds_min"
+S_BOUNDS_MAX = "bounds_max"
+S_RADIUS_STEP = "radius_index_step"
+S_BUILD = "build"
+S_PROVENANCE = "provenance"
+S_FORMAT_METADATA = "format_metadata"
+P_OFFSET = "offset"
+P_SCALE = "scale"
+M_PARAMETERS = "parameters"
+
+ENCODINGS = ("float64", "float32", "int32", "int64")
+RADIUS_INDEX_STEP = 1024
+CHUNK_ROWS = 65536
+GZIP_LEVEL = 4
+LIBVER = ("v110", "latest")
+
+PROVENANCE_KEYS = (
+    "source_name",
+    "source_size",
+    "source_sha256",
+    "reader",
+    "lodbuilder_version",
+    "created_utc",
+)
+
+_FORBIDDEN_NAME_CHARS = set("/\\\x00")
+
+
+def scan_path(name: str) -> str:
+    return f"/{G_SCANS}/{name}"
+
+
+def check_name(name: Any, what: str = "scan name") -> str:
+    """Return ``name`` if it is usable as an HDF5 member name (no path separators)."""
+    if not isinstance(name, str) or not name or not name.strip():
+        raise InputError(f"{what} must be a non-empty string, got {name!r}")
+    bad = sorted(_FORBIDDEN_NAME_CHARS & set(name))
+    if bad or name in (".", "..") or name.startswith(".") or len(name.encode()) > 255:
+        raise InputError(
+            f"{what} {name!r} is not allowed: use at most 255 bytes, no '/', '\\' or NUL, "
+            "and do not start with '.'"
+        )
+    return name
+
+
+def to_json(value: Any) -> str:
+    """JSON text of ``value``, converting NumPy scalars and arrays; non-finite floats as strings."""
+
+    def default(o: Any) -> Any:
+        if isinstance(o, np.integer):
+            return int(o)
+        if isinstance(o, np.floating):
+            return _finite_or_str(float(o))
+        if isinstance(o, np.bool_):
+            return bool(o)
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, (set, tuple)):
+            return list(o)
+        return str(o)
+
+    return json.dumps(_clean(value), default=default, sort_keys=True, allow_nan=False)
+
+
+def _finite_or_str(v: float) -> Any:
+    return v if math.isfinite(v) else str(v)
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, float):
+        return _finite_or_str(value)
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, np.floating):
+        return _finite_or_str(float(value))
+    return value
+
+
+def from_json(text: Any) -> Any:
+    if isinstance(text, bytes):
+        text = text.decode()
+    if text is None or text == "":
+        return {}
+    return json.loads(text)
+
+
+# ---------------------------------------------------------------------------------------------
+# coordinates
+
+
+def encode_points(points: np.ndarray, metadata: dict[str, Any] | None = None):
+    """Choose the smallest lossless storage of ``points``.
+
+    Returns ``(stored_array, encoding, offset, scale)``: float32 when every coordinate is exactly a
+    float32 (e.g. PLY float properties), integers with offset and scale when the metadata gives a
+    LAS-like ``scale``/``offset`` (or ``las_scales``/``las_offsets``) that reproduces every coordinate exactly, float64 otherwise.
+    Decoding (:func:`decode_points`) returns exactly the input.
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    f32 = pts.astype(np.float32)
+    if np.array_equal(f32.astype(np.float64), pts):
+        return f32, "float32", None, None
+    meta = metadata or {}
+    scale = meta.get("scale", meta.get("las_scales"))
+    offset = meta.get("offset", meta.get("las_offsets"))
+    if scale is not None and offset is not None:
+        try:
+            scale = np.asarray(scale, dtype=np.float64).reshape(3)
+            offset = np.asarray(offset, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError):
+            scale = None
+        if scale is not None and np.all(scale > 0) and np.all(np.isfinite(scale)):
+            q = np.rint((pts - offset) / scale)
+            if np.all(np.abs(q) < 2**62):
+                enc = "int32" if np.all(np.abs(q) < 2**31 - 1) else "int64"
+                ints = q.astype(enc)
+                if np.array_equal(decode_points(ints, enc, offset, scale), pts):
+                    return ints, enc, offset, scale
+    return pts, "float64", None, None
+
+
+def decode_points(
+    stored: np.ndarray, encoding: str, offset: Any = None, scale: Any = None
+) -> np.ndarray:
+    """(K, 3) float64 coordinates from the stored array."""
+    if encoding in ("int32", "int64"):
+        out = stored.astype(np.float64)
+        out *= np.asarray(scale, dtype=np.float64)
+        out += np.asarray(offset, dtype=np.float64)
+        return out
+    return np.asarray(stored, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------
+# dataset creation
+
+
+def chunk_shape(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...]:
+    """Chunks along the first axis of about 0.5-1 MiB (at least one row)."""
+    row_bytes = itemsize * int(np.prod(shape[1:], dtype=np.int64)) if len(shape) > 1 else itemsize
+    rows = max(1, min(CHUNK_ROWS, (1 << 20) // max(1, row_bytes)))
+    rows = max(1, min(rows, shape[0])) if shape[0] > 0 else rows
+    return (rows,) + tuple(shape[1:])
+
+
+def compression_pays(data: np.ndarray) -> bool:
+    """True when shuffle + gzip shrinks a sample of ``data`` below 85 %."""
+    if data.size == 0:
+        return False
+    flat = np.ascontiguousarray(data).reshape(data.shape[0], -1)
+    sample = flat[: min(flat.shape[0], 16384)]
+    raw = np.ascontiguousarray(sample).view(np.uint8).reshape(sample.shape[0], -1)
+    item = data.dtype.itemsize
+    # byte shuffle: group byte j of every element together, like HDF5's shuffle filter
+    shuffled = raw.reshape(-1, item).T.tobytes() if item > 1 else raw.tobytes()
+    if not shuffled:
+        return False
+    return len(zlib.compress(shuffled, 1)) < 0.85 * len(shuffled)
+
+
+def create_dataset(group: Any, name: str, data: np.ndarray, attrs: dict[str, Any] | None = None):
+    """Create a chunked, checksummed dataset, compressed where it pays."""
+    data = np.ascontiguousarray(data)
+    kw: dict[str, Any] = {
+        "chunks": chunk_shape(data.shape, data.dtype.itemsize),
+        "fletcher32": True,
+    }
+    if data.shape[0] > 0 and compression_pays(data):
+        kw.update(compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True)
+    if data.shape[0] == 0:
+        kw["maxshape"] = (None,) + tuple(data.shape[1:])
+    ds = group.create_dataset(name, data=data, **kw)
+    for key, value in (attrs or {}).items():
+        ds.attrs[key] = value
+    return ds
+
+
+# ---------------------------------------------------------------------------------------------
+# describing an HDF5 tree as JSON (validated against the schema)
+
+
+def _attr_json(value: Any) -> Any:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.ndarray):
+        return [_attr_json(v) for v in value.tolist()]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, list):
+        return [_attr_json(v) for v in value]
+    return value
+
+
+def describe(node: Any) -> dict[str, Any]:
+    """A JSON document of an open h5py File/Group: groups, datasets (dtype, shape, chunks,
+    filters) and attributes, recursively. This is what ``schemas/archive.schema.json`` describes."""
+    import h5py
+
+    out: dict[str, Any] = {
+        "kind": "group",
+        "attrs": {k: _attr_json(v) for k, v in node.attrs.items()},
+        "members": {},
+    }
+    for key in node:
+        obj = node.get(key, getlink=False)
+        if isinstance(obj, h5py.Group):
+            out["members"][key] = describe(obj)
+        elif isinstance(obj, h5py.Dataset):
+            out["members"][key] = {
+                "kind": "dataset",
+                "dtype": obj.dtype.str[1:] if obj.dtype.kind == "S" else str(obj.dtype),
+                "shape": list(obj.shape),
+                "chunks": list(obj.chunks) if obj.chunks else None,
+                "compression": obj.compression,
+                "fletcher32": bool(obj.fletcher32),
+                "attrs": {k: _attr_json(v) for k, v in obj.attrs.items()},
+            }
+        else:  # pragma: no cover - links to nowhere, committed datatypes
+            out["members"][key] = {"kind": "other"}
+    return out

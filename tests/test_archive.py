@@ -1,0 +1,257 @@
+"""Archive layout, writer and reader: round trips, encodings, errors, atomic updates."""
+
+from __future__ import annotations
+
+import hashlib
+
+import h5py
+import numpy as np
+import pytest
+
+import lodbuilder
+from lodbuilder.archive import layout as L
+from lodbuilder.archive.demo_surface import demo_scan
+from lodbuilder.archive.validate import validate_archive
+from lodbuilder.archive.writer import ScanRecord, add_importance, add_ordering, update_archive
+from lodbuilder.errors import (
+    ArchiveError,
+    CorruptArchiveError,
+    InputError,
+    NotAnArchiveError,
+    ScanFileError,
+    ScanNotFoundError,
+    SchemaVersionError,
+)
+from lodbuilder.io import Scan
+
+
+def sha(path):
+    return hashlib.sha256(open(path, "rb").read()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A 2500-point demo scan, its ordering and an archive holding it."""
+    scan = demo_scan(2500, seed=3, name="wavy")
+    ordg = lodbuilder.fastfps(scan.points)
+    path = tmp_path_factory.mktemp("arc") / "a.h5"
+    update_archive(path, [ScanRecord(scan, ordg, provenance={"source_name": "gen"})])
+    return scan, ordg, path
+
+
+def test_round_trip_prefix_order_and_attributes(small):
+    scan, ordg, path = small
+    with lodbuilder.open_archive(path) as arc:
+        assert arc.scans == ["wavy"]
+        v = arc.scan()
+        assert v.n_points == len(scan) == v.n_ordered
+        np.testing.assert_array_equal(v.source_index, ordg.order)
+        np.testing.assert_array_equal(v.radius, ordg.radius)
+        np.testing.assert_array_equal(v.parent, ordg.parent)
+        np.testing.assert_array_equal(v.points(), scan.points[ordg.order])  # lossless
+        attrs = v.attributes()
+        assert set(attrs) == set(scan.attributes)
+        for key, arr in scan.attributes.items():
+            assert attrs[key].dtype == arr.dtype
+            np.testing.assert_array_equal(attrs[key], arr[ordg.order])
+        assert v.encoding == "float32"  # demo coordinates are float32-exact
+        assert v.provenance["source_name"] == "gen"
+        assert v.provenance["lodbuilder_version"] == lodbuilder.__version__
+        assert v.build["voxel_size"] == ordg.voxel_size
+        assert v.format_metadata["generator"] == "wavy"
+        np.testing.assert_array_equal(v.seeds, ordg.seeds)
+        idx = arc.index()
+        assert idx[0]["name"] == "wavy" and idx[0]["n_points"] == len(scan)
+        np.testing.assert_allclose(idx[0]["bounds_min"], scan.points.min(0))
+    assert validate_archive(path) == []
+
+
+def test_every_dataset_is_chunked_and_checksummed(small):
+    with h5py.File(small[2], "r") as f:
+        seen = []
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                seen.append(name)
+                assert obj.fletcher32, name
+                assert obj.chunks is not None, name
+
+        f.visititems(visit)
+    assert "scans/wavy/points" in seen and "index/name" in seen
+
+
+@pytest.mark.parametrize(
+    "points,meta,encoding",
+    [
+        (np.array([[0.1, 0.2, 0.3], [1e6 + 0.1, 2.0, 3.0]]), {}, "float64"),
+        (np.array([[0.5, 0.25, 1.0], [2.0, 3.0, 4.0]]), {}, "float32"),
+        (
+            np.array([[500000.01, 4000000.02, 10.03], [500001.00, 4000001.99, 11.00]]),
+            {"scale": [0.01, 0.01, 0.01], "offset": [500000.0, 4000000.0, 0.0]},
+            "int32",
+        ),
+    ],
+)
+def test_coordinate_encoding_is_lossless(points, meta, encoding):
+    stored, enc, off, sc = L.encode_points(points, meta)
+    assert enc == encoding
+    np.testing.assert_array_equal(L.decode_points(stored, enc, off, sc), points)
+
+
+def test_offset_scale_not_used_when_lossy():
+    pts = np.array([[500000.012345, 1.0, 2.0], [3.0, 4.0, 5.0]])
+    _, enc, _, _ = L.encode_points(pts, {"scale": [0.01] * 3, "offset": [0.0] * 3})
+    assert enc == "float64"
+
+
+def test_int_encoded_archive_reads_back_exactly(tmp_path, rng):
+    q = rng.integers(0, 100000, size=(400, 3))
+    pts = q * 0.001 + np.array([512000.0, 4.1e6, 100.0])  # as laspy computes x = X * scale + offset
+    meta = {"las_scales": [0.001] * 3, "las_offsets": [512000.0, 4.1e6, 100.0]}
+    scan = Scan(points=pts, name="las_like", metadata=meta)
+    ordg = lodbuilder.euclidean_fps(pts)
+    update_archive(tmp_path / "b.h5", [ScanRecord(scan, ordg)])
+    with lodbuilder.open_archive(tmp_path / "b.h5") as arc:
+        v = arc.scan("las_like")
+        assert v.encoding == "int32"
+        np.testing.assert_array_equal(v.points(), pts[ordg.order])
+
+
+def test_add_scan_keeps_existing_scans_and_duplicate_name_is_refused(small, tmp_path):
+    scan, ordg, path = small
+    p = tmp_path / "c.h5"
+    update_archive(p, [ScanRecord(scan, ordg)])
+    other = demo_scan(800, kind="sphere", seed=1, name="ball")
+    update_archive(p, [ScanRecord(other, lodbuilder.fastfps(other.points))])
+    with lodbuilder.open_archive(p) as arc:
+        assert arc.scans == ["ball", "wavy"]
+        np.testing.assert_array_equal(arc.scan("wavy").points(), scan.points[ordg.order])
+        assert [r["name"] for r in arc.index()] == ["ball", "wavy"]
+    before = sha(p)
+    with pytest.raises(ArchiveError, match=r"already holds scan\(s\) \['ball'\]; pass --overwrite"):
+        update_archive(p, [ScanRecord(other, lodbuilder.fastfps(other.points))])
+    assert sha(p) == before
+    smaller = demo_scan(300, kind="sphere", seed=2, name="ball")
+    update_archive(p, [ScanRecord(smaller, lodbuilder.fastfps(smaller.points))], overwrite=True)
+    with lodbuilder.open_archive(p) as arc:
+        assert arc.scan("ball").n_points == 300
+    assert validate_archive(p) == []
+
+
+def test_importance_and_extra_ordering(small, tmp_path):
+    scan, ordg, path = small
+    p = tmp_path / "d.h5"
+    update_archive(p, [ScanRecord(scan, ordg)])
+    values = np.linspace(0, 1, len(scan))
+    add_importance(p, "wavy", "curvature", values, {"k": 16})
+    perm = np.random.default_rng(0).permutation(len(scan))
+    extra = lodbuilder.fastfps(scan.points, seeds=[int(perm[0])])
+    add_ordering(p, "wavy", "other", extra, {"kind": "test"})
+    with lodbuilder.open_archive(p) as arc:
+        v = arc.scan()
+        np.testing.assert_allclose(
+            v.importance("curvature"), values[v.source_index].astype(np.float32)
+        )
+        assert v.importance_parameters("curvature") == {"k": 16}
+        assert v.ordering_names == ["other"]
+        lev = v.level(size=50, ordering="other")
+        np.testing.assert_array_equal(lev.source_index, extra.order[:50])
+        np.testing.assert_array_equal(lev.points, scan.points[extra.order[:50]])
+        assert v.ordering_parameters("other")["kind"] == "test"
+        with pytest.raises(InputError, match="has no ordering 'nope'"):
+            v.level(size=5, ordering="nope")
+        with pytest.raises(InputError, match=r"importance map 'x' must hold one number per point"):
+            add_importance(p, "wavy", "x", np.ones(3))
+    assert validate_archive(p) == []
+
+
+def test_not_an_archive_and_newer_schema(tmp_path, small):
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"hello, not hdf5")
+    with pytest.raises(NotAnArchiveError, match="is not an lodbuilder archive"):
+        lodbuilder.open_archive(junk)
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f["x"] = 1
+    with pytest.raises(NotAnArchiveError, match="HDF5 file but not an lodbuilder archive"):
+        lodbuilder.open_archive(other)
+    newer = tmp_path / "newer.h5"
+    newer.write_bytes(small[2].read_bytes())
+    with h5py.File(newer, "r+") as f:
+        f.attrs["schema_version"] = np.int64(L.SCHEMA_VERSION + 1)
+    with pytest.raises(SchemaVersionError, match=r"schema version 2, newer than the 1 .*upgrade"):
+        lodbuilder.open_archive(newer)
+    with pytest.raises(ScanFileError, match="does not exist"):
+        lodbuilder.open_archive(tmp_path / "missing.h5")
+
+
+def test_unknown_scan_and_ambiguous_scan(small, tmp_path):
+    with lodbuilder.open_archive(small[2]) as arc:
+        with pytest.raises(ScanNotFoundError, match="has no scan 'nope'; it holds wavy"):
+            arc.scan("nope")
+
+
+def _flip_byte_in_dataset(path, dataset):
+    with h5py.File(path, "r") as f:
+        ds = f[dataset]
+        offset = ds.id.get_chunk_info(0).byte_offset
+        size = ds.id.get_chunk_info(0).size
+    with open(path, "r+b") as fh:
+        fh.seek(offset + size // 2)
+        b = fh.read(1)
+        fh.seek(offset + size // 2)
+        fh.write(bytes([b[0] ^ 0xFF]))
+
+
+def test_checksum_failure_names_scan_and_dataset(small, tmp_path):
+    p = tmp_path / "bad.h5"
+    p.write_bytes(small[2].read_bytes())
+    _flip_byte_in_dataset(p, "scans/wavy/radius")
+    with lodbuilder.open_archive(p) as arc:
+        v = arc.scan()
+        with pytest.raises(
+            CorruptArchiveError, match=r"scan 'wavy' dataset /scans/wavy/radius fails its checksum"
+        ):
+            v.level(size=10)
+    faults = validate_archive(p)
+    assert any("/scans/wavy/radius" in f for f in faults)
+
+
+def test_bad_scan_names_are_refused(small):
+    scan, ordg, _ = small
+    for bad in ["a/b", "", ".hidden"]:
+        s = Scan(points=scan.points, name=bad)
+        with pytest.raises(InputError, match="scan name"):
+            update_archive("/tmp/never-written.h5", [ScanRecord(s, ordg)])
+
+
+def test_record_size_mismatch(small, tmp_path):
+    scan, ordg, _ = small
+    s = Scan(points=scan.points[:10], name="x")
+    with pytest.raises(
+        InputError, match="ordering of scan 'x' is for 2500 points but the scan has 10"
+    ):
+        update_archive(tmp_path / "e.h5", [ScanRecord(s, ordg)])
+    assert not (tmp_path / "e.h5").exists()
+
+
+def test_partial_ordering_tail_is_stored_last(tmp_path, rng):
+    pts = rng.random((300, 3))
+    ordg = lodbuilder.euclidean_fps(pts, size=200)
+    update_archive(tmp_path / "f.h5", [ScanRecord(Scan(points=pts, name="p"), ordg)])
+    with lodbuilder.open_archive(tmp_path / "f.h5") as arc:
+        v = arc.scan()
+        assert (v.n_points, v.n_ordered) == (300, 200)
+        assert sorted(v.source_index) == list(range(300))
+        assert (v.radius[200:] == 0).all()
+        assert v.level(fraction=1.0).size == 200
+        with pytest.raises(
+            InputError, match=r"size must be between 1 and the number of points \(200\)"
+        ):
+            v.level(size=201)
+    assert validate_archive(tmp_path / "f.h5") == []
+
+
+def test_compression_pays_decision():
+    assert L.compression_pays(np.zeros(10000, dtype=np.int64))
+    assert not L.compression_pays(np.random.default_rng(0).random(10000))
