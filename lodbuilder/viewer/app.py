@@ -1,0 +1,451 @@
+"""The PyVista level viewer. Importing this module imports PyVista: only the viewer does.
+
+One :class:`LevelViewer` owns one ``pyvista.Plotter`` with the current level on the left and the
+full scan on the right (cameras linked). A level change swaps the level mesh's point, vertex and
+colour arrays in place (zero-copy views of the stored prefix); no actor is added or removed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray
+
+from ..errors import InputError
+from .data import ViewData
+
+log = logging.getLogger(__name__)
+
+VIEWS = ("iso", "xy", "xz", "yz", "yx", "zx", "zy")
+HELP = (
+    "slider: level (log10 points)   c: colour mode   l: eye-dome lighting   b: refine in a box\n"
+    "m: surface of the level   +/-: point size   Left/Right: level /2, x2   q: quit"
+)
+
+
+def _vtk_array(arr: np.ndarray, name: str):
+    a = numpy_to_vtk(arr, deep=False)
+    a.SetName(name)
+    return a
+
+
+class LevelViewer:
+    """An interactive (or off-screen) window over the levels of :class:`ViewData`.
+
+    Args:
+        data: the scan(s) to show.
+        size: initial level size (default: 5 % of the points, at least 1000 and at most N).
+        colour: initial colour mode (default: ``rgb`` when the scan has colours, else ``radius``).
+        off_screen: render without a window (screenshots, animations, tests).
+        full_scan: show the full scan side by side, cameras linked.
+        window_size: pixels (width, height).
+        point_scale: multiplies the point size that follows rho.
+        edl: start with eye-dome lighting on.
+        view: initial camera direction (``iso``, ``xy``, ``xz``, ``yz``, ...).
+        refine_factor: inside the refinement box, rho is divided by this.
+    """
+
+    def __init__(
+        self,
+        data: ViewData,
+        *,
+        size: int | None = None,
+        colour: str | None = None,
+        off_screen: bool = False,
+        full_scan: bool = True,
+        window_size: Sequence[int] | None = None,
+        point_scale: float = 1.0,
+        edl: bool = False,
+        view: str = "iso",
+        refine_factor: float = 4.0,
+        show_help: bool = True,
+    ) -> None:
+        if view not in VIEWS:
+            raise InputError(f"view must be one of {', '.join(VIEWS)}, got {view!r}")
+        self.data = data
+        n = len(data)
+        self.k = data.clamp_size(size if size is not None else min(n, max(1000, n // 20)))
+        modes = data.colour_modes()
+        self.mode = data.check_mode(colour) if colour else modes[0]
+        self.point_scale = float(point_scale)
+        self.refine_factor = float(refine_factor)
+        self.box: tuple[np.ndarray, np.ndarray] | None = None
+        self.edl = False
+        self.full_scan = bool(full_scan)
+        self._ids = np.arange(n + 1, dtype=np.int64)
+        self._positions: np.ndarray | None = None  # None: the level is the prefix [0, k)
+        self._refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # arrays VTK views, per mesh
+        self._colours = data.colours(self.mode, self.k)
+        self._surface_actor = None
+        # the full scan's spacing, from the level of half the points (rho ~ 1/sqrt(k) on a surface)
+        self._full_rho = data.rho_for_size(max(1, len(data) // 2)) / math.sqrt(2.0)
+        if window_size is None:
+            window_size = (1600, 800) if full_scan else (1000, 800)
+        shape = (1, 2) if full_scan else (1, 1)
+        self.plotter = pv.Plotter(off_screen=off_screen, shape=shape, window_size=list(window_size))
+        self.plotter.set_background("white")
+
+        self.level_mesh = pv.PolyData()
+        self._update_level_arrays()
+        self.plotter.subplot(0, 0)
+        self.level_actor = self.plotter.add_mesh(
+            self.level_mesh, scalars="colours", rgb=True, style="points", point_size=3.0
+        )
+        self._text = self.plotter.add_text("", position="upper_left", font_size=10, color="black")
+        if show_help and not off_screen:
+            self.plotter.add_text(HELP, position="lower_left", font_size=7, color="gray")
+        self.full_mesh = None
+        if full_scan:
+            self.plotter.subplot(0, 1)
+            self.full_mesh = pv.PolyData()
+            self._set_arrays(self.full_mesh, data.points, n, self._colours)
+            self.full_actor = self.plotter.add_mesh(
+                self.full_mesh, scalars="colours", rgb=True, style="points", point_size=2.0
+            )
+            names = ", ".join(data.scan_names)
+            self.plotter.add_text(
+                f"full scan: {n:,} points ({names})",
+                position="upper_left",
+                font_size=10,
+                color="black",
+            )
+            self.plotter.link_views()
+        self.plotter.subplot(0, 0)
+        self._set_view(view)
+        self._update_point_size()
+        self._update_text()
+        if edl:
+            self.toggle_edl()
+
+    # ---- arrays -------------------------------------------------------------------------------
+
+    def _set_arrays(self, mesh: pv.PolyData, pts: np.ndarray, m: int, colours: np.ndarray) -> None:
+        """Point ``mesh`` at ``pts``/``colours`` (no copy when they are contiguous) with m vertices."""
+        pts = np.ascontiguousarray(pts)
+        colours = np.ascontiguousarray(colours)
+        self._refs[id(mesh)] = (pts, colours)
+        vp = vtkPoints()
+        vp.SetData(numpy_to_vtk(pts, deep=False))
+        mesh.SetPoints(vp)
+        cells = vtkCellArray()
+        cells.SetData(
+            numpy_to_vtkIdTypeArray(self._ids[: m + 1], deep=False),
+            numpy_to_vtkIdTypeArray(self._ids[:m], deep=False),
+        )
+        mesh.SetVerts(cells)
+        pd = mesh.GetPointData()
+        pd.AddArray(_vtk_array(colours, "colours"))
+        pd.SetActiveScalars("colours")
+        mesh.Modified()
+
+    def _update_level_arrays(self) -> None:
+        k = self.k
+        if self.box is None:
+            self._positions = None
+            pts, col = self.data.points[:k], self._colours[:k]
+        else:
+            pos = self.data.selective(k, self.box[0], self.box[1], self.refine_factor)
+            self._positions = pos
+            pts, col = self.data.points[pos], self._colours[pos]
+        self._set_arrays(self.level_mesh, pts, pts.shape[0], col)
+
+    def _update_full_colours(self) -> None:
+        if self.full_mesh is not None:
+            self._refs[id(self.full_mesh)] = (self.data.points, self._colours)
+            pd = self.full_mesh.GetPointData()
+            pd.AddArray(_vtk_array(self._colours, "colours"))
+            pd.SetActiveScalars("colours")
+            self.full_mesh.Modified()
+
+    @property
+    def n_displayed(self) -> int:
+        """Number of points the level mesh currently draws."""
+        return int(self.level_mesh.GetNumberOfVerts())
+
+    @property
+    def rho(self) -> float:
+        return self.data.rho_for_size(self.k)
+
+    # ---- level, colour, size ------------------------------------------------------------------
+
+    def set_level(self, k: float, render: bool = True) -> int:
+        """Show the level of ``k`` points (the prefix, refined inside the box if one is set)."""
+        self.k = self.data.clamp_size(k)
+        if self.mode == "voronoi":
+            self._colours = self.data.colours(self.mode, self.k)
+            self._update_full_colours()
+        self._update_level_arrays()
+        if self._surface_actor is not None:
+            self._remove_surface()
+        self._update_point_size()
+        self._update_text()
+        if render:
+            self._render_level()
+        return self.k
+
+    def _render_level(self) -> None:
+        """Render after a change of the level panel only: the full-scan panel is left as drawn
+        (it is not redrawn unless its colours change), which halves the cost of a slider move."""
+        if self.full_mesh is None or self.mode == "voronoi":
+            self.plotter.render()
+            return
+        full = self.plotter.renderers[1]
+        full.SetDraw(False)
+        try:
+            self.plotter.render()
+        finally:
+            full.SetDraw(True)
+
+    def set_rho(self, rho: float, render: bool = True) -> int:
+        """Show the smallest level that covers the scan within ``rho``."""
+        return self.set_level(self.data.size_for_rho(rho), render)
+
+    def on_slider(self, value: float) -> None:
+        """Slider callback: ``value`` is log10 of the point count."""
+        self.set_level(10.0 ** float(value))
+
+    def set_colour(self, mode: str, render: bool = True) -> str:
+        self.mode = self.data.check_mode(mode)
+        self._colours = self.data.colours(self.mode, self.k)
+        self._update_level_arrays()
+        self._update_full_colours()
+        self._update_text()
+        if render:
+            self.plotter.render()
+        return self.mode
+
+    def next_colour(self) -> str:
+        modes = self.data.colour_modes()
+        i = modes.index(self.mode) if self.mode in modes else -1
+        return self.set_colour(modes[(i + 1) % len(modes)])
+
+    def _pixels_per_unit(self) -> float:
+        ren = self.plotter.renderers[0]
+        cam = ren.GetActiveCamera()
+        h_px = max(1, ren.GetSize()[1])
+        if cam.GetParallelProjection():
+            visible = 2.0 * cam.GetParallelScale()
+        else:
+            visible = 2.0 * cam.GetDistance() * math.tan(math.radians(cam.GetViewAngle()) / 2.0)
+        return h_px / max(visible, 1e-300)
+
+    def point_size_for(self, rho: float) -> float:
+        """Screen size (pixels) of a point at density ``rho``: a disc of diameter ~rho."""
+        if rho <= 0:
+            rho = self.data.rho_for_size(len(self.data) - 1) or self.data.diagonal * 1e-3
+        if self.box is not None:
+            rho = rho / self.refine_factor
+        px = rho * self._pixels_per_unit() * self.point_scale
+        return float(min(40.0, max(1.0, px)))
+
+    def _update_point_size(self) -> None:
+        self.level_actor.GetProperty().SetPointSize(self.point_size_for(self.rho))
+        if self.full_mesh is not None:
+            self.full_actor.GetProperty().SetPointSize(
+                max(2.0, self.point_size_for(self._full_rho))
+            )
+
+    def scale_points(self, factor: float) -> None:
+        self.point_scale *= factor
+        self._update_point_size()
+        self.plotter.render()
+
+    def _update_text(self) -> None:
+        n = len(self.data)
+        box = (
+            f", x{self.refine_factor:g} finer in box ({self.n_displayed:,} shown)"
+            if self.box
+            else ""
+        )
+        self._text.SetText(
+            2,
+            f"level: {self.k:,} of {n:,} points ({100.0 * self.k / n:.3g} %), rho = {self.rho:.4g}{box}\n"
+            f"colour: {self.mode}",
+        )
+
+    # ---- view ---------------------------------------------------------------------------------
+
+    def _set_view(self, view: str) -> None:
+        self.plotter.subplot(0, 0)
+        bounds = np.column_stack(
+            [self.data.points.min(axis=0), self.data.points.max(axis=0)]
+        ).ravel()
+        if view == "iso":
+            self.plotter.view_isometric(bounds=bounds)
+        else:
+            getattr(self.plotter, f"view_{view}")(bounds=bounds)
+        self.plotter.reset_camera(bounds=bounds)
+
+    def toggle_edl(self) -> bool:
+        """Switch eye-dome lighting on or off in every panel."""
+        self.edl = not self.edl
+        for ren in self.plotter.renderers:
+            if self.edl:
+                ren.enable_eye_dome_lighting()
+            else:
+                ren.disable_eye_dome_lighting()
+        self.plotter.render()
+        return self.edl
+
+    # ---- selective refinement -----------------------------------------------------------------
+
+    def set_box(self, lo, hi, render: bool = True) -> None:
+        """Refine inside the axis-aligned box [lo, hi] (``None`` to clear)."""
+        if lo is None:
+            self.box = None
+        else:
+            lo_a, hi_a = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+            if lo_a.shape != (3,) or hi_a.shape != (3,) or np.any(hi_a < lo_a):
+                raise InputError(f"box must be xmin ymin zmin <= xmax ymax zmax, got {lo} and {hi}")
+            self.box = (lo_a, hi_a)
+        self.set_level(self.k, render)
+
+    def _on_box_widget(self, box) -> None:
+        b = np.asarray(box.GetBounds() if hasattr(box, "GetBounds") else box.bounds)
+        self.set_box(b[0::2], b[1::2])
+
+    def toggle_box_widget(self) -> None:
+        """Show a box widget on the level (refining inside it), or remove it and the refinement."""
+        self.plotter.subplot(0, 0)
+        if self.plotter.box_widgets:
+            self.plotter.clear_box_widgets()
+            self.set_box(None, None)
+            return
+        lo, hi = self.data.points.min(axis=0), self.data.points.max(axis=0)
+        c, half = (lo + hi) / 2, (hi - lo) / 4
+        bounds = np.column_stack([c - half, c + half]).ravel()
+        self.plotter.add_box_widget(
+            self._on_box_widget, bounds=bounds, factor=1.0, rotation_enabled=False
+        )
+        self.set_box(c - half, c + half)
+
+    # ---- surface ------------------------------------------------------------------------------
+
+    def reconstruct(self) -> pv.PolyData:
+        """A surface of the current level (VTK surface reconstruction; Delaunay 2D fallback)."""
+        pts = pv.PolyData(np.ascontiguousarray(self.level_mesh.points, dtype=np.float64))
+        surf = None
+        if pts.n_points >= 10:
+            try:
+                spacing = 0.5 * self.rho if self.rho > 0 else None
+                surf = pts.reconstruct_surface(
+                    nbr_sz=min(20, pts.n_points - 1), sample_spacing=spacing
+                )
+            except Exception as exc:  # VTK raises on degenerate inputs
+                log.info("reconstruct_surface failed (%s); using delaunay_2d", exc)
+        if surf is None or surf.n_cells == 0:
+            surf = pts.delaunay_2d()
+        return surf
+
+    def toggle_surface(self) -> bool:
+        if self._surface_actor is not None:
+            self._remove_surface()
+            self.plotter.render()
+            return False
+        self.plotter.subplot(0, 0)
+        self._surface_actor = self.plotter.add_mesh(
+            self.reconstruct(), color="lightgray", smooth_shading=True, name="level-surface"
+        )
+        self.level_actor.SetVisibility(False)
+        self.plotter.render()
+        return True
+
+    def _remove_surface(self) -> None:
+        self.plotter.subplot(0, 0)
+        self.plotter.remove_actor(self._surface_actor, render=False)
+        self._surface_actor = None
+        self.level_actor.SetVisibility(True)
+
+    # ---- interaction --------------------------------------------------------------------------
+
+    def add_controls(self) -> None:
+        """Slider and key bindings of the interactive window."""
+        n = len(self.data)
+        self.plotter.subplot(0, 0)
+        self.plotter.add_slider_widget(
+            self.on_slider,
+            rng=[0.0, math.log10(n) if n > 1 else 1.0],
+            value=math.log10(self.k),
+            title="log10(points)",
+            pointa=(0.05, 0.1),
+            pointb=(0.95, 0.1),
+            style="modern",
+            interaction_event="always",
+        )
+        self.plotter.add_key_event("c", self.next_colour)
+        self.plotter.add_key_event("l", self.toggle_edl)
+        self.plotter.add_key_event("b", self.toggle_box_widget)
+        self.plotter.add_key_event("m", self.toggle_surface)
+        self.plotter.add_key_event("plus", lambda: self.scale_points(1.25))
+        self.plotter.add_key_event("minus", lambda: self.scale_points(0.8))
+        self.plotter.add_key_event("Right", lambda: self.set_level(self.k * 2))
+        self.plotter.add_key_event("Left", lambda: self.set_level(self.k / 2))
+
+    def show(self) -> None:
+        self.add_controls()
+        self.plotter.show(title="lodbuilder view")
+
+    # ---- off screen ---------------------------------------------------------------------------
+
+    def image(self) -> np.ndarray:
+        """(H, W, 3) uint8 of the current frame."""
+        self.plotter.render()
+        return np.asarray(self.plotter.screenshot(None, return_img=True))
+
+    def screenshot(self, out: str | os.PathLike) -> Path:
+        """Write the current frame as PNG (atomically: temp file, then rename)."""
+        out = Path(out)
+        if out.suffix.lower() != ".png":
+            raise InputError(f"screenshot {out} must end in .png")
+        img = self.image()
+        from PIL import Image
+
+        _atomic_write(out, lambda tmp: Image.fromarray(img).save(tmp, format="PNG"))
+        return out
+
+    def animate(
+        self,
+        out: str | os.PathLike,
+        *,
+        frames: int = 40,
+        fps: float = 10.0,
+        start: int | None = None,
+    ) -> Path:
+        """Write an animation from coarse (``start`` points) to the full scan: GIF, or MP4 when
+        imageio-ffmpeg is installed."""
+        from .movie import write_movie
+
+        out = Path(out)
+        n = len(self.data)
+        lo = start if start is not None else max(1, min(n, 10))
+        sizes = np.unique(np.round(np.geomspace(lo, n, max(2, int(frames)))).astype(np.int64))
+        images = []
+        for s in sizes:
+            self.set_level(int(s), render=False)
+            images.append(self.image())
+        return write_movie(out, images, fps)
+
+    def close(self) -> None:
+        self.plotter.close()
+
+
+def _atomic_write(out: Path, write) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

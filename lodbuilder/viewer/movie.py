@@ -1,0 +1,69 @@
+"""Write frames as an animated GIF (Pillow, or imageio when installed) or an MP4 (imageio-ffmpeg)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, MissingDependencyError
+
+SUFFIXES = (".gif", ".mp4")
+
+
+def check_movie_path(out: str | os.PathLike) -> Path:
+    """Raise unless ``out`` names a format that can be written here."""
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise InputError(f"animation {out} must end in .gif or .mp4")
+    if suffix == ".mp4":
+        try:
+            import imageio.v2  # noqa: F401
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError:
+            raise MissingDependencyError(
+                f"writing {out.name} needs imageio and imageio-ffmpeg "
+                "(pip install imageio imageio-ffmpeg); or ask for a .gif"
+            ) from None
+    return out
+
+
+def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 10.0) -> Path:
+    """Write (H, W, 3) uint8 frames to ``out`` (.gif or .mp4), atomically."""
+    out = check_movie_path(out)
+    if not frames:
+        raise InputError(f"no frame to write to {out}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
+    os.close(fd)
+    try:
+        if out.suffix.lower() == ".mp4":
+            import imageio.v2 as iio
+
+            with iio.get_writer(tmp, fps=fps, macro_block_size=1) as w:
+                for f in frames:
+                    w.append_data(np.asarray(f, dtype=np.uint8))
+        else:
+            from PIL import Image
+
+            imgs = [Image.fromarray(np.asarray(f, dtype=np.uint8)).convert("RGB") for f in frames]
+            pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT) for im in imgs]
+            pal[0].save(
+                tmp,
+                format="GIF",
+                save_all=True,
+                append_images=pal[1:],
+                duration=int(round(1000.0 / fps)),
+                loop=0,
+                optimize=False,
+            )
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out

@@ -1,0 +1,166 @@
+"""Off-screen rendering of the level viewer (EGL, no X): screenshots, slider, modes, animation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.viewer
+
+
+@pytest.fixture(scope="module")
+def bunny_view(shared_data):
+    """bun_zipper_res3 (1,889 points) in Euclidean farthest-point order, as ViewData."""
+    from plyfile import PlyData
+
+    from lodbuilder import euclidean_fps
+    from lodbuilder.viewer.data import from_arrays
+
+    v = PlyData.read(str(shared_data / "bun_zipper_res3.ply"))["vertex"].data
+    pts = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    o = euclidean_fps(pts)
+    p = pts[o.order]
+    return from_arrays(p, o.radius, o.parent, importance={"height": p[:, 1]}, name="bunny")
+
+
+@pytest.fixture
+def viewer(bunny_view):
+    from lodbuilder.viewer.app import LevelViewer
+
+    vw = LevelViewer(
+        bunny_view, off_screen=True, size=200, colour="radius", view="xy", window_size=(400, 200)
+    )
+    yield vw
+    vw.close()
+
+
+def non_background(img: np.ndarray) -> int:
+    return int(np.count_nonzero(np.any(img < 245, axis=2)))
+
+
+def test_screenshot_is_not_blank(viewer, tmp_path):
+    from PIL import Image
+
+    out = viewer.screenshot(tmp_path / "level.png")
+    img = np.asarray(Image.open(out).convert("RGB"))
+    assert img.shape == (200, 400, 3)
+    left, right = img[:, :200], img[:, 200:]
+    # both panels show points: a few hundred coloured pixels at least, in many colours
+    assert non_background(left) > 500 and non_background(right) > 500
+    assert len(np.unique(left.reshape(-1, 3), axis=0)) > 20
+    assert [p.name for p in tmp_path.iterdir()] == ["level.png"]
+
+
+def test_screenshot_differs_between_levels_and_modes(viewer):
+    viewer.set_level(20)
+    coarse = viewer.image().astype(int)
+    viewer.set_level(1500)
+    fine = viewer.image().astype(int)
+    assert np.abs(fine - coarse)[:, :200].mean() > 1.0
+    # near the full size, the level panel looks like the full-scan panel; a coarse level does not
+    below_text = slice(40, 200)
+    full_panel = fine[below_text, 200:]
+    assert (
+        np.abs(fine[below_text, :200] - full_panel).mean()
+        < np.abs(coarse[below_text, :200] - full_panel).mean()
+    )
+    # the full-scan panel does not depend on the level (radius colours)
+    assert np.abs(fine - coarse)[:, 200:].mean() < 0.5
+    by_rank = (viewer.set_colour("rank"), viewer.image().astype(int))[1]
+    by_height = (viewer.set_colour("importance"), viewer.image().astype(int))[1]
+    assert np.abs(by_rank - fine).mean() > 1.0
+    assert np.abs(by_height - by_rank).mean() > 1.0
+
+
+def test_slider_sets_displayed_point_count_in_place(viewer, bunny_view):
+    actors = dict(viewer.plotter.renderers[0].actors)
+    mesh_id = id(viewer.level_mesh)
+    for k in (1, 10, 123, 1000, len(bunny_view)):
+        viewer.on_slider(math.log10(k))
+        assert viewer.k == k
+        assert viewer.n_displayed == k
+        assert viewer.level_mesh.n_points == k
+        np.testing.assert_array_equal(viewer.level_mesh.points, bunny_view.points[:k])
+    assert dict(viewer.plotter.renderers[0].actors) == actors  # no actor added or removed
+    assert id(viewer.level_mesh) == mesh_id
+    k = viewer.set_rho(bunny_view.rho_for_size(300))
+    assert k <= 300 and viewer.n_displayed == k
+    assert bunny_view.radius[k] <= bunny_view.rho_for_size(300)
+
+
+def test_point_size_follows_rho(viewer):
+    viewer.set_level(10)
+    coarse = viewer.level_actor.GetProperty().GetPointSize()
+    viewer.set_level(1000)
+    fine = viewer.level_actor.GetProperty().GetPointSize()
+    assert coarse > fine >= 1.0
+
+
+def test_box_refines_inside(viewer, bunny_view):
+    viewer.set_level(50)
+    lo = bunny_view.points.min(axis=0)
+    hi = (bunny_view.points.min(axis=0) + bunny_view.points.max(axis=0)) / 2
+    viewer.set_box(lo, hi)
+    want = bunny_view.selective(50, lo, hi, viewer.refine_factor)
+    assert viewer.n_displayed == want.size > 50
+    viewer.set_box(None, None)
+    assert viewer.n_displayed == 50
+
+
+def test_voronoi_mode_colours_full_scan_by_cell(viewer, bunny_view):
+    viewer.set_colour("voronoi")
+    viewer.set_level(8)
+    img8 = viewer.image()
+    viewer.set_level(200)
+    img200 = viewer.image()
+    # the full-scan panel shows the cells of the current level, so it changes with the level
+    assert np.abs(img8[:, 200:].astype(int) - img200[:, 200:]).mean() > 1.0
+    full = np.asarray(viewer.full_mesh.point_data["colours"])
+    assert len({tuple(c) for c in full}) <= 200
+
+
+def test_eye_dome_lighting_and_surface(viewer):
+    viewer.set_level(1500)
+    plain = viewer.image().astype(int)
+    assert viewer.toggle_edl() is True
+    edl = viewer.image().astype(int)
+    assert np.abs(edl - plain).mean() > 0.5
+    viewer.toggle_edl()
+    surf = viewer.reconstruct()
+    assert surf.n_cells > 100
+    assert viewer.toggle_surface() is True
+    shown = viewer.image().astype(int)
+    assert np.abs(shown - plain)[:, :200].mean() > 1.0
+    viewer.set_level(100)  # a level change drops the stale surface
+    assert viewer._surface_actor is None and viewer.level_actor.GetVisibility()
+
+
+def test_animation_gif(viewer, tmp_path):
+    from PIL import Image
+
+    out = viewer.animate(tmp_path / "a.gif", frames=6)
+    with Image.open(out) as im:
+        assert im.n_frames == 6
+        im.seek(0)
+        first = np.asarray(im.convert("RGB")).astype(int)
+        im.seek(5)
+        last = np.asarray(im.convert("RGB")).astype(int)
+    assert np.abs(first - last).mean() > 1.0
+    assert viewer.k == 1889
+
+
+def test_bad_outputs(viewer, tmp_path):
+    from lodbuilder.errors import InputError, MissingDependencyError
+
+    with pytest.raises(InputError, match=r"screenshot .*x\.jpg must end in \.png"):
+        viewer.screenshot(tmp_path / "x.jpg")
+    with pytest.raises(InputError, match=r"animation .*x\.avi must end in \.gif or \.mp4"):
+        viewer.animate(tmp_path / "x.avi")
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        with pytest.raises(MissingDependencyError, match="needs imageio and imageio-ffmpeg"):
+            viewer.animate(tmp_path / "x.mp4")
+    assert list(tmp_path.iterdir()) == []
