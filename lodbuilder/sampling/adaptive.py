@@ -128,7 +128,11 @@ def weighted_ordering(
     f = validate_cost(cost, n)
     ex = check_exclude(exclude, n)
     o = order_subset(pts, ex, cost=f, seeds=seeds, **engine)
-    stats = dict(o.stats) | {"kind": "weighted", "cost_min": float(f.min()), "cost_max": float(f.max())}
+    stats = dict(o.stats) | {
+        "kind": "weighted",
+        "cost_min": float(f.min()),
+        "cost_max": float(f.max()),
+    }
     return Ordering(o.order, o.radius, o.parent, o.voxel_size, o.band_radius, o.seeds, n, stats)
 
 
@@ -180,7 +184,9 @@ def density_floor_ordering(
                 "pass a full uniform ordering or one stopped at rho0"
             )
     if ex is not None and ex[uniform.order[:n0]].any():
-        raise InputError("uniform ordering includes excluded points; build it with the same exclude")
+        raise InputError(
+            "uniform ordering includes excluded points; build it with the same exclude"
+        )
     w = order_subset(pts, ex, cost=f, seeds=uniform.order[:n0], **engine)
     radius = w.radius.copy()
     parent = w.parent.copy()
@@ -191,7 +197,9 @@ def density_floor_ordering(
         # only numerical slack of the band engine can get here (the bound says <= rho0 < radius[n0-1])
         cap = radius[n0 - 1]
         clamped = int((radius[n0:] > cap).sum())
-        log.warning("density floor: %d weighted radii above the floor's last radius, capped", clamped)
+        log.warning(
+            "density floor: %d weighted radii above the floor's last radius, capped", clamped
+        )
         radius[n0:] = np.minimum(radius[n0:], cap)
     stats = dict(w.stats) | {
         "kind": "density_floor",
@@ -328,7 +336,9 @@ def build_orderings(
         out["weighted"] = _with_stats(o, params)
         report(progress, "orderings", 1, total)
     if density_floor is not None:
-        o = density_floor_ordering(pts, cost, density_floor, uniform=uniform, exclude=exclude, **engine)
+        o = density_floor_ordering(
+            pts, cost, density_floor, uniform=uniform, exclude=exclude, **engine
+        )
         out["floor"] = _with_stats(o, params)
         report(progress, "orderings", total, total)
     return out
@@ -336,6 +346,12 @@ def build_orderings(
 
 def _with_stats(o: Ordering, params: dict[str, Any]) -> Ordering:
     return Ordering(
-        o.order, o.radius, o.parent, o.voxel_size, o.band_radius, o.seeds, o.n_points,
+        o.order,
+        o.radius,
+        o.parent,
+        o.voxel_size,
+        o.band_radius,
+        o.seeds,
+        o.n_points,
         dict(o.stats) | params,
     )
