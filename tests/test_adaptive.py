@@ -1,0 +1,186 @@
+"""Weighted FastFPS, the density floor and its instant query, outlier exclusion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from lodbuilder import fastfps
+from lodbuilder.errors import InputError
+from lodbuilder.features import combine_maps, cost_from_weights, noise_score, surface_variation
+from lodbuilder.sampling.adaptive import (
+    build_orderings,
+    density_floor_ordering,
+    floor_query,
+    floor_query_arrays,
+    weighted_ordering,
+)
+
+
+def flat_and_curved(half=48, r=6.0, jitter=0.2, seed=0):
+    """A flat half (x < 0) joined to a corrugated half (x > 0) of alternating half-cylinders of
+    radius ``r``, both sampled evenly by area (unit spacing, jittered), with equal areas.
+
+    Returns (points, curved mask).
+    """
+    rng = np.random.default_rng(seed)
+    u = np.arange(half) + 0.5
+    uu, yy = np.meshgrid(u, u, indexing="ij")
+    uu = (uu + rng.uniform(-jitter, jitter, uu.shape)).ravel()
+    yy = (yy + rng.uniform(-jitter, jitter, yy.shape)).ravel()
+    flat = np.c_[-uu, yy, np.zeros_like(uu)]
+    j = np.floor(uu / (np.pi * r))  # which half-cylinder, by arc length along the profile
+    th = (uu - j * np.pi * r) / r
+    x = (2 * j + 1) * r - r * np.cos(th)
+    z = np.where(j % 2 == 0, 1.0, -1.0) * r * np.sin(th)
+    curved = np.c_[x, yy, z]
+    return np.vstack([flat, curved]), np.r_[np.zeros(uu.size, bool), np.ones(uu.size, bool)]
+
+
+@pytest.fixture(scope="module")
+def shape():
+    pts, curved = flat_and_curved()
+    v, _ = surface_variation(pts, k=16)
+    w = combine_maps({"curvature": v}, len(pts))
+    return pts, curved, w
+
+
+def covering(points, kept):
+    d, _ = cKDTree(points[kept]).query(points)
+    return float(d.max())
+
+
+def test_curvature_map_separates_the_halves(shape):
+    _, curved, w = shape
+    assert np.median(w[~curved]) == 0
+    assert np.median(w[curved]) > 0.4
+
+
+@pytest.mark.parametrize("frac", [0.05, 0.1])
+def test_density_follows_curvature_at_a1_and_is_even_at_a0(shape, frac):
+    pts, curved, w = shape
+    size = int(frac * len(pts))  # both halves have the same area: density ratio = count ratio
+    ratios = {}
+    for a in (0.0, 1.0):
+        o = weighted_ordering(pts, cost_from_weights(w, a))
+        assert sorted(o.order) == list(range(len(pts)))  # a full ordering
+        assert (np.diff(o.radius[1:]) <= 0).all()
+        kept = o.order[:size]
+        ratios[a] = curved[kept].sum() / (~curved[kept]).sum()
+    assert ratios[1.0] >= 3.0
+    assert 0.8 <= ratios[0.0] <= 1.25
+
+
+def test_weighted_radius_is_not_euclidean_covering(shape):
+    # documented: with F <= 1 a weighted radius understates the Euclidean covering radius
+    pts, _, w = shape
+    o = weighted_ordering(pts, cost_from_weights(w, 1.0, eps=0.1))
+    k = 300
+    cov = covering(pts, o.order[:k])
+    assert cov > o.radius[k]
+    assert cov <= o.radius[k] / 0.1 + 1e-9  # ... but within radius / F_min
+
+
+def test_density_floor_ordering_keeps_rho0(shape):
+    pts, curved, w = shape
+    rho0 = 4.0
+    uniform = fastfps(pts)
+    cost = cost_from_weights(w, 1.0)
+    for given in (uniform, None):
+        fl = density_floor_ordering(pts, cost, rho0, uniform=given)
+        n0 = fl.stats["n_floor"]
+        assert n0 == uniform.size_for_rho(rho0)
+        assert sorted(fl.order) == list(range(len(pts)))  # one full ordering
+        np.testing.assert_array_equal(fl.order[:n0], uniform.order[:n0])
+        np.testing.assert_array_equal(fl.radius[:n0], uniform.radius[:n0])
+        assert (np.diff(fl.radius[1:]) <= 0).all()  # non-increasing, as an archive requires
+        assert fl.radius[n0] <= rho0
+        for k in (n0, n0 + 50, 2 * n0, 4 * n0):
+            assert covering(pts, fl.order[:k]) <= rho0  # brute-force covering check
+        # beyond the floor the budget goes to the curved half
+        extra = fl.order[n0 : 3 * n0]
+        assert curved[extra].sum() >= 3 * (~curved[extra]).sum()
+
+
+def test_floor_query_exact_size_and_covering(shape):
+    pts, curved, w = shape
+    uniform = fastfps(pts)
+    weighted = weighted_ordering(pts, cost_from_weights(w, 1.0))
+    for rho in (2.5, 4.0, 8.0):
+        n_u = uniform.size_for_rho(rho)
+        for size in (n_u, n_u + 1, n_u + 400, len(pts)):
+            sel = floor_query(uniform, weighted, rho, size)
+            assert sel.shape == (size,) and np.unique(sel).size == size
+            np.testing.assert_array_equal(sel[:n_u], uniform.order[:n_u])
+            assert covering(pts, sel) <= rho
+        # the fill comes from the weighted ordering: mostly the curved half
+        sel = floor_query(uniform, weighted, rho, n_u + 300)
+        assert curved[sel[n_u:]].mean() > 0.75
+    n_u = uniform.size_for_rho(4.0)
+    with pytest.raises(
+        InputError,
+        match=f"size {n_u - 1} is too small for rho = 4: the uniform prefix covering within rho has "
+        f"{n_u} points; ask for at least {n_u} points or a larger rho",
+    ):
+        floor_query(uniform, weighted, 4.0, n_u - 1)
+    with pytest.raises(InputError, match="rho must be a finite number > 0, got -1"):
+        floor_query(uniform, weighted, -1, 100)
+    with pytest.raises(InputError, match="size must be between 1 and the number of points"):
+        floor_query(uniform, weighted, 4.0, len(pts) + 1)
+    part = fastfps(pts, size=50)
+    with pytest.raises(InputError, match="the uniform ordering stops at radius .*, above rho = 1"):
+        floor_query_arrays(part.order, part.radius, weighted.order, len(pts), 1.0, 2000)
+
+
+def test_outliers_left_out_of_every_ordering(shape):
+    pts, _, w = shape
+    pts = pts.copy()
+    rng = np.random.default_rng(2)
+    pts[:, 2] += rng.normal(scale=0.01, size=len(pts))
+    out_idx = np.array([100, 900, 3000])
+    pts[out_idx, 2] += 5.0
+    noise, _ = noise_score(pts)
+    exclude = noise > 20
+    assert set(np.flatnonzero(exclude)) == set(out_idx)
+    maps = {"curvature": w, "noise": noise}
+    uniform = weighted_ordering(pts, np.ones(len(pts)), exclude=exclude)
+    res = build_orderings(pts, maps, 0.8, 4.0, exclude=exclude, uniform=uniform)
+    assert set(res) == {"weighted", "floor"}
+    for o in res.values():
+        assert len(o) == len(pts) - 3 and o.n_points == len(pts)
+        assert not exclude[o.order].any()
+        assert o.stats["excluded"] == 3
+        assert o.stats["maps"] == ["curvature"]  # noise flags outliers, it does not weight
+        assert o.stats["adaptivity"] == 0.8
+    kept = ~exclude
+    assert (
+        covering(pts[kept], np.searchsorted(np.flatnonzero(kept), res["floor"].order[:500])) <= 4.0
+    )
+
+
+def test_build_orderings_options_and_errors(shape):
+    pts, _, w = shape
+    assert build_orderings(pts, {"curvature": w}, None, None) == {}
+    only = build_orderings(pts, {"curvature": (w, {"k": 16})}, 0.5, None)
+    assert set(only) == {"weighted"} and only["weighted"].stats["kind"] == "weighted"
+    with pytest.raises(
+        InputError, match="an adaptive ordering needs an importance map other than noise"
+    ):
+        build_orderings(pts, {"noise": w}, 0.5, None)
+    with pytest.raises(InputError, match="adaptivity must be a number in \\[0, 1\\], got 2"):
+        build_orderings(pts, {"curvature": w}, 2, None)
+    with pytest.raises(InputError, match="importance map 'curvature' has 1 NaN or inf"):
+        build_orderings(pts, {"curvature": np.r_[np.nan, w[1:]]}, 0.5, None)
+    with pytest.raises(InputError, match="importance map 'curvature' has 1 negative value"):
+        build_orderings(pts, {"curvature": np.r_[-1.0, w[1:]]}, 0.5, None)
+    with pytest.raises(
+        InputError, match="importance map 'curvature' has 10 values but the scan has"
+    ):
+        build_orderings(pts, {"curvature": w[:10]}, 0.5, None)
+    with pytest.raises(InputError, match="rho0 must be a finite number > 0, got 0"):
+        density_floor_ordering(pts, np.ones(len(pts)), 0)
+    with pytest.raises(InputError, match="cost must be <= 1 for a density floor, got max 2"):
+        density_floor_ordering(pts, np.full(len(pts), 2.0), 3.0)
+    with pytest.raises(InputError, match=r"exclude must be a boolean mask of shape \(4608,\)"):
+        weighted_ordering(pts, np.ones(len(pts)), exclude=np.zeros(len(pts), int))
