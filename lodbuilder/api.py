@@ -67,22 +67,54 @@ def build_record(
     seeds: Any = None,
     progress: ProgressCallback = None,
     _loaded: Any = None,
+    **features: Any,
 ):
-    """Read (if a path), order with FastFPS and return the :class:`ScanRecord` to store."""
+    """Read (if a path), order with FastFPS and return the :class:`ScanRecord` to store.
+
+    ``features``: ``importance``, ``adaptive``, ``density_floor``, ``outlier_threshold``,
+    ``importance_k``, ``combine`` of :func:`lodbuilder.sampling.adaptive.feature_build`
+    (importance maps, outliers and the extra ``weighted``/``floor`` orderings).
+    """
     from .archive.writer import ScanRecord
     from .sampling.fastfps import fastfps
 
     scan, source = _loaded or load_scan(scan_or_path, name, progress)
-    ordering = fastfps(
-        scan.points, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, progress=progress
-    )
+    features = {k: v for k, v in features.items() if v is not None}
+    fb = None
+    if features:
+        from .sampling.adaptive import feature_build
+
+        fb = feature_build(
+            scan,
+            seeds=seeds,
+            voxel_size=voxel_size,
+            band_radius=band_radius,
+            progress=progress,
+            **features,
+        )
+        scan, ordering = fb.scan, fb.ordering
+    else:
+        ordering = fastfps(
+            scan.points,
+            voxel_size=voxel_size,
+            band_radius=band_radius,
+            seeds=seeds,
+            progress=progress,
+        )
     build = {
         "voxel_size_requested": voxel_size,
         "band_radius_requested": band_radius,
         "seeds_given": seeds is not None,
     }
+    if fb is not None:
+        build.update(fb.build)
     return ScanRecord(
-        scan=scan, ordering=ordering, build=build, provenance=_provenance(source, scan.reader)
+        scan=scan,
+        ordering=ordering,
+        build=build,
+        provenance=_provenance(source, scan.reader),
+        importance=fb.importance if fb else {},
+        orderings=fb.orderings if fb else {},
     )
 
 
@@ -96,12 +128,18 @@ def build_archive(
     seeds: Any = None,
     overwrite: bool = False,
     progress: ProgressCallback = None,
+    **features: Any,
 ) -> Path:
     """Order one scan (a path or a :class:`lodbuilder.Scan`) and add it to ``archive``.
 
     The archive is created when missing; otherwise the scan is added to it atomically (the scans
     already there are untouched whatever happens). A scan whose name is already in the archive is
     an error unless ``overwrite``. Returns the archive path.
+
+    Feature sensitivity (see :func:`lodbuilder.sampling.adaptive.feature_build`):
+    ``importance="curvature,colour"`` stores importance maps, ``adaptive=A`` adds the ``weighted``
+    ordering, ``density_floor=RHO0`` the ``floor`` ordering, ``outlier_threshold=T`` leaves points
+    with a noise score above T out of every ordering (kept in the archive, flagged ``outlier``).
     """
     from .archive.reader import check_archive_file
     from .archive.writer import check_writable_dir, update_archive
@@ -134,6 +172,7 @@ def build_archive(
         seeds=seeds,
         progress=progress,
         _loaded=loaded,
+        **features,
     )
     report(progress, "write", 0, 1)
     update_archive(archive, [rec], overwrite=overwrite)

@@ -1,0 +1,70 @@
+"""``lodbuilder build INPUT -o ARCHIVE``: order a scan with FastFPS and add it to an archive."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "build",
+        help="order a scan and store it in an archive",
+        description=(
+            "Read a scan (PLY; other formats through lodbuilder.io), compute its farthest point "
+            "ordering and add it to ARCHIVE (created when missing). Adding to an existing archive "
+            "is atomic: the scans already in it are never at risk."
+        ),
+    )
+    p.add_argument("input", metavar="INPUT", help="scan file (.ply, ...)")
+    p.add_argument("-o", "--output", required=True, metavar="ARCHIVE", help="archive file (.h5)")
+    p.add_argument(
+        "--name", help="scan name in the archive (default: the file name without suffix)"
+    )
+    p.add_argument(
+        "--voxel-size",
+        type=float,
+        metavar="H",
+        help="band grid spacing (default: from the point spacing)",
+    )
+    p.add_argument("--band-radius", type=float, metavar="R", help="band radius (default: from H)")
+    p.add_argument("--overwrite", action="store_true", help="replace a scan of the same name")
+    p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from .._validate import check_positive
+    from ..api import build_archive
+    from ..archive.writer import check_writable_dir
+    from ..errors import InputError
+    from .progressbar import ProgressBars
+
+    src, out = Path(args.input), Path(args.output)
+    if src.exists() and (src.resolve() == out.resolve()):
+        raise InputError(f"output {out} is the input file; choose another -o ARCHIVE")
+    check_positive(args.voxel_size, "--voxel-size")
+    check_positive(args.band_radius, "--band-radius")
+    check_writable_dir(out, "output")
+    t0 = time.perf_counter()
+    with ProgressBars(enabled=False if args.no_progress else None) as bars:
+        build_archive(
+            src,
+            out,
+            name=args.name,
+            voxel_size=args.voxel_size,
+            band_radius=args.band_radius,
+            overwrite=args.overwrite,
+            progress=bars,
+        )
+    from ..archive.reader import open_archive
+
+    name = args.name or src.stem
+    with open_archive(out) as arc:
+        v = arc.scan(name)
+        print(
+            f"added scan {name!r} ({v.n_points} points, {v.encoding} coordinates) to {out} "
+            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)"
+        )
+    return 0

@@ -1,0 +1,120 @@
+"""``lodbuilder info ARCHIVE [--json]``: scans, counts, radii, level sizes, parameters, provenance."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "info",
+        help="describe an archive",
+        description="List the scans of ARCHIVE with point counts, radius range, the sizes of a few "
+        "levels, the build parameters and the provenance.",
+    )
+    p.add_argument("archive", metavar="ARCHIVE")
+    p.add_argument("--scan", help="describe only this scan")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    return p
+
+
+def _round2(x: float) -> float:
+    if x <= 0 or not math.isfinite(x):
+        return x
+    e = math.floor(math.log10(x))
+    return round(x, -e + 1)
+
+
+def scan_info(view: Any) -> dict[str, Any]:
+    import numpy as np
+
+    rad = view.radius[: view.n_ordered]
+    finite = rad[np.isfinite(rad) & (rad > 0)]
+    r_hi = float(finite.max()) if finite.size else 0.0
+    r_lo = float(finite.min()) if finite.size else 0.0
+    levels = []
+    if finite.size and r_hi > 0:
+        for rho in sorted(
+            {_round2(x) for x in np.geomspace(r_hi, max(r_lo, r_hi * 1e-3), 5)}, reverse=True
+        ):
+            k = max(1, int(np.searchsorted(-rad, -rho, side="left")))
+            levels.append({"rho": rho, "size": k})
+    return {
+        "name": view.name,
+        "n_points": view.n_points,
+        "n_ordered": view.n_ordered,
+        "n_seeds": int(np.isinf(rad).sum()),
+        "coordinate_encoding": view.encoding,
+        "bounds_min": view.bounds[0].tolist(),
+        "bounds_max": view.bounds[1].tolist(),
+        "radius_max_finite": r_hi,
+        "radius_min_positive": r_lo,
+        "levels": levels,
+        "attributes": view.attribute_names,
+        "importance": view.importance_names,
+        "orderings": ["uniform"] + view.ordering_names,
+        "build": view.build,
+        "provenance": view.provenance,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    import os
+
+    from ..archive.reader import open_archive
+
+    with open_archive(args.archive) as arc:
+        names = [args.scan] if args.scan else arc.scans
+        info = {
+            "path": str(arc.path),
+            "file_size": os.path.getsize(arc.path),
+            "schema_version": arc.schema_version,
+            "lodbuilder_version": arc.lodbuilder_version,
+            "scans": [scan_info(arc.scan(n)) for n in names],
+        }
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+        return 0
+    print(
+        f"{info['path']}: {len(info['scans'])} scan(s), {info['file_size']:,} bytes, schema version "
+        f"{info['schema_version']} (written by lodbuilder {info['lodbuilder_version']})"
+    )
+    for s in info["scans"]:
+        prov = s["provenance"]
+        print(
+            f"\nscan {s['name']!r}: {s['n_points']:,} points ({s['coordinate_encoding']} coordinates)"
+            + (
+                f", {s['n_points'] - s['n_ordered']:,} left out of the ordering"
+                if s["n_ordered"] < s["n_points"]
+                else ""
+            )
+        )
+        print(f"  bounds     {_fmt(s['bounds_min'])} .. {_fmt(s['bounds_max'])}")
+        print(
+            f"  radius     {s['radius_max_finite']:.4g} .. {s['radius_min_positive']:.4g} ({s['n_seeds']} seed(s) with radius inf)"
+        )
+        print(
+            "  levels     " + ", ".join(f"rho {lv['rho']:g}: {lv['size']:,}" for lv in s["levels"])
+        )
+        print(f"  attributes {', '.join(s['attributes']) or '-'}")
+        print(
+            f"  importance {', '.join(s['importance']) or '-'}; orderings {', '.join(s['orderings'])}"
+        )
+        b = s["build"]
+        print(
+            f"  build      voxel_size {b.get('voxel_size')}, band_radius {b.get('band_radius')}, "
+            f"engine {b.get('engine_stats', {}).get('engine', '?')}"
+        )
+        print(
+            f"  source     {prov.get('source_name')} ({prov.get('source_size')} bytes, sha256 "
+            f"{str(prov.get('source_sha256'))[:16]}...), reader {prov.get('reader')}, "
+            f"{prov.get('created_utc')}, lodbuilder {prov.get('lodbuilder_version')}"
+        )
+    return 0
+
+
+def _fmt(v: list[float]) -> str:
+    return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
