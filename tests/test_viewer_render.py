@@ -126,7 +126,12 @@ def test_eye_dome_lighting_and_surface(viewer):
     plain = viewer.image().astype(int)
     assert viewer.toggle_edl() is True
     edl = viewer.image().astype(int)
-    assert np.abs(edl - plain).mean() > 0.5
+    assert np.abs(edl - plain)[:, :200].mean() > 0.5
+    # both panels still show points (EDL in one subplot must not blank the other)
+    assert non_background(edl[40:, :200]) > 500 and non_background(edl[40:, 200:]) > 500
+    viewer.set_level(1400)  # a level change under EDL keeps the full-scan panel
+    edl2 = viewer.image()
+    assert non_background(edl2[40:, :200]) > 500 and non_background(edl2[40:, 200:]) > 500
     viewer.toggle_edl()
     surf = viewer.reconstruct()
     assert surf.n_cells > 100

@@ -195,7 +195,8 @@ class LevelViewer:
     def _render_level(self) -> None:
         """Render after a change of the level panel only: the full-scan panel is left as drawn
         (it is not redrawn unless its colours change), which halves the cost of a slider move."""
-        if self.full_mesh is None or self.mode == "voronoi":
+        # (eye-dome lighting's pass clears the other viewport, so then both are drawn)
+        if self.full_mesh is None or self.mode == "voronoi" or self.edl:
             self.plotter.render()
             return
         full = self.plotter.renderers[1]
@@ -286,13 +287,17 @@ class LevelViewer:
         self.plotter.reset_camera(bounds=bounds)
 
     def toggle_edl(self) -> bool:
-        """Switch eye-dome lighting on or off in every panel."""
+        """Switch eye-dome lighting on or off in the level panel.
+
+        Only there: VTK's EDL pass in one viewport blanks the viewports rendered before it
+        (pyvista issue #256), so the full-scan panel keeps plain shading.
+        """
         self.edl = not self.edl
-        for ren in self.plotter.renderers:
-            if self.edl:
-                ren.enable_eye_dome_lighting()
-            else:
-                ren.disable_eye_dome_lighting()
+        ren = self.plotter.renderers[0]
+        if self.edl:
+            ren.enable_eye_dome_lighting()
+        else:
+            ren.disable_eye_dome_lighting()
         self.plotter.render()
         return self.edl
 

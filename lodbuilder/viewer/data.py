@@ -87,37 +87,33 @@ class ViewData:
         return int(min(len(self), max(1, int(round(k)))))
 
     def selective(self, k: int, lo, hi, factor: float = 4.0) -> np.ndarray:
-        """Stored positions of a level finer inside the box [lo, hi]: the prefix of ``k`` points,
-        plus every point inside the box down to ``rho_for_size(k) / factor``.
+        """Stored positions of a level finer inside the box [lo, hi], as the archive's
+        ``refine_box``: the prefix of ``k`` points (density rho = ``rho_for_size(k)``) plus every
+        point of the prefix at rho / ``factor`` that lies in the box grown by rho / ``factor``.
 
-        Outside the box the level keeps density rho; inside, rho / factor. Sorted positions.
+        Every point inside the box is then within rho / factor of a shown point. Sorted positions.
         """
+        from ..archive.levels import check_box, in_box
+
         k = self.clamp_size(k)
+        box = check_box(np.concatenate([np.ravel(lo), np.ravel(hi)]))
         rho_in = self.rho_for_size(k) / float(factor)
         k_in = self.size_for_rho(rho_in) if rho_in > 0 else len(self)
-        lo = np.asarray(lo, dtype=np.float64)
-        hi = np.asarray(hi, dtype=np.float64)
-        tail = self.points[k:k_in]
-        inside = np.all((tail >= lo) & (tail <= hi), axis=1)
+        inside = in_box(self.points[k:k_in], box, rho_in)
         return np.concatenate([np.arange(k, dtype=np.int64), k + np.flatnonzero(inside)])
 
     # ---- representatives (Voronoi cells at a level) -------------------------------------------
 
     def representatives(self, k: int) -> np.ndarray:
-        """(N,) stored position of every point's representative at level ``k``: follow parents
-        until a position < k (roots beyond k represent themselves)."""
+        """(N,) stored position of every point's representative at level ``k`` (the archive's
+        rule: the first ancestor along the parent links of rank < k; -1 when a chain ends at a
+        root of rank >= k)."""
+        from ..archive.levels import representatives
+
         k = self.clamp_size(k)
         if self._rep_cache is not None and self._rep_cache[0] == k:
             return self._rep_cache[1]
-        pos = np.arange(len(self), dtype=np.int64)
-        rep = np.where((pos >= k) & (self.parent >= 0), self.parent, pos)
-        while True:  # pointer jumping: O(N log depth)
-            todo = rep >= k
-            nxt = rep[rep]
-            moving = todo & (nxt != rep)
-            if not moving.any():
-                break
-            rep = np.where(moving, nxt, rep)
+        rep = representatives(self.parent, k)
         self._rep_cache = (k, rep)
         return rep
 
@@ -259,7 +255,7 @@ def colormap(t: np.ndarray) -> np.ndarray:
 
 def categorical(labels: np.ndarray) -> np.ndarray:
     """(M, 3) uint8 well-spread colours of integer labels (a hash, so equal labels match)."""
-    x = np.asarray(labels, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    x = np.asarray(labels).astype(np.int64).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
     x ^= x >> np.uint64(29)
     x = x * np.uint64(0xBF58476D1CE4E5B9)
     x ^= x >> np.uint64(32)

@@ -1,0 +1,142 @@
+"""``lodbuilder view``: look at the levels of an archive (window, screenshot or animation)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+
+MODES_HELP = "rgb, radius, rank, importance[:NAME], scan, voronoi"
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "view",
+        help="show an archive's levels in a PyVista window, or render a screenshot/animation",
+        description=(
+            "Open a window with the current level on the left (slider over the point count on a "
+            "log scale) and the full scan on the right. Keys: c colour mode, l eye-dome lighting, "
+            "b refine inside a box, m surface of the level, +/- point size, Left/Right halve or "
+            "double the level. With --screenshot or --animate nothing is shown on screen (works "
+            "without X through EGL)."
+        ),
+    )
+    p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
+    p.add_argument("--scan", help="scan to show (default: the only scan, or every scan merged)")
+    lev = p.add_mutually_exclusive_group()
+    lev.add_argument("--size", type=int, help="initial level: this many points")
+    lev.add_argument("--rho", type=float, help="initial level: covering radius rho")
+    lev.add_argument("--fraction", type=float, help="initial level: this fraction of the points")
+    p.add_argument("--colour", "--color", dest="colour", help=f"colour mode: {MODES_HELP}")
+    p.add_argument("--screenshot", metavar="OUT.png", help="render the level off screen to a PNG")
+    p.add_argument(
+        "--animate", metavar="OUT.gif", help="render coarse-to-fine off screen (.gif, or .mp4)"
+    )
+    p.add_argument("--frames", type=int, default=40, help="animation frames (default 40)")
+    p.add_argument("--fps", type=float, default=10.0, help="animation frames per second")
+    p.add_argument(
+        "--window-size", type=int, nargs=2, metavar=("W", "H"), help="pixels (default 1600 800)"
+    )
+    p.add_argument("--no-full", action="store_true", help="do not show the full scan beside")
+    p.add_argument("--edl", action="store_true", help="start with eye-dome lighting")
+    p.add_argument(
+        "--box",
+        type=float,
+        nargs=6,
+        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+        help="refine inside this box (rho / --refine-factor there)",
+    )
+    p.add_argument("--refine-factor", type=float, default=4.0, help="box refinement (default 4)")
+    p.add_argument("--surface", action="store_true", help="show a surface of the level")
+    p.add_argument(
+        "--view",
+        default="iso",
+        choices=("iso", "xy", "xz", "yz", "yx", "zx", "zy"),
+        help="camera direction (default iso)",
+    )
+    p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size")
+    return p
+
+
+def _has_display() -> bool:
+    if sys.platform != "linux":
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def run(args: argparse.Namespace) -> int:
+    off_screen = bool(args.screenshot or args.animate)
+    for opt, out, suffixes in (
+        ("--screenshot", args.screenshot, (".png",)),
+        ("--animate", args.animate, (".gif", ".mp4")),
+    ):
+        if out and Path(out).suffix.lower() not in suffixes:
+            raise InputError(f"{opt} {out} must end in {' or '.join(suffixes)}")
+        if out and Path(out).resolve() == Path(args.archive).resolve():
+            raise InputError(f"{opt} {out} is the archive itself; choose another output")
+    if args.animate:
+        from ..viewer.movie import check_movie_path
+
+        check_movie_path(args.animate)
+    if args.frames < 2:
+        raise InputError(f"--frames must be at least 2, got {args.frames}")
+    if args.fps <= 0:
+        raise InputError(f"--fps must be > 0, got {args.fps}")
+    if args.refine_factor <= 1:
+        raise InputError(f"--refine-factor must be > 1, got {args.refine_factor}")
+    if not off_screen and not _has_display():
+        raise InputError(
+            "no display to open a window on (DISPLAY is not set); render off screen with "
+            "--screenshot OUT.png or --animate OUT.gif"
+        )
+    if off_screen:
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+    from .._validate import check_fraction, check_positive, check_size
+    from ..viewer.source import load_view_data
+
+    data = load_view_data(args.archive, args.scan)
+    size = None
+    if args.size is not None:
+        size = check_size(args.size, len(data))
+    elif args.rho is not None:
+        size = data.size_for_rho(check_positive(args.rho, "rho", allow_none=False))
+    elif args.fraction is not None:
+        size = data.clamp_size(check_fraction(args.fraction) * len(data))
+    if args.colour:
+        data.check_mode(args.colour)
+
+    from ..viewer.app import LevelViewer
+
+    viewer = LevelViewer(
+        data,
+        size=size,
+        colour=args.colour,
+        off_screen=off_screen,
+        full_scan=not args.no_full,
+        window_size=args.window_size,
+        point_scale=args.point_scale,
+        edl=args.edl,
+        view=args.view,
+        refine_factor=args.refine_factor,
+    )
+    try:
+        if args.box:
+            viewer.set_box(args.box[:3], args.box[3:], render=False)
+        if args.surface:
+            viewer.toggle_surface()
+        if not off_screen:
+            viewer.show()
+            return 0
+        if args.screenshot:
+            out = viewer.screenshot(args.screenshot)
+            print(f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
+        if args.animate:
+            out = viewer.animate(args.animate, frames=args.frames, fps=args.fps)
+            print(f"wrote {out} ({args.frames} frames, coarse to fine)")
+    finally:
+        viewer.close()
+    return 0

@@ -1,0 +1,173 @@
+"""``lodbuilder view`` off screen on real archives, and the import boundaries of the viewer."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lodbuilder.cli.main import main
+
+
+@pytest.fixture(scope="module")
+def bunny_archive(shared_data, tmp_path_factory):
+    import lodbuilder
+
+    out = tmp_path_factory.mktemp("arc") / "bunny.h5"
+    lodbuilder.build_archive(shared_data / "bun_zipper_res3.ply", out, name="res3")
+    lodbuilder.build_archive(shared_data / "bun_zipper_res4.ply", out, name="res4")
+    return out
+
+
+@pytest.fixture(scope="module")
+def colour_archive(tmp_path_factory):
+    import lodbuilder
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    out = tmp_path_factory.mktemp("arc") / "demo.h5"
+    lodbuilder.build_archive(demo_scan(3000), out, name="demo")
+    return out
+
+
+@pytest.mark.viewer
+def test_view_screenshot_cli(bunny_archive, tmp_path, capsys):
+    from PIL import Image
+
+    out = tmp_path / "res3.png"
+    rc = main(
+        ["view", str(bunny_archive), "--scan", "res3", "--size", "400", "--colour", "radius"]
+        + ["--screenshot", str(out), "--window-size", "500", "250", "--view", "xy"]
+    )
+    assert rc == 0
+    assert "wrote" in capsys.readouterr().out
+    img = np.asarray(Image.open(out).convert("RGB"))
+    assert img.shape == (250, 500, 3)
+    assert np.count_nonzero(np.any(img[40:, :250] < 245, axis=2)) > 500
+
+
+@pytest.mark.viewer
+def test_view_merges_scans_and_colours_by_scan(bunny_archive, tmp_path):
+    from lodbuilder.viewer.source import load_view_data
+
+    data = load_view_data(bunny_archive)
+    assert len(data) == 1889 + 453 and data.scan_names == ("res3", "res4")
+    assert "scan" in data.colour_modes()
+    out = tmp_path / "both.png"
+    assert (
+        main(
+            ["view", str(bunny_archive), "--colour", "scan", "--rho", "0.01"]
+            + ["--screenshot", str(out), "--window-size", "300", "150"]
+        )
+        == 0
+    )
+    assert out.stat().st_size > 0
+
+
+@pytest.mark.viewer
+def test_view_rgb_box_surface_animation(colour_archive, tmp_path):
+    from PIL import Image
+
+    from lodbuilder.viewer.source import load_view_data
+
+    data = load_view_data(colour_archive)
+    assert data.colour_modes()[0] == "rgb"
+    png = tmp_path / "box.png"
+    rc = main(
+        [
+            "view",
+            str(colour_archive),
+            "--fraction",
+            "0.05",
+            "--box",
+            "0",
+            "0",
+            "-1",
+            "0.5",
+            "0.5",
+            "1",
+        ]
+        + ["--surface", "--edl", "--screenshot", str(png), "--window-size", "300", "150"]
+    )
+    assert rc == 0 and png.stat().st_size > 0
+    gif = tmp_path / "a.gif"
+    assert (
+        main(
+            [
+                "view",
+                str(colour_archive),
+                "--animate",
+                str(gif),
+                "--frames",
+                "5",
+                "--window-size",
+                "200",
+                "100",
+            ]
+        )
+        == 0
+    )
+    with Image.open(gif) as im:
+        assert im.n_frames == 5
+
+
+def test_view_errors(bunny_archive, tmp_path, capsys, monkeypatch):
+    arc = str(bunny_archive)
+    assert main(["view", arc, "--screenshot", str(tmp_path / "x.jpg")]) == 2
+    assert "--screenshot" in capsys.readouterr().err
+    assert main(["view", arc, "--scan", "nope", "--screenshot", str(tmp_path / "x.png")]) == 2
+    assert "has no scan 'nope'" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "view",
+                arc,
+                "--scan",
+                "res4",
+                "--colour",
+                "rgb",
+                "--screenshot",
+                str(tmp_path / "x.png"),
+            ]
+        )
+        == 2
+    )
+    assert "colour mode 'rgb' is not available" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "view",
+                arc,
+                "--scan",
+                "res4",
+                "--size",
+                "454",
+                "--screenshot",
+                str(tmp_path / "x.png"),
+            ]
+        )
+        == 2
+    )
+    assert (
+        "size must be between 1 and the number of points (453), got 454" in capsys.readouterr().err
+    )
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    assert main(["view", arc]) == 2
+    assert "no display" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_slice_path_does_not_import_pyvista(bunny_archive, tmp_path):
+    out = tmp_path / "lvl.npy"
+    code = (
+        "import sys; from lodbuilder.cli.main import main; "
+        f"rc = main(['slice', {str(bunny_archive)!r}, '--scan', 'res3', '--size', '100', '-o', {str(out)!r}]); "
+        "bad = [m for m in ('pyvista', 'vtkmodules', 'matplotlib', 'numba', 'dask') if m in sys.modules]; "
+        "print(rc, bad); sys.exit(rc or (3 if bad else 0))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert out.exists()
