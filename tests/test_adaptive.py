@@ -184,3 +184,66 @@ def test_build_orderings_options_and_errors(shape):
         density_floor_ordering(pts, np.full(len(pts), 2.0), 3.0)
     with pytest.raises(InputError, match=r"exclude must be a boolean mask of shape \(4608,\)"):
         weighted_ordering(pts, np.ones(len(pts)), exclude=np.zeros(len(pts), int))
+
+
+# ---------------------------------------------------------------- archive round trip
+
+
+def test_build_archive_with_features_round_trip(tmp_path, shape):
+    from lodbuilder.api import build_archive, open_archive
+    from lodbuilder.archive.validate import validate_archive
+    from lodbuilder.io.base import Scan
+    from lodbuilder.sampling.adaptive import floor_positions
+
+    pts, curved, _ = shape
+    pts = pts.copy()
+    pts[[10, 2000], 2] += 6.0  # two points far off the surface
+    rgb = np.where(curved, 200, 30).astype(np.uint8)
+    scan = Scan(points=pts, attributes={"red": rgb, "green": rgb, "blue": rgb}, name="halves")
+    out = tmp_path / "a.h5"
+    build_archive(
+        scan,
+        out,
+        importance="curvature,colour",
+        adaptive=1.0,
+        density_floor=4.0,
+        outlier_threshold=20.0,
+    )
+    assert validate_archive(out) == []
+    with open_archive(out) as arc:
+        v = arc.scan("halves")
+        assert v.n_points == len(pts) and v.n_ordered == len(pts) - 2
+        assert sorted(v.importance_names) == ["colour", "curvature", "noise"]
+        assert sorted(v.ordering_names) == ["floor", "weighted"]
+        flag = v.attributes()["outlier"]
+        src = v.source_index
+        assert flag.dtype == bool and set(src[flag]) == {10, 2000}
+        assert flag[v.n_ordered :].all() and not flag[: v.n_ordered].any()  # stored last
+        assert v.build["outliers"] == {"map": "noise", "threshold": 20.0, "count": 2}
+        p = v.ordering_parameters("floor")
+        assert p["kind"] == "density_floor" and p["rho0"] == 4.0
+        assert p["maps"] == ["curvature", "colour"] and p["adaptivity"] == 1.0
+        # the stored noise map is in stored order and flags the two points
+        noise = v.importance("noise")
+        assert (noise[flag] > 20).all() and (noise[~flag] <= 20).all()
+        # a level of the floor ordering of any size >= n_floor covers within rho0
+        for size in (p["n_floor"], 1000):
+            lvl = v.level(size=size, ordering="floor")
+            assert not lvl.attributes["outlier"].any()
+            assert (
+                covering(
+                    np.delete(pts, [10, 2000], 0),
+                    np.searchsorted(
+                        np.setdiff1d(np.arange(len(pts)), [10, 2000]), lvl.source_index
+                    ),
+                )
+                <= 4.0
+            )
+        # the instant query on stored arrays: exact size, covering <= rho
+        w_pos = arc.file["scans/halves/orderings/weighted/order"][:]
+        sel = floor_positions(v.radius, v.n_ordered, w_pos, 3.0, 1500)
+        assert sel.size == 1500 and np.unique(sel).size == 1500
+        kept_src = src[sel]
+        inl = np.setdiff1d(np.arange(len(pts)), [10, 2000])
+        d, _ = cKDTree(pts[kept_src]).query(pts[inl])
+        assert d.max() <= 3.0

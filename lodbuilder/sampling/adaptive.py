@@ -39,11 +39,12 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, validate_points
+from .._validate import check_positive, check_size, validate_indices, validate_points
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
@@ -92,7 +93,7 @@ def order_subset(
     local[keep] = np.arange(keep.size)
     sub_seeds = None
     if seeds is not None:
-        sub_seeds = local[np.asarray(seeds, dtype=np.int64)]
+        sub_seeds = local[validate_indices(seeds, n, "seeds")]
         if (sub_seeds < 0).any():
             raise InputError("seeds include excluded (outlier) points; seed with kept points only")
     if size is not None:
@@ -278,6 +279,7 @@ def build_orderings(
     exclude: Any = None,
     uniform: Ordering | None = None,
     weight_maps: Sequence[str] | None = None,
+    seeds: Any = None,
     progress: ProgressCallback = None,
     **engine: Any,
 ) -> dict[str, Ordering]:
@@ -296,6 +298,8 @@ def build_orderings(
         uniform: the main ordering (same ``exclude``), reused for the density floor's prefix.
         weight_maps: names of the maps that drive the cost (default: every map except ``noise``,
             which flags outliers rather than features).
+        seeds: must-keep input indices that start the weighted ordering (the density floor
+            starts with the uniform prefix, which starts with the main ordering's seeds).
 
     Returns:
         ``{"weighted": Ordering}`` when ``adaptive`` is set, plus ``{"floor": Ordering}`` when
@@ -332,7 +336,7 @@ def build_orderings(
     total = int(adaptive is not None) + int(density_floor is not None)
     report(progress, "orderings", 0, total)
     if adaptive is not None:
-        o = weighted_ordering(pts, cost, exclude=exclude, **engine)
+        o = weighted_ordering(pts, cost, exclude=exclude, seeds=seeds, **engine)
         out["weighted"] = _with_stats(o, params)
         report(progress, "orderings", 1, total)
     if density_floor is not None:
@@ -354,4 +358,133 @@ def _with_stats(o: Ordering, params: dict[str, Any]) -> Ordering:
         o.seeds,
         o.n_points,
         dict(o.stats) | params,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# glue for build_archive: maps, outliers, the main ordering and the extra orderings of one scan
+
+#: name of the boolean per-point attribute that flags outliers left out of the orderings
+OUTLIER_ATTRIBUTE = "outlier"
+
+
+@dataclass
+class FeatureBuild:
+    """What a feature-sensitive build adds to an archive record.
+
+    ``scan`` is the input scan, with a boolean ``outlier`` attribute added when outliers were left
+    out; ``ordering`` the main (uniform) ordering without the outliers; ``importance`` the maps
+    ``{name: (values, params)}`` in input order; ``orderings`` the extra orderings
+    ``{name: (Ordering, params)}``; ``build`` the parameters for the archive's build record.
+    """
+
+    scan: Any
+    ordering: Ordering
+    importance: dict[str, tuple[np.ndarray, dict[str, Any]]]
+    orderings: dict[str, tuple[Ordering, dict[str, Any]]]
+    build: dict[str, Any]
+
+
+def feature_build(
+    scan: Any,
+    *,
+    importance: Any = None,
+    adaptive: float | None = None,
+    density_floor: float | None = None,
+    outlier_threshold: float | None = None,
+    importance_k: int = 16,
+    combine: str = "mean",
+    seeds: Any = None,
+    voxel_size: float | None = None,
+    band_radius: float | None = None,
+    max_memory: int | None = None,
+    progress: ProgressCallback = None,
+) -> FeatureBuild:
+    """Importance maps, outlier flags and every ordering of one scan, ready for the archive writer.
+
+    Args:
+        scan: a :class:`lodbuilder.io.base.Scan`.
+        importance: map names (``"curvature,colour,noise"``, see
+            :mod:`lodbuilder.features.registry`); default ``curvature`` when ``adaptive`` or
+            ``density_floor`` is set.
+        adaptive: adaptivity a in [0, 1] of the ``weighted`` ordering (None: no weighted ordering,
+            except 1 for the density floor).
+        density_floor: rho0 of the ``floor`` ordering (None: none).
+        outlier_threshold: leave points whose ``noise`` score exceeds this out of every ordering;
+            they stay in the scan, flagged by the boolean attribute ``outlier`` and counted in
+            ``build["outliers"]``. ``noise`` is computed (and stored) when not asked for.
+        importance_k: neighbours per point of the built-in maps.
+    """
+    from ..features.registry import compute_importance, map_name, parse_names
+
+    pts = validate_points(scan.points)
+    names: list[str] = [] if importance is None else parse_names(importance)
+    if not names and (adaptive is not None or density_floor is not None):
+        names = ["curvature"]
+    thr = None
+    if outlier_threshold is not None:
+        thr = float(check_positive(outlier_threshold, "outlier threshold", allow_none=False))  # type: ignore[arg-type]
+        if "noise" not in [map_name(s) for s in names]:
+            names.append("noise")
+        if OUTLIER_ATTRIBUTE in scan.attributes:
+            raise InputError(
+                f"scan {scan.name!r} already has an attribute {OUTLIER_ATTRIBUTE!r}; rename it "
+                "before flagging outliers"
+            )
+    maps = compute_importance(scan, names, k=importance_k, progress=progress) if names else {}
+    engine: dict[str, Any] = {"voxel_size": voxel_size, "band_radius": band_radius}
+    if max_memory is not None:
+        engine["max_memory"] = max_memory
+    build: dict[str, Any] = {}
+    exclude = None
+    if thr is not None:
+        mask = maps["noise"][0] > thr
+        n_out = int(mask.sum())
+        build["outliers"] = {"map": "noise", "threshold": thr, "count": n_out}
+        if n_out:
+            exclude = check_exclude(mask, pts.shape[0])
+            attrs = dict(scan.attributes) | {OUTLIER_ATTRIBUTE: mask}
+            scan = replace(scan, attributes=attrs)
+        log.info(
+            "outliers: %d point(s) with noise score > %g left out of the orderings", n_out, thr
+        )
+    main = order_subset(pts, exclude, seeds=seeds, progress=progress, **engine)
+    extra = build_orderings(
+        pts,
+        maps,
+        adaptive,
+        density_floor,
+        combine=combine,
+        exclude=exclude,
+        uniform=main,
+        seeds=seeds,
+        progress=progress,
+        **engine,
+    )
+    orderings = {name: (o, _ordering_params(o)) for name, o in extra.items()}
+    if maps:
+        build["importance"] = {name: params for name, (_, params) in maps.items()}
+    if orderings:
+        build["orderings"] = {name: p for name, (_, p) in orderings.items()}
+    return FeatureBuild(scan, main, dict(maps), orderings, build)
+
+
+def _ordering_params(o: Ordering) -> dict[str, Any]:
+    keys = ("kind", "maps", "adaptivity", "combine", "eps", "percentiles", "rho0", "n_floor")
+    return {k: o.stats[k] for k in keys if k in o.stats}
+
+
+def floor_positions(
+    stored_radius: np.ndarray, n_ordered: int, weighted_positions: np.ndarray, rho: float, size: int
+) -> np.ndarray:
+    """:func:`floor_query_arrays` on an archive's stored arrays: the stored order *is* the uniform
+    ordering (positions 0..n_ordered-1) and an extra ordering is stored as positions. Returns
+    stored positions."""
+    return floor_query_arrays(
+        np.arange(n_ordered, dtype=np.int64),
+        np.asarray(stored_radius)[:n_ordered],
+        weighted_positions,
+        len(stored_radius),
+        rho,
+        size,
     )
