@@ -1,0 +1,357 @@
+"""Build many scans into one archive on a local process pool or a Dask cluster.
+
+One code path: every scan is a :class:`~lodbuilder.collection.jobs.ScanJob` submitted to a
+``concurrent.futures`` executor: a ``ProcessPoolExecutor`` (``workers``), or the executor of a Dask
+``Client`` (``scheduler`` address, or ``dask_local=N`` to start a ``LocalCluster``; dask is imported
+only then). Each worker writes its scan to its own part archive under ``.<archive>.parts/``; as
+jobs finish, the parent merges their parts into the archive with the archive writer (atomic: the
+archive is replaced as a whole, so a kill at any moment leaves the previous archive intact).
+
+Resume: a scan is skipped when the archive already holds it with the same ``collection_key`` (the
+hash of the source file's SHA-256, the build parameters, the pose and the scan name). A part left by
+a killed build whose key still matches is merged without rebuilding. One failing scan is reported
+with its cause and does not stop the others.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .._validate import check_positive
+from ..errors import BuildError, InputError, LodbuilderError, MissingDependencyError
+from ..progress import ProgressCallback, report
+from .inputs import ScanSource, expand_inputs
+from .jobs import ScanJob, build_one, job_key
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ScanStatus:
+    """What happened to one scan: ``built``, ``recovered`` (a finished part merged), ``skipped``
+    (unchanged in the archive) or ``failed`` (with ``error``)."""
+
+    name: str
+    source: str
+    status: str
+    n_points: int | None = None
+    seconds: float | None = None
+    error: str | None = None
+    worker_pid: int | None = None
+
+
+@dataclass
+class CollectionResult:
+    archive: Path
+    scans: list[ScanStatus] = field(default_factory=list)
+    seconds: float = 0.0
+    executor: str = ""
+
+    def by_status(self, status: str) -> list[ScanStatus]:
+        return [s for s in self.scans if s.status == status]
+
+    @property
+    def failed(self) -> list[ScanStatus]:
+        return self.by_status("failed")
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+    def summary(self) -> dict[str, Any]:
+        counts: dict[str, int] = {}
+        for s in self.scans:
+            counts[s.status] = counts.get(s.status, 0) + 1
+        return {"archive": str(self.archive), "seconds": round(self.seconds, 3), "executor": self.executor, **counts}
+
+
+StatusCallback = Callable[[ScanStatus], None] | None
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    if isinstance(exc, LodbuilderError):
+        return text
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+# ------------------------------------------------------------------------------------ executors
+
+@contextlib.contextmanager
+def make_executor(workers: int | None = None, scheduler: str | None = None,
+                  dask_local: int | None = None) -> Iterator[tuple[cf.Executor, str]]:
+    """``(executor, description)``: a local process pool, or a Dask client's executor."""
+    if scheduler is not None and dask_local is not None:
+        raise InputError("give either a Dask scheduler address or dask_local, not both")
+    if scheduler is None and dask_local is None:
+        n = workers or os.cpu_count() or 1
+        if int(n) < 1:
+            raise InputError(f"workers must be >= 1, got {workers}")
+        import multiprocessing
+
+        # forkserver: workers fork from a clean server process (no copies of the caller's open
+        # files or threads) and share its imports
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["lodbuilder.collection.jobs"])
+        with cf.ProcessPoolExecutor(max_workers=int(n), mp_context=ctx) as ex:
+            yield ex, f"process pool ({int(n)} workers)"
+        return
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise MissingDependencyError(
+            "building on Dask needs dask.distributed; pip install lodbuilder[distributed]"
+        ) from None
+    cluster = None
+    if dask_local is not None:
+        if int(dask_local) < 1:
+            raise InputError(f"dask_local must be >= 1 workers, got {dask_local}")
+        cluster = LocalCluster(n_workers=int(dask_local), threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.WARNING)
+        client = Client(cluster)
+        desc = f"Dask LocalCluster ({int(dask_local)} workers)"
+    else:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({_one_line(exc)}); check the address") from None
+        desc = f"Dask scheduler {scheduler}"
+    try:
+        yield client.get_executor(pure=False), desc
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+# ---------------------------------------------------------------------------------------- parts
+
+def parts_dir(archive: Path) -> Path:
+    return archive.with_name(f".{archive.name}.parts")
+
+
+def _part_path(archive: Path, name: str, key: str) -> Path:
+    return parts_dir(archive) / f"{name}.{key[:20]}.h5"
+
+
+def merge_parts(archive: Path, parts: list[tuple[str, Path]]) -> None:
+    """Move the scans of one-scan part archives into ``archive`` (atomically, replacing same names)."""
+    import h5py
+
+    from ..archive import layout as L
+    from ..archive.writer import update_archive
+
+    def edit(root: Any) -> None:
+        scans = root.require_group(L.G_SCANS)
+        for name, part in parts:
+            with h5py.File(part, "r") as src:
+                if name in scans:
+                    del scans[name]
+                src.copy(src[L.G_SCANS][name], scans, name=name)
+
+    update_archive(archive, [], edit=edit)
+
+
+def _part_ok(part: Path, name: str) -> bool:
+    from ..archive.reader import open_archive
+
+    try:
+        with open_archive(part) as arc:
+            return arc.scans == [name]
+    except Exception:
+        return False
+
+
+def _clean_parts(archive: Path, keep: set[Path]) -> None:
+    from ..archive.writer import remove_stale_temps
+
+    d = parts_dir(archive)
+    if not d.is_dir():
+        return
+    for p in d.iterdir():
+        if ".tmp-" in p.name and p.name.startswith("."):
+            remove_stale_temps(d / p.name[1:].split(".tmp-")[0])
+        elif p.suffix == ".h5" and p not in keep:
+            _drop_part(p)
+
+
+def _drop_part(part: Path) -> None:
+    """Delete a part archive and the lock file its writer left beside it."""
+    for p in (part, part.with_name(f".{part.name}.lock")):
+        with contextlib.suppress(OSError):
+            p.unlink()
+
+
+def _existing_keys(archive: Path) -> dict[str, str | None]:
+    if not archive.exists():
+        return {}
+    from ..archive.reader import open_archive
+
+    with open_archive(archive) as arc:
+        return {n: arc.scan(n).build.get("collection_key") for n in arc.scans}
+
+
+# ---------------------------------------------------------------------------------------- build
+
+def _params(voxel_size: Any, band_radius: Any, size: Any, rho: Any) -> dict[str, Any]:
+    params: dict[str, Any] = {
+        "voxel_size": check_positive(voxel_size, "voxel_size"),
+        "band_radius": check_positive(band_radius, "band_radius"),
+        "rho": check_positive(rho, "rho"),
+        "size": None,
+    }
+    if size is not None:
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise InputError(f"size must be a whole number of points >= 1, got {size!r}")
+        params["size"] = int(size)
+    return params
+
+
+def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], *, force: bool = False):
+    """Split sources into (jobs to run, recovered parts, skipped, failed-before-start)."""
+    from ..io import file_sha256
+
+    existing = _existing_keys(archive)
+    jobs: list[ScanJob] = []
+    recovered: list[tuple[ScanJob, Path]] = []
+    skipped: list[ScanStatus] = []
+    failed: list[ScanStatus] = []
+    for src in sources:
+        try:
+            if src.path.resolve() == archive.resolve():
+                raise InputError(f"input {src.path} is the archive itself; choose another -o")
+            sha = file_sha256(src.path)
+            nbytes = src.path.stat().st_size
+        except LodbuilderError as exc:
+            failed.append(ScanStatus(src.name, str(src.path), "failed", error=_one_line(exc)))
+            continue
+        except OSError as exc:
+            failed.append(ScanStatus(src.name, str(src.path), "failed",
+                                     error=f"{src.path}: cannot be read ({exc.strerror or exc}); check the path"))
+            continue
+        pose = None if src.pose is None else src.pose.tolist()
+        key = job_key(sha, params, pose, src.scan_index, src.name)
+        part = _part_path(archive, src.name, key)
+        job = ScanJob(name=src.name, path=str(src.path), key=key, part=str(part), params=dict(params),
+                      pose=pose, scan_index=src.scan_index, sha256=sha, size_bytes=nbytes)
+        if not force and existing.get(src.name) == key:
+            skipped.append(ScanStatus(src.name, str(src.path), "skipped"))
+        elif not force and part.is_file() and _part_ok(part, src.name):
+            recovered.append((job, part))
+        else:
+            jobs.append(job)
+    return jobs, recovered, skipped, failed
+
+
+def build_collection(
+    inputs: Any = (),
+    archive: str | os.PathLike[str] = "collection.h5",
+    *,
+    manifest: str | os.PathLike[str] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    dask_local: int | None = None,
+    voxel_size: float | None = None,
+    band_radius: float | None = None,
+    size: int | None = None,
+    rho: float | None = None,
+    force: bool = False,
+    raise_on_failure: bool = False,
+    progress: ProgressCallback = None,
+    on_status: StatusCallback = None,
+) -> CollectionResult:
+    """Build every scan of ``inputs`` (files, directories, globs, manifests) into ``archive``.
+
+    ``size``/``rho`` stop each scan's ordering early (at most ``size`` points; ``size`` larger than a
+    scan means the whole scan); by default every point is ordered. Returns a
+    :class:`CollectionResult` with one status per scan; with ``raise_on_failure`` a BuildError
+    naming the failed scans is raised after all the others are finished and merged.
+    """
+    from ..archive.reader import check_archive_file
+    from ..archive.writer import check_writable_dir
+
+    t0 = time.perf_counter()
+    archive = Path(archive)
+    check_writable_dir(archive, "archive")
+    if archive.exists():
+        check_archive_file(archive)
+    params = _params(voxel_size, band_radius, size, rho)
+    sources = expand_inputs(inputs, manifest)
+    jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force)
+    result = CollectionResult(archive=archive)
+    total = len(sources)
+    done = 0
+
+    def emit(st: ScanStatus) -> None:
+        nonlocal done
+        result.scans.append(st)
+        done += 1
+        level = logging.WARNING if st.status == "failed" else logging.INFO
+        log.log(level, "[%d/%d] %s: %s%s", done, total, st.name, st.status,
+                f" ({st.error})" if st.error else "")
+        if on_status is not None:
+            on_status(st)
+        report(progress, "scans", done, total)
+
+    report(progress, "scans", 0, total)
+    for st in skipped + failed:
+        emit(st)
+    keep_parts = {Path(j.part) for j in jobs} | {p for _, p in recovered}
+    _clean_parts(archive, keep_parts)
+    if recovered:
+        merge_parts(archive, [(j.name, p) for j, p in recovered])
+        for j, p in recovered:
+            _drop_part(p)
+            emit(ScanStatus(j.name, j.path, "recovered"))
+    if jobs:
+        parts_dir(archive).mkdir(exist_ok=True)
+        jobs.sort(key=lambda j: -j.size_bytes)  # largest first: better packing on the workers
+        with make_executor(workers, scheduler, dask_local) as (ex, desc):
+            result.executor = desc
+            log.info("building %d scan(s) on %s", len(jobs), desc)
+            pending = {ex.submit(build_one, j): j for j in jobs}
+            while pending:
+                finished, _ = cf.wait(list(pending), return_when=cf.FIRST_COMPLETED)
+                good: list[tuple[ScanJob, dict[str, Any]]] = []
+                for fut in finished:
+                    job = pending.pop(fut)
+                    try:
+                        good.append((job, fut.result()))
+                    except cf.process.BrokenProcessPool:
+                        emit(ScanStatus(job.name, job.path, "failed",
+                                        error="the worker process died (killed or out of memory)"))
+                    except Exception as exc:
+                        emit(ScanStatus(job.name, job.path, "failed", error=_one_line(exc)))
+                if good:
+                    try:
+                        merge_parts(archive, [(j.name, Path(r["part"])) for j, r in good])
+                    except Exception as exc:
+                        for j, _ in good:
+                            emit(ScanStatus(j.name, j.path, "failed", error=f"merge failed: {_one_line(exc)}"))
+                        continue
+                    for j, r in good:
+                        _drop_part(Path(r["part"]))
+                        emit(ScanStatus(j.name, j.path, "built", n_points=r["n_points"],
+                                        seconds=r["seconds"], worker_pid=r["worker_pid"]))
+    d = parts_dir(archive)
+    if d.is_dir():
+        for lock in d.glob(".*.lock"):  # locks of parts that are gone
+            if not lock.with_name(lock.name[1:-5]).exists():
+                with contextlib.suppress(OSError):
+                    lock.unlink()
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only when empty
+    result.seconds = time.perf_counter() - t0
+    if raise_on_failure and result.failed:
+        names = ", ".join(f"{s.name} ({s.error})" for s in result.failed[:3])
+        more = f" and {len(result.failed) - 3} more" if len(result.failed) > 3 else ""
+        raise BuildError(f"{len(result.failed)} of {total} scan(s) failed: {names}{more}")
+    return result
