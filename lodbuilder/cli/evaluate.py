@@ -1,0 +1,125 @@
+"""``lodbuilder evaluate``: measure how well an archive's levels approximate the scan."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "evaluate",
+        help="quality of an archive's levels: covering radius vs rho, Hausdorff, Chamfer, ...",
+        description=(
+            "For each level: the covering radius (largest distance from a scan point to the level) "
+            "and whether it meets the level's rho, the two-sided Hausdorff and Chamfer distances, "
+            "the minimum spacing and uniformity (spacing / covering radius), and the distance of "
+            "the scan points to the level's local surface (plane or MLS). Distances are Euclidean, "
+            "in the scan's units."
+        ),
+    )
+    p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
+    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--sizes", type=int, nargs="+", metavar="N", help="levels of these sizes")
+    g.add_argument("--rhos", type=float, nargs="+", metavar="R", help="levels of these rhos")
+    g.add_argument(
+        "--fractions", type=float, nargs="+", metavar="F", help="levels of these fractions"
+    )
+    p.add_argument("--ordering", help="an extra ordering stored with the scan (default: uniform)")
+    p.add_argument(
+        "--surface", choices=("plane", "mls"), default="plane", help="local surface (default plane)"
+    )
+    p.add_argument("--k", type=int, help="neighbours per surface fit (default 8 plane, 16 mls)")
+    p.add_argument("--json", metavar="OUT", help="write the reports as JSON ('-' for stdout)")
+    p.add_argument("--plot", metavar="OUT.png", help="plot error vs size and radius vs rank")
+    return p
+
+
+def _table(ev) -> str:
+    head = (
+        f"{'size':>9} {'rho':>10} {'cover':>10} {'ok':>3} {'hausdorff':>10} {'chamfer':>10} "
+        f"{'min sp.':>10} {'unif.':>6} {'surf rms':>10} {'surf max':>10}"
+    )
+    lines = [f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}", head]
+
+    def f(v):
+        return "-" if v is None else f"{v:10.4g}"
+
+    for r in ev.reports:
+        ok = {True: "yes", False: "NO", None: "-"}[r.meets_rho]
+        lines.append(
+            f"{r.size:>9,} {f(r.rho)} {f(r.covering_radius)} {ok:>3} {f(r.hausdorff)} "
+            f"{f(r.chamfer)} {f(r.min_spacing)} {r.uniformity:6.3f} "
+            f"{f(r.surface_error['rms'])} {f(r.surface_error['max'])}"
+        )
+    return "\n".join(lines)
+
+
+def _write_json(out: str, doc: dict) -> None:
+    text = json.dumps(doc, indent=2, allow_nan=False)
+    if out == "-":
+        sys.stdout.write(text + "\n")
+        return
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text + "\n")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def run(args: argparse.Namespace) -> int:
+    arc = Path(args.archive).resolve()
+    for opt, out in (("--json", args.json), ("--plot", args.plot)):
+        if out and out != "-" and Path(out).resolve() == arc:
+            raise InputError(f"{opt} {out} is the archive itself; choose another output")
+    if args.plot and Path(args.plot).suffix.lower() != ".png":
+        raise InputError(f"--plot {args.plot} must end in .png")
+    if args.k is not None and args.k < 3:
+        raise InputError(f"--k must be at least 3, got {args.k}")
+    from ..quality.archive import evaluate_archive
+    from .progressbar import ProgressBars
+
+    with ProgressBars() as bars:
+        ev = evaluate_archive(
+            args.archive,
+            args.scan,
+            sizes=args.sizes,
+            rhos=args.rhos,
+            fractions=args.fractions,
+            ordering=args.ordering,
+            surface=args.surface,
+            k=args.k,
+            progress=bars,
+        )
+    if args.json != "-":
+        print(_table(ev))
+    if args.json:
+        _write_json(args.json, ev.as_dict())
+    if args.plot:
+        from ..quality.plots import plot_quality
+
+        plot_quality(ev.reports, args.plot, radius=ev.radius, title=f"{ev.scan} ({ev.ordering})")
+        if args.json != "-":
+            print(f"wrote {args.plot}")
+    bad = [r for r in ev.reports if r.meets_rho is False]
+    if bad:
+        print(
+            f"lodbuilder evaluate: {len(bad)} level(s) violate their rho "
+            f"(sizes {', '.join(str(r.size) for r in bad)})",
+            file=sys.stderr,
+        )
+        return 1
+    return 0

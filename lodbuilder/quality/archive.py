@@ -1,0 +1,114 @@
+"""Quality reports of the levels stored in an archive (through the archive reader)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .._validate import check_fraction, check_positive, check_size
+from ..errors import InputError
+from ..progress import ProgressCallback, report
+from .report import LevelReport, default_sizes, evaluate_level
+
+
+@dataclass
+class ScanEvaluation:
+    """The reports of one scan's levels, with what is needed to plot them."""
+
+    scan: str
+    n_points: int
+    ordering: str
+    reports: list[LevelReport]
+    radius: np.ndarray = field(repr=False)
+    build: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "scan": self.scan,
+            "n_points": self.n_points,
+            "ordering": self.ordering,
+            "build": self.build,
+            "levels": [r.as_dict() for r in self.reports],
+        }
+
+
+def evaluate_scan(
+    scan: Any,
+    *,
+    sizes=None,
+    rhos=None,
+    fractions=None,
+    ordering: str | None = None,
+    surface: str = "plane",
+    k: int | None = None,
+    progress: ProgressCallback = None,
+) -> ScanEvaluation:
+    """Evaluate levels of an archive scan (a :class:`lodbuilder.archive.reader.ScanView`).
+
+    The input is every stored point of the scan. Levels come from ``sizes``, ``rhos`` or
+    ``fractions`` (default: ten sizes log-spaced from 0.1 % to 100 %). For the stored (uniform)
+    ordering a level claims the archive's covering bound rho, which is checked against the measured
+    Euclidean covering radius. An extra ``ordering`` (e.g. a weighted one) claims no Euclidean rho:
+    its radii live in another metric.
+    """
+    pts = scan.points()
+    n = pts.shape[0]
+    extra = ordering not in (None, "uniform")
+    if extra and rhos:
+        raise InputError(
+            f"levels of ordering {ordering!r} are asked by --sizes or --fractions: its radii are not "
+            "Euclidean, so a rho does not name a level of it"
+        )
+    queries: list[tuple[str, Any]] = []
+    queries += [("size", check_size(s, scan.n_ordered)) for s in sizes or ()]
+    queries += [("fraction", check_fraction(f)) for f in fractions or ()]
+    queries += [("rho", check_positive(r, "rho", allow_none=False)) for r in rhos or ()]
+    if not queries:
+        queries = [("size", s) for s in default_sizes(scan.n_ordered)]
+    tree = cKDTree(pts)
+    reports = []
+    for i, (kind, value) in enumerate(queries):
+        level = scan.level(
+            **{kind: value}, ordering=None if not extra else ordering, attributes=False
+        )
+        claim = None if extra else float(level.rho)
+        reports.append(
+            evaluate_level(
+                pts,
+                level.points,
+                rho=claim,
+                surface=surface,
+                k=k,
+                label=f"{kind}={value:g}",
+                input_tree=tree,
+            )
+        )
+        report(progress, "evaluate", i + 1, len(queries))
+    if extra:
+        radius = np.asarray(scan.dataset(f"orderings/{ordering}/radius")[:])
+    else:
+        radius = np.asarray(scan.radius)
+    return ScanEvaluation(
+        scan=scan.name,
+        n_points=n,
+        ordering=ordering or "uniform",
+        reports=reports,
+        radius=radius,
+        build=scan.build,
+    )
+
+
+def evaluate_archive(
+    path: str | os.PathLike[str],
+    scan: str | None = None,
+    **kw: Any,
+) -> ScanEvaluation:
+    """Open the archive at ``path`` and evaluate one scan (see :func:`evaluate_scan`)."""
+    from ..api import open_archive
+
+    with open_archive(path) as arc:
+        return evaluate_scan(arc.scan(scan), **kw)
