@@ -254,4 +254,13 @@ def test_partial_ordering_tail_is_stored_last(tmp_path, rng):
 
 def test_compression_pays_decision():
     assert L.compression_pays(np.zeros(10000, dtype=np.int64))
+    assert L.compression_pays(np.random.default_rng(0).permutation(10000).astype(np.int64))
     assert not L.compression_pays(np.random.default_rng(0).random(10000))
+
+
+@pytest.mark.parametrize("n", [1, 1000, 65536, 65537, 1_000_000])
+def test_chunks_are_balanced(n):
+    rows = L.chunk_shape((n, 3), 8)[0]
+    n_chunks = -(-n // rows)
+    assert rows * n_chunks - n < n_chunks  # the last chunk is nearly full
+    assert rows * 3 * 8 <= (1 << 20) + 24

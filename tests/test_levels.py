@@ -166,3 +166,26 @@ def test_cell_averaged_attributes(arc):
         assert avg["red"][j] == np.rint(scan.attributes["red"][members].mean())
         np.testing.assert_allclose(avg["nx"][j], scan.attributes["nx"][members].mean(), rtol=1e-5)
     assert avg["red"].dtype == np.uint8
+
+
+@pytest.mark.parametrize("kind", ["wavy", "sphere", "torus", "folded"])
+def test_generated_surfaces_lie_on_their_surface(kind):
+    from lodbuilder.archive.demo_surface import make_surface
+
+    pts, nrm = make_surface(kind, 2000, seed=4)
+    assert pts.shape == (2000, 3) and np.isfinite(pts).all()
+    np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1.0)
+    again, _ = make_surface(kind, 2000, seed=4)
+    np.testing.assert_array_equal(pts, again)
+    if kind == "sphere":
+        np.testing.assert_allclose(np.linalg.norm(pts, axis=1), 0.5)
+    if kind == "torus":
+        ring = np.hypot(pts[:, 0], pts[:, 1])
+        np.testing.assert_allclose(np.hypot(ring - 0.5, pts[:, 2]), 0.18, atol=1e-12)
+    if kind == "folded":
+        flat = (pts[:, 0] < 1.0) & ~np.isclose(pts[:, 2], 0) & ~np.isclose(pts[:, 2], 0.05)
+        assert not flat[pts[:, 0] < 0.99].any()  # away from the fold only the two layers
+    noisy, _ = make_surface(kind, 2000, seed=4, noise=0.01)
+    assert 0.005 < np.abs(noisy - pts).max() < 0.1
+    with pytest.raises(InputError, match="unknown surface 'cube'"):
+        make_surface("cube", 10)

@@ -344,13 +344,14 @@ class ScanView:
 
     def _prefix_level(self, k: int, attributes: Any) -> Level:
         g = self._g
+        radius = self._read(g[L.D_RADIUS], slice(0, k + 1))  # radius[k] is the covering bound
         return Level(
             points=self.points(k),
             attributes=self.attributes(k, attributes),
             source_index=self._read(g[L.D_SOURCE_INDEX], slice(0, k)),
-            radius=self._read(g[L.D_RADIUS], slice(0, k)),
+            radius=radius[:k],
             rank=np.arange(k, dtype=np.int64),
-            rho=self._bound(k),
+            rho=float(radius[k]) if k < self.n_ordered else 0.0,
             size=k,
             scan=self.name,
         )
