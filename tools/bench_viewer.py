@@ -1,0 +1,134 @@
+"""Benchmark: a slider move of the level viewer on a ~100k-point level, off screen (JSON to stdout).
+
+Builds an archive of a real scan (default igea.ply, 134k points) in a temporary directory, opens
+the viewer off screen and times slider moves between levels around 100k points:
+
+* ``update_ms``: swapping the level mesh's arrays in place (what the viewer code does);
+* ``move_ms``: a whole slider move as the window sees it: update + render of the changed panel;
+* ``full_render_ms``: rendering both panels (the level and the full scan) from scratch;
+
+with the full scan beside (default layout) and without it, and in Voronoi colour mode (which
+recomputes every point's representative per move). The OpenGL renderer is reported: on a machine
+without a GPU it is Mesa's llvmpipe (software), which dominates the figures.
+
+    python tools/bench_viewer.py [--input ../shared/data/igea.ply] [--level 100000] [--moves 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+
+
+def stats(xs):
+    return {
+        "median": round(statistics.median(xs), 2),
+        "min": round(min(xs), 2),
+        "max": round(max(xs), 2),
+        "n": len(xs),
+    }
+
+
+def time_moves(viewer, sizes):
+    upd, move, full = [], [], []
+    for k in sizes:
+        t0 = time.perf_counter()
+        viewer.set_level(k, render=False)
+        t1 = time.perf_counter()
+        viewer._render_level()
+        t2 = time.perf_counter()
+        viewer.plotter.render()
+        t3 = time.perf_counter()
+        upd.append(1e3 * (t1 - t0))
+        move.append(1e3 * (t2 - t0))
+        full.append(1e3 * (t3 - t2))
+        assert viewer.n_displayed == k
+    return {"update_ms": stats(upd), "move_ms": stats(move), "full_render_ms": stats(full)}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--input", default=str(DATA / "igea.ply"))
+    ap.add_argument("--level", type=int, default=100_000)
+    ap.add_argument("--moves", type=int, default=10)
+    ap.add_argument("--window", type=int, nargs=2, default=(1600, 800))
+    args = ap.parse_args()
+
+    import numpy as np
+    import pyvista as pv
+    import vtk
+
+    import lodbuilder
+    from lodbuilder.viewer.app import LevelViewer
+    from lodbuilder.viewer.source import load_view_data
+
+    with tempfile.TemporaryDirectory() as tmp:
+        arc = Path(tmp) / "bench.h5"
+        t0 = time.perf_counter()
+        lodbuilder.build_archive(args.input, arc)
+        build_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        data = load_view_data(arc)
+        load_s = time.perf_counter() - t0
+    n = len(data)
+    k = min(args.level, n)
+    rng = np.random.default_rng(0)
+    sizes = [int(s) for s in np.clip(k + rng.integers(-k // 20, k // 20, args.moves), 1, n)]
+
+    out = {
+        "benchmark": "viewer slider move",
+        "input": Path(args.input).name,
+        "n_points": n,
+        "level": k,
+        "moves": sizes,
+        "window": list(args.window),
+        "archive_build_s": round(build_s, 2),
+        "load_view_data_s": round(load_s, 3),
+        "results": {},
+    }
+    for label, full, mode in (
+        ("side_by_side_radius", True, "radius"),
+        ("level_only_radius", False, "radius"),
+        ("side_by_side_voronoi", True, "voronoi"),
+    ):
+        t0 = time.perf_counter()
+        vw = LevelViewer(
+            data, size=k, colour=mode, off_screen=True, full_scan=full, window_size=args.window
+        )
+        vw.image()
+        init_s = time.perf_counter() - t0
+        res = time_moves(vw, sizes)
+        res["viewer_init_s"] = round(init_s, 2)
+        out["results"][label] = res
+        if "gl" not in out:
+            info = pv.GPUInfo()
+            out["gl"] = {"vendor": info.vendor, "renderer": info.renderer, "version": info.version}
+        vw.close()
+    out["machine"] = {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "numpy": np.__version__,
+        "pyvista": pv.__version__,
+        "vtk": vtk.vtkVersion.GetVTKVersion(),
+        "lodbuilder": lodbuilder.__version__,
+    }
+    json.dump(out, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
