@@ -191,16 +191,25 @@ def test_colour_difference_hand_case():
 def test_noise_score_flags_an_off_surface_point():
     rng = np.random.default_rng(7)
     pts = grid_plane(n=40)
-    pts[:, 2] += rng.normal(scale=0.01, size=len(pts))
+    pts[:, 2] += rng.normal(scale=0.05, size=len(pts))  # noise of 5 % of the spacing
     out = 20 * 40 + 20
-    pts[out, 2] += 1.0
+    pts[out, 2] += 2.0  # 40 sigma off the surface
     for kw in ({"k": 16}, {"radius": 2.5}):
         s, params = noise_score(pts, **kw)
         others = np.delete(s, out)
         assert np.argmax(s) == out
         assert s[out] > 5 * others.max()
         assert 0.5 < np.median(others) < 2.0  # about 1 on evenly noisy surface
+    pts[out, 2] += 1.0  # alone within the radius: no plane to compare with
+    assert noise_score(pts, radius=2.5)[0][out] == 1e6
+    assert noise_score(pts, k=16)[0][out] > 50
     assert noise_score(grid_plane(n=20))[0].max() < 1e-6  # an exact plane: no noise at all
+    # below the floor (1 % of the spacing) distances count as noise-free
+    quiet = grid_plane(n=40)
+    quiet[:, 2] += rng.normal(scale=1e-4, size=len(quiet))
+    assert noise_score(quiet)[0].max() < 0.1
+    quiet[out, 2] += 0.5
+    assert noise_score(quiet)[0][out] > 20
 
 
 # ---------------------------------------------------------------- weights and validation

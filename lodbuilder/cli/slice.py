@@ -47,6 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
+    from ..features.cli_options import add_slice_options
+
+    add_slice_options(p)
     return p
 
 
@@ -79,6 +82,12 @@ def run(args: argparse.Namespace) -> int:
             level = view.refine_box(args.box, args.box_rho, args.rho)
         elif args.viewpoint is not None:
             level = view.refine_viewpoint(args.viewpoint, args.rho, args.slope, args.rho_max)
+        elif getattr(args, "floor_rho", None) is not None:
+            from ..features.cli_options import floor_level
+
+            if args.size is None:
+                raise InputError("--floor-rho needs --size N (the exact number of points)")
+            level = floor_level(view, args.floor_rho, args.size, args.ordering)
         else:
             level = view.level(
                 args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering

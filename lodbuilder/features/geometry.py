@@ -26,6 +26,8 @@ from .neighbours import (
 )
 
 COMBINE = ("mean", "max")
+#: noise score of a point with fewer than 3 neighbours (radius neighbourhoods): an outlier
+ISOLATED_SCORE = 1e6
 
 
 def _nbhd_params(k: int | None, radius: float | None) -> dict[str, Any]:
@@ -137,16 +139,25 @@ def normal_variation(
 
 
 def noise_score(
-    points: Any, *, k: int = 16, radius: float | None = None, tree: Any = None
+    points: Any,
+    *,
+    k: int = 16,
+    radius: float | None = None,
+    floor: float = 0.01,
+    tree: Any = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Outlier score: a point's distance to the local plane of its neighbours (the point itself left
     out), divided by the median of the same distance over those neighbours.
 
     The local plane is a robust PCA fit: a first fit, then a refit without the neighbours farther
     than 3 times the median residual, so one outlier does not tilt its neighbours' planes. The score
-    is about 1 on a surface with even noise and large for a point off the surface. To keep exact
-    planes (distances of 1e-17) from giving random ratios, the denominator has a floor of 1e-6 times
-    the point's mean neighbour distance.
+    is about 1 on a surface with even noise and large for a point off the surface.
+
+    The denominator has a floor of ``floor`` times the point's mean neighbour distance: distances
+    below 1 % of the point spacing count as noise-free, so exact (synthetic) surfaces, whose
+    distances are ~1e-17 away from creases, do not turn tiny crease effects into huge ratios.
+    With ``radius`` neighbourhoods a point with fewer than 3 other points within the radius has
+    no plane to compare with and scores :data:`ISOLATED_SCORE` (1e6).
     """
     pts = validate_points(points)
     tree = kd_tree(pts) if tree is None else tree
@@ -159,8 +170,10 @@ def noise_score(
     _, normals, cen = local_pca(pts, nb, weights=inlier)
     dist = np.abs(np.einsum("ij,ij->i", pts - cen, normals))
     spacing = mean_pair_function(nb, lambda i, j: np.linalg.norm(pts[j] - pts[i], axis=1))
-    denom = median_over_neighbours(dist, nb) + 1e-6 * spacing
+    denom = np.maximum(median_over_neighbours(dist, nb), floor * spacing)
     out = np.zeros(pts.shape[0])
     ok = denom > 0
     out[ok] = dist[ok] / denom[ok]
-    return out, _nbhd_params(k, radius) | {"refit": "3x median residual"}
+    out[nb.counts() < 3] = ISOLATED_SCORE  # no plane to compare with: alone in its radius
+    params = {"refit": "3x median residual", "floor": float(floor)}
+    return out, _nbhd_params(k, radius) | params
