@@ -22,7 +22,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 #: build parameters a job accepts (passed to fastfps)
-PARAMETERS = ("voxel_size", "band_radius", "size", "rho")
+PARAMETERS = ("voxel_size", "band_radius", "size", "rho", "features")
 
 
 @dataclass
@@ -79,9 +79,19 @@ def build_one(job: ScanJob) -> dict[str, Any]:
     if job.pose is not None:
         scan.points = np.ascontiguousarray(apply_pose(scan.points, np.asarray(job.pose)))
     p = job.params
+    features = {k: v for k, v in (p.get("features") or {}).items() if v is not None}
     t1 = time.perf_counter()
-    ordering = fastfps(scan.points, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
-                       size=p.get("size"), rho=p.get("rho"))
+    if p.get("size") is None and p.get("rho") is None:
+        # the same path as a single-scan build (feature options included)
+        from ..api import build_record
+
+        rec = build_record(scan, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"), **features)
+        scan, ordering = rec.scan, rec.ordering
+    else:
+        size = None if p.get("size") is None else min(int(p["size"]), len(scan))
+        ordering = fastfps(scan.points, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
+                           size=size, rho=p.get("rho"))
+        rec = ScanRecord(scan=scan, ordering=ordering)
     t_order = time.perf_counter() - t1
     build = {
         "voxel_size_requested": p.get("voxel_size"),
@@ -101,7 +111,8 @@ def build_one(job: ScanJob) -> dict[str, Any]:
         "source_sha256": job.sha256,
         "reader": scan.reader,
     }
-    rec = ScanRecord(scan=scan, ordering=ordering, build=build, provenance=prov)
+    rec.build.update(build)
+    rec.provenance.update(prov)
     write_archive(job.part, [rec])
     return {
         "name": job.name,

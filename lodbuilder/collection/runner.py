@@ -102,7 +102,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["lodbuilder.collection.jobs"])
         with cf.ProcessPoolExecutor(max_workers=int(n), mp_context=ctx) as ex:
-            yield ex, f"process pool ({int(n)} workers)"
+            yield ex, f"process pool ({int(n)} worker{'s' if int(n) > 1 else ''})"
         return
     try:
         from dask.distributed import Client, LocalCluster
@@ -117,7 +117,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
         cluster = LocalCluster(n_workers=int(dask_local), threads_per_worker=1, processes=True,
                                dashboard_address=None, silence_logs=logging.WARNING)
         client = Client(cluster)
-        desc = f"Dask LocalCluster ({int(dask_local)} workers)"
+        desc = f"Dask LocalCluster ({int(dask_local)} worker{'s' if int(dask_local) > 1 else ''})"
     else:
         try:
             client = Client(scheduler, timeout="20s")
@@ -190,18 +190,24 @@ def _drop_part(part: Path) -> None:
             p.unlink()
 
 
-def _existing_keys(archive: Path) -> dict[str, str | None]:
+def _existing_scans(archive: Path) -> dict[str, tuple[str | None, str | None]]:
+    """name -> (collection_key, source file name) of the scans already in the archive."""
     if not archive.exists():
         return {}
     from ..archive.reader import open_archive
 
     with open_archive(archive) as arc:
-        return {n: arc.scan(n).build.get("collection_key") for n in arc.scans}
+        out = {}
+        for n in arc.scans:
+            v = arc.scan(n)
+            out[n] = (v.build.get("collection_key"), v.provenance.get("source_name"))
+        return out
 
 
 # ---------------------------------------------------------------------------------------- build
 
-def _params(voxel_size: Any, band_radius: Any, size: Any, rho: Any) -> dict[str, Any]:
+def _params(voxel_size: Any, band_radius: Any, size: Any, rho: Any,
+            features: dict[str, Any] | None = None) -> dict[str, Any]:
     params: dict[str, Any] = {
         "voxel_size": check_positive(voxel_size, "voxel_size"),
         "band_radius": check_positive(band_radius, "band_radius"),
@@ -212,14 +218,24 @@ def _params(voxel_size: Any, band_radius: Any, size: Any, rho: Any) -> dict[str,
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
             raise InputError(f"size must be a whole number of points >= 1, got {size!r}")
         params["size"] = int(size)
+    feats = {k: v for k, v in (features or {}).items() if v is not None}
+    if feats:
+        if params["size"] is not None or params["rho"] is not None:
+            raise InputError("size/rho (partial orderings) do not combine with feature options; drop one")
+        params["features"] = feats
     return params
 
 
-def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], *, force: bool = False):
-    """Split sources into (jobs to run, recovered parts, skipped, failed-before-start)."""
+def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], *, force: bool = False,
+              overwrite: bool = False):
+    """Split sources into (jobs to run, recovered parts, skipped, failed-before-start).
+
+    A scan already in the archive is rebuilt when its key changed (new file contents, parameters or
+    pose) if it came from a file of the same name, or with ``overwrite``; a same-named scan from
+    another file is refused (failed) otherwise."""
     from ..io import file_sha256
 
-    existing = _existing_keys(archive)
+    existing = _existing_scans(archive)
     jobs: list[ScanJob] = []
     recovered: list[tuple[ScanJob, Path]] = []
     skipped: list[ScanStatus] = []
@@ -242,8 +258,13 @@ def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], 
         part = _part_path(archive, src.name, key)
         job = ScanJob(name=src.name, path=str(src.path), key=key, part=str(part), params=dict(params),
                       pose=pose, scan_index=src.scan_index, sha256=sha, size_bytes=nbytes)
-        if not force and existing.get(src.name) == key:
+        old_key, old_source = existing.get(src.name, (None, None))
+        if not force and old_key == key:
             skipped.append(ScanStatus(src.name, str(src.path), "skipped"))
+        elif src.name in existing and not overwrite and old_source != src.path.name:
+            failed.append(ScanStatus(src.name, str(src.path), "failed", error=(
+                f"archive {archive} already holds a scan {src.name!r} built from {old_source or 'another input'}; "
+                "pass --overwrite (overwrite=True) to replace it or rename the file")))
         elif not force and part.is_file() and _part_ok(part, src.name):
             recovered.append((job, part))
         else:
@@ -264,14 +285,18 @@ def build_collection(
     size: int | None = None,
     rho: float | None = None,
     force: bool = False,
+    overwrite: bool = False,
     raise_on_failure: bool = False,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
+    **features: Any,
 ) -> CollectionResult:
     """Build every scan of ``inputs`` (files, directories, globs, manifests) into ``archive``.
 
-    ``size``/``rho`` stop each scan's ordering early (at most ``size`` points; ``size`` larger than a
-    scan means the whole scan); by default every point is ordered. Returns a
+    ``force`` rebuilds scans even when unchanged; ``overwrite`` lets a scan replace a same-named
+    scan built from another file. ``size``/``rho`` stop each scan's ordering early (at most ``size`` points; ``size`` larger than a
+    scan means the whole scan); by default every point is ordered. ``features`` are the feature
+    options of a single-scan build (``importance``, ``adaptive``, ``density_floor``, ...). Returns a
     :class:`CollectionResult` with one status per scan; with ``raise_on_failure`` a BuildError
     naming the failed scans is raised after all the others are finished and merged.
     """
@@ -283,9 +308,9 @@ def build_collection(
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)
-    params = _params(voxel_size, band_radius, size, rho)
+    params = _params(voxel_size, band_radius, size, rho, features)
     sources = expand_inputs(inputs, manifest)
-    jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force)
+    jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force, overwrite=overwrite)
     result = CollectionResult(archive=archive)
     total = len(sources)
     done = 0
@@ -294,7 +319,8 @@ def build_collection(
         nonlocal done
         result.scans.append(st)
         done += 1
-        level = logging.WARNING if st.status == "failed" else logging.INFO
+        # failures are warnings unless the caller shows statuses itself
+        level = logging.WARNING if st.status == "failed" and on_status is None else logging.INFO
         log.log(level, "[%d/%d] %s: %s%s", done, total, st.name, st.status,
                 f" ({st.error})" if st.error else "")
         if on_status is not None:

@@ -1,0 +1,76 @@
+"""``lodbuilder build`` with several inputs, a manifest or collection options."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lodbuilder.cli.main import main
+from lodbuilder.collection import list_scans
+from lodbuilder.io import write_points
+
+
+def _clouds(tmp_path, n=3):
+    rng = np.random.default_rng(11)
+    out = []
+    for k in range(n):
+        t = rng.random(600) * 2 * np.pi
+        pts = np.stack([np.cos(t), np.sin(t), rng.random(600)], 1) + k
+        out.append(write_points(tmp_path / f"s{k}.ply", pts))
+    return out
+
+
+def test_several_inputs_and_a_bad_one_exit_nonzero(tmp_path, capsys):
+    files = _clouds(tmp_path)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(files[0].read_bytes()[:300])
+    rc = main(["build", *map(str, files), str(bad), "-o", str(tmp_path / "c.h5"), "--workers", "2", "--no-progress"])
+    out, err = capsys.readouterr()
+    assert rc == 1
+    assert "3 built, 1 failed scan(s) into" in out
+    assert "bad: FAILED: " in err and "declares 600 vertices" in err
+    assert [r["name"] for r in list_scans(tmp_path / "c.h5")] == ["s0", "s1", "s2"]
+    rc = main(["build", str(tmp_path / "s*.ply"), "-o", str(tmp_path / "c.h5"), "--workers", "1", "--no-progress"])
+    out, _ = capsys.readouterr()
+    assert rc == 0 and "3 skipped scan(s)" in out
+
+
+def test_manifest_and_directory_inputs(tmp_path, capsys):
+    d = tmp_path / "scans"
+    d.mkdir()
+    _clouds(d, 2)
+    m = tmp_path / "m.lst"
+    m.write_text("scans/s0.ply 1 0 0 5 0 1 0 0 0 0 1 0 0 0 0 1\n")
+    rc = main(["build", "--manifest", str(m), "-o", str(tmp_path / "m.h5"), "--workers", "1", "--size", "50"])
+    assert rc == 0
+    (row,) = list_scans(tmp_path / "m.h5")
+    assert row["bounds_min"][0] > 3.5  # the pose moved it by +5 in x
+    rc = main(["build", str(d), "-o", str(tmp_path / "d.h5"), "--workers", "1", "--size", "50"])
+    assert rc == 0
+    assert [r["name"] for r in list_scans(tmp_path / "d.h5")] == ["s0", "s1"]
+    capsys.readouterr()
+
+
+def test_single_scan_keeps_the_single_build(tmp_path, capsys):
+    (f,) = _clouds(tmp_path, 1)
+    rc = main(["build", str(f), "-o", str(tmp_path / "one.h5"), "--name", "ring", "--no-progress"])
+    out, _ = capsys.readouterr()
+    assert rc == 0 and "added scan 'ring'" in out
+
+
+@pytest.mark.parametrize("argv,msg", [
+    (["--name", "x"], "--name names a single scan"),
+    (["--scheduler", "tcp://127.0.0.1:1", "--dask-local", "1"], "either a Dask scheduler address or dask_local"),
+    (["--size", "0"], "size must be a whole number"),
+])
+def test_collection_option_errors(tmp_path, capsys, argv, msg):
+    files = _clouds(tmp_path, 2)
+    rc = main(["build", *map(str, files), "-o", str(tmp_path / "e.h5"), *argv])
+    _, err = capsys.readouterr()
+    assert rc == 2 and msg in err
+    assert not (tmp_path / "e.h5").exists()
+
+
+def test_no_input(tmp_path, capsys):
+    assert main(["build", "-o", str(tmp_path / "e.h5")]) == 2
+    assert "give INPUT files" in capsys.readouterr().err
