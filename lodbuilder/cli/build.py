@@ -17,7 +17,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "is atomic: the scans already in it are never at risk."
         ),
     )
-    p.add_argument("input", metavar="INPUT", help="scan file (.ply, ...)")
+    p.add_argument(
+        "input",
+        metavar="INPUT",
+        nargs="*",
+        help="scan file (.ply, .las, .laz, .e57, .xyz, .csv, .npy, ...); several files, directories, "
+        "globs or a manifest build a collection",
+    )
     p.add_argument("-o", "--output", required=True, metavar="ARCHIVE", help="archive file (.h5)")
     p.add_argument(
         "--name", help="scan name in the archive (default: the file name without suffix)"
@@ -31,6 +37,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--band-radius", type=float, metavar="R", help="band radius (default: from H)")
     p.add_argument("--overwrite", action="store_true", help="replace a scan of the same name")
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
+    from ..features.cli_options import add_build_options
+
+    add_build_options(p)
+    from ..collection.cli import add_arguments as add_collection_arguments
+
+    add_collection_arguments(p)
     return p
 
 
@@ -38,15 +50,22 @@ def run(args: argparse.Namespace) -> int:
     from .._validate import check_positive
     from ..api import build_archive
     from ..archive.writer import check_writable_dir
+    from ..collection import cli as collection_cli
     from ..errors import InputError
     from .progressbar import ProgressBars
 
+    if collection_cli.wants_collection(args):  # several scans, a directory, a manifest, --workers ...
+        return collection_cli.run(args)
+    args.input = args.input[0]
     src, out = Path(args.input), Path(args.output)
     if src.exists() and (src.resolve() == out.resolve()):
         raise InputError(f"output {out} is the input file; choose another -o ARCHIVE")
     check_positive(args.voxel_size, "--voxel-size")
     check_positive(args.band_radius, "--band-radius")
     check_writable_dir(out, "output")
+    from ..features.cli_options import build_kwargs
+
+    features = build_kwargs(args)
     t0 = time.perf_counter()
     with ProgressBars(enabled=False if args.no_progress else None) as bars:
         build_archive(
@@ -57,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
             band_radius=args.band_radius,
             overwrite=args.overwrite,
             progress=bars,
+            **features,
         )
     from ..archive.reader import open_archive
 
