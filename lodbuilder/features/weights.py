@@ -4,8 +4,11 @@
     w      = mean or max of the normalised maps                     several maps combined
     F      = max(eps, (1 - a) + a * w)                             a = adaptivity in [0, 1]
 
-F lies in [eps, 1]: a = 0 gives F = 1 (the uniform ordering), a = 1 gives F = w (points of the least
-important 1 - P_lo percent cost eps, i.e. are almost free to leave out).
+F lies in [eps, 1]: a = 0 gives F = 1 (the uniform ordering); a = 1 gives F = w, so points at or
+below the P_lo percentile cost eps (distances there count 1/eps times less: on a surface the
+sample density ends up about (F_max / F_min)^2 = 1/eps^2 times lower there than at the most
+important points). eps = 0.1 by default; a smaller eps starves flat regions further, and makes the
+band engine's Euclidean tail slower (its search radius grows as 1/F_min).
 """
 
 from __future__ import annotations

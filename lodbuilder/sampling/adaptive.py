@@ -20,7 +20,9 @@ Density floor (Moenning & Dodgson 2003)
     one full ordering. Every prefix of size >= n0 contains the uniform prefix, so it covers every
     ordered point within rho0. Its radii are the uniform insertion radii for k < n0 and the weighted
     ones for k >= n0; they stay non-increasing because the weighted distance to the uniform prefix
-    is at most its unweighted covering radius <= rho0 when F <= 1.
+    is at most its unweighted covering radius <= rho0 when F <= 1. So a level of this ordering taken
+    by a radius R is a true covering level only for R >= rho0; below rho0 its radii are weighted
+    (use the instant query below for a guarantee at a smaller rho).
 
 Instant query for any rho
     :func:`floor_query` picks, for a rho chosen at query time, the uniform prefix that covers within
