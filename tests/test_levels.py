@@ -189,3 +189,12 @@ def test_generated_surfaces_lie_on_their_surface(kind):
     assert 0.005 < np.abs(noisy - pts).max() < 0.1
     with pytest.raises(InputError, match="unknown surface 'cube'"):
         make_surface("cube", 10)
+
+
+def test_to_polydata(arc):
+    pytest.importorskip("pyvista")
+    lev = arc[2].level(size=200)
+    poly = lev.to_polydata()
+    assert poly.n_points == 200
+    np.testing.assert_array_equal(np.asarray(poly.points, dtype=np.float64), lev.points)
+    assert {"red", "nx", "radius", "rank", "source_index"} <= set(poly.point_data.keys())

@@ -72,7 +72,7 @@ def _pid_alive(pid: int) -> bool:
 
 def remove_stale_temps(path: Path) -> list[Path]:
     """Delete temporaries of ``path`` left by writers that were killed (their pid is gone)."""
-    removed = []
+    removed: list[Path] = []
     prefix = f".{path.name}.tmp-"
     try:
         entries = list(path.parent.iterdir())

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     with open_archive(args.archive) as arc:
         names = [args.scan] if args.scan else arc.scans
-        info = {
+        info: dict[str, Any] = {
             "path": str(arc.path),
             "file_size": os.path.getsize(arc.path),
             "schema_version": arc.schema_version,
