@@ -54,6 +54,8 @@ class CollectionResult:
     scans: list[ScanStatus] = field(default_factory=list)
     seconds: float = 0.0
     executor: str = ""
+    startup_seconds: float = 0.0  # starting the pool / connecting to or starting the Dask cluster
+    merge_seconds: float = 0.0  # merging finished parts into the archive (in the parent)
 
     def by_status(self, status: str) -> list[ScanStatus]:
         return [s for s in self.scans if s.status == status]
@@ -70,7 +72,9 @@ class CollectionResult:
         counts: dict[str, int] = {}
         for s in self.scans:
             counts[s.status] = counts.get(s.status, 0) + 1
-        return {"archive": str(self.archive), "seconds": round(self.seconds, 3), "executor": self.executor, **counts}
+        return {"archive": str(self.archive), "seconds": round(self.seconds, 3), "executor": self.executor,
+                "startup_seconds": round(self.startup_seconds, 3), "merge_seconds": round(self.merge_seconds, 3),
+                **counts}
 
 
 StatusCallback = Callable[[ScanStatus], None] | None
@@ -340,7 +344,9 @@ def build_collection(
     if jobs:
         parts_dir(archive).mkdir(exist_ok=True)
         jobs.sort(key=lambda j: -j.size_bytes)  # largest first: better packing on the workers
+        t_start = time.perf_counter()
         with make_executor(workers, scheduler, dask_local) as (ex, desc):
+            result.startup_seconds = time.perf_counter() - t_start
             result.executor = desc
             log.info("building %d scan(s) on %s", len(jobs), desc)
             pending = {ex.submit(build_one, j): j for j in jobs}
@@ -357,8 +363,10 @@ def build_collection(
                     except Exception as exc:
                         emit(ScanStatus(job.name, job.path, "failed", error=_one_line(exc)))
                 if good:
+                    t_merge = time.perf_counter()
                     try:
                         merge_parts(archive, [(j.name, Path(r["part"])) for j, r in good])
+                        result.merge_seconds += time.perf_counter() - t_merge
                     except Exception as exc:
                         for j, _ in good:
                             emit(ScanStatus(j.name, j.path, "failed", error=f"merge failed: {_one_line(exc)}"))
