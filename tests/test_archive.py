@@ -264,3 +264,23 @@ def test_chunks_are_balanced(n):
     n_chunks = -(-n // rows)
     assert rows * n_chunks - n < n_chunks  # the last chunk is nearly full
     assert rows * 3 * 8 <= (1 << 20) + 24
+
+
+def test_validate_names_invariant_faults(small, tmp_path):
+    p = tmp_path / "v.h5"
+    p.write_bytes(small[2].read_bytes())
+    with h5py.File(p, "r+") as f:
+        g = f["scans/wavy"]
+        src = g["source_index"][:]
+        src[5] = src[6]
+        del g["source_index"]
+        L.create_dataset(g, "source_index", src)
+        par = g["parent"][:]
+        par[20] = 25
+        del g["parent"]
+        L.create_dataset(g, "parent", par)
+        g.attrs["build"] = "{not json"
+    faults = validate_archive(p)
+    assert any("source_index is not a permutation of 0..2499" in f for f in faults)
+    assert any("parent of position 20 is 25; parents must come earlier" in f for f in faults)
+    assert any("attribute 'build' is not valid JSON" in f for f in faults)

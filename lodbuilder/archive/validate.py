@@ -81,6 +81,14 @@ def _check_scan(view: Any) -> list[str]:
     faults += _check_order_arrays(where, radius[:k], parent[:k])
     if k < n and ((radius[k:] != 0).any() or (parent[k:] != -1).any()):
         faults.append(f"{where}: points beyond n_ordered={k} must have radius 0 and parent -1")
+    seeds = data.get(L.D_SEEDS)
+    if seeds is not None and seeds.size and (seeds.min() < 0 or seeds.max() >= n):
+        faults.append(f"{where}: seeds must be input indices in [0, {n})")
+    for key in (L.S_BUILD, L.S_PROVENANCE, L.S_FORMAT_METADATA):
+        try:
+            L.from_json(g.attrs.get(key, ""))
+        except ValueError as exc:
+            faults.append(f"{where}: attribute {key!r} is not valid JSON ({exc})")
     step = view._step
     if not np.array_equal(data[L.D_RADIUS_INDEX], radius[::step]):
         faults.append(f"{where}: radius_index does not match radius[::{step}]; rebuild the archive")
