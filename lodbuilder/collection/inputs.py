@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import glob
 import logging
+import os
 import re
 import shlex
 from dataclasses import dataclass
@@ -88,7 +89,7 @@ def _numbers(tokens: list[str], where: str) -> list[float]:
     return vals
 
 
-def read_manifest(path: str | Path) -> list[tuple[Path, np.ndarray | None]]:
+def read_manifest(path: str | os.PathLike[str]) -> list[tuple[Path, np.ndarray | None]]:
     """(file, pose) pairs listed in a manifest; see the module docstring for the format."""
     mpath = Path(path)
     if not mpath.is_file():
@@ -192,7 +193,7 @@ def _e57_scan_names(path: Path) -> list[str] | None:
         e.close()
 
 
-def expand_inputs(inputs: Any = (), manifest: str | Path | None = None) -> list[ScanSource]:
+def expand_inputs(inputs: Any = (), manifest: str | os.PathLike[str] | None = None) -> list[ScanSource]:
     """Scan sources from files, directories (recursive, hidden entries skipped), glob patterns and
     manifests, in the order given (directories and globs sorted). Names are the file stems, made
     safe and unique; an E57 file holding several scans gives one source per scan."""

@@ -9,6 +9,7 @@ dependencies (laspy, pye57) are needed only for their formats.
 
 from __future__ import annotations
 
+import os
 from importlib import import_module
 from pathlib import Path
 from types import ModuleType
@@ -50,7 +51,7 @@ def register(suffix: str, module: str, *, read: bool = True, write: bool = False
         WRITERS[suffix] = module
 
 
-def suffix_of(path: str | Path) -> str:
+def suffix_of(path: str | os.PathLike[str]) -> str:
     return Path(path).suffix.lower()
 
 
@@ -58,7 +59,7 @@ def _module(name: str) -> ModuleType:
     return import_module(name if "." in name else f"lodbuilder.io.{name}")
 
 
-def reader_for(path: str | Path) -> tuple[str, ModuleType]:
+def reader_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
     """(format name, module) that reads ``path``, or UnsupportedFormatError."""
     sfx = suffix_of(path)
     name = READERS.get(sfx)
@@ -70,7 +71,7 @@ def reader_for(path: str | Path) -> tuple[str, ModuleType]:
     return name.rsplit(".", 1)[-1], _module(name)
 
 
-def writer_for(path: str | Path) -> tuple[str, ModuleType]:
+def writer_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
     """(format name, module) that writes ``path``, or UnsupportedFormatError."""
     sfx = suffix_of(path)
     name = WRITERS.get(sfx)
