@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if args.size is not None:
         size = check_size(args.size, len(data))
     elif args.rho is not None:
-        size = data.size_for_rho(check_positive(args.rho, "rho", allow_none=False))
+        size = data.size_for_rho(float(check_positive(args.rho, "rho", allow_none=False)))  # type: ignore[arg-type]
     elif args.fraction is not None:
         size = data.clamp_size(check_fraction(args.fraction) * len(data))
     if args.colour:

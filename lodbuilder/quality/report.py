@@ -175,7 +175,7 @@ def prefix_sizes(
         s = max(1, min(kmax, int(round(float(f) * n_points))))
         out.append((s, claim(s)))
     for r in rhos or ():
-        r = check_positive(r, "rho", allow_none=False)
+        r = float(check_positive(r, "rho", allow_none=False))  # type: ignore[arg-type]
         s = int(np.searchsorted(-radius, -r, side="left"))
         if s >= kmax and kmax < n_points:
             raise InputError(

@@ -13,6 +13,7 @@ import os
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyvista as pv
@@ -85,13 +86,16 @@ class LevelViewer:
         self._positions: np.ndarray | None = None  # None: the level is the prefix [0, k)
         self._refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # arrays VTK views, per mesh
         self._colours = data.colours(self.mode, self.k)
-        self._surface_actor = None
+        self._surface_actor: Any = None
         # the full scan's spacing, from the level of half the points (rho ~ 1/sqrt(k) on a surface)
         self._full_rho = data.rho_for_size(max(1, len(data) // 2)) / math.sqrt(2.0)
         if window_size is None:
             window_size = (1600, 800) if full_scan else (1000, 800)
         shape = (1, 2) if full_scan else (1, 1)
-        self.plotter = pv.Plotter(off_screen=off_screen, shape=shape, window_size=list(window_size))
+        plotter_cls: Any = pv.Plotter  # (pyvista's decorated __init__ confuses type checkers)
+        self.plotter: Any = plotter_cls(
+            off_screen=off_screen, shape=shape, window_size=list(window_size)
+        )
         self.plotter.set_background("white")
 
         self.level_mesh = pv.PolyData()

@@ -165,7 +165,7 @@ class ViewData:
             t = np.log1p(pos) / math.log1p(max(len(self) - 1, 1))
             return colormap(t)
         if mode == "scan":
-            return categorical(self.scan_id[sel])
+            return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
             return categorical(self.representatives(k)[sel])
         name = mode.split(":", 1)[1]
