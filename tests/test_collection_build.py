@@ -255,3 +255,18 @@ def test_finished_part_of_a_killed_build_is_merged_not_rebuilt(tmp_path):
         assert arc.scans == ["good0", "good1", "good2"]
         assert arc.scan("good2").build["worker_pid"] == summary["worker_pid"] == os.getpid()
     assert not parts_dir(out).exists()
+
+
+def test_rebuilt_scan_replaces_the_old_one_without_dead_space(tmp_path):
+    files = _generated(tmp_path)
+    out = tmp_path / "g.h5"
+    build_collection(files, out, workers=1, raise_on_failure=True)
+    size0 = out.stat().st_size
+    rng = np.random.default_rng(99)
+    pts = rng.random((800, 3))
+    write_points(files[1], pts, {"intensity": rng.random(800).astype(np.float32)})
+    res = build_collection(files, out, workers=1, raise_on_failure=True)
+    assert [s.name for s in res.by_status("built")] == ["good1"]
+    with __import__("lodbuilder").open_archive(out) as arc:
+        np.testing.assert_array_equal(np.sort(arc.scan("good1").points(), axis=0), np.sort(pts, axis=0))
+    assert abs(out.stat().st_size - size0) < 0.05 * size0

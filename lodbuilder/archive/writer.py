@@ -328,12 +328,14 @@ def update_archive(
     *,
     overwrite: bool = False,
     edit: Any = None,
+    drop: Any = (),
 ) -> Path:
     """Add ``records`` to the archive at ``path`` (created if missing), atomically.
 
     Scans already in the archive are kept unless a record has the same name: that is an error
     unless ``overwrite``, which replaces it. ``edit(root)``, if given, is called on the new file
     before it is moved into place (to add importance maps or orderings to existing scans).
+    Scans named in ``drop`` are not copied into the new file (``edit`` may add them back anew).
     """
     import h5py
 
@@ -369,7 +371,7 @@ def update_archive(
                             f"archive {path} already holds scan(s) {clash}; pass --overwrite "
                             "(overwrite=True) to replace them or choose another --name"
                         )
-                    keep = [s for s in existing if s not in names]
+                    keep = [s for s in existing if s not in names and s not in set(drop)]
                     with _open_new(tmp, created) as dst:
                         for s in keep:
                             src.copy(src[L.G_SCANS][s], dst[L.G_SCANS], name=s)

@@ -19,6 +19,7 @@ import concurrent.futures as cf
 import contextlib
 import logging
 import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -102,9 +103,14 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
         import multiprocessing
 
         # forkserver: workers fork from a clean server process (no copies of the caller's open
-        # files or threads) and share its imports
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["lodbuilder.collection.jobs"])
+        # files or threads) and share its imports. It re-imports the caller's main script, which
+        # is impossible for a script read from stdin: fork then.
+        main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+        if main_file is not None and not os.path.isfile(main_file):
+            ctx = multiprocessing.get_context("fork")
+        else:
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload(["lodbuilder.collection.jobs"])
         with cf.ProcessPoolExecutor(max_workers=int(n), mp_context=ctx) as ex:
             yield ex, f"process pool ({int(n)} worker{'s' if int(n) > 1 else ''})"
         return
@@ -157,11 +163,10 @@ def merge_parts(archive: Path, parts: list[tuple[str, Path]]) -> None:
         scans = root.require_group(L.G_SCANS)
         for name, part in parts:
             with h5py.File(part, "r") as src:
-                if name in scans:
-                    del scans[name]
                 src.copy(src[L.G_SCANS][name], scans, name=name)
 
-    update_archive(archive, [], edit=edit)
+    # the scans being replaced are not copied over (no dead space in the new file)
+    update_archive(archive, [], edit=edit, drop=[name for name, _ in parts])
 
 
 def _part_ok(part: Path, name: str) -> bool:
@@ -359,7 +364,7 @@ def build_collection(
                         good.append((job, fut.result()))
                     except cf.process.BrokenProcessPool:
                         emit(ScanStatus(job.name, job.path, "failed",
-                                        error="the worker process died (killed or out of memory)"))
+                                        error="its worker process died (killed, out of memory, or failed to start: see the log)"))
                     except Exception as exc:
                         emit(ScanStatus(job.name, job.path, "failed", error=_one_line(exc)))
                 if good:
