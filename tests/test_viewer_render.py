@@ -169,3 +169,43 @@ def test_bad_outputs(viewer, tmp_path):
         with pytest.raises(MissingDependencyError, match="needs imageio and imageio-ffmpeg"):
             viewer.animate(tmp_path / "x.mp4")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_controls_drive_the_viewer(viewer, bunny_view):
+    """The slider widget, the keys and the box widget of the window call into the viewer."""
+    viewer.add_controls()
+    widgets = getattr(viewer.plotter, "widgets", viewer.plotter)
+    slider = widgets.slider_widgets[0]
+    slider.GetRepresentation().SetValue(math.log10(321))
+    slider.InvokeEvent("InteractionEvent")
+    assert viewer.k == 321 and viewer.n_displayed == 321
+    iren = viewer.plotter.iren.interactor
+
+    def press(key):
+        iren.SetKeySym(key)
+        iren.InvokeEvent("KeyPressEvent")
+
+    mode = viewer.mode
+    press("c")
+    assert viewer.mode != mode
+    press("l")
+    assert viewer.edl is True
+    press("Right")
+    assert viewer.k == 642 and viewer.n_displayed == 642
+    size = viewer.level_actor.GetProperty().GetPointSize()
+    press("plus")
+    assert viewer.level_actor.GetProperty().GetPointSize() > size or size == 40.0
+    press("b")  # box widget on: refine inside it
+    assert viewer.box is not None and viewer.n_displayed > 642
+    box = widgets.box_widgets[0]
+    lo, hi = bunny_view.points.min(axis=0), bunny_view.points.max(axis=0)
+    box.PlaceWidget([lo[0], (lo[0] + hi[0]) / 2, lo[1], hi[1], lo[2], hi[2]])
+    box.InvokeEvent("EndInteractionEvent")
+    np.testing.assert_allclose(viewer.box[0], lo, atol=1e-9)
+    assert viewer.n_displayed == bunny_view.selective(642, *viewer.box, viewer.refine_factor).size
+    press("m")
+    assert viewer._surface_actor is not None
+    press("b")  # box widget off: back to the plain level
+    assert viewer.box is None and viewer.n_displayed == 642
+    img = viewer.image()
+    assert non_background(img[40:, :200]) > 500

@@ -325,8 +325,9 @@ class LevelViewer:
     def toggle_box_widget(self) -> None:
         """Show a box widget on the level (refining inside it), or remove it and the refinement."""
         self.plotter.subplot(0, 0)
-        if self.plotter.box_widgets:
-            self.plotter.clear_box_widgets()
+        widgets = getattr(self.plotter, "widgets", self.plotter)  # pyvista >= 0.47 groups them
+        if widgets.box_widgets:
+            widgets.clear_box_widgets()
             self.set_box(None, None)
             return
         lo, hi = self.data.points.min(axis=0), self.data.points.max(axis=0)
