@@ -265,7 +265,7 @@ def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], 
         pose = None if src.pose is None else src.pose.tolist()
         key = job_key(sha, params, pose, src.scan_index, src.name)
         part = _part_path(archive, src.name, key)
-        job = ScanJob(name=src.name, path=str(src.path), key=key, part=str(part), params=dict(params),
+        job = ScanJob(name=src.name, path=str(src.path.resolve()), key=key, part=str(part), params=dict(params),
                       pose=pose, scan_index=src.scan_index, sha256=sha, size_bytes=nbytes)
         old_key, old_source = existing.get(src.name, (None, None))
         if not force and old_key == key:
@@ -313,7 +313,7 @@ def build_collection(
     from ..archive.writer import check_writable_dir
 
     t0 = time.perf_counter()
-    archive = Path(archive)
+    archive = Path(archive).resolve()  # absolute paths in jobs: Dask workers may run elsewhere
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)
