@@ -192,6 +192,7 @@ def test_controls_drive_the_viewer(viewer, bunny_view):
     assert viewer.edl is True
     press("Right")
     assert viewer.k == 642 and viewer.n_displayed == 642
+    assert slider.GetRepresentation().GetValue() == pytest.approx(math.log10(642))
     size = viewer.level_actor.GetProperty().GetPointSize()
     press("plus")
     assert viewer.level_actor.GetProperty().GetPointSize() > size or size == 40.0

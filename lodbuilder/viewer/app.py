@@ -87,6 +87,7 @@ class LevelViewer:
         self._refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # arrays VTK views, per mesh
         self._colours = data.colours(self.mode, self.k)
         self._surface_actor: Any = None
+        self._slider: Any = None
         # the full scan's spacing, from the level of half the points (rho ~ 1/sqrt(k) on a surface)
         self._full_rho = data.rho_for_size(max(1, len(data) // 2)) / math.sqrt(2.0)
         if window_size is None:
@@ -106,7 +107,7 @@ class LevelViewer:
         )
         self._text = self.plotter.add_text("", position="upper_left", font_size=10, color="black")
         if show_help and not off_screen:
-            self.plotter.add_text(HELP, position="lower_left", font_size=7, color="gray")
+            self.plotter.add_text(HELP, position="lower_left", font_size=9, color="gray")
         self.full_mesh = None
         if full_scan:
             self.plotter.subplot(0, 1)
@@ -192,6 +193,8 @@ class LevelViewer:
             self._remove_surface()
         self._update_point_size()
         self._update_text()
+        if self._slider is not None:  # keys move the level too: keep the slider in step
+            self._slider.GetRepresentation().SetValue(math.log10(self.k))
         if render:
             self._render_level()
         return self.k
@@ -381,7 +384,7 @@ class LevelViewer:
         """Slider and key bindings of the interactive window."""
         n = len(self.data)
         self.plotter.subplot(0, 0)
-        self.plotter.add_slider_widget(
+        self._slider = self.plotter.add_slider_widget(
             self.on_slider,
             rng=[0.0, math.log10(n) if n > 1 else 1.0],
             value=math.log10(self.k),
