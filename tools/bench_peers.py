@@ -337,7 +337,7 @@ def markdown(doc: dict) -> str:
     m = doc["machine"]
     v = m["versions"]
     lines = [
-        "# Benchmarks: lodbuilder against peer simplifiers",
+        "## lodbuilder against peer simplifiers (tools/bench_peers.py)",
         "",
         f"Measured {doc['date']} by `python tools/bench_peers.py{doc['flags']}` "
         f"(commit {m['git_commit'] or '?'}); the run took {doc['total_s']:.0f} s.",
@@ -373,7 +373,7 @@ def markdown(doc: dict) -> str:
     for name, res in doc["inputs"].items():
         s = res["median_nn_spacing"]
         lines += [
-            f"## {name}: {res['n_points']:,} points ({res['kind']}; {res['source']})",
+            f"### {name}: {res['n_points']:,} points ({res['kind']}; {res['source']})",
             "",
             f"Median nearest-neighbour spacing {s:.4g}, bounding-box diagonal {res['diagonal']:.4g}. "
             "Distances below are in units of that spacing.",
@@ -407,8 +407,25 @@ def markdown(doc: dict) -> str:
                 lines.append(row)
         lines.append("")
     if doc.get("notes"):
-        lines += ["## Notes", ""] + [f"- {n}" for n in doc["notes"]] + [""]
+        lines += ["### Notes", ""] + [f"- {n}" for n in doc["notes"]] + [""]
     return "\n".join(lines)
+
+
+def write_section(path: Path, name: str, text: str) -> None:
+    """Put ``text`` between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in the markdown file
+    at ``path`` (replacing that section, or appending it), leaving other sections as they are."""
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    block = f"{begin}\n{text.rstrip()}\n{end}\n"
+    old = path.read_text() if path.exists() else "# Benchmarks\n\n"
+    if begin in old and end in old:
+        head, rest = old.split(begin, 1)
+        new = head + block + rest.split(end, 1)[1].lstrip("\n")
+    else:
+        new = old.rstrip("\n") + "\n\n" + block
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(new)
+    os.replace(tmp, path)
 
 
 def main() -> int:
@@ -423,7 +440,15 @@ def main() -> int:
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods")
     ap.add_argument("--markdown", help="write the markdown report here (e.g. docs/benchmarks.md)")
     ap.add_argument("--json", help="also write the JSON here")
+    ap.add_argument("--from-json", help="only rewrite --markdown from the JSON of an earlier run")
     args = ap.parse_args()
+    if args.from_json:
+        if not args.markdown:
+            ap.error("--from-json needs --markdown")
+        write_section(
+            Path(args.markdown), "peers", markdown(json.loads(Path(args.from_json).read_text()))
+        )
+        return 0
     methods = [m for m in args.methods.split(",") if m]
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -450,9 +475,8 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(text + "\n")
     if args.markdown:
-        Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.markdown).write_text(markdown(doc))
-        log(f"wrote {args.markdown}")
+        write_section(Path(args.markdown), "peers", markdown(doc))
+        log(f"wrote the peers section of {args.markdown}")
     return 0
 
 

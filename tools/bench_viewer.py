@@ -58,12 +58,64 @@ def time_moves(viewer, sizes):
     return {"update_ms": stats(upd), "move_ms": stats(move), "full_render_ms": stats(full)}
 
 
+def write_section(path: Path, name: str, text: str) -> None:
+    """Put ``text`` between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in the markdown file
+    at ``path`` (replacing that section, or appending it), leaving other sections as they are."""
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    block = f"{begin}\n{text.rstrip()}\n{end}\n"
+    old = path.read_text() if path.exists() else "# Benchmarks\n\n"
+    if begin in old and end in old:
+        head, rest = old.split(begin, 1)
+        new = head + block + rest.split(end, 1)[1].lstrip("\n")
+    else:
+        new = old.rstrip("\n") + "\n\n" + block
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(new)
+    os.replace(tmp, path)
+
+
+def markdown(out: dict) -> str:
+    r = out["results"]
+    gl = out["gl"]
+    lines = [
+        "## Viewer: a slider move on a 100k-point level (tools/bench_viewer.py)",
+        "",
+        f"Input {out['input']} ({out['n_points']:,} points), levels around {out['level']:,} points, "
+        f"window {out['window'][0]}x{out['window'][1]}, off screen through EGL; OpenGL: "
+        f"{gl['renderer']} ({gl['vendor']}), i.e. "
+        + ("software rendering on the CPU." if "llvmpipe" in gl["renderer"] else "a GPU.")
+        + f" Machine: {out['machine']['cpu_count']} cores, {out['machine']['platform']}, "
+        f"pyvista {out['machine']['pyvista']}, VTK {out['machine']['vtk']}; load average at start "
+        f"{out['load_average']}. Medians of {len(out['moves'])} moves (min-max).",
+        "",
+        "| layout | update in place (ms) | slider move: update + render (ms) | render both panels (ms) |",
+        "|---|---:|---:|---:|",
+    ]
+    for label, res in r.items():
+        u, m, f = res["update_ms"], res["move_ms"], res["full_render_ms"]
+        lines.append(
+            f"| {label} | {u['median']} ({u['min']}-{u['max']}) | {m['median']} ({m['min']}-{m['max']}) "
+            f"| {f['median']} ({f['min']}-{f['max']}) |"
+        )
+    lines += [
+        "",
+        "*update in place* swaps the level mesh's point, vertex and colour arrays (zero-copy views "
+        "of the stored prefix); *slider move* adds the render of the changed panel (the full-scan "
+        "panel is not redrawn unless its colours change, as in Voronoi mode).",
+    ]
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--input", default=str(DATA / "igea.ply"))
     ap.add_argument("--level", type=int, default=100_000)
     ap.add_argument("--moves", type=int, default=10)
     ap.add_argument("--window", type=int, nargs=2, default=(1600, 800))
+    ap.add_argument(
+        "--markdown", help="update the viewer section of this file (docs/benchmarks.md)"
+    )
     args = ap.parse_args()
 
     import numpy as np
@@ -94,6 +146,7 @@ def main() -> int:
         "level": k,
         "moves": sizes,
         "window": list(args.window),
+        "load_average": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
         "archive_build_s": round(build_s, 2),
         "load_view_data_s": round(load_s, 3),
         "results": {},
@@ -127,6 +180,8 @@ def main() -> int:
     }
     json.dump(out, sys.stdout, indent=2)
     sys.stdout.write("\n")
+    if args.markdown:
+        write_section(Path(args.markdown), "viewer", markdown(out))
     return 0
 
 
