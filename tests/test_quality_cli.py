@@ -93,3 +93,31 @@ def test_evaluate_errors(res3_archive, tmp_path, capsys):
     assert main(["evaluate", arc, "--scan", "nope"]) == 2
     assert "has no scan 'nope'" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def weighted_archive(shared_data, tmp_path_factory):
+    import lodbuilder
+
+    out = tmp_path_factory.mktemp("arc") / "weighted.h5"
+    lodbuilder.build_archive(shared_data / "bun_zipper_res3.ply", out, name="res3", adaptive=0.8)
+    return out
+
+
+def test_evaluate_extra_ordering(weighted_archive, capsys):
+    rc = main(
+        ["evaluate", str(weighted_archive), "--ordering", "weighted", "--fractions", "0.05", "0.2"]
+        + ["--json", "-"]
+    )
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ordering"] == "weighted"
+    assert [lv["size"] for lv in doc["levels"]] == [94, 378]
+    # weighted radii are not Euclidean covering radii: no rho claimed, nothing to violate
+    assert all(lv["rho"] is None and lv["meets_rho"] is None for lv in doc["levels"])
+    assert (
+        main(["evaluate", str(weighted_archive), "--ordering", "weighted", "--rhos", "0.01"]) == 2
+    )
+    assert "its radii are not Euclidean" in capsys.readouterr().err
+    assert main(["evaluate", str(weighted_archive), "--ordering", "nope"]) == 2
+    assert "has no ordering 'nope'" in capsys.readouterr().err
