@@ -284,3 +284,18 @@ def test_validate_names_invariant_faults(small, tmp_path):
     assert any("source_index is not a permutation of 0..2499" in f for f in faults)
     assert any("parent of position 20 is 25; parents must come earlier" in f for f in faults)
     assert any("attribute 'build' is not valid JSON" in f for f in faults)
+
+
+def test_reading_a_level_imports_nothing_heavy(small):
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, lodbuilder\n"
+        f"with lodbuilder.open_archive({str(small[2])!r}) as a:\n"
+        "    lev = a.scan().level(fraction=0.5)\n"
+        "print(lev.size, [m for m in ('numba', 'pyvista', 'dask', 'scipy') if m in sys.modules])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1250", "[]"]
