@@ -40,7 +40,7 @@ def add_build_options(p: argparse.ArgumentParser) -> None:
         "--outlier-threshold",
         type=float,
         metavar="T",
-        help="leave points with a noise score above T (about 1 on clean surfaces; try 10-20) "
+        help="leave points with a noise score above T (about 1 on evenly noisy surfaces; try 10-20) "
         "out of every ordering; they stay in the archive, flagged by the attribute 'outlier'",
     )
     g.add_argument(
