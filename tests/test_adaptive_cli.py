@@ -49,6 +49,10 @@ def test_build_info_slice_with_features(ply, tmp_path, capsys):
 
     out = tmp_path / "floor.ply"
     assert main(["slice", str(arc), "--ordering", "floor", "--size", "500", "-o", str(out)]) == 0
+    assert "(covering radius <= 3 (the density floor); weighted radius" in capsys.readouterr().out
+    assert main(["slice", str(arc), "--ordering", "weighted", "--size", "500", "-o", str(out)]) == 0
+    assert "not a Euclidean covering radius" in capsys.readouterr().out
+    assert main(["slice", str(arc), "--ordering", "floor", "--size", "500", "-o", str(out)]) == 0
     lvl = read_scan(out)
     assert len(lvl.points) == 500 and not lvl.attributes["outlier"].any()
     inliers = np.delete(pts, 465, axis=0)

@@ -93,6 +93,9 @@ def run(args: argparse.Namespace) -> int:
                 args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering
             )
         metadata = view.format_metadata
+        from ..features.cli_options import bound_note
+
+        note = bound_note(view, level)
     attrs = dict(level.attributes)
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
@@ -101,6 +104,6 @@ def run(args: argparse.Namespace) -> int:
     write_points(out, level.points, attrs, metadata=metadata)
     print(
         f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} "
-        f"(covering radius <= {level.rho:.6g})"
+        f"({note})"
     )
     return 0

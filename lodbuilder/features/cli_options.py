@@ -114,3 +114,24 @@ def floor_level(view: Any, rho: float, size: int, ordering: str | None = None) -
         np.asarray(pos, dtype=np.int64), None, bound, True, ordering=f"{name}+floor"
     )
     return level
+
+
+def bound_note(view: Any, level: Any) -> str:
+    """What the level's radius guarantees, for the slice message.
+
+    A prefix of the uniform ordering (or a floor query) covers within its radius; a prefix of a
+    weighted ordering only within its *weighted* radius (see :mod:`lodbuilder.sampling.adaptive`);
+    a prefix of a density-floor ordering past its uniform part covers within rho0."""
+    name = getattr(level, "ordering", None)
+    if name in (None, "uniform") or str(name).endswith("+floor"):
+        return f"covering radius <= {level.rho:.6g}"
+    params = view.ordering_parameters(name)
+    kind = params.get("kind")
+    if kind == "density_floor" and level.size > int(params.get("n_floor", 0)):
+        return (
+            f"covering radius <= {float(params['rho0']):.6g} (the density floor); weighted radius "
+            f"{level.rho:.6g}"
+        )
+    if kind == "weighted":
+        return f"weighted radius {level.rho:.6g}, not a Euclidean covering radius"
+    return f"covering radius <= {level.rho:.6g}"
