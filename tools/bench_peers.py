@@ -406,6 +406,8 @@ def markdown(doc: dict) -> str:
                     row += f" {_g(lv['geodesic_covering_radius'] / s)} |"
                 lines.append(row)
         lines.append("")
+    lines += ["### Summary (computed from the tables above)", ""] + [f"- {x}" for x in summary(doc)]
+    lines.append("")
     if doc.get("notes"):
         lines += ["### Notes", ""] + [f"- {n}" for n in doc["notes"]] + [""]
     return "\n".join(lines)
@@ -426,6 +428,46 @@ def write_section(path: Path, name: str, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(new)
     os.replace(tmp, path)
+
+
+def summary(doc: dict) -> list[str]:
+    """A few comparisons computed from the results (so they stay true when the run is redone)."""
+    out = []
+    ok = total = 0
+    for res in doc["inputs"].values():
+        for lv in res["methods"].get("lodbuilder", {}).get("levels", []):
+            total += 1
+            ok += lv["meets_rho"] is True
+    out.append(
+        f"lodbuilder levels whose measured covering radius meets their claimed rho: {ok} of {total}."
+    )
+    for name, res in doc["inputs"].items():
+        meth = res["methods"]
+        lb = meth.get("lodbuilder", {}).get("levels")
+        fp = meth.get("fpsample", {}).get("levels")
+        if not lb or not fp:
+            continue
+        ratios = ", ".join(
+            f"{100 * f:g} %: {a['covering_radius'] / b['covering_radius']:.2f}"
+            for f, a, b in zip(doc["fractions"], lb, fp, strict=False)
+        )
+        fp_time = sum(b["seconds"] for b in fp)
+        line = (
+            f"{name}: covering radius of lodbuilder / fpsample at {ratios}; lodbuilder's one ordering "
+            f"took {lb[0]['seconds']:.3g} s, fpsample {fp_time:.3g} s for its three levels"
+        )
+        if "geodesic_covering_radius" in lb[0]:
+            geo = []
+            for m, mres in meth.items():
+                if "levels" in mres:
+                    geo.append((mres["levels"][0]["geodesic_covering_radius"], m))
+            geo.sort()
+            s_ = res["median_nn_spacing"]
+            line += "; geodesic covering radius at 1 % (spacings): " + ", ".join(
+                f"{m} {g / s_:.3g}" for g, m in geo
+            )
+        out.append(line + ".")
+    return out
 
 
 def main() -> int:
