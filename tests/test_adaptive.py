@@ -247,3 +247,29 @@ def test_build_archive_with_features_round_trip(tmp_path, shape):
         inl = np.setdiff1d(np.arange(len(pts)), [10, 2000])
         d, _ = cKDTree(pts[kept_src]).query(pts[inl])
         assert d.max() <= 3.0
+
+
+def naive_floor_query(u_order, u_radius, w_order, rho, size):
+    n_u = sum(1 for r in u_radius if r > rho)
+    out = list(u_order[:n_u])
+    for i in w_order:
+        if len(out) == size:
+            break
+        if i not in out:
+            out.append(i)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_floor_query_matches_naive(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(5, 60))
+    u_order = rng.permutation(n)
+    u_radius = np.r_[np.inf, np.sort(rng.uniform(0, 10, n - 1))[::-1]]
+    w_order = rng.permutation(n)
+    rho = float(rng.uniform(0.1, 12))
+    n_u = int((u_radius > rho).sum())
+    size = int(rng.integers(n_u, n + 1)) if n_u else int(rng.integers(1, n + 1))
+    size = max(size, 1)
+    got = floor_query_arrays(u_order, u_radius, w_order, n, rho, size)
+    assert list(got) == naive_floor_query(u_order, u_radius, w_order, rho, size)

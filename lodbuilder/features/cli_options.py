@@ -27,7 +27,9 @@ def add_build_options(p: argparse.ArgumentParser) -> None:
         "--adaptive",
         type=float,
         metavar="A",
-        help="adaptivity in [0, 1]: store the 'weighted' ordering with cost (1 - A) + A * importance",
+        help="adaptivity in [0, 1]: store the 'weighted' ordering with cost (1 - A) + A * importance "
+        "(0.5 is a good start: on the Igea scan it lowered the point-to-plane error by 3-13 %%; "
+        "1 starves flat regions)",
     )
     g.add_argument(
         "--density-floor",
