@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 import lodbuilder
@@ -127,3 +128,17 @@ def test_failed_write_leaves_no_temp_and_old_archive(base_archive, monkeypatch):
         update_archive(path, [ScanRecord(scan, lodbuilder.fastfps(scan.points))])
     assert sha(path) == before
     assert _temps(path) == []
+
+
+def test_open_reader_keeps_a_consistent_view_while_a_scan_is_added(base_archive):
+    path = base_archive
+    with lodbuilder.open_archive(path) as old:
+        before = old.scan("base").level(size=300).points
+        other = demo_scan(700, kind="torus", seed=2, name="ring")
+        update_archive(path, [ScanRecord(other, lodbuilder.fastfps(other.points))])
+        # the open handle still reads the file it opened, complete and unchanged
+        assert old.scans == ["base"]
+        np.testing.assert_array_equal(old.scan("base").level(size=300).points, before)
+    with lodbuilder.open_archive(path) as new:
+        assert new.scans == ["base", "ring"]
+        np.testing.assert_array_equal(new.scan("base").level(size=300).points, before)
