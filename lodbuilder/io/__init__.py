@@ -2,9 +2,24 @@
 
     from lodbuilder.io import read_scan, read_scans, write_points
     scan = read_scan("bun000.ply")          # Scan(points float64 (N,3), attributes, metadata)
-    write_points("level.ply", pts, {"red": r})
+    write_points("level.ply", pts, {"red": r}, rank=True)
 
-Optional formats need extras: LAS/LAZ ``pip install lodbuilder[las]``, E57 ``pip install lodbuilder[e57]``.
+=========================  ======  =====  =========================================================
+suffix                     read    write  notes
+=========================  ======  =====  =========================================================
+.ply                       yes     yes    ascii/binary; only the vertex element is read; every
+                                          vertex property but x/y/z is an attribute
+.las .laz (.copc.laz)      yes     yes    laspy + lazrs (``pip install lodbuilder[las]``); every
+                                          dimension incl. extra bytes; scale/offset/format/CRS kept
+.e57                       yes     no     pye57 (``pip install lodbuilder[e57]``); every scan
+                                          (``read_scans``), pose applied, invalid points dropped
+.xyz .pts .csv .txt        yes     .csv   header detection; see ``lodbuilder.io.text``
+                                   .xyz
+.npy .npz                  yes     yes    plain (N, 3) or structured x/y/z/...; see ``lodbuilder.io.npy``
+=========================  ======  =====  =========================================================
+
+Every error is a one-line :mod:`lodbuilder.errors` exception naming the file and the fix.
+Writes are atomic (temporary file in the same directory, then ``os.replace``).
 """
 
 from __future__ import annotations
