@@ -90,6 +90,14 @@ def _one_line(exc: BaseException) -> str:
 
 # ------------------------------------------------------------------------------------ executors
 
+def _start_method() -> str:
+    """How worker processes start: ``forkserver`` (they fork from a clean server process, with no
+    copies of the caller's open files or threads); ``fork`` when the caller's main script has no
+    file to re-import (a script read from stdin)."""
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    return "fork" if main_file is not None and not os.path.isfile(main_file) else "forkserver"
+
+
 @contextlib.contextmanager
 def make_executor(workers: int | None = None, scheduler: str | None = None,
                   dask_local: int | None = None) -> Iterator[tuple[cf.Executor, str]]:
@@ -102,14 +110,9 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
             raise InputError(f"workers must be >= 1, got {workers}")
         import multiprocessing
 
-        # forkserver: workers fork from a clean server process (no copies of the caller's open
-        # files or threads) and share its imports. It re-imports the caller's main script, which
-        # is impossible for a script read from stdin: fork then.
-        main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-        if main_file is not None and not os.path.isfile(main_file):
-            ctx = multiprocessing.get_context("fork")
-        else:
-            ctx = multiprocessing.get_context("forkserver")
+        method = _start_method()
+        ctx = multiprocessing.get_context(method)
+        if method == "forkserver":
             ctx.set_forkserver_preload(["lodbuilder.collection.jobs"])
         with cf.ProcessPoolExecutor(max_workers=int(n), mp_context=ctx) as ex:
             yield ex, f"process pool ({int(n)} worker{'s' if int(n) > 1 else ''})"
@@ -124,8 +127,12 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
     if dask_local is not None:
         if int(dask_local) < 1:
             raise InputError(f"dask_local must be >= 1 workers, got {dask_local}")
-        cluster = LocalCluster(n_workers=int(dask_local), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.WARNING)
+        import dask
+
+        # the same start method as the local pool (Dask's default, spawn, starts slower)
+        with dask.config.set({"distributed.worker.multiprocessing-method": _start_method()}):
+            cluster = LocalCluster(n_workers=int(dask_local), threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.WARNING)
         client = Client(cluster)
         desc = f"Dask LocalCluster ({int(dask_local)} worker{'s' if int(dask_local) > 1 else ''})"
     else:
