@@ -232,3 +232,17 @@ def test_entry_point_runs(built):
     )
     assert out.returncode == 0 and "bun_zipper_res3" in out.stdout
     assert os.path.exists(built)
+
+
+def test_build_reports_the_name_the_reader_gave(tmp_path, capsys, shared_data):
+    # an E57 scan is named by the file's own scan name, not the file stem
+    arc = tmp_path / "e.h5"
+    rc, out, err = run_cli(
+        capsys, "build", shared_data / "bunnyDouble.e57", "-o", arc, "--no-progress"
+    )
+    assert rc == 0, err
+    import lodbuilder
+
+    with lodbuilder.open_archive(arc) as a:
+        (name,) = a.scans
+    assert f"added scan {name!r} (30571 points" in out

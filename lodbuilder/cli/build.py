@@ -54,7 +54,9 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from .progressbar import ProgressBars
 
-    if collection_cli.wants_collection(args):  # several scans, a directory, a manifest, --workers ...
+    if collection_cli.wants_collection(
+        args
+    ):  # several scans, a directory, a manifest, --workers ...
         return collection_cli.run(args)
     args.input = args.input[0]
     src, out = Path(args.input), Path(args.output)
@@ -80,11 +82,16 @@ def run(args: argparse.Namespace) -> int:
         )
     from ..archive.reader import open_archive
 
-    name = args.name or src.stem
     with open_archive(out) as arc:
-        v = arc.scan(name)
+        # the reader names the scan (file stem, or the name inside the file): find the newest
+        # scan built from this source
+        if args.name in arc.scans:
+            v = arc.scan(args.name)
+        else:
+            built = [s for s in arc if s.provenance.get("source_name") == src.name]
+            v = max(built, key=lambda s: str(s.provenance.get("created_utc", "")))
         print(
-            f"added scan {name!r} ({v.n_points} points, {v.encoding} coordinates) to {out} "
+            f"added scan {v.name!r} ({v.n_points} points, {v.encoding} coordinates) to {out} "
             f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)"
         )
     return 0
