@@ -210,3 +210,13 @@ def test_controls_drive_the_viewer(viewer, bunny_view):
     assert viewer.box is None and viewer.n_displayed == 642
     img = viewer.image()
     assert non_background(img[40:, :200]) > 500
+
+
+def test_animation_mp4_when_imageio_ffmpeg_is_there(viewer, tmp_path):
+    pytest.importorskip("imageio_ffmpeg")
+    import imageio.v2 as iio
+
+    out = viewer.animate(tmp_path / "a.mp4", frames=5)
+    frames = list(iio.get_reader(out))
+    assert len(frames) == 5 and frames[0].shape == (200, 400, 3)
+    assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 1.0
