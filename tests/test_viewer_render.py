@@ -217,6 +217,7 @@ def test_animation_mp4_when_imageio_ffmpeg_is_there(viewer, tmp_path):
     import imageio.v2 as iio
 
     out = viewer.animate(tmp_path / "a.mp4", frames=5)
-    frames = list(iio.get_reader(out))
+    with iio.get_reader(str(out)) as reader:
+        frames = [f for f in reader.iter_data()]
     assert len(frames) == 5 and frames[0].shape == (200, 400, 3)
     assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 1.0
