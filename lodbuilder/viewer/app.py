@@ -251,10 +251,12 @@ class LevelViewer:
 
     def point_size_for(self, rho: float) -> float:
         """Screen size (pixels) of a point at density ``rho``: a square about 1.5 rho wide."""
-        if rho <= 0:
-            rho = self.data.rho_for_size(len(self.data) - 1) or self.data.diagonal * 1e-3
         if self.box is not None:
             rho = rho / self.refine_factor
+        # never smaller than the full scan's own spacing (the last radii of an ordering are tiny)
+        rho = max(rho, self._full_rho) if self._full_rho > 0 else rho
+        if rho <= 0:
+            rho = self.data.diagonal * 1e-3
         # squares 1.5 rho wide: the level's points are about rho apart, so this closes the gaps
         px = 1.5 * rho * self._pixels_per_unit() * self.point_scale
         return float(min(40.0, max(1.0, px)))
