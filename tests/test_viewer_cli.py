@@ -171,3 +171,32 @@ def test_slice_path_does_not_import_pyvista(bunny_archive, tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
     assert out.exists()
+
+
+@pytest.mark.viewer
+def test_view_extra_ordering(shared_data, tmp_path, capsys):
+    import lodbuilder
+    from lodbuilder.viewer.source import load_view_data
+
+    arc = tmp_path / "weighted.h5"
+    lodbuilder.build_archive(shared_data / "bun_zipper_res3.ply", arc, name="res3", adaptive=0.8)
+    uniform = load_view_data(arc)
+    weighted = load_view_data(arc, ordering="weighted")
+    assert weighted.scan_names == ("res3 (weighted)",) and len(weighted) == len(uniform)
+    # the same points, another order: its prefixes are the weighted levels
+    assert np.array_equal(np.unique(weighted.points, axis=0), np.unique(uniform.points, axis=0))
+    assert not np.array_equal(weighted.points[:100], uniform.points[:100])
+    finite = weighted.radius[np.isfinite(weighted.radius)]
+    assert np.all(np.diff(finite) <= 0)
+    assert np.all(weighted.parent < np.arange(len(weighted)))
+    with lodbuilder.open_archive(arc) as a:
+        lvl = a.scan().level(size=100, ordering="weighted", attributes=False)
+    np.testing.assert_array_equal(weighted.points[:100], lvl.points)
+    png = tmp_path / "w.png"
+    rc = main(
+        ["view", str(arc), "--ordering", "weighted", "--size", "300", "--colour", "importance"]
+        + ["--screenshot", str(png), "--window-size", "300", "150"]
+    )
+    assert rc == 0 and png.stat().st_size > 0
+    assert main(["view", str(arc), "--ordering", "nope", "--screenshot", str(png)]) == 2
+    assert "has no ordering 'nope'; it has uniform, weighted" in capsys.readouterr().err

@@ -30,6 +30,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     lev.add_argument("--size", type=int, help="initial level: this many points")
     lev.add_argument("--rho", type=float, help="initial level: covering radius rho")
     lev.add_argument("--fraction", type=float, help="initial level: this fraction of the points")
+    p.add_argument(
+        "--ordering", help="show the levels of an extra ordering (e.g. weighted; default uniform)"
+    )
     p.add_argument("--colour", "--color", dest="colour", help=f"colour mode: {MODES_HELP}")
     p.add_argument("--screenshot", metavar="OUT.png", help="render the level off screen to a PNG")
     p.add_argument(
@@ -98,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from .._validate import check_fraction, check_positive, check_size
     from ..viewer.source import load_view_data
 
-    data = load_view_data(args.archive, args.scan)
+    data = load_view_data(args.archive, args.scan, args.ordering)
     size = None
     if args.size is not None:
         size = check_size(args.size, len(data))

@@ -7,28 +7,51 @@ from typing import Any
 
 import numpy as np
 
+from ..archive import layout as L
+from ..errors import InputError
 from .data import ViewData
 
 COLOUR_ATTRIBUTES = ("red", "green", "blue")
 
 
-def view_data_from_scan(scan: Any) -> ViewData:
-    """ViewData of one archive scan (a :class:`lodbuilder.archive.reader.ScanView`)."""
+def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
+    """ViewData of one archive scan (a :class:`lodbuilder.archive.reader.ScanView`), in its stored
+    (uniform) order or in one of its extra orderings (``weighted``, ``floor``, ...), whose levels
+    are then the prefixes the viewer shows."""
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]
     attrs = scan.attributes(None, names if len(names) == 3 else False)
     importance = {m: np.asarray(scan.importance(m)) for m in scan.importance_names}
+    if ordering in (None, "uniform"):
+        return ViewData(
+            points=scan.points(),
+            radius=np.asarray(scan.radius),
+            parent=np.asarray(scan.parent),
+            attributes=attrs,
+            importance=importance,
+            scan_names=(scan.name,),
+        )
+    if ordering not in scan.ordering_names:
+        raise InputError(
+            f"scan {scan.name!r} has no ordering {ordering!r}; it has "
+            f"{', '.join(['uniform'] + list(scan.ordering_names))}"
+        )
+    group = f"{L.G_ORDERINGS}/{ordering}"
+    pos = np.asarray(scan.dataset(f"{group}/{L.D_ORDER}")[:], dtype=np.int64)
     return ViewData(
-        points=scan.points(),
-        radius=np.asarray(scan.radius),
-        parent=np.asarray(scan.parent),
-        attributes=attrs,
-        importance=importance,
-        scan_names=(scan.name,),
+        points=scan.points()[pos],
+        radius=np.asarray(scan.dataset(f"{group}/{L.D_RADIUS}")[:]),
+        parent=np.asarray(scan.dataset(f"{group}/{L.D_PARENT}")[:]),
+        attributes={k: np.asarray(v)[pos] for k, v in attrs.items()},
+        importance={k: v[pos] for k, v in importance.items()},
+        scan_names=(f"{scan.name} ({ordering})",),
     )
 
 
-def load_view_data(archive: str | os.PathLike | Any, scan: str | None = None) -> ViewData:
-    """ViewData of ``scan``, or of every scan (merged by insertion radius) when ``scan`` is None.
+def load_view_data(
+    archive: str | os.PathLike | Any, scan: str | None = None, ordering: str | None = None
+) -> ViewData:
+    """ViewData of ``scan``, or of every scan (merged by insertion radius) when ``scan`` is None,
+    in the stored order or the extra ``ordering`` of each scan.
 
     ``archive`` is a path or an open :class:`lodbuilder.archive.reader.Archive`.
     """
@@ -36,10 +59,11 @@ def load_view_data(archive: str | os.PathLike | Any, scan: str | None = None) ->
 
     if isinstance(archive, (str, os.PathLike)):
         with open_archive(archive) as arc:
-            return load_view_data(arc, scan)
+            return load_view_data(arc, scan, ordering)
     if scan is not None:
-        return view_data_from_scan(archive.scan(scan))
+        return view_data_from_scan(archive.scan(scan), ordering)
     names = archive.scans
     if len(names) <= 1:
-        return view_data_from_scan(archive.scan(None))
-    return ViewData.merge([view_data_from_scan(archive.scan(n)) for n in names], names)
+        return view_data_from_scan(archive.scan(None), ordering)
+    parts = [view_data_from_scan(archive.scan(n), ordering) for n in names]
+    return ViewData.merge(parts, names)
