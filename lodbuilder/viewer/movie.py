@@ -6,6 +6,7 @@ import os
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,9 +45,10 @@ def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float
         if out.suffix.lower() == ".mp4":
             import imageio.v2 as iio
 
-            with iio.get_writer(tmp, fps=fps, macro_block_size=1) as w:
+            writer: Any = iio.get_writer(tmp, fps=fps, macro_block_size=1)
+            with writer:
                 for f in frames:
-                    w.append_data(np.asarray(f, dtype=np.uint8))
+                    writer.append_data(np.asarray(f, dtype=np.uint8))
         else:
             from PIL import Image
 
