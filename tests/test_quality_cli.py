@@ -121,3 +121,11 @@ def test_evaluate_extra_ordering(weighted_archive, capsys):
     assert "its radii are not Euclidean" in capsys.readouterr().err
     assert main(["evaluate", str(weighted_archive), "--ordering", "nope"]) == 2
     assert "has no ordering 'nope'" in capsys.readouterr().err
+
+
+def test_evaluate_default_levels(res3_archive, capsys):
+    assert main(["evaluate", str(res3_archive), "--json", "-"]) == 0
+    levels = json.loads(capsys.readouterr().out)["levels"]
+    sizes = [lv["size"] for lv in levels]
+    assert sizes == sorted(set(sizes)) and sizes[0] == 2 and sizes[-1] == 1889 and len(sizes) >= 8
+    assert all(lv["meets_rho"] for lv in levels)
