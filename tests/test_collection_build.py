@@ -270,3 +270,21 @@ def test_rebuilt_scan_replaces_the_old_one_without_dead_space(tmp_path):
     with __import__("lodbuilder").open_archive(out) as arc:
         np.testing.assert_array_equal(np.sort(arc.scan("good1").points(), axis=0), np.sort(pts, axis=0))
     assert abs(out.stat().st_size - size0) < 0.05 * size0
+
+
+def test_interrupt_stops_queued_scans(tmp_path):
+    files = _generated(tmp_path, n=5, npts=400)
+    out = tmp_path / "i.h5"
+
+    def stop(status):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_collection(files, out, workers=1, on_status=stop)
+    with __import__("lodbuilder").open_archive(out) as arc:
+        first = set(arc.scans)
+    assert 1 <= len(first) < 5  # the first scan is merged; the queued ones never ran
+    res = build_collection(files, out, workers=1)
+    assert res.ok and {s.name for s in res.by_status("skipped")} == first
+    with __import__("lodbuilder").open_archive(out) as arc:
+        assert len(arc.scans) == 5

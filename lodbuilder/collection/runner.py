@@ -362,31 +362,36 @@ def build_collection(
             result.executor = desc
             log.info("building %d scan(s) on %s", len(jobs), desc)
             pending = {ex.submit(build_one, j): j for j in jobs}
-            while pending:
-                finished, _ = cf.wait(list(pending), return_when=cf.FIRST_COMPLETED)
-                good: list[tuple[ScanJob, dict[str, Any]]] = []
-                for fut in finished:
-                    job = pending.pop(fut)
-                    try:
-                        good.append((job, fut.result()))
-                    except cf.process.BrokenProcessPool:
-                        emit(ScanStatus(job.name, job.path, "failed",
-                                        error="its worker process died (killed, out of memory, or failed to start: see the log)"))
-                    except Exception as exc:
-                        emit(ScanStatus(job.name, job.path, "failed", error=_one_line(exc)))
-                if good:
-                    t_merge = time.perf_counter()
-                    try:
-                        merge_parts(archive, [(j.name, Path(r["part"])) for j, r in good])
-                        result.merge_seconds += time.perf_counter() - t_merge
-                    except Exception as exc:
-                        for j, _ in good:
-                            emit(ScanStatus(j.name, j.path, "failed", error=f"merge failed: {_one_line(exc)}"))
-                        continue
-                    for j, r in good:
-                        _drop_part(Path(r["part"]))
-                        emit(ScanStatus(j.name, j.path, "built", n_points=r["n_points"],
-                                        seconds=r["seconds"], worker_pid=r["worker_pid"]))
+            try:
+                while pending:
+                    finished, _ = cf.wait(list(pending), return_when=cf.FIRST_COMPLETED)
+                    good: list[tuple[ScanJob, dict[str, Any]]] = []
+                    for fut in finished:
+                        job = pending.pop(fut)
+                        try:
+                            good.append((job, fut.result()))
+                        except cf.process.BrokenProcessPool:
+                            emit(ScanStatus(job.name, job.path, "failed",
+                                            error="its worker process died (killed, out of memory, or failed to start: see the log)"))
+                        except Exception as exc:
+                            emit(ScanStatus(job.name, job.path, "failed", error=_one_line(exc)))
+                    if good:
+                        t_merge = time.perf_counter()
+                        try:
+                            merge_parts(archive, [(j.name, Path(r["part"])) for j, r in good])
+                            result.merge_seconds += time.perf_counter() - t_merge
+                        except Exception as exc:
+                            for j, _ in good:
+                                emit(ScanStatus(j.name, j.path, "failed", error=f"merge failed: {_one_line(exc)}"))
+                            continue
+                        for j, r in good:
+                            _drop_part(Path(r["part"]))
+                            emit(ScanStatus(j.name, j.path, "built", n_points=r["n_points"],
+                                            seconds=r["seconds"], worker_pid=r["worker_pid"]))
+            except BaseException:  # interrupted: do not start the scans still queued
+                for fut in pending:
+                    fut.cancel()
+                raise
     d = parts_dir(archive)
     if d.is_dir():
         for lock in d.glob(".*.lock"):  # locks of parts that are gone
