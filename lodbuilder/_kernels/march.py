@@ -24,7 +24,7 @@ from . import JIT
 from .grid import lookup
 from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down, minheap_pop, minheap_push
 
-SEED_RADIUS = 2.0  # voxels around a new sample that get their exact distance
+SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 
 
 @nb.njit(inline="always", **JIT)
@@ -85,9 +85,9 @@ def march_round(
         fx = int(np.floor(u[i, 0]))
         fy = int(np.floor(u[i, 1]))
         fz = int(np.floor(u[i, 2]))
-        for x in range(fx - 1, fx + 3):
-            for y in range(fy - 1, fy + 3):
-                for z in range(fz - 1, fz + 3):
+        for x in range(fx - 5, fx + 7):
+            for y in range(fy - 5, fy + 7):
+                for z in range(fz - 5, fz + 7):
                     d = _dist(u, i, x, y, z)
                     if d > SEED_RADIUS:
                         continue
@@ -318,8 +318,8 @@ def euclid_tail(
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite);
-    inserting a point q only lowers points within d[q] (/ cmin when weighted). Returns the new count.
+    ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite),
+    first tightened to the exact distance to the point's labelled sample ``order[lab]``; inserting a point q only lowers points within d[q] (/ cmin when weighted). Returns the new count.
     """
     m = u.shape[0]
     heap = np.empty(m, np.int64)
@@ -329,6 +329,17 @@ def euclid_tail(
         if rank[p] < 0:
             heap[hn] = p
             hn += 1
+            # tighten to the exact distance to the labelled sample (still an upper bound)
+            if lab[p] >= 0:
+                s = order[lab[p]]
+                dx = u[p, 0] - u[s, 0]
+                dy = u[p, 1] - u[s, 1]
+                dz = u[p, 2] - u[s, 2]
+                e = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if weighted:
+                    e *= 0.5 * (pcost[p] + pcost[s])
+                if e < d[p]:
+                    d[p] = e
     maxheap_build(heap, pos, d, hn)
     k = k0
     while k < k_max and hn > 0:

@@ -178,7 +178,9 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         vcost = ucost[near].astype(np.float32)
         pcost = ucost
         cmin = float(ucost.min())
+        cscale = float(ucost.mean())  # hand over at the same Euclidean scale as an unweighted run
     else:
+        cscale = 1.0
         vcost = np.ones(band.n_voxels, dtype=np.float32)
         pcost = np.ones(m)
         cmin = 1.0
@@ -188,7 +190,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
         band.u, band.coord, band.nbr, band.cs, band.hkeys, band.hvals, vcost, pcost, weighted,
-        inv[useeds], k_max, rho_g, TAIL_FACTOR * r / h,
+        inv[useeds], k_max, rho_g, TAIL_FACTOR * r / h * cscale,
     )
     t2 = time.perf_counter()
     stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1)

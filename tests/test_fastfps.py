@@ -1,0 +1,305 @@
+"""The FastFPS engine: invariants, guarantees, references and degenerate input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from lodbuilder import euclidean_fps, fastfps
+from lodbuilder.errors import InputError, MemoryBudgetError
+from lodbuilder.sampling.band import band_distance
+
+from naive import covering_radius, naive_euclidean_fps
+from surfaces import folded_sheet, jittered_plane, sphere
+
+EPS = 1e-9
+
+
+def check_invariants(points: np.ndarray, o) -> None:
+    n = len(points)
+    assert o.order.dtype == np.int64 and o.parent.dtype == np.int64
+    assert np.array_equal(np.sort(o.order), np.arange(n)), "order is not a permutation"
+    assert np.isinf(o.radius[0])
+    assert np.all(o.radius[1:] <= o.radius[:-1]), "radii increase somewhere"
+    pos = np.arange(n)
+    assert np.all(o.parent < pos), "a parent comes after its child"
+    assert np.all(o.parent >= -1)
+
+
+def check_covering(points: np.ndarray, o, ks) -> None:
+    """Every input point lies within radius[k] (Euclidean) of the first k points."""
+    for k in ks:
+        if k <= 0 or k >= len(o) or not np.isfinite(o.radius[k]):
+            continue
+        d, _ = cKDTree(points[o.order[:k]]).query(points, k=1)
+        assert d.max() <= o.radius[k] * (1 + EPS) + 1e-12, (k, d.max(), o.radius[k])
+
+
+shapes = st.sampled_from(["cloud", "plane", "sphere", "line", "two_blobs"])
+
+
+def make(shape: str, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    if shape == "cloud":
+        return rng.random((n, 3))
+    if shape == "plane":
+        return jittered_plane(n, rng)
+    if shape == "sphere":
+        return sphere(n, rng)
+    if shape == "line":
+        t = rng.random(n)
+        return np.c_[t, 2 * t, -t] * 3.0 + 1.0
+    a = rng.normal(0, 0.1, (n // 2, 3))
+    b = rng.normal(0, 0.1, (n - n // 2, 3)) + [5.0, 0, 0]
+    return np.vstack([a, b])
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(shape=shapes, n=st.integers(2, 400), seed=st.integers(0, 2**31 - 1))
+def test_invariants_and_covering(shape, n, seed):
+    pts = make(shape, n, seed)
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    ks = np.random.default_rng(seed).integers(1, len(pts), 6)
+    check_covering(pts, o, ks)
+
+
+def test_matches_exact_euclidean_fps_when_everything_is_in_the_tail(rng):
+    # a voxel as large as the cloud puts every radius below the hand-over radius: the ordering is
+    # then exact Euclidean FPS from the seed, which the naive O(N^2) reference computes too.
+    pts = rng.random((300, 3))
+    o = fastfps(pts, seeds=[7], voxel_size=2.0)
+    order, radius, parent = naive_euclidean_fps(pts, [7])
+    assert np.array_equal(o.order, order)
+    np.testing.assert_allclose(o.radius, radius, rtol=1e-12)
+    assert np.array_equal(o.parent, parent)
+
+
+def test_plane_levels_are_as_good_as_exact_fps(rng):
+    pts = jittered_plane(3000, rng)
+    o = fastfps(pts)
+    order, radius, _ = naive_euclidean_fps(pts, [int(o.order[0])])
+    for k in (10, 50, 200, 1000):
+        ours = covering_radius(pts, o.order[:k])
+        exact = covering_radius(pts, order[:k])
+        assert ours <= 1.25 * exact, (k, ours, exact)
+        assert ours <= o.radius[k] * (1 + EPS)
+
+
+def test_band_distance_on_a_plane_is_euclidean_within_one_voxel(rng):
+    pts = jittered_plane(6400, rng)
+    h = 0.02
+    src = int(np.argmin(((pts - [0.5, 0.5, 0]) ** 2).sum(1)))
+    d = band_distance(pts, [src], voxel_size=h)
+    exact = np.linalg.norm(pts - pts[src], axis=1)
+    err = d - exact
+    assert np.abs(err).max() <= h, np.abs(err).max()
+
+
+def test_band_distance_on_a_sphere_follows_the_surface(rng):
+    pts = sphere(20000, rng)
+    h = 0.04
+    d = band_distance(pts, [0], voxel_size=h)
+    geo = np.arccos(np.clip(pts @ pts[0], -1, 1))
+    # within one voxel of the great-circle distance up to 15 voxels away ...
+    near = geo <= 15 * h
+    assert np.abs(d[near] - geo[near]).max() <= h
+    # ... and beyond, first-order marching adds at most 2 % of the distance
+    assert np.all(d - geo <= h + 0.02 * geo)
+    # never shorter than the shortest path inside the band's shell (inner radius 1 - r)
+    ri = 1 - 2.5 * h
+    a = np.arccos(ri)
+    shell = np.where(geo > 2 * a, 2 * np.sqrt(1 - ri * ri) + ri * (geo - 2 * a), 2 * np.sin(geo / 2))
+    assert np.all(d >= shell - 1e-9)
+    # the band follows the surface: across the sphere it is far longer than the chord
+    far = geo > 2.5
+    assert np.all(d[far] > 1.2 * np.linalg.norm(pts[far] - pts[0], axis=1))
+
+
+def test_folded_sheet_levels_cover_both_sheets():
+    s, gap = 0.01, 0.1
+    pts, sheet = folded_sheet(s, gap)
+    o = fastfps(pts, voxel_size=s)  # band radius 2.5 s: the sheets' bands stay apart
+    check_invariants(pts, o)
+    for rho in (1.5 * gap, 2 * gap, 3 * gap):
+        k = o.size_for_rho(rho)
+        lvl = sheet[o.order[:k]]
+        lower, upper = (lvl == 0).sum(), (lvl == 1).sum()
+        assert lower > 0 and upper > 0
+        assert 0.6 < lower / upper < 1.6, (rho, lower, upper)
+    # Euclidean FPS lets one sheet cover the other at such densities
+    e = euclidean_fps(pts, rho=3 * gap)
+    assert o.size_for_rho(3 * gap) > 1.5 * len(e)
+
+
+def test_deterministic(rng):
+    pts = sphere(3000, rng)
+    a, b = fastfps(pts), fastfps(pts)
+    assert np.array_equal(a.order, b.order)
+    assert np.array_equal(a.radius, b.radius)
+    assert np.array_equal(a.parent, b.parent)
+
+
+def test_early_stop_by_rho_and_size(rng):
+    pts = jittered_plane(2000, rng)
+    full = fastfps(pts)
+    by_rho = fastfps(pts, rho=0.1)
+    k = full.size_for_rho(0.1)
+    assert len(by_rho) == k
+    assert np.array_equal(by_rho.order, full.order[:k])
+    assert np.all(by_rho.radius > 0.1)
+    check_covering(pts, full, [k])
+    by_size = fastfps(pts, size=37)
+    assert np.array_equal(by_size.order, full.order[:37])
+
+
+def test_seeds_come_first_in_the_given_order(rng):
+    pts = rng.random((500, 3))
+    o = fastfps(pts, seeds=[42, 3, 99])
+    assert list(o.order[:3]) == [42, 3, 99]
+    assert np.isinf(o.radius[:3]).all() and (o.parent[:3] == -1).all()
+    check_invariants(pts, o)
+    check_covering(pts, o, [3, 10, 100])
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_tiny_inputs(n):
+    pts = np.arange(3 * n, dtype=float).reshape(n, 3)
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    if n == 2:
+        assert o.radius[1] == pytest.approx(np.sqrt(27), rel=1e-9)
+        assert o.parent[1] == 0
+
+
+def test_all_identical_points():
+    pts = np.ones((50, 3))
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    assert (o.radius[1:] == 0).all() and (o.parent[1:] == 0).all()
+
+
+def test_exact_duplicates_come_last_with_radius_zero(rng):
+    base = rng.random((300, 3))
+    dup_of = rng.choice(300, 40, replace=False)
+    pts = np.vstack([base, base[dup_of], base[dup_of[:5]]])
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    assert (o.radius[:300] > 0).all() and (o.radius[300:] == 0).all()
+    rank = o.rank()
+    tail = o.order[300:]
+    assert set(tail.tolist()) == set(range(300, 345))
+    # each copy points at its first copy, and copies follow the order of their first copy
+    firsts = np.r_[dup_of, dup_of[:5]][tail - 300]
+    assert np.array_equal(o.parent[300:], rank[firsts])
+    assert np.all(np.diff(o.parent[300:]) >= 0)
+    check_covering(pts, o, [1, 50, 299, 300, 320])
+
+
+def test_disconnected_objects_are_all_covered(rng):
+    a = jittered_plane(900, rng)
+    b = jittered_plane(900, rng) + [10.0, 0, 0]
+    pts = np.vstack([a, b])
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    # the seed's component is reached by the band; the other component starts at radius inf
+    assert np.isinf(o.radius[:2]).all()
+    assert {o.order[0] < 900, o.order[1] < 900} == {True, False}
+    assert np.isfinite(o.radius[2:]).all()
+    check_covering(pts, o, [2, 10, 100, 1000])
+
+
+def test_lidar_coordinates_far_from_the_origin(rng):
+    pts = jittered_plane(4000, rng) * 20.0 + [500_000.0, 4_000_000.0, 120.0]  # 0.3 m spacing
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    check_covering(pts, o, [5, 100, 3000])
+    mm = jittered_plane(2500, rng) * 0.05 + [500_000.0, 4_000_000.0, 120.0]  # 1 mm spacing
+    o = fastfps(mm)
+    check_invariants(mm, o)
+    check_covering(mm, o, [5, 100, 2000])
+
+
+def test_grid_that_cannot_be_indexed_is_refused(rng):
+    pts = np.array([[0.0, 0, 0], [10_000.0, 0, 0], [0, 1e-3, 0]])
+    with pytest.raises(InputError, match=r"voxel_size=0.001 would need .* use a voxel_size of at least"):
+        fastfps(pts, voxel_size=1e-3)
+
+
+def test_memory_budget_is_a_clear_error(rng):
+    pts = jittered_plane(2000, rng)
+    with pytest.raises(MemoryBudgetError, match=r"more than max_memory=.*increase voxel_size or max_memory"):
+        fastfps(pts, voxel_size=0.001, max_memory=2_000_000)
+
+
+@pytest.mark.parametrize(
+    "points, message",
+    [
+        (np.zeros((5, 2)), r"points must have shape \(N, 3\), got \(5, 2\)"),
+        (np.zeros((0, 3)), r"points is empty"),
+        (np.array([[0, 0, np.nan], [1, 1, 1]]), r"1 point\(s\) with NaN or inf coordinates \(first at index 0\)"),
+        (np.array([[0, 0, np.inf]]), r"NaN or inf"),
+        (np.array([["a", "b", "c"]]), r"points must hold real numbers, got dtype <U1"),
+    ],
+)
+def test_bad_points(points, message):
+    with pytest.raises(InputError, match=message):
+        fastfps(points)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(rho=0), r"rho must be a finite number > 0, got 0"),
+        (dict(rho=float("nan")), r"rho must be a finite number > 0"),
+        (dict(size=0), r"size must be between 1 and the number of points \(10\), got 0"),
+        (dict(size=11), r"size must be between 1 and the number of points \(10\), got 11"),
+        (dict(seeds=[3, 3]), r"seeds contains repeated indices"),
+        (dict(seeds=[10]), r"seeds must be indices in \[0, 10\)"),
+        (dict(voxel_size=-1), r"voxel_size must be a finite number > 0"),
+        (dict(voxel_size=1.0, band_radius=1.0), r"band_radius=1 is too small for voxel_size=1"),
+        (dict(cost=np.ones(9)), r"cost must have one value per point, shape \(10,\), got \(9,\)"),
+        (dict(cost=-np.ones(10)), r"cost must be finite and > 0"),
+    ],
+)
+def test_bad_options(kwargs, message):
+    pts = np.random.default_rng(0).random((10, 3))
+    with pytest.raises(InputError, match=message):
+        fastfps(pts, **kwargs)
+
+
+def test_import_is_light():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, lodbuilder; lodbuilder.Ordering; "
+        "bad = [m for m in ('numba', 'pyvista', 'dask') if m in sys.modules]; print(bad)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_constant_cost_scales_distances_only(rng):
+    pts = sphere(3000, rng)
+    a = fastfps(pts)
+    b = fastfps(pts, cost=np.full(len(pts), 0.5))
+    # the uniform run certifies radii with Euclidean distances, the weighted one does not, so the
+    # orders may part after a while; the hand-over to the tail happens at the same scale.
+    assert np.array_equal(a.order[:10], b.order[:10])
+    assert abs(b.stats["grid_points"] - a.stats["grid_points"]) <= 0.05 * a.stats["grid_points"]
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name", ["bun000.ply", "bun_zipper.ply", "igea.ply"])
+def test_covering_on_real_scans(shared_data, name):
+    from lodbuilder.io import read_scan
+
+    pts = read_scan(shared_data / name).points
+    o = fastfps(pts)
+    check_invariants(pts, o)
+    ks = np.r_[1, 2, 10, 100, 1000, np.random.default_rng(1).integers(1, len(pts), 5)]
+    check_covering(pts, o, ks)
