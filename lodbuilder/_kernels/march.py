@@ -12,7 +12,8 @@ sample: a new sample marches only where it lowers ``T``.
 Per-point state: ``dq`` = min over the 8 corner voxels v of the point's cell of T[v] + |u - v| * cost
 (an upper bound of the band distance to the samples), ``lq`` = the sample that achieved it, and the
 candidate value ``val``: for the uniform metric the certified upper bound of the Euclidean distance to
-the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric simply dq.
+the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric the same with the
+straight distance scaled by the mean cost of its two ends (so a constant cost only scales radii).
 """
 
 from __future__ import annotations
@@ -264,17 +265,16 @@ def grid_phase(
             for p in range(cs[w], cs[w + 1]):
                 if rank[p] >= 0:
                     continue
+                s = order[lq[p]]
+                dx = u[p, 0] - u[s, 0]
+                dy = u[p, 1] - u[s, 1]
+                dz = u[p, 2] - u[s, 2]
+                e = np.sqrt(dx * dx + dy * dy + dz * dz)
                 if weighted:
-                    val[p] = dq[p]
-                else:
-                    s = order[lq[p]]
-                    dx = u[p, 0] - u[s, 0]
-                    dy = u[p, 1] - u[s, 1]
-                    dz = u[p, 2] - u[s, 2]
-                    e = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    cand = dq[p] if dq[p] > e else e
-                    if cand < val[p]:
-                        val[p] = cand
+                    e *= 0.5 * (pcost[p] + pcost[s])
+                cand = dq[p] if dq[p] > e else e
+                if cand < val[p]:
+                    val[p] = cand
                 if val[p] > best:
                     best = val[p]
             ckey[cc] = best

@@ -1,7 +1,8 @@
 """The offset band: a sparse set of voxels within the band radius r of the points.
 
 Automatic parameters (documented rule):
-    s = median nearest-neighbour distance of the (distinct) points, on a sample of up to 50,000;
+    s = typical point spacing (median distance to the 6th neighbour x sqrt(pi / 6), which is the
+        spacing of a jittered grid and the mean spacing of random samples), on up to 50,000 points;
     voxel size  h = 2 s;
     band radius r = 2.5 h.
 With these, the band is about 2r/h = 5 voxels thick and holds about 1.3 voxels per point; sheets closer
@@ -26,8 +27,13 @@ BYTES_PER_POINT = 200
 MAX_COORD = (1 << 21) - 1
 
 
-def median_spacing(points: np.ndarray, sample: int = 50_000) -> float:
-    """Median nearest-neighbour distance (on a deterministic sample of the points)."""
+def median_spacing(points: np.ndarray, sample: int = 50_000, k: int = 6) -> float:
+    """Typical point spacing: the median distance to the k-th neighbour times sqrt(pi / k).
+
+    On a surface sampled at density 1/s^2 this is about s whether the samples are a jittered grid
+    (like a range scan) or random; the plain nearest-neighbour distance would be half of s for random
+    samples. Measured on a deterministic sample of the points.
+    """
     from scipy.spatial import cKDTree
 
     n = points.shape[0]
@@ -39,10 +45,12 @@ def median_spacing(points: np.ndarray, sample: int = 50_000) -> float:
         q = points[idx]
     else:
         q = points
-    d, _ = tree.query(q, k=2, workers=-1)
-    s = float(np.median(d[:, 1]))
+    k = min(k, n - 1)
+    d, _ = tree.query(q, k=k + 1, workers=-1)
+    dk = d[:, k]
+    s = float(np.median(dk)) * math.sqrt(math.pi / k)
     if s <= 0.0:
-        s = float(d[:, 1][d[:, 1] > 0].min()) if (d[:, 1] > 0).any() else 0.0
+        s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
     return s
 
 
