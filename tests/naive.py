@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import heapq
-
 import numpy as np
 
 
@@ -46,25 +44,16 @@ def covering_radius(points: np.ndarray, kept: np.ndarray) -> float:
     return float(best.max())
 
 
-def dijkstra(n_nodes: int, edges: list[tuple[int, int, float]], sources: list[int]) -> np.ndarray:
-    """Plain Dijkstra distances from ``sources`` over an undirected weighted edge list."""
-    adj: list[list[tuple[int, float]]] = [[] for _ in range(n_nodes)]
-    for a, b, w in edges:
-        adj[a].append((b, w))
-        adj[b].append((a, w))
-    dist = np.full(n_nodes, np.inf)
-    heap = []
-    for s in sources:
-        dist[s] = 0.0
-        heap.append((0.0, s))
-    heapq.heapify(heap)
-    while heap:
-        d, u = heapq.heappop(heap)
-        if d > dist[u]:
-            continue
-        for v, w in adj[u]:
-            nd = d + w
-            if nd < dist[v]:
-                dist[v] = nd
-                heapq.heappush(heap, (nd, v))
-    return dist
+def naive_band_voxels(points: np.ndarray, h: float, r: float, origin: np.ndarray) -> set[tuple[int, int, int]]:
+    """Integer coordinates of every voxel centre origin + h * (i, j, k) within r of some point."""
+    out: set[tuple[int, int, int]] = set()
+    ext = int(np.ceil(r / h)) + 1
+    for p in np.asarray(points, dtype=np.float64):
+        c = np.floor((p - origin) / h).astype(int)
+        for dx in range(-ext, ext + 2):
+            for dy in range(-ext, ext + 2):
+                for dz in range(-ext, ext + 2):
+                    v = c + (dx, dy, dz)
+                    if np.linalg.norm(origin + h * v - p) <= r:
+                        out.add(tuple(int(x) for x in v))
+    return out

@@ -302,3 +302,28 @@ def test_covering_on_real_scans(shared_data, name):
     check_invariants(pts, o)
     ks = np.r_[1, 2, 10, 100, 1000, np.random.default_rng(1).integers(1, len(pts), 5)]
     check_covering(pts, o, ks)
+
+
+@settings(max_examples=15, deadline=None)
+@given(n=st.integers(1, 40), seed=st.integers(0, 2**31 - 1), rad=st.floats(1.75, 3.5))
+def test_band_is_every_voxel_within_r_with_a_true_neighbour_table(n, seed, rad):
+    from lodbuilder.sampling.band import build_band
+
+    from naive import naive_band_voxels
+
+    pts = np.random.default_rng(seed).random((n, 3))
+    h = 0.1
+    band = build_band(pts, h, rad * h)
+    got = {tuple(int(x) for x in c) for c in band.coord}
+    assert got == naive_band_voxels(pts, h, rad * h, band.origin)
+    assert np.all(np.diff(band.keys) > 0)  # Morton order, no repeats
+    index = {c: i for i, c in enumerate(map(tuple, band.coord.tolist()))}
+    steps = [(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)]
+    for i, c in enumerate(map(tuple, band.coord.tolist())):
+        for j, s in enumerate(steps):
+            assert band.nbr[i, j] == index.get((c[0] + s[0], c[1] + s[1], c[2] + s[2]), -1)
+    # every point lies in the cell of its voxel range
+    for v in range(band.n_voxels):
+        cell = np.floor(band.u[band.cs[v] : band.cs[v + 1]]).astype(int)
+        assert np.all(cell == band.coord[v])
+    assert band.cs[-1] == n
