@@ -206,3 +206,51 @@ def build_index(keys):  # pragma: no cover - compiled
         nbr[i, 4] = lookup(hkeys, hvals, x, y, z - 1)
         nbr[i, 5] = lookup(hkeys, hvals, x, y, z + 1)
     return hkeys, hvals, coord, nbr
+
+
+@nb.njit(**JIT)
+def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
+    """Point ranges of coarse cells (2^j voxels a side, j = 1..levels) for ball queries.
+
+    Points are sorted by the Morton key of their voxel cell, and the Morton key of the coarse cell
+    of side 2^j is the fine key >> 3j, so every coarse cell is one contiguous range of points.
+    Returns a hash map ((coarse key << 3) | j) -> run, and the runs' start and end.
+    """
+    nv = keys.shape[0]
+    nrun = 0
+    for j in range(1, levels + 1):
+        sh = np.uint64(3 * j)
+        prev = np.int64(-1)
+        for v in range(nv):
+            if cs[v + 1] > cs[v]:
+                ck = np.int64(np.uint64(keys[v]) >> sh)
+                if ck != prev:
+                    nrun += 1
+                    prev = ck
+    rstart = np.empty(nrun, np.int64)
+    rend = np.empty(nrun, np.int64)
+    cap = 1024
+    while cap < 2 * nrun:
+        cap *= 2
+    hk = np.full(cap, -1, np.int64)
+    hv = np.full(cap, -1, np.int32)
+    mask = cap - 1
+    r = -1
+    for j in range(1, levels + 1):
+        sh = np.uint64(3 * j)
+        prev = np.int64(-1)
+        for v in range(nv):
+            if cs[v + 1] > cs[v]:
+                ck = np.int64(np.uint64(keys[v]) >> sh)
+                if ck != prev:
+                    r += 1
+                    rstart[r] = cs[v]
+                    prev = ck
+                    key = (ck << 3) | j
+                    s = _slot(key, mask)
+                    while hk[s] != -1:
+                        s = (s + 1) & mask
+                    hk[s] = key
+                    hv[s] = r
+                rend[r] = cs[v + 1]
+    return hk, hv, rstart, rend

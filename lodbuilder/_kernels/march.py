@@ -22,7 +22,7 @@ import numba as nb
 import numpy as np
 
 from . import JIT
-from .grid import lookup
+from .grid import hash_find, lookup, morton
 from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down, minheap_pop, minheap_push
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
@@ -66,6 +66,18 @@ def _dist(u, i, x, y, z):  # pragma: no cover - compiled
     dy = u[i, 1] - y
     dz = u[i, 2] - z
     return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@nb.njit(inline="always", **JIT)
+def _pair_dist(u, pcost, weighted, p, q):  # pragma: no cover - compiled
+    """Straight distance between points p and q, scaled by their mean cost when weighted."""
+    dx = u[p, 0] - u[q, 0]
+    dy = u[p, 1] - u[q, 1]
+    dz = u[p, 2] - u[q, 2]
+    e = np.sqrt(dx * dx + dy * dy + dz * dz)
+    if weighted:
+        e *= 0.5 * (pcost[p] + pcost[q])
+    return e
 
 
 @nb.njit(**JIT)
@@ -246,12 +258,8 @@ def grid_phase(
         parent[k] = par
         ci = pcell[i]
         ckey[ci] = _cell_key(ci, cellv, cs, rank, val)
-        if hpos[ci] >= 0:
-            if ckey[ci] < 0.0:
-                # move the exhausted cell to the end and drop it
-                maxheap_sift_down(heap, hpos, ckey, hpos[ci], hn)
-            else:
-                maxheap_sift_down(heap, hpos, ckey, hpos[ci], hn)
+        if hpos[ci] >= 0:  # an exhausted cell (key -1) sinks and is dropped at the top later
+            maxheap_sift_down(heap, hpos, ckey, hpos[ci], hn)
         src[0] = i
         nd, hk, hv, pp = march_round(
             src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
@@ -265,13 +273,7 @@ def grid_phase(
             for p in range(cs[w], cs[w + 1]):
                 if rank[p] >= 0:
                     continue
-                s = order[lq[p]]
-                dx = u[p, 0] - u[s, 0]
-                dy = u[p, 1] - u[s, 1]
-                dz = u[p, 2] - u[s, 2]
-                e = np.sqrt(dx * dx + dy * dy + dz * dz)
-                if weighted:
-                    e *= 0.5 * (pcost[p] + pcost[s])
+                e = _pair_dist(u, pcost, weighted, p, order[lq[p]])
                 cand = dq[p] if dq[p] > e else e
                 if cand < val[p]:
                     val[p] = cand
@@ -312,71 +314,127 @@ def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources
 
 
 @nb.njit(**JIT)
+def _cell_tables(cs):  # pragma: no cover - compiled
+    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1), point -> cell."""
+    nv = cs.shape[0] - 1
+    ncell = 0
+    for v in range(nv):
+        if cs[v + 1] > cs[v]:
+            ncell += 1
+    cellv = np.empty(ncell, np.int64)
+    cellof = np.full(nv, -1, np.int32)
+    pcell = np.empty(cs[nv], np.int64)
+    c = 0
+    for v in range(nv):
+        if cs[v + 1] > cs[v]:
+            cellof[v] = c
+            cellv[c] = v
+            for p in range(cs[v], cs[v + 1]):
+                pcell[p] = c
+            c += 1
+    return cellv, cellof, pcell
+
+
+@nb.njit(**JIT)
 def euclid_tail(
-    u, cs, hkeys, hvals, pcost, weighted, cmin, d, lab, rank, order, radius, parent, k0, k_max,
-    rho_stop,
+    u, cs, hkeys, hvals, chk, chv, rstart, rend, levels, pcost, weighted, cmin, d, lab, rank,
+    order, radius, parent, k0, k_max, rho_stop,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
     ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite),
-    first tightened to the exact distance to the point's labelled sample ``order[lab]``; inserting a point q only lowers points within d[q] (/ cmin when weighted). Returns the new count.
+    first tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
+    point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
+    max-heap (the cell's largest d). Ball queries scan voxel cells for small balls and the coarse
+    cells of :func:`coarse_runs` (side 2^j >= the ball radius) for larger ones, so a query looks up at
+    most 27 cells while the radius is within the coarse levels. Returns the new count.
     """
+    cellv, cellof, pcell = _cell_tables(cs)
+    ncell = cellv.shape[0]
     m = u.shape[0]
-    heap = np.empty(m, np.int64)
-    pos = np.full(m, -1, np.int64)
-    hn = 0
     for p in range(m):
-        if rank[p] < 0:
-            heap[hn] = p
-            hn += 1
+        if rank[p] < 0 and lab[p] >= 0:
             # tighten to the exact distance to the labelled sample (still an upper bound)
-            if lab[p] >= 0:
-                s = order[lab[p]]
-                dx = u[p, 0] - u[s, 0]
-                dy = u[p, 1] - u[s, 1]
-                dz = u[p, 2] - u[s, 2]
-                e = np.sqrt(dx * dx + dy * dy + dz * dz)
-                if weighted:
-                    e *= 0.5 * (pcost[p] + pcost[s])
-                if e < d[p]:
-                    d[p] = e
-    maxheap_build(heap, pos, d, hn)
+            e = _pair_dist(u, pcost, weighted, p, order[lab[p]])
+            if e < d[p]:
+                d[p] = e
+    ckey = np.empty(ncell)
+    for c in range(ncell):
+        ckey[c] = _cell_key(c, cellv, cs, rank, d)
+    heap = np.arange(ncell).astype(np.int64)
+    hpos = np.empty(ncell, np.int64)
+    hn = ncell
+    maxheap_build(heap, hpos, ckey, hn)
+    dstamp = np.full(ncell, -1, np.int64)
+    dirty = np.empty(ncell, np.int64)
     k = k0
     while k < k_max and hn > 0:
-        i = heap[0]
-        kk = d[i]
+        top = heap[0]
+        kk = ckey[top]
+        if kk < 0.0:
+            hn = maxheap_pop(heap, hpos, ckey, hn)
+            continue
         if kk <= rho_stop:
             break
-        hn = maxheap_pop(heap, pos, d, hn)
+        w = cellv[top]
+        i = -1
+        for p in range(cs[w], cs[w + 1]):
+            if rank[p] < 0 and d[p] == kk:
+                i = p
+                break
         rank[i] = k
         order[k] = i
         radius[k] = kk
         parent[k] = lab[i]
+        nd = 0
+        dstamp[top] = k
+        dirty[nd] = top
+        nd += 1
         reach = kk / cmin if weighted else kk
-        x0 = int(np.floor(u[i, 0] - reach))
-        x1 = int(np.floor(u[i, 0] + reach))
-        y0 = int(np.floor(u[i, 1] - reach))
-        y1 = int(np.floor(u[i, 1] + reach))
-        z0 = int(np.floor(u[i, 2] - reach))
-        z1 = int(np.floor(u[i, 2] + reach))
+        j = 0
+        side = 1.0
+        while j < levels and side < reach:
+            j += 1
+            side *= 2.0
+        x0 = int(np.floor((u[i, 0] - reach) / side))
+        x1 = int(np.floor((u[i, 0] + reach) / side))
+        y0 = int(np.floor((u[i, 1] - reach) / side))
+        y1 = int(np.floor((u[i, 1] + reach) / side))
+        z0 = int(np.floor((u[i, 2] - reach) / side))
+        z1 = int(np.floor((u[i, 2] + reach) / side))
         for x in range(x0, x1 + 1):
             for y in range(y0, y1 + 1):
                 for z in range(z0, z1 + 1):
-                    v = lookup(hkeys, hvals, x, y, z)
-                    if v < 0:
-                        continue
-                    for p in range(cs[v], cs[v + 1]):
+                    if j == 0:
+                        v = lookup(hkeys, hvals, x, y, z)
+                        if v < 0:
+                            continue
+                        p0 = cs[v]
+                        p1 = cs[v + 1]
+                    else:
+                        if x < 0 or y < 0 or z < 0:
+                            continue
+                        run = hash_find(chk, chv, (morton(x, y, z) << 3) | j)
+                        if run < 0:
+                            continue
+                        p0 = rstart[run]
+                        p1 = rend[run]
+                    for p in range(p0, p1):
                         if rank[p] >= 0:
                             continue
-                        dx = u[p, 0] - u[i, 0]
-                        dy = u[p, 1] - u[i, 1]
-                        dz = u[p, 2] - u[i, 2]
-                        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
-                        if weighted:
-                            dd *= 0.5 * (pcost[p] + pcost[i])
+                        dd = _pair_dist(u, pcost, weighted, p, i)
                         if dd < d[p]:
                             d[p] = dd
                             lab[p] = k
-                            maxheap_sift_down(heap, pos, d, pos[p], hn)
+                            c = pcell[p]
+                            if dstamp[c] != k:
+                                dstamp[c] = k
+                                dirty[nd] = c
+                                nd += 1
+        for t in range(nd):
+            c = dirty[t]
+            ckey[c] = _cell_key(c, cellv, cs, rank, d)
+            if hpos[c] >= 0:
+                maxheap_sift_down(heap, hpos, ckey, hpos[c], hn)
         k += 1
     return k

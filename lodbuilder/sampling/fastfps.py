@@ -197,9 +197,14 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
     report(progress, "ordering", int(k), k_max)
     if k < k_max:
+        from .._kernels.grid import coarse_runs
+
+        reach = TAIL_FACTOR * r / h * cscale / cmin  # the largest ball of the tail, in voxels
+        levels = max(0, min(int(np.ceil(np.log2(max(reach, 1.0)))), 8))
+        chk, chv, rstart, rend = coarse_runs(band.keys, band.cs, levels)
         k = euclid_tail(
-            band.u, band.cs, band.hkeys, band.hvals, pcost, weighted, cmin, val, lq, rank,
-            order, radius, parent, k, k_max, rho_g,
+            band.u, band.cs, band.hkeys, band.hvals, chk, chv, rstart, rend, levels, pcost,
+            weighted, cmin, val, lq, rank, order, radius, parent, k, k_max, rho_g,
         )
     t3 = time.perf_counter()
     stats["time_tail"] = t3 - t2
