@@ -6,7 +6,8 @@ into a progress bar. ``None`` means silent.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
+from typing import Optional
 
 ProgressCallback = Optional[Callable[[str, int, int], None]]
 

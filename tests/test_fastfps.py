@@ -6,14 +6,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from naive import covering_radius, naive_euclidean_fps
 from scipy.spatial import cKDTree
+from surfaces import folded_sheet, jittered_plane, sphere
 
 from lodbuilder import euclidean_fps, fastfps
 from lodbuilder.errors import InputError, MemoryBudgetError
 from lodbuilder.sampling.band import band_distance
-
-from naive import covering_radius, naive_euclidean_fps
-from surfaces import folded_sheet, jittered_plane, sphere
 
 EPS = 1e-9
 
@@ -307,9 +306,9 @@ def test_covering_on_real_scans(shared_data, name):
 @settings(max_examples=15, deadline=None)
 @given(n=st.integers(1, 40), seed=st.integers(0, 2**31 - 1), rad=st.floats(1.75, 3.5))
 def test_band_is_every_voxel_within_r_with_a_true_neighbour_table(n, seed, rad):
-    from lodbuilder.sampling.band import build_band
-
     from naive import naive_band_voxels
+
+    from lodbuilder.sampling.band import build_band
 
     pts = np.random.default_rng(seed).random((n, 3))
     h = 0.1

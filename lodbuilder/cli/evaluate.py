@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 from ..errors import InputError
@@ -67,17 +65,10 @@ def _write_json(out: str, doc: dict) -> None:
     if out == "-":
         sys.stdout.write(text + "\n")
         return
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text + "\n")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from ..io._files import atomic_output
+
+    with atomic_output(out, make_parents=True) as tmp:
+        tmp.write_text(text + "\n")
 
 
 def run(args: argparse.Namespace) -> int:

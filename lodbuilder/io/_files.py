@@ -37,13 +37,23 @@ def check_output_path(path: str | os.PathLike[str]) -> Path:
     return p
 
 
+def _default_mode() -> int:
+    """The mode a new file gets from the process umask (0o644 under the usual umask 022)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike[str], *, make_parents: bool = False) -> Iterator[Path]:
     """Yield a temporary path in the destination directory; rename it onto ``path`` on success.
 
-    The temporary file keeps the destination's suffix (some libraries choose the encoding from it).
-    On any error the temporary file is removed and ``path`` is left untouched.
+    The temporary file keeps the destination's suffix (some libraries choose the encoding from it)
+    and gets the permissions a plain new file would. On any error the temporary file is removed and
+    ``path`` is left untouched. ``make_parents`` creates a missing destination directory first.
     """
+    if make_parents:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
     p = check_output_path(path)
     parent = p.parent if str(p.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{p.name}.", suffix=".part" + "".join(p.suffixes[-1:]))
@@ -51,6 +61,7 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, _default_mode())
         os.replace(tmp_path, p)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -38,10 +37,9 @@ def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float
     out = check_movie_path(out)
     if not frames:
         raise InputError(f"no frame to write to {out}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
-    os.close(fd)
-    try:
+    from ..io._files import atomic_output
+
+    with atomic_output(out, make_parents=True) as tmp:
         if out.suffix.lower() == ".mp4":
             import imageio.v2 as iio
 
@@ -63,9 +61,5 @@ def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float
                 loop=0,
                 optimize=False,
             )
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+
     return out
