@@ -108,9 +108,15 @@ def run(args: argparse.Namespace) -> int:
             f"  build      voxel_size {b.get('voxel_size')}, band_radius {b.get('band_radius')}, "
             f"engine {b.get('engine_stats', {}).get('engine', '?')}"
         )
+        if prov.get("source_name"):
+            src = (
+                f"{prov['source_name']} ({prov.get('source_size')} bytes, sha256 "
+                f"{str(prov.get('source_sha256'))[:16]}...)"
+            )
+        else:
+            src = "in-memory points (no source file)"
         print(
-            f"  source     {prov.get('source_name')} ({prov.get('source_size')} bytes, sha256 "
-            f"{str(prov.get('source_sha256'))[:16]}...), reader {prov.get('reader')}, "
+            f"  source     {src}, reader {prov.get('reader')}, "
             f"{prov.get('created_utc')}, lodbuilder {prov.get('lodbuilder_version')}"
         )
     return 0
