@@ -346,3 +346,13 @@ def test_real_coloured_scan_maps(shared_data):
     # the bunny is curved everywhere but mostly smooth: small median variation, a few sharp spots
     v = maps["curvature"][0]
     assert np.median(v) < 0.05 and v.max() > 3 * np.median(v)
+
+
+def test_rare_features_keep_their_contrast():
+    from lodbuilder.features.weights import normalise
+
+    w = np.zeros(1000)
+    w[:20] = np.linspace(1, 2, 20)  # 2 % of the points: above the 95th percentile
+    out = normalise(w)
+    assert out[:20].min() > 0 and out[19] == 1.0 and (out[20:] == 0).all()
+    assert (normalise(np.full(50, 3.0)) == 0).all()

@@ -76,7 +76,9 @@ def normalise(
 ) -> np.ndarray:
     """Map values to [0, 1] by robust percentiles: P_lo -> 0, P_hi -> 1, clipped outside.
 
-    A map whose P_hi equals P_lo (constant, or nearly so) has no contrast and maps to 0.
+    When the features are rare (fewer points than 100 - P_hi percent, e.g. a folded edge on a
+    mostly flat sheet) P_hi equals P_lo; the range then falls back to P_lo .. max so the rare
+    features still stand out. Only a constant map has no contrast and maps to 0.
     """
     lo_p, hi_p = percentiles
     if not (0 <= lo_p < hi_p <= 100):
@@ -85,7 +87,9 @@ def normalise(
         )
     lo, hi = np.percentile(values, [lo_p, hi_p])
     if not hi > lo:
-        return np.zeros(values.shape[0])
+        hi = float(np.max(values))
+        if not hi > lo:
+            return np.zeros(values.shape[0])
     return np.clip((values - lo) / (hi - lo), 0.0, 1.0)
 
 
