@@ -41,6 +41,7 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
+from benchdoc import write_section
 from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -411,23 +412,6 @@ def markdown(doc: dict) -> str:
     if doc.get("notes"):
         lines += ["### Notes", ""] + [f"- {n}" for n in doc["notes"]] + [""]
     return "\n".join(lines)
-
-
-def write_section(path: Path, name: str, text: str) -> None:
-    """Put ``text`` between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in the markdown file
-    at ``path`` (replacing that section, or appending it), leaving other sections as they are."""
-    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    block = f"{begin}\n{text.rstrip()}\n{end}\n"
-    old = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    if begin in old and end in old:
-        head, rest = old.split(begin, 1)
-        new = head + block + rest.split(end, 1)[1].lstrip("\n")
-    else:
-        new = old.rstrip("\n") + "\n\n" + block
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(new)
-    os.replace(tmp, path)
 
 
 def summary(doc: dict) -> list[str]:

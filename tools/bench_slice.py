@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchdoc import write_section
 
 
 def machine() -> dict:
@@ -171,22 +172,6 @@ def time_fpsample(points: np.ndarray, k: int) -> float | None:
     dt = time.perf_counter() - t
     assert len(idx) == k
     return round(dt, 3)
-
-
-def write_section(path: Path, name: str, text: str) -> None:
-    """Put ``text`` between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in the markdown file
-    at ``path`` (replacing that section, or appending it), leaving other sections as they are."""
-    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    block = f"{begin}\n{text.rstrip()}\n{end}\n"
-    old = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    if begin in old and end in old:
-        head, rest = old.split(begin, 1)
-        new = head + block + rest.split(end, 1)[1].lstrip("\n")
-    else:
-        new = old.rstrip("\n") + "\n\n" + block
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(new)
-    os.replace(tmp, path)
 
 
 def markdown(result: dict) -> str:

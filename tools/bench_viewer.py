@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchdoc import write_section
+
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,23 +58,6 @@ def time_moves(viewer, sizes):
         full.append(1e3 * (t3 - t2))
         assert viewer.n_displayed == k
     return {"update_ms": stats(upd), "move_ms": stats(move), "full_render_ms": stats(full)}
-
-
-def write_section(path: Path, name: str, text: str) -> None:
-    """Put ``text`` between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in the markdown file
-    at ``path`` (replacing that section, or appending it), leaving other sections as they are."""
-    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    block = f"{begin}\n{text.rstrip()}\n{end}\n"
-    old = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    if begin in old and end in old:
-        head, rest = old.split(begin, 1)
-        new = head + block + rest.split(end, 1)[1].lstrip("\n")
-    else:
-        new = old.rstrip("\n") + "\n\n" + block
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(new)
-    os.replace(tmp, path)
 
 
 def markdown(out: dict) -> str:
