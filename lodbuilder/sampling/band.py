@@ -27,28 +27,34 @@ BYTES_PER_POINT = 200
 MAX_COORD = (1 << 21) - 1
 
 
-def median_spacing(points: np.ndarray, sample: int = 50_000, k: int = 6) -> float:
+def median_spacing(
+    points: np.ndarray, sample: int = 50_000, k: int = 6, subset: int = 500_000
+) -> float:
     """Typical point spacing: the median distance to the k-th neighbour times sqrt(pi / k).
 
     On a surface sampled at density 1/s^2 this is about s whether the samples are a jittered grid
     (like a range scan) or random; the plain nearest-neighbour distance would be half of s for random
-    samples. Measured on a deterministic sample of the points.
+    samples. Measured on a deterministic sample of the points; above ``subset`` points the
+    neighbours are searched in a random subset of that size and the spacing scaled by
+    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning).
     """
     from scipy.spatial import cKDTree
 
     n = points.shape[0]
     if n < 2:
         return 0.0
+    rng = np.random.default_rng(0)
+    scale = 1.0
+    if n > subset:
+        points = points[np.sort(rng.choice(n, subset, replace=False))]
+        scale = math.sqrt(subset / n)
+        n = subset
     tree = cKDTree(points)
-    if n > sample:
-        idx = np.random.default_rng(0).choice(n, sample, replace=False)
-        q = points[idx]
-    else:
-        q = points
+    q = points[rng.choice(n, sample, replace=False)] if n > sample else points
     k = min(k, n - 1)
     d, _ = tree.query(q, k=k + 1, workers=-1)
     dk = d[:, k]
-    s = float(np.median(dk)) * math.sqrt(math.pi / k)
+    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale
     if s <= 0.0:
         s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
     return s
