@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchdoc import write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -105,8 +106,14 @@ def main() -> None:
         "--fpsample-max", type=int, default=1_100_000,
         help="time fpsample only up to this many points (its full 4M ordering takes many minutes)",
     )
+    ap.add_argument("--markdown", help="also write the 'build' section of this markdown file")
+    ap.add_argument("--from-json", help="render the markdown section from a saved JSON report")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.from_json:
+        report = json.loads(Path(args.from_json).read_text())
+        write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "build", markdown(report))
+        return
     if args.one:
         print(json.dumps(run_one(args.one, not args.no_fpsample)))
         return
@@ -138,6 +145,36 @@ def main() -> None:
             if 3.9 * n <= m <= 4.1 * n:  # e.g. 1M and 4M (a side of the grid is rounded)
                 report[f"time_ratio_{m}_vs_{n}"] = by_n[m]["time_s"] / by_n[n]["time_s"]
     print(json.dumps(report, indent=2))
+    if args.markdown:
+        write_section(Path(args.markdown), "build", markdown(report))
+
+
+def markdown(report: dict) -> str:
+    m = report["machine"]
+    lines = [
+        "## Full ordering (tools/bench_build.py)",
+        "",
+        f"{m['cpus']} cores, Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}; "
+        f"load average at the end {', '.join(f'{x:.2f}' for x in m['load_avg_at_end'])}.",
+        "",
+        "| input | N | h | band voxels / point | pops / voxel | band s | grid s | tail s | total s "
+        "| fpsample s | ratio | peak RSS B/point |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in report["results"]:
+        fps = r.get("fpsample_time_s")
+        ratio = r.get("ratio_to_fpsample")
+        lines.append(
+            f"| {r['input']} | {r['n']:,} | {r['h']:.3g} | {r['voxels_per_point']:.2f} | "
+            f"{r['pops_per_voxel']:.1f} | {r['time_band_s']:.1f} | {r['time_grid_s']:.1f} | "
+            f"{r['time_tail_s']:.1f} | {r['time_s']:.1f} | "
+            f"{'-' if fps is None else f'{fps:.1f}'} | {'-' if ratio is None else f'{ratio:.2f}'} | "
+            f"{r['peak_rss_bytes_per_point']:.0f} |"
+        )
+    for k, v in report.items():
+        if k.startswith("time_ratio"):
+            lines += ["", f"{k}: {v:.2f}"]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
