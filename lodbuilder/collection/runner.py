@@ -98,6 +98,18 @@ def _start_method() -> str:
     return "fork" if main_file is not None and not os.path.isfile(main_file) else "forkserver"
 
 
+def _mp_context() -> Any:
+    import multiprocessing
+
+    method = _start_method()
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        # the server imports the build's libraries and loads the compiled kernels once; the
+        # workers forked from it start warm (takes effect when the server starts)
+        ctx.set_forkserver_preload(["lodbuilder.collection.jobs", "lodbuilder.collection._warm"])
+    return ctx
+
+
 @contextlib.contextmanager
 def make_executor(workers: int | None = None, scheduler: str | None = None,
                   dask_local: int | None = None) -> Iterator[tuple[cf.Executor, str]]:
@@ -108,12 +120,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
         n = workers or os.cpu_count() or 1
         if int(n) < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
-        import multiprocessing
-
-        method = _start_method()
-        ctx = multiprocessing.get_context(method)
-        if method == "forkserver":
-            ctx.set_forkserver_preload(["lodbuilder.collection.jobs"])
+        ctx = _mp_context()
         with cf.ProcessPoolExecutor(max_workers=int(n), mp_context=ctx) as ex:
             yield ex, f"process pool ({int(n)} worker{'s' if int(n) > 1 else ''})"
         return
@@ -129,7 +136,9 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
             raise InputError(f"dask_local must be >= 1 workers, got {dask_local}")
         import dask
 
-        # the same start method as the local pool (Dask's default, spawn, starts slower)
+        # the same start method (and warm forkserver) as the local pool; Dask's default, spawn,
+        # starts every worker cold
+        _mp_context()
         with dask.config.set({"distributed.worker.multiprocessing-method": _start_method()}):
             cluster = LocalCluster(n_workers=int(dask_local), threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.WARNING)
