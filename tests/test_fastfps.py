@@ -326,3 +326,27 @@ def test_band_is_every_voxel_within_r_with_a_true_neighbour_table(n, seed, rad):
         cell = np.floor(band.u[band.cs[v] : band.cs[v + 1]]).astype(int)
         assert np.all(cell == band.coord[v])
     assert band.cs[-1] == n
+
+
+@settings(max_examples=30, deadline=None)
+@given(ops=st.lists(st.tuples(st.integers(0, 30), st.floats(0, 100)), min_size=1, max_size=200))
+def test_indexed_min_heap_pops_in_key_order(ops):
+    from lodbuilder._kernels.heaps import iheap_pop, iheap_push
+
+    hk = np.empty(4, np.float32)
+    hv = np.empty(4, np.int32)
+    hpos = np.full(31, -1, np.int32)
+    n = 0
+    best: dict[int, float] = {}  # the naive reference: each item's smallest key
+    for item, key in ops:
+        key = float(np.float32(key))
+        if key < best.get(item, np.inf):  # keys only ever decrease, as in the marcher
+            best[item] = key
+            hk, hv, n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
+    out = []
+    while n > 0:
+        k, item, n = iheap_pop(hk, hv, hpos, n)
+        out.append((float(k), int(item)))
+    assert sorted(x[0] for x in out) == [x[0] for x in out]
+    assert {i: k for k, i in out} == best
+    assert (hpos == -1).all()

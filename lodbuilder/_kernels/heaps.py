@@ -1,5 +1,6 @@
-"""Binary heaps on plain arrays: a lazy min-heap of (float32 key, int32 item) for the marching fronts,
-and an indexed max-heap (item -> position) whose keys only ever decrease, for candidates."""
+"""Binary heaps on plain arrays: an indexed min-heap of (float32 key, int32 item) for the marching
+fronts, and an indexed max-heap (item -> position) whose keys only ever decrease, for candidates.
+Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap)."""
 
 from __future__ import annotations
 
@@ -7,54 +8,6 @@ import numba as nb
 import numpy as np
 
 from . import JIT
-
-
-@nb.njit(**JIT)
-def minheap_push(hk, hv, n, key, item):  # pragma: no cover - compiled
-    """Push onto a lazy min-heap of size n; returns (hk, hv, n) (arrays grow when full)."""
-    if n == hk.shape[0]:
-        nk = np.empty(2 * n, hk.dtype)
-        nv = np.empty(2 * n, hv.dtype)
-        nk[:n] = hk
-        nv[:n] = hv
-        hk, hv = nk, nv
-    i = n
-    while i > 0:
-        p = (i - 1) >> 1
-        if hk[p] <= key:
-            break
-        hk[i] = hk[p]
-        hv[i] = hv[p]
-        i = p
-    hk[i] = key
-    hv[i] = item
-    return hk, hv, n + 1
-
-
-@nb.njit(**JIT)
-def minheap_pop(hk, hv, n):  # pragma: no cover - compiled
-    """Pop the smallest entry; returns (key, item, n - 1). n must be > 0."""
-    key = hk[0]
-    item = hv[0]
-    n -= 1
-    if n > 0:
-        lk = hk[n]
-        lv = hv[n]
-        i = 0
-        while True:
-            c = 2 * i + 1
-            if c >= n:
-                break
-            if c + 1 < n and hk[c + 1] < hk[c]:
-                c += 1
-            if hk[c] >= lk:
-                break
-            hk[i] = hk[c]
-            hv[i] = hv[c]
-            i = c
-        hk[i] = lk
-        hv[i] = lv
-    return key, item, n
 
 
 @nb.njit(**JIT)
@@ -103,3 +56,63 @@ def maxheap_pop(heap, pos, key, n):  # pragma: no cover - compiled
         pos[heap[0]] = 0
         maxheap_sift_down(heap, pos, key, 0, n)
     return n
+
+
+@nb.njit(**JIT)
+def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
+    """Insert ``item`` into an indexed min-heap, or lower its key if it is already there.
+
+    ``hpos[item]`` is the item's position in the heap or -1. Keys only ever decrease, so the entry
+    only moves up. Returns (hk, hv, n) (the arrays grow when full).
+    """
+    i = hpos[item]
+    if i < 0:
+        if n == hk.shape[0]:
+            nk = np.empty(2 * n, hk.dtype)
+            nv = np.empty(2 * n, hv.dtype)
+            nk[:n] = hk
+            nv[:n] = hv
+            hk, hv = nk, nv
+        i = n
+        n += 1
+    while i > 0:
+        p = (i - 1) >> 1
+        if hk[p] <= key:
+            break
+        hk[i] = hk[p]
+        hv[i] = hv[p]
+        hpos[hv[i]] = i
+        i = p
+    hk[i] = key
+    hv[i] = item
+    hpos[item] = i
+    return hk, hv, n
+
+
+@nb.njit(**JIT)
+def iheap_pop(hk, hv, hpos, n):  # pragma: no cover - compiled
+    """Pop the smallest entry of an indexed min-heap; returns (key, item, n - 1)."""
+    key = hk[0]
+    item = hv[0]
+    hpos[item] = -1
+    n -= 1
+    if n > 0:
+        lk = hk[n]
+        lv = hv[n]
+        i = 0
+        while True:
+            c = 2 * i + 1
+            if c >= n:
+                break
+            if c + 1 < n and hk[c + 1] < hk[c]:
+                c += 1
+            if hk[c] >= lk:
+                break
+            hk[i] = hk[c]
+            hv[i] = hv[c]
+            hpos[hv[i]] = i
+            i = c
+        hk[i] = lk
+        hv[i] = lv
+        hpos[lv] = i
+    return key, item, n

@@ -7,7 +7,11 @@ is voxel v.
 Per-voxel state: arrival time ``T`` (float32, only ever lowered), the rank of the sample that set it
 (``vlab``) and a round stamp: ``stamp == 2 * rnd`` means "trial in round rnd", ``2 * rnd + 1``
 "accepted in round rnd", anything smaller "known from an earlier round". Nothing is re-initialised per
-sample: a new sample marches only where it lowers ``T``.
+sample: a new sample marches only where it lowers ``T``. The upwind update reads its neighbours'
+current values whatever their state: a trial value is an upper bound of its final value and the
+update is monotone in its inputs, so this only lowers a voxel earlier; the voxel is updated again
+when that neighbour is accepted, and skipping the state test halves the memory traffic per pop.
+Fronts are kept in an indexed min-heap (decrease-key, no stale entries).
 
 Per-point state: ``dq`` = min over the 8 corner voxels v of the point's cell of T[v] + |u - v| * cost
 (an upper bound of the band distance to the samples), ``lq`` = the sample that achieved it, and the
@@ -23,17 +27,17 @@ import numpy as np
 
 from . import JIT
 from .grid import hash_find, lookup, morton
-from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down, minheap_pop, minheap_push
+from .heaps import iheap_pop, iheap_push, maxheap_build, maxheap_pop, maxheap_sift_down
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 
 
 @nb.njit(inline="always", **JIT)
-def _axis_min(T, stamp, trial, a, b):  # pragma: no cover - compiled
+def _axis_min(T, a, b):  # pragma: no cover - compiled
     va = np.inf
-    if a >= 0 and stamp[a] != trial:
+    if a >= 0:
         va = T[a]
-    if b >= 0 and stamp[b] != trial:
+    if b >= 0:
         vb = T[b]
         if vb < va:
             va = vb
@@ -83,7 +87,7 @@ def _pair_dist(u, pcost, weighted, p, q):  # pragma: no cover - compiled
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv,
+    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab`` where it lowers T.
 
@@ -112,12 +116,10 @@ def march_round(
                         T[v] = t
                         vlab[v] = lab
                         stamp[v] = trial
-                        hk, hv, n = minheap_push(hk, hv, n, t, v)
+                        hk, hv, n = iheap_push(hk, hv, hpos, n, t, v)
     pops = 0
     while n > 0:
-        t, v, n = minheap_pop(hk, hv, n)
-        if stamp[v] != trial or t != T[v]:
-            continue
+        t, v, n = iheap_pop(hk, hv, hpos, n)
         stamp[v] = acc
         pops += 1
         tv = np.float64(T[v])
@@ -158,15 +160,15 @@ def march_round(
             m = nbr[v, j]
             if m < 0 or stamp[m] == acc:
                 continue
-            ax = _axis_min(T, stamp, trial, nbr[m, 0], nbr[m, 1])
-            ay = _axis_min(T, stamp, trial, nbr[m, 2], nbr[m, 3])
-            az = _axis_min(T, stamp, trial, nbr[m, 4], nbr[m, 5])
+            ax = _axis_min(T, nbr[m, 0], nbr[m, 1])
+            ay = _axis_min(T, nbr[m, 2], nbr[m, 3])
+            az = _axis_min(T, nbr[m, 4], nbr[m, 5])
             tn = np.float32(_solve(np.float64(ax), np.float64(ay), np.float64(az), vcost[m]))
             if tn < T[m]:
                 T[m] = tn
                 vlab[m] = lv
                 stamp[m] = trial
-                hk, hv, n = minheap_push(hk, hv, n, tn, m)
+                hk, hv, n = iheap_push(hk, hv, hpos, n, tn, m)
     return nd, hk, hv, pops
 
 
@@ -224,6 +226,7 @@ def grid_phase(
     maxheap_build(heap, hpos, ckey, hn)
     hk = np.empty(max(1024, nv // 4), np.float32)
     hv = np.empty(max(1024, nv // 4), np.int32)
+    hpos_v = np.full(nv, -1, np.int32)
     order = np.empty(k_max, np.int64)
     radius = np.empty(k_max, np.float64)
     parent = np.empty(k_max, np.int64)
@@ -263,7 +266,7 @@ def grid_phase(
         src[0] = i
         nd, hk, hv, pp = march_round(
             src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-            T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv,
+            T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v,
         )
         pops += pp
         for j in range(nd):
@@ -308,7 +311,7 @@ def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources
     hv = np.empty(1024, np.int32)
     nd, hk, hv, pops = march_round(
         sources, 0, 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-        T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv,
+        T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv, np.full(nv, -1, np.int32),
     )
     return dq, lq, pops
 
