@@ -103,20 +103,6 @@ def hash_find(hkeys, hvals, key):  # pragma: no cover - compiled
 
 
 @nb.njit(inline="always", **JIT)
-def hash_find_key(hkeys, key):  # pragma: no cover - compiled
-    """True if ``key`` is in the set."""
-    mask = hkeys.shape[0] - 1
-    s = _slot(key, mask)
-    while True:
-        k = hkeys[s]
-        if k == key:
-            return True
-        if k == -1:
-            return False
-        s = (s + 1) & mask
-
-
-@nb.njit(inline="always", **JIT)
 def lookup(hkeys, hvals, x, y, z):  # pragma: no cover - compiled
     """Voxel index at integer coordinates (x, y, z), or -1 (also for negative coordinates)."""
     if x < 0 or y < 0 or z < 0:
@@ -144,7 +130,7 @@ def band_keys(u, occ, ostart, rad, cap_limit):  # pragma: no cover - compiled
     ext = int(np.floor(rad))
     r2 = rad * rad
     cap = 1024
-    while cap < 4 * occ.shape[0]:
+    while cap < 2 * (2 * rad + 1) * occ.shape[0]:  # about 2r/h + 1 voxels per occupied cell
         cap *= 2
     hkeys = np.full(cap, -1, np.int64)
     count = 0
@@ -153,10 +139,20 @@ def band_keys(u, occ, ostart, rad, cap_limit):  # pragma: no cover - compiled
         p0, p1 = ostart[c], ostart[c + 1]
         for x in range(cx - ext, cx + ext + 2):
             for y in range(cy - ext, cy + ext + 2):
-                for z in range(cz - ext, cz + ext + 2):
-                    key = morton(x, y, z)
-                    if hash_find_key(hkeys, key):
-                        continue
+                # the z range where some point of the cell can be within rad
+                zlo = np.inf
+                zhi = -np.inf
+                for i in range(p0, p1):
+                    dx = u[i, 0] - x
+                    dy = u[i, 1] - y
+                    rest = r2 - dx * dx - dy * dy
+                    if rest >= 0.0:
+                        w = np.sqrt(rest)
+                        zlo = min(zlo, u[i, 2] - w)
+                        zhi = max(zhi, u[i, 2] + w)
+                if zlo > zhi:
+                    continue
+                for z in range(int(np.ceil(zlo)), int(np.floor(zhi)) + 1):
                     inside = False
                     for i in range(p0, p1):
                         dx = u[i, 0] - x
@@ -167,7 +163,7 @@ def band_keys(u, occ, ostart, rad, cap_limit):  # pragma: no cover - compiled
                             break
                     if not inside:
                         continue
-                    if hash_insert(hkeys, key):
+                    if hash_insert(hkeys, morton(x, y, z)):
                         count += 1
                         if count > cap_limit:
                             return hkeys, -1

@@ -146,7 +146,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
         desc = f"Dask LocalCluster ({int(dask_local)} worker{'s' if int(dask_local) > 1 else ''})"
     else:
         try:
-            client = Client(scheduler, timeout="20s")
+            client = Client(scheduler, timeout="5s")
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({_one_line(exc)}); check the address") from None
         desc = f"Dask scheduler {scheduler}"
