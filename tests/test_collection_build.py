@@ -297,15 +297,19 @@ def test_existing_dask_scheduler_address(tmp_path):
     from dask.distributed import LocalCluster
 
     files = _generated(tmp_path, n=3, npts=500)
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+    # a threaded worker in this process: the scheduler-address path, cheaply
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None,
                       silence_logs=logging.WARNING) as cluster:
         res = build_collection(files, tmp_path / "s.h5", scheduler=cluster.scheduler_address)
     assert res.ok and len(res.by_status("built")) == 3
     assert res.executor == f"Dask scheduler {cluster.scheduler_address}"
-    assert len({s.worker_pid for s in res.scans}) == 1 and res.scans[0].worker_pid != os.getpid()
+    assert {s.worker_pid for s in res.scans} == {os.getpid()}
 
 
-def test_unreachable_dask_scheduler(tmp_path):
+def test_unreachable_dask_scheduler(tmp_path, monkeypatch):
+    import lodbuilder.collection.runner as runner
+
+    monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT", "1s")
     files = _generated(tmp_path, n=1, npts=100)
     with pytest.raises(InputError, match=r"cannot reach Dask scheduler 'tcp://127\.0\.0\.1:9'"):
         build_collection(files, tmp_path / "u.h5", scheduler="tcp://127.0.0.1:9")

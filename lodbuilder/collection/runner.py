@@ -34,6 +34,9 @@ from .jobs import ScanJob, build_one, job_key
 
 log = logging.getLogger(__name__)
 
+#: how long to try reaching a Dask scheduler given by address
+DASK_CONNECT_TIMEOUT = "15s"
+
 
 @dataclass
 class ScanStatus:
@@ -146,7 +149,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
         desc = f"Dask LocalCluster ({int(dask_local)} worker{'s' if int(dask_local) > 1 else ''})"
     else:
         try:
-            client = Client(scheduler, timeout="5s")
+            client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT)
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({_one_line(exc)}); check the address") from None
         desc = f"Dask scheduler {scheduler}"
