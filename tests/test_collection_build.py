@@ -192,13 +192,15 @@ KILL_SCRIPT = textwrap.dedent("""
 
 @pytest.mark.data
 @pytest.mark.slow
-def test_resume_after_a_killed_build(small_bunny, tmp_path):
+def test_resume_after_a_killed_build(shared_data, tmp_path):
+    """The full-size scans (~0.5 s each with one worker) leave time to kill the build mid-way."""
     from lodbuilder import open_archive
 
+    manifest = shared_data / "bun.conf"
     out = tmp_path / "k.h5"
     script = tmp_path / "run.py"
     script.write_text(KILL_SCRIPT)
-    proc = subprocess.Popen([sys.executable, str(script), str(out), str(small_bunny)],
+    proc = subprocess.Popen([sys.executable, str(script), str(out), str(manifest)],
                             start_new_session=True, stderr=subprocess.DEVNULL)
     merged: dict[str, tuple] = {}
     try:
@@ -220,7 +222,7 @@ def test_resume_after_a_killed_build(small_bunny, tmp_path):
             v = arc.scan(n)
             merged[n] = (v.provenance["created_utc"], v.build["worker_pid"])
     assert 3 <= len(merged) < 10, f"kill came too late or too early: {len(merged)} scans merged"
-    res = build_collection([], out, manifest=small_bunny, workers=2)
+    res = build_collection([], out, manifest=manifest, workers=2)
     assert res.ok
     redone = {s.name for s in res.scans if s.status in ("built", "recovered")}
     assert {s.name for s in res.by_status("skipped")} == set(merged)
