@@ -74,3 +74,23 @@ def test_collection_option_errors(tmp_path, capsys, argv, msg):
 def test_no_input(tmp_path, capsys):
     assert main(["build", "-o", str(tmp_path / "e.h5")]) == 2
     assert "give INPUT files" in capsys.readouterr().err
+
+
+def test_slice_all_scans_merged_with_scan_id(tmp_path, capsys):
+    files = _clouds(tmp_path)
+    arc = tmp_path / "c.h5"
+    assert main(["build", *map(str, files), "-o", str(arc), "--workers", "1", "--no-progress"]) == 0
+    out = tmp_path / "all.ply"
+    assert main(["slice", str(arc), "--all-scans", "--rho", "0.2", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "of 3 scans at rho 0.2" in text and "0=s0, 1=s1, 2=s2" in text
+    from lodbuilder.collection import collection_level
+    from lodbuilder.io import read_scan
+
+    got = read_scan(out)
+    lvl = collection_level(arc, 0.2)
+    np.testing.assert_array_equal(got.points, lvl.points)
+    np.testing.assert_array_equal(got.attributes["scan_id"], np.repeat([0, 1, 2], lvl.sizes))
+    assert "scan_id 1 = s1" in got.metadata["comments"]
+    assert main(["slice", str(arc), "--all-scans", "--size", "5", "-o", str(out)]) == 2
+    assert "--all-scans needs --rho" in capsys.readouterr().err

@@ -45,6 +45,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--extra", action="store_true", help="also write source_index, radius and rank per point"
     )
     p.add_argument(
+        "--all-scans",
+        action="store_true",
+        help="write the --rho level of every scan of the archive, merged, with a scan_id attribute",
+    )
+    p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
     from ..features.cli_options import add_slice_options
@@ -75,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
     if args.box is not None and args.viewpoint is not None:
         raise InputError("give either --box or --viewpoint, not both")
+    if getattr(args, "all_scans", False):
+        from ..collection.cli import slice_all
+
+        return slice_all(args)
 
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)

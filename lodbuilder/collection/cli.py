@@ -103,3 +103,30 @@ def run(args: argparse.Namespace) -> int:
     where = f" on {res.executor}" if res.executor else ""
     print(f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
     return 1 if res.failed else 0
+
+
+def slice_all(args: argparse.Namespace) -> int:
+    """``lodbuilder slice ARCHIVE --all-scans --rho R -o OUT``: the level of every scan, merged."""
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..io import write_points
+    from .query import collection_level
+
+    if args.rho is None:
+        raise InputError("--all-scans needs --rho (one density for every scan)")
+    for flag, value in (("--scan", args.scan), ("--box", args.box), ("--viewpoint", args.viewpoint),
+                        ("--ordering", args.ordering), ("--floor-rho", getattr(args, "floor_rho", None))):
+        if value is not None:
+            raise InputError(f"--all-scans does not combine with {flag}")
+    lvl = collection_level(args.archive, args.rho)
+    from ..archive.reader import open_archive
+
+    with open_archive(args.archive) as arc:
+        metas = [arc.scan(n).format_metadata for n in lvl.scans]
+    meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
+    meta["comments"] = [f"scan_id {i} = {name}" for i, name in enumerate(lvl.scans)]
+    write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)
+    print(f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
+          f"(attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})")
+    return 0
