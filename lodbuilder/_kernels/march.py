@@ -30,6 +30,7 @@ from .grid import hash_find, lookup, morton
 from .heaps import iheap_pop, iheap_push, maxheap_build, maxheap_pop, maxheap_sift_down
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
+SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
 
 
 @nb.njit(inline="always", **JIT)
@@ -87,7 +88,7 @@ def _pair_dist(u, pcost, weighted, p, q):  # pragma: no cover - compiled
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos,
+    T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab`` where it lowers T.
 
@@ -97,26 +98,35 @@ def march_round(
     trial = 2 * rnd
     acc = 2 * rnd + 1
     n = 0
+    queue = np.empty(SEED_QUEUE, np.int32)
     for s in range(src.shape[0]):
+        # exact distances to the band voxels within SEED_RADIUS of the source that are connected
+        # to its cell inside that ball (a breadth-first walk over the neighbour table)
         i = src[s]
-        fx = int(np.floor(u[i, 0]))
-        fy = int(np.floor(u[i, 1]))
-        fz = int(np.floor(u[i, 2]))
-        for x in range(fx - 5, fx + 7):
-            for y in range(fy - 5, fy + 7):
-                for z in range(fz - 5, fz + 7):
-                    d = _dist(u, i, x, y, z)
-                    if d > SEED_RADIUS:
-                        continue
-                    v = lookup(hkeys, hvals, x, y, z)
-                    if v < 0:
-                        continue
-                    t = np.float32(d * vcost[v])
-                    if t < T[v]:
-                        T[v] = t
-                        vlab[v] = lab
-                        stamp[v] = trial
-                        hk, hv, n = iheap_push(hk, hv, hpos, n, t, v)
+        mark = np.int32(rnd * src.shape[0] + s)
+        v0 = lookup(hkeys, hvals, int(np.floor(u[i, 0])), int(np.floor(u[i, 1])), int(np.floor(u[i, 2])))
+        seen[v0] = mark
+        queue[0] = v0
+        qn = 1
+        qi = 0
+        while qi < qn:
+            v = queue[qi]
+            qi += 1
+            d = _dist(u, i, coord[v, 0], coord[v, 1], coord[v, 2])
+            t = np.float32(d * vcost[v])
+            if t < T[v]:
+                T[v] = t
+                vlab[v] = lab
+                stamp[v] = trial
+                hk, hv, n = iheap_push(hk, hv, hpos, n, t, v)
+            for j in range(6):
+                w = nbr[v, j]
+                if w < 0 or seen[w] == mark or qn == SEED_QUEUE:
+                    continue
+                seen[w] = mark
+                if _dist(u, i, coord[w, 0], coord[w, 1], coord[w, 2]) <= SEED_RADIUS:
+                    queue[qn] = w
+                    qn += 1
     pops = 0
     while n > 0:
         t, v, n = iheap_pop(hk, hv, hpos, n)
@@ -227,6 +237,7 @@ def grid_phase(
     hk = np.empty(max(1024, nv // 4), np.float32)
     hv = np.empty(max(1024, nv // 4), np.int32)
     hpos_v = np.full(nv, -1, np.int32)
+    seen = np.full(nv, -1, np.int32)
     order = np.empty(k_max, np.int64)
     radius = np.empty(k_max, np.float64)
     parent = np.empty(k_max, np.int64)
@@ -266,7 +277,7 @@ def grid_phase(
         src[0] = i
         nd, hk, hv, pp = march_round(
             src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-            T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v,
+            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v,
         )
         pops += pp
         for j in range(nd):
@@ -311,7 +322,8 @@ def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources
     hv = np.empty(1024, np.int32)
     nd, hk, hv, pops = march_round(
         sources, 0, 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-        T, vlab, stamp, dq, lq, rank, dstamp, dirty, 0, hk, hv, np.full(nv, -1, np.int32),
+        T, vlab, stamp, np.full(nv, -1, np.int32), dq, lq, rank, dstamp, dirty, 0, hk, hv,
+        np.full(nv, -1, np.int32),
     )
     return dq, lq, pops
 
@@ -348,11 +360,12 @@ def euclid_tail(
     ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite),
     first tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
     point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
-    max-heap (the cell's largest d). Ball queries scan voxel cells for small balls and the coarse
+    max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
+    top (keys only decrease, so a stale key never hides the true maximum). Ball queries scan voxel cells for small balls and the coarse
     cells of :func:`coarse_runs` (side 2^j >= the ball radius) for larger ones, so a query looks up at
     most 27 cells while the radius is within the coarse levels. Returns the new count.
     """
-    cellv, cellof, pcell = _cell_tables(cs)
+    cellv = _cell_tables(cs)[0]
     ncell = cellv.shape[0]
     m = u.shape[0]
     for p in range(m):
@@ -368,14 +381,17 @@ def euclid_tail(
     hpos = np.empty(ncell, np.int64)
     hn = ncell
     maxheap_build(heap, hpos, ckey, hn)
-    dstamp = np.full(ncell, -1, np.int64)
-    dirty = np.empty(ncell, np.int64)
     k = k0
     while k < k_max and hn > 0:
+        # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = ckey[top]
-        if kk < 0.0:
-            hn = maxheap_pop(heap, hpos, ckey, hn)
+        kk = _cell_key(top, cellv, cs, rank, d)
+        if kk != ckey[top]:
+            ckey[top] = kk
+            if kk < 0.0:
+                hn = maxheap_pop(heap, hpos, ckey, hn)
+            else:
+                maxheap_sift_down(heap, hpos, ckey, 0, hn)
             continue
         if kk <= rho_stop:
             break
@@ -389,14 +405,10 @@ def euclid_tail(
         order[k] = i
         radius[k] = kk
         parent[k] = lab[i]
-        nd = 0
-        dstamp[top] = k
-        dirty[nd] = top
-        nd += 1
         reach = kk / cmin if weighted else kk
         j = 0
         side = 1.0
-        while j < levels and side < reach:
+        while j < levels and side < 2.0 * reach:
             j += 1
             side *= 2.0
         x0 = int(np.floor((u[i, 0] - reach) / side))
@@ -429,15 +441,5 @@ def euclid_tail(
                         if dd < d[p]:
                             d[p] = dd
                             lab[p] = k
-                            c = pcell[p]
-                            if dstamp[c] != k:
-                                dstamp[c] = k
-                                dirty[nd] = c
-                                nd += 1
-        for t in range(nd):
-            c = dirty[t]
-            ckey[c] = _cell_key(c, cellv, cs, rank, d)
-            if hpos[c] >= 0:
-                maxheap_sift_down(heap, hpos, ckey, hpos[c], hn)
         k += 1
     return k

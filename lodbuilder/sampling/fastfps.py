@@ -200,7 +200,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         from .._kernels.grid import coarse_runs
 
         reach = TAIL_FACTOR * r / h * cscale / cmin  # the largest ball of the tail, in voxels
-        levels = max(0, min(int(np.ceil(np.log2(max(reach, 1.0)))), 8))
+        levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
         chk, chv, rstart, rend = coarse_runs(band.keys, band.cs, levels)
         k = euclid_tail(
             band.u, band.cs, band.hkeys, band.hvals, chk, chv, rstart, rend, levels, pcost,
