@@ -47,6 +47,41 @@ def run_once(manifest: Path, tmp: Path, tag: str, **kw) -> dict:
     }
 
 
+def _order_scan(path: str) -> float:
+    """CPU work of one scan (read + full ordering), for the machine's own parallel scaling."""
+    from lodbuilder import fastfps
+    from lodbuilder.io import read_scan
+
+    pts = read_scan(path).points
+    t = time.perf_counter()
+    fastfps(pts)
+    return time.perf_counter() - t
+
+
+def machine_scaling(path: Path, rounds: int = 3) -> dict:
+    """The same independent job twice: one after the other in one process, then in two processes
+    at once. The ratio is the best speed-up this machine gives two processes right now."""
+    import concurrent.futures as cf
+
+    from lodbuilder.collection.runner import _mp_context
+
+    serial, parallel = [], []
+    with cf.ProcessPoolExecutor(max_workers=2, mp_context=_mp_context()) as ex:
+        list(ex.map(_order_scan, [str(path)] * 2))  # both workers started and warm
+        for _ in range(rounds):
+            t = time.perf_counter()
+            ex.submit(_order_scan, str(path)).result()
+            ex.submit(_order_scan, str(path)).result()
+            serial.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            list(ex.map(_order_scan, [str(path)] * 2))
+            parallel.append(time.perf_counter() - t)
+    return {"job": f"fastfps({path.name}) twice", "serial_s": [round(x, 3) for x in serial],
+            "two_processes_s": [round(x, 3) for x in parallel],
+            "speedup_best": round(min(serial) / min(parallel), 3),
+            "speedup_median": round(statistics.median(serial) / statistics.median(parallel), 3)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -77,8 +112,10 @@ def main() -> int:
         best["all_wall_s"] = [r["wall_s"] for r in rs]
         best["median_wall_s"] = round(statistics.median(best["all_wall_s"]), 3)
         results[tag] = best
+    scaling = machine_scaling(args.data / "bun000.ply")
     out = {
         "benchmark": "bench_collection",
+        "machine_two_process_scaling": scaling,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
         "input": {"manifest": str(manifest), "scans": results["pool_1"]["scans"],

@@ -1,5 +1,6 @@
 """Binary heaps on plain arrays: an indexed min-heap of (float32 key, int32 item) for the marching
-fronts, and an indexed max-heap (item -> position) whose keys only ever decrease, for candidates.
+fronts, and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for
+candidates.
 Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap)."""
 
 from __future__ import annotations
@@ -11,50 +12,64 @@ from . import JIT
 
 
 @nb.njit(**JIT)
-def maxheap_sift_down(heap, pos, key, i, n):  # pragma: no cover - compiled
-    """Restore the max-heap below position i (after the key of heap[i] decreased).
+def maxheap_sift_down(hkey, heap, pos, i, n):  # pragma: no cover - compiled
+    """Restore the max-heap below position i (after the key there decreased).
 
+    A 4-ary heap with keys stored in heap order (``hkey[i]`` is the key of ``heap[i]``), so a sift
+    reads the children's keys from one cache line and the heap is half as deep as a binary one; ``pos[item]`` is the item's position (-1 once popped).
     Ties are broken towards the smaller item so the order is deterministic.
     """
+    kv = hkey[i]
     it = heap[i]
-    kv = key[it]
     while True:
-        c = 2 * i + 1
+        c = 4 * i + 1
         if c >= n:
             break
-        if c + 1 < n:
-            a = heap[c]
-            b = heap[c + 1]
-            if key[b] > key[a] or (key[b] == key[a] and b < a):
-                c += 1
-        ch = heap[c]
-        if key[ch] < kv or (key[ch] == kv and ch > it):
+        # the largest of up to four children (one cache line of keys)
+        best = c
+        for cc in range(c + 1, min(c + 4, n)):
+            if hkey[cc] > hkey[best] or (hkey[cc] == hkey[best] and heap[cc] < heap[best]):
+                best = cc
+        c = best
+        if hkey[c] < kv or (hkey[c] == kv and heap[c] > it):
             break
-        heap[i] = ch
-        pos[ch] = i
+        hkey[i] = hkey[c]
+        heap[i] = heap[c]
+        pos[heap[i]] = i
         i = c
+    hkey[i] = kv
     heap[i] = it
     pos[it] = i
 
 
 @nb.njit(**JIT)
-def maxheap_build(heap, pos, key, n):  # pragma: no cover - compiled
+def maxheap_build(hkey, heap, pos, n):  # pragma: no cover - compiled
+    """Heapify the first n entries (items ``heap[i]`` with keys ``hkey[i]``)."""
     for i in range(n):
         pos[heap[i]] = i
-    for i in range(n // 2 - 1, -1, -1):
-        maxheap_sift_down(heap, pos, key, i, n)
+    for i in range((n - 2) // 4, -1, -1):
+        maxheap_sift_down(hkey, heap, pos, i, n)
 
 
 @nb.njit(**JIT)
-def maxheap_pop(heap, pos, key, n):  # pragma: no cover - compiled
+def maxheap_decrease(hkey, heap, pos, item, key, n):  # pragma: no cover - compiled
+    """Lower the key of ``item`` (if it is still in the heap) to ``key``."""
+    i = pos[item]
+    if i >= 0:
+        hkey[i] = key
+        maxheap_sift_down(hkey, heap, pos, i, n)
+
+
+@nb.njit(**JIT)
+def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
     """Remove the top item; returns the new size."""
-    top = heap[0]
-    pos[top] = -1
+    pos[heap[0]] = -1
     n -= 1
     if n > 0:
+        hkey[0] = hkey[n]
         heap[0] = heap[n]
         pos[heap[0]] = 0
-        maxheap_sift_down(heap, pos, key, 0, n)
+        maxheap_sift_down(hkey, heap, pos, 0, n)
     return n
 
 

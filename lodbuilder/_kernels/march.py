@@ -27,7 +27,14 @@ import numpy as np
 
 from . import JIT
 from .grid import hash_find, lookup, morton
-from .heaps import iheap_pop, iheap_push, maxheap_build, maxheap_pop, maxheap_sift_down
+from .heaps import (
+    iheap_pop,
+    iheap_push,
+    maxheap_build,
+    maxheap_decrease,
+    maxheap_pop,
+    maxheap_sift_down,
+)
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
@@ -182,7 +189,7 @@ def march_round(
     return nd, hk, hv, pops
 
 
-@nb.njit(**JIT)
+@nb.njit(inline="always", **JIT)
 def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
     w = cellv[cell]
     best = -1.0
@@ -229,11 +236,11 @@ def grid_phase(
     rank = np.full(m, -1, np.int64)
     dstamp = np.full(ncell, -1, np.int64)
     dirty = np.empty(ncell, np.int64)
-    ckey = np.full(ncell, np.inf)
+    ckey = np.full(ncell, np.inf)  # heap order
     heap = np.arange(ncell).astype(np.int64)
     hpos = np.empty(ncell, np.int64)
     hn = ncell
-    maxheap_build(heap, hpos, ckey, hn)
+    maxheap_build(ckey, heap, hpos, hn)
     hk = np.empty(max(1024, nv // 4), np.float32)
     hv = np.empty(max(1024, nv // 4), np.int32)
     hpos_v = np.full(nv, -1, np.int32)
@@ -254,7 +261,7 @@ def grid_phase(
             if hn == 0:
                 break
             top = heap[0]
-            kk = ckey[top]
+            kk = ckey[0]
             if kk < 0.0 or kk <= rho_stop or kk < r_stop:
                 break
             w = cellv[top]
@@ -271,9 +278,8 @@ def grid_phase(
         radius[k] = rad
         parent[k] = par
         ci = pcell[i]
-        ckey[ci] = _cell_key(ci, cellv, cs, rank, val)
-        if hpos[ci] >= 0:  # an exhausted cell (key -1) sinks and is dropped at the top later
-            maxheap_sift_down(heap, hpos, ckey, hpos[ci], hn)
+        # an exhausted cell (key -1) sinks and is dropped when it reaches the top
+        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(ci, cellv, cs, rank, val), hn)
         src[0] = i
         nd, hk, hv, pp = march_round(
             src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
@@ -293,12 +299,10 @@ def grid_phase(
                     val[p] = cand
                 if val[p] > best:
                     best = val[p]
-            ckey[cc] = best
-            if hpos[cc] >= 0:
-                maxheap_sift_down(heap, hpos, ckey, hpos[cc], hn)
+            maxheap_decrease(ckey, heap, hpos, cc, best, hn)
         # drop exhausted cells from the top
-        while hn > 0 and ckey[heap[0]] < 0.0:
-            hn = maxheap_pop(heap, hpos, ckey, hn)
+        while hn > 0 and ckey[0] < 0.0:
+            hn = maxheap_pop(ckey, heap, hpos, hn)
         k += 1
     return order, radius, parent, k, val, lq, rank, pops
 
@@ -380,18 +384,18 @@ def euclid_tail(
     heap = np.arange(ncell).astype(np.int64)
     hpos = np.empty(ncell, np.int64)
     hn = ncell
-    maxheap_build(heap, hpos, ckey, hn)
+    maxheap_build(ckey, heap, hpos, hn)
     k = k0
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
         kk = _cell_key(top, cellv, cs, rank, d)
-        if kk != ckey[top]:
-            ckey[top] = kk
+        if kk != ckey[0]:
+            ckey[0] = kk
             if kk < 0.0:
-                hn = maxheap_pop(heap, hpos, ckey, hn)
+                hn = maxheap_pop(ckey, heap, hpos, hn)
             else:
-                maxheap_sift_down(heap, hpos, ckey, 0, hn)
+                maxheap_sift_down(ckey, heap, hpos, 0, hn)
             continue
         if kk <= rho_stop:
             break
