@@ -25,7 +25,7 @@ _M5 = np.uint64(0x1249249249249249)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def _split3(x):  # pragma: no cover - compiled
     x = np.uint64(x) & _M0
     x = (x | (x << np.uint64(32))) & _M1
@@ -36,7 +36,7 @@ def _split3(x):  # pragma: no cover - compiled
     return x
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def _compact3(x):  # pragma: no cover - compiled
     x = x & _M5
     x = (x ^ (x >> np.uint64(2))) & _M4
@@ -47,12 +47,12 @@ def _compact3(x):  # pragma: no cover - compiled
     return np.int64(x)
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def morton(x, y, z):  # pragma: no cover - compiled
     return np.int64(_split3(x) | (_split3(y) << np.uint64(1)) | (_split3(z) << np.uint64(2)))
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def unmorton(key):  # pragma: no cover - compiled
     k = np.uint64(key)
     return _compact3(k), _compact3(k >> np.uint64(1)), _compact3(k >> np.uint64(2))
@@ -68,7 +68,7 @@ def morton_keys(cells):  # pragma: no cover - compiled
     return out
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
@@ -88,7 +88,7 @@ def hash_insert(hkeys, key):  # pragma: no cover - compiled
         s = (s + 1) & mask
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def hash_find(hkeys, hvals, key):  # pragma: no cover - compiled
     """Value stored for ``key``, or -1."""
     mask = hkeys.shape[0] - 1
@@ -102,7 +102,7 @@ def hash_find(hkeys, hvals, key):  # pragma: no cover - compiled
         s = (s + 1) & mask
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def lookup(hkeys, hvals, x, y, z):  # pragma: no cover - compiled
     """Voxel index at integer coordinates (x, y, z), or -1 (also for negative coordinates)."""
     if x < 0 or y < 0 or z < 0:
@@ -135,7 +135,7 @@ def band_keys(u, occ, ostart, rad, cap_limit):  # pragma: no cover - compiled
     hkeys = np.full(cap, -1, np.int64)
     count = 0
     for c in range(occ.shape[0]):
-        cx, cy, cz = occ[c, 0], occ[c, 1], occ[c, 2]
+        cx, cy = occ[c, 0], occ[c, 1]
         p0, p1 = ostart[c], ostart[c + 1]
         for x in range(cx - ext, cx + ext + 2):
             for y in range(cy - ext, cy + ext + 2):

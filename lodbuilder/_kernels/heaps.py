@@ -6,7 +6,6 @@ Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-h
 from __future__ import annotations
 
 import numba as nb
-import numpy as np
 
 from . import JIT
 
@@ -78,16 +77,11 @@ def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
     """Insert ``item`` into an indexed min-heap, or lower its key if it is already there.
 
     ``hpos[item]`` is the item's position in the heap or -1. Keys only ever decrease, so the entry
-    only moves up. Returns (hk, hv, n) (the arrays grow when full).
+    only moves up. The arrays hold one entry per possible item (no growth, so callers never rebind
+    them: rebinding arrays in a hot loop costs atomic reference counting). Returns the new size.
     """
     i = hpos[item]
     if i < 0:
-        if n == hk.shape[0]:
-            nk = np.empty(2 * n, hk.dtype)
-            nv = np.empty(2 * n, hv.dtype)
-            nk[:n] = hk
-            nv[:n] = hv
-            hk, hv = nk, nv
         i = n
         n += 1
     while i > 0:
@@ -101,7 +95,7 @@ def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
     hk[i] = key
     hv[i] = item
     hpos[item] = i
-    return hk, hv, n
+    return n
 
 
 @nb.njit(**JIT)

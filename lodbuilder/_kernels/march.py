@@ -40,19 +40,7 @@ SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
 
 
-@nb.njit(inline="always", **JIT)
-def _axis_min(T, a, b):  # pragma: no cover - compiled
-    va = np.inf
-    if a >= 0:
-        va = T[a]
-    if b >= 0:
-        vb = T[b]
-        if vb < va:
-            va = vb
-    return va
-
-
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def _solve(a, b, c, f):  # pragma: no cover - compiled
     """First-order upwind update |grad T| = f from the three axis minima."""
     if b < a:
@@ -72,24 +60,10 @@ def _solve(a, b, c, f):  # pragma: no cover - compiled
     return (s + np.sqrt(max(s * s - 3.0 * (q - f * f), 0.0))) / 3.0
 
 
-@nb.njit(inline="always", **JIT)
-def _dist(u, i, x, y, z):  # pragma: no cover - compiled
-    dx = u[i, 0] - x
-    dy = u[i, 1] - y
-    dz = u[i, 2] - z
+@nb.njit(**JIT)
+def _norm(dx, dy, dz):  # pragma: no cover - compiled
+    # helpers take scalars only: an array argument in a hot loop costs atomic reference counting
     return np.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@nb.njit(inline="always", **JIT)
-def _pair_dist(u, pcost, weighted, p, q):  # pragma: no cover - compiled
-    """Straight distance between points p and q, scaled by their mean cost when weighted."""
-    dx = u[p, 0] - u[q, 0]
-    dy = u[p, 1] - u[q, 1]
-    dz = u[p, 2] - u[q, 2]
-    e = np.sqrt(dx * dx + dy * dy + dz * dz)
-    if weighted:
-        e *= 0.5 * (pcost[p] + pcost[q])
-    return e
 
 
 @nb.njit(**JIT)
@@ -119,19 +93,19 @@ def march_round(
         while qi < qn:
             v = queue[qi]
             qi += 1
-            d = _dist(u, i, coord[v, 0], coord[v, 1], coord[v, 2])
+            d = _norm(u[i, 0] - coord[v, 0], u[i, 1] - coord[v, 1], u[i, 2] - coord[v, 2])
             t = np.float32(d * vcost[v])
             if t < T[v]:
                 T[v] = t
                 vlab[v] = lab
                 stamp[v] = trial
-                hk, hv, n = iheap_push(hk, hv, hpos, n, t, v)
+                n = iheap_push(hk, hv, hpos, n, t, v)
             for j in range(6):
                 w = nbr[v, j]
                 if w < 0 or seen[w] == mark or qn == SEED_QUEUE:
                     continue
                 seen[w] = mark
-                if _dist(u, i, coord[w, 0], coord[w, 1], coord[w, 2]) <= SEED_RADIUS:
+                if _norm(u[i, 0] - coord[w, 0], u[i, 1] - coord[w, 1], u[i, 2] - coord[w, 2]) <= SEED_RADIUS:
                     queue[qn] = w
                     qn += 1
     pops = 0
@@ -164,7 +138,7 @@ def march_round(
                     for p in range(cs[w], cs[w + 1]):
                         if rank[p] >= 0:
                             continue
-                        dd = tv + _dist(u, p, cx, cy, cz) * pcost[p]
+                        dd = tv + _norm(u[p, 0] - cx, u[p, 1] - cy, u[p, 2] - cz) * pcost[p]
                         if dd < dq[p]:
                             dq[p] = dd
                             lq[p] = lv
@@ -177,19 +151,33 @@ def march_round(
             m = nbr[v, j]
             if m < 0 or stamp[m] == acc:
                 continue
-            ax = _axis_min(T, nbr[m, 0], nbr[m, 1])
-            ay = _axis_min(T, nbr[m, 2], nbr[m, 3])
-            az = _axis_min(T, nbr[m, 4], nbr[m, 5])
-            tn = np.float32(_solve(np.float64(ax), np.float64(ay), np.float64(az), vcost[m]))
+            # the smaller neighbour value along each axis (written out: passing T to a helper
+            # here costs two atomic reference-count operations per call)
+            am = np.inf
+            for ax in range(3):
+                va = np.inf
+                na = nbr[m, 2 * ax]
+                if na >= 0:
+                    va = T[na]
+                nb_ = nbr[m, 2 * ax + 1]
+                if nb_ >= 0 and T[nb_] < va:
+                    va = T[nb_]
+                if ax == 0:
+                    am = va
+                elif ax == 1:
+                    bm = va
+                else:
+                    cm = va
+            tn = np.float32(_solve(np.float64(am), np.float64(bm), np.float64(cm), vcost[m]))
             if tn < T[m]:
                 T[m] = tn
                 vlab[m] = lv
                 stamp[m] = trial
-                hk, hv, n = iheap_push(hk, hv, hpos, n, tn, m)
-    return nd, hk, hv, pops
+                n = iheap_push(hk, hv, hpos, n, tn, m)
+    return nd, pops
 
 
-@nb.njit(inline="always", **JIT)
+@nb.njit(**JIT)
 def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
     w = cellv[cell]
     best = -1.0
@@ -241,8 +229,8 @@ def grid_phase(
     hpos = np.empty(ncell, np.int64)
     hn = ncell
     maxheap_build(ckey, heap, hpos, hn)
-    hk = np.empty(max(1024, nv // 4), np.float32)
-    hv = np.empty(max(1024, nv // 4), np.int32)
+    hk = np.empty(nv, np.float32)
+    hv = np.empty(nv, np.int32)
     hpos_v = np.full(nv, -1, np.int32)
     seen = np.full(nv, -1, np.int32)
     order = np.empty(k_max, np.int64)
@@ -281,7 +269,7 @@ def grid_phase(
         # an exhausted cell (key -1) sinks and is dropped when it reaches the top
         maxheap_decrease(ckey, heap, hpos, ci, _cell_key(ci, cellv, cs, rank, val), hn)
         src[0] = i
-        nd, hk, hv, pp = march_round(
+        nd, pp = march_round(
             src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
             T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v,
         )
@@ -293,7 +281,10 @@ def grid_phase(
             for p in range(cs[w], cs[w + 1]):
                 if rank[p] >= 0:
                     continue
-                e = _pair_dist(u, pcost, weighted, p, order[lq[p]])
+                s = order[lq[p]]
+                e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                if weighted:
+                    e *= 0.5 * (pcost[p] + pcost[s])
                 cand = dq[p] if dq[p] > e else e
                 if cand < val[p]:
                     val[p] = cand
@@ -322,9 +313,9 @@ def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources
     rank = np.full(m, -1, np.int64)
     dstamp = np.full(ncell, -1, np.int64)
     dirty = np.empty(ncell, np.int64)
-    hk = np.empty(1024, np.float32)
-    hv = np.empty(1024, np.int32)
-    nd, hk, hv, pops = march_round(
+    hk = np.empty(nv, np.float32)
+    hv = np.empty(nv, np.int32)
+    nd, pops = march_round(
         sources, 0, 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
         T, vlab, stamp, np.full(nv, -1, np.int32), dq, lq, rank, dstamp, dirty, 0, hk, hv,
         np.full(nv, -1, np.int32),
@@ -375,7 +366,10 @@ def euclid_tail(
     for p in range(m):
         if rank[p] < 0 and lab[p] >= 0:
             # tighten to the exact distance to the labelled sample (still an upper bound)
-            e = _pair_dist(u, pcost, weighted, p, order[lab[p]])
+            s = order[lab[p]]
+            e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+            if weighted:
+                e *= 0.5 * (pcost[p] + pcost[s])
             if e < d[p]:
                 d[p] = e
     ckey = np.empty(ncell)
@@ -441,7 +435,10 @@ def euclid_tail(
                     for p in range(p0, p1):
                         if rank[p] >= 0:
                             continue
-                        dd = _pair_dist(u, pcost, weighted, p, i)
+                        s = i
+                        dd = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                        if weighted:
+                            dd *= 0.5 * (pcost[p] + pcost[s])
                         if dd < d[p]:
                             d[p] = dd
                             lab[p] = k
