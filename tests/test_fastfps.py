@@ -333,8 +333,8 @@ def test_band_is_every_voxel_within_r_with_a_true_neighbour_table(n, seed, rad):
 def test_indexed_min_heap_pops_in_key_order(ops):
     from lodbuilder._kernels.heaps import iheap_pop, iheap_push
 
-    hk = np.empty(4, np.float32)
-    hv = np.empty(4, np.int32)
+    hk = np.empty(31, np.float32)  # one slot per possible item
+    hv = np.empty(31, np.int32)
     hpos = np.full(31, -1, np.int32)
     n = 0
     best: dict[int, float] = {}  # the naive reference: each item's smallest key
@@ -342,7 +342,7 @@ def test_indexed_min_heap_pops_in_key_order(ops):
         key = float(np.float32(key))
         if key < best.get(item, np.inf):  # keys only ever decrease, as in the marcher
             best[item] = key
-            hk, hv, n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
+            n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
     out = []
     while n > 0:
         k, item, n = iheap_pop(hk, hv, hpos, n)
