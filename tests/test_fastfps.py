@@ -350,3 +350,29 @@ def test_indexed_min_heap_pops_in_key_order(ops):
     assert sorted(x[0] for x in out) == [x[0] for x in out]
     assert {i: k for k, i in out} == best
     assert (hpos == -1).all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    keys=st.lists(st.floats(0, 100), min_size=1, max_size=60),
+    drops=st.lists(st.tuples(st.integers(0, 59), st.floats(0, 1)), max_size=80),
+)
+def test_max_heap_with_decreasing_keys_pops_the_largest_first(keys, drops):
+    from lodbuilder._kernels.heaps import maxheap_build, maxheap_decrease, maxheap_pop
+
+    n = len(keys)
+    heap = np.arange(n, dtype=np.int64)
+    hkey = np.array(keys, dtype=np.float64)
+    pos = np.empty(n, dtype=np.int64)
+    maxheap_build(hkey, heap, pos, n)
+    ref = dict(enumerate(keys))  # the naive reference: current key of every item
+    for item, frac in drops:
+        if item < n:
+            ref[item] *= frac
+            maxheap_decrease(hkey, heap, pos, item, ref[item], n)
+    out = []
+    while n > 0:
+        out.append((hkey[0], int(heap[0])))
+        n = maxheap_pop(hkey, heap, pos, n)
+    # largest key first; ties by the smaller item
+    assert out == sorted(((k, i) for i, k in ref.items()), key=lambda t: (-t[0], t[1]))
