@@ -314,7 +314,10 @@ def test_band_is_every_voxel_within_r_with_a_true_neighbour_table(n, seed, rad):
     h = 0.1
     band = build_band(pts, h, rad * h)
     got = {tuple(int(x) for x in c) for c in band.coord}
-    assert got == naive_band_voxels(pts, h, rad * h, band.origin)
+    want = naive_band_voxels(pts, h, rad * h, band.origin)
+    for v in got ^ want:  # only voxels exactly on the band's boundary may differ by rounding
+        d = np.linalg.norm(band.origin + h * np.array(v) - pts, axis=1).min()
+        assert abs(d - rad * h) <= 1e-9 * rad * h, (v, d, rad * h)
     assert np.all(np.diff(band.keys) > 0)  # Morton order, no repeats
     index = {c: i for i, c in enumerate(map(tuple, band.coord.tolist()))}
     steps = [(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)]
