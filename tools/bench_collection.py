@@ -82,6 +82,39 @@ def machine_scaling(path: Path, rounds: int = 3) -> dict:
             "speedup_median": round(statistics.median(serial) / statistics.median(parallel), 3)}
 
 
+def markdown(r: dict) -> str:
+    """The 'collection' section of docs/benchmarks.md."""
+    runs = r["runs"]
+    sc = r["machine_two_process_scaling"]
+    lines = [
+        "## Collections: the 10 bunny scans on a process pool and on Dask",
+        "",
+        f"`python tools/bench_collection.py --repeat {r.get('repeat', '?')}` ({r.get('date', '')}, "
+        f"{r['machine']['cpus']} cores, load {r['machine']['load_avg_1m']} at the end): "
+        f"{r['input']['scans']} scans, {r['input']['points']:,} points, full orderings, each run into a "
+        "fresh archive (start-up, reading, ordering, merging). Configurations interleaved; the fastest "
+        "of the runs is shown, the median beside it.",
+        "",
+        "| run | wall (s) | median (s) | executor start-up (s) | merging (s) | sum of per-scan times (s) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for v in runs.values():
+        lines.append(f"| {v['executor']} | {v['wall_s']:.2f} | {v['median_wall_s']:.2f} | {v['startup_s']:.2f} "
+                     f"| {v['merge_s']:.2f} | {v['sum_scan_s']:.2f} |")
+    lines += [
+        "",
+        f"- 2 workers over 1: **{r['speedup_2_workers']:.2f}x** (median {r['speedup_2_workers_median']:.2f}x; "
+        f"target >= 1.7x). The machine itself gave two independent processes {sc['speedup_best']:.2f}x "
+        f"during the run ({sc['job']}).",
+    ]
+    if "dask_over_pool_2" in r:
+        lines.append(
+            f"- Dask LocalCluster (2 workers) over the 2-worker pool: **{r['dask_over_pool_2']:.2f}x** "
+            f"(median {r['dask_over_pool_2_median']:.2f}x; target <= 1.10x); "
+            f"{r['dask_over_pool_2_after_startup']:.2f}x without starting the cluster.")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -89,7 +122,18 @@ def main() -> int:
                     help="runs per configuration, interleaved; the fastest is reported (and the median)")
     ap.add_argument("--size", type=int, default=None, help="order only N points per scan (default: all)")
     ap.add_argument("--skip-dask", action="store_true")
+    ap.add_argument("--markdown", help="update the 'collection' section of this file (docs/benchmarks.md)")
+    ap.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = ap.parse_args()
+    if args.from_json:
+        saved = json.loads(Path(args.from_json).read_text())
+        if args.markdown:
+            sys.path.insert(0, str(HERE.parent))
+            from benchdoc import write_section
+
+            write_section(Path(args.markdown), "collection", markdown(saved))
+        print(markdown(saved))
+        return 0
     manifest = args.data / "bun.conf"
     if not manifest.is_file():
         print(json.dumps({"error": f"{manifest} not found"}))
@@ -115,6 +159,8 @@ def main() -> int:
     scaling = machine_scaling(args.data / "bun000.ply")
     out = {
         "benchmark": "bench_collection",
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "repeat": args.repeat,
         "machine_two_process_scaling": scaling,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
                     "load_avg_1m": round(os.getloadavg()[0], 2)},
@@ -135,6 +181,11 @@ def main() -> int:
             (d["wall_s"] - d["startup_s"]) / (p2["wall_s"] - p2["startup_s"]), 3)
         out["target_dask_over_pool_2"] = "<= 1.10"
     print(json.dumps(out, indent=2))
+    if args.markdown:
+        sys.path.insert(0, str(HERE.parent))
+        from benchdoc import write_section
+
+        write_section(Path(args.markdown), "collection", markdown(out))
     return 0
 
 
