@@ -7,9 +7,8 @@ into a progress bar. ``None`` means silent.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Optional
 
-ProgressCallback = Optional[Callable[[str, int, int], None]]
+ProgressCallback = Callable[[str, int, int], None] | None
 
 
 def report(progress: ProgressCallback, stage: str, done: int, total: int) -> None:

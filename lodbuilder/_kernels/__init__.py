@@ -3,4 +3,6 @@
 Importing this package imports numba; ``import lodbuilder`` never does.
 """
 
-JIT = dict(cache=True, nogil=True)  # one place for JIT options; no fastmath: kernels rely on inf
+from typing import Any
+
+JIT: dict[str, Any] = dict(cache=True, nogil=True)  # one place for JIT options; no fastmath: kernels rely on inf
