@@ -6,7 +6,7 @@ curvature-weighted (and, on coloured scans, colour-weighted) orderings at a few 
 and density-floor orderings (uniform up to the 1 % level, then weighted with a = 1). Prints JSON.
 
     python tools/bench_features.py [--data DIR] [--files igea.ply frag_115.ply] [--adaptive 0.5 1]
-        [--floor-fraction 0.01]
+        [--floor-fraction 0.01] [--markdown docs/benchmarks.md] [--from-json RUN.json]
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchdoc import write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -121,7 +122,13 @@ def main() -> None:
         default=0.01,
         help="density floor rho0 = radius of the uniform level of this fraction",
     )
+    ap.add_argument("--markdown", help="also write the 'features' section of this markdown file")
+    ap.add_argument("--from-json", help="render the markdown section from a saved JSON run")
     args = ap.parse_args()
+    if args.from_json:
+        saved = json.loads(Path(args.from_json).read_text())
+        write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "features", markdown(saved))
+        return
     out = {
         "benchmark": "feature-sensitive ordering: point-to-plane error at equal size",
         "metric": "mean distance from input points to the PCA plane of their 8 nearest kept points",
@@ -137,6 +144,32 @@ def main() -> None:
         ],
     }
     print(json.dumps(out, indent=1))
+    if args.markdown:
+        write_section(Path(args.markdown), "features", markdown(out))
+
+
+def markdown(out: dict) -> str:
+    lines = [
+        "## Feature-sensitive orderings (tools/bench_features.py)",
+        "",
+        f"Metric: {out['metric']}, as a ratio to the uniform ordering at the same size "
+        f"(below 1 is better). Cost: {out['cost']}.",
+        "",
+    ]
+    for item in out["results"]:
+        sizes = list(next(iter(item["runs"].values()))["errors"])
+        lines += [
+            f"### {item['file']}: {item['points']:,} points (maps {item['time_maps_s']:.2f} s)",
+            "",
+            "| ordering | time (s) | " + " | ".join(sizes) + " |",
+            "|---|---:|" + "---:|" * len(sizes),
+        ]
+        for name, run in item["runs"].items():
+            cells = " | ".join(f"{run['errors'][k]['mean_vs_uniform']:.3f}" for k in sizes)
+            lines.append(f"| {name} | {run['time_s']:.2f} | {cells} |")
+        uni = item["runs"]["uniform"]["errors"]
+        lines += ["", "Uniform mean error: " + ", ".join(f"{k} {uni[k]['mean']:.3g}" for k in sizes), ""]
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
