@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lodbuilder.cli.main import main
+from lodbuilder.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -200,3 +201,23 @@ def test_view_extra_ordering(shared_data, tmp_path, capsys):
     assert rc == 0 and png.stat().st_size > 0
     assert main(["view", str(arc), "--ordering", "nope", "--screenshot", str(png)]) == 2
     assert "has no ordering 'nope'; it has uniform, weighted" in capsys.readouterr().err
+
+
+@pytest.mark.viewer
+def test_view_up_axis_turns_the_camera(bunny_archive, tmp_path):
+    from lodbuilder.viewer.app import LevelViewer
+    from lodbuilder.viewer.source import load_view_data
+
+    data = load_view_data(bunny_archive, scan="res3")
+    ups = {}
+    for up in ("z", "y"):
+        viewer = LevelViewer(data, size=400, off_screen=True, full_scan=False, up=up,
+                             window_size=(300, 300))
+        try:
+            ups[up] = np.asarray(viewer.plotter.camera.up)
+        finally:
+            viewer.close()
+    assert ups["y"][1] > 0.9  # the bunny's own up axis points up on screen
+    assert ups["z"][2] > 0.5
+    with pytest.raises(InputError, match=r"up must be one of x, y, z, -x, -y, -z, got 'w'"):
+        LevelViewer(data, size=400, off_screen=True, up="w")

@@ -60,6 +60,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         choices=("iso", "xy", "xz", "yz", "yx", "zx", "zy"),
         help="camera direction (default iso)",
     )
+    p.add_argument(
+        "--up",
+        default="z",
+        choices=("x", "y", "z", "-x", "-y", "-z"),
+        help="the scan's up axis for the default view (z for survey data; y for many range scans, "
+        "e.g. the Stanford bunny)",
+    )
     p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size")
     return p
 
@@ -124,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         point_scale=args.point_scale,
         edl=args.edl,
         view=args.view,
+        up=args.up,
         refine_factor=args.refine_factor,
     )
     try:

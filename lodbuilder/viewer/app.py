@@ -25,6 +25,7 @@ from .data import ViewData
 
 log = logging.getLogger(__name__)
 
+UPS = ("x", "y", "z", "-x", "-y", "-z")
 VIEWS = ("iso", "xy", "xz", "yz", "yx", "zx", "zy")
 HELP = (
     "slider: level (log10 points)   c: colour mode   l: eye-dome lighting   b: refine in a box\n"
@@ -68,9 +69,13 @@ class LevelViewer:
         view: str = "iso",
         refine_factor: float = 4.0,
         show_help: bool = True,
+        up: str = "z",
     ) -> None:
         if view not in VIEWS:
             raise InputError(f"view must be one of {', '.join(VIEWS)}, got {view!r}")
+        if up not in UPS:
+            raise InputError(f"up must be one of {', '.join(UPS)}, got {up!r}")
+        self.up = up
         self.data = data
         n = len(data)
         self.k = data.clamp_size(size if size is not None else min(n, max(1000, n // 20)))
@@ -292,7 +297,21 @@ class LevelViewer:
         bounds = np.column_stack(
             [self.data.points.min(axis=0), self.data.points.max(axis=0)]
         ).ravel()
-        if view == "iso":
+        if view == "iso" and self.up != "z":
+            # isometric from above, with the scan's own up axis pointing up on screen
+            axis = "xyz".index(self.up[-1])
+            sign = -1.0 if self.up.startswith("-") else 1.0
+            up = np.zeros(3)
+            up[axis] = sign
+            direction = np.ones(3)
+            direction[axis] = sign
+            lo, hi = bounds[0::2], bounds[1::2]
+            centre = (lo + hi) / 2
+            far = float(np.linalg.norm(hi - lo)) or 1.0
+            self.plotter.camera_position = [
+                tuple(centre + direction * far), tuple(centre), tuple(up)
+            ]
+        elif view == "iso":
             self.plotter.view_isometric(bounds=bounds)
         else:
             getattr(self.plotter, f"view_{view}")(bounds=bounds)
