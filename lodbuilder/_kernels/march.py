@@ -188,6 +188,28 @@ def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
+def _cell_tables(cs):  # pragma: no cover - compiled
+    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1), point -> cell."""
+    nv = cs.shape[0] - 1
+    ncell = 0
+    for v in range(nv):
+        if cs[v + 1] > cs[v]:
+            ncell += 1
+    cellv = np.empty(ncell, np.int64)
+    cellof = np.full(nv, -1, np.int32)
+    pcell = np.empty(cs[nv], np.int64)
+    c = 0
+    for v in range(nv):
+        if cs[v + 1] > cs[v]:
+            cellof[v] = c
+            cellv[c] = v
+            for p in range(cs[v], cs[v + 1]):
+                pcell[p] = c
+            c += 1
+    return cellv, cellof, pcell
+
+
+@nb.njit(**JIT)
 def grid_phase(
     u, coord, nbr, cs, hkeys, hvals, vcost, pcost, weighted, seeds, k_max, rho_stop, r_stop,
 ):  # pragma: no cover - compiled
@@ -201,23 +223,8 @@ def grid_phase(
     T = np.full(nv, np.inf, np.float32)
     vlab = np.full(nv, -1, np.int64)
     stamp = np.zeros(nv, np.int32)
-    cellof = np.full(nv, -1, np.int32)
-    ncell = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            ncell += 1
-    cellv = np.empty(ncell, np.int32)
-    c = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            cellof[v] = c
-            cellv[c] = v
-            c += 1
-    pcell = np.empty(m, np.int32)
-    for cc in range(ncell):
-        w = cellv[cc]
-        for p in range(cs[w], cs[w + 1]):
-            pcell[p] = cc
+    cellv, cellof, pcell = _cell_tables(cs)
+    ncell = cellv.shape[0]
     dq = np.full(m, np.inf)
     val = np.full(m, np.inf)
     lq = np.full(m, -1, np.int64)
@@ -321,28 +328,6 @@ def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources
         np.full(nv, -1, np.int32),
     )
     return dq, lq, pops
-
-
-@nb.njit(**JIT)
-def _cell_tables(cs):  # pragma: no cover - compiled
-    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1), point -> cell."""
-    nv = cs.shape[0] - 1
-    ncell = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            ncell += 1
-    cellv = np.empty(ncell, np.int64)
-    cellof = np.full(nv, -1, np.int32)
-    pcell = np.empty(cs[nv], np.int64)
-    c = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            cellof[v] = c
-            cellv[c] = v
-            for p in range(cs[v], cs[v + 1]):
-                pcell[p] = c
-            c += 1
-    return cellv, cellof, pcell
 
 
 @nb.njit(**JIT)
