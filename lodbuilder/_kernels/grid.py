@@ -14,7 +14,6 @@ import numpy as np
 from . import JIT
 
 MAX_COORD = (1 << 21) - 1  # per axis
-EMPTY = np.int64(-1)
 
 _M0 = np.uint64(0x1FFFFF)
 _M1 = np.uint64(0x1F00000000FFFF)

@@ -97,20 +97,7 @@ GZIP_LEVEL = 4
 COMPRESS_BELOW = 0.6
 LIBVER = ("v110", "latest")
 
-PROVENANCE_KEYS = (
-    "source_name",
-    "source_size",
-    "source_sha256",
-    "reader",
-    "lodbuilder_version",
-    "created_utc",
-)
-
 _FORBIDDEN_NAME_CHARS = set("/\\\x00")
-
-
-def scan_path(name: str) -> str:
-    return f"/{G_SCANS}/{name}"
 
 
 def check_name(name: Any, what: str = "scan name") -> str:

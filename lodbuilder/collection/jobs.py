@@ -21,10 +21,6 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: build parameters a job accepts (passed to fastfps)
-PARAMETERS = ("voxel_size", "band_radius", "size", "rho", "features")
-
-
 @dataclass
 class ScanJob:
     """Everything a worker needs to build one scan (picklable, no open handles)."""

@@ -59,25 +59,23 @@ def _module(name: str) -> ModuleType:
     return import_module(name if "." in name else f"lodbuilder.io.{name}")
 
 
-def reader_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
-    """(format name, module) that reads ``path``, or UnsupportedFormatError."""
+def _lookup(
+    path: str | os.PathLike[str], table: dict[str, str], what: str, known: str
+) -> tuple[str, ModuleType]:
     sfx = suffix_of(path)
-    name = READERS.get(sfx)
+    name = table.get(sfx)
     if name is None:
-        known = " ".join(sorted(READERS))
         raise UnsupportedFormatError(
-            f"{path}: no reader for suffix {sfx or '(none)'!r}; known suffixes: {known}"
+            f"{path}: {what} suffix {sfx or '(none)'!r}; {known}: {' '.join(sorted(table))}"
         )
     return name.rsplit(".", 1)[-1], _module(name)
+
+
+def reader_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
+    """(format name, module) that reads ``path``, or UnsupportedFormatError."""
+    return _lookup(path, READERS, "no reader for", "known suffixes")
 
 
 def writer_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
     """(format name, module) that writes ``path``, or UnsupportedFormatError."""
-    sfx = suffix_of(path)
-    name = WRITERS.get(sfx)
-    if name is None:
-        known = " ".join(sorted(WRITERS))
-        raise UnsupportedFormatError(
-            f"{path}: cannot write suffix {sfx or '(none)'!r}; known output suffixes: {known}"
-        )
-    return name.rsplit(".", 1)[-1], _module(name)
+    return _lookup(path, WRITERS, "cannot write", "known output suffixes")

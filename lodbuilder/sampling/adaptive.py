@@ -53,8 +53,6 @@ from .ordering import Ordering
 
 log = logging.getLogger(__name__)
 
-ENGINE_KEYS = ("voxel_size", "band_radius", "max_memory", "progress")
-
 
 def check_exclude(exclude: Any, n: int) -> np.ndarray | None:
     """Return a boolean mask (N,) of points to leave out, or None when nothing is left out."""

@@ -149,7 +149,7 @@ def build_band(
     perm = np.argsort(ckeys, kind="stable")
     ckeys = ckeys[perm]
     u = np.ascontiguousarray(u[perm])
-    occ_keys, ostart = np.unique(ckeys, return_index=True)
+    _, ostart = np.unique(ckeys, return_index=True)
     occ = cells[perm[ostart]]
     ostart = np.append(ostart, ckeys.shape[0]).astype(np.int64)
     budget_voxels = (max_memory - BYTES_PER_POINT * points.shape[0]) // BYTES_PER_VOXEL

@@ -87,7 +87,6 @@ class LevelViewer:
         self.edl = False
         self.full_scan = bool(full_scan)
         self._ids = np.arange(n + 1, dtype=np.int64)
-        self._positions: np.ndarray | None = None  # None: the level is the prefix [0, k)
         self._refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # arrays VTK views, per mesh
         self._colours = data.colours(self.mode, self.k)
         self._surface_actor: Any = None
@@ -162,11 +161,9 @@ class LevelViewer:
     def _update_level_arrays(self) -> None:
         k = self.k
         if self.box is None:
-            self._positions = None
             pts, col = self.data.points[:k], self._colours[:k]
         else:
             pos = self.data.selective(k, self.box[0], self.box[1], self.refine_factor)
-            self._positions = pos
             pts, col = self.data.points[pos], self._colours[pos]
         self._set_arrays(self.level_mesh, pts, pts.shape[0], col)
 
