@@ -13,7 +13,7 @@ sample: a new sample marches only where it lowers ``T``.
 Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
 ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
 voxel sees the sample when the voxel one step back toward the sample's nearest voxel does (taken in
-order of distance): the straight segment then stays in the band, so no exact distance is given across a gap
+order of distance from it): the straight segment then stays in the band, so no exact distance is given across a gap
 or through the inside of a fold. These voxels are frozen (marked accepted at once, so the march
 never lowers them) and popped in order like the others.
 
@@ -193,12 +193,12 @@ def march_round(
                     seen[w] = mark
                     qv[qn] = w
                     qn += 1
-        # line of sight: in order of distance, a voxel sees the sample when the voxel one step
-        # back toward the sample does (so the straight segment stays in the band: no exact
-        # distance across a gap or through the inside of a fold)
+        # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
+        # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
+        # then stays in the band (no exact distance across a gap or through the inside of a fold)
         for q in range(qn):
             x, y, z = unmorton(keys[qv[q]])
-            qd[q] = _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z)
+            qd[q] = _norm(x - x0, y - y0, z - z0)
             cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = q
         srt = np.argsort(qd[:qn])
         for t in range(qn):
@@ -209,7 +209,7 @@ def march_round(
                 ok = True
             else:
                 # one step back toward v0 (the sample itself may lie just outside a one-sided band)
-                d = _norm(x - x0, y - y0, z - z0)
+                d = qd[q]
                 bx = int(np.floor(x - (x - x0) / d + 0.5))
                 by = int(np.floor(y - (y - y0) / d + 0.5))
                 bz = int(np.floor(z - (z - z0) / d + 0.5))
@@ -225,7 +225,7 @@ def march_round(
             vis[q] = ok
             if not ok:
                 continue
-            t_ = np.float32(qd[q] * 0.5 * (ci + vcost[v]))
+            t_ = np.float32(_norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) * 0.5 * (ci + vcost[v]))
             if t_ < T[v]:
                 T[v] = t_
                 vlab[v] = lab + s

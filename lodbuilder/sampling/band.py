@@ -187,7 +187,7 @@ def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float |
     with np.errstate(invalid="ignore"):
         radius = np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
-    typical = float(np.percentile(sep_in, THIN_SHARE))
+    typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
     handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
     return BandPlan(h, r, radius, sep_in, normal, handover)
 
