@@ -94,7 +94,7 @@ SEED_RADIUS = 6.0
 def _naive_update(t1s, t2s, f):
     """The upwind solution of |grad T| = f: second order on the axes where a second upwind value is
     given (inf: first order), falling back to first order when that is not upwind."""
-    axes = sorted(zip(t1s, t2s), key=lambda a: a[0])
+    axes = sorted(zip(t1s, t2s, strict=True), key=lambda a: a[0])
     if any(t2 < np.inf for _, t2 in axes):
         sa = sb = sc = 0.0
         sol = np.inf
