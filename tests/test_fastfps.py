@@ -379,3 +379,89 @@ def test_max_heap_with_decreasing_keys_pops_the_largest_first(keys, drops):
         n = maxheap_pop(hkey, heap, pos, n)
     # largest key first; ties by the smaller item
     assert out == sorted(((k, i) for i, k in ref.items()), key=lambda t: (-t[0], t[1]))
+
+
+# ---- post-conditions, debug heap checks, the Euclidean kernel with cost --------------------------
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda o, r, p: o.__setitem__(3, o[2]), r"an index appears twice"),
+        (lambda o, r, p: o.__setitem__(3, 10_000), r"an index out of range"),
+        (lambda o, r, p: r.__setitem__(5, r[4] * 2), r"radius increases at position 5"),
+        (lambda o, r, p: r.__setitem__(0, 1.0), r"radius\[0\] = 1.0 \(inf expected\)"),
+        (lambda o, r, p: p.__setitem__(7, 7), r"parent of position 7 is 7, not an earlier position"),
+        (lambda o, r, p: p.__setitem__(7, -2), r"parent of position 7 is -2"),
+    ],
+)
+def test_post_conditions_catch_a_broken_ordering(rng, change, message):
+    from lodbuilder.errors import EngineError
+    from lodbuilder.sampling.fastfps import check_ordering
+    from lodbuilder.sampling.ordering import Ordering
+
+    pts = rng.random((200, 3))
+    o = fastfps(pts)
+    assert check_ordering(o) is o
+    order, radius, parent = o.order.copy(), o.radius.copy(), o.parent.copy()
+    change(order, radius, parent)
+    broken = Ordering(order, radius, parent, o.voxel_size, o.band_radius, o.seeds, o.n_points)
+    with pytest.raises(EngineError, match=r"ordering of 200 points failed its check: " + message):
+        check_ordering(broken)
+
+
+def test_debug_switch_checks_heaps_and_changes_nothing(rng, monkeypatch):
+    import lodbuilder.sampling.fastfps as ff
+
+    pts = sphere(1500, rng)
+    plain = fastfps(pts)
+    monkeypatch.setattr(ff, "DEBUG", True)
+    checked = fastfps(pts)
+    assert np.array_equal(plain.order, checked.order)
+    assert np.array_equal(plain.radius, checked.radius)
+
+
+def test_heap_checks_notice_a_broken_heap():
+    from lodbuilder._kernels.heaps import (
+        check_maxheap,
+        check_minheap,
+        iheap_push,
+        maxheap_build,
+    )
+
+    hk = np.empty(10, np.float32)
+    hv = np.empty(10, np.int32)
+    hpos = np.full(10, -1, np.int32)
+    n = 0
+    for item, key in enumerate([5.0, 3.0, 8.0, 1.0, 9.0, 2.0]):
+        n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
+    assert check_minheap(hk, hv, hpos, n)
+    hk[0], hk[n - 1] = hk[n - 1], hk[0]  # keys out of order
+    assert not check_minheap(hk, hv, hpos, n)
+    hk[0], hk[n - 1] = hk[n - 1], hk[0]
+    hpos[hv[1]] = 0  # a stale position
+    assert not check_minheap(hk, hv, hpos, n)
+
+    keys = np.array([4.0, 7.0, 1.0, 9.0, 3.0, 6.0, 2.0])
+    heap = np.arange(7, dtype=np.int32)
+    pos = np.empty(7, np.int32)
+    maxheap_build(keys, heap, pos, 7)
+    assert check_maxheap(keys, heap, pos, 7)
+    keys[0] = -1.0  # the top is no longer the largest
+    assert not check_maxheap(keys, heap, pos, 7)
+
+
+@settings(max_examples=20, deadline=None)
+@given(n=st.integers(1, 120), seed=st.integers(0, 2**31 - 1), nseeds=st.integers(1, 3))
+def test_euclidean_kernel_with_cost_matches_the_naive_reference(n, seed, nseeds):
+    from naive import naive_euclidean_fps_cost
+
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 3))
+    cost = rng.uniform(0.1, 1.0, n)
+    seeds = list(rng.choice(n, min(nseeds, n), replace=False))
+    o = euclidean_fps(pts, seeds=seeds, cost=cost)
+    order, radius, parent = naive_euclidean_fps_cost(pts, [int(s) for s in seeds], cost)
+    assert np.array_equal(o.order, order)
+    np.testing.assert_allclose(o.radius, radius, rtol=1e-12)
+    assert np.array_equal(o.parent, parent)

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from .._validate import check_positive, check_size, validate_indices, validate_points
-from ..errors import InputError
+from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
 
@@ -49,6 +49,38 @@ def _prepare(points, rho, size, seeds):
     return pts, n, rho, size, seed_arr
 
 
+def check_ordering(o: Ordering) -> Ordering:
+    """The post-conditions of every ordering, in O(N): ``order`` holds distinct indices in
+    [0, N) (all of them for a full ordering), ``radius`` is non-increasing and starts at inf,
+    ``parent`` is -1 or an earlier position. Raises :class:`EngineError` naming the first broken one."""
+    n, k = o.n_points, len(o)
+    order, radius, parent = o.order, o.radius, o.parent
+
+    def fail(what: str) -> EngineError:
+        return EngineError(f"ordering of {n:,} points failed its check: {what}; this is a bug, please report it")
+
+    if order.shape != (k,) or radius.shape != (k,) or parent.shape != (k,):
+        raise fail(f"order/radius/parent shapes {order.shape}/{radius.shape}/{parent.shape} differ")
+    if k == 0:
+        return o
+    if order.min() < 0 or order.max() >= n:
+        raise fail("an index out of range")
+    seen = np.zeros(n, dtype=bool)
+    seen[order] = True
+    if int(seen.sum()) != k:
+        raise fail("an index appears twice")
+    if not np.isinf(radius[0]) or np.isnan(radius).any():
+        raise fail(f"radius[0] = {radius[0]} (inf expected) or NaN radii")
+    bad = np.flatnonzero(radius[1:] > radius[:-1])
+    if bad.size:
+        raise fail(f"radius increases at position {bad[0] + 1}")
+    pos = np.arange(k)
+    bad = np.flatnonzero((parent < -1) | (parent >= pos))
+    if bad.size:
+        raise fail(f"parent of position {bad[0]} is {parent[bad[0]]}, not an earlier position")
+    return o
+
+
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
@@ -78,7 +110,7 @@ def euclidean_fps(
     k_max = n if size is None else max(size, seed_arr.size)
     order, radius, parent = euclidean_fps_kernel(pts, seed_arr, k_max, c)
     order, radius, parent = _truncate(order, radius, parent, rho, size)
-    return Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"})
+    return check_ordering(Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"}))
 
 
 def fastfps(
@@ -116,7 +148,7 @@ def fastfps(
     c = None if cost is None else validate_cost(cost, n)
     if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
         raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
-    return _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+    return check_ordering(_run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress))
 
 
 DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
