@@ -465,3 +465,57 @@ def test_euclidean_kernel_with_cost_matches_the_naive_reference(n, seed, nseeds)
     assert np.array_equal(o.order, order)
     np.testing.assert_allclose(o.radius, radius, rtol=1e-12)
     assert np.array_equal(o.parent, parent)
+
+
+# ---- first-run compilation -------------------------------------------------------------------------
+
+
+def test_every_kernel_is_compiled_for_one_signature_only(rng):
+    # the warm-up compiles each kernel for one signature; an ordering (plain, weighted, thin) must
+    # not need any other, or a cold first run would compile twice
+    from lodbuilder._kernels.warm import _dispatcher, signatures
+    from lodbuilder.archive.demo_surface import folded_sheet
+
+    fastfps(sphere(3000, rng))
+    fastfps(sphere(3000, rng), cost=rng.uniform(0.2, 1.0, 3000))
+    fastfps(folded_sheet(20000, seed=1, gap=0.05)[0])
+    for group in ("band", "ordering"):
+        for name, sig in signatures(group).items():
+            assert _dispatcher(name).signatures == [sig], name
+
+
+@pytest.mark.slow
+def test_a_cold_cache_is_compiled_with_a_message(tmp_path):
+    # a fresh numba cache: the first ordering compiles (both groups) and says so through the
+    # progress callback; the second process finds everything cached
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = (
+        "import numpy as np, lodbuilder\n"
+        "stages = []\n"
+        "o = lodbuilder.fastfps(np.random.default_rng(0).random((500, 3)), "
+        "progress=lambda s, d, t: stages.append(s))\n"
+        "print(o.stats['compiled_kernels'], stages[0])\n"
+    )
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), PYTHONPATH=str(root))
+    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert first.stdout.strip() == "True compiling kernels, first run only"
+    second = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert second.stdout.strip() == "False band"
+
+
+def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):
+    from lodbuilder.cli.progressbar import ProgressBars
+
+    bars = ProgressBars()  # stderr is not a terminal under pytest: no bars
+    assert not bars.enabled
+    for stage in ("compiling kernels, first run only", "compiling kernels, first run only", "band"):
+        bars(stage, 0, 1)
+    assert capsys.readouterr().err == "compiling kernels, first run only ...\n"
+    quiet = ProgressBars(enabled=False)  # --no-progress: nothing at all
+    quiet("compiling kernels, first run only", 0, 1)
+    assert capsys.readouterr().err == ""

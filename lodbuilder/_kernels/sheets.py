@@ -17,13 +17,13 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 from .grid import hash_find, index_hash, morton
 
 K_NORMAL = 10  # neighbours of a cell's central point that give the cell's normal
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
     """Unit eigenvector of the smallest eigenvalue of [[a, d, e], [d, b, f], [e, f, c]]."""
     p1 = d * d + e * e + f * f

@@ -183,8 +183,10 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, n
 def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress):
     import time
 
+    from .._kernels.warm import ensure_compiled
     from .band import TAIL_PER_SEP, TAIL_SLOPE, build_planned_band, plan_band
 
+    compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
     t0 = time.perf_counter()
     c0 = time.process_time()
     n = pts.shape[0]
@@ -202,6 +204,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
     stats["thin_points"] = plan.thin_points
     stats["thin_points_found"] = found
+    stats["compiled_kernels"] = compiled
     k_max = m if size is None else min(m, size)
     del upts
     stats["band_voxels"] = band.n_voxels
@@ -244,6 +247,9 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG,
     )
     del vcost
+    if pops < 0:
+        which = "front" if pops == -1 else "candidate"
+        raise EngineError(f"the {which} heap broke its invariant (debug check); this is a bug, please report it")
     t2 = time.perf_counter()
     c2 = time.process_time()
     stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
