@@ -1,8 +1,9 @@
 """Local sheet separation: how far, across the gap, the nearest other piece of surface is.
 
-Works on the occupied cells of a grid (points sorted by cell, grid units). A cell's normal is the
-smallest principal axis of the K_NORMAL nearest neighbours of its most central point (within about
-two point spacings, so they stay on its own sheet when another one is 3 spacings away). From the cell's centroid a ray goes both ways
+Works on the occupied cells of a grid (points sorted by cell, grid units), every other cell in a
+checkerboard (the spread below covers the rest). A cell's normal is the smallest principal axis of
+the points within ``normal_radius`` of its most central point (about two point spacings, so they
+stay on its own sheet when another one is 3 spacings away). From the cell's centroid a ray goes both ways
 along the normal; the first occupied cell it meets whose centroid lies in the normal's cone
 (offset along the normal >= ``cone`` x the distance) and at least ``gap_min`` away along the normal
 belongs to another sheet, and that offset is the cell's separation; the normal is turned toward the
@@ -20,7 +21,6 @@ import numpy as np
 from . import INLINE, JIT
 from .grid import hash_find, index_hash, morton
 
-K_NORMAL = 10  # neighbours of a cell's central point that give the cell's normal
 
 
 @nb.njit(**INLINE)
@@ -69,7 +69,7 @@ def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
-def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - compiled
+def cell_separation(u, ostart, reach, gap_min, cone, normal_radius):  # pragma: no cover - compiled
     """Per occupied cell: the separation toward the nearer other sheet (inf: none within
     ``reach``), the one on the opposite side (inf: none), and the unit normal oriented toward the
     nearer other sheet (zero where there is none), all in grid units."""
@@ -97,15 +97,17 @@ def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - comp
     sep_out = np.full(ncell, np.inf)
     nrm = np.zeros((ncell, 3), np.float64)
     acc = np.empty(9)
-    kd = np.empty(K_NORMAL)
-    ki = np.empty(K_NORMAL, np.int64)
+    radius2 = normal_radius * normal_radius
     for c in range(ncell):
         p0, p1 = ostart[c], ostart[c + 1]
         fx = int(np.floor(u[p0, 0]))
         fy = int(np.floor(u[p0, 1]))
         fz = int(np.floor(u[p0, 2]))
-        # the cell's point nearest its centroid, and its K nearest neighbours among the 27 cells
-        # around (close enough to stay on its own sheet when another one is 3 spacings away)
+        if (fx + fy + fz) & 1:
+            continue  # every other cell (a checkerboard): the spread below covers the others
+        # the cell's point nearest its centroid, and the points within NORMAL_RADIUS of it among
+        # the 27 cells around (close enough to stay on its own sheet when another one is 3
+        # spacings away)
         gx = mom[c, 0] / cnt[c]
         gy = mom[c, 1] / cnt[c]
         gz = mom[c, 2] / cnt[c]
@@ -116,6 +118,8 @@ def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - comp
             if d2 < best:
                 best = d2
                 rep = i
+        rx, ry, rz = u[rep, 0], u[rep, 1], u[rep, 2]
+        acc[:] = 0.0
         nk = 0
         for dx in range(-1, 2):
             for dy in range(-1, 2):
@@ -127,35 +131,21 @@ def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - comp
                     if j < 0:
                         continue
                     for i in range(ostart[j], ostart[j + 1]):
-                        d2 = (u[i, 0] - u[rep, 0]) ** 2 + (u[i, 1] - u[rep, 1]) ** 2 + (u[i, 2] - u[rep, 2]) ** 2
-                        if nk < K_NORMAL:
-                            t = nk
-                            nk += 1
-                        elif d2 < kd[K_NORMAL - 1]:
-                            t = K_NORMAL - 1
-                        else:
+                        ex, ey, ez = u[i, 0] - rx, u[i, 1] - ry, u[i, 2] - rz
+                        if ex * ex + ey * ey + ez * ez > radius2:
                             continue
-                        while t > 0 and kd[t - 1] > d2:
-                            kd[t] = kd[t - 1]
-                            ki[t] = ki[t - 1]
-                            t -= 1
-                        kd[t] = d2
-                        ki[t] = i
-        if nk < 4:
+                        nk += 1
+                        acc[0] += ex
+                        acc[1] += ey
+                        acc[2] += ez
+                        acc[3] += ex * ex
+                        acc[4] += ey * ey
+                        acc[5] += ez * ez
+                        acc[6] += ex * ey
+                        acc[7] += ex * ez
+                        acc[8] += ey * ez
+        if nk < 5:
             continue
-        acc[:] = 0.0
-        for t in range(nk):
-            i = ki[t]
-            x, y, z = u[i, 0], u[i, 1], u[i, 2]
-            acc[0] += x
-            acc[1] += y
-            acc[2] += z
-            acc[3] += x * x
-            acc[4] += y * y
-            acc[5] += z * z
-            acc[6] += x * y
-            acc[7] += x * z
-            acc[8] += y * z
         nn = float(nk)
         mx, my, mz = acc[0] / nn, acc[1] / nn, acc[2] / nn
         nx, ny, nz, ok = _smallest_axis(

@@ -41,7 +41,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "grid.band_voxels": (_F64_2, _F64, _F64, _F64_2, _F64, f, _I32, _I64, _I32, _I64, i),
             "grid.neighbour_table": (_I64,),
             "march.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
-            "sheets.cell_separation": (_F64_2, _I32, f, f, f),
+            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
         },
         "ordering": {
             "march.grid_phase": (

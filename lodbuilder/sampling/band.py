@@ -2,7 +2,7 @@
 
 Automatic parameters (documented rule):
     s = typical point spacing (median distance to the 6th neighbour x sqrt(pi / 6), which is the
-        spacing of a jittered grid and the mean spacing of random samples), on up to 50,000 points;
+        spacing of a jittered grid and the mean spacing of random samples), on up to 20,000 points;
     voxel size  h = 2 s;
     band radius r = 2.5 h.
 With these, the band is about 2r/h = 5 voxels thick and holds about 1.3 voxels per point.
@@ -50,6 +50,7 @@ DEPTH_COST = 0.2
 TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
 SEP_GAP_MIN = 1.5  # in default voxels (3 point spacings): closer layers count as one sheet
 SEP_CONE = 0.8  # the other sheet's cell lies within acos(0.8) = 37 degrees of the normal
+NORMAL_RADIUS = 0.9  # default voxels (1.8 point spacings): the neighbours that give a cell's normal
 THIN_RADIUS_MIN = 1.0  # voxels: the thinnest band radius
 SIDE_TOLERANCE = 0.15  # voxels: how far on the gap side of its nearest point a voxel may lie
 TAIL_PER_SEP = 0.9  # the tail lowers a point only from samples closer than this x its separation
@@ -62,7 +63,7 @@ MAX_POINTS = (1 << 31) - 1  # point and voxel indices are int32
 
 
 def median_spacing(
-    points: np.ndarray, sample: int = 50_000, k: int = 6, subset: int = 500_000
+    points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 200_000
 ) -> float:
     """Typical point spacing: the median distance to the k-th neighbour times sqrt(pi / k).
 
@@ -163,7 +164,7 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
     ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
     del ckeys, new
-    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE)
+    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
     counts = np.diff(ostart)
     sep_in = np.empty(n)
     sep_in[perm] = np.repeat(sin * h, counts)
