@@ -22,7 +22,6 @@ from . import INLINE, JIT
 from .grid import hash_find, index_hash, morton
 
 
-
 @nb.njit(**INLINE)
 def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
     """Unit eigenvector of the smallest eigenvalue of [[a, d, e], [d, b, f], [e, f, c]]."""
