@@ -367,3 +367,52 @@ def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
                     rkey[r] = (ck << 3) | j
                 rend[r] = cs[v + 1]
     return rkey, index_hash(rkey), rstart, rend
+
+
+@nb.njit(**JIT)
+def kth_neighbour(u, ostart, cell_keys, queries, k):  # pragma: no cover - compiled
+    """For each query point (grid coordinates, cell size 1): the distance to its k-th nearest point
+    among ``u`` (sorted by cell; ``ostart`` the cells' ranges, ``cell_keys`` their Morton keys),
+    searched in the 27 cells around it, and whether that is certain (the k-th distance is at most 1,
+    so no nearer point can lie outside those cells). A query that is one of the points counts itself
+    at distance 0, as a k-d tree query would."""
+    hidx = index_hash(cell_keys)
+    nq = queries.shape[0]
+    out = np.empty(nq)
+    sure = np.empty(nq, np.bool_)
+    best = np.empty(k)
+    for q in range(nq):
+        qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
+        fx = int(np.floor(qx))
+        fy = int(np.floor(qy))
+        fz = int(np.floor(qz))
+        nk = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    x, y, z = fx + dx, fy + dy, fz + dz
+                    if x < 0 or y < 0 or z < 0:
+                        continue
+                    j = hash_find(hidx, cell_keys, morton(x, y, z))
+                    if j < 0:
+                        continue
+                    for i in range(ostart[j], ostart[j + 1]):
+                        d2 = (u[i, 0] - qx) ** 2 + (u[i, 1] - qy) ** 2 + (u[i, 2] - qz) ** 2
+                        if nk < k:
+                            t = nk
+                            nk += 1
+                        elif d2 < best[k - 1]:
+                            t = k - 1
+                        else:
+                            continue
+                        while t > 0 and best[t - 1] > d2:
+                            best[t] = best[t - 1]
+                            t -= 1
+                        best[t] = d2
+        if nk < k:
+            out[q] = np.inf
+            sure[q] = False
+        else:
+            out[q] = np.sqrt(best[k - 1])
+            sure[q] = out[q] <= 1.0
+    return out, sure

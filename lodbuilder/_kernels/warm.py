@@ -37,6 +37,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     return {
         "band": {
             "grid.cell_order": (_F64_2, _F64, f),
+            "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
             "grid.band_voxels": (_F64_2, _F64, _F64, _F64_2, _F64, f, _I32, _I64, _I32, _I64, i),
             "grid.neighbour_table": (_I64,),

@@ -71,9 +71,11 @@ def median_spacing(
     (like a range scan) or random; the plain nearest-neighbour distance would be half of s for random
     samples. Measured on a deterministic sample of the points; above ``subset`` points the
     neighbours are searched in a random subset of that size and the spacing scaled by
-    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning).
+    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning). The search is
+    exact: points hashed into cells, the cell size doubled until the k-th neighbour of most queries
+    lies within one cell (no k-d tree: scipy.spatial would cost the build process 26 MB).
     """
-    from scipy.spatial import cKDTree
+    from .._kernels.grid import cell_order, grid_coords, kth_neighbour
 
     n = points.shape[0]
     if n < 2:
@@ -84,12 +86,30 @@ def median_spacing(
         points = points[np.sort(rng.choice(n, subset, replace=False))]
         scale = math.sqrt(subset / n)
         n = subset
-    tree = cKDTree(points)
     q = points[rng.choice(n, sample, replace=False)] if n > sample else points
     k = min(k, n - 1)
-    d, _ = tree.query(q, k=k + 1, workers=-1)
-    dk = d[:, k]
-    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale
+    lo = points.min(axis=0)
+    ext = float(np.ptp(points, axis=0).max())
+    if ext <= 0.0:
+        return 0.0
+    c = max(ext / math.sqrt(n), ext * 2.0**-20)  # the spacing of n points filling a square
+    while True:
+        origin = lo - c
+        keys = cell_order(points, origin, c)
+        perm = np.argsort(keys, kind="stable").astype(np.int32)
+        keys = keys[perm]
+        u = grid_coords(points, perm, origin, c)
+        first = np.empty(n, dtype=bool)
+        first[0] = True
+        np.not_equal(keys[1:], keys[:-1], out=first[1:])
+        starts = np.flatnonzero(first)
+        ostart = np.append(starts, n).astype(np.int32)
+        dk, sure = kth_neighbour(u, ostart, keys[starts], (q - origin) / c, k + 1)
+        if sure.mean() >= 0.9 or c >= 4 * ext:
+            break
+        c *= 2.0
+    dk = dk[np.isfinite(dk)] * c
+    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale if dk.size else 0.0
     if s <= 0.0:
         s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
     return s
