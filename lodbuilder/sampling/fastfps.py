@@ -177,7 +177,7 @@ def fastfps(
 DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
 
 
-def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Group exact duplicates. Returns (group id per point, representative input index per group).
 
     The representative is the first listed seed of the group if any, else its lowest index.
@@ -187,9 +187,8 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, n
     sp = pts[srt]
     new = np.ones(n, dtype=bool)
     new[1:] = (sp[1:] != sp[:-1]).any(axis=1)
-    if new.all():  # no duplicates: the identity, and no copy of the points
-        ident = np.arange(n, dtype=np.int64)
-        return ident, ident
+    if new.all():  # no duplicates: (None, None) stands for the identity (no copies)
+        return None, None
     gid_sorted = np.cumsum(new) - 1
     gid = np.empty(n, dtype=np.int64)
     gid[srt] = gid_sorted
@@ -214,11 +213,14 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     c0 = time.process_time()
     n = pts.shape[0]
     gid, rep = _duplicate_groups(pts, seed_arr)
-    m = rep.shape[0]
-    upts = pts[rep] if m < n else pts  # rep is the identity when there are no duplicates
-    # engine seeds: the groups of the seeds, first occurrence, in order
-    _, first = np.unique(gid[seed_arr], return_index=True)
-    useeds = gid[seed_arr][np.sort(first)]
+    if gid is None or rep is None:  # no duplicates
+        m, upts, useeds = n, pts, seed_arr
+    else:
+        m = rep.shape[0]
+        upts = pts[rep]
+        # engine seeds: the groups of the seeds, first occurrence, in order
+        _, first = np.unique(gid[seed_arr], return_index=True)
+        useeds = gid[seed_arr][np.sort(first)]
     report(progress, "band", 0, 1)
     plan = plan_band(upts, voxel_size, band_radius)
     found = plan.thin_points
@@ -245,7 +247,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     seeds_c = inv[useeds]
     del inv
     if weighted:
-        ucost = cost[rep][band.perm]
+        ucost = (cost if rep is None else cost[rep])[band.perm]
         vcost = band.vcost * ucost[band.foot].astype(np.float32)
         pcost = ucost
         cmin = float(ucost.min())
@@ -313,9 +315,9 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
 def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats):
     """Map the distinct-point ordering back to input indices; add duplicate seeds and duplicates."""
     n = pts.shape[0]
-    m = rep.shape[0]
+    m = n if rep is None else rep.shape[0]
     stats["n_duplicates"] = int(n - m)
-    if m == n:  # no duplicates: the engine's ordering is the answer (rep is the identity)
+    if rep is None:  # no duplicates: the engine's ordering is the answer
         stats["n_duplicate_seeds"] = 0
         if size is not None and uorder.shape[0] > size:
             uorder, radius, parent = uorder[:size], radius[:size], parent[:size]
