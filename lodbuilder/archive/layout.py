@@ -113,7 +113,7 @@ RADIUS_INDEX_STEP = 1024
 CHUNK_ROWS = 65536
 # row groups: the per-point datasets of a scan share one chunk length, between these bounds and
 # with at most ROW_GROUPS_MAX chunks per dataset (a small chunk index, all in the first page)
-ROW_GROUP_MIN = 4096
+ROW_GROUP_MIN = 8192
 ROW_GROUPS_MAX = 1024
 # paged aggregation: page = file size / PAGES_PER_FILE, a power of two within these bounds
 PAGE_MIN = 4096

@@ -270,7 +270,7 @@ class ScanWriter:
         src, rad, par = arrays[L.D_SOURCE_INDEX], arrays[L.D_RADIUS], arrays[L.D_PARENT]
         if m and (src.min() < 0 or src.max() >= self.n):
             raise InputError(f"source_index of {where} must be in [0, {self.n}); got values outside")
-        if m and (self._seen[src].any() or np.unique(src).size != m):
+        if m and self._seen[src].any():
             raise InputError(f"source_index of {where} repeats an input index; each point goes once")
         if np.isnan(rad).any() or (rad < 0).any():
             raise InputError(f"radius of {where} holds NaN or negative values")
@@ -290,6 +290,12 @@ class ScanWriter:
                 f"parent of {where} at stored row {lo + i} is {int(par[i])}; parents must be "
                 "earlier rows or -1"
             )
+        if m > 1:
+            ordered = np.sort(src)
+            if (ordered[1:] == ordered[:-1]).any():  # a repeat inside this block
+                raise InputError(
+                    f"source_index of {where} repeats an input index; each point goes once"
+                )
         self._seen[src] = True
         if m:
             self._last_radius = float(rad[-1])
@@ -421,7 +427,7 @@ class ScanWriter:
         try:
             for key, ds in self._ds.items():
                 data = self._encode(pts, lo) if key == L.D_POINTS else block[key]
-                ds[lo:hi] = data
+                _write_rows(ds, lo, data)
         except OSError as exc:
             raise F.disk_error(exc, self.path) from None
         self._flushed = hi
@@ -536,6 +542,17 @@ class ScanWriter:
             bounds_max=tuple(float(x) for x in self._hi),
             nbytes=self.path.stat().st_size,
         )
+
+
+def _write_rows(ds: Any, lo: int, data: np.ndarray) -> None:
+    """``ds[lo:lo + len(data)] = data`` through h5py's low-level API (the high-level selection
+    machinery costs about 0.2 ms a call, and a scan is written in thousands of calls)."""
+    from h5py import h5s
+
+    data = np.ascontiguousarray(data)
+    fspace = ds.id.get_space()
+    fspace.select_hyperslab((lo,) + (0,) * (data.ndim - 1), data.shape)
+    ds.id.write(h5s.create_simple(data.shape), fspace, data)
 
 
 def write_ordering(
