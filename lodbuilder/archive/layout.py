@@ -120,6 +120,8 @@ PAGE_MIN = 4096
 PAGE_MAX = 1 << 20
 PAGES_PER_FILE = 256
 GZIP_LEVEL = 4
+# small datasets (index columns, radius_index, seeds) up to this size are stored compact
+COMPACT_MAX = 16384
 COMPRESS_BELOW = 0.6
 LIBVER = ("v110", "latest")
 
@@ -342,17 +344,30 @@ def compression_pays(data: np.ndarray) -> bool:
     return len(zlib.compress(shuffled, 1)) < COMPRESS_BELOW * len(shuffled)
 
 
+def text(value: str) -> np.bytes_:
+    """A string attribute stored as fixed-length UTF-8 bytes: inside the object header (with its
+    checksum, in the file's metadata pages), not in a separate heap that a remote reader would
+    have to fetch on its own. Readers decode it with :func:`_attr_json` / :func:`from_json`."""
+    return np.bytes_(value.encode("utf-8") or b" ")
+
+
 def create_dataset(group: Any, name: str, data: np.ndarray, attrs: dict[str, Any] | None = None):
-    """Create a chunked, checksummed dataset, compressed where it pays."""
+    """Create a small dataset: compact (stored in its object header, covered by the header's
+    checksum) up to COMPACT_MAX bytes, else chunked and checksummed, compressed where it pays."""
+    import h5py
+
     data = np.ascontiguousarray(data)
-    kw: dict[str, Any] = {
-        "chunks": chunk_shape(data.shape, data.dtype.itemsize),
-        "fletcher32": True,
-    }
-    if data.shape[0] > 0 and compression_pays(data):
-        kw.update(compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True)
-    if data.shape[0] == 0:
-        kw["maxshape"] = (None,) + tuple(data.shape[1:])
+    kw: dict[str, Any]
+    if 0 < data.nbytes <= COMPACT_MAX:
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_layout(h5py.h5d.COMPACT)
+        kw = {"dcpl": dcpl}
+    else:
+        kw = {"chunks": chunk_shape(data.shape, data.dtype.itemsize), "fletcher32": True}
+        if data.shape[0] > 0 and compression_pays(data):
+            kw.update(compression="gzip", compression_opts=GZIP_LEVEL, shuffle=True)
+        if data.shape[0] == 0:
+            kw["maxshape"] = (None,) + tuple(data.shape[1:])
     ds = group.create_dataset(name, data=data, **kw)
     for key, value in (attrs or {}).items():
         ds.attrs[key] = value
@@ -377,6 +392,14 @@ def _attr_json(value: Any) -> Any:
     return value
 
 
+def _layout_name(ds: Any) -> str:
+    import h5py
+
+    layout = ds.id.get_create_plist().get_layout()
+    return {h5py.h5d.COMPACT: "compact", h5py.h5d.CONTIGUOUS: "contiguous",
+            h5py.h5d.CHUNKED: "chunked"}.get(layout, "virtual")
+
+
 def describe(node: Any) -> dict[str, Any]:
     """A JSON document of an open h5py File/Group: groups, datasets (dtype, shape, chunks,
     filters) and attributes, recursively. This is what ``schemas/archive.schema.json`` describes."""
@@ -396,6 +419,7 @@ def describe(node: Any) -> dict[str, Any]:
                 "kind": "dataset",
                 "dtype": obj.dtype.str[1:] if obj.dtype.kind == "S" else str(obj.dtype),
                 "shape": list(obj.shape),
+                "layout": _layout_name(obj),
                 "chunks": list(obj.chunks) if obj.chunks else None,
                 "compression": obj.compression,
                 "fletcher32": bool(obj.fletcher32),

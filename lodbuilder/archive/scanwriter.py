@@ -68,11 +68,11 @@ def new_file(path: Path, expected_bytes: int, created: str | None = None) -> Any
         fs_page_size=L.page_size(expected_bytes),
         rdcc_nbytes=0,
     )
-    f.attrs[L.A_FORMAT] = L.FORMAT
+    f.attrs[L.A_FORMAT] = L.text(L.FORMAT)
     f.attrs[L.A_SCHEMA_VERSION] = np.int64(L.SCHEMA_VERSION)
-    f.attrs[L.A_VERSION] = __version__
-    f.attrs[L.A_CREATED] = created or utc_now()
-    f.attrs[L.A_MODIFIED] = utc_now()
+    f.attrs[L.A_VERSION] = L.text(__version__)
+    f.attrs[L.A_CREATED] = L.text(created or utc_now())
+    f.attrs[L.A_MODIFIED] = L.text(utc_now())
     f.create_group(L.G_SCANS)
     return f
 
@@ -509,21 +509,21 @@ class ScanWriter:
             L.create_dataset(g, L.D_RADIUS_INDEX, np.concatenate(self._rindex))
             L.create_dataset(g, L.D_SEEDS, seeds_arr)
             for key, params in imp_params.items():
-                g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.to_json(dict(params or {}))
+                g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json(dict(params or {})))
             for key in self._imp_names or []:
                 if L.M_PARAMETERS not in g[L.G_IMPORTANCE][key].attrs:
-                    g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.to_json({})
+                    g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json({}))
             for oname, (pos, rad, par, params) in orderings.items():
                 write_ordering(g, oname, pos, rad, par, params)
             a = g.attrs
             a[L.S_N_POINTS] = np.int64(self.n)
             a[L.S_N_ORDERED] = np.int64(k)
-            a[L.S_ENCODING] = self._enc
+            a[L.S_ENCODING] = L.text(self._enc)
             a[L.S_BOUNDS_MIN] = self._lo
             a[L.S_BOUNDS_MAX] = self._hi
             a[L.S_RADIUS_STEP] = np.int64(L.RADIUS_INDEX_STEP)
             for key, text in meta_text.items():
-                a[key] = text
+                a[key] = L.text(text)
             row = IndexRow(self.name, self.n, tuple(self._lo), tuple(self._hi))
             write_index(f, [row])
             f.flush()
@@ -580,5 +580,5 @@ def write_ordering(
     L.create_dataset(og, L.D_ORDER, pos)
     L.create_dataset(og, L.D_RADIUS, rad)
     L.create_dataset(og, L.D_PARENT, par)
-    og.attrs[L.M_PARAMETERS] = L.to_json(dict(params or {}))
+    og.attrs[L.M_PARAMETERS] = L.text(L.to_json(dict(params or {})))
     og.attrs[L.S_N_ORDERED] = np.int64(pos.size)
