@@ -316,7 +316,7 @@ def test_reading_a_level_imports_nothing_heavy(small):
         "import sys, lodbuilder\n"
         f"with lodbuilder.open_archive({str(small[2])!r}) as a:\n"
         "    lev = a.scan().level(fraction=0.5)\n"
-        "print(lev.size, [m for m in ('numba', 'pyvista', 'dask', 'scipy') if m in sys.modules])\n"
+        "print(lev.size, [m for m in ('numba', 'pyvista', 'dask', 'scipy', 'fsspec', 's3fs', 'aiohttp') if m in sys.modules])\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

@@ -290,6 +290,7 @@ class ScanView:
         self._g = group
         self._io = io  # the remote file the group is read through (None: local)
         self._fetched_rows = 0
+        self._fetched_ds: dict[str, tuple[int, int]] = {}
         self._row_datasets: list[Any] | None = None
         a = self._g.attrs
         self.n_points = int(a[L.S_N_POINTS])
@@ -320,30 +321,44 @@ class ScanView:
             ) from None
 
     def _prefetch(self, ds: Any, sel: Any) -> None:
-        """Remote archive: before reading rows [.., stop) of a per-point dataset, fetch rows
-        [0, stop) of every per-point dataset of the scan. They are stored in row groups, so this
-        is one request per contiguous span (one for a level); later reads come from the cache."""
+        """Remote archive: fetch what a read of rows [.., stop) of a per-point dataset needs.
+
+        A level (a prefix of at most 1/8 of the scan, or two row groups) gets rows [0, stop) of
+        every per-point dataset of the scan: they are stored in row groups, so that is one
+        request per contiguous span (one for a level), and the level's other reads are cached.
+        A longer read (``info``'s radii, a whole scan for ``view``) gets the chunks of that one
+        dataset, fetched concurrently."""
         n = self.n_points
         name = ds.name or ""
         if ds.shape[:1] != (n,) or not name.startswith(f"{self._g.name}/"):
             return
         if name.startswith(f"{self._g.name}/{L.G_ORDERINGS}/") or not isinstance(sel, slice):
             return
-        stop = n if sel.stop is None else min(n, int(sel.stop))
-        if stop <= self._fetched_rows:
-            return
         from .remote import chunk_ranges
 
-        if self._row_datasets is None:
-            g = self._g
-            keys = [L.D_POINTS, L.D_SOURCE_INDEX, L.D_RADIUS, L.D_PARENT]
-            keys += [f"{grp}/{k}" for grp in (L.G_ATTRIBUTES, L.G_IMPORTANCE) if grp in g for k in g[grp]]
-            self._row_datasets = [g[k] for k in keys if k in g and g[k].shape[:1] == (n,)]
-        ranges = []
-        for d in self._row_datasets:
-            ranges += chunk_ranges(d, self._fetched_rows, stop)
+        stop = n if sel.stop is None else min(n, int(sel.stop))
+        rows = ds.chunks[0] if ds.chunks else n
+        if stop <= max(n // 8, 2 * rows):
+            if stop <= self._fetched_rows:
+                return
+            if self._row_datasets is None:
+                g = self._g
+                keys = [L.D_POINTS, L.D_SOURCE_INDEX, L.D_RADIUS, L.D_PARENT]
+                keys += [f"{grp}/{k}" for grp in (L.G_ATTRIBUTES, L.G_IMPORTANCE) if grp in g
+                         for k in g[grp]]
+                self._row_datasets = [g[k] for k in keys if k in g and g[k].shape[:1] == (n,)]
+            ranges = []
+            for d in self._row_datasets:
+                ranges += chunk_ranges(d, self._fetched_rows, stop)
+            self._fetched_rows = stop
+        else:
+            start = 0 if sel.start is None else max(0, int(sel.start))
+            done = self._fetched_ds.get(name, (0, 0))
+            if done[0] <= start and stop <= done[1]:
+                return
+            ranges = chunk_ranges(ds, start, stop)
+            self._fetched_ds[name] = (start, stop)
         self._io.prefetch(ranges)
-        self._fetched_rows = stop
 
     def dataset(self, rel: str) -> Any:
         return self._g[rel]

@@ -64,11 +64,10 @@ def filesystem(url: str, storage_options: dict[str, Any] | None = None) -> tuple
         ) from None
     try:
         return fsspec.core.url_to_fs(url, **(storage_options or {}))
-    except ImportError as exc:
-        extra = "s3" if scheme == "s3" else "remote"
+    except ImportError:
+        need, extra = ("s3fs", "s3") if scheme == "s3" else ("aiohttp", "remote")
         raise MissingDependencyError(
-            f"reading {scheme}:// archives needs {exc.name or 'a backend of fsspec'}: "
-            f"pip install 'lodbuilder[{extra}]'"
+            f"reading {scheme}:// archives needs {need}: pip install 'lodbuilder[{extra}]'"
         ) from None
     except (TypeError, ValueError) as exc:
         raise InputError(f"{url}: bad storage options ({exc})") from None
