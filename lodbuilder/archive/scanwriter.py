@@ -188,6 +188,7 @@ class ScanWriter:
         self._lo = np.full(3, np.inf)
         self._hi = np.full(3, -np.inf)
         self._done = False
+        self._margin = 0
 
     # -- context manager: a failure removes the temporary ----------------------------------------
     def __enter__(self) -> ScanWriter:
@@ -378,10 +379,11 @@ class ScanWriter:
             if off is not None:
                 self._offset, self._scale = off, sc
         expected = self.n * self._row_bytes(block)
+        self._margin = 16 * L.page_size(expected) + (64 << 10)  # metadata, partial pages
         self._tmp = F.tmp_name(self.path)
         self._tmp.touch()
         # the whole file's raw bytes (uncompressed) plus metadata, before HDF5 writes anything
-        F.reserve(self._tmp, int(expected * 1.1) + (1 << 20), f"scan {self.name!r}")
+        F.reserve(self._tmp, int(expected * 1.1) + self._margin, f"scan {self.name!r}")
         self._f = new_file(self._tmp, expected)
         g = self._f[L.G_SCANS].create_group(self.name)
         self._g = g
@@ -417,7 +419,7 @@ class ScanWriter:
             self._open(block)
         lo, hi = self._flushed, self._flushed + k
         assert self._tmp is not None
-        F.reserve(self._tmp, int(hi and k * self._row_bytes(block) * 1.1) + L.PAGE_MAX, "its data")
+        F.reserve(self._tmp, int(k * self._row_bytes(block) * 1.1) + self._margin, f"scan {self.name!r}")
         pts = block[L.D_POINTS]
         self._lo = np.minimum(self._lo, pts.min(axis=0))
         self._hi = np.maximum(self._hi, pts.max(axis=0))
@@ -504,7 +506,7 @@ class ScanWriter:
         extra = sum(len(t) for t in meta_text.values())
         orderings = dict(orderings or {})
         extra += sum(np.asarray(o[0]).size * 24 for o in orderings.values())
-        F.reserve(self._tmp, 2 * extra + (1 << 20), f"scan {self.name!r}")
+        F.reserve(self._tmp, 2 * extra + self._margin, f"scan {self.name!r}")
         try:
             L.create_dataset(g, L.D_RADIUS_INDEX, np.concatenate(self._rindex))
             L.create_dataset(g, L.D_SEEDS, seeds_arr)

@@ -298,7 +298,7 @@ def _write_index_file(path: Path, rows: list[IndexRow], created: str | None) -> 
     f = None
     try:
         tmp.touch()
-        F.reserve(tmp, 4096 * len(rows) + (1 << 20), "the archive index")
+        F.reserve(tmp, 2048 * len(rows) + (128 << 10), "the archive index")
         f = new_file(tmp, 1024 * len(rows), created)
         write_index(f, rows)
         f.flush()
