@@ -65,14 +65,15 @@ class RangeServer:
                 self.send_header("Accept-Ranges", "bytes")
                 self.send_header("Content-Length", str(end - start))
                 self.end_headers()
-                sent = 0
+                data = b""
                 if not head:
                     with open(p, "rb") as f:
                         f.seek(start)
                         data = f.read(end - start)
-                    self.wfile.write(data)
-                    sent = len(data)
-                server._record(self.command, self.path, rng, sent)
+                # recorded before the client can see the answer, so a count taken after a read
+                # returned includes it
+                server._record(self.command, self.path, rng, len(data))
+                self.wfile.write(data)
 
             def do_GET(self) -> None:  # noqa: N802
                 self._answer(head=False)

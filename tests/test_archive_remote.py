@@ -47,7 +47,7 @@ def served(tmp_path_factory):
     root = tmp_path_factory.mktemp("served")
     write_record(root / "one.h5", synthetic(200_000, "big", 1))
     many = root / "many.h5"
-    for i, n in enumerate((50_000, 120_000, 30_000)):
+    for i, n in enumerate((50_000, 300_000, 30_000)):
         update_archive(many, [synthetic(n, f"s{i}", 10 + i)])
     with RangeServer(root) as srv:
         yield root, srv
@@ -103,21 +103,23 @@ def test_a_10k_level_over_http_is_one_head_and_two_gets(served):
     assert (srv.count("HEAD"), srv.count("GET")) == (1, 2), srv.log
 
 
-def test_a_scan_of_an_archive_with_parts_over_http(served):
+@pytest.mark.parametrize("scan,gets", [("s1", 2), ("s0", 3)])
+def test_a_scan_of_an_archive_with_parts_over_http(served, scan, gets):
     root, srv = served
     with lodbuilder.open_archive(root / "many.h5") as arc:
-        local = arc.scan("s1").level(size=10_000)
-        part = {r.name: r.part for r in arc.rows}["s1"]
+        local = arc.scan(scan).level(size=10_000)
+        part = {r.name: r.part for r in arc.rows}[scan]
     srv.reset()
     with lodbuilder.open_archive(srv.url("many.h5")) as arc:
         assert arc.scans == ["s0", "s1", "s2"]
-        lev = arc.scan("s1").level(size=10_000)
+        lev = arc.scan(scan).level(size=10_000)
     np.testing.assert_array_equal(lev.points, local.points)
     # the index (one HEAD, one GET for the whole small file), then the part: its size is in the
-    # index (no HEAD), its metadata in one GET, the level in one GET
-    assert [m for m, *_ in srv.log] == ["HEAD", "GET", "GET", "GET"], srv.log
-    assert [p for _, p, *_ in srv.log] == ["/many.h5", "/many.h5", f"/many.h5.scans/{part}",
-                                           f"/many.h5.scans/{part}"]
+    # index (no HEAD), its metadata in the first GET, the level in one GET; a part under 8 MB
+    # (small pages, s0: 50k points) has the metadata written last at its end: one GET more
+    assert [m for m, *_ in srv.log] == ["HEAD"] + ["GET"] * (1 + gets), srv.log
+    assert [p for _, p, *_ in srv.log] == ["/many.h5", "/many.h5"] + [f"/many.h5.scans/{part}"] * gets
+    assert srv.log[2][2] == "bytes=0-65535"
 
 
 def test_whole_scan_reads_and_info_over_http(served):
@@ -313,4 +315,5 @@ def test_missing_extra_is_one_line(blocked, url, message):
 
 def test_layout_constants_are_sane():
     assert L.ROW_GROUP_MIN <= 10_000  # a 10k level reads at most two row groups
-    assert L.PAGE_MIN <= L.page_size(1) <= L.page_size(10**12) == L.PAGE_MAX
+    assert L.page_size(1) == L.PAGE_MIN and L.page_size(10**12, 10**9) == L.PAGE_MAX
+    assert L.page_size(10**9, 100_000) == 1 << 18  # chunks pack two to a page

@@ -55,7 +55,9 @@ class PartInfo:
     nbytes: int
 
 
-def new_file(path: Path, expected_bytes: int, created: str | None = None) -> Any:
+def new_file(
+    path: Path, expected_bytes: int, created: str | None = None, max_chunk_bytes: int = 0
+) -> Any:
     """Create the archive file ``path`` (a temporary) with root attributes, paged aggregation and
     HDF5's chunk cache off (chunks reach the file in the order they are written)."""
     import h5py
@@ -65,7 +67,7 @@ def new_file(path: Path, expected_bytes: int, created: str | None = None) -> Any
         "w",
         libver=L.LIBVER,
         fs_strategy="page",
-        fs_page_size=L.page_size(expected_bytes),
+        fs_page_size=L.page_size(expected_bytes, max_chunk_bytes),
         rdcc_nbytes=0,
     )
     f.attrs[L.A_FORMAT] = L.text(L.FORMAT)
@@ -379,12 +381,15 @@ class ScanWriter:
             if off is not None:
                 self._offset, self._scale = off, sc
         expected = self.n * self._row_bytes(block)
-        self._margin = 16 * L.page_size(expected) + (64 << 10)  # metadata, partial pages
+        enc = np.dtype(self._enc).itemsize * 3
+        chunk = self.rows * max([enc] + [a[:1].nbytes for k, a in block.items() if k != L.D_POINTS])
+        page = L.page_size(expected, chunk)
+        self._margin = 16 * page + (64 << 10)  # metadata, partial pages
         self._tmp = F.tmp_name(self.path)
         self._tmp.touch()
         # the whole file's raw bytes (uncompressed) plus metadata, before HDF5 writes anything
         F.reserve(self._tmp, int(expected * 1.1) + self._margin, f"scan {self.name!r}")
-        self._f = new_file(self._tmp, expected)
+        self._f = new_file(self._tmp, expected, max_chunk_bytes=chunk)
         g = self._f[L.G_SCANS].create_group(self.name)
         self._g = g
         g.create_group(L.G_ATTRIBUTES)
