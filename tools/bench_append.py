@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
 
 def _commit() -> str:
     try:
@@ -88,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--new-points", type=int, default=20_000, help="points of the scan added")
     p.add_argument("--repeat", type=int, default=7)
     p.add_argument("--workdir", help="where to write (default: a temporary directory)")
+    p.add_argument("--markdown", help="update the 'append' section of this file")
     args = p.parse_args(argv)
 
     import lodbuilder
@@ -158,8 +161,35 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "add_time_ratio_target": 1.3,
     }
+    if args.markdown:
+        from benchdoc import write_section
+
+        write_section(Path(args.markdown), "append", markdown(result))
     print(json.dumps(result, indent=2))
     return 0
+
+
+def markdown(result: dict) -> str:
+    lines = [
+        "## Adding a scan to an archive (tools/bench_append.py)",
+        "",
+        f"Measured {result['date']} by `python tools/bench_append.py {result['argv']}` (commit "
+        f"{result['commit']}); load average {result['loadavg']}. Inputs: {result['inputs']}. Each "
+        "repeat adds the scan to a fresh copy of the archive (hard links of its files); the cases "
+        "run interleaved.",
+        "",
+        "| scans before | archive bytes | add s (min / median) | bytes written |",
+        "|---|---|---|---|",
+    ]
+    for c in result["cases"]:
+        lines.append(
+            f"| {c['scans_before']} | {c['archive_bytes_before'] / 1e6:.1f} MB | "
+            f"{c['add_s_min']:.3f} / {c['add_s_median']:.3f} | {c['bytes_written_median'] / 1e6:.2f} MB |"
+        )
+    t = result["targets"]
+    lines += ["", "Ratios (target <= 1.3 for the time): " + ", ".join(
+        f"{k} {v}" for k, v in t.items() if k != "add_time_ratio_target") + "."]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
