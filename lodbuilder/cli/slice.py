@@ -52,6 +52,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
+    p.add_argument(
+        "--colour-depth",
+        type=int,
+        choices=(8, 16),
+        default=None,
+        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
+    )
     from ..features.cli_options import add_slice_options
 
     add_slice_options(p)
@@ -109,10 +116,14 @@ def run(args: argparse.Namespace) -> int:
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
     from ..io import write_points
+    from ..io.api import collect_notes
 
-    write_points(out, level.points, attrs, metadata=metadata)
+    with collect_notes() as changes:
+        write_points(out, level, attrs, metadata=metadata, colour_depth=args.colour_depth)
     print(
         f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} "
         f"({note})"
     )
+    for line in changes:
+        print(f"  changed: {line}")
     return 0

@@ -25,12 +25,15 @@ class ScanEvaluation:
     reports: list[LevelReport]
     radius: np.ndarray = field(repr=False)
     build: dict[str, Any] = field(default_factory=dict)
+    #: linear unit of every distance (the scan's CRS unit), None when unknown
+    units: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "scan": self.scan,
             "n_points": self.n_points,
             "ordering": self.ordering,
+            "units": self.units,
             "build": self.build,
             "levels": [r.as_dict() for r in self.reports],
         }
@@ -99,6 +102,7 @@ def evaluate_scan(
         reports=reports,
         radius=radius,
         build=scan.build,
+        units=scan.units,
     )
 
 

@@ -31,6 +31,7 @@ def plot_quality(
     *,
     radius: np.ndarray | None = None,
     title: str = "",
+    units: str | None = None,
 ) -> Path:
     """Write a PNG with error vs size (log-log) and, when ``radius`` is given, insertion radius vs rank.
 
@@ -70,7 +71,7 @@ def plot_quality(
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("level size (points)")
-    ax.set_ylabel("distance (scan units)")
+    ax.set_ylabel(f"distance ({units or 'scan units, CRS unknown'})")
     ax.set_title("error vs size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
