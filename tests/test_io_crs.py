@@ -234,3 +234,21 @@ def test_without_pyproj_units_are_unknown_never_guessed(monkeypatch, autzen_arch
 
     with lodbuilder.open_archive(autzen_archive) as arc:  # units stored at build time answer
         assert arc.scan().units == "foot"
+
+
+def test_slice_with_a_crs_imports_no_pyproj(autzen_archive, tmp_path):
+    """The CRS travels as WKT text: slicing (and writing it) needs no pyproj, numba or scipy.
+    (laspy imports pyproj by itself when it is installed, so the check writes PLY.)"""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from lodbuilder.cli.main import main\n"
+        f"rc = main(['slice', {str(autzen_archive)!r}, '--size', '50', '-o', {str(tmp_path / 'h.ply')!r}])\n"
+        "print(rc, [m for m in ('pyproj', 'numba', 'scipy') if m in sys.modules])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "0 []"
+    assert read_scan(tmp_path / "h.ply").metadata["crs_wkt"].startswith(AUTZEN_WKT_START)

@@ -199,7 +199,7 @@ def write_points(
         if attributes is None:
             attributes = level.attributes
         if crs is None and level.crs is not None:
-            crs = level.crs
+            meta[KEY_WKT] = level.crs  # already WKT: no pyproj on the slice path
         if level.units and not meta.get(KEY_UNITS):
             meta[KEY_UNITS] = level.units
         points = level.points
