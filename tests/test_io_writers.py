@@ -211,3 +211,18 @@ def test_csv_crs_sidecar(tmp_path):
     write_points(tmp_path / "s.csv", np.zeros((2, 3)))  # replaced by a file without CRS
     assert not (tmp_path / "s.csv.prj").exists()
     assert read_scan(out).metadata["crs_wkt"] is None
+
+
+def test_decimal_coordinates_keep_their_grid(tmp_path):
+    """Coordinates with fixed decimals (text scans, E57 scaled integers) are written at that scale,
+    so they come back up to float64 rounding, and no quantisation is reported."""
+    g = np.random.default_rng(4)
+    pts = np.round(g.random((500, 3)) * [1000, 1000, 50] + [5e5, 4e6, 0], 3)
+    with collect_notes() as notes:
+        out = write_points(tmp_path / "d.laz", pts)
+    hdr = laspy.read(str(out)).header
+    np.testing.assert_array_equal(hdr.scales, [0.001] * 3)
+    assert notes == []
+    back = read_scan(out).points
+    assert np.abs(back - pts).max() <= 4 * np.finfo(float).eps * 4e6
+    np.testing.assert_array_equal(np.round(back, 3), pts)

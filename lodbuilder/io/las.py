@@ -314,6 +314,26 @@ def choose_quantization(points: np.ndarray, spacing: float | None = None) -> tup
         scale *= 10.0
 
 
+def exact_decimal_quantization(points: np.ndarray, finest: int = 9) -> tuple[np.ndarray, np.ndarray] | None:
+    """(scales, offsets) at the coarsest power of ten 10^-k (k = 0..``finest``) that reproduces every
+    coordinate (decoded as laspy does: X * scale + offset) up to float64 rounding (4 ulp), or None.
+    Text scans with fixed decimals and E57 files of scaled integers are on such a grid."""
+    if not points.size:
+        return None
+    lo = points.min(axis=0)
+    for k in range(finest + 1):
+        scale = 10.0 ** -k
+        unit = scale * 1000.0
+        offsets = np.floor(lo / unit) * unit
+        q = np.rint((points - offsets) / scale)
+        if not np.all(np.abs(q) < 2**31 - 1):
+            return None
+        tol = 4 * np.finfo(np.float64).eps * np.maximum(np.abs(points), np.abs(offsets))
+        if np.all(np.abs(q * scale + offsets - points) <= tol):
+            return np.full(3, scale), offsets
+    return None
+
+
 def _source_quantization_fits(points: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> bool:
     if scales.shape != (3,) or offsets.shape != (3,) or not np.all(scales > 0):
         return False
@@ -334,8 +354,10 @@ def las_layout(points: np.ndarray, attributes: dict[str, np.ndarray], metadata: 
         * **Version and point format.** A LAS source's own (``las_version``/``las_point_format``);
           otherwise LAS 1.4 with point format 6, 7 when red/green/blue are all given, 8 with nir.
         * **Coordinates.** A LAS source's scale and offset when the points fit them in int32 (they
-          then come back exactly); otherwise :func:`choose_quantization`: the power of ten at or
-          below spacing / 100 (``metadata["point_spacing"]`` or an estimate), error <= scale / 2.
+          then come back exactly); else the coarsest power of ten 10^-k (k <= 9) on which every
+          coordinate lies exactly (:func:`exact_decimal_quantization`: text with fixed decimals,
+          E57 scaled integers); else :func:`choose_quantization`: the power of ten at or below
+          spacing / 100 (``metadata["point_spacing"]`` or an estimate), error <= scale / 2 (noted).
         * **Standard fields** (intensity, classification, gps_time, red...) take an attribute of
           the same name when every value fits the field exactly (integers in range; any number for
           gps_time). uint8 colours (red/green/blue/nir) are scaled x 257 into the 16-bit fields
@@ -374,9 +396,13 @@ def las_layout(points: np.ndarray, attributes: dict[str, np.ndarray], metadata: 
     if not _source_quantization_fits(points, scales, offsets):
         if scales.shape == (3,):
             notes.append("coordinates do not fit the source LAS scale/offset in int32; new ones chosen")
-        scales, offsets = choose_quantization(points, meta.get("point_spacing"))
-        notes.append(f"coordinates quantised to scale {scales[0]:g} (error <= {scales[0] / 2:g}) with offset "
-                     f"{', '.join(f'{o:g}' for o in offsets)}")
+        exact = exact_decimal_quantization(points)
+        if exact is not None:
+            scales, offsets = exact
+        else:
+            scales, offsets = choose_quantization(points, meta.get("point_spacing"))
+            notes.append(f"coordinates quantised to scale {scales[0]:g} (error <= {scales[0] / 2:g}) with offset "
+                         f"{', '.join(f'{o:g}' for o in offsets)}")
 
     standard = _standard_dims(fmt)
     extra_defs = {d["name"]: d for d in meta.get("las_extra_dims") or []}
