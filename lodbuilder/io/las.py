@@ -396,9 +396,9 @@ def las_layout(points: np.ndarray, attributes: dict[str, np.ndarray], metadata: 
     if not _source_quantization_fits(points, scales, offsets):
         if scales.shape == (3,):
             notes.append("coordinates do not fit the source LAS scale/offset in int32; new ones chosen")
-        exact = exact_decimal_quantization(points)
-        if exact is not None:
-            scales, offsets = exact
+        grid = exact_decimal_quantization(points)
+        if grid is not None:
+            scales, offsets = grid
         else:
             scales, offsets = choose_quantization(points, meta.get("point_spacing"))
             notes.append(f"coordinates quantised to scale {scales[0]:g} (error <= {scales[0] / 2:g}) with offset "
