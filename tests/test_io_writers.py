@@ -226,3 +226,29 @@ def test_decimal_coordinates_keep_their_grid(tmp_path):
     back = read_scan(out).points
     assert np.abs(back - pts).max() <= 4 * np.finfo(float).eps * 4e6
     np.testing.assert_array_equal(np.round(back, 3), pts)
+
+
+def test_las_layout_to_another_point_format(shared_data, tmp_path):
+    """COPC needs LAS 1.4 with point format 6-8: a LAS 1.2 format 3 source maps onto 7 losslessly."""
+    from lodbuilder.io.las import las_layout
+
+    scan = read_scan(shared_data / "simple.las", crs=WKT_UTM33)
+    lay = las_layout(scan.points, scan.attributes, scan.metadata, point_format=7, version="1.4")
+    assert (lay.point_format, lay.version, lay.wkt_bit, lay.write_wkt_vlr) == (7, "1.4", True, True)
+    assert [d.name for d in lay.extra_dims] == ["scan_angle_rank"]
+    out = tmp_path / "c.las"
+    lay.las_data(scan.points).write(str(out))
+    back = read_scan(out)
+    assert back.metadata["las_point_format"] == 7 and back.metadata["crs_wkt"] == WKT_UTM33
+    np.testing.assert_array_equal(back.points, scan.points)
+    for k, v in scan.attributes.items():
+        np.testing.assert_array_equal(back.attributes[k], v, err_msg=k)
+
+
+def test_vector_attribute_flattened_with_a_note(tmp_path):
+    pts = np.zeros((4, 3))
+    for fmt in ("ply", "csv"):
+        with collect_notes() as notes:
+            out = write_points(tmp_path / f"v.{fmt}", pts, {"normal": np.ones((4, 3), np.float32)})
+        assert notes == [f"{out}: normal: 3 values per point written as normal_0 .. normal_2"]
+        assert {"normal_0", "normal_1", "normal_2"} <= set(read_scan(out).attributes)

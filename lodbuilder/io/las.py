@@ -341,7 +341,14 @@ def _source_quantization_fits(points: np.ndarray, scales: np.ndarray, offsets: n
     return bool(np.all(np.abs(q) < 2**31 - 1))
 
 
-def las_layout(points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None = None) -> LasLayout:
+def las_layout(
+    points: np.ndarray,
+    attributes: dict[str, np.ndarray],
+    metadata: dict[str, Any] | None = None,
+    *,
+    point_format: int | None = None,
+    version: str | None = None,
+) -> LasLayout:
     """Map points + attributes + metadata to what laspy writes, losing nothing without saying so.
 
     Args:
@@ -349,6 +356,9 @@ def las_layout(points: np.ndarray, attributes: dict[str, np.ndarray], metadata: 
         attributes: per-point arrays ((N,) or (N, k)).
         metadata: a scan's metadata (``Scan.metadata`` / ``ScanView.format_metadata``): the
             ``las_*`` keys of a LAS source, ``crs_wkt``, and optionally ``point_spacing``.
+        point_format, version: a point format (and LAS version) to write instead of the rule below,
+            e.g. 6/7/8 and "1.4" for COPC; dimensions of the source that the format lacks become
+            extra bytes like any other attribute.
 
     Rules:
         * **Version and point format.** A LAS source's own (``las_version``/``las_point_format``);
@@ -384,10 +394,13 @@ def las_layout(points: np.ndarray, attributes: dict[str, np.ndarray], metadata: 
     n = points.shape[0]
     names = set(attributes)
     from_las = meta.get("las_point_format") is not None
-    if from_las:
-        fmt, version = int(meta["las_point_format"]), str(meta.get("las_version") or "1.4")
+    if point_format is not None:
+        fmt = int(point_format)
+        version = str(version or ("1.4" if fmt >= 6 else meta.get("las_version") or "1.2"))
+    elif from_las:
+        fmt, version = int(meta["las_point_format"]), str(version or meta.get("las_version") or "1.4")
     else:
-        fmt, version = 6, "1.4"
+        fmt, version = 6, str(version or "1.4")
         if {"red", "green", "blue"} <= names:
             fmt = 8 if "nir" in names else 7
 

@@ -363,8 +363,9 @@ def _coord_dtype(points: np.ndarray, metadata: dict[str, Any] | None) -> np.dtyp
     return np.dtype("f8")
 
 
-def columns(attributes: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
-    """Flatten attributes to 1-D columns: an (N, k) attribute becomes ``name_0`` ... ``name_{k-1}``."""
+def columns(attributes: dict[str, np.ndarray], notes: list[str] | None = None) -> list[tuple[str, np.ndarray]]:
+    """Flatten attributes to 1-D columns: an (N, k) attribute becomes ``name_0`` ... ``name_{k-1}``
+    (noted in ``notes`` when given)."""
     out: list[tuple[str, np.ndarray]] = []
     for name, arr in attributes.items():
         a = np.asarray(arr)
@@ -373,6 +374,8 @@ def columns(attributes: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
         else:
             flat = a.reshape(a.shape[0], -1)
             out.extend((f"{name}_{j}", flat[:, j]) for j in range(flat.shape[1]))
+            if notes is not None:
+                notes.append(f"{name}: {flat.shape[1]} values per point written as {name}_0 .. {name}_{flat.shape[1] - 1}")
     return out
 
 
@@ -381,9 +384,9 @@ STANDARD_ORDER = ("nx", "ny", "nz", "red", "green", "blue", "alpha")
 _COLOUR_NAMES = ("red", "green", "blue", "alpha")
 
 
-def ordered_columns(attributes: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
+def ordered_columns(attributes: dict[str, np.ndarray], notes: list[str] | None = None) -> list[tuple[str, np.ndarray]]:
     """:func:`columns` with nx ny nz, red green blue alpha first (those present), then the rest."""
-    cols = columns(attributes)
+    cols = columns(attributes, notes)
     rank = {n: i for i, n in enumerate(STANDARD_ORDER)}
     first = sorted((c for c in cols if c[0] in rank), key=lambda c: rank[c[0]])
     return first + [c for c in cols if c[0] not in rank]
@@ -423,7 +426,7 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
     depth = int(meta.get("write_colour_depth") or 8)
     cdt = _coord_dtype(points, metadata)
     cols = [(n, colour_column(n, np.asarray(a), depth, notes) if n in _COLOUR_NAMES else a)
-            for n, a in ordered_columns(attributes)]
+            for n, a in ordered_columns(attributes, notes)]
     fields = [(c, cdt) for c in _XYZ] + [(n, _ply_dtype(a, n)) for n, a in cols]
     data = np.empty(points.shape[0], dtype=fields)
     for j, c in enumerate(_XYZ):

@@ -146,7 +146,8 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
     the source dtype exactly."""
     from .ply import _coord_dtype, columns
 
-    cols = columns(attributes)
+    notes: list[str] = []
+    cols = columns(attributes, notes)
     names = ["x", "y", "z"] + [n for n, _ in cols]
     cdt = _coord_dtype(points, metadata)
     coords = points.astype(cdt, copy=False)
@@ -159,4 +160,4 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
         for s in range(0, n, step):
             texts = [_text(a[s:s + step]) for a in arrays]
             f.write("".join(sep.join(row) + "\n" for row in zip(*texts, strict=True)))
-    return []
+    return notes
