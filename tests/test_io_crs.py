@@ -186,7 +186,7 @@ def test_info_without_crs(capsys, tmp_path, shared_data):
     rc, out, _ = run_cli(capsys, "info", tmp_path / "b.h5")
     assert "  crs        none (units unknown)\n" in out
     rc, out, _ = run_cli(capsys, "evaluate", tmp_path / "b.h5", "--sizes", "50")
-    assert "scan 'bun_zipper_res4': 453 points, ordering uniform; distances in scan units (CRS unknown)\n" in out
+    assert "scan 'bun_zipper_res4': 453 points, ordering uniform; distances in scan units (unit unknown)\n" in out
 
 
 def test_evaluate_reports_the_unit(autzen_archive, capsys, tmp_path):

@@ -71,7 +71,7 @@ def plot_quality(
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("level size (points)")
-    ax.set_ylabel(f"distance ({units or 'scan units, CRS unknown'})")
+    ax.set_ylabel(f"distance ({units or 'scan units'})")
     ax.set_title("error vs size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
