@@ -47,8 +47,12 @@ def test_logging_follows_the_level():
     log = logging.getLogger("lodbuilder")
     before = log.level
     try:
-        for q, v, want in [(True, 0, logging.ERROR), (False, 0, logging.WARNING),
-                           (False, 1, logging.INFO), (False, 2, logging.DEBUG)]:
+        for q, v, want in [
+            (True, 0, logging.ERROR),
+            (False, 0, logging.WARNING),
+            (False, 1, logging.INFO),
+            (False, 2, logging.DEBUG),
+        ]:
             O.setup_logging(ns(quiet=q, verbose=v))
             assert log.level == want
     finally:
@@ -115,12 +119,16 @@ def test_check_output_rule(tmp_path):
         "create it first"
     )
     assert not (tmp_path / "new").exists()
-    with pytest.raises(InputError, match=r"^--json .*a\.h5 is the input archive; choose another output$"):
+    with pytest.raises(
+        InputError, match=r"^--json .*a\.h5 is the input archive; choose another output$"
+    ):
         O.check_output(tmp_path / "." / "a.h5", "--json", inputs={"archive": arc})
     with pytest.raises(InputError, match=r"^--plot .*q\.pdf must end in \.png$"):
         O.check_output(tmp_path / "q.pdf", "--plot", suffixes=(".png",))
     assert O.check_output(tmp_path / "Q.PNG", "--plot", suffixes=(".png",))
-    with pytest.raises(InputError, match=r"^-o - \(stdout\) is not possible here; give a file name$"):
+    with pytest.raises(
+        InputError, match=r"^-o - \(stdout\) is not possible here; give a file name$"
+    ):
         O.check_output("-", "-o")
     assert str(O.check_output("-", "--json", stdout=True)) == "-"
     with pytest.raises(ScanFileError, match="is a directory"):

@@ -40,8 +40,7 @@ def scan_info(view: Any) -> dict[str, Any]:
         for rho in sorted(
             {_round2(x) for x in np.geomspace(r_hi, max(r_lo, r_hi * 1e-3), 5)}, reverse=True
         ):
-            k = max(1, int(np.searchsorted(-rad, -rho, side="left")))
-            levels.append({"rho": rho, "size": k})
+            levels.append({"rho": rho, "size": view.size_for_rho(rho)})
     return {
         "name": view.name,
         "n_points": view.n_points,

@@ -105,17 +105,12 @@ def run(args: argparse.Namespace) -> int:
     if off_screen:
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
-    from .._validate import check_fraction, check_positive, check_size
     from ..viewer.source import load_view_data
 
     data = load_view_data(args.archive, args.scan, args.ordering)
     size = None
-    if args.size is not None:
-        size = check_size(args.size, len(data))
-    elif args.rho is not None:
-        size = data.size_for_rho(float(check_positive(args.rho, "rho", allow_none=False)))  # type: ignore[arg-type]
-    elif args.fraction is not None:
-        size = data.clamp_size(check_fraction(args.fraction) * len(data))
+    if (args.size, args.rho, args.fraction) != (None, None, None):
+        size = data.resolve_size(rho=args.rho, size=args.size, fraction=args.fraction)
     if args.colour:
         data.check_mode(args.colour)
 

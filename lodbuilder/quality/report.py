@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import check_positive, check_size, validate_points
+from .._validate import check_fraction, check_positive, check_size, validate_points
+from ..archive.levels import count_above, covering_bound, nonempty, size_for_fraction
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .metrics import meets_rho, nearest_distances, spacing, uniformity
@@ -164,25 +165,30 @@ def prefix_sizes(
     out: list[tuple[int, float | None]] = []
 
     def claim(s: int) -> float | None:
-        if s < kmax:
-            return float(radius[s])
-        return 0.0 if s >= n_points else None
+        if s >= kmax and kmax < n_points:
+            return None  # the ordering stops here: nothing is known past it
+        return covering_bound(s, kmax, radius.__getitem__)
 
     for s in sizes or ():
         s = check_size(s, kmax, "size")
         out.append((s, claim(s)))
     for f in fractions or ():
-        s = max(1, min(kmax, int(round(float(f) * n_points))))
+        s = size_for_fraction(check_fraction(f), n_points)
+        if s > kmax:
+            raise InputError(
+                f"fraction {f:g} is {s} points, more than the {kmax} the ordering reaches; "
+                "ask for a smaller fraction"
+            )
         out.append((s, claim(s)))
     for r in rhos or ():
         r = float(check_positive(r, "rho", allow_none=False))  # type: ignore[arg-type]
-        s = int(np.searchsorted(-radius, -r, side="left"))
+        s = count_above(radius, r)
         if s >= kmax and kmax < n_points:
             raise InputError(
                 f"rho {r:g} is finer than the ordering reaches (its last radius is {radius[-1]:g}); "
                 "ask for a larger rho"
             )
-        out.append((max(s, 1), r))
+        out.append((nonempty(s), r))
     return out
 
 

@@ -51,7 +51,9 @@ def _prepare(points, rho, size, seeds):
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
-        k = min(k, int(np.searchsorted(-radius, -rho, side="left")))
+        from ..archive.levels import count_above
+
+        k = min(k, count_above(radius, rho))
     if size is not None:
         k = min(k, size)
     return order[:k].copy(), radius[:k].copy(), parent[:k].copy()
