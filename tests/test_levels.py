@@ -368,3 +368,14 @@ def test_viewpoint_prefixes_brute_force(arc, slope, rho_max):
     if rho_max is not None:
         rho_p = np.minimum(rho_p, rho_max)
     assert rho_p.max() <= LV.viewpoint_bound(v.bounds, vp, rho0, slope, rho_max) + 1e-12
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(0.0, 5000.0), st.integers(1, 10**6), st.integers(1, 50))
+def test_log_sizes(lo, n, count):
+    sizes = LV.log_sizes(lo, n, count)
+    assert sizes == sorted(set(sizes)) and sizes[-1] == n and 1 <= sizes[0]
+    assert len(sizes) <= count + 1
+    assert sizes[0] == LV.round_size(max(1.0, lo), n)
+    geo = np.geomspace(max(1.0, lo), n, count)
+    assert set(sizes) == {LV.round_size(float(v), n) for v in geo} | {n}

@@ -166,6 +166,14 @@ def size_for_fraction(fraction: float, n: int) -> int:
     return min(int(n), max(1, _round_half_up(Fraction(repr(float(fraction))) * int(n))))
 
 
+def log_sizes(lo: float, n: int, count: int) -> list[int]:
+    """Distinct level sizes for a coarse-to-fine series (evaluate's default levels, the viewer's
+    animation): ``count`` values log-spaced from ``lo`` to ``n``, each a :func:`round_size`,
+    increasing, the last one ``n``."""
+    values = np.geomspace(max(1.0, float(lo)), float(n), max(1, int(count)))
+    return sorted({round_size(float(v), n) for v in values} | {int(n)})
+
+
 def covering_bound(k: int, n: int, radius_at: Callable[[int], Any]) -> float:
     """Covering bound of the prefix of length ``k`` of an ordering of ``n`` points:
     ``radius[k]`` (``radius_at(k)``; read only when ``k < n``), 0 for the whole ordering.

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._validate import check_fraction, check_positive, check_size, validate_points
-from ..archive.levels import count_above, covering_bound, nonempty, size_for_fraction
+from ..archive.levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .metrics import meets_rho, nearest_distances, spacing, uniformity
@@ -231,6 +231,4 @@ def evaluate_prefixes(
 
 def default_sizes(n: int, count: int = 10) -> list[int]:
     """About ``count`` distinct sizes, log-spaced from max(1, n/1000) to n."""
-    lo = max(1.0, n / 1000.0)
-    sizes = np.unique(np.round(np.geomspace(lo, n, count)).astype(np.int64))
-    return [int(s) for s in sizes]
+    return log_sizes(n / 1000.0, n, count)

@@ -461,7 +461,9 @@ class LevelViewer:
         out = Path(out)
         n = len(self.data)
         lo = start if start is not None else max(1, min(n, 10))
-        sizes = np.unique(np.round(np.geomspace(lo, n, max(2, int(frames)))).astype(np.int64))
+        from ..archive.levels import log_sizes
+
+        sizes = log_sizes(lo, n, max(2, int(frames)))
         images = []
         for s in sizes:
             self.set_level(int(s), render=False)
