@@ -38,10 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_fraction, check_positive, check_size
+from .._validate import check_fraction, check_positive, check_size, strict_methods
 from ..errors import InputError
 
 
+@strict_methods
 @dataclass
 class Level:
     """One level of detail of a scan.

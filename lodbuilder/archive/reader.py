@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size
+from .._validate import check_positive, check_size, strict_keywords, strict_methods
 from ..errors import (
     ArchiveError,
     CorruptArchiveError,
@@ -41,6 +41,7 @@ from .levels import (
 )
 
 
+@strict_keywords
 def check_archive_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Root attributes of the archive at ``path``; raise a one-line error if it is not one we can read."""
     import h5py
@@ -80,6 +81,7 @@ def _check_root_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
     return attrs
 
 
+@strict_methods
 class Archive:
     """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``."""
 
@@ -158,11 +160,13 @@ class Archive:
         return f"<Archive {self.path} scans={self.scans}>"
 
 
+@strict_keywords
 def open_archive(path: str | os.PathLike[str]) -> Archive:
     """Open an archive for reading (a context manager)."""
     return Archive(path)
 
 
+@strict_methods
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
 

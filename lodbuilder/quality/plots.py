@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..errors import InputError, MissingDependencyError
 from .report import LevelReport
 
@@ -25,6 +26,7 @@ def _pyplot():
     return plt
 
 
+@strict_keywords
 def plot_quality(
     reports: Sequence[LevelReport],
     out: str | os.PathLike,

@@ -11,7 +11,14 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import check_fraction, check_positive, check_size, validate_points
+from .._validate import (
+    check_fraction,
+    check_positive,
+    check_size,
+    strict_keywords,
+    strict_methods,
+    validate_points,
+)
 from ..archive.levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..errors import InputError
 from ..progress import ProgressCallback, report
@@ -21,6 +28,7 @@ from .surface import ErrorStats, surface_error
 log = logging.getLogger(__name__)
 
 
+@strict_methods
 @dataclass
 class LevelReport:
     """Every quality figure of one level.
@@ -81,6 +89,7 @@ def _json_clean(obj: Any) -> Any:
     return obj
 
 
+@strict_keywords
 def evaluate_level(
     points,
     level,
@@ -145,6 +154,7 @@ def evaluate_level(
     return rep
 
 
+@strict_keywords
 def prefix_sizes(
     radius: np.ndarray,
     n_points: int,
@@ -192,6 +202,7 @@ def prefix_sizes(
     return out
 
 
+@strict_keywords
 def evaluate_prefixes(
     points,
     order,
@@ -229,6 +240,7 @@ def evaluate_prefixes(
     return reports
 
 
+@strict_keywords
 def default_sizes(n: int, count: int = 10) -> list[int]:
     """About ``count`` distinct sizes, log-spaced from max(1, n/1000) to n."""
     return log_sizes(n / 1000.0, n, count)

@@ -7,7 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, validate_indices, validate_points
+from .._validate import (
+    check_positive,
+    check_size,
+    strict_keywords,
+    validate_indices,
+    validate_points,
+)
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
@@ -59,6 +65,7 @@ def _truncate(order, radius, parent, rho, size):
     return order[:k].copy(), radius[:k].copy(), parent[:k].copy()
 
 
+@strict_keywords
 def euclidean_fps(
     points: Any,
     *,
@@ -82,6 +89,7 @@ def euclidean_fps(
     return Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"})
 
 
+@strict_keywords
 def fastfps(
     points: Any,
     *,

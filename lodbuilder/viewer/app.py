@@ -20,6 +20,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray
 
+from .._validate import strict_methods
 from ..errors import InputError
 from .data import ViewData
 
@@ -39,6 +40,7 @@ def _vtk_array(arr: np.ndarray, name: str):
     return a
 
 
+@strict_methods
 class LevelViewer:
     """An interactive (or off-screen) window over the levels of :class:`ViewData`.
 

@@ -14,11 +14,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._validate import strict_keywords, strict_methods
 from ..errors import InputError
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
 
 
+@strict_methods
 @dataclass
 class ViewData:
     """Points in farthest-point order and what can colour them.
@@ -279,6 +281,7 @@ def categorical(labels: np.ndarray) -> np.ndarray:
     return (48 + rgb * 207 // 255).astype(np.uint8)  # avoid near-black cells
 
 
+@strict_keywords
 def from_arrays(
     points,
     radius,

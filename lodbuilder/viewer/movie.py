@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..errors import InputError, MissingDependencyError
 
 SUFFIXES = (".gif", ".mp4")
@@ -32,6 +33,7 @@ def check_movie_path(out: str | os.PathLike) -> Path:
     return out
 
 
+@strict_keywords
 def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 10.0) -> Path:
     """Write (H, W, 3) uint8 frames to ``out`` (.gif or .mp4), atomically."""
     out = check_movie_path(out)
