@@ -77,14 +77,9 @@ class Level:
 
     def to_polydata(self) -> Any:
         """A ``pyvista.PolyData`` of the level with its attributes as point data."""
-        try:
-            import pyvista as pv
-        except ImportError:
-            from ..errors import MissingDependencyError
+        from .._optional import require
 
-            raise MissingDependencyError(
-                "Level.to_polydata needs pyvista: pip install 'lodbuilder[viz]'"
-            ) from None
+        pv = require("pyvista", "Level.to_polydata")
         poly = pv.PolyData(np.ascontiguousarray(self.points))
         for key, arr in self.attributes.items():
             poly.point_data[key] = np.ascontiguousarray(arr)

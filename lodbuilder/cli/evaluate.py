@@ -80,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--plot {args.plot} must end in .png")
     if args.k is not None and args.k < 3:
         raise InputError(f"--k must be at least 3, got {args.k}")
+    if args.plot:
+        from .._optional import require
+
+        require("matplotlib", "evaluate --plot")
     from ..quality.archive import evaluate_archive
     from .progressbar import ProgressBars
 

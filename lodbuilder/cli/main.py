@@ -56,6 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     except LodbuilderError as exc:
         print_error(args.command, exc)
         return 2
+    except ImportError as exc:  # an optional dependency missing deep inside a command
+        from .._optional import extra_for, missing_message
+
+        if extra_for(exc.name) is None:
+            raise  # not an optional dependency: a bug, shown with its traceback
+        print_error(args.command, missing_message(exc.name or "", f"lodbuilder {args.command}"))
+        return 2
     except KeyboardInterrupt:
         print(f"lodbuilder {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -104,6 +104,9 @@ def run(args: argparse.Namespace) -> int:
         )
     if off_screen:
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    from .._optional import require
+
+    require("pyvista", "lodbuilder view")
 
     from ..viewer.source import load_view_data
 

@@ -9,17 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from .._validate import strict_keywords
-from ..errors import InputError, MissingDependencyError
+from ..errors import InputError
 from .report import LevelReport
 
 
 def _pyplot():
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingDependencyError(
-            "plots need matplotlib; install it with: pip install matplotlib"
-        ) from None
+    from .._optional import require
+
+    matplotlib = require("matplotlib", "plot_quality")
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from .._validate import strict_keywords
-from ..errors import InputError, MissingDependencyError
+from ..errors import InputError
 
 SUFFIXES = (".gif", ".mp4")
 
@@ -22,14 +22,10 @@ def check_movie_path(out: str | os.PathLike) -> Path:
     if suffix not in SUFFIXES:
         raise InputError(f"animation {out} must end in .gif or .mp4")
     if suffix == ".mp4":
-        try:
-            import imageio.v2  # noqa: F401
-            import imageio_ffmpeg  # noqa: F401
-        except ImportError:
-            raise MissingDependencyError(
-                f"writing {out.name} needs imageio and imageio-ffmpeg "
-                "(pip install imageio imageio-ffmpeg); or ask for a .gif"
-            ) from None
+        from .._optional import require
+
+        for module in ("imageio.v2", "imageio_ffmpeg"):
+            require(module, f"writing {out.name} (a .gif needs nothing more)")
     return out
 
 
