@@ -52,7 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
-    from ..features.cli_options import add_slice_options
+    from .feature_options import add_slice_options
 
     add_slice_options(p)
     return p
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if args.box is not None and args.viewpoint is not None:
         raise InputError("give either --box or --viewpoint, not both")
     if getattr(args, "all_scans", False):
-        from ..collection.cli import slice_all
+        from .collection_options import slice_all
 
         return slice_all(args)
 
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         elif args.viewpoint is not None:
             level = view.refine_viewpoint(args.viewpoint, args.rho, args.slope, args.rho_max)
         elif getattr(args, "floor_rho", None) is not None:
-            from ..features.cli_options import floor_level
+            from .feature_options import floor_level
 
             if args.size is None:
                 raise InputError("--floor-rho needs --size N (the exact number of points)")
@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                 args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering
             )
         metadata = view.format_metadata
-        from ..features.cli_options import bound_note
+        from .feature_options import bound_note
 
         note = bound_note(view, level)
     attrs = dict(level.attributes)

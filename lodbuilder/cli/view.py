@@ -95,6 +95,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--frames must be at least 2, got {args.frames}")
     if args.fps <= 0:
         raise InputError(f"--fps must be > 0, got {args.fps}")
+    from ..viewer.options import check_point_scale, check_window_size
+
+    if args.window_size is not None:
+        check_window_size(args.window_size)
+    check_point_scale(args.point_scale)
     if args.refine_factor <= 1:
         raise InputError(f"--refine-factor must be > 1, got {args.refine_factor}")
     if not off_screen and not _has_display():

@@ -23,6 +23,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray
 from .._validate import strict_methods
 from ..errors import InputError
 from .data import ViewData
+from .options import check_point_scale, check_window_size
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +84,7 @@ class LevelViewer:
         self.k = data.clamp_size(size if size is not None else min(n, max(1000, n // 20)))
         modes = data.colour_modes()
         self.mode = data.check_mode(colour) if colour else modes[0]
-        self.point_scale = float(point_scale)
+        self.point_scale = check_point_scale(point_scale, "point_scale")
         self.refine_factor = float(refine_factor)
         self.box: tuple[np.ndarray, np.ndarray] | None = None
         self.edl = False
@@ -97,6 +98,7 @@ class LevelViewer:
         self._full_rho = data.rho_for_size(max(1, len(data) // 2)) / math.sqrt(2.0)
         if window_size is None:
             window_size = (1600, 800) if full_scan else (1000, 800)
+        window_size = check_window_size(window_size, "window_size")
         shape = (1, 2) if full_scan else (1, 1)
         plotter_cls: Any = pv.Plotter  # (pyvista's decorated __init__ confuses type checkers)
         # No multisampling: points do not need it, and 8x MSAA (PyVista's default) costs ~70 ms a

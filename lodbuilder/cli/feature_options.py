@@ -64,9 +64,9 @@ def build_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """Validated keyword arguments for ``build_archive`` (empty when no option was given)."""
     from .._validate import check_positive
     from ..errors import InputError
-    from .neighbours import check_k
-    from .registry import map_name, parse_names
-    from .weights import check_adaptivity
+    from ..features.neighbours import check_k
+    from ..features.registry import map_name, parse_names
+    from ..features.weights import check_adaptivity
 
     out: dict[str, Any] = {}
     if getattr(args, "importance", None) is not None:

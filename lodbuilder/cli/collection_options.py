@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def wants_collection(args: argparse.Namespace) -> bool:
     """True unless the inputs are exactly one plain scan file with no collection option."""
-    from .inputs import MANIFEST_SUFFIXES, expand_inputs
+    from ..collection.inputs import MANIFEST_SUFFIXES, expand_inputs
 
     inputs = list(args.input or [])
     if args.manifest or args.workers is not None or args.scheduler or args.dask_local is not None \
@@ -54,9 +54,9 @@ def _status_line(st: Any, done: int, total: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..collection.runner import build_collection
     from ..errors import InputError
-    from ..features.cli_options import build_kwargs
-    from .runner import build_collection
+    from .feature_options import build_kwargs
 
     if args.name:
         raise InputError("--name names a single scan; a collection names each scan after its file")
@@ -109,9 +109,9 @@ def slice_all(args: argparse.Namespace) -> int:
     """``lodbuilder slice ARCHIVE --all-scans --rho R -o OUT``: the level of every scan, merged."""
     from pathlib import Path
 
+    from ..collection.query import collection_level
     from ..errors import InputError
     from ..io import write_points
-    from .query import collection_level
 
     if args.rho is None:
         raise InputError("--all-scans needs --rho (one density for every scan)")
