@@ -96,7 +96,7 @@ def test_every_caller_gives_the_same_size(archive, tmp_path, capsys):
 def test_floor_query_uses_the_same_rho_level(archive, tmp_path, capsys):
     """The density-floor query keeps the uniform level of its rho: with exactly that many points
     it is that level; one point fewer is refused naming the size."""
-    from lodbuilder.features.cli_options import floor_level
+    from lodbuilder.cli.feature_options import floor_level
 
     path, radius = archive
     with lodbuilder.open_archive(path) as arc:
