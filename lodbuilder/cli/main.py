@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.verbose += args.top_verbose
     args.quiet = args.quiet or args.top_quiet
-    setup_logging(args)
+    log_level = setup_logging(args)
     try:
         return int(args._run(args) or 0)
     except LodbuilderError as exc:
@@ -71,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    finally:  # main may be called from Python: leave the library's logging as it was
+        import logging
+
+        logging.getLogger("lodbuilder").setLevel(log_level)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -84,15 +84,19 @@ def json_to_stdout(args: argparse.Namespace) -> bool:
     return value is True or value == "-"
 
 
-def setup_logging(args: argparse.Namespace) -> None:
+def setup_logging(args: argparse.Namespace) -> int:
     """Level of the ``lodbuilder`` loggers from the verbosity: ERROR when quiet, WARNING, INFO
-    (-v), DEBUG (-vv); log lines go to stderr (a handler is added only when none is set up)."""
+    (-v), DEBUG (-vv); log lines go to stderr (a handler is added only when none is set up).
+    Returns the level the logger had, for the caller to restore."""
     level = {QUIET: logging.ERROR, NORMAL: logging.WARNING, VERBOSE: logging.INFO}.get(
         verbosity(args), logging.DEBUG
     )
     if not logging.getLogger().handlers:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("lodbuilder").setLevel(level)
+    logger = logging.getLogger("lodbuilder")
+    before = logger.level
+    logger.setLevel(level)
+    return before
 
 
 def progress_enabled(args: argparse.Namespace) -> bool | None:
