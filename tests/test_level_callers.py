@@ -124,3 +124,28 @@ def test_info_levels_are_api_levels(archive, capsys):
     assert levels and [lv["size"] for lv in levels] == api_sizes(
         path, [("rho", lv["rho"]) for lv in levels]
     )
+
+
+def test_extra_ordering_levels_agree(archive, tmp_path, capsys):
+    """The same for a prefix of the stored weighted ordering."""
+    path, _ = archive
+    qs = [("size", 10), ("fraction", 0.5), ("fraction", 0.35), ("fraction", 0.0002)]
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        want = [view.level(**{k: v}, ordering="weighted", attributes=False).size for k, v in qs]
+        w_radius = np.asarray(view.dataset("orderings/weighted/radius")[:])
+        qs.append(("rho", float(w_radius[100])))
+        want.append(view.level(rho=float(w_radius[100]), ordering="weighted").size)
+    assert want[1] == 945
+    capsys.readouterr()
+    for (kind, v), size in zip(qs, want, strict=True):
+        argv = ["slice", str(path), f"--{kind}", repr(v), "--ordering", "weighted"]
+        assert main(argv + ["-o", str(tmp_path / "w.npy"), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["size"] == size, (kind, v)
+    data = load_view_data(path, ordering="weighted")
+    assert [data.resolve_size(**{k: v}) for k, v in qs] == want
+    fr = [v for k, v in qs if k == "fraction"]
+    argv = ["evaluate", str(path), "--ordering", "weighted", "--fractions", *map(repr, fr)]
+    assert main(argv + ["--json", "-"]) == 0
+    got = [lv["size"] for lv in json.loads(capsys.readouterr().out)["levels"]]
+    assert got == [s for (k, _), s in zip(qs, want, strict=True) if k == "fraction"]
