@@ -93,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         from ..quality.plots import plot_quality
 
-        plot_quality(ev.reports, args.plot, radius=ev.radius, title=f"{ev.scan} ({ev.ordering})")
+        plot_quality(
+            ev.reports, args.plot, radius=ev.radius, title=f"{ev.scan} ({ev.ordering})", units=ev.units
+        )
         say(args, f"wrote {args.plot}")
     bad = [r for r in ev.reports if r.meets_rho is False]
     if bad:

@@ -17,7 +17,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="show an archive's levels in a PyVista window, or render a screenshot/animation",
         description=(
             "Open a window with the current level on the left (slider over the point count on a "
-            "log scale) and the full scan on the right. Keys: c colour mode, l eye-dome lighting, "
+            "log scale) and the full scan on the right. Keys: c colour mode, l shading by normals, "
             "b refine inside a box, m surface of the level, +/- point size, Left/Right halve or "
             "double the level. With --screenshot or --animate nothing is shown on screen (works "
             "without X through EGL)."
@@ -43,7 +43,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--window-size", type=int, nargs=2, metavar=("W", "H"), help="pixels (default 1600 800)"
     )
     p.add_argument("--no-full", action="store_true", help="do not show the full scan beside")
-    p.add_argument("--edl", action="store_true", help="start with eye-dome lighting")
+    p.add_argument(
+        "--shade",
+        "--edl",
+        dest="shade",
+        action="store_true",
+        help="start with the points lit by their normals (key l; replaces eye-dome lighting, "
+        "which darkened colours)",
+    )
     p.add_argument(
         "--box",
         type=float,
@@ -131,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         full_scan=not args.no_full,
         window_size=args.window_size,
         point_scale=args.point_scale,
-        edl=args.edl,
+        shade=args.shade,
         view=args.view,
         up=args.up,
         refine_factor=args.refine_factor,

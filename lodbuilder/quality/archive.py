@@ -26,6 +26,8 @@ class ScanEvaluation:
     reports: list[LevelReport]
     radius: np.ndarray = field(repr=False)
     build: dict[str, Any] = field(default_factory=dict)
+    #: linear unit of the coordinates (``ScanView.units``), None when unknown
+    units: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -101,6 +103,7 @@ def evaluate_scan(
         reports=reports,
         radius=radius,
         build=scan.build,
+        units=getattr(scan, "units", None),
     )
 
 

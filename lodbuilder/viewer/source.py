@@ -23,6 +23,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]
     attrs = scan.attributes(None, names if len(names) == 3 else False)
     importance = {m: np.asarray(scan.importance(m)) for m in scan.importance_names}
+    crs = {"crs": getattr(scan, "crs", None), "units": getattr(scan, "units", None)}
     if ordering in (None, "uniform"):
         return ViewData(
             points=scan.points(),
@@ -31,6 +32,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
             attributes=attrs,
             importance=importance,
             scan_names=(scan.name,),
+            **crs,
         )
     if ordering not in scan.ordering_names:
         raise InputError(
@@ -46,6 +48,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
         attributes={k: np.asarray(v)[pos] for k, v in attrs.items()},
         importance={k: v[pos] for k, v in importance.items()},
         scan_names=(f"{scan.name} ({ordering})",),
+        **crs,
     )
 
 
