@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -166,6 +167,7 @@ def test_verbose_log_lines_reach_stderr(arc, tmp_path):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == f"INFO lodbuilder.io.api: wrote 5 points to {out} (ply)\n"
+    assert re.fullmatch(r"read the level in \d+\.\d ms\nwrote 5 of 800 points .*\n", proc.stdout)
 
 
 # --- finding 13: one line whatever the names ------------------------------------------------

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 
@@ -64,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
     from ..errors import InputError
     from ..io.registry import writer_for
-    from .output import check_output, emit
+    from .output import VERBOSE, check_output, emit, say
 
     arc_path = Path(args.archive)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
@@ -87,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
         return slice_all(args)
 
+    t0 = time.perf_counter()
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
         if args.box is not None:
@@ -104,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
                 args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering
             )
         metadata = view.format_metadata
+        say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
         from .feature_options import bound_note
 
         note = bound_note(view, level)
