@@ -149,3 +149,17 @@ def test_extra_ordering_levels_agree(archive, tmp_path, capsys):
     assert main(argv + ["--json", "-"]) == 0
     got = [lv["size"] for lv in json.loads(capsys.readouterr().out)["levels"]]
     assert got == [s for (k, _), s in zip(qs, want, strict=True) if k == "fraction"]
+
+
+def test_merged_scans_in_the_viewer_are_the_collection_level(tmp_path):
+    """view of a multi-scan archive merges the scans by radius: its level at rho is the union of
+    every scan's level at rho, as collection_level (slice --all-scans) gives it."""
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    path = tmp_path / "two.h5"
+    for name, kind in (("wavy", "wavy"), ("ball", "sphere")):
+        lodbuilder.build_archive(demo_scan(700, kind=kind, seed=2, name=name), path)
+    data = load_view_data(path)
+    for rho in (0.3, 0.05, 0.02, 0.004):
+        lvl = collection_level(path, rho, attributes=False)
+        assert data.size_for_rho(rho) == sum(lvl.sizes) == len(lvl)
