@@ -15,13 +15,13 @@ from importlib import import_module
 
 from .. import __version__
 from ..errors import LodbuilderError
-from .output import add_common_options, print_error, setup_logging
+from .output import Parser, add_common_options, print_error, setup_logging
 
 COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="lodbuilder",
         description="Build multiresolution point-set archives from 3D scans and slice levels from them.",
     )

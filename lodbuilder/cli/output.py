@@ -33,12 +33,21 @@ import os
 import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 QUIET, NORMAL, VERBOSE, DEBUG = -1, 0, 1, 2
 
 
 # -- options ---------------------------------------------------------------------------------
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, like every other error of the command
+    line: ``lodbuilder slice: error: argument --size: invalid int value: 'x' (see 'lodbuilder
+    slice --help')``, exit 2 (argparse prints the whole usage first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see '{self.prog} --help')\n")
 
 
 def add_common_options(p: argparse.ArgumentParser) -> None:
