@@ -130,7 +130,11 @@ def test_validate_json_lists_faults(arc, tmp_path, capsys):
 
 
 def test_quiet_prints_nothing_but_errors(arc, tmp_path, capsys):
+    src = tmp_path / "in.npy"
+    np.save(src, demo_scan(300, seed=2).points)
     for argv in (
+        ["build", src, "-o", tmp_path / "b.h5"],
+        ["build", src, "-o", tmp_path / "c.h5", "--workers", "1"],  # a collection build
         ["slice", arc, "--size", "5", "-o", tmp_path / "q.ply"],
         ["info", arc],
         ["validate", arc],

@@ -69,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
 
     features = build_kwargs(args)
     t0 = time.perf_counter()
-    with ProgressBars(enabled=False if args.no_progress else None) as bars:
+    from .output import progress_enabled, say
+
+    with ProgressBars(enabled=progress_enabled(args)) as bars:
         build_archive(
             src,
             out,
@@ -90,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             built = [s for s in arc if s.provenance.get("source_name") == src.name]
             v = max(built, key=lambda s: str(s.provenance.get("created_utc", "")))
-        print(
+        say(
+            args,
             f"added scan {v.name!r} ({v.n_points} points, {v.encoding} coordinates) to {out} "
-            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)"
+            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)",
         )
     return 0

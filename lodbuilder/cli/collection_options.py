@@ -62,12 +62,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--name names a single scan; a collection names each scan after its file")
     if not args.input and not args.manifest:
         raise InputError("give INPUT files, directories or globs, or --manifest FILE")
-    show = not getattr(args, "no_progress", False) and sys.stderr.isatty()
+    from .output import QUIET, progress_enabled, say, verbosity
+
+    show = progress_enabled(args) is not False and sys.stderr.isatty()
     bar: Any = None
     counter = {"done": 0}
 
     def on_status(st: Any) -> None:
         counter["done"] += 1
+        if verbosity(args) == QUIET and st.status != "failed":
+            return
         line = _status_line(st, counter["done"], total["n"])
         if bar is not None:
             bar.write(line, file=sys.stderr)
@@ -101,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     counts = res.summary()
     parts = [f"{counts[k]} {k}" for k in ("built", "recovered", "skipped", "failed") if counts.get(k)]
     where = f" on {res.executor}" if res.executor else ""
-    print(f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
+    say(args, f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
     return 1 if res.failed else 0
 
 
