@@ -48,10 +48,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="let --crs replace the CRS the scan file declares",
     )
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
-    from ..features.cli_options import add_build_options
+    from .feature_options import add_build_options
 
     add_build_options(p)
-    from ..collection.cli import add_arguments as add_collection_arguments
+    from .collection_options import add_arguments as add_collection_arguments
 
     add_collection_arguments(p)
     return p
@@ -61,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
     from .._validate import check_positive
     from ..api import build_archive
     from ..archive.writer import check_writable_dir
-    from ..collection import cli as collection_cli
     from ..errors import InputError
+    from . import collection_options as collection_cli
     from .progressbar import ProgressBars
 
     if args.crs and collection_cli.wants_collection(args):
@@ -78,11 +78,13 @@ def run(args: argparse.Namespace) -> int:
     check_positive(args.voxel_size, "--voxel-size")
     check_positive(args.band_radius, "--band-radius")
     check_writable_dir(out, "output")
-    from ..features.cli_options import build_kwargs
+    from .feature_options import build_kwargs
 
     features = build_kwargs(args)
     t0 = time.perf_counter()
-    with ProgressBars(enabled=False if args.no_progress else None) as bars:
+    from .output import progress_enabled, say
+
+    with ProgressBars(enabled=progress_enabled(args)) as bars:
         build_archive(
             src,
             out,
@@ -104,8 +106,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             built = [s for s in arc if s.provenance.get("source_name") == src.name]
             v = max(built, key=lambda s: str(s.provenance.get("created_utc", "")))
-        print(
+        say(
+            args,
             f"added scan {v.name!r} ({v.n_points} points, {v.encoding} coordinates) to {out} "
-            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)"
+            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)",
         )
     return 0

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..errors import FormatError, InputError, LodbuilderError, ScanFileError
 from ._files import atomic_output, check_input_file
 from .base import Scan
@@ -26,6 +27,7 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+@strict_keywords
 def read_scans(path: PathLike, *, crs: str | None = None, crs_override: bool = False) -> list[Scan]:
     """Read every scan in a file (E57 files may hold several; other formats hold one).
 
@@ -83,6 +85,7 @@ def _check_scan(p: Path, s: Scan) -> None:
             raise FormatError(f"{where}: attribute {k!r} has {v.shape[0]} values for {n} points")
 
 
+@strict_keywords
 def read_scan(path: PathLike, *, name: str | None = None, crs: str | None = None, crs_override: bool = False) -> Scan:
     """Read a file holding one scan; see :func:`read_scans`.
 
@@ -152,6 +155,7 @@ def _is_level(obj: Any) -> bool:
     return all(hasattr(obj, a) for a in ("points", "attributes", "source_index", "radius", "crs"))
 
 
+@strict_keywords
 def write_points(
     path: PathLike,
     points: Any,
@@ -245,6 +249,7 @@ def _write_sidecar(path: Path, wkt: str | None) -> None:
         log.info("removed %s: the new %s has no CRS", side, path.name)
 
 
+@strict_keywords
 def write_scan(path: PathLike, scan: Scan, *, rank: bool | np.ndarray | None = None) -> Path:
     """Write a :class:`Scan` with its attributes and metadata; see :func:`write_points`."""
     return write_points(path, scan.points, scan.attributes, metadata=scan.metadata, rank=rank)
