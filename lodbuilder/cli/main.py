@@ -15,7 +15,7 @@ from importlib import import_module
 from .. import __version__
 from ..errors import LodbuilderError
 
-COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate")
+COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate", "export")
 
 
 def build_parser() -> argparse.ArgumentParser:
