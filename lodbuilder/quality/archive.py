@@ -9,12 +9,13 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import check_fraction, check_positive, check_size
+from .._validate import check_fraction, check_positive, check_size, strict_keywords, strict_methods
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .report import LevelReport, default_sizes, evaluate_level
 
 
+@strict_methods
 @dataclass
 class ScanEvaluation:
     """The reports of one scan's levels, with what is needed to plot them."""
@@ -38,6 +39,7 @@ class ScanEvaluation:
         }
 
 
+@strict_keywords
 def evaluate_scan(
     scan: Any,
     *,
@@ -105,6 +107,13 @@ def evaluate_scan(
     )
 
 
+def _scan_keywords() -> list[str]:
+    import inspect
+
+    return [k for k in inspect.signature(evaluate_scan).parameters if k != "scan"]
+
+
+@strict_keywords(extra=_scan_keywords)
 def evaluate_archive(
     path: str | os.PathLike[str],
     scan: str | None = None,

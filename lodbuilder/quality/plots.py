@@ -8,23 +8,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, MissingDependencyError
+from .._validate import strict_keywords
+from ..errors import InputError
 from .report import LevelReport
 
 
 def _pyplot():
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingDependencyError(
-            "plots need matplotlib; install it with: pip install matplotlib"
-        ) from None
+    from .._optional import require
+
+    matplotlib = require("matplotlib", "plot_quality")
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
     return plt
 
 
+@strict_keywords
 def plot_quality(
     reports: Sequence[LevelReport],
     out: str | os.PathLike,
@@ -97,7 +96,7 @@ def plot_quality(
     from ..io._files import atomic_output
 
     try:
-        with atomic_output(out, make_parents=True) as tmp:
+        with atomic_output(out) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)

@@ -20,6 +20,7 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray
 
+from .._validate import strict_methods
 from ..errors import InputError
 from . import overlays
 from .data import ViewData, crs_label
@@ -41,6 +42,7 @@ def _vtk_array(arr: np.ndarray, name: str):
     return a
 
 
+@strict_methods
 class LevelViewer:
     """An interactive (or off-screen) window over the levels of :class:`ViewData`.
 
@@ -488,7 +490,9 @@ class LevelViewer:
         out = Path(out)
         n = len(self.data)
         lo = start if start is not None else max(1, min(n, 10))
-        sizes = np.unique(np.round(np.geomspace(lo, n, max(2, int(frames)))).astype(np.int64))
+        from ..archive.levels import log_sizes
+
+        sizes = log_sizes(lo, n, max(2, int(frames)))
         images = []
         for s in sizes:
             self.set_level(int(s), render=False)
@@ -502,5 +506,5 @@ class LevelViewer:
 def _atomic_write(out: Path, write) -> None:
     from ..io._files import atomic_output
 
-    with atomic_output(out, make_parents=True) as tmp:
+    with atomic_output(out) as tmp:
         write(str(tmp))

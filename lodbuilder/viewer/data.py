@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._validate import strict_keywords, strict_methods
 from ..errors import InputError
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
@@ -48,6 +49,7 @@ class Legend:
         return (v - self.lo) / ((self.hi - self.lo) or 1.0)
 
 
+@strict_methods
 @dataclass
 class ViewData:
     """Points in farthest-point order and what can colour them.
@@ -105,20 +107,35 @@ class ViewData:
 
     # ---- levels -------------------------------------------------------------------------------
 
+    # the arithmetic is lodbuilder.archive.levels', as for every other level of an archive
+
     def size_for_rho(self, rho: float) -> int:
         """Shortest prefix whose next insertion radius is <= rho (at least 1 point)."""
-        return max(1, int(np.searchsorted(-self.radius, -float(rho), side="left")))
+        from ..archive.levels import size_for_rho
+
+        return size_for_rho(self.radius, float(rho))
 
     def rho_for_size(self, k: int) -> float:
-        """The density a prefix of ``k`` points guarantees: the next insertion radius (0 at N)."""
-        k = int(k)
-        if k >= len(self):
-            return 0.0
-        r = float(self.radius[k])
+        """The density a prefix of ``k`` points guarantees: the next insertion radius (0 at N;
+        the largest finite radius where it is a seed's inf)."""
+        from ..archive.levels import covering_bound
+
+        r = covering_bound(int(k), len(self), self.radius.__getitem__)
         return r if math.isfinite(r) else self._rmax
 
     def clamp_size(self, k: float) -> int:
-        return int(min(len(self), max(1, int(round(k)))))
+        """A point count (the slider's) as a level size: nearest whole number, halves up, in
+        [1, N]."""
+        from ..archive.levels import round_size
+
+        return round_size(k, len(self))
+
+    def resolve_size(self, rho=None, size=None, fraction=None) -> int:
+        """Size of the level asked by exactly one of ``rho``, ``size`` or ``fraction``, as an
+        archive scan's ``level`` computes it."""
+        from ..archive.levels import resolve_size
+
+        return resolve_size(len(self), rho, size, fraction, rho_size=self.size_for_rho)
 
     def selective(self, k: int, lo, hi, factor: float = 4.0) -> np.ndarray:
         """Stored positions of a level finer inside the box [lo, hi], as the archive's
@@ -127,14 +144,13 @@ class ViewData:
 
         Every point inside the box is then within rho / factor of a shown point. Sorted positions.
         """
-        from ..archive.levels import check_box, in_box
+        from ..archive.levels import box_positions, check_box
 
         k = self.clamp_size(k)
         box = check_box(np.concatenate([np.ravel(lo), np.ravel(hi)]))
         rho_in = self.rho_for_size(k) / float(factor)
         k_in = self.size_for_rho(rho_in) if rho_in > 0 else len(self)
-        inside = in_box(self.points[k:k_in], box, rho_in)
-        return np.concatenate([np.arange(k, dtype=np.int64), k + np.flatnonzero(inside)])
+        return box_positions(self.points[:k_in], k, box, rho_in)
 
     # ---- Voronoi cells of a level, normals ----------------------------------------------------
 
@@ -374,6 +390,7 @@ def categorical(labels: np.ndarray) -> np.ndarray:
     return (48 + rgb * 207 // 255).astype(np.uint8)  # avoid near-black cells
 
 
+@strict_keywords
 def from_arrays(
     points,
     radius,

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..archive import layout as L
 from ..errors import InputError
 from .data import ViewData
@@ -14,6 +15,7 @@ from .data import ViewData
 COLOUR_ATTRIBUTES = ("red", "green", "blue")
 
 
+@strict_keywords
 def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     """ViewData of one archive scan (a :class:`lodbuilder.archive.reader.ScanView`), in its stored
     (uniform) order or in one of its extra orderings (``weighted``, ``floor``, ...), whose levels
@@ -50,6 +52,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     )
 
 
+@strict_keywords
 def load_view_data(
     archive: str | os.PathLike | Any, scan: str | None = None, ordering: str | None = None
 ) -> ViewData:
