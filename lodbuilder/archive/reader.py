@@ -477,6 +477,8 @@ class ScanView:
             rho=covering_bound(k, self.n_ordered, radius.__getitem__),
             size=k,
             scan=self.name,
+            crs=self.crs,
+            units=self.units,
         )
 
     def _ordering_level(
@@ -518,6 +520,8 @@ class ScanView:
             scan=self.name,
             ordering=ordering,
             region=region or {},
+            crs=self.crs,
+            units=self.units,
         )
 
     def refine_box(
@@ -577,3 +581,22 @@ class ScanView:
         counts = np.bincount(rep[rep >= 0], minlength=k)
         attrs = self.attributes(None, names)
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
+
+    # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
+    @property
+    def crs(self) -> str | None:
+        """The scan's coordinate reference system as WKT text, or None when unknown."""
+        wkt = self.format_metadata.get("crs_wkt")
+        return str(wkt) if wkt else None
+
+    @property
+    def units(self) -> str | None:
+        """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
+        one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
+        no pyproj): never guessed."""
+        meta = self.format_metadata
+        if meta.get("crs_units"):
+            return str(meta["crs_units"])
+        from ..io.crs import linear_units
+
+        return linear_units(self.crs)

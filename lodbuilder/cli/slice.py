@@ -53,6 +53,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
+    p.add_argument(
+        "--colour-depth",
+        type=int,
+        choices=(8, 16),
+        default=None,
+        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
+    )
     from .feature_options import add_slice_options
     from .output import add_json_option
 
@@ -114,8 +121,10 @@ def run(args: argparse.Namespace) -> int:
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
     from ..io import write_points
+    from ..io.api import collect_notes
 
-    write_points(out, level.points, attrs, metadata=metadata)
+    with collect_notes() as changes:
+        write_points(out, level, attrs, metadata=metadata, colour_depth=args.colour_depth)
     doc = {
         "archive": str(arc_path),
         "scan": view.name,
@@ -127,10 +136,16 @@ def run(args: argparse.Namespace) -> int:
         "bound": note,
         "region": level.region,
         "attributes": sorted(attrs),
+        "crs": level.crs,
+        "units": level.units,
+        "changes": changes,
     }
     emit(
         args,
         doc,
-        f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} ({note})",
+        "\n".join(
+            [f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} ({note})"]
+            + [f"  changed: {line}" for line in changes]
+        ),
     )
     return 0
