@@ -99,10 +99,6 @@ class ViewData:
         finite = self.radius[np.isfinite(self.radius) & (self.radius > 0)]
         self._rmax = float(finite.max()) if finite.size else 1.0
         self._rmin = float(finite.min()) if finite.size else 1.0
-        # the colour scale of radii starts at their 1st percentile: the last radii of an ordering
-        # (near-duplicates) reach far below the scan's spacing and would squeeze every other
-        # point into one colour
-        self._rlow = float(np.percentile(finite, 1)) if finite.size else 1.0
         lo, hi = self.points.min(axis=0), self.points.max(axis=0)
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
 
@@ -222,16 +218,12 @@ class ViewData:
         """The scale of a scalar colour mode (radius, rank, importance), None for the others."""
         mode = self.check_mode(mode)
         if mode == "radius":
-            unit = self.units or "scan units"
-            return Legend(f"insertion radius ({unit}, log)", self._rlow, self._rmax, True)
+            return radius_legend(self.radius, self.units)
         if mode == "rank":
-            return Legend("rank (1 = first point, log)", 1.0, float(max(len(self), 2)), True)
+            return rank_legend(len(self))
         if mode.startswith("importance:"):
             name = mode.split(":", 1)[1]
-            v = np.asarray(self.importance[name], dtype=np.float64)
-            lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
-            unit = IMPORTANCE_UNITS.get(name, "as stored")
-            return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
+            return importance_legend(name, self.importance[name])
         return None
 
     def colours(
@@ -309,6 +301,43 @@ class ViewData:
             crs=parts[0].crs if all(p.crs == parts[0].crs for p in parts) else None,
             units=parts[0].units if all(p.units == parts[0].units for p in parts) else None,
         )
+
+
+def radius_legend(radius: np.ndarray, units: str | None = None) -> Legend:
+    """Log scale of insertion radii, from their 1st percentile to the largest finite one.
+
+    (The last radii of an ordering, near-duplicates, reach far below the scan's spacing: from
+    the smallest one, every other point would get one colour.)"""
+    r = np.asarray(radius, dtype=np.float64)
+    finite = r[np.isfinite(r) & (r > 0)]
+    lo = float(np.percentile(finite, 1)) if finite.size else 1.0
+    hi = float(finite.max()) if finite.size else 1.0
+    return Legend(f"insertion radius ({units or 'scan units'}, log)", lo, max(hi, lo), True)
+
+
+def rank_legend(n: int) -> Legend:
+    """Log scale of ranks 1..n (the first point is rank 1)."""
+    return Legend("rank (1 = first point, log)", 1.0, float(max(n, 2)), True)
+
+
+def importance_legend(name: str, values: np.ndarray) -> Legend:
+    """Linear scale of an importance map from its 1st to its 99th percentile."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
+    unit = IMPORTANCE_UNITS.get(name, "as stored")
+    return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
+
+
+def crs_label(crs: str | None, units: str | None) -> str:
+    """One line naming the coordinates' CRS and unit (``CRS unknown`` when there is none)."""
+    unit = units or "scan units"
+    if not crs:
+        return f"CRS unknown, coordinates in {unit}"
+    try:
+        from ..io.crs import crs_name  # pyproj names it, when installed
+    except ImportError:  # pragma: no cover - before lodbuilder.io.crs lands
+        return f"CRS given as WKT, coordinates in {unit}"
+    return f"CRS {crs_name(crs) or 'given as WKT'}, coordinates in {unit}"
 
 
 def _to_uint8_rgb(rgb: np.ndarray) -> np.ndarray:
