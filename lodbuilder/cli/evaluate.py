@@ -35,6 +35,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--surface", choices=("plane", "mls"), default="plane", help="local surface (default plane)"
     )
     p.add_argument("--k", type=int, help="neighbours per surface fit (default 8 plane, 16 mls)")
+    p.add_argument(
+        "--gaps",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="also list the gaps at each --rhos value: enclosed regions of the surface farther "
+        "than rho from every input point, up to MAX_HOLE rho wide (default 12), with their area "
+        "and bounding box (they are what 'slice --fill' fills)",
+    )
     p.add_argument("--json", metavar="OUT", help="write the reports as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="OUT.png", help="plot error vs size and radius vs rank")
     return p
@@ -80,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--plot {args.plot} must end in .png")
     if args.k is not None and args.k < 3:
         raise InputError(f"--k must be at least 3, got {args.k}")
+    if args.gaps is not None and not args.rhos:
+        raise InputError("--gaps needs --rhos R [R ...] (the densities whose gaps are listed)")
     from ..quality.archive import evaluate_archive
     from .progressbar import ProgressBars
 
@@ -95,10 +107,18 @@ def run(args: argparse.Namespace) -> int:
             k=args.k,
             progress=bars,
         )
+    doc = ev.as_dict()
+    if args.gaps is not None:
+        from ..sampling.fill import archive_gaps
+
+        gaps = archive_gaps(args.archive, args.scan, args.rhos, max_hole=args.gaps)
+        doc["gaps"] = [g.as_dict() for g in gaps]
     if args.json != "-":
         print(_table(ev))
+        if args.gaps is not None:
+            print("\n".join(g.table() for g in gaps))
     if args.json:
-        _write_json(args.json, ev.as_dict())
+        _write_json(args.json, doc)
     if args.plot:
         from ..quality.plots import plot_quality
 
