@@ -154,3 +154,48 @@ def test_evaluate_gaps_needs_rhos(arc, capsys):
         "lodbuilder evaluate: error: --gaps needs --rhos R [R ...] (the densities whose gaps are "
         "listed)"
     )
+
+
+def test_gap_colours(arc):
+    from lodbuilder.viewer.data import GAP_COLOURS
+    from lodbuilder.viewer.source import load_view_data
+
+    data = load_view_data(arc)
+    k = data.size_for_rho(RHO)
+    col = data.colours("gaps", k)
+    red = (col == GAP_COLOURS[1]).all(axis=1)
+    assert (red | (col == GAP_COLOURS[0]).all(axis=1)).all()
+    # red: the points around the two holes (within 1.5 rho of their far part), nothing else
+    d = np.min([np.hypot(*(data.points[:, :2] - c).T) - r * RHO for c, r in HOLES], axis=0)
+    assert red.sum() > 100
+    assert d[red].max() <= 1.6 * RHO
+    assert not red[d > 1.6 * RHO].any()
+    assert red[d < 0.4 * RHO].all()
+    # a level too coarse for any gap: all grey
+    assert (data.colours("gaps", 20) == GAP_COLOURS[0]).all()
+
+
+@pytest.mark.viewer
+def test_view_colour_gaps_screenshot(arc, tmp_path, capsys):
+    out = tmp_path / "g.png"
+    rc, text, err = run(
+        capsys,
+        "view",
+        arc,
+        "--rho",
+        RHO,
+        "--colour",
+        "gaps",
+        "--screenshot",
+        out,
+        "--window-size",
+        400,
+        300,
+    )
+    assert rc == 0, err
+    assert "colour gaps" in text
+    import imageio.v3 as iio
+
+    img = iio.imread(out)
+    reds = (img[..., 0] > 180) & (img[..., 1] < 80) & (img[..., 2] < 80)
+    assert reds.sum() > 50

@@ -21,7 +21,7 @@ from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray
 
 from ..errors import InputError
-from .data import ViewData
+from .data import LEVEL_MODES, ViewData
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +189,7 @@ class LevelViewer:
     def set_level(self, k: float, render: bool = True) -> int:
         """Show the level of ``k`` points (the prefix, refined inside the box if one is set)."""
         self.k = self.data.clamp_size(k)
-        if self.mode == "voronoi":
+        if self.mode in LEVEL_MODES:
             self._colours = self.data.colours(self.mode, self.k)
             self._update_full_colours()
         self._update_level_arrays()
@@ -207,7 +207,7 @@ class LevelViewer:
         """Render after a change of the level panel only: the full-scan panel is left as drawn
         (it is not redrawn unless its colours change), which halves the cost of a slider move."""
         # (eye-dome lighting's pass clears the other viewport, so then both are drawn)
-        if self.full_mesh is None or self.mode == "voronoi" or self.edl:
+        if self.full_mesh is None or self.mode in LEVEL_MODES or self.edl:
             self.plotter.render()
             return
         full = self.plotter.renderers[1]

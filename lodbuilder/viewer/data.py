@@ -17,6 +17,10 @@ import numpy as np
 from ..errors import InputError
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
+#: modes whose colours depend on the level (recomputed when it changes); ``gaps`` is asked for by
+#: name (``--colour gaps``), not cycled through: it searches the level for holes
+LEVEL_MODES = ("voronoi", "gaps")
+GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
 
 
 @dataclass
@@ -60,6 +64,7 @@ class ViewData:
         if self.scan_id is None:
             self.scan_id = np.zeros(n, dtype=np.int32)
         self._rep_cache: tuple[int, np.ndarray] | None = None
+        self._gap_cache: tuple[int, np.ndarray] | None = None
         finite = self.radius[np.isfinite(self.radius) & (self.radius > 0)]
         self._rmax = float(finite.max()) if finite.size else 1.0
         self._rmin = float(finite.min()) if finite.size else 1.0
@@ -117,6 +122,21 @@ class ViewData:
         self._rep_cache = (k, rep)
         return rep
 
+    def gap_codes(self, k: int) -> np.ndarray:
+        """(N,) 0 / 1 / 2: away from gaps / near a fillable gap / near a rough one, at level k
+        (see :func:`lodbuilder.sampling.fill.near_gaps`)."""
+        from ..sampling.fill import SAMPLE_FRACTION, near_gaps
+
+        k = self.clamp_size(k)
+        if self._gap_cache is None or self._gap_cache[0] != k:
+            rho = self.rho_for_size(k)
+            codes = np.zeros(len(self), dtype=np.uint8)
+            if rho > 0:
+                k_s = self.size_for_rho(SAMPLE_FRACTION * rho)
+                codes = near_gaps(self.points, k, k_s, rho)
+            self._gap_cache = (k, codes)
+        return self._gap_cache[1]
+
     # ---- colour modes -------------------------------------------------------------------------
 
     def colour_modes(self) -> list[str]:
@@ -132,6 +152,8 @@ class ViewData:
         return modes
 
     def check_mode(self, mode: str) -> str:
+        if mode == "gaps":
+            return mode
         modes = self.colour_modes()
         if mode == "importance" and any(m.startswith("importance:") for m in modes):
             mode = next(m for m in modes if m.startswith("importance:"))
@@ -168,6 +190,8 @@ class ViewData:
             return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
             return categorical(self.representatives(k)[sel])
+        if mode == "gaps":
+            return GAP_COLOURS[self.gap_codes(k)[sel]]
         name = mode.split(":", 1)[1]
         v = np.asarray(self.importance[name], dtype=np.float64)
         lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)

@@ -45,6 +45,7 @@ __all__ = [
     "fill_level",
     "gaps_of_points",
     "archive_gaps",
+    "near_gaps",
     "MAX_HOLE",
 ]
 
@@ -251,6 +252,30 @@ def archive_gaps(
     with open_archive(path) as arc:
         view = arc.scan(scan)
         return [find_gaps(view, r, max_hole=max_hole, exact=True) for r in rhos]
+
+
+#: ``near_gaps`` codes: away from every gap, near a fillable gap, near a rough gap
+NEAR_NONE, NEAR_FILLABLE, NEAR_ROUGH = 0, 1, 2
+
+
+def near_gaps(
+    points: np.ndarray, k_level: int, k_sample: int, rho: float, *, max_hole: Any = MAX_HOLE
+) -> np.ndarray:
+    """(N,) uint8 code of every point of a scan in stored order: :data:`NEAR_FILLABLE` or
+    :data:`NEAR_ROUGH` within rho of a gap of the level ``points[:k_level]`` (the input represented
+    by ``points[:k_sample]``), else :data:`NEAR_NONE`. The viewer's ``gaps`` colours."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    out = np.zeros(pts.shape[0], dtype=np.uint8)
+    k_sample = max(k_sample, k_level)
+    rep = gaps_of_points(pts[:k_level], pts[:k_sample], rho, max_hole=max_hole)
+    for code, status in ((NEAR_ROUGH, STATUS_ROUGH), (NEAR_FILLABLE, STATUS_FILLABLE)):
+        far = [g.gap_points() for g in rep.gaps if g.status == status]
+        if far:
+            d, _ = cKDTree(np.concatenate(far)).query(pts, k=1, distance_upper_bound=1.5 * rho)
+            out[np.isfinite(d)] = code
+    return out
 
 
 def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any = True) -> Filled:
