@@ -100,13 +100,29 @@ def test_max_hole_leaves_wider_holes_open(plane):
 
 
 def test_no_gaps_at_a_coarse_rho(plane):
-    # at rho = 0.4 every hole (radius <= 0.15) lies within rho/2 of the input
-    rep = find_gaps(plane.view, 0.4)
+    # at rho = 0.4 every hole (radius <= 0.15) lies within rho/2 of the input: no region at all
+    rep = find_gaps(plane.view, 0.4, exact=True)
     assert rep.regions == [] and rep.gaps == []
     filled = fill_level(plane.view, 0.4)
     lev = plane.view.level(rho=0.4)
     assert filled.n_synthetic == 0
     np.testing.assert_array_equal(filled.level.points, lev.points)
+
+
+@pytest.mark.data
+def test_only_gaps_are_filled(shared_data, tmp_path):
+    """A real scan has many small regions farther than rho/2 (not rho) from its points: they are
+    reported as regions, not gaps, and never filled."""
+    path = tmp_path / "res2.h5"
+    lodbuilder.build_archive(shared_data / "bun_zipper_res2.ply", path)
+    with lodbuilder.open_archive(path) as arc:
+        filled = fill_level(arc.scan(), 0.004)
+    regions = filled.report.regions
+    not_gaps = [r for r in regions if not r.is_gap]
+    assert len(not_gaps) >= 5 and len(filled.report.gaps) >= 1
+    assert all(r.n_synthetic == 0 and r.max_distance <= 0.004 for r in not_gaps)
+    assert all(np.isnan(r.residual) for r in not_gaps)  # not assessed
+    assert sum(r.n_synthetic for r in filled.report.gaps) == filled.n_synthetic > 0
 
 
 # --- filling --------------------------------------------------------------------------------------

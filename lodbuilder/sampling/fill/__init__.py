@@ -308,7 +308,7 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
     stop = stop_distance(rho, GRID_FRACTION * rho)
     picks: list[tuple[Region, np.ndarray, np.ndarray]] = []
     done: Any = None  # k-d tree of the points inserted so far
-    for reg in report.regions:
+    for reg in report.gaps:
         if reg.status != STATUS_FILLABLE:
             continue
         start, _ = tree_l.query(reg.candidates, k=1)

@@ -84,7 +84,8 @@ class Region:
     Attributes:
         id: index in the report.
         status: ``"fillable"``, or ``"rough"`` when the surrounding input is not one smooth height
-            field (not filled; ``reason`` says why).
+            field (not filled; ``reason`` says why). Only gaps are assessed (a region that is no
+            gap is never filled).
         candidates: (M, 3) grid nodes of the region lifted onto the fitted surface.
         distance: (M,) distance of each candidate to the nearest sample point.
         rho: the density asked for.
@@ -92,7 +93,9 @@ class Region:
             between rho/2 and rho from it: not a gap, but the level still misses rho there).
         region_area: area of the whole region.
         node_area: surface area each candidate stands for.
-        residual: RMS error of the fitted surface predicting each sixth of the ring from the rest.
+        residual: RMS error of the fitted surface predicting each sixth of the ring from the rest
+            (NaN for a region that is no gap: not assessed).
+        tilted: share of the ring's normals tilted more than 60 degrees from the plane's.
         frame: the hole's plane; ``uv`` (M, 2) the candidates' coordinates in it.
         surface: the height field over the plane.
         ring: indices (into the sample) of the input points around the region.
@@ -111,6 +114,7 @@ class Region:
     uv: np.ndarray
     surface: HeightField
     ring: np.ndarray
+    tilted: float = 0.0
     reason: str = ""
     n_synthetic: int = 0
 
@@ -150,7 +154,7 @@ class Region:
             "bounds_max": hi.tolist(),
             "centre": self.candidates.mean(axis=0).tolist(),
             "normal": self.normal.tolist(),
-            "residual": self.residual,
+            "residual": self.residual if math.isfinite(self.residual) else None,
             "n_synthetic": self.n_synthetic,
         }
 
@@ -447,37 +451,42 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
 
 def _fit_region(frame, uv, ring_idx, ring, ring_normals, rho, g) -> Region:
     surface = HeightField(frame.uv(ring), frame.height(ring), rho)
-    tilted = np.abs(ring_normals @ frame.normal) < math.cos(MAX_TILT)
-    status, reason = STATUS_FILLABLE, ""
-    if float(tilted.mean()) > MAX_TILTED:
-        status = STATUS_ROUGH
-        reason = (
-            f"{100 * float(tilted.mean()):.0f} % of the surrounding normals are tilted more than "
-            f"{math.degrees(MAX_TILT):.0f} degrees from the hole's plane"
-        )
-    elif surface.cv > MAX_RESIDUAL * rho:
-        status = STATUS_ROUGH
-        reason = (
-            f"the surface fitted to the surrounding points misses each sixth of them, when "
-            f"fitted to the rest, by {surface.cv / rho:.2f} rho (RMS; more than {MAX_RESIDUAL:g} rho)"
-        )
     h, factor = surface.heights_and_area(uv, g)
     return Region(
         id=-1,
-        status=status,
+        status=STATUS_FILLABLE,
         candidates=frame.lift(uv, h),
         distance=np.zeros(uv.shape[0]),
         rho=rho,
         area=0.0,
         region_area=0.0,
         node_area=g * g * factor,
-        residual=surface.cv,
+        residual=float("nan"),
         frame=frame,
         uv=uv,
         surface=surface,
         ring=ring_idx,
-        reason=reason,
+        tilted=float((np.abs(ring_normals @ frame.normal) < math.cos(MAX_TILT)).mean()),
     )
+
+
+def _assess(reg: Region) -> None:
+    """Fillable or rough: is the ring one smooth height field over the hole's plane?"""
+    rho = reg.rho
+    reg.residual = reg.surface.cv
+    if reg.tilted > MAX_TILTED:
+        reg.status = STATUS_ROUGH
+        reg.reason = (
+            f"{100 * reg.tilted:.0f} % of the surrounding normals are tilted more than "
+            f"{math.degrees(MAX_TILT):.0f} degrees from the hole's plane"
+        )
+    elif reg.residual > MAX_RESIDUAL * rho:
+        reg.status = STATUS_ROUGH
+        reg.reason = (
+            f"the surface fitted to the surrounding points misses each sixth of them, when "
+            f"fitted to the rest, by {reg.residual / rho:.2f} rho (RMS; more than "
+            f"{MAX_RESIDUAL:g} rho)"
+        )
 
 
 def _finish_region(reg: Region, tree_s: Any, rho: float) -> None:
@@ -490,3 +499,5 @@ def _finish_region(reg: Region, tree_s: Any, rho: float) -> None:
     reg.node_area = reg.node_area[keep]
     reg.region_area = float(reg.node_area.sum())
     reg.area = float(reg.node_area[reg.distance > rho].sum())
+    if reg.is_gap:
+        _assess(reg)

@@ -79,20 +79,6 @@ def _rbf(uv: np.ndarray, h: np.ndarray, degree: int = 2):
     return RBFInterpolator(uv, h, kernel="thin_plate_spline", degree=degree, smoothing=SMOOTHING)
 
 
-def _quadric_basis(uv: np.ndarray) -> np.ndarray:
-    u, v = uv[:, 0], uv[:, 1]
-    return np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
-
-
-def quadric_residual(uv: np.ndarray, h: np.ndarray) -> float:
-    """RMS distance (along the normal) of ring points from their least-squares quadric height
-    field: how far the ring is from one smooth piece of surface."""
-    a = _quadric_basis(uv)
-    coef, *_ = np.linalg.lstsq(a, h, rcond=None)
-    r = h - a @ coef
-    return float(np.sqrt(np.mean(r * r)))
-
-
 class HeightField:
     """``h(u, v)`` over a hole: thin-plate spline + quadratic polynomial fitted to ring points.
 
@@ -104,9 +90,18 @@ class HeightField:
             keep = np.linspace(0, uv.shape[0] - 1, MAX_FIT_POINTS).round().astype(np.int64)
             uv, h = uv[keep], h[keep]
         self.scale = float(scale)
-        self.residual = quadric_residual(uv, h)
-        self._f = _rbf(uv / self.scale, h / self.scale)
-        self.cv = self._sector_error(uv / self.scale, h / self.scale) * self.scale
+        self._uv, self._h = uv / self.scale, h / self.scale
+        self._f = _rbf(self._uv, self._h)
+        self._cv: float | None = None
+
+    @property
+    def cv(self) -> float:
+        """RMS error (scan units) of predicting each sixth of the ring (angular sectors around
+        its centroid) from a fit to the other five: how well the surface bridges a gap as wide as
+        the hole. Computed on first use (six more fits)."""
+        if self._cv is None:
+            self._cv = self._sector_error(self._uv, self._h) * self.scale
+        return self._cv
 
     @staticmethod
     def _sector_error(uv: np.ndarray, h: np.ndarray, sectors: int = 6) -> float:
