@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from ._validate import strict_keywords
 from .archive.reader import Archive, open_archive
 from .errors import InputError
 from .progress import ProgressCallback, report
@@ -58,6 +59,15 @@ def load_scan(scan_or_path: Any, name: str | None = None, progress: ProgressCall
     return scan, source
 
 
+def _feature_keywords() -> list[str]:
+    import inspect
+
+    from .sampling.adaptive import feature_build
+
+    return [k for k in inspect.signature(feature_build).parameters if k != "scan"]
+
+
+@strict_keywords(extra=_feature_keywords)
 def build_record(
     scan_or_path: Any,
     *,

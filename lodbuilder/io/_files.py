@@ -9,6 +9,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from .._validate import strict_keywords
 from ..errors import ScanFileError
 
 
@@ -69,6 +70,7 @@ def atomic_output(path: str | os.PathLike[str], *, make_parents: bool = False) -
         raise
 
 
+@strict_keywords
 def file_sha256(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
     """Hex SHA-256 of a file's bytes."""
     h = hashlib.sha256()

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..errors import FormatError, InputError, LodbuilderError, ScanFileError
 from ._files import atomic_output, check_input_file
 from .base import Scan
@@ -23,6 +24,7 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+@strict_keywords
 def read_scans(path: PathLike) -> list[Scan]:
     """Read every scan in a file (E57 files may hold several; other formats hold one).
 
@@ -73,6 +75,7 @@ def _check_scan(p: Path, s: Scan) -> None:
             raise FormatError(f"{where}: attribute {k!r} has {v.shape[0]} values for {n} points")
 
 
+@strict_keywords
 def read_scan(path: PathLike, *, name: str | None = None) -> Scan:
     """Read a file holding one scan; see :func:`read_scans`.
 
@@ -114,6 +117,7 @@ def _prepare_attributes(points: np.ndarray, attributes: Any, rank: Any) -> dict[
     return attrs
 
 
+@strict_keywords
 def write_points(
     path: PathLike,
     points: Any,
@@ -159,6 +163,7 @@ def write_points(
     return Path(path)
 
 
+@strict_keywords
 def write_scan(path: PathLike, scan: Scan, *, rank: bool | np.ndarray | None = None) -> Path:
     """Write a :class:`Scan` with its attributes and metadata; see :func:`write_points`."""
     return write_points(path, scan.points, scan.attributes, metadata=scan.metadata, rank=rank)

@@ -14,6 +14,7 @@ from importlib import import_module
 from pathlib import Path
 from types import ModuleType
 
+from .._validate import strict_keywords
 from ..errors import UnsupportedFormatError
 
 #: suffix -> format module name, for reading
@@ -42,6 +43,7 @@ WRITERS: dict[str, str] = {
 }
 
 
+@strict_keywords
 def register(suffix: str, module: str, *, read: bool = True, write: bool = False) -> None:
     """Register a format module (a full dotted module path, or a name under lodbuilder.io)."""
     suffix = suffix.lower() if suffix.startswith(".") else "." + suffix.lower()

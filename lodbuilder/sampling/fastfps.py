@@ -7,7 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, validate_indices, validate_points
+from .._validate import (
+    check_positive,
+    check_size,
+    strict_keywords,
+    validate_indices,
+    validate_points,
+)
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
@@ -51,12 +57,15 @@ def _prepare(points, rho, size, seeds):
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
-        k = min(k, int(np.searchsorted(-radius, -rho, side="left")))
+        from ..archive.levels import count_above
+
+        k = min(k, count_above(radius, rho))
     if size is not None:
         k = min(k, size)
     return order[:k].copy(), radius[:k].copy(), parent[:k].copy()
 
 
+@strict_keywords
 def euclidean_fps(
     points: Any,
     *,
@@ -80,6 +89,7 @@ def euclidean_fps(
     return Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"})
 
 
+@strict_keywords
 def fastfps(
     points: Any,
     *,
