@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..._validate import check_positive
+from ..._validate import check_positive, strict_keywords, strict_methods
 from ...errors import InputError
 from .gaps import (
     GRID_FRACTION,
@@ -47,12 +47,15 @@ __all__ = [
     "archive_gaps",
     "near_gaps",
     "MAX_HOLE",
+    "SAMPLE_FRACTION",
+    "SYNTHETIC",
 ]
 
 #: the attribute that flags synthetic points (1) among measured ones (0)
 SYNTHETIC = "synthetic"
 
 
+@strict_methods
 @dataclass
 class GapReport:
     """The undersampled regions of a scan at one rho.
@@ -137,6 +140,7 @@ class GapReport:
         return "\n".join(lines)
 
 
+@strict_methods
 @dataclass
 class Filled:
     """A filled level and the gaps it filled.
@@ -182,6 +186,7 @@ def _check(rho: Any, max_hole: Any) -> tuple[float, float]:
     return float(r), m
 
 
+@strict_keywords
 def gaps_of_points(
     level: np.ndarray,
     sample: np.ndarray,
@@ -224,6 +229,7 @@ def _sample_size(scan: Any, rho: float, exact: bool) -> tuple[int, float]:
     return k, (0.0 if k >= scan.n_ordered else SAMPLE_FRACTION * rho)
 
 
+@strict_keywords
 def find_gaps(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, exact: bool = False) -> GapReport:
     """The undersampled regions of an archive scan (a ``ScanView``) at ``rho``.
 
@@ -243,6 +249,7 @@ def find_gaps(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, exact: bool = Fa
     )
 
 
+@strict_keywords
 def archive_gaps(
     path: Any, scan: str | None, rhos: Any, *, max_hole: Any = MAX_HOLE
 ) -> list[GapReport]:
@@ -258,6 +265,7 @@ def archive_gaps(
 NEAR_NONE, NEAR_FILLABLE, NEAR_ROUGH = 0, 1, 2
 
 
+@strict_keywords
 def near_gaps(
     points: np.ndarray, k_level: int, k_sample: int, rho: float, *, max_hole: Any = MAX_HOLE
 ) -> np.ndarray:
@@ -278,6 +286,7 @@ def near_gaps(
     return out
 
 
+@strict_keywords
 def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any = True) -> Filled:
     """The level of an archive scan (a ``ScanView``) at ``rho``, with synthetic points added in
     its fillable gaps until every point of them is within rho of the level.

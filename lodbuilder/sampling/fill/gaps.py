@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._validate import strict_methods
 from ...features.neighbours import Neighbourhoods, local_pca
 from .surface import Frame, HeightField, plane_normal, tangents
 
@@ -77,6 +78,7 @@ STATUS_FILLABLE = "fillable"
 STATUS_ROUGH = "rough"
 
 
+@strict_methods
 @dataclass
 class Region:
     """One enclosed region of the surface farther than rho/2 from every input point.
