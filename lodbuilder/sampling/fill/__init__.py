@@ -125,9 +125,11 @@ class GapReport:
                 f"{'id':>4} {'area':>10} {'max dist':>10} {'status':>9}  bounding box "
                 "(xmin ymin zmin .. xmax ymax zmax)"
             )
+        # coordinates to a hundredth of rho, whatever their magnitude (survey data at 1e6)
+        dec = int(min(12, max(0, np.ceil(-np.log10(self.rho)) + 2)))
         for r in g:
             lo, hi = r.bounds
-            box = " ".join(f"{x:.6g}" for x in lo) + " .. " + " ".join(f"{x:.6g}" for x in hi)
+            box = " ".join(f"{x:.{dec}f}" for x in lo) + " .. " + " ".join(f"{x:.{dec}f}" for x in hi)
             lines.append(f"{r.id:>4} {r.area:10.4g} {r.max_distance:10.4g} {r.status:>9}  {box}")
         rough = [r for r in g if r.status == STATUS_ROUGH]
         for r in rough:
