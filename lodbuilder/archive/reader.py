@@ -6,13 +6,12 @@ This module and the ones it imports stay clear of numba, pyvista and dask, so th
 
 from __future__ import annotations
 
-import math
 import os
 from typing import Any
 
 import numpy as np
 
-from .._validate import check_fraction, check_positive, check_size
+from .._validate import check_positive, check_size, strict_keywords, strict_methods
 from ..errors import (
     CorruptArchiveError,
     InputError,
@@ -25,16 +24,23 @@ from .index import Where, check_part, first_line, read_rows, root_attrs
 from .layout import IndexRow
 from .levels import (
     Level,
+    box_positions,
     cell_average,
     check_box,
     check_viewpoint,
-    in_box,
+    covering_bound,
+    nonempty,
     prefix_for_rho,
     representatives,
-    viewpoint_keep,
+    resolve_size,
+    size_for_rho,
+    viewpoint_bound,
+    viewpoint_positions,
+    viewpoint_sizes,
 )
 
 
+@strict_keywords
 def check_archive_file(
     path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
 ) -> dict[str, Any]:
@@ -48,6 +54,7 @@ def check_archive_file(
         f.close()
 
 
+@strict_keywords
 def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
     """Open the archive file at ``where`` read-only: ``(h5py.File, remote file or None)``.
 
@@ -95,6 +102,7 @@ def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
     return f, rf
 
 
+@strict_methods
 class Archive:
     """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``.
 
@@ -273,6 +281,7 @@ class Archive:
         return f"<Archive {self.path} scans={self.scans}>"
 
 
+@strict_keywords
 def open_archive(
     path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
 ) -> Archive:
@@ -281,6 +290,7 @@ def open_archive(
     return Archive(path, storage_options=storage_options)
 
 
+@strict_methods
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
 
@@ -474,24 +484,15 @@ class ScanView:
             self.n_ordered,
             rho,
         )
-        return max(1, k)
+        return nonempty(k)
 
     def _bound(self, k: int) -> float:
         """Covering bound of the prefix of length k: radius[k], 0 for the whole ordering."""
-        if k >= self.n_ordered:
-            return 0.0
-        return float(self._read(self._g[L.D_RADIUS], slice(k, k + 1))[0])
+        ds = self._g[L.D_RADIUS]
+        return covering_bound(k, self.n_ordered, lambda i: self._read(ds, slice(i, i + 1))[0])
 
     def resolve_size(self, rho: Any = None, size: Any = None, fraction: Any = None) -> int:
-        given = [x is not None for x in (rho, size, fraction)]
-        if sum(given) != 1:
-            raise InputError("give exactly one of rho, size or fraction")
-        if rho is not None:
-            return self.size_for_rho(rho)
-        if size is not None:
-            return check_size(size, self.n_ordered)
-        f = check_fraction(fraction)
-        return min(self.n_ordered, max(1, int(math.floor(f * self.n_ordered + 0.5))))
+        return resolve_size(self.n_ordered, rho, size, fraction, rho_size=self.size_for_rho)
 
     # -- levels ------------------------------------------------------------------------------
     def level(
@@ -520,9 +521,11 @@ class ScanView:
             source_index=self._read(g[L.D_SOURCE_INDEX], slice(0, k)),
             radius=radius[:k],
             rank=np.arange(k, dtype=np.int64),
-            rho=float(radius[k]) if k < self.n_ordered else 0.0,
+            rho=covering_bound(k, self.n_ordered, radius.__getitem__),
             size=k,
             scan=self.name,
+            crs=self.crs,
+            units=self.units,
         )
 
     def _ordering_level(
@@ -531,20 +534,11 @@ class ScanView:
         og = self._ordering_group(name)
         rad_ds = og[L.D_RADIUS]
         kmax = rad_ds.shape[0]
-        given = [x is not None for x in (rho, size, fraction)]
-        if sum(given) != 1:
-            raise InputError("give exactly one of rho, size or fraction")
-        if rho is not None:
-            rho = check_positive(rho, "rho", allow_none=False)
-            rad = self._read(rad_ds)
-            k = max(1, int(np.searchsorted(-rad, -rho, side="left")))
-        elif size is not None:
-            k = check_size(size, kmax)
-        else:
-            f = check_fraction(fraction)
-            k = min(kmax, max(1, int(math.floor(f * kmax + 0.5))))
+        k = resolve_size(
+            kmax, rho, size, fraction, rho_size=lambda r: size_for_rho(self._read(rad_ds), r)
+        )
         pos = self._read(og[L.D_ORDER], slice(0, k))
-        bound = 0.0 if k >= kmax else float(self._read(rad_ds, slice(k, k + 1))[0])
+        bound = covering_bound(k, kmax, lambda i: self._read(rad_ds, slice(i, i + 1))[0])
         return self._gather(pos, self._read(rad_ds, slice(0, k)), bound, attributes, ordering=name)
 
     def _gather(
@@ -573,6 +567,8 @@ class ScanView:
             scan=self.name,
             ordering=ordering,
             region=region or {},
+            crs=self.crs,
+            units=self.units,
         )
 
     def refine_box(
@@ -591,9 +587,7 @@ class ScanView:
                 f"the rho inside the box ({r_in}) must not be larger than the rho outside ({r_out})"
             )
         k_out, k_in = self.size_for_rho(r_out), self.size_for_rho(r_in)
-        pts = self.points(k_in)
-        extra = k_out + np.flatnonzero(in_box(pts[k_out:], b, r_in))
-        pos = np.concatenate([np.arange(k_out, dtype=np.int64), extra])
+        pos = box_positions(self.points(k_in), k_out, b, r_in)
         region = {"box": b.tolist(), "rho_inner": r_in, "rho_outer": r_out}
         return self._gather(pos, None, self._bound(k_out), attributes, region=region)
 
@@ -604,21 +598,11 @@ class ScanView:
         ``rho(x) = min(rho0 + slope * |x - viewpoint|, rho_max)``; every input point ``p`` is within
         ``rho(p)`` of a kept point."""
         v, r0, s, rmax = check_viewpoint(viewpoint, rho0, slope, rho_max)
-        k_fine = self.size_for_rho(r0 / (1.0 + s))
-        k_coarse = self.size_for_rho(rmax) if rmax is not None else 1
-        k_coarse = min(k_coarse, k_fine)
-        pts = self.points(k_fine)
+        k_coarse, k_fine = viewpoint_sizes(self.size_for_rho, r0, s, rmax)
         rad = self._read(self._g[L.D_RADIUS], slice(0, k_fine))
-        keep = viewpoint_keep(pts, rad, v, r0, s, rmax)
-        keep[:k_coarse] = True
-        pos = np.flatnonzero(keep).astype(np.int64)
+        pos = viewpoint_positions(self.points(k_fine), rad, v, r0, s, rmax, k_coarse)
         region = {"viewpoint": v.tolist(), "rho0": r0, "slope": s, "rho_max": rmax}
-        lo, hi = self.bounds
-        corners = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
-        far = float(np.sqrt(((corners - v) ** 2).sum(axis=1)).max())
-        bound = r0 + s * far if rmax is None else min(rmax, r0 + s * far)
+        bound = viewpoint_bound(self.bounds, v, r0, s, rmax)
         return self._gather(pos, rad[pos], bound, attributes, region=region)
 
     # -- representatives ---------------------------------------------------------------------
@@ -644,3 +628,22 @@ class ScanView:
         counts = np.bincount(rep[rep >= 0], minlength=k)
         attrs = self.attributes(None, names)
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
+
+    # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
+    @property
+    def crs(self) -> str | None:
+        """The scan's coordinate reference system as WKT text, or None when unknown."""
+        wkt = self.format_metadata.get("crs_wkt")
+        return str(wkt) if wkt else None
+
+    @property
+    def units(self) -> str | None:
+        """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
+        one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
+        no pyproj): never guessed."""
+        meta = self.format_metadata
+        if meta.get("crs_units"):
+            return str(meta["crs_units"])
+        from ..io.crs import linear_units
+
+        return linear_units(self.crs)

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .._validate import check_positive
+from .._validate import check_positive, strict_methods
 from ..errors import BuildError, InputError, LodbuilderError, MissingDependencyError
 from ..progress import ProgressCallback, report
 from .inputs import ScanSource, expand_inputs
@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 DASK_CONNECT_TIMEOUT = "15s"
 
 
+@strict_methods
 @dataclass
 class ScanStatus:
     """What happened to one scan: ``built``, ``recovered`` (a finished part merged), ``skipped``
@@ -52,6 +53,7 @@ class ScanStatus:
     worker_pid: int | None = None
 
 
+@strict_methods
 @dataclass
 class CollectionResult:
     archive: Path
