@@ -221,9 +221,13 @@ def test_a_server_that_ignores_ranges(served):
 
 
 @pytest.fixture(scope="module")
-def s3(served):
+def s3(served, tmp_path_factory):
     """moto's S3 server on 127.0.0.1 holding the served archives; its request recorder counts."""
+    import os
+
     pytest.importorskip("s3fs")
+    # the recorder writes its log to a file (by default ./moto_recording)
+    os.environ["MOTO_RECORDER_FILEPATH"] = str(tmp_path_factory.mktemp("moto") / "recording")
     moto_server = pytest.importorskip("moto.server")
     import boto3
     import requests

@@ -80,6 +80,8 @@ class Moto:
         import boto3
         from moto.server import ThreadedMotoServer
 
+        # the recorder writes its log to a file (by default ./moto_recording)
+        os.environ["MOTO_RECORDER_FILEPATH"] = str(root / "moto_recording")
         self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
         self.server.start()
         host, port = self.server.get_host_and_port()
