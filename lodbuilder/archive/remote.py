@@ -280,3 +280,55 @@ def chunk_ranges(ds: Any, lo: int, hi: int) -> list[tuple[int, int]]:
         if info.byte_offset is not None and info.size:
             out.append((int(info.byte_offset), int(info.size)))
     return out
+
+
+class Prefetcher:
+    """What a read of a scan's per-point dataset fetches first, for one scan of a remote archive.
+
+    A level (a prefix of at most 1/8 of the scan, or two row groups) gets rows [0, stop) of every
+    per-point dataset of the scan: they are stored in row groups, so that is one request per
+    contiguous span (one for a level), and the level's other reads are then cached. A longer
+    read (``info``'s radii, a whole scan for ``view``) gets the chunks of that one dataset,
+    fetched concurrently. Small datasets (orderings, radius_index, ...) go through the cache."""
+
+    def __init__(self, io: RemoteFile, group: Any, n_points: int) -> None:
+        self.io, self.group, self.n = io, group, n_points
+        self.rows = 0  # rows [0, rows) of every per-point dataset are cached
+        self.done: dict[str, tuple[int, int]] = {}
+        self._datasets: list[Any] | None = None
+
+    def _per_point(self) -> list[Any]:
+        if self._datasets is None:
+            from . import layout as L
+
+            g, n = self.group, self.n
+            keys = [L.D_POINTS, L.D_SOURCE_INDEX, L.D_RADIUS, L.D_PARENT]
+            keys += [f"{grp}/{k}" for grp in (L.G_ATTRIBUTES, L.G_IMPORTANCE) if grp in g for k in g[grp]]
+            self._datasets = [g[k] for k in keys if k in g and g[k].shape[:1] == (n,)]
+        return self._datasets
+
+    def before(self, ds: Any, sel: Any) -> None:
+        """Fetch what reading ``ds[sel]`` needs (and, for a level, its sibling datasets)."""
+        from . import layout as L
+
+        n, prefix = self.n, f"{self.group.name}/"
+        name = ds.name or ""
+        if ds.shape[:1] != (n,) or not name.startswith(prefix) or not isinstance(sel, slice):
+            return
+        if name.startswith(prefix + L.G_ORDERINGS + "/"):
+            return
+        stop = n if sel.stop is None else min(n, int(sel.stop))
+        rows = ds.chunks[0] if ds.chunks else n
+        if stop <= max(n // 8, 2 * rows):
+            if stop <= self.rows:
+                return
+            ranges = [r for d in self._per_point() for r in chunk_ranges(d, self.rows, stop)]
+            self.rows = stop
+        else:
+            start = 0 if sel.start is None else max(0, int(sel.start))
+            lo, hi = self.done.get(name, (0, 0))
+            if lo <= start and stop <= hi:
+                return
+            ranges = chunk_ranges(ds, start, stop)
+            self.done[name] = (start, stop)
+        self.io.prefetch(ranges)

@@ -534,6 +534,7 @@ def _rewrite(
     from .reader import open_archive
 
     path = Path(path)
+    check_writable_dir(path, "archive")
     for name in importance or {}:
         L.check_name(name, "importance map name")
     for name in orderings or {}:
