@@ -290,7 +290,7 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     cases = [
         (
             ["-o", str(tmp_path / "x.ply")],
-            f"export {tmp_path / 'x.ply'}: name it OUT.html (web page); "
+            f"-o {tmp_path / 'x.ply'}: name it OUT.copc.laz (COPC) or OUT.html (web page); "
             "for .ply, .las, .laz, .csv, .npy... use lodbuilder slice",
         ),
         (
@@ -300,7 +300,7 @@ def test_export_errors(demo_archive, tmp_path, capsys):
         ),
         (["-o", str(tmp_path / "x.html"), "--max-points", "0"], "--max-points must be at least 1, got 0"),
         (["-o", arc.replace(".h5", ".html"), "--size", "0"], "size must be between 1 and the number of points (3000), got 0"),
-        (["-o", str(tmp_path / "no" / "x.html")], f"{tmp_path / 'no' / 'x.html'}: output directory {tmp_path / 'no'} does not exist; create it first"),
+        (["-o", str(tmp_path / "no" / "x.html")], f"-o {tmp_path / 'no' / 'x.html'}: output directory {tmp_path / 'no'} does not exist; create it first"),
     ]
     for args, message in cases:
         assert main(["export", arc] + args) == 2
@@ -309,4 +309,4 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     assert main(["export", arc, "-o", str(tmp_path / "x.html"), "--max-points", "1000"]) == 0
     assert "wrote 1,000 of 3,000 points" in capsys.readouterr().out
     assert main(["export", arc, "-o", arc]) == 2
-    assert capsys.readouterr().err.startswith("lodbuilder export: error: export")
+    assert capsys.readouterr().err == f"lodbuilder export: error: -o {arc} is the input archive; choose another output\n"

@@ -333,11 +333,9 @@ def crs_label(crs: str | None, units: str | None) -> str:
     unit = units or "scan units"
     if not crs:
         return f"CRS unknown, coordinates in {unit}"
-    try:
-        from ..io.crs import crs_name  # pyproj names it, when installed
-    except ImportError:  # pragma: no cover - before lodbuilder.io.crs lands
-        return f"CRS given as WKT, coordinates in {unit}"
-    return f"CRS {crs_name(crs) or 'given as WKT'}, coordinates in {unit}"
+    from ..io.crs import crs_name  # (pyproj names it, when installed)
+
+    return f"CRS {crs_name(crs) or 'given as WKT (install pyproj to name it)'}, coordinates in {unit}"
 
 
 def _to_uint8_rgb(rgb: np.ndarray) -> np.ndarray:
