@@ -310,3 +310,25 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     assert "wrote 1,000 of 3,000 points" in capsys.readouterr().out
     assert main(["export", arc, "-o", arc]) == 2
     assert capsys.readouterr().err == f"lodbuilder export: error: -o {arc} is the input archive; choose another output\n"
+
+
+def test_web_page_names_the_crs_and_units(shared_data, tmp_path):
+    """autzen_trim.laz carries a CRS in feet: the page's header line and legends say so."""
+    pytest.importorskip("pyproj")
+    import lodbuilder
+
+    arc = tmp_path / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", arc, name="autzen")
+    out = tmp_path / "autzen.html"
+    assert main(["export", str(arc), "--size", "5000", "-o", str(out), "-q"]) == 0
+    header = json.loads(
+        re.search(r'<script id="lod-header" type="application/json">(.*?)</script>',
+                  out.read_text()).group(1)
+    )
+    assert header["info"] == (
+        "autzen: 5,000 of 110,000 points; CRS NAD_1983_HARN_Lambert_Conformal_Conic, "
+        "coordinates in foot"
+    )
+    assert header["unit"] == "foot"
+    assert header["scalars"][0]["title"] == "insertion radius (foot, log)"
+    assert header["rgb"] and header["n"] == 5000 and header["n_total"] == 110000
