@@ -24,6 +24,7 @@ PACKAGES = [
     "lodbuilder.viewer",
     "lodbuilder.viewer.source",
     "lodbuilder.archive.reader",
+    "lodbuilder.sampling.fill",
 ]
 # helper "pipeline" rewrites these two and gives them the same check
 NOT_HERE = {"build_archive", "build_collection"}

@@ -87,6 +87,8 @@ def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
         target = local
     try:
         f = h5py.File(target, "r")
+        if rf is not None:  # later misses fetch whole file-space pages (metadata is paged)
+            rf.set_block(max(rf.block, f.id.get_create_plist().get_file_space_page_size()))
     except (OSError, RuntimeError, ValueError) as exc:
         if rf is not None:
             rf.close()
@@ -297,6 +299,9 @@ class ScanView:
         self.name = name
         self._g = group
         self._io = io  # the remote file the group is read through (None: local)
+        self._fetched_rows = 0
+        self._fetched_ds: dict[str, tuple[int, int]] = {}
+        self._row_datasets: list[Any] | None = None
         a = self._g.attrs
         self.n_points = int(a[L.S_N_POINTS])
         self.n_ordered = int(a.get(L.S_N_ORDERED, self.n_points))
@@ -315,6 +320,8 @@ class ScanView:
     # -- raw reads ---------------------------------------------------------------------------
     def _read(self, ds: Any, sel: Any = slice(None)) -> np.ndarray:
         try:
+            if self._io is not None:
+                self._prefetch(ds, sel)
             return ds[sel]
         except OSError as exc:
             raise CorruptArchiveError(
@@ -322,6 +329,46 @@ class ScanView:
                 f"checksum or cannot be read ({str(exc).splitlines()[0]}); the file is damaged, "
                 "rebuild it from the source scan"
             ) from None
+
+    def _prefetch(self, ds: Any, sel: Any) -> None:
+        """Remote archive: fetch what a read of rows [.., stop) of a per-point dataset needs.
+
+        A level (a prefix of at most 1/8 of the scan, or two row groups) gets rows [0, stop) of
+        every per-point dataset of the scan: they are stored in row groups, so that is one
+        request per contiguous span (one for a level), and the level's other reads are cached.
+        A longer read (``info``'s radii, a whole scan for ``view``) gets the chunks of that one
+        dataset, fetched concurrently."""
+        n = self.n_points
+        name = ds.name or ""
+        if ds.shape[:1] != (n,) or not name.startswith(f"{self._g.name}/"):
+            return
+        if name.startswith(f"{self._g.name}/{L.G_ORDERINGS}/") or not isinstance(sel, slice):
+            return
+        from .remote import chunk_ranges
+
+        stop = n if sel.stop is None else min(n, int(sel.stop))
+        rows = ds.chunks[0] if ds.chunks else n
+        if stop <= max(n // 8, 2 * rows):
+            if stop <= self._fetched_rows:
+                return
+            if self._row_datasets is None:
+                g = self._g
+                keys = [L.D_POINTS, L.D_SOURCE_INDEX, L.D_RADIUS, L.D_PARENT]
+                keys += [f"{grp}/{k}" for grp in (L.G_ATTRIBUTES, L.G_IMPORTANCE) if grp in g
+                         for k in g[grp]]
+                self._row_datasets = [g[k] for k in keys if k in g and g[k].shape[:1] == (n,)]
+            ranges = []
+            for d in self._row_datasets:
+                ranges += chunk_ranges(d, self._fetched_rows, stop)
+            self._fetched_rows = stop
+        else:
+            start = 0 if sel.start is None else max(0, int(sel.start))
+            done = self._fetched_ds.get(name, (0, 0))
+            if done[0] <= start and stop <= done[1]:
+                return
+            ranges = chunk_ranges(ds, start, stop)
+            self._fetched_ds[name] = (start, stop)
+        self._io.prefetch(ranges)
 
     def dataset(self, rel: str) -> Any:
         return self._g[rel]

@@ -34,6 +34,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--k", type=int, help="neighbours per surface fit (default 8 plane, 16 mls)")
     p.add_argument("--plot", metavar="OUT.png", help="plot error vs size and radius vs rank")
+    p.add_argument(
+        "--gaps",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="also list the gaps at each --rhos value: enclosed regions of the surface farther "
+        "than rho from every input point, up to MAX_HOLE rho wide (default 12), with their area "
+        "and bounding box (they are what 'slice --fill' fills)",
+    )
     from .output import add_json_option
 
     add_json_option(p, to_file=True)
@@ -74,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
         check_output(args.plot, "--plot", inputs=inputs, suffixes=(".png",))
     if args.k is not None and args.k < 3:
         raise InputError(f"--k must be at least 3, got {args.k}")
+    if args.gaps is not None and not args.rhos:
+        raise InputError("--gaps needs --rhos R [R ...] (the densities whose gaps are listed)")
     if args.plot:
         from .._optional import require
 
@@ -93,7 +105,13 @@ def run(args: argparse.Namespace) -> int:
             k=args.k,
             progress=bars,
         )
-    emit(args, ev.as_dict(), lambda: _table(ev))
+    doc, gaps = ev.as_dict(), []
+    if args.gaps is not None:
+        from ..sampling.fill import archive_gaps
+
+        gaps = archive_gaps(args.archive, args.scan, args.rhos, max_hole=args.gaps)
+        doc["gaps"] = [g.as_dict() for g in gaps]
+    emit(args, doc, lambda: "\n".join([_table(ev)] + [g.table() for g in gaps]))
     if args.plot:
         from ..quality.plots import plot_quality
 

@@ -80,15 +80,13 @@ def crs_line(s: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
     from ..archive.reader import open_archive
 
     with open_archive(args.archive) as arc:
         names = [args.scan] if args.scan else arc.scans
         info: dict[str, Any] = {
             "path": str(arc.path),
-            "file_size": os.path.getsize(arc.path),
+            "file_size": arc.nbytes,
             "schema_version": arc.schema_version,
             "lodbuilder_version": arc.lodbuilder_version,
             "scans": [scan_info(arc.scan(n)) for n in names],

@@ -51,6 +51,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="write the --rho level of every scan of the archive, merged, with a scan_id attribute",
     )
     p.add_argument(
+        "--fill",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="add synthetic points (attribute synthetic = 1) in the enclosed holes of the scan "
+        "up to MAX_HOLE rho wide (default 12), so that the level meets --rho there too",
+    )
+    p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
     p.add_argument(
@@ -95,15 +104,23 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
     if args.box is not None and args.viewpoint is not None:
         raise InputError("give either --box or --viewpoint, not both")
+    if args.fill is not None:
+        _check_fill(args)
     if getattr(args, "all_scans", False):
         from .collection_options import slice_all
 
         return slice_all(args)
 
     t0 = time.perf_counter()
+    filled = None
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        if args.box is not None:
+        if args.fill is not None:
+            from ..sampling.fill import fill_level
+
+            filled = fill_level(view, args.rho, max_hole=args.fill)
+            level = filled.level
+        elif args.box is not None:
             level = view.refine_box(args.box, args.box_rho, args.rho)
         elif args.viewpoint is not None:
             level = view.refine_viewpoint(args.viewpoint, args.rho, args.slope, args.rho_max)
@@ -145,12 +162,30 @@ def run(args: argparse.Namespace) -> int:
         "units": level.units,
         "changes": changes,
     }
+    what = f"{level.size} of {view.n_points} points"
+    if filled is not None:
+        doc["synthetic"] = filled.n_synthetic
+        what = filled.summary(view.n_points)
     emit(
         args,
         doc,
         "\n".join(
-            [f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} ({note})"]
+            [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
             + [f"  changed: {line}" for line in changes]
         ),
     )
     return 0
+
+
+def _check_fill(args: argparse.Namespace) -> None:
+    from ..errors import InputError
+
+    if args.rho is None:
+        raise InputError("--fill needs --rho R (the density the filled level meets)")
+    if args.box is not None or args.viewpoint is not None or args.ordering not in (None, "uniform"):
+        raise InputError(
+            "--fill fills the plain --rho level of the uniform ordering; leave out --box, "
+            "--viewpoint and --ordering"
+        )
+    if getattr(args, "all_scans", False) or getattr(args, "floor_rho", None) is not None:
+        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")

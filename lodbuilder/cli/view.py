@@ -8,7 +8,10 @@ import sys
 
 from ..errors import InputError
 
-MODES_HELP = "rgb, radius, rank, importance[:NAME], scan, voronoi"
+MODES_HELP = (
+    "rgb, radius, rank, importance[:NAME], scan, voronoi, gaps (red: near a hole the level "
+    "cannot cover at its rho, filled by 'slice --fill'; orange: near a rough one, not filled)"
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:

@@ -131,6 +131,7 @@ def _prepare_attributes(points: np.ndarray, attributes: Any, rank: Any) -> dict[
 SIDECAR_CRS = ("text", "npy")
 
 
+@strict_keywords
 @contextlib.contextmanager
 def collect_notes() -> Iterator[list[str]]:
     """Collect the warnings lodbuilder.io logs while the block runs (what readers and writers

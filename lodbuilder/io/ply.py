@@ -12,6 +12,7 @@ import io
 import itertools
 import json
 import logging
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -283,8 +284,10 @@ def _read_plyfile(f: Any, path: Path, header: Any, vi: int) -> np.ndarray:
 
     stream = io.TextIOWrapper(f, "ascii") if header.text else f
     try:
-        for e in header.elements[: vi + 1]:
-            e._read(stream, header.text, header.byte_order, False, known_list_len={})
+        with warnings.catch_warnings():  # numpy's note on every empty ascii list ("no data")
+            warnings.filterwarnings("ignore", message="loadtxt: input contained no data", category=UserWarning)
+            for e in header.elements[: vi + 1]:
+                e._read(stream, header.text, header.byte_order, False, known_list_len={})
         return np.asarray(header.elements[vi].data)
     except PlyParseError as exc:
         raise FormatError(f"{path}: malformed PLY body ({_one_line(exc)}); re-export the scan") from None

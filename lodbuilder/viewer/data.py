@@ -18,6 +18,11 @@ from .._validate import strict_keywords, strict_methods
 from ..errors import InputError
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
+#: modes whose colours depend on the level shown (recomputed when it changes); ``gaps`` is asked
+#: for by name (``--colour gaps``), not cycled through: it searches the level for holes
+LEVEL_MODES = ("voronoi", "gaps")
+#: ``gaps`` colours: away from gaps, near a fillable gap, near a rough one
+GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
 
 #: the unit of each built-in importance map (lodbuilder.features.registry), for the legend
 IMPORTANCE_UNITS = {
@@ -95,6 +100,7 @@ class ViewData:
         if self.scan_id is None:
             self.scan_id = np.zeros(n, dtype=np.int32)
         self._cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._gap_cache: tuple[int, np.ndarray] | None = None
         self._normals: np.ndarray | None = None
         finite = self.radius[np.isfinite(self.radius) & (self.radius > 0)]
         self._rmax = float(finite.max()) if finite.size else 1.0
@@ -210,6 +216,26 @@ class ViewData:
                 self._normals = np.ascontiguousarray(pca_normals(self.points, k=k), np.float32)
         return self._normals
 
+    def gap_codes(self, shown: int | np.ndarray) -> np.ndarray:
+        """(N,) 0 / 1 / 2: away from gaps / near a fillable gap / near a rough one, at the level
+        shown (its prefix part, for a level refined in a box); see
+        :func:`lodbuilder.sampling.fill.near_gaps`."""
+        from ..sampling.fill import SAMPLE_FRACTION, near_gaps
+
+        if np.isscalar(shown):
+            k = self.clamp_size(shown)  # type: ignore[arg-type]
+        else:
+            pos = np.asarray(shown, dtype=np.int64)
+            off = np.flatnonzero(pos != np.arange(pos.size))
+            k = max(1, int(off[0]) if off.size else int(pos.size))
+        if self._gap_cache is None or self._gap_cache[0] != k:
+            rho = self.rho_for_size(k)
+            codes = np.zeros(len(self), dtype=np.uint8)
+            if rho > 0:
+                codes = near_gaps(self.points, k, self.size_for_rho(SAMPLE_FRACTION * rho), rho)
+            self._gap_cache = (k, codes)
+        return self._gap_cache[1]
+
     # ---- colour modes -------------------------------------------------------------------------
 
     def colour_modes(self) -> list[str]:
@@ -225,6 +251,8 @@ class ViewData:
         return modes
 
     def check_mode(self, mode: str) -> str:
+        if mode == "gaps":
+            return mode
         modes = self.colour_modes()
         if mode == "importance" and any(m.startswith("importance:") for m in modes):
             mode = next(m for m in modes if m.startswith("importance:"))
@@ -267,6 +295,8 @@ class ViewData:
             return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
             return categorical(self.cells(shown)[sel])
+        if mode == "gaps":
+            return GAP_COLOURS[self.gap_codes(shown)[sel]]
         legend = self.legend(mode)
         assert legend is not None
         if mode == "radius":
