@@ -304,3 +304,29 @@ def test_export_does_not_import_copclib_for_a_web_page(autzen, tmp_path):
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_export_from_an_archive_over_http(tmp_path):
+    """export reads the archive through open_archive, so an https:// (here http://127.0.0.1)
+    archive gives the same files as the local one."""
+    pytest.importorskip("fsspec")
+    from rangeserver import RangeServer  # (tests/rangeserver.py)
+
+    import lodbuilder
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    root = tmp_path / "served"
+    root.mkdir()
+    lodbuilder.build_archive(demo_scan(4000, seed=4), root / "d.h5", name="d")
+    with RangeServer(root) as srv:
+        for suffix in (".copc.laz", ".html"):
+            outs = []
+            for src in (str(root / "d.h5"), srv.url("d.h5")):
+                out = tmp_path / f"{len(outs)}{suffix}"
+                assert main(["export", src, "--size", "3000", "-o", str(out), "-q"]) == 0
+                outs.append(out)
+            if suffix == ".html":
+                assert outs[0].read_bytes() == outs[1].read_bytes()
+            else:
+                a, b = (laspy.read(str(o)) for o in outs)
+                assert np.array_equal(a.points.array, b.points.array)

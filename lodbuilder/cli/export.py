@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from .output import check_output, emit
 
-    arc_path = Path(args.archive)
+    arc_path = args.archive  # (a path or an https:// / s3:// URL: open_archive reads both)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
     fmt = output_format(out)
     web = fmt == "web page"
