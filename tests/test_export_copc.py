@@ -278,12 +278,12 @@ def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
     for args, message in cases:
         assert main(["export", arc] + args) == 2
         assert capsys.readouterr().err == f"lodbuilder export: error: {message}\n"
-    # slice does not write a plain LAZ under a COPC name any more
+    # slice does not write a plain LAZ under a COPC name (the io layer's rule: see test_io_writers)
     out = tmp_path / "s.copc.laz"
     assert main(["slice", arc, "--size", "10", "-o", str(out)]) == 2
     assert capsys.readouterr().err == (
-        f"lodbuilder slice: error: -o {out}: slice writes a plain LAZ, not a COPC octree; use "
-        f"lodbuilder export ARCHIVE [--rho R | --size N] -o {out}\n"
+        f"lodbuilder slice: error: {out}: cannot write a COPC file (only plain LAS/LAZ); use "
+        f"lodbuilder export ARCHIVE -o {out} (in Python: lodbuilder.export.copc.export_copc)\n"
     )
     with pytest.raises(InputError, match=r"^attribute 'rank' would clash with the rank the COPC"):
         write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {"rank": np.zeros(2)}, np.ones(2), 0)

@@ -67,6 +67,23 @@ def test_scale_from_the_point_spacing(tmp_path, shared_data):
     assert np.abs(np.stack([las.x, las.y, las.z], 1) - scan.points).max() <= 0.5e-6 * (1 + 1e-6)
 
 
+def test_a_copc_name_is_refused_not_written_as_plain_laz(tmp_path):
+    """Before: write_points("x.copc.laz", ...) wrote a plain LAZ under a COPC name."""
+    from lodbuilder.errors import UnsupportedFormatError
+
+    pts, attrs = _ply_like()
+    for name in ("x.copc.laz", "Y.COPC.LAZ"):
+        out = tmp_path / name
+        with pytest.raises(UnsupportedFormatError) as info:
+            write_points(out, pts, attrs)
+        assert str(info.value) == (
+            f"{out}: cannot write a COPC file (only plain LAS/LAZ); use lodbuilder export ARCHIVE "
+            f"-o {out} (in Python: lodbuilder.export.copc.export_copc)"
+        )
+    assert list(tmp_path.iterdir()) == []
+    assert read_scan(write_points(tmp_path / "copc.laz", pts, attrs)).points.shape == pts.shape
+
+
 def test_las_source_scale_and_format_kept(tmp_path, shared_data):
     scan = read_scan(shared_data / "simple.las")
     las = laspy.read(str(write_scan(tmp_path / "s.las", scan)))

@@ -36,7 +36,7 @@ READERS: dict[str, str] = {
 WRITERS: dict[str, str] = {
     ".ply": "ply",
     ".las": "las",
-    ".laz": "las",
+    ".laz": "las",  # not .copc.laz: see writer_for
     ".npy": "npy",
     ".npz": "npy",
     ".csv": "text",
@@ -80,5 +80,14 @@ def reader_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
 
 
 def writer_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
-    """(format name, module) that writes ``path``, or UnsupportedFormatError."""
+    """(format name, module) that writes ``path``, or UnsupportedFormatError.
+
+    A ``.copc.laz`` name is refused: a COPC file is an octree of levels that only
+    ``lodbuilder export`` (:func:`lodbuilder.export.copc.export_copc`) writes; the LAS writer
+    would put a plain LAZ under that name."""
+    if Path(path).name.lower().endswith(".copc.laz"):
+        raise UnsupportedFormatError(
+            f"{path}: cannot write a COPC file (only plain LAS/LAZ); use lodbuilder export ARCHIVE "
+            f"-o {path} (in Python: lodbuilder.export.copc.export_copc)"
+        )
     return _lookup(path, WRITERS, "cannot write", "known output suffixes")
