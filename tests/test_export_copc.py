@@ -120,6 +120,10 @@ def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc
                 "red", "green", "blue", "scan_direction_flag", "edge_of_flight_line"):
         np.testing.assert_array_equal(np.asarray(out[dim]), np.asarray(src[dim])[src_i], dim)
     np.testing.assert_array_equal(np.asarray(out["scan_angle_rank"]), np.asarray(src.scan_angle_rank)[src_i])
+    # format 7's own scan_angle field (0.006-degree units) for viewers; it was left 0 before
+    angle = np.rint(np.asarray(src.scan_angle_rank, dtype=np.float64)[src_i] / 0.006)
+    assert np.count_nonzero(angle) > 100000
+    np.testing.assert_array_equal(np.asarray(out["scan_angle"]), angle)
     assert sorted(rank.tolist()) == list(range(110000))
     np.testing.assert_array_equal(
         np.asarray(out["radius"]), np.asarray(lodbuilder.open_archive(autzen).scan().radius)[rank]

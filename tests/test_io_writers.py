@@ -253,13 +253,44 @@ def test_las_layout_to_another_point_format(shared_data, tmp_path):
     lay = las_layout(scan.points, scan.attributes, scan.metadata, point_format=7, version="1.4")
     assert (lay.point_format, lay.version, lay.wkt_bit, lay.write_wkt_vlr) == (7, "1.4", True, True)
     assert [d.name for d in lay.extra_dims] == ["scan_angle_rank"]
+    # format 7's scan_angle (0.006-degree units) holds format 3's scan_angle_rank (degrees) for
+    # viewers; before, it was left 0 (the exact degrees stay in the extra bytes)
+    assert lay.notes == [
+        "scan_angle: filled from scan_angle_rank (degrees to 0.006-degree units, rounded); "
+        "scan_angle_rank keeps its exact values in extra bytes"
+    ]
+    rank = scan.attributes["scan_angle_rank"]
+    assert rank.min() == -19 and rank.max() == 18
+    want = np.rint(rank.astype(np.float64) / 0.006).astype(np.int16)
     out = tmp_path / "c.las"
     lay.las_data(scan.points).write(str(out))
+    las = laspy.read(str(out))
+    np.testing.assert_array_equal(np.asarray(las["scan_angle"]), want)
+    assert np.abs(want * 0.006 - rank).max() <= 0.003
     back = read_scan(out)
     assert back.metadata["las_point_format"] == 7 and back.metadata["crs_wkt"] == WKT_UTM33
     np.testing.assert_array_equal(back.points, scan.points)
     for k, v in scan.attributes.items():
         np.testing.assert_array_equal(back.attributes[k], v, err_msg=k)
+    np.testing.assert_array_equal(back.attributes["scan_angle"], want)
+    # written again (format 7 kept), both fields come back as they are: no note, nothing lost
+    again = las_layout(back.points, back.attributes, back.metadata)
+    assert again.point_format == 7 and again.notes == []
+    np.testing.assert_array_equal(again.dimensions["scan_angle"], want)
+
+
+def test_scan_angle_to_an_older_point_format():
+    """The other way (6-10 -> 0-5): scan_angle_rank gets the whole degrees, clipped to int8."""
+    from lodbuilder.io.las import las_layout
+
+    angle = np.array([0, 1, -2, 15000, -30000, 30000], dtype=np.int16)
+    lay = las_layout(np.zeros((6, 3)), {"scan_angle": angle}, point_format=1, version="1.2")
+    np.testing.assert_array_equal(lay.dimensions["scan_angle_rank"], [0, 0, -0, 90, -128, 127])
+    assert [d.name for d in lay.extra_dims] == ["scan_angle"]
+    assert lay.notes == [
+        "scan_angle_rank: filled from scan_angle (0.006-degree units to degrees, rounded; 2 "
+        "value(s) clipped to [-128, 127]); scan_angle keeps its exact values in extra bytes"
+    ]
 
 
 def test_vector_attribute_flattened_with_a_note(tmp_path):
