@@ -109,10 +109,15 @@ def test_no_crs_no_wkt_bit(tmp_path):
 
 def test_every_cast_is_a_warning(tmp_path, caplog):
     pts, attrs = _ply_like()
-    with caplog.at_level(logging.WARNING, logger="lodbuilder.io"), collect_notes() as notes:
-        write_points(tmp_path / "x.las", pts, attrs)
     p = tmp_path / "x.las"
-    assert notes == [
+    with caplog.at_level(logging.WARNING, logger="lodbuilder.io"):
+        write_points(p, pts, attrs)
+        logged = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        caplog.clear()
+        with collect_notes() as notes:  # a command's report takes them out of the log
+            write_points(p, pts, attrs)
+        assert caplog.records == []
+    assert logged == notes == [
         f"{p}: coordinates quantised to scale 0.0001 (error <= 5e-05) with offset 0, 0, 0",
         f"{p}: intensity: float32 values do not fit the LAS field; exact values in extra bytes 'intensity_float32', "
         "the standard field holds a scaled copy (mapped [0, 0.998559] -> [0, 65535])",
@@ -120,7 +125,24 @@ def test_every_cast_is_a_warning(tmp_path, caplog):
         f"{p}: green: 8-bit values scaled x 257 into the 16-bit LAS field",
         f"{p}: blue: 8-bit values scaled x 257 into the 16-bit LAS field",
     ]
-    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == notes
+    assert logging.getLogger("lodbuilder.io").propagate  # left as it was
+
+
+def test_collect_notes_whatever_the_level_and_passes_the_rest_on(tmp_path, caplog):
+    """Warnings below the log level (``-q``) are still collected; INFO lines still reach the log."""
+    pts, attrs = _ply_like()
+    lg = logging.getLogger("lodbuilder")
+    for level, info in ((logging.ERROR, []), (logging.INFO, [f"wrote 200 points to {tmp_path / 'q.las'} (las)"])):
+        caplog.clear()
+        old = lg.level
+        lg.setLevel(level)
+        try:
+            with collect_notes() as notes:
+                write_points(tmp_path / "q.las", pts, attrs)
+        finally:
+            lg.setLevel(old)
+        assert len(notes) == 5
+        assert [r.getMessage() for r in caplog.records if r.name.startswith("lodbuilder")] == info
 
 
 def test_las_layout_is_public_and_plain(shared_data):

@@ -27,7 +27,6 @@ lodbuilder[copc]``).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import struct
@@ -39,8 +38,6 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, MissingDependencyError
-
-log = logging.getLogger(__name__)
 
 #: about this many points in the root node: the spacing s0 is twice the insertion radius there
 ROOT_POINTS = 10_000
@@ -222,9 +219,11 @@ def write_copc(
 
     ``attributes`` are written as LAS fields or extra bytes by :func:`lodbuilder.io.las.las_layout`
     with ``metadata`` (the scan's format metadata: LAS scale/offset, CRS...), plus ``rank`` and
-    ``radius`` extra bytes."""
+    ``radius`` extra bytes. What the mapping changed is in ``notes`` and logged as warnings of
+    lodbuilder.io, as :func:`lodbuilder.io.write_points` does."""
     copclib = _copclib()
     from ..io._files import atomic_output, check_output_path
+    from ..io.api import log_notes
     from ..io.las import las_layout
 
     out = Path(out)
@@ -338,8 +337,7 @@ def write_copc(
             json.dumps(doc, allow_nan=False).encode("utf-8"),
         )
         n_bytes = tmp.stat().st_size
-    for note in layout.notes:
-        log.info("%s: %s", out, note)
+    log_notes(out, layout.notes)
     return CopcFile(
         path=out,
         n_points=k,
