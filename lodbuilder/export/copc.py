@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, MissingDependencyError
+from . import check_level_output
 
 #: about this many points in the root node: the spacing s0 is twice the insertion radius there
 ROOT_POINTS = 10_000
@@ -222,21 +223,12 @@ def write_copc(
     ``radius`` extra bytes. What the mapping changed is in ``notes`` and logged as warnings of
     lodbuilder.io, as :func:`lodbuilder.io.write_points` does."""
     copclib = _copclib()
-    from ..io._files import atomic_output, check_output_path
+    from ..io._files import atomic_output
     from ..io.api import log_notes
     from ..io.las import las_layout
 
-    out = Path(out)
-    if not out.name.lower().endswith(".copc.laz"):
-        raise InputError(f"COPC output {out} must end in .copc.laz")
-    check_output_path(out)
-    pts = np.ascontiguousarray(points, dtype=np.float64)
+    out, pts, radius = check_level_output(out, "COPC output", (".copc.laz",), points, radius)
     k = pts.shape[0]
-    if pts.ndim != 2 or pts.shape[1] != 3 or k == 0:
-        raise InputError(f"points must have shape (K, 3) with K >= 1, got {pts.shape}")
-    radius = np.asarray(radius, dtype=np.float64)
-    if radius.shape != (k,):
-        raise InputError(f"radius must have shape ({k},) like the points, got {radius.shape}")
     for reserved in ("rank", "radius"):
         if reserved in attributes:
             raise InputError(
@@ -386,16 +378,13 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int) -> CopcFile:
         key = f"importance_{m}"[:32]
         if key not in attrs:
             attrs[key] = np.asarray(scan.importance(m)[:size], dtype=np.float32)
-    meta = dict(scan.format_metadata)
-    if scan.crs and not meta.get("crs_wkt"):
-        meta["crs_wkt"] = scan.crs
     return write_copc(
         out,
         level.points,
         attrs,
         level.radius,
         level.rho,
-        metadata=meta,
+        metadata=scan.format_metadata,  # (the CRS included: ScanView.crs is read from it)
         n_total=scan.n_ordered,
         name=scan.name,
     )
