@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, MissingDependencyError
+from ..errors import InputError
 from . import check_level_output
 
 #: about this many points in the root node: the spacing s0 is twice the insertion radius there
@@ -76,13 +76,9 @@ class CopcFile:
 
 
 def _copclib() -> Any:
-    try:
-        import copclib
-    except ImportError:
-        raise MissingDependencyError(
-            "COPC export needs copclib; install it with: pip install 'lodbuilder[copc]'"
-        ) from None
-    return copclib
+    from .._optional import require
+
+    return require("copclib", "COPC export")
 
 
 def copc_point_format(metadata: dict[str, Any], attribute_names: set[str]) -> int:

@@ -34,7 +34,6 @@ from .crs import KEY_SOURCE, KEY_WKT, normalise_wkt, pyproj_wkt, set_crs
 
 log = logging.getLogger(__name__)
 
-_HINT = "pip install lodbuilder[las]"
 #: description prefix of an extra-bytes dimension that holds the exact values of a standard field
 EXACT_PREFIX = "lodbuilder exact "
 _COLOURS = ("red", "green", "blue", "nir")
@@ -50,16 +49,16 @@ _TWINS = {
 
 
 def _laspy(path: Path | str) -> Any:
-    try:
-        import laspy
-    except ImportError:
-        raise MissingDependencyError(f"{path}: LAS/LAZ files need laspy with lazrs; {_HINT}") from None
-    return laspy
+    from .._optional import require
+
+    return require("laspy", f"{path}: LAS/LAZ")
 
 
 def _check_laz_backend(laspy: Any, path: Path) -> None:
     if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
-        raise MissingDependencyError(f"{path}: LAZ files need a LAZ backend (lazrs); {_HINT}")
+        from .._optional import missing_message
+
+        raise MissingDependencyError(missing_message("lazrs", f"{path}: LAZ"))
 
 
 @contextlib.contextmanager
@@ -564,12 +563,16 @@ def _geotiff_vlrs(wkt: str) -> list[dict[str, Any]]:
     return out
 
 
+def check_output(path: Path) -> None:
+    """Refuse, before any work, a LAS/LAZ output this installation cannot write (no laspy, or
+    no LAZ backend for .laz); see ``registry.writer_for``."""
+    _check_laz_backend(_laspy(path), path)
+
+
 def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> list[str]:
-    """Write through :func:`las_layout`; returns its notes (what was changed)."""
-    laspy = _laspy(path)
+    """Write through :func:`las_layout` (``check_output`` has run); returns its notes (what was
+    changed)."""
     compress = path.suffix.lower() == ".laz"
-    if compress:
-        _check_laz_backend(laspy, path)
     layout = las_layout(points, attributes, metadata)
     las = layout.las_data(points)
     with open(path, "wb") as f:
