@@ -94,6 +94,12 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
+def exc_line(exc: BaseException) -> str:
+    """An exception's message on one line (white space folded), or its class name when it has
+    none: the ``(...)`` part of the errors and warnings of lodbuilder.io."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 @strict_keywords
 def file_sha256(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
     """Hex SHA-256 of a file's bytes."""

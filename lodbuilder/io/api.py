@@ -13,7 +13,7 @@ import numpy as np
 
 from .._validate import strict_keywords
 from ..errors import FormatError, InputError, LodbuilderError, ScanFileError
-from ._files import atomic_output, check_input_file
+from ._files import atomic_output, check_input_file, exc_line
 from .base import Scan
 from .crs import KEY_UNITS, KEY_WKT, assign_crs, crs_from_user, sidecar
 from .registry import reader_for, writer_for
@@ -21,10 +21,6 @@ from .registry import reader_for, writer_for
 log = logging.getLogger(__name__)
 
 PathLike = str | os.PathLike[str]
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 @strict_keywords
@@ -50,9 +46,9 @@ def read_scans(path: PathLike, *, crs: str | None = None, crs_override: bool = F
     except MemoryError:
         raise FormatError(f"{p}: too large to load into memory; split the scan or use a machine with more memory") from None
     except OSError as exc:
-        raise ScanFileError(f"{p}: cannot be read ({_one_line(exc)}); check the file") from None
+        raise ScanFileError(f"{p}: cannot be read ({exc_line(exc)}); check the file") from None
     except Exception as exc:  # a parser library's own error on a malformed file
-        raise FormatError(f"{p}: cannot be read as {fmt.upper()} ({_one_line(exc)}); check or re-export the file") from exc
+        raise FormatError(f"{p}: cannot be read as {fmt.upper()} ({exc_line(exc)}); check or re-export the file") from exc
     if not scans:
         raise FormatError(f"{p}: holds no scans; nothing to read")
     for s in scans:
@@ -249,7 +245,7 @@ def write_points(
         except LodbuilderError:
             raise
         except OSError as exc:
-            raise ScanFileError(f"{path}: cannot be written ({_one_line(exc)}); check the disk and permissions") from None
+            raise ScanFileError(f"{path}: cannot be written ({exc_line(exc)}); check the disk and permissions") from None
     log_notes(path, notes)
     log.info("wrote %d points to %s (%s)", pts.shape[0], path, fmt)
     return Path(path)

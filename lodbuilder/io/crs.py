@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError, MissingDependencyError
+from ._files import exc_line
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +89,7 @@ def to_wkt(text: Any, *, what: str) -> str | None:
     try:
         return pyproj_wkt(pyproj.CRS.from_user_input(s))
     except Exception as exc:  # pyproj.exceptions.CRSError and friends
-        log.warning("%s: CRS %r is not understood (%s); CRS unknown", what, s[:80], " ".join(str(exc).split()))
+        log.warning("%s: CRS %r is not understood (%s); CRS unknown", what, s[:80], exc_line(exc))
         return None
 
 
@@ -116,7 +117,7 @@ def crs_from_user(spec: Any) -> str:
         crs = pyproj.CRS.from_user_input(s)
     except Exception as exc:
         raise InputError(
-            f"crs {spec[:80]!r} is not a CRS pyproj understands ({' '.join(str(exc).split())[:200]}); "
+            f"crs {spec[:80]!r} is not a CRS pyproj understands ({exc_line(exc)[:200]}); "
             "give EPSG:XXXX or WKT text"
         ) from None
     return s if looks_like_wkt(s) else pyproj_wkt(crs)

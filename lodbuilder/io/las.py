@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError, InputError, MissingDependencyError
+from ._files import exc_line
 from .base import Scan
 from .crs import KEY_SOURCE, KEY_WKT, normalise_wkt, pyproj_wkt, set_crs
 
@@ -85,7 +86,7 @@ def _file_crs(hdr: Any) -> str | None:
     except ImportError:  # GeoTIFF keys need pyproj: CRS unknown, the raw VLRs still travel
         return None
     except Exception as exc:
-        log.warning("LAS CRS keys not understood (%s); CRS unknown", " ".join(str(exc).split()))
+        log.warning("LAS CRS keys not understood (%s); CRS unknown", exc_line(exc))
         return None
     return None if crs is None else pyproj_wkt(crs)
 
@@ -97,8 +98,7 @@ def read(path: Path) -> list[Scan]:
         with _quiet_laspy():
             las = laspy.read(str(path))
     except laspy.errors.LaspyException as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: not a readable LAS/LAZ file ({msg}); check or re-export it") from None
+        raise FormatError(f"{path}: not a readable LAS/LAZ file ({exc_line(exc)}); check or re-export it") from None
     hdr = las.header
     pts = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
     attrs: dict[str, np.ndarray] = {}
@@ -221,8 +221,7 @@ class LasLayout:
             try:
                 las[name] = arr
             except (ValueError, OverflowError, TypeError) as exc:
-                msg = " ".join(str(exc).split())
-                raise InputError(f"attribute {name!r} does not fit LAS dimension {name!r} ({msg}); rename or rescale it") from None
+                raise InputError(f"attribute {name!r} does not fit LAS dimension {name!r} ({exc_line(exc)}); rename or rescale it") from None
         return las
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ._files import exc_line
 from .base import Scan
 from .crs import KEY_WKT, read_sidecar, set_crs, to_wkt
 
@@ -29,11 +30,9 @@ def _load(path: Path) -> Any:
     try:
         return np.load(path, allow_pickle=False)
     except ValueError as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: not a readable NumPy file ({msg}); save it with numpy.save / numpy.savez") from None
+        raise FormatError(f"{path}: not a readable NumPy file ({exc_line(exc)}); save it with numpy.save / numpy.savez") from None
     except (EOFError, OSError) as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: truncated or damaged NumPy file ({msg}); save it again") from None
+        raise FormatError(f"{path}: truncated or damaged NumPy file ({exc_line(exc)}); save it again") from None
 
 
 def _from_structured(path: Path, arr: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ._files import exc_line
 from .base import Scan
 
 log = logging.getLogger(__name__)
@@ -113,13 +114,9 @@ def _parse_header(f: Any, path: Path, notes: list[str] | None = None) -> Any:
     try:
         return PlyData._parse_header(io.BytesIO(head))
     except PlyParseError as exc:
-        raise FormatError(f"{path}: not a valid PLY header ({_one_line(exc)}); check that it is a PLY file") from None
+        raise FormatError(f"{path}: not a valid PLY header ({exc_line(exc)}); check that it is a PLY file") from None
     except (UnicodeDecodeError, ValueError) as exc:
-        raise FormatError(f"{path}: not a valid PLY header ({_one_line(exc)}); check that it is a PLY file") from None
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
+        raise FormatError(f"{path}: not a valid PLY header ({exc_line(exc)}); check that it is a PLY file") from None
 
 
 def _has_lists(element: Any) -> bool:
@@ -267,7 +264,7 @@ def _read_ascii(f, path, size, body_start, before, vertex, count):
     try:
         table = np.loadtxt(io.BytesIO(b"".join(lines)), dtype=np.float64, ndmin=2, comments=None)
     except ValueError as exc:
-        raise FormatError(f"{path}: malformed PLY vertex line ({_one_line(exc)}); re-export the scan") from None
+        raise FormatError(f"{path}: malformed PLY vertex line ({exc_line(exc)}); re-export the scan") from None
     if table.shape != (count, nprops):
         raise FormatError(
             f"{path}: PLY vertex lines hold {table.shape[1]} values each, the header declares {nprops}; re-export the scan"
@@ -290,9 +287,9 @@ def _read_plyfile(f: Any, path: Path, header: Any, vi: int) -> np.ndarray:
                 e._read(stream, header.text, header.byte_order, False, known_list_len={})
         return np.asarray(header.elements[vi].data)
     except PlyParseError as exc:
-        raise FormatError(f"{path}: malformed PLY body ({_one_line(exc)}); re-export the scan") from None
+        raise FormatError(f"{path}: malformed PLY body ({exc_line(exc)}); re-export the scan") from None
     except (ValueError, EOFError, MemoryError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: malformed PLY body ({_one_line(exc)}); re-export the scan") from None
+        raise FormatError(f"{path}: malformed PLY body ({exc_line(exc)}); re-export the scan") from None
     finally:
         if header.text:
             stream.detach()

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ._files import exc_line
 from .base import Scan
 from .crs import read_sidecar, set_crs
 
@@ -71,8 +72,7 @@ def read(path: Path) -> list[Scan]:
     try:
         table = np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip, comments="#", ndmin=2)
     except ValueError as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: malformed line in text scan ({msg}); every line needs the same number of values") from None
+        raise FormatError(f"{path}: malformed line in text scan ({exc_line(exc)}); every line needs the same number of values") from None
     ncol = table.shape[1]
     names = _column_names(path, header, ncol, table)
     lower = [n.lower() for n in names]
