@@ -193,3 +193,10 @@ def test_atomic_output_never_creates_a_directory(tmp_path):
         pass
     assert str(info.value) == f"{out}: output directory {tmp_path / 'new'} does not exist; create it first"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_exc_line_folds_white_space_and_names_a_silent_exception():
+    from lodbuilder.io._files import exc_line
+
+    assert exc_line(ValueError("bad\n  value\tthere ")) == "bad value there"
+    assert exc_line(KeyError()) == "KeyError"  # (a bare "()" in a message said nothing)

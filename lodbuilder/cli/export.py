@@ -24,12 +24,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "web page is capped at --max-points)."
         ),
     )
-    p.add_argument("archive", metavar="ARCHIVE")
-    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--rho", type=float, help="covering radius of the level")
-    g.add_argument("--size", type=int, help="number of points")
-    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+    from .slice import add_level_options
+
+    add_level_options(p, required=False)
     p.add_argument(
         "--max-points",
         type=int,

@@ -7,6 +7,17 @@ import time
 from pathlib import Path
 
 
+def add_level_options(p: argparse.ArgumentParser, *, required: bool) -> None:
+    """ARCHIVE, --scan and one of --rho / --size / --fraction: which level of which scan (the
+    options slice and export share)."""
+    p.add_argument("archive", metavar="ARCHIVE")
+    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
+    g = p.add_mutually_exclusive_group(required=required)
+    g.add_argument("--rho", type=float, help="covering radius of the level")
+    g.add_argument("--size", type=int, help="number of points")
+    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "slice",
@@ -18,12 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "grow with the distance from a point (rho = RHO + SLOPE * distance)."
         ),
     )
-    p.add_argument("archive", metavar="ARCHIVE")
-    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--rho", type=float, help="covering radius of the level")
-    g.add_argument("--size", type=int, help="number of points")
-    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+    add_level_options(p, required=True)
     p.add_argument(
         "--box",
         type=float,
