@@ -117,8 +117,9 @@ def test_a_scan_of_an_archive_with_parts_over_http(served, scan, gets):
     # the index (one HEAD, one GET for the whole small file), then the part: its size is in the
     # index (no HEAD), its metadata in the first GET, the level in one GET; a part under 8 MB
     # (small pages, s0: 50k points) has the metadata written last at its end: one GET more
-    assert [m for m, *_ in srv.log] == ["HEAD"] + ["GET"] * (1 + gets), srv.log
-    assert [p for _, p, *_ in srv.log] == ["/many.h5", "/many.h5"] + [f"/many.h5.scans/{part}"] * gets
+    # (the index's HEAD and first GET go out together, in either order)
+    assert sorted((m, p) for m, p, *_ in srv.log[:2]) == [("GET", "/many.h5"), ("HEAD", "/many.h5")]
+    assert [(m, p) for m, p, *_ in srv.log[2:]] == [("GET", f"/many.h5.scans/{part}")] * gets, srv.log
     assert srv.log[2][2] == "bytes=0-65535"
 
 
@@ -268,7 +269,7 @@ def test_a_10k_level_from_s3_in_three_requests(served, s3):
         lev = arc.scan().level(size=10_000)
     log = rec.stop()
     np.testing.assert_array_equal(lev.points, local.points)
-    assert [r["method"] for r in log] == ["HEAD", "GET", "GET"], [(r["method"], r["url"]) for r in log]
+    assert sorted(r["method"] for r in log) == ["GET", "GET", "HEAD"], [(r["method"], r["url"]) for r in log]
     ranges = [r["headers"].get("Range") for r in log if r["method"] == "GET"]
     assert ranges[0] == "bytes=0-65535"
     fetched = sum(int(b) - int(a) + 1 for a, b in (x[6:].split("-") for x in ranges))
