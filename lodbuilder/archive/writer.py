@@ -508,6 +508,7 @@ def _part_info(src: Path) -> PartInfo:
                 "ScanWriter"
             )
         view = arc.scan(rows[0].name)
+        _check_copyable(view)  # nothing stored outside the part, one row per point
         return PartInfo(
             path=src,
             name=view.name,
