@@ -164,6 +164,21 @@ def test_slice_cli_over_http_equals_local(served, tmp_path):
     assert outs[0].dtype == outs[1].dtype and np.array_equal(outs[0], outs[1])
 
 
+@pytest.mark.viewer
+def test_view_screenshot_over_http(served, tmp_path):
+    pytest.importorskip("pyvista")
+    root, srv = served
+    out = tmp_path / "v.png"
+    r = subprocess.run(
+        [sys.executable, "-m", "lodbuilder.cli.main", "view", srv.url("many.h5"), "--scan", "s2",
+         "--screenshot", str(out), "--window-size", "300", "200"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert out.stat().st_size > 1000
+    assert all(p.startswith("/many.h5") for _, p, *_ in srv.log)
+
+
 def test_remote_errors_are_one_line(served, tmp_path):
     root, srv = served
     with pytest.raises(ScanFileError) as err:
