@@ -290,7 +290,7 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     cases = [
         (
             ["-o", str(tmp_path / "x.ply")],
-            f"export {tmp_path / 'x.ply'}: name it OUT.html (web page); "
+            f"-o {tmp_path / 'x.ply'}: name it OUT.copc.laz (COPC) or OUT.html (web page); "
             "for .ply, .las, .laz, .csv, .npy... use lodbuilder slice",
         ),
         (
@@ -300,7 +300,7 @@ def test_export_errors(demo_archive, tmp_path, capsys):
         ),
         (["-o", str(tmp_path / "x.html"), "--max-points", "0"], "--max-points must be at least 1, got 0"),
         (["-o", arc.replace(".h5", ".html"), "--size", "0"], "size must be between 1 and the number of points (3000), got 0"),
-        (["-o", str(tmp_path / "no" / "x.html")], f"{tmp_path / 'no' / 'x.html'}: output directory {tmp_path / 'no'} does not exist; create it first"),
+        (["-o", str(tmp_path / "no" / "x.html")], f"-o {tmp_path / 'no' / 'x.html'}: output directory {tmp_path / 'no'} does not exist; create it first"),
     ]
     for args, message in cases:
         assert main(["export", arc] + args) == 2
@@ -309,4 +309,26 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     assert main(["export", arc, "-o", str(tmp_path / "x.html"), "--max-points", "1000"]) == 0
     assert "wrote 1,000 of 3,000 points" in capsys.readouterr().out
     assert main(["export", arc, "-o", arc]) == 2
-    assert capsys.readouterr().err.startswith("lodbuilder export: error: export")
+    assert capsys.readouterr().err == f"lodbuilder export: error: -o {arc} is the input archive; choose another output\n"
+
+
+def test_web_page_names_the_crs_and_units(shared_data, tmp_path):
+    """autzen_trim.laz carries a CRS in feet: the page's header line and legends say so."""
+    pytest.importorskip("pyproj")
+    import lodbuilder
+
+    arc = tmp_path / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", arc, name="autzen")
+    out = tmp_path / "autzen.html"
+    assert main(["export", str(arc), "--size", "5000", "-o", str(out), "-q"]) == 0
+    header = json.loads(
+        re.search(r'<script id="lod-header" type="application/json">(.*?)</script>',
+                  out.read_text()).group(1)
+    )
+    assert header["info"] == (
+        "autzen: 5,000 of 110,000 points; CRS NAD_1983_HARN_Lambert_Conformal_Conic, "
+        "coordinates in foot"
+    )
+    assert header["unit"] == "foot"
+    assert header["scalars"][0]["title"] == "insertion radius (foot, log)"
+    assert header["rgb"] and header["n"] == 5000 and header["n_total"] == 110000

@@ -227,7 +227,7 @@ def export_web(
         rgb=rgb,
         importance=importance,
         name=scan.name,
-        crs=getattr(scan, "crs", None),
-        units=getattr(scan, "units", None),
+        crs=scan.crs,
+        units=scan.units,
         up=up,
     )
