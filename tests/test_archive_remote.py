@@ -169,6 +169,7 @@ def test_view_screenshot_over_http(served, tmp_path):
     pytest.importorskip("pyvista")
     root, srv = served
     out = tmp_path / "v.png"
+    srv.reset()
     r = subprocess.run(
         [sys.executable, "-m", "lodbuilder.cli.main", "view", srv.url("many.h5"), "--scan", "s2",
          "--screenshot", str(out), "--window-size", "300", "200"],
