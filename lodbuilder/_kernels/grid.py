@@ -121,20 +121,30 @@ def grid_coords(points, perm, origin, h):  # pragma: no cover - compiled
     return u
 
 
+FAR_SEP = 0.4
+OUTER_SEP = 0.2
+DEAD_ZONE = 0.5
 BLOCK_BITS = 4  # the band is built block by block, 16^3 voxels each, in Morton order
 BLOCK = 1 << BLOCK_BITS
 
 
 @nb.njit(**JIT)
-def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compiled
+def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, cap_limit):  # pragma: no cover - compiled
     """The band: every voxel within its points' radius, plus the 8 corners of every occupied cell.
 
     ``u``: (M, 3) grid coordinates sorted by cell (Morton order); ``irad2``/``rad``: (M,) inverse
-    squared and plain band radius of every point in grid units; ``ostart``: (C + 1,) point ranges of
-    the occupied cells. For every voxel v, q2 = min over points i of |u_i - v|^2 / rad_i^2 (its
-    squared *depth ratio*: v is in the band, "marchable", when q2 <= 1; corners of occupied cells
-    farther out are kept with q2 > 1 only so that every cell's corners can be found) and ``foot``,
-    the point achieving it.
+    squared and plain band radius of every point in grid units; ``nin``: (M, 3) unit normals toward
+    the other sheet where a point lies on a thin part (zero elsewhere; or a single row for none);
+    ``ostart``: (C + 1,) point ranges of the occupied cells. Every voxel v gets its ``foot``, the
+    nearest point, and q2 = |u_foot - v|^2 / rad_foot^2 (its squared *depth ratio*). v is in the
+    band ("marchable") when q2 <= 1 and, if its foot lies on a thin part, v is on the foot's side away
+    from the other sheet (up to ``side_tol`` grid units): a one-sided band, decided by the nearest
+    point alone so that a neighbour's misjudged normal near a fold cannot fill the gap (near the
+    surface it may lie up to min(side_tol, 0.4 (psep - 1)) on the gap side). A voxel farther than FAR_SEP x ``psep`` (the foot's separation) from its foot must
+    lie more than OUTER_SEP x ``psep`` on the outer side, so that slightly misjudged normals cannot
+    let voxels near the middle of a gap in. Corners of
+    occupied cells outside the band are kept with q2 > 1 only so that every cell's corners can be
+    found.
 
     Voxels are produced block by block (blocks of BLOCK^3 voxels, in Morton order): each block
     gathers the contributions of the cells within reach into a dense local table and emits its voxels
@@ -143,6 +153,7 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
     """
     ncell = ostart.shape[0] - 1
     nb3 = BLOCK * BLOCK * BLOCK
+    sided = nin.shape[0] == u.shape[0]
     sh = np.uint64(3 * BLOCK_BITS)
     # cells -> anchors and blocks (cells are in Morton order, so each block's cells are contiguous)
     ccx = np.empty(ncell, np.int32)
@@ -180,7 +191,7 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
     lut = np.empty(BLOCK, np.int64)  # local Morton spread of a coordinate
     for t in range(BLOCK):
         lut[t] = np.int64(_split3(t))
-    dq = np.empty(nb3, np.float32)
+    dq = np.empty(nb3, np.float64)  # squared distance to the nearest point, then q2
     df = np.empty(nb3, np.int32)
     dc = np.zeros(nb3, np.uint8)
     cap = max(1024, 2 * u.shape[0])
@@ -253,19 +264,19 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
                                 zb = min(zb, z0 + BLOCK - 1)
                                 lxy = lut[x - x0] | (lut[y - y0] << 1)
                                 for z in range(za, zb + 1):
-                                    q2 = np.inf
+                                    d2 = np.inf
                                     foot = p0
+                                    li = lxy | (lut[z - z0] << 2)
                                     for i in range(p0, p1):
                                         ex = u[i, 0] - x
                                         ey = u[i, 1] - y
                                         ez = u[i, 2] - z
-                                        q = (ex * ex + ey * ey + ez * ez) * irad2[i]
-                                        if q < q2:
-                                            q2 = q
+                                        e2 = ex * ex + ey * ey + ez * ez
+                                        if e2 < d2:
+                                            d2 = e2
                                             foot = i
-                                    li = lxy | (lut[z - z0] << 2)
-                                    if q2 < dq[li]:
-                                        dq[li] = q2
+                                    if d2 < dq[li] or (d2 == dq[li] and foot < df[li]):
+                                        dq[li] = d2
                                         df[li] = foot
                                     if corner and (z == cz or z == cz + 1):
                                         dc[li] = 1
@@ -274,7 +285,33 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
             continue
         base = blk << (3 * BLOCK_BITS)
         for li in range(nb3):
-            if dq[li] <= 1.0 or dc[li] == 1:
+            if dq[li] == np.inf:
+                continue
+            f = df[li]
+            q2 = dq[li] * irad2[f]
+            if q2 <= 1.0 and sided and (nin[f, 0] != 0.0 or nin[f, 1] != 0.0 or nin[f, 2] != 0.0):
+                lx, ly, lz = unmorton(li)
+                side = (
+                    (x0 + lx - u[f, 0]) * nin[f, 0]
+                    + (y0 + ly - u[f, 1]) * nin[f, 1]
+                    + (z0 + lz - u[f, 2]) * nin[f, 2]
+                )
+                # near the surface a voxel may lie a little on the gap side (at most side_tol, and
+                # less than a quarter of what the gap leaves between the two sheets' layers), so
+                # that the band's nearest layer stays close to the surface; away from it, a voxel
+                # must lie clearly on the outer side: a slightly misjudged normal must not let a
+                # voxel near the middle of the gap in
+                far = dq[li] > (FAR_SEP * psep[f]) ** 2
+                tol = min(side_tol, 0.4 * (psep[f] - 1.0))
+                if side > (-OUTER_SEP * psep[f] if far else tol):
+                    q2 = 2.0  # on the gap side of a thin part: not marchable
+                else:
+                    # the band's nearest layer may lie up to 1 - tol off the surface: count the
+                    # depth from DEAD_ZONE of that, so the depth cost adds little bias there
+                    dd = max(np.sqrt(dq[li]) - DEAD_ZONE * (1.0 - tol), 0.0)
+                    q2 = dd * dd * irad2[f]
+            dq[li] = q2
+            if q2 <= 1.0 or dc[li] == 1:
                 if count == cap:
                     cap *= 2
                     keys = np.concatenate((keys, np.empty(cap - count, np.int64)))

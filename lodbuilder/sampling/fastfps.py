@@ -129,7 +129,6 @@ def fastfps(
     return _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
 
 
-TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
 DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
 
 
@@ -162,7 +161,7 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, n
 def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress):
     import time
 
-    from .band import build_band, choose_parameters
+    from .band import TAIL_PER_SEP, TAIL_SLOPE, build_planned_band, plan_band
 
     t0 = time.perf_counter()
     c0 = time.process_time()
@@ -173,11 +172,15 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     # engine seeds: the groups of the seeds, first occurrence, in order
     _, first = np.unique(gid[seed_arr], return_index=True)
     useeds = gid[seed_arr][np.sort(first)]
-    h, r = choose_parameters(upts, voxel_size, band_radius)
-    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
-    k_max = m if size is None else min(m, size)
     report(progress, "band", 0, 1)
-    band = build_band(upts, h, r, max_memory)
+    plan = plan_band(upts, voxel_size, band_radius)
+    found = plan.thin_points
+    band, plan = build_planned_band(upts, plan, max_memory)
+    h, r = plan.h, plan.r
+    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
+    stats["thin_points"] = plan.thin_points
+    stats["thin_points_found"] = found
+    k_max = m if size is None else min(m, size)
     del upts
     stats["band_voxels"] = band.n_voxels
     stats["band_bytes"] = band.nbytes
@@ -204,11 +207,19 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         cmin = 1.0
     from .._kernels.march import euclid_tail, grid_phase
 
+    if plan.separation is None:
+        psep = np.full(1, np.inf, dtype=np.float32)
+        pnrm = np.zeros((1, 3), dtype=np.float32)
+        foot = np.zeros(1, dtype=np.int32)
+    else:
+        psep = (TAIL_PER_SEP / h * plan.separation[band.perm]).astype(np.float32)
+        pnrm = plan.normal[band.perm]
+        foot = band.foot
     rho_g = -1.0 if rho is None else rho / h
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
-        band.u, band.keys, band.nbr, band.cs, vcost, pcost, weighted,
-        seeds_c, k_max, rho_g, TAIL_FACTOR * r / h * cscale, DEBUG,
+        band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
+        TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG,
     )
     del vcost
     t2 = time.perf_counter()
@@ -219,13 +230,14 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     if k < k_max:
         from .._kernels.grid import coarse_runs
 
-        reach = TAIL_FACTOR * r / h * cscale / cmin  # the largest ball of the tail, in voxels
+        reach = plan.handover / h * cscale / cmin  # the largest ball of the tail, in voxels
         levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
         rkey, ridx, rstart, rend = coarse_runs(band.keys, band.cs, levels)
         k = euclid_tail(
             band.u, band.nbr, band.cs, rkey, ridx, rstart, rend, levels, pcost,
-            weighted, cmin, val, lq, rank, order, radius, parent, k, k_max, rho_g,
+            weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
         )
+    del psep, pnrm, foot
     del val, lq, rank
     t3 = time.perf_counter()
     stats["time_tail"] = t3 - t2
