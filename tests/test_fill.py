@@ -320,3 +320,25 @@ def test_farthest_insert_matches_naive(seed, m, k, stop):
     ref_p, ref_r = naive_farthest_insert(cand, existing, stop)
     assert picked.tolist() == ref_p
     np.testing.assert_allclose(radii, ref_r)
+
+
+def test_a_hole_off_the_seeds_centre_is_found(plane):
+    """Seeds gathered on one side of a hole put the grid off its centre: the region reaches the
+    grid's edge there, and the grid is laid again centred on it (not taken for an open border)."""
+    from lodbuilder.sampling.fill.gaps import _regions_of_group
+
+    view = plane.view
+    sample = view.points(view.size_for_rho(SAMPLE_FRACTION * RHO))
+    (c, r) = HOLES[2]  # radius 5 rho: its far part is 9 rho wide, the grid 12 rho
+    seeds = np.array(
+        [
+            [c[0] + 3.2 * RHO + dx, c[1] + dy, 0.0]
+            for dx, dy in ((0, 0), (0.2 * RHO, 0), (0, 0.2 * RHO), (0.2 * RHO, 0.2 * RHO))
+        ]
+    )
+    regions = _regions_of_group(
+        sample, cKDTree(sample), seeds, np.array([0.0, 0.0, 1.0]), RHO, 12 * RHO
+    )
+    assert len(regions) == 1 and regions[0] is not None
+    uv = regions[0].candidates[:, :2]
+    assert np.linalg.norm(uv.mean(axis=0) - c) < 0.2 * RHO  # the whole hole, centred

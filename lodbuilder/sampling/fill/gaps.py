@@ -14,10 +14,12 @@ whole scan for exact distances.
    neighbour) is a local Voronoi vertex of the level: the locally farthest surface point from it.
    Where the angle between the two neighbours is 180 degrees or more (an open side: the scan's
    border or a large hole) probes along the bisector play that part. A vertex farther than rho
-   from the level and farther than rho/2 from the sample is a *seed*. Where no seed exists, the
-   level covers the surface within rho (up to the tangent-plane approximation).
-2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``max_hole * rho`` is open or
-   too large and is left alone.
+   from the level is moved onto the plane of its nearest sample points (same normal: this takes
+   off the surface's curvature) and is a *seed* when it is farther than rho/2 from the sample,
+   in 3D and along that plane. Where no seed exists, the level covers the surface within rho (up
+   to the tangent-plane approximation).
+2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``2 * max_hole * rho`` (a
+   long border) is open and left alone.
 3. **Regions** (per group, in the plane of the seeds' level normals). The sample points around the
    group, near that plane (``|height| <= rho + |distance in the plane| / 2``, which drops other
    sheets across the plane) are projected on it; a square grid of candidate nodes at spacing
@@ -37,7 +39,9 @@ whole scan for exact distances.
 5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
    sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
    than rho from every sample point: its area (node count x node area x the height field's
-   slope factor), bounding box and largest distance are reported.
+   slope factor), bounding box and largest distance are reported. Only regions with a gap are
+   assessed (step 4) and filled; smaller ones (farther than rho/2 but not rho from the input:
+   a real scan's sparse spots) are kept in the search's list, never filled.
 """
 
 from __future__ import annotations
@@ -377,7 +381,9 @@ def find_regions(
 
 def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
     """Regions around one group of seeds (``None`` for each open one): a grid a little wider
-    than the seeds' spread first, then (when a region reaches its edge) ``width`` across."""
+    than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
+    once more centred on the region that reached the edge (the seeds' mean can sit off a
+    hole's centre)."""
     from scipy.spatial import cKDTree
 
     g = GRID_FRACTION * rho
@@ -386,12 +392,12 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
     first = max(2.0 * rho, spread + 1.5 * rho)
     steps = [first] if first < 0.5 * width else []
     if not steps or seeds.shape[0] >= MIN_SEEDS_WIDE:
-        steps.append(0.5 * width)
+        steps += [0.5 * width, 0.5 * width]
     frame = Frame.of(centre, normal)
     regions: list = []
     for i, half_width in enumerate(steps):
         half = int(math.ceil(half_width / g))
-        idx = tree_s.query_ball_point(centre, math.sqrt(2.0) * half * g + RING * rho)
+        idx = tree_s.query_ball_point(frame.origin, math.sqrt(2.0) * half * g + RING * rho)
         idx = np.asarray(idx, dtype=np.int64)
         idx = idx[_slab(sample[idx], frame, rho)]
         if idx.size < 8:
@@ -402,9 +408,11 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
             if np.isfinite(d).all():
                 return []
         local = _Local(sample, idx, tree2)
-        regions, leaks = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
-        if not leaks:
+        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
+        if leak_at is None:
             break
+        if half_width >= 0.5 * width:  # the last try: the widest grid, centred on the leak
+            frame = Frame.of(leak_at, normal)
     return regions
 
 
@@ -422,16 +430,18 @@ class _Local:
 
 
 def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
+    """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
+    reaching the grid's edge), and the centre of the nodes of those that did (None if none)."""
     from scipy.spatial import cKDTree
 
     grid = _Grid(frame, g, half)
     found = _flood(grid, local.tree2, frame.uv(seeds), rho)
     regions: list = []
-    leaks = False
+    leaked: list[np.ndarray] = []
     pts = local.points
     for nodes, leak in found:
         if leak:
-            leaks = True
+            leaked.append(grid.uv[nodes])
             regions.append(None)
             continue
         uv = grid.uv[nodes]
@@ -448,7 +458,10 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
         normals = _normals_at(pts[ring], pts)
         regions.append(_fit_region(frame, uv, local.idx[ring], pts[ring], normals, rho, g))
-    return regions, leaks
+    if not leaked:
+        return regions, None
+    uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
+    return regions, frame.lift(uv, np.zeros(1))[0]
 
 
 def _fit_region(frame, uv, ring_idx, ring, ring_normals, rho, g) -> Region:
