@@ -275,7 +275,8 @@ def punched_sphere(tmp_path_factory):
     path = _archive(tmp_path_factory.mktemp("sph") / "s.h5", pts, normals, "sphere")
     with lodbuilder.open_archive(path) as arc:
         view = arc.scan()
-        yield SimpleNamespace(view=view, full=full, keep=keep, filled=fill_level(view, SPHERE_RHO))
+        filled = fill_level(view, SPHERE_RHO)
+        yield SimpleNamespace(view=view, full=full, keep=keep, radii=radii, filled=filled)
 
 
 def test_sphere_holes_are_filled_on_the_sphere(punched_sphere):
@@ -283,6 +284,12 @@ def test_sphere_holes_are_filled_on_the_sphere(punched_sphere):
     rep = s.filled.report
     assert len(rep.gaps) == 3 and all(g.status == "fillable" for g in rep.gaps)
     assert rep.n_open == 0  # a closed surface has no border
+    # a spherical cap of chord radius a has the area pi a^2: the part of each hole farther
+    # than rho from the input is about the cap of chord radius r - rho
+    areas = sorted(g.area for g in rep.gaps)
+    radii = sorted(s.radii)
+    for area, r in zip(areas, radii, strict=True):
+        assert area == pytest.approx(np.pi * (r - SPHERE_RHO) ** 2, rel=0.12)
     lev = s.filled.level
     syn = lev.points[lev.attributes[SYNTHETIC] == 1]
     assert syn.shape[0] > 20

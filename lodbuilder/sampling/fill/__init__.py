@@ -129,7 +129,9 @@ class GapReport:
         dec = int(min(12, max(0, np.ceil(-np.log10(self.rho)) + 2)))
         for r in g:
             lo, hi = r.bounds
-            box = " ".join(f"{x:.{dec}f}" for x in lo) + " .. " + " ".join(f"{x:.{dec}f}" for x in hi)
+            box = (
+                " ".join(f"{x:.{dec}f}" for x in lo) + " .. " + " ".join(f"{x:.{dec}f}" for x in hi)
+            )
             lines.append(f"{r.id:>4} {r.area:10.4g} {r.max_distance:10.4g} {r.status:>9}  {box}")
         rough = [r for r in g if r.status == STATUS_ROUGH]
         for r in rough:
@@ -306,7 +308,9 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
     k_sample, sample_rho = _sample_size(scan, rho, False)
     k_sample = max(k_sample, level.size)
     sample = scan.points(k_sample)
-    tree_l, tree_s = cKDTree(level.points), cKDTree(sample)
+    # unbalanced trees build 3x faster and query as fast on scan points
+    tree_l = cKDTree(level.points, balanced_tree=False)
+    tree_s = cKDTree(sample, balanced_tree=False)
     report = gaps_of_points(
         level.points,
         sample,

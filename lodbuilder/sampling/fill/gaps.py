@@ -206,7 +206,13 @@ def _level_vertices(level: np.ndarray, tree_l: Any, rho: float) -> tuple[np.ndar
     cap = 3.0 * rho
     open_side = dang >= np.pi - 1e-6
     vertex = ~open_side & np.isfinite(r) & (r > rho) & (r <= cap)
-    probe = open_side | ~(np.isfinite(r) & (r <= cap))
+    # most such triangles are not Delaunay: another neighbour lies within rho of the vertex
+    rows = np.flatnonzero(vertex.any(axis=1))
+    vx, vy = ux[rows], uy[rows]
+    d2 = (vx[:, :, None] - x[rows, None, :]) ** 2 + (vy[:, :, None] - y[rows, None, :]) ** 2
+    vertex[rows] &= d2.min(axis=2) > rho * rho
+    # (a far vertex of a wide angle: a big hole's rim; of a narrow one: a skinny triangle)
+    probe = open_side | ((dang > 0.5 * np.pi) & ~(np.isfinite(r) & (r <= cap)))
     rv, cv = np.nonzero(vertex)
     pts = [level[rv] + ux[rv, cv, None] * t1[rv] + uy[rv, cv, None] * t2[rv]]
     src = [rv]
@@ -298,6 +304,21 @@ class _Grid:
         self.uv = (ij - half) * g
         self.shape = (side, side)
 
+    def area_factor(self, nodes: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Surface area per unit of plane area, sqrt(1 + |grad h|^2), at the grid ``nodes`` of
+        heights ``h``: finite differences with the neighbouring nodes of the same set (forward,
+        else backward; 0 slope along an axis where a node has no neighbour)."""
+        full = np.full(self.shape[0] * self.shape[1], np.nan)
+        full[nodes] = h
+        full = full.reshape(self.shape)
+        grads = []
+        for axis in (0, 1):
+            fwd = np.diff(full, axis=axis, append=np.nan)
+            bwd = np.diff(full, axis=axis, prepend=np.nan)
+            d = np.where(np.isnan(fwd), bwd, fwd)
+            grads.append(np.nan_to_num(d.ravel()[nodes]) / self.g)
+        return np.sqrt(1.0 + grads[0] ** 2 + grads[1] ** 2)
+
     def node_of(self, uv: np.ndarray) -> np.ndarray:
         ij = np.rint(uv / self.g).astype(np.int64) + self.half
         inside = ((ij >= 0) & (ij < self.shape[0])).all(axis=1)
@@ -348,8 +369,8 @@ def find_regions(
     out = Search(rho=rho, max_hole=float(max_hole))
     if level.shape[0] < 4 or sample.shape[0] < 4:
         return out
-    tree_l = cKDTree(level) if tree_l is None else tree_l
-    tree_s = cKDTree(sample) if tree_s is None else tree_s
+    tree_l = cKDTree(level, balanced_tree=False) if tree_l is None else tree_l
+    tree_s = cKDTree(sample, balanced_tree=False) if tree_s is None else tree_s
     seeds, seed_normals = _seeds(level, tree_l, tree_s, rho)
     out.n_seeds = int(seeds.shape[0])
     width = max_hole * rho
@@ -457,16 +478,18 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
             local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])))
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
         normals = _normals_at(pts[ring], pts)
-        regions.append(_fit_region(frame, uv, local.idx[ring], pts[ring], normals, rho, g))
+        regions.append(_fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, rho))
     if not leaked:
         return regions, None
     uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
     return regions, frame.lift(uv, np.zeros(1))[0]
 
 
-def _fit_region(frame, uv, ring_idx, ring, ring_normals, rho, g) -> Region:
+def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, rho) -> Region:
     surface = HeightField(frame.uv(ring), frame.height(ring), rho)
-    h, factor = surface.heights_and_area(uv, g)
+    uv, g = grid.uv[nodes], grid.g
+    h = surface(uv)
+    factor = grid.area_factor(nodes, h)
     return Region(
         id=-1,
         status=STATUS_FILLABLE,

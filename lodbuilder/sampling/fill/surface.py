@@ -142,13 +142,3 @@ class HeightField:
         hv = (h[2 * m : 3 * m] - h[3 * m :]) / (2 * e)
         n = frame.normal - hu[:, None] * frame.t1 - hv[:, None] * frame.t2
         return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-    def heights_and_area(self, uv: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-        """Heights at ``uv`` and the surface area per unit of plane area there,
-        sqrt(1 + |grad h|^2) (forward differences over ``step``), in one evaluation."""
-        m = uv.shape[0]
-        du, dv = np.array([step, 0.0]), np.array([0.0, step])
-        h = self(np.concatenate([uv, uv + du, uv + dv]))
-        hu = (h[m : 2 * m] - h[:m]) / step
-        hv = (h[2 * m :] - h[:m]) / step
-        return h[:m], np.sqrt(1.0 + hu * hu + hv * hv)
