@@ -349,3 +349,22 @@ def test_a_hole_off_the_seeds_centre_is_found(plane):
     assert len(regions) == 1 and regions[0] is not None
     uv = regions[0].candidates[:, :2]
     assert np.linalg.norm(uv.mean(axis=0) - c) < 0.2 * RHO  # the whole hole, centred
+
+
+def test_a_rim_at_two_depths_is_rough(tmp_path, rng):
+    """Part of the hole's rim lies on a plate 3 rho above the sheet (like an occlusion shadow's
+    rim): no smooth surface bridges it. One gap, rough, reported and not filled."""
+    rho = 0.04
+    sheet = jittered_plane(20_000, rng)
+    sheet = sheet[np.hypot(sheet[:, 0] - 0.5, sheet[:, 1] - 0.5) > 4 * rho]
+    on = (sheet[:, 0] > 0.35) & (sheet[:, 0] < 0.8) & (sheet[:, 1] > 0.58) & (sheet[:, 1] < 0.9)
+    plate = sheet[on] + np.array([0.0, 0.0, 3 * rho])
+    path = _archive(tmp_path / "plate.h5", np.r_[sheet, plate], {}, "plate")
+    with lodbuilder.open_archive(path) as arc:
+        filled = fill_level(arc.scan(), rho)
+    (gap,) = filled.report.gaps
+    assert gap.status == "rough" and gap.n_synthetic == 0
+    assert gap.reason.startswith("the surface fitted to the surrounding points misses those")
+    assert gap.residual > 0.5 * rho
+    assert filled.n_synthetic == 0
+    assert filled.summary(1).endswith("in 0 filled gap(s), 1 rough gap(s) left open")

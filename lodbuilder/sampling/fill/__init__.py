@@ -18,6 +18,7 @@ filled. See :mod:`lodbuilder.sampling.fill.gaps` for the method.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -300,8 +301,6 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
     """
     from scipy.spatial import cKDTree
 
-    from ...archive.levels import Level
-
     rho, max_hole = _check(rho, max_hole)
     t0 = time.perf_counter()
     level = scan.level(rho=rho, attributes=attributes)
@@ -349,16 +348,15 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
     else:
         attrs[SYNTHETIC] = flag
     minus = np.full(m, -1, dtype=np.int64)
-    filled = Level(
+    # the level's other fields (scan, ordering, and any the reader adds) are kept as they are
+    filled = dataclasses.replace(
+        level,
         points=np.concatenate([level.points, pts]),
         attributes=attrs,
         source_index=np.concatenate([level.source_index, minus]),
         radius=np.concatenate([level.radius, rad]),
         rank=np.concatenate([level.rank, minus]),
-        rho=level.rho,
         size=level.size + m,
-        scan=level.scan,
-        ordering=level.ordering,
         region={"fill": {"rho": rho, "max_hole": max_hole, "synthetic": m}},
     )
     report.seconds = time.perf_counter() - t0

@@ -34,8 +34,9 @@ whole scan for exact distances.
    (:class:`~lodbuilder.sampling.fill.surface.HeightField`). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of its normals tilted over 60
    degrees from the plane's normal) or not one smooth piece: fitted to five sixths of the ring
-   (angular sectors around the hole), the surface misses the sixth left out by more than rho/2
-   RMS (e.g. an occlusion shadow, whose rim lies on two surfaces at different depths).
+   (angular sectors around the hole), the surface misses the inner ring points (within rho of
+   the region) of the sixth left out by more than rho/2 RMS (e.g. an occlusion shadow, whose rim
+   lies on two surfaces at different depths).
 5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
    sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
    than rho from every sample point: its area (node count x node area x the height field's
@@ -66,6 +67,8 @@ NEAR_FRACTION = 0.5
 MAX_HOLE = 12.0
 #: ring width around a region (for the surface fit), in units of rho
 RING = 2.0
+#: the ring's inner part (whose prediction judges the fit), in units of rho
+INNER = 1.0
 #: neighbours of a level point in the seed search
 K_LEVEL = 10
 #: neighbours per sample point for normals and the seeds' plane
@@ -99,8 +102,8 @@ class Region:
             between rho/2 and rho from it: not a gap, but the level still misses rho there).
         region_area: area of the whole region.
         node_area: surface area each candidate stands for.
-        residual: RMS error of the fitted surface predicting each sixth of the ring from the rest
-            (NaN for a region that is no gap: not assessed).
+        residual: RMS error of the fitted surface predicting the inner ring points of each sixth
+            of the ring from the rest (NaN for a region that is no gap: not assessed).
         tilted: share of the ring's normals tilted more than 60 degrees from the plane's.
         frame: the hole's plane; ``uv`` (M, 2) the candidates' coordinates in it.
         surface: the height field over the plane.
@@ -374,17 +377,15 @@ def find_regions(
     seeds, seed_normals = _seeds(level, tree_l, tree_s, rho)
     out.n_seeds = int(seeds.shape[0])
     width = max_hole * rho
-    done: Any = None  # k-d tree of the candidates of the regions found so far
     for grp in _groups(seeds, rho):
         sp = seeds[grp]
         if float(np.linalg.norm(np.ptp(sp, axis=0))) > 2.0 * width:  # a long border
             out.n_open += 1
             continue
-        if done is not None:  # seeds of a region already found (by another group)
-            d, _ = done.query(sp, k=1, distance_upper_bound=NEAR_FRACTION * rho)
-            grp, sp = grp[~np.isfinite(d)], sp[~np.isfinite(d)]
-            if grp.size == 0:
-                continue
+        new = ~_inside(out.regions, sp, rho)  # seeds of a region already found are done
+        grp, sp = grp[new], sp[new]
+        if grp.size == 0:
+            continue
         nrm = seed_normals[grp]
         nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
         regions = _regions_of_group(sample, tree_s, sp, nrm.sum(axis=0), rho, width)
@@ -396,8 +397,24 @@ def find_regions(
             if reg.candidates.shape[0]:
                 reg.id = len(out.regions)
                 out.regions.append(reg)
-                done = cKDTree(np.concatenate([r.candidates for r in out.regions]))
     return out
+
+
+def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
+    """Mask of ``points`` inside a region found already: over one of its nodes (within a grid
+    step, in its plane) and within 2 rho of its surface. Another group of seeds of the same hole
+    (seeds on a sheet above part of it, say) then finds nothing new."""
+    from scipy.spatial import cKDTree
+
+    hit = np.zeros(points.shape[0], dtype=bool)
+    for reg in regions:
+        uv = reg.frame.uv(points)
+        d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
+        over = np.flatnonzero(np.isfinite(d) & ~hit)
+        if over.size:
+            h = reg.frame.height(points[over])
+            hit[over] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
+    return hit
 
 
 def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
@@ -478,15 +495,18 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
             local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])))
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
         normals = _normals_at(pts[ring], pts)
-        regions.append(_fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, rho))
+        inner = d[ring] <= INNER * rho
+        regions.append(
+            _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
+        )
     if not leaked:
         return regions, None
     uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
     return regions, frame.lift(uv, np.zeros(1))[0]
 
 
-def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, rho) -> Region:
-    surface = HeightField(frame.uv(ring), frame.height(ring), rho)
+def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) -> Region:
+    surface = HeightField(frame.uv(ring), frame.height(ring), rho, inner)
     uv, g = grid.uv[nodes], grid.g
     h = surface(uv)
     factor = grid.area_factor(nodes, h)
@@ -521,8 +541,8 @@ def _assess(reg: Region) -> None:
     elif reg.residual > MAX_RESIDUAL * rho:
         reg.status = STATUS_ROUGH
         reg.reason = (
-            f"the surface fitted to the surrounding points misses each sixth of them, when "
-            f"fitted to the rest, by {reg.residual / rho:.2f} rho (RMS; more than "
+            f"the surface fitted to the surrounding points misses those next to the hole, when "
+            f"fitted without them, by {reg.residual / rho:.2f} rho (RMS; more than "
             f"{MAX_RESIDUAL:g} rho)"
         )
 
