@@ -91,7 +91,8 @@ class Region:
     """One enclosed region of the surface farther than rho/2 from every input point.
 
     Attributes:
-        id: index in the report.
+        id: the gap's number in the report (0, 1, ... in the order found); -1 for a region that
+            is no gap.
         status: ``"fillable"``, or ``"rough"`` when the surrounding input is not one smooth height
             field (not filled; ``reason`` says why). Only gaps are assessed (a region that is no
             gap is never filled).
@@ -395,7 +396,7 @@ def find_regions(
                 continue
             _finish_region(reg, tree_s, rho)
             if reg.candidates.shape[0]:
-                reg.id = len(out.regions)
+                reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
                 out.regions.append(reg)
     return out
 
