@@ -369,6 +369,8 @@ def test_symlinks_non_archives_and_foreign_scans_are_refused(tmp_path):
     pdir.symlink_to(tmp_path / "elsewhere")
     assert _err(path, "one") == (f"archive {path}: {pdir} is not a directory (a symbolic link or a "
                                  "file); refusing to follow it")
+    with pytest.raises(CorruptArchiveError, match="is not a directory"):  # nor writes through it
+        update_archive(path, [record(100, "three", 3)])
 
 
 def test_moving_archives(tmp_path):

@@ -75,6 +75,9 @@ def test_slice_json_matches_the_text(arc, tmp_path, capsys):
         "bound": f"covering radius <= {lev.rho:.6g}",
         "region": {},
         "attributes": sorted(lev.attributes),
+        "crs": None,
+        "units": None,
+        "changes": [],
     }
     rc, js, _ = run(capsys, "slice", arc, "--rho", "0.05", "--box", 0, 0, -1, 0.3, 0.3, 1,
                     "--box-rho", "0.02", "-o", out, "--json")  # fmt: skip

@@ -23,6 +23,13 @@ def is_url(location: object) -> bool:
     return isinstance(location, (str, os.PathLike)) and bool(_URL.match(os.fspath(location)))
 
 
+def url_text(location: object) -> str:
+    """A URL as the user wrote it (``pathlib`` turns ``https://h/x`` into ``https:/h/x``)."""
+    text = os.fspath(location)  # type: ignore[call-overload]
+    scheme, _, rest = text.partition(":")
+    return f"{scheme}://{rest.lstrip('/')}"
+
+
 def root_attrs(f: Any, where: Where) -> dict[str, Any]:
     try:
         attrs = {k: L._attr_json(v) for k, v in f.attrs.items()}

@@ -87,6 +87,8 @@ def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
         target = local
     try:
         f = h5py.File(target, "r")
+        if rf is not None:  # later misses fetch whole file-space pages (metadata is paged)
+            rf.set_block(max(rf.block, f.id.get_create_plist().get_file_space_page_size()))
     except (OSError, RuntimeError, ValueError) as exc:
         if rf is not None:
             rf.close()
@@ -297,8 +299,13 @@ class ScanView:
         self.name = name
         self._g = group
         self._io = io  # the remote file the group is read through (None: local)
+        self._prefetch: Any = None
         a = self._g.attrs
         self.n_points = int(a[L.S_N_POINTS])
+        if io is not None:  # a remote archive: a level's rows are fetched in one go
+            from .remote import Prefetcher
+
+            self._prefetch = Prefetcher(io, group, self.n_points)
         self.n_ordered = int(a.get(L.S_N_ORDERED, self.n_points))
         self.encoding = str(L._attr_json(a[L.S_ENCODING]))
         self.bounds = (np.asarray(a[L.S_BOUNDS_MIN], float), np.asarray(a[L.S_BOUNDS_MAX], float))
@@ -315,6 +322,8 @@ class ScanView:
     # -- raw reads ---------------------------------------------------------------------------
     def _read(self, ds: Any, sel: Any = slice(None)) -> np.ndarray:
         try:
+            if self._prefetch is not None:
+                self._prefetch.before(ds, sel)
             return ds[sel]
         except OSError as exc:
             raise CorruptArchiveError(
@@ -477,6 +486,8 @@ class ScanView:
             rho=covering_bound(k, self.n_ordered, radius.__getitem__),
             size=k,
             scan=self.name,
+            crs=self.crs,
+            units=self.units,
         )
 
     def _ordering_level(
@@ -518,6 +529,8 @@ class ScanView:
             scan=self.name,
             ordering=ordering,
             region=region or {},
+            crs=self.crs,
+            units=self.units,
         )
 
     def refine_box(
@@ -577,3 +590,22 @@ class ScanView:
         counts = np.bincount(rep[rep >= 0], minlength=k)
         attrs = self.attributes(None, names)
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
+
+    # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
+    @property
+    def crs(self) -> str | None:
+        """The scan's coordinate reference system as WKT text, or None when unknown."""
+        wkt = self.format_metadata.get("crs_wkt")
+        return str(wkt) if wkt else None
+
+    @property
+    def units(self) -> str | None:
+        """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
+        one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
+        no pyproj): never guessed."""
+        meta = self.format_metadata
+        if meta.get("crs_units"):
+            return str(meta["crs_units"])
+        from ..io.crs import linear_units
+
+        return linear_units(self.crs)

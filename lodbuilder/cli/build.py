@@ -36,6 +36,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--band-radius", type=float, metavar="R", help="band radius (default: from H)")
     p.add_argument("--overwrite", action="store_true", help="replace a scan of the same name")
+    p.add_argument(
+        "--crs",
+        metavar="EPSG:XXXX|WKT|FILE",
+        help="coordinate reference system of a scan whose file has none (EPSG codes need pyproj: "
+        "pip install 'lodbuilder[crs]')",
+    )
+    p.add_argument(
+        "--crs-override",
+        action="store_true",
+        help="let --crs replace the CRS the scan file declares",
+    )
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
     from .feature_options import add_build_options
 
@@ -54,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
     from . import collection_options as collection_cli
     from .progressbar import ProgressBars
 
+    if args.crs and collection_cli.wants_collection(args):
+        raise InputError("--crs applies to one scan file; build the scans of a collection one by one")
     if collection_cli.wants_collection(
         args
     ):  # several scans, a directory, a manifest, --workers ...
@@ -79,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
             voxel_size=args.voxel_size,
             band_radius=args.band_radius,
             overwrite=args.overwrite,
+            crs=args.crs, crs_override=args.crs_override,
             progress=bars,
             **features,
         )

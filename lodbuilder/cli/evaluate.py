@@ -17,7 +17,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "and whether it meets the level's rho, the two-sided Hausdorff and Chamfer distances, "
             "the minimum spacing and uniformity (spacing / covering radius), and the distance of "
             "the scan points to the level's local surface (plane or MLS). Distances are Euclidean, "
-            "in the scan's units."
+            "in the unit of the scan's CRS (shown; 'scan units' when it is unknown)."
         ),
     )
     p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
@@ -55,7 +55,11 @@ def _table(ev) -> str:
         f"{'size':>9} {'rho':>10} {'cover':>10} {'ok':>3} {'hausdorff':>10} {'chamfer':>10} "
         f"{'min sp.':>10} {'unif.':>6} {'surf rms':>10} {'surf max':>10}"
     )
-    lines = [f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}", head]
+    unit = ev.units or "scan units (unit unknown)"
+    lines = [
+        f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}; distances in {unit}",
+        head,
+    ]
 
     def f(v):
         return "-" if v is None else f"{v:10.4g}"

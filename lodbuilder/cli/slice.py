@@ -62,6 +62,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
+    p.add_argument(
+        "--colour-depth",
+        type=int,
+        choices=(8, 16),
+        default=None,
+        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
+    )
     from .feature_options import add_slice_options
     from .output import add_json_option
 
@@ -78,6 +85,11 @@ def run(args: argparse.Namespace) -> int:
 
     arc_path = Path(args.archive)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
+    if out.name.lower().endswith(".copc.laz"):
+        raise InputError(
+            f"-o {out}: slice writes a plain LAZ, not a COPC octree; use lodbuilder export "
+            f"ARCHIVE [--rho R | --size N] -o {out}"
+        )
     writer_for(out)  # unknown output suffix: fail before reading anything
     if args.box is not None and args.box_rho is None:
         raise InputError("--box needs --box-rho (the finer rho inside the box)")
@@ -131,8 +143,10 @@ def run(args: argparse.Namespace) -> int:
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
     from ..io import write_points
+    from ..io.api import collect_notes
 
-    write_points(out, level.points, attrs, metadata=metadata)
+    with collect_notes() as changes:
+        write_points(out, level, attrs, metadata=metadata, colour_depth=args.colour_depth)
     doc = {
         "archive": str(arc_path),
         "scan": view.name,
@@ -144,12 +158,22 @@ def run(args: argparse.Namespace) -> int:
         "bound": note,
         "region": level.region,
         "attributes": sorted(attrs),
+        "crs": level.crs,
+        "units": level.units,
+        "changes": changes,
     }
     what = f"{level.size} of {view.n_points} points"
     if filled is not None:
         doc["synthetic"] = filled.n_synthetic
         what = filled.summary(view.n_points)
-    emit(args, doc, f"wrote {what} of scan {view.name!r} to {out} ({note})")
+    emit(
+        args,
+        doc,
+        "\n".join(
+            [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
+            + [f"  changed: {line}" for line in changes]
+        ),
+    )
     return 0
 
 

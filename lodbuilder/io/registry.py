@@ -2,8 +2,9 @@
 
 A format module ``lodbuilder.io.<name>`` defines ``read(path: Path) -> list[Scan]`` (one Scan per scan
 in the file; the points already in world coordinates) and, when it can write,
-``write(path: Path, points, attributes, metadata) -> None`` (``path`` is a temporary file that the
-caller renames into place). Modules are imported only when a file of their kind is used, so optional
+``write(path: Path, points, attributes, metadata) -> list[str] | None`` (``path`` is a temporary
+file that the caller renames into place; the list holds one line per change the format forced,
+which the caller logs as warnings; ``metadata["crs_wkt"]`` is the CRS to write). Modules are imported only when a file of their kind is used, so optional
 dependencies (laspy, pye57) are needed only for their formats.
 """
 

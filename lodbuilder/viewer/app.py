@@ -23,7 +23,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray
 from .._validate import strict_methods
 from ..errors import InputError
 from . import overlays
-from .data import LEVEL_MODES, ViewData
+from .data import LEVEL_MODES, ViewData, crs_label
 from .options import check_point_scale, check_window_size
 
 log = logging.getLogger(__name__)
@@ -142,7 +142,7 @@ class LevelViewer:
         self.plotter.renderers[-1].AddViewProp(self.scalar_bar)
         overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode))
         self.plotter.subplot(0, 0)
-        self.crs_label = overlays.crs_label(data)
+        self.crs_label = crs_label(data.crs, data.units)
         self._crs_text = self.plotter.add_text(
             self.crs_label, position="lower_right", font_size=9, color="black"
         )
