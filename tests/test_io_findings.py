@@ -177,3 +177,19 @@ def test_not_a_ply_file(tmp_path):
     (tmp_path / "n.ply").write_bytes(b"\x00" * 100000)
     with pytest.raises(FormatError, match=r"n\.ply: not a valid PLY header \(the file does not start with 'ply'\)"):
         read_scan(tmp_path / "n.ply")
+
+
+# ------------------------------------------------------- atomic output: one rule for directories
+
+def test_atomic_output_never_creates_a_directory(tmp_path):
+    """Every writer leaves a missing directory to the caller (check_output's rule); the unused
+    ``make_parents`` switch that could create one is gone."""
+    from lodbuilder.io._files import atomic_output
+
+    out = tmp_path / "new" / "x.ply"
+    with pytest.raises(TypeError, match="make_parents"):
+        atomic_output(out, make_parents=True)
+    with pytest.raises(ScanFileError) as info, atomic_output(out):
+        pass
+    assert str(info.value) == f"{out}: output directory {tmp_path / 'new'} does not exist; create it first"
+    assert list(tmp_path.iterdir()) == []

@@ -71,15 +71,14 @@ def _default_mode() -> int:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str], *, make_parents: bool = False) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path in the destination directory; rename it onto ``path`` on success.
 
     The temporary file keeps the destination's suffix (some libraries choose the encoding from it)
     and gets the permissions a plain new file would. On any error the temporary file is removed and
-    ``path`` is left untouched. ``make_parents`` creates a missing destination directory first.
+    ``path`` is left untouched. A missing directory is an error (:func:`check_output_path`),
+    never created.
     """
-    if make_parents:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
     p = check_output_path(path)
     parent = p.parent if str(p.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{p.name}.", suffix=".part" + "".join(p.suffixes[-1:]))
