@@ -186,8 +186,11 @@ def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float |
         return plain
     with np.errstate(invalid="ignore"):
         radius = np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
-    # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
-    typical = float(np.percentile(sep_in, THIN_SHARE))
+        # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is
+        # thin; numpy's interpolation between two infs is nan-with-a-warning, read as inf)
+        typical = float(np.percentile(sep_in, THIN_SHARE))
+    if np.isnan(typical):
+        typical = np.inf
     handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
     return BandPlan(h, r, radius, sep_in, normal, handover)
 
