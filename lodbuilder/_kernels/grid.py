@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 
 MAX_COORD = (1 << 21) - 1  # per axis
 
@@ -27,7 +27,7 @@ _M5 = np.uint64(0x1249249249249249)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _split3(x):  # pragma: no cover - compiled
     x = np.uint64(x) & _M0
     x = (x | (x << np.uint64(32))) & _M1
@@ -38,7 +38,7 @@ def _split3(x):  # pragma: no cover - compiled
     return x
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _compact3(x):  # pragma: no cover - compiled
     x = x & _M5
     x = (x ^ (x >> np.uint64(2))) & _M4
@@ -49,18 +49,18 @@ def _compact3(x):  # pragma: no cover - compiled
     return np.int64(x)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def morton(x, y, z):  # pragma: no cover - compiled
     return np.int64(_split3(x) | (_split3(y) << np.uint64(1)) | (_split3(z) << np.uint64(2)))
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def unmorton(key):  # pragma: no cover - compiled
     k = np.uint64(key)
     return _compact3(k), _compact3(k >> np.uint64(1)), _compact3(k >> np.uint64(2))
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
@@ -77,6 +77,21 @@ def hash_find(hidx, keys, key):  # pragma: no cover - compiled
         if keys[i] == key:
             return i
         s = (s + 1) & mask
+
+
+@nb.njit(**JIT)
+def lower_bound(arr, key):  # pragma: no cover - compiled
+    """The first index i with arr[i] >= key in the sorted ``arr`` (written out: one compiled
+    version for every caller, where np.searchsorted compiles one per argument type)."""
+    lo = np.int64(0)
+    hi = np.int64(arr.shape[0])
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if arr[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @nb.njit(**JIT)
@@ -129,7 +144,7 @@ BLOCK = 1 << BLOCK_BITS
 
 
 @nb.njit(**JIT)
-def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, cap_limit):  # pragma: no cover - compiled
+def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, bkey, bstart, cand, cap_limit):  # pragma: no cover
     """The band: every voxel within its points' radius, plus the 8 corners of every occupied cell.
 
     ``u``: (M, 3) grid coordinates sorted by cell (Morton order); ``irad2``/``rad``: (M,) inverse
@@ -148,45 +163,27 @@ def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, cap_limit):  # pragm
 
     Voxels are produced block by block (blocks of BLOCK^3 voxels, in Morton order): each block
     gathers the contributions of the cells within reach into a dense local table and emits its voxels
-    in Morton order, so the keys come out sorted and no global hash is needed. Returns
+    in Morton order, so the keys come out sorted and no global hash is needed. ``bkey``/``bstart``:
+    the occupied blocks (sorted Morton keys of the block coordinates) and their cell ranges;
+    ``cand``: the sorted keys of every block within reach of one (see :func:`block_plan`). Returns
     (keys, q2, foot, count); count is -1 when more than ``cap_limit`` voxels would be needed.
     """
     ncell = ostart.shape[0] - 1
     nb3 = BLOCK * BLOCK * BLOCK
     sided = nin.shape[0] == u.shape[0]
-    sh = np.uint64(3 * BLOCK_BITS)
-    # cells -> anchors and blocks (cells are in Morton order, so each block's cells are contiguous)
+    nblk = bkey.shape[0]
     ccx = np.empty(ncell, np.int32)
     ccy = np.empty(ncell, np.int32)
     ccz = np.empty(ncell, np.int32)
-    nblk = 0
-    prev = np.int64(-1)
     for c in range(ncell):
         p0 = ostart[c]
         ccx[c] = int(np.floor(u[p0, 0]))
         ccy[c] = int(np.floor(u[p0, 1]))
         ccz[c] = int(np.floor(u[p0, 2]))
-        b = np.int64(np.uint64(morton(ccx[c], ccy[c], ccz[c])) >> sh)
-        if b != prev:
-            nblk += 1
-            prev = b
-    bkey = np.empty(nblk, np.int64)
-    bstart = np.empty(nblk + 1, np.int32)
-    j = -1
-    prev = np.int64(-1)
-    for c in range(ncell):
-        b = np.int64(np.uint64(morton(ccx[c], ccy[c], ccz[c])) >> sh)
-        if b != prev:
-            j += 1
-            bkey[j] = b
-            bstart[j] = c
-            prev = b
-    bstart[nblk] = ncell
     rmax = 0.0
     for i in range(rad.shape[0]):
         rmax = max(rmax, rad[i])
     ext = int(np.floor(rmax))
-    # blocks that receive voxels: the occupied ones and their neighbours within reach
     reach_blocks = (ext + 1 + BLOCK - 1) // BLOCK
     lut = np.empty(BLOCK, np.int64)  # local Morton spread of a coordinate
     for t in range(BLOCK):
@@ -199,20 +196,6 @@ def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, cap_limit):  # pragm
     qo = np.empty(cap, np.float32)
     fo = np.empty(cap, np.int32)
     count = 0
-    # candidate blocks: every block within reach_blocks of an occupied block, each once, in order
-    span = 2 * reach_blocks + 1
-    cand = np.empty(nblk * span * span * span, np.int64)
-    nc = 0
-    for b in range(nblk):
-        bx, by, bz = unmorton(bkey[b])
-        for dx in range(-reach_blocks, reach_blocks + 1):
-            for dy in range(-reach_blocks, reach_blocks + 1):
-                for dz in range(-reach_blocks, reach_blocks + 1):
-                    x, y, z = bx + dx, by + dy, bz + dz
-                    if x >= 0 and y >= 0 and z >= 0:
-                        cand[nc] = morton(x, y, z)
-                        nc += 1
-    cand = np.unique(cand[:nc])
     for t in range(cand.shape[0]):
         blk = cand[t]
         bx, by, bz = unmorton(blk)
@@ -229,7 +212,7 @@ def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, cap_limit):  # pragm
                     if nx < 0 or ny < 0 or nz < 0:
                         continue
                     nk = morton(nx, ny, nz)
-                    jb = np.searchsorted(bkey, nk)
+                    jb = lower_bound(bkey, nk)
                     if jb >= nblk or bkey[jb] != nk:
                         continue
                     for c in range(bstart[jb], bstart[jb + 1]):

@@ -13,7 +13,7 @@ sample: a new sample marches only where it lowers ``T``.
 Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
 ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
 voxel sees the sample when the voxel one step back toward the sample's nearest voxel does (taken in
-order of distance): the straight segment then stays in the band, so no exact distance is given across a gap
+order of distance from it): the straight segment then stays in the band, so no exact distance is given across a gap
 or through the inside of a fold. These voxels are frozen (marked accepted at once, so the march
 never lowers them) and popped in order like the others.
 
@@ -37,7 +37,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 from .grid import hash_find, morton, unmorton
 from .heaps import (
     check_maxheap,
@@ -54,9 +54,10 @@ SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
 HALF = 8  # the ball's voxels lie within HALF of the sample's nearest voxel along each axis
 CUBE = 2 * HALF + 1
+NBUCKET = 8 * (HALF + 1) * 2  # eighths of a voxel up to beyond the ball's reach
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     """Upwind solution of |grad T| = f from the three axes' (first, second) upwind values.
 
@@ -115,12 +116,27 @@ def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
+def anchor_of(cs, i):  # pragma: no cover - compiled
+    """The voxel whose point range holds point i (cs is non-decreasing): the last v with
+    cs[v] <= i. Written out rather than np.searchsorted: one compiled version for every caller."""
+    lo = np.int64(0)
+    hi = np.int64(cs.shape[0] - 1)
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if cs[mid] <= i:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(**INLINE)
 def _norm(dx, dy, dz):  # pragma: no cover - compiled
     # helpers take scalars only: an array argument in a hot loop costs atomic reference counting
     return np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: no cover - compiled
     """Whether the chord (cx, cy, cz) of length c between two points of thin parts (separations
     sa, sb; unit normals a, b, zero when unknown) is a fair surface distance."""
@@ -146,11 +162,13 @@ def march_round(
     trial = np.int32(2 * rnd)
     acc = np.int32(2 * rnd + 1)
     thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
-    n = 0
+    n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     qv = np.empty(SEED_QUEUE, np.int32)
     qd = np.empty(SEED_QUEUE, np.float64)
     cube = np.full(CUBE * CUBE * CUBE, -1, np.int32)  # ball-local index of the voxels near v0
     vis = np.zeros(SEED_QUEUE, np.bool_)
+    srt = np.empty(SEED_QUEUE, np.int32)
+    nbk = np.zeros(NBUCKET, np.int64)
     for s in range(src.shape[0]):
         i = src[s]
         ci = 1.0
@@ -158,7 +176,7 @@ def march_round(
             ci = pcost[i]
         mark = np.int32(rnd * src.shape[0] + s)
         # the sample's nearest voxel: a corner of its cell (all corners are voxels)
-        a = np.searchsorted(cs, i, side="right") - 1
+        a = anchor_of(cs, np.int64(i))
         v0 = a
         for ax in range(3):
             if u[i, ax] - np.floor(u[i, ax]) >= 0.5 and v0 >= 0:
@@ -193,14 +211,23 @@ def march_round(
                     seen[w] = mark
                     qv[qn] = w
                     qn += 1
-        # line of sight: in order of distance, a voxel sees the sample when the voxel one step
-        # back toward the sample does (so the straight segment stays in the band: no exact
-        # distance across a gap or through the inside of a fold)
+        # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
+        # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
+        # then stays in the band (no exact distance across a gap or through the inside of a fold)
+        # (a counting sort in steps of 1/8 voxel: the step back is at least 0.13 nearer, so it
+        # always falls in an earlier bucket)
+        nbk[:] = 0
         for q in range(qn):
             x, y, z = unmorton(keys[qv[q]])
-            qd[q] = _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z)
+            qd[q] = _norm(np.float64(x - x0), np.float64(y - y0), np.float64(z - z0))
+            nbk[int(qd[q] * 8.0) + 1] += 1
             cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = q
-        srt = np.argsort(qd[:qn])
+        for b in range(1, NBUCKET):
+            nbk[b] += nbk[b - 1]
+        for q in range(qn):
+            b = int(qd[q] * 8.0)
+            srt[nbk[b]] = q
+            nbk[b] += 1
         for t in range(qn):
             q = srt[t]
             v = qv[q]
@@ -209,7 +236,7 @@ def march_round(
                 ok = True
             else:
                 # one step back toward v0 (the sample itself may lie just outside a one-sided band)
-                d = _norm(x - x0, y - y0, z - z0)
+                d = qd[q]
                 bx = int(np.floor(x - (x - x0) / d + 0.5))
                 by = int(np.floor(y - (y - y0) / d + 0.5))
                 bz = int(np.floor(z - (z - z0) / d + 0.5))
@@ -219,13 +246,14 @@ def march_round(
                 f = foot[v]
                 ok = _chord_ok(
                     u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
-                    _norm(u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2]), np.inf, np.inf,
+                    _norm(u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2]), np.float32(np.inf),
+                    np.float32(np.inf),
                     pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
                 )
             vis[q] = ok
             if not ok:
                 continue
-            t_ = np.float32(qd[q] * 0.5 * (ci + vcost[v]))
+            t_ = np.float32(_norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) * 0.5 * (ci + vcost[v]))
             if t_ < T[v]:
                 T[v] = t_
                 vlab[v] = lab + s
@@ -253,8 +281,8 @@ def march_round(
                                 continue
                             e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
                             if thin and not _chord_ok(
-                                u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e, np.inf,
-                                np.inf, pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
+                                u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
+                                np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
                                 pnrm[i, 2], slope,
                             ):
                                 continue
@@ -274,7 +302,7 @@ def march_round(
     pops = 0
     while n > 0:
         if debug and not check_minheap(hk, hv, hpos, n):
-            raise AssertionError("front heap invariant broken")
+            return nd, -1  # the front heap is broken (no raise: it would compile exception code)
         t, v, n = iheap_pop(hk, hv, hpos, n)
         stamp[v] = acc
         pops += 1
@@ -517,7 +545,9 @@ def grid_phase(
     """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
 
     Returns (order, radius, parent, k, val, lq, rank, pops) where ``k`` points are ordered; the other
-    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop.
+    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop. With
+    ``debug`` the heaps are checked after every operation; pops is -1 (front heap) or -2
+    (candidate heap) when one is found broken.
     """
     m = u.shape[0]
     nv = keys.shape[0]
@@ -545,6 +575,7 @@ def grid_phase(
     radius = np.empty(k_max, np.float64)
     parent = np.empty(k_max, np.int32)
     src = np.empty(1, np.int32)
+    nd0 = np.int64(0)
     pops = 0
     k = 0
     nseed = seeds.shape[0]
@@ -553,7 +584,7 @@ def grid_phase(
             i = seeds[k]
             rad = np.inf
             par = -1
-            ci = cellof[np.searchsorted(cs, i, side="right") - 1]
+            ci = cellof[anchor_of(cs, np.int64(i))]
         else:
             if hn == 0:
                 break
@@ -576,12 +607,14 @@ def grid_phase(
         radius[k] = rad
         parent[k] = par
         # an exhausted cell (key -1) sinks and is dropped when it reaches the top
-        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(ci, cellv, cs, rank, val), hn)
+        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(np.int64(ci), cellv, cs, rank, val), hn)
         src[0] = i
         nd, pp = march_round(
-            src, k, k + 1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v, debug,
+            src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
         )
+        if pp < 0:
+            return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
         pops += pp
         for j in range(nd):
             cc = dirty[j]
@@ -604,7 +637,7 @@ def grid_phase(
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
         if debug and not check_maxheap(ckey, heap, hpos, hn):
-            raise AssertionError("candidate heap invariant broken")
+            return order, radius, parent, k, val, lq, rank, np.int64(-2)  # debug: a broken heap
         k += 1
     return order, radius, parent, k, val, lq, rank, pops
 
@@ -621,11 +654,14 @@ def multi_source_distance(
     dq = np.full(m, np.inf)
     lq = np.full(m, -1, np.int32)
     rank = np.full(m, -1, np.int32)
+    lab0 = np.int64(0)  # variables, not literals: literal arguments compile another version
+    rnd1 = np.int64(1)
+    nd0 = np.int64(0)
     nd, pops = march_round(
-        sources, 0, 1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+        sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
         np.full(nv, -1, np.int32), dq, lq, rank, np.full(ncell, -1, np.int32),
-        np.empty(ncell, np.int32), 0, np.empty(nv, np.float32), np.empty(nv, np.int32),
+        np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
         np.full(nv, -1, np.int32), False,
     )
     for s in range(sources.shape[0]):
@@ -673,7 +709,7 @@ def euclid_tail(
                 d[p] = e
     ckey = np.empty(ncell)
     for c in range(ncell):
-        ckey[c] = _cell_key(c, cellv, cs, rank, d)
+        ckey[c] = _cell_key(np.int64(c), cellv, cs, rank, d)
     heap = np.arange(ncell).astype(np.int32)
     hpos = np.empty(ncell, np.int32)
     hn = ncell
@@ -682,13 +718,13 @@ def euclid_tail(
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = _cell_key(top, cellv, cs, rank, d)
+        kk = _cell_key(np.int64(top), cellv, cs, rank, d)
         if kk != ckey[0]:
             ckey[0] = kk
             if kk < 0.0:
                 hn = maxheap_pop(ckey, heap, hpos, hn)
             else:
-                maxheap_sift_down(ckey, heap, hpos, 0, hn)
+                maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
             continue
         if kk <= rho_stop:
             break

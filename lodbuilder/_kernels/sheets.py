@@ -8,7 +8,8 @@ along the normal; the first occupied cell it meets whose centroid lies in the no
 belongs to another sheet, and that offset is the cell's separation; the normal is turned toward the
 nearer one. Cells of the same sheet (neighbours, noise, a curved sheet) are either too close along
 the normal or outside the cone; holes in the sampling are sideways and never in the cone. The
-result is spread to the 26 neighbour cells (min), so that every point near a thin part gets it.
+result is spread to the 26 neighbour cells on the same side of the gap (min), so that every point
+near a thin part gets it.
 """
 
 from __future__ import annotations
@@ -16,13 +17,13 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 from .grid import hash_find, index_hash, morton
 
 K_NORMAL = 10  # neighbours of a cell's central point that give the cell's normal
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
     """Unit eigenvector of the smallest eigenvalue of [[a, d, e], [d, b, f], [e, f, c]]."""
     p1 = d * d + e * e + f * f
@@ -226,6 +227,14 @@ def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - comp
                         continue
                     j = hash_find(hidx, ckey, morton(x, y, z))
                     if j < 0 or sep_in[j] < np.inf or sep_in[c] >= out_in[j]:
+                        continue
+                    # not to a cell of the other sheet (it may be this close when the gap is)
+                    toward = (
+                        (mom[j, 0] / cnt[j] - mom[c, 0] / cnt[c]) * nrm[c, 0]
+                        + (mom[j, 1] / cnt[j] - mom[c, 1] / cnt[c]) * nrm[c, 1]
+                        + (mom[j, 2] / cnt[j] - mom[c, 2] / cnt[c]) * nrm[c, 2]
+                    )
+                    if toward > 0.5 * sep_in[c]:
                         continue
                     out_in[j] = sep_in[c]
                     out_out[j] = sep_out[c]

@@ -186,13 +186,61 @@ def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float |
         return plain
     with np.errstate(invalid="ignore"):
         radius = np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
-        # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is
-        # thin; numpy's interpolation between two infs is nan-with-a-warning, read as inf)
-        typical = float(np.percentile(sep_in, THIN_SHARE))
-    if np.isnan(typical):
-        typical = np.inf
+    # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
+    typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
     handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
     return BandPlan(h, r, radius, sep_in, normal, handover)
+
+
+_M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,
+                               0x10C30C30C30C30C3, 0x1249249249249249)]
+
+
+def _spread(x: np.ndarray) -> np.ndarray:
+    x = x.astype(np.uint64) & _M[0]
+    for shift, mask in zip((32, 16, 8, 4, 2), _M[1:], strict=True):
+        x = (x | (x << np.uint64(shift))) & mask
+    return x
+
+
+def _compact(x: np.ndarray) -> np.ndarray:
+    x = x & _M[5]
+    for shift, mask in zip((2, 4, 8, 16, 32), _M[4::-1], strict=True):
+        x = (x ^ (x >> np.uint64(shift))) & mask
+    return x.astype(np.int64)
+
+
+def morton_np(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Morton keys of non-negative integer coordinates (NumPy; the kernels have their own)."""
+    return (_spread(x) | (_spread(y) << np.uint64(1)) | (_spread(z) << np.uint64(2))).astype(np.int64)
+
+
+def unmorton_np(keys: np.ndarray) -> np.ndarray:
+    """(K, 3) coordinates of Morton keys."""
+    k = keys.astype(np.uint64)
+    return np.stack([_compact(k >> np.uint64(a)) for a in range(3)], axis=1)
+
+
+def block_plan(cell_keys: np.ndarray, reach_voxels: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the band builder: the occupied blocks (keys of BLOCK^3-voxel blocks, sorted) with their
+    ranges of cells (``cell_keys``: the sorted Morton keys of the occupied cells), and the sorted
+    keys of every block within ``reach_voxels`` of an occupied one."""
+    from .._kernels.grid import BLOCK, BLOCK_BITS
+
+    bk = cell_keys >> np.int64(3 * BLOCK_BITS)
+    first = np.empty(bk.shape[0], dtype=bool)
+    first[0] = True
+    np.not_equal(bk[1:], bk[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    bkey = bk[starts]
+    bstart = np.append(starts, bk.shape[0]).astype(np.int32)
+    reach = (int(math.floor(reach_voxels)) + 1 + BLOCK - 1) // BLOCK
+    c = unmorton_np(bkey)
+    off = np.arange(-reach, reach + 1)
+    d = np.stack(np.meshgrid(off, off, off, indexing="ij"), axis=-1).reshape(-1, 3)
+    cand = (c[:, None, :] + d[None, :, :]).reshape(-1, 3)
+    cand = cand[(cand >= 0).all(axis=1)]
+    return bkey, bstart, np.unique(morton_np(cand[:, 0], cand[:, 1], cand[:, 2]))
 
 
 @dataclass
@@ -228,12 +276,7 @@ class Band:
     @property
     def coord(self) -> np.ndarray:
         """(V, 3) integer grid coordinates of the voxels (decoded from the keys)."""
-        k = self.keys.astype(np.uint64)
-        out = np.zeros((k.shape[0], 3), dtype=np.int64)
-        for bit in range(21):
-            for a in range(3):
-                out[:, a] |= ((k >> np.uint64(3 * bit + a)) & np.uint64(1)).astype(np.int64) << bit
-        return out
+        return unmorton_np(self.keys)
 
     @property
     def marchable(self) -> np.ndarray:
@@ -304,9 +347,11 @@ def build_band(
     else:
         nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
         psep = np.full(n, np.inf) if separation is None else separation[perm] / h
+    bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
     keys, q2, foot, count = band_voxels(
-        u, 1.0 / (rad * rad), rad, nin, psep, SIDE_TOLERANCE, ostart, budget_voxels
+        u, 1.0 / (rad * rad), rad, nin, psep, SIDE_TOLERANCE, ostart, bkey, bstart, cand, budget_voxels
     )
+    del bkey, bstart, cand
     del nin, psep
     del rad, ostart
     if count < 0:
