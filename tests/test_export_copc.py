@@ -120,6 +120,10 @@ def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc
                 "red", "green", "blue", "scan_direction_flag", "edge_of_flight_line"):
         np.testing.assert_array_equal(np.asarray(out[dim]), np.asarray(src[dim])[src_i], dim)
     np.testing.assert_array_equal(np.asarray(out["scan_angle_rank"]), np.asarray(src.scan_angle_rank)[src_i])
+    # format 7's own scan_angle field (0.006-degree units) for viewers; it was left 0 before
+    angle = np.rint(np.asarray(src.scan_angle_rank, dtype=np.float64)[src_i] / 0.006)
+    assert np.count_nonzero(angle) > 100000
+    np.testing.assert_array_equal(np.asarray(out["scan_angle"]), angle)
     assert sorted(rank.tolist()) == list(range(110000))
     np.testing.assert_array_equal(
         np.asarray(out["radius"]), np.asarray(lodbuilder.open_archive(autzen).scan().radius)[rank]
@@ -164,7 +168,7 @@ def test_export_of_a_level_and_a_coloured_scan(tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.startswith(f"wrote 20,000 of 30,000 points of scan 'demo' to {out} (")
     assert "  depths 0..d hold 10,000 / " in text
-    assert "  changed: red: 8-bit values scaled x 257 into the 16-bit LAS field" in text
+    assert f"  changed: {out}: red: 8-bit values scaled x 257 into the 16-bit LAS field\n" in text
     doc = our_vlr(out)
     with lodbuilder.open_archive(arc) as a:
         view = a.scan()
@@ -278,17 +282,17 @@ def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
     for args, message in cases:
         assert main(["export", arc] + args) == 2
         assert capsys.readouterr().err == f"lodbuilder export: error: {message}\n"
-    # slice does not write a plain LAZ under a COPC name any more
+    # slice does not write a plain LAZ under a COPC name (the io layer's rule: see test_io_writers)
     out = tmp_path / "s.copc.laz"
     assert main(["slice", arc, "--size", "10", "-o", str(out)]) == 2
     assert capsys.readouterr().err == (
-        f"lodbuilder slice: error: -o {out}: slice writes a plain LAZ, not a COPC octree; use "
-        f"lodbuilder export ARCHIVE [--rho R | --size N] -o {out}\n"
+        f"lodbuilder slice: error: {out}: cannot write a COPC file (only plain LAS/LAZ); use "
+        f"lodbuilder export ARCHIVE -o {out} (in Python: lodbuilder.export.copc.export_copc)\n"
     )
     with pytest.raises(InputError, match=r"^attribute 'rank' would clash with the rank the COPC"):
         write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {"rank": np.zeros(2)}, np.ones(2), 0)
     monkeypatch.setitem(sys.modules, "copclib", None)
-    with pytest.raises(MissingDependencyError, match=r"COPC export needs copclib; install it with: pip install 'lodbuilder\[copc\]'"):
+    with pytest.raises(MissingDependencyError, match=r"^COPC export needs copclib, which is not installed; install it with: pip install 'lodbuilder\[copc\]'$"):
         write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {}, np.ones(2), 0)
     assert main(["export", arc, "-o", str(tmp_path / "z.copc.laz")]) == 2
     assert "COPC export needs copclib" in capsys.readouterr().err

@@ -312,6 +312,34 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     assert capsys.readouterr().err == f"lodbuilder export: error: -o {arc} is the input archive; choose another output\n"
 
 
+def test_both_exporters_check_a_level_the_same_way(tmp_path):
+    """One set of checks (lodbuilder.export.check_level_output) for the COPC file and the page."""
+    pytest.importorskip("copclib")
+    from lodbuilder.errors import InputError
+    from lodbuilder.export.copc import write_copc
+    from lodbuilder.export.web import write_web_page
+
+    pts, rad = np.zeros((4, 3)), np.ones(4)
+    for write, kind, suffix, good, bad in (
+        (lambda o, p, r: write_copc(o, p, {}, r, 0.0), "COPC output", ".copc.laz", "a.copc.laz", "a.laz"),
+        (lambda o, p, r: write_web_page(o, p, r, 0.0), "web page", ".html", "a.HTM", "a.htm.gz"),
+    ):
+        cases = [
+            ((tmp_path / bad, pts, rad), f"{kind} {tmp_path / bad} must end in {suffix}"),
+            ((tmp_path / good, np.zeros((0, 3)), np.ones(0)), "points must have shape (K, 3) with K >= 1, got (0, 3)"),
+            ((tmp_path / good, np.zeros((4, 2)), rad), "points must have shape (K, 3) with K >= 1, got (4, 2)"),
+            ((tmp_path / good, pts, np.ones(3)), "radius must have shape (4,) like the points, got (3,)"),
+        ]
+        for args, message in cases:
+            with pytest.raises(InputError) as info:
+                write(*args)
+            assert str(info.value) == message
+        assert list(tmp_path.iterdir()) == []
+        write(tmp_path / good, pts, rad)
+        assert [p.name for p in tmp_path.iterdir()] == [good]
+        (tmp_path / good).unlink()
+
+
 def test_web_page_names_the_crs_and_units(shared_data, tmp_path):
     """autzen_trim.laz carries a CRS in feet: the page's header line and legends say so."""
     pytest.importorskip("pyproj")

@@ -158,6 +158,22 @@ def test_scanview_and_every_level_carry_the_crs(autzen_archive):
         assert lev.crs == crs and lev.units == "foot"
 
 
+def test_crs_of_a_closed_archive_is_an_error(autzen_archive):
+    """Before: ScanView.crs and .units read after the archive was closed returned None."""
+    import lodbuilder
+    from lodbuilder.errors import ArchiveError
+
+    with lodbuilder.open_archive(autzen_archive) as arc:
+        v = arc.scan()
+        assert v.crs.startswith(AUTZEN_WKT_START)
+    for attr in ("crs", "units"):
+        with pytest.raises(ArchiveError) as info:
+            getattr(v, attr)
+        assert str(info.value) == (
+            f"archive {autzen_archive} is closed; read it inside `with open_archive(...)`"
+        )
+
+
 def test_write_points_takes_a_level(autzen_archive, tmp_path):
     import lodbuilder
 

@@ -67,6 +67,23 @@ def test_scale_from_the_point_spacing(tmp_path, shared_data):
     assert np.abs(np.stack([las.x, las.y, las.z], 1) - scan.points).max() <= 0.5e-6 * (1 + 1e-6)
 
 
+def test_a_copc_name_is_refused_not_written_as_plain_laz(tmp_path):
+    """Before: write_points("x.copc.laz", ...) wrote a plain LAZ under a COPC name."""
+    from lodbuilder.errors import UnsupportedFormatError
+
+    pts, attrs = _ply_like()
+    for name in ("x.copc.laz", "Y.COPC.LAZ"):
+        out = tmp_path / name
+        with pytest.raises(UnsupportedFormatError) as info:
+            write_points(out, pts, attrs)
+        assert str(info.value) == (
+            f"{out}: cannot write a COPC file (only plain LAS/LAZ); use lodbuilder export ARCHIVE "
+            f"-o {out} (in Python: lodbuilder.export.copc.export_copc)"
+        )
+    assert list(tmp_path.iterdir()) == []
+    assert read_scan(write_points(tmp_path / "copc.laz", pts, attrs)).points.shape == pts.shape
+
+
 def test_las_source_scale_and_format_kept(tmp_path, shared_data):
     scan = read_scan(shared_data / "simple.las")
     las = laspy.read(str(write_scan(tmp_path / "s.las", scan)))
@@ -92,10 +109,15 @@ def test_no_crs_no_wkt_bit(tmp_path):
 
 def test_every_cast_is_a_warning(tmp_path, caplog):
     pts, attrs = _ply_like()
-    with caplog.at_level(logging.WARNING, logger="lodbuilder.io"), collect_notes() as notes:
-        write_points(tmp_path / "x.las", pts, attrs)
     p = tmp_path / "x.las"
-    assert notes == [
+    with caplog.at_level(logging.WARNING, logger="lodbuilder.io"):
+        write_points(p, pts, attrs)
+        logged = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        caplog.clear()
+        with collect_notes() as notes:  # a command's report takes them out of the log
+            write_points(p, pts, attrs)
+        assert caplog.records == []
+    assert logged == notes == [
         f"{p}: coordinates quantised to scale 0.0001 (error <= 5e-05) with offset 0, 0, 0",
         f"{p}: intensity: float32 values do not fit the LAS field; exact values in extra bytes 'intensity_float32', "
         "the standard field holds a scaled copy (mapped [0, 0.998559] -> [0, 65535])",
@@ -103,7 +125,24 @@ def test_every_cast_is_a_warning(tmp_path, caplog):
         f"{p}: green: 8-bit values scaled x 257 into the 16-bit LAS field",
         f"{p}: blue: 8-bit values scaled x 257 into the 16-bit LAS field",
     ]
-    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == notes
+    assert logging.getLogger("lodbuilder.io").propagate  # left as it was
+
+
+def test_collect_notes_whatever_the_level_and_passes_the_rest_on(tmp_path, caplog):
+    """Warnings below the log level (``-q``) are still collected; INFO lines still reach the log."""
+    pts, attrs = _ply_like()
+    lg = logging.getLogger("lodbuilder")
+    for level, info in ((logging.ERROR, []), (logging.INFO, [f"wrote 200 points to {tmp_path / 'q.las'} (las)"])):
+        caplog.clear()
+        old = lg.level
+        lg.setLevel(level)
+        try:
+            with collect_notes() as notes:
+                write_points(tmp_path / "q.las", pts, attrs)
+        finally:
+            lg.setLevel(old)
+        assert len(notes) == 5
+        assert [r.getMessage() for r in caplog.records if r.name.startswith("lodbuilder")] == info
 
 
 def test_las_layout_is_public_and_plain(shared_data):
@@ -236,13 +275,44 @@ def test_las_layout_to_another_point_format(shared_data, tmp_path):
     lay = las_layout(scan.points, scan.attributes, scan.metadata, point_format=7, version="1.4")
     assert (lay.point_format, lay.version, lay.wkt_bit, lay.write_wkt_vlr) == (7, "1.4", True, True)
     assert [d.name for d in lay.extra_dims] == ["scan_angle_rank"]
+    # format 7's scan_angle (0.006-degree units) holds format 3's scan_angle_rank (degrees) for
+    # viewers; before, it was left 0 (the exact degrees stay in the extra bytes)
+    assert lay.notes == [
+        "scan_angle: filled from scan_angle_rank (degrees to 0.006-degree units, rounded); "
+        "scan_angle_rank keeps its exact values in extra bytes"
+    ]
+    rank = scan.attributes["scan_angle_rank"]
+    assert rank.min() == -19 and rank.max() == 18
+    want = np.rint(rank.astype(np.float64) / 0.006).astype(np.int16)
     out = tmp_path / "c.las"
     lay.las_data(scan.points).write(str(out))
+    las = laspy.read(str(out))
+    np.testing.assert_array_equal(np.asarray(las["scan_angle"]), want)
+    assert np.abs(want * 0.006 - rank).max() <= 0.003
     back = read_scan(out)
     assert back.metadata["las_point_format"] == 7 and back.metadata["crs_wkt"] == WKT_UTM33
     np.testing.assert_array_equal(back.points, scan.points)
     for k, v in scan.attributes.items():
         np.testing.assert_array_equal(back.attributes[k], v, err_msg=k)
+    np.testing.assert_array_equal(back.attributes["scan_angle"], want)
+    # written again (format 7 kept), both fields come back as they are: no note, nothing lost
+    again = las_layout(back.points, back.attributes, back.metadata)
+    assert again.point_format == 7 and again.notes == []
+    np.testing.assert_array_equal(again.dimensions["scan_angle"], want)
+
+
+def test_scan_angle_to_an_older_point_format():
+    """The other way (6-10 -> 0-5): scan_angle_rank gets the whole degrees, clipped to int8."""
+    from lodbuilder.io.las import las_layout
+
+    angle = np.array([0, 1, -2, 15000, -30000, 30000], dtype=np.int16)
+    lay = las_layout(np.zeros((6, 3)), {"scan_angle": angle}, point_format=1, version="1.2")
+    np.testing.assert_array_equal(lay.dimensions["scan_angle_rank"], [0, 0, -0, 90, -128, 127])
+    assert [d.name for d in lay.extra_dims] == ["scan_angle"]
+    assert lay.notes == [
+        "scan_angle_rank: filled from scan_angle (0.006-degree units to degrees, rounded; 2 "
+        "value(s) clipped to [-128, 127]); scan_angle keeps its exact values in extra bytes"
+    ]
 
 
 def test_vector_attribute_flattened_with_a_note(tmp_path):

@@ -13,6 +13,7 @@ import numpy as np
 
 from .._validate import check_positive, check_size, strict_keywords, strict_methods
 from ..errors import (
+    ArchiveError,
     CorruptArchiveError,
     InputError,
     NotAnArchiveError,
@@ -592,9 +593,16 @@ class ScanView:
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
 
     # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
+    def _check_open(self) -> None:
+        if not self._g.id.valid:  # (h5py reads a closed file's attributes as empty, not an error)
+            raise ArchiveError(
+                f"archive {self.archive.path} is closed; read it inside `with open_archive(...)`"
+            )
+
     @property
     def crs(self) -> str | None:
         """The scan's coordinate reference system as WKT text, or None when unknown."""
+        self._check_open()
         wkt = self.format_metadata.get("crs_wkt")
         return str(wkt) if wkt else None
 
@@ -603,6 +611,7 @@ class ScanView:
         """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
         one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
         no pyproj): never guessed."""
+        self._check_open()
         meta = self.format_metadata
         if meta.get("crs_units"):
             return str(meta["crs_units"])

@@ -112,10 +112,13 @@ def run(args: argparse.Namespace) -> int:
                 f"{out} ({page.n_bytes / 1e6:.1f} MB, {rho}{note})"
             )
         else:
-            copc = export_copc(view, out, k)
+            from ..io.api import collect_notes
+
+            with collect_notes() as changes:
+                copc = export_copc(view, out, k)
             doc.update(size=copc.n_points, n_points=copc.n_total, rho=copc.rho,
                        bytes=copc.n_bytes, depths=copc.depths, nodes=copc.nodes,
-                       spacing=copc.spacing, levels=copc.levels, changes=copc.notes)
+                       spacing=copc.spacing, levels=copc.levels, changes=changes)
             points = " / ".join(f"{lv['points']:,}" for lv in copc.levels)
             rhos = " / ".join("inf" if lv["rho"] is None else f"{lv['rho']:.3g}" for lv in copc.levels)
             text = "\n".join(
@@ -125,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{copc.nodes:,} nodes)",
                     f"  depths 0..d hold {points} points, covering radius {rhos}",
                 ]
-                + [f"  changed: {line}" for line in copc.notes]
+                + [f"  changed: {line}" for line in changes]
             )
     emit(args, doc, text)
     return 0

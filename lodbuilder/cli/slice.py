@@ -85,12 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     arc_path = Path(args.archive)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
-    if out.name.lower().endswith(".copc.laz"):
-        raise InputError(
-            f"-o {out}: slice writes a plain LAZ, not a COPC octree; use lodbuilder export "
-            f"ARCHIVE [--rho R | --size N] -o {out}"
-        )
-    writer_for(out)  # unknown output suffix: fail before reading anything
+    writer_for(out)  # unknown output suffix (or .copc.laz): fail before reading anything
     if args.box is not None and args.box_rho is None:
         raise InputError("--box needs --box-rho (the finer rho inside the box)")
     if args.box_rho is not None and args.box is None:

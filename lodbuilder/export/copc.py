@@ -27,7 +27,6 @@ lodbuilder[copc]``).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import struct
@@ -38,9 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, MissingDependencyError
-
-log = logging.getLogger(__name__)
+from ..errors import InputError
+from . import check_level_output
 
 #: about this many points in the root node: the spacing s0 is twice the insertion radius there
 ROOT_POINTS = 10_000
@@ -78,13 +76,9 @@ class CopcFile:
 
 
 def _copclib() -> Any:
-    try:
-        import copclib
-    except ImportError:
-        raise MissingDependencyError(
-            "COPC export needs copclib; install it with: pip install 'lodbuilder[copc]'"
-        ) from None
-    return copclib
+    from .._optional import require
+
+    return require("copclib", "COPC export")
 
 
 def copc_point_format(metadata: dict[str, Any], attribute_names: set[str]) -> int:
@@ -222,22 +216,15 @@ def write_copc(
 
     ``attributes`` are written as LAS fields or extra bytes by :func:`lodbuilder.io.las.las_layout`
     with ``metadata`` (the scan's format metadata: LAS scale/offset, CRS...), plus ``rank`` and
-    ``radius`` extra bytes."""
+    ``radius`` extra bytes. What the mapping changed is in ``notes`` and logged as warnings of
+    lodbuilder.io, as :func:`lodbuilder.io.write_points` does."""
     copclib = _copclib()
-    from ..io._files import atomic_output, check_output_path
+    from ..io._files import atomic_output
+    from ..io.api import log_notes
     from ..io.las import las_layout
 
-    out = Path(out)
-    if not out.name.lower().endswith(".copc.laz"):
-        raise InputError(f"COPC output {out} must end in .copc.laz")
-    check_output_path(out)
-    pts = np.ascontiguousarray(points, dtype=np.float64)
+    out, pts, radius = check_level_output(out, "COPC output", (".copc.laz",), points, radius)
     k = pts.shape[0]
-    if pts.ndim != 2 or pts.shape[1] != 3 or k == 0:
-        raise InputError(f"points must have shape (K, 3) with K >= 1, got {pts.shape}")
-    radius = np.asarray(radius, dtype=np.float64)
-    if radius.shape != (k,):
-        raise InputError(f"radius must have shape ({k},) like the points, got {radius.shape}")
     for reserved in ("rank", "radius"):
         if reserved in attributes:
             raise InputError(
@@ -338,8 +325,7 @@ def write_copc(
             json.dumps(doc, allow_nan=False).encode("utf-8"),
         )
         n_bytes = tmp.stat().st_size
-    for note in layout.notes:
-        log.info("%s: %s", out, note)
+    log_notes(out, layout.notes)
     return CopcFile(
         path=out,
         n_points=k,
@@ -388,16 +374,13 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int) -> CopcFile:
         key = f"importance_{m}"[:32]
         if key not in attrs:
             attrs[key] = np.asarray(scan.importance(m)[:size], dtype=np.float32)
-    meta = dict(scan.format_metadata)
-    if scan.crs and not meta.get("crs_wkt"):
-        meta["crs_wkt"] = scan.crs
     return write_copc(
         out,
         level.points,
         attrs,
         level.radius,
         level.rho,
-        metadata=meta,
+        metadata=scan.format_metadata,  # (the CRS included: ScanView.crs is read from it)
         n_total=scan.n_ordered,
         name=scan.name,
     )

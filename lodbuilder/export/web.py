@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from . import check_level_output
 
 #: the default cap of a page: WebGL in a browser stays interactive up to about this many points
 MAX_POINTS = 2_000_000
@@ -110,7 +111,7 @@ def write_web_page(
         crs, units: the coordinates' CRS (WKT) and linear unit, shown on the page.
         up: the scan's up axis for the first view (``z``, ``y``, ``x``, ``-z``, ...).
     """
-    from ..io._files import atomic_output, check_output_path
+    from ..io._files import atomic_output
     from ..viewer.data import (
         _to_uint8_rgb,
         colormap,
@@ -120,19 +121,10 @@ def write_web_page(
         rank_legend,
     )
 
-    out = Path(out)
-    if out.suffix.lower() not in (".html", ".htm"):
-        raise InputError(f"web page {out} must end in .html")
     if up not in UPS:
         raise InputError(f"up must be one of {', '.join(UPS)}, got {up!r}")
-    check_output_path(out)
-    pts = np.ascontiguousarray(points, dtype=np.float64)
+    out, pts, radius = check_level_output(out, "web page", (".html", ".htm"), points, radius)
     k = pts.shape[0]
-    if pts.ndim != 2 or pts.shape[1] != 3 or k == 0:
-        raise InputError(f"points must have shape (K, 3) with K >= 1, got {pts.shape}")
-    radius = np.asarray(radius, dtype=np.float64)
-    if radius.shape != (k,):
-        raise InputError(f"radius must have shape ({k},) like the points, got {radius.shape}")
     n_total = int(n_total or k)
     unit = units or "scan units"
 

@@ -14,7 +14,8 @@ suffix                     read    write  notes
                                           by default; CRS as ``comment crs <WKT>``
 .las .laz (.copc.laz)      yes     yes    laspy + lazrs (``pip install lodbuilder[las]``); every
                                           dimension incl. extra bytes; writing through
-                                          ``las.las_layout`` (nothing lost, every change noted)
+                                          ``las.las_layout`` (nothing lost, every change noted);
+                                          .copc.laz is read, not written (``lodbuilder.export``)
 .e57                       yes     no     pye57 (``pip install lodbuilder[e57]``); every scan
                                           (``read_scans``), pose applied, invalid points dropped
 .xyz .pts .csv .txt        yes     .csv   header detection; see ``lodbuilder.io.text``; written

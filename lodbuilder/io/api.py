@@ -134,22 +134,40 @@ SIDECAR_CRS = ("text", "npy")
 @strict_keywords
 @contextlib.contextmanager
 def collect_notes() -> Iterator[list[str]]:
-    """Collect the warnings lodbuilder.io logs while the block runs (what readers and writers
-    changed: casts, scaled colours, skipped properties...), e.g. for a command's summary."""
+    """Take the warnings lodbuilder.io logs while the block runs (what readers and writers
+    changed: casts, scaled colours, skipped properties...) into a list, for a command's report.
+
+    They are collected whatever the log level (``-q`` included) and not logged further: the
+    caller reports them, once. Other records (INFO, DEBUG, errors) go on to the log as usual."""
     notes: list[str] = []
+    logger = logging.getLogger("lodbuilder.io")
+    parent = logger.parent if logger.propagate else None  # (a nested block: the outer one passes them on)
 
     class _Handler(logging.Handler):
         def emit(self, record: logging.LogRecord) -> None:
-            if record.levelno >= logging.WARNING:
+            if record.levelno == logging.WARNING:
                 notes.append(record.getMessage())
+            elif parent is not None:
+                parent.handle(record)
 
     handler = _Handler()
-    logger = logging.getLogger("lodbuilder.io")
+    level, propagate = logger.level, logger.propagate
+    logger.setLevel(min(logger.getEffectiveLevel(), logging.WARNING))
+    logger.propagate = False
     logger.addHandler(handler)
     try:
         yield notes
     finally:
         logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+
+def log_notes(path: PathLike, notes: list[str]) -> None:
+    """Log what a writer changed in ``path``, one warning of lodbuilder.io per note (the one way
+    writers report changes; :func:`collect_notes` gathers them)."""
+    for note in notes:
+        log.warning("%s: %s", path, note)
 
 
 def _is_level(obj: Any) -> bool:
@@ -232,8 +250,7 @@ def write_points(
             raise
         except OSError as exc:
             raise ScanFileError(f"{path}: cannot be written ({_one_line(exc)}); check the disk and permissions") from None
-    for note in notes:
-        log.warning("%s: %s", path, note)
+    log_notes(path, notes)
     log.info("wrote %d points to %s (%s)", pts.shape[0], path, fmt)
     return Path(path)
 

@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import MissingDependencyError
 from .base import Scan
 from .crs import set_crs, to_wkt
 
@@ -30,11 +29,9 @@ _STATES = ("cartesianInvalidState", "sphericalInvalidState")
 
 
 def _pye57(path: Path) -> Any:
-    try:
-        import pye57
-    except ImportError:
-        raise MissingDependencyError(f"{path}: E57 files need pye57; pip install lodbuilder[e57]") from None
-    return pye57
+    from .._optional import require
+
+    return require("pye57", f"{path}: E57")
 
 
 def _scan_name(header: Any, default: str) -> str:

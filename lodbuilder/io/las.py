@@ -34,26 +34,31 @@ from .crs import KEY_SOURCE, KEY_WKT, normalise_wkt, pyproj_wkt, set_crs
 
 log = logging.getLogger(__name__)
 
-_HINT = "pip install lodbuilder[las]"
 #: description prefix of an extra-bytes dimension that holds the exact values of a standard field
 EXACT_PREFIX = "lodbuilder exact "
 _COLOURS = ("red", "green", "blue", "nir")
 _GEOTIFF_IDS = (34735, 34736, 34737)
 _WKT_ID = 2112
 _EXTRA_TYPES = {"u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"}
+#: a standard field that the other point-format family holds under another name and unit:
+#: field -> (its twin, factor from the twin's unit to the field's, how)
+_TWINS = {
+    "scan_angle": ("scan_angle_rank", 1 / 0.006, "degrees to 0.006-degree units"),  # formats 6-10
+    "scan_angle_rank": ("scan_angle", 0.006, "0.006-degree units to degrees"),  # formats 0-5
+}
 
 
 def _laspy(path: Path | str) -> Any:
-    try:
-        import laspy
-    except ImportError:
-        raise MissingDependencyError(f"{path}: LAS/LAZ files need laspy with lazrs; {_HINT}") from None
-    return laspy
+    from .._optional import require
+
+    return require("laspy", f"{path}: LAS/LAZ")
 
 
 def _check_laz_backend(laspy: Any, path: Path) -> None:
     if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
-        raise MissingDependencyError(f"{path}: LAZ files need a LAZ backend (lazrs); {_HINT}")
+        from .._optional import missing_message
+
+        raise MissingDependencyError(missing_message("lazrs", f"{path}: LAZ"))
 
 
 @contextlib.contextmanager
@@ -382,6 +387,11 @@ def las_layout(
           as array dimensions; wider ones as ``name_0``, ``name_1``...; bool as uint8); a LAS
           source's scaled extra bytes keep their scale and offset. Names longer than 32 bytes are
           cut (noted).
+        * **Twin fields.** A change of point-format family (a format 3 source written as 7 for
+          COPC) leaves a standard field empty whose values the source holds under another name:
+          ``scan_angle`` (formats 6-10, int16 in 0.006 degrees) is filled from ``scan_angle_rank``
+          (formats 0-5, int8 degrees) rounded, and the other way round (clipped to int8); the
+          source field keeps its exact values in extra bytes like any other attribute (noted).
         * **CRS.** ``crs_wkt`` as a WKT VLR, and for point formats 6-10 (and LAS 1.4 files that
           use WKT) the global-encoding WKT bit the specification requires. A LAS source's own CRS
           VLRs are copied unchanged for point formats 0-5 (GeoTIFF keys included); for 6-10 only
@@ -451,6 +461,7 @@ def las_layout(
             continue
         _add_extra(layout, name, a, extra_defs, used, notes)
 
+    _fill_twins(layout, attributes, standard, notes)
     _layout_crs(layout, meta, from_las, notes)
     layout.notes = notes
     return layout
@@ -484,6 +495,23 @@ def _add_extra(layout: LasLayout, name: str, a: np.ndarray, extra_defs: dict[str
         notes.append(f"{name}: bool written as uint8 extra bytes")
     layout.extra_dims.append(ExtraDim(las_name, f"{k}{typ}" if k > 1 else typ, str((d or {}).get("description", ""))[:32]))
     layout.dimensions[las_name] = vals
+
+
+def _fill_twins(layout: LasLayout, attributes: dict[str, np.ndarray],
+                standard: dict[str, tuple[float, float, bool]], notes: list[str]) -> None:
+    """Fill a standard field of the layout's format from its twin attribute (see ``_TWINS``)."""
+    for name, (twin, factor, how) in _TWINS.items():
+        if name not in standard or name in attributes or twin not in attributes:
+            continue
+        a = np.asarray(attributes[twin])
+        if a.ndim != 1 or a.dtype.kind not in "iuf":
+            continue
+        lo, hi, _ = standard[name]
+        v = np.rint(np.nan_to_num(a.astype(np.float64) * factor))
+        clipped = int(np.count_nonzero((v < lo) | (v > hi)))
+        layout.dimensions[name] = np.clip(v, lo, hi).astype(np.int64)
+        what = f"{how}, rounded" + (f"; {clipped} value(s) clipped to [{lo:g}, {hi:g}]" if clipped else "")
+        notes.append(f"{name}: filled from {twin} ({what}); {twin} keeps its exact values in extra bytes")
 
 
 def _layout_crs(layout: LasLayout, meta: dict[str, Any], from_las: bool, notes: list[str]) -> None:
@@ -535,12 +563,16 @@ def _geotiff_vlrs(wkt: str) -> list[dict[str, Any]]:
     return out
 
 
+def check_output(path: Path) -> None:
+    """Refuse, before any work, a LAS/LAZ output this installation cannot write (no laspy, or
+    no LAZ backend for .laz); see ``registry.writer_for``."""
+    _check_laz_backend(_laspy(path), path)
+
+
 def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> list[str]:
-    """Write through :func:`las_layout`; returns its notes (what was changed)."""
-    laspy = _laspy(path)
+    """Write through :func:`las_layout` (``check_output`` has run); returns its notes (what was
+    changed)."""
     compress = path.suffix.lower() == ".laz"
-    if compress:
-        _check_laz_backend(laspy, path)
     layout = las_layout(points, attributes, metadata)
     las = layout.las_data(points)
     with open(path, "wb") as f:
