@@ -454,6 +454,26 @@ def test_rewriting_a_scan_with_broken_invariants_is_refused(tmp_path):
     assert path.read_bytes() == before
 
 
+def test_rewriting_a_scan_with_external_data_is_refused(tmp_path):
+    """An attribute stored in another file (HDF5 external storage) is never copied in."""
+    path = tmp_path / "e.h5"
+    update_archive(path, [record(500, "s", 1)])
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(b"root:x:0:0:root:/root:/bin/bash\n" * 200)
+    with h5py.File(path, "r+") as f:
+        f["scans/s/attributes"].create_dataset("stolen", shape=(500,), dtype="u1",
+                                               external=[(str(secret), 0, 500)])
+    before = path.read_bytes()
+    with pytest.raises(CorruptArchiveError) as err:
+        add_importance(path, "s", "z", np.zeros(500))
+    assert str(err.value) == (
+        f"archive {path}: scan 's' dataset attributes/stolen keeps its data outside the archive "
+        "(external or virtual storage); the scan is damaged or crafted and was not copied, rebuild "
+        "it from its source"
+    )
+    assert path.read_bytes() == before and listing(path) == ["e.h5", "secret.bin"]
+
+
 # ------------------------------------------------------------------------- schema 1 archives
 
 

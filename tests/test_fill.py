@@ -275,7 +275,8 @@ def punched_sphere(tmp_path_factory):
     path = _archive(tmp_path_factory.mktemp("sph") / "s.h5", pts, normals, "sphere")
     with lodbuilder.open_archive(path) as arc:
         view = arc.scan()
-        yield SimpleNamespace(view=view, full=full, keep=keep, filled=fill_level(view, SPHERE_RHO))
+        filled = fill_level(view, SPHERE_RHO)
+        yield SimpleNamespace(view=view, full=full, keep=keep, radii=radii, filled=filled)
 
 
 def test_sphere_holes_are_filled_on_the_sphere(punched_sphere):
@@ -283,6 +284,12 @@ def test_sphere_holes_are_filled_on_the_sphere(punched_sphere):
     rep = s.filled.report
     assert len(rep.gaps) == 3 and all(g.status == "fillable" for g in rep.gaps)
     assert rep.n_open == 0  # a closed surface has no border
+    # a spherical cap of chord radius a has the area pi a^2: the part of each hole farther
+    # than rho from the input is about the cap of chord radius r - rho
+    areas = sorted(g.area for g in rep.gaps)
+    radii = sorted(s.radii)
+    for area, r in zip(areas, radii, strict=True):
+        assert area == pytest.approx(np.pi * (r - SPHERE_RHO) ** 2, rel=0.12)
     lev = s.filled.level
     syn = lev.points[lev.attributes[SYNTHETIC] == 1]
     assert syn.shape[0] > 20
@@ -320,3 +327,44 @@ def test_farthest_insert_matches_naive(seed, m, k, stop):
     ref_p, ref_r = naive_farthest_insert(cand, existing, stop)
     assert picked.tolist() == ref_p
     np.testing.assert_allclose(radii, ref_r)
+
+
+def test_a_hole_off_the_seeds_centre_is_found(plane):
+    """Seeds gathered on one side of a hole put the grid off its centre: the region reaches the
+    grid's edge there, and the grid is laid again centred on it (not taken for an open border)."""
+    from lodbuilder.sampling.fill.gaps import _regions_of_group
+
+    view = plane.view
+    sample = view.points(view.size_for_rho(SAMPLE_FRACTION * RHO))
+    (c, r) = HOLES[2]  # radius 5 rho: its far part is 9 rho wide, the grid 12 rho
+    seeds = np.array(
+        [
+            [c[0] + 3.2 * RHO + dx, c[1] + dy, 0.0]
+            for dx, dy in ((0, 0), (0.2 * RHO, 0), (0, 0.2 * RHO), (0.2 * RHO, 0.2 * RHO))
+        ]
+    )
+    regions = _regions_of_group(
+        sample, cKDTree(sample), seeds, np.array([0.0, 0.0, 1.0]), RHO, 12 * RHO
+    )
+    assert len(regions) == 1 and regions[0] is not None
+    uv = regions[0].candidates[:, :2]
+    assert np.linalg.norm(uv.mean(axis=0) - c) < 0.2 * RHO  # the whole hole, centred
+
+
+def test_a_rim_at_two_depths_is_rough(tmp_path, rng):
+    """Part of the hole's rim lies on a plate 3 rho above the sheet (like an occlusion shadow's
+    rim): no smooth surface bridges it. One gap, rough, reported and not filled."""
+    rho = 0.04
+    sheet = jittered_plane(20_000, rng)
+    sheet = sheet[np.hypot(sheet[:, 0] - 0.5, sheet[:, 1] - 0.5) > 4 * rho]
+    on = (sheet[:, 0] > 0.35) & (sheet[:, 0] < 0.8) & (sheet[:, 1] > 0.58) & (sheet[:, 1] < 0.9)
+    plate = sheet[on] + np.array([0.0, 0.0, 3 * rho])
+    path = _archive(tmp_path / "plate.h5", np.r_[sheet, plate], {}, "plate")
+    with lodbuilder.open_archive(path) as arc:
+        filled = fill_level(arc.scan(), rho)
+    (gap,) = filled.report.gaps
+    assert gap.status == "rough" and gap.n_synthetic == 0
+    assert gap.reason.startswith("the surface fitted to the surrounding points misses those")
+    assert gap.residual > 0.5 * rho
+    assert filled.n_synthetic == 0
+    assert filled.summary(1).endswith("in 0 filled gap(s), 1 rough gap(s) left open")

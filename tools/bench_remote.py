@@ -158,7 +158,9 @@ def markdown(result: dict) -> str:
         f"Measured {result['date']} by `python tools/bench_remote.py {result['argv']}` (commit "
         f"{result['commit']}), servers on 127.0.0.1 (a Range-honouring HTTP server with "
         f"{result['latency_s'] * 1e3:.0f} ms added per request, moto's S3 server); load average "
-        f"{result['loadavg']}. Archives are synthetic ({result['inputs']}).",
+        f"{result['loadavg']}. Archives are synthetic ({result['inputs']}). Fetched bytes: as "
+        "sent by the HTTP server; for S3 the sum of the requested ranges (moto records requests, "
+        "not answers). The level's bytes: the stored chunk bytes of its rows.",
         "",
         "| archive | server | level | GET | HEAD | fetched | level's bytes | page | fetched / (2 x level + page) | s |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -171,7 +173,7 @@ def markdown(result: dict) -> str:
         )
     d = result.get("fsspec_default")
     if d:
-        lines += ["", f"The same level through fsspec's default file object: {d['get']} GETs, "
+        lines += ["", f"The same level through fsspec's default file object: {d['get']} GET(s), "
                   f"{d['fetched_bytes'] / 1e6:.1f} MB fetched of a {d['file_bytes'] / 1e6:.1f} MB file, "
                   f"{d['seconds']:.2f} s."]
     c = result.get("cli")
@@ -192,7 +194,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--no-s3", action="store_true")
     p.add_argument("--markdown", help="update the 'remote' section of this file")
+    p.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = p.parse_args(argv)
+    if args.from_json:
+        saved = json.loads(Path(args.from_json).read_text())
+        if args.markdown:
+            from benchdoc import write_section
+
+            write_section(Path(args.markdown), "remote", markdown(saved))
+        print(json.dumps(saved.get("targets", {}), indent=2))
+        return 0
 
     from bench_append import synthetic_record
     from rangeserver import RangeServer

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 
 MAX_COORD = (1 << 21) - 1  # per axis
 
@@ -27,7 +27,7 @@ _M5 = np.uint64(0x1249249249249249)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _split3(x):  # pragma: no cover - compiled
     x = np.uint64(x) & _M0
     x = (x | (x << np.uint64(32))) & _M1
@@ -38,7 +38,7 @@ def _split3(x):  # pragma: no cover - compiled
     return x
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _compact3(x):  # pragma: no cover - compiled
     x = x & _M5
     x = (x ^ (x >> np.uint64(2))) & _M4
@@ -49,18 +49,18 @@ def _compact3(x):  # pragma: no cover - compiled
     return np.int64(x)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def morton(x, y, z):  # pragma: no cover - compiled
     return np.int64(_split3(x) | (_split3(y) << np.uint64(1)) | (_split3(z) << np.uint64(2)))
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def unmorton(key):  # pragma: no cover - compiled
     k = np.uint64(key)
     return _compact3(k), _compact3(k >> np.uint64(1)), _compact3(k >> np.uint64(2))
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
@@ -77,6 +77,21 @@ def hash_find(hidx, keys, key):  # pragma: no cover - compiled
         if keys[i] == key:
             return i
         s = (s + 1) & mask
+
+
+@nb.njit(**JIT)
+def lower_bound(arr, key):  # pragma: no cover - compiled
+    """The first index i with arr[i] >= key in the sorted ``arr`` (written out: one compiled
+    version for every caller, where np.searchsorted compiles one per argument type)."""
+    lo = np.int64(0)
+    hi = np.int64(arr.shape[0])
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if arr[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @nb.njit(**JIT)
@@ -121,66 +136,59 @@ def grid_coords(points, perm, origin, h):  # pragma: no cover - compiled
     return u
 
 
+FAR_SEP = 0.4
+OUTER_SEP = 0.2
+DEAD_ZONE = 0.5
 BLOCK_BITS = 4  # the band is built block by block, 16^3 voxels each, in Morton order
 BLOCK = 1 << BLOCK_BITS
 
 
 @nb.njit(**JIT)
-def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compiled
+def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, bkey, bstart, cand, cap_limit):  # pragma: no cover
     """The band: every voxel within its points' radius, plus the 8 corners of every occupied cell.
 
     ``u``: (M, 3) grid coordinates sorted by cell (Morton order); ``irad2``/``rad``: (M,) inverse
-    squared and plain band radius of every point in grid units; ``ostart``: (C + 1,) point ranges of
-    the occupied cells. For every voxel v, q2 = min over points i of |u_i - v|^2 / rad_i^2 (its
-    squared *depth ratio*: v is in the band, "marchable", when q2 <= 1; corners of occupied cells
-    farther out are kept with q2 > 1 only so that every cell's corners can be found) and ``foot``,
-    the point achieving it.
+    squared and plain band radius of every point in grid units; ``nin``: (M, 3) unit normals toward
+    the other sheet where a point lies on a thin part (zero elsewhere; or a single row for none);
+    ``ostart``: (C + 1,) point ranges of the occupied cells. Every voxel v gets its ``foot``, the
+    nearest point, and q2 = |u_foot - v|^2 / rad_foot^2 (its squared *depth ratio*). v is in the
+    band ("marchable") when q2 <= 1 and, if its foot lies on a thin part, v is on the foot's side away
+    from the other sheet (up to ``side_tol`` grid units): a one-sided band, decided by the nearest
+    point alone so that a neighbour's misjudged normal near a fold cannot fill the gap (near the
+    surface it may lie up to min(side_tol, 0.4 (psep - 1)) on the gap side). A voxel farther than FAR_SEP x ``psep`` (the foot's separation) from its foot must
+    lie more than OUTER_SEP x ``psep`` on the outer side, so that slightly misjudged normals cannot
+    let voxels near the middle of a gap in. Corners of
+    occupied cells outside the band are kept with q2 > 1 only so that every cell's corners can be
+    found.
 
     Voxels are produced block by block (blocks of BLOCK^3 voxels, in Morton order): each block
     gathers the contributions of the cells within reach into a dense local table and emits its voxels
-    in Morton order, so the keys come out sorted and no global hash is needed. Returns
+    in Morton order, so the keys come out sorted and no global hash is needed. ``bkey``/``bstart``:
+    the occupied blocks (sorted Morton keys of the block coordinates) and their cell ranges;
+    ``cand``: the sorted keys of every block within reach of one (see :func:`block_plan`). Returns
     (keys, q2, foot, count); count is -1 when more than ``cap_limit`` voxels would be needed.
     """
     ncell = ostart.shape[0] - 1
     nb3 = BLOCK * BLOCK * BLOCK
-    sh = np.uint64(3 * BLOCK_BITS)
-    # cells -> anchors and blocks (cells are in Morton order, so each block's cells are contiguous)
+    sided = nin.shape[0] == u.shape[0]
+    nblk = bkey.shape[0]
     ccx = np.empty(ncell, np.int32)
     ccy = np.empty(ncell, np.int32)
     ccz = np.empty(ncell, np.int32)
-    nblk = 0
-    prev = np.int64(-1)
     for c in range(ncell):
         p0 = ostart[c]
         ccx[c] = int(np.floor(u[p0, 0]))
         ccy[c] = int(np.floor(u[p0, 1]))
         ccz[c] = int(np.floor(u[p0, 2]))
-        b = np.int64(np.uint64(morton(ccx[c], ccy[c], ccz[c])) >> sh)
-        if b != prev:
-            nblk += 1
-            prev = b
-    bkey = np.empty(nblk, np.int64)
-    bstart = np.empty(nblk + 1, np.int32)
-    j = -1
-    prev = np.int64(-1)
-    for c in range(ncell):
-        b = np.int64(np.uint64(morton(ccx[c], ccy[c], ccz[c])) >> sh)
-        if b != prev:
-            j += 1
-            bkey[j] = b
-            bstart[j] = c
-            prev = b
-    bstart[nblk] = ncell
     rmax = 0.0
     for i in range(rad.shape[0]):
         rmax = max(rmax, rad[i])
     ext = int(np.floor(rmax))
-    # blocks that receive voxels: the occupied ones and their neighbours within reach
     reach_blocks = (ext + 1 + BLOCK - 1) // BLOCK
     lut = np.empty(BLOCK, np.int64)  # local Morton spread of a coordinate
     for t in range(BLOCK):
         lut[t] = np.int64(_split3(t))
-    dq = np.empty(nb3, np.float32)
+    dq = np.empty(nb3, np.float64)  # squared distance to the nearest point, then q2
     df = np.empty(nb3, np.int32)
     dc = np.zeros(nb3, np.uint8)
     cap = max(1024, 2 * u.shape[0])
@@ -188,20 +196,6 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
     qo = np.empty(cap, np.float32)
     fo = np.empty(cap, np.int32)
     count = 0
-    # candidate blocks: every block within reach_blocks of an occupied block, each once, in order
-    span = 2 * reach_blocks + 1
-    cand = np.empty(nblk * span * span * span, np.int64)
-    nc = 0
-    for b in range(nblk):
-        bx, by, bz = unmorton(bkey[b])
-        for dx in range(-reach_blocks, reach_blocks + 1):
-            for dy in range(-reach_blocks, reach_blocks + 1):
-                for dz in range(-reach_blocks, reach_blocks + 1):
-                    x, y, z = bx + dx, by + dy, bz + dz
-                    if x >= 0 and y >= 0 and z >= 0:
-                        cand[nc] = morton(x, y, z)
-                        nc += 1
-    cand = np.unique(cand[:nc])
     for t in range(cand.shape[0]):
         blk = cand[t]
         bx, by, bz = unmorton(blk)
@@ -218,7 +212,7 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
                     if nx < 0 or ny < 0 or nz < 0:
                         continue
                     nk = morton(nx, ny, nz)
-                    jb = np.searchsorted(bkey, nk)
+                    jb = lower_bound(bkey, nk)
                     if jb >= nblk or bkey[jb] != nk:
                         continue
                     for c in range(bstart[jb], bstart[jb + 1]):
@@ -253,19 +247,19 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
                                 zb = min(zb, z0 + BLOCK - 1)
                                 lxy = lut[x - x0] | (lut[y - y0] << 1)
                                 for z in range(za, zb + 1):
-                                    q2 = np.inf
+                                    d2 = np.inf
                                     foot = p0
+                                    li = lxy | (lut[z - z0] << 2)
                                     for i in range(p0, p1):
                                         ex = u[i, 0] - x
                                         ey = u[i, 1] - y
                                         ez = u[i, 2] - z
-                                        q = (ex * ex + ey * ey + ez * ez) * irad2[i]
-                                        if q < q2:
-                                            q2 = q
+                                        e2 = ex * ex + ey * ey + ez * ez
+                                        if e2 < d2:
+                                            d2 = e2
                                             foot = i
-                                    li = lxy | (lut[z - z0] << 2)
-                                    if q2 < dq[li]:
-                                        dq[li] = q2
+                                    if d2 < dq[li] or (d2 == dq[li] and foot < df[li]):
+                                        dq[li] = d2
                                         df[li] = foot
                                     if corner and (z == cz or z == cz + 1):
                                         dc[li] = 1
@@ -274,7 +268,33 @@ def band_voxels(u, irad2, rad, ostart, cap_limit):  # pragma: no cover - compile
             continue
         base = blk << (3 * BLOCK_BITS)
         for li in range(nb3):
-            if dq[li] <= 1.0 or dc[li] == 1:
+            if dq[li] == np.inf:
+                continue
+            f = df[li]
+            q2 = dq[li] * irad2[f]
+            if q2 <= 1.0 and sided and (nin[f, 0] != 0.0 or nin[f, 1] != 0.0 or nin[f, 2] != 0.0):
+                lx, ly, lz = unmorton(li)
+                side = (
+                    (x0 + lx - u[f, 0]) * nin[f, 0]
+                    + (y0 + ly - u[f, 1]) * nin[f, 1]
+                    + (z0 + lz - u[f, 2]) * nin[f, 2]
+                )
+                # near the surface a voxel may lie a little on the gap side (at most side_tol, and
+                # less than a quarter of what the gap leaves between the two sheets' layers), so
+                # that the band's nearest layer stays close to the surface; away from it, a voxel
+                # must lie clearly on the outer side: a slightly misjudged normal must not let a
+                # voxel near the middle of the gap in
+                far = dq[li] > (FAR_SEP * psep[f]) ** 2
+                tol = min(side_tol, 0.4 * (psep[f] - 1.0))
+                if side > (-OUTER_SEP * psep[f] if far else tol):
+                    q2 = 2.0  # on the gap side of a thin part: not marchable
+                else:
+                    # the band's nearest layer may lie up to 1 - tol off the surface: count the
+                    # depth from DEAD_ZONE of that, so the depth cost adds little bias there
+                    dd = max(np.sqrt(dq[li]) - DEAD_ZONE * (1.0 - tol), 0.0)
+                    q2 = dd * dd * irad2[f]
+            dq[li] = q2
+            if q2 <= 1.0 or dc[li] == 1:
                 if count == cap:
                     cap *= 2
                     keys = np.concatenate((keys, np.empty(cap - count, np.int64)))

@@ -8,6 +8,7 @@ operation when its debug switch is on (like scikit-fmm's self test)."""
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 
 from . import JIT
 
@@ -49,13 +50,13 @@ def maxheap_build(hkey, heap, pos, n):  # pragma: no cover - compiled
     for i in range(n):
         pos[heap[i]] = i
     for i in range((n - 2) // 4, -1, -1):
-        maxheap_sift_down(hkey, heap, pos, i, n)
+        maxheap_sift_down(hkey, heap, pos, np.int64(i), n)
 
 
 @nb.njit(**JIT)
 def maxheap_decrease(hkey, heap, pos, item, key, n):  # pragma: no cover - compiled
     """Lower the key of ``item`` (if it is still in the heap) to ``key``."""
-    i = pos[item]
+    i = np.int64(pos[item])
     if i >= 0:
         hkey[i] = key
         maxheap_sift_down(hkey, heap, pos, i, n)
@@ -70,7 +71,7 @@ def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
         hkey[0] = hkey[n]
         heap[0] = heap[n]
         pos[heap[0]] = 0
-        maxheap_sift_down(hkey, heap, pos, 0, n)
+        maxheap_sift_down(hkey, heap, pos, np.int64(0), n)
     return n
 
 

@@ -10,11 +10,12 @@ Per-voxel state: arrival time ``T`` (float32, only ever lowered), the rank of th
 "accepted in round rnd", anything smaller "known from an earlier round". Nothing is re-initialised per
 sample: a new sample marches only where it lowers ``T``.
 
-Seeding: the voxels within SEED_RADIUS of a new sample that a monotone (staircase) path inside the
-band joins to the sample's nearest voxel get their exact distance (the straight segment is then in
-the band: a path around a fold or across a gap needs more steps and is left to the march), and so do
-the points of their cells. These voxels are frozen (marked accepted at once, so the march never
-lowers them) and popped in order like the others.
+Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
+ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
+voxel sees the sample when the voxel one step back toward the sample's nearest voxel does (taken in
+order of distance from it): the straight segment then stays in the band, so no exact distance is given across a gap
+or through the inside of a fold. These voxels are frozen (marked accepted at once, so the march
+never lowers them) and popped in order like the others.
 
 Update: second-order upwind (one-sided differences (3 T - 4 T1 + T2) / 2 along an axis) where the
 first and the next voxel upwind were both accepted in this round (so they hold this sample's field)
@@ -36,7 +37,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 from .grid import hash_find, morton, unmorton
 from .heaps import (
     check_maxheap,
@@ -51,10 +52,12 @@ from .heaps import (
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
-HOP_SLACK = 2  # extra steps over the L1 distance a seeding path may take
+HALF = 8  # the ball's voxels lie within HALF of the sample's nearest voxel along each axis
+CUBE = 2 * HALF + 1
+NBUCKET = 8 * (HALF + 1) * 2  # eighths of a voxel up to beyond the ball's reach
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     """Upwind solution of |grad T| = f from the three axes' (first, second) upwind values.
 
@@ -113,26 +116,59 @@ def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
+def anchor_of(cs, i):  # pragma: no cover - compiled
+    """The voxel whose point range holds point i (cs is non-decreasing): the last v with
+    cs[v] <= i. Written out rather than np.searchsorted: one compiled version for every caller."""
+    lo = np.int64(0)
+    hi = np.int64(cs.shape[0] - 1)
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if cs[mid] <= i:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(**INLINE)
 def _norm(dx, dy, dz):  # pragma: no cover - compiled
     # helpers take scalars only: an array argument in a hot loop costs atomic reference counting
     return np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
+@nb.njit(**INLINE)
+def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: no cover - compiled
+    """Whether the chord (cx, cy, cz) of length c between two points of thin parts (separations
+    sa, sb; unit normals a, b, zero when unknown) is a fair surface distance."""
+    if c >= sa or c >= sb:
+        return False
+    lim = slope * c
+    return abs(cx * ax + cy * ay + cz * az) <= lim and abs(cx * bx + cy * by + cz * bz) <= lim
+
+
 @nb.njit(**JIT)
 def march_round(
-    src, lab, rnd, u, keys, nbr, cs, cellof, vcost, pcost, weighted,
+    src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
     T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
     Updates dq/lq of points near lowered voxels and appends their cells to ``dirty``; returns the
-    new count of dirty cells and the number of pops.
+    new count of dirty cells and the number of pops. Where sheets come close (``pnrm``: per point
+    normals, zero elsewhere; a single row when there is no thin part; ``foot``: each voxel's nearest
+    point), a straight distance is exact only along a chord within ``slope`` of both ends' sheets
+    (around a tight fold the chord is much shorter than the surface).
     """
     trial = np.int32(2 * rnd)
     acc = np.int32(2 * rnd + 1)
-    n = 0
+    thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
+    n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     qv = np.empty(SEED_QUEUE, np.int32)
-    qh = np.empty(SEED_QUEUE, np.int32)
+    qd = np.empty(SEED_QUEUE, np.float64)
+    cube = np.full(CUBE * CUBE * CUBE, -1, np.int32)  # ball-local index of the voxels near v0
+    vis = np.zeros(SEED_QUEUE, np.bool_)
+    srt = np.empty(SEED_QUEUE, np.int32)
+    nbk = np.zeros(NBUCKET, np.int64)
     for s in range(src.shape[0]):
         i = src[s]
         ci = 1.0
@@ -140,7 +176,7 @@ def march_round(
             ci = pcost[i]
         mark = np.int32(rnd * src.shape[0] + s)
         # the sample's nearest voxel: a corner of its cell (all corners are voxels)
-        a = np.searchsorted(cs, i, side="right") - 1
+        a = anchor_of(cs, np.int64(i))
         v0 = a
         for ax in range(3):
             if u[i, ax] - np.floor(u[i, ax]) >= 0.5 and v0 >= 0:
@@ -158,40 +194,14 @@ def march_round(
         if v0 < 0:
             continue
         x0, y0, z0 = unmorton(keys[v0])
+        # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first)
         seen[v0] = mark
         qv[0] = v0
-        qh[0] = 0
         qn = 1
         qi = 0
         while qi < qn:
             v = qv[qi]
-            hops = qh[qi]
             qi += 1
-            x, y, z = unmorton(keys[v])
-            if hops > abs(x - x0) + abs(y - y0) + abs(z - z0) + HOP_SLACK:
-                continue  # reached around something: leave it to the march
-            d = _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z)
-            t = np.float32(d * 0.5 * (ci + vcost[v]))
-            if t < T[v]:
-                T[v] = t
-                vlab[v] = lab + s
-                stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
-                n = iheap_push(hk, hv, hpos, n, t, v)
-            cell = cellof[v]
-            if cell >= 0:
-                for p in range(cs[v], cs[v + 1]):
-                    if rank[p] >= 0:
-                        continue
-                    e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
-                    if weighted:
-                        e *= 0.5 * (pcost[p] + ci)
-                    if e < dq[p]:
-                        dq[p] = e
-                        lq[p] = lab + s
-                        if dstamp[cell] != rnd:
-                            dstamp[cell] = rnd
-                            dirty[nd] = cell
-                            nd += 1
             for j in range(6):
                 w = nbr[v, j]
                 if w < 0 or seen[w] == mark or qn == SEED_QUEUE or vcost[w] == np.inf:
@@ -200,12 +210,99 @@ def march_round(
                 if _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) <= SEED_RADIUS:
                     seen[w] = mark
                     qv[qn] = w
-                    qh[qn] = hops + 1
                     qn += 1
+        # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
+        # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
+        # then stays in the band (no exact distance across a gap or through the inside of a fold)
+        # (a counting sort in steps of 1/8 voxel: the step back is at least 0.13 nearer, so it
+        # always falls in an earlier bucket)
+        nbk[:] = 0
+        for q in range(qn):
+            x, y, z = unmorton(keys[qv[q]])
+            qd[q] = _norm(np.float64(x - x0), np.float64(y - y0), np.float64(z - z0))
+            nbk[int(qd[q] * 8.0) + 1] += 1
+            cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = q
+        for b in range(1, NBUCKET):
+            nbk[b] += nbk[b - 1]
+        for q in range(qn):
+            b = int(qd[q] * 8.0)
+            srt[nbk[b]] = q
+            nbk[b] += 1
+        for t in range(qn):
+            q = srt[t]
+            v = qv[q]
+            x, y, z = unmorton(keys[v])
+            if v == v0:
+                ok = True
+            else:
+                # one step back toward v0 (the sample itself may lie just outside a one-sided band)
+                d = qd[q]
+                bx = int(np.floor(x - (x - x0) / d + 0.5))
+                by = int(np.floor(y - (y - y0) / d + 0.5))
+                bz = int(np.floor(z - (z - z0) / d + 0.5))
+                pq = cube[(bx - x0 + HALF) + CUBE * ((by - y0 + HALF) + CUBE * (bz - z0 + HALF))]
+                ok = pq >= 0 and pq != q and vis[pq]
+            if ok and thin:
+                f = foot[v]
+                ok = _chord_ok(
+                    u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
+                    _norm(u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2]), np.float32(np.inf),
+                    np.float32(np.inf),
+                    pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+                )
+            vis[q] = ok
+            if not ok:
+                continue
+            t_ = np.float32(_norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) * 0.5 * (ci + vcost[v]))
+            if t_ < T[v]:
+                T[v] = t_
+                vlab[v] = lab + s
+                stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
+                n = iheap_push(hk, hv, hpos, n, t_, v)
+            # the points of the 8 cells that have v as a corner get their exact distance
+            wx = nbr[v, 0]
+            for a_ in range(2):
+                wa = v if a_ == 0 else wx
+                if wa < 0:
+                    continue
+                for b_ in range(2):
+                    wb = wa if b_ == 0 else nbr[wa, 2]
+                    if wb < 0:
+                        continue
+                    for c_ in range(2):
+                        w = wb if c_ == 0 else nbr[wb, 4]
+                        if w < 0:
+                            continue
+                        cell = cellof[w]
+                        if cell < 0:
+                            continue
+                        for p in range(cs[w], cs[w + 1]):
+                            if rank[p] >= 0:
+                                continue
+                            e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                            if thin and not _chord_ok(
+                                u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
+                                np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
+                                pnrm[i, 2], slope,
+                            ):
+                                continue
+                            if weighted:
+                                e *= 0.5 * (pcost[p] + ci)
+                            if e < dq[p]:
+                                dq[p] = e
+                                lq[p] = lab + s
+                                if dstamp[cell] != rnd:
+                                    dstamp[cell] = rnd
+                                    dirty[nd] = cell
+                                    nd += 1
+        for q in range(qn):
+            x, y, z = unmorton(keys[qv[q]])
+            cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = -1
+            vis[q] = False
     pops = 0
     while n > 0:
         if debug and not check_minheap(hk, hv, hpos, n):
-            raise AssertionError("front heap invariant broken")
+            return nd, -1  # the front heap is broken (no raise: it would compile exception code)
         t, v, n = iheap_pop(hk, hv, hpos, n)
         stamp[v] = acc
         pops += 1
@@ -258,15 +355,17 @@ def march_round(
                     cell = cellof[w]
                     if cell < 0:
                         continue
+                    corner = a + 2 * b + 4 * c  # v is this corner of the cell
                     for p in range(cs[w], cs[w + 1]):
                         if rank[p] >= 0:
                             continue
                         ex = u[p, 0] - cx
                         ey = u[p, 1] - cy
                         ez = u[p, 2] - cz
-                        if gn > 0.0 and abs(ex) <= 0.5 and abs(ey) <= 0.5 and abs(ez) <= 0.5:
-                            # v is the point's nearest voxel: first-order Taylor along the front,
-                            # but never below the straight distance to the sample (a lower bound)
+                        if gn > 0.0 and near[p] == corner:
+                            # v is the point's nearest marchable voxel: first-order Taylor along
+                            # the front, never below the straight distance to the sample (a lower
+                            # bound)
                             dd = gx * ex + gy * ey + gz * ez
                             if weighted:
                                 dd *= pcost[p]
@@ -342,6 +441,74 @@ def march_round(
 
 
 @nb.njit(**JIT)
+def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
+    """Per point: which corner (x + 2 y + 4 z offsets) of its cell is the nearest marchable voxel
+    (255: none)."""
+    m = u.shape[0]
+    out = np.full(m, 255, np.uint8)
+    nv = cs.shape[0] - 1
+    for a in range(nv):
+        if cs[a + 1] == cs[a]:
+            continue
+        for p in range(cs[a], cs[a + 1]):
+            fx = np.floor(u[p, 0])
+            fy = np.floor(u[p, 1])
+            fz = np.floor(u[p, 2])
+            best = np.inf
+            for c in range(8):
+                w = a
+                for ax in range(3):
+                    if (c >> ax) & 1 and w >= 0:
+                        w = nbr[w, 2 * ax + 1]
+                if w < 0 or vcost[w] == np.inf:
+                    continue
+                d = _norm(u[p, 0] - fx - (c & 1), u[p, 1] - fy - ((c >> 1) & 1), u[p, 2] - fz - (c >> 2))
+                if d < best:
+                    best = d
+                    out[p] = c
+    return out
+
+
+@nb.njit(**JIT)
+def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
+    """How many connected pieces of the band (marchable voxels, 6-neighbours) hold points; a point
+    without a marchable corner counts as a piece of its own."""
+    nv = nbr.shape[0]
+    lab = np.full(nv, -1, np.int32)
+    queue = np.empty(nv, np.int32)
+    ncomp = 0
+    # label the pieces that hold a point's nearest marchable corner
+    count = 0
+    for a in range(nv):
+        for p in range(cs[a], cs[a + 1]):
+            c = near[p]
+            if c == 255:
+                count += 1
+                continue
+            w = a
+            for ax in range(3):
+                if (c >> ax) & 1:
+                    w = nbr[w, 2 * ax + 1]
+            if lab[w] >= 0:
+                continue
+            lab[w] = ncomp
+            queue[0] = w
+            qn = 1
+            qi = 0
+            while qi < qn:
+                v = queue[qi]
+                qi += 1
+                for j in range(6):
+                    x = nbr[v, j]
+                    if x >= 0 and lab[x] < 0 and vcost[x] < np.inf:
+                        lab[x] = ncomp
+                        queue[qn] = x
+                        qn += 1
+            ncomp += 1
+    return count + ncomp
+
+
+@nb.njit(**JIT)
 def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
     w = cellv[cell]
     best = -1.0
@@ -372,12 +539,15 @@ def cell_tables(cs):  # pragma: no cover - compiled
 
 @nb.njit(**JIT)
 def grid_phase(
-    u, keys, nbr, cs, vcost, pcost, weighted, seeds, k_max, rho_stop, r_stop, debug,
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
+    r_stop, debug,
 ):  # pragma: no cover - compiled
     """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
 
     Returns (order, radius, parent, k, val, lq, rank, pops) where ``k`` points are ordered; the other
-    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop.
+    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop. With
+    ``debug`` the heaps are checked after every operation; pops is -1 (front heap) or -2
+    (candidate heap) when one is found broken.
     """
     m = u.shape[0]
     nv = keys.shape[0]
@@ -405,6 +575,7 @@ def grid_phase(
     radius = np.empty(k_max, np.float64)
     parent = np.empty(k_max, np.int32)
     src = np.empty(1, np.int32)
+    nd0 = np.int64(0)
     pops = 0
     k = 0
     nseed = seeds.shape[0]
@@ -413,7 +584,7 @@ def grid_phase(
             i = seeds[k]
             rad = np.inf
             par = -1
-            ci = cellof[np.searchsorted(cs, i, side="right") - 1]
+            ci = cellof[anchor_of(cs, np.int64(i))]
         else:
             if hn == 0:
                 break
@@ -436,12 +607,14 @@ def grid_phase(
         radius[k] = rad
         parent[k] = par
         # an exhausted cell (key -1) sinks and is dropped when it reaches the top
-        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(ci, cellv, cs, rank, val), hn)
+        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(np.int64(ci), cellv, cs, rank, val), hn)
         src[0] = i
         nd, pp = march_round(
-            src, k, k + 1, u, keys, nbr, cs, cellof, vcost, pcost, weighted,
-            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v, debug,
+            src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
         )
+        if pp < 0:
+            return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
         pops += pp
         for j in range(nd):
             cc = dirty[j]
@@ -464,13 +637,15 @@ def grid_phase(
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
         if debug and not check_maxheap(ckey, heap, hpos, hn):
-            raise AssertionError("candidate heap invariant broken")
+            return order, radius, parent, k, val, lq, rank, np.int64(-2)  # debug: a broken heap
         k += 1
     return order, radius, parent, k, val, lq, rank, pops
 
 
 @nb.njit(**JIT)
-def multi_source_distance(u, keys, nbr, cs, vcost, pcost, weighted, sources):  # pragma: no cover
+def multi_source_distance(
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, sources,
+):  # pragma: no cover - compiled
     """dq of every point for one march from all ``sources`` at once (for tests and analysis)."""
     m = u.shape[0]
     nv = keys.shape[0]
@@ -479,11 +654,14 @@ def multi_source_distance(u, keys, nbr, cs, vcost, pcost, weighted, sources):  #
     dq = np.full(m, np.inf)
     lq = np.full(m, -1, np.int32)
     rank = np.full(m, -1, np.int32)
+    lab0 = np.int64(0)  # variables, not literals: literal arguments compile another version
+    rnd1 = np.int64(1)
+    nd0 = np.int64(0)
     nd, pops = march_round(
-        sources, 0, 1, u, keys, nbr, cs, cellof, vcost, pcost, weighted,
+        sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
         np.full(nv, -1, np.int32), dq, lq, rank, np.full(ncell, -1, np.int32),
-        np.empty(ncell, np.int32), 0, np.empty(nv, np.float32), np.empty(nv, np.int32),
+        np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
         np.full(nv, -1, np.int32), False,
     )
     for s in range(sources.shape[0]):
@@ -493,8 +671,8 @@ def multi_source_distance(u, keys, nbr, cs, vcost, pcost, weighted, sources):  #
 
 @nb.njit(**JIT)
 def euclid_tail(
-    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, d, lab, rank,
-    order, radius, parent, k0, k_max, rho_stop,
+    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
+    rank, order, radius, parent, k0, k_max, rho_stop,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
@@ -502,7 +680,11 @@ def euclid_tail(
     tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
     point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
     max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
-    top (keys only decrease, so a stale key never hides the true maximum). A ball query walks the
+    top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
+    ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
+    if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
+    chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. A ball
+    query walks the
     neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
     and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
     at most 27 of them while the radius is within the coarse levels. Returns the new count.
@@ -510,18 +692,24 @@ def euclid_tail(
     cellv, cellof = cell_tables(cs)
     ncell = cellv.shape[0]
     m = u.shape[0]
+    thin = psep.shape[0] == m
     for p in range(m):
         if rank[p] < 0 and lab[p] >= 0:
             # tighten to the exact distance to the labelled sample (still an upper bound)
             s = order[lab[p]]
             e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+            if thin and not _chord_ok(
+                u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2], e, psep[p], psep[s],
+                pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[s, 0], pnrm[s, 1], pnrm[s, 2], slope,
+            ):
+                continue  # the band's value may go around a fold the straight line crosses
             if weighted:
                 e *= 0.5 * (pcost[p] + pcost[s])
             if e < d[p]:
                 d[p] = e
     ckey = np.empty(ncell)
     for c in range(ncell):
-        ckey[c] = _cell_key(c, cellv, cs, rank, d)
+        ckey[c] = _cell_key(np.int64(c), cellv, cs, rank, d)
     heap = np.arange(ncell).astype(np.int32)
     hpos = np.empty(ncell, np.int32)
     hn = ncell
@@ -530,13 +718,13 @@ def euclid_tail(
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = _cell_key(top, cellv, cs, rank, d)
+        kk = _cell_key(np.int64(top), cellv, cs, rank, d)
         if kk != ckey[0]:
             ckey[0] = kk
             if kk < 0.0:
                 hn = maxheap_pop(ckey, heap, hpos, hn)
             else:
-                maxheap_sift_down(ckey, heap, hpos, 0, hn)
+                maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
             continue
         if kk <= rho_stop:
             break
@@ -601,6 +789,12 @@ def euclid_tail(
                         if rank[p] >= 0:
                             continue
                         dd = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                        if thin and not _chord_ok(
+                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], dd,
+                            psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
+                            pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+                        ):
+                            continue  # across a gap or a tight fold: not a surface distance
                         if weighted:
                             dd *= 0.5 * (pcost[p] + pcost[i])
                         if dd < d[p]:

@@ -96,11 +96,13 @@ class RemoteFile(io.RawIOBase):
         self.heads = 0
         self.bytes_fetched = 0
         self.block = BLOCK
+        self._pos = 0
+        self._starts: list[int] = []  # sorted starts of the cached spans
+        self._spans: dict[int, bytes] = {}
+        head = b""
         if size is None:
-            try:
-                info = fs.info(path)
-            except Exception as exc:  # noqa: BLE001 - any backend error becomes one line
-                raise _remote_error(exc, url) from None
+            # the size (one HEAD) and the first block (one GET) at the same time: one round trip
+            info, head = self._size_and_head()
             self.heads += 1
             size = info.get("size")
             if size is None:
@@ -109,10 +111,40 @@ class RemoteFile(io.RawIOBase):
                     "in ranges"
                 )
         self.size = int(size)
-        self._pos = 0
-        self._starts: list[int] = []  # sorted starts of the cached spans
-        self._spans: dict[int, bytes] = {}
-        self._fetch([(0, min(self.size, FIRST_BLOCK if self.size > SMALL_FILE else self.size))])
+        if head:
+            self.requests += 1
+            self.bytes_fetched += len(head)
+            if len(head) == self.size or len(head) == min(self.size, FIRST_BLOCK):
+                self._insert(0, bytes(head[: self.size]))
+            else:
+                raise ArchiveError(
+                    f"archive {url}: asked for its first {FIRST_BLOCK} bytes, got {len(head)} of "
+                    f"{self.size}; the file changed while it was read"
+                )
+            if self.size <= SMALL_FILE:
+                self._fetch(self._missing(0, self.size))
+        else:
+            self._fetch([(0, min(self.size, FIRST_BLOCK if self.size > SMALL_FILE else self.size))])
+
+    def _size_and_head(self) -> tuple[dict[str, Any], bytes]:
+        """``(fs.info(path), the first FIRST_BLOCK bytes)``, concurrently on an async filesystem."""
+        fs, path = self.fs, self.path
+        try:
+            if getattr(fs, "async_impl", False):
+                import asyncio
+
+                from fsspec.asyn import sync
+
+                async def both() -> tuple[Any, Any]:
+                    info, data = await asyncio.gather(
+                        fs._info(path), fs._cat_file(path, start=0, end=FIRST_BLOCK)
+                    )
+                    return info, data
+
+                return sync(fs.loop, both)
+            return fs.info(path), fs.cat_file(path, start=0, end=FIRST_BLOCK)
+        except Exception as exc:  # noqa: BLE001 - any backend error becomes one line
+            raise _remote_error(exc, self.url) from None
 
     # -- io.RawIOBase ----------------------------------------------------------------------------
     def readable(self) -> bool:

@@ -7,6 +7,23 @@ Automatic parameters (documented rule):
     band radius r = 2.5 h.
 With these, the band is about 2r/h = 5 voxels thick and holds about 1.3 voxels per point.
 
+Thin structures (automatic parameters only): two pieces of surface closer across a gap than
+2r would be joined by the band (between 2r and 2r + h only by a few voxels at its edge). The local *sheet separation* of every point is measured on the
+cells of the default grid (:mod:`lodbuilder._kernels.sheets`: along the local normal, the nearest
+cell of another sheet at least SEP_GAP_MIN voxels = 3 point spacings away; closer layers count as
+one noisy sheet). Where another sheet is found, the band is one-sided: a voxel whose nearest point
+lies on a thin part is in the band only on that point's side away from the other sheet (up to
+SIDE_TOLERANCE voxels, less where the gap is narrower; farther than 0.4 x the separation from that point, only clearly on the outer
+side, more than 0.2 x the separation, so that a slightly misjudged normal cannot let voxels near the
+middle of a gap in). So no voxel lies in the gap and no gap is bridged whatever h is, and a tight
+fold is measured along its outer side (a little longer than the surface, never a shortcut through
+its inside). If there is a sheet on the outer side too, the radius there is capped at
+0.95 (sep - h) / 2 (never below h). The Euclidean tail never lowers a point from a sample farther
+than 0.9 x their separation (a ball smaller than the gap does not reach the other sheet), nor along a
+chord steeper than 30 degrees to either end's sheet (around a tight fold the chord is much shorter
+than the surface); when at least THIN_SHARE % of the scan is thin, the band ordering goes on down
+to 0.9 x the typical separation instead of 2 r, so that the tail's limits hardly ever bind.
+
 Depth cost: the front moves through a voxel at cost 1 + DEPTH_COST * q^2, where q is the voxel's
 depth ratio (distance to the nearest point over that point's band radius, 0 on the points, 1 at the
 band's edge). Without it, paths on a curved surface cut through the inner side of the band, which
@@ -15,6 +32,7 @@ shortens distances by about r / R (R the radius of curvature); with it they stay
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -23,10 +41,20 @@ import numpy as np
 
 from ..errors import InputError, MemoryBudgetError
 
+log = logging.getLogger(__name__)
+
 VOXEL_PER_SPACING = 2.0
 BAND_PER_VOXEL = 2.5
 MIN_BAND_PER_VOXEL = 1.75  # the 8 corners of a point's cell lie in the band (sqrt(3) ~ 1.732)
 DEPTH_COST = 0.2
+TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
+SEP_GAP_MIN = 1.5  # in default voxels (3 point spacings): closer layers count as one sheet
+SEP_CONE = 0.8  # the other sheet's cell lies within acos(0.8) = 37 degrees of the normal
+THIN_RADIUS_MIN = 1.0  # voxels: the thinnest band radius
+SIDE_TOLERANCE = 0.15  # voxels: how far on the gap side of its nearest point a voxel may lie
+TAIL_PER_SEP = 0.9  # the tail lowers a point only from samples closer than this x its separation
+TAIL_SLOPE = 0.5  # ... and along chords with |sin| <= this to both ends' sheets (arc/chord <= 1.05)
+THIN_SHARE = 25.0  # percent: when this much of the scan is thin, hand over below 0.9 x separation
 BYTES_PER_VOXEL = 96  # while ordering: keys 8, nbr 24, cs 4, T/vlab/stamp/seen/heap/vcost/cellof 36 + slack
 BYTES_PER_POINT = 120
 MAX_COORD = (1 << 21) - 1
@@ -99,13 +127,132 @@ def choose_parameters(
 
 
 @dataclass
+class BandPlan:
+    """The band's parameters: voxel size ``h``, largest band radius ``r``; where sheets come close
+    (input order, None when there is no thin part): the band radius, the separation toward the
+    nearer other sheet and the unit normal toward it; the radius below which the ordering is
+    finished with Euclidean distances."""
+
+    h: float
+    r: float
+    radius: np.ndarray | None
+    separation: np.ndarray | None
+    normal: np.ndarray | None
+    handover: float
+
+    @property
+    def thin_points(self) -> int:
+        return 0 if self.separation is None else int(np.isfinite(self.separation).sum())
+
+
+def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
+    the gap to the nearer other sheet within reach (inf where there is none), the same on the
+    opposite side, and the unit normal toward the nearer one (float32; zero where there is none)."""
+    from .._kernels.grid import cell_order, grid_coords
+    from .._kernels.sheets import cell_separation
+
+    n = points.shape[0]
+    origin = points.min(axis=0) - 2 * h
+    ckeys = cell_order(points, origin, h)
+    perm = np.argsort(ckeys, kind="stable").astype(np.int32)
+    ckeys = ckeys[perm]
+    u = grid_coords(points, perm, origin, h)
+    new = np.empty(n, dtype=bool)
+    new[0] = True
+    np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
+    ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
+    del ckeys, new
+    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE)
+    counts = np.diff(ostart)
+    sep_in = np.empty(n)
+    sep_in[perm] = np.repeat(sin * h, counts)
+    sep_out = np.empty(n)
+    sep_out[perm] = np.repeat(sout * h, counts)
+    normal = np.empty((n, 3), dtype=np.float32)
+    normal[perm] = np.repeat(nrm.astype(np.float32), counts, axis=0)
+    return sep_in, sep_out, normal
+
+
+def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float | None) -> BandPlan:
+    """The band's parameters: the overrides as given, or the automatic rule of this module with a
+    one-sided band where sheets come close."""
+    h, r = choose_parameters(points, voxel_size, band_radius)
+    plain = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+    if voxel_size is not None or band_radius is not None or points.shape[0] < 16:
+        return plain
+    sep_in, sep_out, normal = sheet_separation(points, h, r)
+    if not np.isfinite(sep_in).any():
+        return plain
+    with np.errstate(invalid="ignore"):
+        radius = np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
+    # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
+    typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
+    handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
+    return BandPlan(h, r, radius, sep_in, normal, handover)
+
+
+_M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,
+                               0x10C30C30C30C30C3, 0x1249249249249249)]
+
+
+def _spread(x: np.ndarray) -> np.ndarray:
+    x = x.astype(np.uint64) & _M[0]
+    for shift, mask in zip((32, 16, 8, 4, 2), _M[1:], strict=True):
+        x = (x | (x << np.uint64(shift))) & mask
+    return x
+
+
+def _compact(x: np.ndarray) -> np.ndarray:
+    x = x & _M[5]
+    for shift, mask in zip((2, 4, 8, 16, 32), _M[4::-1], strict=True):
+        x = (x ^ (x >> np.uint64(shift))) & mask
+    return x.astype(np.int64)
+
+
+def morton_np(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Morton keys of non-negative integer coordinates (NumPy; the kernels have their own)."""
+    return (_spread(x) | (_spread(y) << np.uint64(1)) | (_spread(z) << np.uint64(2))).astype(np.int64)
+
+
+def unmorton_np(keys: np.ndarray) -> np.ndarray:
+    """(K, 3) coordinates of Morton keys."""
+    k = keys.astype(np.uint64)
+    return np.stack([_compact(k >> np.uint64(a)) for a in range(3)], axis=1)
+
+
+def block_plan(cell_keys: np.ndarray, reach_voxels: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the band builder: the occupied blocks (keys of BLOCK^3-voxel blocks, sorted) with their
+    ranges of cells (``cell_keys``: the sorted Morton keys of the occupied cells), and the sorted
+    keys of every block within ``reach_voxels`` of an occupied one."""
+    from .._kernels.grid import BLOCK, BLOCK_BITS
+
+    bk = cell_keys >> np.int64(3 * BLOCK_BITS)
+    first = np.empty(bk.shape[0], dtype=bool)
+    first[0] = True
+    np.not_equal(bk[1:], bk[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    bkey = bk[starts]
+    bstart = np.append(starts, bk.shape[0]).astype(np.int32)
+    reach = (int(math.floor(reach_voxels)) + 1 + BLOCK - 1) // BLOCK
+    c = unmorton_np(bkey)
+    off = np.arange(-reach, reach + 1)
+    d = np.stack(np.meshgrid(off, off, off, indexing="ij"), axis=-1).reshape(-1, 3)
+    cand = (c[:, None, :] + d[None, :, :]).reshape(-1, 3)
+    cand = cand[(cand >= 0).all(axis=1)]
+    return bkey, bstart, np.unique(morton_np(cand[:, 0], cand[:, 1], cand[:, 2]))
+
+
+@dataclass
 class Band:
     """A sparse voxel band around points sorted by cell.
 
     ``u``: (M, 3) grid coordinates of the points in cell order; ``perm``: their indices in the input;
     ``keys``/``nbr``: the voxels in Morton order and their 6 neighbours; ``cs``: per-voxel point
     ranges (the points whose cell's lower corner is that voxel); ``vcost``: the cost of moving
-    through each voxel (inf for corners outside the band radius, kept only to index cells);
+    through each voxel (inf for corners outside the band, kept only to index cells); ``foot``: the
+    nearest point of each voxel; ``near``: per point, which corner of its cell is its nearest
+    marchable voxel (x + 2 y + 4 z; 255: none);
     ``radius``: the band radius of every point in grid units (None when it is r / h everywhere).
     """
 
@@ -119,6 +266,7 @@ class Band:
     cs: np.ndarray
     vcost: np.ndarray
     foot: np.ndarray
+    near: np.ndarray
     radius: np.ndarray | None = None
 
     @property
@@ -128,12 +276,7 @@ class Band:
     @property
     def coord(self) -> np.ndarray:
         """(V, 3) integer grid coordinates of the voxels (decoded from the keys)."""
-        k = self.keys.astype(np.uint64)
-        out = np.zeros((k.shape[0], 3), dtype=np.int64)
-        for bit in range(21):
-            for a in range(3):
-                out[:, a] |= ((k >> np.uint64(3 * bit + a)) & np.uint64(1)).astype(np.int64) << bit
-        return out
+        return unmorton_np(self.keys)
 
     @property
     def marchable(self) -> np.ndarray:
@@ -141,7 +284,8 @@ class Band:
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.u, self.perm, self.keys, self.nbr, self.cs, self.vcost, self.foot))
+        arrays = (self.u, self.perm, self.keys, self.nbr, self.cs, self.vcost, self.foot, self.near)
+        return sum(a.nbytes for a in arrays)
 
 
 def build_band(
@@ -151,11 +295,15 @@ def build_band(
     max_memory: int | None = None,
     *,
     radius: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    separation: np.ndarray | None = None,
     depth_cost: float | None = None,
 ) -> Band:
     """Build the band of radius ``r`` (or per-point ``radius``, input order) on a grid of spacing
-    ``h`` around ``points``."""
+    ``h`` around ``points``; where ``normal`` (input order, toward the other sheet at distance
+    ``separation``) is not zero, only on the side away from it."""
     from .._kernels.grid import band_voxels, cell_order, grid_coords, neighbour_table
+    from .._kernels.march import nearest_corners
 
     n = points.shape[0]
     if n > MAX_POINTS:
@@ -193,7 +341,18 @@ def build_band(
     if budget_voxels < ostart.shape[0] - 1:
         raise too_big(f"at least {ostart.shape[0] - 1:,}")
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
-    keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, budget_voxels)
+    if normal is None:
+        nin = np.zeros((1, 3))
+        psep = np.zeros(1)
+    else:
+        nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
+        psep = np.full(n, np.inf) if separation is None else separation[perm] / h
+    bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
+    keys, q2, foot, count = band_voxels(
+        u, 1.0 / (rad * rad), rad, nin, psep, SIDE_TOLERANCE, ostart, bkey, bstart, cand, budget_voxels
+    )
+    del bkey, bstart, cand
+    del nin, psep
     del rad, ostart
     if count < 0:
         raise too_big(f"more than {budget_voxels:,}")
@@ -204,7 +363,35 @@ def build_band(
     del ckeys
     beta = DEPTH_COST if depth_cost is None else depth_cost
     vcost = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf).astype(np.float32)
-    return Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, None if radius is None else radius / h)
+    near = nearest_corners(u, nbr, cs, vcost)
+    return Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, near, None if radius is None else radius / h)
+
+
+def build_planned_band(points: np.ndarray, plan: BandPlan, max_memory: int | None = None) -> tuple[Band, BandPlan]:
+    """The band of a plan. A one-sided band must not split the surface into more pieces than the
+    plain band does (two registrations of one surface a few spacings apart, in a merged scan, are
+    found as two sheets and may be cut apart that way): if it does, the plain band is used for the
+    whole scan and the plan returned says so."""
+    from .._kernels.march import point_components
+
+    band = build_band(
+        points, plan.h, plan.r, max_memory, radius=plan.radius, normal=plan.normal, separation=plan.separation
+    )
+    if plan.normal is None:
+        return band, plan
+    pieces = point_components(band.nbr, band.cs, band.near, band.vcost)
+    if pieces == 1:
+        return band, plan
+    del band
+    plain = build_band(points, plan.h, plan.r, max_memory)
+    if point_components(plain.nbr, plain.cs, plain.near, plain.vcost) < pieces:
+        log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
+        return plain, BandPlan(plan.h, plan.r, None, None, None, TAIL_FACTOR * plan.r)
+    del plain
+    band = build_band(
+        points, plan.h, plan.r, max_memory, radius=plan.radius, normal=plan.normal, separation=plan.separation
+    )
+    return band, plan
 
 
 def band_distance(
@@ -224,12 +411,17 @@ def band_distance(
 
     pts = validate_points(points)
     src = validate_indices(sources, pts.shape[0], "sources")
-    h, r = choose_parameters(pts, voxel_size, band_radius)
-    band = build_band(pts, h, r)
+    band, plan = build_planned_band(pts, plan_band(pts, voxel_size, band_radius))
+    h = plan.h
     inv = np.empty(pts.shape[0], dtype=np.int32)
     inv[band.perm] = np.arange(pts.shape[0], dtype=np.int32)
+    if plan.normal is None:
+        pnrm = np.zeros((1, 3), dtype=np.float32)
+    else:
+        pnrm = plan.normal[band.perm]
     dq, _, _ = multi_source_distance(
-        band.u, band.keys, band.nbr, band.cs, band.vcost, np.ones(1), False, inv[src],
+        band.u, band.keys, band.nbr, band.cs, band.near, band.vcost, np.ones(1), False, band.foot,
+        pnrm, TAIL_SLOPE, inv[src],
     )
     out = np.empty(pts.shape[0])
     out[band.perm] = dq * h

@@ -15,7 +15,7 @@ from .._validate import (
     validate_indices,
     validate_points,
 )
-from ..errors import InputError
+from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
 
@@ -55,6 +55,38 @@ def _prepare(points, rho, size, seeds):
     return pts, n, rho, size, seed_arr
 
 
+def check_ordering(o: Ordering) -> Ordering:
+    """The post-conditions of every ordering, in O(N): ``order`` holds distinct indices in
+    [0, N) (all of them for a full ordering), ``radius`` is non-increasing and starts at inf,
+    ``parent`` is -1 or an earlier position. Raises :class:`EngineError` naming the first broken one."""
+    n, k = o.n_points, len(o)
+    order, radius, parent = o.order, o.radius, o.parent
+
+    def fail(what: str) -> EngineError:
+        return EngineError(f"ordering of {n:,} points failed its check: {what}; this is a bug, please report it")
+
+    if order.shape != (k,) or radius.shape != (k,) or parent.shape != (k,):
+        raise fail(f"order/radius/parent shapes {order.shape}/{radius.shape}/{parent.shape} differ")
+    if k == 0:
+        return o
+    if order.min() < 0 or order.max() >= n:
+        raise fail("an index out of range")
+    seen = np.zeros(n, dtype=bool)
+    seen[order] = True
+    if int(seen.sum()) != k:
+        raise fail("an index appears twice")
+    if not np.isinf(radius[0]) or np.isnan(radius).any():
+        raise fail(f"radius[0] = {radius[0]} (inf expected) or NaN radii")
+    bad = np.flatnonzero(radius[1:] > radius[:-1])
+    if bad.size:
+        raise fail(f"radius increases at position {bad[0] + 1}")
+    pos = np.arange(k)
+    bad = np.flatnonzero((parent < -1) | (parent >= pos))
+    if bad.size:
+        raise fail(f"parent of position {bad[0]} is {parent[bad[0]]}, not an earlier position")
+    return o
+
+
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
@@ -87,7 +119,7 @@ def euclidean_fps(
     k_max = n if size is None else max(size, seed_arr.size)
     order, radius, parent = euclidean_fps_kernel(pts, seed_arr, k_max, c)
     order, radius, parent = _truncate(order, radius, parent, rho, size)
-    return Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"})
+    return check_ordering(Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"}))
 
 
 @strict_keywords
@@ -126,10 +158,9 @@ def fastfps(
     c = None if cost is None else validate_cost(cost, n)
     if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
         raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
-    return _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+    return check_ordering(_run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress))
 
 
-TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
 DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
 
 
@@ -162,8 +193,10 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, n
 def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress):
     import time
 
-    from .band import build_band, choose_parameters
+    from .._kernels.warm import ensure_compiled
+    from .band import TAIL_PER_SEP, TAIL_SLOPE, build_planned_band, plan_band
 
+    compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
     t0 = time.perf_counter()
     c0 = time.process_time()
     n = pts.shape[0]
@@ -173,11 +206,16 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     # engine seeds: the groups of the seeds, first occurrence, in order
     _, first = np.unique(gid[seed_arr], return_index=True)
     useeds = gid[seed_arr][np.sort(first)]
-    h, r = choose_parameters(upts, voxel_size, band_radius)
-    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
-    k_max = m if size is None else min(m, size)
     report(progress, "band", 0, 1)
-    band = build_band(upts, h, r, max_memory)
+    plan = plan_band(upts, voxel_size, band_radius)
+    found = plan.thin_points
+    band, plan = build_planned_band(upts, plan, max_memory)
+    h, r = plan.h, plan.r
+    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
+    stats["thin_points"] = plan.thin_points
+    stats["thin_points_found"] = found
+    stats["compiled_kernels"] = compiled
+    k_max = m if size is None else min(m, size)
     del upts
     stats["band_voxels"] = band.n_voxels
     stats["band_bytes"] = band.nbytes
@@ -204,13 +242,24 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         cmin = 1.0
     from .._kernels.march import euclid_tail, grid_phase
 
+    if plan.separation is None:
+        psep = np.full(1, np.inf, dtype=np.float32)
+        pnrm = np.zeros((1, 3), dtype=np.float32)
+        foot = np.zeros(1, dtype=np.int32)
+    else:
+        psep = (TAIL_PER_SEP / h * plan.separation[band.perm]).astype(np.float32)
+        pnrm = plan.normal[band.perm]
+        foot = band.foot
     rho_g = -1.0 if rho is None else rho / h
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
-        band.u, band.keys, band.nbr, band.cs, vcost, pcost, weighted,
-        seeds_c, k_max, rho_g, TAIL_FACTOR * r / h * cscale, DEBUG,
+        band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
+        TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG,
     )
     del vcost
+    if pops < 0:
+        which = "front" if pops == -1 else "candidate"
+        raise EngineError(f"the {which} heap broke its invariant (debug check); this is a bug, please report it")
     t2 = time.perf_counter()
     c2 = time.process_time()
     stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
@@ -219,13 +268,14 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     if k < k_max:
         from .._kernels.grid import coarse_runs
 
-        reach = TAIL_FACTOR * r / h * cscale / cmin  # the largest ball of the tail, in voxels
+        reach = plan.handover / h * cscale / cmin  # the largest ball of the tail, in voxels
         levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
         rkey, ridx, rstart, rend = coarse_runs(band.keys, band.cs, levels)
         k = euclid_tail(
             band.u, band.nbr, band.cs, rkey, ridx, rstart, rend, levels, pcost,
-            weighted, cmin, val, lq, rank, order, radius, parent, k, k_max, rho_g,
+            weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
         )
+    del psep, pnrm, foot
     del val, lq, rank
     t3 = time.perf_counter()
     stats["time_tail"] = t3 - t2

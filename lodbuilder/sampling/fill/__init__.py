@@ -18,6 +18,7 @@ filled. See :mod:`lodbuilder.sampling.fill.gaps` for the method.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -129,7 +130,9 @@ class GapReport:
         dec = int(min(12, max(0, np.ceil(-np.log10(self.rho)) + 2)))
         for r in g:
             lo, hi = r.bounds
-            box = " ".join(f"{x:.{dec}f}" for x in lo) + " .. " + " ".join(f"{x:.{dec}f}" for x in hi)
+            box = (
+                " ".join(f"{x:.{dec}f}" for x in lo) + " .. " + " ".join(f"{x:.{dec}f}" for x in hi)
+            )
             lines.append(f"{r.id:>4} {r.area:10.4g} {r.max_distance:10.4g} {r.status:>9}  {box}")
         rough = [r for r in g if r.status == STATUS_ROUGH]
         for r in rough:
@@ -298,15 +301,15 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
     """
     from scipy.spatial import cKDTree
 
-    from ...archive.levels import Level
-
     rho, max_hole = _check(rho, max_hole)
     t0 = time.perf_counter()
     level = scan.level(rho=rho, attributes=attributes)
     k_sample, sample_rho = _sample_size(scan, rho, False)
     k_sample = max(k_sample, level.size)
     sample = scan.points(k_sample)
-    tree_l, tree_s = cKDTree(level.points), cKDTree(sample)
+    # unbalanced trees build 3x faster and query as fast on scan points
+    tree_l = cKDTree(level.points, balanced_tree=False)
+    tree_s = cKDTree(sample, balanced_tree=False)
     report = gaps_of_points(
         level.points,
         sample,
@@ -345,16 +348,15 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
     else:
         attrs[SYNTHETIC] = flag
     minus = np.full(m, -1, dtype=np.int64)
-    filled = Level(
+    # the level's other fields (scan, ordering, and any the reader adds) are kept as they are
+    filled = dataclasses.replace(
+        level,
         points=np.concatenate([level.points, pts]),
         attributes=attrs,
         source_index=np.concatenate([level.source_index, minus]),
         radius=np.concatenate([level.radius, rad]),
         rank=np.concatenate([level.rank, minus]),
-        rho=level.rho,
         size=level.size + m,
-        scan=level.scan,
-        ordering=level.ordering,
         region={"fill": {"rho": rho, "max_hole": max_hole, "synthetic": m}},
     )
     report.seconds = time.perf_counter() - t0

@@ -14,10 +14,12 @@ whole scan for exact distances.
    neighbour) is a local Voronoi vertex of the level: the locally farthest surface point from it.
    Where the angle between the two neighbours is 180 degrees or more (an open side: the scan's
    border or a large hole) probes along the bisector play that part. A vertex farther than rho
-   from the level and farther than rho/2 from the sample is a *seed*. Where no seed exists, the
-   level covers the surface within rho (up to the tangent-plane approximation).
-2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``max_hole * rho`` is open or
-   too large and is left alone.
+   from the level is moved onto the plane of its nearest sample points (same normal: this takes
+   off the surface's curvature) and is a *seed* when it is farther than rho/2 from the sample,
+   in 3D and along that plane. Where no seed exists, the level covers the surface within rho (up
+   to the tangent-plane approximation).
+2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``2 * max_hole * rho`` (a
+   long border) is open and left alone.
 3. **Regions** (per group, in the plane of the seeds' level normals). The sample points around the
    group, near that plane (``|height| <= rho + |distance in the plane| / 2``, which drops other
    sheets across the plane) are projected on it; a square grid of candidate nodes at spacing
@@ -32,12 +34,15 @@ whole scan for exact distances.
    (:class:`~lodbuilder.sampling.fill.surface.HeightField`). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of its normals tilted over 60
    degrees from the plane's normal) or not one smooth piece: fitted to five sixths of the ring
-   (angular sectors around the hole), the surface misses the sixth left out by more than rho/2
-   RMS (e.g. an occlusion shadow, whose rim lies on two surfaces at different depths).
+   (angular sectors around the hole), the surface misses the inner ring points (within rho of
+   the region) of the sixth left out by more than rho/2 RMS (e.g. an occlusion shadow, whose rim
+   lies on two surfaces at different depths).
 5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
    sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
    than rho from every sample point: its area (node count x node area x the height field's
-   slope factor), bounding box and largest distance are reported.
+   slope factor), bounding box and largest distance are reported. Only regions with a gap are
+   assessed (step 4) and filled; smaller ones (farther than rho/2 but not rho from the input:
+   a real scan's sparse spots) are kept in the search's list, never filled.
 """
 
 from __future__ import annotations
@@ -62,6 +67,8 @@ NEAR_FRACTION = 0.5
 MAX_HOLE = 12.0
 #: ring width around a region (for the surface fit), in units of rho
 RING = 2.0
+#: the ring's inner part (whose prediction judges the fit), in units of rho
+INNER = 1.0
 #: neighbours of a level point in the seed search
 K_LEVEL = 10
 #: neighbours per sample point for normals and the seeds' plane
@@ -84,7 +91,8 @@ class Region:
     """One enclosed region of the surface farther than rho/2 from every input point.
 
     Attributes:
-        id: index in the report.
+        id: the gap's number in the report (0, 1, ... in the order found); -1 for a region that
+            is no gap.
         status: ``"fillable"``, or ``"rough"`` when the surrounding input is not one smooth height
             field (not filled; ``reason`` says why). Only gaps are assessed (a region that is no
             gap is never filled).
@@ -95,8 +103,8 @@ class Region:
             between rho/2 and rho from it: not a gap, but the level still misses rho there).
         region_area: area of the whole region.
         node_area: surface area each candidate stands for.
-        residual: RMS error of the fitted surface predicting each sixth of the ring from the rest
-            (NaN for a region that is no gap: not assessed).
+        residual: RMS error of the fitted surface predicting the inner ring points of each sixth
+            of the ring from the rest (NaN for a region that is no gap: not assessed).
         tilted: share of the ring's normals tilted more than 60 degrees from the plane's.
         frame: the hole's plane; ``uv`` (M, 2) the candidates' coordinates in it.
         surface: the height field over the plane.
@@ -202,7 +210,13 @@ def _level_vertices(level: np.ndarray, tree_l: Any, rho: float) -> tuple[np.ndar
     cap = 3.0 * rho
     open_side = dang >= np.pi - 1e-6
     vertex = ~open_side & np.isfinite(r) & (r > rho) & (r <= cap)
-    probe = open_side | ~(np.isfinite(r) & (r <= cap))
+    # most such triangles are not Delaunay: another neighbour lies within rho of the vertex
+    rows = np.flatnonzero(vertex.any(axis=1))
+    vx, vy = ux[rows], uy[rows]
+    d2 = (vx[:, :, None] - x[rows, None, :]) ** 2 + (vy[:, :, None] - y[rows, None, :]) ** 2
+    vertex[rows] &= d2.min(axis=2) > rho * rho
+    # (a far vertex of a wide angle: a big hole's rim; of a narrow one: a skinny triangle)
+    probe = open_side | ((dang > 0.5 * np.pi) & ~(np.isfinite(r) & (r <= cap)))
     rv, cv = np.nonzero(vertex)
     pts = [level[rv] + ux[rv, cv, None] * t1[rv] + uy[rv, cv, None] * t2[rv]]
     src = [rv]
@@ -294,6 +308,21 @@ class _Grid:
         self.uv = (ij - half) * g
         self.shape = (side, side)
 
+    def area_factor(self, nodes: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Surface area per unit of plane area, sqrt(1 + |grad h|^2), at the grid ``nodes`` of
+        heights ``h``: finite differences with the neighbouring nodes of the same set (forward,
+        else backward; 0 slope along an axis where a node has no neighbour)."""
+        full = np.full(self.shape[0] * self.shape[1], np.nan)
+        full[nodes] = h
+        full = full.reshape(self.shape)
+        grads = []
+        for axis in (0, 1):
+            fwd = np.diff(full, axis=axis, append=np.nan)
+            bwd = np.diff(full, axis=axis, prepend=np.nan)
+            d = np.where(np.isnan(fwd), bwd, fwd)
+            grads.append(np.nan_to_num(d.ravel()[nodes]) / self.g)
+        return np.sqrt(1.0 + grads[0] ** 2 + grads[1] ** 2)
+
     def node_of(self, uv: np.ndarray) -> np.ndarray:
         ij = np.rint(uv / self.g).astype(np.int64) + self.half
         inside = ((ij >= 0) & (ij < self.shape[0])).all(axis=1)
@@ -344,22 +373,20 @@ def find_regions(
     out = Search(rho=rho, max_hole=float(max_hole))
     if level.shape[0] < 4 or sample.shape[0] < 4:
         return out
-    tree_l = cKDTree(level) if tree_l is None else tree_l
-    tree_s = cKDTree(sample) if tree_s is None else tree_s
+    tree_l = cKDTree(level, balanced_tree=False) if tree_l is None else tree_l
+    tree_s = cKDTree(sample, balanced_tree=False) if tree_s is None else tree_s
     seeds, seed_normals = _seeds(level, tree_l, tree_s, rho)
     out.n_seeds = int(seeds.shape[0])
     width = max_hole * rho
-    done: Any = None  # k-d tree of the candidates of the regions found so far
     for grp in _groups(seeds, rho):
         sp = seeds[grp]
         if float(np.linalg.norm(np.ptp(sp, axis=0))) > 2.0 * width:  # a long border
             out.n_open += 1
             continue
-        if done is not None:  # seeds of a region already found (by another group)
-            d, _ = done.query(sp, k=1, distance_upper_bound=NEAR_FRACTION * rho)
-            grp, sp = grp[~np.isfinite(d)], sp[~np.isfinite(d)]
-            if grp.size == 0:
-                continue
+        new = ~_inside(out.regions, sp, rho)  # seeds of a region already found are done
+        grp, sp = grp[new], sp[new]
+        if grp.size == 0:
+            continue
         nrm = seed_normals[grp]
         nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
         regions = _regions_of_group(sample, tree_s, sp, nrm.sum(axis=0), rho, width)
@@ -369,15 +396,33 @@ def find_regions(
                 continue
             _finish_region(reg, tree_s, rho)
             if reg.candidates.shape[0]:
-                reg.id = len(out.regions)
+                reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
                 out.regions.append(reg)
-                done = cKDTree(np.concatenate([r.candidates for r in out.regions]))
     return out
+
+
+def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
+    """Mask of ``points`` inside a region found already: over one of its nodes (within a grid
+    step, in its plane) and within 2 rho of its surface. Another group of seeds of the same hole
+    (seeds on a sheet above part of it, say) then finds nothing new."""
+    from scipy.spatial import cKDTree
+
+    hit = np.zeros(points.shape[0], dtype=bool)
+    for reg in regions:
+        uv = reg.frame.uv(points)
+        d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
+        over = np.flatnonzero(np.isfinite(d) & ~hit)
+        if over.size:
+            h = reg.frame.height(points[over])
+            hit[over] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
+    return hit
 
 
 def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
     """Regions around one group of seeds (``None`` for each open one): a grid a little wider
-    than the seeds' spread first, then (when a region reaches its edge) ``width`` across."""
+    than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
+    once more centred on the region that reached the edge (the seeds' mean can sit off a
+    hole's centre)."""
     from scipy.spatial import cKDTree
 
     g = GRID_FRACTION * rho
@@ -386,12 +431,12 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
     first = max(2.0 * rho, spread + 1.5 * rho)
     steps = [first] if first < 0.5 * width else []
     if not steps or seeds.shape[0] >= MIN_SEEDS_WIDE:
-        steps.append(0.5 * width)
+        steps += [0.5 * width, 0.5 * width]
     frame = Frame.of(centre, normal)
     regions: list = []
     for i, half_width in enumerate(steps):
         half = int(math.ceil(half_width / g))
-        idx = tree_s.query_ball_point(centre, math.sqrt(2.0) * half * g + RING * rho)
+        idx = tree_s.query_ball_point(frame.origin, math.sqrt(2.0) * half * g + RING * rho)
         idx = np.asarray(idx, dtype=np.int64)
         idx = idx[_slab(sample[idx], frame, rho)]
         if idx.size < 8:
@@ -402,9 +447,11 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
             if np.isfinite(d).all():
                 return []
         local = _Local(sample, idx, tree2)
-        regions, leaks = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
-        if not leaks:
+        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
+        if leak_at is None:
             break
+        if half_width >= 0.5 * width:  # the last try: the widest grid, centred on the leak
+            frame = Frame.of(leak_at, normal)
     return regions
 
 
@@ -422,16 +469,18 @@ class _Local:
 
 
 def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
+    """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
+    reaching the grid's edge), and the centre of the nodes of those that did (None if none)."""
     from scipy.spatial import cKDTree
 
     grid = _Grid(frame, g, half)
     found = _flood(grid, local.tree2, frame.uv(seeds), rho)
     regions: list = []
-    leaks = False
+    leaked: list[np.ndarray] = []
     pts = local.points
     for nodes, leak in found:
         if leak:
-            leaks = True
+            leaked.append(grid.uv[nodes])
             regions.append(None)
             continue
         uv = grid.uv[nodes]
@@ -447,13 +496,21 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
             local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])))
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
         normals = _normals_at(pts[ring], pts)
-        regions.append(_fit_region(frame, uv, local.idx[ring], pts[ring], normals, rho, g))
-    return regions, leaks
+        inner = d[ring] <= INNER * rho
+        regions.append(
+            _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
+        )
+    if not leaked:
+        return regions, None
+    uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
+    return regions, frame.lift(uv, np.zeros(1))[0]
 
 
-def _fit_region(frame, uv, ring_idx, ring, ring_normals, rho, g) -> Region:
-    surface = HeightField(frame.uv(ring), frame.height(ring), rho)
-    h, factor = surface.heights_and_area(uv, g)
+def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) -> Region:
+    surface = HeightField(frame.uv(ring), frame.height(ring), rho, inner)
+    uv, g = grid.uv[nodes], grid.g
+    h = surface(uv)
+    factor = grid.area_factor(nodes, h)
     return Region(
         id=-1,
         status=STATUS_FILLABLE,
@@ -485,8 +542,8 @@ def _assess(reg: Region) -> None:
     elif reg.residual > MAX_RESIDUAL * rho:
         reg.status = STATUS_ROUGH
         reg.reason = (
-            f"the surface fitted to the surrounding points misses each sixth of them, when "
-            f"fitted to the rest, by {reg.residual / rho:.2f} rho (RMS; more than "
+            f"the surface fitted to the surrounding points misses those next to the hole, when "
+            f"fitted without them, by {reg.residual / rho:.2f} rho (RMS; more than "
             f"{MAX_RESIDUAL:g} rho)"
         )
 

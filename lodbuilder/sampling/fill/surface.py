@@ -85,35 +85,39 @@ class HeightField:
     ``uv`` (M, 2) and ``h`` (M,) are in scan units; ``scale`` (rho) normalises them for the fit.
     """
 
-    def __init__(self, uv: np.ndarray, h: np.ndarray, scale: float) -> None:
+    def __init__(
+        self, uv: np.ndarray, h: np.ndarray, scale: float, inner: np.ndarray | None = None
+    ) -> None:
+        if inner is None:
+            inner = np.ones(uv.shape[0], dtype=bool)
         if uv.shape[0] > MAX_FIT_POINTS:
             keep = np.linspace(0, uv.shape[0] - 1, MAX_FIT_POINTS).round().astype(np.int64)
-            uv, h = uv[keep], h[keep]
+            uv, h, inner = uv[keep], h[keep], inner[keep]
         self.scale = float(scale)
-        self._uv, self._h = uv / self.scale, h / self.scale
+        self._uv, self._h, self._inner = uv / self.scale, h / self.scale, inner
         self._f = _rbf(self._uv, self._h)
         self._cv: float | None = None
 
     @property
     def cv(self) -> float:
-        """RMS error (scan units) of predicting each sixth of the ring (angular sectors around
-        its centroid) from a fit to the other five: how well the surface bridges a gap as wide as
-        the hole. Computed on first use (six more fits)."""
+        """RMS error (scan units) of predicting the inner ring points (``inner``: those next to
+        the hole) of each sixth of the ring (angular sectors around its centroid) from a fit to
+        the other five sixths: how well the surface bridges a gap as wide as the hole, where it
+        matters. Computed on first use (six more fits)."""
         if self._cv is None:
-            self._cv = self._sector_error(self._uv, self._h) * self.scale
+            self._cv = self._sector_error(self._uv, self._h, self._inner) * self.scale
         return self._cv
 
     @staticmethod
-    def _sector_error(uv: np.ndarray, h: np.ndarray, sectors: int = 6) -> float:
-        """RMS error of predicting each angular sector of the ring (around its centroid) from
-        the others: how well the fit bridges a gap as wide as the hole."""
+    def _sector_error(uv: np.ndarray, h: np.ndarray, inner: np.ndarray, sectors: int = 6) -> float:
         c = uv - uv.mean(axis=0)
         sec = np.floor((np.arctan2(c[:, 1], c[:, 0]) + np.pi) / (2 * np.pi) * sectors)
         sec = np.minimum(sec.astype(np.int64), sectors - 1)
         err = []
         for s in range(sectors):
             out = sec == s
-            if not out.any() or (~out).sum() < 12:
+            test = out & inner
+            if not test.any() or (~out).sum() < 12:
                 continue
             train = np.flatnonzero(~out)
             if train.size > MAX_FIT_POINTS // 2:
@@ -121,7 +125,7 @@ class HeightField:
                     np.linspace(0, train.size - 1, MAX_FIT_POINTS // 2).round().astype(np.int64)
                 ]
             f = _rbf(uv[train], h[train])
-            err.append(f(uv[out]) - h[out])
+            err.append(f(uv[test]) - h[test])
         if not err:
             return float("inf")
         e = np.concatenate(err)
@@ -142,13 +146,3 @@ class HeightField:
         hv = (h[2 * m : 3 * m] - h[3 * m :]) / (2 * e)
         n = frame.normal - hu[:, None] * frame.t1 - hv[:, None] * frame.t2
         return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-    def heights_and_area(self, uv: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-        """Heights at ``uv`` and the surface area per unit of plane area there,
-        sqrt(1 + |grad h|^2) (forward differences over ``step``), in one evaluation."""
-        m = uv.shape[0]
-        du, dv = np.array([step, 0.0]), np.array([0.0, step])
-        h = self(np.concatenate([uv, uv + du, uv + dv]))
-        hu = (h[m : 2 * m] - h[:m]) / step
-        hv = (h[2 * m :] - h[:m]) / step
-        return h[:m], np.sqrt(1.0 + hu * hu + hv * hv)
