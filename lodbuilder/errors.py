@@ -61,3 +61,8 @@ class MemoryBudgetError(LodbuilderError, MemoryError):
 
 class BuildError(LodbuilderError, RuntimeError):
     """One or more scans of a collection failed to build."""
+
+
+class UnsafeArchiveError(ArchiveError):
+    """The archive points outside itself (external links, external raw storage, virtual
+    datasets): refused before anything is read."""

@@ -15,14 +15,13 @@ import numpy as np
 
 from .._validate import check_fraction, check_positive, check_size
 from ..errors import (
-    ArchiveError,
-    CorruptArchiveError,
     InputError,
     NotAnArchiveError,
     ScanFileError,
     ScanNotFoundError,
     SchemaVersionError,
 )
+from . import checks, safety
 from . import layout as L
 from .levels import (
     Level,
@@ -49,12 +48,12 @@ def check_archive_file(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise NotAnArchiveError(
             f"{path} is not an lodbuilder archive (not an HDF5 file); build one with 'lodbuilder build'"
         )
-    try:
-        with h5py.File(path, "r") as f:
-            attrs = {k: L._attr_json(v) for k, v in f.attrs.items()}
-    except OSError as exc:
-        raise NotAnArchiveError(f"{path} cannot be opened as an HDF5 archive: {exc}") from None
-    return _check_root_attrs(path, attrs)
+    f = safety.open_h5(path)
+    with f, safety.h5_errors(path, "its root attributes"):
+        attrs = _check_root_attrs(path, {k: L._attr_json(v) for k, v in f.attrs.items()})
+        safety.check_file(f, path)  # nothing outside the file, no cycles, sizes it can hold
+        checks.check_root(f, path)
+    return attrs
 
 
 def _check_root_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
@@ -75,18 +74,15 @@ def _check_root_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
     return attrs
 
 
+@safety.guarded(lambda self: self.path)
 class Archive:
     """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
-        import h5py
-
         self.path = Path(path)
+        self._file: Any = None
         self.attrs = check_archive_file(self.path)
-        try:
-            self._file = h5py.File(self.path, "r")
-        except OSError as exc:  # pragma: no cover - checked just above
-            raise ArchiveError(f"cannot open archive {self.path}: {exc}") from None
+        self._file = safety.open_h5(self.path)
         self.schema_version = int(self.attrs[L.A_SCHEMA_VERSION])
         self.lodbuilder_version = str(self.attrs.get(L.A_VERSION, ""))
 
@@ -131,7 +127,7 @@ class Archive:
         ig = self._file.get(L.G_INDEX)
         if ig is None:
             return []
-        names = [b.decode("utf-8") for b in ig[L.I_NAME][:]]
+        names = [b.decode("utf-8", "replace") for b in ig[L.I_NAME][:]]
         counts = ig[L.I_N_POINTS][:]
         lo, hi = ig[L.I_BOUNDS_MIN][:], ig[L.I_BOUNDS_MAX][:]
         return [
@@ -158,6 +154,7 @@ def open_archive(path: str | os.PathLike[str]) -> Archive:
     return Archive(path)
 
 
+@safety.guarded(lambda self: self.archive.path)
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
 
@@ -165,37 +162,38 @@ class ScanView:
         self.archive = archive
         self.name = name
         self._g = archive.file[L.G_SCANS][name]
-        a = self._g.attrs
-        self.n_points = int(a[L.S_N_POINTS])
-        self.n_ordered = int(a.get(L.S_N_ORDERED, self.n_points))
-        self.encoding = str(L._attr_json(a[L.S_ENCODING]))
-        self.bounds = (np.asarray(a[L.S_BOUNDS_MIN], float), np.asarray(a[L.S_BOUNDS_MAX], float))
-        self._step = int(a.get(L.S_RADIUS_STEP, L.RADIUS_INDEX_STEP))
+        m = self._meta = checks.check_scan_group(self._g, archive.path, name)
+        self.n_points, self.n_ordered, self.encoding = m.n_points, m.n_ordered, m.encoding
+        self.bounds = (m.bounds_min, m.bounds_max)
+        self._step = m.step
         self._rindex: np.ndarray | None = None
         self._radius: np.ndarray | None = None
-        p = self._g[L.D_POINTS]
-        self._offset = p.attrs.get(L.P_OFFSET)
-        self._scale = p.attrs.get(L.P_SCALE)
+        self._offset, self._scale = m.offset, m.scale
 
     def __repr__(self) -> str:
         return f"<ScanView {self.name!r} n_points={self.n_points}>"
 
     # -- raw reads ---------------------------------------------------------------------------
     def _read(self, ds: Any, sel: Any = slice(None)) -> np.ndarray:
-        try:
-            return ds[sel]
-        except OSError as exc:
-            raise CorruptArchiveError(
-                f"archive {self.archive.path}: scan {self.name!r} dataset {ds.name} fails its "
-                f"checksum or cannot be read ({str(exc).splitlines()[0]}); the file is damaged, "
-                "rebuild it from the source scan"
-            ) from None
+        arr = checks.read(self._meta, ds, sel)
+        rows = checks.rows_of(sel, ds.shape[0]) if ds.ndim else None
+        if rows is not None:  # what a query reads is checked as it is read
+            rel = ds.name[len(self._g.name) + 1 :]
+            checks.check_rows(self._meta, rel, arr, rows[0], self._raw_rows)
+        return arr
+
+    def _raw_rows(self, rel: str, lo: int, hi: int) -> np.ndarray:
+        return self._g[rel][lo:hi]
+
+    def _rows(self, rel: str, lo: int, hi: int) -> np.ndarray:
+        return self._read(self._g[rel], slice(lo, hi))
 
     def dataset(self, rel: str) -> Any:
-        return self._g[rel]
+        """The dataset ``rel`` of the scan (e.g. ``orderings/weighted/order``); reads are checked."""
+        return checks.CheckedDataset(self._g[rel], self._read)
 
     def _json_attr(self, key: str) -> dict[str, Any]:
-        return L.from_json(self._g.attrs.get(key, ""))
+        return checks.json_attr(self._meta, self._g.attrs, key)
 
     # -- metadata ----------------------------------------------------------------------------
     @property
@@ -276,10 +274,10 @@ class ScanView:
         return self._read(grp[name])
 
     def importance_parameters(self, name: str) -> dict[str, Any]:
-        return L.from_json(self._g[L.G_IMPORTANCE][name].attrs.get(L.M_PARAMETERS, ""))
+        return checks.json_attr(self._meta, self._g[L.G_IMPORTANCE][name].attrs, L.M_PARAMETERS)
 
     def ordering_parameters(self, name: str) -> dict[str, Any]:
-        return L.from_json(self._ordering_group(name).attrs.get(L.M_PARAMETERS, ""))
+        return checks.json_attr(self._meta, self._ordering_group(name).attrs, L.M_PARAMETERS)
 
     def _ordering_group(self, name: str) -> Any:
         grp = self._g[L.G_ORDERINGS] if L.G_ORDERINGS in self._g else {}
@@ -305,6 +303,7 @@ class ScanView:
             self.n_ordered,
             rho,
         )
+        checks.check_rho_prefix(self._meta, max(1, k), rho, self._rows)
         return max(1, k)
 
     def _bound(self, k: int) -> float:

@@ -27,6 +27,7 @@ from ..errors import ArchiveError, InputError
 from ..io.base import Scan
 from ..sampling.ordering import Ordering
 from . import layout as L
+from . import safety
 
 log = logging.getLogger(__name__)
 
@@ -361,7 +362,7 @@ def update_archive(
             created = None
             keep: list[str] = []
             if old is not None:
-                with h5py.File(path, "r") as src:
+                with safety.open_h5(path) as src:  # heaps checked as HDF5 loads them
                     created = src.attrs.get(L.A_CREATED)
                     created = created.decode() if isinstance(created, bytes) else created
                     existing = list(src[L.G_SCANS]) if L.G_SCANS in src else []
