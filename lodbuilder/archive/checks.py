@@ -273,7 +273,7 @@ def _check_radius(meta: ScanMeta, rel: str, arr: np.ndarray, lo: int, ordered_en
         if inc.any():
             i = int(np.argmax(inc)) + 1
             raise meta.error(
-                f"dataset {rel!r} increases at row {lo + i} ({head[i - 1]!r} -> {head[i]!r}); "
+                f"dataset {rel!r} increases at row {lo + i} ({float(head[i - 1])!r} -> {float(head[i])!r}); "
                 "radii must be non-increasing"
             )
 

@@ -147,16 +147,24 @@ def check_heap_collection(buf: memoryview, len_size: int, pos: int, path: Any) -
         p += need
 
 
-_OPEN: weakref.WeakSet[Any] = weakref.WeakSet()
+# h5py Files opened here, by id (a File whose root header is damaged cannot even be hashed)
+_OPEN: dict[int, weakref.ref[Any]] = {}
 
 
 @atexit.register
 def _close_open_files() -> None:
     # HDF5 closes files left open from its own exit handler, after Python has gone: a file read
     # through a Python file object must be closed while Python still runs.
-    for f in list(_OPEN):
-        with contextlib.suppress(Exception):
-            f.close()
+    for ref in list(_OPEN.values()):
+        f = ref()
+        if f is not None:
+            with contextlib.suppress(Exception):
+                f.close()
+
+
+def _register(f: Any) -> None:
+    key = id(f)
+    _OPEN[key] = weakref.ref(f, lambda _ref: _OPEN.pop(key, None))
 
 
 def open_h5(source: str | os.PathLike[str] | Any, path: Any = None) -> Any:
@@ -180,7 +188,7 @@ def open_h5(source: str | os.PathLike[str] | Any, path: Any = None) -> Any:
         raise
     if owned:  # h5py does not close a file object it did not open: close ours with the File
         _wrap_close(f, raw)
-    _OPEN.add(f)
+    _register(f)
     return f
 
 

@@ -32,7 +32,7 @@ def _check_order_arrays(where: str, radius: np.ndarray, parent: np.ndarray) -> l
         if inc.size:
             i = int(inc[0]) + 1
             faults.append(
-                f"{where}: radius increases at position {i} ({radius[i - 1]!r} -> {radius[i]!r}); "
+                f"{where}: radius increases at position {i} ({float(radius[i - 1])!r} -> {float(radius[i])!r}); "
                 "radii must be non-increasing"
             )
     if k and (radius < 0).any():
@@ -49,7 +49,7 @@ def _check_order_arrays(where: str, radius: np.ndarray, parent: np.ndarray) -> l
     if roots.any():
         i = int(np.argmax(roots))
         faults.append(
-            f"{where}: position {i} has radius {radius[i]!r} and parent {int(parent[i])}; radius "
+            f"{where}: position {i} has radius {float(radius[i])!r} and parent {int(parent[i])}; radius "
             f"is inf exactly for the roots (parent -1) ({int(roots.sum())} bad)"
         )
     return faults
