@@ -43,10 +43,48 @@ def _check_laz_backend(laspy: Any, path: Path) -> None:
         raise MissingDependencyError(f"{path}: LAZ files need a LAZ backend (lazrs); {_HINT}")
 
 
+def _check_chunk_table(laspy: Any, path: Path) -> None:
+    """Refuse a LAZ chunk table that declares more chunks than the file can hold: lazrs
+    allocates it whole and aborts the process (SIGABRT) when the allocation fails."""
+    import struct
+
+    import lazrs
+
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        header = laspy.LasHeader.read_from(f)
+        vlr = next((v for v in header.vlrs if type(v).__name__ == "LasZipVlr"), None)
+        if vlr is None:
+            return  # laspy says what is missing
+        start = int(header.offset_to_point_data)
+        f.seek(start)
+        raw = f.read(8)
+        at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
+        if at == -1:  # written at the end: the last 8 bytes say where
+            f.seek(max(0, size - 8))
+            raw = f.read(8)
+            at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
+        f.seek(max(0, at))
+        raw = f.read(8)
+    if not start + 8 <= at <= size - 8 or len(raw) != 8:
+        return  # no chunk table where it should be: lazrs reads the chunks in sequence
+    n_chunks = struct.unpack("<II", raw)[1]
+    lazvlr = lazrs.LazVlr(vlr.record_data)
+    count = int(header.point_count)
+    most = count if lazvlr.uses_variable_size_chunks() else -(-count // max(1, lazvlr.chunk_size()))
+    if n_chunks > max(1, min(most, size - start)):
+        raise FormatError(
+            f"{path}: the LAZ chunk table declares {n_chunks} chunks for {count} points in "
+            f"{size} bytes; the file is damaged"
+        )
+
+
 def read(path: Path) -> list[Scan]:
     laspy = _laspy(path)
     _check_laz_backend(laspy, path)
     try:
+        if path.suffix.lower() == ".laz":
+            _check_chunk_table(laspy, path)
         las = laspy.read(str(path))
     except laspy.errors.LaspyException as exc:
         msg = " ".join(str(exc).split())
