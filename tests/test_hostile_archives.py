@@ -8,6 +8,7 @@ refused with one line and exit 2, no output file, and the archive left as it was
 
 from __future__ import annotations
 
+import io
 import os
 
 import h5py
@@ -183,3 +184,41 @@ def test_slice_all_scans_refuses(base, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.splitlines() == [f"lodbuilder slice: error: {message}"]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("kind", ["external storage", "external link to a scan", "virtual dataset"])
+def test_checks_work_on_file_objects(base, tmp_path, kind):
+    """Remote archives are read through file objects (fsspec): the same refusal, naming the URL."""
+    import fsspec
+
+    from lodbuilder.archive.safety import check_file, open_h5
+
+    arc, message = _hostile(kind, base, tmp_path)
+    fs = fsspec.filesystem("memory")
+    fs.pipe("/bucket/hostile.h5", arc.read_bytes())
+    url = "memory://bucket/hostile.h5"
+    with fs.open("/bucket/hostile.h5", "rb") as fobj:
+        f = open_h5(fobj, url)
+        try:
+            with pytest.raises(UnsafeArchiveError) as err:
+                check_file(f, url)
+        finally:
+            f.close()
+    assert str(err.value) == message.replace(str(arc), url)
+    assert check_file(open_h5(io.BytesIO(base.read_bytes()), "mem.h5"), "mem.h5") > 10
+
+
+def test_a_looping_heap_is_refused_through_a_file_object(base):
+    from lodbuilder.archive.safety import open_h5
+    from lodbuilder.errors import CorruptArchiveError
+
+    data = bytearray(base.read_bytes())
+    at = data.index(b"GCOL")
+    p = 16
+    while int.from_bytes(data[at + p : at + p + 2], "little"):
+        p += 16 + ((int.from_bytes(data[at + p + 8 : at + p + 16], "little") + 7) & ~7)
+    data[at + p + 8 : at + p + 16] = bytes(8)  # the free space claims size 0
+    f = open_h5(io.BytesIO(bytes(data)), "remote.h5")
+    with pytest.raises(CorruptArchiveError, match="remote.h5 is damaged: its global heap at byte"):
+        dict(f.attrs)
+    f.close()

@@ -37,9 +37,17 @@ from .levels import (
 
 def check_archive_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Root attributes of the archive at ``path``; raise a one-line error if it is not one we can read."""
+    path = Path(path)
+    _check_path(path)
+    f, attrs = _open_checked(path)
+    f.close()
+    return attrs
+
+
+def _check_path(path: Path) -> None:
+    """The one-line errors for a path that is missing, a directory or not an HDF5 file."""
     import h5py
 
-    path = Path(path)
     if not path.exists():
         raise ScanFileError(f"archive {path} does not exist; build one with 'lodbuilder build'")
     if path.is_dir():
@@ -48,12 +56,21 @@ def check_archive_file(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise NotAnArchiveError(
             f"{path} is not an lodbuilder archive (not an HDF5 file); build one with 'lodbuilder build'"
         )
+
+
+def _open_checked(path: Path) -> tuple[Any, dict[str, Any]]:
+    """The archive open for reading, checked before anything but metadata is read, and its root
+    attributes."""
     f = safety.open_h5(path)
-    with f, safety.h5_errors(path, "its root attributes"):
-        attrs = _check_root_attrs(path, {k: L._attr_json(v) for k, v in f.attrs.items()})
-        safety.check_file(f, path)  # nothing outside the file, no cycles, sizes it can hold
-        checks.check_root(f, path)
-    return attrs
+    try:
+        with safety.h5_errors(path, "its root attributes"):
+            attrs = _check_root_attrs(path, {k: L._attr_json(v) for k, v in f.attrs.items()})
+            safety.check_file(f, path)  # nothing outside the file, no cycles, sizes it can hold
+            checks.check_root(f, path)
+    except BaseException:
+        f.close()
+        raise
+    return f, attrs
 
 
 def _check_root_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
@@ -81,8 +98,8 @@ class Archive:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._file: Any = None
-        self.attrs = check_archive_file(self.path)
-        self._file = safety.open_h5(self.path)
+        _check_path(self.path)
+        self._file, self.attrs = _open_checked(self.path)
         self.schema_version = int(self.attrs[L.A_SCHEMA_VERSION])
         self.lodbuilder_version = str(self.attrs.get(L.A_VERSION, ""))
 
