@@ -89,14 +89,7 @@ def test_a_laz_chunk_table_larger_than_the_file_is_refused(shared_data, tmp_path
     at = struct.unpack("<q", data[start : start + 8])[0]
     data[at + 4 : at + 8] = struct.pack("<I", 0xF000_0000)
     laz.write_bytes(bytes(data))
-    code = f"from lodbuilder.io import read_scan\nread_scan({str(laz)!r})\n"
-    res = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-    )
+    res = _read_in_child(laz)
     assert res.returncode == 1, res.stderr  # an exception, not an abort (-6)
     assert res.stderr.strip().splitlines()[-1] == (
         f"lodbuilder.errors.FormatError: {laz}: the LAZ chunk table declares 4026531840 chunks for "
@@ -130,4 +123,40 @@ def test_ascii_ply_values_that_do_not_fit_their_type(tmp_path, prop, value, show
         read_scan(p)
     assert str(err.value) == (
         f"{p}: PLY vertex 1 has a = {shown}, which its type {dt} cannot hold; re-export the scan"
+    )
+
+
+def _read_in_child(path, timeout=120):
+    code = f"from lodbuilder.io import read_scan\nread_scan({str(path)!r})\n"
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=timeout,  # a regression fails here instead of hanging the suite
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_vlr_count_the_file_cannot_hold_is_refused(shared_data, tmp_path, suffix):
+    """Found by the fuzzer: one byte of the VLR count changed made laspy read billions of empty
+    VLRs past the end of the file (the process spun for ever, growing)."""
+    import laspy
+
+    bad = tmp_path / f"bad{suffix}"
+    laspy.read(str(shared_data / "simple.las")).write(str(bad))
+    data = bytearray(bad.read_bytes())
+    n_vlrs = struct.unpack_from("<I", data, 100)[0]
+    data[103] = 0xC2
+    bad.write_bytes(bytes(data))
+    with open(bad, "rb") as f:
+        f.seek(94)
+        header_size, offset = struct.unpack("<HI", f.read(6))
+    res = _read_in_child(bad)
+    assert res.returncode == 1, res.stderr
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"lodbuilder.errors.FormatError: {bad}: the LAS header declares {n_vlrs + 0xC2000000} "
+        f"VLRs but only {offset - header_size} bytes lie between the header and the points; the "
+        "file is damaged"
     )

@@ -43,6 +43,32 @@ def _check_laz_backend(laspy: Any, path: Path) -> None:
         raise MissingDependencyError(f"{path}: LAZ files need a LAZ backend (lazrs); {_HINT}")
 
 
+def _check_vlr_counts(path: Path) -> None:
+    """Refuse VLR counts the file cannot hold: laspy reads that many VLRs from the stream, past
+    its end, and a damaged count (billions) keeps it busy forever."""
+    import struct
+
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(247)
+    if len(head) < 104 or head[:4] != b"LASF":
+        return  # laspy says what is wrong
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    room = max(0, min(offset, size) - header_size)
+    if n_vlrs * 54 > room:  # a VLR header alone is 54 bytes
+        raise FormatError(
+            f"{path}: the LAS header declares {n_vlrs} VLRs but only {room} bytes lie between the "
+            "header and the points; the file is damaged"
+        )
+    if head[25] >= 4 and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and n_evlrs * 60 > max(0, size - start):
+            raise FormatError(
+                f"{path}: the LAS header declares {n_evlrs} extended VLRs at byte {start} of a "
+                f"{size}-byte file; the file is damaged"
+            )
+
+
 def _check_chunk_table(laspy: Any, path: Path) -> None:
     """Refuse a LAZ chunk table that declares more chunks than the file can hold: lazrs
     allocates it whole and aborts the process (SIGABRT) when the allocation fails."""
@@ -83,6 +109,7 @@ def read(path: Path) -> list[Scan]:
     laspy = _laspy(path)
     _check_laz_backend(laspy, path)
     try:
+        _check_vlr_counts(path)
         if path.suffix.lower() == ".laz":
             _check_chunk_table(laspy, path)
         las = laspy.read(str(path))
