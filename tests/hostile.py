@@ -91,3 +91,17 @@ def rewrite(g: h5py.Group, rel: str, data, **kw) -> None:
     grp = g[parent] if parent else g
     del grp[name]
     L.create_dataset(grp, name, np.asarray(data), **kw)
+
+
+def vlen_strings(arc: Path) -> Path:
+    """Store every text attribute as a variable-length string, as lodbuilder 0.1 wrote them
+    (schema 1 archives): their bytes then live in a global heap collection (no checksum)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "lodbuilder_fuzz", Path(__file__).resolve().parents[1] / "tools" / "fuzz.py"
+    )
+    assert spec is not None and spec.loader is not None
+    fuzz = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fuzz)
+    return fuzz.variable_length_strings(arc)

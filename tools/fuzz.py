@@ -4,11 +4,17 @@
     python tools/fuzz.py --mutants 300 --seed 7 --readers ply_ascii archive --keep /tmp/fuzz
 
 Seeds: ``bun_zipper_res4.ply`` (ascii, and the same points and properties as binary PLY),
-``simple.las`` (and the same points as LAZ) and an archive built from ``bun_zipper_res4.ply``,
-all from ``../shared/data``. Each mutant (1-3 mutations: bit flips, random or boundary bytes,
+``simple.las`` (and the same points as LAZ), all from ``../shared/data``, and three archives
+built from ``bun_zipper_res4.ply``, taken in turn: the archive as lodbuilder writes it, the same
+with its text attributes as variable-length strings (as lodbuilder 0.1 wrote them: their bytes
+live in an HDF5 global heap, which has no checksum), and a two-scan archive (an index file and two
+part files, one of the three files mutated). Each mutant (1-3 mutations: bit flips, random or boundary bytes,
 insertions, deletions, duplicated or truncated ranges, number tokens of the PLY header and body
 replaced by extreme values; archive mutations biased towards HDF5 metadata blocks) runs in a
 forked child with a time limit, so a hang or a signal is counted instead of stopping the run.
+The children are forked from a fresh server process (``--serve``) that has imported the readers
+but run none of them: a child forked from a process whose libraries have started thread pools
+(lazrs decompresses LAZ on a rayon pool) would wait for threads that do not exist in it.
 
 Outcomes per mutant:
 
@@ -29,6 +35,7 @@ from __future__ import annotations
 import argparse
 import collections
 import datetime as _dt
+import functools
 import hashlib
 import json
 import os
@@ -102,8 +109,32 @@ NUMBERS = [
 # seeds
 
 
-def make_seeds(work: Path) -> dict[str, bytes]:
-    """The seed file of every reader, as bytes."""
+def variable_length_strings(path: Path) -> Path:
+    """Store every text attribute of the archive at ``path`` as a variable-length string."""
+    import h5py
+    import numpy as np
+
+    def convert(obj: Any) -> None:
+        for key, value in list(obj.attrs.items()):
+            if isinstance(value, bytes | np.bytes_):
+                del obj.attrs[key]
+                obj.attrs[key] = bytes(value).decode("utf-8")  # h5py: str -> variable length
+
+    with h5py.File(path, "r+") as f:
+        convert(f)
+        f.visititems(lambda _name, obj: convert(obj))
+    return path
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def make_seeds(work: Path) -> dict[str, Any]:
+    """The seed file of every reader, as bytes; for ``archive``, a list of archives, each a dict
+    of relative file name -> bytes whose first entry is the file to open."""
     import laspy
 
     import lodbuilder
@@ -121,9 +152,18 @@ def make_seeds(work: Path) -> dict[str, bytes]:
     laz = work / "seed.laz"
     laspy.read(str(las)).write(str(laz))
     seeds["laz"] = laz.read_bytes()
-    arc = work / "seed.h5"
-    lodbuilder.build_archive(ply, arc)
-    seeds["archive"] = arc.read_bytes()
+    archives = []
+    for variant in ("current", "variable-length strings", "two scans"):
+        d = work / variant.replace(" ", "_")
+        d.mkdir()
+        lodbuilder.build_archive(ply, d / "seed.h5", name="bunny")
+        if variant == "variable-length strings":
+            variable_length_strings(d / "seed.h5")
+        if variant == "two scans":
+            lodbuilder.build_archive(ply, d / "seed.h5", name="second")
+        files = _files(d)
+        archives.append({"seed.h5": files.pop("seed.h5"), **files})
+    seeds["archive"] = archives
     return seeds
 
 
@@ -144,6 +184,13 @@ def _number_tokens(data: bytes, limit: int) -> list[tuple[int, int]]:
         else:
             i += 1
     return out
+
+
+def mutate_archive(seed: dict[str, bytes], rng: random.Random) -> dict[str, bytes]:
+    """One file of the archive (the index or main file half the time) mutated."""
+    names = list(seed)
+    name = names[0] if len(names) == 1 or rng.random() < 0.5 else rng.choice(names[1:])
+    return {**seed, name: mutate(seed[name], "archive", rng)}
 
 
 def mutate(seed: bytes, reader: str, rng: random.Random) -> bytes:
@@ -337,28 +384,19 @@ def fuzz(
     progress: bool = False,
 ) -> dict[str, Any]:
     """Run the campaign; the per-reader counts (see the module docstring)."""
-    # import in the parent what the children use, so that every fork starts warm
-    import laspy  # noqa: F401
-    import lazrs  # noqa: F401
-    import plyfile  # noqa: F401
-
-    import lodbuilder.archive.validate  # noqa: F401
-    import lodbuilder.cli.info  # noqa: F401
-    import lodbuilder.io.las  # noqa: F401
-    import lodbuilder.io.ply  # noqa: F401
-    import lodbuilder.viewer.source  # noqa: F401
-
     own = work is None
     work = Path(tempfile.mkdtemp(prefix="lodbuilder-fuzz-")) if work is None else work
+    server = Server()
     try:
         seeds = seeds or make_seeds(work)
-        reference = ""
+        references = []
         if "archive" in readers:
-            ref_path = work / "reference.h5"
-            ref_path.write_bytes(seeds["archive"])
-            reference = run_child(lambda: archive_digest(ref_path), timeout * 4)
-            if len(reference) != 64:
-                raise RuntimeError(f"the seed archive does not read: {reference}")
+            for j, files in enumerate(seeds["archive"]):
+                ref_path = _write_files(work / f"reference{j}", files)
+                ref = server.run("digest", ref_path, "", timeout * 4)
+                if len(ref) != 64:
+                    raise RuntimeError(f"seed archive {j} does not read: {ref}")
+                references.append(ref)
         rng = random.Random(seed)
         result: dict[str, Any] = {}
         for reader in readers:
@@ -367,16 +405,17 @@ def fuzz(
             failures: list[dict[str, Any]] = []
             t0 = time.perf_counter()
             for i in range(mutants):
-                data = mutate(seeds[reader], reader, rng)
-                path = work / f"mutant{SUFFIX[reader]}"
-                path.write_bytes(data)
                 if reader == "archive":
-                    fn: Callable[[], str] = lambda p=path: target_archive(p, reference)  # noqa: E731
+                    j = i % len(seeds["archive"])
+                    path = _write_files(work / "mutant", mutate_archive(seeds["archive"][j], rng))
+                    job, ref = "archive", references[j]
                 else:
-                    fn = lambda p=path: target_scan(p)  # noqa: E731
-                out = run_child(fn, timeout)
+                    path = work / f"mutant{SUFFIX[reader]}"
+                    path.write_bytes(mutate(seeds[reader], reader, rng))
+                    job, ref = "scan", ""
+                out = server.run(job, path, ref, timeout)
                 if out == "hang":  # make sure: a slow machine is not a hang
-                    out = run_child(fn, timeout * 4)
+                    out = server.run(job, path, ref, timeout * 4)
                     if out != "hang":
                         counts["slow"] += 1
                 kind = out.split(":", 1)[0]
@@ -388,7 +427,10 @@ def fuzz(
                     if keep is not None:
                         keep.mkdir(parents=True, exist_ok=True)
                         dst = keep / f"{reader}-{seed}-{i}{SUFFIX[reader]}"
-                        shutil.copyfile(path, dst)
+                        if reader == "archive":
+                            shutil.copytree(path.parent, dst)
+                        else:
+                            shutil.copyfile(path, dst)
                         entry["file"] = str(dst)
                     failures.append(entry)
                 if progress and (i + 1) % 500 == 0:
@@ -405,8 +447,77 @@ def fuzz(
             }
         return result
     finally:
+        server.close()
         if own:
             shutil.rmtree(work, ignore_errors=True)
+
+
+JOBS: dict[str, Callable[[Path, str], str]] = {
+    "scan": lambda path, ref: target_scan(path),
+    "archive": target_archive,
+    "digest": lambda path, ref: archive_digest(path),
+}
+
+
+class Server:
+    """A fresh process that runs each job in a child forked from itself (see the docstring)."""
+
+    def __init__(self) -> None:
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+        }
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--serve"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+
+    def run(self, job: str, path: Path, reference: str, timeout: float) -> str:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps([job, str(path), reference, timeout]) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the fuzz server died")
+        return str(json.loads(line))
+
+    def close(self) -> None:
+        if self.proc.stdin is not None:
+            self.proc.stdin.close()
+        self.proc.wait(timeout=60)
+
+
+def serve() -> int:
+    """The server's loop: one JSON job per line on stdin, one JSON outcome per line on stdout."""
+    import laspy  # noqa: F401  - imported once here, so that every child starts warm
+    import lazrs  # noqa: F401
+    import plyfile  # noqa: F401
+
+    import lodbuilder.archive.validate  # noqa: F401
+    import lodbuilder.cli.info  # noqa: F401
+    import lodbuilder.io.las  # noqa: F401
+    import lodbuilder.io.ply  # noqa: F401
+    import lodbuilder.viewer.source  # noqa: F401
+
+    for line in sys.stdin:
+        job, path, reference, timeout = json.loads(line)
+        out = run_child(functools.partial(JOBS[job], Path(path), reference), float(timeout))
+        sys.stdout.write(json.dumps(out) + "\n")
+        sys.stdout.flush()
+    return 0
+
+
+def _write_files(root: Path, files: dict[str, bytes]) -> Path:
+    """Write an archive's files under a fresh ``root``; the path of its first (main) file."""
+    shutil.rmtree(root, ignore_errors=True)
+    for name, data in files.items():
+        p = root / name
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(data)
+    return root / next(iter(files))
 
 
 def _commit() -> str:
@@ -427,7 +538,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=20.0, help="seconds per mutant before a hang")
     p.add_argument("--keep", type=Path, help="copy every failing mutant into this directory")
     p.add_argument("--progress", action="store_true", help="counts on stderr every 500 mutants")
+    p.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.serve:
+        return serve()
     seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**32)
     import h5py
 

@@ -2,21 +2,32 @@
 
 All lengths are in grid units (one unit = the voxel size h). Points are indexed in cell order
 (sorted by the Morton key of their cell); ``cs[v]:cs[v + 1]`` are the points whose cell's lower corner
-is voxel v.
+(anchor) is voxel v. Voxels with ``vcost == inf`` are corners kept only to find cells: the front never
+enters them.
 
 Per-voxel state: arrival time ``T`` (float32, only ever lowered), the rank of the sample that set it
 (``vlab``) and a round stamp: ``stamp == 2 * rnd`` means "trial in round rnd", ``2 * rnd + 1``
 "accepted in round rnd", anything smaller "known from an earlier round". Nothing is re-initialised per
-sample: a new sample marches only where it lowers ``T``. The upwind update reads its neighbours'
-current values whatever their state: a trial value is an upper bound of its final value and the
-update is monotone in its inputs, so this only lowers a voxel earlier; the voxel is updated again
-when that neighbour is accepted, and skipping the state test halves the memory traffic per pop.
-Fronts are kept in an indexed min-heap (decrease-key, no stale entries).
+sample: a new sample marches only where it lowers ``T``.
 
-Per-point state: ``dq`` = min over the 8 corner voxels v of the point's cell of T[v] + |u - v| * cost
-(an upper bound of the band distance to the samples), ``lq`` = the sample that achieved it, and the
-candidate value ``val``: for the uniform metric the certified upper bound of the Euclidean distance to
-the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric the same with the
+Seeding: the voxels within SEED_RADIUS of a new sample that a monotone (staircase) path inside the
+band joins to the sample's nearest voxel get their exact distance (the straight segment is then in
+the band: a path around a fold or across a gap needs more steps and is left to the march), and so do
+the points of their cells. These voxels are frozen (marked accepted at once, so the march never
+lowers them) and popped in order like the others.
+
+Update: second-order upwind (one-sided differences (3 T - 4 T1 + T2) / 2 along an axis) where the
+first and the next voxel upwind were both accepted in this round (so they hold this sample's field)
+and the second is not above the first; first order otherwise and wherever the second-order solution
+is not upwind (smaller than a value it used). A first-order
+update may read a neighbour's trial value (an upper bound of its final value; the update is monotone
+in its inputs, so this only lowers a voxel earlier, and it is updated again when that neighbour is
+accepted); a second-order one only reads a known second neighbour.
+
+Per-point state: ``dq`` = the smallest T[v] + |u - v| * cost over the marchable corners v of the
+point's cell (or the exact distance near a sample), ``lq`` = the sample that achieved it, and the
+candidate value ``val``: for the uniform metric the certified upper bound of the Euclidean distance
+to the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric the same with the
 straight distance scaled by the mean cost of its two ends (so a constant cost only scales radii).
 """
 
@@ -26,8 +37,10 @@ import numba as nb
 import numpy as np
 
 from . import JIT
-from .grid import hash_find, lookup, morton
+from .grid import hash_find, morton, unmorton
 from .heaps import (
+    check_maxheap,
+    check_minheap,
     iheap_pop,
     iheap_push,
     maxheap_build,
@@ -38,26 +51,65 @@ from .heaps import (
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
+HOP_SLACK = 2  # extra steps over the L1 distance a seeding path may take
 
 
 @nb.njit(**JIT)
-def _solve(a, b, c, f):  # pragma: no cover - compiled
-    """First-order upwind update |grad T| = f from the three axis minima."""
-    if b < a:
-        a, b = b, a
-    if c < b:
-        b, c = c, b
-        if b < a:
-            a, b = b, a
-    t = a + f
-    if t <= b:
+def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
+    """Upwind solution of |grad T| = f from the three axes' (first, second) upwind values.
+
+    ``x1`` is the smaller neighbour value along an axis (inf: none), ``x2`` the next value beyond it
+    when the second-order difference may be used (inf: first order on that axis).
+    """
+    if b1 < a1:
+        a1, a2, b1, b2 = b1, b2, a1, a2
+    if c1 < b1:
+        b1, b2, c1, c2 = c1, c2, b1, b2
+        if b1 < a1:
+            a1, a2, b1, b2 = b1, b2, a1, a2
+    second = a2 < np.inf or b2 < np.inf or c2 < np.inf
+    ff = f * f
+    if second:
+        sa = 0.0
+        sb = 0.0
+        sc = 0.0
+        sol = np.inf
+        ok = True
+        for k in range(3):
+            t1 = a1 if k == 0 else (b1 if k == 1 else c1)
+            t2 = a2 if k == 0 else (b2 if k == 1 else c2)
+            if t1 >= sol:  # this axis is not upwind of the solution
+                break
+            if t2 < np.inf:
+                al = 2.25
+                be = (4.0 * t1 - t2) / 3.0
+            else:
+                al = 1.0
+                be = t1
+            na = sa + al
+            nb_ = sb + al * be
+            nc = sc + al * be * be
+            disc = nb_ * nb_ - na * (nc - ff)
+            if disc < 0.0:
+                ok = False
+                break
+            t = (nb_ + np.sqrt(disc)) / na
+            if t < t1:
+                ok = False
+                break
+            sa, sb, sc, sol = na, nb_, nc, t
+        if ok and sol < np.inf:
+            return sol
+    # first order
+    t = a1 + f
+    if t <= b1:
         return t
-    t = 0.5 * (a + b + np.sqrt(2.0 * f * f - (a - b) * (a - b)))
-    if t <= c:
+    t = 0.5 * (a1 + b1 + np.sqrt(2.0 * ff - (a1 - b1) * (a1 - b1)))
+    if t <= c1:
         return t
-    s = a + b + c
-    q = a * a + b * b + c * c
-    return (s + np.sqrt(max(s * s - 3.0 * (q - f * f), 0.0))) / 3.0
+    s = a1 + b1 + c1
+    q = a1 * a1 + b1 * b1 + c1 * c1
+    return (s + np.sqrt(max(s * s - 3.0 * (q - ff), 0.0))) / 3.0
 
 
 @nb.njit(**JIT)
@@ -68,56 +120,127 @@ def _norm(dx, dy, dz):  # pragma: no cover - compiled
 
 @nb.njit(**JIT)
 def march_round(
-    src, lab, rnd, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-    T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos,
+    src, lab, rnd, u, keys, nbr, cs, cellof, vcost, pcost, weighted,
+    T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
 ):  # pragma: no cover - compiled
-    """Propagate the front of sources ``src`` (point indices) labelled ``lab`` where it lowers T.
+    """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
-    Updates dq/lq of points near lowered voxels and appends their cells to ``dirty`` (returns the new
-    count, the heap arrays and the number of pops).
+    Updates dq/lq of points near lowered voxels and appends their cells to ``dirty``; returns the
+    new count of dirty cells and the number of pops.
     """
-    trial = 2 * rnd
-    acc = 2 * rnd + 1
+    trial = np.int32(2 * rnd)
+    acc = np.int32(2 * rnd + 1)
     n = 0
-    queue = np.empty(SEED_QUEUE, np.int32)
+    qv = np.empty(SEED_QUEUE, np.int32)
+    qh = np.empty(SEED_QUEUE, np.int32)
     for s in range(src.shape[0]):
-        # exact distances to the band voxels within SEED_RADIUS of the source that are connected
-        # to its cell inside that ball (a breadth-first walk over the neighbour table)
         i = src[s]
+        ci = 1.0
+        if weighted:
+            ci = pcost[i]
         mark = np.int32(rnd * src.shape[0] + s)
-        v0 = lookup(hkeys, hvals, int(np.floor(u[i, 0])), int(np.floor(u[i, 1])), int(np.floor(u[i, 2])))
+        # the sample's nearest voxel: a corner of its cell (all corners are voxels)
+        a = np.searchsorted(cs, i, side="right") - 1
+        v0 = a
+        for ax in range(3):
+            if u[i, ax] - np.floor(u[i, ax]) >= 0.5 and v0 >= 0:
+                v0 = nbr[v0, 2 * ax + 1]
+        if v0 < 0 or vcost[v0] == np.inf:
+            v0 = -1  # not marchable: take the first marchable corner
+            for c in range(8):
+                w = a
+                for ax in range(3):
+                    if (c >> ax) & 1 and w >= 0:
+                        w = nbr[w, 2 * ax + 1]
+                if w >= 0 and vcost[w] < np.inf:
+                    v0 = w
+                    break
+        if v0 < 0:
+            continue
+        x0, y0, z0 = unmorton(keys[v0])
         seen[v0] = mark
-        queue[0] = v0
+        qv[0] = v0
+        qh[0] = 0
         qn = 1
         qi = 0
         while qi < qn:
-            v = queue[qi]
+            v = qv[qi]
+            hops = qh[qi]
             qi += 1
-            d = _norm(u[i, 0] - coord[v, 0], u[i, 1] - coord[v, 1], u[i, 2] - coord[v, 2])
-            t = np.float32(d * vcost[v])
+            x, y, z = unmorton(keys[v])
+            if hops > abs(x - x0) + abs(y - y0) + abs(z - z0) + HOP_SLACK:
+                continue  # reached around something: leave it to the march
+            d = _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z)
+            t = np.float32(d * 0.5 * (ci + vcost[v]))
             if t < T[v]:
                 T[v] = t
-                vlab[v] = lab
-                stamp[v] = trial
+                vlab[v] = lab + s
+                stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
                 n = iheap_push(hk, hv, hpos, n, t, v)
+            cell = cellof[v]
+            if cell >= 0:
+                for p in range(cs[v], cs[v + 1]):
+                    if rank[p] >= 0:
+                        continue
+                    e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                    if weighted:
+                        e *= 0.5 * (pcost[p] + ci)
+                    if e < dq[p]:
+                        dq[p] = e
+                        lq[p] = lab + s
+                        if dstamp[cell] != rnd:
+                            dstamp[cell] = rnd
+                            dirty[nd] = cell
+                            nd += 1
             for j in range(6):
                 w = nbr[v, j]
-                if w < 0 or seen[w] == mark or qn == SEED_QUEUE:
+                if w < 0 or seen[w] == mark or qn == SEED_QUEUE or vcost[w] == np.inf:
                     continue
-                seen[w] = mark
-                if _norm(u[i, 0] - coord[w, 0], u[i, 1] - coord[w, 1], u[i, 2] - coord[w, 2]) <= SEED_RADIUS:
-                    queue[qn] = w
+                x, y, z = unmorton(keys[w])
+                if _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) <= SEED_RADIUS:
+                    seen[w] = mark
+                    qv[qn] = w
+                    qh[qn] = hops + 1
                     qn += 1
     pops = 0
     while n > 0:
+        if debug and not check_minheap(hk, hv, hpos, n):
+            raise AssertionError("front heap invariant broken")
         t, v, n = iheap_pop(hk, hv, hpos, n)
         stamp[v] = acc
         pops += 1
         tv = np.float64(T[v])
         lv = vlab[v]
-        cx = np.float64(coord[v, 0])
-        cy = np.float64(coord[v, 1])
-        cz = np.float64(coord[v, 2])
+        cx, cy, cz = unmorton(keys[v])
+        # the front's direction at v (upwind differences; upwind neighbours are known)
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
+        for ax in range(3):
+            na = nbr[v, 2 * ax]
+            nb_ = nbr[v, 2 * ax + 1]
+            ta = np.float64(T[na]) if na >= 0 else np.inf
+            tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
+            g = 0.0
+            if ta < tb and ta < tv:
+                g = tv - ta
+            elif tb < tv:
+                g = tb - tv
+            if ax == 0:
+                gx = g
+            elif ax == 1:
+                gy = g
+            else:
+                gz = g
+        gn = _norm(gx, gy, gz)
+        sv = src[lv - lab]  # the sample whose front this is (only this round's voxels pop)
+        csv = 1.0
+        if weighted:
+            csv = pcost[sv]
+        if gn > 0.0:
+            gx /= gn
+            gy /= gn
+            gz /= gn
         # points of the 8 cells that have v as a corner
         wx = nbr[v, 0]
         for a in range(2):
@@ -138,7 +261,26 @@ def march_round(
                     for p in range(cs[w], cs[w + 1]):
                         if rank[p] >= 0:
                             continue
-                        dd = tv + _norm(u[p, 0] - cx, u[p, 1] - cy, u[p, 2] - cz) * pcost[p]
+                        ex = u[p, 0] - cx
+                        ey = u[p, 1] - cy
+                        ez = u[p, 2] - cz
+                        if gn > 0.0 and abs(ex) <= 0.5 and abs(ey) <= 0.5 and abs(ez) <= 0.5:
+                            # v is the point's nearest voxel: first-order Taylor along the front,
+                            # but never below the straight distance to the sample (a lower bound)
+                            dd = gx * ex + gy * ey + gz * ez
+                            if weighted:
+                                dd *= pcost[p]
+                            dd += tv
+                            e = _norm(u[p, 0] - u[sv, 0], u[p, 1] - u[sv, 1], u[p, 2] - u[sv, 2])
+                            if weighted:
+                                e *= min(pcost[p], csv)
+                            if e > dd:
+                                dd = e
+                        else:
+                            dd = _norm(ex, ey, ez)  # an upper bound
+                            if weighted:
+                                dd *= pcost[p]
+                            dd += tv
                         if dd < dq[p]:
                             dq[p] = dd
                             lq[p] = lv
@@ -151,24 +293,46 @@ def march_round(
             m = nbr[v, j]
             if m < 0 or stamp[m] == acc:
                 continue
-            # the smaller neighbour value along each axis (written out: passing T to a helper
-            # here costs two atomic reference-count operations per call)
-            am = np.inf
+            fm = vcost[m]
+            if fm == np.inf:
+                continue
+            # per axis: the smaller neighbour value, and the next one beyond it when it may
+            # serve a second-order difference (written out: passing T to a helper here costs
+            # atomic reference counting)
             for ax in range(3):
-                va = np.inf
                 na = nbr[m, 2 * ax]
-                if na >= 0:
-                    va = T[na]
                 nb_ = nbr[m, 2 * ax + 1]
-                if nb_ >= 0 and T[nb_] < va:
-                    va = T[nb_]
-                if ax == 0:
-                    am = va
-                elif ax == 1:
-                    bm = va
+                ta = np.inf
+                tb = np.inf
+                if na >= 0:
+                    ta = np.float64(T[na])
+                if nb_ >= 0:
+                    tb = np.float64(T[nb_])
+                if ta <= tb:
+                    n1 = na
+                    t1 = ta
+                    dj = 2 * ax
                 else:
-                    cm = va
-            tn = np.float32(_solve(np.float64(am), np.float64(bm), np.float64(cm), vcost[m]))
+                    n1 = nb_
+                    t1 = tb
+                    dj = 2 * ax + 1
+                t2 = np.inf
+                if t1 < np.inf and stamp[n1] == acc:
+                    n2 = nbr[n1, dj]
+                    if n2 >= 0 and stamp[n2] == acc:
+                        tt = np.float64(T[n2])
+                        if tt <= t1:
+                            t2 = tt
+                if ax == 0:
+                    a1 = t1
+                    a2 = t2
+                elif ax == 1:
+                    b1 = t1
+                    b2 = t2
+                else:
+                    c1 = t1
+                    c2 = t2
+            tn = np.float32(_update(a1, a2, b1, b2, c1, c2, np.float64(fm)))
             if tn < T[m]:
                 T[m] = tn
                 vlab[m] = lv
@@ -188,30 +352,27 @@ def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
-def _cell_tables(cs):  # pragma: no cover - compiled
-    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1), point -> cell."""
+def cell_tables(cs):  # pragma: no cover - compiled
+    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1)."""
     nv = cs.shape[0] - 1
     ncell = 0
     for v in range(nv):
         if cs[v + 1] > cs[v]:
             ncell += 1
-    cellv = np.empty(ncell, np.int64)
+    cellv = np.empty(ncell, np.int32)
     cellof = np.full(nv, -1, np.int32)
-    pcell = np.empty(cs[nv], np.int64)
     c = 0
     for v in range(nv):
         if cs[v + 1] > cs[v]:
             cellof[v] = c
             cellv[c] = v
-            for p in range(cs[v], cs[v + 1]):
-                pcell[p] = c
             c += 1
-    return cellv, cellof, pcell
+    return cellv, cellof
 
 
 @nb.njit(**JIT)
 def grid_phase(
-    u, coord, nbr, cs, hkeys, hvals, vcost, pcost, weighted, seeds, k_max, rho_stop, r_stop,
+    u, keys, nbr, cs, vcost, pcost, weighted, seeds, k_max, rho_stop, r_stop, debug,
 ):  # pragma: no cover - compiled
     """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
 
@@ -219,31 +380,31 @@ def grid_phase(
     points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop.
     """
     m = u.shape[0]
-    nv = coord.shape[0]
+    nv = keys.shape[0]
     T = np.full(nv, np.inf, np.float32)
-    vlab = np.full(nv, -1, np.int64)
+    vlab = np.full(nv, -1, np.int32)
     stamp = np.zeros(nv, np.int32)
-    cellv, cellof, pcell = _cell_tables(cs)
+    cellv, cellof = cell_tables(cs)
     ncell = cellv.shape[0]
     dq = np.full(m, np.inf)
     val = np.full(m, np.inf)
-    lq = np.full(m, -1, np.int64)
-    rank = np.full(m, -1, np.int64)
-    dstamp = np.full(ncell, -1, np.int64)
-    dirty = np.empty(ncell, np.int64)
+    lq = np.full(m, -1, np.int32)
+    rank = np.full(m, -1, np.int32)
+    dstamp = np.full(ncell, -1, np.int32)
+    dirty = np.empty(ncell, np.int32)
     ckey = np.full(ncell, np.inf)  # heap order
-    heap = np.arange(ncell).astype(np.int64)
-    hpos = np.empty(ncell, np.int64)
+    heap = np.arange(ncell).astype(np.int32)
+    hpos = np.empty(ncell, np.int32)
     hn = ncell
     maxheap_build(ckey, heap, hpos, hn)
     hk = np.empty(nv, np.float32)
     hv = np.empty(nv, np.int32)
     hpos_v = np.full(nv, -1, np.int32)
     seen = np.full(nv, -1, np.int32)
-    order = np.empty(k_max, np.int64)
+    order = np.empty(k_max, np.int32)
     radius = np.empty(k_max, np.float64)
-    parent = np.empty(k_max, np.int64)
-    src = np.empty(1, np.int64)
+    parent = np.empty(k_max, np.int32)
+    src = np.empty(1, np.int32)
     pops = 0
     k = 0
     nseed = seeds.shape[0]
@@ -252,6 +413,7 @@ def grid_phase(
             i = seeds[k]
             rad = np.inf
             par = -1
+            ci = cellof[np.searchsorted(cs, i, side="right") - 1]
         else:
             if hn == 0:
                 break
@@ -268,17 +430,17 @@ def grid_phase(
                     i = p
             rad = val[i]
             par = lq[i]
+            ci = top
         rank[i] = k
         order[k] = i
         radius[k] = rad
         parent[k] = par
-        ci = pcell[i]
         # an exhausted cell (key -1) sinks and is dropped when it reaches the top
         maxheap_decrease(ckey, heap, hpos, ci, _cell_key(ci, cellv, cs, rank, val), hn)
         src[0] = i
         nd, pp = march_round(
-            src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v,
+            src, k, k + 1, u, keys, nbr, cs, cellof, vcost, pcost, weighted,
+            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v, debug,
         )
         pops += pp
         for j in range(nd):
@@ -301,51 +463,51 @@ def grid_phase(
         # drop exhausted cells from the top
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
+        if debug and not check_maxheap(ckey, heap, hpos, hn):
+            raise AssertionError("candidate heap invariant broken")
         k += 1
     return order, radius, parent, k, val, lq, rank, pops
 
 
 @nb.njit(**JIT)
-def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources):  # pragma: no cover
+def multi_source_distance(u, keys, nbr, cs, vcost, pcost, weighted, sources):  # pragma: no cover
     """dq of every point for one march from all ``sources`` at once (for tests and analysis)."""
     m = u.shape[0]
-    nv = coord.shape[0]
-    T = np.full(nv, np.inf, np.float32)
-    vlab = np.full(nv, -1, np.int64)
-    stamp = np.zeros(nv, np.int32)
-    cellof = np.zeros(nv, np.int32)
-    ncell = 1
+    nv = keys.shape[0]
+    cellv, cellof = cell_tables(cs)
+    ncell = cellv.shape[0]
     dq = np.full(m, np.inf)
-    lq = np.full(m, -1, np.int64)
-    rank = np.full(m, -1, np.int64)
-    dstamp = np.full(ncell, -1, np.int64)
-    dirty = np.empty(ncell, np.int64)
-    hk = np.empty(nv, np.float32)
-    hv = np.empty(nv, np.int32)
+    lq = np.full(m, -1, np.int32)
+    rank = np.full(m, -1, np.int32)
     nd, pops = march_round(
-        sources, 0, 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-        T, vlab, stamp, np.full(nv, -1, np.int32), dq, lq, rank, dstamp, dirty, 0, hk, hv,
-        np.full(nv, -1, np.int32),
+        sources, 0, 1, u, keys, nbr, cs, cellof, vcost, pcost, weighted,
+        np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
+        np.full(nv, -1, np.int32), dq, lq, rank, np.full(ncell, -1, np.int32),
+        np.empty(ncell, np.int32), 0, np.empty(nv, np.float32), np.empty(nv, np.int32),
+        np.full(nv, -1, np.int32), False,
     )
+    for s in range(sources.shape[0]):
+        dq[sources[s]] = 0.0
     return dq, lq, pops
 
 
 @nb.njit(**JIT)
 def euclid_tail(
-    u, cs, hkeys, hvals, chk, chv, rstart, rend, levels, pcost, weighted, cmin, d, lab, rank,
+    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, d, lab, rank,
     order, radius, parent, k0, k_max, rho_stop,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite),
-    first tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
+    ``d`` holds upper bounds of every unordered point's distance to the ordered ones, first
+    tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
     point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
     max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
-    top (keys only decrease, so a stale key never hides the true maximum). Ball queries scan voxel cells for small balls and the coarse
-    cells of :func:`coarse_runs` (side 2^j >= the ball radius) for larger ones, so a query looks up at
-    most 27 cells while the radius is within the coarse levels. Returns the new count.
+    top (keys only decrease, so a stale key never hides the true maximum). A ball query walks the
+    neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
+    and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
+    at most 27 of them while the radius is within the coarse levels. Returns the new count.
     """
-    cellv = _cell_tables(cs)[0]
+    cellv, cellof = cell_tables(cs)
     ncell = cellv.shape[0]
     m = u.shape[0]
     for p in range(m):
@@ -360,8 +522,8 @@ def euclid_tail(
     ckey = np.empty(ncell)
     for c in range(ncell):
         ckey[c] = _cell_key(c, cellv, cs, rank, d)
-    heap = np.arange(ncell).astype(np.int64)
-    hpos = np.empty(ncell, np.int64)
+    heap = np.arange(ncell).astype(np.int32)
+    hpos = np.empty(ncell, np.int32)
     hn = ncell
     maxheap_build(ckey, heap, hpos, hn)
     k = k0
@@ -378,9 +540,9 @@ def euclid_tail(
             continue
         if kk <= rho_stop:
             break
-        w = cellv[top]
+        w0 = cellv[top]
         i = -1
-        for p in range(cs[w], cs[w + 1]):
+        for p in range(cs[w0], cs[w0 + 1]):
             if rank[p] < 0 and d[p] == kk:
                 i = p
                 break
@@ -400,19 +562,37 @@ def euclid_tail(
         y1 = int(np.floor((u[i, 1] + reach) / side))
         z0 = int(np.floor((u[i, 2] - reach) / side))
         z1 = int(np.floor((u[i, 2] + reach) / side))
+        fx = int(np.floor(u[i, 0]))
+        fy = int(np.floor(u[i, 1]))
+        fz = int(np.floor(u[i, 2]))
         for x in range(x0, x1 + 1):
             for y in range(y0, y1 + 1):
                 for z in range(z0, z1 + 1):
                     if j == 0:
-                        v = lookup(hkeys, hvals, x, y, z)
-                        if v < 0:
+                        # walk from i's cell: steps up first, then down, so that every voxel on
+                        # the way is a corner of one of the two cells (and so exists)
+                        w = w0
+                        dx, dy, dz = x - fx, y - fy, z - fz
+                        if dx > 0 and w >= 0:
+                            w = nbr[w, 1]
+                        if dy > 0 and w >= 0:
+                            w = nbr[w, 3]
+                        if dz > 0 and w >= 0:
+                            w = nbr[w, 5]
+                        if dx < 0 and w >= 0:
+                            w = nbr[w, 0]
+                        if dy < 0 and w >= 0:
+                            w = nbr[w, 2]
+                        if dz < 0 and w >= 0:
+                            w = nbr[w, 4]
+                        if w < 0:
                             continue
-                        p0 = cs[v]
-                        p1 = cs[v + 1]
+                        p0 = cs[w]
+                        p1 = cs[w + 1]
                     else:
                         if x < 0 or y < 0 or z < 0:
                             continue
-                        run = hash_find(chk, chv, (morton(x, y, z) << 3) | j)
+                        run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
                         if run < 0:
                             continue
                         p0 = rstart[run]
@@ -420,10 +600,9 @@ def euclid_tail(
                     for p in range(p0, p1):
                         if rank[p] >= 0:
                             continue
-                        s = i
-                        dd = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                        dd = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
                         if weighted:
-                            dd *= 0.5 * (pcost[p] + pcost[s])
+                            dd *= 0.5 * (pcost[p] + pcost[i])
                         if dd < d[p]:
                             d[p] = dd
                             lab[p] = k

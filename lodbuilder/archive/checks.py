@@ -192,9 +192,12 @@ def check_scan_group(obj: Any, path: Any, name: str) -> ScanMeta:
 # values, as they are read
 
 
-def read(meta: ScanMeta, ds: Any, sel: Any = ()) -> np.ndarray:
-    """``ds[sel]``; a dataset HDF5 cannot read (a checksum fails) is a one-line error."""
+def read(meta: ScanMeta, ds: Any, sel: Any = (), before: Callable[[Any, Any], Any] | None = None):
+    """``ds[sel]``; a dataset HDF5 cannot read (a checksum fails) is a one-line error.
+    ``before(ds, sel)`` runs first (a remote archive's prefetch)."""
     try:
+        if before is not None:
+            before(ds, sel)
         return ds[sel]
     except OSError as exc:
         raise CorruptArchiveError(
@@ -334,33 +337,7 @@ def check_rho_prefix(meta: ScanMeta, k: int, rho: float, read: RowReader) -> Non
 
 
 # ---------------------------------------------------------------------------------------------
-# the root
-
-
-def check_root(f: Any, path: Any) -> None:
-    """``/scans`` is a group of groups; ``/index`` holds one row per scan in every dataset."""
-    import h5py
-
-    scans = f.get(L.G_SCANS)
-    if scans is not None and not isinstance(scans, h5py.Group):
-        raise damaged(path, f"{L.G_SCANS!r} is a dataset, not a group")
-    ig = f.get(L.G_INDEX)
-    if ig is None:
-        return
-    if not isinstance(ig, h5py.Group):
-        raise damaged(path, f"{L.G_INDEX!r} is a dataset, not a group")
-    want = {L.I_NAME: (), L.I_N_POINTS: (), L.I_BOUNDS_MIN: (3,), L.I_BOUNDS_MAX: (3,)}
-    rows = None
-    for key, tail in want.items():
-        ds = ig.get(key)
-        if not isinstance(ds, h5py.Dataset) or ds.ndim != 1 + len(tail) or ds.shape[1:] != tail:
-            raise damaged(path, f"index dataset {key!r} is missing or has the wrong shape")
-        if rows is not None and ds.shape[0] != rows:
-            raise damaged(path, f"index dataset {key!r} has {ds.shape[0]} rows, the others {rows}")
-        rows = ds.shape[0]
-        kinds = "S" if key == L.I_NAME else ("iu" if key == L.I_N_POINTS else "f")
-        if ds.dtype.kind not in kinds:
-            raise damaged(path, f"index dataset {key!r} has dtype {_short(ds.dtype)}")
+# datasets handed out by the reader
 
 
 class CheckedDataset:

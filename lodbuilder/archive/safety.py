@@ -180,8 +180,7 @@ def open_h5(source: str | os.PathLike[str] | Any, path: Any = None) -> Any:
         raw, owned = source, False
     guarded = GuardedFile(raw, name)
     try:
-        with h5_errors(name, "its superblock"):
-            f = h5py.File(guarded, "r")
+        f = h5py.File(guarded, "r")  # h5py's own error if this is no HDF5 file: the caller words it
     except BaseException:
         if owned:
             raw.close()

@@ -131,13 +131,18 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
         with safety.h5_errors(path, "its metadata"):
             if schema:
                 faults += validate_description(L.describe(arc.file))
-            scans = arc.file.get(L.G_SCANS, {})
             counts: dict[str, int] = {}
             for name in arc.scans:
                 try:
-                    meta = checks.check_scan_group(scans[name], path, name)
-                    counts[name] = meta.n_points
-                    faults += _check_scan(meta, scans[name])
+                    view = arc.scan(name)  # the scan's header is checked here
+                    g = view._g
+                    counts[name] = view.n_points
+                    if schema and g.file != arc.file:  # a scan in a part file of the archive
+                        faults += [
+                            f"part of scan {name!r}: {x}"
+                            for x in validate_description(L.describe(g.file))
+                        ]
+                    faults += _check_scan(view._meta, g)
                 except LodbuilderError as exc:
                     faults.append(f"scan {name!r}: cannot be checked: {exc}")
             try:

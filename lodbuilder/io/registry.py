@@ -2,8 +2,9 @@
 
 A format module ``lodbuilder.io.<name>`` defines ``read(path: Path) -> list[Scan]`` (one Scan per scan
 in the file; the points already in world coordinates) and, when it can write,
-``write(path: Path, points, attributes, metadata) -> None`` (``path`` is a temporary file that the
-caller renames into place). Modules are imported only when a file of their kind is used, so optional
+``write(path: Path, points, attributes, metadata) -> list[str] | None`` (``path`` is a temporary
+file that the caller renames into place; the list holds one line per change the format forced,
+which the caller logs as warnings; ``metadata["crs_wkt"]`` is the CRS to write). Modules are imported only when a file of their kind is used, so optional
 dependencies (laspy, pye57) are needed only for their formats.
 """
 
@@ -14,6 +15,7 @@ from importlib import import_module
 from pathlib import Path
 from types import ModuleType
 
+from .._validate import strict_keywords
 from ..errors import UnsupportedFormatError
 
 #: suffix -> format module name, for reading
@@ -42,6 +44,7 @@ WRITERS: dict[str, str] = {
 }
 
 
+@strict_keywords
 def register(suffix: str, module: str, *, read: bool = True, write: bool = False) -> None:
     """Register a format module (a full dotted module path, or a name under lodbuilder.io)."""
     suffix = suffix.lower() if suffix.startswith(".") else "." + suffix.lower()

@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import logging
+import os
 from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, validate_indices, validate_points
+from .._validate import (
+    check_positive,
+    check_size,
+    strict_keywords,
+    validate_indices,
+    validate_points,
+)
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
@@ -51,12 +58,15 @@ def _prepare(points, rho, size, seeds):
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
-        k = min(k, int(np.searchsorted(-radius, -rho, side="left")))
+        from ..archive.levels import count_above
+
+        k = min(k, count_above(radius, rho))
     if size is not None:
         k = min(k, size)
     return order[:k].copy(), radius[:k].copy(), parent[:k].copy()
 
 
+@strict_keywords
 def euclidean_fps(
     points: Any,
     *,
@@ -80,6 +90,7 @@ def euclidean_fps(
     return Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"})
 
 
+@strict_keywords
 def fastfps(
     points: Any,
     *,
@@ -119,6 +130,7 @@ def fastfps(
 
 
 TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
+DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
 
 
 def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -131,6 +143,9 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, n
     sp = pts[srt]
     new = np.ones(n, dtype=bool)
     new[1:] = (sp[1:] != sp[:-1]).any(axis=1)
+    if new.all():  # no duplicates: the identity, and no copy of the points
+        ident = np.arange(n, dtype=np.int64)
+        return ident, ident
     gid_sorted = np.cumsum(new) - 1
     gid = np.empty(n, dtype=np.int64)
     gid[srt] = gid_sorted
@@ -150,10 +165,11 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     from .band import build_band, choose_parameters
 
     t0 = time.perf_counter()
+    c0 = time.process_time()
     n = pts.shape[0]
     gid, rep = _duplicate_groups(pts, seed_arr)
     m = rep.shape[0]
-    upts = pts[rep]
+    upts = pts[rep] if m < n else pts  # rep is the identity when there are no duplicates
     # engine seeds: the groups of the seeds, first occurrence, in order
     _, first = np.unique(gid[seed_arr], return_index=True)
     useeds = gid[seed_arr][np.sort(first)]
@@ -162,38 +178,42 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     k_max = m if size is None else min(m, size)
     report(progress, "band", 0, 1)
     band = build_band(upts, h, r, max_memory)
+    del upts
     stats["band_voxels"] = band.n_voxels
     stats["band_bytes"] = band.nbytes
     t1 = time.perf_counter()
+    c1 = time.process_time()
     stats["time_band"] = t1 - t0
+    stats["cpu_band"] = c1 - c0
     report(progress, "band", 1, 1)
     weighted = cost is not None
-    inv = np.empty(m, dtype=np.int64)
-    inv[band.perm] = np.arange(m)
+    inv = np.empty(m, dtype=np.int32)
+    inv[band.perm] = np.arange(m, dtype=np.int32)
+    seeds_c = inv[useeds]
+    del inv
     if weighted:
-        from scipy.spatial import cKDTree
-
         ucost = cost[rep][band.perm]
-        _, near = cKDTree(band.u).query(band.coord, k=1, workers=-1)
-        vcost = ucost[near].astype(np.float32)
+        vcost = band.vcost * ucost[band.foot].astype(np.float32)
         pcost = ucost
         cmin = float(ucost.min())
         cscale = float(ucost.mean())  # hand over at the same Euclidean scale as an unweighted run
     else:
         cscale = 1.0
-        vcost = np.ones(band.n_voxels, dtype=np.float32)
-        pcost = np.ones(m)
+        vcost = band.vcost
+        pcost = np.ones(1)
         cmin = 1.0
     from .._kernels.march import euclid_tail, grid_phase
 
     rho_g = -1.0 if rho is None else rho / h
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
-        band.u, band.coord, band.nbr, band.cs, band.hkeys, band.hvals, vcost, pcost, weighted,
-        inv[useeds], k_max, rho_g, TAIL_FACTOR * r / h * cscale,
+        band.u, band.keys, band.nbr, band.cs, vcost, pcost, weighted,
+        seeds_c, k_max, rho_g, TAIL_FACTOR * r / h * cscale, DEBUG,
     )
+    del vcost
     t2 = time.perf_counter()
-    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1)
+    c2 = time.process_time()
+    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
     stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
     report(progress, "ordering", int(k), k_max)
     if k < k_max:
@@ -201,17 +221,19 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
 
         reach = TAIL_FACTOR * r / h * cscale / cmin  # the largest ball of the tail, in voxels
         levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
-        chk, chv, rstart, rend = coarse_runs(band.keys, band.cs, levels)
+        rkey, ridx, rstart, rend = coarse_runs(band.keys, band.cs, levels)
         k = euclid_tail(
-            band.u, band.cs, band.hkeys, band.hvals, chk, chv, rstart, rend, levels, pcost,
+            band.u, band.nbr, band.cs, rkey, ridx, rstart, rend, levels, pcost,
             weighted, cmin, val, lq, rank, order, radius, parent, k, k_max, rho_g,
         )
+    del val, lq, rank
     t3 = time.perf_counter()
     stats["time_tail"] = t3 - t2
+    stats["cpu_tail"] = time.process_time() - c2
     report(progress, "ordering", int(k), k_max)
-    uorder = band.perm[order[:k]]  # distinct-point index
+    uorder = band.perm[order[:k]].astype(np.int64)  # distinct-point index
     radius = radius[:k] * h
-    parent = parent[:k].copy()
+    parent = parent[:k].astype(np.int64)
     return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats)
 
 
