@@ -91,10 +91,75 @@ def _file_crs(hdr: Any) -> str | None:
     return None if crs is None else pyproj_wkt(crs)
 
 
+def _check_vlr_counts(path: Path) -> None:
+    """Refuse VLR counts the file cannot hold: laspy reads that many VLRs from the stream, past
+    its end, and a damaged count (billions) keeps it busy forever."""
+    import struct
+
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(247)
+    if len(head) < 104 or head[:4] != b"LASF":
+        return  # laspy says what is wrong
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    room = max(0, min(offset, size) - header_size)
+    if n_vlrs * 54 > room:  # a VLR header alone is 54 bytes
+        raise FormatError(
+            f"{path}: the LAS header declares {n_vlrs} VLRs but only {room} bytes lie between the "
+            "header and the points; the file is damaged"
+        )
+    if head[25] >= 4 and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and n_evlrs * 60 > max(0, size - start):
+            raise FormatError(
+                f"{path}: the LAS header declares {n_evlrs} extended VLRs at byte {start} of a "
+                f"{size}-byte file; the file is damaged"
+            )
+
+
+def _check_chunk_table(laspy: Any, path: Path) -> None:
+    """Refuse a LAZ chunk table that declares more chunks than the file can hold: lazrs
+    allocates it whole and aborts the process (SIGABRT) when the allocation fails."""
+    import struct
+
+    import lazrs
+
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        header = laspy.LasHeader.read_from(f)
+        vlr = next((v for v in header.vlrs if type(v).__name__ == "LasZipVlr"), None)
+        if vlr is None:
+            return  # laspy says what is missing
+        start = int(header.offset_to_point_data)
+        f.seek(start)
+        raw = f.read(8)
+        at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
+        if at == -1:  # written at the end: the last 8 bytes say where
+            f.seek(max(0, size - 8))
+            raw = f.read(8)
+            at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
+        f.seek(max(0, at))
+        raw = f.read(8)
+    if not start + 8 <= at <= size - 8 or len(raw) != 8:
+        return  # no chunk table where it should be: lazrs reads the chunks in sequence
+    n_chunks = struct.unpack("<II", raw)[1]
+    lazvlr = lazrs.LazVlr(vlr.record_data)
+    count = int(header.point_count)
+    most = count if lazvlr.uses_variable_size_chunks() else -(-count // max(1, lazvlr.chunk_size()))
+    if n_chunks > max(1, min(most, size - start)):
+        raise FormatError(
+            f"{path}: the LAZ chunk table declares {n_chunks} chunks for {count} points in "
+            f"{size} bytes; the file is damaged"
+        )
+
+
 def read(path: Path) -> list[Scan]:
     laspy = _laspy(path)
     _check_laz_backend(laspy, path)
     try:
+        _check_vlr_counts(path)
+        if path.suffix.lower() == ".laz":
+            _check_chunk_table(laspy, path)
         with _quiet_laspy():
             las = laspy.read(str(path))
     except laspy.errors.LaspyException as exc:

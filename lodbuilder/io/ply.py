@@ -271,8 +271,28 @@ def _read_ascii(f, path, size, body_start, before, vertex, count):
         )
     out = np.empty(count, dtype=vertex.dtype("="))
     for j, p in enumerate(vertex.properties):
-        out[p.name] = table[:, j]
+        out[p.name] = _fit(path, p.name, table[:, j], out.dtype[p.name])
     return out
+
+
+def _fit(path: Path, name: str, col: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """``col`` cast to the property's type; a value the type cannot hold (a float beyond float32,
+    a fraction, negative or too large a number for an integer type) is an error, never a silent
+    inf or wrapped integer."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        cast = col.astype(dt)
+    if dt.kind == "f":
+        bad = np.isfinite(col) & ~np.isfinite(cast)
+    else:
+        info = np.iinfo(dt)
+        bad = ~((col >= info.min) & (col <= info.max) & (col == np.floor(col)))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise FormatError(
+            f"{path}: PLY vertex {i} has {name} = {float(col[i])!r}, which its type {dt.name} cannot "
+            "hold; re-export the scan"
+        )
+    return cast
 
 
 def _read_plyfile(f: Any, path: Path, header: Any, vi: int) -> np.ndarray:
