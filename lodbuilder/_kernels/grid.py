@@ -144,22 +144,15 @@ BLOCK = 1 << BLOCK_BITS
 
 
 @nb.njit(**JIT)
-def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, bkey, bstart, cand, cap_limit):  # pragma: no cover
+def band_voxels(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma: no cover - compiled
     """The band: every voxel within its points' radius, plus the 8 corners of every occupied cell.
 
     ``u``: (M, 3) grid coordinates sorted by cell (Morton order); ``irad2``/``rad``: (M,) inverse
-    squared and plain band radius of every point in grid units; ``nin``: (M, 3) unit normals toward
-    the other sheet where a point lies on a thin part (zero elsewhere; or a single row for none);
-    ``ostart``: (C + 1,) point ranges of the occupied cells. Every voxel v gets its ``foot``, the
-    nearest point, and q2 = |u_foot - v|^2 / rad_foot^2 (its squared *depth ratio*). v is in the
-    band ("marchable") when q2 <= 1 and, if its foot lies on a thin part, v is on the foot's side away
-    from the other sheet (up to ``side_tol`` grid units): a one-sided band, decided by the nearest
-    point alone so that a neighbour's misjudged normal near a fold cannot fill the gap (near the
-    surface it may lie up to min(side_tol, 0.4 (psep - 1)) on the gap side). A voxel farther than FAR_SEP x ``psep`` (the foot's separation) from its foot must
-    lie more than OUTER_SEP x ``psep`` on the outer side, so that slightly misjudged normals cannot
-    let voxels near the middle of a gap in. Corners of
-    occupied cells outside the band are kept with q2 > 1 only so that every cell's corners can be
-    found.
+    squared and plain band radius of every point in grid units; ``ostart``: (C + 1,) point ranges of
+    the occupied cells. Every voxel v gets its ``foot``, the nearest point, and
+    q2 = |u_foot - v|^2 / rad_foot^2 (its squared *depth ratio*); v is in the band ("marchable")
+    when q2 <= 1. Corners of occupied cells outside the band are kept with q2 > 1 only so that every
+    cell's corners can be found.
 
     Voxels are produced block by block (blocks of BLOCK^3 voxels, in Morton order): each block
     gathers the contributions of the cells within reach into a dense local table and emits its voxels
@@ -170,7 +163,6 @@ def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, bkey, bstart, cand, 
     """
     ncell = ostart.shape[0] - 1
     nb3 = BLOCK * BLOCK * BLOCK
-    sided = nin.shape[0] == u.shape[0]
     nblk = bkey.shape[0]
     ccx = np.empty(ncell, np.int32)
     ccy = np.empty(ncell, np.int32)
@@ -272,27 +264,6 @@ def band_voxels(u, irad2, rad, nin, psep, side_tol, ostart, bkey, bstart, cand, 
                 continue
             f = df[li]
             q2 = dq[li] * irad2[f]
-            if q2 <= 1.0 and sided and (nin[f, 0] != 0.0 or nin[f, 1] != 0.0 or nin[f, 2] != 0.0):
-                lx, ly, lz = unmorton(li)
-                side = (
-                    (x0 + lx - u[f, 0]) * nin[f, 0]
-                    + (y0 + ly - u[f, 1]) * nin[f, 1]
-                    + (z0 + lz - u[f, 2]) * nin[f, 2]
-                )
-                # near the surface a voxel may lie a little on the gap side (at most side_tol, and
-                # less than a quarter of what the gap leaves between the two sheets' layers), so
-                # that the band's nearest layer stays close to the surface; away from it, a voxel
-                # must lie clearly on the outer side: a slightly misjudged normal must not let a
-                # voxel near the middle of the gap in
-                far = dq[li] > (FAR_SEP * psep[f]) ** 2
-                tol = min(side_tol, 0.4 * (psep[f] - 1.0))
-                if side > (-OUTER_SEP * psep[f] if far else tol):
-                    q2 = 2.0  # on the gap side of a thin part: not marchable
-                else:
-                    # the band's nearest layer may lie up to 1 - tol off the surface: count the
-                    # depth from DEAD_ZONE of that, so the depth cost adds little bias there
-                    dd = max(np.sqrt(dq[li]) - DEAD_ZONE * (1.0 - tol), 0.0)
-                    q2 = dd * dd * irad2[f]
             dq[li] = q2
             if q2 <= 1.0 or dc[li] == 1:
                 if count == cap:
@@ -367,3 +338,91 @@ def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
                     rkey[r] = (ck << 3) | j
                 rend[r] = cs[v + 1]
     return rkey, index_hash(rkey), rstart, rend
+
+
+@nb.njit(**JIT)
+def kth_neighbour(u, ostart, cell_keys, queries, k):  # pragma: no cover - compiled
+    """For each query point (grid coordinates, cell size 1): the distance to its k-th nearest point
+    among ``u`` (sorted by cell; ``ostart`` the cells' ranges, ``cell_keys`` their Morton keys),
+    searched in the 27 cells around it, and whether that is certain (the k-th distance is at most 1,
+    so no nearer point can lie outside those cells). A query that is one of the points counts itself
+    at distance 0, as a k-d tree query would."""
+    hidx = index_hash(cell_keys)
+    nq = queries.shape[0]
+    out = np.empty(nq)
+    sure = np.empty(nq, np.bool_)
+    best = np.empty(k)
+    for q in range(nq):
+        qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
+        fx = int(np.floor(qx))
+        fy = int(np.floor(qy))
+        fz = int(np.floor(qz))
+        nk = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    x, y, z = fx + dx, fy + dy, fz + dz
+                    if x < 0 or y < 0 or z < 0:
+                        continue
+                    j = hash_find(hidx, cell_keys, morton(x, y, z))
+                    if j < 0:
+                        continue
+                    for i in range(ostart[j], ostart[j + 1]):
+                        d2 = (u[i, 0] - qx) ** 2 + (u[i, 1] - qy) ** 2 + (u[i, 2] - qz) ** 2
+                        if nk < k:
+                            t = nk
+                            nk += 1
+                        elif d2 < best[k - 1]:
+                            t = k - 1
+                        else:
+                            continue
+                        while t > 0 and best[t - 1] > d2:
+                            best[t] = best[t - 1]
+                            t -= 1
+                        best[t] = d2
+        if nk < k:
+            out[q] = np.inf
+            sure[q] = False
+        else:
+            out[q] = np.sqrt(best[k - 1])
+            sure[q] = out[q] <= 1.0
+    return out, sure
+
+
+@nb.njit(**JIT)
+def one_sided_cost(keys, foot, u, nin, psep, irad2, side_tol, beta):  # pragma: no cover - compiled
+    """The cost of moving through each voxel of a band whose thin parts are one-sided (inf: not
+    marchable). A voxel whose foot (nearest point) has a normal ``nin`` toward another sheet at
+    distance ``psep`` (grid units; zero normal: not thin) is marchable only within the foot's
+    radius (``irad2``: inverse squared) and on the foot's side away from that sheet: near the
+    surface it may lie up to min(side_tol, 0.4 (psep - 1)) on the gap side (so that the band's
+    nearest layer stays close to the surface); farther than FAR_SEP x psep from the foot it must
+    lie more than OUTER_SEP x psep on the outer side (so that a slightly misjudged normal cannot let
+    a voxel near the middle of a gap in). Decided by the nearest point alone, so that a neighbour's
+    misjudged normal near a fold cannot fill the gap. There, the depth is counted from DEAD_ZONE of
+    the nearest layer's possible offset (1 - tol), so the depth cost adds little bias."""
+    nv = keys.shape[0]
+    out = np.empty(nv, np.float32)
+    for v in range(nv):
+        f = foot[v]
+        x, y, z = unmorton(keys[v])
+        ex = x - u[f, 0]
+        ey = y - u[f, 1]
+        ez = z - u[f, 2]
+        d2 = ex * ex + ey * ey + ez * ez
+        q2 = d2 * irad2[f]
+        if q2 > 1.0:
+            out[v] = np.inf
+            continue
+        nx, ny, nz = nin[f, 0], nin[f, 1], nin[f, 2]
+        if nx != 0.0 or ny != 0.0 or nz != 0.0:
+            side = ex * nx + ey * ny + ez * nz
+            far = d2 > (FAR_SEP * psep[f]) ** 2
+            tol = min(side_tol, 0.4 * (psep[f] - 1.0))
+            if side > (-OUTER_SEP * psep[f] if far else tol):
+                out[v] = np.inf
+                continue
+            dd = max(np.sqrt(d2) - DEAD_ZONE * (1.0 - tol), 0.0)
+            q2 = dd * dd * irad2[f]
+        out[v] = np.float32(1.0 + beta * q2)
+    return out

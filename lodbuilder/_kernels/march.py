@@ -149,7 +149,7 @@ def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: 
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
+    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
@@ -174,7 +174,6 @@ def march_round(
         ci = 1.0
         if weighted:
             ci = pcost[i]
-        mark = np.int32(rnd * src.shape[0] + s)
         # the sample's nearest voxel: a corner of its cell (all corners are voxels)
         a = anchor_of(cs, np.int64(i))
         v0 = a
@@ -194,8 +193,9 @@ def march_round(
         if v0 < 0:
             continue
         x0, y0, z0 = unmorton(keys[v0])
-        # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first)
-        seen[v0] = mark
+        # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
+        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken)
+        cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
         qv[0] = v0
         qn = 1
         qi = 0
@@ -204,11 +204,14 @@ def march_round(
             qi += 1
             for j in range(6):
                 w = nbr[v, j]
-                if w < 0 or seen[w] == mark or qn == SEED_QUEUE or vcost[w] == np.inf:
+                if w < 0 or qn == SEED_QUEUE or vcost[w] == np.inf:
                     continue
                 x, y, z = unmorton(keys[w])
+                cw = (x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))
+                if cube[cw] >= 0:
+                    continue
                 if _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) <= SEED_RADIUS:
-                    seen[w] = mark
+                    cube[cw] = qn
                     qv[qn] = w
                     qn += 1
         # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
@@ -221,7 +224,6 @@ def march_round(
             x, y, z = unmorton(keys[qv[q]])
             qd[q] = _norm(np.float64(x - x0), np.float64(y - y0), np.float64(z - z0))
             nbk[int(qd[q] * 8.0) + 1] += 1
-            cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = q
         for b in range(1, NBUCKET):
             nbk[b] += nbk[b - 1]
         for q in range(qn):
@@ -570,7 +572,6 @@ def grid_phase(
     hk = np.empty(nv, np.float32)
     hv = np.empty(nv, np.int32)
     hpos_v = np.full(nv, -1, np.int32)
-    seen = np.full(nv, -1, np.int32)
     order = np.empty(k_max, np.int32)
     radius = np.empty(k_max, np.float64)
     parent = np.empty(k_max, np.int32)
@@ -611,7 +612,7 @@ def grid_phase(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
+            T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
         )
         if pp < 0:
             return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
@@ -660,7 +661,7 @@ def multi_source_distance(
     nd, pops = march_round(
         sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
-        np.full(nv, -1, np.int32), dq, lq, rank, np.full(ncell, -1, np.int32),
+        dq, lq, rank, np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
         np.full(nv, -1, np.int32), False,
     )

@@ -1,12 +1,13 @@
 """Local sheet separation: how far, across the gap, the nearest other piece of surface is.
 
-Works on the occupied cells of a grid (points sorted by cell, grid units). A cell's normal is the
-smallest principal axis of the K_NORMAL nearest neighbours of its most central point (within about
-two point spacings, so they stay on its own sheet when another one is 3 spacings away). From the cell's centroid a ray goes both ways
+Works on the occupied cells of a grid (points sorted by cell, grid units), every other cell in a
+checkerboard (the spread below covers the rest). A cell's normal is the smallest principal axis of
+the points within ``normal_radius`` of its most central point (about two point spacings, so they
+stay on its own sheet when another one is 3 spacings away), trusted only where those points are flat
+(the smallest principal spread under PLANAR x the middle one: not too noisy, not a corner). From the cell's centroid a ray goes both ways
 along the normal; the first occupied cell it meets whose centroid lies in the normal's cone
 (offset along the normal >= ``cone`` x the distance) and at least ``gap_min`` away along the normal
-belongs to another sheet, and that offset is the cell's separation; the normal is turned toward the
-nearer one. Cells of the same sheet (neighbours, noise, a curved sheet) are either too close along
+belongs to another sheet, and that offset is the cell's separation; the normal is turned toward the nearer one. Cells of the same sheet (neighbours, noise, a curved sheet) are either too close along
 the normal or outside the cone; holes in the sampling are sideways and never in the cone. The
 result is spread to the 26 neighbour cells on the same side of the gap (min), so that every point
 near a thin part gets it.
@@ -20,7 +21,7 @@ import numpy as np
 from . import INLINE, JIT
 from .grid import hash_find, index_hash, morton
 
-K_NORMAL = 10  # neighbours of a cell's central point that give the cell's normal
+PLANAR = 0.25  # a normal counts only where the smallest spread is under this x the middle one
 
 
 @nb.njit(**INLINE)
@@ -42,6 +43,9 @@ def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
     r = min(max(r, -1.0), 1.0)
     phi = np.arccos(r) / 3.0
     lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest eigenvalue
+    mid = 3.0 * q - lam - (q + 2.0 * p * np.cos(phi))
+    if lam > PLANAR * mid:
+        return 0.0, 0.0, 1.0, False  # not flat enough for a trustworthy normal (noise, a corner)
     # rows of C - lam I; the eigenvector is the longest cross product of two rows
     r0x, r0y, r0z = a - lam, d, e
     r1x, r1y, r1z = d, b - lam, f
@@ -69,7 +73,61 @@ def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
-def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - compiled
+def _cell_normal(u, ostart, mom, cnt, ckey, hidx, c, radius2):  # pragma: no cover - compiled
+    """The unit normal of cell c: the smallest principal axis of the points within
+    sqrt(radius2) of the cell's point nearest its centroid (searched in the 27 cells around)."""
+    p0, p1 = ostart[c], ostart[c + 1]
+    fx = int(np.floor(u[p0, 0]))
+    fy = int(np.floor(u[p0, 1]))
+    fz = int(np.floor(u[p0, 2]))
+    gx = mom[c, 0] / cnt[c]
+    gy = mom[c, 1] / cnt[c]
+    gz = mom[c, 2] / cnt[c]
+    rep = p0
+    best = np.inf
+    for i in range(p0, p1):
+        d2 = (u[i, 0] - gx) ** 2 + (u[i, 1] - gy) ** 2 + (u[i, 2] - gz) ** 2
+        if d2 < best:
+            best = d2
+            rep = i
+    rx, ry, rz = u[rep, 0], u[rep, 1], u[rep, 2]
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
+    nk = 0
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            for dz in range(-1, 2):
+                x, y, z = fx + dx, fy + dy, fz + dz
+                if x < 0 or y < 0 or z < 0:
+                    continue
+                j = hash_find(hidx, ckey, morton(x, y, z))
+                if j < 0:
+                    continue
+                for i in range(ostart[j], ostart[j + 1]):
+                    ex, ey, ez = u[i, 0] - rx, u[i, 1] - ry, u[i, 2] - rz
+                    if ex * ex + ey * ey + ez * ez > radius2:
+                        continue
+                    nk += 1
+                    s0 += ex
+                    s1 += ey
+                    s2 += ez
+                    s3 += ex * ex
+                    s4 += ey * ey
+                    s5 += ez * ez
+                    s6 += ex * ey
+                    s7 += ex * ez
+                    s8 += ey * ez
+    if nk < 5:
+        return 0.0, 0.0, 1.0, False
+    nn = float(nk)
+    mx, my, mz = s0 / nn, s1 / nn, s2 / nn
+    return _smallest_axis(
+        s3 / nn - mx * mx, s4 / nn - my * my, s5 / nn - mz * mz,
+        s6 / nn - mx * my, s7 / nn - mx * mz, s8 / nn - my * mz,
+    )
+
+
+@nb.njit(**JIT)
+def cell_separation(u, ostart, reach, gap_min, cone, normal_radius):  # pragma: no cover - compiled
     """Per occupied cell: the separation toward the nearer other sheet (inf: none within
     ``reach``), the one on the opposite side (inf: none), and the unit normal oriented toward the
     nearer other sheet (zero where there is none), all in grid units."""
@@ -96,72 +154,15 @@ def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - comp
     sep_in = np.full(ncell, np.inf)
     sep_out = np.full(ncell, np.inf)
     nrm = np.zeros((ncell, 3), np.float64)
-    acc = np.empty(9)
-    kd = np.empty(K_NORMAL)
-    ki = np.empty(K_NORMAL, np.int64)
+    radius2 = normal_radius * normal_radius
     for c in range(ncell):
         p0, p1 = ostart[c], ostart[c + 1]
         fx = int(np.floor(u[p0, 0]))
         fy = int(np.floor(u[p0, 1]))
         fz = int(np.floor(u[p0, 2]))
-        # the cell's point nearest its centroid, and its K nearest neighbours among the 27 cells
-        # around (close enough to stay on its own sheet when another one is 3 spacings away)
-        gx = mom[c, 0] / cnt[c]
-        gy = mom[c, 1] / cnt[c]
-        gz = mom[c, 2] / cnt[c]
-        rep = p0
-        best = np.inf
-        for i in range(p0, p1):
-            d2 = (u[i, 0] - gx) ** 2 + (u[i, 1] - gy) ** 2 + (u[i, 2] - gz) ** 2
-            if d2 < best:
-                best = d2
-                rep = i
-        nk = 0
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    x, y, z = fx + dx, fy + dy, fz + dz
-                    if x < 0 or y < 0 or z < 0:
-                        continue
-                    j = hash_find(hidx, ckey, morton(x, y, z))
-                    if j < 0:
-                        continue
-                    for i in range(ostart[j], ostart[j + 1]):
-                        d2 = (u[i, 0] - u[rep, 0]) ** 2 + (u[i, 1] - u[rep, 1]) ** 2 + (u[i, 2] - u[rep, 2]) ** 2
-                        if nk < K_NORMAL:
-                            t = nk
-                            nk += 1
-                        elif d2 < kd[K_NORMAL - 1]:
-                            t = K_NORMAL - 1
-                        else:
-                            continue
-                        while t > 0 and kd[t - 1] > d2:
-                            kd[t] = kd[t - 1]
-                            ki[t] = ki[t - 1]
-                            t -= 1
-                        kd[t] = d2
-                        ki[t] = i
-        if nk < 4:
-            continue
-        acc[:] = 0.0
-        for t in range(nk):
-            i = ki[t]
-            x, y, z = u[i, 0], u[i, 1], u[i, 2]
-            acc[0] += x
-            acc[1] += y
-            acc[2] += z
-            acc[3] += x * x
-            acc[4] += y * y
-            acc[5] += z * z
-            acc[6] += x * y
-            acc[7] += x * z
-            acc[8] += y * z
-        nn = float(nk)
-        mx, my, mz = acc[0] / nn, acc[1] / nn, acc[2] / nn
-        nx, ny, nz, ok = _smallest_axis(
-            acc[3] / nn - mx * mx, acc[4] / nn - my * my, acc[5] / nn - mz * mz,
-            acc[6] / nn - mx * my, acc[7] / nn - mx * mz, acc[8] / nn - my * mz,
-        )
+        if (fx + fy + fz) & 1:
+            continue  # every other cell (a checkerboard): the spread below covers the others
+        nx, ny, nz, ok = _cell_normal(u, ostart, mom, cnt, ckey, hidx, c, radius2)
         if not ok:
             continue
         cx = mom[c, 0] / cnt[c]
@@ -192,12 +193,13 @@ def cell_separation(u, ostart, reach, gap_min, cone):  # pragma: no cover - comp
                 oz = mom[j, 2] / cnt[j] - cz
                 along = sgn * (ox * nx + oy * ny + oz * nz)
                 dist = np.sqrt(ox * ox + oy * oy + oz * oz)
-                if along >= gap_min and along >= cone * dist:
-                    if side == 0:
-                        found_pos = along
-                    else:
-                        found_neg = along
-                    break
+                if along < gap_min or along < cone * dist:
+                    continue
+                if side == 0:
+                    found_pos = along
+                else:
+                    found_neg = along
+                break
         if found_pos == np.inf and found_neg == np.inf:
             continue
         if found_neg < found_pos:

@@ -37,11 +37,13 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     return {
         "band": {
             "grid.cell_order": (_F64_2, _F64, f),
+            "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
-            "grid.band_voxels": (_F64_2, _F64, _F64, _F64_2, _F64, f, _I32, _I64, _I32, _I64, i),
+            "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
+            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
             "grid.neighbour_table": (_I64,),
             "march.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
-            "sheets.cell_separation": (_F64_2, _I32, f, f, f),
+            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
         },
         "ordering": {
             "march.grid_phase": (

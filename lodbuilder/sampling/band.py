@@ -2,7 +2,7 @@
 
 Automatic parameters (documented rule):
     s = typical point spacing (median distance to the 6th neighbour x sqrt(pi / 6), which is the
-        spacing of a jittered grid and the mean spacing of random samples), on up to 50,000 points;
+        spacing of a jittered grid and the mean spacing of random samples), on up to 20,000 points;
     voxel size  h = 2 s;
     band radius r = 2.5 h.
 With these, the band is about 2r/h = 5 voxels thick and holds about 1.3 voxels per point.
@@ -20,7 +20,7 @@ fold is measured along its outer side (a little longer than the surface, never a
 its inside). If there is a sheet on the outer side too, the radius there is capped at
 0.95 (sep - h) / 2 (never below h). The Euclidean tail never lowers a point from a sample farther
 than 0.9 x their separation (a ball smaller than the gap does not reach the other sheet), nor along a
-chord steeper than 30 degrees to either end's sheet (around a tight fold the chord is much shorter
+chord steeper than 24 degrees (sin 0.4) to either end's sheet (around a tight fold the chord is much shorter
 than the surface); when at least THIN_SHARE % of the scan is thin, the band ordering goes on down
 to 0.9 x the typical separation instead of 2 r, so that the tail's limits hardly ever bind.
 
@@ -50,10 +50,11 @@ DEPTH_COST = 0.2
 TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
 SEP_GAP_MIN = 1.5  # in default voxels (3 point spacings): closer layers count as one sheet
 SEP_CONE = 0.8  # the other sheet's cell lies within acos(0.8) = 37 degrees of the normal
+NORMAL_RADIUS = 0.9  # default voxels (1.8 point spacings): the neighbours that give a cell's normal
 THIN_RADIUS_MIN = 1.0  # voxels: the thinnest band radius
 SIDE_TOLERANCE = 0.15  # voxels: how far on the gap side of its nearest point a voxel may lie
 TAIL_PER_SEP = 0.9  # the tail lowers a point only from samples closer than this x its separation
-TAIL_SLOPE = 0.5  # ... and along chords with |sin| <= this to both ends' sheets (arc/chord <= 1.05)
+TAIL_SLOPE = 0.4  # ... and along chords with |sin| <= this to both ends' sheets (arc/chord <= 1.03)
 THIN_SHARE = 25.0  # percent: when this much of the scan is thin, hand over below 0.9 x separation
 BYTES_PER_VOXEL = 96  # while ordering: keys 8, nbr 24, cs 4, T/vlab/stamp/seen/heap/vcost/cellof 36 + slack
 BYTES_PER_POINT = 120
@@ -62,7 +63,7 @@ MAX_POINTS = (1 << 31) - 1  # point and voxel indices are int32
 
 
 def median_spacing(
-    points: np.ndarray, sample: int = 50_000, k: int = 6, subset: int = 500_000
+    points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 500_000
 ) -> float:
     """Typical point spacing: the median distance to the k-th neighbour times sqrt(pi / k).
 
@@ -70,9 +71,11 @@ def median_spacing(
     (like a range scan) or random; the plain nearest-neighbour distance would be half of s for random
     samples. Measured on a deterministic sample of the points; above ``subset`` points the
     neighbours are searched in a random subset of that size and the spacing scaled by
-    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning).
+    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning). The search is
+    exact: points hashed into cells, the cell size doubled until the k-th neighbour of most queries
+    lies within one cell (no k-d tree: scipy.spatial would cost the build process 26 MB).
     """
-    from scipy.spatial import cKDTree
+    from .._kernels.grid import cell_order, grid_coords, kth_neighbour
 
     n = points.shape[0]
     if n < 2:
@@ -83,12 +86,30 @@ def median_spacing(
         points = points[np.sort(rng.choice(n, subset, replace=False))]
         scale = math.sqrt(subset / n)
         n = subset
-    tree = cKDTree(points)
     q = points[rng.choice(n, sample, replace=False)] if n > sample else points
     k = min(k, n - 1)
-    d, _ = tree.query(q, k=k + 1, workers=-1)
-    dk = d[:, k]
-    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale
+    lo = points.min(axis=0)
+    ext = float(np.ptp(points, axis=0).max())
+    if ext <= 0.0:
+        return 0.0
+    c = max(ext / math.sqrt(n), ext * 2.0**-20)  # the spacing of n points filling a square
+    while True:
+        origin = lo - c
+        keys = cell_order(points, origin, c)
+        perm = np.argsort(keys, kind="stable").astype(np.int32)
+        keys = keys[perm]
+        u = grid_coords(points, perm, origin, c)
+        first = np.empty(n, dtype=bool)
+        first[0] = True
+        np.not_equal(keys[1:], keys[:-1], out=first[1:])
+        starts = np.flatnonzero(first)
+        ostart = np.append(starts, n).astype(np.int32)
+        dk, sure = kth_neighbour(u, ostart, keys[starts], (q - origin) / c, k + 1)
+        if sure.mean() >= 0.9 or c >= 4 * ext:
+            break
+        c *= 2.0
+    dk = dk[np.isfinite(dk)] * c
+    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale if dk.size else 0.0
     if s <= 0.0:
         s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
     return s
@@ -163,7 +184,7 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
     ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
     del ckeys, new
-    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE)
+    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
     counts = np.diff(ostart)
     sep_in = np.empty(n)
     sep_in[perm] = np.repeat(sin * h, counts)
@@ -341,18 +362,9 @@ def build_band(
     if budget_voxels < ostart.shape[0] - 1:
         raise too_big(f"at least {ostart.shape[0] - 1:,}")
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
-    if normal is None:
-        nin = np.zeros((1, 3))
-        psep = np.zeros(1)
-    else:
-        nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
-        psep = np.full(n, np.inf) if separation is None else separation[perm] / h
     bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
-    keys, q2, foot, count = band_voxels(
-        u, 1.0 / (rad * rad), rad, nin, psep, SIDE_TOLERANCE, ostart, bkey, bstart, cand, budget_voxels
-    )
+    keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
     del bkey, bstart, cand
-    del nin, psep
     del rad, ostart
     if count < 0:
         raise too_big(f"more than {budget_voxels:,}")
@@ -363,34 +375,48 @@ def build_band(
     del ckeys
     beta = DEPTH_COST if depth_cost is None else depth_cost
     vcost = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf).astype(np.float32)
+    del q2
     near = nearest_corners(u, nbr, cs, vcost)
-    return Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, near, None if radius is None else radius / h)
+    band = Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, near, None if radius is None else radius / h)
+    if normal is not None:
+        band.vcost, band.near = one_sided(band, normal, separation, radius, beta)
+    return band
+
+
+def one_sided(
+    band: Band, normal: np.ndarray, separation: np.ndarray | None, radius: np.ndarray | None, beta: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel costs and the points' nearest marchable corners of ``band`` with its thin parts
+    one-sided (``normal``, ``separation``, ``radius``: per point, input order; see the module
+    docstring): a subset of the band's voxels, so no second band is built."""
+    from .._kernels.grid import one_sided_cost
+    from .._kernels.march import nearest_corners
+
+    perm = band.perm
+    nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
+    psep = np.full(perm.shape[0], np.inf) if separation is None else separation[perm] / band.h
+    rad = np.full(perm.shape[0], band.r / band.h) if radius is None else radius[perm] / band.h
+    vcost = one_sided_cost(band.keys, band.foot, band.u, nin, psep, 1.0 / (rad * rad), SIDE_TOLERANCE, beta)
+    return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
 
 
 def build_planned_band(points: np.ndarray, plan: BandPlan, max_memory: int | None = None) -> tuple[Band, BandPlan]:
     """The band of a plan. A one-sided band must not split the surface into more pieces than the
     plain band does (two registrations of one surface a few spacings apart, in a merged scan, are
     found as two sheets and may be cut apart that way): if it does, the plain band is used for the
-    whole scan and the plan returned says so."""
+    whole scan and the plan returned says so. The one-sided band is a subset of the plain one's
+    voxels, so both are decided on one band."""
     from .._kernels.march import point_components
 
-    band = build_band(
-        points, plan.h, plan.r, max_memory, radius=plan.radius, normal=plan.normal, separation=plan.separation
-    )
+    band = build_band(points, plan.h, plan.r, max_memory)
     if plan.normal is None:
         return band, plan
-    pieces = point_components(band.nbr, band.cs, band.near, band.vcost)
-    if pieces == 1:
-        return band, plan
-    del band
-    plain = build_band(points, plan.h, plan.r, max_memory)
-    if point_components(plain.nbr, plain.cs, plain.near, plain.vcost) < pieces:
+    vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
+    pieces = point_components(band.nbr, band.cs, near, vcost)
+    if pieces > 1 and point_components(band.nbr, band.cs, band.near, band.vcost) < pieces:
         log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
-        return plain, BandPlan(plan.h, plan.r, None, None, None, TAIL_FACTOR * plan.r)
-    del plain
-    band = build_band(
-        points, plan.h, plan.r, max_memory, radius=plan.radius, normal=plan.normal, separation=plan.separation
-    )
+        return band, BandPlan(plan.h, plan.r, None, None, None, TAIL_FACTOR * plan.r)
+    band.vcost, band.near = vcost, near
     return band, plan
 
 

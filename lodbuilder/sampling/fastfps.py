@@ -22,6 +22,27 @@ from .ordering import Ordering
 log = logging.getLogger(__name__)
 
 
+_LIBC: Any = None
+
+
+def release_freed_memory() -> None:
+    """Give freed heap memory back to the system (glibc's malloc_trim; a no-op elsewhere).
+
+    The kernels allocate and free hundreds of MB per phase through malloc; glibc keeps much of it
+    (its mmap threshold grows with the blocks freed), so without this the process's resident size
+    after a phase stays near that phase's peak and the next phase stacks on top of it."""
+    global _LIBC
+    if _LIBC is None:
+        try:
+            import ctypes
+
+            _LIBC = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):  # not glibc
+            _LIBC = False
+    if _LIBC:
+        _LIBC(0)
+
+
 def default_seed(points: np.ndarray) -> int:
     """The deterministic default seed: the point nearest the centroid (lowest index on ties)."""
     c = points.mean(axis=0)
@@ -158,25 +179,35 @@ def fastfps(
     c = None if cost is None else validate_cost(cost, n)
     if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
         raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
-    return check_ordering(_run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress))
+    o = _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+    release_freed_memory()  # the band and the kernels' state are gone now
+    return check_ordering(o)
 
 
 DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
 
 
-def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Group exact duplicates. Returns (group id per point, representative input index per group).
 
     The representative is the first listed seed of the group if any, else its lowest index.
     """
     n = pts.shape[0]
+    # a quick check first: if the points' hashes are all different, so are the points (most scans)
+    bits = (pts + 0.0).view(np.uint64)  # + 0.0: -0.0 and 0.0 are the same point
+    hsh = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+    hsh ^= bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+    hsh ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    hsh.sort()
+    if not (hsh[1:] == hsh[:-1]).any():
+        return None, None
+    del bits, hsh
     srt = np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
     sp = pts[srt]
     new = np.ones(n, dtype=bool)
     new[1:] = (sp[1:] != sp[:-1]).any(axis=1)
-    if new.all():  # no duplicates: the identity, and no copy of the points
-        ident = np.arange(n, dtype=np.int64)
-        return ident, ident
+    if new.all():  # no duplicates: (None, None) stands for the identity (no copies)
+        return None, None
     gid_sorted = np.cumsum(new) - 1
     gid = np.empty(n, dtype=np.int64)
     gid[srt] = gid_sorted
@@ -201,15 +232,20 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     c0 = time.process_time()
     n = pts.shape[0]
     gid, rep = _duplicate_groups(pts, seed_arr)
-    m = rep.shape[0]
-    upts = pts[rep] if m < n else pts  # rep is the identity when there are no duplicates
-    # engine seeds: the groups of the seeds, first occurrence, in order
-    _, first = np.unique(gid[seed_arr], return_index=True)
-    useeds = gid[seed_arr][np.sort(first)]
+    if gid is None or rep is None:  # no duplicates
+        m, upts, useeds = n, pts, seed_arr
+    else:
+        m = rep.shape[0]
+        upts = pts[rep]
+        # engine seeds: the groups of the seeds, first occurrence, in order
+        _, first = np.unique(gid[seed_arr], return_index=True)
+        useeds = gid[seed_arr][np.sort(first)]
     report(progress, "band", 0, 1)
     plan = plan_band(upts, voxel_size, band_radius)
     found = plan.thin_points
+    release_freed_memory()
     band, plan = build_planned_band(upts, plan, max_memory)
+    release_freed_memory()
     h, r = plan.h, plan.r
     stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
     stats["thin_points"] = plan.thin_points
@@ -230,7 +266,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     seeds_c = inv[useeds]
     del inv
     if weighted:
-        ucost = cost[rep][band.perm]
+        ucost = (cost if rep is None else cost[rep])[band.perm]
         vcost = band.vcost * ucost[band.foot].astype(np.float32)
         pcost = ucost
         cmin = float(ucost.min())
@@ -246,6 +282,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         psep = np.full(1, np.inf, dtype=np.float32)
         pnrm = np.zeros((1, 3), dtype=np.float32)
         foot = np.zeros(1, dtype=np.int32)
+        band.foot = foot  # not needed any more: free it before the ordering
     else:
         psep = (TAIL_PER_SEP / h * plan.separation[band.perm]).astype(np.float32)
         pnrm = plan.normal[band.perm]
@@ -257,6 +294,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG,
     )
     del vcost
+    release_freed_memory()
     if pops < 0:
         which = "front" if pops == -1 else "candidate"
         raise EngineError(f"the {which} heap broke its invariant (debug check); this is a bug, please report it")
@@ -265,23 +303,29 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
     stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
     report(progress, "ordering", int(k), k_max)
+    # the tail needs the points, the neighbour table and the point ranges only
+    u, nbr, cs, perm, keys = band.u, band.nbr, band.cs, band.perm, band.keys
+    del band, foot
     if k < k_max:
         from .._kernels.grid import coarse_runs
 
         reach = plan.handover / h * cscale / cmin  # the largest ball of the tail, in voxels
         levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
-        rkey, ridx, rstart, rend = coarse_runs(band.keys, band.cs, levels)
+        rkey, ridx, rstart, rend = coarse_runs(keys, cs, levels)
+        del keys
         k = euclid_tail(
-            band.u, band.nbr, band.cs, rkey, ridx, rstart, rend, levels, pcost,
+            u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
             weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
         )
-    del psep, pnrm, foot
-    del val, lq, rank
+        del rkey, ridx, rstart, rend
+    del psep, pnrm, val, lq, rank, u, nbr, cs
+    release_freed_memory()
     t3 = time.perf_counter()
     stats["time_tail"] = t3 - t2
     stats["cpu_tail"] = time.process_time() - c2
     report(progress, "ordering", int(k), k_max)
-    uorder = band.perm[order[:k]].astype(np.int64)  # distinct-point index
+    uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
+    del perm, order
     radius = radius[:k] * h
     parent = parent[:k].astype(np.int64)
     return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats)
@@ -290,7 +334,13 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
 def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats):
     """Map the distinct-point ordering back to input indices; add duplicate seeds and duplicates."""
     n = pts.shape[0]
-    m = rep.shape[0]
+    m = n if rep is None else rep.shape[0]
+    stats["n_duplicates"] = int(n - m)
+    if rep is None:  # no duplicates: the engine's ordering is the answer
+        stats["n_duplicate_seeds"] = 0
+        if size is not None and uorder.shape[0] > size:
+            uorder, radius, parent = uorder[:size], radius[:size], parent[:size]
+        return Ordering(uorder, radius, parent, h, r, seed_arr, n, stats)
     nseed_u = int(np.unique(gid[seed_arr]).size)
     extra = seed_arr[rep[gid[seed_arr]] != seed_arr]  # seeds that are copies of an earlier seed
     head = seed_arr  # all user seeds, in the given order, radius inf
@@ -319,6 +369,5 @@ def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, 
         par = np.concatenate([par, rk[srt]])
     if size is not None and order.shape[0] > size:
         order, rad, par = order[:size], rad[:size], par[:size]
-    stats["n_duplicates"] = int(n - m)
     stats["n_duplicate_seeds"] = int(extra.size)
     return Ordering(order.astype(np.int64), rad, par.astype(np.int64), h, r, seed_arr, n, stats)
