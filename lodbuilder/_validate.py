@@ -6,8 +6,12 @@ argument and the value or shape that was wrong.
 
 from __future__ import annotations
 
+import difflib
+import functools
+import inspect
 import math
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, ParamSpec, TypeVar, overload
 
 import numpy as np
 
@@ -93,3 +97,93 @@ def validate_indices(values: Any, n: int, name: str) -> np.ndarray:
     if np.unique(arr).size != arr.size:
         raise InputError(f"{name} contains repeated indices; list each point once")
     return arr
+
+
+# -- keyword arguments ---------------------------------------------------------------------------
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+_Extra = Iterable[str] | Callable[[], Iterable[str]] | None
+
+
+@overload
+def strict_keywords(func: Callable[_P, _R]) -> Callable[_P, _R]: ...
+
+
+@overload
+def strict_keywords(
+    *, extra: _Extra = None
+) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]: ...
+
+
+def strict_keywords(func: Any = None, *, extra: _Extra = None) -> Any:
+    """Decorator of a public function or method: an unknown keyword argument raises
+    :class:`~lodbuilder.errors.InputError` naming the function, the closest valid keyword and
+    every valid one, instead of Python's bare TypeError::
+
+        @strict_keywords
+        def read_scan(path, *, name=None): ...
+
+        read_scan("a.ply", nmae="x")
+        # InputError: read_scan() got an unknown keyword argument 'nmae' (did you mean 'name'?);
+        # its keywords are: path, name
+
+    A function taking ``**kwargs`` names what they accept with ``extra`` (a list, or a function
+    returning one, called at the first unknown keyword). Keywords starting with ``_`` are
+    accepted but not listed. The check costs one set lookup per keyword of a call."""
+
+    def decorate(f: Callable[_P, _R]) -> Callable[_P, _R]:
+        params = inspect.signature(f).parameters.values()
+        kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        own = [p.name for p in params if p.kind in kinds and p.name not in ("self", "cls")]
+        if extra is None and any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+            raise TypeError(f"{f.__qualname__} takes **kwargs: name them with extra=")
+        valid: set[str] = set(own)
+        loaded = extra is None or not callable(extra)
+        if extra is not None and not callable(extra):
+            own += [k for k in extra if k not in valid]
+            valid = set(own)
+
+        @functools.wraps(f)
+        def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+            nonlocal loaded, valid
+            if kwargs and not valid.issuperset(kwargs):
+                if not loaded:
+                    own.extend(k for k in extra() if k not in valid)  # type: ignore[misc, operator]
+                    valid, loaded = set(own), True
+                bad = [k for k in kwargs if k not in valid]
+                if bad:
+                    where = f.__qualname__.removesuffix(".__init__")  # a class: Level(...)
+                    raise InputError(unknown_keywords_message(where, bad, own))
+            return f(*args, **kwargs)
+
+        return wrapper
+
+    return decorate(func) if func is not None else decorate
+
+
+_C = TypeVar("_C", bound=type)
+
+
+def strict_methods(cls: _C) -> _C:
+    """Class decorator: :func:`strict_keywords` on the constructor and on every public method
+    defined in the class (names not starting with ``_``; properties, static and class methods are
+    left alone). Put it above ``@dataclass`` so that the generated ``__init__`` is checked too."""
+    for name, value in list(vars(cls).items()):
+        if inspect.isfunction(value) and (name == "__init__" or not name.startswith("_")):
+            setattr(cls, name, strict_keywords(value))
+    return cls
+
+
+def unknown_keywords_message(where: str, bad: Sequence[str], valid: Sequence[str]) -> str:
+    """One line naming the unknown keyword(s), the closest valid one and every valid one."""
+    shown = [k for k in valid if not k.startswith("_")]
+    hint = difflib.get_close_matches(bad[0], shown, n=1)
+    what = "argument" if len(bad) == 1 else "arguments"
+    return (
+        f"{where}() got an unknown keyword {what} {', '.join(repr(b) for b in bad)}"
+        + (f" (did you mean {hint[0]!r}?)" if hint else "")
+        + f"; its keywords are: {', '.join(shown) or 'none'}"
+    )

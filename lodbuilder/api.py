@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from ._validate import strict_keywords
 from .archive.reader import Archive, open_archive
 from .errors import InputError
 from .progress import ProgressCallback, report
@@ -35,8 +36,15 @@ def _provenance(source: Path | None, reader: str) -> dict[str, Any]:
     }
 
 
-def load_scan(scan_or_path: Any, name: str | None = None, progress: ProgressCallback = None):
-    """``(scan, source_path_or_None)`` from a path (read by suffix) or a Scan."""
+def load_scan(
+    scan_or_path: Any,
+    name: str | None = None,
+    progress: ProgressCallback = None,
+    crs: str | None = None,
+    crs_override: bool = False,
+):
+    """``(scan, source_path_or_None)`` from a path (read by suffix) or a Scan; ``crs`` assigns a
+    CRS (see :func:`lodbuilder.io.crs.assign_crs`)."""
     from .archive.layout import check_name
     from .io import Scan, read_scan
 
@@ -44,10 +52,14 @@ def load_scan(scan_or_path: Any, name: str | None = None, progress: ProgressCall
         scan = scan_or_path
         if name is not None:
             scan.name = name
+        if crs is not None:
+            from .io.crs import assign_crs
+
+            assign_crs(scan.metadata, crs, override=crs_override, what=f"scan {scan.name!r}")
         source = Path(scan.source) if scan.source and Path(scan.source).is_file() else None
     elif isinstance(scan_or_path, (str, os.PathLike)):
         report(progress, "read", 0, 1)
-        scan = read_scan(scan_or_path, name=name)
+        scan = read_scan(scan_or_path, name=name, crs=crs, crs_override=crs_override)
         source = Path(scan_or_path)
         report(progress, "read", 1, 1)
     else:
@@ -58,6 +70,15 @@ def load_scan(scan_or_path: Any, name: str | None = None, progress: ProgressCall
     return scan, source
 
 
+def _feature_keywords() -> list[str]:
+    import inspect
+
+    from .sampling.adaptive import feature_build
+
+    return [k for k in inspect.signature(feature_build).parameters if k != "scan"]
+
+
+@strict_keywords(extra=_feature_keywords)
 def build_record(
     scan_or_path: Any,
     *,
@@ -128,6 +149,8 @@ def build_archive(
     seeds: Any = None,
     overwrite: bool = False,
     progress: ProgressCallback = None,
+    crs: str | None = None,
+    crs_override: bool = False,
     **features: Any,
 ) -> Path:
     """Order one scan (a path or a :class:`lodbuilder.Scan`) and add it to ``archive``.
@@ -154,7 +177,7 @@ def build_archive(
             raise InputError(
                 f"input {src} and archive {archive} are the same file; choose another -o"
             )
-    loaded = load_scan(inputs, name, progress)
+    loaded = load_scan(inputs, name, progress, crs, crs_override)
     scan_name = loaded[0].name
     if archive.exists() and not overwrite:
         with open_archive(archive) as arc:

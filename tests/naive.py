@@ -59,6 +59,27 @@ def naive_band_voxels(points: np.ndarray, h: float, r: float, origin: np.ndarray
     return out
 
 
+def naive_farthest_insert(
+    candidates: np.ndarray, existing: np.ndarray, stop: float
+) -> tuple[list[int], list[float]]:
+    """Farthest point insertion of candidates among existing points, one candidate at a time,
+    recomputing every distance from scratch: (picked indices, insertion distances)."""
+    cand = np.asarray(candidates, dtype=np.float64)
+    picked: list[int] = []
+    radii: list[float] = []
+    while True:
+        have = np.concatenate([np.asarray(existing, dtype=np.float64).reshape(-1, 3), cand[picked]])
+        best, best_d = -1, -1.0
+        for i in range(cand.shape[0]):
+            d = float(np.sqrt(((have - cand[i]) ** 2).sum(axis=1)).min()) if have.size else np.inf
+            if d > best_d:
+                best, best_d = i, d
+        if best < 0 or not best_d > stop:
+            return picked, radii
+        picked.append(best)
+        radii.append(best_d)
+
+
 def naive_euclidean_fps_cost(points: np.ndarray, seeds: list[int], cost: np.ndarray):
     """Exact farthest point ordering where a pair's distance is scaled by the mean of the two
     points' costs (lodbuilder's weighted Euclidean metric), in O(N^2) NumPy; ties to the lowest index."""

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 import lodbuilder
+from lodbuilder.archive import levels as LV
 from lodbuilder.archive.demo_surface import demo_scan
 from lodbuilder.archive.levels import representatives
 from lodbuilder.archive.writer import ScanRecord, update_archive
@@ -198,3 +203,191 @@ def test_to_polydata(arc):
     assert poly.n_points == 200
     np.testing.assert_array_equal(np.asarray(poly.points, dtype=np.float64), lev.points)
     assert {"red", "nx", "radius", "rank", "source_index"} <= set(poly.point_data.keys())
+
+
+# --- the level arithmetic of lodbuilder.archive.levels against brute force -------------------
+
+
+def radius_arrays():
+    """Non-increasing radius arrays with seeds (inf), ties and zeros, as the builds store them."""
+    return st.tuples(
+        st.integers(1, 3),
+        st.lists(st.sampled_from([0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 7.0]), max_size=60),
+    ).map(lambda t: np.array([np.inf] * t[0] + sorted(t[1], reverse=True)))
+
+
+def rhos_for(radius):
+    finite = sorted({float(r) for r in radius if np.isfinite(r)})
+    mids = [(a + b) / 2 for a, b in zip(finite, finite[1:], strict=False)]
+    return [r for r in finite + mids + [1e-9, 0.1, 100.0] if r > 0]
+
+
+@settings(max_examples=200, deadline=None)
+@given(radius_arrays())
+def test_count_above_and_size_for_rho_brute_force(radius):
+    for rho in rhos_for(radius):
+        k = int(np.sum(radius > rho))  # brute force: every entry, not only a prefix
+        assert LV.count_above(radius, rho) == k
+        assert LV.size_for_rho(radius, rho) == max(1, k)
+        # the guarantee: the shortest prefix whose covering bound is <= rho
+        bounds = [
+            LV.covering_bound(j, len(radius), radius.__getitem__) for j in range(len(radius) + 1)
+        ]
+        assert k == min(j for j, b in enumerate(bounds) if b <= rho)
+
+
+@settings(max_examples=200, deadline=None)
+@given(radius_arrays(), st.integers(1, 70))
+def test_prefix_for_rho_reads_one_block(radius, step):
+    index = radius[::step]
+    reads = []
+
+    def read_block(lo, hi):
+        reads.append((lo, hi))
+        return radius[lo:hi]
+
+    for rho in rhos_for(radius):
+        reads.clear()
+        assert LV.prefix_for_rho(index, step, read_block, len(radius), rho) == np.sum(radius > rho)
+        assert len(reads) <= 1 and all(hi - lo <= step for lo, hi in reads)
+
+
+def decimal_fractions():
+    return (
+        st.tuples(st.integers(1, 10**6), st.integers(0, 6))
+        .map(lambda t: f"{t[0]}e-{t[1] + 6}" if t[0] else "1")
+        .filter(lambda s: 0 < float(s) <= 1)
+    )
+
+
+@settings(max_examples=300, deadline=None)
+@given(decimal_fractions(), st.integers(1, 10**7))
+def test_size_for_fraction_rounds_the_decimal_half_up(text, n):
+    exact = Fraction(text) * n  # the decimal the user typed, times n, exactly
+    want = min(n, max(1, int(exact + Fraction(1, 2)) if exact >= 0 else 0))
+    got = LV.size_for_fraction(float(text), n)
+    assert got == want
+    if 1 < got < n:
+        assert abs(got - exact) <= Fraction(1, 2)
+        if abs(got - exact) == Fraction(1, 2):
+            assert got > exact  # a tie goes up
+
+
+@pytest.mark.parametrize(
+    "fraction,n,size",
+    [
+        (0.5, 1889, 945),
+        (0.35, 10, 4),
+        (0.25, 10, 3),
+        (0.15, 10, 2),
+        (0.001, 1889, 2),
+        (0.0002, 1889, 1),
+        (1.0, 1889, 1889),
+        (1 / 3, 3, 1),
+        (0.1, 3000, 300),
+    ],
+)
+def test_size_for_fraction_examples(fraction, n, size):
+    assert LV.size_for_fraction(fraction, n) == size
+
+
+def test_round_size():
+    assert [LV.round_size(x, 10) for x in (0, 0.49, 0.5, 1.5, 2.5, 9.5, 10.4, 1e9)] == [
+        1,
+        1,
+        1,
+        2,
+        3,
+        10,
+        10,
+        10,
+    ]
+
+
+def test_resolve_size_checks_and_dispatches():
+    radius = np.array([np.inf, 4.0, 3.0, 3.0, 1.0])
+    rho_size = lambda r: LV.size_for_rho(radius, r)  # noqa: E731
+    assert LV.resolve_size(5, rho=3.0, rho_size=rho_size) == 2
+    assert LV.resolve_size(5, size=4, rho_size=rho_size) == 4
+    assert LV.resolve_size(5, fraction=0.5, rho_size=rho_size) == 3
+    for kw, msg in [
+        ({}, "give exactly one"),
+        ({"rho": 1, "size": 2}, "give exactly one"),
+        ({"rho": -1}, "rho must be a finite number > 0"),
+        ({"size": 6}, r"between 1 and the number of points \(5\), got 6"),
+        ({"fraction": 0}, r"fraction must be a number in \(0, 1\]"),
+    ]:
+        with pytest.raises(InputError, match=msg):
+            LV.resolve_size(5, rho_size=rho_size, **kw)
+
+
+def test_covering_bound_is_a_covering_radius(arc):
+    """Brute force: the Euclidean distance from every input point to the prefix is <= the bound
+    (the band metric of the build bounds the Euclidean distance from above)."""
+    scan, ordg, v = arc
+    for k in [1, 2, 10, 300, 1500, 2999, 3000]:
+        bound = LV.covering_bound(k, v.n_ordered, ordg.radius.__getitem__)
+        lev = v.level(size=k)
+        assert lev.rho == bound
+        assert cover(scan.points, lev.points).max() <= bound + 1e-12
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 60))
+def test_box_positions_brute_force(seed, k_out):
+    rng = np.random.default_rng(seed)
+    pts = rng.random((80, 3))
+    box = np.sort(rng.random((2, 3)), axis=0)
+    r = float(rng.random() * 0.2)
+    k_out = min(k_out, 80)
+    want = [
+        i
+        for i in range(80)
+        if i < k_out or all(box[0][a] - r <= pts[i][a] <= box[1][a] + r for a in range(3))
+    ]
+    assert LV.box_positions(pts, k_out, box, r).tolist() == want
+
+
+@pytest.mark.parametrize("slope,rho_max", [(0.0, None), (0.2, None), (0.5, 0.06), (2.0, 0.03)])
+def test_viewpoint_prefixes_brute_force(arc, slope, rho_max):
+    """The rule applied to every stored point keeps exactly what the prefix bounds predict: no
+    point past k_fine, every point before k_coarse; the bound is the largest rho(p)."""
+    scan, ordg, v = arc
+    vp = np.array([0.3, 0.2, 0.1])
+    rho0 = 0.01
+    every = LV.viewpoint_keep(v.points(), v.radius, vp, rho0, slope, rho_max)
+    every[0] = True  # a level is never empty
+    k_coarse, k_fine = LV.viewpoint_sizes(v.size_for_rho, rho0, slope, rho_max)
+    assert not every[k_fine:].any() and every[:k_coarse].all()
+    pos = LV.viewpoint_positions(
+        v.points(k_fine), v.radius[:k_fine], vp, rho0, slope, rho_max, k_coarse
+    )
+    np.testing.assert_array_equal(pos, np.flatnonzero(every))
+    np.testing.assert_array_equal(v.refine_viewpoint(vp, rho0, slope, rho_max).rank, pos)
+    rho_p = rho0 + slope * np.linalg.norm(scan.points - vp, axis=1)
+    if rho_max is not None:
+        rho_p = np.minimum(rho_p, rho_max)
+    assert rho_p.max() <= LV.viewpoint_bound(v.bounds, vp, rho0, slope, rho_max) + 1e-12
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(0.0, 5000.0), st.integers(1, 10**6), st.integers(1, 50))
+def test_log_sizes(lo, n, count):
+    sizes = LV.log_sizes(lo, n, count)
+    assert sizes == sorted(set(sizes)) and sizes[-1] == n and 1 <= sizes[0]
+    assert len(sizes) <= count + 1
+    assert sizes[0] == LV.round_size(max(1.0, lo), n)
+    geo = np.geomspace(max(1.0, lo), n, count)
+    assert set(sizes) == {LV.round_size(float(v), n) for v in geo} | {n}
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(0.0, 1e7, allow_nan=False), st.integers(1, 10**7))
+def test_round_size_against_decimal_half_up(x, n):
+    """An independent oracle: the decimal module's ROUND_HALF_UP on the shortest decimal."""
+    from decimal import ROUND_HALF_UP, Decimal, localcontext
+
+    with localcontext() as ctx:
+        ctx.prec = 60
+        want = int(Decimal(repr(x)).quantize(Decimal(1), rounding=ROUND_HALF_UP))
+    assert LV.round_size(x, n) == min(n, max(1, want))

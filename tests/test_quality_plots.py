@@ -47,3 +47,26 @@ def test_quality_import_is_light():
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_plot_axes_name_the_unit(tmp_path, rng, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from lodbuilder import euclidean_fps
+    from lodbuilder.quality.plots import plot_quality
+
+    figures = []
+    close = plt.close
+    monkeypatch.setattr(plt, "close", lambda fig: (figures.append(fig), close(fig)))
+    pts = rng.random((300, 3))
+    o = euclidean_fps(pts)
+    reps = evaluate_prefixes(pts, o.order, o.radius, sizes=[10, 100])
+    plot_quality(reps, tmp_path / "m.png", radius=o.radius, units="metre")
+    plot_quality(reps, tmp_path / "u.png", radius=o.radius)
+    labels = [[(ax.get_xlabel(), ax.get_ylabel()) for ax in fig.axes] for fig in figures]
+    assert labels[0] == [
+        ("level size (points)", "distance (metre)"),
+        ("rank (position in the ordering, 1-based)", "insertion radius (metre)"),
+    ]
+    assert labels[1][0][1] == "distance (scan units)"
+    assert labels[1][1][1] == "insertion radius (scan units)"

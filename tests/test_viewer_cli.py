@@ -221,3 +221,85 @@ def test_view_up_axis_turns_the_camera(bunny_archive, tmp_path):
     assert ups["z"][2] > 0.5
     with pytest.raises(InputError, match=r"up must be one of x, y, z, -x, -y, -z, got 'w'"):
         LevelViewer(data, size=400, off_screen=True, up="w")
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["--window-size", "0", "0"],
+            "--window-size must be two whole numbers of pixels between 32 and 8192 "
+            "(WIDTH HEIGHT), got 0 0",
+        ),
+        (
+            ["--window-size", "800", "-5"],
+            "--window-size must be two whole numbers of pixels between 32 and 8192 "
+            "(WIDTH HEIGHT), got 800 -5",
+        ),
+        (
+            ["--window-size", "100000", "100000"],
+            "--window-size must be two whole numbers of pixels between 32 and 8192 "
+            "(WIDTH HEIGHT), got 100000 100000",
+        ),
+        (["--point-scale", "-1"], "--point-scale must be a finite number > 0, got -1.0"),
+        (["--point-scale", "0"], "--point-scale must be a finite number > 0, got 0.0"),
+        (["--point-scale", "nan"], "--point-scale must be a finite number > 0, got nan"),
+    ],
+)
+def test_view_bounds_window_size_and_point_scale(bunny_archive, tmp_path, args, message):
+    """Finding 9: 100000x100000 aborted in VTK (std::bad_alloc), 0 0 rendered 300x300, a negative
+    point scale was accepted. Each is refused before anything is rendered or written. A
+    subprocess, so that a regression that reaches VTK's abort fails this test, not the run."""
+    out = tmp_path / "x.png"
+    r = subprocess.run(
+        [sys.executable, "-m", "lodbuilder.cli.main", "view", str(bunny_archive)]
+        + ["--scan", "res4", "--screenshot", str(out)] + args,
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2, r.stderr
+    assert r.stderr == f"lodbuilder view: error: {message}\n"
+    assert not out.exists()
+
+
+def test_viewer_bounds_window_size_and_point_scale_in_the_library():
+    from lodbuilder.viewer.data import from_arrays
+    from lodbuilder.viewer.options import check_window_size
+
+    assert check_window_size((32, 8192)) == (32, 8192)
+    with pytest.raises(InputError, match=r"^window_size must be two whole numbers of pixels "
+                       r"between 32 and 8192 \(WIDTH HEIGHT\), got 9000 10$"):
+        check_window_size((9000, 10), "window_size")
+    with pytest.raises(InputError, match=r"got 1.5 100$"):
+        check_window_size((1.5, 100), "window_size")
+    with pytest.raises(InputError, match=r"got \(100,\)$"):
+        check_window_size((100,), "window_size")
+    from lodbuilder.viewer.app import LevelViewer
+
+    data = from_arrays(np.eye(3), [np.inf, 1.0, 0.5], [-1, 0, 0])
+    with pytest.raises(InputError, match=r"^point_scale must be a finite number > 0, got -1$"):
+        LevelViewer(data, off_screen=True, point_scale=-1)
+
+
+@pytest.mark.viewer
+def test_view_names_the_crs_and_units(shared_data, tmp_path):
+    """A scan with a CRS (autzen_trim.laz: NAD83(HARN) Lambert, feet): the viewer's corner, the
+    window title and the radius scale name it and its unit."""
+    pytest.importorskip("pyproj")
+    import lodbuilder
+    from lodbuilder.viewer.app import LevelViewer
+    from lodbuilder.viewer.source import load_view_data
+
+    arc = tmp_path / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", arc, name="autzen")
+    data = load_view_data(arc)
+    assert data.units == "foot" and data.crs.startswith("PROJCS[")
+    viewer = LevelViewer(data, size=2000, colour="radius", off_screen=True,
+                         window_size=(400, 200))
+    try:
+        label = "CRS NAD_1983_HARN_Lambert_Conformal_Conic, coordinates in foot"
+        assert viewer.crs_label == label
+        assert viewer._crs_text.GetText(1) == label  # the lower-right corner of the level pane
+        assert " ".join(viewer.scalar_bar.GetTitle().split()) == "insertion radius (foot, log)"
+    finally:
+        viewer.close()

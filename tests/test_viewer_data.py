@@ -1,4 +1,5 @@
-"""The viewer's array side (no rendering): levels, representatives, merging, colours, imports."""
+"""The viewer's array side (no rendering): levels, Voronoi cells, merging, colours, legends,
+imports."""
 
 from __future__ import annotations
 
@@ -31,14 +32,10 @@ def ordered(rng, n=600, name="scan", rgb=False):
     )
 
 
-def naive_representatives(parent: np.ndarray, k: int) -> np.ndarray:
-    rep = np.arange(parent.size)
-    for i in range(parent.size):
-        j = i
-        while j >= k and parent[j] >= 0:
-            j = parent[j]
-        rep[i] = j if j < k else -1
-    return rep
+def naive_cells(points: np.ndarray, shown: np.ndarray) -> np.ndarray:
+    """Stored position of the nearest shown point of every point, by brute force."""
+    d = np.linalg.norm(points[:, None, :] - points[shown][None, :, :], axis=2)
+    return shown[np.argmin(d, axis=1)]
 
 
 def test_levels_by_size_and_rho(rng):
@@ -55,12 +52,30 @@ def test_levels_by_size_and_rho(rng):
 
 
 @pytest.mark.parametrize("k", [1, 2, 17, 300, 600])
-def test_representatives_follow_parents(rng, k):
+def test_cells_are_the_voronoi_cells_of_the_level(rng, k):
     d = ordered(rng)
-    rep = d.representatives(k)
-    np.testing.assert_array_equal(rep, naive_representatives(d.parent, k))
-    assert np.all(rep < k) and np.all(rep >= 0)  # one seed: every chain reaches the level
-    np.testing.assert_array_equal(rep[:k], np.arange(k))
+    cells = d.cells(k)
+    np.testing.assert_array_equal(cells, naive_cells(d.points, np.arange(k)))
+    np.testing.assert_array_equal(cells[:k], np.arange(k))  # a shown point is its own cell
+    assert d.cells(k) is cells  # cached for the level shown
+
+
+def test_cells_follow_the_level_up_and_down(rng):
+    """The cells are updated from the previous level (points of a removed cell assigned again,
+    points nearer a new point moved): the same as from scratch at every step."""
+    d = ordered(rng, n=800)
+    box = d.selective(60, [0.0, 0.0, -1.0], [0.5, 0.5, 1.0], 4.0)
+    for shown in (5, 40, 41, 300, 120, 7, 799, 800, 1, box, 60, box, 500):
+        pos = np.arange(shown) if np.isscalar(shown) else shown
+        np.testing.assert_array_equal(d.cells(shown), naive_cells(d.points, pos))
+
+
+def test_cells_of_a_level_refined_in_a_box(rng):
+    d = ordered(rng)
+    pos = d.selective(40, [0.0, 0.0, -1.0], [0.4, 0.4, 1.0], 4.0)
+    assert pos.size > 40
+    np.testing.assert_array_equal(d.cells(pos), naive_cells(d.points, pos))
+    np.testing.assert_array_equal(d.colours("voronoi", pos), categorical(naive_cells(d.points, pos)))
 
 
 def test_selective_refinement_is_finer_inside_the_box(rng):
@@ -107,9 +122,9 @@ def test_colour_modes(rng):
         assert c.shape == (len(d), 3) and c.dtype == np.uint8
     np.testing.assert_array_equal(d.colours("rgb", 1)[:, 0], d.attributes["red"])
     vor = d.colours("voronoi", 40)
-    rep = d.representatives(40)
+    cells = naive_cells(d.points, np.arange(40))
     assert len({tuple(x) for x in vor}) > 30  # distinct cells get distinct colours
-    np.testing.assert_array_equal(vor, vor[rep])  # a point has its representative's colour
+    np.testing.assert_array_equal(vor, vor[cells])  # a point has its cell's colour
     with pytest.raises(
         InputError, match="colour mode 'scan' is not available here; choose one of rgb"
     ):
@@ -117,6 +132,40 @@ def test_colour_modes(rng):
     plain = ordered(rng)
     with pytest.raises(InputError, match="colour mode 'rgb' is not available"):
         plain.check_mode("rgb")
+
+
+def test_legends_name_the_unit_and_match_the_colours(rng):
+    d = ordered(rng)
+    d.units = "metre"
+    radius = d.legend("radius")
+    assert radius.title == "insertion radius (metre, log)" and radius.log
+    finite = d.radius[np.isfinite(d.radius)]
+    assert radius.lo == pytest.approx(np.percentile(finite, 1)) and radius.hi == finite.max()
+    rank = d.legend("rank")
+    assert (rank.title, rank.lo, rank.hi, rank.log) == ("rank (1 = first point, log)", 1, 600, True)
+    imp = d.legend("importance")
+    assert imp.title == "importance z (as stored)" and not imp.log
+    assert d.legend("voronoi") is None
+    d.importance["curvature"] = d.importance["z"]
+    assert d.legend("importance:curvature").title.endswith("(lambda0 / sum lambda, no unit)")
+    # the colours are the colour map of the legend's normalised values
+    np.testing.assert_array_equal(d.colours("rank", 1)[[0, 599]], colormap(np.array([0.0, 1.0])))
+    np.testing.assert_array_equal(
+        d.colours("radius", 1), colormap(radius.normalise(np.where(np.isinf(d.radius), finite.max(), d.radius)))
+    )
+    plain = ordered(rng)
+    assert plain.legend("radius").title == "insertion radius (scan units, log)"
+
+
+def test_merge_keeps_a_common_crs(rng):
+    a, b = ordered(rng, 50, "a"), ordered(rng, 40, "b")
+    a.crs = b.crs = 'PROJCS["x"]'
+    a.units = b.units = "foot"
+    m = ViewData.merge([a, b])
+    assert (m.crs, m.units) == ('PROJCS["x"]', "foot")
+    b.crs, b.units = None, None
+    m = ViewData.merge([a, b])
+    assert (m.crs, m.units) == (None, None)
 
 
 def test_colour_helpers():

@@ -110,6 +110,8 @@ def test_box_refines_inside(viewer, bunny_view):
 
 
 def test_voronoi_mode_colours_full_scan_by_cell(viewer, bunny_view):
+    from lodbuilder.viewer.data import categorical
+
     viewer.set_colour("voronoi")
     viewer.set_level(8)
     img8 = viewer.image()
@@ -117,27 +119,89 @@ def test_voronoi_mode_colours_full_scan_by_cell(viewer, bunny_view):
     img200 = viewer.image()
     # the full-scan panel shows the cells of the current level, so it changes with the level
     assert np.abs(img8[:, 200:].astype(int) - img200[:, 200:]).mean() > 1.0
+    # every point has the colour of its nearest point of the level (brute force)
+    pts = bunny_view.points
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :200, :], axis=2)
     full = np.asarray(viewer.full_mesh.point_data["colours"])
-    assert len({tuple(c) for c in full}) <= 200
+    np.testing.assert_array_equal(full, categorical(np.argmin(d, axis=1)))
+    np.testing.assert_array_equal(
+        np.asarray(viewer.level_mesh.point_data["colours"]), categorical(np.arange(200))
+    )
+    # in a box, the cells are those of the points shown
+    lo, hi = pts.min(axis=0), (pts.min(axis=0) + pts.max(axis=0)) / 2
+    viewer.set_box(lo, hi)
+    shown = bunny_view.selective(200, lo, hi, viewer.refine_factor)
+    d = np.linalg.norm(pts[:, None, :] - pts[None, shown, :], axis=2)
+    full = np.asarray(viewer.full_mesh.point_data["colours"])
+    np.testing.assert_array_equal(full, categorical(shown[np.argmin(d, axis=1)]))
 
 
-def test_eye_dome_lighting_and_surface(viewer):
+def foreground(img: np.ndarray) -> np.ndarray:
+    px = img.reshape(-1, 3).astype(float)
+    return px[np.any(px < 245, axis=1)]
+
+
+def test_shading_keeps_colours_on_both_panes(viewer):
+    """Lighting by normals replaced eye-dome lighting, which took RGB to 40 % of its brightness
+    and blanked the pane rendered before its own."""
+    viewer.set_colour("rank")
     viewer.set_level(1500)
-    plain = viewer.image().astype(int)
-    assert viewer.toggle_edl() is True
-    edl = viewer.image().astype(int)
-    assert np.abs(edl - plain)[:, :200].mean() > 0.5
-    # both panels still show points (EDL in one subplot must not blank the other)
-    assert non_background(edl[40:, :200]) > 500 and non_background(edl[40:, 200:]) > 500
-    viewer.set_level(1400)  # a level change under EDL keeps the full-scan panel
-    edl2 = viewer.image()
-    assert non_background(edl2[40:, :200]) > 500 and non_background(edl2[40:, 200:]) > 500
-    viewer.toggle_edl()
+    plain = viewer.image()
+    assert viewer.toggle_shading() is True
+    shaded = viewer.image()
+    for half in (slice(0, 200), slice(200, 400)):
+        p, s = foreground(plain[40:, half]), foreground(shaded[40:, half])
+        assert s.shape[0] > 0.8 * p.shape[0] > 400  # both panes still show their points
+        assert s.mean() > 0.75 * p.mean()  # colours kept, not darkened
+        assert np.abs(shaded[40:, half].astype(int) - plain[40:, half]).mean() > 0.5  # shaded
+    viewer.set_level(1400)  # a level change keeps the shading (normals follow the level)
+    assert viewer.level_mesh.GetPointData().GetNormals().GetNumberOfTuples() == 1400
+    assert foreground(viewer.image()[40:, :200]).shape[0] > 400
+    assert viewer.toggle_shading() is False
+    viewer.set_level(1500)
+    np.testing.assert_array_equal(viewer.image(), plain)  # off: exactly the plain picture
+
+
+def test_scalar_bar_names_the_quantity_and_unit(bunny_view):
+    from lodbuilder.viewer.app import LevelViewer
+
+    bunny_view.units = "metre"
+    try:
+        vw = LevelViewer(bunny_view, off_screen=True, size=300, colour="radius", window_size=(400, 200))
+    finally:
+        bunny_view.units = None
+    try:
+        bar = vw.scalar_bar
+
+        def title():
+            return " ".join(bar.GetTitle().split())  # (wrapped on several lines)
+
+        assert bar.GetVisibility() and title() == "insertion radius (metre, log)"
+        lut, legend = bar.GetLookupTable(), bunny_view.legend("radius")
+        assert lut.GetRange() == pytest.approx((legend.lo, legend.hi)) and lut.GetScale() == 1
+        with_bar = vw.image()
+        vw.set_colour("rank")
+        assert title() == "rank (1 = first point, log)"
+        vw.set_colour("importance")
+        assert title() == "importance height (as stored)"
+        assert bar.GetLookupTable().GetScale() == 0  # linear
+        vw.set_colour("voronoi")
+        assert not bar.GetVisibility()
+        without = vw.image()
+        # the bar is drawn at the right edge of the window
+        right = slice(int(0.84 * 400), 400)
+        assert foreground(with_bar[:, right]).shape[0] > foreground(without[:, right]).shape[0] + 200
+        assert vw.crs_label == "CRS unknown, coordinates in metre"
+    finally:
+        vw.close()
+
+
+def test_surface_preview_stays_near_the_points(viewer, bunny_view):
+    viewer.set_level(1500)
     surf = viewer.reconstruct()
     assert surf.n_cells > 100
     assert viewer.toggle_surface() is True
-    shown = viewer.image().astype(int)
-    assert np.abs(shown - plain)[:, :200].mean() > 1.0
+    assert viewer._surface_actor is not None and not viewer.level_actor.GetVisibility()
     viewer.set_level(100)  # a level change drops the stale surface
     assert viewer._surface_actor is None and viewer.level_actor.GetVisibility()
 
@@ -189,7 +253,7 @@ def test_controls_drive_the_viewer(viewer, bunny_view):
     press("c")
     assert viewer.mode != mode
     press("l")
-    assert viewer.edl is True
+    assert viewer.shade is True
     press("Right")
     assert viewer.k == 642 and viewer.n_displayed == 642
     assert slider.GetRepresentation().GetValue() == pytest.approx(math.log10(642))

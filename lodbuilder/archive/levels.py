@@ -18,19 +18,31 @@ leading points with ``radius > rho``):
   ``radius[q] > rho(p)``; since ``rho`` is ``slope``-Lipschitz, ``rho(q) <= (1 + slope) rho(p)``, so
   ``q`` passes the test.)
 * **Representative** of a point at level ``k``: follow parents to the first ancestor of rank < k.
+
+Every rho/size/fraction/box/viewpoint-to-prefix computation of the package is a function of this
+module (the archive reader, ``slice``, ``view``, ``info``, ``evaluate``, the collection queries,
+the density-floor query and :class:`~lodbuilder.sampling.ordering.Ordering` call them), so that a
+level asked the same way has the same size everywhere. The one rounding rule: a fraction ``f`` of
+``n`` points is ``f * n`` rounded to the nearest whole number, halves up, clamped to ``[1, n]``
+(:func:`size_for_fraction`). Each function states its guarantee with its proof; ``tests/
+test_levels.py`` checks each against brute force.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive
+from .._validate import check_fraction, check_positive, check_size, strict_methods
 from ..errors import InputError
 
 
+@strict_methods
 @dataclass
 class Level:
     """One level of detail of a scan.
@@ -47,6 +59,9 @@ class Level:
         scan: the scan's name.
         ordering: the ordering it is a prefix of (``None`` for the default uniform ordering).
         region: parameters of a selective refinement, if any.
+        crs: the scan's coordinate reference system as WKT text (None when unknown); writing the
+            level with :func:`lodbuilder.io.write_points` keeps it.
+        units: linear unit name of the CRS (``"metre"``, ``"US survey foot"``...), None when unknown.
     """
 
     points: np.ndarray
@@ -59,20 +74,17 @@ class Level:
     scan: str = ""
     ordering: str | None = None
     region: dict[str, Any] = field(default_factory=dict)
+    crs: str | None = None
+    units: str | None = None
 
     def __len__(self) -> int:
         return self.size
 
     def to_polydata(self) -> Any:
         """A ``pyvista.PolyData`` of the level with its attributes as point data."""
-        try:
-            import pyvista as pv
-        except ImportError:
-            from ..errors import MissingDependencyError
+        from .._optional import require
 
-            raise MissingDependencyError(
-                "Level.to_polydata needs pyvista: pip install 'lodbuilder[viz]'"
-            ) from None
+        pv = require("pyvista", "Level.to_polydata")
         poly = pv.PolyData(np.ascontiguousarray(self.points))
         for key, arr in self.attributes.items():
             poly.point_data[key] = np.ascontiguousarray(arr)
@@ -82,19 +94,116 @@ class Level:
         return poly
 
 
-def prefix_for_rho(
-    radius_index: np.ndarray, step: int, read_block, n_ordered: int, rho: float
-) -> int:
-    """Number of leading points with radius > rho, reading one block of the radius array.
+# -- level sizes ------------------------------------------------------------------------------
 
-    ``radius_index`` is ``radius[::step]``; ``read_block(lo, hi)`` returns ``radius[lo:hi]``."""
-    j = int(np.searchsorted(-radius_index, -rho, side="left"))  # entries of the index > rho
+
+def count_above(radius: np.ndarray, rho: float) -> int:
+    """``k(rho)``: the number of leading entries of the non-increasing ``radius`` that are > rho.
+
+    Proof: ``radius`` is non-increasing, so ``{i : radius[i] > rho}`` is a prefix ``[0, k)``;
+    ``-radius`` is non-decreasing and ``searchsorted(-radius, -rho, side="left")`` is the first
+    ``i`` with ``-radius[i] >= -rho``, i.e. with ``radius[i] <= rho``: that is ``k``. Then
+    ``radius[k] <= rho`` (or ``k = n``): the prefix of length ``k`` covers within rho, and no
+    shorter prefix does, since its covering bound ``radius[k - 1]`` is > rho."""
+    return int(np.searchsorted(-np.asarray(radius), -rho, side="left"))
+
+
+def prefix_for_rho(
+    radius_index: np.ndarray,
+    step: int,
+    read_block: Callable[[int, int], np.ndarray],
+    n_ordered: int,
+    rho: float,
+) -> int:
+    """:func:`count_above` of the archive's radius array, reading one block of it.
+
+    ``radius_index`` is ``radius[::step]``; ``read_block(lo, hi)`` returns ``radius[lo:hi]``.
+    Proof: ``j = count_above(radius_index, rho)`` entries of the index are > rho, so
+    ``radius[(j - 1) * step] > rho`` and (when ``j * step < n``) ``radius[j * step] <= rho``; the
+    answer therefore lies in ``[(j - 1) * step, min(j * step, n)]`` and is ``lo`` plus the count
+    inside that block (0 when ``j == 0``: even ``radius[0]`` is <= rho)."""
+    j = count_above(radius_index, rho)
     if j == 0:
         return 0
     lo = (j - 1) * step
     hi = min(j * step, n_ordered)
-    block = read_block(lo, hi)
-    return lo + int(np.searchsorted(-block, -rho, side="left"))
+    return lo + count_above(read_block(lo, hi), rho)
+
+
+def nonempty(k: int) -> int:
+    """A level holds at least one point: ``max(1, k)`` (a rho above every radius gives the
+    first point, whose radius is inf for a seed)."""
+    return max(1, int(k))
+
+
+def size_for_rho(radius: np.ndarray, rho: float) -> int:
+    """Size of the level by rho: the shortest non-empty prefix whose covering bound is <= rho,
+    ``nonempty(count_above(radius, rho))`` (see :func:`count_above` for the proof)."""
+    return nonempty(count_above(radius, rho))
+
+
+def _round_half_up(x: Fraction) -> int:
+    return math.floor(x + Fraction(1, 2))
+
+
+def round_size(count: float, n: int) -> int:
+    """A real point count made a level size: rounded to the nearest whole number, halves up,
+    and clamped to ``[1, n]`` (the viewer's slider).
+
+    The rounding is exact on the shortest decimal that reads back as ``count`` (``repr``), so
+    ``944.5`` gives 945 (Python's ``round`` would give 944)."""
+    return min(int(n), max(1, _round_half_up(Fraction(repr(float(count))))))
+
+
+def size_for_fraction(fraction: float, n: int) -> int:
+    """Size of the level holding ``fraction`` of ``n`` points: ``fraction * n`` rounded to the
+    nearest whole number, halves up, clamped to ``[1, n]``.
+
+    Guarantee: ``|size - fraction * n| <= 1/2`` unless clamped, and equal distances go up, where
+    ``fraction`` is the shortest decimal that reads back as the given float (``0.35`` of 10 points
+    is 4 although the binary 0.35 is a little below 0.35). Proof: ``Fraction(repr(f))`` is that
+    decimal exactly and the product with ``n`` is exact in rational arithmetic; ``floor(x + 1/2)``
+    is the integer nearest ``x``, halves going up; the clamp only acts when it is 0 (f < 1/(2n))."""
+    return min(int(n), max(1, _round_half_up(Fraction(repr(float(fraction))) * int(n))))
+
+
+def log_sizes(lo: float, n: int, count: int) -> list[int]:
+    """Distinct level sizes for a coarse-to-fine series (evaluate's default levels, the viewer's
+    animation): ``count`` values log-spaced from ``lo`` to ``n``, each a :func:`round_size`,
+    increasing, the last one ``n``."""
+    values = np.geomspace(max(1.0, float(lo)), float(n), max(1, int(count)))
+    return sorted({round_size(float(v), n) for v in values} | {int(n)})
+
+
+def covering_bound(k: int, n: int, radius_at: Callable[[int], Any]) -> float:
+    """Covering bound of the prefix of length ``k`` of an ordering of ``n`` points:
+    ``radius[k]`` (``radius_at(k)``; read only when ``k < n``), 0 for the whole ordering.
+
+    Proof: ``radius[k]`` is the distance, when point ``k`` was inserted, from the farthest input
+    point to the first ``k`` points (farthest point order inserts the farthest point next);
+    distances to a fixed prefix do not change afterwards. The whole ordering holds every point."""
+    return 0.0 if k >= n else float(radius_at(k))
+
+
+def resolve_size(
+    n: int,
+    rho: Any = None,
+    size: Any = None,
+    fraction: Any = None,
+    *,
+    rho_size: Callable[[float], int],
+) -> int:
+    """The size of the level asked by exactly one of ``rho``, ``size`` or ``fraction`` in an
+    ordering of ``n`` points; ``rho_size(rho)`` is the ordering's :func:`size_for_rho` (an
+    archive reads it from its radius index). Checks each value and raises InputError."""
+    given = [x is not None for x in (rho, size, fraction)]
+    if sum(given) != 1:
+        raise InputError("give exactly one of rho, size or fraction")
+    if rho is not None:
+        return rho_size(check_positive(rho, "rho", allow_none=False))  # type: ignore[arg-type]
+    if size is not None:
+        return check_size(size, n)
+    return size_for_fraction(check_fraction(fraction), n)
 
 
 def check_box(box: Any) -> np.ndarray:
@@ -113,8 +222,75 @@ def check_box(box: Any) -> np.ndarray:
 
 
 def in_box(points: np.ndarray, box: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """Mask of the points inside ``box`` grown by ``margin`` on every side (bounds included)."""
     lo, hi = box[0] - margin, box[1] + margin
     return np.all((points >= lo) & (points <= hi), axis=1)
+
+
+def box_positions(
+    fine_points: np.ndarray, k_out: int, box: np.ndarray, rho_inner: float
+) -> np.ndarray:
+    """Stored positions (sorted) of the box refinement: the coarse prefix ``0 .. k_out - 1`` and
+    every later position of ``fine_points`` (the points of the fine prefix ``k(rho_inner)``)
+    whose point lies in ``box`` grown by ``rho_inner``.
+
+    Guarantee (``k_out = k(rho_outer)``): every input point is within ``rho_outer`` of a kept
+    point, and every input point inside the box within ``rho_inner``. Proof: the coarse prefix
+    alone covers within ``rho_outer`` (:func:`count_above`). A point ``p`` inside the box is
+    within ``rho_inner`` of some point ``q`` of the fine prefix; if ``q`` is not in the coarse
+    prefix, ``|q - p| <= rho_inner`` puts ``q`` in the grown box, so ``q`` is kept."""
+    inside = in_box(fine_points[k_out:], box, rho_inner)
+    return np.concatenate([np.arange(k_out, dtype=np.int64), k_out + np.flatnonzero(inside)])
+
+
+def viewpoint_sizes(
+    rho_size: Callable[[float], int], rho0: float, slope: float, rho_max: float | None
+) -> tuple[int, int]:
+    """``(k_coarse, k_fine)`` of the viewpoint refinement, ``rho_size`` being the ordering's
+    :func:`size_for_rho`: every kept point lies in the fine prefix ``k(rho0 / (1 + slope))``, and
+    every point of the coarse prefix ``k(rho_max)`` (1 without ``rho_max``) is kept.
+
+    Proof: ``rho(x) >= rho0``, so a point with ``radius <= rho0 / (1 + slope)`` fails the rule
+    ``radius > rho(x) / (1 + slope)``; ``rho(x) <= rho_max``, so a point with
+    ``radius > rho_max >= rho(x) / (1 + slope)`` passes it."""
+    k_fine = rho_size(rho0 / (1.0 + slope))
+    k_coarse = rho_size(rho_max) if rho_max is not None else 1
+    return min(k_coarse, k_fine), k_fine
+
+
+def viewpoint_positions(
+    fine_points: np.ndarray,
+    fine_radius: np.ndarray,
+    viewpoint: np.ndarray,
+    rho0: float,
+    slope: float,
+    rho_max: float | None,
+    k_coarse: int,
+) -> np.ndarray:
+    """Stored positions (sorted) of the viewpoint refinement, from the fine prefix's points and
+    radii (:func:`viewpoint_sizes`): the coarse prefix and every point passing
+    :func:`viewpoint_keep`. The guarantee and its proof are in the module docstring."""
+    keep = viewpoint_keep(fine_points, fine_radius, viewpoint, rho0, slope, rho_max)
+    keep[:k_coarse] = True
+    return np.flatnonzero(keep).astype(np.int64)
+
+
+def viewpoint_bound(
+    bounds: tuple[np.ndarray, np.ndarray],
+    viewpoint: np.ndarray,
+    rho0: float,
+    slope: float,
+    rho_max: float | None,
+) -> float:
+    """The largest ``rho(x)`` over the scan's bounding box ``(lo, hi)``: a covering bound of the
+    whole viewpoint level (every input point ``p`` is covered within ``rho(p)``, and ``rho``
+    grows with the distance to ``viewpoint``, largest at a corner of the box)."""
+    lo, hi = bounds
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    far = float(np.sqrt(((corners - viewpoint) ** 2).sum(axis=1)).max())
+    return rho0 + slope * far if rho_max is None else min(rho_max, rho0 + slope * far)
 
 
 def viewpoint_keep(

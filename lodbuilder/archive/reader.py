@@ -6,98 +6,168 @@ This module and the ones it imports stay clear of numba, pyvista and dask, so th
 
 from __future__ import annotations
 
-import math
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .._validate import check_fraction, check_positive, check_size
+from .._validate import check_positive, check_size, strict_keywords, strict_methods
 from ..errors import (
     ArchiveError,
     CorruptArchiveError,
     InputError,
+    LodbuilderError,
     NotAnArchiveError,
     ScanFileError,
     ScanNotFoundError,
-    SchemaVersionError,
 )
+from . import checks, safety
 from . import layout as L
+from .index import Where, check_part, first_line, read_rows, root_attrs
+from .layout import IndexRow
 from .levels import (
     Level,
+    box_positions,
     cell_average,
     check_box,
     check_viewpoint,
-    in_box,
+    covering_bound,
+    nonempty,
     prefix_for_rho,
     representatives,
-    viewpoint_keep,
+    resolve_size,
+    size_for_rho,
+    viewpoint_bound,
+    viewpoint_positions,
+    viewpoint_sizes,
 )
 
 
-def check_archive_file(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Root attributes of the archive at ``path``; raise a one-line error if it is not one we can read."""
-    import h5py
-
-    path = Path(path)
-    if not path.exists():
-        raise ScanFileError(f"archive {path} does not exist; build one with 'lodbuilder build'")
-    if path.is_dir():
-        raise NotAnArchiveError(f"{path} is a directory, not an lodbuilder archive")
-    if not h5py.is_hdf5(path):
-        raise NotAnArchiveError(
-            f"{path} is not an lodbuilder archive (not an HDF5 file); build one with 'lodbuilder build'"
-        )
+@strict_keywords
+def check_archive_file(
+    path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Root attributes of the archive at ``path`` (a file or a URL); raise a one-line error if it
+    is not one we can read."""
+    where = Where.of(path, storage_options)
+    f, io = open_h5(where)
     try:
-        with h5py.File(path, "r") as f:
-            attrs = {k: L._attr_json(v) for k, v in f.attrs.items()}
-    except OSError as exc:
-        raise NotAnArchiveError(f"{path} cannot be opened as an HDF5 archive: {exc}") from None
-    return _check_root_attrs(path, attrs)
+        return _checked_root(f, where)
+    finally:
+        f.close()
+        if io is not None:
+            io.close()
 
 
-def _check_root_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
-    if attrs.get(L.A_FORMAT) != L.FORMAT:
-        raise NotAnArchiveError(
-            f"{path} is an HDF5 file but not an lodbuilder archive (no format='lodbuilder' attribute)"
-        )
-    version = attrs.get(L.A_SCHEMA_VERSION)
-    if not isinstance(version, int):
-        raise NotAnArchiveError(
-            f"{path} has no integer schema_version attribute; it is not a valid archive"
-        )
-    if version > L.SCHEMA_VERSION:
-        raise SchemaVersionError(
-            f"{path} uses archive schema version {version}, newer than the {L.SCHEMA_VERSION} this "
-            "lodbuilder reads; upgrade lodbuilder"
-        )
+def _checked_root(f: Any, where: Where) -> dict[str, Any]:
+    """Root attributes of the open archive file ``f``, after :func:`safety.check_file` has
+    walked its metadata: nothing in it points outside the file, and its sizes are ones the file
+    can hold. Called on every archive file (index or part) before anything else is read."""
+    with safety.h5_errors(where.display, "its root attributes"):
+        attrs = root_attrs(f, where)
+    safety.check_file(f, where.display)
     return attrs
 
 
+@strict_keywords
+def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
+    """Open the archive file at ``where`` read-only: ``(h5py.File, remote file or None)``.
+
+    This is the one place where lodbuilder opens an archive file (an index, a single-scan archive
+    or a part), local or remote. ``size`` is the file's size when the caller knows it (a part's
+    size is in its index), which saves a request for a remote file."""
+    import h5py
+
+    path = where.display
+    rf = None
+    if where.url is not None:
+        from .remote import open_remote
+
+        rf = open_remote(where.url, size=size, storage_options=where.options)
+        target: Any = rf
+    else:
+        local = where.local
+        assert local is not None
+        if not local.exists():
+            raise ScanFileError(
+                f"archive {local} does not exist; build one with 'lodbuilder build'"
+            )
+        if local.is_dir():
+            raise NotAnArchiveError(f"{local} is a directory, not an lodbuilder archive")
+        if not h5py.is_hdf5(local):
+            raise NotAnArchiveError(
+                f"{local} is not an lodbuilder archive (not an HDF5 file); build one with "
+                "'lodbuilder build'"
+            )
+        target = local
+    try:
+        # through safety.GuardedFile: global heaps are checked before HDF5 parses them
+        f = safety.open_h5(target, path)
+        if rf is not None:  # later misses fetch whole file-space pages (metadata is paged)
+            rf.set_block(max(rf.block, f.id.get_create_plist().get_file_space_page_size()))
+    except (OSError, RuntimeError, ValueError, KeyError) as exc:
+        if isinstance(exc, LodbuilderError):
+            raise
+        if rf is not None:
+            rf.close()
+            if not rf.looks_like_hdf5():
+                raise NotAnArchiveError(
+                    f"{path} is not an lodbuilder archive (not an HDF5 file)"
+                ) from None
+        raise NotAnArchiveError(
+            f"{path} cannot be opened as an HDF5 archive: {first_line(exc)}"
+        ) from None
+    return f, rf
+
+
+@safety.guarded(lambda self: self.path)
+@strict_methods
 class Archive:
-    """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``."""
+    """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``.
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        import h5py
+    ``path`` is a local file or an ``http(s)://`` / ``s3://`` URL (read through fsspec, which the
+    ``remote`` extra installs); ``storage_options`` go to fsspec (e.g. an S3 ``endpoint_url``)."""
 
-        self.path = Path(path)
-        self.attrs = check_archive_file(self.path)
+    def __init__(
+        self, path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
+    ) -> None:
+        self._where = Where.of(path, storage_options)
+        self.path: Any = self._where.display
+        self._parts: dict[str, tuple[Any, Any]] = {}
+        self._file, self._io = open_h5(self._where)
         try:
-            self._file = h5py.File(self.path, "r")
-        except OSError as exc:  # pragma: no cover - checked just above
-            raise ArchiveError(f"cannot open archive {self.path}: {exc}") from None
+            self.attrs = _checked_root(self._file, self._where)
+            self._rows = {r.name: r for r in read_rows(self._file, self.path)}
+        except BaseException:
+            self.close()
+            raise
         self.schema_version = int(self.attrs[L.A_SCHEMA_VERSION])
         self.lodbuilder_version = str(self.attrs.get(L.A_VERSION, ""))
 
     @property
     def file(self) -> Any:
+        """The h5py file of the archive itself (its index; scans may be in part files)."""
         return self._file
+
+    @property
+    def rows(self) -> list[IndexRow]:
+        """One :class:`IndexRow` per scan (name, size, bounds, part file), sorted by name."""
+        return [self._rows[n] for n in self.scans]
 
     @property
     def scans(self) -> list[str]:
         """Scan names, sorted."""
-        return sorted(self._file[L.G_SCANS]) if L.G_SCANS in self._file else []
+        return sorted(self._rows)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the archive: its file plus the part files it lists."""
+        if self._io is not None:
+            total = int(self._io.size)
+        else:
+            assert self._where.local is not None
+            total = self._where.local.stat().st_size
+        return total + sum({r.part: r.part_bytes for r in self._rows.values() if r.part}.values())
 
     def scan(self, name: str | None = None) -> ScanView:
         """The scan called ``name``; ``None`` is allowed when the archive holds exactly one scan."""
@@ -112,26 +182,96 @@ class Archive:
                     f"archive {self.path} holds {len(names)} scans; choose one with --scan "
                     f"(one of {', '.join(names[:10])}{', ...' if len(names) > 10 else ''})"
                 )
-        if name not in names:
+        if name not in self._rows:
             raise ScanNotFoundError(
                 f"archive {self.path} has no scan {name!r}; it holds {', '.join(names[:10]) or 'none'}"
             )
-        return ScanView(self, name)
+        group, io = self._scan_group(name)
+        return ScanView(self, name, group, io)
 
-    __getitem__ = scan
+    def _scan_group(self, name: str) -> tuple[Any, Any]:
+        """``(h5py group, remote file or None)`` of scan ``name``: the one place where a scan name
+        is resolved to its data, in this file or in a part file of the archive's own directory."""
+        import h5py
+
+        row = self._rows[name]
+        f, io = self._file, self._io
+        where = self._where
+        if row.part:
+            part = self._parts.get(row.part)
+            if part is None:
+                part = self._open_part(row)
+                self._parts[row.part] = part
+            f, io = part
+            where = self._where.part(row.part)
+        try:
+            scans = f.get(L.G_SCANS)
+            link = scans.get(name, getlink=True) if isinstance(scans, h5py.Group) else None
+            if not isinstance(link, h5py.HardLink) or not isinstance(scans[name], h5py.Group):
+                what = f"part {row.part}" if row.part else "it"
+                raise CorruptArchiveError(
+                    f"archive {self.path}: {what} does not hold scan {name!r} (no group "
+                    f"/scans/{name}); the index is damaged or crafted"
+                )
+            return scans[name], io
+        except CorruptArchiveError:
+            raise
+        except (OSError, RuntimeError, KeyError, ValueError) as exc:
+            raise CorruptArchiveError(
+                f"archive {where.display}: scan {name!r} cannot be read ({first_line(exc)}); the "
+                "file is damaged"
+            ) from None
+
+    def _check_part(self, row: IndexRow) -> Where:
+        """Where the part file of ``row`` is, checked to be one of this archive's own."""
+        return check_part(self._where, row, self.path)
+
+    def _open_part(self, row: IndexRow) -> tuple[Any, Any]:
+        """Open the part file of ``row`` after checking that it is one of this archive's own."""
+        where = self._check_part(row)
+        try:
+            f, io = open_h5(where, size=row.part_bytes or None)
+        except NotAnArchiveError:
+            raise CorruptArchiveError(
+                f"archive {self.path}: part {row.part} of scan {row.name!r} is not an lodbuilder "
+                "archive; refusing to read it"
+            ) from None
+        try:
+            _checked_root(f, where)
+        except NotAnArchiveError:
+            f.close()
+            raise CorruptArchiveError(
+                f"archive {self.path}: part {row.part} of scan {row.name!r} is not an lodbuilder "
+                "archive; refusing to read it"
+            ) from None
+        except BaseException:
+            f.close()
+            raise
+        return f, io
 
     def __iter__(self):
         return (self.scan(n) for n in self.scans)
 
     def __len__(self) -> int:
-        return len(self.scans)
+        return len(self._rows)
 
     def index(self) -> list[dict[str, Any]]:
-        """One dict per scan: name, n_points, bounds_min, bounds_max (from /index)."""
+        """One dict per scan: name, n_points, bounds_min, bounds_max, part (from /index)."""
         ig = self._file.get(L.G_INDEX)
         if ig is None:
             return []
-        names = [b.decode("utf-8") for b in ig[L.I_NAME][:]]
+        if L.I_PART in ig:
+            return [
+                {
+                    "name": r.name,
+                    "n_points": r.n_points,
+                    "bounds_min": list(r.bounds_min),
+                    "bounds_max": list(r.bounds_max),
+                    "part": r.part,
+                }
+                for r in self.rows
+            ]
+        names = [b.decode("utf-8", "replace") for b in ig[L.I_NAME][:]]
         counts = ig[L.I_N_POINTS][:]
         lo, hi = ig[L.I_BOUNDS_MIN][:], ig[L.I_BOUNDS_MAX][:]
         return [
@@ -140,8 +280,15 @@ class Archive:
         ]
 
     def close(self) -> None:
+        for f, io in list(self._parts.values()):
+            f.close()
+            if io is not None:
+                io.close()
+        self._parts.clear()
         if self._file is not None:
             self._file.close()
+            if self._io is not None:
+                self._io.close()
 
     def __enter__(self) -> Archive:
         return self
@@ -153,49 +300,64 @@ class Archive:
         return f"<Archive {self.path} scans={self.scans}>"
 
 
-def open_archive(path: str | os.PathLike[str]) -> Archive:
-    """Open an archive for reading (a context manager)."""
-    return Archive(path)
+@strict_keywords
+def open_archive(
+    path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
+) -> Archive:
+    """Open an archive for reading (a context manager): a local file, or an ``https://``,
+    ``http://`` or ``s3://`` URL (needs ``pip install 'lodbuilder[remote]'``)."""
+    return Archive(path, storage_options=storage_options)
 
 
+@safety.guarded(lambda self: self.archive.path)
+@strict_methods
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
 
-    def __init__(self, archive: Archive, name: str) -> None:
+    def __init__(self, archive: Archive, name: str, group: Any, io: Any = None) -> None:
         self.archive = archive
         self.name = name
-        self._g = archive.file[L.G_SCANS][name]
-        a = self._g.attrs
-        self.n_points = int(a[L.S_N_POINTS])
-        self.n_ordered = int(a.get(L.S_N_ORDERED, self.n_points))
-        self.encoding = str(L._attr_json(a[L.S_ENCODING]))
-        self.bounds = (np.asarray(a[L.S_BOUNDS_MIN], float), np.asarray(a[L.S_BOUNDS_MAX], float))
-        self._step = int(a.get(L.S_RADIUS_STEP, L.RADIUS_INDEX_STEP))
+        self._g = group
+        self._io = io  # the remote file the group is read through (None: local)
+        self._prefetch: Any = None
+        m = self._meta = checks.check_scan_group(group, archive.path, name)
+        self.n_points = m.n_points
+        if io is not None:  # a remote archive: a level's rows are fetched in one go
+            from .remote import Prefetcher
+
+            self._prefetch = Prefetcher(io, group, self.n_points)
+        self.n_ordered, self.encoding = m.n_ordered, m.encoding
+        self.bounds = (m.bounds_min, m.bounds_max)
+        self._step = m.step
         self._rindex: np.ndarray | None = None
         self._radius: np.ndarray | None = None
-        p = self._g[L.D_POINTS]
-        self._offset = p.attrs.get(L.P_OFFSET)
-        self._scale = p.attrs.get(L.P_SCALE)
+        self._offset, self._scale = m.offset, m.scale
 
     def __repr__(self) -> str:
         return f"<ScanView {self.name!r} n_points={self.n_points}>"
 
     # -- raw reads ---------------------------------------------------------------------------
     def _read(self, ds: Any, sel: Any = slice(None)) -> np.ndarray:
-        try:
-            return ds[sel]
-        except OSError as exc:
-            raise CorruptArchiveError(
-                f"archive {self.archive.path}: scan {self.name!r} dataset {ds.name} fails its "
-                f"checksum or cannot be read ({str(exc).splitlines()[0]}); the file is damaged, "
-                "rebuild it from the source scan"
-            ) from None
+        prefetch = None if self._prefetch is None else self._prefetch.before
+        arr = checks.read(self._meta, ds, sel, prefetch)
+        rows = checks.rows_of(sel, ds.shape[0]) if ds.ndim else None
+        if rows is not None:  # what a query reads is checked as it is read
+            rel = ds.name[len(self._g.name) + 1 :]
+            checks.check_rows(self._meta, rel, arr, rows[0], self._raw_rows)
+        return arr
+
+    def _raw_rows(self, rel: str, lo: int, hi: int) -> np.ndarray:
+        return checks.read(self._meta, self._g[rel], slice(lo, hi))
+
+    def _rows(self, rel: str, lo: int, hi: int) -> np.ndarray:
+        return self._read(self._g[rel], slice(lo, hi))
 
     def dataset(self, rel: str) -> Any:
-        return self._g[rel]
+        """The dataset ``rel`` of the scan (e.g. ``orderings/weighted/order``); reads are checked."""
+        return checks.CheckedDataset(self._g[rel], self._read)
 
     def _json_attr(self, key: str) -> dict[str, Any]:
-        return L.from_json(self._g.attrs.get(key, ""))
+        return checks.json_attr(self._meta, self._g.attrs, key)
 
     # -- metadata ----------------------------------------------------------------------------
     @property
@@ -276,10 +438,10 @@ class ScanView:
         return self._read(grp[name])
 
     def importance_parameters(self, name: str) -> dict[str, Any]:
-        return L.from_json(self._g[L.G_IMPORTANCE][name].attrs.get(L.M_PARAMETERS, ""))
+        return checks.json_attr(self._meta, self._g[L.G_IMPORTANCE][name].attrs, L.M_PARAMETERS)
 
     def ordering_parameters(self, name: str) -> dict[str, Any]:
-        return L.from_json(self._ordering_group(name).attrs.get(L.M_PARAMETERS, ""))
+        return checks.json_attr(self._meta, self._ordering_group(name).attrs, L.M_PARAMETERS)
 
     def _ordering_group(self, name: str) -> Any:
         grp = self._g[L.G_ORDERINGS] if L.G_ORDERINGS in self._g else {}
@@ -305,24 +467,16 @@ class ScanView:
             self.n_ordered,
             rho,
         )
-        return max(1, k)
+        checks.check_rho_prefix(self._meta, nonempty(k), rho, self._rows)
+        return nonempty(k)
 
     def _bound(self, k: int) -> float:
         """Covering bound of the prefix of length k: radius[k], 0 for the whole ordering."""
-        if k >= self.n_ordered:
-            return 0.0
-        return float(self._read(self._g[L.D_RADIUS], slice(k, k + 1))[0])
+        ds = self._g[L.D_RADIUS]
+        return covering_bound(k, self.n_ordered, lambda i: self._read(ds, slice(i, i + 1))[0])
 
     def resolve_size(self, rho: Any = None, size: Any = None, fraction: Any = None) -> int:
-        given = [x is not None for x in (rho, size, fraction)]
-        if sum(given) != 1:
-            raise InputError("give exactly one of rho, size or fraction")
-        if rho is not None:
-            return self.size_for_rho(rho)
-        if size is not None:
-            return check_size(size, self.n_ordered)
-        f = check_fraction(fraction)
-        return min(self.n_ordered, max(1, int(math.floor(f * self.n_ordered + 0.5))))
+        return resolve_size(self.n_ordered, rho, size, fraction, rho_size=self.size_for_rho)
 
     # -- levels ------------------------------------------------------------------------------
     def level(
@@ -351,9 +505,11 @@ class ScanView:
             source_index=self._read(g[L.D_SOURCE_INDEX], slice(0, k)),
             radius=radius[:k],
             rank=np.arange(k, dtype=np.int64),
-            rho=float(radius[k]) if k < self.n_ordered else 0.0,
+            rho=covering_bound(k, self.n_ordered, radius.__getitem__),
             size=k,
             scan=self.name,
+            crs=self.crs,
+            units=self.units,
         )
 
     def _ordering_level(
@@ -362,20 +518,11 @@ class ScanView:
         og = self._ordering_group(name)
         rad_ds = og[L.D_RADIUS]
         kmax = rad_ds.shape[0]
-        given = [x is not None for x in (rho, size, fraction)]
-        if sum(given) != 1:
-            raise InputError("give exactly one of rho, size or fraction")
-        if rho is not None:
-            rho = check_positive(rho, "rho", allow_none=False)
-            rad = self._read(rad_ds)
-            k = max(1, int(np.searchsorted(-rad, -rho, side="left")))
-        elif size is not None:
-            k = check_size(size, kmax)
-        else:
-            f = check_fraction(fraction)
-            k = min(kmax, max(1, int(math.floor(f * kmax + 0.5))))
+        k = resolve_size(
+            kmax, rho, size, fraction, rho_size=lambda r: size_for_rho(self._read(rad_ds), r)
+        )
         pos = self._read(og[L.D_ORDER], slice(0, k))
-        bound = 0.0 if k >= kmax else float(self._read(rad_ds, slice(k, k + 1))[0])
+        bound = covering_bound(k, kmax, lambda i: self._read(rad_ds, slice(i, i + 1))[0])
         return self._gather(pos, self._read(rad_ds, slice(0, k)), bound, attributes, ordering=name)
 
     def _gather(
@@ -404,6 +551,8 @@ class ScanView:
             scan=self.name,
             ordering=ordering,
             region=region or {},
+            crs=self.crs,
+            units=self.units,
         )
 
     def refine_box(
@@ -422,9 +571,7 @@ class ScanView:
                 f"the rho inside the box ({r_in}) must not be larger than the rho outside ({r_out})"
             )
         k_out, k_in = self.size_for_rho(r_out), self.size_for_rho(r_in)
-        pts = self.points(k_in)
-        extra = k_out + np.flatnonzero(in_box(pts[k_out:], b, r_in))
-        pos = np.concatenate([np.arange(k_out, dtype=np.int64), extra])
+        pos = box_positions(self.points(k_in), k_out, b, r_in)
         region = {"box": b.tolist(), "rho_inner": r_in, "rho_outer": r_out}
         return self._gather(pos, None, self._bound(k_out), attributes, region=region)
 
@@ -435,21 +582,11 @@ class ScanView:
         ``rho(x) = min(rho0 + slope * |x - viewpoint|, rho_max)``; every input point ``p`` is within
         ``rho(p)`` of a kept point."""
         v, r0, s, rmax = check_viewpoint(viewpoint, rho0, slope, rho_max)
-        k_fine = self.size_for_rho(r0 / (1.0 + s))
-        k_coarse = self.size_for_rho(rmax) if rmax is not None else 1
-        k_coarse = min(k_coarse, k_fine)
-        pts = self.points(k_fine)
+        k_coarse, k_fine = viewpoint_sizes(self.size_for_rho, r0, s, rmax)
         rad = self._read(self._g[L.D_RADIUS], slice(0, k_fine))
-        keep = viewpoint_keep(pts, rad, v, r0, s, rmax)
-        keep[:k_coarse] = True
-        pos = np.flatnonzero(keep).astype(np.int64)
+        pos = viewpoint_positions(self.points(k_fine), rad, v, r0, s, rmax, k_coarse)
         region = {"viewpoint": v.tolist(), "rho0": r0, "slope": s, "rho_max": rmax}
-        lo, hi = self.bounds
-        corners = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
-        far = float(np.sqrt(((corners - v) ** 2).sum(axis=1)).max())
-        bound = r0 + s * far if rmax is None else min(rmax, r0 + s * far)
+        bound = viewpoint_bound(self.bounds, v, r0, s, rmax)
         return self._gather(pos, rad[pos], bound, attributes, region=region)
 
     # -- representatives ---------------------------------------------------------------------
@@ -475,3 +612,30 @@ class ScanView:
         counts = np.bincount(rep[rep >= 0], minlength=k)
         attrs = self.attributes(None, names)
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
+
+    # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
+    def _check_open(self) -> None:
+        if not self._g.id.valid:  # (h5py reads a closed file's attributes as empty, not an error)
+            raise ArchiveError(
+                f"archive {self.archive.path} is closed; read it inside `with open_archive(...)`"
+            )
+
+    @property
+    def crs(self) -> str | None:
+        """The scan's coordinate reference system as WKT text, or None when unknown."""
+        self._check_open()
+        wkt = self.format_metadata.get("crs_wkt")
+        return str(wkt) if wkt else None
+
+    @property
+    def units(self) -> str | None:
+        """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
+        one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
+        no pyproj): never guessed."""
+        self._check_open()
+        meta = self.format_metadata
+        if meta.get("crs_units"):
+            return str(meta["crs_units"])
+        from ..io.crs import linear_units
+
+        return linear_units(self.crs)

@@ -36,11 +36,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--band-radius", type=float, metavar="R", help="band radius (default: from H)")
     p.add_argument("--overwrite", action="store_true", help="replace a scan of the same name")
+    p.add_argument(
+        "--crs",
+        metavar="EPSG:XXXX|WKT|FILE",
+        help="coordinate reference system of a scan whose file has none (EPSG codes need pyproj: "
+        "pip install 'lodbuilder[crs]')",
+    )
+    p.add_argument(
+        "--crs-override",
+        action="store_true",
+        help="let --crs replace the CRS the scan file declares",
+    )
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
-    from ..features.cli_options import add_build_options
+    from .feature_options import add_build_options
 
     add_build_options(p)
-    from ..collection.cli import add_arguments as add_collection_arguments
+    from .collection_options import add_arguments as add_collection_arguments
 
     add_collection_arguments(p)
     return p
@@ -50,10 +61,12 @@ def run(args: argparse.Namespace) -> int:
     from .._validate import check_positive
     from ..api import build_archive
     from ..archive.writer import check_writable_dir
-    from ..collection import cli as collection_cli
     from ..errors import InputError
+    from . import collection_options as collection_cli
     from .progressbar import ProgressBars
 
+    if args.crs and collection_cli.wants_collection(args):
+        raise InputError("--crs applies to one scan file; build the scans of a collection one by one")
     if collection_cli.wants_collection(
         args
     ):  # several scans, a directory, a manifest, --workers ...
@@ -65,11 +78,13 @@ def run(args: argparse.Namespace) -> int:
     check_positive(args.voxel_size, "--voxel-size")
     check_positive(args.band_radius, "--band-radius")
     check_writable_dir(out, "output")
-    from ..features.cli_options import build_kwargs
+    from .feature_options import build_kwargs
 
     features = build_kwargs(args)
     t0 = time.perf_counter()
-    with ProgressBars(enabled=False if args.no_progress else None) as bars:
+    from .output import progress_enabled, say
+
+    with ProgressBars(enabled=progress_enabled(args)) as bars:
         build_archive(
             src,
             out,
@@ -77,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
             voxel_size=args.voxel_size,
             band_radius=args.band_radius,
             overwrite=args.overwrite,
+            crs=args.crs, crs_override=args.crs_override,
             progress=bars,
             **features,
         )
@@ -90,8 +106,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             built = [s for s in arc if s.provenance.get("source_name") == src.name]
             v = max(built, key=lambda s: str(s.provenance.get("created_utc", "")))
-        print(
+        say(
+            args,
             f"added scan {v.name!r} ({v.n_points} points, {v.encoding} coordinates) to {out} "
-            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)"
+            f"in {time.perf_counter() - t0:.1f} s; the archive holds {len(arc)} scan(s)",
         )
     return 0

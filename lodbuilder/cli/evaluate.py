@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
 from ..errors import InputError
 
@@ -19,7 +17,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "and whether it meets the level's rho, the two-sided Hausdorff and Chamfer distances, "
             "the minimum spacing and uniformity (spacing / covering radius), and the distance of "
             "the scan points to the level's local surface (plane or MLS). Distances are Euclidean, "
-            "in the scan's units."
+            "in the unit of the scan's CRS (shown; 'scan units' when it is unknown)."
         ),
     )
     p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
@@ -35,8 +33,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--surface", choices=("plane", "mls"), default="plane", help="local surface (default plane)"
     )
     p.add_argument("--k", type=int, help="neighbours per surface fit (default 8 plane, 16 mls)")
-    p.add_argument("--json", metavar="OUT", help="write the reports as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="OUT.png", help="plot error vs size and radius vs rank")
+    p.add_argument(
+        "--gaps",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="also list the gaps at each --rhos value: enclosed regions of the surface farther "
+        "than rho from every input point, up to MAX_HOLE rho wide (default 12), with their area "
+        "and bounding box (they are what 'slice --fill' fills)",
+    )
+    from .output import add_json_option
+
+    add_json_option(p, to_file=True)
     return p
 
 
@@ -45,7 +55,11 @@ def _table(ev) -> str:
         f"{'size':>9} {'rho':>10} {'cover':>10} {'ok':>3} {'hausdorff':>10} {'chamfer':>10} "
         f"{'min sp.':>10} {'unif.':>6} {'surf rms':>10} {'surf max':>10}"
     )
-    lines = [f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}", head]
+    unit = ev.units or "scan units (unit unknown)"
+    lines = [
+        f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}; distances in {unit}",
+        head,
+    ]
 
     def f(v):
         return "-" if v is None else f"{v:10.4g}"
@@ -60,30 +74,26 @@ def _table(ev) -> str:
     return "\n".join(lines)
 
 
-def _write_json(out: str, doc: dict) -> None:
-    text = json.dumps(doc, indent=2, allow_nan=False)
-    if out == "-":
-        sys.stdout.write(text + "\n")
-        return
-    from ..io._files import atomic_output
-
-    with atomic_output(out, make_parents=True) as tmp:
-        tmp.write_text(text + "\n")
-
-
 def run(args: argparse.Namespace) -> int:
-    arc = Path(args.archive).resolve()
-    for opt, out in (("--json", args.json), ("--plot", args.plot)):
-        if out and out != "-" and Path(out).resolve() == arc:
-            raise InputError(f"{opt} {out} is the archive itself; choose another output")
-    if args.plot and Path(args.plot).suffix.lower() != ".png":
-        raise InputError(f"--plot {args.plot} must end in .png")
+    from .output import check_output, emit, progress_enabled, say
+
+    inputs = {"archive": args.archive}
+    if args.json:
+        check_output(args.json, "--json", inputs=inputs, stdout=True)
+    if args.plot:
+        check_output(args.plot, "--plot", inputs=inputs, suffixes=(".png",))
     if args.k is not None and args.k < 3:
         raise InputError(f"--k must be at least 3, got {args.k}")
+    if args.gaps is not None and not args.rhos:
+        raise InputError("--gaps needs --rhos R [R ...] (the densities whose gaps are listed)")
+    if args.plot:
+        from .._optional import require
+
+        require("matplotlib", "evaluate --plot")
     from ..quality.archive import evaluate_archive
     from .progressbar import ProgressBars
 
-    with ProgressBars() as bars:
+    with ProgressBars(enabled=progress_enabled(args)) as bars:
         ev = evaluate_archive(
             args.archive,
             args.scan,
@@ -95,16 +105,20 @@ def run(args: argparse.Namespace) -> int:
             k=args.k,
             progress=bars,
         )
-    if args.json != "-":
-        print(_table(ev))
-    if args.json:
-        _write_json(args.json, ev.as_dict())
+    doc, gaps = ev.as_dict(), []
+    if args.gaps is not None:
+        from ..sampling.fill import archive_gaps
+
+        gaps = archive_gaps(args.archive, args.scan, args.rhos, max_hole=args.gaps)
+        doc["gaps"] = [g.as_dict() for g in gaps]
+    emit(args, doc, lambda: "\n".join([_table(ev)] + [g.table() for g in gaps]))
     if args.plot:
         from ..quality.plots import plot_quality
 
-        plot_quality(ev.reports, args.plot, radius=ev.radius, title=f"{ev.scan} ({ev.ordering})")
-        if args.json != "-":
-            print(f"wrote {args.plot}")
+        plot_quality(
+            ev.reports, args.plot, radius=ev.radius, title=f"{ev.scan} ({ev.ordering})", units=ev.units
+        )
+        say(args, f"wrote {args.plot}")
     bad = [r for r in ev.reports if r.meets_rho is False]
     if bad:
         print(

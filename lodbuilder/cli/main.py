@@ -1,30 +1,36 @@
 """Entry point of the ``lodbuilder`` command.
 
 Each command lives in its own module ``lodbuilder/cli/<name>.py`` that defines
-``add_parser(subparsers)`` (returning its parser) and ``run(args) -> int``. Command modules keep
-their top-level imports light; heavy libraries are imported inside ``run``.
+``add_parser(subparsers)`` (returning its parser) and ``run(args) -> int``; to add a command, add
+its name to ``COMMANDS``. Command modules keep their top-level imports light; heavy libraries are
+imported inside ``run``. Every command gets ``-q/--quiet`` and ``-v/--verbose`` here; what they
+share (``--json``, printing, the output-path rule) is in :mod:`lodbuilder.cli.output`.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from importlib import import_module
 
 from .. import __version__
 from ..errors import LodbuilderError
+from .output import Parser, add_common_options, print_error, setup_logging
 
-COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate")
+COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate", "export")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="lodbuilder",
         description="Build multiresolution point-set archives from 3D scans and slice levels from them.",
     )
     parser.add_argument("--version", action="version", version=f"lodbuilder {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    # `lodbuilder -v CMD` as well as `lodbuilder CMD -v`: the two counts add up
+    parser.add_argument("-v", "--verbose", dest="top_verbose", action="count", default=0,
+                        help="print details and log progress (also after the command)")
+    parser.add_argument("-q", "--quiet", dest="top_quiet", action="store_true",
+                        help="print nothing but errors (also after the command)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         try:
@@ -34,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not shipped in this build
             raise
         p = module.add_parser(sub)
+        add_common_options(p)
         p.set_defaults(_run=module.run)
     return parser
 
@@ -41,14 +48,20 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    args.verbose += args.top_verbose
+    args.quiet = args.quiet or args.top_quiet
+    log_level = setup_logging(args)
     try:
         return int(args._run(args) or 0)
     except LodbuilderError as exc:
-        print(f"lodbuilder {args.command}: error: {exc}", file=sys.stderr)
+        print_error(args.command, exc)
+        return 2
+    except ImportError as exc:  # an optional dependency missing deep inside a command
+        from .._optional import extra_for, missing_message
+
+        if extra_for(exc.name) is None:
+            raise  # not an optional dependency: a bug, shown with its traceback
+        print_error(args.command, missing_message(exc.name or "", f"lodbuilder {args.command}"))
         return 2
     except KeyboardInterrupt:
         print(f"lodbuilder {args.command}: interrupted", file=sys.stderr)
@@ -58,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    finally:  # main may be called from Python: leave the library's logging as it was
+        import logging
+
+        logging.getLogger("lodbuilder").setLevel(log_level)
 
 
 if __name__ == "__main__":  # pragma: no cover

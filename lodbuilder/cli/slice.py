@@ -3,7 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
+
+
+def add_level_options(p: argparse.ArgumentParser, *, required: bool) -> None:
+    """ARCHIVE, --scan and one of --rho / --size / --fraction: which level of which scan (the
+    options slice and export share)."""
+    p.add_argument("archive", metavar="ARCHIVE")
+    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
+    g = p.add_mutually_exclusive_group(required=required)
+    g.add_argument("--rho", type=float, help="covering radius of the level")
+    g.add_argument("--size", type=int, help="number of points")
+    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -17,12 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "grow with the distance from a point (rho = RHO + SLOPE * distance)."
         ),
     )
-    p.add_argument("archive", metavar="ARCHIVE")
-    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--rho", type=float, help="covering radius of the level")
-    g.add_argument("--size", type=int, help="number of points")
-    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+    add_level_options(p, required=True)
     p.add_argument(
         "--box",
         type=float,
@@ -50,49 +57,76 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="write the --rho level of every scan of the archive, merged, with a scan_id attribute",
     )
     p.add_argument(
+        "--fill",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="add synthetic points (attribute synthetic = 1) in the enclosed holes of the scan "
+        "up to MAX_HOLE rho wide (default 12), so that the level meets --rho there too",
+    )
+    p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
-    from ..features.cli_options import add_slice_options
+    p.add_argument(
+        "--colour-depth",
+        type=int,
+        choices=(8, 16),
+        default=None,
+        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
+    )
+    from .feature_options import add_slice_options
+    from .output import add_json_option
 
     add_slice_options(p)
+    add_json_option(p)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
     from ..errors import InputError
-    from ..io._files import check_output_path
     from ..io.registry import writer_for
+    from .output import VERBOSE, check_output, emit, say
 
-    arc_path, out = Path(args.archive), Path(args.output)
-    if out.resolve() == arc_path.resolve():
-        raise InputError(f"output {out} is the input archive; choose another -o OUT")
-    writer_for(out)  # unknown output suffix: fail before reading anything
-    check_output_path(out)
+    arc_path = Path(args.archive)
+    out = check_output(args.output, "-o", inputs={"archive": arc_path})
+    writer_for(out)  # unknown output suffix (or .copc.laz): fail before reading anything
     if args.box is not None and args.box_rho is None:
         raise InputError("--box needs --box-rho (the finer rho inside the box)")
     if args.box_rho is not None and args.box is None:
         raise InputError("--box-rho needs --box XMIN YMIN ZMIN XMAX YMAX ZMAX")
     if (args.viewpoint is None) != (args.slope is None):
         raise InputError("--viewpoint and --slope go together")
+    if args.rho_max is not None and args.viewpoint is None:
+        raise InputError("--rho-max caps rho far from --viewpoint: give --viewpoint X Y Z and --slope")
     refine = args.box is not None or args.viewpoint is not None
     if refine and args.rho is None:
         raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
     if args.box is not None and args.viewpoint is not None:
         raise InputError("give either --box or --viewpoint, not both")
+    if args.fill is not None:
+        _check_fill(args)
     if getattr(args, "all_scans", False):
-        from ..collection.cli import slice_all
+        from .collection_options import slice_all
 
         return slice_all(args)
 
+    t0 = time.perf_counter()
+    filled = None
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        if args.box is not None:
+        if args.fill is not None:
+            from ..sampling.fill import fill_level
+
+            filled = fill_level(view, args.rho, max_hole=args.fill)
+            level = filled.level
+        elif args.box is not None:
             level = view.refine_box(args.box, args.box_rho, args.rho)
         elif args.viewpoint is not None:
             level = view.refine_viewpoint(args.viewpoint, args.rho, args.slope, args.rho_max)
         elif getattr(args, "floor_rho", None) is not None:
-            from ..features.cli_options import floor_level
+            from .feature_options import floor_level
 
             if args.size is None:
                 raise InputError("--floor-rho needs --size N (the exact number of points)")
@@ -102,17 +136,57 @@ def run(args: argparse.Namespace) -> int:
                 args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering
             )
         metadata = view.format_metadata
-        from ..features.cli_options import bound_note
+        say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
+        from .feature_options import bound_note
 
         note = bound_note(view, level)
     attrs = dict(level.attributes)
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
     from ..io import write_points
+    from ..io.api import collect_notes
 
-    write_points(out, level.points, attrs, metadata=metadata)
-    print(
-        f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} "
-        f"({note})"
+    with collect_notes() as changes:
+        write_points(out, level, attrs, metadata=metadata, colour_depth=args.colour_depth)
+    doc = {
+        "archive": str(arc_path),
+        "scan": view.name,
+        "output": str(out),
+        "size": level.size,
+        "n_points": view.n_points,
+        "rho": level.rho,
+        "ordering": level.ordering or "uniform",
+        "bound": note,
+        "region": level.region,
+        "attributes": sorted(attrs),
+        "crs": level.crs,
+        "units": level.units,
+        "changes": changes,
+    }
+    what = f"{level.size} of {view.n_points} points"
+    if filled is not None:
+        doc["synthetic"] = filled.n_synthetic
+        what = filled.summary(view.n_points)
+    emit(
+        args,
+        doc,
+        "\n".join(
+            [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
+            + [f"  changed: {line}" for line in changes]
+        ),
     )
     return 0
+
+
+def _check_fill(args: argparse.Namespace) -> None:
+    from ..errors import InputError
+
+    if args.rho is None:
+        raise InputError("--fill needs --rho R (the density the filled level meets)")
+    if args.box is not None or args.viewpoint is not None or args.ordering not in (None, "uniform"):
+        raise InputError(
+            "--fill fills the plain --rho level of the uniform ordering; leave out --box, "
+            "--viewpoint and --ordering"
+        )
+    if getattr(args, "all_scans", False) or getattr(args, "floor_rho", None) is not None:
+        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")

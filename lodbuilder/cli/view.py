@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 from ..errors import InputError
 
-MODES_HELP = "rgb, radius, rank, importance[:NAME], scan, voronoi"
+MODES_HELP = (
+    "rgb, radius, rank, importance[:NAME], scan, voronoi, gaps (red: near a hole the level "
+    "cannot cover at its rho, filled by 'slice --fill'; orange: near a rough one, not filled)"
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -18,7 +20,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="show an archive's levels in a PyVista window, or render a screenshot/animation",
         description=(
             "Open a window with the current level on the left (slider over the point count on a "
-            "log scale) and the full scan on the right. Keys: c colour mode, l eye-dome lighting, "
+            "log scale) and the full scan on the right. Keys: c colour mode, l shading by normals, "
             "b refine inside a box, m surface of the level, +/- point size, Left/Right halve or "
             "double the level. With --screenshot or --animate nothing is shown on screen (works "
             "without X through EGL)."
@@ -41,10 +43,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--frames", type=int, default=40, help="animation frames (default 40)")
     p.add_argument("--fps", type=float, default=10.0, help="animation frames per second")
     p.add_argument(
-        "--window-size", type=int, nargs=2, metavar=("W", "H"), help="pixels (default 1600 800)"
+        "--window-size", type=int, nargs=2, metavar=("W", "H"), help="pixels, 32 to 8192 a side (default 1600 800)"
     )
     p.add_argument("--no-full", action="store_true", help="do not show the full scan beside")
-    p.add_argument("--edl", action="store_true", help="start with eye-dome lighting")
+    p.add_argument(
+        "--shade",
+        "--edl",
+        dest="shade",
+        action="store_true",
+        help="start with the points lit by their normals (key l; replaces eye-dome lighting, "
+        "which darkened colours)",
+    )
     p.add_argument(
         "--box",
         type=float,
@@ -67,7 +76,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="the scan's up axis for the default view (z for survey data; y for many range scans, "
         "e.g. the Stanford bunny)",
     )
-    p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size")
+    p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size (> 0; default 1)")
     return p
 
 
@@ -78,15 +87,15 @@ def _has_display() -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .output import check_output, say
+
     off_screen = bool(args.screenshot or args.animate)
     for opt, out, suffixes in (
         ("--screenshot", args.screenshot, (".png",)),
         ("--animate", args.animate, (".gif", ".mp4")),
     ):
-        if out and Path(out).suffix.lower() not in suffixes:
-            raise InputError(f"{opt} {out} must end in {' or '.join(suffixes)}")
-        if out and Path(out).resolve() == Path(args.archive).resolve():
-            raise InputError(f"{opt} {out} is the archive itself; choose another output")
+        if out:
+            check_output(out, opt, inputs={"archive": args.archive}, suffixes=suffixes)
     if args.animate:
         from ..viewer.movie import check_movie_path
 
@@ -95,6 +104,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--frames must be at least 2, got {args.frames}")
     if args.fps <= 0:
         raise InputError(f"--fps must be > 0, got {args.fps}")
+    from ..viewer.options import check_point_scale, check_window_size
+
+    if args.window_size is not None:
+        check_window_size(args.window_size)
+    check_point_scale(args.point_scale)
     if args.refine_factor <= 1:
         raise InputError(f"--refine-factor must be > 1, got {args.refine_factor}")
     if not off_screen and not _has_display():
@@ -104,18 +118,16 @@ def run(args: argparse.Namespace) -> int:
         )
     if off_screen:
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    from .._optional import require
 
-    from .._validate import check_fraction, check_positive, check_size
+    require("pyvista", "lodbuilder view")
+
     from ..viewer.source import load_view_data
 
     data = load_view_data(args.archive, args.scan, args.ordering)
     size = None
-    if args.size is not None:
-        size = check_size(args.size, len(data))
-    elif args.rho is not None:
-        size = data.size_for_rho(float(check_positive(args.rho, "rho", allow_none=False)))  # type: ignore[arg-type]
-    elif args.fraction is not None:
-        size = data.clamp_size(check_fraction(args.fraction) * len(data))
+    if (args.size, args.rho, args.fraction) != (None, None, None):
+        size = data.resolve_size(rho=args.rho, size=args.size, fraction=args.fraction)
     if args.colour:
         data.check_mode(args.colour)
 
@@ -129,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         full_scan=not args.no_full,
         window_size=args.window_size,
         point_scale=args.point_scale,
-        edl=args.edl,
+        shade=args.shade,
         view=args.view,
         up=args.up,
         refine_factor=args.refine_factor,
@@ -144,10 +156,10 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.screenshot:
             out = viewer.screenshot(args.screenshot)
-            print(f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
+            say(args, f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
         if args.animate:
             out = viewer.animate(args.animate, frames=args.frames, fps=args.fps)
-            print(f"wrote {out} ({args.frames} frames, coarse to fine)")
+            say(args, f"wrote {out} ({args.frames} frames, coarse to fine)")
     finally:
         viewer.close()
     return 0

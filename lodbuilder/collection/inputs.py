@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords, strict_methods
 from ..errors import InputError, ScanFileError
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 MANIFEST_SUFFIXES = (".conf", ".manifest", ".lst")
 
 
+@strict_methods
 @dataclass
 class ScanSource:
     """One scan to build: a file (and, for multi-scan E57 files, which scan) with an optional pose.
@@ -89,6 +91,7 @@ def _numbers(tokens: list[str], where: str) -> list[float]:
     return vals
 
 
+@strict_keywords
 def read_manifest(path: str | os.PathLike[str]) -> list[tuple[Path, np.ndarray | None]]:
     """(file, pose) pairs listed in a manifest; see the module docstring for the format."""
     mpath = Path(path)
@@ -193,6 +196,7 @@ def _e57_scan_names(path: Path) -> list[str] | None:
         e.close()
 
 
+@strict_keywords
 def expand_inputs(inputs: Any = (), manifest: str | os.PathLike[str] | None = None) -> list[ScanSource]:
     """Scan sources from files, directories (recursive, hidden entries skipped), glob patterns and
     manifests, in the order given (directories and globs sorted). Names are the file stems, made

@@ -8,9 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive
+from .._validate import check_positive, strict_keywords, strict_methods
 
 
+@strict_methods
 @dataclass
 class CollectionLevel:
     """One level of every scan, concatenated.
@@ -30,6 +31,7 @@ class CollectionLevel:
         return int(self.points.shape[0])
 
 
+@strict_keywords
 def list_scans(archive: str | os.PathLike[str]) -> list[dict[str, Any]]:
     """One dict per scan (name, n_points, bounds_min, bounds_max, source, reader, collection_key)."""
     from ..archive.reader import open_archive
@@ -46,6 +48,7 @@ def list_scans(archive: str | os.PathLike[str]) -> list[dict[str, Any]]:
         return rows
 
 
+@strict_keywords
 def total_points(archive: str | os.PathLike[str]) -> int:
     """Number of points of every scan together."""
     from ..archive.reader import open_archive
@@ -54,6 +57,7 @@ def total_points(archive: str | os.PathLike[str]) -> int:
         return int(sum(r["n_points"] for r in arc.index()))
 
 
+@strict_keywords
 def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any = None,
                      attributes: Any = True) -> CollectionLevel:
     """The level of every scan (or of ``scans``) at density ``rho``, merged, with a scan id."""
@@ -75,6 +79,7 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
                            rho=float(rho_v))  # type: ignore[arg-type]
 
 
+@strict_keywords
 def scan_level(archive: str | os.PathLike[str], scan: str | None = None, *, rho: Any = None,
                size: Any = None, fraction: Any = None, attributes: Any = True) -> Any:
     """A level of one scan (the archive reader's :class:`~lodbuilder.archive.levels.Level`)."""

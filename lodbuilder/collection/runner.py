@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .._validate import check_positive
+from .._validate import check_positive, strict_methods
 from ..errors import BuildError, InputError, LodbuilderError, MissingDependencyError
 from ..progress import ProgressCallback, report
 from .inputs import ScanSource, expand_inputs
@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 DASK_CONNECT_TIMEOUT = "15s"
 
 
+@strict_methods
 @dataclass
 class ScanStatus:
     """What happened to one scan: ``built``, ``recovered`` (a finished part merged), ``skipped``
@@ -52,6 +53,7 @@ class ScanStatus:
     worker_pid: int | None = None
 
 
+@strict_methods
 @dataclass
 class CollectionResult:
     archive: Path
@@ -172,20 +174,10 @@ def _part_path(archive: Path, name: str, key: str) -> Path:
 
 
 def merge_parts(archive: Path, parts: list[tuple[str, Path]]) -> None:
-    """Move the scans of one-scan part archives into ``archive`` (atomically, replacing same names)."""
-    import h5py
+    """Register one-scan part archives in ``archive`` (atomically, O(the parts), replacing same names)."""
+    from ..archive.writer import register_parts
 
-    from ..archive import layout as L
-    from ..archive.writer import update_archive
-
-    def edit(root: Any) -> None:
-        scans = root.require_group(L.G_SCANS)
-        for name, part in parts:
-            with h5py.File(part, "r") as src:
-                src.copy(src[L.G_SCANS][name], scans, name=name)
-
-    # the scans being replaced are not copied over (no dead space in the new file)
-    update_archive(archive, [], edit=edit, drop=[name for name, _ in parts])
+    register_parts(archive, [p for _, p in parts], overwrite=True)
 
 
 def _part_ok(part: Path, name: str) -> bool:

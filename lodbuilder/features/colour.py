@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import validate_points
+from .._validate import strict_keywords, validate_points
 from ..errors import InputError
 from .neighbours import kd_tree, mean_pair_function, neighbourhoods
 
@@ -55,6 +55,7 @@ def to_unit_rgb(rgb: Any, name: str = "colours") -> np.ndarray:
     return np.clip(out, 0.0, 1.0)
 
 
+@strict_keywords
 def srgb_to_lab(rgb: Any) -> np.ndarray:
     """(N, 3) sRGB colours (any dtype :func:`to_unit_rgb` accepts) -> (N, 3) CIE L*a*b* under D65.
 
@@ -82,6 +83,7 @@ def scan_colours(attributes: dict[str, np.ndarray], scan_name: str = "scan") -> 
     )
 
 
+@strict_keywords
 def colour_difference(
     points: Any, colours: Any, *, k: int = 16, radius: float | None = None, tree: Any = None
 ) -> tuple[np.ndarray, dict[str, Any]]:

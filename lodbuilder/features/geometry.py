@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import validate_points
+from .._validate import strict_keywords, validate_points
 from ..errors import InputError
 from .neighbours import (
     Neighbourhoods,
@@ -34,6 +34,7 @@ def _nbhd_params(k: int | None, radius: float | None) -> dict[str, Any]:
     return {"radius": float(radius)} if radius is not None else {"k": int(16 if k is None else k)}
 
 
+@strict_keywords
 def surface_variation(
     points: Any,
     *,
@@ -80,6 +81,7 @@ def _variation(pts: np.ndarray, nb: Neighbourhoods) -> np.ndarray:
     return out
 
 
+@strict_keywords
 def pca_normals(
     points: Any, *, k: int = 16, radius: float | None = None, tree: Any = None
 ) -> np.ndarray:
@@ -103,6 +105,7 @@ def validate_normals(normals: Any, n: int) -> np.ndarray:
     return arr / length[:, None]
 
 
+@strict_keywords
 def normal_variation(
     points: Any,
     normals: Any = None,
@@ -138,6 +141,7 @@ def normal_variation(
     return mean_pair_function(nb, angle), params
 
 
+@strict_keywords
 def noise_score(
     points: Any,
     *,

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import validate_points
+from .._validate import strict_keywords, validate_points
 from ..errors import InputError, ScanFileError
 from ..progress import ProgressCallback, report
 from .colour import colour_difference, scan_colours
@@ -76,6 +76,7 @@ ALIASES = {
 }
 
 
+@strict_keywords
 def parse_names(names: str | Iterable[str]) -> list[str]:
     """Split ``"curvature,colour"`` (or a list) into stripped, non-empty, distinct specs."""
     items = names.split(",") if isinstance(names, str) else list(names)
@@ -89,6 +90,7 @@ def parse_names(names: str | Iterable[str]) -> list[str]:
     return out
 
 
+@strict_keywords
 def map_name(spec: str) -> str:
     """The name a map spec is stored under (``attr:intensity`` -> ``intensity``)."""
     low = spec.lower()
@@ -137,6 +139,7 @@ def user_map(scan: Any, spec: str) -> MapResult:
     return validate_weights(values, n, path.stem), {"source": "npy", "file": path.name}
 
 
+@strict_keywords
 def compute_importance(
     scan: Any,
     names: str | Iterable[str],

@@ -19,12 +19,14 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..errors import InputError
 
 DEFAULT_PERCENTILES = (5.0, 95.0)
 DEFAULT_EPS = 0.1
 
 
+@strict_keywords
 def validate_weights(values: Any, n: int, name: str = "weights") -> np.ndarray:
     """Return an importance map as (N,) float64, finite and >= 0, or raise an InputError naming it."""
     try:
@@ -61,6 +63,7 @@ def validate_weights(values: Any, n: int, name: str = "weights") -> np.ndarray:
     return arr
 
 
+@strict_keywords
 def check_adaptivity(a: Any) -> float:
     try:
         v = float(a)
@@ -71,6 +74,7 @@ def check_adaptivity(a: Any) -> float:
     return v
 
 
+@strict_keywords
 def normalise(
     values: np.ndarray, percentiles: tuple[float, float] = DEFAULT_PERCENTILES
 ) -> np.ndarray:
@@ -93,6 +97,7 @@ def normalise(
     return np.clip((values - lo) / (hi - lo), 0.0, 1.0)
 
 
+@strict_keywords
 def combine_maps(
     maps: Mapping[str, Any] | Sequence[Any],
     n: int,
@@ -122,6 +127,7 @@ def combine_maps(
     return stack.mean(axis=0) if combine == "mean" else stack.max(axis=0)
 
 
+@strict_keywords
 def cost_from_weights(w: np.ndarray, adaptivity: float, eps: float = DEFAULT_EPS) -> np.ndarray:
     """F = max(eps, (1 - a) + a * w) for a combined map ``w`` in [0, 1]."""
     a = check_adaptivity(adaptivity)

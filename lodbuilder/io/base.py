@@ -7,7 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_methods
 
+
+@strict_methods
 @dataclass
 class Scan:
     """A point cloud read from a file.

@@ -9,12 +9,13 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import check_fraction, check_positive, check_size
+from .._validate import check_fraction, check_positive, check_size, strict_keywords, strict_methods
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .report import LevelReport, default_sizes, evaluate_level
 
 
+@strict_methods
 @dataclass
 class ScanEvaluation:
     """The reports of one scan's levels, with what is needed to plot them."""
@@ -25,17 +26,21 @@ class ScanEvaluation:
     reports: list[LevelReport]
     radius: np.ndarray = field(repr=False)
     build: dict[str, Any] = field(default_factory=dict)
+    #: linear unit of the coordinates (``ScanView.units``), None when unknown
+    units: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "scan": self.scan,
             "n_points": self.n_points,
             "ordering": self.ordering,
+            "units": self.units,
             "build": self.build,
             "levels": [r.as_dict() for r in self.reports],
         }
 
 
+@strict_keywords
 def evaluate_scan(
     scan: Any,
     *,
@@ -99,9 +104,17 @@ def evaluate_scan(
         reports=reports,
         radius=radius,
         build=scan.build,
+        units=getattr(scan, "units", None),
     )
 
 
+def _scan_keywords() -> list[str]:
+    import inspect
+
+    return [k for k in inspect.signature(evaluate_scan).parameters if k != "scan"]
+
+
+@strict_keywords(extra=_scan_keywords)
 def evaluate_archive(
     path: str | os.PathLike[str],
     scan: str | None = None,

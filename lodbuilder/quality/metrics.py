@@ -11,9 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import validate_points
+from .._validate import strict_keywords, strict_methods, validate_points
 
 
+@strict_keywords
 def nearest_distances(
     source: np.ndarray, target: np.ndarray, *, tree: cKDTree | None = None
 ) -> np.ndarray:
@@ -27,6 +28,7 @@ def nearest_distances(
     return np.asarray(d, dtype=np.float64)
 
 
+@strict_keywords
 def covering_radius(points, level, *, tree: cKDTree | None = None) -> float:
     """Largest Euclidean distance from an input point to its nearest level point.
 
@@ -37,6 +39,7 @@ def covering_radius(points, level, *, tree: cKDTree | None = None) -> float:
     return float(nearest_distances(pts, lev, tree=tree).max())
 
 
+@strict_keywords
 def meets_rho(cover: float, rho: float | None, *, rtol: float = 1e-9) -> bool | None:
     """True when a measured covering radius honours the density ``rho`` a level claims.
 
@@ -47,6 +50,7 @@ def meets_rho(cover: float, rho: float | None, *, rtol: float = 1e-9) -> bool | 
     return bool(cover <= rho * (1.0 + rtol) + 1e-300)
 
 
+@strict_methods
 @dataclass(frozen=True)
 class TwoSided:
     """A two-sided distance between the input scan and a level.
@@ -63,6 +67,7 @@ class TwoSided:
     value: float
 
 
+@strict_keywords
 def hausdorff(points, level) -> TwoSided:
     """Two-sided Hausdorff distance: the larger of both directed Hausdorff distances."""
     pts = validate_points(points, "points")
@@ -72,6 +77,7 @@ def hausdorff(points, level) -> TwoSided:
     return TwoSided(a, b, max(a, b))
 
 
+@strict_keywords
 def chamfer(points, level) -> TwoSided:
     """Chamfer distance (not squared): the mean of both directions' mean nearest-neighbour distance."""
     pts = validate_points(points, "points")
@@ -81,6 +87,7 @@ def chamfer(points, level) -> TwoSided:
     return TwoSided(a, b, 0.5 * (a + b))
 
 
+@strict_methods
 @dataclass(frozen=True)
 class Spacing:
     """Nearest-neighbour spacing inside a level.
@@ -96,6 +103,7 @@ class Spacing:
     max: float
 
 
+@strict_keywords
 def spacing(level, *, tree: cKDTree | None = None) -> Spacing:
     """Nearest-neighbour spacing statistics of a level."""
     lev = validate_points(level, "level")
@@ -108,6 +116,7 @@ def spacing(level, *, tree: cKDTree | None = None) -> Spacing:
     return Spacing(float(nn.min()), float(nn.mean()), float(nn.max()))
 
 
+@strict_keywords
 def uniformity(min_spacing: float, cover: float) -> float:
     """Minimum spacing divided by covering radius.
 

@@ -8,31 +8,34 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, MissingDependencyError
+from .._validate import strict_keywords
+from ..errors import InputError
 from .report import LevelReport
 
 
 def _pyplot():
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingDependencyError(
-            "plots need matplotlib; install it with: pip install matplotlib"
-        ) from None
+    from .._optional import require
+
+    matplotlib = require("matplotlib", "plot_quality")
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
     return plt
 
 
+@strict_keywords
 def plot_quality(
     reports: Sequence[LevelReport],
     out: str | os.PathLike,
     *,
     radius: np.ndarray | None = None,
     title: str = "",
+    units: str | None = None,
 ) -> Path:
     """Write a PNG with error vs size (log-log) and, when ``radius`` is given, insertion radius vs rank.
+
+    Distances are labelled in ``units`` (the scan's linear unit, e.g. ``metre``), or in "scan
+    units" when the unit is not known.
 
     The file is written to a temporary name in the destination directory and renamed into place.
     """
@@ -42,6 +45,7 @@ def plot_quality(
     if not reports:
         raise InputError("no level to plot: give at least one size or rho")
     plt = _pyplot()
+    unit = units or "scan units"
     ncols = 2 if radius is not None else 1
     fig, axes = plt.subplots(1, ncols, figsize=(6.0 * ncols, 4.5), squeeze=False)
     ax = axes[0, 0]
@@ -70,7 +74,7 @@ def plot_quality(
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("level size (points)")
-    ax.set_ylabel("distance (scan units)")
+    ax.set_ylabel(f"distance ({unit})")
     ax.set_title("error vs size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
@@ -83,7 +87,7 @@ def plot_quality(
         ax2.set_xscale("log")
         ax2.set_yscale("log")
         ax2.set_xlabel("rank (position in the ordering, 1-based)")
-        ax2.set_ylabel("insertion radius")
+        ax2.set_ylabel(f"insertion radius ({unit})")
         ax2.set_title("insertion radius vs rank")
         ax2.grid(True, which="both", alpha=0.3)
     if title:
@@ -92,7 +96,7 @@ def plot_quality(
     from ..io._files import atomic_output
 
     try:
-        with atomic_output(out, make_parents=True) as tmp:
+        with atomic_output(out) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)

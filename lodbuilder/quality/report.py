@@ -11,7 +11,15 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import check_positive, check_size, validate_points
+from .._validate import (
+    check_fraction,
+    check_positive,
+    check_size,
+    strict_keywords,
+    strict_methods,
+    validate_points,
+)
+from ..archive.levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .metrics import meets_rho, nearest_distances, spacing, uniformity
@@ -20,6 +28,7 @@ from .surface import ErrorStats, surface_error
 log = logging.getLogger(__name__)
 
 
+@strict_methods
 @dataclass
 class LevelReport:
     """Every quality figure of one level.
@@ -80,6 +89,7 @@ def _json_clean(obj: Any) -> Any:
     return obj
 
 
+@strict_keywords
 def evaluate_level(
     points,
     level,
@@ -144,6 +154,7 @@ def evaluate_level(
     return rep
 
 
+@strict_keywords
 def prefix_sizes(
     radius: np.ndarray,
     n_points: int,
@@ -164,28 +175,34 @@ def prefix_sizes(
     out: list[tuple[int, float | None]] = []
 
     def claim(s: int) -> float | None:
-        if s < kmax:
-            return float(radius[s])
-        return 0.0 if s >= n_points else None
+        if s >= kmax and kmax < n_points:
+            return None  # the ordering stops here: nothing is known past it
+        return covering_bound(s, kmax, radius.__getitem__)
 
     for s in sizes or ():
         s = check_size(s, kmax, "size")
         out.append((s, claim(s)))
     for f in fractions or ():
-        s = max(1, min(kmax, int(round(float(f) * n_points))))
+        s = size_for_fraction(check_fraction(f), n_points)
+        if s > kmax:
+            raise InputError(
+                f"fraction {f:g} is {s} points, more than the {kmax} the ordering reaches; "
+                "ask for a smaller fraction"
+            )
         out.append((s, claim(s)))
     for r in rhos or ():
         r = float(check_positive(r, "rho", allow_none=False))  # type: ignore[arg-type]
-        s = int(np.searchsorted(-radius, -r, side="left"))
+        s = count_above(radius, r)
         if s >= kmax and kmax < n_points:
             raise InputError(
                 f"rho {r:g} is finer than the ordering reaches (its last radius is {radius[-1]:g}); "
                 "ask for a larger rho"
             )
-        out.append((max(s, 1), r))
+        out.append((nonempty(s), r))
     return out
 
 
+@strict_keywords
 def evaluate_prefixes(
     points,
     order,
@@ -223,8 +240,7 @@ def evaluate_prefixes(
     return reports
 
 
+@strict_keywords
 def default_sizes(n: int, count: int = 10) -> list[int]:
     """About ``count`` distinct sizes, log-spaced from max(1, n/1000) to n."""
-    lo = max(1.0, n / 1000.0)
-    sizes = np.unique(np.round(np.geomspace(lo, n, count)).astype(np.int64))
-    return [int(s) for s in sizes]
+    return log_sizes(n / 1000.0, n, count)

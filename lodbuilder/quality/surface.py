@@ -13,12 +13,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._validate import validate_points
+from .._validate import strict_keywords, strict_methods, validate_points
 from ..errors import InputError
 
 METHODS = ("plane", "mls")
 
 
+@strict_methods
 @dataclass(frozen=True)
 class ErrorStats:
     """Summary of a per-point error array."""
@@ -88,6 +89,7 @@ def _mls_error(p: np.ndarray, nb: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.abs(fq - fit) * h
 
 
+@strict_keywords
 def surface_error(
     points,
     level,

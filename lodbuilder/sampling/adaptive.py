@@ -227,7 +227,9 @@ def floor_query_arrays(
     w_order = np.asarray(weighted_order, dtype=np.int64)
     radius = np.asarray(uniform_radius, dtype=np.float64)
     n_ordered = u_order.shape[0]
-    n_u = int(np.searchsorted(-radius, -rho, side="left"))
+    from ..archive.levels import count_above
+
+    n_u = count_above(radius, rho)
     if n_u == n_ordered and n_ordered < n_points and (n_ordered == 0 or radius[-1] > rho):
         raise InputError(
             f"the uniform ordering stops at radius {radius[-1]:g}, above rho = {rho:g}; "

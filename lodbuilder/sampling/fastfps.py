@@ -8,7 +8,13 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, validate_indices, validate_points
+from .._validate import (
+    check_positive,
+    check_size,
+    strict_keywords,
+    validate_indices,
+    validate_points,
+)
 from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
@@ -105,12 +111,15 @@ def check_ordering(o: Ordering) -> Ordering:
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
-        k = min(k, int(np.searchsorted(-radius, -rho, side="left")))
+        from ..archive.levels import count_above
+
+        k = min(k, count_above(radius, rho))
     if size is not None:
         k = min(k, size)
     return order[:k].copy(), radius[:k].copy(), parent[:k].copy()
 
 
+@strict_keywords
 def euclidean_fps(
     points: Any,
     *,
@@ -134,6 +143,7 @@ def euclidean_fps(
     return check_ordering(Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"}))
 
 
+@strict_keywords
 def fastfps(
     points: Any,
     *,

@@ -7,7 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_methods
 
+
+@strict_methods
 @dataclass(frozen=True)
 class Ordering:
     """A farthest point ordering of a point set.
@@ -41,9 +44,11 @@ class Ordering:
         return int(self.order.shape[0])
 
     def size_for_rho(self, rho: float) -> int:
-        """Number of leading points whose prefix covers every input point within ``rho``."""
-        # radius is non-increasing: count entries with radius > rho.
-        return int(np.searchsorted(-self.radius, -rho, side="left"))
+        """Number of leading points whose prefix covers every input point within ``rho``
+        (:func:`lodbuilder.archive.levels.count_above`)."""
+        from ..archive.levels import count_above
+
+        return count_above(self.radius, rho)
 
     def rank(self) -> np.ndarray:
         """(N,) int64: position of every input point in the ordering, -1 if not ordered."""

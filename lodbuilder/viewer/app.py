@@ -20,15 +20,18 @@ from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray
 
+from .._validate import strict_methods
 from ..errors import InputError
-from .data import ViewData
+from . import overlays
+from .data import LEVEL_MODES, ViewData, crs_label
+from .options import check_point_scale, check_window_size
 
 log = logging.getLogger(__name__)
 
 UPS = ("x", "y", "z", "-x", "-y", "-z")
 VIEWS = ("iso", "xy", "xz", "yz", "yx", "zx", "zy")
 HELP = (
-    "slider: level (log10 points)   c: colour mode   l: eye-dome lighting   b: refine in a box\n"
+    "slider: level (log10 points)   c: colour mode   l: shading   b: refine in a box\n"
     "m: surface of the level   +/-: point size   Left/Right: level /2, x2   q: quit"
 )
 
@@ -39,6 +42,7 @@ def _vtk_array(arr: np.ndarray, name: str):
     return a
 
 
+@strict_methods
 class LevelViewer:
     """An interactive (or off-screen) window over the levels of :class:`ViewData`.
 
@@ -50,7 +54,8 @@ class LevelViewer:
         full_scan: show the full scan side by side, cameras linked.
         window_size: pixels (width, height).
         point_scale: multiplies the point size that follows rho.
-        edl: start with eye-dome lighting on.
+        shade: start with the points lit by their normals (see :mod:`.overlays`; it replaces
+            eye-dome lighting, which darkened colours and worked on one pane only).
         view: initial camera direction (``iso``, ``xy``, ``xz``, ``yz``, ...).
         refine_factor: inside the refinement box, rho is divided by this.
     """
@@ -65,7 +70,7 @@ class LevelViewer:
         full_scan: bool = True,
         window_size: Sequence[int] | None = None,
         point_scale: float = 1.0,
-        edl: bool = False,
+        shade: bool = False,
         view: str = "iso",
         refine_factor: float = 4.0,
         show_help: bool = True,
@@ -81,20 +86,23 @@ class LevelViewer:
         self.k = data.clamp_size(size if size is not None else min(n, max(1000, n // 20)))
         modes = data.colour_modes()
         self.mode = data.check_mode(colour) if colour else modes[0]
-        self.point_scale = float(point_scale)
+        self.point_scale = check_point_scale(point_scale, "point_scale")
         self.refine_factor = float(refine_factor)
         self.box: tuple[np.ndarray, np.ndarray] | None = None
-        self.edl = False
+        self.shade = False
         self.full_scan = bool(full_scan)
         self._ids = np.arange(n + 1, dtype=np.int64)
-        self._refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # arrays VTK views, per mesh
+        self._refs: dict[int, tuple[np.ndarray, ...]] = {}  # arrays VTK views, per mesh
+        self._pos: np.ndarray | None = None  # stored positions shown, None for the prefix
         self._colours = data.colours(self.mode, self.k)
         self._surface_actor: Any = None
         self._slider: Any = None
+        self.full_mesh: pv.PolyData | None = None
         # the full scan's spacing, from the level of half the points (rho ~ 1/sqrt(k) on a surface)
         self._full_rho = data.rho_for_size(max(1, len(data) // 2)) / math.sqrt(2.0)
         if window_size is None:
             window_size = (1600, 800) if full_scan else (1000, 800)
+        window_size = check_window_size(window_size, "window_size")
         shape = (1, 2) if full_scan else (1, 1)
         plotter_cls: Any = pv.Plotter  # (pyvista's decorated __init__ confuses type checkers)
         # No multisampling: points do not need it, and 8x MSAA (PyVista's default) costs ~70 ms a
@@ -114,7 +122,6 @@ class LevelViewer:
         self._text = self.plotter.add_text("", position="upper_left", font_size=10, color="black")
         if show_help and not off_screen:
             self.plotter.add_text(HELP, position="lower_left", font_size=9, color="gray")
-        self.full_mesh = None
         if full_scan:
             self.plotter.subplot(0, 1)
             self.full_mesh = pv.PolyData()
@@ -130,20 +137,36 @@ class LevelViewer:
                 color="black",
             )
             self.plotter.link_views()
+        # the scale of the colour mode, in the rightmost pane; the CRS in the level pane's corner
+        self.scalar_bar = overlays.scalar_bar()
+        self.plotter.renderers[-1].AddViewProp(self.scalar_bar)
+        overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode))
         self.plotter.subplot(0, 0)
+        self.crs_label = crs_label(data.crs, data.units)
+        self._crs_text = self.plotter.add_text(
+            self.crs_label, position="lower_right", font_size=9, color="black"
+        )
         self._set_view(view)
         self._update_point_size()
         self._update_text()
-        if edl:
-            self.toggle_edl()
+        if shade:
+            self.toggle_shading()
 
     # ---- arrays -------------------------------------------------------------------------------
 
-    def _set_arrays(self, mesh: pv.PolyData, pts: np.ndarray, m: int, colours: np.ndarray) -> None:
-        """Point ``mesh`` at ``pts``/``colours`` (no copy when they are contiguous) with m vertices."""
+    def _set_arrays(
+        self,
+        mesh: pv.PolyData,
+        pts: np.ndarray,
+        m: int,
+        colours: np.ndarray,
+        normals: np.ndarray | None = None,
+    ) -> None:
+        """Point ``mesh`` at ``pts``/``colours``/``normals`` (no copy when they are contiguous)
+        with m vertices."""
         pts = np.ascontiguousarray(pts)
         colours = np.ascontiguousarray(colours)
-        self._refs[id(mesh)] = (pts, colours)
+        self._refs[id(mesh)] = (pts, colours) if normals is None else (pts, colours, normals)
         vp = vtkPoints()
         vp.SetData(numpy_to_vtk(pts, deep=False))
         mesh.SetPoints(vp)
@@ -156,20 +179,36 @@ class LevelViewer:
         pd = mesh.GetPointData()
         pd.AddArray(_vtk_array(colours, "colours"))
         pd.SetActiveScalars("colours")
+        if normals is not None:
+            normals = np.ascontiguousarray(normals)
+            pd.SetNormals(_vtk_array(normals, "Normals"))
         mesh.Modified()
 
+    @property
+    def shown(self) -> int | np.ndarray:
+        """What the level pane shows: the prefix size k, or the stored positions (in a box)."""
+        return self.k if self._pos is None else self._pos
+
     def _update_level_arrays(self) -> None:
+        """Recompute what the level pane shows (and the Voronoi colours, which follow it)."""
         k = self.k
-        if self.box is None:
-            pts, col = self.data.points[:k], self._colours[:k]
-        else:
-            pos = self.data.selective(k, self.box[0], self.box[1], self.refine_factor)
-            pts, col = self.data.points[pos], self._colours[pos]
-        self._set_arrays(self.level_mesh, pts, pts.shape[0], col)
+        self._pos = (
+            None
+            if self.box is None
+            else self.data.selective(k, self.box[0], self.box[1], self.refine_factor)
+        )
+        if self.mode in LEVEL_MODES:
+            self._colours = self.data.colours(self.mode, self.shown)
+            self._update_full_colours()
+        sel = slice(0, k) if self._pos is None else self._pos
+        normals = self.data.normals()[sel] if self.shade else None
+        pts, col = self.data.points[sel], self._colours[sel]
+        self._set_arrays(self.level_mesh, pts, pts.shape[0], col, normals)
 
     def _update_full_colours(self) -> None:
         if self.full_mesh is not None:
-            self._refs[id(self.full_mesh)] = (self.data.points, self._colours)
+            refs = self._refs.get(id(self.full_mesh), ())
+            self._refs[id(self.full_mesh)] = (self.data.points, self._colours, *refs[2:])
             pd = self.full_mesh.GetPointData()
             pd.AddArray(_vtk_array(self._colours, "colours"))
             pd.SetActiveScalars("colours")
@@ -189,9 +228,6 @@ class LevelViewer:
     def set_level(self, k: float, render: bool = True) -> int:
         """Show the level of ``k`` points (the prefix, refined inside the box if one is set)."""
         self.k = self.data.clamp_size(k)
-        if self.mode == "voronoi":
-            self._colours = self.data.colours(self.mode, self.k)
-            self._update_full_colours()
         self._update_level_arrays()
         if self._surface_actor is not None:
             self._remove_surface()
@@ -206,8 +242,7 @@ class LevelViewer:
     def _render_level(self) -> None:
         """Render after a change of the level panel only: the full-scan panel is left as drawn
         (it is not redrawn unless its colours change), which halves the cost of a slider move."""
-        # (eye-dome lighting's pass clears the other viewport, so then both are drawn)
-        if self.full_mesh is None or self.mode == "voronoi" or self.edl:
+        if self.full_mesh is None or self.mode in LEVEL_MODES:
             self.plotter.render()
             return
         full = self.plotter.renderers[1]
@@ -227,9 +262,10 @@ class LevelViewer:
 
     def set_colour(self, mode: str, render: bool = True) -> str:
         self.mode = self.data.check_mode(mode)
-        self._colours = self.data.colours(self.mode, self.k)
+        self._colours = self.data.colours(self.mode, self.shown)
         self._update_level_arrays()
         self._update_full_colours()
+        overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode))
         self._update_text()
         if render:
             self.plotter.render()
@@ -314,20 +350,22 @@ class LevelViewer:
             getattr(self.plotter, f"view_{view}")(bounds=bounds)
         self.plotter.reset_camera(bounds=bounds)
 
-    def toggle_edl(self) -> bool:
-        """Switch eye-dome lighting on or off in the level panel.
+    def toggle_shading(self) -> bool:
+        """Light the points of both panes by their normals, or draw them flat (key ``l``).
 
-        Only there: VTK's EDL pass in one viewport blanks the viewports rendered before it
-        (pyvista issue #256), so the full-scan panel keeps plain shading.
-        """
-        self.edl = not self.edl
-        ren = self.plotter.renderers[0]
-        if self.edl:
-            ren.enable_eye_dome_lighting()
-        else:
-            ren.disable_eye_dome_lighting()
+        The normals are the scan's PCA normals (computed once, on first use); see
+        :mod:`lodbuilder.viewer.overlays` for why this replaces eye-dome lighting."""
+        self.shade = not self.shade
+        self._update_level_arrays()
+        actors = [self.level_actor]
+        if self.full_mesh is not None:
+            normals = self.data.normals() if self.shade else None
+            self._set_arrays(self.full_mesh, self.data.points, len(self.data), self._colours, normals)
+            actors.append(self.full_actor)
+        for actor in actors:
+            overlays.set_shading(actor, self.shade)
         self.plotter.render()
-        return self.edl
+        return self.shade
 
     # ---- selective refinement -----------------------------------------------------------------
 
@@ -365,20 +403,11 @@ class LevelViewer:
     # ---- surface ------------------------------------------------------------------------------
 
     def reconstruct(self) -> pv.PolyData:
-        """A surface of the current level (VTK surface reconstruction; Delaunay 2D fallback)."""
-        pts = pv.PolyData(np.ascontiguousarray(self.level_mesh.points, dtype=np.float64))
-        surf = None
-        if pts.n_points >= 10:
-            try:
-                spacing = 0.5 * self.rho if self.rho > 0 else None
-                surf = pts.reconstruct_surface(
-                    nbr_sz=min(20, pts.n_points - 1), sample_spacing=spacing
-                )
-            except Exception as exc:  # VTK raises on degenerate inputs
-                log.info("reconstruct_surface failed (%s); using delaunay_2d", exc)
-        if surf is None or surf.n_cells == 0:
-            surf = pts.delaunay_2d()
-        return surf
+        """A surface of the shown points, trimmed to within 2 rho of them (:mod:`.surface`)."""
+        from .surface import level_surface
+
+        rho = max(self.rho, self._full_rho)  # (in a box the points are closer: rho still bounds)
+        return level_surface(np.asarray(self.level_mesh.points, dtype=np.float64), rho)
 
     def toggle_surface(self) -> bool:
         if self._surface_actor is not None:
@@ -416,7 +445,7 @@ class LevelViewer:
             interaction_event="always",
         )
         self.plotter.add_key_event("c", self.next_colour)
-        self.plotter.add_key_event("l", self.toggle_edl)
+        self.plotter.add_key_event("l", self.toggle_shading)
         self.plotter.add_key_event("b", self.toggle_box_widget)
         self.plotter.add_key_event("m", self.toggle_surface)
         self.plotter.add_key_event("plus", lambda: self.scale_points(1.25))
@@ -426,7 +455,7 @@ class LevelViewer:
 
     def show(self) -> None:
         self.add_controls()
-        self.plotter.show(title="lodbuilder view")
+        self.plotter.show(title=f"lodbuilder view: {', '.join(self.data.scan_names)} ({self.crs_label})")
 
     # ---- off screen ---------------------------------------------------------------------------
 
@@ -461,7 +490,9 @@ class LevelViewer:
         out = Path(out)
         n = len(self.data)
         lo = start if start is not None else max(1, min(n, 10))
-        sizes = np.unique(np.round(np.geomspace(lo, n, max(2, int(frames)))).astype(np.int64))
+        from ..archive.levels import log_sizes
+
+        sizes = log_sizes(lo, n, max(2, int(frames)))
         images = []
         for s in sizes:
             self.set_level(int(s), render=False)
@@ -475,5 +506,5 @@ class LevelViewer:
 def _atomic_write(out: Path, write) -> None:
     from ..io._files import atomic_output
 
-    with atomic_output(out, make_parents=True) as tmp:
+    with atomic_output(out) as tmp:
         write(str(tmp))

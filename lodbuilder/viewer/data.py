@@ -14,11 +14,47 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._validate import strict_keywords, strict_methods
 from ..errors import InputError
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
+#: modes whose colours depend on the level shown (recomputed when it changes); ``gaps`` is asked
+#: for by name (``--colour gaps``), not cycled through: it searches the level for holes
+LEVEL_MODES = ("voronoi", "gaps")
+#: ``gaps`` colours: away from gaps, near a fillable gap, near a rough one
+GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
+
+#: the unit of each built-in importance map (lodbuilder.features.registry), for the legend
+IMPORTANCE_UNITS = {
+    "curvature": "lambda0 / sum lambda, no unit",
+    "normal": "mean angle, rad",
+    "colour": "CIE76 Delta-E",
+    "noise": "x local median residual",
+}
+#: neighbours of the PCA normals that shade the points
+NORMAL_K = 12
 
 
+@dataclass(frozen=True)
+class Legend:
+    """How a scalar colour mode maps values to viridis: ``lo`` -> 0, ``hi`` -> 1, linearly or on a
+    log scale; ``title`` names the quantity and its unit (what a scalar bar shows)."""
+
+    title: str
+    lo: float
+    hi: float
+    log: bool
+
+    def normalise(self, values: np.ndarray) -> np.ndarray:
+        v = np.asarray(values, dtype=np.float64)
+        if self.log:
+            lo, hi = math.log(self.lo), math.log(self.hi)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return (np.log(np.maximum(v, self.lo)) - lo) / ((hi - lo) or 1.0)
+        return (v - self.lo) / ((self.hi - self.lo) or 1.0)
+
+
+@strict_methods
 @dataclass
 class ViewData:
     """Points in farthest-point order and what can colour them.
@@ -31,6 +67,8 @@ class ViewData:
         importance: per-point importance maps in the same order.
         scan_id: (N,) int32 index into ``scan_names``.
         scan_names: the names of the scans shown.
+        crs: the scans' coordinate reference system (WKT), None when unknown or mixed.
+        units: the linear unit of the coordinates (``metre``, ``foot``...), None when unknown.
     """
 
     points: np.ndarray
@@ -40,6 +78,8 @@ class ViewData:
     importance: dict[str, np.ndarray] = field(default_factory=dict)
     scan_id: np.ndarray | None = None
     scan_names: tuple[str, ...] = ("scan",)
+    crs: str | None = None
+    units: str | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -59,7 +99,9 @@ class ViewData:
                     )
         if self.scan_id is None:
             self.scan_id = np.zeros(n, dtype=np.int32)
-        self._rep_cache: tuple[int, np.ndarray] | None = None
+        self._cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._gap_cache: tuple[int, np.ndarray] | None = None
+        self._normals: np.ndarray | None = None
         finite = self.radius[np.isfinite(self.radius) & (self.radius > 0)]
         self._rmax = float(finite.max()) if finite.size else 1.0
         self._rmin = float(finite.min()) if finite.size else 1.0
@@ -71,20 +113,35 @@ class ViewData:
 
     # ---- levels -------------------------------------------------------------------------------
 
+    # the arithmetic is lodbuilder.archive.levels', as for every other level of an archive
+
     def size_for_rho(self, rho: float) -> int:
         """Shortest prefix whose next insertion radius is <= rho (at least 1 point)."""
-        return max(1, int(np.searchsorted(-self.radius, -float(rho), side="left")))
+        from ..archive.levels import size_for_rho
+
+        return size_for_rho(self.radius, float(rho))
 
     def rho_for_size(self, k: int) -> float:
-        """The density a prefix of ``k`` points guarantees: the next insertion radius (0 at N)."""
-        k = int(k)
-        if k >= len(self):
-            return 0.0
-        r = float(self.radius[k])
+        """The density a prefix of ``k`` points guarantees: the next insertion radius (0 at N;
+        the largest finite radius where it is a seed's inf)."""
+        from ..archive.levels import covering_bound
+
+        r = covering_bound(int(k), len(self), self.radius.__getitem__)
         return r if math.isfinite(r) else self._rmax
 
     def clamp_size(self, k: float) -> int:
-        return int(min(len(self), max(1, int(round(k)))))
+        """A point count (the slider's) as a level size: nearest whole number, halves up, in
+        [1, N]."""
+        from ..archive.levels import round_size
+
+        return round_size(k, len(self))
+
+    def resolve_size(self, rho=None, size=None, fraction=None) -> int:
+        """Size of the level asked by exactly one of ``rho``, ``size`` or ``fraction``, as an
+        archive scan's ``level`` computes it."""
+        from ..archive.levels import resolve_size
+
+        return resolve_size(len(self), rho, size, fraction, rho_size=self.size_for_rho)
 
     def selective(self, k: int, lo, hi, factor: float = 4.0) -> np.ndarray:
         """Stored positions of a level finer inside the box [lo, hi], as the archive's
@@ -93,29 +150,91 @@ class ViewData:
 
         Every point inside the box is then within rho / factor of a shown point. Sorted positions.
         """
-        from ..archive.levels import check_box, in_box
+        from ..archive.levels import box_positions, check_box
 
         k = self.clamp_size(k)
         box = check_box(np.concatenate([np.ravel(lo), np.ravel(hi)]))
         rho_in = self.rho_for_size(k) / float(factor)
         k_in = self.size_for_rho(rho_in) if rho_in > 0 else len(self)
-        inside = in_box(self.points[k:k_in], box, rho_in)
-        return np.concatenate([np.arange(k, dtype=np.int64), k + np.flatnonzero(inside)])
+        return box_positions(self.points[:k_in], k, box, rho_in)
 
-    # ---- representatives (Voronoi cells at a level) -------------------------------------------
+    # ---- Voronoi cells of a level, normals ----------------------------------------------------
 
-    def representatives(self, k: int) -> np.ndarray:
-        """(N,) stored position of every point's representative at level ``k`` (the archive's
-        rule: the first ancestor along the parent links of rank < k; -1 when a chain ends at a
-        root of rank >= k)."""
-        from ..archive.levels import representatives
+    def cells(self, shown: int | np.ndarray) -> np.ndarray:
+        """(N,) stored position of the shown point nearest to each point (Euclidean): the Voronoi
+        cells of the displayed level, restricted to the scan's points.
 
-        k = self.clamp_size(k)
-        if self._rep_cache is not None and self._rep_cache[0] == k:
-            return self._rep_cache[1]
-        rep = representatives(self.parent, k)
-        self._rep_cache = (k, rep)
-        return rep
+        ``shown`` is a level size k (the prefix) or the stored positions of the shown points (a
+        level refined in a box). The last answer is kept and updated when the level changes:
+        points whose cell's point left the level are assigned again among the shown points, and
+        every point closer to a newly shown point than to its cell's point moves to it (a tree
+        of the new points, queried within the largest current distance), which is exact and
+        several times cheaper than a new query of every point when a slider moves."""
+        from scipy.spatial import cKDTree
+
+        if np.isscalar(shown):
+            pos = np.arange(self.clamp_size(shown))  # type: ignore[arg-type]
+        else:
+            pos = np.unique(np.asarray(shown, dtype=np.int64))
+        if pos.size == 0:
+            raise InputError("a level shows at least one point; got none")
+        mask = np.zeros(len(self), dtype=bool)
+        mask[pos] = True
+        if self._cells is not None and np.array_equal(self._cells[0], mask):
+            return self._cells[1]
+        pts = self.points
+        if self._cells is None:
+            dist, j = cKDTree(pts[pos]).query(pts, k=1, workers=-1)
+            cells = pos[np.asarray(j, dtype=np.int64)]
+        else:
+            old, cells, dist = self._cells
+            cells, dist = cells.copy(), dist.copy()
+            lost = np.flatnonzero(~mask[cells])  # their cell's point is no longer shown
+            if lost.size:
+                d, j = cKDTree(pts[pos]).query(pts[lost], k=1, workers=-1)
+                cells[lost], dist[lost] = pos[np.asarray(j, dtype=np.int64)], d
+            new = np.flatnonzero(mask & ~old)
+            if new.size:
+                bound = float(dist.max()) * (1 + 1e-9) + 1e-300
+                d, j = cKDTree(pts[new]).query(pts, k=1, distance_upper_bound=bound, workers=-1)
+                closer = d < dist
+                cells[closer], dist[closer] = new[np.asarray(j, dtype=np.int64)[closer]], d[closer]
+        self._cells = (mask, cells, dist)
+        return cells
+
+    def normals(self) -> np.ndarray:
+        """(N, 3) float32 unit normals of the points (PCA over NORMAL_K neighbours in the full
+        scan, unoriented; computed once). A level's points are stored points, so a level takes
+        the rows of its positions."""
+        if self._normals is None:
+            from ..features.geometry import pca_normals
+
+            k = min(NORMAL_K, len(self))
+            if k < 3:
+                self._normals = np.tile(np.array([0, 0, 1], np.float32), (len(self), 1))
+            else:
+                self._normals = np.ascontiguousarray(pca_normals(self.points, k=k), np.float32)
+        return self._normals
+
+    def gap_codes(self, shown: int | np.ndarray) -> np.ndarray:
+        """(N,) 0 / 1 / 2: away from gaps / near a fillable gap / near a rough one, at the level
+        shown (its prefix part, for a level refined in a box); see
+        :func:`lodbuilder.sampling.fill.near_gaps`."""
+        from ..sampling.fill import SAMPLE_FRACTION, near_gaps
+
+        if np.isscalar(shown):
+            k = self.clamp_size(shown)  # type: ignore[arg-type]
+        else:
+            pos = np.asarray(shown, dtype=np.int64)
+            off = np.flatnonzero(pos != np.arange(pos.size))
+            k = max(1, int(off[0]) if off.size else int(pos.size))
+        if self._gap_cache is None or self._gap_cache[0] != k:
+            rho = self.rho_for_size(k)
+            codes = np.zeros(len(self), dtype=np.uint8)
+            if rho > 0:
+                codes = near_gaps(self.points, k, self.size_for_rho(SAMPLE_FRACTION * rho), rho)
+            self._gap_cache = (k, codes)
+        return self._gap_cache[1]
 
     # ---- colour modes -------------------------------------------------------------------------
 
@@ -132,6 +251,8 @@ class ViewData:
         return modes
 
     def check_mode(self, mode: str) -> str:
+        if mode == "gaps":
+            return mode
         modes = self.colour_modes()
         if mode == "importance" and any(m.startswith("importance:") for m in modes):
             mode = next(m for m in modes if m.startswith("importance:"))
@@ -141,11 +262,27 @@ class ViewData:
             )
         return mode
 
-    def colours(self, mode: str, k: int, positions: np.ndarray | None = None) -> np.ndarray:
-        """(M, 3) uint8 colours of the points at ``positions`` (default: the whole scan) at level k.
+    def legend(self, mode: str) -> Legend | None:
+        """The scale of a scalar colour mode (radius, rank, importance), None for the others."""
+        mode = self.check_mode(mode)
+        if mode == "radius":
+            return radius_legend(self.radius, self.units)
+        if mode == "rank":
+            return rank_legend(len(self))
+        if mode.startswith("importance:"):
+            name = mode.split(":", 1)[1]
+            return importance_legend(name, self.importance[name])
+        return None
 
-        ``voronoi`` colours a point by its representative's cell at level ``k``, so the full scan
-        shows the level's Voronoi diagram; the other modes do not depend on ``k``.
+    def colours(
+        self, mode: str, shown: int | np.ndarray, positions: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(M, 3) uint8 colours of the points at ``positions`` (default: the whole scan) when the
+        level ``shown`` is displayed (a size k, or the stored positions of the shown points).
+
+        ``voronoi`` colours a point by the cell of its nearest shown point (:meth:`cells`), so the
+        full scan shows the displayed level's Voronoi diagram; the other modes do not depend on
+        the level. Scalar modes map through :meth:`legend`.
         """
         mode = self.check_mode(mode)
         sel = slice(None) if positions is None else positions
@@ -154,25 +291,24 @@ class ViewData:
                 [np.asarray(self.attributes[c])[sel] for c in ("red", "green", "blue")]
             )
             return _to_uint8_rgb(rgb)
-        if mode == "radius":
-            r = self.radius[sel]
-            r = np.where(np.isfinite(r) & (r > 0), r, np.where(np.isinf(r), self._rmax, self._rmin))
-            lo, hi = math.log(self._rmin), math.log(self._rmax)
-            t = (np.log(r) - lo) / ((hi - lo) or 1.0)
-            return colormap(t)
-        if mode == "rank":
-            pos = np.arange(len(self))[sel]
-            t = np.log1p(pos) / math.log1p(max(len(self) - 1, 1))
-            return colormap(t)
         if mode == "scan":
             return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
-            return categorical(self.representatives(k)[sel])
-        name = mode.split(":", 1)[1]
-        v = np.asarray(self.importance[name], dtype=np.float64)
-        lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
-        t = (v[sel] - lo) / ((hi - lo) or 1.0)
-        return colormap(t)
+            return categorical(self.cells(shown)[sel])
+        if mode == "gaps":
+            return GAP_COLOURS[self.gap_codes(shown)[sel]]
+        legend = self.legend(mode)
+        assert legend is not None
+        if mode == "radius":
+            r = self.radius[sel]
+            values = np.where(
+                np.isfinite(r) & (r > 0), r, np.where(np.isinf(r), self._rmax, self._rmin)
+            )
+        elif mode == "rank":
+            values = np.arange(1, len(self) + 1, dtype=np.float64)[sel]
+        else:
+            values = np.asarray(self.importance[mode.split(":", 1)[1]], dtype=np.float64)[sel]
+        return colormap(legend.normalise(values))
 
     # ---- building -----------------------------------------------------------------------------
 
@@ -212,7 +348,44 @@ class ViewData:
             importance=common(lambda p: p.importance),
             scan_id=scan_id[perm],
             scan_names=tuple(names) if names else tuple(n for p in parts for n in p.scan_names),
+            crs=parts[0].crs if all(p.crs == parts[0].crs for p in parts) else None,
+            units=parts[0].units if all(p.units == parts[0].units for p in parts) else None,
         )
+
+
+def radius_legend(radius: np.ndarray, units: str | None = None) -> Legend:
+    """Log scale of insertion radii, from their 1st percentile to the largest finite one.
+
+    (The last radii of an ordering, near-duplicates, reach far below the scan's spacing: from
+    the smallest one, every other point would get one colour.)"""
+    r = np.asarray(radius, dtype=np.float64)
+    finite = r[np.isfinite(r) & (r > 0)]
+    lo = float(np.percentile(finite, 1)) if finite.size else 1.0
+    hi = float(finite.max()) if finite.size else 1.0
+    return Legend(f"insertion radius ({units or 'scan units'}, log)", lo, max(hi, lo), True)
+
+
+def rank_legend(n: int) -> Legend:
+    """Log scale of ranks 1..n (the first point is rank 1)."""
+    return Legend("rank (1 = first point, log)", 1.0, float(max(n, 2)), True)
+
+
+def importance_legend(name: str, values: np.ndarray) -> Legend:
+    """Linear scale of an importance map from its 1st to its 99th percentile."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
+    unit = IMPORTANCE_UNITS.get(name, "as stored")
+    return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
+
+
+def crs_label(crs: str | None, units: str | None) -> str:
+    """One line naming the coordinates' CRS and unit (``CRS unknown`` when there is none)."""
+    unit = units or "scan units"
+    if not crs:
+        return f"CRS unknown, coordinates in {unit}"
+    from ..io.crs import crs_name  # (pyproj names it, when installed)
+
+    return f"CRS {crs_name(crs) or 'given as WKT (install pyproj to name it)'}, coordinates in {unit}"
 
 
 def _to_uint8_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -265,6 +438,7 @@ def categorical(labels: np.ndarray) -> np.ndarray:
     return (48 + rgb * 207 // 255).astype(np.uint8)  # avoid near-black cells
 
 
+@strict_keywords
 def from_arrays(
     points,
     radius,
@@ -273,6 +447,8 @@ def from_arrays(
     attributes: Mapping[str, np.ndarray] | None = None,
     importance: Mapping[str, np.ndarray] | None = None,
     name: str = "scan",
+    crs: str | None = None,
+    units: str | None = None,
 ) -> ViewData:
     """ViewData of one scan whose arrays are already in stored (farthest-point) order."""
     return ViewData(
@@ -282,4 +458,6 @@ def from_arrays(
         attributes=dict(attributes or {}),
         importance=dict(importance or {}),
         scan_names=(name,),
+        crs=crs,
+        units=units,
     )

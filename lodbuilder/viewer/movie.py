@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, MissingDependencyError
+from .._validate import strict_keywords
+from ..errors import InputError
 
 SUFFIXES = (".gif", ".mp4")
 
@@ -21,17 +22,14 @@ def check_movie_path(out: str | os.PathLike) -> Path:
     if suffix not in SUFFIXES:
         raise InputError(f"animation {out} must end in .gif or .mp4")
     if suffix == ".mp4":
-        try:
-            import imageio.v2  # noqa: F401
-            import imageio_ffmpeg  # noqa: F401
-        except ImportError:
-            raise MissingDependencyError(
-                f"writing {out.name} needs imageio and imageio-ffmpeg "
-                "(pip install imageio imageio-ffmpeg); or ask for a .gif"
-            ) from None
+        from .._optional import require
+
+        for module in ("imageio.v2", "imageio_ffmpeg"):
+            require(module, f"writing {out.name} (a .gif needs nothing more)")
     return out
 
 
+@strict_keywords
 def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 10.0) -> Path:
     """Write (H, W, 3) uint8 frames to ``out`` (.gif or .mp4), atomically."""
     out = check_movie_path(out)
@@ -39,7 +37,7 @@ def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float
         raise InputError(f"no frame to write to {out}")
     from ..io._files import atomic_output
 
-    with atomic_output(out, make_parents=True) as tmp:
+    with atomic_output(out) as tmp:
         if out.suffix.lower() == ".mp4":
             import imageio.v2 as iio
 

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import strict_keywords
 from ..archive import layout as L
 from ..errors import InputError
 from .data import ViewData
@@ -14,6 +15,7 @@ from .data import ViewData
 COLOUR_ATTRIBUTES = ("red", "green", "blue")
 
 
+@strict_keywords
 def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     """ViewData of one archive scan (a :class:`lodbuilder.archive.reader.ScanView`), in its stored
     (uniform) order or in one of its extra orderings (``weighted``, ``floor``, ...), whose levels
@@ -21,6 +23,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]
     attrs = scan.attributes(None, names if len(names) == 3 else False)
     importance = {m: np.asarray(scan.importance(m)) for m in scan.importance_names}
+    crs = {"crs": scan.crs, "units": scan.units}
     if ordering in (None, "uniform"):
         return ViewData(
             points=scan.points(),
@@ -29,6 +32,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
             attributes=attrs,
             importance=importance,
             scan_names=(scan.name,),
+            **crs,
         )
     if ordering not in scan.ordering_names:
         raise InputError(
@@ -44,9 +48,11 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
         attributes={k: np.asarray(v)[pos] for k, v in attrs.items()},
         importance={k: v[pos] for k, v in importance.items()},
         scan_names=(f"{scan.name} ({ordering})",),
+        **crs,
     )
 
 
+@strict_keywords
 def load_view_data(
     archive: str | os.PathLike | Any, scan: str | None = None, ordering: str | None = None
 ) -> ViewData:

@@ -64,9 +64,9 @@ def build_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """Validated keyword arguments for ``build_archive`` (empty when no option was given)."""
     from .._validate import check_positive
     from ..errors import InputError
-    from .neighbours import check_k
-    from .registry import map_name, parse_names
-    from .weights import check_adaptivity
+    from ..features.neighbours import check_k
+    from ..features.registry import map_name, parse_names
+    from ..features.weights import check_adaptivity
 
     out: dict[str, Any] = {}
     if getattr(args, "importance", None) is not None:
@@ -104,6 +104,7 @@ def floor_level(view: Any, rho: float, size: int, ordering: str | None = None) -
     import numpy as np
 
     from ..archive import layout as L
+    from ..archive.levels import covering_bound
     from ..sampling.adaptive import floor_positions
 
     name = ordering or "weighted"
@@ -111,7 +112,7 @@ def floor_level(view: Any, rho: float, size: int, ordering: str | None = None) -
     w_pos = view._read(og[L.D_ORDER])
     pos = floor_positions(view.radius, view.n_ordered, w_pos, rho, size)
     n_u = view.size_for_rho(rho)
-    bound = 0.0 if n_u >= view.n_ordered else float(view.radius[n_u])
+    bound = covering_bound(n_u, view.n_ordered, view.radius.__getitem__)
     level = view._gather(
         np.asarray(pos, dtype=np.int64), None, bound, True, ordering=f"{name}+floor"
     )

@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def wants_collection(args: argparse.Namespace) -> bool:
     """True unless the inputs are exactly one plain scan file with no collection option."""
-    from .inputs import MANIFEST_SUFFIXES, expand_inputs
+    from ..collection.inputs import MANIFEST_SUFFIXES, expand_inputs
 
     inputs = list(args.input or [])
     if args.manifest or args.workers is not None or args.scheduler or args.dask_local is not None \
@@ -54,20 +54,24 @@ def _status_line(st: Any, done: int, total: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..collection.runner import build_collection
     from ..errors import InputError
-    from ..features.cli_options import build_kwargs
-    from .runner import build_collection
+    from .feature_options import build_kwargs
 
     if args.name:
         raise InputError("--name names a single scan; a collection names each scan after its file")
     if not args.input and not args.manifest:
         raise InputError("give INPUT files, directories or globs, or --manifest FILE")
-    show = not getattr(args, "no_progress", False) and sys.stderr.isatty()
+    from .output import QUIET, progress_enabled, say, verbosity
+
+    show = progress_enabled(args) is not False and sys.stderr.isatty()
     bar: Any = None
     counter = {"done": 0}
 
     def on_status(st: Any) -> None:
         counter["done"] += 1
+        if verbosity(args) == QUIET and st.status != "failed":
+            return
         line = _status_line(st, counter["done"], total["n"])
         if bar is not None:
             bar.write(line, file=sys.stderr)
@@ -101,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     counts = res.summary()
     parts = [f"{counts[k]} {k}" for k in ("built", "recovered", "skipped", "failed") if counts.get(k)]
     where = f" on {res.executor}" if res.executor else ""
-    print(f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
+    say(args, f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
     return 1 if res.failed else 0
 
 
@@ -109,9 +113,9 @@ def slice_all(args: argparse.Namespace) -> int:
     """``lodbuilder slice ARCHIVE --all-scans --rho R -o OUT``: the level of every scan, merged."""
     from pathlib import Path
 
+    from ..collection.query import collection_level
     from ..errors import InputError
     from ..io import write_points
-    from .query import collection_level
 
     if args.rho is None:
         raise InputError("--all-scans needs --rho (one density for every scan)")
@@ -127,6 +131,10 @@ def slice_all(args: argparse.Namespace) -> int:
     meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
     meta["comments"] = [f"scan_id {i} = {name}" for i, name in enumerate(lvl.scans)]
     write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)
-    print(f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
-          f"(attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})")
+    from .output import emit
+
+    doc = {"archive": str(args.archive), "output": str(args.output), "size": len(lvl), "rho": lvl.rho,
+           "scans": lvl.scans, "sizes": lvl.sizes, "attributes": sorted(lvl.attributes)}
+    emit(args, doc, f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to "
+                    f"{args.output} (attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})")
     return 0

@@ -1,0 +1,257 @@
+"""What every command shares: quiet/verbose levels, ``--json`` reports, one-line errors and the
+one rule for output paths.
+
+A command module uses it like this::
+
+    from .output import add_json_option, check_output, emit
+
+    def add_parser(subparsers):
+        p = subparsers.add_parser("thing", ...)
+        add_json_option(p)                      # --json: the report as JSON on stdout
+        return p
+
+    def run(args):
+        out = check_output(args.output, "-o", inputs={"archive": args.archive})
+        ...                                     # the work
+        emit(args, {"wrote": str(out), "size": k}, f"wrote {k} points to {out}")
+        return 0
+
+``main`` adds ``-q/--quiet`` and ``-v/--verbose`` to every command (:func:`add_common_options`),
+sets up logging from them (:func:`setup_logging`) and prints every error with :func:`error_line`.
+
+Levels: ``-q`` prints errors only (and the JSON report when ``--json`` asks for it); the default
+prints the command's result and warnings; ``-v`` adds details and INFO log lines; ``-vv`` DEBUG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any, NoReturn
+
+QUIET, NORMAL, VERBOSE, DEBUG = -1, 0, 1, 2
+
+
+# -- options ---------------------------------------------------------------------------------
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, like every other error of the command
+    line: ``lodbuilder slice: error: argument --size: invalid int value: 'x' (see 'lodbuilder
+    slice --help')``, exit 2 (argparse prints the whole usage first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see '{self.prog} --help')\n")
+
+
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """``-q/--quiet`` and ``-v/--verbose`` (repeatable); ``main`` calls this for every command."""
+    g = p.add_argument_group("output levels")
+    g.add_argument(
+        "-q", "--quiet", action="store_true", help="print nothing but errors (and --json output)"
+    )
+    g.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="print details and log progress (-vv: debug log)",
+    )
+
+
+def add_json_option(p: argparse.ArgumentParser, *, to_file: bool = False) -> None:
+    """``--json``: the command's report as JSON on stdout instead of text.
+
+    With ``to_file`` the option takes a path (``--json OUT``, ``-`` for stdout), for reports
+    large enough to keep."""
+    if to_file:
+        p.add_argument(
+            "--json", metavar="OUT", help="write the report as JSON to OUT ('-' for stdout)"
+        )
+    else:
+        p.add_argument(
+            "--json", action="store_true", help="print the report as JSON on stdout instead of text"
+        )
+
+
+def verbosity(args: argparse.Namespace) -> int:
+    """QUIET (-1), NORMAL (0), VERBOSE (1) or DEBUG (2) from the command's -q/-v options."""
+    if getattr(args, "quiet", False):
+        return QUIET
+    return min(DEBUG, int(getattr(args, "verbose", 0) or 0))
+
+
+def json_to_stdout(args: argparse.Namespace) -> bool:
+    """True when the command's JSON report goes to stdout (then no text may go there)."""
+    value = getattr(args, "json", None)
+    return value is True or value == "-"
+
+
+def setup_logging(args: argparse.Namespace) -> int:
+    """Level of the ``lodbuilder`` loggers from the verbosity: ERROR when quiet, WARNING, INFO
+    (-v), DEBUG (-vv); log lines go to stderr (a handler is added only when none is set up).
+    Returns the level the logger had, for the caller to restore."""
+    level = {QUIET: logging.ERROR, NORMAL: logging.WARNING, VERBOSE: logging.INFO}.get(
+        verbosity(args), logging.DEBUG
+    )
+    if not logging.getLogger().handlers:
+        logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
+    logger = logging.getLogger("lodbuilder")
+    before = logger.level
+    logger.setLevel(level)
+    return before
+
+
+def progress_enabled(args: argparse.Namespace) -> bool | None:
+    """For :class:`~lodbuilder.cli.progressbar.ProgressBars`: off when quiet or --no-progress,
+    else None (on when stderr is a terminal)."""
+    if verbosity(args) == QUIET or getattr(args, "no_progress", False):
+        return False
+    return None
+
+
+# -- printing --------------------------------------------------------------------------------
+
+
+def say(args: argparse.Namespace, text: str, level: int = NORMAL) -> None:
+    """Print a line of the text report on stdout when the verbosity reaches ``level`` and stdout
+    is not taken by a JSON report."""
+    if verbosity(args) >= level and not json_to_stdout(args):
+        print(text)
+
+
+def emit(args: argparse.Namespace, doc: dict[str, Any], text: str | Callable[[], str]) -> None:
+    """Report a command's result: ``doc`` as JSON with ``--json`` (stdout, or the file of
+    ``--json OUT``), and ``text`` (a string or a function making it) unless quiet or JSON took
+    stdout."""
+    out = getattr(args, "json", None)
+    if out:
+        write_json(doc, "-" if out is True else out)
+    if verbosity(args) >= NORMAL and not json_to_stdout(args):
+        print(text() if callable(text) else text)
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` with NumPy scalars/arrays as Python values, tuples as lists and non-finite floats
+    as the strings "inf", "-inf", "nan" (the archive's own JSON convention): standard JSON."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, (str, bool, int)) or value is None:
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    tolist = getattr(value, "tolist", None)  # NumPy scalars and arrays
+    if callable(tolist):
+        return jsonable(tolist())
+    return str(value)
+
+
+def dumps(doc: Any) -> str:
+    return json.dumps(jsonable(doc), indent=2, allow_nan=False)
+
+
+def write_json(doc: Any, out: str | os.PathLike[str] = "-") -> None:
+    """``doc`` as JSON on stdout (``out`` is ``-``) or atomically into the file ``out`` (whose
+    directory must exist: check it first with :func:`check_output`)."""
+    text = dumps(doc) + "\n"
+    if os.fspath(out) == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    from ..io._files import atomic_output
+
+    with atomic_output(out) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def one_line(text: str) -> str:
+    """``text`` with every control character (newline, carriage return, tab, ...) escaped as in a
+    Python literal, so that a message stays on one line whatever names or paths it quotes."""
+    if text.isprintable():
+        return text
+    return "".join(
+        c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text
+    )
+
+
+def error_line(command: str | None, exc: BaseException | str) -> str:
+    """The one line a failed command prints on stderr: ``lodbuilder CMD: error: MESSAGE``."""
+    prefix = f"lodbuilder {command}" if command else "lodbuilder"
+    return f"{prefix}: error: {one_line(str(exc))}"
+
+
+def print_error(command: str | None, exc: BaseException | str) -> None:
+    print(error_line(command, exc), file=sys.stderr)
+
+
+def names(items: Iterable[Any], limit: int = 10) -> str:
+    """A comma-separated list of names, each quoted with repr (so control characters stay
+    escaped), cut after ``limit`` with ', ...'; 'none' when empty."""
+    items = list(items)
+    text = ", ".join(repr(str(x)) for x in items[:limit])
+    if len(items) > limit:
+        text += ", ..."
+    return text or "none"
+
+
+# -- the output-path rule --------------------------------------------------------------------
+
+
+def check_output(
+    path: str | os.PathLike[str],
+    option: str,
+    *,
+    inputs: dict[str, str | os.PathLike[str] | None] | None = None,
+    suffixes: Iterable[str] | None = None,
+    stdout: bool = False,
+) -> Path:
+    """The one rule every command applies to a file it will write, before any work:
+
+    * ``-`` is stdout, accepted only where the command can stream (``stdout=True``);
+    * the suffix must be one of ``suffixes`` (when given; compared case-insensitively);
+    * the file must not be one of the command's ``inputs`` (``{"archive": path, ...}``);
+    * its directory must exist and be writable (a missing directory is never created: make it
+      first), and the path must not be a directory.
+
+    Raises :class:`~lodbuilder.errors.InputError` or :class:`~lodbuilder.errors.ScanFileError`
+    naming ``option``; returns the path."""
+    from ..errors import InputError
+    from ..io._files import check_output_path
+
+    text = os.fspath(path)
+    if text == "-":
+        if stdout:
+            return Path("-")
+        raise InputError(f"{option} - (stdout) is not possible here; give a file name")
+    p = Path(text)
+    if suffixes is not None:
+        allowed = tuple(s.lower() for s in suffixes)
+        if not p.name.lower().endswith(allowed):
+            raise InputError(f"{option} {p} must end in {' or '.join(allowed)}")
+    for what, src in (inputs or {}).items():
+        if src is not None and _same_file(p, Path(src)):
+            raise InputError(f"{option} {p} is the input {what}; choose another output")
+    try:
+        check_output_path(p)
+    except OSError as exc:
+        raise type(exc)(f"{option} {exc}") from None
+    return p
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+        return a.resolve() == b.resolve()
+    except OSError:
+        return False
