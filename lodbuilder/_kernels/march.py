@@ -149,7 +149,7 @@ def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: 
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
+    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, debug,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
@@ -164,6 +164,9 @@ def march_round(
     thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
     n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     qv = np.empty(SEED_QUEUE, np.int32)
+    qx = np.empty(SEED_QUEUE, np.int64)
+    qy = np.empty(SEED_QUEUE, np.int64)
+    qz = np.empty(SEED_QUEUE, np.int64)
     qd = np.empty(SEED_QUEUE, np.float64)
     cube = np.full(CUBE * CUBE * CUBE, -1, np.int32)  # ball-local index of the voxels near v0
     vis = np.zeros(SEED_QUEUE, np.bool_)
@@ -193,26 +196,42 @@ def march_round(
         if v0 < 0:
             continue
         x0, y0, z0 = unmorton(keys[v0])
+        # the sample relative to v0 (all ball coordinates below are relative to v0)
+        sx = u[i, 0] - x0
+        sy = u[i, 1] - y0
+        sz = u[i, 2] - z0
+        mark = np.int32(rnd * src.shape[0] + s)
         # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
-        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken)
+        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken; a
+        # neighbour's coordinates are its voxel's plus one step, no decoding)
         cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
         qv[0] = v0
+        qx[0] = 0
+        qy[0] = 0
+        qz[0] = 0
         qn = 1
         qi = 0
         while qi < qn:
             v = qv[qi]
+            vx, vy, vz = qx[qi], qy[qi], qz[qi]
             qi += 1
             for j in range(6):
                 w = nbr[v, j]
                 if w < 0 or qn == SEED_QUEUE or vcost[w] == np.inf:
                     continue
-                x, y, z = unmorton(keys[w])
-                cw = (x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))
+                step = 2 * (j & 1) - 1
+                x = vx + step if j < 2 else vx
+                y = vy + step if (j >> 1) == 1 else vy
+                z = vz + step if j >= 4 else vz
+                cw = (x + HALF) + CUBE * ((y + HALF) + CUBE * (z + HALF))
                 if cube[cw] >= 0:
                     continue
-                if _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) <= SEED_RADIUS:
+                if _norm(sx - x, sy - y, sz - z) <= SEED_RADIUS:
                     cube[cw] = qn
                     qv[qn] = w
+                    qx[qn] = x
+                    qy[qn] = y
+                    qz[qn] = z
                     qn += 1
         # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
         # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
@@ -221,8 +240,7 @@ def march_round(
         # always falls in an earlier bucket)
         nbk[:] = 0
         for q in range(qn):
-            x, y, z = unmorton(keys[qv[q]])
-            qd[q] = _norm(np.float64(x - x0), np.float64(y - y0), np.float64(z - z0))
+            qd[q] = _norm(np.float64(qx[q]), np.float64(qy[q]), np.float64(qz[q]))
             nbk[int(qd[q] * 8.0) + 1] += 1
         for b in range(1, NBUCKET):
             nbk[b] += nbk[b - 1]
@@ -233,16 +251,16 @@ def march_round(
         for t in range(qn):
             q = srt[t]
             v = qv[q]
-            x, y, z = unmorton(keys[v])
-            if v == v0:
+            x, y, z = qx[q], qy[q], qz[q]
+            if q == 0:
                 ok = True
             else:
                 # one step back toward v0 (the sample itself may lie just outside a one-sided band)
                 d = qd[q]
-                bx = int(np.floor(x - (x - x0) / d + 0.5))
-                by = int(np.floor(y - (y - y0) / d + 0.5))
-                bz = int(np.floor(z - (z - z0) / d + 0.5))
-                pq = cube[(bx - x0 + HALF) + CUBE * ((by - y0 + HALF) + CUBE * (bz - z0 + HALF))]
+                bx = int(np.floor(x - x / d + 0.5))
+                by = int(np.floor(y - y / d + 0.5))
+                bz = int(np.floor(z - z / d + 0.5))
+                pq = cube[(bx + HALF) + CUBE * ((by + HALF) + CUBE * (bz + HALF))]
                 ok = pq >= 0 and pq != q and vis[pq]
             if ok and thin:
                 f = foot[v]
@@ -255,13 +273,14 @@ def march_round(
             vis[q] = ok
             if not ok:
                 continue
-            t_ = np.float32(_norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) * 0.5 * (ci + vcost[v]))
+            t_ = np.float32(_norm(sx - x, sy - y, sz - z) * 0.5 * (ci + vcost[v]))
             if t_ < T[v]:
                 T[v] = t_
                 vlab[v] = lab + s
                 stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
                 n = iheap_push(hk, hv, hpos, n, t_, v)
-            # the points of the 8 cells that have v as a corner get their exact distance
+            # the points of the 8 cells that have v as a corner get their exact distance (each
+            # cell once per sample)
             wx = nbr[v, 0]
             for a_ in range(2):
                 wa = v if a_ == 0 else wx
@@ -276,8 +295,9 @@ def march_round(
                         if w < 0:
                             continue
                         cell = cellof[w]
-                        if cell < 0:
+                        if cell < 0 or cmark[cell] == mark:
                             continue
+                        cmark[cell] = mark
                         for p in range(cs[w], cs[w + 1]):
                             if rank[p] >= 0:
                                 continue
@@ -298,8 +318,7 @@ def march_round(
                                     dirty[nd] = cell
                                     nd += 1
         for q in range(qn):
-            x, y, z = unmorton(keys[qv[q]])
-            cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = -1
+            cube[(qx[q] + HALF) + CUBE * ((qy[q] + HALF) + CUBE * (qz[q] + HALF))] = -1
             vis[q] = False
     pops = 0
     while n > 0:
@@ -311,35 +330,14 @@ def march_round(
         tv = np.float64(T[v])
         lv = vlab[v]
         cx, cy, cz = unmorton(keys[v])
-        # the front's direction at v (upwind differences; upwind neighbours are known)
+        gn = -1.0  # the front's direction at v: computed when a point first needs it
         gx = 0.0
         gy = 0.0
         gz = 0.0
-        for ax in range(3):
-            na = nbr[v, 2 * ax]
-            nb_ = nbr[v, 2 * ax + 1]
-            ta = np.float64(T[na]) if na >= 0 else np.inf
-            tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
-            g = 0.0
-            if ta < tb and ta < tv:
-                g = tv - ta
-            elif tb < tv:
-                g = tb - tv
-            if ax == 0:
-                gx = g
-            elif ax == 1:
-                gy = g
-            else:
-                gz = g
-        gn = _norm(gx, gy, gz)
         sv = src[lv - lab]  # the sample whose front this is (only this round's voxels pop)
         csv = 1.0
         if weighted:
             csv = pcost[sv]
-        if gn > 0.0:
-            gx /= gn
-            gy /= gn
-            gz /= gn
         # points of the 8 cells that have v as a corner
         wx = nbr[v, 0]
         for a in range(2):
@@ -364,6 +362,30 @@ def march_round(
                         ex = u[p, 0] - cx
                         ey = u[p, 1] - cy
                         ez = u[p, 2] - cz
+                        if near[p] == corner and gn < 0.0:
+                            # the front's direction at v (upwind differences; upwind neighbours
+                            # are known)
+                            for ax in range(3):
+                                na = nbr[v, 2 * ax]
+                                nb_ = nbr[v, 2 * ax + 1]
+                                ta = np.float64(T[na]) if na >= 0 else np.inf
+                                tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
+                                g = 0.0
+                                if ta < tb and ta < tv:
+                                    g = tv - ta
+                                elif tb < tv:
+                                    g = tb - tv
+                                if ax == 0:
+                                    gx = g
+                                elif ax == 1:
+                                    gy = g
+                                else:
+                                    gz = g
+                            gn = _norm(gx, gy, gz)
+                            if gn > 0.0:
+                                gx /= gn
+                                gy /= gn
+                                gz /= gn
                         if gn > 0.0 and near[p] == corner:
                             # v is the point's nearest marchable voxel: first-order Taylor along
                             # the front, never below the straight distance to the sample (a lower
@@ -563,6 +585,7 @@ def grid_phase(
     lq = np.full(m, -1, np.int32)
     rank = np.full(m, -1, np.int32)
     dstamp = np.full(ncell, -1, np.int32)
+    cmark = np.full(ncell, -1, np.int32)
     dirty = np.empty(ncell, np.int32)
     ckey = np.full(ncell, np.inf)  # heap order
     heap = np.arange(ncell).astype(np.int32)
@@ -612,7 +635,7 @@ def grid_phase(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
+            T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd0, hk, hv, hpos_v, debug,
         )
         if pp < 0:
             return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
@@ -661,7 +684,7 @@ def multi_source_distance(
     nd, pops = march_round(
         sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
-        dq, lq, rank, np.full(ncell, -1, np.int32),
+        dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
         np.full(nv, -1, np.int32), False,
     )

@@ -92,7 +92,7 @@ def median_spacing(
     ext = float(np.ptp(points, axis=0).max())
     if ext <= 0.0:
         return 0.0
-    c = max(ext / math.sqrt(n), ext * 2.0**-20)  # the spacing of n points filling a square
+    c = max(2.5 * ext / math.sqrt(n), ext * 2.0**-20)  # 2.5 x the spacing of n points on a square
     while True:
         origin = lo - c
         keys = cell_order(points, origin, c)
