@@ -38,7 +38,7 @@ import numba as nb
 import numpy as np
 
 from . import INLINE, JIT
-from .grid import hash_find, morton, unmorton
+from .grid import unmorton
 from .heaps import (
     check_maxheap,
     check_minheap,
@@ -47,8 +47,8 @@ from .heaps import (
     maxheap_build,
     maxheap_decrease,
     maxheap_pop,
-    maxheap_sift_down,
 )
+from .topology import _cell_key, anchor_of, cell_tables
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
@@ -113,21 +113,6 @@ def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     s = a1 + b1 + c1
     q = a1 * a1 + b1 * b1 + c1 * c1
     return (s + np.sqrt(max(s * s - 3.0 * (q - ff), 0.0))) / 3.0
-
-
-@nb.njit(**JIT)
-def anchor_of(cs, i):  # pragma: no cover - compiled
-    """The voxel whose point range holds point i (cs is non-decreasing): the last v with
-    cs[v] <= i. Written out rather than np.searchsorted: one compiled version for every caller."""
-    lo = np.int64(0)
-    hi = np.int64(cs.shape[0] - 1)
-    while hi - lo > 1:
-        mid = (lo + hi) >> 1
-        if cs[mid] <= i:
-            lo = mid
-        else:
-            hi = mid
-    return lo
 
 
 @nb.njit(**INLINE)
@@ -465,103 +450,6 @@ def march_round(
 
 
 @nb.njit(**JIT)
-def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
-    """Per point: which corner (x + 2 y + 4 z offsets) of its cell is the nearest marchable voxel
-    (255: none)."""
-    m = u.shape[0]
-    out = np.full(m, 255, np.uint8)
-    nv = cs.shape[0] - 1
-    for a in range(nv):
-        if cs[a + 1] == cs[a]:
-            continue
-        for p in range(cs[a], cs[a + 1]):
-            fx = np.floor(u[p, 0])
-            fy = np.floor(u[p, 1])
-            fz = np.floor(u[p, 2])
-            best = np.inf
-            for c in range(8):
-                w = a
-                for ax in range(3):
-                    if (c >> ax) & 1 and w >= 0:
-                        w = nbr[w, 2 * ax + 1]
-                if w < 0 or vcost[w] == np.inf:
-                    continue
-                d = _norm(u[p, 0] - fx - (c & 1), u[p, 1] - fy - ((c >> 1) & 1), u[p, 2] - fz - (c >> 2))
-                if d < best:
-                    best = d
-                    out[p] = c
-    return out
-
-
-@nb.njit(**JIT)
-def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
-    """How many connected pieces of the band (marchable voxels, 6-neighbours) hold points; a point
-    without a marchable corner counts as a piece of its own."""
-    nv = nbr.shape[0]
-    lab = np.full(nv, -1, np.int32)
-    queue = np.empty(nv, np.int32)
-    ncomp = 0
-    # label the pieces that hold a point's nearest marchable corner
-    count = 0
-    for a in range(nv):
-        for p in range(cs[a], cs[a + 1]):
-            c = near[p]
-            if c == 255:
-                count += 1
-                continue
-            w = a
-            for ax in range(3):
-                if (c >> ax) & 1:
-                    w = nbr[w, 2 * ax + 1]
-            if lab[w] >= 0:
-                continue
-            lab[w] = ncomp
-            queue[0] = w
-            qn = 1
-            qi = 0
-            while qi < qn:
-                v = queue[qi]
-                qi += 1
-                for j in range(6):
-                    x = nbr[v, j]
-                    if x >= 0 and lab[x] < 0 and vcost[x] < np.inf:
-                        lab[x] = ncomp
-                        queue[qn] = x
-                        qn += 1
-            ncomp += 1
-    return count + ncomp
-
-
-@nb.njit(**JIT)
-def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
-    w = cellv[cell]
-    best = -1.0
-    for p in range(cs[w], cs[w + 1]):
-        if rank[p] < 0 and val[p] > best:
-            best = val[p]
-    return best
-
-
-@nb.njit(**JIT)
-def cell_tables(cs):  # pragma: no cover - compiled
-    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1)."""
-    nv = cs.shape[0] - 1
-    ncell = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            ncell += 1
-    cellv = np.empty(ncell, np.int32)
-    cellof = np.full(nv, -1, np.int32)
-    c = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            cellof[v] = c
-            cellv[c] = v
-            c += 1
-    return cellv, cellof
-
-
-@nb.njit(**JIT)
 def grid_phase(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
     r_stop, debug,
@@ -691,138 +579,3 @@ def multi_source_distance(
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0
     return dq, lq, pops
-
-
-@nb.njit(**JIT)
-def euclid_tail(
-    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
-    rank, order, radius, parent, k0, k_max, rho_stop,
-):  # pragma: no cover - compiled
-    """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
-
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones, first
-    tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
-    point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
-    max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
-    top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
-    ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
-    if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
-    chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. A ball
-    query walks the
-    neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
-    and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
-    at most 27 of them while the radius is within the coarse levels. Returns the new count.
-    """
-    cellv, cellof = cell_tables(cs)
-    ncell = cellv.shape[0]
-    m = u.shape[0]
-    thin = psep.shape[0] == m
-    for p in range(m):
-        if rank[p] < 0 and lab[p] >= 0:
-            # tighten to the exact distance to the labelled sample (still an upper bound)
-            s = order[lab[p]]
-            e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
-            if thin and not _chord_ok(
-                u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2], e, psep[p], psep[s],
-                pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[s, 0], pnrm[s, 1], pnrm[s, 2], slope,
-            ):
-                continue  # the band's value may go around a fold the straight line crosses
-            if weighted:
-                e *= 0.5 * (pcost[p] + pcost[s])
-            if e < d[p]:
-                d[p] = e
-    ckey = np.empty(ncell)
-    for c in range(ncell):
-        ckey[c] = _cell_key(np.int64(c), cellv, cs, rank, d)
-    heap = np.arange(ncell).astype(np.int32)
-    hpos = np.empty(ncell, np.int32)
-    hn = ncell
-    maxheap_build(ckey, heap, hpos, hn)
-    k = k0
-    while k < k_max and hn > 0:
-        # keys are lazy upper bounds: refresh the top until its stored key is its true key
-        top = heap[0]
-        kk = _cell_key(np.int64(top), cellv, cs, rank, d)
-        if kk != ckey[0]:
-            ckey[0] = kk
-            if kk < 0.0:
-                hn = maxheap_pop(ckey, heap, hpos, hn)
-            else:
-                maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
-            continue
-        if kk <= rho_stop:
-            break
-        w0 = cellv[top]
-        i = -1
-        for p in range(cs[w0], cs[w0 + 1]):
-            if rank[p] < 0 and d[p] == kk:
-                i = p
-                break
-        rank[i] = k
-        order[k] = i
-        radius[k] = kk
-        parent[k] = lab[i]
-        reach = kk / cmin if weighted else kk
-        j = 0
-        side = 1.0
-        while j < levels and side < 2.0 * reach:
-            j += 1
-            side *= 2.0
-        x0 = int(np.floor((u[i, 0] - reach) / side))
-        x1 = int(np.floor((u[i, 0] + reach) / side))
-        y0 = int(np.floor((u[i, 1] - reach) / side))
-        y1 = int(np.floor((u[i, 1] + reach) / side))
-        z0 = int(np.floor((u[i, 2] - reach) / side))
-        z1 = int(np.floor((u[i, 2] + reach) / side))
-        fx = int(np.floor(u[i, 0]))
-        fy = int(np.floor(u[i, 1]))
-        fz = int(np.floor(u[i, 2]))
-        for x in range(x0, x1 + 1):
-            for y in range(y0, y1 + 1):
-                for z in range(z0, z1 + 1):
-                    if j == 0:
-                        # walk from i's cell: steps up first, then down, so that every voxel on
-                        # the way is a corner of one of the two cells (and so exists)
-                        w = w0
-                        dx, dy, dz = x - fx, y - fy, z - fz
-                        if dx > 0 and w >= 0:
-                            w = nbr[w, 1]
-                        if dy > 0 and w >= 0:
-                            w = nbr[w, 3]
-                        if dz > 0 and w >= 0:
-                            w = nbr[w, 5]
-                        if dx < 0 and w >= 0:
-                            w = nbr[w, 0]
-                        if dy < 0 and w >= 0:
-                            w = nbr[w, 2]
-                        if dz < 0 and w >= 0:
-                            w = nbr[w, 4]
-                        if w < 0:
-                            continue
-                        p0 = cs[w]
-                        p1 = cs[w + 1]
-                    else:
-                        if x < 0 or y < 0 or z < 0:
-                            continue
-                        run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
-                        if run < 0:
-                            continue
-                        p0 = rstart[run]
-                        p1 = rend[run]
-                    for p in range(p0, p1):
-                        if rank[p] >= 0:
-                            continue
-                        dd = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
-                        if thin and not _chord_ok(
-                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], dd,
-                            psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
-                            pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
-                        ):
-                            continue  # across a gap or a tight fold: not a surface distance
-                        if weighted:
-                            dd *= 0.5 * (pcost[p] + pcost[i])
-                        if dd < d[p]:
-                            d[p] = dd
-                            lab[p] = k
-        k += 1
-    return k
