@@ -153,7 +153,7 @@ def test_one_sided_band_leaves_the_gap_empty():
     # the two sheets are not joined anywhere, so the one-sided band cuts them into two pieces where
     # the plain band has one; separate sheets look like two registrations of one surface in a
     # merged scan, so fastfps keeps the plain band (as before) for them
-    from lodbuilder._kernels.march import point_components
+    from lodbuilder._kernels.topology import point_components
 
     assert point_components(band.nbr, band.cs, band.near, band.vcost) == 2
     plain = build_band(pts, plan.h, plan.r)

@@ -17,7 +17,9 @@ Sections (all inputs synthetic, generated here with fixed seeds):
 * ``limit``: the largest geodesic covering ratio over those levels for layers 2.5 ... 8 point
   spacings apart (100k points), to state the thinnest gap the defaults handle.
 
-    python tools/bench_accuracy.py [--big] [--sections metric,covering,limit] > accuracy.json
+    python tools/bench_accuracy.py [--big] [--sections metric,covering,limit] [--json OUT]
+                                   [--markdown docs/benchmarks.md] > accuracy.json
+    python tools/bench_accuracy.py --from-json OUT --markdown docs/benchmarks.md
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the analytic references live beside the tests
+sys.path.append(str(ROOT / "tools"))  # benchdoc (after tests: both have a surfaces module)
 
 from surfaces import (  # noqa: E402
     cylinder_points,
@@ -229,6 +232,59 @@ def section_limit(args) -> list[dict]:
     return out
 
 
+def markdown(doc: dict) -> str:
+    lines = [
+        "## Accuracy of the band metric and surface-faithful levels (tools/bench_accuracy.py)",
+        "",
+        f"Measured {doc['date']} by `{doc['command']}` (commit {doc['git_commit']}); load average "
+        f"{', '.join(f'{x:.1f}' for x in doc['load_avg_at_start'])} at the start. Inputs synthetic.",
+    ]
+    if doc.get("metric"):
+        lines += [
+            "",
+            "Band distance from one sample against the exact geodesic, default parameters (h = 2 "
+            "spacings); *size* is the sphere's or cylinder's radius, the plane's half-width or the "
+            "folded sheet's length in voxels (its fold has a radius of 5 voxels); relative errors over "
+            "every point at least one voxel away.",
+            "",
+            "| surface | size (voxels) | points | mean abs. rel. error | max abs. rel. error | mean signed | max abs. error (voxels) |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for c in doc["metric"]:
+            lines.append(
+                f"| {c['surface']} | {c['size_in_voxels']:.0f} | {c['n']:,} | {100 * c['mean_abs_rel_error']:.2f} % | "
+                f"{100 * c['max_abs_rel_error']:.2f} % | {100 * c['mean_rel_error']:+.2f} % | {c['max_abs_error_voxels']:.2f} |"
+            )
+    if doc.get("covering"):
+        lines += [
+            "",
+            "A sheet folded over itself (two unit squares, random points), full default ordering: the "
+            "geodesic covering radius of every level rho (measured along the sheet, exact by unfolding) "
+            "divided by rho, and the same for Euclidean FPS (fpsample) at the same sizes.",
+            "",
+            "| gap | points | gap (spacings) | thin points | ordering s | max ratio | fpsample max ratio | ratio per level (rho: ratio / size) |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for c in doc["covering"]:
+            per = ", ".join(f"{lv['rho']:.3g}: {lv['ratio']:.3f} / {lv['size']:,}" for lv in c["levels"])
+            fps = c.get("max_fpsample_ratio")
+            lines.append(
+                f"| {c['gap']} | {c['n']:,} | {c['gap_in_spacings']:.1f} | {c['stats'].get('thin_points', 0):,} | "
+                f"{c['seconds']:.1f} | {c['max_ratio']:.3f} | {'-' if not fps else f'{fps:.3f}'} | {per} |"
+            )
+    if doc.get("limit"):
+        lines += [
+            "",
+            "The thinnest gap the defaults handle (100k points): the largest geodesic covering ratio "
+            "over the levels, by gap in point spacings.",
+            "",
+            "| gap (spacings) | " + " | ".join(f"{c['gap_in_spacings']:.1f}" for c in doc["limit"]) + " |",
+            "|---|" + "---|" * len(doc["limit"]),
+            "| max ratio | " + " | ".join(f"{c['max_ratio']:.3f}" for c in doc["limit"]) + " |",
+        ]
+    return "\n".join(lines) + "\n"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sections", default="metric,covering,limit")
@@ -237,7 +293,15 @@ def main() -> int:
     ap.add_argument("--limit-points", type=int, default=100_000)
     ap.add_argument("--no-fpsample", action="store_true")
     ap.add_argument("--json", help="also write the JSON here")
+    ap.add_argument("--markdown", help="write the 'accuracy' section of this markdown file")
+    ap.add_argument("--from-json", help="only render --markdown from an earlier run's JSON")
     args = ap.parse_args()
+    from benchdoc import write_section
+
+    if args.from_json:
+        write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "accuracy",
+                      markdown(json.loads(Path(args.from_json).read_text())))
+        return 0
     doc = header(args)
     t0 = time.perf_counter()
     for sec in args.sections.split(","):
@@ -248,6 +312,8 @@ def main() -> int:
     print(text)
     if args.json:
         Path(args.json).write_text(text + "\n")
+    if args.markdown:
+        write_section(Path(args.markdown), "accuracy", markdown(doc))
     return 0
 
 

@@ -18,7 +18,8 @@ lodbuilder, whether it meets the archive's claimed rho), two-sided Hausdorff, Ch
 spacing, uniformity, point-to-plane error; on the folded sheet also the geodesic covering radius
 (exact: the sheet unfolds to a flat rectangle).
 
-Inputs: igea, frag_115, bun_zipper, bun000 (a raw range scan) from ../shared/data, a synthetic
+Inputs: igea, frag_115, bun_zipper, bun000 (a raw range scan), the 10 bunny range scans merged
+with their poses (``bunny_posed``) from ../shared/data, a synthetic
 wavy scan (``--synthetic-points``, default 200k; ``--big`` makes it 1M) and a sheet folded over
 itself with its layers 0.02 (``folded``) and 0.01 (``folded_thin``) apart.
 
@@ -79,6 +80,17 @@ def load_inputs(args) -> dict[str, dict]:
             log(f"skip {name}: {path} not found")
             continue
         out[name] = {"points": read_scan(path).points, "source": fn, "kind": "real scan"}
+    if not wanted or "bunny_posed" in wanted:
+        from lodbuilder.collection.inputs import apply_pose, expand_inputs
+
+        conf = DATA / "bun.conf"
+        if conf.exists():
+            parts = [apply_pose(read_scan(s.path).points, s.pose) for s in expand_inputs(manifest=conf)]
+            out["bunny_posed"] = {
+                "points": np.vstack(parts),
+                "source": "the 10 bunny range scans merged with their bun.conf poses",
+                "kind": "real scans, merged (overlapping registrations)",
+            }
     n_syn = 1_000_000 if args.big else args.synthetic_points
     if not wanted or "synthetic" in wanted:
         pts, _ = wavy_sheet(n_syn, seed=3, noise=0.0005)
@@ -461,7 +473,7 @@ def main() -> int:
     ap.add_argument("--folded-points", type=int, default=100_000)
     ap.add_argument(
         "--only",
-        help="comma-separated inputs (igea,frag_115,bun_zipper,bun000,synthetic,folded,folded_thin)",
+        help="comma-separated inputs (igea,frag_115,bun_zipper,bun000,bunny_posed,synthetic,folded,folded_thin)",
     )
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods")
     ap.add_argument("--markdown", help="write the markdown report here (e.g. docs/benchmarks.md)")

@@ -38,7 +38,7 @@ import numba as nb
 import numpy as np
 
 from . import INLINE, JIT
-from .grid import hash_find, morton, unmorton
+from .grid import unmorton
 from .heaps import (
     check_maxheap,
     check_minheap,
@@ -47,8 +47,8 @@ from .heaps import (
     maxheap_build,
     maxheap_decrease,
     maxheap_pop,
-    maxheap_sift_down,
 )
+from .topology import _cell_key, anchor_of, cell_tables
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
@@ -115,21 +115,6 @@ def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     return (s + np.sqrt(max(s * s - 3.0 * (q - ff), 0.0))) / 3.0
 
 
-@nb.njit(**JIT)
-def anchor_of(cs, i):  # pragma: no cover - compiled
-    """The voxel whose point range holds point i (cs is non-decreasing): the last v with
-    cs[v] <= i. Written out rather than np.searchsorted: one compiled version for every caller."""
-    lo = np.int64(0)
-    hi = np.int64(cs.shape[0] - 1)
-    while hi - lo > 1:
-        mid = (lo + hi) >> 1
-        if cs[mid] <= i:
-            lo = mid
-        else:
-            hi = mid
-    return lo
-
-
 @nb.njit(**INLINE)
 def _norm(dx, dy, dz):  # pragma: no cover - compiled
     # helpers take scalars only: an array argument in a hot loop costs atomic reference counting
@@ -149,7 +134,7 @@ def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: 
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
+    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, debug,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
@@ -164,6 +149,9 @@ def march_round(
     thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
     n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     qv = np.empty(SEED_QUEUE, np.int32)
+    qx = np.empty(SEED_QUEUE, np.int64)
+    qy = np.empty(SEED_QUEUE, np.int64)
+    qz = np.empty(SEED_QUEUE, np.int64)
     qd = np.empty(SEED_QUEUE, np.float64)
     cube = np.full(CUBE * CUBE * CUBE, -1, np.int32)  # ball-local index of the voxels near v0
     vis = np.zeros(SEED_QUEUE, np.bool_)
@@ -193,26 +181,42 @@ def march_round(
         if v0 < 0:
             continue
         x0, y0, z0 = unmorton(keys[v0])
+        # the sample relative to v0 (all ball coordinates below are relative to v0)
+        sx = u[i, 0] - x0
+        sy = u[i, 1] - y0
+        sz = u[i, 2] - z0
+        mark = np.int32(rnd * src.shape[0] + s)
         # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
-        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken)
+        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken; a
+        # neighbour's coordinates are its voxel's plus one step, no decoding)
         cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
         qv[0] = v0
+        qx[0] = 0
+        qy[0] = 0
+        qz[0] = 0
         qn = 1
         qi = 0
         while qi < qn:
             v = qv[qi]
+            vx, vy, vz = qx[qi], qy[qi], qz[qi]
             qi += 1
             for j in range(6):
                 w = nbr[v, j]
                 if w < 0 or qn == SEED_QUEUE or vcost[w] == np.inf:
                     continue
-                x, y, z = unmorton(keys[w])
-                cw = (x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))
+                step = 2 * (j & 1) - 1
+                x = vx + step if j < 2 else vx
+                y = vy + step if (j >> 1) == 1 else vy
+                z = vz + step if j >= 4 else vz
+                cw = (x + HALF) + CUBE * ((y + HALF) + CUBE * (z + HALF))
                 if cube[cw] >= 0:
                     continue
-                if _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) <= SEED_RADIUS:
+                if _norm(sx - x, sy - y, sz - z) <= SEED_RADIUS:
                     cube[cw] = qn
                     qv[qn] = w
+                    qx[qn] = x
+                    qy[qn] = y
+                    qz[qn] = z
                     qn += 1
         # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
         # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
@@ -221,8 +225,7 @@ def march_round(
         # always falls in an earlier bucket)
         nbk[:] = 0
         for q in range(qn):
-            x, y, z = unmorton(keys[qv[q]])
-            qd[q] = _norm(np.float64(x - x0), np.float64(y - y0), np.float64(z - z0))
+            qd[q] = _norm(np.float64(qx[q]), np.float64(qy[q]), np.float64(qz[q]))
             nbk[int(qd[q] * 8.0) + 1] += 1
         for b in range(1, NBUCKET):
             nbk[b] += nbk[b - 1]
@@ -233,16 +236,16 @@ def march_round(
         for t in range(qn):
             q = srt[t]
             v = qv[q]
-            x, y, z = unmorton(keys[v])
-            if v == v0:
+            x, y, z = qx[q], qy[q], qz[q]
+            if q == 0:
                 ok = True
             else:
                 # one step back toward v0 (the sample itself may lie just outside a one-sided band)
                 d = qd[q]
-                bx = int(np.floor(x - (x - x0) / d + 0.5))
-                by = int(np.floor(y - (y - y0) / d + 0.5))
-                bz = int(np.floor(z - (z - z0) / d + 0.5))
-                pq = cube[(bx - x0 + HALF) + CUBE * ((by - y0 + HALF) + CUBE * (bz - z0 + HALF))]
+                bx = int(np.floor(x - x / d + 0.5))
+                by = int(np.floor(y - y / d + 0.5))
+                bz = int(np.floor(z - z / d + 0.5))
+                pq = cube[(bx + HALF) + CUBE * ((by + HALF) + CUBE * (bz + HALF))]
                 ok = pq >= 0 and pq != q and vis[pq]
             if ok and thin:
                 f = foot[v]
@@ -255,13 +258,14 @@ def march_round(
             vis[q] = ok
             if not ok:
                 continue
-            t_ = np.float32(_norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) * 0.5 * (ci + vcost[v]))
+            t_ = np.float32(_norm(sx - x, sy - y, sz - z) * 0.5 * (ci + vcost[v]))
             if t_ < T[v]:
                 T[v] = t_
                 vlab[v] = lab + s
                 stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
                 n = iheap_push(hk, hv, hpos, n, t_, v)
-            # the points of the 8 cells that have v as a corner get their exact distance
+            # the points of the 8 cells that have v as a corner get their exact distance (each
+            # cell once per sample)
             wx = nbr[v, 0]
             for a_ in range(2):
                 wa = v if a_ == 0 else wx
@@ -276,8 +280,9 @@ def march_round(
                         if w < 0:
                             continue
                         cell = cellof[w]
-                        if cell < 0:
+                        if cell < 0 or cmark[cell] == mark:
                             continue
+                        cmark[cell] = mark
                         for p in range(cs[w], cs[w + 1]):
                             if rank[p] >= 0:
                                 continue
@@ -298,8 +303,7 @@ def march_round(
                                     dirty[nd] = cell
                                     nd += 1
         for q in range(qn):
-            x, y, z = unmorton(keys[qv[q]])
-            cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = -1
+            cube[(qx[q] + HALF) + CUBE * ((qy[q] + HALF) + CUBE * (qz[q] + HALF))] = -1
             vis[q] = False
     pops = 0
     while n > 0:
@@ -311,35 +315,14 @@ def march_round(
         tv = np.float64(T[v])
         lv = vlab[v]
         cx, cy, cz = unmorton(keys[v])
-        # the front's direction at v (upwind differences; upwind neighbours are known)
+        gn = -1.0  # the front's direction at v: computed when a point first needs it
         gx = 0.0
         gy = 0.0
         gz = 0.0
-        for ax in range(3):
-            na = nbr[v, 2 * ax]
-            nb_ = nbr[v, 2 * ax + 1]
-            ta = np.float64(T[na]) if na >= 0 else np.inf
-            tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
-            g = 0.0
-            if ta < tb and ta < tv:
-                g = tv - ta
-            elif tb < tv:
-                g = tb - tv
-            if ax == 0:
-                gx = g
-            elif ax == 1:
-                gy = g
-            else:
-                gz = g
-        gn = _norm(gx, gy, gz)
         sv = src[lv - lab]  # the sample whose front this is (only this round's voxels pop)
         csv = 1.0
         if weighted:
             csv = pcost[sv]
-        if gn > 0.0:
-            gx /= gn
-            gy /= gn
-            gz /= gn
         # points of the 8 cells that have v as a corner
         wx = nbr[v, 0]
         for a in range(2):
@@ -364,6 +347,30 @@ def march_round(
                         ex = u[p, 0] - cx
                         ey = u[p, 1] - cy
                         ez = u[p, 2] - cz
+                        if near[p] == corner and gn < 0.0:
+                            # the front's direction at v (upwind differences; upwind neighbours
+                            # are known)
+                            for ax in range(3):
+                                na = nbr[v, 2 * ax]
+                                nb_ = nbr[v, 2 * ax + 1]
+                                ta = np.float64(T[na]) if na >= 0 else np.inf
+                                tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
+                                g = 0.0
+                                if ta < tb and ta < tv:
+                                    g = tv - ta
+                                elif tb < tv:
+                                    g = tb - tv
+                                if ax == 0:
+                                    gx = g
+                                elif ax == 1:
+                                    gy = g
+                                else:
+                                    gz = g
+                            gn = _norm(gx, gy, gz)
+                            if gn > 0.0:
+                                gx /= gn
+                                gy /= gn
+                                gz /= gn
                         if gn > 0.0 and near[p] == corner:
                             # v is the point's nearest marchable voxel: first-order Taylor along
                             # the front, never below the straight distance to the sample (a lower
@@ -443,103 +450,6 @@ def march_round(
 
 
 @nb.njit(**JIT)
-def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
-    """Per point: which corner (x + 2 y + 4 z offsets) of its cell is the nearest marchable voxel
-    (255: none)."""
-    m = u.shape[0]
-    out = np.full(m, 255, np.uint8)
-    nv = cs.shape[0] - 1
-    for a in range(nv):
-        if cs[a + 1] == cs[a]:
-            continue
-        for p in range(cs[a], cs[a + 1]):
-            fx = np.floor(u[p, 0])
-            fy = np.floor(u[p, 1])
-            fz = np.floor(u[p, 2])
-            best = np.inf
-            for c in range(8):
-                w = a
-                for ax in range(3):
-                    if (c >> ax) & 1 and w >= 0:
-                        w = nbr[w, 2 * ax + 1]
-                if w < 0 or vcost[w] == np.inf:
-                    continue
-                d = _norm(u[p, 0] - fx - (c & 1), u[p, 1] - fy - ((c >> 1) & 1), u[p, 2] - fz - (c >> 2))
-                if d < best:
-                    best = d
-                    out[p] = c
-    return out
-
-
-@nb.njit(**JIT)
-def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
-    """How many connected pieces of the band (marchable voxels, 6-neighbours) hold points; a point
-    without a marchable corner counts as a piece of its own."""
-    nv = nbr.shape[0]
-    lab = np.full(nv, -1, np.int32)
-    queue = np.empty(nv, np.int32)
-    ncomp = 0
-    # label the pieces that hold a point's nearest marchable corner
-    count = 0
-    for a in range(nv):
-        for p in range(cs[a], cs[a + 1]):
-            c = near[p]
-            if c == 255:
-                count += 1
-                continue
-            w = a
-            for ax in range(3):
-                if (c >> ax) & 1:
-                    w = nbr[w, 2 * ax + 1]
-            if lab[w] >= 0:
-                continue
-            lab[w] = ncomp
-            queue[0] = w
-            qn = 1
-            qi = 0
-            while qi < qn:
-                v = queue[qi]
-                qi += 1
-                for j in range(6):
-                    x = nbr[v, j]
-                    if x >= 0 and lab[x] < 0 and vcost[x] < np.inf:
-                        lab[x] = ncomp
-                        queue[qn] = x
-                        qn += 1
-            ncomp += 1
-    return count + ncomp
-
-
-@nb.njit(**JIT)
-def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
-    w = cellv[cell]
-    best = -1.0
-    for p in range(cs[w], cs[w + 1]):
-        if rank[p] < 0 and val[p] > best:
-            best = val[p]
-    return best
-
-
-@nb.njit(**JIT)
-def cell_tables(cs):  # pragma: no cover - compiled
-    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1)."""
-    nv = cs.shape[0] - 1
-    ncell = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            ncell += 1
-    cellv = np.empty(ncell, np.int32)
-    cellof = np.full(nv, -1, np.int32)
-    c = 0
-    for v in range(nv):
-        if cs[v + 1] > cs[v]:
-            cellof[v] = c
-            cellv[c] = v
-            c += 1
-    return cellv, cellof
-
-
-@nb.njit(**JIT)
 def grid_phase(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
     r_stop, debug,
@@ -563,6 +473,7 @@ def grid_phase(
     lq = np.full(m, -1, np.int32)
     rank = np.full(m, -1, np.int32)
     dstamp = np.full(ncell, -1, np.int32)
+    cmark = np.full(ncell, -1, np.int32)
     dirty = np.empty(ncell, np.int32)
     ckey = np.full(ncell, np.inf)  # heap order
     heap = np.arange(ncell).astype(np.int32)
@@ -612,7 +523,7 @@ def grid_phase(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
+            T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd0, hk, hv, hpos_v, debug,
         )
         if pp < 0:
             return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
@@ -661,145 +572,10 @@ def multi_source_distance(
     nd, pops = march_round(
         sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
-        dq, lq, rank, np.full(ncell, -1, np.int32),
+        dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
         np.full(nv, -1, np.int32), False,
     )
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0
     return dq, lq, pops
-
-
-@nb.njit(**JIT)
-def euclid_tail(
-    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
-    rank, order, radius, parent, k0, k_max, rho_stop,
-):  # pragma: no cover - compiled
-    """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
-
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones, first
-    tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
-    point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
-    max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
-    top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
-    ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
-    if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
-    chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. A ball
-    query walks the
-    neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
-    and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
-    at most 27 of them while the radius is within the coarse levels. Returns the new count.
-    """
-    cellv, cellof = cell_tables(cs)
-    ncell = cellv.shape[0]
-    m = u.shape[0]
-    thin = psep.shape[0] == m
-    for p in range(m):
-        if rank[p] < 0 and lab[p] >= 0:
-            # tighten to the exact distance to the labelled sample (still an upper bound)
-            s = order[lab[p]]
-            e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
-            if thin and not _chord_ok(
-                u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2], e, psep[p], psep[s],
-                pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[s, 0], pnrm[s, 1], pnrm[s, 2], slope,
-            ):
-                continue  # the band's value may go around a fold the straight line crosses
-            if weighted:
-                e *= 0.5 * (pcost[p] + pcost[s])
-            if e < d[p]:
-                d[p] = e
-    ckey = np.empty(ncell)
-    for c in range(ncell):
-        ckey[c] = _cell_key(np.int64(c), cellv, cs, rank, d)
-    heap = np.arange(ncell).astype(np.int32)
-    hpos = np.empty(ncell, np.int32)
-    hn = ncell
-    maxheap_build(ckey, heap, hpos, hn)
-    k = k0
-    while k < k_max and hn > 0:
-        # keys are lazy upper bounds: refresh the top until its stored key is its true key
-        top = heap[0]
-        kk = _cell_key(np.int64(top), cellv, cs, rank, d)
-        if kk != ckey[0]:
-            ckey[0] = kk
-            if kk < 0.0:
-                hn = maxheap_pop(ckey, heap, hpos, hn)
-            else:
-                maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
-            continue
-        if kk <= rho_stop:
-            break
-        w0 = cellv[top]
-        i = -1
-        for p in range(cs[w0], cs[w0 + 1]):
-            if rank[p] < 0 and d[p] == kk:
-                i = p
-                break
-        rank[i] = k
-        order[k] = i
-        radius[k] = kk
-        parent[k] = lab[i]
-        reach = kk / cmin if weighted else kk
-        j = 0
-        side = 1.0
-        while j < levels and side < 2.0 * reach:
-            j += 1
-            side *= 2.0
-        x0 = int(np.floor((u[i, 0] - reach) / side))
-        x1 = int(np.floor((u[i, 0] + reach) / side))
-        y0 = int(np.floor((u[i, 1] - reach) / side))
-        y1 = int(np.floor((u[i, 1] + reach) / side))
-        z0 = int(np.floor((u[i, 2] - reach) / side))
-        z1 = int(np.floor((u[i, 2] + reach) / side))
-        fx = int(np.floor(u[i, 0]))
-        fy = int(np.floor(u[i, 1]))
-        fz = int(np.floor(u[i, 2]))
-        for x in range(x0, x1 + 1):
-            for y in range(y0, y1 + 1):
-                for z in range(z0, z1 + 1):
-                    if j == 0:
-                        # walk from i's cell: steps up first, then down, so that every voxel on
-                        # the way is a corner of one of the two cells (and so exists)
-                        w = w0
-                        dx, dy, dz = x - fx, y - fy, z - fz
-                        if dx > 0 and w >= 0:
-                            w = nbr[w, 1]
-                        if dy > 0 and w >= 0:
-                            w = nbr[w, 3]
-                        if dz > 0 and w >= 0:
-                            w = nbr[w, 5]
-                        if dx < 0 and w >= 0:
-                            w = nbr[w, 0]
-                        if dy < 0 and w >= 0:
-                            w = nbr[w, 2]
-                        if dz < 0 and w >= 0:
-                            w = nbr[w, 4]
-                        if w < 0:
-                            continue
-                        p0 = cs[w]
-                        p1 = cs[w + 1]
-                    else:
-                        if x < 0 or y < 0 or z < 0:
-                            continue
-                        run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
-                        if run < 0:
-                            continue
-                        p0 = rstart[run]
-                        p1 = rend[run]
-                    for p in range(p0, p1):
-                        if rank[p] >= 0:
-                            continue
-                        dd = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
-                        if thin and not _chord_ok(
-                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], dd,
-                            psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
-                            pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
-                        ):
-                            continue  # across a gap or a tight fold: not a surface distance
-                        if weighted:
-                            dd *= 0.5 * (pcost[p] + pcost[i])
-                        if dd < d[p]:
-                            d[p] = dd
-                            lab[p] = k
-        k += 1
-    return k

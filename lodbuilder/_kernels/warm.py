@@ -42,16 +42,16 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
             "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
             "grid.neighbour_table": (_I64,),
-            "march.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
+            "topology.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
             "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
         },
         "ordering": {
             "march.grid_phase": (
                 _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b,
             ),
-            "march.point_components": (_I32_2, _I32, _U8, _F32),
+            "topology.point_components": (_I32_2, _I32, _U8, _F32),
             "grid.coarse_runs": (_I64, _I32, i),
-            "march.euclid_tail": (
+            "tail.euclid_tail": (
                 _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
                 _F64, _I32, _I32, _I32, _F64, _I32, i, i, f,
             ),

@@ -92,7 +92,7 @@ def median_spacing(
     ext = float(np.ptp(points, axis=0).max())
     if ext <= 0.0:
         return 0.0
-    c = max(ext / math.sqrt(n), ext * 2.0**-20)  # the spacing of n points filling a square
+    c = max(2.5 * ext / math.sqrt(n), ext * 2.0**-20)  # 2.5 x the spacing of n points on a square
     while True:
         origin = lo - c
         keys = cell_order(points, origin, c)
@@ -324,7 +324,7 @@ def build_band(
     ``h`` around ``points``; where ``normal`` (input order, toward the other sheet at distance
     ``separation``) is not zero, only on the side away from it."""
     from .._kernels.grid import band_voxels, cell_order, grid_coords, neighbour_table
-    from .._kernels.march import nearest_corners
+    from .._kernels.topology import nearest_corners
 
     n = points.shape[0]
     if n > MAX_POINTS:
@@ -390,7 +390,7 @@ def one_sided(
     one-sided (``normal``, ``separation``, ``radius``: per point, input order; see the module
     docstring): a subset of the band's voxels, so no second band is built."""
     from .._kernels.grid import one_sided_cost
-    from .._kernels.march import nearest_corners
+    from .._kernels.topology import nearest_corners
 
     perm = band.perm
     nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
@@ -406,7 +406,7 @@ def build_planned_band(points: np.ndarray, plan: BandPlan, max_memory: int | Non
     found as two sheets and may be cut apart that way): if it does, the plain band is used for the
     whole scan and the plan returned says so. The one-sided band is a subset of the plain one's
     voxels, so both are decided on one band."""
-    from .._kernels.march import point_components
+    from .._kernels.topology import point_components
 
     band = build_band(points, plan.h, plan.r, max_memory)
     if plan.normal is None:

@@ -276,7 +276,8 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         vcost = band.vcost
         pcost = np.ones(1)
         cmin = 1.0
-    from .._kernels.march import euclid_tail, grid_phase
+    from .._kernels.march import grid_phase
+    from .._kernels.tail import euclid_tail
 
     if plan.separation is None:
         psep = np.full(1, np.inf, dtype=np.float32)
