@@ -328,9 +328,9 @@ def _check_index(meta: ScanMeta, rel: str, arr: np.ndarray, distinct: bool) -> N
 
 
 def _distinct(arr: np.ndarray, n: int) -> bool:
-    """No value twice in ``arr`` (values in [0, n)): a mask of n flags when ``arr`` is not much
-    shorter than n (O(n), no sort), a sort otherwise."""
-    if arr.size * 8 >= n:
+    """No value twice in ``arr`` (values in [0, n)): a mask of n flags (O(n) bytes, no sort)
+    unless ``arr`` is tiny next to n (then sorting it is cheaper)."""
+    if arr.size * 64 >= n:
         seen = np.zeros(n, dtype=bool)
         seen[arr] = True
         return int(np.count_nonzero(seen)) == arr.size
