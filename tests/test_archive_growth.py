@@ -24,7 +24,7 @@ from lodbuilder.archive.writer import (
     write_archive,
     write_record,
 )
-from lodbuilder.errors import ArchiveError, CorruptArchiveError, InputError
+from lodbuilder.errors import ArchiveError, CorruptArchiveError, InputError, UnsafeArchiveError
 from lodbuilder.io import Scan
 
 
@@ -465,12 +465,12 @@ def test_rewriting_a_scan_with_external_data_is_refused(tmp_path):
         f["scans/s/attributes"].create_dataset("stolen", shape=(500,), dtype="u1",
                                                external=[(str(secret), 0, 500)])
     before = path.read_bytes()
-    with pytest.raises(CorruptArchiveError) as err:
+    with pytest.raises(UnsafeArchiveError) as err:
         add_importance(path, "s", "z", np.zeros(500))
     assert str(err.value) == (
-        f"archive {path}: scan 's' dataset attributes/stolen keeps its data outside the archive "
-        "(external or virtual storage); the scan is damaged or crafted and was not copied, rebuild "
-        "it from its source"
+        f"archive {path} is refused: dataset '/scans/s/attributes/stolen' stores its data in "
+        f"external file '{secret}'; lodbuilder reads nothing outside an archive; rebuild it with "
+        "'lodbuilder build'"
     )
     assert path.read_bytes() == before and listing(path) == ["e.h5", "secret.bin"]
 

@@ -104,6 +104,7 @@ HANG_COMMANDS = {
     "slice": ["--size", "10", "-o", "{d}/o.ply"],
     "view": ["--screenshot", "{d}/o.png"],
     "evaluate": ["--json", "{d}/o.json"],
+    "export": ["--size", "10", "-o", "{d}/o.copc.laz"],
 }
 
 

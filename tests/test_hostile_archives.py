@@ -56,6 +56,7 @@ def commands(arc, d):
         "view": (["view", arc, "--screenshot", d / "x.png"], d / "x.png"),
         "evaluate": (["evaluate", arc, "--json", d / "x.json"], d / "x.json"),
         "build": (["build", d / "in.ply", "-o", arc, "--no-progress"], None),
+        "export": (["export", arc, "--size", "50", "-o", d / "x.copc.laz"], d / "x.copc.laz"),
     }
 
 
@@ -110,7 +111,9 @@ KINDS = [
 ]
 
 
-@pytest.mark.parametrize("cmd", ["info", "validate", "slice", "view", "evaluate", "build"])
+@pytest.mark.parametrize(
+    "cmd", ["info", "validate", "slice", "view", "evaluate", "build", "export"]
+)
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_command_refuses(base, tmp_path, capsys, monkeypatch, kind, cmd):
     arc, message = _hostile(kind, base, tmp_path)

@@ -1,18 +1,24 @@
-"""What the archive safety checks cost per command: this tree against the code before them.
+"""What the archive safety checks cost per command, measured part by part in one process.
 
-    python tools/bench_safety.py                     # 1M-point archive and a 30-scan collection
-    python tools/bench_safety.py --n 200000 --repeat 5 --before 50d94bc
+    python tools/bench_safety.py                  # a 1M-point archive, a 30-scan collection
+    python tools/bench_safety.py --n 200000 --repeat 9
 
 Prints one JSON document. The archives are *synthetic* (a generated wavy surface with a random
 permutation as its ordering, radius = sqrt(1 / (pi k)); see ``bench_slice.synthetic_record``):
-the checks' cost depends on what is read, not on how the ordering was computed. Each measurement
-runs in a fresh process importing either this tree or the tree of ``--before`` (a git ref,
-default: where this branch left main), alternating, and reports the minimum over ``--repeat``
-runs and the after / before ratio.
+the checks' cost depends on what is read, not on how the ordering was computed.
 
-Measured: opening an archive and one scan (metadata walk, scan header checks, guarded file
-object); levels by size (1k, 100k, all points) and by rho (about 100k points); ``info``'s
-``scan_info`` (reads the whole radius array); a full ``validate``; ``lodbuilder slice`` wall time.
+Measured (minimum over ``--repeat`` runs, milliseconds), each against the same work without it:
+
+* ``open``: ``open_archive`` + ``scan()``; of it, ``safety.check_file`` (the metadata walk that
+  refuses links, external storage, virtual datasets, sizes the file cannot hold) and
+  ``checks.check_scan_group`` (the scan's attributes, shapes and dtypes);
+* ``heap guard``: opening the file and reading a 100k-point prefix through h5py's ``fileobj``
+  driver and :class:`safety.GuardedFile` (every global heap walked before HDF5 parses it) against
+  h5py's default driver on the path;
+* ``level``: ``ScanView.level(size=k)`` for k = 1k, 100k and all points, and the share of it
+  spent in ``checks.check_rows`` (finite points inside the bounds, radii, distinct positions);
+* ``info``: ``scan_info`` (the whole radius array, checked);
+* ``collection``: opening a 30-scan archive (index file + parts) and every scan.
 """
 
 from __future__ import annotations
@@ -26,64 +32,27 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-
-MEASURE = r"""
-import json, sys, time
-import lodbuilder
-from lodbuilder.cli.info import scan_info
-from lodbuilder.archive.validate import validate_archive
-
-path, name, coll, sizes = sys.argv[1], sys.argv[2], sys.argv[3], [int(s) for s in sys.argv[4].split(",")]
-out = {}
-
-def best(fn, repeat=5):
-    ts = []
-    for _ in range(repeat):
-        t = time.perf_counter(); fn(); ts.append(time.perf_counter() - t)
-    return min(ts) * 1e3
-
-def open_scan(p, n):
-    with lodbuilder.open_archive(p) as a:
-        a.scan(n)
-
-out["open_archive_and_scan_ms"] = best(lambda: open_scan(path, name))
-out["open_collection_30_scans_ms"] = best(lambda: [a.scans for a in [lodbuilder.open_archive(coll)] if not a.close()])
-with lodbuilder.open_archive(path) as a:
-    v = a.scan(name)
-    for k in sizes:
-        out[f"level_size_{k}_ms"] = best(lambda: v.level(size=k))
-    rho = float(v.radius[100000])
-    def by_rho():
-        v._rindex = None
-        v.level(rho=rho)
-    out["level_rho_100k_ms"] = best(by_rho)
-    def info():
-        v._radius = None
-        scan_info(v)
-    out["info_scan_ms"] = best(info)
-out["validate_ms"] = best(lambda: validate_archive(path), 2)
-print(json.dumps(out))
-"""
 
 
 def _git(*args: str) -> str:
     return subprocess.run(["git", *args], capture_output=True, text=True, cwd=REPO).stdout.strip()
 
 
-def _tree_at(ref: str, dest: Path) -> Path:
-    """The lodbuilder package of ``ref`` extracted under ``dest``."""
-    dest.mkdir(parents=True, exist_ok=True)
-    archive = subprocess.run(["git", "archive", ref, "lodbuilder"], capture_output=True, cwd=REPO, check=True)
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
-    return dest
+def best(fn: Any, repeat: int) -> float:
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return round(min(ts) * 1e3, 3)
 
 
-def _build(work: Path, n: int) -> tuple[Path, str, Path]:
+def build(work: Path, n: int) -> tuple[Path, str, Path]:
     sys.path.insert(0, str(HERE))
-    sys.path.insert(0, str(REPO))
     from bench_slice import synthetic_record
 
     from lodbuilder.archive.writer import update_archive
@@ -101,62 +70,125 @@ def _build(work: Path, n: int) -> tuple[Path, str, Path]:
     return big, rec.scan.name, coll
 
 
-def _run(tree: Path, args: list[str]) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(tree)}
-    res = subprocess.run([sys.executable, "-c", MEASURE, *args], capture_output=True, text=True, env=env)
-    if res.returncode:
-        raise RuntimeError(res.stderr)
-    return json.loads(res.stdout)
+def measure(big: Path, name: str, coll: Path, n: int, repeat: int) -> dict[str, Any]:
+    import h5py
 
+    import lodbuilder
+    from lodbuilder.archive import checks, safety
+    from lodbuilder.archive import layout as L
+    from lodbuilder.cli.info import scan_info
 
-def _cli(tree: Path, big: Path, name: str, out: Path, repeat: int) -> float:
-    env = {**os.environ, "PYTHONPATH": str(tree)}
-    ts = []
-    for _ in range(repeat):
-        out.unlink(missing_ok=True)
-        t = time.perf_counter()
-        subprocess.run(
-            [sys.executable, "-m", "lodbuilder.cli.main", "slice", str(big), "--scan", name,
-             "--size", "100000", "-o", str(out)],
-            env=env, check=True, capture_output=True,
+    out: dict[str, Any] = {}
+
+    def open_scan() -> None:
+        with lodbuilder.open_archive(big) as a:
+            a.scan(name)
+
+    f = safety.open_h5(big)
+    g = f[f"{L.G_SCANS}/{name}"]
+    out["open"] = {
+        "open_archive_and_scan": best(open_scan, repeat),
+        "of_it_check_file": best(lambda: safety.check_file(f, big), repeat),
+        "of_it_check_scan_group": best(lambda: checks.check_scan_group(g, big, name), repeat),
+    }
+    f.close()
+
+    k = min(100_000, n)
+
+    def prefix(fobj: Any) -> None:
+        with h5py.File(fobj, "r") as h:
+            s = h[f"{L.G_SCANS}/{name}"]
+            for rel in (L.D_POINTS, L.D_RADIUS, L.D_SOURCE_INDEX):
+                s[rel][:k]
+            for key in s[L.G_ATTRIBUTES]:
+                s[L.G_ATTRIBUTES][key][:k]
+
+    def guarded() -> None:
+        with open(big, "rb", buffering=0) as raw:
+            prefix(safety.GuardedFile(raw, big))
+
+    plain = best(lambda: prefix(big), repeat)
+    through = best(guarded, repeat)
+    out["heap_guard"] = {
+        "open_and_read_100k_path_ms": plain,
+        "open_and_read_100k_guarded_ms": through,
+        "ratio": round(through / plain, 3),
+    }
+
+    levels: dict[str, Any] = {}
+    with lodbuilder.open_archive(big) as a:
+        v = a.scan(name)
+        meta = v._meta
+        for size in sorted({1000, k, n}):
+            total = best(lambda s=size: v.level(size=s), repeat)
+            lev = v.level(size=size)
+            raw = v._g[L.D_POINTS][:size]
+            rad = v._g[L.D_RADIUS][: size + 1]
+
+            def check(lev=lev, raw=raw, rad=rad) -> None:
+                checks.check_rows(meta, L.D_POINTS, raw, 0, v._raw_rows)
+                checks.check_rows(meta, L.D_RADIUS, rad, 0, v._raw_rows)
+                checks.check_rows(meta, L.D_SOURCE_INDEX, lev.source_index, 0, v._raw_rows)
+
+            spent = best(check, repeat)
+            levels[f"size_{size}"] = {
+                "level_ms": total,
+                "of_it_checks_ms": spent,
+                "share": round(spent / total, 3),
+            }
+
+        def info() -> None:
+            v._radius = None
+            scan_info(v)
+
+        levels["info_scan_ms"] = best(info, repeat)
+        rad_all = v._g[L.D_RADIUS][:]
+        levels["info_of_it_radius_checks_ms"] = best(
+            lambda: checks.check_rows(meta, L.D_RADIUS, rad_all, 0, v._raw_rows), repeat
         )
-        ts.append(time.perf_counter() - t)
-    return min(ts) * 1e3
+    out["level"] = levels
+
+    def open_all() -> None:
+        with lodbuilder.open_archive(coll) as a:
+            for s in a.scans:
+                a.scan(s)
+
+    out["collection_30_scans"] = {"open_and_every_scan_ms": best(open_all, repeat)}
+    parts = sorted(coll.with_name(L.parts_dir_name(coll.name)).glob("*.h5"))
+    walk = 0.0
+    for p in parts:
+        ff = h5py.File(p, "r")
+        walk += best(lambda ff=ff, p=p: safety.check_file(ff, p), repeat)
+        ff.close()
+    idx = h5py.File(coll, "r")
+    walk += best(lambda: safety.check_file(idx, coll), repeat)
+    idx.close()
+    out["collection_30_scans"]["of_it_check_file_ms"] = round(walk, 3)
+    out["collection_30_scans"]["files"] = len(parts) + 1
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--n", type=int, default=1_000_000, help="points of the big archive")
-    p.add_argument("--repeat", type=int, default=3, help="alternating process pairs per tree")
-    p.add_argument("--before", default=None, help="git ref of the code before (default: merge-base with main)")
+    p.add_argument("--repeat", type=int, default=7, help="runs per measurement (minimum kept)")
     args = p.parse_args(argv)
-    before_ref = args.before or _git("merge-base", "HEAD", "main")
+    sys.path.insert(0, str(REPO))
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="bench-safety-") as tmp:
-        work = Path(tmp)
-        big, name, coll = _build(work, args.n)
-        before_tree = _tree_at(before_ref, work / "before")
-        sizes = [1000, 100000, args.n]
-        margs = [str(big), name, str(coll), ",".join(map(str, sizes))]
-        runs: dict[str, list[dict]] = {"before": [], "after": []}
-        for _ in range(args.repeat):  # alternate, so that load changes hit both alike
-            runs["before"].append(_run(before_tree, margs))
-            runs["after"].append(_run(REPO, margs))
-        res = {k: {m: round(min(r[m] for r in v), 2) for m in v[0]} for k, v in runs.items()}
-        res["before"]["cli_slice_100k_ms"] = round(_cli(before_tree, big, name, work / "o.npy", args.repeat), 1)
-        res["after"]["cli_slice_100k_ms"] = round(_cli(REPO, big, name, work / "o.npy", args.repeat), 1)
-    ratio = {m: round(res["after"][m] / res["before"][m], 3) for m in res["after"] if res["before"].get(m)}
+        big, name, coll = build(Path(tmp), args.n)
+        res = measure(big, name, coll, args.n, args.repeat)
     doc = {
         "benchmark": "bench_safety",
         "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "git_commit": _git("rev-parse", "--short", "HEAD"),
-        "before": before_ref[:12],
-        "command": " ".join(["tools/bench_safety.py", *(argv if argv is not None else sys.argv[1:])]),
+        "command": " ".join(
+            ["tools/bench_safety.py", *(argv if argv is not None else sys.argv[1:])]
+        ),
         "loadavg": [round(x, 2) for x in load0],
         "loadavg_end": [round(x, 2) for x in os.getloadavg()],
-        "inputs": f"synthetic: {args.n}-point wavy surface (7 attributes), and 30 scans of 20,000 points",
+        "inputs": f"synthetic: {args.n}-point wavy surface (7 attributes); 30 scans of 20,000 points",
         "ms_min": res,
-        "after_over_before": ratio,
     }
     print(json.dumps(doc, indent=2))
     return 0

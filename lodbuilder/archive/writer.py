@@ -185,8 +185,7 @@ def copy_scan(
     refused (CorruptArchiveError), never copied."""
     importance = dict(importance or {})
     orderings = dict(orderings or {})
-    n = view.n_points
-    _check_copyable(view)
+    n = view.n_points  # the reader checked the file (nothing stored outside it) and the scan's shapes
     imp_names = sorted(set(view.importance_names) | set(importance))
     try:
         with ScanWriter(path, view.name, n, metadata=view.format_metadata, encoding=view.encoding) as w:
@@ -233,35 +232,6 @@ def copy_scan(
             f"archive {view.archive.path}: scan {view.name!r} breaks the archive's invariants "
             f"({exc}); it is damaged and was not copied, rebuild it from its source"
         ) from None
-
-
-def _check_copyable(view: Any) -> None:
-    """Refuse to copy a scan whose datasets keep their bytes outside the file (external storage,
-    virtual datasets) or whose per-point datasets do not hold one row per point."""
-    import h5py
-
-    g, n = view._g, view.n_points
-    names = [L.D_POINTS, L.D_SOURCE_INDEX, L.D_RADIUS, L.D_PARENT]
-    names += [f"{grp}/{k}" for grp in (L.G_ATTRIBUTES, L.G_IMPORTANCE) if grp in g for k in g[grp]]
-    names += [f"{L.G_ORDERINGS}/{o}/{d}" for o in view.ordering_names
-              for d in (L.D_ORDER, L.D_RADIUS, L.D_PARENT)]
-    for rel in names:
-        ds = g.get(rel, getlink=False) if rel in g else None
-        link = g.get(rel, getlink=True) if rel in g else None
-        problem = None
-        if ds is None or not isinstance(link, h5py.HardLink) or not isinstance(ds, h5py.Dataset):
-            problem = "is missing or is a link"
-        else:
-            dcpl = ds.id.get_create_plist()
-            if dcpl.get_external_count() or dcpl.get_layout() not in (h5py.h5d.CHUNKED, h5py.h5d.COMPACT):
-                problem = "keeps its data outside the archive (external or virtual storage)"
-            elif not rel.startswith(L.G_ORDERINGS) and ds.shape[:1] != (n,):
-                problem = f"has {ds.shape[0] if ds.shape else 0} rows for {n} points"
-        if problem:
-            raise CorruptArchiveError(
-                f"archive {view.archive.path}: scan {view.name!r} dataset {rel} {problem}; the scan "
-                "is damaged or crafted and was not copied, rebuild it from its source"
-            )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -508,7 +478,7 @@ def _part_info(src: Path) -> PartInfo:
                 "ScanWriter"
             )
         view = arc.scan(rows[0].name)
-        _check_copyable(view)  # nothing stored outside the part, one row per point
+        # opening it checked the part: nothing stored outside it, one row per point
         return PartInfo(
             path=src,
             name=view.name,
