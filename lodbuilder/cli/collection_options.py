@@ -1,14 +1,13 @@
-"""The collection side of ``lodbuilder build``: many inputs, manifests, a pool or a Dask cluster.
+"""The collection options of ``lodbuilder build`` (manifests, a pool or a Dask cluster, resume) and
+``lodbuilder slice --all-scans``.
 
-``lodbuilder/cli/build.py`` calls :func:`add_arguments` on its parser and hands over to
-:func:`run` when :func:`wants_collection` says the inputs are more than one plain scan.
+``lodbuilder/cli/build.py`` calls :func:`add_arguments` on its parser and passes
+:func:`collection_kwargs` to :func:`lodbuilder.build_archive`.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 from typing import Any
 
 
@@ -17,7 +16,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--manifest", metavar="FILE",
                    help="text file listing scans, one per line, each optionally followed by a pose: 16 numbers "
                         "(row-major 4x4, world = M [p 1]) or the bun.conf form 'bmesh FILE tx ty tz qx qy qz qw'")
-    g.add_argument("--workers", type=int, metavar="N", help="local worker processes (default: all cores)")
+    g.add_argument("--workers", type=int, metavar="N",
+                   help="local worker processes, N >= 1 (default: one scan runs in this process, several on "
+                        "one worker per core)")
     g.add_argument("--scheduler", metavar="ADDRESS", help="run the scans on this Dask scheduler (tcp://host:8786)")
     g.add_argument("--dask-local", type=int, metavar="N", help="start a Dask LocalCluster of N workers and use it")
     g.add_argument("--size", type=int, metavar="N",
@@ -25,84 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--force", action="store_true", help="rebuild scans even when source and parameters are unchanged")
 
 
-def wants_collection(args: argparse.Namespace) -> bool:
-    """True unless the inputs are exactly one plain scan file with no collection option."""
-    from ..collection.inputs import MANIFEST_SUFFIXES, expand_inputs
-
-    inputs = list(args.input or [])
-    if args.manifest or args.workers is not None or args.scheduler or args.dask_local is not None \
-            or args.size is not None or args.force or len(inputs) != 1:
-        return True
-    from pathlib import Path
-
-    p = Path(inputs[0])
-    if p.is_dir() or (not p.exists() and any(c in inputs[0] for c in "*?[")):
-        return True
-    if p.suffix.lower() in MANIFEST_SUFFIXES:
-        return True
-    if p.suffix.lower() == ".e57" and p.is_file():
-        return len(expand_inputs([p])) > 1
-    return False
-
-
-def _status_line(st: Any, done: int, total: int) -> str:
-    if st.status == "built":
-        return f"[{done}/{total}] {st.name}: built ({st.n_points} points, {st.seconds:.1f} s)"
-    if st.status == "failed":
-        return f"[{done}/{total}] {st.name}: FAILED: {st.error}"
-    return f"[{done}/{total}] {st.name}: {st.status}"
-
-
-def run(args: argparse.Namespace) -> int:
-    from ..collection.runner import build_collection
-    from ..errors import InputError
-    from .feature_options import build_kwargs
-
-    if args.name:
-        raise InputError("--name names a single scan; a collection names each scan after its file")
-    if not args.input and not args.manifest:
-        raise InputError("give INPUT files, directories or globs, or --manifest FILE")
-    show = not getattr(args, "no_progress", False) and sys.stderr.isatty()
-    bar: Any = None
-    counter = {"done": 0}
-
-    def on_status(st: Any) -> None:
-        counter["done"] += 1
-        line = _status_line(st, counter["done"], total["n"])
-        if bar is not None:
-            bar.write(line, file=sys.stderr)
-            bar.update(1)
-            bar.set_postfix_str(f"{st.name}: {st.status}")
-        else:
-            print(line, file=sys.stderr)
-
-    total = {"n": 0}
-
-    def progress(stage: str, done: int, n: int) -> None:
-        nonlocal bar
-        total["n"] = n
-        if show and bar is None and n:
-            from tqdm import tqdm
-
-            bar = tqdm(total=n, desc="scans", unit="scan", leave=False, file=sys.stderr)
-
-    t0 = time.perf_counter()
-    try:
-        res = build_collection(
-            list(args.input or []), args.output, manifest=args.manifest, workers=args.workers,
-            scheduler=args.scheduler, dask_local=args.dask_local, voxel_size=args.voxel_size,
-            band_radius=args.band_radius, size=args.size, force=args.force,
-            overwrite=getattr(args, "overwrite", False), progress=progress, on_status=on_status,
-            **build_kwargs(args),
-        )
-    finally:
-        if bar is not None:
-            bar.close()
-    counts = res.summary()
-    parts = [f"{counts[k]} {k}" for k in ("built", "recovered", "skipped", "failed") if counts.get(k)]
-    where = f" on {res.executor}" if res.executor else ""
-    print(f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
-    return 1 if res.failed else 0
+def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """Keyword arguments of :func:`lodbuilder.build_archive` from the collection options."""
+    return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
+            "dask_local": args.dask_local, "size": args.size, "force": args.force}
 
 
 def slice_all(args: argparse.Namespace) -> int:
