@@ -179,7 +179,7 @@ def test_not_an_archive_and_newer_schema(tmp_path, small):
     newer.write_bytes(small[2].read_bytes())
     with h5py.File(newer, "r+") as f:
         f.attrs["schema_version"] = np.int64(L.SCHEMA_VERSION + 1)
-    with pytest.raises(SchemaVersionError, match=r"schema version 2, newer than the 1 .*upgrade"):
+    with pytest.raises(SchemaVersionError, match=rf"schema version {L.SCHEMA_VERSION + 1}, newer than the {L.SCHEMA_VERSION} .*upgrade"):
         lodbuilder.open_archive(newer)
     with pytest.raises(ScanFileError, match="does not exist"):
         lodbuilder.open_archive(tmp_path / "missing.h5")

@@ -86,4 +86,4 @@ def _scan(doc):
 
 def test_build_schema_is_deterministic():
     assert build_schema() == build_schema()
-    assert np.int64(L.SCHEMA_VERSION) == 1
+    assert np.int64(L.SCHEMA_VERSION) == 2

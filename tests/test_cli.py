@@ -232,7 +232,7 @@ def test_slice_path_imports_nothing_heavy(built, tmp_path):
         "import sys\n"
         "from lodbuilder.cli.main import main\n"
         f"rc = main(['slice', {str(built)!r}, '--fraction', '0.5', '-o', {str(tmp_path / 'h.ply')!r}])\n"
-        "heavy = [m for m in ('numba', 'pyvista', 'dask', 'vtk') if m in sys.modules]\n"
+        "heavy = [m for m in ('numba', 'scipy', 'pyvista', 'dask', 'vtk') if m in sys.modules]\n"
         "print(rc, heavy)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

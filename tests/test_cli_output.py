@@ -133,3 +133,37 @@ def test_check_output_rule(tmp_path):
     assert str(O.check_output("-", "--json", stdout=True)) == "-"
     with pytest.raises(ScanFileError, match="is a directory"):
         O.check_output(tmp_path, "-o")
+
+
+@pytest.mark.parametrize(
+    "argv,line",
+    [
+        (
+            ["slice", "a.h5", "--size", "x", "-o", "o.ply"],
+            "lodbuilder slice: error: argument --size: invalid int value: 'x' "
+            "(see 'lodbuilder slice --help')",
+        ),
+        (
+            ["slice", "a.h5", "-o", "o.ply"],
+            "lodbuilder slice: error: one of the arguments --rho --size --fraction is required "
+            "(see 'lodbuilder slice --help')",
+        ),
+        (
+            ["info"],
+            "lodbuilder info: error: the following arguments are required: ARCHIVE "
+            "(see 'lodbuilder info --help')",
+        ),
+        (
+            [],
+            "lodbuilder: error: the following arguments are required: COMMAND "
+            "(see 'lodbuilder --help')",
+        ),
+    ],
+)
+def test_argument_errors_are_one_line(capsys, argv, line):
+    from lodbuilder.cli.main import main
+
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    out, err = capsys.readouterr()
+    assert e.value.code == 2 and out == "" and err == line + "\n"

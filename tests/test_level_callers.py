@@ -124,3 +124,42 @@ def test_info_levels_are_api_levels(archive, capsys):
     assert levels and [lv["size"] for lv in levels] == api_sizes(
         path, [("rho", lv["rho"]) for lv in levels]
     )
+
+
+def test_extra_ordering_levels_agree(archive, tmp_path, capsys):
+    """The same for a prefix of the stored weighted ordering."""
+    path, _ = archive
+    qs = [("size", 10), ("fraction", 0.5), ("fraction", 0.35), ("fraction", 0.0002)]
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        want = [view.level(**{k: v}, ordering="weighted", attributes=False).size for k, v in qs]
+        w_radius = np.asarray(view.dataset("orderings/weighted/radius")[:])
+        qs.append(("rho", float(w_radius[100])))
+        want.append(view.level(rho=float(w_radius[100]), ordering="weighted").size)
+    assert want[1] == 945
+    capsys.readouterr()
+    for (kind, v), size in zip(qs, want, strict=True):
+        argv = ["slice", str(path), f"--{kind}", repr(v), "--ordering", "weighted"]
+        assert main(argv + ["-o", str(tmp_path / "w.npy"), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["size"] == size, (kind, v)
+    data = load_view_data(path, ordering="weighted")
+    assert [data.resolve_size(**{k: v}) for k, v in qs] == want
+    fr = [v for k, v in qs if k == "fraction"]
+    argv = ["evaluate", str(path), "--ordering", "weighted", "--fractions", *map(repr, fr)]
+    assert main(argv + ["--json", "-"]) == 0
+    got = [lv["size"] for lv in json.loads(capsys.readouterr().out)["levels"]]
+    assert got == [s for (k, _), s in zip(qs, want, strict=True) if k == "fraction"]
+
+
+def test_merged_scans_in_the_viewer_are_the_collection_level(tmp_path):
+    """view of a multi-scan archive merges the scans by radius: its level at rho is the union of
+    every scan's level at rho, as collection_level (slice --all-scans) gives it."""
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    path = tmp_path / "two.h5"
+    for name, kind in (("wavy", "wavy"), ("ball", "sphere")):
+        lodbuilder.build_archive(demo_scan(700, kind=kind, seed=2, name=name), path)
+    data = load_view_data(path)
+    for rho in (0.3, 0.05, 0.02, 0.004):
+        lvl = collection_level(path, rho, attributes=False)
+        assert data.size_for_rho(rho) == sum(lvl.sizes) == len(lvl)

@@ -379,3 +379,15 @@ def test_log_sizes(lo, n, count):
     assert sizes[0] == LV.round_size(max(1.0, lo), n)
     geo = np.geomspace(max(1.0, lo), n, count)
     assert set(sizes) == {LV.round_size(float(v), n) for v in geo} | {n}
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(0.0, 1e7, allow_nan=False), st.integers(1, 10**7))
+def test_round_size_against_decimal_half_up(x, n):
+    """An independent oracle: the decimal module's ROUND_HALF_UP on the shortest decimal."""
+    from decimal import ROUND_HALF_UP, Decimal, localcontext
+
+    with localcontext() as ctx:
+        ctx.prec = 60
+        want = int(Decimal(repr(x)).quantize(Decimal(1), rounding=ROUND_HALF_UP))
+    assert LV.round_size(x, n) == min(n, max(1, want))

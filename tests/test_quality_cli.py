@@ -89,7 +89,7 @@ def test_evaluate_errors(res3_archive, tmp_path, capsys):
     assert main(["evaluate", arc, "--rhos", "-1"]) == 2
     assert "rho must be a finite number > 0, got -1" in capsys.readouterr().err
     assert main(["evaluate", arc, "--json", arc]) == 2
-    assert "is the archive itself" in capsys.readouterr().err
+    assert f"--json {arc} is the input archive; choose another output" in capsys.readouterr().err
     assert main(["evaluate", arc, "--scan", "nope"]) == 2
     assert "has no scan 'nope'" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []

@@ -7,22 +7,21 @@ This module and the ones it imports stay clear of numba, pyvista and dask, so th
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .._validate import check_positive, check_size, strict_keywords, strict_methods
 from ..errors import (
-    ArchiveError,
     CorruptArchiveError,
     InputError,
     NotAnArchiveError,
     ScanFileError,
     ScanNotFoundError,
-    SchemaVersionError,
 )
 from . import layout as L
+from .index import Where, check_part, first_line, read_rows, root_attrs
+from .layout import IndexRow
 from .levels import (
     Level,
     box_positions,
@@ -42,69 +41,112 @@ from .levels import (
 
 
 @strict_keywords
-def check_archive_file(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Root attributes of the archive at ``path``; raise a one-line error if it is not one we can read."""
+def check_archive_file(
+    path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Root attributes of the archive at ``path`` (a file or a URL); raise a one-line error if it
+    is not one we can read."""
+    where = Where.of(path, storage_options)
+    f, _ = open_h5(where)
+    try:
+        return root_attrs(f, where)
+    finally:
+        f.close()
+
+
+@strict_keywords
+def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
+    """Open the archive file at ``where`` read-only: ``(h5py.File, remote file or None)``.
+
+    This is the one place where lodbuilder opens an archive file (an index, a single-scan archive
+    or a part), local or remote. ``size`` is the file's size when the caller knows it (a part's
+    size is in its index), which saves a request for a remote file."""
     import h5py
 
-    path = Path(path)
-    if not path.exists():
-        raise ScanFileError(f"archive {path} does not exist; build one with 'lodbuilder build'")
-    if path.is_dir():
-        raise NotAnArchiveError(f"{path} is a directory, not an lodbuilder archive")
-    if not h5py.is_hdf5(path):
-        raise NotAnArchiveError(
-            f"{path} is not an lodbuilder archive (not an HDF5 file); build one with 'lodbuilder build'"
-        )
+    path = where.display
+    rf = None
+    if where.url is not None:
+        from .remote import open_remote
+
+        rf = open_remote(where.url, size=size, storage_options=where.options)
+        target: Any = rf
+    else:
+        local = where.local
+        assert local is not None
+        if not local.exists():
+            raise ScanFileError(
+                f"archive {local} does not exist; build one with 'lodbuilder build'"
+            )
+        if local.is_dir():
+            raise NotAnArchiveError(f"{local} is a directory, not an lodbuilder archive")
+        if not h5py.is_hdf5(local):
+            raise NotAnArchiveError(
+                f"{local} is not an lodbuilder archive (not an HDF5 file); build one with "
+                "'lodbuilder build'"
+            )
+        target = local
     try:
-        with h5py.File(path, "r") as f:
-            attrs = {k: L._attr_json(v) for k, v in f.attrs.items()}
-    except OSError as exc:
-        raise NotAnArchiveError(f"{path} cannot be opened as an HDF5 archive: {exc}") from None
-    return _check_root_attrs(path, attrs)
-
-
-def _check_root_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
-    if attrs.get(L.A_FORMAT) != L.FORMAT:
+        f = h5py.File(target, "r")
+    except (OSError, RuntimeError, ValueError) as exc:
+        if rf is not None:
+            rf.close()
+            if not rf.looks_like_hdf5():
+                raise NotAnArchiveError(
+                    f"{path} is not an lodbuilder archive (not an HDF5 file)"
+                ) from None
         raise NotAnArchiveError(
-            f"{path} is an HDF5 file but not an lodbuilder archive (no format='lodbuilder' attribute)"
-        )
-    version = attrs.get(L.A_SCHEMA_VERSION)
-    if not isinstance(version, int):
-        raise NotAnArchiveError(
-            f"{path} has no integer schema_version attribute; it is not a valid archive"
-        )
-    if version > L.SCHEMA_VERSION:
-        raise SchemaVersionError(
-            f"{path} uses archive schema version {version}, newer than the {L.SCHEMA_VERSION} this "
-            "lodbuilder reads; upgrade lodbuilder"
-        )
-    return attrs
+            f"{path} cannot be opened as an HDF5 archive: {first_line(exc)}"
+        ) from None
+    return f, rf
 
 
 @strict_methods
 class Archive:
-    """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``."""
+    """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``.
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        import h5py
+    ``path`` is a local file or an ``http(s)://`` / ``s3://`` URL (read through fsspec, which the
+    ``remote`` extra installs); ``storage_options`` go to fsspec (e.g. an S3 ``endpoint_url``)."""
 
-        self.path = Path(path)
-        self.attrs = check_archive_file(self.path)
+    def __init__(
+        self, path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
+    ) -> None:
+        self._where = Where.of(path, storage_options)
+        self.path: Any = self._where.display
+        self._parts: dict[str, tuple[Any, Any]] = {}
+        self._file, self._io = open_h5(self._where)
         try:
-            self._file = h5py.File(self.path, "r")
-        except OSError as exc:  # pragma: no cover - checked just above
-            raise ArchiveError(f"cannot open archive {self.path}: {exc}") from None
+            self.attrs = root_attrs(self._file, self._where)
+            self._rows = {r.name: r for r in read_rows(self._file, self.path)}
+        except BaseException:
+            self.close()
+            raise
         self.schema_version = int(self.attrs[L.A_SCHEMA_VERSION])
         self.lodbuilder_version = str(self.attrs.get(L.A_VERSION, ""))
 
     @property
     def file(self) -> Any:
+        """The h5py file of the archive itself (its index; scans may be in part files)."""
         return self._file
+
+    @property
+    def rows(self) -> list[IndexRow]:
+        """One :class:`IndexRow` per scan (name, size, bounds, part file), sorted by name."""
+        return [self._rows[n] for n in self.scans]
 
     @property
     def scans(self) -> list[str]:
         """Scan names, sorted."""
-        return sorted(self._file[L.G_SCANS]) if L.G_SCANS in self._file else []
+        return sorted(self._rows)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the archive: its file plus the part files it lists."""
+        if self._io is not None:
+            total = int(self._io.size)
+        else:
+            assert self._where.local is not None
+            total = self._where.local.stat().st_size
+        return total + sum({r.part: r.part_bytes for r in self._rows.values() if r.part}.values())
 
     def scan(self, name: str | None = None) -> ScanView:
         """The scan called ``name``; ``None`` is allowed when the archive holds exactly one scan."""
@@ -119,25 +161,95 @@ class Archive:
                     f"archive {self.path} holds {len(names)} scans; choose one with --scan "
                     f"(one of {', '.join(names[:10])}{', ...' if len(names) > 10 else ''})"
                 )
-        if name not in names:
+        if name not in self._rows:
             raise ScanNotFoundError(
                 f"archive {self.path} has no scan {name!r}; it holds {', '.join(names[:10]) or 'none'}"
             )
-        return ScanView(self, name)
+        group, io = self._scan_group(name)
+        return ScanView(self, name, group, io)
 
-    __getitem__ = scan
+    def _scan_group(self, name: str) -> tuple[Any, Any]:
+        """``(h5py group, remote file or None)`` of scan ``name``: the one place where a scan name
+        is resolved to its data, in this file or in a part file of the archive's own directory."""
+        import h5py
+
+        row = self._rows[name]
+        f, io = self._file, self._io
+        where = self._where
+        if row.part:
+            part = self._parts.get(row.part)
+            if part is None:
+                part = self._open_part(row)
+                self._parts[row.part] = part
+            f, io = part
+            where = self._where.part(row.part)
+        try:
+            scans = f.get(L.G_SCANS)
+            link = scans.get(name, getlink=True) if isinstance(scans, h5py.Group) else None
+            if not isinstance(link, h5py.HardLink) or not isinstance(scans[name], h5py.Group):
+                what = f"part {row.part}" if row.part else "it"
+                raise CorruptArchiveError(
+                    f"archive {self.path}: {what} does not hold scan {name!r} (no group "
+                    f"/scans/{name}); the index is damaged or crafted"
+                )
+            return scans[name], io
+        except CorruptArchiveError:
+            raise
+        except (OSError, RuntimeError, KeyError, ValueError) as exc:
+            raise CorruptArchiveError(
+                f"archive {where.display}: scan {name!r} cannot be read ({first_line(exc)}); the "
+                "file is damaged"
+            ) from None
+
+    def _check_part(self, row: IndexRow) -> Where:
+        """Where the part file of ``row`` is, checked to be one of this archive's own."""
+        return check_part(self._where, row, self.path)
+
+    def _open_part(self, row: IndexRow) -> tuple[Any, Any]:
+        """Open the part file of ``row`` after checking that it is one of this archive's own."""
+        where = self._check_part(row)
+        try:
+            f, io = open_h5(where, size=row.part_bytes or None)
+        except NotAnArchiveError:
+            raise CorruptArchiveError(
+                f"archive {self.path}: part {row.part} of scan {row.name!r} is not an lodbuilder "
+                "archive; refusing to read it"
+            ) from None
+        try:
+            root_attrs(f, where)
+        except NotAnArchiveError:
+            f.close()
+            raise CorruptArchiveError(
+                f"archive {self.path}: part {row.part} of scan {row.name!r} is not an lodbuilder "
+                "archive; refusing to read it"
+            ) from None
+        except BaseException:
+            f.close()
+            raise
+        return f, io
 
     def __iter__(self):
         return (self.scan(n) for n in self.scans)
 
     def __len__(self) -> int:
-        return len(self.scans)
+        return len(self._rows)
 
     def index(self) -> list[dict[str, Any]]:
-        """One dict per scan: name, n_points, bounds_min, bounds_max (from /index)."""
+        """One dict per scan: name, n_points, bounds_min, bounds_max, part (from /index)."""
         ig = self._file.get(L.G_INDEX)
         if ig is None:
             return []
+        if L.I_PART in ig:
+            return [
+                {
+                    "name": r.name,
+                    "n_points": r.n_points,
+                    "bounds_min": list(r.bounds_min),
+                    "bounds_max": list(r.bounds_max),
+                    "part": r.part,
+                }
+                for r in self.rows
+            ]
         names = [b.decode("utf-8") for b in ig[L.I_NAME][:]]
         counts = ig[L.I_N_POINTS][:]
         lo, hi = ig[L.I_BOUNDS_MIN][:], ig[L.I_BOUNDS_MAX][:]
@@ -147,8 +259,15 @@ class Archive:
         ]
 
     def close(self) -> None:
+        for f, io in list(self._parts.values()):
+            f.close()
+            if io is not None:
+                io.close()
+        self._parts.clear()
         if self._file is not None:
             self._file.close()
+            if self._io is not None:
+                self._io.close()
 
     def __enter__(self) -> Archive:
         return self
@@ -161,19 +280,23 @@ class Archive:
 
 
 @strict_keywords
-def open_archive(path: str | os.PathLike[str]) -> Archive:
-    """Open an archive for reading (a context manager)."""
-    return Archive(path)
+def open_archive(
+    path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None
+) -> Archive:
+    """Open an archive for reading (a context manager): a local file, or an ``https://``,
+    ``http://`` or ``s3://`` URL (needs ``pip install 'lodbuilder[remote]'``)."""
+    return Archive(path, storage_options=storage_options)
 
 
 @strict_methods
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
 
-    def __init__(self, archive: Archive, name: str) -> None:
+    def __init__(self, archive: Archive, name: str, group: Any, io: Any = None) -> None:
         self.archive = archive
         self.name = name
-        self._g = archive.file[L.G_SCANS][name]
+        self._g = group
+        self._io = io  # the remote file the group is read through (None: local)
         a = self._g.attrs
         self.n_points = int(a[L.S_N_POINTS])
         self.n_ordered = int(a.get(L.S_N_ORDERED, self.n_points))

@@ -170,18 +170,26 @@ def build_schema() -> dict[str, Any]:
             L.I_N_POINTS: _ds("int64", 1),
             L.I_BOUNDS_MIN: _ds("float64", 2, 3),
             L.I_BOUNDS_MAX: _ds("float64", 2, 3),
+            L.I_PART: _ds(
+                {"pattern": r"^S\d+$"},
+                1,
+                description="part file in NAME.h5.scans/ holding the scan, empty when it is in "
+                "this file; matches " + L.PART_NAME.pattern,
+            ),
+            L.I_PART_BYTES: _ds("int64", 1, description="size of the part file, 0 when none"),
         },
         [L.I_NAME, L.I_N_POINTS, L.I_BOUNDS_MIN, L.I_BOUNDS_MAX],
         attrs={L.A_N_SCANS: {"type": "integer", "minimum": 0}},
         required_attrs=[L.A_N_SCANS],
         additional=True,  # the collections issue may add columns
-        description="one row per scan, in name order",
+        description="one row per scan, in name order (schema 1 archives have no part columns)",
     )
     # the dtype of the name column is a pattern, not a const
-    index["properties"]["members"]["properties"][L.I_NAME]["properties"]["dtype"] = {
-        "type": "string",
-        "pattern": r"^S\d+$",
-    }
+    for col in (L.I_NAME, L.I_PART):
+        index["properties"]["members"]["properties"][col]["properties"]["dtype"] = {
+            "type": "string",
+            "pattern": r"^S\d+$",
+        }
     root = _group(
         {
             L.G_SCANS: _group({}, [], additional=scan, description="scans by name"),

@@ -127,7 +127,10 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
             faults += validate_description(L.describe(arc.file))
         for name in arc.scans:
             try:
-                faults += _check_scan(arc.scan(name))
+                view = arc.scan(name)
+                if schema and view._g.file != arc.file:  # a scan in a part file of the archive
+                    faults += [f"part of scan {name!r}: {x}" for x in validate_description(L.describe(view._g.file))]
+                faults += _check_scan(view)
             except (LodbuilderError, KeyError, OSError, ValueError) as exc:
                 faults.append(f"scan {name!r}: cannot be checked: {exc}")
         try:
@@ -140,7 +143,7 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
             faults.append(f"index: lists scans {names} but the archive holds {arc.scans}")
         else:
             for row in index:
-                n = int(arc.file[L.G_SCANS][row["name"]].attrs[L.S_N_POINTS])
+                n = arc.scan(row["name"]).n_points
                 if row["n_points"] != n:
                     faults.append(
                         f"index: scan {row['name']!r} has n_points {row['n_points']}, scan says {n}"

@@ -1,38 +1,62 @@
-"""Atomic archive writes.
+"""Archive writes that grow in O(new data) and stay atomic.
 
-Every change produces a complete new file next to the archive (a hidden temporary named
-``.<archive>.tmp-<pid>-<random>``), flushed and fsync'ed, then moved over the archive with
-``os.replace``. A ``kill -9`` at any moment therefore leaves the previous archive intact, and
-readers only ever see a complete archive. Changes to one archive are serialised by an advisory
-lock on ``.<archive>.lock``. When an archive is changed, the scans already in it are copied into the
-new file unchanged (HDF5 object copy: raw chunks, checksums and filters kept).
+An archive of one scan is one self-contained file (``NAME.h5``). Adding scans turns it into an
+index plus one *part* file per scan in ``NAME.h5.scans/``:
+
+1. under the archive's lock, every new scan is written (or hard-linked, for a finished part) into
+   ``NAME.h5.scans/<stem>-<token>.h5``, through a temporary that is fsync'ed and renamed;
+2. the first time, the scans stored in ``NAME.h5`` itself are moved out by hard-linking that file
+   into the directory as a part (O(1), nothing copied);
+3. a new index file (a few kB) is written to a temporary, fsync'ed and renamed over ``NAME.h5``;
+4. parts no index lists any more (replaced scans, leftovers of a killed writer) are deleted.
+
+A ``kill -9`` at any moment leaves ``NAME.h5`` either the old archive or the new one, both
+complete: before step 3 the old index lists only old, untouched parts; after it every part the
+new index lists is already in place. Leftovers are collected by the next write. Scans already
+stored are never copied (step 2 links, it does not copy), so adding a scan costs the scan plus
+the index, whatever the archive holds; replacing one scan, or adding an importance map or an
+ordering to it, rewrites only that scan.
 """
 
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
+import errno
+import functools
 import logging
 import os
 import secrets
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+import shutil
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .. import __version__
-from ..errors import ArchiveError, InputError
+from ..errors import ArchiveError, CorruptArchiveError, InputError, ScanNotFoundError
 from ..io.base import Scan
 from ..sampling.ordering import Ordering
+from . import files as F
 from . import layout as L
+from .files import check_writable_dir, remove_stale_temps  # noqa: F401 - public re-exports
+from .layout import IndexRow
+from .scanwriter import PartInfo, ScanWriter, close_quietly, new_file, write_index
 
 log = logging.getLogger(__name__)
 
-
-def utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+__all__ = [
+    "ScanRecord",
+    "ScanWriter",
+    "PartInfo",
+    "register_parts",
+    "update_archive",
+    "write_archive",
+    "add_importance",
+    "add_ordering",
+    "check_writable_dir",
+    "remove_stale_temps",
+]
 
 
 @dataclass
@@ -53,101 +77,7 @@ class ScanRecord:
 
 
 # ---------------------------------------------------------------------------------------------
-# temp files, locks
-
-
-def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def remove_stale_temps(path: Path) -> list[Path]:
-    """Delete temporaries of ``path`` left by writers that were killed (their pid is gone)."""
-    removed: list[Path] = []
-    prefix = f".{path.name}.tmp-"
-    try:
-        entries = list(path.parent.iterdir())
-    except OSError:
-        return removed
-    for p in entries:
-        if not p.name.startswith(prefix):
-            continue
-        try:
-            pid = int(p.name[len(prefix) :].split("-")[0])
-        except ValueError:
-            continue
-        if pid != os.getpid() and not _pid_alive(pid):
-            with contextlib.suppress(OSError):
-                p.unlink()
-                removed.append(p)
-                log.info("removed stale temporary %s", p)
-    return removed
-
-
-@contextlib.contextmanager
-def _lock(path: Path) -> Iterator[None]:
-    import fcntl
-
-    lock_path = path.with_name(f".{path.name}.lock")
-    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)  # releases the lock; the lock file stays (removing it would race)
-
-
-def check_writable_dir(path: Path, what: str = "output") -> None:
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise ArchiveError(f"{what} directory {parent} does not exist; create it first")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ArchiveError(f"{what} directory {parent} is not writable; choose another output path")
-
-
-def _fsync_dir(directory: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-@contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success fsync it and move it onto ``path``.
-
-    On any error (or interruption) the temporary is removed and ``path`` is left as it was."""
-    path = Path(path)
-    check_writable_dir(path)
-    tmp = _tmp_name(path)
-    try:
-        yield tmp
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-
-
-# ---------------------------------------------------------------------------------------------
-# writing one scan into an open file
+# one scan into one file
 
 
 def _validate_record(rec: ScanRecord) -> None:
@@ -167,6 +97,15 @@ def _validate_record(rec: ScanRecord) -> None:
             raise InputError(
                 f"attribute {key!r} of scan {scan.name!r} has shape {np.shape(arr)}, expected ({n}, ...)"
             )
+    for key, (values, _) in rec.importance.items():
+        arr = np.asarray(values)
+        if arr.shape != (n,) or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+            raise InputError(
+                f"importance map {key!r} must hold one number per point, shape ({n},), got {arr.shape}"
+            )
+    for key, (extra, _) in rec.orderings.items():
+        if extra.n_points != n:
+            raise InputError(f"ordering {key!r} is for {extra.n_points} points but the scan has {n}")
 
 
 def _stored_permutation(ordg: Ordering) -> np.ndarray:
@@ -180,8 +119,14 @@ def _stored_permutation(ordg: Ordering) -> np.ndarray:
     return np.concatenate([order, np.flatnonzero(~seen)])
 
 
-def write_scan(root: Any, rec: ScanRecord) -> None:
-    """Write ``rec`` as ``/scans/<name>`` of the open, writable h5py file ``root``."""
+def _inverse(perm: np.ndarray) -> np.ndarray:
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(perm.shape[0], dtype=np.int64)
+    return inv
+
+
+def write_record(path: str | os.PathLike[str], rec: ScanRecord) -> PartInfo:
+    """Write ``rec`` as a self-contained single-scan archive file at ``path`` (atomically)."""
     _validate_record(rec)
     scan, ordg = rec.scan, rec.ordering
     n, k = len(scan), len(ordg)
@@ -190,136 +135,341 @@ def write_scan(root: Any, rec: ScanRecord) -> None:
     radius[:k] = ordg.radius
     parent = np.full(n, -1, dtype=np.int64)
     parent[:k] = ordg.parent
-
-    g = root.require_group(L.G_SCANS).create_group(scan.name)
     pts = np.asarray(scan.points, dtype=np.float64)[perm]
-    stored, enc, offset, scale = L.encode_points(pts, scan.metadata)
-    p_attrs = {} if offset is None else {L.P_OFFSET: offset, L.P_SCALE: scale}
-    L.create_dataset(g, L.D_POINTS, stored, p_attrs)
-    L.create_dataset(g, L.D_SOURCE_INDEX, perm)
-    L.create_dataset(g, L.D_RADIUS, radius)
-    L.create_dataset(g, L.D_PARENT, parent)
-    L.create_dataset(g, L.D_RADIUS_INDEX, radius[:: L.RADIUS_INDEX_STEP].copy())
-    L.create_dataset(g, L.D_SEEDS, np.asarray(ordg.seeds, dtype=np.int64).reshape(-1))
-    ga = g.create_group(L.G_ATTRIBUTES)
-    for key, arr in scan.attributes.items():
-        L.create_dataset(ga, key, np.asarray(arr)[perm])
-    g.create_group(L.G_IMPORTANCE)
-    g.create_group(L.G_ORDERINGS)
-    for key, (values, params) in rec.importance.items():
-        write_importance(g, key, values, params)
-    for key, (extra, params) in rec.orderings.items():
-        write_ordering(g, key, extra, params)
-
+    _, enc, _, _ = L.encode_points(pts, scan.metadata)
     build = {
         "voxel_size": ordg.voxel_size,
         "band_radius": ordg.band_radius,
         "n_seeds": int(np.asarray(ordg.seeds).size),
         "engine_stats": ordg.stats,
+        **rec.build,
     }
-    build.update(rec.build)
-    prov = {"lodbuilder_version": __version__, "created_utc": utc_now(), "reader": scan.reader}
-    prov.update(rec.provenance)
-    g.attrs[L.S_N_POINTS] = np.int64(n)
-    g.attrs[L.S_N_ORDERED] = np.int64(k)
-    g.attrs[L.S_ENCODING] = enc
-    g.attrs[L.S_BOUNDS_MIN] = pts.min(axis=0)
-    g.attrs[L.S_BOUNDS_MAX] = pts.max(axis=0)
-    g.attrs[L.S_RADIUS_STEP] = np.int64(L.RADIUS_INDEX_STEP)
-    g.attrs[L.S_BUILD] = L.to_json(build)
-    g.attrs[L.S_PROVENANCE] = L.to_json(prov)
-    g.attrs[L.S_FORMAT_METADATA] = L.to_json(scan.metadata)
-
-
-def _inverse(g: Any) -> np.ndarray:
-    src = g[L.D_SOURCE_INDEX][:]
-    inv = np.empty_like(src)
-    inv[src] = np.arange(src.shape[0], dtype=np.int64)
-    return inv
-
-
-def write_importance(g: Any, name: str, values: Any, params: Mapping[str, Any] | None) -> None:
-    """Store an importance map given per *input* point (input order) into scan group ``g``."""
-    L.check_name(name, "importance map name")
-    n = int(g.attrs[L.S_N_POINTS]) if L.S_N_POINTS in g.attrs else g[L.D_SOURCE_INDEX].shape[0]
-    arr = np.asarray(values)
-    if arr.shape != (n,) or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
-        raise InputError(
-            f"importance map {name!r} must hold one number per point, shape ({n},), got {arr.shape}"
+    inv = _inverse(perm) if rec.orderings else None
+    orderings = {}
+    for key, (extra, params) in rec.orderings.items():
+        assert inv is not None
+        meta = {"voxel_size": extra.voxel_size, "band_radius": extra.band_radius,
+                "engine_stats": extra.stats, **dict(params or {})}
+        positions = inv[np.asarray(extra.order, dtype=np.int64)]
+        orderings[key] = (positions, extra.radius, extra.parent, meta)
+    with ScanWriter(path, scan.name, n, metadata=scan.metadata, encoding=enc) as w:
+        w.write(
+            pts,
+            perm,
+            radius,
+            parent,
+            attributes={key: np.asarray(arr)[perm] for key, arr in scan.attributes.items()},
+            importance={key: np.asarray(v).astype(np.float32)[perm] for key, (v, _) in rec.importance.items()},
         )
-    stored = arr.astype(np.float32)[g[L.D_SOURCE_INDEX][:]]
-    grp = g.require_group(L.G_IMPORTANCE)
-    if name in grp:
-        del grp[name]
-    L.create_dataset(grp, name, stored, {L.M_PARAMETERS: L.to_json(dict(params or {}))})
+        return w.finish(
+            n_ordered=k,
+            seeds=ordg.seeds,
+            build=build,
+            provenance={"reader": scan.reader, **rec.provenance},
+            importance_parameters={key: p for key, (_, p) in rec.importance.items()},
+            orderings=orderings,
+        )
 
 
-def write_ordering(g: Any, name: str, ordg: Ordering, params: Mapping[str, Any] | None) -> None:
-    """Store an extra ordering (input indices) as positions into the stored points of ``g``."""
-    L.check_name(name, "ordering name")
-    n = g[L.D_SOURCE_INDEX].shape[0]
-    if ordg.n_points != n:
-        raise InputError(f"ordering {name!r} is for {ordg.n_points} points but the scan has {n}")
-    positions = _inverse(g)[np.asarray(ordg.order, dtype=np.int64)]
-    grp = g.require_group(L.G_ORDERINGS)
-    if name in grp:
-        del grp[name]
-    og = grp.create_group(name)
-    L.create_dataset(og, L.D_ORDER, positions)
-    L.create_dataset(og, L.D_RADIUS, np.asarray(ordg.radius, dtype=np.float64))
-    L.create_dataset(og, L.D_PARENT, np.asarray(ordg.parent, dtype=np.int64))
-    meta = {
-        "voxel_size": ordg.voxel_size,
-        "band_radius": ordg.band_radius,
-        "engine_stats": ordg.stats,
-    }
-    meta.update(dict(params or {}))
-    og.attrs[L.M_PARAMETERS] = L.to_json(meta)
-    og.attrs[L.S_N_ORDERED] = np.int64(len(ordg))
+def copy_scan(
+    view: Any,
+    path: Path,
+    *,
+    importance: Mapping[str, tuple[np.ndarray, Mapping[str, Any] | None]] | None = None,
+    orderings: Mapping[str, tuple[Any, Any, Any, Mapping[str, Any] | None]] | None = None,
+) -> PartInfo:
+    """Rewrite the scan of ``view`` (an open ScanView) into a new file at ``path``, with extra or
+    replaced importance maps (stored order) and orderings (stored positions).
+
+    Every row is read through the checksums and re-checked by the ScanWriter: a damaged scan is
+    refused (CorruptArchiveError), never copied."""
+    importance = dict(importance or {})
+    orderings = dict(orderings or {})
+    n = view.n_points
+    imp_names = sorted(set(view.importance_names) | set(importance))
+    try:
+        with ScanWriter(path, view.name, n, metadata=view.format_metadata, encoding=view.encoding) as w:
+            step = w.rows * 16
+            g = view._g
+            for lo in range(0, n, step):
+                hi = min(n, lo + step)
+                sel = slice(lo, hi)
+                imps = {}
+                for key in imp_names:
+                    if key in importance:
+                        imps[key] = np.asarray(importance[key][0])[lo:hi]
+                    else:
+                        imps[key] = view._read(g[L.G_IMPORTANCE][key], sel)
+                w.write(
+                    L.decode_points(view._read(g[L.D_POINTS], sel), view.encoding, view._offset, view._scale),
+                    view._read(g[L.D_SOURCE_INDEX], sel),
+                    view._read(g[L.D_RADIUS], sel),
+                    view._read(g[L.D_PARENT], sel),
+                    attributes={key: view._read(g[L.G_ATTRIBUTES][key], sel) for key in view.attribute_names},
+                    importance=imps,
+                )
+            params = {key: view.importance_parameters(key) for key in view.importance_names}
+            params.update({key: dict(p or {}) for key, (_, p) in importance.items()})
+            olds = {}
+            for key in view.ordering_names:
+                if key in orderings:
+                    continue
+                og = view._ordering_group(key)
+                olds[key] = (view._read(og[L.D_ORDER]), view._read(og[L.D_RADIUS]),
+                             view._read(og[L.D_PARENT]), view.ordering_parameters(key))
+            olds.update(orderings)
+            return w.finish(
+                n_ordered=view.n_ordered,
+                seeds=view.seeds,
+                build=view.build,
+                provenance=view.provenance,
+                format_metadata=view.format_metadata,
+                importance_parameters=params,
+                orderings=olds,
+            )
+    except InputError as exc:
+        raise CorruptArchiveError(
+            f"archive {view.archive.path}: scan {view.name!r} breaks the archive's invariants "
+            f"({exc}); it is damaged and was not copied, rebuild it from its source"
+        ) from None
 
 
-def _write_index(root: Any) -> None:
-    scans = root.require_group(L.G_SCANS)
-    names = sorted(scans)
-    if L.G_INDEX in root:
-        del root[L.G_INDEX]
-    ig = root.create_group(L.G_INDEX)
-    enc = [s.encode("utf-8") for s in names]
-    width = max([len(e) for e in enc] + [1])
-    L.create_dataset(ig, L.I_NAME, np.array(enc, dtype=f"S{width}"))
-    L.create_dataset(
-        ig,
-        L.I_N_POINTS,
-        np.array([int(scans[s].attrs[L.S_N_POINTS]) for s in names], dtype=np.int64),
-    )
-    L.create_dataset(
-        ig,
-        L.I_BOUNDS_MIN,
-        np.array([scans[s].attrs[L.S_BOUNDS_MIN] for s in names], dtype=np.float64).reshape(-1, 3),
-    )
-    L.create_dataset(
-        ig,
-        L.I_BOUNDS_MAX,
-        np.array([scans[s].attrs[L.S_BOUNDS_MAX] for s in names], dtype=np.float64).reshape(-1, 3),
-    )
-    ig.attrs[L.A_N_SCANS] = np.int64(len(names))
+# ---------------------------------------------------------------------------------------------
+# the index and its parts
 
 
-def _open_new(tmp: Path, created: str | None = None):
-    import h5py
+@dataclass
+class _Add:
+    """A scan to add: its name and how to write it to a given final path."""
 
-    f = h5py.File(tmp, "w", libver=L.LIBVER)
-    f.attrs[L.A_FORMAT] = L.FORMAT
-    f.attrs[L.A_SCHEMA_VERSION] = np.int64(L.SCHEMA_VERSION)
-    f.attrs[L.A_VERSION] = __version__
-    f.attrs[L.A_CREATED] = created or utc_now()
-    f.attrs[L.A_MODIFIED] = utc_now()
-    f.create_group(L.G_SCANS)
-    return f
+    name: str
+    write: Callable[[Path], PartInfo]
+
+
+def parts_dir(path: Path) -> Path:
+    """The directory of ``path``'s part files: ``NAME.h5.scans``."""
+    return path.with_name(L.parts_dir_name(path.name))
+
+
+def _current(path: Path) -> tuple[list[IndexRow], str | None]:
+    """The rows and creation time of the archive at ``path`` ([] and None if there is none), with
+    every part it lists checked to be a plain file of its own directory."""
+    if not path.exists():
+        return [], None
+    from .reader import open_archive
+
+    with open_archive(path) as arc:
+        rows = arc.rows
+        created = arc.attrs.get(L.A_CREATED)
+        for r in rows:
+            if r.part:
+                arc._check_part(r)  # the reader's confinement checks (name, directory, size)
+    return rows, created if isinstance(created, str) else None
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """Make ``dst`` (new, in the same file system if possible) hold the bytes of ``src``: a hard
+    link, or a copy through a temporary when the file system cannot link."""
+    try:
+        os.link(src, dst)
+        return
+    except OSError as exc:
+        if exc.errno == errno.EEXIST:
+            raise
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise F.disk_error(exc, dst) from None
+    tmp = F.tmp_name(dst)
+    try:
+        tmp.touch()
+        F.reserve(tmp, src.stat().st_size, f"a copy of {src.name}")
+        shutil.copyfile(src, tmp)
+        F.release(tmp)
+        F.publish(tmp, dst)
+    except OSError as exc:
+        F.unlink_quietly(tmp)
+        raise F.disk_error(exc, dst) from None
+    except BaseException:
+        F.unlink_quietly(tmp)
+        raise
+
+
+def _write_index_file(path: Path, rows: list[IndexRow], created: str | None) -> None:
+    tmp = F.tmp_name(path)
+    f = None
+    try:
+        tmp.touch()
+        F.reserve(tmp, 4096 * len(rows) + (1 << 20), "the archive index")
+        f = new_file(tmp, 1024 * len(rows), created)
+        write_index(f, rows)
+        f.flush()
+        f.close()
+        F.release(tmp)
+        F.publish(tmp, path)
+    except OSError as exc:
+        if f is not None:
+            close_quietly(f)
+        F.unlink_quietly(tmp)
+        raise F.disk_error(exc, path) from None
+    except BaseException:
+        if f is not None:
+            close_quietly(f)
+        F.unlink_quietly(tmp)
+        raise
+
+
+def _collect(path: Path, listed: Iterable[str], *, remove_empty: bool = True) -> None:
+    """Delete what no index lists in ``NAME.h5.scans/`` (parts lodbuilder named, temporaries of
+    dead writers) and the directory itself when that leaves it empty. Only ever runs under the
+    archive's lock, so an unlisted part cannot belong to a writer still at work."""
+    pdir = parts_dir(path)
+    keep = set(listed)
+    try:
+        entries = list(pdir.iterdir())
+    except OSError:
+        return
+    for p in entries:
+        pid = F.temp_owner(p.name)
+        if pid is not None:
+            if pid != os.getpid() and not F.pid_alive(pid):
+                F.unlink_quietly(p)
+        elif L.PART_NAME.fullmatch(p.name) and p.name not in keep:
+            F.unlink_quietly(p)
+            log.info("removed unlisted part %s", p)
+    if remove_empty:
+        with contextlib.suppress(OSError):
+            pdir.rmdir()  # only when empty
+
+
+def _commit(
+    path: Path,
+    adds: list[_Add],
+    *,
+    overwrite: bool = False,
+    drop: Iterable[str] = (),
+    replace_all: bool = False,
+) -> list[PartInfo]:
+    """The one write transaction: add (or replace) scans, drop scans, under the archive's lock."""
+    names = [a.name for a in adds]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"scan name(s) {dup} given more than once; give each scan a unique name")
+    check_writable_dir(path, "archive")
+    drop = set(drop)
+    with F.lock(path):
+        F.remove_stale_temps(path)
+        rows, created = _current(path)
+        if replace_all:
+            rows = []
+        clash = sorted({r.name for r in rows} & set(names))
+        if clash and not overwrite:
+            raise ArchiveError(
+                f"archive {path} already holds scan(s) {clash}; pass --overwrite "
+                "(overwrite=True) to replace them or choose another --name"
+            )
+        listed_before = {r.part for r in rows}
+        rows = [r for r in rows if r.name not in names and r.name not in drop]
+        infos: list[PartInfo] = []
+        if not rows and len(adds) == 1:
+            # one scan: one self-contained file, written beside the archive and renamed onto it
+            infos.append(adds[0].write(path))
+            final: set[str] = set()
+        else:
+            pdir = parts_dir(path)
+            pdir.mkdir(exist_ok=True)
+            _collect(path, listed_before, remove_empty=False)
+            try:
+                if any(not r.part for r in rows):
+                    # the scans stored in the archive file itself become one part: a hard link
+                    p0 = pdir / L.part_file_name(next(r.name for r in rows if not r.part), _token())
+                    _link_or_copy(path, p0)
+                    size = p0.stat().st_size
+                    rows = [r if r.part else replace(r, part=p0.name, part_bytes=size) for r in rows]
+                for a in adds:
+                    info = a.write(pdir / L.part_file_name(a.name, _token()))
+                    infos.append(info)
+                    rows.append(
+                        IndexRow(info.name, info.n_points, info.bounds_min, info.bounds_max,
+                                 info.path.name, info.nbytes)
+                    )
+                _write_index_file(path, rows, created)
+            except BaseException:
+                _collect(path, listed_before)  # the old index is still the archive
+                raise
+            final = {r.part for r in rows}
+        _collect(path, final)
+    log.info("wrote %s (%d new scan(s))", path, len(adds))
+    return infos
+
+
+def _token() -> str:
+    return secrets.token_hex(8)
 
 
 # ---------------------------------------------------------------------------------------------
 # public entry points
+
+
+def register_parts(
+    path: str | os.PathLike[str],
+    parts: Iterable[str | os.PathLike[str] | PartInfo],
+    *,
+    overwrite: bool = False,
+) -> list[str]:
+    """Add finished part files (each written by a :class:`ScanWriter`, holding one scan) to the
+    archive at ``path``, atomically; returns the scan names added.
+
+    O(new data): each part is hard-linked into ``NAME.h5.scans/`` (copied when the file system
+    cannot link), then one new index replaces the old. The archive is created when missing (with a
+    single part it is that part: one self-contained file). A scan whose name is already in the
+    archive is an error unless ``overwrite``. The caller's files stay where they are: delete them
+    once this returns (a part registered twice is simply linked again); never change a registered
+    file in place. A ``kill -9`` at any moment leaves the previous archive complete."""
+    path = Path(path)
+    adds = []
+    for part in parts:
+        src = Path(part.path if isinstance(part, PartInfo) else part)
+        info = _part_info(src)
+
+        def write(dst: Path, src: Path = src, info: PartInfo = info) -> PartInfo:
+            if dst == path:
+                tmp = F.tmp_name(path)
+                try:
+                    _link_or_copy(src, tmp)
+                    F.publish(tmp, path)
+                except BaseException:
+                    F.unlink_quietly(tmp)
+                    raise
+            else:
+                _link_or_copy(src, dst)
+            return replace(info, path=dst)
+
+        adds.append(_Add(info.name, write))
+    _commit(path, adds, overwrite=overwrite)
+    return [a.name for a in adds]
+
+
+def _part_info(src: Path) -> PartInfo:
+    """Name, size and bounds of the one scan in the part file ``src`` (checked to be one)."""
+    from .reader import open_archive
+
+    with open_archive(src) as arc:
+        rows = arc.rows
+        if len(rows) != 1 or rows[0].part:
+            raise ArchiveError(
+                f"{src} is not a part file: it must hold exactly one scan stored in it (it holds "
+                f"{len(rows)}{' in parts' if rows and rows[0].part else ''}); write parts with "
+                "ScanWriter"
+            )
+        view = arc.scan(rows[0].name)
+        return PartInfo(
+            path=src,
+            name=view.name,
+            n_points=view.n_points,
+            n_ordered=view.n_ordered,
+            bounds_min=tuple(float(x) for x in view.bounds[0]),  # type: ignore[arg-type]
+            bounds_max=tuple(float(x) for x in view.bounds[1]),  # type: ignore[arg-type]
+            nbytes=src.stat().st_size,
+        )
 
 
 def update_archive(
@@ -327,86 +477,86 @@ def update_archive(
     records: list[ScanRecord] | None = None,
     *,
     overwrite: bool = False,
-    edit: Any = None,
     drop: Any = (),
 ) -> Path:
     """Add ``records`` to the archive at ``path`` (created if missing), atomically.
 
-    Scans already in the archive are kept unless a record has the same name: that is an error
-    unless ``overwrite``, which replaces it. ``edit(root)``, if given, is called on the new file
-    before it is moved into place (to add importance maps or orderings to existing scans).
-    Scans named in ``drop`` are not copied into the new file (``edit`` may add them back anew).
-    """
-    import h5py
-
-    from .reader import check_archive_file
-
+    Scans already in the archive are kept, untouched and uncopied, unless a record has the same
+    name: that is an error unless ``overwrite``, which replaces it. Scans named in ``drop`` are
+    removed from the archive."""
     path = Path(path)
     records = list(records or [])
-    names = [r.scan.name for r in records]
     for rec in records:
         _validate_record(rec)
-    dup = {n for n in names if names.count(n) > 1}
-    if dup:
-        raise InputError(
-            f"scan name(s) {sorted(dup)} given more than once; give each scan a unique name"
-        )
-    check_writable_dir(path, "archive")
-    with _lock(path):
-        remove_stale_temps(path)
-        old = None
-        if path.exists():
-            old = check_archive_file(path)  # NotAnArchiveError / SchemaVersionError
-        with atomic_output(path) as tmp:
-            created = None
-            keep: list[str] = []
-            if old is not None:
-                with h5py.File(path, "r") as src:
-                    created = src.attrs.get(L.A_CREATED)
-                    created = created.decode() if isinstance(created, bytes) else created
-                    existing = list(src[L.G_SCANS]) if L.G_SCANS in src else []
-                    clash = sorted(set(existing) & set(names))
-                    if clash and not overwrite:
-                        raise ArchiveError(
-                            f"archive {path} already holds scan(s) {clash}; pass --overwrite "
-                            "(overwrite=True) to replace them or choose another --name"
-                        )
-                    keep = [s for s in existing if s not in names and s not in set(drop)]
-                    with _open_new(tmp, created) as dst:
-                        for s in keep:
-                            src.copy(src[L.G_SCANS][s], dst[L.G_SCANS], name=s)
-                        for key in src:  # groups other issues add at the root
-                            if key not in (L.G_SCANS, L.G_INDEX):
-                                src.copy(src[key], dst, name=key)
-                        for key, value in src.attrs.items():
-                            if key not in (L.A_MODIFIED, L.A_VERSION):
-                                dst.attrs[key] = value
-            mode = "a" if old is not None else "w"
-            f = h5py.File(tmp, "r+", libver=L.LIBVER) if mode == "a" else _open_new(tmp)
-            with f:
-                for rec in records:
-                    write_scan(f, rec)
-                if edit is not None:
-                    edit(f)
-                _write_index(f)
-                f.attrs[L.A_MODIFIED] = utc_now()
-                f.flush()
-    log.info("wrote %s (%d new scan(s))", path, len(records))
+    adds = [_Add(rec.scan.name, functools.partial(_write_to, rec)) for rec in records]
+    _commit(path, adds, overwrite=overwrite, drop=drop)
     return path
+
+
+def _write_to(rec: ScanRecord, dst: Path) -> PartInfo:
+    return write_record(dst, rec)
 
 
 def write_archive(path: str | os.PathLike[str], records: list[ScanRecord]) -> Path:
     """Create (or replace) the archive at ``path`` holding exactly ``records``, atomically."""
     path = Path(path)
-    check_writable_dir(path, "archive")
-    with _lock(path):
-        remove_stale_temps(path)
-        with atomic_output(path) as tmp:
-            with _open_new(tmp) as f:
-                for rec in records:
-                    write_scan(f, rec)
-                _write_index(f)
+    for rec in records:
+        _validate_record(rec)
+    adds = [_Add(rec.scan.name, functools.partial(_write_to, rec)) for rec in records]
+    _commit(path, adds, overwrite=True, replace_all=True)
     return path
+
+
+def _rewrite(
+    path: str | os.PathLike[str],
+    scan: str,
+    importance: Mapping[str, tuple[Any, Mapping[str, Any] | None]] | None = None,
+    orderings: Mapping[str, tuple[Ordering, Mapping[str, Any] | None]] | None = None,
+) -> None:
+    """Replace ``scan`` by a copy with extra importance maps / orderings (given in input order)."""
+    from .reader import open_archive
+
+    path = Path(path)
+    for name in importance or {}:
+        L.check_name(name, "importance map name")
+    for name in orderings or {}:
+        L.check_name(name, "ordering name")
+
+    def write(dst: Path) -> PartInfo:
+        with open_archive(path) as arc:  # under the archive's lock (called by _commit)
+            if scan not in arc.scans:
+                raise ScanNotFoundError(
+                    f"archive {path} has no scan {scan!r}; it holds {arc.scans}"
+                )
+            view = arc.scan(scan)
+            n = view.n_points
+            src = view.source_index
+            imp = {}
+            for name, (values, params) in (importance or {}).items():
+                arr = np.asarray(values)
+                if arr.shape != (n,) or not (
+                    np.issubdtype(arr.dtype, np.number) or arr.dtype == bool
+                ):
+                    raise InputError(
+                        f"importance map {name!r} must hold one number per point, shape ({n},), "
+                        f"got {arr.shape}"
+                    )
+                imp[name] = (arr.astype(np.float32)[src], params)
+            ords = {}
+            for name, (ordg, params) in (orderings or {}).items():
+                if ordg.n_points != n:
+                    raise InputError(
+                        f"ordering {name!r} is for {ordg.n_points} points but the scan has {n}"
+                    )
+                meta = {"voxel_size": ordg.voxel_size, "band_radius": ordg.band_radius,
+                        "engine_stats": ordg.stats, **dict(params or {})}
+                positions = _inverse(src)[np.asarray(ordg.order, dtype=np.int64)]
+                ords[name] = (positions, ordg.radius, ordg.parent, meta)
+            return copy_scan(view, dst, importance=imp, orderings=ords)
+
+    if not Path(path).exists():
+        raise ScanNotFoundError(f"archive {path} does not exist; build it first")
+    _commit(path, [_Add(scan, write)], overwrite=True)
 
 
 def add_importance(
@@ -416,12 +566,9 @@ def add_importance(
     values: Any,
     params: Mapping[str, Any] | None = None,
 ) -> None:
-    """Add (or replace) importance map ``name`` of ``scan``; ``values`` in input order. Atomic."""
-
-    def edit(root: Any) -> None:
-        write_importance(_scan_group(root, scan, path), name, values, params)
-
-    update_archive(path, edit=edit)
+    """Add (or replace) importance map ``name`` of ``scan``; ``values`` in input order. Atomic;
+    rewrites only that scan."""
+    _rewrite(path, scan, importance={name: (values, params)})
 
 
 def add_ordering(
@@ -431,18 +578,7 @@ def add_ordering(
     ordering: Ordering,
     params: Mapping[str, Any] | None = None,
 ) -> None:
-    """Add (or replace) an extra ordering of ``scan`` (input indices). Atomic."""
+    """Add (or replace) an extra ordering of ``scan`` (input indices). Atomic; rewrites only that
+    scan."""
+    _rewrite(path, scan, orderings={name: (ordering, params)})
 
-    def edit(root: Any) -> None:
-        write_ordering(_scan_group(root, scan, path), name, ordering, params)
-
-    update_archive(path, edit=edit)
-
-
-def _scan_group(root: Any, scan: str, path: Any) -> Any:
-    from ..errors import ScanNotFoundError
-
-    scans = root[L.G_SCANS]
-    if scan not in scans:
-        raise ScanNotFoundError(f"archive {path} has no scan {scan!r}; it holds {sorted(scans)}")
-    return scans[scan]

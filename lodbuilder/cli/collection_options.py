@@ -54,6 +54,10 @@ def slice_all(args: argparse.Namespace) -> int:
     meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
     meta["comments"] = [f"scan_id {i} = {name}" for i, name in enumerate(lvl.scans)]
     write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)
-    print(f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
-          f"(attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})")
+    from .output import emit
+
+    doc = {"archive": str(args.archive), "output": str(args.output), "size": len(lvl), "rho": lvl.rho,
+           "scans": lvl.scans, "sizes": lvl.sizes, "attributes": sorted(lvl.attributes)}
+    emit(args, doc, f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to "
+                    f"{args.output} (attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})")
     return 0

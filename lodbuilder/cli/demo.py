@@ -32,6 +32,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--seed", type=int, default=7, help="random seed")
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
+    from .output import add_json_option
+
+    add_json_option(p)
     return p
 
 
@@ -45,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from ..archive.writer import check_writable_dir
     from ..errors import InputError
     from ..io import write_points
+    from .output import emit, progress_enabled
     from .progressbar import ProgressBars
 
     out = Path(args.output)
@@ -57,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     scan = demo_scan(args.points, kind=args.surface, seed=args.seed)
     archive = out / "demo.h5"
     t0 = time.perf_counter()
-    with ProgressBars(enabled=False if args.no_progress else None) as bars:
+    with ProgressBars(enabled=progress_enabled(args)) as bars:
         build_archive(scan, archive, overwrite=True, progress=bars)
     t_build = time.perf_counter() - t0
     rows = []
@@ -70,11 +74,22 @@ def run(args: argparse.Namespace) -> int:
             path = out / f"level_{level.size}.ply"
             write_points(path, level.points, level.attributes, metadata=view.format_metadata)
             rows.append((level.size, level.rho, ms, path))
-    print(
-        f"built {archive} from a generated {args.surface} surface of {args.points:,} points in {t_build:.1f} s"
-    )
-    print(f"{'points':>8}  {'covering radius <=':>18}  {'slice ms':>8}  file")
-    for size, rho, ms, path in rows:
-        print(f"{size:>8,}  {rho:>18.5f}  {ms:>8.1f}  {path}")
-    print(f"next: lodbuilder info {archive}; lodbuilder slice {archive} --rho 0.01 -o level.ply")
+    doc = {
+        "archive": str(archive),
+        "surface": args.surface,
+        "n_points": args.points,
+        "build_seconds": t_build,
+        "levels": [
+            {"size": size, "rho": rho, "slice_ms": ms, "output": str(path)}
+            for size, rho, ms, path in rows
+        ],
+    }
+    text = [
+        f"built {archive} from a generated {args.surface} surface of {args.points:,} points in "
+        f"{t_build:.1f} s",
+        f"{'points':>8}  {'covering radius <=':>18}  {'slice ms':>8}  file",
+        *(f"{size:>8,}  {rho:>18.5f}  {ms:>8.1f}  {path}" for size, rho, ms, path in rows),
+        f"next: lodbuilder info {archive}; lodbuilder slice {archive} --rho 0.01 -o level.ply",
+    ]
+    emit(args, doc, "\n".join(text))
     return 0

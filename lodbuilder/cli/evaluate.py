@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
 from ..errors import InputError
 
@@ -35,8 +33,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--surface", choices=("plane", "mls"), default="plane", help="local surface (default plane)"
     )
     p.add_argument("--k", type=int, help="neighbours per surface fit (default 8 plane, 16 mls)")
-    p.add_argument("--json", metavar="OUT", help="write the reports as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="OUT.png", help="plot error vs size and radius vs rank")
+    from .output import add_json_option
+
+    add_json_option(p, to_file=True)
     return p
 
 
@@ -60,24 +60,14 @@ def _table(ev) -> str:
     return "\n".join(lines)
 
 
-def _write_json(out: str, doc: dict) -> None:
-    text = json.dumps(doc, indent=2, allow_nan=False)
-    if out == "-":
-        sys.stdout.write(text + "\n")
-        return
-    from ..io._files import atomic_output
-
-    with atomic_output(out, make_parents=True) as tmp:
-        tmp.write_text(text + "\n")
-
-
 def run(args: argparse.Namespace) -> int:
-    arc = Path(args.archive).resolve()
-    for opt, out in (("--json", args.json), ("--plot", args.plot)):
-        if out and out != "-" and Path(out).resolve() == arc:
-            raise InputError(f"{opt} {out} is the archive itself; choose another output")
-    if args.plot and Path(args.plot).suffix.lower() != ".png":
-        raise InputError(f"--plot {args.plot} must end in .png")
+    from .output import check_output, emit, progress_enabled, say
+
+    inputs = {"archive": args.archive}
+    if args.json:
+        check_output(args.json, "--json", inputs=inputs, stdout=True)
+    if args.plot:
+        check_output(args.plot, "--plot", inputs=inputs, suffixes=(".png",))
     if args.k is not None and args.k < 3:
         raise InputError(f"--k must be at least 3, got {args.k}")
     if args.plot:
@@ -87,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from ..quality.archive import evaluate_archive
     from .progressbar import ProgressBars
 
-    with ProgressBars() as bars:
+    with ProgressBars(enabled=progress_enabled(args)) as bars:
         ev = evaluate_archive(
             args.archive,
             args.scan,
@@ -99,18 +89,14 @@ def run(args: argparse.Namespace) -> int:
             k=args.k,
             progress=bars,
         )
-    if args.json != "-":
-        print(_table(ev))
-    if args.json:
-        _write_json(args.json, ev.as_dict())
+    emit(args, ev.as_dict(), lambda: _table(ev))
     if args.plot:
         from ..quality.plots import plot_quality
 
         plot_quality(
             ev.reports, args.plot, radius=ev.radius, title=f"{ev.scan} ({ev.ordering})", units=ev.units
         )
-        if args.json != "-":
-            print(f"wrote {args.plot}")
+        say(args, f"wrote {args.plot}")
     bad = [r for r in ev.reports if r.meets_rho is False]
     if bad:
         print(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from typing import Any
 
@@ -17,7 +16,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("archive", metavar="ARCHIVE")
     p.add_argument("--scan", help="describe only this scan")
-    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    from .output import add_json_option
+
+    add_json_option(p)
     return p
 
 
@@ -74,39 +75,24 @@ def run(args: argparse.Namespace) -> int:
             "lodbuilder_version": arc.lodbuilder_version,
             "scans": [scan_info(arc.scan(n)) for n in names],
         }
-    if args.json:
-        print(json.dumps(info, indent=2, default=str))
-        return 0
-    print(
-        f"{info['path']}: {len(info['scans'])} scan(s), {info['file_size']:,} bytes, schema version "
-        f"{info['schema_version']} (written by lodbuilder {info['lodbuilder_version']})"
-    )
+    from .output import emit
+
+    emit(args, info, lambda: _text(info))
+    return 0
+
+
+def _text(info: dict[str, Any]) -> str:
+    """The text report; every line is one line whatever the names it shows hold."""
+    from .output import one_line
+
+    out = [
+        f"{info['path']}: {len(info['scans'])} scan(s), {info['file_size']:,} bytes, schema "
+        f"version {info['schema_version']} (written by lodbuilder {info['lodbuilder_version']})"
+    ]
     for s in info["scans"]:
         prov = s["provenance"]
-        print(
-            f"\nscan {s['name']!r}: {s['n_points']:,} points ({s['coordinate_encoding']} coordinates)"
-            + (
-                f", {s['n_points'] - s['n_ordered']:,} left out of the ordering"
-                if s["n_ordered"] < s["n_points"]
-                else ""
-            )
-        )
-        print(f"  bounds     {_fmt(s['bounds_min'])} .. {_fmt(s['bounds_max'])}")
-        print(
-            f"  radius     {s['radius_max_finite']:.4g} .. {s['radius_min_positive']:.4g} ({s['n_seeds']} seed(s) with radius inf)"
-        )
-        print(
-            "  levels     " + ", ".join(f"rho {lv['rho']:g}: {lv['size']:,}" for lv in s["levels"])
-        )
-        print(f"  attributes {', '.join(s['attributes']) or '-'}")
-        print(
-            f"  importance {', '.join(s['importance']) or '-'}; orderings {', '.join(s['orderings'])}"
-        )
+        left = s["n_points"] - s["n_ordered"]
         b = s["build"]
-        print(
-            f"  build      voxel_size {b.get('voxel_size')}, band_radius {b.get('band_radius')}, "
-            f"engine {b.get('engine_stats', {}).get('engine', '?')}"
-        )
         if prov.get("source_name"):
             src = (
                 f"{prov['source_name']} ({prov.get('source_size')} bytes, sha256 "
@@ -114,11 +100,23 @@ def run(args: argparse.Namespace) -> int:
             )
         else:
             src = "in-memory points (no source file)"
-        print(
+        out += [
+            "",
+            f"scan {s['name']!r}: {s['n_points']:,} points ({s['coordinate_encoding']} coordinates)"
+            + (f", {left:,} left out of the ordering" if left > 0 else ""),
+            f"  bounds     {_fmt(s['bounds_min'])} .. {_fmt(s['bounds_max'])}",
+            f"  radius     {s['radius_max_finite']:.4g} .. {s['radius_min_positive']:.4g} "
+            f"({s['n_seeds']} seed(s) with radius inf)",
+            "  levels     " + ", ".join(f"rho {lv['rho']:g}: {lv['size']:,}" for lv in s["levels"]),
+            f"  attributes {', '.join(s['attributes']) or '-'}",
+            f"  importance {', '.join(s['importance']) or '-'}; "
+            f"orderings {', '.join(s['orderings'])}",
+            f"  build      voxel_size {b.get('voxel_size')}, band_radius {b.get('band_radius')}, "
+            f"engine {b.get('engine_stats', {}).get('engine', '?')}",
             f"  source     {src}, reader {prov.get('reader')}, "
-            f"{prov.get('created_utc')}, lodbuilder {prov.get('lodbuilder_version')}"
-        )
-    return 0
+            f"{prov.get('created_utc')}, lodbuilder {prov.get('lodbuilder_version')}",
+        ]
+    return "\n".join(one_line(line) for line in out)
 
 
 def _fmt(v: list[float]) -> str:

@@ -15,13 +15,13 @@ from importlib import import_module
 
 from .. import __version__
 from ..errors import LodbuilderError
-from .output import add_common_options, print_error, setup_logging
+from .output import Parser, add_common_options, print_error, setup_logging
 
 COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="lodbuilder",
         description="Build multiresolution point-set archives from 3D scans and slice levels from them.",
     )
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.verbose += args.top_verbose
     args.quiet = args.quiet or args.top_quiet
-    setup_logging(args)
+    log_level = setup_logging(args)
     try:
         return int(args._run(args) or 0)
     except LodbuilderError as exc:
@@ -71,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    finally:  # main may be called from Python: leave the library's logging as it was
+        import logging
+
+        logging.getLogger("lodbuilder").setLevel(log_level)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,12 +33,21 @@ import os
 import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 QUIET, NORMAL, VERBOSE, DEBUG = -1, 0, 1, 2
 
 
 # -- options ---------------------------------------------------------------------------------
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, like every other error of the command
+    line: ``lodbuilder slice: error: argument --size: invalid int value: 'x' (see 'lodbuilder
+    slice --help')``, exit 2 (argparse prints the whole usage first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see '{self.prog} --help')\n")
 
 
 def add_common_options(p: argparse.ArgumentParser) -> None:
@@ -84,15 +93,19 @@ def json_to_stdout(args: argparse.Namespace) -> bool:
     return value is True or value == "-"
 
 
-def setup_logging(args: argparse.Namespace) -> None:
+def setup_logging(args: argparse.Namespace) -> int:
     """Level of the ``lodbuilder`` loggers from the verbosity: ERROR when quiet, WARNING, INFO
-    (-v), DEBUG (-vv); log lines go to stderr (a handler is added only when none is set up)."""
+    (-v), DEBUG (-vv); log lines go to stderr (a handler is added only when none is set up).
+    Returns the level the logger had, for the caller to restore."""
     level = {QUIET: logging.ERROR, NORMAL: logging.WARNING, VERBOSE: logging.INFO}.get(
         verbosity(args), logging.DEBUG
     )
     if not logging.getLogger().handlers:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("lodbuilder").setLevel(level)
+    logger = logging.getLogger("lodbuilder")
+    before = logger.level
+    logger.setLevel(level)
+    return before
 
 
 def progress_enabled(args: argparse.Namespace) -> bool | None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 
@@ -53,28 +54,30 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
     )
     from .feature_options import add_slice_options
+    from .output import add_json_option
 
     add_slice_options(p)
+    add_json_option(p)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
     from ..errors import InputError
-    from ..io._files import check_output_path
     from ..io.registry import writer_for
+    from .output import VERBOSE, check_output, emit, say
 
-    arc_path, out = Path(args.archive), Path(args.output)
-    if out.resolve() == arc_path.resolve():
-        raise InputError(f"output {out} is the input archive; choose another -o OUT")
+    arc_path = Path(args.archive)
+    out = check_output(args.output, "-o", inputs={"archive": arc_path})
     writer_for(out)  # unknown output suffix: fail before reading anything
-    check_output_path(out)
     if args.box is not None and args.box_rho is None:
         raise InputError("--box needs --box-rho (the finer rho inside the box)")
     if args.box_rho is not None and args.box is None:
         raise InputError("--box-rho needs --box XMIN YMIN ZMIN XMAX YMAX ZMAX")
     if (args.viewpoint is None) != (args.slope is None):
         raise InputError("--viewpoint and --slope go together")
+    if args.rho_max is not None and args.viewpoint is None:
+        raise InputError("--rho-max caps rho far from --viewpoint: give --viewpoint X Y Z and --slope")
     refine = args.box is not None or args.viewpoint is not None
     if refine and args.rho is None:
         raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
@@ -85,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
         return slice_all(args)
 
+    t0 = time.perf_counter()
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
         if args.box is not None:
@@ -102,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
                 args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering
             )
         metadata = view.format_metadata
+        say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
         from .feature_options import bound_note
 
         note = bound_note(view, level)
@@ -111,8 +116,21 @@ def run(args: argparse.Namespace) -> int:
     from ..io import write_points
 
     write_points(out, level.points, attrs, metadata=metadata)
-    print(
-        f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} "
-        f"({note})"
+    doc = {
+        "archive": str(arc_path),
+        "scan": view.name,
+        "output": str(out),
+        "size": level.size,
+        "n_points": view.n_points,
+        "rho": level.rho,
+        "ordering": level.ordering or "uniform",
+        "bound": note,
+        "region": level.region,
+        "attributes": sorted(attrs),
+    }
+    emit(
+        args,
+        doc,
+        f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} ({note})",
     )
     return 0

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from pathlib import Path
 
 from ..errors import InputError
 
@@ -85,15 +84,15 @@ def _has_display() -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .output import check_output, say
+
     off_screen = bool(args.screenshot or args.animate)
     for opt, out, suffixes in (
         ("--screenshot", args.screenshot, (".png",)),
         ("--animate", args.animate, (".gif", ".mp4")),
     ):
-        if out and Path(out).suffix.lower() not in suffixes:
-            raise InputError(f"{opt} {out} must end in {' or '.join(suffixes)}")
-        if out and Path(out).resolve() == Path(args.archive).resolve():
-            raise InputError(f"{opt} {out} is the archive itself; choose another output")
+        if out:
+            check_output(out, opt, inputs={"archive": args.archive}, suffixes=suffixes)
     if args.animate:
         from ..viewer.movie import check_movie_path
 
@@ -154,10 +153,10 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.screenshot:
             out = viewer.screenshot(args.screenshot)
-            print(f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
+            say(args, f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
         if args.animate:
             out = viewer.animate(args.animate, frames=args.frames, fps=args.fps)
-            print(f"wrote {out} ({args.frames} frames, coarse to fine)")
+            say(args, f"wrote {out} ({args.frames} frames, coarse to fine)")
     finally:
         viewer.close()
     return 0

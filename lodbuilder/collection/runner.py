@@ -59,20 +59,10 @@ def _part_path(archive: Path, name: str, key: str) -> Path:
 
 
 def merge_parts(archive: Path, parts: list[tuple[str, Path]]) -> None:
-    """Move the scans of one-scan part archives into ``archive`` (atomically, replacing same names)."""
-    import h5py
+    """Register one-scan part archives in ``archive`` (atomically, O(the parts), replacing same names)."""
+    from ..archive.writer import register_parts
 
-    from ..archive import layout as L
-    from ..archive.writer import update_archive
-
-    def edit(root: Any) -> None:
-        scans = root.require_group(L.G_SCANS)
-        for name, part in parts:
-            with h5py.File(part, "r") as src:
-                src.copy(src[L.G_SCANS][name], scans, name=name)
-
-    # the scans being replaced are not copied over (no dead space in the new file)
-    update_archive(archive, [], edit=edit, drop=[name for name, _ in parts])
+    register_parts(archive, [p for _, p in parts], overwrite=True)
 
 
 def _part_ok(part: Path, name: str) -> bool:

@@ -96,7 +96,7 @@ def plot_quality(
     from ..io._files import atomic_output
 
     try:
-        with atomic_output(out, make_parents=True) as tmp:
+        with atomic_output(out) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)

@@ -506,5 +506,5 @@ class LevelViewer:
 def _atomic_write(out: Path, write) -> None:
     from ..io._files import atomic_output
 
-    with atomic_output(out, make_parents=True) as tmp:
+    with atomic_output(out) as tmp:
         write(str(tmp))

@@ -37,7 +37,7 @@ def write_movie(out: str | os.PathLike, frames: Sequence[np.ndarray], fps: float
         raise InputError(f"no frame to write to {out}")
     from ..io._files import atomic_output
 
-    with atomic_output(out, make_parents=True) as tmp:
+    with atomic_output(out) as tmp:
         if out.suffix.lower() == ".mp4":
             import imageio.v2 as iio
 

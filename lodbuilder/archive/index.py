@@ -1,0 +1,181 @@
+"""Where an archive's scans are: its location (a file or a URL), its /index rows, and the checks
+that confine part files to the archive's own directory. No HDF5 is opened here; the reader opens
+files (:func:`lodbuilder.archive.reader.open_h5`)."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ArchiveError, CorruptArchiveError, NotAnArchiveError, SchemaVersionError
+from . import layout as L
+from .layout import IndexRow
+
+_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*:/")
+
+
+def is_url(location: object) -> bool:
+    """True for ``https://...``, ``s3://...`` (also after ``pathlib`` folded ``//`` into ``/``)."""
+    return isinstance(location, (str, os.PathLike)) and bool(_URL.match(os.fspath(location)))
+
+
+def root_attrs(f: Any, where: Where) -> dict[str, Any]:
+    try:
+        attrs = {k: L._attr_json(v) for k, v in f.attrs.items()}
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        raise CorruptArchiveError(
+            f"{where.display}: its root attributes cannot be read ({first_line(exc)}); the file "
+            "is damaged"
+        ) from None
+    return _check_root_attrs(where.display, attrs)
+
+
+def first_line(exc: BaseException) -> str:
+    return (str(exc).splitlines() or [type(exc).__name__])[0]
+
+
+def _check_root_attrs(path: Any, attrs: dict[str, Any]) -> dict[str, Any]:
+    if attrs.get(L.A_FORMAT) != L.FORMAT:
+        raise NotAnArchiveError(
+            f"{path} is an HDF5 file but not an lodbuilder archive (no format='lodbuilder' attribute)"
+        )
+    version = attrs.get(L.A_SCHEMA_VERSION)
+    if not isinstance(version, int):
+        raise NotAnArchiveError(
+            f"{path} has no integer schema_version attribute; it is not a valid archive"
+        )
+    if version > L.SCHEMA_VERSION:
+        raise SchemaVersionError(
+            f"{path} uses archive schema version {version}, newer than the {L.SCHEMA_VERSION} this "
+            "lodbuilder reads; upgrade lodbuilder"
+        )
+    return attrs
+
+
+class Where:
+    """Where an archive file is: a local path or a URL (read through :mod:`.remote`)."""
+
+    def __init__(self, local: Path | None, url: str | None, options: dict[str, Any] | None):
+        self.local, self.url, self.options = local, url, options
+
+    @classmethod
+    def of(cls, path: Any, options: dict[str, Any] | None = None) -> Where:
+        if isinstance(path, Where):
+            return path
+        if is_url(path):
+            from .remote import normalise_url
+
+            return cls(None, normalise_url(os.fspath(path)), options)
+        return cls(Path(path), None, None)
+
+    @property
+    def display(self) -> Any:
+        """``Path`` for a local file, the URL string for a remote one."""
+        return self.local if self.local is not None else self.url
+
+    @property
+    def parts_dir(self) -> Any:
+        if self.local is not None:
+            return self.local.with_name(L.parts_dir_name(self.local.name))
+        assert self.url is not None
+        return self.url + L.PARTS_SUFFIX
+
+    def part(self, name: str) -> Where:
+        """The part file ``name`` (a plain name, already checked) of this archive."""
+        if self.local is not None:
+            return Where(self.parts_dir / name, None, None)
+        return Where(None, f"{self.parts_dir}/{name}", self.options)
+
+
+def read_rows(f: Any, path: Any) -> list[IndexRow]:
+    """The scans of the open archive file ``f``: its /index rows (schema 2), or the members of
+    /scans of an archive written before parts existed (schema 1)."""
+    try:
+        ig = f.get(L.G_INDEX)
+        if ig is not None and L.I_PART in ig:
+            names = [b.decode("utf-8") for b in ig[L.I_NAME][:]]
+            counts = ig[L.I_N_POINTS][:]
+            lo, hi = ig[L.I_BOUNDS_MIN][:], ig[L.I_BOUNDS_MAX][:]
+            parts = [b.decode("ascii", "replace") for b in ig[L.I_PART][:]]
+            sizes = ig[L.I_PART_BYTES][:]
+            cols = (counts, lo, hi, parts, sizes)
+            if any(len(c) != len(names) for c in cols):
+                raise CorruptArchiveError(
+                    f"archive {path}: its index columns have different lengths; the file is damaged"
+                )
+            return [
+                IndexRow(n, int(c), tuple(a.tolist()), tuple(b.tolist()), p, int(s))
+                for n, c, a, b, p, s in zip(names, *cols, strict=True)
+            ]
+        scans = f.get(L.G_SCANS)
+        rows = []
+        for n in sorted(scans) if scans is not None else []:
+            a = scans[n].attrs
+            rows.append(
+                IndexRow(
+                    n,
+                    int(a.get(L.S_N_POINTS, 0)),
+                    tuple(np.asarray(a.get(L.S_BOUNDS_MIN, [np.nan] * 3), float).tolist()),
+                    tuple(np.asarray(a.get(L.S_BOUNDS_MAX, [np.nan] * 3), float).tolist()),
+                )
+            )
+        return rows
+    except CorruptArchiveError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise CorruptArchiveError(
+            f"archive {path}: its index cannot be read ({first_line(exc)}); the file is damaged"
+        ) from None
+
+
+def check_part(archive: Where, row: IndexRow, path: Any) -> Where:
+    """Where the part file of ``row`` is, checked to be one of this archive's own: a plain
+    name lodbuilder writes, a regular file (not a link) in the archive's own directory, of the
+    size the index records."""
+    import stat
+
+    pdir = archive.parts_dir
+    if not L.PART_NAME.fullmatch(row.part):
+        raise CorruptArchiveError(
+            f"archive {path}: scan {row.name!r} names part file {row.part!r}, which is "
+            f"not a plain part name in {pdir}; refusing to follow it (the index is damaged "
+            "or crafted)"
+        )
+    where = archive.part(row.part)
+    if where.local is not None:
+        try:
+            dst = os.lstat(pdir)
+        except FileNotFoundError:
+            raise ArchiveError(
+                f"archive {path}: scan {row.name!r} is stored in {where.local}, and the "
+                f"directory {pdir} is missing: an archive of several scans is the file and "
+                "that directory, move or copy them together"
+            ) from None
+        if not stat.S_ISDIR(dst.st_mode):
+            raise CorruptArchiveError(
+                f"archive {path}: {pdir} is not a directory (a symbolic link or a "
+                "file); refusing to follow it"
+            )
+        try:
+            st = os.lstat(where.local)
+        except FileNotFoundError:
+            raise ArchiveError(
+                f"archive {path}: scan {row.name!r} is stored in {where.local}, which "
+                f"is missing; restore the directory {pdir.name} that belongs to this archive"
+            ) from None
+        if not stat.S_ISREG(st.st_mode):
+            raise CorruptArchiveError(
+                f"archive {path}: part {row.part} of scan {row.name!r} is not a regular "
+                "file (a symbolic link?); refusing to follow it"
+            )
+        if row.part_bytes and st.st_size != row.part_bytes:
+            raise CorruptArchiveError(
+                f"archive {path}: part {row.part} of scan {row.name!r} has "
+                f"{st.st_size} bytes, the index says {row.part_bytes}; the part was changed "
+                "or truncated"
+            )
+    return where
