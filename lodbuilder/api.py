@@ -89,9 +89,13 @@ def build_archive(
     rho: float | None = None,
     force: bool = False,
     overwrite: bool = False,
+    max_memory: Any = None,
+    joint: bool | str = False,
+    seam_spacing: float | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: Any = None,
+    _tile_points: int | None = None,
     **features: Any,
 ) -> BuildResult:
     """Order every scan of ``inputs`` and add it to ``archive`` (created when missing).
@@ -109,6 +113,16 @@ def build_archive(
     is atomic: the scans already in it are untouched whatever happens, and a killed build resumes
     where it stopped.
 
+    Scans larger than the memory budget take the tiled path (:mod:`lodbuilder.sampling.tiled`):
+    ``max_memory`` (bytes, or text like ``"3GB"``; default 60 % of this machine's memory) is the
+    budget of the build's whole process tree on this machine (with a remote ``scheduler``: of each
+    worker); a scan whose in-memory build would exceed it is read in chunks, cut into tiles ordered
+    on the workers and merged. ``seam_spacing`` (0..1, default 1) is the seam repair of the merge:
+    a point merged from one tile keeps at least this fraction of its merge radius from the earlier
+    points of other tiles (0: no repair). ``joint=True`` (or a scan name) orders every input scan,
+    posed, as one surface: one scan in the archive whose points keep ``scan_id`` and
+    ``scan_point`` (their index in their own scan) attributes.
+
     ``size``/``rho`` stop each ordering early; ``seeds`` (one scan only) are must-keep input
     indices. Feature sensitivity (see :func:`lodbuilder.sampling.adaptive.feature_build`):
     ``importance="curvature,colour"`` stores importance maps, ``adaptive=A`` adds the ``weighted``
@@ -125,5 +139,6 @@ def build_archive(
 
     return build(inputs, archive, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
                  dask_local=dask_local, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, size=size,
-                 rho=rho, force=force, overwrite=overwrite, raise_on_failure=raise_on_failure, progress=progress,
-                 on_status=on_status, **features)
+                 rho=rho, force=force, overwrite=overwrite, max_memory=max_memory, joint=joint,
+                 seam_spacing=seam_spacing, raise_on_failure=raise_on_failure, progress=progress,
+                 on_status=on_status, _tile_points=_tile_points, **features)

@@ -24,12 +24,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--size", type=int, metavar="N",
                    help="order only the first N points of each scan (quick previews; default: every point)")
     g.add_argument("--force", action="store_true", help="rebuild scans even when source and parameters are unchanged")
+    t = p.add_argument_group("large scans and joint orderings (the tiled, out-of-core path)")
+    t.add_argument("--max-memory", metavar="BYTES",
+                   help="memory budget of the build (this process and its workers; e.g. 3GB, 512MiB): a scan "
+                        "whose in-memory build would not fit is read in chunks, ordered tile by tile on the "
+                        "workers and merged (default: 60%% of this machine's memory)")
+    t.add_argument("--joint", nargs="?", const=True, default=False, metavar="NAME",
+                   help="order every input scan (posed, e.g. by a manifest) as one surface: one scan NAME "
+                        "(default: the manifest's name) whose points keep scan_id and scan_point attributes")
+    t.add_argument("--seam-spacing", type=float, metavar="A",
+                   help="seam repair of the tiled merge, 0..1 (default 1): a point merged from one tile keeps "
+                        "at least A times its radius from earlier points of other tiles; 0 turns it off")
 
 
 def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """Keyword arguments of :func:`lodbuilder.build_archive` from the collection options."""
     return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
-            "dask_local": args.dask_local, "size": args.size, "force": args.force}
+            "dask_local": args.dask_local, "size": args.size, "force": args.force, "max_memory": args.max_memory,
+            "joint": args.joint, "seam_spacing": args.seam_spacing}
 
 
 def slice_all(args: argparse.Namespace) -> int:

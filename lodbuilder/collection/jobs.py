@@ -42,10 +42,20 @@ class ScanJob:
     size_bytes: int | None = 0
     scan: Any = None
     pose_kind: str = "rigid"
+    tiled: bool = False
+    members: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def source(self) -> str:
+        if self.members:
+            return f"{len(self.members)} scans (joint)"
         return self.path if self.path is not None else "<in-memory scan>"
+
+    @property
+    def work(self) -> Path:
+        """The tiled build's work directory (beside its part file: a resumed build finds it)."""
+        part = Path(self.part)
+        return part.with_name(part.name[: -len(".h5")] + ".work")
 
 
 def job_key(sha256: str | None, params: dict[str, Any], pose: Any, scan_index: int | None, name: str) -> str:
@@ -165,3 +175,52 @@ def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]
         "phases": {k: round(v, 4) for k, v in phases.items()},
         "worker_pid": os.getpid(),
     }
+
+
+# ------------------------------------------------------------------------------------ tiled
+
+def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
+    """The streams of a tiled job: ``(stream, pose, member id)`` for each scan it orders."""
+    from ..io.stream import open_stream, scan_stream
+
+    if job.members:
+        return [(open_stream(m["path"], scan_index=m.get("scan_index")), m.get("pose"), i)
+                for i, m in enumerate(job.members)]
+    if job.scan is not None:
+        return [(scan_stream(job.scan), None, None)]
+    return [(open_stream(job.path, scan_index=job.scan_index), job.pose, None)]  # type: ignore[arg-type]
+
+
+def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: ProgressCallback = None) -> dict[str, Any]:
+    """Build ``job`` with the tiled (out-of-core) path, its tiles on ``executor``; the parent runs
+    this (it reads, merges and writes in bounded blocks) and returns the same summary as
+    :func:`build_one`."""
+    from ..sampling.tiled import build_tiled
+
+    p = job.params
+    build = {
+        "voxel_size_requested": p.get("voxel_size"),
+        "band_radius_requested": p.get("band_radius"),
+        "size_requested": None,
+        "rho_requested": None,
+        "seeds_given": False,
+        "pose": job.pose,
+        "pose_kind": job.pose_kind,
+        "scan_index": job.scan_index,
+        "collection_key": job.key,
+        "worker_pid": os.getpid(),
+    }
+    if job.members:
+        build["joint"] = {"scans": [{k: m.get(k) for k in ("id", "name", "source", "sha256", "pose", "pose_kind",
+                                                            "scan_index")} for m in job.members]}
+    reader = "joint" if job.members else None
+    res = build_tiled(
+        tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
+        max_memory=p.get("max_memory"), voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
+        alpha=p.get("seam_alpha", 1.0) if p.get("seam_alpha") is not None else 1.0,
+        tile_points=p.get("_tile_points"), build=build,
+        provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
+        progress=progress,
+    )
+    res.update({"name": job.name, "method": "tiled"})
+    return res

@@ -26,10 +26,13 @@ import concurrent.futures as cf
 import contextlib
 import logging
 import os
+import shutil
 import time
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from .._validate import check_positive, strict_keywords
 from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
@@ -81,11 +84,14 @@ def _clean_parts(archive: Path, keep: set[Path]) -> None:
     d = parts_dir(archive)
     if not d.is_dir():
         return
+    work = {p.with_name(p.name[: -len(".h5")] + ".work") for p in keep}
     for p in d.iterdir():
         if ".tmp-" in p.name and p.name.startswith("."):
             remove_stale_temps(d / p.name[1:].split(".tmp-")[0])
         elif p.suffix == ".h5" and p not in keep:
             _drop_part(p)
+        elif p.suffix == ".work" and p.is_dir() and p not in work:
+            shutil.rmtree(p, ignore_errors=True)  # the work of a build whose parameters changed
 
 
 def _drop_part(part: Path) -> None:
@@ -154,6 +160,25 @@ def make_params(voxel_size: Any = None, band_radius: Any = None, size: Any = Non
 _params = make_params  # the name older tests use
 
 
+def tiling_params(params: dict[str, Any], max_memory: Any, seam_alpha: Any, tile_points: Any) -> dict[str, Any]:
+    """Add the tiled build's options to ``params`` (only those given: they enter the resume key)."""
+    from ..sampling.tiled.plan import parse_bytes
+
+    if max_memory is not None:
+        params["max_memory"] = parse_bytes(max_memory, "max_memory")
+    if seam_alpha is not None:
+        try:
+            a = float(seam_alpha)
+        except (TypeError, ValueError):
+            a = float("nan")
+        if not 0.0 <= a <= 1.0:
+            raise InputError(f"seam_spacing must be a number in [0, 1], got {seam_alpha!r}")
+        params["seam_alpha"] = a
+    if tile_points is not None:
+        params["_tile_points"] = int(tile_points)
+    return params
+
+
 def _conflict(archive: Path, name: str, old_source: str | None) -> ArchiveError:
     src = f"built from {old_source}" if old_source else "built from another input"
     return ArchiveError(
@@ -195,17 +220,84 @@ def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], 
         job = ScanJob(name=src.name, path=None if src.path is None else str(src.path.resolve()), key=key,
                       part=str(part), params=dict(params), pose=pose, scan_index=src.scan_index, sha256=sha,
                       size_bytes=nbytes, scan=src.scan, pose_kind=pose_kind(src.pose))
-        old_key, old_source = existing.get(src.name, (None, None))
-        if src.name in existing and old_key == key and not force:
-            skipped.append(ScanStatus(src.name, where, "skipped"))
-        elif src.name in existing and old_key != key and not overwrite:
-            err = _conflict(archive, src.name, old_source)
-            failed.append(ScanStatus(src.name, where, "failed", error=str(err), exception=err))
-        elif not force and part.is_file() and _part_ok(part, src.name):
-            recovered.append((job, part))
-        else:
-            jobs.append(job)
+        _place(job, where, existing, archive, force, overwrite, jobs, recovered, skipped, failed)
     return jobs, recovered, skipped, failed
+
+
+def _place(job: ScanJob, where: str, existing: dict[str, tuple[str | None, str | None]], archive: Path,
+           force: bool, overwrite: bool, jobs: list, recovered: list, skipped: list, failed: list) -> None:
+    """The one duplicate-name policy: skip an unchanged scan, refuse a changed one unless
+    ``overwrite``, merge a finished part of an interrupted build, else build."""
+    part = Path(job.part)
+    old_key, old_source = existing.get(job.name, (None, None))
+    if job.name in existing and old_key == job.key and not force:
+        skipped.append(ScanStatus(job.name, where, "skipped"))
+    elif job.name in existing and old_key != job.key and not overwrite:
+        err = _conflict(archive, job.name, old_source)
+        failed.append(ScanStatus(job.name, where, "failed", error=str(err), exception=err))
+    elif not force and part.is_file() and _part_ok(part, job.name):
+        recovered.append((job, part))
+    else:
+        jobs.append(job)
+
+
+def plan_joint(sources: list[ScanSource], archive: Path, params: dict[str, Any], name: str, *,
+               force: bool = False, overwrite: bool = False):
+    """One job ordering every source as one surface (a joint build), placed like any scan."""
+    import hashlib
+
+    from ..io import file_sha256
+
+    members: list[dict[str, Any]] = []
+    h = hashlib.sha256()
+    for i, src in enumerate(sources):
+        if src.path is None:
+            raise InputError("a joint build orders scan files; save in-memory scans to files first")
+        if src.path.resolve() == archive.resolve():
+            raise InputError(f"input {src.path} is the archive itself; choose another -o")
+        sha = file_sha256(src.path)
+        h.update(sha.encode())
+        members.append({"id": i, "name": src.name, "path": str(src.path.resolve()), "source": src.path.name,
+                        "sha256": sha, "pose": None if src.pose is None else src.pose.tolist(),
+                        "pose_kind": pose_kind(src.pose), "scan_index": src.scan_index})
+    key = job_key(h.hexdigest(), {**params, "joint": True}, [m["pose"] for m in members],
+                  None, name)
+    job = ScanJob(name=name, path=None, key=key, part=str(_part_path(archive, name, key)), params=dict(params),
+                  sha256=h.hexdigest(), size_bytes=sum(Path(m["path"]).stat().st_size for m in members),
+                  members=members, tiled=True)
+    out: tuple[list, list, list, list] = ([], [], [], [])
+    _place(job, job.source, _existing_scans(archive), archive, force, overwrite, *out)
+    return out
+
+
+def decide_tiling(jobs: list[ScanJob], params: dict[str, Any]) -> None:
+    """Mark the jobs that take the tiled path: joint builds, and scans whose in-memory build would
+    not fit the memory budget (``max_memory``, default 60 % of this machine's memory).
+    Partial orderings (size/rho), seeds and feature options are in-memory builds only."""
+    from ..io.stream import peek_stream
+    from ..sampling.tiled.plan import needs_tiling
+
+    if params.get("size") is not None or params.get("rho") is not None or params.get("features") \
+            or params.get("seeds") is not None:
+        return
+    for job in jobs:
+        if job.members or params.get("_tile_points"):
+            job.tiled = True
+            continue
+        if job.scan is not None:
+            n = len(job.scan)
+            row = 24 + sum(a.dtype.itemsize * int(a.size // max(n, 1)) for a in job.scan.attributes.values())
+        else:
+            try:
+                st = peek_stream(job.path) if job.scan_index is None else None  # type: ignore[arg-type]
+            except LodbuilderError:
+                st = None  # the build reports the file's error
+            if st is not None:
+                n = st.n_points
+                row = 24 + sum(int(np.dtype(d).itemsize * max(1, int(np.prod(sh)))) for d, sh in st.fields.values())
+            else:  # a format that does not stream: about 30 bytes of file per point
+                n, row = (job.size_bytes or 0) // 30, 24
+        job.tiled = needs_tiling(n, row, params.get("max_memory"))
 
 
 def _sources(inputs: Any, manifest: Any, name: str | None) -> list[ScanSource]:
@@ -255,9 +347,13 @@ def build(
     rho: float | None = None,
     force: bool = False,
     overwrite: bool = False,
+    max_memory: Any = None,
+    joint: bool | str = False,
+    seam_spacing: float | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
+    _tile_points: int | None = None,
     **features: Any,
 ) -> BuildResult:
     """Build every scan of ``inputs`` into ``archive``; see :func:`lodbuilder.build_archive`."""
@@ -269,16 +365,26 @@ def build(
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work
-    params = make_params(voxel_size, band_radius, size, rho, features, seeds)
-    sources = _sources(inputs, manifest, name)
-    if seeds is not None and len(sources) != 1:
+    params = tiling_params(make_params(voxel_size, band_radius, size, rho, features, seeds), max_memory,
+                           seam_spacing, _tile_points)
+    joint_name = _joint_name(joint, name, manifest, inputs) if joint else None
+    sources = _sources(inputs, manifest, None if joint else name)
+    if seeds is not None and (len(sources) != 1 or joint):
         raise InputError("seeds are input indices of one scan; give a single scan with seeds")
+    if joint and (params.get("size") is not None or params.get("rho") is not None or params.get("features")):
+        raise InputError("a joint build orders every point (size/rho and feature options are not available)")
     in_memory = any(s.scan is not None for s in sources)
     if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
         raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
-    jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force, overwrite=overwrite)
+    if joint_name is not None:
+        jobs, recovered, skipped, failed = plan_joint(sources, archive, params, joint_name, force=force,
+                                                      overwrite=overwrite)
+        total = 1
+    else:
+        jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force, overwrite=overwrite)
+        total = len(sources)
+    decide_tiling(jobs, params)
     result = BuildResult(archive=archive)
-    total = len(sources)
     names_in_archive = set(_existing_scans(archive))
     done = points = 0
 
@@ -312,14 +418,22 @@ def build(
     if jobs:
         parts_dir(archive).mkdir(exist_ok=True)
         jobs.sort(key=lambda j: -(j.size_bytes or 0))  # largest first: better packing on the workers
-        inline = in_memory or (len(jobs) == 1 and workers is None and scheduler is None and dask_local is None)
+        tiled = [j for j in jobs if j.tiled]
+        small = [j for j in jobs if not j.tiled]
+        default = workers is None and scheduler is None and dask_local is None
+        inline = in_memory or (len(jobs) == 1 and default and not tiled)
         t_start = time.perf_counter()
         with make_executor(workers, scheduler, dask_local, inline=inline) as (ex, desc):
             result.startup_seconds = time.perf_counter() - t_start
             result.executor = desc
             log.info("building %d scan(s) on %s", len(jobs), desc)
-            _run_jobs(ex, jobs, archive, result, emit, names_in_archive,
-                      progress if (inline and total == 1) else None)
+            if small:
+                _run_jobs(ex, small, archive, result, emit, names_in_archive,
+                          progress if (inline and total == 1) else None)
+            parallel = 1 if inline or scheduler is not None else (dask_local or workers or os.cpu_count() or 1)
+            for job in tiled:
+                _run_tiled(ex, parallel, job, archive, result, emit, names_in_archive,
+                           progress if total == 1 else None)
     _tidy_parts(archive)
     result.archive_scans = len(names_in_archive) if archive.exists() else 0
     result.seconds = time.perf_counter() - t0
@@ -378,6 +492,49 @@ def _run_jobs(ex: cf.Executor, jobs: list[ScanJob], archive: Path, result: Build
         for fut in pending:
             fut.cancel()
         raise
+
+
+def _run_tiled(ex: cf.Executor, parallel: int, job: ScanJob, archive: Path, result: BuildResult, emit: Any,
+               names_in_archive: set[str], progress: ProgressCallback) -> None:
+    """A tiled job: driven from this process, its tiles on the executor; then its part is merged."""
+    from .jobs import build_tiled_job
+
+    try:
+        r = build_tiled_job(job, ex, parallel, progress)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:
+        emit(ScanStatus(job.name, job.source, "failed", error=one_line(exc), exception=exc))
+        return
+    t_merge = time.perf_counter()
+    try:
+        merge_parts(archive, [(job.name, Path(r["part"]))])
+        result.merge_seconds += time.perf_counter() - t_merge
+    except Exception as exc:
+        emit(ScanStatus(job.name, job.source, "failed", error=f"merge failed: {one_line(exc)}", exception=exc))
+        return
+    _drop_part(Path(r["part"]))
+    names_in_archive.add(job.name)
+    emit(ScanStatus(job.name, job.source, "built", n_points=r["n_points"], seconds=r["seconds"],
+                    worker_pid=r["worker_pid"], n_ordered=r["n_ordered"], encoding=r["encoding"], method="tiled",
+                    phases=r["phases"]))
+
+
+def _joint_name(joint: Any, name: str | None, manifest: Any, inputs: Any) -> str:
+    """The name of a joint scan: ``name``, a string given as ``joint``, the manifest's stem, or
+    "joint"."""
+    from ..archive.layout import check_name
+    from .inputs import MANIFEST_SUFFIXES, safe_name
+
+    if name is not None:
+        return check_name(name)
+    if isinstance(joint, str):
+        return check_name(joint)
+    items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs or [])
+    manifests = [Path(manifest)] if manifest is not None else []
+    manifests += [Path(x) for x in items if isinstance(x, (str, os.PathLike))
+                  and Path(x).suffix.lower() in MANIFEST_SUFFIXES]
+    return safe_name(manifests[0].stem) if len(manifests) == 1 else "joint"
 
 
 def _raise_failures(result: BuildResult, total: int, raise_on_failure: bool | None) -> None:
