@@ -128,3 +128,18 @@ def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypa
     assert keep.read_bytes() == before
     with lodbuilder.open_archive(keep) as arc:
         assert arc.scans == ["other"]
+
+
+def test_small_blocks_everywhere_give_the_same_archive(tmp_path, monkeypatch):
+    """Chunked reads, bucketed writes and block merges agree with one block (many of each)."""
+    import lodbuilder.sampling.tiled.workdir as workdir
+    import lodbuilder.sampling.tiled.write as write
+
+    rng = np.random.default_rng(9)
+    pts = wavy(2400, rng)
+    big, _ = _build(tmp_path, pts, tile_points=400, name="big")
+    monkeypatch.setattr(workdir, "BLOCK", 333)
+    monkeypatch.setattr(write, "BLOCK", 250)
+    small, _ = _build(tmp_path, pts, tile_points=400, name="small")
+    for key in ("order", "radius", "parent", "points", "i"):
+        np.testing.assert_array_equal(small[key], big[key])

@@ -295,60 +295,134 @@ def tile_heap_refresh(theap, n, t, key):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------ covering
 
 @nb.njit(**JIT)
-def cover_pass(xyz, rank, core, d, lab, start, lo, min_cell, ev_rank, ev_val, pt_rank, pt_parent, pt_space):
+def _box_dist(px, py, pz, x0, y0, z0, size):  # pragma: no cover - compiled
+    """Distance from p to the axis-aligned cube [x0, x0 + size] x ... (0 inside)."""
+    dx = max(x0 - px, 0.0, px - (x0 + size))
+    dy = max(y0 - py, 0.0, py - (y0 + size))
+    dz = max(z0 - pz, 0.0, pz - (z0 + size))
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@nb.njit(**JIT)
+def cover_pass(xyz, rank, core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_space):  # pragma: no cover
     """Exact covering radii of a tile's core while the points of its core and halo are inserted in
     rank order (``rank`` ascending; ``xyz`` in that order).
 
-    ``d``/``lab``: per point, the distance to (and rank of) the nearest inserted point, already set
-    for the points inserted before ``start`` (the head). After inserting point i the covering radius
-    of the core is max over core points of d. Writes events (rank + 1, covering radius) whenever it
-    changes (``ev_*``), and for every inserted core point its rank, the rank of its nearest earlier
-    point and the distance to it (``pt_*``). Returns (number of events, number of core points).
-    """  # pragma: no cover - compiled
+    Keeps, for every pending core point, its distance to (and the rank of) the nearest inserted
+    point. After each insertion the core's covering radius is the largest pending distance (the root
+    of a max segment tree over the blocks). An insertion updates only the pending points it comes closer to: they sit in cubic
+    cells of size ``cell`` (the non-empty ones, numbered compactly, their points stored together)
+    grouped in blocks of 2^3 cells; each cell and block keeps an upper bound of its points'
+    distances, and a cell or block no nearer to the new point than that bound is skipped. Writes an
+    event (rank + 1, covering radius) whenever the radius changes and, for each inserted core
+    point, its rank, the rank of its nearest earlier point and the distance to it.
+    Returns (number of events, number of core points).
+    """
     n = xyz.shape[0]
-    # lazy max-heap over pending core points (keys may be stale: larger than d)
-    hkey = np.empty(n)
-    hitem = np.empty(n, np.int64)
-    hn = 0
-    for i in range(start, n):
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = np.inf
+        hi[a] = -np.inf
+    for i in range(n):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    g = np.empty(3, np.int64)
+    for a in range(3):
+        g[a] = max(1, np.int64((hi[a] - lo[a]) / cell) + 1)
+    nbx, nby, nbz = (g[0] + 1) // 2, (g[1] + 1) // 2, (g[2] + 1) // 2
+    # core points sorted by cell; cells numbered compactly in that order
+    ncore = 0
+    for i in range(n):
         if core[i]:
-            hkey[hn] = d[i]
-            hitem[hn] = i
-            hn += 1
-    for i in range((hn - 2) // 2, -1, -1):
-        _down(hkey, hitem, i, hn)
-    done = np.zeros(n, np.bool_)
-    for i in range(start):
-        done[i] = True
-    # hash grid of pending core points (cells rebuilt as the radius shrinks)
-    size = 1024
-    while size < 2 * n:
+            ncore += 1
+    pid = np.empty(ncore, np.int64)
+    key = np.empty(ncore, np.int64)
+    m = 0
+    for i in range(n):
+        if core[i]:
+            cx = min(np.int64((xyz[i, 0] - lo[0]) / cell), g[0] - 1)
+            cy = min(np.int64((xyz[i, 1] - lo[1]) / cell), g[1] - 1)
+            cz = min(np.int64((xyz[i, 2] - lo[2]) / cell), g[2] - 1)
+            # block-major key: the cells of a block are neighbours in the order
+            b = ((cx // 2) * nby + cy // 2) * nbz + cz // 2
+            key[m] = (b * 8 + (cx % 2) * 4 + (cy % 2) * 2 + (cz % 2))
+            pid[m] = i
+            m += 1
+    o = np.argsort(key, kind="mergesort")
+    key = key[o]
+    pid = pid[o]
+    nc = 0
+    for j in range(ncore):
+        if j == 0 or key[j] != key[j - 1]:
+            nc += 1
+    cstart = np.empty(nc + 1, np.int64)
+    ccorner = np.empty((nc, 3))
+    cblock = np.empty(nc, np.int64)
+    c = -1
+    for j in range(ncore):
+        if j == 0 or key[j] != key[j - 1]:
+            c += 1
+            cstart[c] = j
+            b = key[j] // 8
+            r = key[j] % 8
+            bz = b % nbz
+            by = (b // nbz) % nby
+            bx = b // (nbz * nby)
+            ccorner[c, 0] = lo[0] + (bx * 2 + r // 4) * cell
+            ccorner[c, 1] = lo[1] + (by * 2 + (r // 2) % 2) * cell
+            ccorner[c, 2] = lo[2] + (bz * 2 + r % 2) * cell
+            cblock[c] = b
+    cstart[nc] = ncore
+    npend = np.empty(nc, np.int64)
+    for c in range(nc):
+        npend[c] = cstart[c + 1] - cstart[c]
+    # point data in slot order (a cell's pending points are contiguous); spos: point -> slot
+    sx = np.empty(ncore)
+    sy = np.empty(ncore)
+    sz = np.empty(ncore)
+    sd = np.full(ncore, np.inf)
+    slab = np.full(ncore, -1, np.int64)
+    sid = pid.copy()
+    scell = np.empty(ncore, np.int64)
+    spos = np.full(n, -1, np.int64)
+    for c in range(nc):
+        for j in range(cstart[c], cstart[c + 1]):
+            scell[j] = c
+    for j in range(ncore):
+        i = pid[j]
+        sx[j] = xyz[i, 0]
+        sy[j] = xyz[i, 1]
+        sz[j] = xyz[i, 2]
+        spos[i] = j
+    cmax = np.full(nc, np.inf)
+    nblock = nbx * nby * nbz
+    bmax = np.full(nblock, -1.0)
+    bfirst = np.full(nblock, -1, np.int64)
+    bcnt = np.zeros(nblock, np.int64)
+    for c in range(nc):
+        b = cblock[c]
+        if bfirst[b] < 0:
+            bfirst[b] = c
+        bcnt[b] += 1
+        bmax[b] = np.inf
+    # a max segment tree over the blocks' maxima: its root is the covering radius of the core
+    size = 1
+    while size < nblock:
         size *= 2
-    tkeys = np.full(size, -1, np.int64)
-    thead = np.full(size, -1, np.int64)
-    nxt = np.full(n, -1, np.int64)
-    mask = size - 1
-    cell = np.inf
+    tree = np.full(2 * size, -1.0)
+    for b in range(nblock):
+        tree[size + b] = bmax[b]
+    for t in range(size - 1, 0, -1):
+        tree[t] = max(tree[2 * t], tree[2 * t + 1])
+    pending = ncore
     ne = 0
     npt = 0
     last = -1.0
-    for i in range(start, n + 1):
-        # the covering radius of the core now (prefix: every point of rank < rank[i])
-        while hn > 0:
-            top = hitem[0]
-            if done[top]:
-                hn -= 1
-                if hn > 0:
-                    hkey[0] = hkey[hn]
-                    hitem[0] = hitem[hn]
-                    _down(hkey, hitem, 0, hn)
-                continue
-            if hkey[0] > d[top]:
-                hkey[0] = d[top]
-                _down(hkey, hitem, 0, hn)
-                continue
-            break
-        cr = hkey[0] if hn > 0 else 0.0
+    bsize = 2.0 * cell
+    for i in range(n + 1):
+        cr = tree[1] if pending > 0 else 0.0
         if cr != last:
             ev_rank[ne] = rank[i - 1] + 1 if i > 0 else 0
             ev_val[ne] = cr
@@ -356,74 +430,104 @@ def cover_pass(xyz, rank, core, d, lab, start, lo, min_cell, ev_rank, ev_val, pt
             last = cr
         if i == n:
             break
-        if core[i]:
+        j = spos[i]
+        if j >= 0:
             pt_rank[npt] = rank[i]
-            pt_parent[npt] = lab[i]
-            pt_space[npt] = d[i]
+            pt_parent[npt] = slab[j]
+            pt_space[npt] = sd[j]
             npt += 1
-        done[i] = True
-        if hn == 0:
+            # remove the point from its cell: swap with the cell's last pending slot
+            c = scell[j]
+            removed = sd[j]
+            last_j = cstart[c] + npend[c] - 1
+            if last_j != j:
+                sx[j], sx[last_j] = sx[last_j], sx[j]
+                sy[j], sy[last_j] = sy[last_j], sy[j]
+                sz[j], sz[last_j] = sz[last_j], sz[j]
+                sd[j], sd[last_j] = sd[last_j], sd[j]
+                slab[j], slab[last_j] = slab[last_j], slab[j]
+                other = sid[last_j]
+                sid[j] = other
+                sid[last_j] = i
+                spos[other] = j
+            spos[i] = -1
+            npend[c] -= 1
+            pending -= 1
+            if removed >= cmax[c]:  # the cell's (and maybe its block's) maximum goes down
+                cm = -1.0
+                for jj in range(cstart[c], cstart[c] + npend[c]):
+                    if sd[jj] > cm:
+                        cm = sd[jj]
+                cmax[c] = cm
+                b = cblock[c]
+                bm = -1.0
+                for cc in range(bfirst[b], bfirst[b] + bcnt[b]):
+                    if npend[cc] > 0 and cmax[cc] > bm:
+                        bm = cmax[cc]
+                bmax[b] = bm
+                _tree_set(tree, size, b, bm)
+        if pending == 0:
             continue
-        if not np.isfinite(cr):
-            # some core points are still uncovered: this point reaches every pending one
-            px = xyz[i, 0]
-            py = xyz[i, 1]
-            pz = xyz[i, 2]
-            for j in range(i + 1, n):
-                if core[j]:
-                    dx = xyz[j, 0] - px
-                    dy = xyz[j, 1] - py
-                    dz = xyz[j, 2] - pz
-                    dd = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    if dd < d[j]:
-                        d[j] = dd
-                        lab[j] = rank[i]
-            continue
-        # (re)build the grid when the radius has halved
-        if cr < 0.5 * cell:
-            cell = max(cr, min_cell)
-            for s in range(size):
-                tkeys[s] = -1
-            for j in range(i + 1, n):
-                if core[j] and not done[j]:
-                    grid_insert(tkeys, thead, nxt, xyz, lo, cell, mask, j)
         px = xyz[i, 0]
         py = xyz[i, 1]
         pz = xyz[i, 2]
         rad = cr
-        cx0 = cell_of(px - rad, lo[0], cell)
-        cx1 = cell_of(px + rad, lo[0], cell)
-        cy0 = cell_of(py - rad, lo[1], cell)
-        cy1 = cell_of(py + rad, lo[1], cell)
-        cz0 = cell_of(pz - rad, lo[2], cell)
-        cz1 = cell_of(pz + rad, lo[2], cell)
-        for cx in range(cx0, cx1 + 1):
-            for cy in range(cy0, cy1 + 1):
-                for cz in range(cz0, cz1 + 1):
-                    s = grid_slot(tkeys, key3(cx, cy, cz), mask)
-                    if tkeys[s] == -1:
+        if not np.isfinite(rad):
+            rad = 2.0 * (hi[0] - lo[0] + hi[1] - lo[1] + hi[2] - lo[2]) + 1.0
+        b0x = max(np.int64((px - rad - lo[0]) / bsize), 0)
+        b1x = min(np.int64((px + rad - lo[0]) / bsize), nbx - 1)
+        b0y = max(np.int64((py - rad - lo[1]) / bsize), 0)
+        b1y = min(np.int64((py + rad - lo[1]) / bsize), nby - 1)
+        b0z = max(np.int64((pz - rad - lo[2]) / bsize), 0)
+        b1z = min(np.int64((pz + rad - lo[2]) / bsize), nbz - 1)
+        for bx in range(b0x, b1x + 1):
+            for by in range(b0y, b1y + 1):
+                for bz in range(b0z, b1z + 1):
+                    b = (bx * nby + by) * nbz + bz
+                    bm = bmax[b]
+                    if bm < 0.0:
                         continue
-                    prev = -1
-                    j = thead[s]
-                    while j >= 0:
-                        nj = nxt[j]
-                        if done[j]:  # unlink inserted points as they are met
-                            if prev < 0:
-                                thead[s] = nj
-                            else:
-                                nxt[prev] = nj
-                            j = nj
+                    if bm <= _box_dist(px, py, pz, lo[0] + bx * bsize, lo[1] + by * bsize, lo[2] + bz * bsize,
+                                       bsize):
+                        continue
+                    newb = -1.0
+                    for c in range(bfirst[b], bfirst[b] + bcnt[b]):
+                        if npend[c] == 0:
+                            cmax[c] = -1.0
                             continue
-                        dx = xyz[j, 0] - px
-                        dy = xyz[j, 1] - py
-                        dz = xyz[j, 2] - pz
-                        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
-                        if dd < d[j]:
-                            d[j] = dd
-                            lab[j] = rank[i]
-                        prev = j
-                        j = nj
+                        cm = cmax[c]
+                        if cm > _box_dist(px, py, pz, ccorner[c, 0], ccorner[c, 1], ccorner[c, 2], cell):
+                            cm = -1.0
+                            for jj in range(cstart[c], cstart[c] + npend[c]):
+                                dx = sx[jj] - px
+                                dy = sy[jj] - py
+                                dz = sz[jj] - pz
+                                dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                                if dd < sd[jj]:
+                                    sd[jj] = dd
+                                    slab[jj] = rank[i]
+                                if sd[jj] > cm:
+                                    cm = sd[jj]
+                            cmax[c] = cm
+                        if cm > newb:
+                            newb = cm
+                    if newb != bm:
+                        bmax[b] = newb
+                        _tree_set(tree, size, b, newb)
     return ne, npt
+
+
+@nb.njit(**JIT)
+def _tree_set(tree, size, b, value):  # pragma: no cover - compiled
+    t = size + b
+    tree[t] = value
+    t >>= 1
+    while t >= 1:
+        v = max(tree[2 * t], tree[2 * t + 1])
+        if tree[t] == v:
+            break
+        tree[t] = v
+        t >>= 1
 
 
 # ------------------------------------------------------------------------------------ events

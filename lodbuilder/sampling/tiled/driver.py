@@ -171,7 +171,7 @@ def build_tiled(
                                           "n_decimated": int(dec.shape[0])})
     halo = float(dist["halo"])
     coarse = _done(work, "coarse")
-    worker_budget = max(64 << 20, (budget - max(P.PARENT_MIN, int(P.PARENT_FRACTION * budget))) // max(parallel, 1))
+    worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
     if coarse is None:
         head_size = max(HEAD_MIN, int(dist["n_decimated"]) // HEAD_DECIMATION)
         (coarse,) = _run_tasks(executor, "the coarse level", name, [(0, coarse_task, (str(work), head_size,
@@ -205,9 +205,8 @@ def build_tiled(
 
     # 6. exact covering radii of every tile (on the workers), combined
     t0 = time.perf_counter()
-    min_cell = float(pl["span"]) / (1 << 20)
     todo = [t for t in tiles if read_json(work / f"cover.{t.index}.json") is None]
-    calls = [(t.index, cover_tile, (str(work), t.index, min_cell)) for t in todo]
+    calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
     for res in _run_tasks(executor, "covering", name, calls, n_tiles, progress, "covering"):
         write_json(work / f"cover.{res['tile']}.json", res)
     radii = _done(work, "radii")

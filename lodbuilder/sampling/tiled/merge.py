@@ -27,7 +27,7 @@ import numpy as np
 
 from ...progress import ProgressCallback, report
 from .tasks import EVENT, HEAD, POINT, STREAM
-from .workdir import BLOCK
+from . import workdir as W
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +85,8 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     heap_rows.sort()
     theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
     tn = theap.shape[0]
-    out_g = np.empty(BLOCK, np.int64)
-    out_key = np.empty(BLOCK)
+    out_g = np.empty(W.BLOCK, np.int64)
+    out_key = np.empty(W.BLOCK)
     written = 0
     deferred = 0
     try:
@@ -141,7 +141,7 @@ def write_ranks(work: Path, n: int) -> None:
         with open(work / "order.i8", "rb") as f:
             k = 0
             while k < n:
-                g = np.fromfile(f, dtype="<i8", count=min(BLOCK, n - k))
+                g = np.fromfile(f, dtype="<i8", count=min(W.BLOCK, n - k))
                 rank[g] = np.arange(k, k + g.shape[0])
                 k += g.shape[0]
         rank.flush()
@@ -183,11 +183,12 @@ class _Records:
 
 
 def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: ProgressCallback = None,
-                   block: int = BLOCK) -> dict[str, Any]:
+                   block: int | None = None) -> dict[str, Any]:
     """Write ``radius.f8`` and ``parent.i8`` (per stored position) from the tiles' covering
     records; returns the verification figures (worst spacing / radius of any level)."""
     from ..._kernels.tiled import merge_events
 
+    block = block or W.BLOCK
     head = np.fromfile(work / "head.bin", dtype=HEAD)
     h = head.shape[0]
     r_head = head["r"]

@@ -19,9 +19,10 @@ import numpy as np
 from ...errors import InputError
 
 IN_MEMORY_BYTES_PER_POINT = 900  # FastFPS band + ordering + the stored copy (557-870 B/pt measured)
-TILE_BYTES_PER_POINT = 1000  # a tile's FastFPS and its stream, with headroom
-PARENT_FRACTION = 0.25  # share of the budget the parent keeps (merge buffers, write blocks)
-PARENT_MIN = 256 << 20
+TILE_BYTES_PER_POINT = 800  # a tile's FastFPS and its stream, with headroom
+PROCESS_BYTES = 320 << 20  # a worker's own footprint: Python, NumPy, SciPy, h5py, compiled kernels
+PARENT_FRACTION = 0.2  # share of the budget the parent keeps (merge buffers, write blocks)
+PARENT_MIN = 600 << 20
 MIN_TILE_POINTS = 2_000
 HIST_CELLS = 1 << 22  # cells of the count histogram (int32: 16 MiB)
 
@@ -59,13 +60,20 @@ def needs_tiling(n_points: int, bytes_per_row: int, max_memory: int | None) -> b
 
 def tile_capacity(max_memory: int, parallel: int) -> int:
     """Points per tile so that ``parallel`` tiles fit the budget at once beside the parent."""
-    parent = max(PARENT_MIN, int(PARENT_FRACTION * max_memory))
-    per_worker = (max_memory - parent) / max(parallel, 1)
-    cap = int(per_worker / TILE_BYTES_PER_POINT)
+    per_worker = worker_budget(max_memory, parallel)
+    cap = int((per_worker - PROCESS_BYTES) / TILE_BYTES_PER_POINT)
     if cap < MIN_TILE_POINTS:
         raise InputError(f"max_memory={max_memory / 2**20:.0f} MiB leaves {max(per_worker, 0) / 2**20:.0f} MiB per worker "
-                         f"for {parallel} worker(s): too little for a tile; give more memory or fewer workers")
+                         f"for {parallel} worker(s): too little for a tile (each worker needs "
+                         f"{(PROCESS_BYTES + MIN_TILE_POINTS * TILE_BYTES_PER_POINT) / 2**20:.0f} MiB at least); give "
+                         "more memory or fewer workers")
     return cap
+
+
+def worker_budget(max_memory: int, parallel: int) -> int:
+    """Bytes each of ``parallel`` workers may use once the parent's share is set aside."""
+    parent = max(PARENT_MIN, int(PARENT_FRACTION * max_memory))
+    return int((max_memory - parent) / max(parallel, 1))
 
 
 @dataclass

@@ -23,6 +23,7 @@ STREAM = np.dtype([("g", "<f8"), ("key", "<f8"), ("x", "<f8"), ("y", "<f8"), ("z
 HEAD = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "<f8"), ("parent", "<i8")])
 EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
 POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
+MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
 
 
 def _publish(arr: np.ndarray, path: Path) -> None:
@@ -125,7 +126,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
             "seconds": time.perf_counter() - t0, "worker_pid": os.getpid()}
 
 
-def cover_tile(work: str, t: int, min_cell: float) -> dict[str, Any]:
+def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
     """Exact covering radii of tile ``t``'s core in the final order, from its core and halo.
 
     Writes ``cover.<t>.ev`` (rank, covering radius of the core by every point of smaller rank,
@@ -147,16 +148,15 @@ def cover_tile(work: str, t: int, min_cell: float) -> dict[str, Any]:
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])
     is_core = np.ascontiguousarray(is_core[srt])
     n = ext.shape[0]
-    d = np.full(n, np.inf)
-    lab = np.full(n, -1, np.int64)
     ev_rank = np.empty(n + 1, np.int64)
     ev_val = np.empty(n + 1)
     pt_rank = np.empty(core.shape[0], np.int64)
     pt_parent = np.empty(core.shape[0], np.int64)
     pt_space = np.empty(core.shape[0])
-    lo = xyz.min(axis=0) if n else np.zeros(3)
-    ne, npt = cover_pass(xyz, ranks, is_core, d, lab, 0, lo, min_cell, ev_rank, ev_val, pt_rank, pt_parent,
-                         pt_space)
+    # cells of about four point spacings (some 16 points of a surface), at most MAX_CELLS of them
+    ext_size = np.ptp(xyz, axis=0) if n else np.ones(3)
+    cell = max(4.0 * spacing, float(np.prod(ext_size + 8 * spacing) / MAX_CELLS) ** (1 / 3), 1e-300)
+    ne, npt = cover_pass(xyz, ranks, is_core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_space)
     ev = np.empty(ne, EVENT)
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)

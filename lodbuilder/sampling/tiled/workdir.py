@@ -75,7 +75,7 @@ def attr_file(work: Path, i: int) -> Path:
 
 
 def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: ProgressCallback = None,
-          total: int | None = None) -> Spill:
+          total: int | None = None, chunk_rows: int | None = None) -> Spill:
     """Read every source (``(PointStream, pose or None, member id or None)``) chunk by chunk into
     the work directory. A joint build (several sources) keeps the attributes all of them have and
     adds ``scan_id`` (int32) and ``scan_point`` (int64: the index in its own scan)."""
@@ -107,7 +107,7 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
             report(progress, "read", 0, n_total)
             for stream, pose, member in sources:
                 first = g
-                for chunk in stream.chunks(BLOCK):
+                for chunk in stream.chunks(chunk_rows or BLOCK):
                     pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
                     pts = np.ascontiguousarray(pts, dtype="<f8")
                     fp.write(pts.tobytes())
@@ -133,9 +133,10 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
                  choose_encoding(encodings or {"float64"}))
 
 
-def blocks(path: Path, dtype: Any, count: int | None = None, rows: int = BLOCK,
+def blocks(path: Path, dtype: Any, count: int | None = None, rows: int | None = None,
            start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
     """``(first row, rows)`` blocks of a raw file of records ``dtype``, read with plain reads."""
+    rows = rows or BLOCK
     dt = np.dtype(dtype)
     if count is None:
         count = path.stat().st_size // dt.itemsize
@@ -151,7 +152,8 @@ def blocks(path: Path, dtype: Any, count: int | None = None, rows: int = BLOCK,
             lo += m
 
 
-def point_blocks(work: Path, n: int, rows: int = BLOCK) -> Iterator[tuple[int, np.ndarray]]:
+def point_blocks(work: Path, n: int, rows: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    rows = rows or BLOCK
     for lo, a in blocks(work / "points.f64", "<f8", 3 * n, 3 * rows):
         yield lo // 3, a.reshape(-1, 3)
 

@@ -16,7 +16,9 @@ from typing import Any
 import numpy as np
 
 from ...progress import ProgressCallback, report
-from .workdir import BLOCK, attr_file, blocks, point_blocks
+from .workdir import attr_file, blocks, point_blocks
+
+BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
 
 def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
@@ -37,10 +39,11 @@ def choose_encoding(encodings: set[str]) -> str:
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-               provenance: dict[str, Any], progress: ProgressCallback = None, block: int = BLOCK) -> Any:
+               provenance: dict[str, Any], progress: ProgressCallback = None, block: int | None = None) -> Any:
     """Permute the work directory's scan into stored order and write it as the part ``part``."""
     from ...archive.scanwriter import ScanWriter
 
+    block = block or BLOCK
     rec = record_dtype(fields)
     names = list(fields)
     n_buckets = (n + block - 1) // block
@@ -48,10 +51,10 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
     # pass 1: input order -> buckets by destination
     files = [open(p, "wb") for p in buckets]
     attr_iters = [blocks(attr_file(work, i), np.dtype(fields[k][0]), n * int(np.prod(fields[k][1] or (1,))),
-                         BLOCK * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
+                         block * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
     try:
         with open(work / "rank.i8", "rb") as fr:
-            for g0, pts in point_blocks(work, n):
+            for g0, pts in point_blocks(work, n, block):
                 m = pts.shape[0]
                 r = np.empty(m, rec)
                 r["pos"] = np.fromfile(fr, dtype="<i8", count=m)
