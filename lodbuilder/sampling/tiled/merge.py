@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from ...progress import ProgressCallback, report
-from .tasks import EVENT, HEAD, POINT, STREAM
 from . import workdir as W
+from .tasks import EVENT, HEAD, POINT, STREAM
 
 log = logging.getLogger(__name__)
 
