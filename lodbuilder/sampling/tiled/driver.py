@@ -34,8 +34,9 @@ COARSE_POINTS = 400_000
 #: head size: points of the decimated copy's order per point of the head
 HEAD_DECIMATION = 200
 HEAD_MIN = 256
-#: halo width in units of the coarse level's covering bound
-HALO_FACTOR = 1.5
+#: halo width in units of the coarse level's covering bound: the stored radii are exact wherever the
+#: covering radius is below the halo width (every level but the first few times the head's size)
+HALO_FACTOR = 0.3
 
 
 def _done(work: Path, phase: str) -> dict[str, Any] | None:
