@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from naive import nearest_earlier, prefix_covering_radii, prefix_spacings
+from scipy.spatial import cKDTree
 from surfaces import jittered_plane, sphere
 
 import lodbuilder
@@ -36,7 +37,7 @@ def _build(tmp_path, pts, tile_points, name="t", **kw):
 def test_tiled_guarantees_against_brute_force(tmp_path, surface):
     rng = np.random.default_rng(7)
     pts = wavy(2500, rng) if surface == "wavy" else sphere(2500, rng)
-    d, out = _build(tmp_path, pts, tile_points=300)
+    d, out = _build(tmp_path, pts, tile_points=300, seam_spacing=1)
     n = len(pts)
     tiled = d["build"]["tiled"]
     assert tiled["tiles"] >= 8, tiled
@@ -52,7 +53,7 @@ def test_tiled_guarantees_against_brute_force(tmp_path, surface):
     # the radii are tight: exact wherever the covering is below the halo width
     below = cr[1:n] < tiled["halo"]
     np.testing.assert_allclose(r[1:n][below], cr[1:n][below], rtol=1e-12)
-    # spacing of every level: at least half its radius (seam repair with seam_spacing 1)
+    # spacing of every level: at least half its radius (the seam repair at seam_spacing 1)
     sp = prefix_spacings(pts, d["order"])
     ratio = sp[2:n] / r[2:n]
     assert ratio.min() >= 0.5, (ratio.min(), int(np.argmin(ratio)) + 2)
@@ -143,3 +144,73 @@ def test_small_blocks_everywhere_give_the_same_archive(tmp_path, monkeypatch):
     small, _ = _build(tmp_path, pts, tile_points=400, name="small")
     for key in ("order", "radius", "parent", "points", "i"):
         np.testing.assert_array_equal(small[key], big[key])
+
+
+def _tile_of(points, boxes):
+    """Index of the tile box holding each point (the first one, on a shared face)."""
+    out = np.full(len(points), -1)
+    for t, b in enumerate(np.asarray(boxes)):
+        inside = np.all((points >= b[:3]) & (points <= b[3:]), axis=1) & (out < 0)
+        out[inside] = t
+    return out
+
+
+@pytest.mark.parametrize("alpha", [0.25, 1.0])
+def test_seam_spacing_across_tiles(tmp_path, alpha):
+    """Every point merged from a tile keeps alpha / (1 + alpha) of the radius of the level it
+    completes from every earlier point of another tile or of the coarse level (alpha times its
+    merge radius, which is at least radius / (1 + alpha)); without the repair, seams crowd."""
+    rng = np.random.default_rng(4)
+    pts = wavy(10_000, rng)
+    n = len(pts)
+    for a, name in ((alpha, "rep"), (0.0, "none")):
+        d, _ = _build(tmp_path, pts, tile_points=1200, seam_spacing=a, name=name)
+        tiled = d["build"]["tiled"]
+        assert tiled["seam_alpha"] == a
+        p = pts[d["order"]]
+        tile = _tile_of(p, tiled["tile_boxes"])
+        tile[: tiled["head_points"]] = -1  # the coarse level counts as another tile for everyone
+        bound = alpha / (1 + alpha)
+        tree = cKDTree(p)
+        j = np.arange(tiled["head_points"], n - 1)
+        close = tree.query_ball_point(p[j], bound * d["radius"][j + 1] * (1 - 1e-12))
+        crowded = [int(k) for k, near in zip(j, close, strict=True)
+                   if any(i < k and tile[i] != tile[k] for i in near)]
+        if name == "rep":
+            assert crowded == []
+        else:
+            assert crowded, "without the seam repair two tiles crowd somewhere"
+
+
+def test_progress_moves_through_the_phases(tmp_path):
+    rng = np.random.default_rng(2)
+    seen: dict[str, list[tuple[int, int]]] = {}
+
+    def progress(stage, done, total):
+        seen.setdefault(stage, []).append((done, total))
+
+    scan = Scan(points=wavy(3000, rng), name="p")
+    lodbuilder.build_archive(scan, tmp_path / "p.h5", _tile_points=500, progress=progress)
+    assert list(seen) == ["read", "split", "coarse", "tiles", "merge", "covering", "radii", "write"]
+    for stage, calls in seen.items():
+        done = [d for d, _ in calls]
+        assert done == sorted(done) and done[-1] == calls[-1][1], stage  # counts up to the total
+    assert seen["read"][-1] == (len(scan), len(scan))
+    n_tiles = seen["tiles"][-1][1]
+    assert n_tiles >= 4 and seen["covering"][-1] == (n_tiles, n_tiles)
+
+
+@pytest.mark.dask
+def test_tiles_on_a_dask_local_cluster(tmp_path):
+    """The tiles of one scan run on Dask workers (a LocalCluster: they share this file system)."""
+    rng = np.random.default_rng(6)
+    pts = wavy(4000, rng)
+    f = write_points(tmp_path / "d.ply", pts)
+    res = lodbuilder.build_archive(f, tmp_path / "d.h5", dask_local=2, _tile_points=800)
+    (st,) = res.scans
+    assert st.method == "tiled" and res.executor == "Dask LocalCluster (2 workers)"
+    ref = lodbuilder.build_archive(f, tmp_path / "p.h5", workers=2, _tile_points=800)
+    with lodbuilder.open_archive(tmp_path / "d.h5") as a, lodbuilder.open_archive(tmp_path / "p.h5") as b:
+        np.testing.assert_array_equal(a.scan("d").source_index[:], b.scan("d").source_index[:])
+        np.testing.assert_array_equal(a.scan("d").radius[:], b.scan("d").radius[:])
+    assert ref.scans[0].method == "tiled"

@@ -195,7 +195,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     """Build ``job`` with the tiled (out-of-core) path, its tiles on ``executor``; the parent runs
     this (it reads, merges and writes in bounded blocks) and returns the same summary as
     :func:`build_one`."""
-    from ..sampling.tiled import build_tiled
+    from ..sampling.tiled import SEAM_ALPHA, build_tiled
 
     p = job.params
     build = {
@@ -217,7 +217,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     res = build_tiled(
         tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
         max_memory=p.get("max_memory"), voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
-        alpha=p.get("seam_alpha", 1.0) if p.get("seam_alpha") is not None else 1.0,
+        alpha=p["seam_alpha"] if p.get("seam_alpha") is not None else SEAM_ALPHA,
         tile_points=p.get("_tile_points"), build=build,
         provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
         progress=progress,

@@ -78,13 +78,15 @@ def _part_ok(part: Path, name: str) -> bool:
         return False
 
 
-def _clean_parts(archive: Path, keep: set[Path]) -> None:
+def _clean_parts(archive: Path, keep: set[Path], running: set[Path]) -> None:
+    """Delete leftovers of earlier builds: parts not in ``keep``, work directories of parts not
+    ``running`` (a tiled build resumes from its work directory), temporaries of dead writers."""
     from ..archive.writer import remove_stale_temps
 
     d = parts_dir(archive)
     if not d.is_dir():
         return
-    work = {p.with_name(p.name[: -len(".h5")] + ".work") for p in keep}
+    work = {p.with_name(p.name[: -len(".h5")] + ".work") for p in running}
     for p in d.iterdir():
         if ".tmp-" in p.name and p.name.startswith("."):
             remove_stale_temps(d / p.name[1:].split(".tmp-")[0])
@@ -408,7 +410,7 @@ def build(
     for st in skipped + failed:
         emit(st)
     keep_parts = {Path(j.part) for j in jobs} | {p for _, p in recovered}
-    _clean_parts(archive, keep_parts)
+    _clean_parts(archive, keep_parts, {Path(j.part) for j in jobs})
     if recovered:
         merge_parts(archive, [(j.name, p) for j, p in recovered])
         for j, p in recovered:

@@ -235,7 +235,7 @@ def distribute(work: Path, n: int, tiles: list[Any], grid: Any, lookup: np.ndarr
             ukey, first = np.unique(key, return_index=True)
             dkeys.append(ukey)
             dg.append(first + g0)
-            report(progress, "tiles", g0 + m, n)
+            report(progress, "split", g0 + m, n)
     finally:
         tw.close()
     keys = np.concatenate(dkeys)
