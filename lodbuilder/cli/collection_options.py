@@ -61,8 +61,8 @@ def slice_all(args: argparse.Namespace) -> int:
     lvl = collection_level(args.archive, args.rho)
     from ..archive.reader import open_archive
 
-    with open_archive(args.archive) as arc:
-        metas = [arc.scan(n).format_metadata for n in lvl.scans]
+    with open_archive(args.archive) as arc:  # a joint scan's level lists its members, not itself
+        metas = [arc.scan(n).format_metadata for n in arc.scans]
     meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
     meta["comments"] = [f"scan_id {i} = {name}" for i, name in enumerate(lvl.scans)]
     write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)

@@ -23,7 +23,7 @@ from ...errors import BuildError, LodbuilderError
 from ...progress import ProgressCallback, report
 from . import plan as P
 from .tasks import coarse_task, cover_tile, order_tile
-from .workdir import Spill, distribute, point_blocks, read_json, spill, write_json
+from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spill, write_json
 
 log = logging.getLogger(__name__)
 
@@ -52,16 +52,19 @@ def _mark(work: Path, phase: str, doc: dict[str, Any]) -> dict[str, Any]:
     return doc
 
 
-def _run_tasks(ex: cf.Executor, what: str, name: str, calls: list[tuple[int, Any, tuple]],
-               n_total: int, progress: ProgressCallback, stage: str,
-               on_result: Any = None) -> list[dict[str, Any]]:
-    """Run ``(tile, fn, args)`` calls on the executor; a failure fails the scan, naming the tile.
-    ``on_result(result)`` is called as each task finishes (to record it for a resume)."""
+def _submit(ex: cf.Executor, calls: list[tuple[int, Any, tuple]]) -> dict[cf.Future, int]:
+    return {ex.submit(fn, *args): t for t, fn, args in calls}
+
+
+def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, progress: ProgressCallback,
+             stage: str, on_result: Any = None) -> list[dict[str, Any]]:
+    """Wait for submitted tasks; a failure fails the scan, naming the tile. ``on_result(result)``
+    is called as each task finishes (to record it for a resume)."""
+
     def where(t: int) -> str:
         return what if n_total == 1 and stage == "coarse" else f"{what} of tile {t + 1} of {n_total}"
 
-    futs = {ex.submit(fn, *args): t for t, fn, args in calls}
-    done = n_total - len(calls)
+    done = n_total - len(futs)
     report(progress, stage, done, n_total)
     out = []
     try:
@@ -87,6 +90,13 @@ def _run_tasks(ex: cf.Executor, what: str, name: str, calls: list[tuple[int, Any
             f.cancel()
         raise
     return out
+
+
+def _run_tasks(ex: cf.Executor, what: str, name: str, calls: list[tuple[int, Any, tuple]],
+               n_total: int, progress: ProgressCallback, stage: str,
+               on_result: Any = None) -> list[dict[str, Any]]:
+    """Run ``(tile, fn, args)`` calls on the executor and wait for them (see :func:`_collect`)."""
+    return _collect(_submit(ex, calls), what, name, n_total, progress, stage, on_result)
 
 
 def _spacing(sample: np.ndarray, n: int) -> float:
@@ -120,7 +130,7 @@ def build_tiled(
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
     from ..band import choose_parameters
     from .merge import assemble_radii, merge_tiles, write_ranks
-    from .write import write_scan
+    from .write import bucket_points, write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
     work.mkdir(parents=True, exist_ok=True)
@@ -147,17 +157,21 @@ def build_tiled(
         h, r = choose_parameters(sp.sample, voxel_size if voxel_size is not None else P_VOXEL(s),
                                  band_radius)
         grid = P.Grid.around(sp.lo, sp.hi)
-        hist = np.zeros(int(np.prod(grid.shape)), np.int64)
-        for _, pts in point_blocks(work, n):
-            hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
-        cap = tile_points or P.tile_capacity(budget, parallel)
-        tiles = P.split_tiles(hist, grid, cap)
         span = float(np.max(sp.hi - sp.lo)) or 1.0
         m_target = min(COARSE_POINTS, max(n // 8, 1))
         d_cell = max(s * math.sqrt(n / m_target), span / (1 << 20))
+        hist = np.zeros(int(np.prod(grid.shape)), np.int64)
+        dec = Decimator(grid.lo, d_cell)
+        for g0, pts in point_blocks(work, n):
+            hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
+            dec.add(g0, pts)
+        n_dec = dec.write(work / "decimated.i8")
+        cap = tile_points or P.tile_capacity(budget, parallel)
+        tiles = P.split_tiles(hist, grid, cap)
         pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
                                   "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
-                                  "tiles": [t.to_json() for t in tiles], "d_cell": d_cell, "span": span})
+                                  "tiles": [t.to_json() for t in tiles], "d_cell": d_cell, "span": span,
+                                  "n_decimated": n_dec})
     tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
     grid = P.Grid(np.asarray(pl["grid"]["lo"]), float(pl["grid"]["cell"]), tuple(pl["grid"]["shape"]))
     n_tiles = len(tiles)
@@ -165,28 +179,30 @@ def build_tiled(
     times["plan"] = time.perf_counter() - t0
     log.info("scan %r: %d points in %d tile(s) of at most %d points", name, n, n_tiles, pl["tile_cap"])
 
-    # 3. tiles: core and halo files, the decimated copy; then the coarse level
+    # 3. the coarse level (on a worker) while the parent writes the tiles' core and halo files
     t0 = time.perf_counter()
-    dist = _done(work, "distribute")
-    if dist is None:
-        # the halo must hold the coarse points a tile needs: estimate the coarse radius first
-        m_est = max(1, min(n, int(n * (pl["spacing"] / pl["d_cell"]) ** 2)))
-        head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
-        r_est = pl["d_cell"] * math.sqrt(m_est / head_est)
-        halo = HALO_FACTOR * (r_est + delta)
-        lookup = P.tile_lookup(tiles, grid)
-        n_core, n_halo, dec = distribute(work, n, tiles, grid, lookup, halo, pl["d_cell"], progress)
-        dist = _mark(work, "distribute", {"halo": halo, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(),
-                                          "n_decimated": int(dec.shape[0])})
-    halo = float(dist["halo"])
-    coarse = _done(work, "coarse")
     worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
+    coarse = _done(work, "coarse")
+    pending: dict[cf.Future, int] = {}
     if coarse is None:
-        head_size = max(HEAD_MIN, int(dist["n_decimated"]) // HEAD_DECIMATION)
-        (coarse,) = _run_tasks(executor, "the coarse level", name, [(0, coarse_task, (str(work), head_size,
-                                                                                       worker_budget))],
-                               1, progress, "coarse")
-        _mark(work, "coarse", coarse)
+        head_size = max(HEAD_MIN, int(pl["n_decimated"]) // HEAD_DECIMATION)
+        pending = _submit(executor, [(0, coarse_task, (str(work), head_size, worker_budget))])
+    try:
+        dist = _done(work, "distribute")
+        if dist is None:
+            # the halo: a fraction of the coarse level's covering radius, estimated from its size
+            m_est = max(1, int(pl["n_decimated"]))
+            head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
+            r_est = pl["d_cell"] * math.sqrt(m_est / head_est)
+            halo = HALO_FACTOR * (r_est + delta)
+            lookup = P.tile_lookup(tiles, grid)
+            n_core, n_halo = distribute(work, n, tiles, grid, lookup, halo, progress)
+            dist = _mark(work, "distribute", {"halo": halo, "n_core": n_core.tolist(), "n_halo": n_halo.tolist()})
+    finally:
+        if coarse is None:
+            (coarse,) = _collect(pending, "the coarse level", name, 1, progress, "coarse")
+            _mark(work, "coarse", coarse)
+    halo = float(dist["halo"])
     times["tiles"] = time.perf_counter() - t0
 
     # 4. order every tile (on the workers)
@@ -213,13 +229,19 @@ def build_tiled(
         _mark(work, "merge", merged)
     times["merge"] = time.perf_counter() - t0
 
-    # 6. exact covering radii of every tile (on the workers), combined
+    # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
+    #    the points in stored order (the first pass of the write)
     t0 = time.perf_counter()
     todo = [t for t in tiles if read_json(work / f"cover.{t.index}.json") is None]
     resumed["tiles_covered_before"] = n_tiles - len(todo)
     calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
-    _run_tasks(executor, "covering", name, calls, n_tiles, progress, "covering",
-               lambda res: write_json(work / f"cover.{res['tile']}.json", res))
+    futs = _submit(executor, calls)
+    try:
+        if _done(work, "buckets") is None:
+            _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
+    finally:
+        _collect(futs, "covering", name, n_tiles, progress, "covering",
+                 lambda res: write_json(work / f"cover.{res['tile']}.json", res))
     radii = _done(work, "radii")
     if radii is None:
         radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
@@ -236,7 +258,7 @@ def build_tiled(
             "tiles": n_tiles,
             "tile_points_max": int(pl["tile_cap"]),
             "halo": halo,
-            "coarse_points": int(dist["n_decimated"]),
+            "coarse_points": int(pl["n_decimated"]),
             "coarse_cell": float(pl["d_cell"]),
             "head_points": int(head.shape[0]),
             "head_radius": float(coarse["r_cut"]),
@@ -255,7 +277,7 @@ def build_tiled(
         "phase_seconds": {k: round(v, 3) for k, v in times.items()},
     }
     info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
-                      {"reader": sp.reader, **(provenance or {})}, progress)
+                      {"reader": sp.reader, **(provenance or {})}, progress, _done(work, "buckets"))
     times["write"] = time.perf_counter() - t0
     shutil.rmtree(work, ignore_errors=True)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,

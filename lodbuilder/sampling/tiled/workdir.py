@@ -203,15 +203,11 @@ class TileWriter:
 
 
 def distribute(work: Path, n: int, tiles: list[Any], grid: Any, lookup: np.ndarray, halo: float,
-               d_cell: float, progress: ProgressCallback = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Write the core and halo files of every tile and pick the decimated copy (the first point of
-    each cell of size ``d_cell``). Returns (core counts, halo counts, decimated input indices)."""
+               progress: ProgressCallback = None) -> tuple[np.ndarray, np.ndarray]:
+    """Write the core and halo files of every tile; returns (core counts, halo counts)."""
     tw = TileWriter(work, len(tiles))
     los = np.array([t.lo for t in tiles]) - halo
     his = np.array([t.hi for t in tiles]) + halo
-    dkeys: list[np.ndarray] = []
-    dg: list[np.ndarray] = []
-    lo0 = grid.lo
     try:
         for g0, pts in point_blocks(work, n):
             m = pts.shape[0]
@@ -229,21 +225,36 @@ def distribute(work: Path, n: int, tiles: list[Any], grid: Any, lookup: np.ndarr
                 inside &= own != t
                 if inside.any():
                     tw.add("halo", t, rec[inside])
-            # decimated copy: one point per cell (the first in input order)
-            c = np.floor((pts - lo0) / d_cell).astype(np.int64)
-            key = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
-            ukey, first = np.unique(key, return_index=True)
-            dkeys.append(ukey)
-            dg.append(first + g0)
             report(progress, "split", g0 + m, n)
     finally:
         tw.close()
-    keys = np.concatenate(dkeys)
-    gs = np.concatenate(dg)
-    order = np.lexsort((gs, keys))
-    keys, gs = keys[order], gs[order]
-    keep = np.ones(keys.shape[0], bool)
-    keep[1:] = keys[1:] != keys[:-1]
-    dec = np.sort(gs[keep])
-    dec.astype("<i8").tofile(work / "decimated.i8")
-    return tw.n_core, tw.n_halo, dec
+    return tw.n_core, tw.n_halo
+
+
+class Decimator:
+    """The decimated copy: one point per cubic cell of size ``cell`` (the first in input order),
+    collected block by block."""
+
+    def __init__(self, lo: np.ndarray, cell: float) -> None:
+        self.lo = np.asarray(lo, float)
+        self.cell = float(cell)
+        self.keys: list[np.ndarray] = []
+        self.gs: list[np.ndarray] = []
+
+    def add(self, g0: int, pts: np.ndarray) -> None:
+        c = np.floor((pts - self.lo) / self.cell).astype(np.int64)
+        key = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+        ukey, first = np.unique(key, return_index=True)
+        self.keys.append(ukey)
+        self.gs.append(first + g0)
+
+    def write(self, path: Path) -> int:
+        keys = np.concatenate(self.keys)
+        gs = np.concatenate(self.gs)
+        order = np.lexsort((gs, keys))
+        keys, gs = keys[order], gs[order]
+        keep = np.ones(keys.shape[0], bool)
+        keep[1:] = keys[1:] != keys[:-1]
+        dec = np.sort(gs[keep])
+        dec.astype("<i8").tofile(path)
+        return int(dec.shape[0])

@@ -37,19 +37,14 @@ def choose_encoding(encodings: set[str]) -> str:
     return "float64"
 
 
-def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
-               metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-               provenance: dict[str, Any], progress: ProgressCallback = None, block: int | None = None) -> Any:
-    """Permute the work directory's scan into stored order and write it as the part ``part``."""
-    from ...archive.scanwriter import ScanWriter
-
+def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+                  progress: ProgressCallback = None, block: int | None = None) -> dict[str, Any]:
+    """The first pass: every input block split by destination block into bucket files."""
     block = block or BLOCK
     rec = record_dtype(fields)
     names = list(fields)
     n_buckets = (n + block - 1) // block
-    buckets = [work / f"bucket.{b}.bin" for b in range(n_buckets)]
-    # pass 1: input order -> buckets by destination
-    files = [open(p, "wb") for p in buckets]
+    files = [open(work / f"bucket.{b}.bin", "wb") for b in range(n_buckets)]
     attr_iters = [blocks(attr_file(work, i), np.dtype(fields[k][0]), n * int(np.prod(fields[k][1] or (1,))),
                          block * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
     try:
@@ -69,17 +64,33 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
                 for b in range(n_buckets):
                     if cuts[b + 1] > cuts[b]:
                         files[b].write(r[order[cuts[b]:cuts[b + 1]]].tobytes())
-                report(progress, "write", (g0 + m) // 2, n)
+                report(progress, "permute", g0 + m, n)
     finally:
         for f in files:
             f.close()
         for it in attr_iters:
             with contextlib.suppress(Exception):
                 it.close()  # type: ignore[attr-defined]
-    # pass 2: each bucket in order, with its radii and parents, into the ScanWriter
+    return {"block": block, "buckets": n_buckets}
+
+
+def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+               metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
+               provenance: dict[str, Any], progress: ProgressCallback = None,
+               buckets: dict[str, Any] | None = None) -> Any:
+    """Write the bucketed points (:func:`bucket_points`, done first if ``buckets`` is None) in
+    stored order as the part ``part``, with their radii and parents."""
+    from ...archive.scanwriter import ScanWriter
+
+    if buckets is None:
+        buckets = bucket_points(work, n, fields, progress)
+    block = int(buckets["block"])
+    rec = record_dtype(fields)
+    names = list(fields)
     with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, \
             open(work / "radius.f8", "rb") as frad, open(work / "parent.i8", "rb") as fpar:
-        for b, path in enumerate(buckets):
+        for b in range(int(buckets["buckets"])):
+            path = work / f"bucket.{b}.bin"
             k0 = b * block
             k1 = min(n, k0 + block)
             r = np.fromfile(path, dtype=rec)
@@ -92,8 +103,7 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
             rad = np.fromfile(frad, dtype="<f8", count=k1 - k0)
             par = np.fromfile(fpar, dtype="<i8", count=k1 - k0)
             w.write(srt["xyz"], g, rad, par, attributes={k: srt[f"a{i}"] for i, k in enumerate(names)})
-            path.unlink()
-            report(progress, "write", n // 2 + k1 // 2, n)
+            report(progress, "write", k1, n)
         return w.finish(n_ordered=n, seeds=seeds, build=build, provenance=provenance)
 
 
