@@ -165,6 +165,46 @@ def quality(n: int, max_memory: str, workers: int, seam: float | None) -> dict:
             "levels": rows, "tiled": tiled}
 
 
+def markdown(doc: dict) -> str:
+    """The docs/benchmarks.md section of a run (or of several runs merged: a list of docs)."""
+    docs = doc if isinstance(doc, list) else [doc]
+    lines = ["## Tiled (out-of-core) builds: tools/bench_tiled.py", ""]
+    for d in docs:
+        lines.append(f"Run {d['date']} at commit {d['commit']} ({d['cpus']} cpus, load before "
+                     f"{', '.join(f'{x:.1f}' for x in d['load_before'])}): `{d['command']}`")
+        lines.append("")
+        if "survey" in d:
+            sv = d["survey"]
+            lines += [f"Survey `{Path(sv['file']).name}` ({sv['bytes'] / 1e6:.0f} MB LAZ):", "",
+                      "| executor | points | wall s | s per M points | peak RSS of the tree | tiles | phases (s) |",
+                      "|---|---:|---:|---:|---:|---:|---|"]
+            for r in sv["runs"]:
+                if r.get("rc"):
+                    lines.append(f"| {r['executor']} | failed | | | | | {r.get('stderr', '')[-120:]} |")
+                    continue
+                ph = ", ".join(f"{k} {v:.0f}" for k, v in r["phases"].items())
+                lines.append(f"| {r['executor']} | {r['n_points']:,} | {r['seconds']:.0f} | {r['seconds_per_million']:.2f} "
+                             f"| {r['peak_rss_tree_gb']:.2f} GB | {r['tiled'].get('tiles')} | {ph} |")
+            lines.append("")
+        if "reference" in d:
+            r = d["reference"]
+            lines += [f"In-memory reference, {r['input']}: {r['seconds']:.1f} s, {r['seconds_per_million']:.2f} s per "
+                      f"M points, peak RSS {r['peak_rss_tree_gb']:.2f} GB.", ""]
+        if "quality" in d:
+            q = d["quality"]
+            t = q["tiled"]
+            lines += [f"Quality, {q['input']} ({t.get('tiles')} tiles, seam_spacing {t.get('seam_alpha')}; tiled "
+                      f"{q['seconds_tiled']:.0f} s, in memory {q['seconds_in_memory']:.0f} s); spacing / radius over "
+                      f"every level {t.get('spacing_over_radius_min', float('nan')):.3f}:", "",
+                      "| size | covering tiled | covering in memory | ratio | spacing / radius (tiled) |",
+                      "|---:|---:|---:|---:|---:|"]
+            for r in q["levels"]:
+                lines.append(f"| {r['size']:,} ({r['fraction']:.2%}) | {r['cover_tiled']:.5f} | {r['cover_in_memory']:.5f} "
+                             f"| {r['cover_ratio']:.3f} | {r['spacing_over_radius_tiled']:.3f} |")
+            lines.append("")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--survey", type=Path)
@@ -177,7 +217,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quality-workers", type=int, default=2)
     p.add_argument("--seam-spacing", type=float)
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()))
+    p.add_argument("--markdown", type=Path, help="write the 'tiled' section of this file (docs/benchmarks.md)")
+    p.add_argument("--from-json", type=Path, nargs="+", help="render saved JSON runs into --markdown, no new run")
     args = p.parse_args(argv)
+    if args.from_json:
+        docs = [json.loads(f.read_text()) for f in args.from_json]
+        text = markdown(docs)
+        if args.markdown:
+            from benchdoc import write_section
+
+            write_section(args.markdown, "tiled", text)
+        print(text)
+        return 0
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     doc: dict = {"benchmark": "bench_tiled", "date": _dt.datetime.now().isoformat(timespec="seconds"),
@@ -196,6 +247,10 @@ def main(argv: list[str] | None = None) -> int:
         doc["quality"] = quality(args.quality, args.quality_memory, args.quality_workers, args.seam_spacing)
     doc["load_after"] = os.getloadavg()
     print(json.dumps(doc, indent=1))
+    if args.markdown:
+        from benchdoc import write_section
+
+        write_section(args.markdown, "tiled", markdown(doc))
     return 0
 
 

@@ -295,8 +295,9 @@ def P_VOXEL(spacing: float) -> float:
 #: what a tiled archive guarantees (also stored in its build record)
 GUARANTEES = (
     "every prefix's stored radius is an upper bound of the Euclidean distance from every point of the "
-    "scan to the prefix (exact covering radius per tile and halo, exact below the halo width; capped by "
-    "the coarse level's certified bound); radii never increase; every point is stored exactly once; "
-    "a point merged from one tile is at least seam_alpha times its merge key from every earlier point of "
-    "another tile, and points of one tile keep the tile's farthest point order"
+    "scan to the prefix (the exact covering radius of every tile's points by the prefix, computed from "
+    "the tile and its halo: exact wherever it is below the halo width; capped by the coarse level's "
+    "certified bound); radii never increase; every input point is stored exactly once; a point merged "
+    "from one tile is at least seam_alpha times its merge radius from every earlier point of another "
+    "tile or of the coarse level; the points of one tile keep the tile's FastFPS order"
 )
