@@ -92,6 +92,8 @@ def build_archive(
     max_memory: Any = None,
     joint: bool | str = False,
     seam_spacing: float | None = None,
+    crs: str | None = None,
+    crs_override: bool = False,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: Any = None,
@@ -123,6 +125,9 @@ def build_archive(
     posed, as one surface: one scan in the archive whose points keep ``scan_id`` and
     ``scan_point`` (their index in their own scan) attributes.
 
+    ``crs`` (EPSG:XXXX, WKT or a file holding WKT) gives every scan without one a coordinate
+    reference system; a scan whose file declares another is refused unless ``crs_override``.
+
     ``size``/``rho`` stop each ordering early; ``seeds`` (one scan only) are must-keep input
     indices. Feature sensitivity (see :func:`lodbuilder.sampling.adaptive.feature_build`):
     ``importance="curvature,colour"`` stores importance maps, ``adaptive=A`` adds the ``weighted``
@@ -140,5 +145,6 @@ def build_archive(
     return build(inputs, archive, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
                  dask_local=dask_local, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, size=size,
                  rho=rho, force=force, overwrite=overwrite, max_memory=max_memory, joint=joint,
-                 seam_spacing=seam_spacing, raise_on_failure=raise_on_failure, progress=progress,
+                 seam_spacing=seam_spacing, crs=crs, crs_override=crs_override,
+                 raise_on_failure=raise_on_failure, progress=progress,
                  on_status=on_status, _tile_points=_tile_points, **features)

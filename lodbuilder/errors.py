@@ -61,3 +61,13 @@ class MemoryBudgetError(LodbuilderError, MemoryError):
 
 class BuildError(LodbuilderError, RuntimeError):
     """One or more scans of a collection failed to build."""
+
+
+class EngineError(LodbuilderError, RuntimeError):
+    """An ordering failed the engine's own check of its result: a bug in lodbuilder, not in the
+    input. Please report it with the input that caused it."""
+
+
+class UnsafeArchiveError(ArchiveError):
+    """The archive points outside itself (external links, external raw storage, virtual
+    datasets): refused before anything is read."""

@@ -59,6 +59,226 @@ def naive_band_voxels(points: np.ndarray, h: float, r: float, origin: np.ndarray
     return out
 
 
+def naive_farthest_insert(
+    candidates: np.ndarray, existing: np.ndarray, stop: float
+) -> tuple[list[int], list[float]]:
+    """Farthest point insertion of candidates among existing points, one candidate at a time,
+    recomputing every distance from scratch: (picked indices, insertion distances)."""
+    cand = np.asarray(candidates, dtype=np.float64)
+    picked: list[int] = []
+    radii: list[float] = []
+    while True:
+        have = np.concatenate([np.asarray(existing, dtype=np.float64).reshape(-1, 3), cand[picked]])
+        best, best_d = -1, -1.0
+        for i in range(cand.shape[0]):
+            d = float(np.sqrt(((have - cand[i]) ** 2).sum(axis=1)).min()) if have.size else np.inf
+            if d > best_d:
+                best, best_d = i, d
+        if best < 0 or not best_d > stop:
+            return picked, radii
+        picked.append(best)
+        radii.append(best_d)
+
+
+def naive_euclidean_fps_cost(points: np.ndarray, seeds: list[int], cost: np.ndarray):
+    """Exact farthest point ordering where a pair's distance is scaled by the mean of the two
+    points' costs (lodbuilder's weighted Euclidean metric), in O(N^2) NumPy; ties to the lowest index."""
+    pts = np.asarray(points, dtype=np.float64)
+    c = np.asarray(cost, dtype=np.float64)
+    n = pts.shape[0]
+    d = np.full(n, np.inf)
+    lab = np.full(n, -1, dtype=np.int64)
+    done = np.zeros(n, dtype=bool)
+    order, radius, parent = [], [], []
+    for k in range(n):
+        if k < len(seeds):
+            q, rq, pq = seeds[k], np.inf, -1
+        else:
+            q = int(np.argmax(np.where(done, -1.0, d)))
+            rq, pq = float(d[q]), int(lab[q])
+        order.append(q)
+        radius.append(rq)
+        parent.append(pq)
+        done[q] = True
+        dq = np.linalg.norm(pts - pts[q], axis=1) * 0.5 * (c + c[q])
+        closer = (dq < d) & ~done
+        d[closer] = dq[closer]
+        lab[closer] = k
+    return np.array(order), np.array(radius), np.array(parent)
+
+
+# ---- a naive marcher: the kernel's single-source march, written plainly -----------------------
+
+SEED_RADIUS = 6.0
+
+
+def _naive_update(t1s, t2s, f):
+    """The upwind solution of |grad T| = f: second order on the axes where a second upwind value is
+    given (inf: first order), falling back to first order when that is not upwind."""
+    axes = sorted(zip(t1s, t2s, strict=True), key=lambda a: a[0])
+    if any(t2 < np.inf for _, t2 in axes):
+        sa = sb = sc = 0.0
+        sol = np.inf
+        ok = True
+        for t1, t2 in axes:
+            if t1 >= sol:
+                break
+            al, be = (2.25, (4.0 * t1 - t2) / 3.0) if t2 < np.inf else (1.0, t1)
+            na, nb, nc = sa + al, sb + al * be, sc + al * be * be
+            disc = nb * nb - na * (nc - f * f)
+            if disc < 0.0:
+                ok = False
+                break
+            t = (nb + np.sqrt(disc)) / na
+            if t < t1:
+                ok = False
+                break
+            sa, sb, sc, sol = na, nb, nc, t
+        if ok and sol < np.inf:
+            return sol
+    a, b, c = (t for t, _ in axes)
+    t = a + f
+    if t <= b:
+        return t
+    t = 0.5 * (a + b + np.sqrt(2.0 * f * f - (a - b) ** 2))
+    if t <= c:
+        return t
+    s, q = a + b + c, a * a + b * b + c * c
+    return (s + np.sqrt(max(s * s - 3.0 * (q - f * f), 0.0))) / 3.0
+
+
+def naive_band_march(band, source: int) -> np.ndarray:
+    """Point values (cell order, grid units) of one march from point ``source`` (cell order) in a
+    :class:`lodbuilder.sampling.band.Band` without thin parts, with the kernel's rules written out
+    plainly: exact values in the line-of-sight ball, frozen; second-order upwind updates where both
+    upwind voxels are accepted; a point's value min over its marchable corners of T + |p - v|, or a
+    Taylor step along the front at its nearest marchable corner (never below the straight
+    distance). A dictionary of coordinates instead of the neighbour table, heapq with lazy entries
+    instead of the indexed heap."""
+    import heapq
+
+    u = band.u
+    coord = [tuple(int(x) for x in c) for c in band.coord]
+    index = {c: i for i, c in enumerate(coord)}
+    vcost = band.vcost.astype(np.float64)
+    march = np.isfinite(vcost)
+    nv = len(coord)
+    cells = {}
+    for v in range(nv):
+        if band.cs[v + 1] > band.cs[v]:
+            cells[coord[v]] = range(band.cs[v], band.cs[v + 1])
+
+    def vox(c):
+        return index.get(c, -1)
+
+    s = u[source]
+    anchor = tuple(int(x) for x in np.floor(s))
+    corner_of = [tuple(anchor[a] + ((c >> a) & 1) for a in range(3)) for c in range(8)]
+    v0 = vox(tuple(anchor[a] + (1 if s[a] - anchor[a] >= 0.5 else 0) for a in range(3)))
+    if v0 < 0 or not march[v0]:
+        v0 = next(vox(c) for c in corner_of if vox(c) >= 0 and march[vox(c)])
+    c0 = np.array(coord[v0])
+    T = np.full(nv, np.inf, dtype=np.float32)
+    accepted = np.zeros(nv, dtype=bool)
+    dq = np.full(u.shape[0], np.inf)
+    # the ball: marchable voxels within SEED_RADIUS of the sample, connected to v0 inside it
+    ball, todo = {v0}, [v0]
+    while todo:
+        v = todo.pop()
+        for a in range(3):
+            for step in (-1, 1):
+                c = list(coord[v])
+                c[a] += step
+                w = vox(tuple(c))
+                if w >= 0 and march[w] and w not in ball and np.linalg.norm(s - np.array(c)) <= SEED_RADIUS:
+                    ball.add(w)
+                    todo.append(w)
+    seen = {}
+    heap = []
+    for v in sorted(ball, key=lambda v: np.linalg.norm(np.array(coord[v]) - c0)):
+        c = np.array(coord[v])
+        if v == v0:
+            ok = True
+        else:
+            d = np.linalg.norm(c - c0)
+            back = tuple(int(x) for x in np.floor(c - (c - c0) / d + 0.5))
+            ok = seen.get(vox(back), False)
+        seen[v] = ok
+        if not ok:
+            continue
+        T[v] = np.float32(np.linalg.norm(s - c) * 0.5 * (1.0 + vcost[v]))
+        accepted[v] = True
+        heapq.heappush(heap, (float(T[v]), v))
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    for p in cells.get((c[0] - dx, c[1] - dy, c[2] - dz), ()):
+                        dq[p] = min(dq[p], np.linalg.norm(u[p] - s))
+    done = np.zeros(nv, dtype=bool)
+    while heap:
+        t, v = heapq.heappop(heap)
+        if done[v] or t != float(T[v]):
+            continue
+        done[v] = True
+        accepted[v] = True
+        c = coord[v]
+        tv = float(T[v])
+        g = np.zeros(3)
+        for a in range(3):
+            lo = list(c)
+            hi = list(c)
+            lo[a] -= 1
+            hi[a] += 1
+            ta = float(T[vox(tuple(lo))]) if vox(tuple(lo)) >= 0 else np.inf
+            tb = float(T[vox(tuple(hi))]) if vox(tuple(hi)) >= 0 else np.inf
+            if ta < tb and ta < tv:
+                g[a] = tv - ta
+            elif tb < tv:
+                g[a] = tb - tv
+        gn = np.linalg.norm(g)
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    for p in cells.get((c[0] - dx, c[1] - dy, c[2] - dz), ()):
+                        e = u[p] - np.array(c)
+                        if gn > 0 and band.near[p] == dx + 2 * dy + 4 * dz:
+                            val = max(tv + float(g @ e) / gn, float(np.linalg.norm(u[p] - s)))
+                        else:
+                            val = tv + float(np.linalg.norm(e))
+                        dq[p] = min(dq[p], val)
+        for a in range(3):
+            for step in (-1, 1):
+                cm = list(c)
+                cm[a] += step
+                m = vox(tuple(cm))
+                if m < 0 or accepted[m] or not march[m]:
+                    continue
+                t1s, t2s = [], []
+                for b in range(3):
+                    side = []
+                    for sb in (-1, 1):
+                        cn = list(cm)
+                        cn[b] += sb
+                        n1 = vox(tuple(cn))
+                        side.append((float(T[n1]) if n1 >= 0 else np.inf, n1, sb))
+                    t1, best, nb_dir = side[0] if side[0][0] <= side[1][0] else side[1]
+                    t2 = np.inf
+                    if t1 < np.inf and accepted[best]:
+                        c2 = list(coord[best])
+                        c2[b] += nb_dir
+                        n2 = vox(tuple(c2))
+                        if n2 >= 0 and accepted[n2] and float(T[n2]) <= t1:
+                            t2 = float(T[n2])
+                    t1s.append(t1)
+                    t2s.append(t2)
+                tn = np.float32(_naive_update(t1s, t2s, vcost[m]))
+                if tn < T[m]:
+                    T[m] = tn
+                    heapq.heappush(heap, (float(tn), m))
+    dq[source] = 0.0
+    return dq
+
+
 def prefix_covering_radii(points: np.ndarray, order: np.ndarray) -> np.ndarray:
     """cr[k] = largest Euclidean distance from any point to the first k points of ``order``
     (cr[0] = inf), for every k, by inserting the points one at a time (O(N^2))."""

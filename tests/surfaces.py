@@ -40,3 +40,67 @@ def folded_sheet(spacing: float, gap: float, length: float = 1.0) -> tuple[np.nd
     pts = np.vstack([lower, upper, fold])
     sheet = np.r_[np.zeros(len(lower)), np.ones(len(upper)), np.full(len(fold), 2)].astype(int)
     return pts, sheet
+
+
+# ---- surfaces with analytic geodesic distances (the accuracy suite and tools/bench_accuracy.py) ----
+
+
+def plane_patch(half: float, spacing: float, rng: np.random.Generator, jitter: float = 0.3) -> np.ndarray:
+    """A jittered grid of the square [-half, half]^2 (z = 0) at the given spacing."""
+    t = np.arange(-half, half + 0.5 * spacing, spacing)
+    g = np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)
+    g = g + rng.uniform(-jitter, jitter, g.shape) * spacing
+    return np.c_[g, np.zeros(len(g))]
+
+
+def sphere_points(radius: float, spacing: float, rng: np.random.Generator) -> np.ndarray:
+    """About 4 pi R^2 / spacing^2 points spread evenly on a sphere of the given radius."""
+    n = max(int(round(4 * np.pi * radius**2 / spacing**2)), 4)
+    return sphere(n, rng, radius)
+
+
+def cylinder_points(
+    radius: float, length: float, spacing: float, rng: np.random.Generator, jitter: float = 0.3
+) -> np.ndarray:
+    """A jittered (angle, height) grid on the cylinder x^2 + y^2 = R^2, 0 <= z <= length."""
+    na = max(int(round(2 * np.pi * radius / spacing)), 8)
+    nz = max(int(round(length / spacing)), 2)
+    a, z = np.meshgrid(np.arange(na) + 0.5, np.arange(nz) + 0.5)
+    a = (a.ravel() + rng.uniform(-jitter, jitter, a.size)) * 2 * np.pi / na
+    z = (z.ravel() + rng.uniform(-jitter, jitter, z.size)) * length / nz
+    return np.c_[radius * np.cos(a), radius * np.sin(a), z]
+
+
+def geodesic_plane(points: np.ndarray, src: int) -> np.ndarray:
+    return np.linalg.norm(points - points[src], axis=1)
+
+
+def geodesic_sphere(points: np.ndarray, src: int, radius: float) -> np.ndarray:
+    c = points @ points[src] / (np.linalg.norm(points, axis=1) * np.linalg.norm(points[src]))
+    return radius * np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def geodesic_cylinder(points: np.ndarray, src: int, radius: float) -> np.ndarray:
+    """Geodesic on the cylinder of the z axis: unrolled, it is a straight line."""
+    a = np.arctan2(points[:, 1], points[:, 0])
+    da = np.abs(a - a[src])
+    da = np.minimum(da, 2 * np.pi - da)
+    return np.hypot(radius * da, points[:, 2] - points[src, 2])
+
+
+def unfold_folded(points: np.ndarray, gap: float, length: float) -> np.ndarray:
+    """(N, 2) coordinates of ``lodbuilder.archive.demo_surface.folded_sheet`` laid flat.
+
+    The sheet is developable and unfolds to the rectangle [0, 2 length + pi gap / 2] x [0, width],
+    which is convex, so the geodesic distance on the sheet is the Euclidean distance here."""
+    r = gap / 2
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    s = np.where(z < r, x, length + np.pi * r + (length - x))
+    mid = x > length
+    s[mid] = length + r * np.arctan2(x[mid] - length, r - z[mid])
+    return np.column_stack([s, y])
+
+
+def geodesic_folded(points: np.ndarray, src: int, gap: float, length: float) -> np.ndarray:
+    u = unfold_folded(points, gap, length)
+    return np.linalg.norm(u - u[src], axis=1)

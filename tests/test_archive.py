@@ -66,18 +66,40 @@ def test_round_trip_prefix_order_and_attributes(small):
     assert validate_archive(path) == []
 
 
-def test_every_dataset_is_chunked_and_checksummed(small):
+def test_every_dataset_is_checksummed(small):
+    """Per-point datasets are chunked with a fletcher32 checksum; small ones (index columns,
+    radius_index, seeds) are compact: their bytes sit in the object header, which HDF5 checksums."""
     with h5py.File(small[2], "r") as f:
-        seen = []
+        seen = {}
 
         def visit(name, obj):
             if isinstance(obj, h5py.Dataset):
-                seen.append(name)
-                assert obj.fletcher32, name
-                assert obj.chunks is not None, name
+                layout = obj.id.get_create_plist().get_layout()
+                seen[name] = layout
+                if layout == h5py.h5d.COMPACT:
+                    assert obj.nbytes <= L.COMPACT_MAX, name
+                else:
+                    assert layout == h5py.h5d.CHUNKED and obj.fletcher32, name
 
         f.visititems(visit)
-    assert "scans/wavy/points" in seen and "index/name" in seen
+    for d in ("points", "source_index", "radius", "parent"):
+        assert seen[f"scans/wavy/{d}"] == h5py.h5d.CHUNKED
+    assert seen["index/name"] == seen["scans/wavy/radius_index"] == h5py.h5d.COMPACT
+
+
+def test_damaged_compact_dataset_is_detected(small, tmp_path):
+    p = tmp_path / "c.h5"
+    p.write_bytes(small[2].read_bytes())
+    with h5py.File(p, "r") as f:
+        ri = f["scans/wavy/radius_index"][:]
+    data = bytearray(p.read_bytes())
+    i = bytes(data).find(ri[1:].tobytes())
+    assert i > 0
+    data[i + 3] ^= 0xFF
+    p.write_bytes(bytes(data))
+    with pytest.raises(Exception, match="checksum"):  # never a silently wrong rho level
+        with lodbuilder.open_archive(p) as arc:
+            arc.scan().level(rho=float(ri[1]) * 0.99)
 
 
 @pytest.mark.parametrize(
@@ -294,7 +316,7 @@ def test_reading_a_level_imports_nothing_heavy(small):
         "import sys, lodbuilder\n"
         f"with lodbuilder.open_archive({str(small[2])!r}) as a:\n"
         "    lev = a.scan().level(fraction=0.5)\n"
-        "print(lev.size, [m for m in ('numba', 'pyvista', 'dask', 'scipy') if m in sys.modules])\n"
+        "print(lev.size, [m for m in ('numba', 'pyvista', 'dask', 'scipy', 'fsspec', 's3fs', 'aiohttp') if m in sys.modules])\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

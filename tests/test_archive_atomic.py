@@ -315,3 +315,33 @@ def test_open_reader_keeps_a_consistent_view_while_a_scan_is_added(base_archive)
     with lodbuilder.open_archive(path) as new:
         assert new.scans == ["base", "ring"]
         np.testing.assert_array_equal(new.scan("base").level(size=300).points, before)
+
+
+CONCURRENT_CHILD = r"""
+import sys
+import lodbuilder
+from lodbuilder.archive.demo_surface import demo_scan
+from lodbuilder.archive.writer import ScanRecord, update_archive
+for j in range(4):
+    scan = demo_scan(800 + 100 * j, seed=j, name=f"{sys.argv[2]}{j}")
+    update_archive(sys.argv[1], [ScanRecord(scan, lodbuilder.euclidean_fps(scan.points))])
+"""
+
+
+def test_concurrent_writers_keep_every_scan(base_archive):
+    """Writers of one archive are serialised by its lock: two processes adding scans at the same
+    time both see all of theirs in the end, and leave nothing behind."""
+    path = base_archive
+    procs = [
+        subprocess.Popen([sys.executable, "-c", CONCURRENT_CHILD, str(path), prefix],
+                         stderr=subprocess.PIPE, text=True)
+        for prefix in ("a", "b")
+    ]
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    with lodbuilder.open_archive(path) as arc:
+        assert arc.scans == ["a0", "a1", "a2", "a3", "b0", "b1", "b2", "b3", "base"]
+        listed = {r.part for r in arc.rows}
+    assert validate_archive(path) == []
+    assert sorted(_files(path)) == sorted(["arch.h5"] + [f"arch.h5.scans/{p}" for p in listed])

@@ -24,7 +24,7 @@ from lodbuilder.archive.writer import (
     write_archive,
     write_record,
 )
-from lodbuilder.errors import ArchiveError, CorruptArchiveError, InputError
+from lodbuilder.errors import ArchiveError, CorruptArchiveError, InputError, UnsafeArchiveError
 from lodbuilder.io import Scan
 
 
@@ -369,6 +369,8 @@ def test_symlinks_non_archives_and_foreign_scans_are_refused(tmp_path):
     pdir.symlink_to(tmp_path / "elsewhere")
     assert _err(path, "one") == (f"archive {path}: {pdir} is not a directory (a symbolic link or a "
                                  "file); refusing to follow it")
+    with pytest.raises(CorruptArchiveError, match="is not a directory"):  # nor writes through it
+        update_archive(path, [record(100, "three", 3)])
 
 
 def test_moving_archives(tmp_path):
@@ -447,9 +449,30 @@ def test_rewriting_a_scan_with_broken_invariants_is_refused(tmp_path):
         del f["scans/s/radius"]
         L.create_dataset(f["scans/s"], "radius", r)
     before = path.read_bytes()
-    with pytest.raises(CorruptArchiveError, match=r"scan 's' breaks the archive's invariants \(radius of scan 's' increases at stored row 10"):
+    # the reader's checks refuse it as the scan is read for the rewrite
+    with pytest.raises(CorruptArchiveError, match=r"scan 's' dataset 'radius' increases at row 10 "):
         add_importance(path, "s", "z", np.zeros(2000))
     assert path.read_bytes() == before
+
+
+def test_rewriting_a_scan_with_external_data_is_refused(tmp_path):
+    """An attribute stored in another file (HDF5 external storage) is never copied in."""
+    path = tmp_path / "e.h5"
+    update_archive(path, [record(500, "s", 1)])
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(b"root:x:0:0:root:/root:/bin/bash\n" * 200)
+    with h5py.File(path, "r+") as f:
+        f["scans/s/attributes"].create_dataset("stolen", shape=(500,), dtype="u1",
+                                               external=[(str(secret), 0, 500)])
+    before = path.read_bytes()
+    with pytest.raises(UnsafeArchiveError) as err:
+        add_importance(path, "s", "z", np.zeros(500))
+    assert str(err.value) == (
+        f"archive {path} is refused: dataset '/scans/s/attributes/stolen' stores its data in "
+        f"external file '{secret}'; lodbuilder reads nothing outside an archive; rebuild it with "
+        "'lodbuilder build'"
+    )
+    assert path.read_bytes() == before and listing(path) == ["e.h5", "secret.bin"]
 
 
 # ------------------------------------------------------------------------- schema 1 archives

@@ -75,6 +75,9 @@ def test_slice_json_matches_the_text(arc, tmp_path, capsys):
         "bound": f"covering radius <= {lev.rho:.6g}",
         "region": {},
         "attributes": sorted(lev.attributes),
+        "crs": None,
+        "units": None,
+        "changes": [],
     }
     rc, js, _ = run(capsys, "slice", arc, "--rho", "0.05", "--box", 0, 0, -1, 0.3, 0.3, 1,
                     "--box-rho", "0.02", "-o", out, "--json")  # fmt: skip
@@ -279,3 +282,44 @@ def test_library_writers_do_not_create_directories(tmp_path):
     with pytest.raises(ScanFileError, match="does not exist; create it first"):
         plot_quality([rep], tmp_path / "new" / "q.png")
     assert list(tmp_path.iterdir()) == []
+
+
+# --- what a writer changed: reported once, the same way by slice and export -----------------
+
+
+def _changes(out):
+    return [
+        f"{out}: coordinates quantised to scale 0.0001 (error <= 5e-05) with offset 0, 0, -0.1",
+        f"{out}: blue: 8-bit values scaled x 257 into the 16-bit LAS field",
+        f"{out}: green: 8-bit values scaled x 257 into the 16-bit LAS field",
+        f"{out}: red: 8-bit values scaled x 257 into the 16-bit LAS field",
+    ]
+
+
+@pytest.mark.parametrize("cmd, name", [("slice", "c.las"), ("export", "c.copc.laz")])
+def test_changes_are_printed_once(arc, tmp_path, cmd, name):
+    """Before: slice printed every change twice, as 'changed:' on stdout and as a WARNING log
+    line on stderr (export once)."""
+    if cmd == "export":
+        pytest.importorskip("copclib")
+    out = tmp_path / name
+    proc = subprocess.run(
+        [sys.executable, "-m", "lodbuilder.cli.main", cmd, str(arc), "--size", "100", "-o", str(out)],
+        capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith(f"wrote 100 of 800 points of scan 'sheet' to {out} (")
+    assert [x for x in lines if "changed" in x] == [f"  changed: {c}" for c in _changes(out)]
+
+
+@pytest.mark.parametrize("cmd, name", [("slice", "j.las"), ("export", "j.copc.laz")])
+def test_json_lists_the_changes_even_when_quiet(arc, tmp_path, capsys, cmd, name):
+    """Before: 'slice -q --json' reported "changes": [] (the warnings were below the log level)."""
+    if cmd == "export":
+        pytest.importorskip("copclib")
+    out = tmp_path / name
+    for quiet in ([], ["-q"]):
+        rc, js, err = run(capsys, cmd, arc, "--size", "100", "-o", out, "--json", *quiet)
+        assert rc == 0 and err == ""
+        assert json.loads(js)["changes"] == _changes(out)

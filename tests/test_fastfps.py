@@ -379,3 +379,143 @@ def test_max_heap_with_decreasing_keys_pops_the_largest_first(keys, drops):
         n = maxheap_pop(hkey, heap, pos, n)
     # largest key first; ties by the smaller item
     assert out == sorted(((k, i) for i, k in ref.items()), key=lambda t: (-t[0], t[1]))
+
+
+# ---- post-conditions, debug heap checks, the Euclidean kernel with cost --------------------------
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda o, r, p: o.__setitem__(3, o[2]), r"an index appears twice"),
+        (lambda o, r, p: o.__setitem__(3, 10_000), r"an index out of range"),
+        (lambda o, r, p: r.__setitem__(5, r[4] * 2), r"radius increases at position 5"),
+        (lambda o, r, p: r.__setitem__(0, 1.0), r"radius\[0\] = 1.0 \(inf expected\)"),
+        (lambda o, r, p: p.__setitem__(7, 7), r"parent of position 7 is 7, not an earlier position"),
+        (lambda o, r, p: p.__setitem__(7, -2), r"parent of position 7 is -2"),
+    ],
+)
+def test_post_conditions_catch_a_broken_ordering(rng, change, message):
+    from lodbuilder.errors import EngineError
+    from lodbuilder.sampling.fastfps import check_ordering
+    from lodbuilder.sampling.ordering import Ordering
+
+    pts = rng.random((200, 3))
+    o = fastfps(pts)
+    assert check_ordering(o) is o
+    order, radius, parent = o.order.copy(), o.radius.copy(), o.parent.copy()
+    change(order, radius, parent)
+    broken = Ordering(order, radius, parent, o.voxel_size, o.band_radius, o.seeds, o.n_points)
+    with pytest.raises(EngineError, match=r"ordering of 200 points failed its check: " + message):
+        check_ordering(broken)
+
+
+def test_debug_switch_checks_heaps_and_changes_nothing(rng, monkeypatch):
+    import lodbuilder.sampling.fastfps as ff
+
+    pts = sphere(1500, rng)
+    plain = fastfps(pts)
+    monkeypatch.setattr(ff, "DEBUG", True)
+    checked = fastfps(pts)
+    assert np.array_equal(plain.order, checked.order)
+    assert np.array_equal(plain.radius, checked.radius)
+
+
+def test_heap_checks_notice_a_broken_heap():
+    from lodbuilder._kernels.heaps import (
+        check_maxheap,
+        check_minheap,
+        iheap_push,
+        maxheap_build,
+    )
+
+    hk = np.empty(10, np.float32)
+    hv = np.empty(10, np.int32)
+    hpos = np.full(10, -1, np.int32)
+    n = 0
+    for item, key in enumerate([5.0, 3.0, 8.0, 1.0, 9.0, 2.0]):
+        n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
+    assert check_minheap(hk, hv, hpos, n)
+    hk[0], hk[n - 1] = hk[n - 1], hk[0]  # keys out of order
+    assert not check_minheap(hk, hv, hpos, n)
+    hk[0], hk[n - 1] = hk[n - 1], hk[0]
+    hpos[hv[1]] = 0  # a stale position
+    assert not check_minheap(hk, hv, hpos, n)
+
+    keys = np.array([4.0, 7.0, 1.0, 9.0, 3.0, 6.0, 2.0])
+    heap = np.arange(7, dtype=np.int32)
+    pos = np.empty(7, np.int32)
+    maxheap_build(keys, heap, pos, 7)
+    assert check_maxheap(keys, heap, pos, 7)
+    keys[0] = -1.0  # the top is no longer the largest
+    assert not check_maxheap(keys, heap, pos, 7)
+
+
+@settings(max_examples=20, deadline=None)
+@given(n=st.integers(1, 120), seed=st.integers(0, 2**31 - 1), nseeds=st.integers(1, 3))
+def test_euclidean_kernel_with_cost_matches_the_naive_reference(n, seed, nseeds):
+    from naive import naive_euclidean_fps_cost
+
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 3))
+    cost = rng.uniform(0.1, 1.0, n)
+    seeds = list(rng.choice(n, min(nseeds, n), replace=False))
+    o = euclidean_fps(pts, seeds=seeds, cost=cost)
+    order, radius, parent = naive_euclidean_fps_cost(pts, [int(s) for s in seeds], cost)
+    assert np.array_equal(o.order, order)
+    np.testing.assert_allclose(o.radius, radius, rtol=1e-12)
+    assert np.array_equal(o.parent, parent)
+
+
+# ---- first-run compilation -------------------------------------------------------------------------
+
+
+def test_every_kernel_is_compiled_for_one_signature_only(rng):
+    # the warm-up compiles each kernel for one signature; an ordering (plain, weighted, thin) must
+    # not need any other, or a cold first run would compile twice
+    from lodbuilder._kernels.warm import _dispatcher, signatures
+    from lodbuilder.archive.demo_surface import folded_sheet
+
+    fastfps(sphere(3000, rng))
+    fastfps(sphere(3000, rng), cost=rng.uniform(0.2, 1.0, 3000))
+    fastfps(folded_sheet(20000, seed=1, gap=0.05)[0])
+    for group in ("band", "ordering"):
+        for name, sig in signatures(group).items():
+            assert _dispatcher(name).signatures == [sig], name
+
+
+@pytest.mark.slow
+def test_a_cold_cache_is_compiled_with_a_message(tmp_path):
+    # a fresh numba cache: the first ordering compiles (both groups) and says so through the
+    # progress callback; the second process finds everything cached
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = (
+        "import numpy as np, lodbuilder\n"
+        "stages = []\n"
+        "o = lodbuilder.fastfps(np.random.default_rng(0).random((500, 3)), "
+        "progress=lambda s, d, t: stages.append(s))\n"
+        "print(o.stats['compiled_kernels'], stages[0])\n"
+    )
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), PYTHONPATH=str(root))
+    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert first.stdout.strip() == "True compiling kernels, first run only"
+    second = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert second.stdout.strip() == "False band"
+
+
+def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):
+    from lodbuilder.cli.progressbar import ProgressBars
+
+    bars = ProgressBars()  # stderr is not a terminal under pytest: no bars
+    assert not bars.enabled
+    for stage in ("compiling kernels, first run only", "compiling kernels, first run only", "band"):
+        bars(stage, 0, 1)
+    assert capsys.readouterr().err == "compiling kernels, first run only ...\n"
+    quiet = ProgressBars(enabled=False)  # --no-progress: nothing at all
+    quiet("compiling kernels, first run only", 0, 1)
+    assert capsys.readouterr().err == ""

@@ -279,3 +279,27 @@ def test_viewer_bounds_window_size_and_point_scale_in_the_library():
     data = from_arrays(np.eye(3), [np.inf, 1.0, 0.5], [-1, 0, 0])
     with pytest.raises(InputError, match=r"^point_scale must be a finite number > 0, got -1$"):
         LevelViewer(data, off_screen=True, point_scale=-1)
+
+
+@pytest.mark.viewer
+def test_view_names_the_crs_and_units(shared_data, tmp_path):
+    """A scan with a CRS (autzen_trim.laz: NAD83(HARN) Lambert, feet): the viewer's corner, the
+    window title and the radius scale name it and its unit."""
+    pytest.importorskip("pyproj")
+    import lodbuilder
+    from lodbuilder.viewer.app import LevelViewer
+    from lodbuilder.viewer.source import load_view_data
+
+    arc = tmp_path / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", arc, name="autzen")
+    data = load_view_data(arc)
+    assert data.units == "foot" and data.crs.startswith("PROJCS[")
+    viewer = LevelViewer(data, size=2000, colour="radius", off_screen=True,
+                         window_size=(400, 200))
+    try:
+        label = "CRS NAD_1983_HARN_Lambert_Conformal_Conic, coordinates in foot"
+        assert viewer.crs_label == label
+        assert viewer._crs_text.GetText(1) == label  # the lower-right corner of the level pane
+        assert " ".join(viewer.scalar_bar.GetTitle().split()) == "insertion radius (foot, log)"
+    finally:
+        viewer.close()

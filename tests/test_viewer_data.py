@@ -60,6 +60,16 @@ def test_cells_are_the_voronoi_cells_of_the_level(rng, k):
     assert d.cells(k) is cells  # cached for the level shown
 
 
+def test_cells_follow_the_level_up_and_down(rng):
+    """The cells are updated from the previous level (points of a removed cell assigned again,
+    points nearer a new point moved): the same as from scratch at every step."""
+    d = ordered(rng, n=800)
+    box = d.selective(60, [0.0, 0.0, -1.0], [0.5, 0.5, 1.0], 4.0)
+    for shown in (5, 40, 41, 300, 120, 7, 799, 800, 1, box, 60, box, 500):
+        pos = np.arange(shown) if np.isscalar(shown) else shown
+        np.testing.assert_array_equal(d.cells(shown), naive_cells(d.points, pos))
+
+
 def test_cells_of_a_level_refined_in_a_box(rng):
     d = ordered(rng)
     pos = d.selective(40, [0.0, 0.0, -1.0], [0.4, 0.4, 1.0], 4.0)

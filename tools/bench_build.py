@@ -3,11 +3,22 @@
 Inputs: scan-like synthetic surfaces (a wavy sheet sampled on a jittered grid, like a range scan) of
 100k, 1M and 4M points, and the 10 Stanford bunny range scans merged with their poses from
 ../shared/data/bun.conf. For each: N, voxel size h, band radius r, band voxels, pops per voxel,
-wall time per phase, peak RSS of a fresh process; and, when fpsample is installed, the time of
-fpsample's full Euclidean ordering (bucket_fps_kdline_sampling asking for all N points) and the ratio.
+wall and CPU time per phase, peak RSS of a fresh process; and, when fpsample is installed, the time
+of fpsample's full Euclidean ordering (bucket_fps_kdline_sampling asking for all N points) and the
+ratio (both in the same process, one after the other).
+
+Optional sections:
+  --real [--baseline TREE]   every real scan in ../shared/data (one fresh process per scan and tree,
+                             alternating, best of --repeat): wall and CPU time; with a baseline
+                             source tree (e.g. an older checkout) the ratio new / baseline
+  --cli-rss                  peak RSS of ``lodbuilder build`` on a 1M-point sheet written as a PLY
+                             file (whole process), with the RSS before the engine and its own peak
+  --cold                     ``lodbuilder demo`` with an empty numba cache (first-run compile),
+                             then again with the filled cache
 
     python tools/bench_build.py                      # 100k, 1M, 4M, bunny
     python tools/bench_build.py --sizes 100000 --no-bunny --no-fpsample
+    python tools/bench_build.py --sizes --no-bunny --real --baseline /tmp/old_tree --cli-rss --cold
 """
 
 from __future__ import annotations
@@ -63,8 +74,10 @@ def run_one(spec: str, with_fpsample: bool) -> dict:
     n = len(pts)
     lodbuilder.fastfps(pts[:2000])  # compile / load the cached kernels outside the timing
     t0 = time.perf_counter()
+    c0 = time.process_time()
     o = lodbuilder.fastfps(pts)
     wall = time.perf_counter() - t0
+    cpu = time.process_time() - c0
     st = o.stats
     out = {
         "input": "bunny 10 range scans merged" if spec == "bunny" else f"range-scan sheet {spec}",
@@ -77,6 +90,7 @@ def run_one(spec: str, with_fpsample: bool) -> dict:
         "pops_per_voxel": st["pops_per_voxel"],
         "grid_points": st["grid_points"],
         "time_s": wall,
+        "cpu_s": cpu,
         "time_band_s": st["time_band"],
         "time_grid_s": st["time_grid"],
         "time_tail_s": st["time_tail"],
@@ -91,21 +105,142 @@ def run_one(spec: str, with_fpsample: bool) -> dict:
         else:
             fpsample.bucket_fps_kdline_sampling(pts[:2000], 2000, h=7)
             t0 = time.perf_counter()
+            c0 = time.process_time()
             fpsample.bucket_fps_kdline_sampling(pts, n, h=7)
             out["fpsample_time_s"] = time.perf_counter() - t0
+            out["fpsample_cpu_s"] = time.process_time() - c0
             out["ratio_to_fpsample"] = wall / out["fpsample_time_s"]
+            out["cpu_ratio_to_fpsample"] = cpu / out["fpsample_cpu_s"]
+    return out
+
+
+REAL_SUFFIXES = (".ply", ".las", ".laz", ".e57")
+
+_REAL_CODE = r"""
+import json, sys, time
+from lodbuilder.io import read_scan
+import lodbuilder
+pts = read_scan(sys.argv[1]).points
+lodbuilder.fastfps(pts[:500])
+t = time.perf_counter(); c = time.process_time()
+o = lodbuilder.fastfps(pts)
+print(json.dumps({"n": len(pts), "wall": time.perf_counter() - t, "cpu": time.process_time() - c,
+                  "thin_points": o.stats.get("thin_points", 0)}))
+"""
+
+
+def real_scans(baseline: str | None, repeat: int) -> list[dict]:
+    """Time every real scan in fresh processes, this tree and (if given) a baseline tree,
+    alternating; the best of ``repeat`` runs of each."""
+    trees = {"new": str(ROOT)} | ({"baseline": baseline} if baseline else {})
+    out = []
+    for path in sorted(p for p in SHARED.iterdir() if p.suffix.lower() in REAL_SUFFIXES):
+        row: dict = {"scan": path.name}
+        for _ in range(repeat):
+            for name, tree in trees.items():
+                env = dict(os.environ, PYTHONPATH=tree)
+                res = subprocess.run([sys.executable, "-c", _REAL_CODE, str(path)], env=env,
+                                     cwd=tree, capture_output=True, text=True)  # cwd: '' is on sys.path
+                if res.returncode:
+                    row[name] = {"failed": res.stderr.strip().splitlines()[-1][:200]}
+                    continue
+                r = json.loads(res.stdout.strip().splitlines()[-1])
+                best = row.get(name)
+                if best is None or r["wall"] < best["wall"]:
+                    row[name] = r
+        if baseline and "wall" in row.get("new", {}) and "wall" in row.get("baseline", {}):
+            row["wall_ratio"] = row["new"]["wall"] / row["baseline"]["wall"]
+            row["cpu_ratio"] = row["new"]["cpu"] / row["baseline"]["cpu"]
+        out.append(row)
+        print(json.dumps(row), file=sys.stderr)
+    return out
+
+
+_RSS_CODE = r"""
+import json, os, sys, threading, time
+def rss():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+marks = {}
+peak = [0]
+def sample():
+    while True:
+        peak[0] = max(peak[0], rss()); time.sleep(0.002)
+threading.Thread(target=sample, daemon=True).start()
+import lodbuilder.sampling.fastfps as F
+run = F._run_engine
+def wrapped(*a, **k):
+    marks["before_engine"] = rss(); peak[0] = rss()
+    r = run(*a, **k)
+    marks["engine_peak"] = peak[0]
+    return r
+F._run_engine = wrapped
+from lodbuilder.cli.main import main
+main(["build", sys.argv[1], "-o", sys.argv[2], "--no-progress"])
+import resource
+marks["process_peak"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps(marks))
+"""
+
+
+def cli_rss(n: int, tree: str) -> dict:
+    """Peak RSS of ``lodbuilder build`` (source ``tree``) on an n-point range-scan sheet written as
+    a PLY file."""
+    import tempfile
+
+    from lodbuilder.io import write_points
+
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "sheet.ply"
+        write_points(src, range_scan_sheet(n).astype(np.float32).astype(np.float64))
+        env = dict(os.environ, PYTHONPATH=tree)
+        warm = [sys.executable, "-c", "import numpy, lodbuilder; lodbuilder.fastfps(numpy.random.rand(500, 3))"]
+        subprocess.run(warm, env=env, cwd=tree, check=True)
+        res = subprocess.run([sys.executable, "-c", _RSS_CODE, str(src), str(Path(tmp) / "a.h5")],
+                             env=env, cwd=tree, capture_output=True, text=True, check=True)
+    m = json.loads(res.stdout.strip().splitlines()[-1])
+    n_pts = len(range_scan_sheet(n))
+    return {
+        "input": f"range-scan sheet {n} (PLY, float32 coordinates), synthetic",
+        "n": n_pts,
+        "process_peak_mib": m["process_peak"] / 2**20,
+        "process_peak_bytes_per_point": m["process_peak"] / n_pts,
+        "rss_before_engine_mib": m["before_engine"] / 2**20,
+        "engine_peak_mib": m["engine_peak"] / 2**20,
+        "engine_share_bytes_per_point": (m["engine_peak"] - m["before_engine"]) / n_pts,
+    }
+
+
+def cold_start(tree: str) -> dict:
+    """``lodbuilder demo`` (source ``tree``) with an empty numba cache, then with the cache it filled."""
+    import tempfile
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, PYTHONPATH=tree, NUMBA_CACHE_DIR=str(Path(tmp) / "numba"))
+        for label in ("cold_s", "warm_s"):
+            t = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", "demo", "-o",
+                            str(Path(tmp) / label), "--no-progress"], env=env, cwd=tree,
+                           check=True, capture_output=True)
+            out[label] = time.perf_counter() - t
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 4_000_000])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 4_000_000])  # none: skip
     ap.add_argument("--no-bunny", action="store_true")
     ap.add_argument("--no-fpsample", action="store_true")
     ap.add_argument(
         "--fpsample-max", type=int, default=1_100_000,
         help="time fpsample only up to this many points (its full 4M ordering takes many minutes)",
     )
+    ap.add_argument("--real", action="store_true", help="time every real scan in ../shared/data")
+    ap.add_argument("--baseline", help="with --real: a source tree to compare with (its PYTHONPATH)")
+    ap.add_argument("--repeat", type=int, default=2, help="with --real: best of this many runs")
+    ap.add_argument("--cli-rss", action="store_true", help="peak RSS of lodbuilder build on 1M points")
+    ap.add_argument("--cold", action="store_true", help="first-run compile time of lodbuilder demo")
     ap.add_argument("--markdown", help="also write the 'build' section of this markdown file")
     ap.add_argument("--from-json", help="render the markdown section from a saved JSON report")
     ap.add_argument("--one", help=argparse.SUPPRESS)
@@ -129,6 +264,11 @@ def main() -> None:
 
     report = {
         "benchmark": "bench_build",
+        "command": " ".join(["python", "tools/bench_build.py", *sys.argv[1:]]),
+        "git_commit": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                                     capture_output=True, text=True).stdout.strip(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "load_avg_at_start": os.getloadavg(),
         "machine": {
             "cpus": os.cpu_count(),
             "platform": platform.platform(),
@@ -139,6 +279,15 @@ def main() -> None:
         },
         "results": results,
     }
+    if args.real:
+        report["real_scans"] = real_scans(args.baseline, args.repeat)
+    trees = {"new": str(ROOT)} | ({"baseline": args.baseline} if args.baseline else {})
+    if args.cli_rss:
+        report["cli_build_rss"] = {name: cli_rss(1_000_000, tree) for name, tree in trees.items()}
+        print(json.dumps(report["cli_build_rss"]), file=sys.stderr)
+    if args.cold:
+        report["cold_start_demo"] = {name: cold_start(tree) for name, tree in trees.items()}
+        print(json.dumps(report["cold_start_demo"]), file=sys.stderr)
     by_n = {r["n"]: r for r in results if r["input"].startswith("range")}
     for n in by_n:
         for m in by_n:
@@ -174,6 +323,39 @@ def markdown(report: dict) -> str:
     for k, v in report.items():
         if k.startswith("time_ratio"):
             lines += ["", f"{k}: {v:.2f}"]
+    if report.get("real_scans"):
+        lines += [
+            "",
+            "Real scans in ../shared/data (fresh process per scan, best of the runs; *baseline* is "
+            "the source tree given to --baseline, timed alternately in the same run):",
+            "",
+            "| scan | N | thin points | wall s | CPU s | baseline wall s | wall ratio | CPU ratio |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for row in report["real_scans"]:
+            new, base = row.get("new", {}), row.get("baseline", {})
+            if "wall" not in new:
+                lines.append(f"| {row['scan']} | - | - | failed: {new.get('failed', '?')} | | | | |")
+                continue
+            lines.append(
+                f"| {row['scan']} | {new['n']:,} | {new.get('thin_points', 0):,} | {new['wall']:.2f} | "
+                f"{new['cpu']:.2f} | {base.get('wall', float('nan')):.2f} | "
+                f"{row.get('wall_ratio', float('nan')):.2f} | {row.get('cpu_ratio', float('nan')):.2f} |"
+            )
+    for name, r in (report.get("cli_build_rss") or {}).items():
+        lines += [
+            "",
+            f"`lodbuilder build` of a 1M-point sheet ({name}): process peak RSS "
+            f"{r['process_peak_mib']:.1f} MiB = {r['process_peak_bytes_per_point']:.0f} B/point; "
+            f"{r['rss_before_engine_mib']:.1f} MiB before the engine, engine peak "
+            f"{r['engine_peak_mib']:.1f} MiB (its own share {r['engine_share_bytes_per_point']:.0f} B/point).",
+        ]
+    for name, r in (report.get("cold_start_demo") or {}).items():
+        lines += [
+            "",
+            f"`lodbuilder demo` with an empty numba cache ({name}): {r['cold_s']:.1f} s; "
+            f"with the cache it filled: {r['warm_s']:.1f} s.",
+        ]
     return "\n".join(lines) + "\n"
 
 

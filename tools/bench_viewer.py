@@ -87,7 +87,10 @@ def markdown(out: dict) -> str:
         "",
         "*update in place* swaps the level mesh's point, vertex and colour arrays (zero-copy views "
         "of the stored prefix); *slider move* adds the render of the changed panel (the full-scan "
-        "panel is not redrawn unless its colours change, as in Voronoi mode).",
+        "panel is not redrawn unless its colours change, as in Voronoi mode). Voronoi mode colours "
+        "every point by its nearest shown point (exact cells of the displayed level), updated from "
+        "the previous level: at load ~6 on 2 cores the update took 340 ms from scratch and 51 ms "
+        "incrementally; the parent-chain approximation it replaced took 5 ms (load 2).",
     ]
     return "\n".join(lines)
 

@@ -1,9 +1,12 @@
-"""Sparse voxel grid: Morton keys, an open-addressing hash map, band construction, neighbour table.
+"""Sparse voxel grid: Morton keys, open-addressing hash maps, band construction, neighbour table.
 
 Voxel centres sit at integer grid coordinates (grid units: one unit = the voxel size h). A point with
-grid coordinates u lies in the cell whose lower corner is floor(u); the cell's 8 corners are voxel
-centres. Keys are 63-bit Morton codes of 21-bit coordinates, so sorting keys sorts voxels in Morton
-order.
+grid coordinates u lies in the cell whose lower corner (its *anchor*) is floor(u); the cell's 8
+corners are voxel centres. Keys are 63-bit Morton codes of 21-bit coordinates, so sorting keys sorts
+voxels in Morton order, and a cell of side 2^j holds one contiguous run of keys.
+
+Dtypes are fixed (one compiled specialisation per kernel): keys int64, voxel and point indices
+int32, coordinates float64, per-voxel values float32.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 
 MAX_COORD = (1 << 21) - 1  # per axis
 
@@ -24,7 +27,7 @@ _M5 = np.uint64(0x1249249249249249)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _split3(x):  # pragma: no cover - compiled
     x = np.uint64(x) & _M0
     x = (x | (x << np.uint64(32))) & _M1
@@ -35,7 +38,7 @@ def _split3(x):  # pragma: no cover - compiled
     return x
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _compact3(x):  # pragma: no cover - compiled
     x = x & _M5
     x = (x ^ (x >> np.uint64(2))) & _M4
@@ -46,161 +49,256 @@ def _compact3(x):  # pragma: no cover - compiled
     return np.int64(x)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def morton(x, y, z):  # pragma: no cover - compiled
     return np.int64(_split3(x) | (_split3(y) << np.uint64(1)) | (_split3(z) << np.uint64(2)))
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def unmorton(key):  # pragma: no cover - compiled
     k = np.uint64(key)
     return _compact3(k), _compact3(k >> np.uint64(1)), _compact3(k >> np.uint64(2))
 
 
-@nb.njit(**JIT)
-def morton_keys(cells):  # pragma: no cover - compiled
-    """Morton keys of (n, 3) non-negative int64 cell coordinates."""
-    n = cells.shape[0]
-    out = np.empty(n, np.int64)
-    for i in range(n):
-        out[i] = morton(cells[i, 0], cells[i, 1], cells[i, 2])
-    return out
-
-
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
 
 @nb.njit(**JIT)
-def hash_insert(hkeys, key):  # pragma: no cover - compiled
-    """Insert ``key``; return True if it was new. The table must have a free slot."""
-    mask = hkeys.shape[0] - 1
+def hash_find(hidx, keys, key):  # pragma: no cover - compiled
+    """Index i with keys[i] == key in the index hash ``hidx`` (int32 slots, -1 empty), or -1."""
+    mask = hidx.shape[0] - 1
     s = _slot(key, mask)
     while True:
-        k = hkeys[s]
-        if k == key:
-            return False
-        if k == -1:
-            hkeys[s] = key
-            return True
-        s = (s + 1) & mask
-
-
-@nb.njit(**JIT)
-def hash_find(hkeys, hvals, key):  # pragma: no cover - compiled
-    """Value stored for ``key``, or -1."""
-    mask = hkeys.shape[0] - 1
-    s = _slot(key, mask)
-    while True:
-        k = hkeys[s]
-        if k == key:
-            return hvals[s]
-        if k == -1:
+        i = hidx[s]
+        if i < 0:
             return -1
+        if keys[i] == key:
+            return i
         s = (s + 1) & mask
 
 
 @nb.njit(**JIT)
-def lookup(hkeys, hvals, x, y, z):  # pragma: no cover - compiled
-    """Voxel index at integer coordinates (x, y, z), or -1 (also for negative coordinates)."""
-    if x < 0 or y < 0 or z < 0:
-        return -1
-    return hash_find(hkeys, hvals, morton(x, y, z))
+def lower_bound(arr, key):  # pragma: no cover - compiled
+    """The first index i with arr[i] >= key in the sorted ``arr`` (written out: one compiled
+    version for every caller, where np.searchsorted compiles one per argument type)."""
+    lo = np.int64(0)
+    hi = np.int64(arr.shape[0])
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if arr[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @nb.njit(**JIT)
-def _rehash(hkeys, new_cap):  # pragma: no cover - compiled
-    out = np.full(new_cap, -1, np.int64)
-    for k in hkeys:
-        if k != -1:
-            hash_insert(out, k)
+def index_hash(keys):  # pragma: no cover - compiled
+    """An open-addressing hash of the distinct ``keys`` (int32 slots holding indices into keys)."""
+    n = keys.shape[0]
+    cap = 1024
+    while 2 * cap < 3 * n:  # load factor <= 2/3
+        cap *= 2
+    hidx = np.full(cap, -1, np.int32)
+    mask = cap - 1
+    for i in range(n):
+        s = _slot(keys[i], mask)
+        while hidx[s] != -1:
+            s = (s + 1) & mask
+        hidx[s] = i
+    return hidx
+
+
+@nb.njit(**JIT)
+def cell_order(points, origin, h):  # pragma: no cover - compiled
+    """Morton keys of the cells (anchors) of ``points`` (N, 3) on the grid (origin, h)."""
+    n = points.shape[0]
+    out = np.empty(n, np.int64)
+    for i in range(n):
+        x = int(np.floor((points[i, 0] - origin[0]) / h))
+        y = int(np.floor((points[i, 1] - origin[1]) / h))
+        z = int(np.floor((points[i, 2] - origin[2]) / h))
+        out[i] = morton(x, y, z)
     return out
 
 
 @nb.njit(**JIT)
-def band_keys(u, occ, ostart, rad, cap_limit):  # pragma: no cover - compiled
-    """Keys of all voxels whose centre lies within ``rad`` (grid units) of some point.
+def grid_coords(points, perm, origin, h):  # pragma: no cover - compiled
+    """u[i] = (points[perm[i]] - origin) / h, without a permuted copy of the points."""
+    n = perm.shape[0]
+    u = np.empty((n, 3), np.float64)
+    for i in range(n):
+        p = perm[i]
+        for a in range(3):
+            u[i, a] = (points[p, a] - origin[a]) / h
+    return u
 
-    ``u``: (M, 3) grid coordinates sorted by cell; ``occ``: (C, 3) occupied cell coordinates;
-    ``ostart``: (C + 1,) point ranges of the occupied cells. Returns (keys, count); count is -1 when
-    more than ``cap_limit`` voxels would be needed.
-    """
-    ext = int(np.floor(rad))
-    r2 = rad * rad
-    cap = 1024
-    while cap < 2 * (2 * rad + 1) * occ.shape[0]:  # about 2r/h + 1 voxels per occupied cell
-        cap *= 2
-    hkeys = np.full(cap, -1, np.int64)
-    count = 0
-    for c in range(occ.shape[0]):
-        cx, cy = occ[c, 0], occ[c, 1]
-        p0, p1 = ostart[c], ostart[c + 1]
-        for x in range(cx - ext, cx + ext + 2):
-            for y in range(cy - ext, cy + ext + 2):
-                # the z range where some point of the cell can be within rad
-                zlo = np.inf
-                zhi = -np.inf
-                for i in range(p0, p1):
-                    dx = u[i, 0] - x
-                    dy = u[i, 1] - y
-                    rest = r2 - dx * dx - dy * dy
-                    if rest >= 0.0:
-                        w = np.sqrt(rest)
-                        zlo = min(zlo, u[i, 2] - w)
-                        zhi = max(zhi, u[i, 2] + w)
-                if zlo > zhi:
-                    continue
-                for z in range(int(np.ceil(zlo)), int(np.floor(zhi)) + 1):
-                    inside = False
-                    for i in range(p0, p1):
-                        dx = u[i, 0] - x
-                        dy = u[i, 1] - y
-                        dz = u[i, 2] - z
-                        if dx * dx + dy * dy + dz * dz <= r2:
-                            inside = True
-                            break
-                    if not inside:
-                        continue
-                    if hash_insert(hkeys, morton(x, y, z)):
-                        count += 1
-                        if count > cap_limit:
-                            return hkeys, -1
-                        if 2 * count > hkeys.shape[0]:
-                            hkeys = _rehash(hkeys, 2 * hkeys.shape[0])
-    return hkeys, count
+
+FAR_SEP = 0.4
+OUTER_SEP = 0.2
+DEAD_ZONE = 0.5
+BLOCK_BITS = 4  # the band is built block by block, 16^3 voxels each, in Morton order
+BLOCK = 1 << BLOCK_BITS
 
 
 @nb.njit(**JIT)
-def build_index(keys):  # pragma: no cover - compiled
-    """Hash map key -> index for sorted ``keys``, their coordinates and the 6-neighbour table."""
+def band_voxels(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma: no cover - compiled
+    """The band: every voxel within its points' radius, plus the 8 corners of every occupied cell.
+
+    ``u``: (M, 3) grid coordinates sorted by cell (Morton order); ``irad2``/``rad``: (M,) inverse
+    squared and plain band radius of every point in grid units; ``ostart``: (C + 1,) point ranges of
+    the occupied cells. Every voxel v gets its ``foot``, the nearest point, and
+    q2 = |u_foot - v|^2 / rad_foot^2 (its squared *depth ratio*); v is in the band ("marchable")
+    when q2 <= 1. Corners of occupied cells outside the band are kept with q2 > 1 only so that every
+    cell's corners can be found.
+
+    Voxels are produced block by block (blocks of BLOCK^3 voxels, in Morton order): each block
+    gathers the contributions of the cells within reach into a dense local table and emits its voxels
+    in Morton order, so the keys come out sorted and no global hash is needed. ``bkey``/``bstart``:
+    the occupied blocks (sorted Morton keys of the block coordinates) and their cell ranges;
+    ``cand``: the sorted keys of every block within reach of one (see :func:`block_plan`). Returns
+    (keys, q2, foot, count); count is -1 when more than ``cap_limit`` voxels would be needed.
+    """
+    ncell = ostart.shape[0] - 1
+    nb3 = BLOCK * BLOCK * BLOCK
+    nblk = bkey.shape[0]
+    ccx = np.empty(ncell, np.int32)
+    ccy = np.empty(ncell, np.int32)
+    ccz = np.empty(ncell, np.int32)
+    for c in range(ncell):
+        p0 = ostart[c]
+        ccx[c] = int(np.floor(u[p0, 0]))
+        ccy[c] = int(np.floor(u[p0, 1]))
+        ccz[c] = int(np.floor(u[p0, 2]))
+    rmax = 0.0
+    for i in range(rad.shape[0]):
+        rmax = max(rmax, rad[i])
+    ext = int(np.floor(rmax))
+    reach_blocks = (ext + 1 + BLOCK - 1) // BLOCK
+    lut = np.empty(BLOCK, np.int64)  # local Morton spread of a coordinate
+    for t in range(BLOCK):
+        lut[t] = np.int64(_split3(t))
+    dq = np.empty(nb3, np.float64)  # squared distance to the nearest point, then q2
+    df = np.empty(nb3, np.int32)
+    dc = np.zeros(nb3, np.uint8)
+    cap = max(1024, 2 * u.shape[0])
+    keys = np.empty(cap, np.int64)
+    qo = np.empty(cap, np.float32)
+    fo = np.empty(cap, np.int32)
+    count = 0
+    for t in range(cand.shape[0]):
+        blk = cand[t]
+        bx, by, bz = unmorton(blk)
+        x0 = bx * BLOCK
+        y0 = by * BLOCK
+        z0 = bz * BLOCK
+        dq[:] = np.inf
+        dc[:] = 0
+        touched = False
+        for dx in range(-reach_blocks, reach_blocks + 1):
+            for dy in range(-reach_blocks, reach_blocks + 1):
+                for dz in range(-reach_blocks, reach_blocks + 1):
+                    nx, ny, nz = bx + dx, by + dy, bz + dz
+                    if nx < 0 or ny < 0 or nz < 0:
+                        continue
+                    nk = morton(nx, ny, nz)
+                    jb = lower_bound(bkey, nk)
+                    if jb >= nblk or bkey[jb] != nk:
+                        continue
+                    for c in range(bstart[jb], bstart[jb + 1]):
+                        cx, cy, cz = ccx[c], ccy[c], ccz[c]
+                        if cx + ext + 1 < x0 or cx - ext > x0 + BLOCK - 1:
+                            continue
+                        if cy + ext + 1 < y0 or cy - ext > y0 + BLOCK - 1:
+                            continue
+                        if cz + ext + 1 < z0 or cz - ext > z0 + BLOCK - 1:
+                            continue
+                        p0, p1 = ostart[c], ostart[c + 1]
+                        for x in range(max(cx - ext, x0), min(cx + ext + 1, x0 + BLOCK - 1) + 1):
+                            for y in range(max(cy - ext, y0), min(cy + ext + 1, y0 + BLOCK - 1) + 1):
+                                # the z range where some point of the cell is within its radius
+                                zlo = np.inf
+                                zhi = -np.inf
+                                for i in range(p0, p1):
+                                    ex = u[i, 0] - x
+                                    ey = u[i, 1] - y
+                                    rest = rad[i] * rad[i] - ex * ex - ey * ey
+                                    if rest >= 0.0:
+                                        w = np.sqrt(rest)
+                                        zlo = min(zlo, u[i, 2] - w)
+                                        zhi = max(zhi, u[i, 2] + w)
+                                za = int(np.ceil(zlo)) if zlo <= zhi else cz + 2
+                                zb = int(np.floor(zhi)) if zlo <= zhi else cz - 1
+                                corner = (x == cx or x == cx + 1) and (y == cy or y == cy + 1)
+                                if corner:
+                                    za = min(za, cz)
+                                    zb = max(zb, cz + 1)
+                                za = max(za, z0)
+                                zb = min(zb, z0 + BLOCK - 1)
+                                lxy = lut[x - x0] | (lut[y - y0] << 1)
+                                for z in range(za, zb + 1):
+                                    d2 = np.inf
+                                    foot = p0
+                                    li = lxy | (lut[z - z0] << 2)
+                                    for i in range(p0, p1):
+                                        ex = u[i, 0] - x
+                                        ey = u[i, 1] - y
+                                        ez = u[i, 2] - z
+                                        e2 = ex * ex + ey * ey + ez * ez
+                                        if e2 < d2:
+                                            d2 = e2
+                                            foot = i
+                                    if d2 < dq[li] or (d2 == dq[li] and foot < df[li]):
+                                        dq[li] = d2
+                                        df[li] = foot
+                                    if corner and (z == cz or z == cz + 1):
+                                        dc[li] = 1
+                                    touched = True
+        if not touched:
+            continue
+        base = blk << (3 * BLOCK_BITS)
+        for li in range(nb3):
+            if dq[li] == np.inf:
+                continue
+            f = df[li]
+            q2 = dq[li] * irad2[f]
+            dq[li] = q2
+            if q2 <= 1.0 or dc[li] == 1:
+                if count == cap:
+                    cap *= 2
+                    keys = np.concatenate((keys, np.empty(cap - count, np.int64)))
+                    qo = np.concatenate((qo, np.empty(cap - count, np.float32)))
+                    fo = np.concatenate((fo, np.empty(cap - count, np.int32)))
+                keys[count] = base | li
+                qo[count] = dq[li]
+                fo[count] = df[li]
+                count += 1
+                if count > cap_limit:
+                    return keys, qo, fo, -1
+    return keys[:count].copy(), qo[:count].copy(), fo[:count].copy(), count
+
+
+@nb.njit(**JIT)
+def neighbour_table(keys):  # pragma: no cover - compiled
+    """The 6-neighbour table (-x, +x, -y, +y, -z, +z; -1 = absent) of the sorted voxel ``keys``."""
     v = keys.shape[0]
-    cap = 1024
-    while cap < 2 * v:
-        cap *= 2
-    hkeys = np.full(cap, -1, np.int64)
-    hvals = np.full(cap, -1, np.int32)
-    mask = cap - 1
-    for i in range(v):
-        s = _slot(keys[i], mask)
-        while hkeys[s] != -1:
-            s = (s + 1) & mask
-        hkeys[s] = keys[i]
-        hvals[s] = i
-    coord = np.empty((v, 3), np.int32)
+    hidx = index_hash(keys)
     nbr = np.empty((v, 6), np.int32)
     for i in range(v):
         x, y, z = unmorton(keys[i])
-        coord[i, 0] = x
-        coord[i, 1] = y
-        coord[i, 2] = z
-        nbr[i, 0] = lookup(hkeys, hvals, x - 1, y, z)
-        nbr[i, 1] = lookup(hkeys, hvals, x + 1, y, z)
-        nbr[i, 2] = lookup(hkeys, hvals, x, y - 1, z)
-        nbr[i, 3] = lookup(hkeys, hvals, x, y + 1, z)
-        nbr[i, 4] = lookup(hkeys, hvals, x, y, z - 1)
-        nbr[i, 5] = lookup(hkeys, hvals, x, y, z + 1)
-    return hkeys, hvals, coord, nbr
+        for j in range(6):
+            ax = j >> 1
+            s = 2 * (j & 1) - 1
+            xx = x + s if ax == 0 else x
+            yy = y + s if ax == 1 else y
+            zz = z + s if ax == 2 else z
+            if xx < 0 or yy < 0 or zz < 0:
+                nbr[i, j] = -1
+            else:
+                nbr[i, j] = hash_find(hidx, keys, morton(xx, yy, zz))
+    return nbr
 
 
 @nb.njit(**JIT)
@@ -209,7 +307,8 @@ def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
 
     Points are sorted by the Morton key of their voxel cell, and the Morton key of the coarse cell
     of side 2^j is the fine key >> 3j, so every coarse cell is one contiguous range of points.
-    Returns a hash map ((coarse key << 3) | j) -> run, and the runs' start and end.
+    Returns the runs' keys ((coarse key << 3) | j) with an index hash over them, and the runs'
+    start and end.
     """
     nv = keys.shape[0]
     nrun = 0
@@ -222,14 +321,9 @@ def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
                 if ck != prev:
                     nrun += 1
                     prev = ck
-    rstart = np.empty(nrun, np.int64)
-    rend = np.empty(nrun, np.int64)
-    cap = 1024
-    while cap < 2 * nrun:
-        cap *= 2
-    hk = np.full(cap, -1, np.int64)
-    hv = np.full(cap, -1, np.int32)
-    mask = cap - 1
+    rkey = np.empty(nrun, np.int64)
+    rstart = np.empty(nrun, np.int32)
+    rend = np.empty(nrun, np.int32)
     r = -1
     for j in range(1, levels + 1):
         sh = np.uint64(3 * j)
@@ -241,11 +335,94 @@ def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
                     r += 1
                     rstart[r] = cs[v]
                     prev = ck
-                    key = (ck << 3) | j
-                    s = _slot(key, mask)
-                    while hk[s] != -1:
-                        s = (s + 1) & mask
-                    hk[s] = key
-                    hv[s] = r
+                    rkey[r] = (ck << 3) | j
                 rend[r] = cs[v + 1]
-    return hk, hv, rstart, rend
+    return rkey, index_hash(rkey), rstart, rend
+
+
+@nb.njit(**JIT)
+def kth_neighbour(u, ostart, cell_keys, queries, k):  # pragma: no cover - compiled
+    """For each query point (grid coordinates, cell size 1): the distance to its k-th nearest point
+    among ``u`` (sorted by cell; ``ostart`` the cells' ranges, ``cell_keys`` their Morton keys),
+    searched in the 27 cells around it, and whether that is certain (the k-th distance is at most 1,
+    so no nearer point can lie outside those cells). A query that is one of the points counts itself
+    at distance 0, as a k-d tree query would."""
+    hidx = index_hash(cell_keys)
+    nq = queries.shape[0]
+    out = np.empty(nq)
+    sure = np.empty(nq, np.bool_)
+    best = np.empty(k)
+    for q in range(nq):
+        qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
+        fx = int(np.floor(qx))
+        fy = int(np.floor(qy))
+        fz = int(np.floor(qz))
+        nk = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    x, y, z = fx + dx, fy + dy, fz + dz
+                    if x < 0 or y < 0 or z < 0:
+                        continue
+                    j = hash_find(hidx, cell_keys, morton(x, y, z))
+                    if j < 0:
+                        continue
+                    for i in range(ostart[j], ostart[j + 1]):
+                        d2 = (u[i, 0] - qx) ** 2 + (u[i, 1] - qy) ** 2 + (u[i, 2] - qz) ** 2
+                        if nk < k:
+                            t = nk
+                            nk += 1
+                        elif d2 < best[k - 1]:
+                            t = k - 1
+                        else:
+                            continue
+                        while t > 0 and best[t - 1] > d2:
+                            best[t] = best[t - 1]
+                            t -= 1
+                        best[t] = d2
+        if nk < k:
+            out[q] = np.inf
+            sure[q] = False
+        else:
+            out[q] = np.sqrt(best[k - 1])
+            sure[q] = out[q] <= 1.0
+    return out, sure
+
+
+@nb.njit(**JIT)
+def one_sided_cost(keys, foot, u, nin, psep, irad2, side_tol, beta):  # pragma: no cover - compiled
+    """The cost of moving through each voxel of a band whose thin parts are one-sided (inf: not
+    marchable). A voxel whose foot (nearest point) has a normal ``nin`` toward another sheet at
+    distance ``psep`` (grid units; zero normal: not thin) is marchable only within the foot's
+    radius (``irad2``: inverse squared) and on the foot's side away from that sheet: near the
+    surface it may lie up to min(side_tol, 0.4 (psep - 1)) on the gap side (so that the band's
+    nearest layer stays close to the surface); farther than FAR_SEP x psep from the foot it must
+    lie more than OUTER_SEP x psep on the outer side (so that a slightly misjudged normal cannot let
+    a voxel near the middle of a gap in). Decided by the nearest point alone, so that a neighbour's
+    misjudged normal near a fold cannot fill the gap. There, the depth is counted from DEAD_ZONE of
+    the nearest layer's possible offset (1 - tol), so the depth cost adds little bias."""
+    nv = keys.shape[0]
+    out = np.empty(nv, np.float32)
+    for v in range(nv):
+        f = foot[v]
+        x, y, z = unmorton(keys[v])
+        ex = x - u[f, 0]
+        ey = y - u[f, 1]
+        ez = z - u[f, 2]
+        d2 = ex * ex + ey * ey + ez * ez
+        q2 = d2 * irad2[f]
+        if q2 > 1.0:
+            out[v] = np.inf
+            continue
+        nx, ny, nz = nin[f, 0], nin[f, 1], nin[f, 2]
+        if nx != 0.0 or ny != 0.0 or nz != 0.0:
+            side = ex * nx + ey * ny + ez * nz
+            far = d2 > (FAR_SEP * psep[f]) ** 2
+            tol = min(side_tol, 0.4 * (psep[f] - 1.0))
+            if side > (-OUTER_SEP * psep[f] if far else tol):
+                out[v] = np.inf
+                continue
+            dd = max(np.sqrt(d2) - DEAD_ZONE * (1.0 - tol), 0.0)
+            q2 = dd * dd * irad2[f]
+        out[v] = np.float32(1.0 + beta * q2)
+    return out

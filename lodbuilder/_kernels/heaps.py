@@ -1,11 +1,14 @@
 """Binary heaps on plain arrays: an indexed min-heap of (float32 key, int32 item) for the marching
 fronts, and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for
 candidates.
-Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap)."""
+Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap).
+``check_minheap``/``check_maxheap`` verify the invariants in O(n); the engine calls them after every
+operation when its debug switch is on (like scikit-fmm's self test)."""
 
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 
 from . import JIT
 
@@ -47,13 +50,13 @@ def maxheap_build(hkey, heap, pos, n):  # pragma: no cover - compiled
     for i in range(n):
         pos[heap[i]] = i
     for i in range((n - 2) // 4, -1, -1):
-        maxheap_sift_down(hkey, heap, pos, i, n)
+        maxheap_sift_down(hkey, heap, pos, np.int64(i), n)
 
 
 @nb.njit(**JIT)
 def maxheap_decrease(hkey, heap, pos, item, key, n):  # pragma: no cover - compiled
     """Lower the key of ``item`` (if it is still in the heap) to ``key``."""
-    i = pos[item]
+    i = np.int64(pos[item])
     if i >= 0:
         hkey[i] = key
         maxheap_sift_down(hkey, heap, pos, i, n)
@@ -68,7 +71,7 @@ def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
         hkey[0] = hkey[n]
         heap[0] = heap[n]
         pos[heap[0]] = 0
-        maxheap_sift_down(hkey, heap, pos, 0, n)
+        maxheap_sift_down(hkey, heap, pos, np.int64(0), n)
     return n
 
 
@@ -125,3 +128,25 @@ def iheap_pop(hk, hv, hpos, n):  # pragma: no cover - compiled
         hv[i] = lv
         hpos[lv] = i
     return key, item, n
+
+
+@nb.njit(**JIT)
+def check_minheap(hk, hv, hpos, n):  # pragma: no cover - compiled
+    """True when the first n entries form a binary min-heap whose positions ``hpos`` agree."""
+    for i in range(n):
+        if hpos[hv[i]] != i:
+            return False
+        if i > 0 and hk[(i - 1) >> 1] > hk[i]:
+            return False
+    return True
+
+
+@nb.njit(**JIT)
+def check_maxheap(hkey, heap, pos, n):  # pragma: no cover - compiled
+    """True when the first n entries form a 4-ary max-heap whose positions ``pos`` agree."""
+    for i in range(n):
+        if pos[heap[i]] != i:
+            return False
+        if i > 0 and hkey[(i - 1) >> 2] < hkey[i]:
+            return False
+    return True

@@ -2,21 +2,33 @@
 
 All lengths are in grid units (one unit = the voxel size h). Points are indexed in cell order
 (sorted by the Morton key of their cell); ``cs[v]:cs[v + 1]`` are the points whose cell's lower corner
-is voxel v.
+(anchor) is voxel v. Voxels with ``vcost == inf`` are corners kept only to find cells: the front never
+enters them.
 
 Per-voxel state: arrival time ``T`` (float32, only ever lowered), the rank of the sample that set it
 (``vlab``) and a round stamp: ``stamp == 2 * rnd`` means "trial in round rnd", ``2 * rnd + 1``
 "accepted in round rnd", anything smaller "known from an earlier round". Nothing is re-initialised per
-sample: a new sample marches only where it lowers ``T``. The upwind update reads its neighbours'
-current values whatever their state: a trial value is an upper bound of its final value and the
-update is monotone in its inputs, so this only lowers a voxel earlier; the voxel is updated again
-when that neighbour is accepted, and skipping the state test halves the memory traffic per pop.
-Fronts are kept in an indexed min-heap (decrease-key, no stale entries).
+sample: a new sample marches only where it lowers ``T``.
 
-Per-point state: ``dq`` = min over the 8 corner voxels v of the point's cell of T[v] + |u - v| * cost
-(an upper bound of the band distance to the samples), ``lq`` = the sample that achieved it, and the
-candidate value ``val``: for the uniform metric the certified upper bound of the Euclidean distance to
-the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric the same with the
+Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
+ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
+voxel sees the sample when the voxel one step back toward the sample's nearest voxel does (taken in
+order of distance from it): the straight segment then stays in the band, so no exact distance is given across a gap
+or through the inside of a fold. These voxels are frozen (marked accepted at once, so the march
+never lowers them) and popped in order like the others.
+
+Update: second-order upwind (one-sided differences (3 T - 4 T1 + T2) / 2 along an axis) where the
+first and the next voxel upwind were both accepted in this round (so they hold this sample's field)
+and the second is not above the first; first order otherwise and wherever the second-order solution
+is not upwind (smaller than a value it used). A first-order
+update may read a neighbour's trial value (an upper bound of its final value; the update is monotone
+in its inputs, so this only lowers a voxel earlier, and it is updated again when that neighbour is
+accepted); a second-order one only reads a known second neighbour.
+
+Per-point state: ``dq`` = the smallest T[v] + |u - v| * cost over the marchable corners v of the
+point's cell (or the exact distance near a sample), ``lq`` = the sample that achieved it, and the
+candidate value ``val``: for the uniform metric the certified upper bound of the Euclidean distance
+to the samples, min over time of max(dq, |u - u[sample lq]|); for a weighted metric the same with the
 straight distance scaled by the mean cost of its two ends (so a constant cost only scales radii).
 """
 
@@ -25,9 +37,11 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
-from .grid import hash_find, lookup, morton
+from . import INLINE, JIT
+from .grid import hash_find, morton, unmorton
 from .heaps import (
+    check_maxheap,
+    check_minheap,
     iheap_pop,
     iheap_push,
     maxheap_build,
@@ -38,86 +52,294 @@ from .heaps import (
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
+HALF = 8  # the ball's voxels lie within HALF of the sample's nearest voxel along each axis
+CUBE = 2 * HALF + 1
+NBUCKET = 8 * (HALF + 1) * 2  # eighths of a voxel up to beyond the ball's reach
+
+
+@nb.njit(**INLINE)
+def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
+    """Upwind solution of |grad T| = f from the three axes' (first, second) upwind values.
+
+    ``x1`` is the smaller neighbour value along an axis (inf: none), ``x2`` the next value beyond it
+    when the second-order difference may be used (inf: first order on that axis).
+    """
+    if b1 < a1:
+        a1, a2, b1, b2 = b1, b2, a1, a2
+    if c1 < b1:
+        b1, b2, c1, c2 = c1, c2, b1, b2
+        if b1 < a1:
+            a1, a2, b1, b2 = b1, b2, a1, a2
+    second = a2 < np.inf or b2 < np.inf or c2 < np.inf
+    ff = f * f
+    if second:
+        sa = 0.0
+        sb = 0.0
+        sc = 0.0
+        sol = np.inf
+        ok = True
+        for k in range(3):
+            t1 = a1 if k == 0 else (b1 if k == 1 else c1)
+            t2 = a2 if k == 0 else (b2 if k == 1 else c2)
+            if t1 >= sol:  # this axis is not upwind of the solution
+                break
+            if t2 < np.inf:
+                al = 2.25
+                be = (4.0 * t1 - t2) / 3.0
+            else:
+                al = 1.0
+                be = t1
+            na = sa + al
+            nb_ = sb + al * be
+            nc = sc + al * be * be
+            disc = nb_ * nb_ - na * (nc - ff)
+            if disc < 0.0:
+                ok = False
+                break
+            t = (nb_ + np.sqrt(disc)) / na
+            if t < t1:
+                ok = False
+                break
+            sa, sb, sc, sol = na, nb_, nc, t
+        if ok and sol < np.inf:
+            return sol
+    # first order
+    t = a1 + f
+    if t <= b1:
+        return t
+    t = 0.5 * (a1 + b1 + np.sqrt(2.0 * ff - (a1 - b1) * (a1 - b1)))
+    if t <= c1:
+        return t
+    s = a1 + b1 + c1
+    q = a1 * a1 + b1 * b1 + c1 * c1
+    return (s + np.sqrt(max(s * s - 3.0 * (q - ff), 0.0))) / 3.0
 
 
 @nb.njit(**JIT)
-def _solve(a, b, c, f):  # pragma: no cover - compiled
-    """First-order upwind update |grad T| = f from the three axis minima."""
-    if b < a:
-        a, b = b, a
-    if c < b:
-        b, c = c, b
-        if b < a:
-            a, b = b, a
-    t = a + f
-    if t <= b:
-        return t
-    t = 0.5 * (a + b + np.sqrt(2.0 * f * f - (a - b) * (a - b)))
-    if t <= c:
-        return t
-    s = a + b + c
-    q = a * a + b * b + c * c
-    return (s + np.sqrt(max(s * s - 3.0 * (q - f * f), 0.0))) / 3.0
+def anchor_of(cs, i):  # pragma: no cover - compiled
+    """The voxel whose point range holds point i (cs is non-decreasing): the last v with
+    cs[v] <= i. Written out rather than np.searchsorted: one compiled version for every caller."""
+    lo = np.int64(0)
+    hi = np.int64(cs.shape[0] - 1)
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if cs[mid] <= i:
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _norm(dx, dy, dz):  # pragma: no cover - compiled
     # helpers take scalars only: an array argument in a hot loop costs atomic reference counting
     return np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
+@nb.njit(**INLINE)
+def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: no cover - compiled
+    """Whether the chord (cx, cy, cz) of length c between two points of thin parts (separations
+    sa, sb; unit normals a, b, zero when unknown) is a fair surface distance."""
+    if c >= sa or c >= sb:
+        return False
+    lim = slope * c
+    return abs(cx * ax + cy * ay + cz * az) <= lim and abs(cx * bx + cy * by + cz * bz) <= lim
+
+
 @nb.njit(**JIT)
 def march_round(
-    src, lab, rnd, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-    T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos,
+    src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+    T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd, hk, hv, hpos, debug,
 ):  # pragma: no cover - compiled
-    """Propagate the front of sources ``src`` (point indices) labelled ``lab`` where it lowers T.
+    """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
-    Updates dq/lq of points near lowered voxels and appends their cells to ``dirty`` (returns the new
-    count, the heap arrays and the number of pops).
+    Updates dq/lq of points near lowered voxels and appends their cells to ``dirty``; returns the
+    new count of dirty cells and the number of pops. Where sheets come close (``pnrm``: per point
+    normals, zero elsewhere; a single row when there is no thin part; ``foot``: each voxel's nearest
+    point), a straight distance is exact only along a chord within ``slope`` of both ends' sheets
+    (around a tight fold the chord is much shorter than the surface).
     """
-    trial = 2 * rnd
-    acc = 2 * rnd + 1
-    n = 0
-    queue = np.empty(SEED_QUEUE, np.int32)
+    trial = np.int32(2 * rnd)
+    acc = np.int32(2 * rnd + 1)
+    thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
+    n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
+    qv = np.empty(SEED_QUEUE, np.int32)
+    qd = np.empty(SEED_QUEUE, np.float64)
+    cube = np.full(CUBE * CUBE * CUBE, -1, np.int32)  # ball-local index of the voxels near v0
+    vis = np.zeros(SEED_QUEUE, np.bool_)
+    srt = np.empty(SEED_QUEUE, np.int32)
+    nbk = np.zeros(NBUCKET, np.int64)
     for s in range(src.shape[0]):
-        # exact distances to the band voxels within SEED_RADIUS of the source that are connected
-        # to its cell inside that ball (a breadth-first walk over the neighbour table)
         i = src[s]
-        mark = np.int32(rnd * src.shape[0] + s)
-        v0 = lookup(hkeys, hvals, int(np.floor(u[i, 0])), int(np.floor(u[i, 1])), int(np.floor(u[i, 2])))
-        seen[v0] = mark
-        queue[0] = v0
+        ci = 1.0
+        if weighted:
+            ci = pcost[i]
+        # the sample's nearest voxel: a corner of its cell (all corners are voxels)
+        a = anchor_of(cs, np.int64(i))
+        v0 = a
+        for ax in range(3):
+            if u[i, ax] - np.floor(u[i, ax]) >= 0.5 and v0 >= 0:
+                v0 = nbr[v0, 2 * ax + 1]
+        if v0 < 0 or vcost[v0] == np.inf:
+            v0 = -1  # not marchable: take the first marchable corner
+            for c in range(8):
+                w = a
+                for ax in range(3):
+                    if (c >> ax) & 1 and w >= 0:
+                        w = nbr[w, 2 * ax + 1]
+                if w >= 0 and vcost[w] < np.inf:
+                    v0 = w
+                    break
+        if v0 < 0:
+            continue
+        x0, y0, z0 = unmorton(keys[v0])
+        # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
+        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken)
+        cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
+        qv[0] = v0
         qn = 1
         qi = 0
         while qi < qn:
-            v = queue[qi]
+            v = qv[qi]
             qi += 1
-            d = _norm(u[i, 0] - coord[v, 0], u[i, 1] - coord[v, 1], u[i, 2] - coord[v, 2])
-            t = np.float32(d * vcost[v])
-            if t < T[v]:
-                T[v] = t
-                vlab[v] = lab
-                stamp[v] = trial
-                n = iheap_push(hk, hv, hpos, n, t, v)
             for j in range(6):
                 w = nbr[v, j]
-                if w < 0 or seen[w] == mark or qn == SEED_QUEUE:
+                if w < 0 or qn == SEED_QUEUE or vcost[w] == np.inf:
                     continue
-                seen[w] = mark
-                if _norm(u[i, 0] - coord[w, 0], u[i, 1] - coord[w, 1], u[i, 2] - coord[w, 2]) <= SEED_RADIUS:
-                    queue[qn] = w
+                x, y, z = unmorton(keys[w])
+                cw = (x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))
+                if cube[cw] >= 0:
+                    continue
+                if _norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) <= SEED_RADIUS:
+                    cube[cw] = qn
+                    qv[qn] = w
                     qn += 1
+        # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
+        # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
+        # then stays in the band (no exact distance across a gap or through the inside of a fold)
+        # (a counting sort in steps of 1/8 voxel: the step back is at least 0.13 nearer, so it
+        # always falls in an earlier bucket)
+        nbk[:] = 0
+        for q in range(qn):
+            x, y, z = unmorton(keys[qv[q]])
+            qd[q] = _norm(np.float64(x - x0), np.float64(y - y0), np.float64(z - z0))
+            nbk[int(qd[q] * 8.0) + 1] += 1
+        for b in range(1, NBUCKET):
+            nbk[b] += nbk[b - 1]
+        for q in range(qn):
+            b = int(qd[q] * 8.0)
+            srt[nbk[b]] = q
+            nbk[b] += 1
+        for t in range(qn):
+            q = srt[t]
+            v = qv[q]
+            x, y, z = unmorton(keys[v])
+            if v == v0:
+                ok = True
+            else:
+                # one step back toward v0 (the sample itself may lie just outside a one-sided band)
+                d = qd[q]
+                bx = int(np.floor(x - (x - x0) / d + 0.5))
+                by = int(np.floor(y - (y - y0) / d + 0.5))
+                bz = int(np.floor(z - (z - z0) / d + 0.5))
+                pq = cube[(bx - x0 + HALF) + CUBE * ((by - y0 + HALF) + CUBE * (bz - z0 + HALF))]
+                ok = pq >= 0 and pq != q and vis[pq]
+            if ok and thin:
+                f = foot[v]
+                ok = _chord_ok(
+                    u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
+                    _norm(u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2]), np.float32(np.inf),
+                    np.float32(np.inf),
+                    pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+                )
+            vis[q] = ok
+            if not ok:
+                continue
+            t_ = np.float32(_norm(u[i, 0] - x, u[i, 1] - y, u[i, 2] - z) * 0.5 * (ci + vcost[v]))
+            if t_ < T[v]:
+                T[v] = t_
+                vlab[v] = lab + s
+                stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
+                n = iheap_push(hk, hv, hpos, n, t_, v)
+            # the points of the 8 cells that have v as a corner get their exact distance
+            wx = nbr[v, 0]
+            for a_ in range(2):
+                wa = v if a_ == 0 else wx
+                if wa < 0:
+                    continue
+                for b_ in range(2):
+                    wb = wa if b_ == 0 else nbr[wa, 2]
+                    if wb < 0:
+                        continue
+                    for c_ in range(2):
+                        w = wb if c_ == 0 else nbr[wb, 4]
+                        if w < 0:
+                            continue
+                        cell = cellof[w]
+                        if cell < 0:
+                            continue
+                        for p in range(cs[w], cs[w + 1]):
+                            if rank[p] >= 0:
+                                continue
+                            e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                            if thin and not _chord_ok(
+                                u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
+                                np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
+                                pnrm[i, 2], slope,
+                            ):
+                                continue
+                            if weighted:
+                                e *= 0.5 * (pcost[p] + ci)
+                            if e < dq[p]:
+                                dq[p] = e
+                                lq[p] = lab + s
+                                if dstamp[cell] != rnd:
+                                    dstamp[cell] = rnd
+                                    dirty[nd] = cell
+                                    nd += 1
+        for q in range(qn):
+            x, y, z = unmorton(keys[qv[q]])
+            cube[(x - x0 + HALF) + CUBE * ((y - y0 + HALF) + CUBE * (z - z0 + HALF))] = -1
+            vis[q] = False
     pops = 0
     while n > 0:
+        if debug and not check_minheap(hk, hv, hpos, n):
+            return nd, -1  # the front heap is broken (no raise: it would compile exception code)
         t, v, n = iheap_pop(hk, hv, hpos, n)
         stamp[v] = acc
         pops += 1
         tv = np.float64(T[v])
         lv = vlab[v]
-        cx = np.float64(coord[v, 0])
-        cy = np.float64(coord[v, 1])
-        cz = np.float64(coord[v, 2])
+        cx, cy, cz = unmorton(keys[v])
+        # the front's direction at v (upwind differences; upwind neighbours are known)
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
+        for ax in range(3):
+            na = nbr[v, 2 * ax]
+            nb_ = nbr[v, 2 * ax + 1]
+            ta = np.float64(T[na]) if na >= 0 else np.inf
+            tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
+            g = 0.0
+            if ta < tb and ta < tv:
+                g = tv - ta
+            elif tb < tv:
+                g = tb - tv
+            if ax == 0:
+                gx = g
+            elif ax == 1:
+                gy = g
+            else:
+                gz = g
+        gn = _norm(gx, gy, gz)
+        sv = src[lv - lab]  # the sample whose front this is (only this round's voxels pop)
+        csv = 1.0
+        if weighted:
+            csv = pcost[sv]
+        if gn > 0.0:
+            gx /= gn
+            gy /= gn
+            gz /= gn
         # points of the 8 cells that have v as a corner
         wx = nbr[v, 0]
         for a in range(2):
@@ -135,10 +357,31 @@ def march_round(
                     cell = cellof[w]
                     if cell < 0:
                         continue
+                    corner = a + 2 * b + 4 * c  # v is this corner of the cell
                     for p in range(cs[w], cs[w + 1]):
                         if rank[p] >= 0:
                             continue
-                        dd = tv + _norm(u[p, 0] - cx, u[p, 1] - cy, u[p, 2] - cz) * pcost[p]
+                        ex = u[p, 0] - cx
+                        ey = u[p, 1] - cy
+                        ez = u[p, 2] - cz
+                        if gn > 0.0 and near[p] == corner:
+                            # v is the point's nearest marchable voxel: first-order Taylor along
+                            # the front, never below the straight distance to the sample (a lower
+                            # bound)
+                            dd = gx * ex + gy * ey + gz * ez
+                            if weighted:
+                                dd *= pcost[p]
+                            dd += tv
+                            e = _norm(u[p, 0] - u[sv, 0], u[p, 1] - u[sv, 1], u[p, 2] - u[sv, 2])
+                            if weighted:
+                                e *= min(pcost[p], csv)
+                            if e > dd:
+                                dd = e
+                        else:
+                            dd = _norm(ex, ey, ez)  # an upper bound
+                            if weighted:
+                                dd *= pcost[p]
+                            dd += tv
                         if dd < dq[p]:
                             dq[p] = dd
                             lq[p] = lv
@@ -151,30 +394,120 @@ def march_round(
             m = nbr[v, j]
             if m < 0 or stamp[m] == acc:
                 continue
-            # the smaller neighbour value along each axis (written out: passing T to a helper
-            # here costs two atomic reference-count operations per call)
-            am = np.inf
+            fm = vcost[m]
+            if fm == np.inf:
+                continue
+            # per axis: the smaller neighbour value, and the next one beyond it when it may
+            # serve a second-order difference (written out: passing T to a helper here costs
+            # atomic reference counting)
             for ax in range(3):
-                va = np.inf
                 na = nbr[m, 2 * ax]
-                if na >= 0:
-                    va = T[na]
                 nb_ = nbr[m, 2 * ax + 1]
-                if nb_ >= 0 and T[nb_] < va:
-                    va = T[nb_]
-                if ax == 0:
-                    am = va
-                elif ax == 1:
-                    bm = va
+                ta = np.inf
+                tb = np.inf
+                if na >= 0:
+                    ta = np.float64(T[na])
+                if nb_ >= 0:
+                    tb = np.float64(T[nb_])
+                if ta <= tb:
+                    n1 = na
+                    t1 = ta
+                    dj = 2 * ax
                 else:
-                    cm = va
-            tn = np.float32(_solve(np.float64(am), np.float64(bm), np.float64(cm), vcost[m]))
+                    n1 = nb_
+                    t1 = tb
+                    dj = 2 * ax + 1
+                t2 = np.inf
+                if t1 < np.inf and stamp[n1] == acc:
+                    n2 = nbr[n1, dj]
+                    if n2 >= 0 and stamp[n2] == acc:
+                        tt = np.float64(T[n2])
+                        if tt <= t1:
+                            t2 = tt
+                if ax == 0:
+                    a1 = t1
+                    a2 = t2
+                elif ax == 1:
+                    b1 = t1
+                    b2 = t2
+                else:
+                    c1 = t1
+                    c2 = t2
+            tn = np.float32(_update(a1, a2, b1, b2, c1, c2, np.float64(fm)))
             if tn < T[m]:
                 T[m] = tn
                 vlab[m] = lv
                 stamp[m] = trial
                 n = iheap_push(hk, hv, hpos, n, tn, m)
     return nd, pops
+
+
+@nb.njit(**JIT)
+def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
+    """Per point: which corner (x + 2 y + 4 z offsets) of its cell is the nearest marchable voxel
+    (255: none)."""
+    m = u.shape[0]
+    out = np.full(m, 255, np.uint8)
+    nv = cs.shape[0] - 1
+    for a in range(nv):
+        if cs[a + 1] == cs[a]:
+            continue
+        for p in range(cs[a], cs[a + 1]):
+            fx = np.floor(u[p, 0])
+            fy = np.floor(u[p, 1])
+            fz = np.floor(u[p, 2])
+            best = np.inf
+            for c in range(8):
+                w = a
+                for ax in range(3):
+                    if (c >> ax) & 1 and w >= 0:
+                        w = nbr[w, 2 * ax + 1]
+                if w < 0 or vcost[w] == np.inf:
+                    continue
+                d = _norm(u[p, 0] - fx - (c & 1), u[p, 1] - fy - ((c >> 1) & 1), u[p, 2] - fz - (c >> 2))
+                if d < best:
+                    best = d
+                    out[p] = c
+    return out
+
+
+@nb.njit(**JIT)
+def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
+    """How many connected pieces of the band (marchable voxels, 6-neighbours) hold points; a point
+    without a marchable corner counts as a piece of its own."""
+    nv = nbr.shape[0]
+    lab = np.full(nv, -1, np.int32)
+    queue = np.empty(nv, np.int32)
+    ncomp = 0
+    # label the pieces that hold a point's nearest marchable corner
+    count = 0
+    for a in range(nv):
+        for p in range(cs[a], cs[a + 1]):
+            c = near[p]
+            if c == 255:
+                count += 1
+                continue
+            w = a
+            for ax in range(3):
+                if (c >> ax) & 1:
+                    w = nbr[w, 2 * ax + 1]
+            if lab[w] >= 0:
+                continue
+            lab[w] = ncomp
+            queue[0] = w
+            qn = 1
+            qi = 0
+            while qi < qn:
+                v = queue[qi]
+                qi += 1
+                for j in range(6):
+                    x = nbr[v, j]
+                    if x >= 0 and lab[x] < 0 and vcost[x] < np.inf:
+                        lab[x] = ncomp
+                        queue[qn] = x
+                        qn += 1
+            ncomp += 1
+    return count + ncomp
 
 
 @nb.njit(**JIT)
@@ -188,62 +521,62 @@ def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
-def _cell_tables(cs):  # pragma: no cover - compiled
-    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1), point -> cell."""
+def cell_tables(cs):  # pragma: no cover - compiled
+    """The voxels that hold points (cells): cell -> voxel, voxel -> cell (-1)."""
     nv = cs.shape[0] - 1
     ncell = 0
     for v in range(nv):
         if cs[v + 1] > cs[v]:
             ncell += 1
-    cellv = np.empty(ncell, np.int64)
+    cellv = np.empty(ncell, np.int32)
     cellof = np.full(nv, -1, np.int32)
-    pcell = np.empty(cs[nv], np.int64)
     c = 0
     for v in range(nv):
         if cs[v + 1] > cs[v]:
             cellof[v] = c
             cellv[c] = v
-            for p in range(cs[v], cs[v + 1]):
-                pcell[p] = c
             c += 1
-    return cellv, cellof, pcell
+    return cellv, cellof
 
 
 @nb.njit(**JIT)
 def grid_phase(
-    u, coord, nbr, cs, hkeys, hvals, vcost, pcost, weighted, seeds, k_max, rho_stop, r_stop,
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
+    r_stop, debug,
 ):  # pragma: no cover - compiled
     """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
 
     Returns (order, radius, parent, k, val, lq, rank, pops) where ``k`` points are ordered; the other
-    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop.
+    points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop. With
+    ``debug`` the heaps are checked after every operation; pops is -1 (front heap) or -2
+    (candidate heap) when one is found broken.
     """
     m = u.shape[0]
-    nv = coord.shape[0]
+    nv = keys.shape[0]
     T = np.full(nv, np.inf, np.float32)
-    vlab = np.full(nv, -1, np.int64)
+    vlab = np.full(nv, -1, np.int32)
     stamp = np.zeros(nv, np.int32)
-    cellv, cellof, pcell = _cell_tables(cs)
+    cellv, cellof = cell_tables(cs)
     ncell = cellv.shape[0]
     dq = np.full(m, np.inf)
     val = np.full(m, np.inf)
-    lq = np.full(m, -1, np.int64)
-    rank = np.full(m, -1, np.int64)
-    dstamp = np.full(ncell, -1, np.int64)
-    dirty = np.empty(ncell, np.int64)
+    lq = np.full(m, -1, np.int32)
+    rank = np.full(m, -1, np.int32)
+    dstamp = np.full(ncell, -1, np.int32)
+    dirty = np.empty(ncell, np.int32)
     ckey = np.full(ncell, np.inf)  # heap order
-    heap = np.arange(ncell).astype(np.int64)
-    hpos = np.empty(ncell, np.int64)
+    heap = np.arange(ncell).astype(np.int32)
+    hpos = np.empty(ncell, np.int32)
     hn = ncell
     maxheap_build(ckey, heap, hpos, hn)
     hk = np.empty(nv, np.float32)
     hv = np.empty(nv, np.int32)
     hpos_v = np.full(nv, -1, np.int32)
-    seen = np.full(nv, -1, np.int32)
-    order = np.empty(k_max, np.int64)
+    order = np.empty(k_max, np.int32)
     radius = np.empty(k_max, np.float64)
-    parent = np.empty(k_max, np.int64)
-    src = np.empty(1, np.int64)
+    parent = np.empty(k_max, np.int32)
+    src = np.empty(1, np.int32)
+    nd0 = np.int64(0)
     pops = 0
     k = 0
     nseed = seeds.shape[0]
@@ -252,6 +585,7 @@ def grid_phase(
             i = seeds[k]
             rad = np.inf
             par = -1
+            ci = cellof[anchor_of(cs, np.int64(i))]
         else:
             if hn == 0:
                 break
@@ -268,18 +602,20 @@ def grid_phase(
                     i = p
             rad = val[i]
             par = lq[i]
+            ci = top
         rank[i] = k
         order[k] = i
         radius[k] = rad
         parent[k] = par
-        ci = pcell[i]
         # an exhausted cell (key -1) sinks and is dropped when it reaches the top
-        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(ci, cellv, cs, rank, val), hn)
+        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(np.int64(ci), cellv, cs, rank, val), hn)
         src[0] = i
         nd, pp = march_round(
-            src, k, k + 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-            T, vlab, stamp, seen, dq, lq, rank, dstamp, dirty, 0, hk, hv, hpos_v,
+            src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+            T, vlab, stamp, dq, lq, rank, dstamp, dirty, nd0, hk, hv, hpos_v, debug,
         )
+        if pp < 0:
+            return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
         pops += pp
         for j in range(nd):
             cc = dirty[j]
@@ -301,86 +637,101 @@ def grid_phase(
         # drop exhausted cells from the top
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
+        if debug and not check_maxheap(ckey, heap, hpos, hn):
+            return order, radius, parent, k, val, lq, rank, np.int64(-2)  # debug: a broken heap
         k += 1
     return order, radius, parent, k, val, lq, rank, pops
 
 
 @nb.njit(**JIT)
-def multi_source_distance(u, coord, nbr, cs, hkeys, hvals, vcost, pcost, sources):  # pragma: no cover
+def multi_source_distance(
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, sources,
+):  # pragma: no cover - compiled
     """dq of every point for one march from all ``sources`` at once (for tests and analysis)."""
     m = u.shape[0]
-    nv = coord.shape[0]
-    T = np.full(nv, np.inf, np.float32)
-    vlab = np.full(nv, -1, np.int64)
-    stamp = np.zeros(nv, np.int32)
-    cellof = np.zeros(nv, np.int32)
-    ncell = 1
+    nv = keys.shape[0]
+    cellv, cellof = cell_tables(cs)
+    ncell = cellv.shape[0]
     dq = np.full(m, np.inf)
-    lq = np.full(m, -1, np.int64)
-    rank = np.full(m, -1, np.int64)
-    dstamp = np.full(ncell, -1, np.int64)
-    dirty = np.empty(ncell, np.int64)
-    hk = np.empty(nv, np.float32)
-    hv = np.empty(nv, np.int32)
+    lq = np.full(m, -1, np.int32)
+    rank = np.full(m, -1, np.int32)
+    lab0 = np.int64(0)  # variables, not literals: literal arguments compile another version
+    rnd1 = np.int64(1)
+    nd0 = np.int64(0)
     nd, pops = march_round(
-        sources, 0, 1, u, coord, nbr, cs, cellof, hkeys, hvals, vcost, pcost,
-        T, vlab, stamp, np.full(nv, -1, np.int32), dq, lq, rank, dstamp, dirty, 0, hk, hv,
-        np.full(nv, -1, np.int32),
+        sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+        np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
+        dq, lq, rank, np.full(ncell, -1, np.int32),
+        np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
+        np.full(nv, -1, np.int32), False,
     )
+    for s in range(sources.shape[0]):
+        dq[sources[s]] = 0.0
     return dq, lq, pops
 
 
 @nb.njit(**JIT)
 def euclid_tail(
-    u, cs, hkeys, hvals, chk, chv, rstart, rend, levels, pcost, weighted, cmin, d, lab, rank,
-    order, radius, parent, k0, k_max, rho_stop,
+    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
+    rank, order, radius, parent, k0, k_max, rho_stop,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones (all finite),
-    first tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
+    ``d`` holds upper bounds of every unordered point's distance to the ordered ones, first
+    tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
     point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
     max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
-    top (keys only decrease, so a stale key never hides the true maximum). Ball queries scan voxel cells for small balls and the coarse
-    cells of :func:`coarse_runs` (side 2^j >= the ball radius) for larger ones, so a query looks up at
-    most 27 cells while the radius is within the coarse levels. Returns the new count.
+    top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
+    ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
+    if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
+    chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. A ball
+    query walks the
+    neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
+    and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
+    at most 27 of them while the radius is within the coarse levels. Returns the new count.
     """
-    cellv = _cell_tables(cs)[0]
+    cellv, cellof = cell_tables(cs)
     ncell = cellv.shape[0]
     m = u.shape[0]
+    thin = psep.shape[0] == m
     for p in range(m):
         if rank[p] < 0 and lab[p] >= 0:
             # tighten to the exact distance to the labelled sample (still an upper bound)
             s = order[lab[p]]
             e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+            if thin and not _chord_ok(
+                u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2], e, psep[p], psep[s],
+                pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[s, 0], pnrm[s, 1], pnrm[s, 2], slope,
+            ):
+                continue  # the band's value may go around a fold the straight line crosses
             if weighted:
                 e *= 0.5 * (pcost[p] + pcost[s])
             if e < d[p]:
                 d[p] = e
     ckey = np.empty(ncell)
     for c in range(ncell):
-        ckey[c] = _cell_key(c, cellv, cs, rank, d)
-    heap = np.arange(ncell).astype(np.int64)
-    hpos = np.empty(ncell, np.int64)
+        ckey[c] = _cell_key(np.int64(c), cellv, cs, rank, d)
+    heap = np.arange(ncell).astype(np.int32)
+    hpos = np.empty(ncell, np.int32)
     hn = ncell
     maxheap_build(ckey, heap, hpos, hn)
     k = k0
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = _cell_key(top, cellv, cs, rank, d)
+        kk = _cell_key(np.int64(top), cellv, cs, rank, d)
         if kk != ckey[0]:
             ckey[0] = kk
             if kk < 0.0:
                 hn = maxheap_pop(ckey, heap, hpos, hn)
             else:
-                maxheap_sift_down(ckey, heap, hpos, 0, hn)
+                maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
             continue
         if kk <= rho_stop:
             break
-        w = cellv[top]
+        w0 = cellv[top]
         i = -1
-        for p in range(cs[w], cs[w + 1]):
+        for p in range(cs[w0], cs[w0 + 1]):
             if rank[p] < 0 and d[p] == kk:
                 i = p
                 break
@@ -400,19 +751,37 @@ def euclid_tail(
         y1 = int(np.floor((u[i, 1] + reach) / side))
         z0 = int(np.floor((u[i, 2] - reach) / side))
         z1 = int(np.floor((u[i, 2] + reach) / side))
+        fx = int(np.floor(u[i, 0]))
+        fy = int(np.floor(u[i, 1]))
+        fz = int(np.floor(u[i, 2]))
         for x in range(x0, x1 + 1):
             for y in range(y0, y1 + 1):
                 for z in range(z0, z1 + 1):
                     if j == 0:
-                        v = lookup(hkeys, hvals, x, y, z)
-                        if v < 0:
+                        # walk from i's cell: steps up first, then down, so that every voxel on
+                        # the way is a corner of one of the two cells (and so exists)
+                        w = w0
+                        dx, dy, dz = x - fx, y - fy, z - fz
+                        if dx > 0 and w >= 0:
+                            w = nbr[w, 1]
+                        if dy > 0 and w >= 0:
+                            w = nbr[w, 3]
+                        if dz > 0 and w >= 0:
+                            w = nbr[w, 5]
+                        if dx < 0 and w >= 0:
+                            w = nbr[w, 0]
+                        if dy < 0 and w >= 0:
+                            w = nbr[w, 2]
+                        if dz < 0 and w >= 0:
+                            w = nbr[w, 4]
+                        if w < 0:
                             continue
-                        p0 = cs[v]
-                        p1 = cs[v + 1]
+                        p0 = cs[w]
+                        p1 = cs[w + 1]
                     else:
                         if x < 0 or y < 0 or z < 0:
                             continue
-                        run = hash_find(chk, chv, (morton(x, y, z) << 3) | j)
+                        run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
                         if run < 0:
                             continue
                         p0 = rstart[run]
@@ -420,10 +789,15 @@ def euclid_tail(
                     for p in range(p0, p1):
                         if rank[p] >= 0:
                             continue
-                        s = i
-                        dd = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                        dd = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                        if thin and not _chord_ok(
+                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], dd,
+                            psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
+                            pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+                        ):
+                            continue  # across a gap or a tight fold: not a surface distance
                         if weighted:
-                            dd *= 0.5 * (pcost[p] + pcost[s])
+                            dd *= 0.5 * (pcost[p] + pcost[i])
                         if dd < d[p]:
                             d[p] = dd
                             lab[p] = k

@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..errors import ArchiveError
-from .index import is_url
+from .index import is_url, url_text
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +110,7 @@ def check_writable_dir(path: str | os.PathLike[str], what: str = "output") -> No
     path = Path(path)
     if is_url(path):
         raise ArchiveError(
-            f"{what} {os.fspath(path)} is a URL; archives are read-only over HTTP/S3: build into "
+            f"{what} {url_text(path)} is a URL; archives are read-only over HTTP/S3: build into "
             "a local file and upload it (the file and its .scans directory)"
         )
     parent = path.parent if str(path.parent) else Path(".")

@@ -11,7 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ArchiveError, CorruptArchiveError, NotAnArchiveError, SchemaVersionError
+from ..errors import (
+    ArchiveError,
+    CorruptArchiveError,
+    LodbuilderError,
+    NotAnArchiveError,
+    SchemaVersionError,
+)
 from . import layout as L
 from .layout import IndexRow
 
@@ -23,9 +29,18 @@ def is_url(location: object) -> bool:
     return isinstance(location, (str, os.PathLike)) and bool(_URL.match(os.fspath(location)))
 
 
+def url_text(location: object) -> str:
+    """A URL as the user wrote it (``pathlib`` turns ``https://h/x`` into ``https:/h/x``)."""
+    text = os.fspath(location)  # type: ignore[call-overload]
+    scheme, _, rest = text.partition(":")
+    return f"{scheme}://{rest.lstrip('/')}"
+
+
 def root_attrs(f: Any, where: Where) -> dict[str, Any]:
     try:
         attrs = {k: L._attr_json(v) for k, v in f.attrs.items()}
+    except LodbuilderError:
+        raise
     except (OSError, RuntimeError, KeyError, ValueError) as exc:
         raise CorruptArchiveError(
             f"{where.display}: its root attributes cannot be read ({first_line(exc)}); the file "

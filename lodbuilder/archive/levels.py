@@ -59,6 +59,9 @@ class Level:
         scan: the scan's name.
         ordering: the ordering it is a prefix of (``None`` for the default uniform ordering).
         region: parameters of a selective refinement, if any.
+        crs: the scan's coordinate reference system as WKT text (None when unknown); writing the
+            level with :func:`lodbuilder.io.write_points` keeps it.
+        units: linear unit name of the CRS (``"metre"``, ``"US survey foot"``...), None when unknown.
     """
 
     points: np.ndarray
@@ -71,6 +74,8 @@ class Level:
     scan: str = ""
     ordering: str | None = None
     region: dict[str, Any] = field(default_factory=dict)
+    crs: str | None = None
+    units: str | None = None
 
     def __len__(self) -> int:
         return self.size

@@ -13,12 +13,15 @@ import numpy as np
 
 from .._validate import check_positive, check_size, strict_keywords, strict_methods
 from ..errors import (
+    ArchiveError,
     CorruptArchiveError,
     InputError,
+    LodbuilderError,
     NotAnArchiveError,
     ScanFileError,
     ScanNotFoundError,
 )
+from . import checks, safety
 from . import layout as L
 from .index import Where, check_part, first_line, read_rows, root_attrs
 from .layout import IndexRow
@@ -47,11 +50,23 @@ def check_archive_file(
     """Root attributes of the archive at ``path`` (a file or a URL); raise a one-line error if it
     is not one we can read."""
     where = Where.of(path, storage_options)
-    f, _ = open_h5(where)
+    f, io = open_h5(where)
     try:
-        return root_attrs(f, where)
+        return _checked_root(f, where)
     finally:
         f.close()
+        if io is not None:
+            io.close()
+
+
+def _checked_root(f: Any, where: Where) -> dict[str, Any]:
+    """Root attributes of the open archive file ``f``, after :func:`safety.check_file` has
+    walked its metadata: nothing in it points outside the file, and its sizes are ones the file
+    can hold. Called on every archive file (index or part) before anything else is read."""
+    with safety.h5_errors(where.display, "its root attributes"):
+        attrs = root_attrs(f, where)
+    safety.check_file(f, where.display)
+    return attrs
 
 
 @strict_keywords
@@ -86,8 +101,13 @@ def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
             )
         target = local
     try:
-        f = h5py.File(target, "r")
-    except (OSError, RuntimeError, ValueError) as exc:
+        # through safety.GuardedFile: global heaps are checked before HDF5 parses them
+        f = safety.open_h5(target, path)
+        if rf is not None:  # later misses fetch whole file-space pages (metadata is paged)
+            rf.set_block(max(rf.block, f.id.get_create_plist().get_file_space_page_size()))
+    except (OSError, RuntimeError, ValueError, KeyError) as exc:
+        if isinstance(exc, LodbuilderError):
+            raise
         if rf is not None:
             rf.close()
             if not rf.looks_like_hdf5():
@@ -100,6 +120,7 @@ def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
     return f, rf
 
 
+@safety.guarded(lambda self: self.path)
 @strict_methods
 class Archive:
     """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``.
@@ -115,7 +136,7 @@ class Archive:
         self._parts: dict[str, tuple[Any, Any]] = {}
         self._file, self._io = open_h5(self._where)
         try:
-            self.attrs = root_attrs(self._file, self._where)
+            self.attrs = _checked_root(self._file, self._where)
             self._rows = {r.name: r for r in read_rows(self._file, self.path)}
         except BaseException:
             self.close()
@@ -216,7 +237,7 @@ class Archive:
                 "archive; refusing to read it"
             ) from None
         try:
-            root_attrs(f, where)
+            _checked_root(f, where)
         except NotAnArchiveError:
             f.close()
             raise CorruptArchiveError(
@@ -250,7 +271,7 @@ class Archive:
                 }
                 for r in self.rows
             ]
-        names = [b.decode("utf-8") for b in ig[L.I_NAME][:]]
+        names = [b.decode("utf-8", "replace") for b in ig[L.I_NAME][:]]
         counts = ig[L.I_N_POINTS][:]
         lo, hi = ig[L.I_BOUNDS_MIN][:], ig[L.I_BOUNDS_MAX][:]
         return [
@@ -288,6 +309,7 @@ def open_archive(
     return Archive(path, storage_options=storage_options)
 
 
+@safety.guarded(lambda self: self.archive.path)
 @strict_methods
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
@@ -297,37 +319,45 @@ class ScanView:
         self.name = name
         self._g = group
         self._io = io  # the remote file the group is read through (None: local)
-        a = self._g.attrs
-        self.n_points = int(a[L.S_N_POINTS])
-        self.n_ordered = int(a.get(L.S_N_ORDERED, self.n_points))
-        self.encoding = str(L._attr_json(a[L.S_ENCODING]))
-        self.bounds = (np.asarray(a[L.S_BOUNDS_MIN], float), np.asarray(a[L.S_BOUNDS_MAX], float))
-        self._step = int(a.get(L.S_RADIUS_STEP, L.RADIUS_INDEX_STEP))
+        self._prefetch: Any = None
+        m = self._meta = checks.check_scan_group(group, archive.path, name)
+        self.n_points = m.n_points
+        if io is not None:  # a remote archive: a level's rows are fetched in one go
+            from .remote import Prefetcher
+
+            self._prefetch = Prefetcher(io, group, self.n_points)
+        self.n_ordered, self.encoding = m.n_ordered, m.encoding
+        self.bounds = (m.bounds_min, m.bounds_max)
+        self._step = m.step
         self._rindex: np.ndarray | None = None
         self._radius: np.ndarray | None = None
-        p = self._g[L.D_POINTS]
-        self._offset = p.attrs.get(L.P_OFFSET)
-        self._scale = p.attrs.get(L.P_SCALE)
+        self._offset, self._scale = m.offset, m.scale
 
     def __repr__(self) -> str:
         return f"<ScanView {self.name!r} n_points={self.n_points}>"
 
     # -- raw reads ---------------------------------------------------------------------------
     def _read(self, ds: Any, sel: Any = slice(None)) -> np.ndarray:
-        try:
-            return ds[sel]
-        except OSError as exc:
-            raise CorruptArchiveError(
-                f"archive {self.archive.path}: scan {self.name!r} dataset {ds.name} fails its "
-                f"checksum or cannot be read ({str(exc).splitlines()[0]}); the file is damaged, "
-                "rebuild it from the source scan"
-            ) from None
+        prefetch = None if self._prefetch is None else self._prefetch.before
+        arr = checks.read(self._meta, ds, sel, prefetch)
+        rows = checks.rows_of(sel, ds.shape[0]) if ds.ndim else None
+        if rows is not None:  # what a query reads is checked as it is read
+            rel = ds.name[len(self._g.name) + 1 :]
+            checks.check_rows(self._meta, rel, arr, rows[0], self._raw_rows)
+        return arr
+
+    def _raw_rows(self, rel: str, lo: int, hi: int) -> np.ndarray:
+        return checks.read(self._meta, self._g[rel], slice(lo, hi))
+
+    def _rows(self, rel: str, lo: int, hi: int) -> np.ndarray:
+        return self._read(self._g[rel], slice(lo, hi))
 
     def dataset(self, rel: str) -> Any:
-        return self._g[rel]
+        """The dataset ``rel`` of the scan (e.g. ``orderings/weighted/order``); reads are checked."""
+        return checks.CheckedDataset(self._g[rel], self._read)
 
     def _json_attr(self, key: str) -> dict[str, Any]:
-        return L.from_json(self._g.attrs.get(key, ""))
+        return checks.json_attr(self._meta, self._g.attrs, key)
 
     # -- metadata ----------------------------------------------------------------------------
     @property
@@ -408,10 +438,10 @@ class ScanView:
         return self._read(grp[name])
 
     def importance_parameters(self, name: str) -> dict[str, Any]:
-        return L.from_json(self._g[L.G_IMPORTANCE][name].attrs.get(L.M_PARAMETERS, ""))
+        return checks.json_attr(self._meta, self._g[L.G_IMPORTANCE][name].attrs, L.M_PARAMETERS)
 
     def ordering_parameters(self, name: str) -> dict[str, Any]:
-        return L.from_json(self._ordering_group(name).attrs.get(L.M_PARAMETERS, ""))
+        return checks.json_attr(self._meta, self._ordering_group(name).attrs, L.M_PARAMETERS)
 
     def _ordering_group(self, name: str) -> Any:
         grp = self._g[L.G_ORDERINGS] if L.G_ORDERINGS in self._g else {}
@@ -437,6 +467,7 @@ class ScanView:
             self.n_ordered,
             rho,
         )
+        checks.check_rho_prefix(self._meta, nonempty(k), rho, self._rows)
         return nonempty(k)
 
     def _bound(self, k: int) -> float:
@@ -477,6 +508,8 @@ class ScanView:
             rho=covering_bound(k, self.n_ordered, radius.__getitem__),
             size=k,
             scan=self.name,
+            crs=self.crs,
+            units=self.units,
         )
 
     def _ordering_level(
@@ -518,6 +551,8 @@ class ScanView:
             scan=self.name,
             ordering=ordering,
             region=region or {},
+            crs=self.crs,
+            units=self.units,
         )
 
     def refine_box(
@@ -577,3 +612,30 @@ class ScanView:
         counts = np.bincount(rep[rep >= 0], minlength=k)
         attrs = self.attributes(None, names)
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
+
+    # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
+    def _check_open(self) -> None:
+        if not self._g.id.valid:  # (h5py reads a closed file's attributes as empty, not an error)
+            raise ArchiveError(
+                f"archive {self.archive.path} is closed; read it inside `with open_archive(...)`"
+            )
+
+    @property
+    def crs(self) -> str | None:
+        """The scan's coordinate reference system as WKT text, or None when unknown."""
+        self._check_open()
+        wkt = self.format_metadata.get("crs_wkt")
+        return str(wkt) if wkt else None
+
+    @property
+    def units(self) -> str | None:
+        """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
+        one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
+        no pyproj): never guessed."""
+        self._check_open()
+        meta = self.format_metadata
+        if meta.get("crs_units"):
+            return str(meta["crs_units"])
+        from ..io.crs import linear_units
+
+        return linear_units(self.crs)

@@ -55,7 +55,9 @@ class PartInfo:
     nbytes: int
 
 
-def new_file(path: Path, expected_bytes: int, created: str | None = None) -> Any:
+def new_file(
+    path: Path, expected_bytes: int, created: str | None = None, max_chunk_bytes: int = 0
+) -> Any:
     """Create the archive file ``path`` (a temporary) with root attributes, paged aggregation and
     HDF5's chunk cache off (chunks reach the file in the order they are written)."""
     import h5py
@@ -65,14 +67,14 @@ def new_file(path: Path, expected_bytes: int, created: str | None = None) -> Any
         "w",
         libver=L.LIBVER,
         fs_strategy="page",
-        fs_page_size=L.page_size(expected_bytes),
+        fs_page_size=L.page_size(expected_bytes, max_chunk_bytes),
         rdcc_nbytes=0,
     )
-    f.attrs[L.A_FORMAT] = L.FORMAT
+    f.attrs[L.A_FORMAT] = L.text(L.FORMAT)
     f.attrs[L.A_SCHEMA_VERSION] = np.int64(L.SCHEMA_VERSION)
-    f.attrs[L.A_VERSION] = __version__
-    f.attrs[L.A_CREATED] = created or utc_now()
-    f.attrs[L.A_MODIFIED] = utc_now()
+    f.attrs[L.A_VERSION] = L.text(__version__)
+    f.attrs[L.A_CREATED] = L.text(created or utc_now())
+    f.attrs[L.A_MODIFIED] = L.text(utc_now())
     f.create_group(L.G_SCANS)
     return f
 
@@ -188,6 +190,7 @@ class ScanWriter:
         self._lo = np.full(3, np.inf)
         self._hi = np.full(3, -np.inf)
         self._done = False
+        self._margin = 0
 
     # -- context manager: a failure removes the temporary ----------------------------------------
     def __enter__(self) -> ScanWriter:
@@ -378,11 +381,15 @@ class ScanWriter:
             if off is not None:
                 self._offset, self._scale = off, sc
         expected = self.n * self._row_bytes(block)
+        enc = np.dtype(self._enc).itemsize * 3
+        chunk = self.rows * max([enc] + [a[:1].nbytes for k, a in block.items() if k != L.D_POINTS])
+        page = L.page_size(expected, chunk)
+        self._margin = 16 * page + (64 << 10)  # metadata, partial pages
         self._tmp = F.tmp_name(self.path)
         self._tmp.touch()
         # the whole file's raw bytes (uncompressed) plus metadata, before HDF5 writes anything
-        F.reserve(self._tmp, int(expected * 1.1) + (1 << 20), f"scan {self.name!r}")
-        self._f = new_file(self._tmp, expected)
+        F.reserve(self._tmp, int(expected * 1.1) + self._margin, f"scan {self.name!r}")
+        self._f = new_file(self._tmp, expected, max_chunk_bytes=chunk)
         g = self._f[L.G_SCANS].create_group(self.name)
         self._g = g
         g.create_group(L.G_ATTRIBUTES)
@@ -417,7 +424,7 @@ class ScanWriter:
             self._open(block)
         lo, hi = self._flushed, self._flushed + k
         assert self._tmp is not None
-        F.reserve(self._tmp, int(hi and k * self._row_bytes(block) * 1.1) + L.PAGE_MAX, "its data")
+        F.reserve(self._tmp, int(k * self._row_bytes(block) * 1.1) + self._margin, f"scan {self.name!r}")
         pts = block[L.D_POINTS]
         self._lo = np.minimum(self._lo, pts.min(axis=0))
         self._hi = np.maximum(self._hi, pts.max(axis=0))
@@ -504,26 +511,26 @@ class ScanWriter:
         extra = sum(len(t) for t in meta_text.values())
         orderings = dict(orderings or {})
         extra += sum(np.asarray(o[0]).size * 24 for o in orderings.values())
-        F.reserve(self._tmp, 2 * extra + (1 << 20), f"scan {self.name!r}")
+        F.reserve(self._tmp, 2 * extra + self._margin, f"scan {self.name!r}")
         try:
             L.create_dataset(g, L.D_RADIUS_INDEX, np.concatenate(self._rindex))
             L.create_dataset(g, L.D_SEEDS, seeds_arr)
             for key, params in imp_params.items():
-                g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.to_json(dict(params or {}))
+                g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json(dict(params or {})))
             for key in self._imp_names or []:
                 if L.M_PARAMETERS not in g[L.G_IMPORTANCE][key].attrs:
-                    g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.to_json({})
+                    g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json({}))
             for oname, (pos, rad, par, params) in orderings.items():
                 write_ordering(g, oname, pos, rad, par, params)
             a = g.attrs
             a[L.S_N_POINTS] = np.int64(self.n)
             a[L.S_N_ORDERED] = np.int64(k)
-            a[L.S_ENCODING] = self._enc
+            a[L.S_ENCODING] = L.text(self._enc)
             a[L.S_BOUNDS_MIN] = self._lo
             a[L.S_BOUNDS_MAX] = self._hi
             a[L.S_RADIUS_STEP] = np.int64(L.RADIUS_INDEX_STEP)
             for key, text in meta_text.items():
-                a[key] = text
+                a[key] = L.text(text)
             row = IndexRow(self.name, self.n, tuple(self._lo), tuple(self._hi))
             write_index(f, [row])
             f.flush()
@@ -580,5 +587,5 @@ def write_ordering(
     L.create_dataset(og, L.D_ORDER, pos)
     L.create_dataset(og, L.D_RADIUS, rad)
     L.create_dataset(og, L.D_PARENT, par)
-    og.attrs[L.M_PARAMETERS] = L.to_json(dict(params or {}))
+    og.attrs[L.M_PARAMETERS] = L.text(L.to_json(dict(params or {})))
     og.attrs[L.S_N_ORDERED] = np.int64(pos.size)

@@ -26,7 +26,10 @@ def _ds(
     attrs: dict | None = None,
     required_attrs: list[str] | None = None,
     description: str = "",
+    small: bool = False,
 ) -> dict[str, Any]:
+    """A dataset: per-point ones are chunked with a fletcher32 checksum; ``small`` ones may
+    instead be compact (kept in their object header, which carries its own checksum)."""
     dt = {"enum": dtype} if isinstance(dtype, list) else {"const": dtype}
     shape: dict[str, Any] = {"type": "array", "items": {"type": "integer", "minimum": 0}}
     if ndim is not None:
@@ -38,7 +41,8 @@ def _ds(
     attr_schema: dict[str, Any] = {"type": "object", "properties": attrs or {}}
     if required_attrs:
         attr_schema["required"] = required_attrs
-    return {
+    chunked = {"type": "array", "items": {"type": "integer", "minimum": 1}}
+    out: dict[str, Any] = {
         "description": description,
         "type": "object",
         "required": ["kind", "dtype", "shape", "chunks", "fletcher32", "attrs"],
@@ -46,12 +50,23 @@ def _ds(
             "kind": {"const": "dataset"},
             "dtype": dt,
             "shape": shape,
-            "chunks": {"type": "array", "items": {"type": "integer", "minimum": 1}},
+            "layout": {"const": "chunked"},
+            "chunks": chunked,
             "compression": {"enum": [None, "gzip", "lzf"]},
             "fletcher32": {"const": True},
             "attrs": attr_schema,
         },
     }
+    if small:
+        props = out["properties"]
+        props["layout"] = {"enum": ["chunked", "compact"]}
+        props["chunks"] = {"type": ["array", "null"], "items": chunked["items"]}
+        props["fletcher32"] = {"type": "boolean"}
+        out["anyOf"] = [
+            {"properties": {"layout": {"const": "compact"}}, "required": ["layout"]},
+            {"properties": {"fletcher32": {"const": True}, "chunks": {"type": "array"}}},
+        ]
+    return out
 
 
 def _group(
@@ -100,10 +115,13 @@ def build_schema() -> dict[str, Any]:
     )
     ordering = _group(
         {
-            L.D_ORDER: _ds("int64", 1, description="positions into the stored points"),
-            L.D_RADIUS: _ds("float64", 1, description="insertion radii of this ordering"),
+            L.D_ORDER: _ds("int64", 1, description="positions into the stored points", small=True),
+            L.D_RADIUS: _ds(
+                "float64", 1, description="insertion radii of this ordering", small=True
+            ),
             L.D_PARENT: _ds(
-                "int64", 1, description="parent position in this ordering, -1 for roots"
+                "int64", 1, description="parent position in this ordering, -1 for roots",
+                small=True,
             ),
         },
         [L.D_ORDER, L.D_RADIUS, L.D_PARENT],
@@ -125,8 +143,10 @@ def build_schema() -> dict[str, Any]:
                 "float64", 1, description="insertion radius, non-increasing, inf for seeds"
             ),
             L.D_PARENT: _ds("int64", 1, description="stored position of the parent, -1 for roots"),
-            L.D_RADIUS_INDEX: _ds("float64", 1, description="radius[::radius_index_step]"),
-            L.D_SEEDS: _ds("int64", 1, description="input indices of the seeds"),
+            L.D_RADIUS_INDEX: _ds(
+                "float64", 1, description="radius[::radius_index_step]", small=True
+            ),
+            L.D_SEEDS: _ds("int64", 1, description="input indices of the seeds", small=True),
             L.G_ATTRIBUTES: _group({}, [], additional=attribute_ds, description="input attributes"),
             L.G_IMPORTANCE: _group({}, [], additional=importance_ds, description="importance maps"),
             L.G_ORDERINGS: _group({}, [], additional=ordering, description="extra orderings"),
@@ -166,17 +186,23 @@ def build_schema() -> dict[str, Any]:
     )
     index = _group(
         {
-            L.I_NAME: _ds({"pattern": r"^S\d+$"}, 1, description="scan names, UTF-8, fixed length"),
-            L.I_N_POINTS: _ds("int64", 1),
-            L.I_BOUNDS_MIN: _ds("float64", 2, 3),
-            L.I_BOUNDS_MAX: _ds("float64", 2, 3),
+            L.I_NAME: _ds(
+                {"pattern": r"^S\d+$"}, 1, description="scan names, UTF-8, fixed length",
+                small=True,
+            ),
+            L.I_N_POINTS: _ds("int64", 1, small=True),
+            L.I_BOUNDS_MIN: _ds("float64", 2, 3, small=True),
+            L.I_BOUNDS_MAX: _ds("float64", 2, 3, small=True),
             L.I_PART: _ds(
                 {"pattern": r"^S\d+$"},
                 1,
                 description="part file in NAME.h5.scans/ holding the scan, empty when it is in "
                 "this file; matches " + L.PART_NAME.pattern,
+                small=True,
             ),
-            L.I_PART_BYTES: _ds("int64", 1, description="size of the part file, 0 when none"),
+            L.I_PART_BYTES: _ds(
+                "int64", 1, description="size of the part file, 0 when none", small=True
+            ),
         },
         [L.I_NAME, L.I_N_POINTS, L.I_BOUNDS_MIN, L.I_BOUNDS_MAX],
         attrs={L.A_N_SCANS: {"type": "integer", "minimum": 0}},

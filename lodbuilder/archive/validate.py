@@ -1,4 +1,11 @@
-"""Check an archive: schema, checksums and the ordering invariants. Each fault is one line."""
+"""Check an archive: schema, checksums and the ordering invariants. Each fault is one line.
+
+The file is opened like every reader opens it (:func:`lodbuilder.archive.reader.open_archive`):
+anything pointing outside the archive, a hard-link cycle, sizes the file cannot hold or metadata
+HDF5 cannot read are refused there with a one-line error (the CLI exits 2). What is found after
+that is listed as faults (exit 1). Every dataset is read in full (which verifies its fletcher32
+checksums), but only after :mod:`.safety` has checked that its declared size is backed by the file.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ArchiveError, CorruptArchiveError, LodbuilderError
+from . import checks, safety
 from . import layout as L
 
 
@@ -24,7 +32,7 @@ def _check_order_arrays(where: str, radius: np.ndarray, parent: np.ndarray) -> l
         if inc.size:
             i = int(inc[0]) + 1
             faults.append(
-                f"{where}: radius increases at position {i} ({radius[i - 1]!r} -> {radius[i]!r}); "
+                f"{where}: radius increases at position {i} ({float(radius[i - 1])!r} -> {float(radius[i])!r}); "
                 "radii must be non-increasing"
             )
     if k and (radius < 0).any():
@@ -37,42 +45,39 @@ def _check_order_arrays(where: str, radius: np.ndarray, parent: np.ndarray) -> l
             f"{where}: parent of position {i} is {int(parent[i])}; parents must come earlier "
             f"({bad.size} bad)"
         )
+    roots = np.isinf(radius) != (parent == -1)
+    if roots.any():
+        i = int(np.argmax(roots))
+        faults.append(
+            f"{where}: position {i} has radius {float(radius[i])!r} and parent {int(parent[i])}; radius "
+            f"is inf exactly for the roots (parent -1) ({int(roots.sum())} bad)"
+        )
     return faults
 
 
-def _check_scan(view: Any) -> list[str]:
-    name, g = view.name, view._g
-    where = f"scan {name!r}"
-    faults: list[str] = []
-    n, k = view.n_points, view.n_ordered
-    # read every dataset in full: fletcher32 is verified on read
+def _read_all(meta: checks.ScanMeta, g: Any) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Every dataset of the scan group ``g``, read in full (checksums verified)."""
+    import h5py
+
     data: dict[str, np.ndarray] = {}
+    faults: list[str] = []
 
     def visit(rel: str, obj: Any) -> None:
-        import h5py
-
         if isinstance(obj, h5py.Dataset):
             try:
-                data[rel] = view._read(obj)
+                data[rel] = checks.read(meta, obj)
             except CorruptArchiveError as exc:
                 faults.append(str(exc))
 
-    g.visititems(visit)
-    for rel, arr in data.items():
-        top = rel.split("/")[0]
-        if top in (
-            L.G_ATTRIBUTES,
-            L.G_IMPORTANCE,
-            L.D_POINTS,
-            L.D_SOURCE_INDEX,
-            L.D_RADIUS,
-            L.D_PARENT,
-        ) and arr.shape[:1] != (n,):
-            faults.append(f"{where}: dataset {rel} has {arr.shape[0]} rows, expected n_points={n}")
+    g.visititems(visit)  # safe: the file has no links other than hard links, and no cycles
+    return data, faults
+
+
+def _check_scan(meta: checks.ScanMeta, g: Any) -> list[str]:
+    where = f"scan {meta.name!r}"
+    n, k = meta.n_points, meta.n_ordered
+    data, faults = _read_all(meta, g)
     if faults:
-        return faults
-    if not 1 <= k <= n:
-        faults.append(f"{where}: n_ordered={k} must be in [1, n_points={n}]")
         return faults
     src = data[L.D_SOURCE_INDEX]
     if not np.array_equal(np.sort(src), np.arange(n)):
@@ -86,27 +91,26 @@ def _check_scan(view: Any) -> list[str]:
         faults.append(f"{where}: seeds must be input indices in [0, {n})")
     for key in (L.S_BUILD, L.S_PROVENANCE, L.S_FORMAT_METADATA):
         try:
-            L.from_json(g.attrs.get(key, ""))
-        except ValueError as exc:
-            faults.append(f"{where}: attribute {key!r} is not valid JSON ({exc})")
-    step = view._step
+            checks.json_attr(meta, g.attrs, key)
+        except CorruptArchiveError:
+            faults.append(f"{where}: attribute {key!r} is not valid JSON")
+    step = meta.step
     if not np.array_equal(data[L.D_RADIUS_INDEX], radius[::step]):
         faults.append(f"{where}: radius_index does not match radius[::{step}]; rebuild the archive")
-    pts = view.points()
+    pts = L.decode_points(data[L.D_POINTS], meta.encoding, meta.offset, meta.scale)
     if not np.isfinite(pts).all():
         faults.append(f"{where}: points hold NaN or inf")
-    elif not (np.allclose(pts.min(0), view.bounds[0]) and np.allclose(pts.max(0), view.bounds[1])):
+    elif not (
+        np.allclose(pts.min(0), meta.bounds_min) and np.allclose(pts.max(0), meta.bounds_max)
+    ):
         faults.append(f"{where}: bounds_min/bounds_max attributes do not match the points")
     for rel, arr in data.items():
         parts = rel.split("/")
         if parts[0] == L.G_ORDERINGS and len(parts) == 3 and parts[2] == L.D_ORDER:
             oname = parts[1]
             ow = f"{where} ordering {oname!r}"
-            rad = data.get(f"{L.G_ORDERINGS}/{oname}/{L.D_RADIUS}")
-            par = data.get(f"{L.G_ORDERINGS}/{oname}/{L.D_PARENT}")
-            if rad is None or par is None or not (arr.shape == rad.shape == par.shape):
-                faults.append(f"{ow}: order, radius and parent must have the same length")
-                continue
+            rad = data[f"{L.G_ORDERINGS}/{oname}/{L.D_RADIUS}"]
+            par = data[f"{L.G_ORDERINGS}/{oname}/{L.D_PARENT}"]
             if arr.size and (arr.min() < 0 or arr.max() >= n or np.unique(arr).size != arr.size):
                 faults.append(f"{ow}: order must hold distinct positions in [0, {n})")
             faults += _check_order_arrays(ow, rad, par)
@@ -116,35 +120,43 @@ def _check_scan(view: Any) -> list[str]:
 def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> list[str]:
     """All faults found in the archive at ``path`` (empty list: valid).
 
-    Raises the usual one-line errors when ``path`` is missing or not an archive at all."""
+    Raises the usual one-line errors when ``path`` is missing, not an archive at all, refers to
+    anything outside itself, or cannot be walked (see :mod:`lodbuilder.archive.safety`)."""
     from .reader import open_archive
     from .schema import validate_description
 
     path = Path(path)
     faults: list[str] = []
     with open_archive(path) as arc:
-        if schema:
-            faults += validate_description(L.describe(arc.file))
-        for name in arc.scans:
+        with safety.h5_errors(path, "its metadata"):
+            if schema:
+                faults += validate_description(L.describe(arc.file))
+            counts: dict[str, int] = {}
+            for name in arc.scans:
+                try:
+                    view = arc.scan(name)  # the scan's header is checked here
+                    g = view._g
+                    counts[name] = view.n_points
+                    if schema and g.file != arc.file:  # a scan in a part file of the archive
+                        faults += [
+                            f"part of scan {name!r}: {x}"
+                            for x in validate_description(L.describe(g.file))
+                        ]
+                    faults += _check_scan(view._meta, g)
+                except LodbuilderError as exc:
+                    faults.append(f"scan {name!r}: cannot be checked: {exc}")
             try:
-                view = arc.scan(name)
-                if schema and view._g.file != arc.file:  # a scan in a part file of the archive
-                    faults += [f"part of scan {name!r}: {x}" for x in validate_description(L.describe(view._g.file))]
-                faults += _check_scan(view)
-            except (LodbuilderError, KeyError, OSError, ValueError) as exc:
-                faults.append(f"scan {name!r}: cannot be checked: {exc}")
-        try:
-            index = arc.index()
-        except (OSError, KeyError) as exc:
-            faults.append(f"index: cannot be read: {exc}")
-            index = []
+                index = arc.index()
+            except LodbuilderError as exc:
+                faults.append(f"index: cannot be read: {exc}")
+                index = []
         names = [row["name"] for row in index]
         if names != arc.scans:
             faults.append(f"index: lists scans {names} but the archive holds {arc.scans}")
         else:
             for row in index:
-                n = arc.scan(row["name"]).n_points
-                if row["n_points"] != n:
+                n = counts.get(row["name"])
+                if n is not None and row["n_points"] != n:
                     faults.append(
                         f"index: scan {row['name']!r} has n_points {row['n_points']}, scan says {n}"
                     )

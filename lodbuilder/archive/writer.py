@@ -185,7 +185,7 @@ def copy_scan(
     refused (CorruptArchiveError), never copied."""
     importance = dict(importance or {})
     orderings = dict(orderings or {})
-    n = view.n_points
+    n = view.n_points  # the reader checked the file (nothing stored outside it) and the scan's shapes
     imp_names = sorted(set(view.importance_names) | set(importance))
     try:
         with ScanWriter(path, view.name, n, metadata=view.format_metadata, encoding=view.encoding) as w:
@@ -261,9 +261,26 @@ def _current(path: Path) -> tuple[list[IndexRow], str | None]:
     with open_archive(path) as arc:
         rows = arc.rows
         created = arc.attrs.get(L.A_CREATED)
-        for r in rows:
-            if r.part:
-                arc._check_part(r)  # the reader's confinement checks (name, directory, size)
+        parts = [r for r in rows if r.part]
+        if parts:
+            # the reader's confinement checks (plain name, regular file in the archive's own
+            # directory, recorded size), from one directory listing; a row that fails them is
+            # checked again by the reader, which names the fault
+            if parts_dir(path).is_symlink():
+                arc._check_part(parts[0])  # refuses a directory that is a link
+            try:
+                entries = {e.name: e for e in os.scandir(parts_dir(path))}
+            except OSError:
+                entries = {}
+            for r in parts:
+                e = entries.get(r.part)
+                if not (
+                    L.PART_NAME.fullmatch(r.part)
+                    and e is not None
+                    and e.is_file(follow_symlinks=False)
+                    and e.stat(follow_symlinks=False).st_size == r.part_bytes
+                ):
+                    arc._check_part(r)
     return rows, created if isinstance(created, str) else None
 
 
@@ -298,7 +315,7 @@ def _write_index_file(path: Path, rows: list[IndexRow], created: str | None) -> 
     f = None
     try:
         tmp.touch()
-        F.reserve(tmp, 4096 * len(rows) + (1 << 20), "the archive index")
+        F.reserve(tmp, 2048 * len(rows) + (128 << 10), "the archive index")
         f = new_file(tmp, 1024 * len(rows), created)
         write_index(f, rows)
         f.flush()
@@ -461,6 +478,7 @@ def _part_info(src: Path) -> PartInfo:
                 "ScanWriter"
             )
         view = arc.scan(rows[0].name)
+        # opening it checked the part: nothing stored outside it, one row per point
         return PartInfo(
             path=src,
             name=view.name,
@@ -517,6 +535,7 @@ def _rewrite(
     from .reader import open_archive
 
     path = Path(path)
+    check_writable_dir(path, "archive")
     for name in importance or {}:
         L.check_name(name, "importance map name")
     for name in orderings or {}:

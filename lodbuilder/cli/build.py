@@ -47,6 +47,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--band-radius", type=float, metavar="R", help="band radius (default: from H)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a scan of the same name built from other contents or parameters")
+    p.add_argument(
+        "--crs",
+        metavar="EPSG:XXXX|WKT|FILE",
+        help="coordinate reference system of scans whose files have none (EPSG codes need pyproj: "
+        "pip install 'lodbuilder[crs]')",
+    )
+    p.add_argument(
+        "--crs-override",
+        action="store_true",
+        help="let --crs replace the CRS a scan file declares",
+    )
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
     from .output import add_json_option
 
@@ -69,6 +80,12 @@ def check_archive_output(path: str, inputs: list[str]) -> Any:
     if path == "-":
         raise InputError("-o -: an archive cannot be written to stdout (it is an HDF5 file, written "
                          "beside its final name and renamed); give a file name ending in .h5")
+    from ..archive.index import is_url
+
+    if is_url(path):
+        from ..archive.writer import check_writable_dir
+
+        check_writable_dir(path, "output")  # archives are read-only over HTTP/S3: one line
     return check_output(path, "-o", suffixes=ARCHIVE_SUFFIXES,
                         inputs={f"file {s}": s for s in inputs if "*" not in s and "?" not in s})
 
@@ -124,8 +141,9 @@ def run(args: argparse.Namespace) -> int:
 
     with bars:
         res = build_archive(list(args.input or []), out, name=args.name, voxel_size=args.voxel_size,
-                            band_radius=args.band_radius, overwrite=args.overwrite, progress=progress,
-                            on_status=on_status, **options, **features)
+                            band_radius=args.band_radius, overwrite=args.overwrite, crs=args.crs,
+                            crs_override=args.crs_override, progress=progress, on_status=on_status,
+                            **options, **features)
     single = len(res.scans) == 1
     emit(args, res.to_json(), lambda: _single_line(res) if single else res.describe())
     return 1 if res.failed else 0

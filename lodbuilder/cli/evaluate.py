@@ -17,7 +17,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "and whether it meets the level's rho, the two-sided Hausdorff and Chamfer distances, "
             "the minimum spacing and uniformity (spacing / covering radius), and the distance of "
             "the scan points to the level's local surface (plane or MLS). Distances are Euclidean, "
-            "in the scan's units."
+            "in the unit of the scan's CRS (shown; 'scan units' when it is unknown)."
         ),
     )
     p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
@@ -34,6 +34,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--k", type=int, help="neighbours per surface fit (default 8 plane, 16 mls)")
     p.add_argument("--plot", metavar="OUT.png", help="plot error vs size and radius vs rank")
+    p.add_argument(
+        "--gaps",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="also list the gaps at each --rhos value: enclosed regions of the surface farther "
+        "than rho from every input point, up to MAX_HOLE rho wide (default 12), with their area "
+        "and bounding box (they are what 'slice --fill' fills)",
+    )
     from .output import add_json_option
 
     add_json_option(p, to_file=True)
@@ -45,7 +55,11 @@ def _table(ev) -> str:
         f"{'size':>9} {'rho':>10} {'cover':>10} {'ok':>3} {'hausdorff':>10} {'chamfer':>10} "
         f"{'min sp.':>10} {'unif.':>6} {'surf rms':>10} {'surf max':>10}"
     )
-    lines = [f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}", head]
+    unit = ev.units or "scan units (unit unknown)"
+    lines = [
+        f"scan {ev.scan!r}: {ev.n_points:,} points, ordering {ev.ordering}; distances in {unit}",
+        head,
+    ]
 
     def f(v):
         return "-" if v is None else f"{v:10.4g}"
@@ -70,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
         check_output(args.plot, "--plot", inputs=inputs, suffixes=(".png",))
     if args.k is not None and args.k < 3:
         raise InputError(f"--k must be at least 3, got {args.k}")
+    if args.gaps is not None and not args.rhos:
+        raise InputError("--gaps needs --rhos R [R ...] (the densities whose gaps are listed)")
     if args.plot:
         from .._optional import require
 
@@ -89,7 +105,13 @@ def run(args: argparse.Namespace) -> int:
             k=args.k,
             progress=bars,
         )
-    emit(args, ev.as_dict(), lambda: _table(ev))
+    doc, gaps = ev.as_dict(), []
+    if args.gaps is not None:
+        from ..sampling.fill import archive_gaps
+
+        gaps = archive_gaps(args.archive, args.scan, args.rhos, max_hole=args.gaps)
+        doc["gaps"] = [g.as_dict() for g in gaps]
+    emit(args, doc, lambda: "\n".join([_table(ev)] + [g.table() for g in gaps]))
     if args.plot:
         from ..quality.plots import plot_quality
 

@@ -58,19 +58,35 @@ def scan_info(view: Any) -> dict[str, Any]:
         "orderings": ["uniform"] + view.ordering_names,
         "build": view.build,
         "provenance": view.provenance,
+        **crs_info(view),
     }
 
 
-def run(args: argparse.Namespace) -> int:
-    import os
+def crs_info(view: Any) -> dict[str, Any]:
+    """``crs`` (WKT or None), ``crs_name`` and ``crs_epsg`` (pyproj; None without it), ``units``."""
+    from ..io.crs import crs_name, epsg_code
 
+    wkt = view.crs
+    return {"crs": wkt, "crs_name": crs_name(wkt), "crs_epsg": epsg_code(wkt), "units": view.units}
+
+
+def crs_line(s: dict[str, Any]) -> str:
+    """``NAME (EPSG:N), units U`` for one scan of :func:`scan_info`."""
+    if not s.get("crs"):
+        return "none (units unknown)"
+    name = s.get("crs_name") or (s["crs"][:60] + ("..." if len(s["crs"]) > 60 else ""))
+    epsg = f" (EPSG:{s['crs_epsg']})" if s.get("crs_epsg") else ""
+    return f"{name}{epsg}, units {s.get('units') or 'unknown'}"
+
+
+def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
 
     with open_archive(args.archive) as arc:
         names = [args.scan] if args.scan else arc.scans
         info: dict[str, Any] = {
             "path": str(arc.path),
-            "file_size": os.path.getsize(arc.path),
+            "file_size": arc.nbytes,
             "schema_version": arc.schema_version,
             "lodbuilder_version": arc.lodbuilder_version,
             "scans": [scan_info(arc.scan(n)) for n in names],
@@ -105,6 +121,7 @@ def _text(info: dict[str, Any]) -> str:
             f"scan {s['name']!r}: {s['n_points']:,} points ({s['coordinate_encoding']} coordinates)"
             + (f", {left:,} left out of the ordering" if left > 0 else ""),
             f"  bounds     {_fmt(s['bounds_min'])} .. {_fmt(s['bounds_max'])}",
+            f"  crs        {crs_line(s)}",
             f"  radius     {s['radius_max_finite']:.4g} .. {s['radius_min_positive']:.4g} "
             f"({s['n_seeds']} seed(s) with radius inf)",
             "  levels     " + ", ".join(f"rho {lv['rho']:g}: {lv['size']:,}" for lv in s["levels"]),

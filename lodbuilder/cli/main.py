@@ -17,7 +17,7 @@ from .. import __version__
 from ..errors import LodbuilderError
 from .output import Parser, add_common_options, print_error, setup_logging
 
-COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate")
+COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate", "export")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -11,17 +11,21 @@ from __future__ import annotations
 import sys
 from typing import Any
 
+NOTES = ("compiling kernels, first run only",)  # stages worth a line even without a terminal
 #: stages whose bar stays while the per-scan phases come and go
 PERSISTENT = ("scans", "points")
-UNITS = {"scans": "scan", "tiles": "tile"}
+UNITS = {"scans": "scan", "tiles": "tile", "covering": "tile", "coarse": "task"}
 
 
 class ProgressBars:
     """A ``progress(stage, done, total)`` callable that shows one bar per stage (``total`` 0: a
-    counter with a rate and no end)."""
+    counter with a rate and no end). Without a terminal (and unless disabled on purpose) the
+    stages in NOTES are still printed once, as a line."""
 
     def __init__(self, enabled: bool | None = None) -> None:
         self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self._notes = enabled is None
+        self._noted: set[str] = set()
         self._bars: dict[str, Any] = {}
         self._stage: str | None = None
 
@@ -31,6 +35,9 @@ class ProgressBars:
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         if not self.enabled:
+            if self._notes and stage in NOTES and stage not in self._noted:
+                self._noted.add(stage)
+                print(f"{stage} ...", file=sys.stderr, flush=True)
             return
         from tqdm import tqdm
 

@@ -7,6 +7,17 @@ import time
 from pathlib import Path
 
 
+def add_level_options(p: argparse.ArgumentParser, *, required: bool) -> None:
+    """ARCHIVE, --scan and one of --rho / --size / --fraction: which level of which scan (the
+    options slice and export share)."""
+    p.add_argument("archive", metavar="ARCHIVE")
+    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
+    g = p.add_mutually_exclusive_group(required=required)
+    g.add_argument("--rho", type=float, help="covering radius of the level")
+    g.add_argument("--size", type=int, help="number of points")
+    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "slice",
@@ -18,12 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "grow with the distance from a point (rho = RHO + SLOPE * distance)."
         ),
     )
-    p.add_argument("archive", metavar="ARCHIVE")
-    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--rho", type=float, help="covering radius of the level")
-    g.add_argument("--size", type=int, help="number of points")
-    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+    add_level_options(p, required=True)
     p.add_argument(
         "--box",
         type=float,
@@ -51,7 +57,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="write the --rho level of every scan of the archive, merged, with a scan_id attribute",
     )
     p.add_argument(
+        "--fill",
+        nargs="?",
+        type=float,
+        const=12.0,
+        metavar="MAX_HOLE",
+        help="add synthetic points (attribute synthetic = 1) in the enclosed holes of the scan "
+        "up to MAX_HOLE rho wide (default 12), so that the level meets --rho there too",
+    )
+    p.add_argument(
         "-o", "--output", required=True, metavar="OUT", help="output file (.ply, .npy, .csv, ...)"
+    )
+    p.add_argument(
+        "--colour-depth",
+        type=int,
+        choices=(8, 16),
+        default=None,
+        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
     )
     from .feature_options import add_slice_options
     from .output import add_json_option
@@ -69,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
     arc_path = Path(args.archive)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
-    writer_for(out)  # unknown output suffix: fail before reading anything
+    writer_for(out)  # unknown output suffix (or .copc.laz): fail before reading anything
     if args.box is not None and args.box_rho is None:
         raise InputError("--box needs --box-rho (the finer rho inside the box)")
     if args.box_rho is not None and args.box is None:
@@ -83,15 +105,23 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
     if args.box is not None and args.viewpoint is not None:
         raise InputError("give either --box or --viewpoint, not both")
+    if args.fill is not None:
+        _check_fill(args)
     if getattr(args, "all_scans", False):
         from .collection_options import slice_all
 
         return slice_all(args)
 
     t0 = time.perf_counter()
+    filled = None
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        if args.box is not None:
+        if args.fill is not None:
+            from ..sampling.fill import fill_level
+
+            filled = fill_level(view, args.rho, max_hole=args.fill)
+            level = filled.level
+        elif args.box is not None:
             level = view.refine_box(args.box, args.box_rho, args.rho)
         elif args.viewpoint is not None:
             level = view.refine_viewpoint(args.viewpoint, args.rho, args.slope, args.rho_max)
@@ -114,8 +144,10 @@ def run(args: argparse.Namespace) -> int:
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
     from ..io import write_points
+    from ..io.api import collect_notes
 
-    write_points(out, level.points, attrs, metadata=metadata)
+    with collect_notes() as changes:
+        write_points(out, level, attrs, metadata=metadata, colour_depth=args.colour_depth)
     doc = {
         "archive": str(arc_path),
         "scan": view.name,
@@ -127,10 +159,34 @@ def run(args: argparse.Namespace) -> int:
         "bound": note,
         "region": level.region,
         "attributes": sorted(attrs),
+        "crs": level.crs,
+        "units": level.units,
+        "changes": changes,
     }
+    what = f"{level.size} of {view.n_points} points"
+    if filled is not None:
+        doc["synthetic"] = filled.n_synthetic
+        what = filled.summary(view.n_points)
     emit(
         args,
         doc,
-        f"wrote {level.size} of {view.n_points} points of scan {view.name!r} to {out} ({note})",
+        "\n".join(
+            [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
+            + [f"  changed: {line}" for line in changes]
+        ),
     )
     return 0
+
+
+def _check_fill(args: argparse.Namespace) -> None:
+    from ..errors import InputError
+
+    if args.rho is None:
+        raise InputError("--fill needs --rho R (the density the filled level meets)")
+    if args.box is not None or args.viewpoint is not None or args.ordering not in (None, "uniform"):
+        raise InputError(
+            "--fill fills the plain --rho level of the uniform ordering; leave out --box, "
+            "--viewpoint and --ordering"
+        )
+    if getattr(args, "all_scans", False) or getattr(args, "floor_rho", None) is not None:
+        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")

@@ -8,7 +8,10 @@ import sys
 
 from ..errors import InputError
 
-MODES_HELP = "rgb, radius, rank, importance[:NAME], scan, voronoi"
+MODES_HELP = (
+    "rgb, radius, rank, importance[:NAME], scan, voronoi, gaps (red: near a hole the level "
+    "cannot cover at its rho, filled by 'slice --fill'; orange: near a rough one, not filled)"
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -40,7 +43,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--frames", type=int, default=40, help="animation frames (default 40)")
     p.add_argument("--fps", type=float, default=10.0, help="animation frames per second")
     p.add_argument(
-        "--window-size", type=int, nargs=2, metavar=("W", "H"), help="pixels (default 1600 800)"
+        "--window-size", type=int, nargs=2, metavar=("W", "H"), help="pixels, 32 to 8192 a side (default 1600 800)"
     )
     p.add_argument("--no-full", action="store_true", help="do not show the full scan beside")
     p.add_argument(
@@ -73,7 +76,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="the scan's up axis for the default view (z for survey data; y for many range scans, "
         "e.g. the Stanford bunny)",
     )
-    p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size")
+    p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size (> 0; default 1)")
     return p
 
 

@@ -262,11 +262,16 @@ def expand_inputs(inputs: Any = (), manifest: str | os.PathLike[str] | None = No
                 pairs.extend(read_manifest(p))
             else:
                 pairs.append((p, None))
-        elif _has_magic(s):
+        elif _has_magic(s) and not p.exists():
             hits = sorted(Path(h) for h in glob.glob(s, recursive=True) if Path(h).is_file())
             if not hits:
                 raise InputError(f"pattern {s!r} matches no files; check the pattern (quote it in the shell)")
             pairs.extend((h, None) for h in hits)
+        elif p.exists() or p.is_symlink():
+            from ..io._files import check_input_file
+
+            check_input_file(p)  # the reader's own message: a FIFO, a device, a symlink loop...
+            pairs.append((p, None))
         else:
             raise ScanFileError(f"{p}: no such file or directory; check the path")
     if manifest is not None:

@@ -44,12 +44,15 @@ class ScanJob:
     pose_kind: str = "rigid"
     tiled: bool = False
     members: list[dict[str, Any]] = field(default_factory=list)
+    given: str | None = None  # the path as the caller wrote it (for messages)
 
     @property
     def source(self) -> str:
         if self.members:
             return f"{len(self.members)} scans (joint)"
-        return self.path if self.path is not None else "<in-memory scan>"
+        if self.path is None:
+            return "<in-memory scan>"
+        return self.given or self.path
 
     @property
     def work(self) -> Path:
@@ -92,12 +95,18 @@ def read_job_scan(job: ScanJob) -> Any:
     from ..io import read_scan, read_scans
     from .inputs import apply_pose
 
+    crs, override = job.params.get("crs"), bool(job.params.get("crs_override"))
     if job.scan is not None:
-        scan = dataclasses.replace(job.scan)  # the caller's Scan keeps its name and points
+        # the caller's Scan keeps its name, points and metadata
+        scan = dataclasses.replace(job.scan, metadata=dict(job.scan.metadata))
+        if crs is not None:
+            from ..io.crs import assign_crs
+
+            assign_crs(scan.metadata, crs, override=override, what=f"scan {job.name!r}")
     elif job.scan_index is None:
-        scan = read_scan(job.path, name=job.name)  # type: ignore[arg-type]
+        scan = read_scan(job.path, name=job.name, crs=crs, crs_override=override)  # type: ignore[arg-type]
     else:
-        scan = read_scans(job.path)[job.scan_index]  # type: ignore[arg-type]
+        scan = read_scans(job.path, crs=crs, crs_override=override)[job.scan_index]  # type: ignore[arg-type]
     scan.name = job.name
     if job.pose is not None:
         scan.points = np.ascontiguousarray(apply_pose(scan.points, np.asarray(job.pose)))
@@ -183,12 +192,16 @@ def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
     """The streams of a tiled job: ``(stream, pose, member id)`` for each scan it orders."""
     from ..io.stream import open_stream, scan_stream
 
+    crs, override = job.params.get("crs"), bool(job.params.get("crs_override"))
     if job.members:
-        return [(open_stream(m["path"], scan_index=m.get("scan_index")), m.get("pose"), i)
-                for i, m in enumerate(job.members)]
+        out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
+                m.get("pose"), i) for i, m in enumerate(job.members)]
+        return out  # type: ignore[return-value]
     if job.scan is not None:
-        return [(scan_stream(job.scan), None, None)]
-    return [(open_stream(job.path, scan_index=job.scan_index), job.pose, None)]  # type: ignore[arg-type]
+        scan = read_job_scan(job)  # the in-memory scan with its CRS
+        return [(scan_stream(scan), None, None)]
+    return [(open_stream(job.path, scan_index=job.scan_index, crs=crs, crs_override=override),  # type: ignore[arg-type]
+             job.pose, None)]
 
 
 def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: ProgressCallback = None) -> dict[str, Any]:

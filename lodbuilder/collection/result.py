@@ -67,6 +67,10 @@ class BuildResult:
     merge_seconds: float = 0.0  # merging finished parts into the archive (in the parent)
     archive_scans: int = 0
 
+    def __fspath__(self) -> str:
+        """A result stands for its archive where a path is expected (``open_archive(result)``)."""
+        return str(self.archive)
+
     def by_status(self, status: str) -> list[ScanStatus]:
         return [s for s in self.scans if s.status == status]
 

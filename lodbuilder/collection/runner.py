@@ -219,9 +219,10 @@ def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], 
         pose = None if src.pose is None else src.pose.tolist()
         key = job_key(sha, params, pose, src.scan_index, src.name)
         part = _part_path(archive, src.name, key)
-        job = ScanJob(name=src.name, path=None if src.path is None else str(src.path.resolve()), key=key,
+        job = ScanJob(name=src.name, path=None if src.path is None else os.path.abspath(src.path), key=key,
                       part=str(part), params=dict(params), pose=pose, scan_index=src.scan_index, sha256=sha,
-                      size_bytes=nbytes, scan=src.scan, pose_kind=pose_kind(src.pose))
+                      size_bytes=nbytes, scan=src.scan, pose_kind=pose_kind(src.pose),
+                      given=None if src.path is None else str(src.path))
         _place(job, where, existing, archive, force, overwrite, jobs, recovered, skipped, failed)
     return jobs, recovered, skipped, failed
 
@@ -259,7 +260,7 @@ def plan_joint(sources: list[ScanSource], archive: Path, params: dict[str, Any],
             raise InputError(f"input {src.path} is the archive itself; choose another -o")
         sha = file_sha256(src.path)
         h.update(sha.encode())
-        members.append({"id": i, "name": src.name, "path": str(src.path.resolve()), "source": src.path.name,
+        members.append({"id": i, "name": src.name, "path": os.path.abspath(src.path), "source": src.path.name,
                         "sha256": sha, "pose": None if src.pose is None else src.pose.tolist(),
                         "pose_kind": pose_kind(src.pose), "scan_index": src.scan_index})
     key = job_key(h.hexdigest(), {**params, "joint": True}, [m["pose"] for m in members],
@@ -292,8 +293,8 @@ def decide_tiling(jobs: list[ScanJob], params: dict[str, Any]) -> None:
         else:
             try:
                 st = peek_stream(job.path) if job.scan_index is None else None  # type: ignore[arg-type]
-            except LodbuilderError:
-                st = None  # the build reports the file's error
+            except Exception:  # noqa: BLE001 - the build reads the file again and reports its error
+                st = None
             if st is not None:
                 n = st.n_points
                 row = 24 + sum(int(np.dtype(d).itemsize * max(1, int(np.prod(sh)))) for d, sh in st.fields.values())
@@ -352,6 +353,8 @@ def build(
     max_memory: Any = None,
     joint: bool | str = False,
     seam_spacing: float | None = None,
+    crs: str | None = None,
+    crs_override: bool = False,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
@@ -363,12 +366,17 @@ def build(
     from ..archive.writer import check_writable_dir
 
     t0 = time.perf_counter()
-    archive = Path(archive).resolve()  # absolute paths in jobs: Dask workers may run elsewhere
+    archive = Path(os.path.abspath(archive))  # absolute paths in jobs: workers may run elsewhere
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work
     params = tiling_params(make_params(voxel_size, band_radius, size, rho, features, seeds), max_memory,
                            seam_spacing, _tile_points)
+    if crs is not None:
+        from ..io.crs import crs_from_user
+
+        params["crs"] = crs_from_user(crs)  # WKT: the same CRS given two ways is the same key
+        params["crs_override"] = bool(crs_override)
     joint_name = _joint_name(joint, name, manifest, inputs) if joint else None
     sources = _sources(inputs, manifest, None if joint else name)
     if seeds is not None and (len(sources) != 1 or joint):
@@ -470,6 +478,7 @@ def _run_jobs(ex: cf.Executor, jobs: list[ScanJob], archive: Path, result: Build
                     emit(ScanStatus(job.name, job.source, "failed", error=(
                         "its worker process died (killed, out of memory, or failed to start: see the log)")))
                 except Exception as exc:
+                    exc = _as_given(exc, job)
                     emit(ScanStatus(job.name, job.source, "failed", error=one_line(exc), exception=exc))
             if good:
                 t_merge = time.perf_counter()
@@ -506,6 +515,7 @@ def _run_tiled(ex: cf.Executor, parallel: int, job: ScanJob, archive: Path, resu
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:
+        exc = _as_given(exc, job)
         emit(ScanStatus(job.name, job.source, "failed", error=one_line(exc), exception=exc))
         return
     t_merge = time.perf_counter()
@@ -537,6 +547,17 @@ def _joint_name(joint: Any, name: str | None, manifest: Any, inputs: Any) -> str
     manifests += [Path(x) for x in items if isinstance(x, (str, os.PathLike))
                   and Path(x).suffix.lower() in MANIFEST_SUFFIXES]
     return safe_name(manifests[0].stem) if len(manifests) == 1 else "joint"
+
+
+def _as_given(exc: Exception, job: ScanJob) -> Exception:
+    """The job's error naming its file as the caller gave it (jobs carry absolute paths)."""
+    if job.path is None or not job.given or job.given == job.path or job.path not in str(exc):
+        return exc
+    if isinstance(exc, LodbuilderError) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+        new = type(exc)(exc.args[0].replace(job.path, job.given))
+        new.__cause__ = exc.__cause__
+        return new
+    return exc
 
 
 def _raise_failures(result: BuildResult, total: int, raise_on_failure: bool | None) -> None:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,15 +16,38 @@ from ..errors import ScanFileError
 
 
 def check_input_file(path: str | os.PathLike[str]) -> Path:
-    """Return ``path`` as a Path if it names a readable regular file, else raise ScanFileError."""
+    """Return ``path`` as a Path if it names a readable regular file, else raise ScanFileError.
+
+    Non-regular files (FIFOs, sockets, devices) are refused before they are opened: reading a
+    FIFO would wait forever for a writer. A symbolic-link loop is named as such."""
     p = Path(path)
-    if not p.exists():
-        raise ScanFileError(f"{p}: no such file; check the path")
-    if p.is_dir():
+    try:
+        st = os.stat(p)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ScanFileError(f"{p}: symbolic link loop (the link points back to itself); fix the link") from None
+        if exc.errno == errno.ENOENT:
+            if os.path.islink(p):
+                raise ScanFileError(f"{p}: broken symbolic link (its target does not exist); fix the link") from None
+            raise ScanFileError(f"{p}: no such file; check the path") from None
+        if exc.errno == errno.EACCES:
+            raise ScanFileError(f"{p}: cannot be read (permission denied); fix its permissions") from None
+        raise ScanFileError(f"{p}: cannot be read ({exc.strerror}); check the path") from None
+    if stat.S_ISDIR(st.st_mode):
         raise ScanFileError(f"{p}: is a directory, not a scan file; pass a file (or a collection)")
+    if not stat.S_ISREG(st.st_mode):
+        raise ScanFileError(f"{p}: is {_kind(st.st_mode)}, not a regular file; save the scan to a file first")
     if not os.access(p, os.R_OK):
         raise ScanFileError(f"{p}: cannot be read (permission denied); fix its permissions")
     return p
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "a special file"
 
 
 def check_output_path(path: str | os.PathLike[str]) -> Path:
@@ -46,15 +71,14 @@ def _default_mode() -> int:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike[str], *, make_parents: bool = False) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path in the destination directory; rename it onto ``path`` on success.
 
     The temporary file keeps the destination's suffix (some libraries choose the encoding from it)
     and gets the permissions a plain new file would. On any error the temporary file is removed and
-    ``path`` is left untouched. ``make_parents`` creates a missing destination directory first.
+    ``path`` is left untouched. A missing directory is an error (:func:`check_output_path`),
+    never created.
     """
-    if make_parents:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
     p = check_output_path(path)
     parent = p.parent if str(p.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{p.name}.", suffix=".part" + "".join(p.suffixes[-1:]))
@@ -68,6 +92,12 @@ def atomic_output(path: str | os.PathLike[str], *, make_parents: bool = False) -
         with contextlib.suppress(OSError):
             tmp_path.unlink()
         raise
+
+
+def exc_line(exc: BaseException) -> str:
+    """An exception's message on one line (white space folded), or its class name when it has
+    none: the ``(...)`` part of the errors and warnings of lodbuilder.io."""
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 @strict_keywords

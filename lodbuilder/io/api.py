@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -11,8 +13,9 @@ import numpy as np
 
 from .._validate import strict_keywords
 from ..errors import FormatError, InputError, LodbuilderError, ScanFileError
-from ._files import atomic_output, check_input_file
+from ._files import atomic_output, check_input_file, exc_line
 from .base import Scan
+from .crs import KEY_UNITS, KEY_WKT, assign_crs, crs_from_user, sidecar
 from .registry import reader_for, writer_for
 
 log = logging.getLogger(__name__)
@@ -20,12 +23,8 @@ log = logging.getLogger(__name__)
 PathLike = str | os.PathLike[str]
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
 @strict_keywords
-def read_scans(path: PathLike) -> list[Scan]:
+def read_scans(path: PathLike, *, crs: str | None = None, crs_override: bool = False) -> list[Scan]:
     """Read every scan in a file (E57 files may hold several; other formats hold one).
 
     Each Scan has float64 (N, 3) points in world coordinates (poses applied), every other per-point
@@ -33,6 +32,10 @@ def read_scans(path: PathLike) -> list[Scan]:
     to reproduce the format. Raises ScanFileError (missing/unreadable file), UnsupportedFormatError
     (unknown suffix), MissingDependencyError (optional reader library absent) or FormatError
     (malformed file, no x/y/z, NaN/inf coordinates, no points).
+
+    Each scan's CRS is ``metadata["crs_wkt"]`` (WKT or None; see :mod:`lodbuilder.io.crs`).
+    ``crs`` (EPSG:XXXX, WKT or a file holding WKT) assigns one to scans without it; a file that
+    declares another CRS is refused unless ``crs_override``.
     """
     p = check_input_file(path)
     fmt, module = reader_for(p)
@@ -43,13 +46,16 @@ def read_scans(path: PathLike) -> list[Scan]:
     except MemoryError:
         raise FormatError(f"{p}: too large to load into memory; split the scan or use a machine with more memory") from None
     except OSError as exc:
-        raise ScanFileError(f"{p}: cannot be read ({_one_line(exc)}); check the file") from None
+        raise ScanFileError(f"{p}: cannot be read ({exc_line(exc)}); check the file") from None
     except Exception as exc:  # a parser library's own error on a malformed file
-        raise FormatError(f"{p}: cannot be read as {fmt.upper()} ({_one_line(exc)}); check or re-export the file") from exc
+        raise FormatError(f"{p}: cannot be read as {fmt.upper()} ({exc_line(exc)}); check or re-export the file") from exc
     if not scans:
         raise FormatError(f"{p}: holds no scans; nothing to read")
     for s in scans:
         _check_scan(p, s)
+        s.metadata.setdefault(KEY_WKT, None)
+        if crs is not None:
+            assign_crs(s.metadata, crs, override=crs_override, what=str(p))
     return scans
 
 
@@ -76,13 +82,13 @@ def _check_scan(p: Path, s: Scan) -> None:
 
 
 @strict_keywords
-def read_scan(path: PathLike, *, name: str | None = None) -> Scan:
+def read_scan(path: PathLike, *, name: str | None = None, crs: str | None = None, crs_override: bool = False) -> Scan:
     """Read a file holding one scan; see :func:`read_scans`.
 
     A file with several scans (an E57 file with more than one scan) raises FormatError: read it
     with :func:`read_scans`, or let the collection builder take every scan.
     """
-    scans = read_scans(path)
+    scans = read_scans(path, crs=crs, crs_override=crs_override)
     if len(scans) > 1:
         names = ", ".join(s.name for s in scans[:5]) + (" ..." if len(scans) > 5 else "")
         raise FormatError(
@@ -117,6 +123,53 @@ def _prepare_attributes(points: np.ndarray, attributes: Any, rank: Any) -> dict[
     return attrs
 
 
+#: formats whose CRS travels in a ``<file>.prj`` sidecar (they have no place for it inside)
+SIDECAR_CRS = ("text", "npy")
+
+
+@strict_keywords
+@contextlib.contextmanager
+def collect_notes() -> Iterator[list[str]]:
+    """Take the warnings lodbuilder.io logs while the block runs (what readers and writers
+    changed: casts, scaled colours, skipped properties...) into a list, for a command's report.
+
+    They are collected whatever the log level (``-q`` included) and not logged further: the
+    caller reports them, once. Other records (INFO, DEBUG, errors) go on to the log as usual."""
+    notes: list[str] = []
+    logger = logging.getLogger("lodbuilder.io")
+    parent = logger.parent if logger.propagate else None  # (a nested block: the outer one passes them on)
+
+    class _Handler(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.levelno == logging.WARNING:
+                notes.append(record.getMessage())
+            elif parent is not None:
+                parent.handle(record)
+
+    handler = _Handler()
+    level, propagate = logger.level, logger.propagate
+    logger.setLevel(min(logger.getEffectiveLevel(), logging.WARNING))
+    logger.propagate = False
+    logger.addHandler(handler)
+    try:
+        yield notes
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+
+def log_notes(path: PathLike, notes: list[str]) -> None:
+    """Log what a writer changed in ``path``, one warning of lodbuilder.io per note (the one way
+    writers report changes; :func:`collect_notes` gathers them)."""
+    for note in notes:
+        log.warning("%s: %s", path, note)
+
+
+def _is_level(obj: Any) -> bool:
+    return all(hasattr(obj, a) for a in ("points", "attributes", "source_index", "radius", "crs"))
+
+
 @strict_keywords
 def write_points(
     path: PathLike,
@@ -125,15 +178,30 @@ def write_points(
     *,
     metadata: dict[str, Any] | None = None,
     rank: bool | np.ndarray | None = None,
+    crs: str | None = None,
+    colour_depth: int | None = None,
 ) -> Path:
     """Write points (and per-point attributes) to ``path``, the format chosen by its suffix.
 
-    Formats: ``.ply`` (binary little-endian, every attribute a vertex property; coordinates float32
-    when ``metadata`` says the source stored float32 and no value changes, else float64); ``.npy``
-    (plain (N, 3) float64 without attributes, else a structured array with fields x, y, z, ...);
-    ``.npz`` (``points`` plus one array per attribute); ``.csv`` / ``.xyz`` (header line, one point per
-    line, exact float64 text); ``.las`` / ``.laz`` (needs laspy: the point format, scale, offset and
-    CRS from ``metadata`` of a LAS source when given, other attributes as extra bytes).
+    ``points`` is an (N, 3) array, or a :class:`lodbuilder.archive.levels.Level` (its points,
+    attributes and CRS are written; ``attributes`` and ``crs`` given here take precedence).
+
+    Formats: ``.ply`` (binary little-endian; x, y, z first, then nx ny nz, red green blue alpha,
+    then the other attributes in their order; colours as uchar unless ``colour_depth=16``;
+    coordinates float32 when ``metadata`` says the source stored float32 and no value changes,
+    else float64; the CRS as a ``comment crs <WKT>`` header line); ``.npy`` (plain (N, 3) float64
+    without attributes, else a structured array with fields x, y, z, ...); ``.npz`` (``points``
+    plus one array per attribute, and the metadata as JSON); ``.csv`` / ``.xyz`` (one header
+    line of names, one point per line, every value printed so that it reads back to the same
+    value of its dtype); ``.las`` / ``.laz`` (needs laspy; see
+    :func:`lodbuilder.io.las.las_layout` for every rule). CSV, XYZ and NPY files carry their CRS
+    in a sidecar ``<file>.prj`` (WKT). Every change a format forces (a cast, a scaled colour, a
+    quantised coordinate) is logged as a warning of ``lodbuilder.io``: see :func:`collect_notes`.
+
+    ``crs``: WKT (or EPSG:XXXX with pyproj) to write; by default ``metadata["crs_wkt"]``.
+    ``colour_depth``: 8 or 16 bits for PLY colours (default 8: uchar, which PLY viewers expect;
+    16-bit values above 255 are divided by 257, noted); other formats keep the source dtype
+    (LAS always 16 bit).
 
     Progressive export: a level read from an archive is already in farthest-point order, so writing
     it keeps that order and every prefix of the file (its first k points) is itself a level. Pass
@@ -144,6 +212,22 @@ def write_points(
     failure never leaves a partial file under ``path``. Returns the path written.
     """
     fmt, module = writer_for(path)
+    meta = dict(metadata or {})
+    if _is_level(points):
+        level = points
+        if attributes is None:
+            attributes = level.attributes
+        if crs is None and level.crs is not None:
+            meta[KEY_WKT] = level.crs  # already WKT: no pyproj on the slice path
+        if level.units and not meta.get(KEY_UNITS):
+            meta[KEY_UNITS] = level.units
+        points = level.points
+    if crs is not None:
+        meta[KEY_WKT] = crs_from_user(crs)
+    if colour_depth is not None:
+        if colour_depth not in (8, 16):
+            raise InputError(f"colour_depth must be 8 or 16, got {colour_depth!r}")
+        meta["write_colour_depth"] = int(colour_depth)
     try:
         pts = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError):
@@ -152,15 +236,31 @@ def write_points(
         raise InputError(f"points must have shape (N, 3), got {pts.shape}")
     pts = np.ascontiguousarray(pts)
     attrs = _prepare_attributes(pts, attributes, rank)
+    wkt = meta.get(KEY_WKT)
     with atomic_output(path) as tmp:
         try:
-            module.write(tmp, pts, attrs, metadata)
+            notes = module.write(tmp, pts, attrs, meta) or []
+            if fmt in SIDECAR_CRS and Path(path).suffix.lower() != ".npz":
+                _write_sidecar(Path(path), wkt)
         except LodbuilderError:
             raise
         except OSError as exc:
-            raise ScanFileError(f"{path}: cannot be written ({_one_line(exc)}); check the disk and permissions") from None
+            raise ScanFileError(f"{path}: cannot be written ({exc_line(exc)}); check the disk and permissions") from None
+    log_notes(path, notes)
     log.info("wrote %d points to %s (%s)", pts.shape[0], path, fmt)
     return Path(path)
+
+
+def _write_sidecar(path: Path, wkt: str | None) -> None:
+    """``<file>.prj`` with the WKT; an old sidecar of the same file is removed when there is no CRS
+    (it described the file being replaced)."""
+    side = sidecar(path)
+    if wkt:
+        with atomic_output(side) as tmp:
+            tmp.write_text(wkt + "\n", encoding="utf-8")
+    elif side.is_file():
+        side.unlink()
+        log.info("removed %s: the new %s has no CRS", side, path.name)
 
 
 @strict_keywords

@@ -5,7 +5,8 @@ named after the file (one scan) or the scan's E57 ``name`` (several scans; made 
 quaternion + translation, world = R p + t) applied. Spherical scans are converted to Cartesian.
 Points whose ``cartesianInvalidState`` (or ``sphericalInvalidState``) is non-zero are dropped; the
 count is logged and kept in ``metadata["invalid_dropped"]``. Every other point field becomes an
-attribute; ``colorRed/Green/Blue`` are renamed ``red/green/blue`` like the other formats.
+attribute; ``colorRed/Green/Blue`` are renamed ``red/green/blue`` like the other formats. The root
+``coordinateMetadata`` string, when not empty, is the CRS (see :mod:`lodbuilder.io.crs`).
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import MissingDependencyError
 from .base import Scan
+from .crs import set_crs, to_wkt
 
 log = logging.getLogger(__name__)
 
@@ -28,11 +29,9 @@ _STATES = ("cartesianInvalidState", "sphericalInvalidState")
 
 
 def _pye57(path: Path) -> Any:
-    try:
-        import pye57
-    except ImportError:
-        raise MissingDependencyError(f"{path}: E57 files need pye57; pip install lodbuilder[e57]") from None
-    return pye57
+    from .._optional import require
+
+    return require("pye57", f"{path}: E57")
 
 
 def _scan_name(header: Any, default: str) -> str:
@@ -44,6 +43,15 @@ def _scan_name(header: Any, default: str) -> str:
     return name or default
 
 
+def _coordinate_metadata(e57: Any, path: Path) -> str | None:
+    """The root ``coordinateMetadata`` string (the file's CRS, e.g. WKT) as WKT, or None."""
+    try:
+        text = e57.root["coordinateMetadata"].value()
+    except Exception:  # absent (it is optional) or not a string
+        return None
+    return to_wkt(text, what=f"{path} coordinateMetadata")
+
+
 def read(path: Path) -> list[Scan]:
     pye57 = _pye57(path)
     e57 = pye57.E57(str(path), mode="r")
@@ -51,8 +59,11 @@ def read(path: Path) -> list[Scan]:
         scans: list[Scan] = []
         used: set[str] = set()
         count = e57.scan_count
+        wkt = _coordinate_metadata(e57, path)
         for i in range(count):
-            scans.append(_read_one(e57, i, path, count, used))
+            scan = _read_one(e57, i, path, count, used)
+            set_crs(scan.metadata, wkt, "file")
+            scans.append(scan)
         return scans
     finally:
         e57.close()

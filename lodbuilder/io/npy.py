@@ -6,7 +6,8 @@ plain form when there are no attributes and the structured form otherwise (coord
 
 ``.npz`` holds named arrays: ``points`` (N, 3) (or ``x``, ``y``, ``z`` of shape (N,)); every other
 array whose first dimension is N is an attribute, and a ``metadata`` 0-d string array holds JSON
-metadata. Pickled objects are never loaded.
+metadata (its ``crs_wkt`` is the CRS). Pickled objects are never loaded. A ``.npy`` file carries
+its CRS in a ``<file>.prj`` sidecar (WKT).
 """
 
 from __future__ import annotations
@@ -18,7 +19,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ._files import exc_line
 from .base import Scan
+from .crs import KEY_WKT, read_sidecar, set_crs, to_wkt
 
 _XYZ = ("x", "y", "z")
 
@@ -27,11 +30,9 @@ def _load(path: Path) -> Any:
     try:
         return np.load(path, allow_pickle=False)
     except ValueError as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: not a readable NumPy file ({msg}); save it with numpy.save / numpy.savez") from None
+        raise FormatError(f"{path}: not a readable NumPy file ({exc_line(exc)}); save it with numpy.save / numpy.savez") from None
     except (EOFError, OSError) as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: truncated or damaged NumPy file ({msg}); save it again") from None
+        raise FormatError(f"{path}: truncated or damaged NumPy file ({exc_line(exc)}); save it again") from None
 
 
 def _from_structured(path: Path, arr: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -63,7 +64,8 @@ def read(path: Path) -> list[Scan]:
             files = {k: obj[k] for k in obj.files}
         if "metadata" in files and files["metadata"].ndim == 0:
             try:
-                meta = json.loads(str(files.pop("metadata")))
+                loaded = json.loads(str(files.pop("metadata")))
+                meta = loaded if isinstance(loaded, dict) else {}
             except ValueError:
                 meta = {}
         if "points" in files:
@@ -80,6 +82,10 @@ def read(path: Path) -> list[Scan]:
         n = pts.shape[0]
         attrs = {k: v for k, v in files.items() if v.ndim >= 1 and v.shape[0] == n}
     meta.setdefault("npy_layout", "structured" if attrs else "plain")
+    if path.suffix.lower() == ".npy":
+        set_crs(meta, read_sidecar(path), "file")
+    elif meta.get(KEY_WKT):
+        set_crs(meta, to_wkt(meta[KEY_WKT], what=f"{path} metadata"), "file")
     return [Scan(points=np.ascontiguousarray(pts), attributes=attrs, name=path.stem, source=str(path),
                  reader="npy", metadata=meta)]
 
@@ -89,7 +95,7 @@ def _check_numeric(path: Path, arr: np.ndarray) -> None:
         raise FormatError(f"{path}: coordinates have dtype {arr.dtype}; expected numbers")
 
 
-def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> None:
+def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> list[str]:
     if path.suffix.lower() == ".npz":
         arrays: dict[str, Any] = {"points": points}
         arrays.update(attributes)
@@ -97,7 +103,7 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
             arrays["metadata"] = np.array(json.dumps(metadata, default=str))
         with open(path, "wb") as f:
             np.savez(f, **arrays)
-        return
+        return []
     if not attributes:
         arr: np.ndarray = np.ascontiguousarray(points, dtype=np.float64)
     else:
@@ -112,3 +118,4 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
             arr[n] = a
     with open(path, "wb") as f:
         np.save(f, arr, allow_pickle=False)
+    return []

@@ -10,33 +10,113 @@ from __future__ import annotations
 
 import io
 import itertools
+import json
 import logging
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import FormatError
+from ._files import exc_line
 from .base import Scan
 
 log = logging.getLogger(__name__)
 
 _XYZ = ("x", "y", "z")
+#: a header comment carrying the CRS as WKT on one line (``crs_json`` + a JSON string when the
+#: WKT has non-ASCII characters, which PLY headers cannot hold)
+CRS_COMMENT = "crs "
+CRS_JSON_COMMENT = "crs_json "
 
 
-def _parse_header(f: Any, path: Path) -> Any:
+def crs_comment(wkt: str) -> str:
+    return CRS_COMMENT + wkt if wkt.isascii() else CRS_JSON_COMMENT + json.dumps(wkt)
+
+
+def _comment_crs(comments: list[str]) -> str | None:
+    for c in comments:
+        if c.startswith(CRS_COMMENT):
+            return c[len(CRS_COMMENT):]
+        if c.startswith(CRS_JSON_COMMENT):
+            try:
+                value = json.loads(c[len(CRS_JSON_COMMENT):])
+            except ValueError:
+                return None
+            return value if isinstance(value, str) else None
+    return None
+
+
+def _is_crs_comment(c: str) -> bool:
+    return c.startswith((CRS_COMMENT, CRS_JSON_COMMENT))
+
+
+#: longest header line read whole; longer comment/obj_info lines are cut to this many bytes
+LINE_CAP = 4096
+#: total bytes of comment/obj_info text kept from one header (the rest is dropped, with a note)
+COMMENTS_CAP = 65536
+
+
+def _header_bytes(f: Any, path: Path, notes: list[str]) -> bytes:
+    """The header up to ``end_header`` with comment/obj_info text capped (:data:`LINE_CAP` bytes a
+    line, :data:`COMMENTS_CAP` in all), read line by line with a bounded line length; ``f`` is
+    left at the first body byte. A 50 MB comment is skipped in chunks instead of being parsed."""
+    out: list[bytes] = []
+    kept = 0
+    dropped = 0
+    first = True
+    while True:
+        line = f.readline(LINE_CAP + 1)
+        if not line:
+            raise FormatError(f"{path}: not a valid PLY header (no end_header line); check that it is a PLY file")
+        long_line = len(line) > LINE_CAP and not line.endswith(b"\n")
+        if first:
+            first = False
+            if line.strip() != b"ply":
+                raise FormatError(f"{path}: not a valid PLY header (the file does not start with 'ply'); "
+                                  "check that it is a PLY file")
+        word = line.split(None, 1)[0] if line.strip() else b""
+        if word in (b"comment", b"obj_info"):
+            total = len(line)
+            if long_line:
+                line = line[:LINE_CAP]
+                while True:  # skip the rest of the line
+                    chunk = f.readline(1 << 20)
+                    total += len(chunk)
+                    if not chunk or chunk.endswith(b"\n"):
+                        break
+            text = line.rstrip(b"\r\n")
+            if kept + len(text) > COMMENTS_CAP:
+                dropped += total
+                continue
+            if long_line:
+                dropped += total - len(text)
+            kept += len(text)
+            out.append(text + b"\n")
+            continue
+        if long_line:
+            raise FormatError(f"{path}: not a valid PLY header (a header line is longer than {LINE_CAP} bytes); "
+                              "check that it is a PLY file")
+        out.append(line)
+        if line.strip() == b"end_header":
+            break
+    if dropped:
+        notes.append(f"PLY header comments cut: at most {LINE_CAP:,} bytes a line and {COMMENTS_CAP // 1024} KiB "
+                     f"in all are kept; {dropped:,} bytes of comment text were not kept")
+    return b"".join(out)
+
+
+def _parse_header(f: Any, path: Path, notes: list[str] | None = None) -> Any:
     from plyfile import PlyData, PlyParseError
 
+    head = _header_bytes(f, path, notes if notes is not None else [])
     try:
-        return PlyData._parse_header(f)
+        return PlyData._parse_header(io.BytesIO(head))
     except PlyParseError as exc:
-        raise FormatError(f"{path}: not a valid PLY header ({_one_line(exc)}); check that it is a PLY file") from None
+        raise FormatError(f"{path}: not a valid PLY header ({exc_line(exc)}); check that it is a PLY file") from None
     except (UnicodeDecodeError, ValueError) as exc:
-        raise FormatError(f"{path}: not a valid PLY header ({_one_line(exc)}); check that it is a PLY file") from None
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
+        raise FormatError(f"{path}: not a valid PLY header ({exc_line(exc)}); check that it is a PLY file") from None
 
 
 def _has_lists(element: Any) -> bool:
@@ -45,23 +125,35 @@ def _has_lists(element: Any) -> bool:
     return any(isinstance(p, PlyListProperty) for p in element.properties)
 
 
-def _metadata(header: Any, vertex: Any) -> dict[str, Any]:
+def _metadata(header: Any, vertex: Any, notes: list[str]) -> dict[str, Any]:
+    from .crs import KEY_WKT, set_crs, to_wkt
+
     fmt = "ascii" if header.text else {"<": "binary_little_endian", ">": "binary_big_endian"}.get(
         header.byte_order, "binary_little_endian"
     )
-    return {
+    comments = [c for c in header.comments if not _is_crs_comment(c)]
+    meta: dict[str, Any] = {
         "ply_format": fmt,
-        "comments": list(header.comments),
+        "comments": comments,
         "obj_info": list(header.obj_info),
         "elements": {e.name: int(e.count) for e in header.elements},
         "vertex_properties": {p.name: str(np.dtype(p.val_dtype).str.lstrip("<>=|")) for p in vertex.properties},
     }
+    crs = _comment_crs(header.comments)
+    if crs:
+        set_crs(meta, to_wkt(crs, what="PLY comment crs"), "file")
+    else:
+        meta[KEY_WKT] = None
+    if notes:
+        meta["read_notes"] = list(notes)
+    return meta
 
 
 def read(path: Path) -> list[Scan]:
     size = path.stat().st_size
+    notes: list[str] = []
     with open(path, "rb") as f:
-        header = _parse_header(f, path)
+        header = _parse_header(f, path, notes)
         body_start = f.tell()
         names = [e.name for e in header.elements]
         if "vertex" not in names:
@@ -81,9 +173,46 @@ def read(path: Path) -> list[Scan]:
             data = _read_ascii(f, path, size, body_start, before, vertex, count)
         else:
             data = _read_binary(f, path, size, body_start, before, vertex, count, header.byte_order)
-    if data is None:  # a layout the fast paths do not handle: let plyfile read everything
-        data = _read_plyfile(path)
-    return [_to_scan(path, data, _metadata(header, vertex))]
+        if data is None:  # a layout the fast paths do not handle: let plyfile read up to the vertices
+            f.seek(body_start)
+            data = _read_plyfile(f, path, header, vi)
+    if not header.text:
+        _check_byte_order(path, data, header.byte_order)
+    scan = _to_scan(path, data, notes)
+    scan.metadata = _metadata(header, vertex, notes)
+    for n in notes:
+        log.warning("%s: %s", path, n)
+    return [scan]
+
+
+_ORDER_NAMES = {"<": "binary_little_endian", ">": "binary_big_endian", "=": "binary_little_endian"}
+
+
+def _bad_values(a: np.ndarray) -> int:
+    with np.errstate(invalid="ignore", over="ignore"):
+        m = np.abs(a.astype(np.float64))
+        return int((~np.isfinite(m) | (m > 1e15) | ((m > 0) & (m < 1e-30))).sum())
+
+
+def _check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
+    """Refuse a binary PLY whose float coordinates read as garbage in the declared byte order but
+    as ordinary numbers in the other one: its header names the wrong byte order."""
+    fields = [c for c in _XYZ if data.dtype[c].kind == "f"]
+    if not fields or data.shape[0] == 0:
+        return
+    sample = data[: min(data.shape[0], 10000)]
+    bad = sum(_bad_values(sample[c]) for c in fields)
+    if bad * 100 <= sample.shape[0] * len(fields):  # at most 1 % odd values: plausibly fine
+        return
+    swapped = sum(_bad_values(sample[c].byteswap()) for c in fields)
+    if swapped == 0:
+        declared = _ORDER_NAMES.get(byte_order, byte_order)
+        other = "binary_big_endian" if declared == "binary_little_endian" else "binary_little_endian"
+        raise FormatError(
+            f"{path}: the header says {declared} but the vertex data is {other} ({bad} of "
+            f"{sample.shape[0] * len(fields)} coordinates read as NaN, inf or absurd magnitudes, none the "
+            f"other way); fix the header line to 'format {other} 1.0'"
+        )
 
 
 def _read_binary(f, path, size, body_start, before, vertex, count, byte_order):
@@ -135,30 +264,72 @@ def _read_ascii(f, path, size, body_start, before, vertex, count):
     try:
         table = np.loadtxt(io.BytesIO(b"".join(lines)), dtype=np.float64, ndmin=2, comments=None)
     except ValueError as exc:
-        raise FormatError(f"{path}: malformed PLY vertex line ({_one_line(exc)}); re-export the scan") from None
+        raise FormatError(f"{path}: malformed PLY vertex line ({exc_line(exc)}); re-export the scan") from None
     if table.shape != (count, nprops):
         raise FormatError(
             f"{path}: PLY vertex lines hold {table.shape[1]} values each, the header declares {nprops}; re-export the scan"
         )
     out = np.empty(count, dtype=vertex.dtype("="))
     for j, p in enumerate(vertex.properties):
-        out[p.name] = table[:, j]
+        out[p.name] = _fit(path, p.name, table[:, j], out.dtype[p.name])
     return out
 
 
-def _read_plyfile(path: Path) -> np.ndarray:
-    from plyfile import PlyData, PlyParseError
+def _fit(path: Path, name: str, col: np.ndarray, dt: np.dtype) -> np.ndarray:
+    """``col`` cast to the property's type; a value the type cannot hold (a float beyond float32,
+    a fraction, negative or too large a number for an integer type) is an error, never a silent
+    inf or wrapped integer."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        cast = col.astype(dt)
+    if dt.kind == "f":
+        bad = np.isfinite(col) & ~np.isfinite(cast)
+    else:
+        info = np.iinfo(dt)
+        bad = ~((col >= info.min) & (col <= info.max) & (col == np.floor(col)))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise FormatError(
+            f"{path}: PLY vertex {i} has {name} = {float(col[i])!r}, which its type {dt.name} cannot "
+            "hold; re-export the scan"
+        )
+    return cast
 
+
+def _read_plyfile(f: Any, path: Path, header: Any, vi: int) -> np.ndarray:
+    """Read the elements up to the vertices with plyfile (list properties, ascii lists)."""
+    from plyfile import PlyParseError
+
+    stream = io.TextIOWrapper(f, "ascii") if header.text else f
     try:
-        ply = PlyData.read(str(path), mmap=False)
-        return np.asarray(ply["vertex"].data)
+        with warnings.catch_warnings():  # numpy's note on every empty ascii list ("no data")
+            warnings.filterwarnings("ignore", message="loadtxt: input contained no data", category=UserWarning)
+            for e in header.elements[: vi + 1]:
+                e._read(stream, header.text, header.byte_order, False, known_list_len={})
+        return np.asarray(header.elements[vi].data)
     except PlyParseError as exc:
-        raise FormatError(f"{path}: malformed PLY body ({_one_line(exc)}); re-export the scan") from None
-    except (ValueError, EOFError, MemoryError) as exc:
-        raise FormatError(f"{path}: malformed PLY body ({_one_line(exc)}); re-export the scan") from None
+        raise FormatError(f"{path}: malformed PLY body ({exc_line(exc)}); re-export the scan") from None
+    except (ValueError, EOFError, MemoryError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: malformed PLY body ({exc_line(exc)}); re-export the scan") from None
+    finally:
+        if header.text:
+            stream.detach()
 
 
-def _to_scan(path: Path, data: np.ndarray, metadata: dict[str, Any]) -> Scan:
+def _list_column(name: str, col: np.ndarray, notes: list[str]) -> np.ndarray | None:
+    """A list property as an (N, k) attribute when every vertex has k values (k >= 1); None
+    (skipped, with a note) when the lengths differ or every list is empty."""
+    lengths = np.fromiter((len(v) for v in col), dtype=np.int64, count=col.shape[0])
+    k = int(lengths[0]) if lengths.size else 0
+    if lengths.size and k > 0 and np.all(lengths == k):
+        return np.ascontiguousarray(np.stack([np.asarray(v) for v in col]))
+    if lengths.size:
+        notes.append(f"list property {name!r} skipped: its lists have {int(lengths.min())} to "
+                     f"{int(lengths.max())} values (only lists of one fixed, non-zero length are kept, "
+                     "as an (N, k) attribute)")
+    return None
+
+
+def _to_scan(path: Path, data: np.ndarray, notes: list[str]) -> Scan:
     pts = np.empty((data.shape[0], 3), dtype=np.float64)
     for j, c in enumerate(_XYZ):
         pts[:, j] = data[c]
@@ -167,11 +338,13 @@ def _to_scan(path: Path, data: np.ndarray, metadata: dict[str, Any]) -> Scan:
         if name in _XYZ:
             continue
         col = data[name]
-        if col.dtype == object:  # a list property: keep as an object array of per-vertex arrays
-            attrs[name] = col.copy()
+        if col.dtype == object:  # a list property
+            arr = _list_column(name, col, notes)
+            if arr is not None:
+                attrs[name] = arr.astype(arr.dtype.newbyteorder("="), copy=False)
         else:
             attrs[name] = np.ascontiguousarray(col, dtype=col.dtype.newbyteorder("="))
-    return Scan(points=pts, attributes=attrs, name=path.stem, source=str(path), reader="ply", metadata=metadata)
+    return Scan(points=pts, attributes=attrs, name=path.stem, source=str(path), reader="ply")
 
 
 # ---------------------------------------------------------------------------------------- writer
@@ -210,8 +383,9 @@ def _coord_dtype(points: np.ndarray, metadata: dict[str, Any] | None) -> np.dtyp
     return np.dtype("f8")
 
 
-def columns(attributes: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
-    """Flatten attributes to 1-D columns: an (N, k) attribute becomes ``name_0`` ... ``name_{k-1}``."""
+def columns(attributes: dict[str, np.ndarray], notes: list[str] | None = None) -> list[tuple[str, np.ndarray]]:
+    """Flatten attributes to 1-D columns: an (N, k) attribute becomes ``name_0`` ... ``name_{k-1}``
+    (noted in ``notes`` when given)."""
     out: list[tuple[str, np.ndarray]] = []
     for name, arr in attributes.items():
         a = np.asarray(arr)
@@ -220,24 +394,75 @@ def columns(attributes: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray]]:
         else:
             flat = a.reshape(a.shape[0], -1)
             out.extend((f"{name}_{j}", flat[:, j]) for j in range(flat.shape[1]))
+            if notes is not None:
+                notes.append(f"{name}: {flat.shape[1]} values per point written as {name}_0 .. {name}_{flat.shape[1] - 1}")
     return out
 
 
-def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> None:
+#: PLY property order after x, y, z: normals, colours, then the rest in their given order
+STANDARD_ORDER = ("nx", "ny", "nz", "red", "green", "blue", "alpha")
+_COLOUR_NAMES = ("red", "green", "blue", "alpha")
+
+
+def ordered_columns(attributes: dict[str, np.ndarray], notes: list[str] | None = None) -> list[tuple[str, np.ndarray]]:
+    """:func:`columns` with nx ny nz, red green blue alpha first (those present), then the rest."""
+    cols = columns(attributes, notes)
+    rank = {n: i for i, n in enumerate(STANDARD_ORDER)}
+    first = sorted((c for c in cols if c[0] in rank), key=lambda c: rank[c[0]])
+    return first + [c for c in cols if c[0] not in rank]
+
+
+def colour_column(name: str, a: np.ndarray, depth: int, notes: list[str]) -> np.ndarray:
+    """A colour column as uchar (``depth`` 8) or ushort (16). 8-bit -> 16-bit multiplies by 257;
+    16-bit values all <= 255 (8-bit colours in 16-bit fields, common in LAS) cast unchanged;
+    other 16-bit values divide by 257 (rounded, noted). Non-integer colours are left alone."""
+    if a.dtype.kind not in "iub":
+        return a
+    hi = int(a.max()) if a.size else 0
+    lo = int(a.min()) if a.size else 0
+    if depth == 16:
+        if a.dtype.itemsize == 1 and a.dtype.kind in "ub":
+            notes.append(f"{name}: 8-bit values scaled x 257 to 16 bit")
+            return a.astype(np.uint16) * np.uint16(257)
+        if lo >= 0 and hi <= 65535:
+            return a.astype(np.uint16)
+        return a
+    if lo >= 0 and hi <= 255:
+        return a.astype(np.uint8)
+    if lo >= 0 and hi <= 65535:
+        notes.append(f"{name}: 16-bit values divided by 257 to uchar (use colour depth 16 to keep them)")
+        return np.rint(a.astype(np.float64) / 257.0).astype(np.uint8)
+    return a
+
+
+def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> list[str]:
+    """Binary little-endian PLY: x y z, nx ny nz, red green blue alpha, then the other attributes;
+    colours uchar by default (``metadata["write_colour_depth"] = 16`` keeps 16 bit); the CRS as a
+    ``comment crs <WKT>`` line. Returns the notes of what was changed."""
     from plyfile import PlyData, PlyElement
 
+    meta = metadata or {}
+    notes: list[str] = []
+    depth = int(meta.get("write_colour_depth") or 8)
     cdt = _coord_dtype(points, metadata)
-    cols = columns(attributes)
+    cols = [(n, colour_column(n, np.asarray(a), depth, notes) if n in _COLOUR_NAMES else a)
+            for n, a in ordered_columns(attributes, notes)]
     fields = [(c, cdt) for c in _XYZ] + [(n, _ply_dtype(a, n)) for n, a in cols]
     data = np.empty(points.shape[0], dtype=fields)
     for j, c in enumerate(_XYZ):
         data[c] = points[:, j]
     for n, a in cols:
         data[n] = a
+        if np.asarray(a).dtype.kind == "i" and data.dtype[n].kind == "f" and np.asarray(a).dtype.itemsize == 8:
+            notes.append(f"{n}: int64 values beyond 32 bits written as float64 (PLY has no 64-bit integers)")
     comments = ["written by lodbuilder"]
-    for c in (metadata or {}).get("comments", []) or []:
-        if isinstance(c, str) and "\n" not in c and c not in comments:
+    for c in meta.get("comments", []) or []:
+        if isinstance(c, str) and "\n" not in c and c not in comments and not _is_crs_comment(c) and c.isascii():
             comments.append(c)
+    wkt = meta.get("crs_wkt")
+    if wkt:
+        comments.append(crs_comment(str(wkt)))
     el = PlyElement.describe(data, "vertex")
     with open(path, "wb") as f:
         PlyData([el], text=False, byte_order="<", comments=comments).write(f)
+    return notes

@@ -2,9 +2,13 @@
 
 A format module ``lodbuilder.io.<name>`` defines ``read(path: Path) -> list[Scan]`` (one Scan per scan
 in the file; the points already in world coordinates) and, when it can write,
-``write(path: Path, points, attributes, metadata) -> None`` (``path`` is a temporary file that the
-caller renames into place). Modules are imported only when a file of their kind is used, so optional
-dependencies (laspy, pye57) are needed only for their formats.
+``write(path: Path, points, attributes, metadata) -> list[str] | None`` (``path`` is a temporary
+file that the caller renames into place; the list holds one line per change the format forced,
+which the caller logs as warnings; ``metadata["crs_wkt"]`` is the CRS to write), and optionally
+``check_output(path: Path) -> None``, which :func:`writer_for` calls with the real output path to
+refuse what the module cannot write (a missing library) before any work. Modules are imported
+only when a file of their kind is used, so optional dependencies (laspy, pye57) are needed only
+for their formats.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ READERS: dict[str, str] = {
 WRITERS: dict[str, str] = {
     ".ply": "ply",
     ".las": "las",
-    ".laz": "las",
+    ".laz": "las",  # not .copc.laz: see writer_for
     ".npy": "npy",
     ".npz": "npy",
     ".csv": "text",
@@ -79,5 +83,19 @@ def reader_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
 
 
 def writer_for(path: str | os.PathLike[str]) -> tuple[str, ModuleType]:
-    """(format name, module) that writes ``path``, or UnsupportedFormatError."""
-    return _lookup(path, WRITERS, "cannot write", "known output suffixes")
+    """(format name, module) that writes ``path``, or UnsupportedFormatError (or the error of
+    the module's ``check_output``, e.g. MissingDependencyError).
+
+    A ``.copc.laz`` name is refused: a COPC file is an octree of levels that only
+    ``lodbuilder export`` (:func:`lodbuilder.export.copc.export_copc`) writes; the LAS writer
+    would put a plain LAZ under that name."""
+    if Path(path).name.lower().endswith(".copc.laz"):
+        raise UnsupportedFormatError(
+            f"{path}: cannot write a COPC file (only plain LAS/LAZ); use lodbuilder export ARCHIVE "
+            f"-o {path} (in Python: lodbuilder.export.copc.export_copc)"
+        )
+    fmt, module = _lookup(path, WRITERS, "cannot write", "known output suffixes")
+    check = getattr(module, "check_output", None)
+    if check is not None:
+        check(Path(path))
+    return fmt, module

@@ -82,14 +82,29 @@ def streams(path: str | os.PathLike[str]) -> bool:
         return False
 
 
-def open_stream(path: str | os.PathLike[str], *, scan_index: int | None = None) -> PointStream:
+def open_stream(path: str | os.PathLike[str], *, scan_index: int | None = None, crs: str | None = None,
+                crs_override: bool = False) -> PointStream:
     """Open a scan file for chunked reading; ``scan_index`` picks one scan of a multi-scan E57.
-    A format that does not stream is read whole here (see the module docstring)."""
+    A format that does not stream is read whole here (see the module docstring). ``crs`` and
+    ``crs_override`` as for :func:`lodbuilder.io.read_scans`."""
     from ._files import check_input_file
 
     p = check_input_file(path)
     s = _streaming(p) if scan_index is None else None
-    return s if s is not None else _whole_stream(p, scan_index)
+    if s is None:
+        return _whole_stream(p, scan_index, crs, crs_override)
+    _finish_metadata(s, crs, crs_override)
+    return s
+
+
+def _finish_metadata(s: PointStream, crs: str | None, crs_override: bool) -> None:
+    """What :func:`lodbuilder.io.read_scans` adds to every reader's metadata: the CRS key, and
+    the CRS given by the caller."""
+    from .crs import KEY_WKT, assign_crs
+
+    s.metadata.setdefault(KEY_WKT, None)
+    if crs is not None:
+        assign_crs(s.metadata, crs, override=crs_override, what=str(s.path))
 
 
 def peek_stream(path: str | os.PathLike[str]) -> PointStream | None:
@@ -130,18 +145,25 @@ def scan_stream(scan: Scan, path: Path | None = None) -> PointStream:
                        dict(scan.metadata), _scan_fields(scan), False, it)
 
 
-def _whole_stream(p: Path, scan_index: int | None) -> PointStream:
+def _whole_stream(p: Path, scan_index: int | None, crs: str | None = None, crs_override: bool = False) -> PointStream:
     from .api import read_scan, read_scans
 
-    scan = read_scan(p) if scan_index is None else read_scans(p)[scan_index]
+    if scan_index is None:
+        scan = read_scan(p, crs=crs, crs_override=crs_override)
+    else:
+        scan = read_scans(p, crs=crs, crs_override=crs_override)[scan_index]
     return scan_stream(scan, p)
 
 
 # ------------------------------------------------------------------------------------ LAS/LAZ
 
-def las_metadata(hdr: Any, point_format: Any, path: Path) -> dict[str, Any]:
-    """The format metadata of a LAS/LAZ file from its header (the same dict as
-    :func:`lodbuilder.io.las.read` stores; a test keeps the two equal)."""
+def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
+    """The format metadata of a LAS/LAZ file from its header, and the renaming of the extra
+    dimensions lodbuilder wrote for exact standard fields: the same as :func:`lodbuilder.io.las.read`
+    gives (a test keeps the two equal; the pieces it can share it calls)."""
+    from .crs import set_crs
+    from .las import EXACT_PREFIX, _file_crs
+
     wkt = None
     crs_vlrs = []
     for vlr in list(hdr.vlrs) + list(hdr.evlrs or []):
@@ -156,27 +178,42 @@ def las_metadata(hdr: Any, point_format: Any, path: Path) -> dict[str, Any]:
                 "data_b64": base64.b64encode(bytes(data)).decode("ascii"),
             })
     extra = []
+    rename: dict[str, str] = {}
     for d in point_format.extra_dimensions:
+        desc = str(d.description or "")
+        if desc.startswith(EXACT_PREFIX):
+            rename[d.name] = desc[len(EXACT_PREFIX):]
+            continue
         extra.append({
             "name": d.name,
             "type": np.dtype(d.dtype).str.lstrip("<>=|") if d.num_elements == 1
             else f"{d.num_elements}{np.dtype(d.dtype).base.str.lstrip('<>=|')}",
-            "description": str(d.description or ""),
+            "description": desc,
             "scales": None if d.scales is None else [float(s) for s in np.atleast_1d(d.scales)],
             "offsets": None if d.offsets is None else [float(s) for s in np.atleast_1d(d.offsets)],
         })
-    return {
+    meta: dict[str, Any] = {
         "las_version": str(hdr.version),
         "las_point_format": int(hdr.point_format.id),
         "las_scales": [float(s) for s in hdr.scales],
         "las_offsets": [float(s) for s in hdr.offsets],
         "las_crs_wkt": wkt,
         "las_crs_vlrs": crs_vlrs,
+        "las_wkt_bit": bool(hdr.global_encoding.wkt),
         "las_extra_dims": extra,
         "las_system_identifier": str(hdr.system_identifier),
         "las_generating_software": str(hdr.generating_software),
         "las_compressed": path.suffix.lower() == ".laz",
     }
+    set_crs(meta, _file_crs(hdr), "file")
+    return meta, rename
+
+
+def _foreign_error(p: Path, exc: BaseException) -> FormatError:
+    """A parser library's own error, worded as :func:`lodbuilder.io.read_scans` words it."""
+    from ._files import exc_line
+
+    return FormatError(f"{p}: cannot be read as LAS ({exc_line(exc)}); check or re-export the file")
 
 
 def _las_error(p: Path, exc: BaseException) -> FormatError:
@@ -185,34 +222,44 @@ def _las_error(p: Path, exc: BaseException) -> FormatError:
 
 
 def _las_stream(p: Path) -> PointStream:
-    from .las import _check_laz_backend, _laspy
+    from .las import _check_chunk_table, _check_laz_backend, _check_vlr_counts, _laspy, _quiet_laspy
 
     laspy = _laspy(p)
     _check_laz_backend(laspy, p)
     try:
-        with laspy.open(str(p)) as reader:
+        _check_vlr_counts(p)
+        if p.suffix.lower() == ".laz":
+            _check_chunk_table(laspy, p)
+        with _quiet_laspy(), laspy.open(str(p)) as reader:
             hdr = reader.header
             n = int(hdr.point_count)
-            meta = las_metadata(hdr, hdr.point_format, p)
+            meta, rename = las_metadata(hdr, hdr.point_format, p)
             dims = [d for d in hdr.point_format.dimension_names if d not in ("X", "Y", "Z")]
             probe = reader.read_points(1) if n else None
     except laspy.errors.LaspyException as exc:
         raise _las_error(p, exc) from None
     except OSError as exc:
         raise ScanFileError(f"{p}: cannot be read ({' '.join(str(exc).split())}); check the file") from None
-    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}
-    if probe is not None:
-        for d in dims:
-            a = np.asarray(probe[d])
-            fields[d] = (a.dtype, tuple(a.shape[1:]))
+    except LodbuilderError:
+        raise
+    except Exception as exc:  # lazrs' own errors on a damaged file: the reader's message
+        raise _foreign_error(p, exc) from None
     if n == 0:
         raise FormatError(f"{p}: holds no points; a scan needs at least one point")
+    names = {d: rename.get(d, d) for d in dims}
+    # read() keeps the standard field's place in its dict when an exact copy replaces it
+    order = [d for d in dims if d not in rename] + [d for d in dims if d in rename]
+    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}
+    if probe is not None:
+        for d in order:
+            a = np.asarray(probe[d])
+            fields[names[d]] = (a.dtype, tuple(a.shape[1:]))
     name = p.name[: -len(".copc.laz")] if p.name.lower().endswith(".copc.laz") else p.stem
 
     def it(size: int) -> Iterator[Chunk]:
         start = 0
         try:
-            with laspy.open(str(p)) as reader:
+            with _quiet_laspy(), laspy.open(str(p)) as reader:
                 for rec in reader.chunk_iterator(size):
                     m = len(rec)
                     if m == 0:
@@ -221,12 +268,16 @@ def _las_stream(p: Path) -> PointStream:
                     pts[:, 0] = rec.x
                     pts[:, 1] = rec.y
                     pts[:, 2] = rec.z
-                    attrs = {d: np.ascontiguousarray(np.asarray(rec[d])) for d in dims}
+                    attrs = {names[d]: np.ascontiguousarray(np.asarray(rec[d])) for d in order}
                     _check_finite(p, pts, start)
                     yield Chunk(start, pts, attrs)
                     start += m
         except laspy.errors.LaspyException as exc:
             raise _las_error(p, exc) from None
+        except LodbuilderError:
+            raise
+        except Exception as exc:
+            raise _foreign_error(p, exc) from None
         if start != n:
             raise FormatError(f"{p}: the header declares {n} points but the file holds {start}; re-export it")
 
@@ -249,8 +300,9 @@ def _ply_stream(p: Path) -> PointStream | None:
     from .ply import _XYZ, _check_size, _has_lists, _metadata, _parse_header
 
     size = p.stat().st_size
+    notes: list[str] = []
     with open(p, "rb") as f:
-        header = _parse_header(f, p)
+        header = _parse_header(f, p, notes)
         body_start = f.tell()
     if header.text:
         return None
@@ -294,7 +346,7 @@ def _ply_stream(p: Path) -> PointStream | None:
                 yield Chunk(start, pts, attrs)
                 start += m
 
-    return PointStream(p, p.stem, "ply", count, _metadata(header, vertex), fields, True, it)
+    return PointStream(p, p.stem, "ply", count, _metadata(header, vertex, notes), fields, True, it)
 
 
 # ------------------------------------------------------------------------------------ NPY
@@ -336,4 +388,8 @@ def _npy_stream(p: Path) -> PointStream | None:
             with contextlib.suppress(AttributeError):
                 a._mmap.close()
 
-    return PointStream(p, p.stem, "npy", n, {"npy_layout": layout}, fields, True, it)
+    from .crs import read_sidecar, set_crs
+
+    meta: dict[str, Any] = {"npy_layout": layout}
+    set_crs(meta, read_sidecar(p), "file")  # as lodbuilder.io.npy.read: a .prj sidecar
+    return PointStream(p, p.stem, "npy", n, meta, fields, True, it)

@@ -7,8 +7,9 @@ header the columns are named by convention: 3 -> x y z; 4 -> + intensity; 6 -> +
 all three are integers in 0..255, else + nx ny nz; 7 -> + intensity red green blue (the Leica PTS
 layout); otherwise ``col3``, ``col4``, ... A leading line holding a single integer (the PTS point
 count) is skipped. Lines starting with ``#`` are comments; a ``# dtypes: f8,f8,f8,u1,...`` comment
-(written by the writer) restores each column's dtype exactly; otherwise integer-valued columns named
-red/green/blue become uint8 (or uint16 when > 255) and every other column stays float64.
+(written by lodbuilder before 0.2) restores each column's dtype; otherwise integer-valued columns
+named red/green/blue become uint8 (or uint16 when > 255) and every other column stays float64.
+The CRS is read from a ``<file>.prj`` sidecar (WKT) when there is one.
 """
 
 from __future__ import annotations
@@ -21,7 +22,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ._files import exc_line
 from .base import Scan
+from .crs import read_sidecar, set_crs
 
 _NUM = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
 
@@ -69,8 +72,7 @@ def read(path: Path) -> list[Scan]:
     try:
         table = np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip, comments="#", ndmin=2)
     except ValueError as exc:
-        msg = " ".join(str(exc).split())
-        raise FormatError(f"{path}: malformed line in text scan ({msg}); every line needs the same number of values") from None
+        raise FormatError(f"{path}: malformed line in text scan ({exc_line(exc)}); every line needs the same number of values") from None
     ncol = table.shape[1]
     names = _column_names(path, header, ncol, table)
     lower = [n.lower() for n in names]
@@ -94,7 +96,8 @@ def read(path: Path) -> list[Scan]:
             attrs[n] = col.astype(np.uint8 if col.max() <= 255 else np.uint16)
         else:
             attrs[n] = col
-    meta = {"columns": names, "delimiter": delim or " ", "header": header is not None}
+    meta: dict[str, Any] = {"columns": names, "delimiter": delim or " ", "header": header is not None}
+    set_crs(meta, read_sidecar(path), "file")
     return [Scan(points=pts, attributes=attrs, name=path.stem, source=str(path), reader="text", metadata=meta)]
 
 
@@ -120,30 +123,41 @@ def _column_names(path: Path, header: list[str] | None, ncol: int, table: np.nda
     return base + [f"col{j}" for j in range(3, ncol)]
 
 
-def _fmt(dt: np.dtype) -> str:
-    return "%d" if dt.kind in "iub" else "%.17g"
+def _text(a: np.ndarray) -> np.ndarray:
+    """Each value as the shortest text that reads back to the same value of its dtype (integers
+    as integers; float32 as float32, e.g. ``0.1`` not ``0.10000000149011612``)."""
+    if a.dtype == np.bool_:
+        return a.astype(np.uint8).astype(str)
+    if a.dtype.kind in "iu":
+        return a.astype(str)
+    if a.dtype.kind == "f" and a.dtype.itemsize < 4:
+        a = a.astype(np.float32)
+    elif a.dtype.kind == "f" and a.dtype.itemsize > 8:
+        a = a.astype(np.float64)
+    return a.astype(str)  # numpy prints the shortest repr that round-trips (Dragon4, unique)
 
 
-def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> None:
-    """A ``# dtypes:`` comment, a header line, then one point per line: commas for .csv, spaces otherwise.
+def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> list[str]:
+    """One header line of names (``x,y,z,...``), then one point per line: commas for .csv, spaces
+    otherwise, nothing before the header. Values keep their source precision: coordinates stored
+    as float32 by the source (``metadata["vertex_properties"]``, as the PLY writer decides) and
+    float32 attributes print as float32, float64 as float64, integers as integers. Text carries
+    no dtypes: reading back gives float64 columns (and uint8 colours) whose values cast back to
+    the source dtype exactly."""
+    from .ply import _coord_dtype, columns
 
-    Floats are written with 17 significant digits, so float64 values survive the round trip exactly.
-    """
-    from .ply import columns
-
-    cols = columns(attributes)
+    notes: list[str] = []
+    cols = columns(attributes, notes)
     names = ["x", "y", "z"] + [n for n, _ in cols]
-    arrays = [points[:, 0], points[:, 1], points[:, 2]] + [np.asarray(a) for _, a in cols]
-    dts = [np.dtype("i8") if a.dtype.kind in "iub" else np.dtype("f8") for a in arrays]
+    cdt = _coord_dtype(points, metadata)
+    coords = points.astype(cdt, copy=False)
+    arrays = [coords[:, 0], coords[:, 1], coords[:, 2]] + [np.asarray(a) for _, a in cols]
     sep = "," if path.suffix.lower() == ".csv" else " "
-    fmt = sep.join(_fmt(d) for d in dts)
     n = points.shape[0]
     with open(path, "w", encoding="utf-8", newline="\n") as f:
-        f.write(f"# dtypes: {','.join(a.dtype.str.lstrip('<>=|') for a in arrays)}\n")
         f.write(sep.join(names) + "\n")
         step = 100_000
         for s in range(0, n, step):
-            rows = np.empty(min(step, n - s), dtype=[(f"c{j}", d) for j, d in enumerate(dts)])
-            for j, a in enumerate(arrays):
-                rows[f"c{j}"] = a[s:s + step]
-            np.savetxt(f, rows, fmt=fmt)
+            texts = [_text(a[s:s + step]) for a in arrays]
+            f.write("".join(sep.join(row) + "\n" for row in zip(*texts, strict=True)))
+    return notes

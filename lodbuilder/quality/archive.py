@@ -34,6 +34,7 @@ class ScanEvaluation:
             "scan": self.scan,
             "n_points": self.n_points,
             "ordering": self.ordering,
+            "units": self.units,
             "build": self.build,
             "levels": [r.as_dict() for r in self.reports],
         }

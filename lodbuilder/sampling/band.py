@@ -1,16 +1,38 @@
-"""The offset band: a sparse set of voxels within the band radius r of the points.
+"""The offset band: a sparse set of voxels within the band radius of the points.
 
 Automatic parameters (documented rule):
     s = typical point spacing (median distance to the 6th neighbour x sqrt(pi / 6), which is the
-        spacing of a jittered grid and the mean spacing of random samples), on up to 50,000 points;
+        spacing of a jittered grid and the mean spacing of random samples), on up to 20,000 points;
     voxel size  h = 2 s;
     band radius r = 2.5 h.
-With these, the band is about 2r/h = 5 voxels thick and holds about 1.3 voxels per point; sheets closer
-than about 2r (5 point spacings) are bridged, so pass a smaller ``voxel_size`` for thin structures.
+With these, the band is about 2r/h = 5 voxels thick and holds about 1.3 voxels per point.
+
+Thin structures (automatic parameters only): two pieces of surface closer across a gap than
+2r would be joined by the band (between 2r and 2r + h only by a few voxels at its edge). The local *sheet separation* of every point is measured on the
+cells of the default grid (:mod:`lodbuilder._kernels.sheets`: along the local normal, the nearest
+cell of another sheet at least SEP_GAP_MIN voxels = 3 point spacings away; closer layers count as
+one noisy sheet). Where another sheet is found, the band is one-sided: a voxel whose nearest point
+lies on a thin part is in the band only on that point's side away from the other sheet (up to
+SIDE_TOLERANCE voxels, less where the gap is narrower; farther than 0.4 x the separation from that point, only clearly on the outer
+side, more than 0.2 x the separation, so that a slightly misjudged normal cannot let voxels near the
+middle of a gap in). So no voxel lies in the gap and no gap is bridged whatever h is, and a tight
+fold is measured along its outer side (a little longer than the surface, never a shortcut through
+its inside). If there is a sheet on the outer side too, the radius there is capped at
+0.95 (sep - h) / 2 (never below h). The Euclidean tail never lowers a point from a sample farther
+than 0.9 x their separation (a ball smaller than the gap does not reach the other sheet), nor along a
+chord steeper than 24 degrees (sin 0.4) to either end's sheet (around a tight fold the chord is much shorter
+than the surface); when at least THIN_SHARE % of the scan is thin, the band ordering goes on down
+to 0.9 x the typical separation instead of 2 r, so that the tail's limits hardly ever bind.
+
+Depth cost: the front moves through a voxel at cost 1 + DEPTH_COST * q^2, where q is the voxel's
+depth ratio (distance to the nearest point over that point's band radius, 0 on the points, 1 at the
+band's edge). Without it, paths on a curved surface cut through the inner side of the band, which
+shortens distances by about r / R (R the radius of curvature); with it they stay near the points.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -19,16 +41,29 @@ import numpy as np
 
 from ..errors import InputError, MemoryBudgetError
 
+log = logging.getLogger(__name__)
+
 VOXEL_PER_SPACING = 2.0
 BAND_PER_VOXEL = 2.5
-MIN_BAND_PER_VOXEL = 1.75  # the 8 corners of a point's cell must lie in the band (sqrt(3) ~ 1.732)
-BYTES_PER_VOXEL = 120  # coord 12, nbr 24, cs 8, key 8, hash 24, T 4, label 8, stamp 4, cell 4, cost 4 + slack
-BYTES_PER_POINT = 200
+MIN_BAND_PER_VOXEL = 1.75  # the 8 corners of a point's cell lie in the band (sqrt(3) ~ 1.732)
+DEPTH_COST = 0.2
+TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
+SEP_GAP_MIN = 1.5  # in default voxels (3 point spacings): closer layers count as one sheet
+SEP_CONE = 0.8  # the other sheet's cell lies within acos(0.8) = 37 degrees of the normal
+NORMAL_RADIUS = 0.9  # default voxels (1.8 point spacings): the neighbours that give a cell's normal
+THIN_RADIUS_MIN = 1.0  # voxels: the thinnest band radius
+SIDE_TOLERANCE = 0.15  # voxels: how far on the gap side of its nearest point a voxel may lie
+TAIL_PER_SEP = 0.9  # the tail lowers a point only from samples closer than this x its separation
+TAIL_SLOPE = 0.4  # ... and along chords with |sin| <= this to both ends' sheets (arc/chord <= 1.03)
+THIN_SHARE = 25.0  # percent: when this much of the scan is thin, hand over below 0.9 x separation
+BYTES_PER_VOXEL = 96  # while ordering: keys 8, nbr 24, cs 4, T/vlab/stamp/seen/heap/vcost/cellof 36 + slack
+BYTES_PER_POINT = 120
 MAX_COORD = (1 << 21) - 1
+MAX_POINTS = (1 << 31) - 1  # point and voxel indices are int32
 
 
 def median_spacing(
-    points: np.ndarray, sample: int = 50_000, k: int = 6, subset: int = 500_000
+    points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 500_000
 ) -> float:
     """Typical point spacing: the median distance to the k-th neighbour times sqrt(pi / k).
 
@@ -36,9 +71,11 @@ def median_spacing(
     (like a range scan) or random; the plain nearest-neighbour distance would be half of s for random
     samples. Measured on a deterministic sample of the points; above ``subset`` points the
     neighbours are searched in a random subset of that size and the spacing scaled by
-    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning).
+    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning). The search is
+    exact: points hashed into cells, the cell size doubled until the k-th neighbour of most queries
+    lies within one cell (no k-d tree: scipy.spatial would cost the build process 26 MB).
     """
-    from scipy.spatial import cKDTree
+    from .._kernels.grid import cell_order, grid_coords, kth_neighbour
 
     n = points.shape[0]
     if n < 2:
@@ -49,12 +86,30 @@ def median_spacing(
         points = points[np.sort(rng.choice(n, subset, replace=False))]
         scale = math.sqrt(subset / n)
         n = subset
-    tree = cKDTree(points)
     q = points[rng.choice(n, sample, replace=False)] if n > sample else points
     k = min(k, n - 1)
-    d, _ = tree.query(q, k=k + 1, workers=-1)
-    dk = d[:, k]
-    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale
+    lo = points.min(axis=0)
+    ext = float(np.ptp(points, axis=0).max())
+    if ext <= 0.0:
+        return 0.0
+    c = max(ext / math.sqrt(n), ext * 2.0**-20)  # the spacing of n points filling a square
+    while True:
+        origin = lo - c
+        keys = cell_order(points, origin, c)
+        perm = np.argsort(keys, kind="stable").astype(np.int32)
+        keys = keys[perm]
+        u = grid_coords(points, perm, origin, c)
+        first = np.empty(n, dtype=bool)
+        first[0] = True
+        np.not_equal(keys[1:], keys[:-1], out=first[1:])
+        starts = np.flatnonzero(first)
+        ostart = np.append(starts, n).astype(np.int32)
+        dk, sure = kth_neighbour(u, ostart, keys[starts], (q - origin) / c, k + 1)
+        if sure.mean() >= 0.9 or c >= 4 * ext:
+            break
+        c *= 2.0
+    dk = dk[np.isfinite(dk)] * c
+    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale if dk.size else 0.0
     if s <= 0.0:
         s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
     return s
@@ -93,12 +148,133 @@ def choose_parameters(
 
 
 @dataclass
+class BandPlan:
+    """The band's parameters: voxel size ``h``, largest band radius ``r``; where sheets come close
+    (input order, None when there is no thin part): the band radius, the separation toward the
+    nearer other sheet and the unit normal toward it; the radius below which the ordering is
+    finished with Euclidean distances."""
+
+    h: float
+    r: float
+    radius: np.ndarray | None
+    separation: np.ndarray | None
+    normal: np.ndarray | None
+    handover: float
+
+    @property
+    def thin_points(self) -> int:
+        return 0 if self.separation is None else int(np.isfinite(self.separation).sum())
+
+
+def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
+    the gap to the nearer other sheet within reach (inf where there is none), the same on the
+    opposite side, and the unit normal toward the nearer one (float32; zero where there is none)."""
+    from .._kernels.grid import cell_order, grid_coords
+    from .._kernels.sheets import cell_separation
+
+    n = points.shape[0]
+    origin = points.min(axis=0) - 2 * h
+    ckeys = cell_order(points, origin, h)
+    perm = np.argsort(ckeys, kind="stable").astype(np.int32)
+    ckeys = ckeys[perm]
+    u = grid_coords(points, perm, origin, h)
+    new = np.empty(n, dtype=bool)
+    new[0] = True
+    np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
+    ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
+    del ckeys, new
+    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
+    counts = np.diff(ostart)
+    sep_in = np.empty(n)
+    sep_in[perm] = np.repeat(sin * h, counts)
+    sep_out = np.empty(n)
+    sep_out[perm] = np.repeat(sout * h, counts)
+    normal = np.empty((n, 3), dtype=np.float32)
+    normal[perm] = np.repeat(nrm.astype(np.float32), counts, axis=0)
+    return sep_in, sep_out, normal
+
+
+def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float | None) -> BandPlan:
+    """The band's parameters: the overrides as given, or the automatic rule of this module with a
+    one-sided band where sheets come close."""
+    h, r = choose_parameters(points, voxel_size, band_radius)
+    plain = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+    if voxel_size is not None or band_radius is not None or points.shape[0] < 16:
+        return plain
+    sep_in, sep_out, normal = sheet_separation(points, h, r)
+    if not np.isfinite(sep_in).any():
+        return plain
+    with np.errstate(invalid="ignore"):
+        radius = np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
+    # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
+    typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
+    handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
+    return BandPlan(h, r, radius, sep_in, normal, handover)
+
+
+_M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,
+                               0x10C30C30C30C30C3, 0x1249249249249249)]
+
+
+def _spread(x: np.ndarray) -> np.ndarray:
+    x = x.astype(np.uint64) & _M[0]
+    for shift, mask in zip((32, 16, 8, 4, 2), _M[1:], strict=True):
+        x = (x | (x << np.uint64(shift))) & mask
+    return x
+
+
+def _compact(x: np.ndarray) -> np.ndarray:
+    x = x & _M[5]
+    for shift, mask in zip((2, 4, 8, 16, 32), _M[4::-1], strict=True):
+        x = (x ^ (x >> np.uint64(shift))) & mask
+    return x.astype(np.int64)
+
+
+def morton_np(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Morton keys of non-negative integer coordinates (NumPy; the kernels have their own)."""
+    return (_spread(x) | (_spread(y) << np.uint64(1)) | (_spread(z) << np.uint64(2))).astype(np.int64)
+
+
+def unmorton_np(keys: np.ndarray) -> np.ndarray:
+    """(K, 3) coordinates of Morton keys."""
+    k = keys.astype(np.uint64)
+    return np.stack([_compact(k >> np.uint64(a)) for a in range(3)], axis=1)
+
+
+def block_plan(cell_keys: np.ndarray, reach_voxels: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the band builder: the occupied blocks (keys of BLOCK^3-voxel blocks, sorted) with their
+    ranges of cells (``cell_keys``: the sorted Morton keys of the occupied cells), and the sorted
+    keys of every block within ``reach_voxels`` of an occupied one."""
+    from .._kernels.grid import BLOCK, BLOCK_BITS
+
+    bk = cell_keys >> np.int64(3 * BLOCK_BITS)
+    first = np.empty(bk.shape[0], dtype=bool)
+    first[0] = True
+    np.not_equal(bk[1:], bk[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    bkey = bk[starts]
+    bstart = np.append(starts, bk.shape[0]).astype(np.int32)
+    reach = (int(math.floor(reach_voxels)) + 1 + BLOCK - 1) // BLOCK
+    c = unmorton_np(bkey)
+    off = np.arange(-reach, reach + 1)
+    d = np.stack(np.meshgrid(off, off, off, indexing="ij"), axis=-1).reshape(-1, 3)
+    cand = (c[:, None, :] + d[None, :, :]).reshape(-1, 3)
+    cand = cand[(cand >= 0).all(axis=1)]
+    return bkey, bstart, np.unique(morton_np(cand[:, 0], cand[:, 1], cand[:, 2]))
+
+
+@dataclass
 class Band:
     """A sparse voxel band around points sorted by cell.
 
     ``u``: (M, 3) grid coordinates of the points in cell order; ``perm``: their indices in the input;
-    ``keys``/``coord``/``nbr``: the voxels in Morton order; ``cs``: per-voxel point ranges;
-    ``hkeys``/``hvals``: hash map Morton key -> voxel index.
+    ``keys``/``nbr``: the voxels in Morton order and their 6 neighbours; ``cs``: per-voxel point
+    ranges (the points whose cell's lower corner is that voxel); ``vcost``: the cost of moving
+    through each voxel (inf for corners outside the band, kept only to index cells); ``foot``: the
+    nearest point of each voxel; ``near``: per point, which corner of its cell is its nearest
+    marchable voxel (x + 2 y + 4 z; 255: none);
+    ``radius``: the band radius of every point in grid units (None when it is r / h everywhere).
     """
 
     origin: np.ndarray
@@ -107,52 +283,75 @@ class Band:
     u: np.ndarray
     perm: np.ndarray
     keys: np.ndarray
-    coord: np.ndarray
     nbr: np.ndarray
     cs: np.ndarray
-    hkeys: np.ndarray
-    hvals: np.ndarray
+    vcost: np.ndarray
+    foot: np.ndarray
+    near: np.ndarray
+    radius: np.ndarray | None = None
 
     @property
     def n_voxels(self) -> int:
         return int(self.keys.shape[0])
 
     @property
+    def coord(self) -> np.ndarray:
+        """(V, 3) integer grid coordinates of the voxels (decoded from the keys)."""
+        return unmorton_np(self.keys)
+
+    @property
+    def marchable(self) -> np.ndarray:
+        return np.isfinite(self.vcost)
+
+    @property
     def nbytes(self) -> int:
-        return sum(
-            a.nbytes for a in (self.u, self.perm, self.keys, self.coord, self.nbr, self.cs, self.hkeys, self.hvals)
-        )
+        arrays = (self.u, self.perm, self.keys, self.nbr, self.cs, self.vcost, self.foot, self.near)
+        return sum(a.nbytes for a in arrays)
 
 
 def build_band(
-    points: np.ndarray, h: float, r: float, max_memory: int | None = None
+    points: np.ndarray,
+    h: float,
+    r: float,
+    max_memory: int | None = None,
+    *,
+    radius: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    separation: np.ndarray | None = None,
+    depth_cost: float | None = None,
 ) -> Band:
-    """Build the band of radius ``r`` on a grid of spacing ``h`` around (distinct) ``points``."""
-    from .._kernels.grid import band_keys, build_index, morton_keys
+    """Build the band of radius ``r`` (or per-point ``radius``, input order) on a grid of spacing
+    ``h`` around ``points``; where ``normal`` (input order, toward the other sheet at distance
+    ``separation``) is not zero, only on the side away from it."""
+    from .._kernels.grid import band_voxels, cell_order, grid_coords, neighbour_table
+    from .._kernels.march import nearest_corners
 
+    n = points.shape[0]
+    if n > MAX_POINTS:
+        raise InputError(f"points has {n:,} points; at most {MAX_POINTS:,} can be ordered in one run")
     if max_memory is None:
         max_memory = default_max_memory()
-    rad = r / h
-    margin = math.ceil(rad) + 3
+    rmax = r if radius is None else max(r, float(radius.max()))
+    margin = math.ceil(rmax / h) + 3
     lo = points.min(axis=0)
     origin = lo - margin * h
-    u = (points - origin) / h
-    extent = int(math.ceil(float(u.max()))) + margin
+    extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
     if extent > MAX_COORD:
         need = h * extent / MAX_COORD
         raise InputError(
             f"voxel_size={h:g} would need {extent:,} voxels along one axis of the bounding box "
             f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}"
         )
-    cells = np.floor(u).astype(np.int64)
-    ckeys = morton_keys(cells)
-    perm = np.argsort(ckeys, kind="stable")
+    budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
+    ckeys = cell_order(points, origin, h)
+    perm = np.argsort(ckeys, kind="stable").astype(np.int32)
     ckeys = ckeys[perm]
-    u = np.ascontiguousarray(u[perm])
-    _, ostart = np.unique(ckeys, return_index=True)
-    occ = cells[perm[ostart]]
-    ostart = np.append(ostart, ckeys.shape[0]).astype(np.int64)
-    budget_voxels = (max_memory - BYTES_PER_POINT * points.shape[0]) // BYTES_PER_VOXEL
+    u = grid_coords(points, perm, origin, h)
+    new = np.empty(n, dtype=bool)
+    new[0] = True
+    np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
+    ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
+    del new
 
     def too_big(count: str) -> MemoryBudgetError:
         return MemoryBudgetError(
@@ -160,17 +359,65 @@ def build_band(
             f"{max_memory / 2**30:.2f} GiB allows ({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
         )
 
-    if budget_voxels < occ.shape[0]:
-        raise too_big(f"at least {occ.shape[0]:,}")
-    hk, count = band_keys(u, occ, ostart, rad, budget_voxels)
+    if budget_voxels < ostart.shape[0] - 1:
+        raise too_big(f"at least {ostart.shape[0] - 1:,}")
+    rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
+    bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
+    keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
+    del bkey, bstart, cand
+    del rad, ostart
     if count < 0:
         raise too_big(f"more than {budget_voxels:,}")
-    keys = np.sort(hk[hk >= 0])
-    del hk
-    hkeys, hvals, coord, nbr = build_index(keys)
-    cs = np.searchsorted(ckeys, keys).astype(np.int64)
-    cs = np.append(cs, ckeys.shape[0])
-    return Band(origin, h, r, u, perm, keys, coord, nbr, cs, hkeys, hvals)
+    nbr = neighbour_table(keys)
+    cs = np.empty(keys.shape[0] + 1, dtype=np.int32)
+    cs[:-1] = np.searchsorted(ckeys, keys)
+    cs[-1] = n
+    del ckeys
+    beta = DEPTH_COST if depth_cost is None else depth_cost
+    vcost = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf).astype(np.float32)
+    del q2
+    near = nearest_corners(u, nbr, cs, vcost)
+    band = Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, near, None if radius is None else radius / h)
+    if normal is not None:
+        band.vcost, band.near = one_sided(band, normal, separation, radius, beta)
+    return band
+
+
+def one_sided(
+    band: Band, normal: np.ndarray, separation: np.ndarray | None, radius: np.ndarray | None, beta: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel costs and the points' nearest marchable corners of ``band`` with its thin parts
+    one-sided (``normal``, ``separation``, ``radius``: per point, input order; see the module
+    docstring): a subset of the band's voxels, so no second band is built."""
+    from .._kernels.grid import one_sided_cost
+    from .._kernels.march import nearest_corners
+
+    perm = band.perm
+    nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
+    psep = np.full(perm.shape[0], np.inf) if separation is None else separation[perm] / band.h
+    rad = np.full(perm.shape[0], band.r / band.h) if radius is None else radius[perm] / band.h
+    vcost = one_sided_cost(band.keys, band.foot, band.u, nin, psep, 1.0 / (rad * rad), SIDE_TOLERANCE, beta)
+    return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
+
+
+def build_planned_band(points: np.ndarray, plan: BandPlan, max_memory: int | None = None) -> tuple[Band, BandPlan]:
+    """The band of a plan. A one-sided band must not split the surface into more pieces than the
+    plain band does (two registrations of one surface a few spacings apart, in a merged scan, are
+    found as two sheets and may be cut apart that way): if it does, the plain band is used for the
+    whole scan and the plan returned says so. The one-sided band is a subset of the plain one's
+    voxels, so both are decided on one band."""
+    from .._kernels.march import point_components
+
+    band = build_band(points, plan.h, plan.r, max_memory)
+    if plan.normal is None:
+        return band, plan
+    vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
+    pieces = point_components(band.nbr, band.cs, near, vcost)
+    if pieces > 1 and point_components(band.nbr, band.cs, band.near, band.vcost) < pieces:
+        log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
+        return band, BandPlan(plan.h, plan.r, None, None, None, TAIL_FACTOR * plan.r)
+    band.vcost, band.near = vcost, near
+    return band, plan
 
 
 def band_distance(
@@ -181,22 +428,26 @@ def band_distance(
 ) -> np.ndarray:
     """Band (surface) distance from the points ``sources`` (indices) to every point, by one march.
 
-    This is the metric the ordering uses: first-order Fast Marching in the band, then each point's
-    value min over its cell's 8 corner voxels of T[v] + |p - v|.
+    This is the metric the ordering uses: Fast Marching in the band from exact distances near the
+    sources, then each point's value: min over its cell's corner voxels v of T[v] + |p - v|, or its
+    exact distance to a source near it.
     """
     from .._kernels.march import multi_source_distance
     from .._validate import validate_indices, validate_points
 
     pts = validate_points(points)
     src = validate_indices(sources, pts.shape[0], "sources")
-    h, r = choose_parameters(pts, voxel_size, band_radius)
-    band = build_band(pts, h, r)
-    inv = np.empty(pts.shape[0], dtype=np.int64)
-    inv[band.perm] = np.arange(pts.shape[0])
-    vcost = np.ones(band.n_voxels, dtype=np.float32)
+    band, plan = build_planned_band(pts, plan_band(pts, voxel_size, band_radius))
+    h = plan.h
+    inv = np.empty(pts.shape[0], dtype=np.int32)
+    inv[band.perm] = np.arange(pts.shape[0], dtype=np.int32)
+    if plan.normal is None:
+        pnrm = np.zeros((1, 3), dtype=np.float32)
+    else:
+        pnrm = plan.normal[band.perm]
     dq, _, _ = multi_source_distance(
-        band.u, band.coord, band.nbr, band.cs, band.hkeys, band.hvals, vcost,
-        np.ones(pts.shape[0]), inv[src],
+        band.u, band.keys, band.nbr, band.cs, band.near, band.vcost, np.ones(1), False, band.foot,
+        pnrm, TAIL_SLOPE, inv[src],
     )
     out = np.empty(pts.shape[0])
     out[band.perm] = dq * h

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from typing import Any
 
 import numpy as np
@@ -14,11 +15,32 @@ from .._validate import (
     validate_indices,
     validate_points,
 )
-from ..errors import InputError
+from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
 
 log = logging.getLogger(__name__)
+
+
+_LIBC: Any = None
+
+
+def release_freed_memory() -> None:
+    """Give freed heap memory back to the system (glibc's malloc_trim; a no-op elsewhere).
+
+    The kernels allocate and free hundreds of MB per phase through malloc; glibc keeps much of it
+    (its mmap threshold grows with the blocks freed), so without this the process's resident size
+    after a phase stays near that phase's peak and the next phase stacks on top of it."""
+    global _LIBC
+    if _LIBC is None:
+        try:
+            import ctypes
+
+            _LIBC = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):  # not glibc
+            _LIBC = False
+    if _LIBC:
+        _LIBC(0)
 
 
 def default_seed(points: np.ndarray) -> int:
@@ -54,6 +76,38 @@ def _prepare(points, rho, size, seeds):
     return pts, n, rho, size, seed_arr
 
 
+def check_ordering(o: Ordering) -> Ordering:
+    """The post-conditions of every ordering, in O(N): ``order`` holds distinct indices in
+    [0, N) (all of them for a full ordering), ``radius`` is non-increasing and starts at inf,
+    ``parent`` is -1 or an earlier position. Raises :class:`EngineError` naming the first broken one."""
+    n, k = o.n_points, len(o)
+    order, radius, parent = o.order, o.radius, o.parent
+
+    def fail(what: str) -> EngineError:
+        return EngineError(f"ordering of {n:,} points failed its check: {what}; this is a bug, please report it")
+
+    if order.shape != (k,) or radius.shape != (k,) or parent.shape != (k,):
+        raise fail(f"order/radius/parent shapes {order.shape}/{radius.shape}/{parent.shape} differ")
+    if k == 0:
+        return o
+    if order.min() < 0 or order.max() >= n:
+        raise fail("an index out of range")
+    seen = np.zeros(n, dtype=bool)
+    seen[order] = True
+    if int(seen.sum()) != k:
+        raise fail("an index appears twice")
+    if not np.isinf(radius[0]) or np.isnan(radius).any():
+        raise fail(f"radius[0] = {radius[0]} (inf expected) or NaN radii")
+    bad = np.flatnonzero(radius[1:] > radius[:-1])
+    if bad.size:
+        raise fail(f"radius increases at position {bad[0] + 1}")
+    pos = np.arange(k)
+    bad = np.flatnonzero((parent < -1) | (parent >= pos))
+    if bad.size:
+        raise fail(f"parent of position {bad[0]} is {parent[bad[0]]}, not an earlier position")
+    return o
+
+
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
@@ -86,7 +140,7 @@ def euclidean_fps(
     k_max = n if size is None else max(size, seed_arr.size)
     order, radius, parent = euclidean_fps_kernel(pts, seed_arr, k_max, c)
     order, radius, parent = _truncate(order, radius, parent, rho, size)
-    return Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"})
+    return check_ordering(Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"}))
 
 
 @strict_keywords
@@ -125,22 +179,35 @@ def fastfps(
     c = None if cost is None else validate_cost(cost, n)
     if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
         raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
-    return _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+    o = _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+    release_freed_memory()  # the band and the kernels' state are gone now
+    return check_ordering(o)
 
 
-TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
+DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
 
 
-def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Group exact duplicates. Returns (group id per point, representative input index per group).
 
     The representative is the first listed seed of the group if any, else its lowest index.
     """
     n = pts.shape[0]
+    # a quick check first: if the points' hashes are all different, so are the points (most scans)
+    bits = (pts + 0.0).view(np.uint64)  # + 0.0: -0.0 and 0.0 are the same point
+    hsh = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+    hsh ^= bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+    hsh ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    hsh.sort()
+    if not (hsh[1:] == hsh[:-1]).any():
+        return None, None
+    del bits, hsh
     srt = np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
     sp = pts[srt]
     new = np.ones(n, dtype=bool)
     new[1:] = (sp[1:] != sp[:-1]).any(axis=1)
+    if new.all():  # no duplicates: (None, None) stands for the identity (no copies)
+        return None, None
     gid_sorted = np.cumsum(new) - 1
     gid = np.empty(n, dtype=np.int64)
     gid[srt] = gid_sorted
@@ -157,78 +224,123 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray, n
 def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress):
     import time
 
-    from .band import build_band, choose_parameters
+    from .._kernels.warm import ensure_compiled
+    from .band import TAIL_PER_SEP, TAIL_SLOPE, build_planned_band, plan_band
 
+    compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
     t0 = time.perf_counter()
+    c0 = time.process_time()
     n = pts.shape[0]
     gid, rep = _duplicate_groups(pts, seed_arr)
-    m = rep.shape[0]
-    upts = pts[rep]
-    # engine seeds: the groups of the seeds, first occurrence, in order
-    _, first = np.unique(gid[seed_arr], return_index=True)
-    useeds = gid[seed_arr][np.sort(first)]
-    h, r = choose_parameters(upts, voxel_size, band_radius)
-    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
-    k_max = m if size is None else min(m, size)
+    if gid is None or rep is None:  # no duplicates
+        m, upts, useeds = n, pts, seed_arr
+    else:
+        m = rep.shape[0]
+        upts = pts[rep]
+        # engine seeds: the groups of the seeds, first occurrence, in order
+        _, first = np.unique(gid[seed_arr], return_index=True)
+        useeds = gid[seed_arr][np.sort(first)]
     report(progress, "band", 0, 1)
-    band = build_band(upts, h, r, max_memory)
+    plan = plan_band(upts, voxel_size, band_radius)
+    found = plan.thin_points
+    release_freed_memory()
+    band, plan = build_planned_band(upts, plan, max_memory)
+    release_freed_memory()
+    h, r = plan.h, plan.r
+    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
+    stats["thin_points"] = plan.thin_points
+    stats["thin_points_found"] = found
+    stats["compiled_kernels"] = compiled
+    k_max = m if size is None else min(m, size)
+    del upts
     stats["band_voxels"] = band.n_voxels
     stats["band_bytes"] = band.nbytes
     t1 = time.perf_counter()
+    c1 = time.process_time()
     stats["time_band"] = t1 - t0
+    stats["cpu_band"] = c1 - c0
     report(progress, "band", 1, 1)
     weighted = cost is not None
-    inv = np.empty(m, dtype=np.int64)
-    inv[band.perm] = np.arange(m)
+    inv = np.empty(m, dtype=np.int32)
+    inv[band.perm] = np.arange(m, dtype=np.int32)
+    seeds_c = inv[useeds]
+    del inv
     if weighted:
-        from scipy.spatial import cKDTree
-
-        ucost = cost[rep][band.perm]
-        _, near = cKDTree(band.u).query(band.coord, k=1, workers=-1)
-        vcost = ucost[near].astype(np.float32)
+        ucost = (cost if rep is None else cost[rep])[band.perm]
+        vcost = band.vcost * ucost[band.foot].astype(np.float32)
         pcost = ucost
         cmin = float(ucost.min())
         cscale = float(ucost.mean())  # hand over at the same Euclidean scale as an unweighted run
     else:
         cscale = 1.0
-        vcost = np.ones(band.n_voxels, dtype=np.float32)
-        pcost = np.ones(m)
+        vcost = band.vcost
+        pcost = np.ones(1)
         cmin = 1.0
     from .._kernels.march import euclid_tail, grid_phase
 
+    if plan.separation is None:
+        psep = np.full(1, np.inf, dtype=np.float32)
+        pnrm = np.zeros((1, 3), dtype=np.float32)
+        foot = np.zeros(1, dtype=np.int32)
+        band.foot = foot  # not needed any more: free it before the ordering
+    else:
+        psep = (TAIL_PER_SEP / h * plan.separation[band.perm]).astype(np.float32)
+        pnrm = plan.normal[band.perm]
+        foot = band.foot
     rho_g = -1.0 if rho is None else rho / h
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
-        band.u, band.coord, band.nbr, band.cs, band.hkeys, band.hvals, vcost, pcost, weighted,
-        inv[useeds], k_max, rho_g, TAIL_FACTOR * r / h * cscale,
+        band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
+        TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG,
     )
+    del vcost
+    release_freed_memory()
+    if pops < 0:
+        which = "front" if pops == -1 else "candidate"
+        raise EngineError(f"the {which} heap broke its invariant (debug check); this is a bug, please report it")
     t2 = time.perf_counter()
-    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1)
+    c2 = time.process_time()
+    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
     stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
     report(progress, "ordering", int(k), k_max)
+    # the tail needs the points, the neighbour table and the point ranges only
+    u, nbr, cs, perm, keys = band.u, band.nbr, band.cs, band.perm, band.keys
+    del band, foot
     if k < k_max:
         from .._kernels.grid import coarse_runs
 
-        reach = TAIL_FACTOR * r / h * cscale / cmin  # the largest ball of the tail, in voxels
+        reach = plan.handover / h * cscale / cmin  # the largest ball of the tail, in voxels
         levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
-        chk, chv, rstart, rend = coarse_runs(band.keys, band.cs, levels)
+        rkey, ridx, rstart, rend = coarse_runs(keys, cs, levels)
+        del keys
         k = euclid_tail(
-            band.u, band.cs, band.hkeys, band.hvals, chk, chv, rstart, rend, levels, pcost,
-            weighted, cmin, val, lq, rank, order, radius, parent, k, k_max, rho_g,
+            u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
+            weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
         )
+        del rkey, ridx, rstart, rend
+    del psep, pnrm, val, lq, rank, u, nbr, cs
+    release_freed_memory()
     t3 = time.perf_counter()
     stats["time_tail"] = t3 - t2
+    stats["cpu_tail"] = time.process_time() - c2
     report(progress, "ordering", int(k), k_max)
-    uorder = band.perm[order[:k]]  # distinct-point index
+    uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
+    del perm, order
     radius = radius[:k] * h
-    parent = parent[:k].copy()
+    parent = parent[:k].astype(np.int64)
     return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats)
 
 
 def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats):
     """Map the distinct-point ordering back to input indices; add duplicate seeds and duplicates."""
     n = pts.shape[0]
-    m = rep.shape[0]
+    m = n if rep is None else rep.shape[0]
+    stats["n_duplicates"] = int(n - m)
+    if rep is None:  # no duplicates: the engine's ordering is the answer
+        stats["n_duplicate_seeds"] = 0
+        if size is not None and uorder.shape[0] > size:
+            uorder, radius, parent = uorder[:size], radius[:size], parent[:size]
+        return Ordering(uorder, radius, parent, h, r, seed_arr, n, stats)
     nseed_u = int(np.unique(gid[seed_arr]).size)
     extra = seed_arr[rep[gid[seed_arr]] != seed_arr]  # seeds that are copies of an earlier seed
     head = seed_arr  # all user seeds, in the given order, radius inf
@@ -257,6 +369,5 @@ def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, 
         par = np.concatenate([par, rk[srt]])
     if size is not None and order.shape[0] > size:
         order, rad, par = order[:size], rad[:size], par[:size]
-    stats["n_duplicates"] = int(n - m)
     stats["n_duplicate_seeds"] = int(extra.size)
     return Ordering(order.astype(np.int64), rad, par.astype(np.int64), h, r, seed_arr, n, stats)

@@ -23,7 +23,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray
 from .._validate import strict_methods
 from ..errors import InputError
 from . import overlays
-from .data import ViewData
+from .data import LEVEL_MODES, ViewData, crs_label
 from .options import check_point_scale, check_window_size
 
 log = logging.getLogger(__name__)
@@ -142,7 +142,7 @@ class LevelViewer:
         self.plotter.renderers[-1].AddViewProp(self.scalar_bar)
         overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode))
         self.plotter.subplot(0, 0)
-        self.crs_label = overlays.crs_label(data)
+        self.crs_label = crs_label(data.crs, data.units)
         self._crs_text = self.plotter.add_text(
             self.crs_label, position="lower_right", font_size=9, color="black"
         )
@@ -197,7 +197,7 @@ class LevelViewer:
             if self.box is None
             else self.data.selective(k, self.box[0], self.box[1], self.refine_factor)
         )
-        if self.mode == "voronoi":
+        if self.mode in LEVEL_MODES:
             self._colours = self.data.colours(self.mode, self.shown)
             self._update_full_colours()
         sel = slice(0, k) if self._pos is None else self._pos
@@ -242,7 +242,7 @@ class LevelViewer:
     def _render_level(self) -> None:
         """Render after a change of the level panel only: the full-scan panel is left as drawn
         (it is not redrawn unless its colours change), which halves the cost of a slider move."""
-        if self.full_mesh is None or self.mode == "voronoi":
+        if self.full_mesh is None or self.mode in LEVEL_MODES:
             self.plotter.render()
             return
         full = self.plotter.renderers[1]

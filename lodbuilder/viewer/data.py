@@ -18,6 +18,11 @@ from .._validate import strict_keywords, strict_methods
 from ..errors import InputError
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
+#: modes whose colours depend on the level shown (recomputed when it changes); ``gaps`` is asked
+#: for by name (``--colour gaps``), not cycled through: it searches the level for holes
+LEVEL_MODES = ("voronoi", "gaps")
+#: ``gaps`` colours: away from gaps, near a fillable gap, near a rough one
+GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
 
 #: the unit of each built-in importance map (lodbuilder.features.registry), for the legend
 IMPORTANCE_UNITS = {
@@ -94,15 +99,12 @@ class ViewData:
                     )
         if self.scan_id is None:
             self.scan_id = np.zeros(n, dtype=np.int32)
-        self._cells: tuple[np.ndarray, np.ndarray] | None = None
+        self._cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._gap_cache: tuple[int, np.ndarray] | None = None
         self._normals: np.ndarray | None = None
         finite = self.radius[np.isfinite(self.radius) & (self.radius > 0)]
         self._rmax = float(finite.max()) if finite.size else 1.0
         self._rmin = float(finite.min()) if finite.size else 1.0
-        # the colour scale of radii starts at their 1st percentile: the last radii of an ordering
-        # (near-duplicates) reach far below the scan's spacing and would squeeze every other
-        # point into one colour
-        self._rlow = float(np.percentile(finite, 1)) if finite.size else 1.0
         lo, hi = self.points.min(axis=0), self.points.max(axis=0)
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
 
@@ -163,21 +165,41 @@ class ViewData:
         cells of the displayed level, restricted to the scan's points.
 
         ``shown`` is a level size k (the prefix) or the stored positions of the shown points (a
-        level refined in a box). Cached for the last level asked.
-        """
+        level refined in a box). The last answer is kept and updated when the level changes:
+        points whose cell's point left the level are assigned again among the shown points, and
+        every point closer to a newly shown point than to its cell's point moves to it (a tree
+        of the new points, queried within the largest current distance), which is exact and
+        several times cheaper than a new query of every point when a slider moves."""
         from scipy.spatial import cKDTree
 
         if np.isscalar(shown):
             pos = np.arange(self.clamp_size(shown))  # type: ignore[arg-type]
         else:
-            pos = np.asarray(shown, dtype=np.int64)
-        if self._cells is not None and np.array_equal(self._cells[0], pos):
-            return self._cells[1]
+            pos = np.unique(np.asarray(shown, dtype=np.int64))
         if pos.size == 0:
             raise InputError("a level shows at least one point; got none")
-        _, nearest = cKDTree(self.points[pos]).query(self.points, k=1, workers=-1)
-        cells = pos[np.asarray(nearest, dtype=np.int64)]
-        self._cells = (pos, cells)
+        mask = np.zeros(len(self), dtype=bool)
+        mask[pos] = True
+        if self._cells is not None and np.array_equal(self._cells[0], mask):
+            return self._cells[1]
+        pts = self.points
+        if self._cells is None:
+            dist, j = cKDTree(pts[pos]).query(pts, k=1, workers=-1)
+            cells = pos[np.asarray(j, dtype=np.int64)]
+        else:
+            old, cells, dist = self._cells
+            cells, dist = cells.copy(), dist.copy()
+            lost = np.flatnonzero(~mask[cells])  # their cell's point is no longer shown
+            if lost.size:
+                d, j = cKDTree(pts[pos]).query(pts[lost], k=1, workers=-1)
+                cells[lost], dist[lost] = pos[np.asarray(j, dtype=np.int64)], d
+            new = np.flatnonzero(mask & ~old)
+            if new.size:
+                bound = float(dist.max()) * (1 + 1e-9) + 1e-300
+                d, j = cKDTree(pts[new]).query(pts, k=1, distance_upper_bound=bound, workers=-1)
+                closer = d < dist
+                cells[closer], dist[closer] = new[np.asarray(j, dtype=np.int64)[closer]], d[closer]
+        self._cells = (mask, cells, dist)
         return cells
 
     def normals(self) -> np.ndarray:
@@ -194,6 +216,26 @@ class ViewData:
                 self._normals = np.ascontiguousarray(pca_normals(self.points, k=k), np.float32)
         return self._normals
 
+    def gap_codes(self, shown: int | np.ndarray) -> np.ndarray:
+        """(N,) 0 / 1 / 2: away from gaps / near a fillable gap / near a rough one, at the level
+        shown (its prefix part, for a level refined in a box); see
+        :func:`lodbuilder.sampling.fill.near_gaps`."""
+        from ..sampling.fill import SAMPLE_FRACTION, near_gaps
+
+        if np.isscalar(shown):
+            k = self.clamp_size(shown)  # type: ignore[arg-type]
+        else:
+            pos = np.asarray(shown, dtype=np.int64)
+            off = np.flatnonzero(pos != np.arange(pos.size))
+            k = max(1, int(off[0]) if off.size else int(pos.size))
+        if self._gap_cache is None or self._gap_cache[0] != k:
+            rho = self.rho_for_size(k)
+            codes = np.zeros(len(self), dtype=np.uint8)
+            if rho > 0:
+                codes = near_gaps(self.points, k, self.size_for_rho(SAMPLE_FRACTION * rho), rho)
+            self._gap_cache = (k, codes)
+        return self._gap_cache[1]
+
     # ---- colour modes -------------------------------------------------------------------------
 
     def colour_modes(self) -> list[str]:
@@ -209,6 +251,8 @@ class ViewData:
         return modes
 
     def check_mode(self, mode: str) -> str:
+        if mode == "gaps":
+            return mode
         modes = self.colour_modes()
         if mode == "importance" and any(m.startswith("importance:") for m in modes):
             mode = next(m for m in modes if m.startswith("importance:"))
@@ -222,16 +266,12 @@ class ViewData:
         """The scale of a scalar colour mode (radius, rank, importance), None for the others."""
         mode = self.check_mode(mode)
         if mode == "radius":
-            unit = self.units or "scan units"
-            return Legend(f"insertion radius ({unit}, log)", self._rlow, self._rmax, True)
+            return radius_legend(self.radius, self.units)
         if mode == "rank":
-            return Legend("rank (1 = first point, log)", 1.0, float(max(len(self), 2)), True)
+            return rank_legend(len(self))
         if mode.startswith("importance:"):
             name = mode.split(":", 1)[1]
-            v = np.asarray(self.importance[name], dtype=np.float64)
-            lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
-            unit = IMPORTANCE_UNITS.get(name, "as stored")
-            return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
+            return importance_legend(name, self.importance[name])
         return None
 
     def colours(
@@ -255,6 +295,8 @@ class ViewData:
             return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
             return categorical(self.cells(shown)[sel])
+        if mode == "gaps":
+            return GAP_COLOURS[self.gap_codes(shown)[sel]]
         legend = self.legend(mode)
         assert legend is not None
         if mode == "radius":
@@ -309,6 +351,41 @@ class ViewData:
             crs=parts[0].crs if all(p.crs == parts[0].crs for p in parts) else None,
             units=parts[0].units if all(p.units == parts[0].units for p in parts) else None,
         )
+
+
+def radius_legend(radius: np.ndarray, units: str | None = None) -> Legend:
+    """Log scale of insertion radii, from their 1st percentile to the largest finite one.
+
+    (The last radii of an ordering, near-duplicates, reach far below the scan's spacing: from
+    the smallest one, every other point would get one colour.)"""
+    r = np.asarray(radius, dtype=np.float64)
+    finite = r[np.isfinite(r) & (r > 0)]
+    lo = float(np.percentile(finite, 1)) if finite.size else 1.0
+    hi = float(finite.max()) if finite.size else 1.0
+    return Legend(f"insertion radius ({units or 'scan units'}, log)", lo, max(hi, lo), True)
+
+
+def rank_legend(n: int) -> Legend:
+    """Log scale of ranks 1..n (the first point is rank 1)."""
+    return Legend("rank (1 = first point, log)", 1.0, float(max(n, 2)), True)
+
+
+def importance_legend(name: str, values: np.ndarray) -> Legend:
+    """Linear scale of an importance map from its 1st to its 99th percentile."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
+    unit = IMPORTANCE_UNITS.get(name, "as stored")
+    return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
+
+
+def crs_label(crs: str | None, units: str | None) -> str:
+    """One line naming the coordinates' CRS and unit (``CRS unknown`` when there is none)."""
+    unit = units or "scan units"
+    if not crs:
+        return f"CRS unknown, coordinates in {unit}"
+    from ..io.crs import crs_name  # (pyproj names it, when installed)
+
+    return f"CRS {crs_name(crs) or 'given as WKT (install pyproj to name it)'}, coordinates in {unit}"
 
 
 def _to_uint8_rgb(rgb: np.ndarray) -> np.ndarray:

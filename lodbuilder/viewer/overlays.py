@@ -18,7 +18,7 @@ import numpy as np
 from vtkmodules.vtkCommonCore import vtkLookupTable
 from vtkmodules.vtkRenderingAnnotation import vtkScalarBarActor
 
-from .data import Legend, ViewData, colormap
+from .data import Legend, colormap
 
 #: lighting of shaded points: ambient + diffuse = 1 keeps a colour where the normal faces the light
 AMBIENT, DIFFUSE = 0.35, 0.65
@@ -86,18 +86,6 @@ def wrap_title(title: str, width: int = 14) -> str:
         else:
             lines.append(word)
     return "\n".join(lines)
-
-
-def crs_label(data: ViewData) -> str:
-    """One line naming the coordinates' CRS and unit (``CRS unknown`` when the scan has none)."""
-    unit = data.units or "scan units"
-    if not data.crs:
-        return f"CRS unknown, coordinates in {unit}"
-    try:
-        from ..io.crs import crs_name  # pyproj names it, when installed
-    except ImportError:  # pragma: no cover - before lodbuilder.io.crs lands
-        return f"CRS given as WKT, coordinates in {unit}"
-    return f"CRS {crs_name(data.crs) or 'given as WKT'}, coordinates in {unit}"
 
 
 def set_shading(actor: Any, on: bool) -> None:

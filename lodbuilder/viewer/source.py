@@ -23,7 +23,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]
     attrs = scan.attributes(None, names if len(names) == 3 else False)
     importance = {m: np.asarray(scan.importance(m)) for m in scan.importance_names}
-    crs = {"crs": getattr(scan, "crs", None), "units": getattr(scan, "units", None)}
+    crs = {"crs": scan.crs, "units": scan.units}
     if ordering in (None, "uniform"):
         return ViewData(
             points=scan.points(),

@@ -33,8 +33,10 @@ log = logging.getLogger(__name__)
 #: its own tile's side covered only by the other tile's point for a while (levels 1.5-1.7x larger
 #: at a density on the bunny in 4 tiles; see tools/bench_tiled.py)
 SEAM_ALPHA = 0.25
-#: the decimated copy has at most this many points (its ordering is one task)
+#: the decimated copy has at most this many points (its ordering is one task), and at least
+#: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface
 COARSE_POINTS = 400_000
+COARSE_MIN = 2_000
 #: head size: points of the decimated copy's order per point of the head
 HEAD_DECIMATION = 200
 HEAD_MIN = 256
@@ -158,7 +160,7 @@ def build_tiled(
                                  band_radius)
         grid = P.Grid.around(sp.lo, sp.hi)
         span = float(np.max(sp.hi - sp.lo)) or 1.0
-        m_target = min(COARSE_POINTS, max(n // 8, 1))
+        m_target = min(COARSE_POINTS, max(n // 8, min(n, COARSE_MIN)))
         d_cell = max(s * math.sqrt(n / m_target), span / (1 << 20))
         hist = np.zeros(int(np.prod(grid.shape)), np.int64)
         dec = Decimator(grid.lo, d_cell)

@@ -1,0 +1,129 @@
+"""First-run compilation of the kernels.
+
+The kernels compile on first use and numba caches them (``cache=True``; in ``__pycache__`` beside
+this package, or in ``NUMBA_CACHE_DIR``). A cold cache costs seconds, so when it is cold the engine
+compiles the ordering kernels in a child process while this process compiles the band kernels
+(two cores do it in about half the time), and says so through the progress callback.
+
+Every kernel is compiled for one signature: the dtypes the engine passes are fixed, and the
+prototypes below are those dtypes (a test checks that an ordering compiles nothing else).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MESSAGE = "compiling kernels, first run only"
+
+_F64_2 = np.empty((0, 3))
+_F32_2 = np.empty((0, 3), np.float32)
+_I32_2 = np.empty((0, 6), np.int32)
+_F64 = np.empty(0)
+_F32 = np.empty(0, np.float32)
+_I64 = np.empty(0, np.int64)
+_I32 = np.empty(0, np.int32)
+_U8 = np.empty(0, np.uint8)
+
+
+def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
+    """Per group, per kernel (module.name): example arguments of the engine's call."""
+    i, f, b = np.int64(0), 0.5, True
+    return {
+        "band": {
+            "grid.cell_order": (_F64_2, _F64, f),
+            "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
+            "grid.grid_coords": (_F64_2, _I32, _F64, f),
+            "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
+            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
+            "grid.neighbour_table": (_I64,),
+            "march.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
+            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
+        },
+        "ordering": {
+            "march.grid_phase": (
+                _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b,
+            ),
+            "march.point_components": (_I32_2, _I32, _U8, _F32),
+            "grid.coarse_runs": (_I64, _I32, i),
+            "march.euclid_tail": (
+                _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
+                _F64, _I32, _I32, _I32, _F64, _I32, i, i, f,
+            ),
+        },
+    }
+
+
+def _dispatcher(name: str) -> Any:
+    import importlib
+
+    module, func = name.split(".")
+    return getattr(importlib.import_module(f"lodbuilder._kernels.{module}"), func)
+
+
+def signatures(group: str) -> dict[str, tuple[Any, ...]]:
+    """The numba signature each kernel of ``group`` is compiled for."""
+    import numba
+
+    return {name: tuple(numba.typeof(a) for a in args) for name, args in _prototypes()[group].items()}
+
+
+def compile_group(group: str) -> None:
+    """Compile (or load from the cache) every kernel of ``group`` for its signature."""
+    for name, sig in signatures(group).items():
+        _dispatcher(name).compile(sig)
+
+
+def is_cold() -> bool:
+    """Whether some engine kernel has no valid cache entry (numba's cache index for the current
+    source is missing). Errs on the side of "warm" if numba's cache layout is not the expected one."""
+    try:
+        for group in ("band", "ordering"):
+            for name in _prototypes()[group]:
+                cache = _dispatcher(name)._cache
+                if not cache._cache_file._load_index():  # {} when missing or stale
+                    return True
+    except Exception:  # pragma: no cover - another numba's internals
+        return False
+    return False
+
+
+def start_ordering_compile() -> subprocess.Popen | None:
+    """Compile the ordering kernels in a child process (into numba's cache); None if it cannot start."""
+    root = str(Path(__file__).resolve().parents[2])
+    code = (
+        f"import sys; sys.path.insert(0, {root!r}); "
+        "from lodbuilder._kernels.warm import compile_group; compile_group('ordering')"
+    )
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-c", code],
+            env=dict(os.environ),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    except OSError:  # pragma: no cover - no processes allowed
+        return None
+
+
+def ensure_compiled(progress: Any = None) -> bool:
+    """Compile the engine's kernels if the cache is cold (both groups at once, on two processes),
+    reporting MESSAGE as the progress stage meanwhile. Returns whether anything was compiled."""
+    from ..progress import report
+
+    if not is_cold():
+        return False
+    report(progress, MESSAGE, 0, 1)
+    child = start_ordering_compile()
+    compile_group("band")
+    if child is not None:
+        child.wait()
+    compile_group("ordering")  # loads what the child cached (or compiles it, if the child failed)
+    report(progress, MESSAGE, 1, 1)
+    return True

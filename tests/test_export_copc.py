@@ -1,0 +1,336 @@
+"""``lodbuilder export ARCHIVE -o OUT.copc.laz``: a valid COPC file (read back with laspy's
+CopcReader and copclib's reader) whose octree depths are farthest-point levels, with every
+attribute, the CRS, scale and offset, the rank and the insertion radius."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lodbuilder.cli.main import main
+
+laspy = pytest.importorskip("laspy")
+pytest.importorskip("copclib", reason="copclib is not installed (pip install 'lodbuilder[copc]')")
+
+
+@pytest.fixture(scope="module")
+def autzen(shared_data, tmp_path_factory):
+    """An archive of autzen_trim.laz (LAS 1.2 point format 3, CRS in a WKT VLR, feet)."""
+    import lodbuilder
+
+    out = tmp_path_factory.mktemp("arc") / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", out, name="autzen")
+    return out
+
+
+@pytest.fixture(scope="module")
+def autzen_copc(autzen, tmp_path_factory):
+    out = tmp_path_factory.mktemp("copc") / "autzen.copc.laz"
+    assert main(["export", str(autzen), "-o", str(out), "-q"]) == 0
+    return out
+
+
+def our_vlr(path) -> dict:
+    with laspy.open(str(path)) as r:
+        (vlr,) = [v for v in r.header.evlrs if v.user_id == "lodbuilder" and v.record_id == 1]
+        return json.loads(vlr.record_data)
+
+
+def nodes(path) -> list:
+    """(depth, offset, byte_size, point_count) of every node of the COPC hierarchy."""
+    import copclib
+
+    reader = copclib.FileReader(str(path))
+    try:
+        return [(n.key.d, n.offset, n.byte_size, n.point_count) for n in reader.GetAllNodes()]
+    finally:
+        reader.Close()
+
+
+def test_every_depth_query_returns_the_prefix_written(autzen, autzen_copc):
+    import lodbuilder
+
+    doc = our_vlr(autzen_copc)
+    with lodbuilder.open_archive(autzen) as arc:
+        radius = np.asarray(arc.scan().radius)
+    assert doc["n_points"] == doc["n_points_scan"] == 110000
+    levels = doc["levels"]
+    assert len(levels) >= 3 and levels[-1]["points"] == 110000
+    with laspy.CopcReader.open(str(autzen_copc)) as reader:
+        assert reader.copc_info.spacing == pytest.approx(doc["spacing"])
+        for lv in levels:
+            d = lv["depth"]
+            got = reader.query(level=range(0, d + 1))
+            rank = np.sort(np.asarray(got["rank"], dtype=np.int64))
+            # exactly the points of depths <= d: the farthest-point prefix (nothing promoted here)
+            assert lv["promoted"] == 0
+            np.testing.assert_array_equal(rank, np.arange(lv["fps_prefix"]))
+            # its covering radius is the next insertion radius, within the depth's band
+            k = lv["fps_prefix"]
+            assert lv["rho"] == (float(radius[k]) if k < radius.size else 0.0)
+            assert lv["rho"] <= doc["spacing"] / 2 ** (d + 1)
+            # and the points of depth d alone have radii in (s0 / 2^(d+1), s0 / 2^d]
+            one = reader.query(level=d)
+            r = np.asarray(one["radius"])
+            top = doc["spacing"] / 2**d
+            assert np.all(r > doc["spacing"] / 2 ** (d + 1)) or d == len(levels) - 1
+            assert d == 0 or np.all(r <= top)
+
+
+def test_depths_are_written_breadth_first_in_one_byte_range(autzen_copc):
+    ns = nodes(autzen_copc)
+    depths = sorted({d for d, *_ in ns})
+    for d in depths[:-1]:
+        upto = [(o, s) for dd, o, s, _ in ns if dd <= d]
+        deeper = [o for dd, o, _, _ in ns if dd > d]
+        start, end = min(o for o, _ in upto), max(o + s for o, s in upto)
+        assert end - start == sum(s for _, s in upto)  # contiguous
+        assert end <= min(deeper)  # before every deeper node
+
+
+def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc):
+    import copclib
+
+    import lodbuilder
+
+    src = laspy.read(str(shared_data / "autzen_trim.laz"))
+    with lodbuilder.open_archive(autzen) as arc:
+        view = arc.scan()
+        source_index = np.asarray(view.source_index)
+        wkt = view.crs
+    out = laspy.read(str(autzen_copc))  # a COPC file is a LAZ file
+    assert out.header.version == "1.4" and out.header.point_format.id == 7  # format 3's 1.4 twin
+    np.testing.assert_array_equal(out.header.scales, src.header.scales)
+    np.testing.assert_array_equal(out.header.offsets, src.header.offsets)
+    assert out.header.global_encoding.wkt
+    records = list(out.header.vlrs) + list(out.header.evlrs or [])  # (copclib writes an EVLR)
+    (wkt_vlr,) = [v for v in records if type(v).__name__ == "WktCoordinateSystemVlr"]
+    assert wkt and wkt_vlr.string.rstrip("\0") == wkt
+    # every point, by rank: the same integer coordinates and every field of the source
+    rank = np.asarray(out["rank"], dtype=np.int64)
+    src_i = source_index[rank]
+    for dim in ("X", "Y", "Z", "intensity", "return_number", "number_of_returns",
+                "classification", "user_data", "point_source_id", "gps_time",
+                "red", "green", "blue", "scan_direction_flag", "edge_of_flight_line"):
+        np.testing.assert_array_equal(np.asarray(out[dim]), np.asarray(src[dim])[src_i], dim)
+    np.testing.assert_array_equal(np.asarray(out["scan_angle_rank"]), np.asarray(src.scan_angle_rank)[src_i])
+    # format 7's own scan_angle field (0.006-degree units) for viewers; it was left 0 before
+    angle = np.rint(np.asarray(src.scan_angle_rank, dtype=np.float64)[src_i] / 0.006)
+    assert np.count_nonzero(angle) > 100000
+    np.testing.assert_array_equal(np.asarray(out["scan_angle"]), angle)
+    assert sorted(rank.tolist()) == list(range(110000))
+    np.testing.assert_array_equal(
+        np.asarray(out["radius"]), np.asarray(lodbuilder.open_archive(autzen).scan().radius)[rank]
+    )
+    np.testing.assert_array_equal(
+        out.header.number_of_points_by_return[:5], np.bincount(src.return_number, minlength=6)[1:6]
+    )
+    # copclib reads it back and finds every point inside its node's box and the header bounds
+    reader = copclib.FileReader(str(autzen_copc))
+    try:
+        assert reader.ValidateSpatialBounds()
+    finally:
+        reader.Close()
+
+
+def test_copc_round_trips_through_lodbuilder(autzen, autzen_copc, tmp_path):
+    """Reading the COPC file back gives the level's points and attributes, and building an
+    archive from it gives the same ordering (rank and radius came along)."""
+    import lodbuilder
+    from lodbuilder.io import read_scans
+
+    (scan,) = read_scans(autzen_copc)
+    with lodbuilder.open_archive(autzen) as arc:
+        level = arc.scan().level(size=110000)
+        wkt = arc.scan().crs
+    rank = np.asarray(scan.attributes["rank"], dtype=np.int64)
+    np.testing.assert_allclose(scan.points, level.points[rank], rtol=0, atol=1e-9)
+    for name in ("intensity", "classification", "gps_time", "red"):
+        np.testing.assert_array_equal(scan.attributes[name], level.attributes[name][rank], name)
+    np.testing.assert_array_equal(scan.attributes["radius"], level.radius[rank])
+    assert scan.metadata.get("crs_wkt") == wkt
+
+
+def test_export_of_a_level_and_a_coloured_scan(tmp_path, capsys):
+    import lodbuilder
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    arc = tmp_path / "demo.h5"
+    lodbuilder.build_archive(demo_scan(30000, seed=2), arc, name="demo", importance="curvature")
+    out = tmp_path / "demo.copc.laz"
+    assert main(["export", str(arc), "--size", "20000", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"wrote 20,000 of 30,000 points of scan 'demo' to {out} (")
+    assert "  depths 0..d hold 10,000 / " in text
+    assert f"  changed: {out}: red: 8-bit values scaled x 257 into the 16-bit LAS field\n" in text
+    doc = our_vlr(out)
+    with lodbuilder.open_archive(arc) as a:
+        view = a.scan()
+        radius = np.asarray(view.radius)
+        rgb = view.attributes(20000, ["red", "green", "blue"])
+        curvature = np.asarray(view.importance("curvature"))
+    assert doc["levels"][-1] == doc["levels"][-1] | {"points": 20000, "fps_prefix": 20000}
+    assert doc["levels"][-1]["rho"] == float(radius[20000])  # the level's own bound
+    las = laspy.read(str(out))
+    rank = np.asarray(las["rank"], dtype=np.int64)
+    assert las.header.point_format.id == 7
+    np.testing.assert_array_equal(np.asarray(las.red), rgb["red"][rank].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(np.asarray(las["importance_curvature"]), curvature[rank].astype(np.float32))
+    with laspy.CopcReader.open(str(out)) as reader:
+        for lv in doc["levels"]:
+            got = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
+            assert got.size == lv["points"]
+            np.testing.assert_array_equal(got[: lv["fps_prefix"]], np.arange(lv["fps_prefix"]))
+
+
+def test_orphan_voxels_move_the_first_point_up():
+    """A point whose parent voxel has no point of the depth above moves up to the first missing
+    depth, so a reader walking down from the root reaches every node."""
+    from lodbuilder.export.copc import assign_depths
+
+    pts = np.array(
+        [
+            [0.10, 0.10, 0.10],  # depth 0: the root
+            [0.20, 0.20, 0.20],  # depth 1, voxel (0, 0, 0)
+            [0.90, 0.90, 0.90],  # band 2, but voxel (1, 1, 1) of depth 1 is empty: moves to 1
+            [0.95, 0.95, 0.95],  # band 2: its parent now exists, stays
+            [0.60, 0.10, 0.10],  # band 3, parents at depths 1 and 2 missing: moves to 1
+            [0.62, 0.12, 0.12],  # band 3: moves to 2 (depth 1 voxel now exists, depth 2 does not)
+            [0.63, 0.13, 0.13],  # band 3: stays
+        ]
+    )
+    band = np.array([0, 1, 2, 2, 3, 3, 3])
+    depth, codes = assign_depths(pts, band, np.zeros(3), 1.0)
+    np.testing.assert_array_equal(depth, [0, 1, 1, 2, 1, 2, 3])
+    check_tree(pts, depth, codes)
+
+
+def check_tree(pts, depth, codes):
+    from lodbuilder.export.copc import _code, _voxels
+
+    keys = {(int(d), int(c)) for d, c in zip(depth, codes, strict=True)}
+    for d, c in keys:
+        if d:
+            parent = _code(np.array([c >> 42, (c >> 21) & 0x1FFFFF, c & 0x1FFFFF]) >> 1)
+            assert (d - 1, int(parent)) in keys, (d, c)
+    for d in np.unique(depth):
+        sel = depth == d
+        np.testing.assert_array_equal(codes[sel], _code(_voxels(pts[sel], np.zeros(3), 1.0, int(d))))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 400))
+def test_depths_keep_the_octree_connected_and_the_prefixes(seed, n):
+    from lodbuilder.export.copc import assign_depths
+
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 3))
+    band = np.sort(rng.integers(0, 6, n))
+    band[0] = 0
+    depth, codes = assign_depths(pts, band, np.zeros(3), 1.0)
+    assert np.all(depth <= band) and depth[0] == 0
+    check_tree(pts, depth, codes)
+    for d in range(6):  # depths <= d hold the prefix of band <= d and the points moved up
+        assert np.all(depth[band <= d] <= d)
+    moved = np.flatnonzero(depth < band)
+    for i in moved:  # a moved point is the first of its band in its voxel at its new depth
+        same = (band == band[i]) & (codes == codes[i]) & (depth == depth[i])
+        assert np.flatnonzero(same)[0] == i
+
+
+def test_promoted_points_end_to_end(tmp_path, monkeypatch):
+    """A level whose octree needs moved points: the depth queries return what the EVLR says."""
+    from lodbuilder.export import copc
+    from lodbuilder.export.copc import write_copc
+
+    monkeypatch.setattr(copc, "ROOT_POINTS", 30)  # several depths from 3,000 points
+    rng = np.random.default_rng(5)
+    pts = rng.random((3000, 3)) * [100, 100, 1]
+    pts[1:300, :2] *= 0.2  # the coarse points in one corner, the fine ones everywhere
+    radius = 50 / np.sqrt(np.arange(1, 3001))  # radii unrelated to where the points are
+    radius[0] = np.inf
+    out = write_copc(tmp_path / "p.copc.laz", pts, {}, radius, 0.0)
+    assert out.promoted > 0 and out.depths >= 4
+    with laspy.CopcReader.open(str(tmp_path / "p.copc.laz")) as reader:
+        for lv in out.levels:
+            got = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
+            assert got.size == lv["points"] == lv["fps_prefix"] + lv["promoted"]
+            np.testing.assert_array_equal(got[: lv["fps_prefix"]], np.arange(lv["fps_prefix"]))
+        assert reader.header.point_count == 3000
+
+
+def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
+    from lodbuilder.errors import InputError, MissingDependencyError
+    from lodbuilder.export.copc import write_copc
+
+    arc = str(autzen)
+    cases = [
+        (["-o", str(tmp_path / "x.copc.laz"), "--max-points", "10"],
+         "--max-points applies to a web page (-o OUT.html) only"),
+        (["-o", str(tmp_path / "x.copc.laz"), "--up", "y"],
+         "--up applies to a web page (-o OUT.html) only"),
+        (["-o", str(tmp_path / "x.laz")],
+         f"-o {tmp_path / 'x.laz'}: name it OUT.copc.laz (COPC) or OUT.html (web page); for "
+         ".ply, .las, .laz, .csv, .npy... use lodbuilder slice"),
+    ]
+    for args, message in cases:
+        assert main(["export", arc] + args) == 2
+        assert capsys.readouterr().err == f"lodbuilder export: error: {message}\n"
+    # slice does not write a plain LAZ under a COPC name (the io layer's rule: see test_io_writers)
+    out = tmp_path / "s.copc.laz"
+    assert main(["slice", arc, "--size", "10", "-o", str(out)]) == 2
+    assert capsys.readouterr().err == (
+        f"lodbuilder slice: error: {out}: cannot write a COPC file (only plain LAS/LAZ); use "
+        f"lodbuilder export ARCHIVE -o {out} (in Python: lodbuilder.export.copc.export_copc)\n"
+    )
+    with pytest.raises(InputError, match=r"^attribute 'rank' would clash with the rank the COPC"):
+        write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {"rank": np.zeros(2)}, np.ones(2), 0)
+    monkeypatch.setitem(sys.modules, "copclib", None)
+    with pytest.raises(MissingDependencyError, match=r"^COPC export needs copclib, which is not installed; install it with: pip install 'lodbuilder\[copc\]'$"):
+        write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {}, np.ones(2), 0)
+    assert main(["export", arc, "-o", str(tmp_path / "z.copc.laz")]) == 2
+    assert "COPC export needs copclib" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_does_not_import_copclib_for_a_web_page(autzen, tmp_path):
+    code = (
+        "import sys; from lodbuilder.cli.main import main; "
+        f"rc = main(['export', {str(autzen)!r}, '--size', '100', '-o', {str(tmp_path / 'a.html')!r}, '-q']); "
+        "bad = [m for m in ('copclib', 'pyvista', 'numba', 'dask') if m in sys.modules]; "
+        "sys.exit(rc or (3 if bad else 0))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_export_from_an_archive_over_http(tmp_path):
+    """export reads the archive through open_archive, so an https:// (here http://127.0.0.1)
+    archive gives the same files as the local one."""
+    pytest.importorskip("fsspec")
+    from rangeserver import RangeServer  # (tests/rangeserver.py)
+
+    import lodbuilder
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    root = tmp_path / "served"
+    root.mkdir()
+    lodbuilder.build_archive(demo_scan(4000, seed=4), root / "d.h5", name="d")
+    with RangeServer(root) as srv:
+        for suffix in (".copc.laz", ".html"):
+            outs = []
+            for src in (str(root / "d.h5"), srv.url("d.h5")):
+                out = tmp_path / f"{len(outs)}{suffix}"
+                assert main(["export", src, "--size", "3000", "-o", str(out), "-q"]) == 0
+                outs.append(out)
+            if suffix == ".html":
+                assert outs[0].read_bytes() == outs[1].read_bytes()
+            else:
+                a, b = (laspy.read(str(o)) for o in outs)
+                assert np.array_equal(a.points.array, b.points.array)

@@ -1,0 +1,370 @@
+"""Gaps and filling (issue 14) on exact surfaces: a plane and a sphere with holes punched in them."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from naive import naive_farthest_insert
+from scipy.spatial import cKDTree
+from surfaces import jittered_plane, sphere
+
+import lodbuilder
+from lodbuilder.archive.writer import ScanRecord, update_archive
+from lodbuilder.errors import InputError
+from lodbuilder.io.base import Scan
+from lodbuilder.sampling.fill import SYNTHETIC, fill_level, find_gaps
+from lodbuilder.sampling.fill.gaps import GRID_FRACTION, SAMPLE_FRACTION
+from lodbuilder.sampling.fill.insert import farthest_insert, region_attributes, stop_distance
+
+RHO = 0.03
+#: (centre, radius in units of rho): three holes inside the unit square
+HOLES = [((0.3, 0.3), 4.0), ((0.72, 0.33), 3.0), ((0.5, 0.72), 5.0)]
+#: a bite out of the square's left edge: open, never filled
+BITE = ((0.0, 0.5), 4.0)
+
+
+def _archive(path, points, attributes, name):
+    scan = Scan(points=points, attributes=attributes, name=name)
+    update_archive(path, [ScanRecord(scan, lodbuilder.fastfps(points))])
+    return path
+
+
+def _punch(points, holes, rho, axes=(0, 1)):
+    keep = np.ones(points.shape[0], dtype=bool)
+    for c, r in holes:
+        d = points[:, axes] - np.asarray(c)
+        keep &= np.sqrt((d * d).sum(axis=1)) > r * rho
+    return keep
+
+
+@pytest.fixture(scope="module")
+def plane(tmp_path_factory):
+    rng = np.random.default_rng(1)
+    full = jittered_plane(40_000, rng)
+    keep = _punch(full, HOLES + [BITE], RHO)
+    pts = full[keep]
+    n = pts.shape[0]
+    attrs = {
+        "red": np.round(255 * pts[:, 0]).astype(np.uint8),
+        "intensity": pts[:, 1].astype(np.float32),
+        "nx": np.zeros(n, np.float32),
+        "ny": np.zeros(n, np.float32),
+        "nz": np.where(rng.random(n) < 0.5, -1.0, 1.0).astype(np.float32),  # flipped at random
+        "classification": np.where(pts[:, 0] < 0.5, 2, 6).astype(np.uint8),
+    }
+    path = _archive(tmp_path_factory.mktemp("fill") / "plane.h5", pts, attrs, "plane")
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        yield SimpleNamespace(view=view, full=full, keep=keep, path=path)
+
+
+@pytest.fixture(scope="module")
+def plane_filled(plane):
+    return fill_level(plane.view, RHO)
+
+
+# --- gaps ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_plane_gaps_are_the_holes(plane, exact):
+    rep = find_gaps(plane.view, RHO, exact=exact)
+    gaps = sorted(rep.gaps, key=lambda g: g.bounds[0][1])
+    assert len(gaps) == len(HOLES)
+    assert rep.n_open >= 1  # the bite at the border, and the square's own edges
+    by_y = sorted(HOLES, key=lambda h: h[0][1] - h[1] * RHO)
+    for g, (c, r) in zip(gaps, by_y, strict=True):
+        lo, hi = g.bounds
+        assert lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]
+        assert g.status == "fillable"
+        # the part farther than rho from the input is the disc of radius (r - 1) rho
+        exact_area = np.pi * ((r - 1.0) * RHO) ** 2
+        assert g.area == pytest.approx(exact_area, rel=0.12)
+        assert abs(g.max_distance - r * RHO) < 0.25 * RHO
+        assert np.abs(g.candidates[:, 2]).max() < 1e-9  # on the plane
+    d = rep.as_dict()
+    assert d["n_gaps"] == 3 and d["n_fillable"] == 3 and d["n_rough"] == 0
+    assert d["sample_rho"] == (0.0 if exact else SAMPLE_FRACTION * RHO)
+
+
+def test_max_hole_leaves_wider_holes_open(plane):
+    rep = find_gaps(plane.view, RHO, max_hole=6.0, exact=True)
+    # only the hole of radius 3 rho (its far part 4 rho wide) fits in 6 rho
+    assert len(rep.gaps) == 1
+    lo, hi = rep.gaps[0].bounds
+    assert lo[0] < 0.72 < hi[0] and lo[1] < 0.33 < hi[1]
+
+
+def test_no_gaps_at_a_coarse_rho(plane):
+    # at rho = 0.4 every hole (radius <= 0.15) lies within rho/2 of the input: no region at all
+    rep = find_gaps(plane.view, 0.4, exact=True)
+    assert rep.regions == [] and rep.gaps == []
+    filled = fill_level(plane.view, 0.4)
+    lev = plane.view.level(rho=0.4)
+    assert filled.n_synthetic == 0
+    np.testing.assert_array_equal(filled.level.points, lev.points)
+
+
+@pytest.mark.data
+def test_only_gaps_are_filled(shared_data, tmp_path):
+    """A real scan has many small regions farther than rho/2 (not rho) from its points: they are
+    reported as regions, not gaps, and never filled."""
+    path = tmp_path / "res2.h5"
+    lodbuilder.build_archive(shared_data / "bun_zipper_res2.ply", path)
+    with lodbuilder.open_archive(path) as arc:
+        filled = fill_level(arc.scan(), 0.004)
+    regions = filled.report.regions
+    not_gaps = [r for r in regions if not r.is_gap]
+    assert len(not_gaps) >= 5 and len(filled.report.gaps) >= 1
+    assert all(r.n_synthetic == 0 and r.max_distance <= 0.004 for r in not_gaps)
+    assert all(np.isnan(r.residual) for r in not_gaps)  # not assessed
+    assert sum(r.n_synthetic for r in filled.report.gaps) == filled.n_synthetic > 0
+
+
+# --- filling --------------------------------------------------------------------------------------
+
+
+def test_plane_fill_covers_the_holes(plane, plane_filled):
+    lev = plane_filled.level
+    removed = plane.full[~plane.keep]
+    in_holes = ~_punch(removed, HOLES, RHO)
+    removed = removed[in_holes]  # the bite is open: not filled
+    d_filled = cKDTree(lev.points).query(removed)[0]
+    d_input = cKDTree(plane.full[plane.keep]).query(removed)[0]
+    d_level = cKDTree(plane.view.level(rho=RHO).points).query(removed)[0]
+    assert d_level.max() > 4.0 * RHO  # unfilled: the holes are not covered
+    assert d_filled.max() <= 1.5 * RHO
+    # away from the rim (farther than 3/4 rho from the input) the filled level meets rho
+    deep = d_input > 0.75 * RHO
+    assert deep.sum() > 100
+    assert d_filled[deep].max() <= RHO * (1 + 1e-9)
+
+
+def test_synthetic_points_lie_in_the_holes_on_the_plane(plane, plane_filled):
+    lev = plane_filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert syn.shape[0] == plane_filled.n_synthetic > 0
+    assert np.abs(syn[:, 2]).max() < 1e-9
+    # inside one of the three holes, never in the bite nor outside the square
+    inside = ~_punch(syn, HOLES, RHO)
+    assert inside.all()
+    assert (syn[:, :2] > 0).all() and (syn[:, :2] < 1).all()
+    # farther than rho/2 from the sample (the prefix at rho/4), so farther than rho/4 from every
+    # input point; and at least the stop distance apart
+    sample = plane.view.points(plane.view.size_for_rho(SAMPLE_FRACTION * RHO))
+    assert cKDTree(sample).query(syn)[0].min() > 0.5 * RHO
+    assert cKDTree(plane.full[plane.keep]).query(syn)[0].min() > 0.25 * RHO
+    stop = stop_distance(RHO, GRID_FRACTION * RHO)
+    assert cKDTree(lev.points).query(syn, k=2)[0][:, 1].min() > stop
+
+
+def test_flags_and_bookkeeping(plane, plane_filled):
+    lev, view = plane_filled.level, plane.view
+    base = view.level(rho=RHO)
+    k, m = base.size, plane_filled.n_synthetic
+    assert lev.size == k + m == lev.points.shape[0]
+    flag = lev.attributes[SYNTHETIC]
+    assert flag.dtype == np.uint8
+    np.testing.assert_array_equal(flag, np.r_[np.zeros(k, np.uint8), np.ones(m, np.uint8)])
+    np.testing.assert_array_equal(lev.points[:k], base.points)
+    for name, arr in base.attributes.items():
+        np.testing.assert_array_equal(lev.attributes[name][:k], arr)
+        assert lev.attributes[name].dtype == arr.dtype
+    np.testing.assert_array_equal(lev.source_index[:k], base.source_index)
+    np.testing.assert_array_equal(lev.rank[:k], base.rank)
+    assert (lev.source_index[k:] == -1).all() and (lev.rank[k:] == -1).all()
+    assert (lev.radius[k:] > stop_distance(RHO, GRID_FRACTION * RHO)).all()
+    assert lev.rho == base.rho
+    assert sum(r.n_synthetic for r in plane_filled.report.regions) == m
+    assert plane_filled.summary(view.n_points) == (
+        f"{k} of {view.n_points} points + {m} synthetic (synthetic = 1) in 3 filled gap(s)"
+    )
+
+
+def test_attributes_are_interpolated(plane, plane_filled):
+    lev, view = plane_filled.level, plane.view
+    syn = lev.attributes[SYNTHETIC] == 1
+    pts = lev.points[syn]
+    # linear ramps across the holes are reproduced (from the ring all round, not one side)
+    assert np.abs(lev.attributes["intensity"][syn] - pts[:, 1]).max() < 1e-4
+    red = lev.attributes["red"][syn].astype(float)
+    assert np.abs(red - 255 * pts[:, 0]).max() <= 1.5  # ring values and result both rounded
+    # normals: the fitted surface's, (0, 0, +-1) on the plane
+    assert np.abs(lev.attributes["nx"][syn]).max() < 1e-6
+    assert np.abs(lev.attributes["ny"][syn]).max() < 1e-6
+    np.testing.assert_allclose(np.abs(lev.attributes["nz"][syn]), 1.0)
+    # a category is copied from the nearest input point, never averaged
+    k_s = view.size_for_rho(SAMPLE_FRACTION * RHO)
+    sample = view.points(k_s)
+    _, nearest = cKDTree(sample).query(pts)
+    np.testing.assert_array_equal(
+        lev.attributes["classification"][syn], view.attributes(k_s)["classification"][nearest]
+    )
+
+
+def test_interpolated_values_stay_within_the_ring(plane):
+    view = plane.view
+    rep = find_gaps(view, RHO)
+    k_s = view.size_for_rho(SAMPLE_FRACTION * RHO)
+    sample = view.points(k_s)
+    # steps through the holes' centres, where a spline overshoots: values stay within the ring's
+    bump = (sample[:, 0] > 0.3).astype(float) + (sample[:, 1] > 0.72) + (sample[:, 0] > 0.72)
+    attrs = {"f": bump, "u": np.round(100 + 100 * bump).astype(np.uint8)}  # "u": a category
+    for reg in rep.gaps:
+        picked = np.arange(reg.candidates.shape[0])
+        out = region_attributes(attrs, sample, reg, picked)
+        ring = bump[reg.ring]
+        assert ring.min() <= out["f"].min() and out["f"].max() <= ring.max()
+        assert set(np.unique(out["u"])) <= set(np.unique(attrs["u"][reg.ring]))
+        assert out["f"].dtype == np.float64 and out["u"].dtype == np.uint8
+
+
+def test_fill_is_deterministic(plane, plane_filled):
+    again = fill_level(plane.view, RHO)
+    np.testing.assert_array_equal(again.level.points, plane_filled.level.points)
+
+
+def test_fill_without_attributes(plane):
+    filled = fill_level(plane.view, RHO, attributes=False)
+    assert list(filled.level.attributes) == [SYNTHETIC]
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"rho": -1.0}, "rho must be a finite number > 0, got -1.0"),
+        (
+            {"rho": RHO, "max_hole": 1.0},
+            "max_hole (the widest hole filled, in units of rho) must be a number > 1, got 1.0",
+        ),
+        (
+            {"rho": RHO, "max_hole": "wide"},
+            "max_hole (the widest hole filled, in units of rho) must be a number > 1, got 'wide'",
+        ),
+    ],
+)
+def test_bad_arguments(plane, kwargs, message):
+    for fn in (fill_level, find_gaps):
+        with pytest.raises(InputError) as exc:
+            fn(plane.view, **kwargs)
+        assert str(exc.value) == message
+
+
+# --- a curved surface ---------------------------------------------------------------------------
+
+SPHERE_RHO = 0.06
+
+
+@pytest.fixture(scope="module")
+def punched_sphere(tmp_path_factory):
+    rng = np.random.default_rng(2)
+    full = sphere(30_000, rng)
+    centres = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [-0.6, 0.6, -0.53]])
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    radii = np.array([3.0, 4.0, 5.0]) * SPHERE_RHO
+    keep = np.ones(full.shape[0], dtype=bool)
+    for c, r in zip(centres, radii, strict=True):
+        keep &= np.linalg.norm(full - c, axis=1) > r
+    pts = full[keep]
+    flip = np.where(rng.random(pts.shape[0]) < 0.5, -1.0, 1.0)[:, None]
+    normals = {c: (flip * pts)[:, j].astype(np.float32) for j, c in enumerate(("nx", "ny", "nz"))}
+    path = _archive(tmp_path_factory.mktemp("sph") / "s.h5", pts, normals, "sphere")
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        filled = fill_level(view, SPHERE_RHO)
+        yield SimpleNamespace(view=view, full=full, keep=keep, radii=radii, filled=filled)
+
+
+def test_sphere_holes_are_filled_on_the_sphere(punched_sphere):
+    s = punched_sphere
+    rep = s.filled.report
+    assert len(rep.gaps) == 3 and all(g.status == "fillable" for g in rep.gaps)
+    assert rep.n_open == 0  # a closed surface has no border
+    # a spherical cap of chord radius a has the area pi a^2: the part of each hole farther
+    # than rho from the input is about the cap of chord radius r - rho
+    areas = sorted(g.area for g in rep.gaps)
+    radii = sorted(s.radii)
+    for area, r in zip(areas, radii, strict=True):
+        assert area == pytest.approx(np.pi * (r - SPHERE_RHO) ** 2, rel=0.12)
+    lev = s.filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert syn.shape[0] > 20
+    # the exact surface: every synthetic point within 0.05 rho of the unit sphere
+    assert np.abs(np.linalg.norm(syn, axis=1) - 1.0).max() < 0.05 * SPHERE_RHO
+    # their normals are the fitted sphere's: within 2 degrees of the radial direction
+    nrm = np.stack(
+        [lev.attributes[c][lev.attributes[SYNTHETIC] == 1] for c in ("nx", "ny", "nz")], 1
+    )
+    cos = np.abs(np.einsum("ij,ij->i", nrm, syn / np.linalg.norm(syn, axis=1, keepdims=True)))
+    assert cos.min() > np.cos(np.radians(2.0))
+    removed = s.full[~s.keep]
+    d_filled = cKDTree(lev.points).query(removed)[0]
+    d_level = cKDTree(s.view.level(rho=SPHERE_RHO).points).query(removed)[0]
+    assert d_level.max() > 3.0 * SPHERE_RHO
+    assert d_filled.max() <= 1.5 * SPHERE_RHO
+
+
+# --- kernels against naive references --------------------------------------------------------
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.integers(min_value=0, max_value=2**31 - 1),
+    st.integers(min_value=1, max_value=60),
+    st.integers(min_value=0, max_value=20),
+    st.floats(min_value=0.0, max_value=0.5),
+)
+def test_farthest_insert_matches_naive(seed, m, k, stop):
+    rng = np.random.default_rng(seed)
+    cand = rng.random((m, 3))
+    existing = rng.random((k, 3))
+    start = cKDTree(existing).query(cand)[0] if k else np.full(m, np.inf)
+    picked, radii = farthest_insert(cand, start, stop)
+    ref_p, ref_r = naive_farthest_insert(cand, existing, stop)
+    assert picked.tolist() == ref_p
+    np.testing.assert_allclose(radii, ref_r)
+
+
+def test_a_hole_off_the_seeds_centre_is_found(plane):
+    """Seeds gathered on one side of a hole put the grid off its centre: the region reaches the
+    grid's edge there, and the grid is laid again centred on it (not taken for an open border)."""
+    from lodbuilder.sampling.fill.gaps import _regions_of_group
+
+    view = plane.view
+    sample = view.points(view.size_for_rho(SAMPLE_FRACTION * RHO))
+    (c, r) = HOLES[2]  # radius 5 rho: its far part is 9 rho wide, the grid 12 rho
+    seeds = np.array(
+        [
+            [c[0] + 3.2 * RHO + dx, c[1] + dy, 0.0]
+            for dx, dy in ((0, 0), (0.2 * RHO, 0), (0, 0.2 * RHO), (0.2 * RHO, 0.2 * RHO))
+        ]
+    )
+    regions = _regions_of_group(
+        sample, cKDTree(sample), seeds, np.array([0.0, 0.0, 1.0]), RHO, 12 * RHO
+    )
+    assert len(regions) == 1 and regions[0] is not None
+    uv = regions[0].candidates[:, :2]
+    assert np.linalg.norm(uv.mean(axis=0) - c) < 0.2 * RHO  # the whole hole, centred
+
+
+def test_a_rim_at_two_depths_is_rough(tmp_path, rng):
+    """Part of the hole's rim lies on a plate 3 rho above the sheet (like an occlusion shadow's
+    rim): no smooth surface bridges it. One gap, rough, reported and not filled."""
+    rho = 0.04
+    sheet = jittered_plane(20_000, rng)
+    sheet = sheet[np.hypot(sheet[:, 0] - 0.5, sheet[:, 1] - 0.5) > 4 * rho]
+    on = (sheet[:, 0] > 0.35) & (sheet[:, 0] < 0.8) & (sheet[:, 1] > 0.58) & (sheet[:, 1] < 0.9)
+    plate = sheet[on] + np.array([0.0, 0.0, 3 * rho])
+    path = _archive(tmp_path / "plate.h5", np.r_[sheet, plate], {}, "plate")
+    with lodbuilder.open_archive(path) as arc:
+        filled = fill_level(arc.scan(), rho)
+    (gap,) = filled.report.gaps
+    assert gap.status == "rough" and gap.n_synthetic == 0
+    assert gap.reason.startswith("the surface fitted to the surrounding points misses those")
+    assert gap.residual > 0.5 * rho
+    assert filled.n_synthetic == 0
+    assert filled.summary(1).endswith("in 0 filled gap(s), 1 rough gap(s) left open")

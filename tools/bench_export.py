@@ -1,0 +1,252 @@
+"""Benchmark: COPC export and the standalone web page of a 1M-point archive (JSON to stdout).
+
+Input: a synthetic scan (lodbuilder's demo surface: a wavy sheet with RGB, ``--points`` points,
+default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse one). Measured:
+
+* ``copc``: ``export -o OUT.copc.laz`` (copclib; target <= 10 s for 1M points): seconds, bytes,
+  depths, nodes, and a check that every depth query of laspy's CopcReader returns its prefix;
+* ``web``: ``export -o OUT.html`` (target <= 30 MB for 1M points): seconds, bytes, and the time
+  headless Chromium (Debian's, through playwright) takes from navigation to the last frame drawn
+  (target <= 15 s), with the requests the page made;
+* ``pyvista_export_html`` (the peer, when trame, trame-vtk, trame-vuetify and trame-pyvista are
+  importable): PyVista's ``Plotter.export_html`` of the same points with RGB, its bytes and
+  seconds, and the requests Chromium makes when it opens the file.
+
+    python tools/bench_export.py [--points 1000000] [--archive A.h5] [--markdown docs/benchmarks.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from benchdoc import write_section
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = os.environ.get("LODBUILDER_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "?"
+
+
+def render(path: Path, ready_js: str | None, wait_s: float = 0.0) -> dict:
+    """Open ``path`` in headless Chromium: seconds from navigation until ``ready_js`` is true
+    (or ``wait_s`` when None), and every request the page made."""
+    from playwright.sync_api import sync_playwright
+
+    out: dict = {}
+    with sync_playwright() as p:
+        t0 = time.perf_counter()
+        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        out["launch_s"] = round(time.perf_counter() - t0, 2)
+        page = browser.new_page(viewport={"width": 1200, "height": 800})
+        requests: list[str] = []
+        errors: list[str] = []
+        page.on("request", lambda r: requests.append(r.url))
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        t0 = time.perf_counter()
+        page.goto(path.resolve().as_uri(), timeout=120_000)
+        if ready_js is None:
+            page.wait_for_timeout(wait_s * 1000)
+        else:
+            while not page.evaluate(ready_js):
+                page.wait_for_timeout(20)
+                if time.perf_counter() - t0 > 120:
+                    out["timeout"] = True
+                    break
+        out["render_s"] = round(time.perf_counter() - t0, 2)
+        if ready_js is not None:
+            out["history"] = page.evaluate("() => LOD.state.history")
+        own = path.resolve().as_uri()
+        out["requests"] = len(requests)
+        out["outside_requests"] = sorted({u for u in requests if u != own})
+        out["page_errors"] = errors
+        browser.close()
+    return out
+
+
+def bench_copc(view, out: Path) -> dict:
+    import laspy
+    import numpy as np
+
+    from lodbuilder.export.copc import export_copc
+
+    t0 = time.perf_counter()
+    res = export_copc(view, out, view.n_ordered)
+    secs = time.perf_counter() - t0
+    ok = True
+    with laspy.CopcReader.open(str(out)) as reader:
+        for lv in res.levels:
+            rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
+            ok &= bool(rank.size == lv["points"])
+            ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
+    return {
+        "seconds": round(secs, 2),
+        "bytes": res.n_bytes,
+        "depths": res.depths,
+        "nodes": res.nodes,
+        "promoted": res.promoted,
+        "points_by_depth": [lv["points"] for lv in res.levels],
+        "depth_queries_return_their_prefix": ok,
+    }
+
+
+def bench_web(view, out: Path, size: int) -> dict:
+    from lodbuilder.export.web import export_web
+
+    t0 = time.perf_counter()
+    page = export_web(view, out, size)
+    res = {"points": size, "seconds": round(time.perf_counter() - t0, 2), "bytes": page.n_bytes}
+    res["chromium"] = render(out, "() => !!(window.LOD && LOD.state.ready)")
+    return res
+
+
+def bench_pyvista(view, out: Path, size: int) -> dict:
+    try:
+        import pyvista as pv
+        import trame_vtk  # noqa: F401
+    except ImportError as exc:
+        return {"skipped": f"not importable: {exc.name}"}
+    import numpy as np
+
+    pts = view.points(size)
+    att = view.attributes(size, ["red", "green", "blue"])
+    rgb = np.column_stack([att[c] for c in ("red", "green", "blue")])
+    t0 = time.perf_counter()
+    pl = pv.Plotter(off_screen=True)
+    mesh = pv.PolyData(pts)
+    mesh["rgb"] = rgb
+    pl.add_mesh(mesh, scalars="rgb", rgb=True, style="points", point_size=2)
+    try:
+        pl.export_html(str(out))
+    except Exception as exc:  # trame pieces missing
+        return {"skipped": " ".join(str(exc).split())[:200]}
+    finally:
+        pl.close()
+    res = {"points": size, "seconds": round(time.perf_counter() - t0, 2), "bytes": out.stat().st_size}
+    res["chromium"] = render(out, None, wait_s=10.0)
+    res["chromium"]["note"] = "render_s is a fixed 10 s wait: vtk.js gives no ready signal"
+    return res
+
+
+def markdown(r: dict) -> str:
+    c, w = r["copc"], r["web"]
+    ch = w["chromium"]
+    lines = [
+        "## Export: COPC and the standalone web page (tools/bench_export.py)",
+        "",
+        f"Measured {r['date']} by `python tools/bench_export.py {r['argv']}` (commit {r['commit']}); "
+        f"{r['machine']['cpu_count']} cores, load average at start {r['load_average']}. Input: "
+        f"synthetic wavy sheet with RGB, {r['n_points']:,} points (archive built in "
+        f"{r['build_s']} s).",
+        "",
+        "| output | seconds | size | notes |",
+        "|---|---:|---:|---|",
+        f"| COPC (copclib) | {c['seconds']} | {c['bytes'] / 1e6:.1f} MB | {c['depths']} depths, "
+        f"{c['nodes']} nodes, points by depth {', '.join(f'{x:,}' for x in c['points_by_depth'])}; "
+        f"every depth query returns its prefix: {c['depth_queries_return_their_prefix']} |",
+        f"| web page (ours) | {w['seconds']} | {w['bytes'] / 1e6:.1f} MB | headless Chromium: "
+        f"last frame {ch['render_s']} s after navigation (launch {ch['launch_s']} s), "
+        f"{ch['requests']} request(s), outside: {len(ch['outside_requests'])} |",
+    ]
+    pv = r.get("pyvista_export_html", {})
+    for label, res in pv.items():
+        if "skipped" in res:
+            lines.append(f"| PyVista export_html, {label} | - | - | skipped: {res['skipped']} |")
+        else:
+            outside = res["chromium"]["outside_requests"]
+            hosts = sorted({u.split("/")[2] for u in outside if "://" in u})
+            lines.append(
+                f"| PyVista export_html, {label} points | {res['seconds']} | "
+                f"{res['bytes'] / 1e6:.1f} MB | {res['chromium']['requests']} requests, "
+                f"{len(outside)} outside ({', '.join(hosts) or 'none'}) |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=1_000_000)
+    ap.add_argument("--archive", help="reuse this archive (its only scan) instead of building one")
+    ap.add_argument("--no-peer", action="store_true", help="skip PyVista's export_html")
+    ap.add_argument(
+        "--peer-path",
+        help="a directory appended to sys.path for the peer's trame packages "
+        "(e.g. pip install --target DIR trame trame-vtk trame-vuetify trame-pyvista nest_asyncio2)",
+    )
+    ap.add_argument("--markdown", help="update the 'export' section of this file")
+    ap.add_argument("--from-json", help="write --markdown from the JSON of an earlier run")
+    args = ap.parse_args(argv)
+    if args.from_json:
+        if not args.markdown:
+            ap.error("--from-json needs --markdown")
+        write_section(Path(args.markdown), "export", markdown(json.loads(Path(args.from_json).read_text())))
+        return 0
+    if args.peer_path:
+        sys.path.append(args.peer_path)
+
+    import numpy as np
+
+    import lodbuilder
+    from lodbuilder.archive.demo_surface import demo_scan
+
+    result: dict = {
+        "benchmark": "export: COPC and web page",
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "argv": " ".join(sys.argv[1:] if argv is None else argv),
+        "commit": _commit(),
+        "load_average": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
+        "input": "synthetic wavy sheet with RGB (lodbuilder.archive.demo_surface.demo_scan)",
+    }
+    with tempfile.TemporaryDirectory(prefix="bench-export-") as tmp:
+        arc = Path(args.archive) if args.archive else Path(tmp) / "bench.h5"
+        t0 = time.perf_counter()
+        if not args.archive:
+            lodbuilder.build_archive(demo_scan(args.points, seed=1, name="demo"), arc, name="demo")
+        result["build_s"] = round(time.perf_counter() - t0, 2)
+        with lodbuilder.open_archive(arc) as a:
+            view = a.scan()
+            result["n_points"] = view.n_ordered
+            result["copc"] = bench_copc(view, Path(tmp) / "out.copc.laz")
+            result["web"] = bench_web(view, Path(tmp) / "out.html", view.n_ordered)
+            if not args.no_peer:
+                result["pyvista_export_html"] = {
+                    f"{k:,}": bench_pyvista(view, Path(tmp) / f"pv{k}.html", k)
+                    for k in sorted({min(100_000, view.n_ordered), view.n_ordered})
+                }
+    result["load_average_end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    result["machine"] = {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "numpy": np.__version__,
+        "lodbuilder": lodbuilder.__version__,
+    }
+    json.dump(result, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    if args.markdown:
+        write_section(Path(args.markdown), "export", markdown(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

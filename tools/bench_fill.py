@@ -1,0 +1,505 @@
+"""Benchmark gap filling (issue 14): holes punched in scans, their levels filled.
+
+    python tools/bench_fill.py                               # both parts: 3 real scans, 1M sheet
+    python tools/bench_fill.py --only real --scan ../shared/data/bun_zipper.ply --rho 0.002
+    python tools/bench_fill.py --only synthetic --n 1000000 --markdown docs/benchmarks.md
+
+Real part: in a real scan, every point inside a few balls of radius 3-5 rho is removed (centres on
+the scan, at least 4 rho apart, where the scan surrounds the ball all round: no border nor natural
+hole nearby), the archive is built and its level at rho filled. Figures: the covering radius of
+the ORIGINAL scan (before punching) by the unfilled and the filled level, and the distance of
+every synthetic point to the original surface (the mesh when the PLY has faces, else the local
+plane of the 8 nearest original points), split into synthetic points inside the punched balls and
+elsewhere (the scan's own holes, for which there is no original surface).
+
+Synthetic part: a *synthetic* wavy sheet of N random points (side 1) with round holes covering 1 %
+of its area, ordered with lodbuilder.fastfps; time of ``fill_level`` at rho (warm, in process) and
+of ``lodbuilder slice --rho R [--fill]`` (wall, process start included), the same coverage figures,
+and the vertical distance of the synthetic points to the exact sheet.
+
+Targets (issue 14): the filled level covers the original scan within 1.5 rho, against >= 3 rho
+unfilled; every synthetic point within 0.25 rho of the original surface; filling a level of a
+1M-point scan with 1 % of its area in holes <= 2 s.
+
+Prints one JSON document (date, commit, command, load average); ``--markdown`` writes the 'fill'
+section of docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from benchdoc import write_section
+from scipy.spatial import cKDTree
+
+HERE = Path(__file__).resolve().parent
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
+        )
+        return out.stdout.strip() or "?"
+    except OSError:
+        return "?"
+
+
+# --- punching holes --------------------------------------------------------------------------
+
+
+def surrounded(
+    points: np.ndarray, tree: cKDTree, centre: np.ndarray, inner: float, outer: float
+) -> bool:
+    """The scan covers the annulus inner..outer around ``centre`` all round (8 sectors of its
+    local plane), so a hole of radius ``inner`` there is enclosed by the scan."""
+    idx = tree.query_ball_point(centre, outer)
+    near = points[idx]
+    d = np.linalg.norm(near - centre, axis=1)
+    ring = near[(d > inner) & (d <= outer)]
+    if ring.shape[0] < 32:
+        return False
+    c = near - near.mean(axis=0)
+    _, vec = np.linalg.eigh(c.T @ c)
+    off = ring - centre
+    ang = np.arctan2(off @ vec[:, 1], off @ vec[:, 2])
+    sectors = np.floor((ang + np.pi) / (np.pi / 4)).astype(int) % 8
+    # and the ring lies on one sheet close to the plane (no fold or thin part inside the ball)
+    flat = np.abs(off @ vec[:, 0]).max() < 0.6 * outer
+    return bool(np.unique(sectors).size == 8 and flat)
+
+
+def punch(points: np.ndarray, rho: float, n_holes: int, seed: int, radii=(3.0, 5.0)):
+    """(keep mask, centres, radii): every point within a ball of radius in ``radii`` x rho of a
+    centre removed; centres on the scan, apart, each ball enclosed by the scan."""
+    rng = np.random.default_rng(seed)
+    tree = cKDTree(points)
+    centres: list[np.ndarray] = []
+    rs: list[float] = []
+    for i in rng.permutation(points.shape[0]):
+        c = points[i]
+        r = rho * rng.uniform(*radii)
+        if any(
+            np.linalg.norm(c - c2) < r + r2 + 4 * rho for c2, r2 in zip(centres, rs, strict=True)
+        ):
+            continue
+        if not surrounded(points, tree, c, r + 0.5 * rho, r + 3 * rho):
+            continue
+        centres.append(c)
+        rs.append(r)
+        if len(centres) == n_holes:
+            break
+    keep = np.ones(points.shape[0], dtype=bool)
+    for c, r in zip(centres, rs, strict=True):
+        keep[tree.query_ball_point(c, r)] = False
+    return keep, np.array(centres), np.array(rs)
+
+
+def punch_area(points_xy: np.ndarray, rho: float, fraction: float, seed: int, radii=(3.0, 5.0)):
+    """Round holes in a unit square sheet until they cover ``fraction`` of its area."""
+    rng = np.random.default_rng(seed)
+    centres: list[np.ndarray] = []
+    rs: list[float] = []
+    area = 0.0
+    while area < fraction:
+        c = rng.uniform(0.1, 0.9, 2)
+        r = rho * rng.uniform(*radii)
+        if any(np.hypot(*(c - c2)) < r + r2 + 4 * rho for c2, r2 in zip(centres, rs, strict=True)):
+            continue
+        centres.append(c)
+        rs.append(r)
+        area += math.pi * r * r
+    keep = np.ones(points_xy.shape[0], dtype=bool)
+    for c, r in zip(centres, rs, strict=True):
+        keep &= np.hypot(points_xy[:, 0] - c[0], points_xy[:, 1] - c[1]) > r
+    return keep, np.array(centres), np.array(rs), area
+
+
+# --- measuring -------------------------------------------------------------------------------
+
+
+def surface_distance(query: np.ndarray, original: np.ndarray, faces: np.ndarray | None):
+    """Distance of ``query`` points to the original surface: the mesh when there are faces
+    (point-cloud-utils), else the plane of the 8 nearest original points."""
+    if query.shape[0] == 0:
+        return np.zeros(0), "none"
+    if faces is not None:
+        try:
+            import point_cloud_utils as pcu
+
+            d, _, _ = pcu.closest_points_on_mesh(
+                np.ascontiguousarray(query, dtype=np.float64),
+                np.ascontiguousarray(original, dtype=np.float64),
+                np.ascontiguousarray(faces, dtype=np.int64),
+            )
+            return np.asarray(d), "mesh"
+        except ImportError:
+            pass
+    _, nb = cKDTree(original).query(query, k=8)
+    nbhd = original[nb]
+    cen = nbhd.mean(axis=1)
+    c = nbhd - cen[:, None, :]
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    return np.abs(np.einsum("ni,ni->n", query - cen, vec[:, :, 0])), "local plane of 8 points"
+
+
+def coverage(original: np.ndarray, level_pts: np.ndarray, rho: float, masks: dict) -> dict:
+    d = cKDTree(level_pts).query(original, workers=-1)[0] / rho
+    out = {"all": round(float(d.max()), 3)}
+    for name, m in masks.items():
+        if m.any():
+            out[name] = round(float(d[m].max()), 3)
+    return out
+
+
+def read_faces(path: Path) -> np.ndarray | None:
+    if path.suffix.lower() != ".ply":
+        return None
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    if "face" not in ply:
+        return None
+    names = ply["face"].data.dtype.names
+    key = "vertex_indices" if "vertex_indices" in names else names[0]
+    rows = ply["face"].data[key]
+    if not all(len(r) == 3 for r in rows[:1000]):
+        return None
+    return np.stack(rows).astype(np.int64)
+
+
+def build(points: np.ndarray, attributes: dict, name: str, path: Path) -> float:
+    import lodbuilder
+    from lodbuilder.archive.writer import ScanRecord, update_archive
+    from lodbuilder.io.base import Scan
+
+    t = time.perf_counter()
+    scan = Scan(points=points, attributes=attributes, name=name)
+    update_archive(path, [ScanRecord(scan, lodbuilder.fastfps(points))], overwrite=True)
+    return time.perf_counter() - t
+
+
+def fill_times(path: Path, rho: float, repeat: int):
+    import lodbuilder
+    from lodbuilder.sampling.fill import fill_level, find_gaps
+
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        ts, tg, tl = [], [], []
+        for _ in range(repeat):
+            t = time.perf_counter()
+            view.level(rho=rho)
+            tl.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            filled = fill_level(view, rho)
+            ts.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            find_gaps(view, rho)
+            tg.append(time.perf_counter() - t)
+        level = view.level(rho=rho, attributes=False)
+    times = {
+        "fill_level_s_min": round(min(ts), 3),
+        "fill_level_s_median": round(statistics.median(ts), 3),
+        "find_gaps_s_median": round(statistics.median(tg), 3),
+        "plain_level_s_median": round(statistics.median(tl), 4),
+    }
+    return filled, level, times
+
+
+def cli_wall(path: Path, rho: float, out: Path, fill: bool, repeat: int) -> float:
+    exe = shutil.which("lodbuilder")
+    cmd = [exe] if exe else [sys.executable, "-m", "lodbuilder.cli.main"]
+    cmd += ["slice", str(path), "--rho", repr(rho), "-o", str(out)] + (["--fill"] if fill else [])
+    ts = []
+    for _ in range(repeat):
+        out.unlink(missing_ok=True)
+        t = time.perf_counter()
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        ts.append(time.perf_counter() - t)
+        if r.returncode != 0:
+            raise RuntimeError(r.stderr)
+    return round(min(ts), 3)
+
+
+def report_regions(filled) -> list[dict]:
+    return [
+        {
+            "status": g.status,
+            "area": g.area,
+            "max_distance_rho": round(g.max_distance / g.rho, 3),
+            "n_synthetic": g.n_synthetic,
+            "residual_rho": round(g.residual / g.rho, 3),
+            "reason": g.reason,
+        }
+        for g in filled.report.gaps
+    ]
+
+
+# --- the two parts ---------------------------------------------------------------------------
+
+
+def real_part(
+    scan_path: Path, rho: float, n_holes: int, seeds: list[int], work: Path, repeat: int
+) -> dict:
+    from lodbuilder.io import read_scan
+
+    scan = read_scan(scan_path)
+    original = scan.points
+    faces = read_faces(scan_path)
+    runs = []
+    for seed in seeds:
+        keep, centres, radii = punch(original, rho, n_holes, seed)
+        path = work / f"real_{scan_path.stem}_{seed}.h5"
+        attrs = {k: v[keep] for k, v in scan.attributes.items()}
+        t_build = build(original[keep], attrs, scan.name, path)
+        filled, level, times = fill_times(path, rho, repeat)
+        lev = filled.level
+        syn = lev.points[lev.attributes["synthetic"] == 1]
+        in_ball = np.zeros(syn.shape[0], dtype=bool)
+        holes = np.zeros(original.shape[0], dtype=bool)
+        per_hole = []
+        for c, r in zip(centres, radii, strict=True):
+            in_ball |= np.linalg.norm(syn - c, axis=1) < r + rho
+            holes |= np.linalg.norm(original - c, axis=1) < r
+        err, how = surface_distance(syn, original, faces)
+        err = err / rho
+        cov_un = coverage(original, level.points, rho, {"punched": holes})
+        cov_f = coverage(original, lev.points, rho, {"punched": holes})
+        for c, r in zip(centres, radii, strict=True):
+            m = np.linalg.norm(original - c, axis=1) < r
+            s = np.linalg.norm(syn - c, axis=1) < r + rho
+            per_hole.append(
+                {
+                    "radius_rho": round(float(r / rho), 2),
+                    "cover_unfilled_rho": coverage(original[m], level.points, rho, {})["all"],
+                    "cover_filled_rho": coverage(original[m], lev.points, rho, {})["all"],
+                    "n_synthetic": int(s.sum()),
+                    "synthetic_error_max_rho": round(float(err[s].max()), 3) if s.any() else None,
+                }
+            )
+        runs.append(
+            {
+                "seed": seed,
+                "removed_points": int((~keep).sum()),
+                "hole_radii_rho": [round(float(r / rho), 2) for r in radii],
+                "build_s": round(t_build, 2),
+                "level_size": level.size,
+                "n_synthetic": int(syn.shape[0]),
+                "n_synthetic_in_punched_balls": int(in_ball.sum()),
+                "cover_original_unfilled_rho": cov_un,
+                "cover_original_filled_rho": cov_f,
+                "synthetic_error_in_balls_rho": {
+                    "max": round(float(err[in_ball].max()), 3) if in_ball.any() else None,
+                    "mean": round(float(err[in_ball].mean()), 3) if in_ball.any() else None,
+                    "share_within_0.25": round(float((err[in_ball] <= 0.25).mean()), 3)
+                    if in_ball.any()
+                    else None,
+                },
+                "synthetic_error_elsewhere_rho": {
+                    "max": round(float(err[~in_ball].max()), 3) if (~in_ball).any() else None,
+                    "note": "the scan's own holes: the original has no surface there",
+                },
+                "error_measured_to": how,
+                "holes": per_hole,
+                "gaps": report_regions(filled),
+                **times,
+            }
+        )
+        print(json.dumps({"real": scan_path.name, **runs[-1]}), file=sys.stderr, flush=True)
+    return {"scan": scan_path.name, "n_points": int(original.shape[0]), "rho": rho, "runs": runs}
+
+
+def synthetic_part(
+    n: int, spacings: float, fraction: float, seed: int, work: Path, repeat: int
+) -> dict:
+    from lodbuilder.archive.demo_surface import wavy_sheet
+
+    pts, _ = wavy_sheet(n, seed=seed)
+    rho = spacings / math.sqrt(n)
+    keep, centres, radii, area = punch_area(pts[:, :2], rho, fraction, seed + 1)
+    path = work / f"synthetic_{n}_{seed}_{spacings:g}.h5"
+    rng = np.random.default_rng(seed)
+    attrs = {
+        "intensity": rng.random(int(keep.sum())).astype(np.float32),
+        "red": np.round(255 * pts[keep, 0]).astype(np.uint8),
+    }
+    t_build = build(pts[keep], attrs, f"wavy{n}", path) if not path.exists() else None
+    filled, level, times = fill_times(path, rho, repeat)
+    lev = filled.level
+    syn = lev.points[lev.attributes["synthetic"] == 1]
+    k = 2 * np.pi * 2.0
+    exact = 0.08 * np.sin(k * syn[:, 0]) * np.cos(k * syn[:, 1])
+    holes = np.zeros(n, dtype=bool)
+    for c, r in zip(centres, radii, strict=True):
+        holes |= np.hypot(pts[:, 0] - c[0], pts[:, 1] - c[1]) < r
+    return {
+        "surface": "synthetic wavy sheet z = 0.08 sin(4 pi x) cos(4 pi y), random points",
+        "n_points": n,
+        "rho": rho,
+        "rho_in_spacings": spacings,
+        "holes": len(radii),
+        "hole_radii_rho": [round(float(r / rho), 2) for r in radii],
+        "hole_area_fraction": round(area, 4),
+        "build_s": None if t_build is None else round(t_build, 1),
+        "level_size": level.size,
+        "n_synthetic": int(syn.shape[0]),
+        "cover_original_unfilled_rho": coverage(pts, level.points, rho, {"holes": holes}),
+        "cover_original_filled_rho": coverage(pts, lev.points, rho, {"holes": holes}),
+        "synthetic_vertical_error_max_rho": round(float(np.abs(syn[:, 2] - exact).max() / rho), 4)
+        if syn.size
+        else None,
+        "gaps": report_regions(filled),
+        **times,
+        "cli_slice_wall_s": cli_wall(path, rho, work / "out.npy", False, 2),
+        "cli_slice_fill_wall_s": cli_wall(path, rho, work / "out.npy", True, 2),
+    }
+
+
+def markdown(result: dict) -> str:
+    lines = [
+        "## Gap filling (tools/bench_fill.py)",
+        "",
+        f"Measured {result['date']} by `python tools/bench_fill.py {result['argv']}` (commit "
+        f"{result['commit']}); load average at start {result['loadavg']} (2 shared cores: times "
+        "carry noise).",
+        "",
+    ]
+    for real in result.get("real", []):
+        lines += [
+            f"**Real scan {real['scan']}** ({real['n_points']:,} points), rho = {real['rho']:g} "
+            f"(error measured to the {real['runs'][0]['error_measured_to']}): "
+            "every point inside balls of radius 3-5 rho removed, the archive built, the level at "
+            "rho filled. Covering radius of the ORIGINAL scan (in rho; 'punched' = the removed "
+            "points) and distance of the synthetic points to the original surface (in rho).",
+            "",
+            "| seed | hole radii (rho) | level | synthetic (in balls) | cover unfilled all / punched | "
+            "cover filled all / punched | synthetic error in balls max / mean / share <= 0.25 | "
+            "fill s |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r in real["runs"]:
+            cu, cf = r["cover_original_unfilled_rho"], r["cover_original_filled_rho"]
+            e = r["synthetic_error_in_balls_rho"]
+            lines.append(
+                f"| {r['seed']} | {', '.join(f'{x:g}' for x in r['hole_radii_rho'])} | "
+                f"{r['level_size']:,} | {r['n_synthetic']} ({r['n_synthetic_in_punched_balls']}) | "
+                f"{cu['all']} / {cu.get('punched', '-')} | {cf['all']} / {cf.get('punched', '-')} | "
+                f"{e['max']} / {e['mean']} / {e.get('share_within_0.25', '-')} | "
+                f"{r['fill_level_s_median']} |"
+            )
+        lines.append("")
+    syn = result.get("synthetic") or []
+    if isinstance(syn, dict):
+        syn = [syn]
+    if syn:
+        s0 = syn[0]
+        lines += [
+            f"**Synthetic** {s0['surface']}, {s0['n_points']:,} points, round holes of 3-5 rho "
+            f"covering about {100 * s0['hole_area_fraction']:.1f} % of the area; fill_level in "
+            "process (warm), `lodbuilder slice` wall time (process start included).",
+            "",
+            "| rho (spacings) | holes (rho) | level + synthetic | fill_level s (min / median) | "
+            "find_gaps s | plain level s | slice wall s | slice --fill wall s | "
+            "cover unfilled / filled, holes (rho) | synthetic error (rho) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for s in syn:
+            lines.append(
+                f"| {s['rho']:.4g} ({s['rho_in_spacings']:g}) | "
+                f"{', '.join(f'{x:g}' for x in s['hole_radii_rho'])} | "
+                f"{s['level_size']:,} + {s['n_synthetic']} | {s['fill_level_s_min']} / "
+                f"{s['fill_level_s_median']} | {s['find_gaps_s_median']} | "
+                f"{s['plain_level_s_median']} | {s['cli_slice_wall_s']} | "
+                f"{s['cli_slice_fill_wall_s']} | {s['cover_original_unfilled_rho'].get('holes')} / "
+                f"{s['cover_original_filled_rho'].get('holes')} | "
+                f"{s['synthetic_vertical_error_max_rho']} |"
+            )
+        lines.append("")
+    lines.append(
+        "Targets (issue 14): filled covers the original within 1.5 rho (unfilled >= 3 rho); "
+        "synthetic points within 0.25 rho of the original surface; fill of a 1M-point level with "
+        "1 % of its area in holes <= 2 s."
+    )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--only", choices=("real", "synthetic"))
+    data = HERE.parent.parent / "shared" / "data"
+    p.add_argument(
+        "--scan",
+        nargs="+",
+        default=[str(data / n) for n in ("bun_zipper.ply", "igea.ply", "frag_115.ply")],
+    )
+    p.add_argument(
+        "--rho", type=float, nargs="+", default=[0.002, 0.0015, 0.012], help="rho per --scan"
+    )
+    p.add_argument("--holes", type=int, default=5)
+    p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    p.add_argument("--n", type=int, default=1_000_000, help="synthetic sheet size")
+    p.add_argument(
+        "--spacings",
+        type=float,
+        nargs="+",
+        default=[8.0, 4.0],
+        help="synthetic rho in point spacings (one run each)",
+    )
+    p.add_argument("--fraction", type=float, default=0.01, help="synthetic hole area fraction")
+    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--workdir", help="keep the archives here (default: a temporary directory)")
+    p.add_argument("--markdown", help="update the 'fill' section of this file")
+    p.add_argument("--from-json", help="re-render a saved JSON result into --markdown")
+    args = p.parse_args(argv)
+    if args.from_json:
+        result = json.loads(Path(args.from_json).read_text())
+        if args.markdown:
+            write_section(Path(args.markdown), "fill", markdown(result))
+        return 0
+    if len(args.rho) not in (1, len(args.scan)):
+        p.error("give one --rho, or one per --scan")
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_fill_"))
+    work.mkdir(parents=True, exist_ok=True)
+    result: dict = {
+        "benchmark": "bench_fill",
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "argv": " ".join(sys.argv[1:] if argv is None else argv),
+        "commit": _commit(),
+        "loadavg": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
+        "cpu_count": os.cpu_count(),
+    }
+    try:
+        if args.only in (None, "real"):
+            rhos = args.rho * len(args.scan) if len(args.rho) == 1 else args.rho
+            result["real"] = [
+                real_part(Path(s), r, args.holes, args.seeds, work, args.repeat)
+                for s, r in zip(args.scan, rhos, strict=True)
+            ]
+        if args.only in (None, "synthetic"):
+            result["synthetic"] = [
+                synthetic_part(args.n, sp, args.fraction, 0, work, args.repeat)
+                for sp in args.spacings
+            ]
+    finally:
+        if not args.workdir:
+            shutil.rmtree(work, ignore_errors=True)
+    result["loadavg_end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    if args.markdown:
+        write_section(Path(args.markdown), "fill", markdown(result))
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
