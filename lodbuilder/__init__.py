@@ -18,6 +18,7 @@ _LAZY = {
     "Scan": "lodbuilder.io.base",
     "errors": "lodbuilder.errors",
     "build_archive": "lodbuilder.api",
+    "BuildResult": "lodbuilder.api",
     "open_archive": "lodbuilder.api",
     "Archive": "lodbuilder.api",
     "Level": "lodbuilder.archive.levels",

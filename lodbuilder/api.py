@@ -1,7 +1,7 @@
 """The public build/open functions (re-exported lazily from ``lodbuilder``).
 
 import lodbuilder
-lodbuilder.build_archive("bun_zipper_res2.ply", "bunny.h5")
+res = lodbuilder.build_archive("bun_zipper_res2.ply", "bunny.h5")   # BuildResult: what was built
 with lodbuilder.open_archive("bunny.h5") as arc:
     level = arc.scan().level(rho=0.005)       # Level(points, attributes, source_index, ...)
 """
@@ -10,194 +10,141 @@ from __future__ import annotations
 
 import logging
 import os
-from pathlib import Path
 from typing import Any
 
 from ._validate import strict_keywords
 from .archive.reader import Archive, open_archive
-from .errors import InputError
-from .progress import ProgressCallback, report
+from .collection.result import BuildResult
+from .progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
-__all__ = ["build_archive", "open_archive", "Archive", "build_record"]
+__all__ = ["build_archive", "open_archive", "Archive", "BuildResult", "build_record"]
+
+#: the feature-sensitivity options (see lodbuilder.sampling.adaptive.feature_build)
+FEATURE_OPTIONS = ("importance", "adaptive", "density_floor", "outlier_threshold", "importance_k", "combine")
 
 
-def _provenance(source: Path | None, reader: str) -> dict[str, Any]:
-    from .io import file_sha256
-
-    if source is None:
-        return {"source_name": None, "source_size": None, "source_sha256": None, "reader": reader}
-    return {
-        "source_name": source.name,
-        "source_size": source.stat().st_size,
-        "source_sha256": file_sha256(source),
-        "reader": reader,
-    }
-
-
-def load_scan(
-    scan_or_path: Any,
-    name: str | None = None,
-    progress: ProgressCallback = None,
-    crs: str | None = None,
-    crs_override: bool = False,
-):
-    """``(scan, source_path_or_None)`` from a path (read by suffix) or a Scan; ``crs`` assigns a
-    CRS (see :func:`lodbuilder.io.crs.assign_crs`)."""
-    from .archive.layout import check_name
-    from .io import Scan, read_scan
-
-    if isinstance(scan_or_path, Scan):
-        scan = scan_or_path
-        if name is not None:
-            scan.name = name
-        if crs is not None:
-            from .io.crs import assign_crs
-
-            assign_crs(scan.metadata, crs, override=crs_override, what=f"scan {scan.name!r}")
-        source = Path(scan.source) if scan.source and Path(scan.source).is_file() else None
-    elif isinstance(scan_or_path, (str, os.PathLike)):
-        report(progress, "read", 0, 1)
-        scan = read_scan(scan_or_path, name=name, crs=crs, crs_override=crs_override)
-        source = Path(scan_or_path)
-        report(progress, "read", 1, 1)
-    else:
-        raise InputError(
-            f"build input must be a file path or a lodbuilder.Scan, got {type(scan_or_path).__name__}"
-        )
-    check_name(scan.name)
-    return scan, source
-
-
-def _feature_keywords() -> list[str]:
-    import inspect
-
-    from .sampling.adaptive import feature_build
-
-    return [k for k in inspect.signature(feature_build).parameters if k != "scan"]
-
-
-@strict_keywords(extra=_feature_keywords)
+@strict_keywords(extra=FEATURE_OPTIONS)
 def build_record(
-    scan_or_path: Any,
+    scan: Any,
     *,
-    name: str | None = None,
     voxel_size: float | None = None,
     band_radius: float | None = None,
     seeds: Any = None,
+    size: int | None = None,
+    rho: float | None = None,
     progress: ProgressCallback = None,
-    _loaded: Any = None,
     **features: Any,
 ):
-    """Read (if a path), order with FastFPS and return the :class:`ScanRecord` to store.
+    """Order an in-memory :class:`~lodbuilder.io.Scan` with FastFPS and return the
+    :class:`~lodbuilder.archive.writer.ScanRecord` to store (no provenance: the caller adds it).
 
-    ``features``: ``importance``, ``adaptive``, ``density_floor``, ``outlier_threshold``,
-    ``importance_k``, ``combine`` of :func:`lodbuilder.sampling.adaptive.feature_build`
-    (importance maps, outliers and the extra ``weighted``/``floor`` orderings).
+    ``size``/``rho`` stop the ordering early (at most ``size`` points; ``size`` larger than the scan
+    means the whole scan). ``features``: ``importance``, ``adaptive``, ``density_floor``,
+    ``outlier_threshold``, ``importance_k``, ``combine`` of
+    :func:`lodbuilder.sampling.adaptive.feature_build` (importance maps, outliers and the extra
+    ``weighted``/``floor`` orderings); they need a full ordering.
     """
     from .archive.writer import ScanRecord
     from .sampling.fastfps import fastfps
 
-    scan, source = _loaded or load_scan(scan_or_path, name, progress)
     features = {k: v for k, v in features.items() if v is not None}
     fb = None
     if features:
         from .sampling.adaptive import feature_build
 
-        fb = feature_build(
-            scan,
-            seeds=seeds,
-            voxel_size=voxel_size,
-            band_radius=band_radius,
-            progress=progress,
-            **features,
-        )
+        fb = feature_build(scan, seeds=seeds, voxel_size=voxel_size, band_radius=band_radius, progress=progress,
+                           **features)
         scan, ordering = fb.scan, fb.ordering
     else:
-        ordering = fastfps(
-            scan.points,
-            voxel_size=voxel_size,
-            band_radius=band_radius,
-            seeds=seeds,
-            progress=progress,
-        )
-    build = {
-        "voxel_size_requested": voxel_size,
-        "band_radius_requested": band_radius,
-        "seeds_given": seeds is not None,
-    }
+        ordering = fastfps(scan.points, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds,
+                           size=None if size is None else min(int(size), len(scan)), rho=rho, progress=progress)
+    build: dict[str, Any] = {"seeds_given": seeds is not None}
     if fb is not None:
         build.update(fb.build)
     return ScanRecord(
         scan=scan,
         ordering=ordering,
         build=build,
-        provenance=_provenance(source, scan.reader),
         importance=fb.importance if fb else {},
         orderings=fb.orderings if fb else {},
     )
 
 
+@strict_keywords(extra=FEATURE_OPTIONS)
 def build_archive(
     inputs: Any,
     archive: str | os.PathLike[str],
     *,
     name: str | None = None,
+    manifest: str | os.PathLike[str] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    dask_local: int | None = None,
     voxel_size: float | None = None,
     band_radius: float | None = None,
     seeds: Any = None,
+    size: int | None = None,
+    rho: float | None = None,
+    force: bool = False,
     overwrite: bool = False,
-    progress: ProgressCallback = None,
+    max_memory: Any = None,
+    joint: bool | str = False,
+    seam_spacing: float | None = None,
     crs: str | None = None,
     crs_override: bool = False,
+    raise_on_failure: bool | None = None,
+    progress: ProgressCallback = None,
+    on_status: Any = None,
+    _tile_points: int | None = None,
     **features: Any,
-) -> Path:
-    """Order one scan (a path or a :class:`lodbuilder.Scan`) and add it to ``archive``.
+) -> BuildResult:
+    """Order every scan of ``inputs`` and add it to ``archive`` (created when missing).
 
-    The archive is created when missing; otherwise the scan is added to it atomically (the scans
-    already there are untouched whatever happens). A scan whose name is already in the archive is
-    an error unless ``overwrite``. Returns the archive path.
+    ``inputs``: a scan file, a :class:`lodbuilder.Scan`, or a list of files, directories (scanned
+    recursively), glob patterns, manifests (``*.conf``, ``*.manifest``, ``*.lst``: files with poses)
+    and Scans; ``manifest`` adds one more manifest. A single scan is a collection of one: every
+    input takes the same path. Scans run in this process when there is one (or they are
+    in-memory Scans), else on a process pool of ``workers`` (default: one per core), or on Dask
+    (``scheduler`` address, or ``dask_local=N`` workers of a LocalCluster).
 
-    Feature sensitivity (see :func:`lodbuilder.sampling.adaptive.feature_build`):
+    Names: the file stem made safe and unique (``name`` names a single scan). A scan already in the
+    archive with the same source, pose and parameters is skipped (``force`` rebuilds it); a scan of
+    the same name built from other contents is refused unless ``overwrite``. Adding to an archive
+    is atomic: the scans already in it are untouched whatever happens, and a killed build resumes
+    where it stopped.
+
+    Scans larger than the memory budget take the tiled path (:mod:`lodbuilder.sampling.tiled`):
+    ``max_memory`` (bytes, or text like ``"3GB"``; default 60 % of this machine's memory) is the
+    budget of the build's whole process tree on this machine (with a remote ``scheduler``: of each
+    worker); a scan whose in-memory build would exceed it is read in chunks, cut into tiles ordered
+    on the workers and merged. ``seam_spacing`` (0..1, default 1) is the seam repair of the merge:
+    a point merged from one tile keeps at least this fraction of its merge radius from the earlier
+    points of other tiles (0: no repair). ``joint=True`` (or a scan name) orders every input scan,
+    posed, as one surface: one scan in the archive whose points keep ``scan_id`` and
+    ``scan_point`` (their index in their own scan) attributes.
+
+    ``crs`` (EPSG:XXXX, WKT or a file holding WKT) gives every scan without one a coordinate
+    reference system; a scan whose file declares another is refused unless ``crs_override``.
+
+    ``size``/``rho`` stop each ordering early; ``seeds`` (one scan only) are must-keep input
+    indices. Feature sensitivity (see :func:`lodbuilder.sampling.adaptive.feature_build`):
     ``importance="curvature,colour"`` stores importance maps, ``adaptive=A`` adds the ``weighted``
     ordering, ``density_floor=RHO0`` the ``floor`` ordering, ``outlier_threshold=T`` leaves points
     with a noise score above T out of every ordering (kept in the archive, flagged ``outlier``).
+
+    Returns a :class:`BuildResult` (one :class:`~lodbuilder.collection.ScanStatus` per scan: name,
+    status, points, seconds, encoding, method). Failures: with one scan its error is raised
+    (nothing is written); with several, failed scans are reported in the result and the others
+    are built (``raise_on_failure=True`` raises a BuildError naming them after the others are in,
+    ``False`` never raises).
     """
-    from .archive.reader import check_archive_file
-    from .archive.writer import check_writable_dir, update_archive
+    from .collection.runner import build
 
-    archive = Path(archive)
-    check_writable_dir(archive, "archive")
-    if archive.exists():
-        check_archive_file(archive)  # fail before the expensive ordering
-    if isinstance(inputs, (str, os.PathLike)):
-        src = Path(inputs)
-        if src.exists() and archive.exists() and src.resolve() == archive.resolve():
-            raise InputError(
-                f"input {src} and archive {archive} are the same file; choose another -o"
-            )
-    loaded = load_scan(inputs, name, progress, crs, crs_override)
-    scan_name = loaded[0].name
-    if archive.exists() and not overwrite:
-        with open_archive(archive) as arc:
-            if scan_name in arc.scans:
-                from .errors import ArchiveError
-
-                raise ArchiveError(
-                    f"archive {archive} already holds scan {scan_name!r}; pass --overwrite "
-                    "(overwrite=True) to replace it or choose another --name"
-                )
-    rec = build_record(
-        inputs,
-        voxel_size=voxel_size,
-        band_radius=band_radius,
-        seeds=seeds,
-        progress=progress,
-        _loaded=loaded,
-        **features,
-    )
-    report(progress, "write", 0, 1)
-    update_archive(archive, [rec], overwrite=overwrite)
-    report(progress, "write", 1, 1)
-    return archive
+    return build(inputs, archive, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
+                 dask_local=dask_local, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, size=size,
+                 rho=rho, force=force, overwrite=overwrite, max_memory=max_memory, joint=joint,
+                 seam_spacing=seam_spacing, crs=crs, crs_override=crs_override,
+                 raise_on_failure=raise_on_failure, progress=progress,
+                 on_status=on_status, _tile_points=_tile_points, **features)

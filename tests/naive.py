@@ -277,3 +277,37 @@ def naive_band_march(band, source: int) -> np.ndarray:
                     heapq.heappush(heap, (float(tn), m))
     dq[source] = 0.0
     return dq
+
+
+def prefix_covering_radii(points: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """cr[k] = largest Euclidean distance from any point to the first k points of ``order``
+    (cr[0] = inf), for every k, by inserting the points one at a time (O(N^2))."""
+    pts = np.asarray(points, dtype=np.float64)
+    best = np.full(pts.shape[0], np.inf)
+    cr = np.empty(len(order) + 1)
+    cr[0] = np.inf
+    for k, q in enumerate(order):
+        best = np.minimum(best, np.linalg.norm(pts - pts[q], axis=1))
+        cr[k + 1] = best.max()
+    return cr
+
+
+def prefix_spacings(points: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """sp[k] = smallest distance between two of the first k points of ``order`` (inf for k < 2)."""
+    pts = np.asarray(points, dtype=np.float64)[np.asarray(order)]
+    sp = np.full(len(order) + 1, np.inf)
+    run = np.inf
+    for k in range(1, len(order)):
+        run = min(run, float(np.linalg.norm(pts[:k] - pts[k], axis=1).min()))
+        sp[k + 1] = run
+    return sp
+
+
+def nearest_earlier(points: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """e[k] = distance from the k-th point of ``order`` to the nearest of the points before it
+    (inf for k = 0)."""
+    pts = np.asarray(points, dtype=np.float64)[np.asarray(order)]
+    e = np.full(len(order), np.inf)
+    for k in range(1, len(order)):
+        e[k] = float(np.linalg.norm(pts[:k] - pts[k], axis=1).min())
+    return e

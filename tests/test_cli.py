@@ -128,11 +128,26 @@ def test_add_second_scan_duplicate_and_overwrite(built, capsys, tmp_path, shared
     )
     assert rc == 0 and "holds 2 scan(s)" in out
     before = arc.read_bytes()
+    # the same file with the same parameters: unchanged, nothing to do (one duplicate-name policy)
     rc, out, err = run_cli(
         capsys, "build", shared_data / "bun_zipper_res4.ply", "-o", arc, "--no-progress"
     )
-    assert rc == 2 and "already holds scan 'bun_zipper_res4'; pass --overwrite" in err
-    assert len(err.strip().splitlines()) == 1 and arc.read_bytes() == before
+    assert rc == 0 and out == (
+        f"scan 'bun_zipper_res4' in {arc} is unchanged (same source, pose and parameters); nothing "
+        "to do (pass --force to rebuild it)\n"
+    )
+    assert arc.read_bytes() == before
+    # other parameters under the same name: refused without --overwrite
+    rc, out, err = run_cli(
+        capsys, "build", shared_data / "bun_zipper_res4.ply", "-o", arc, "--no-progress",
+        "--voxel-size", "0.01",
+    )
+    assert rc == 2 and err == (
+        f"lodbuilder build: error: archive {arc} already holds scan 'bun_zipper_res4' (built from "
+        "bun_zipper_res4.ply with other contents, pose or parameters); pass --overwrite "
+        "(overwrite=True) to replace it or choose another --name\n"
+    )
+    assert arc.read_bytes() == before
     rc, out, err = run_cli(
         capsys,
         "build",
@@ -140,6 +155,7 @@ def test_add_second_scan_duplicate_and_overwrite(built, capsys, tmp_path, shared
         "-o",
         arc,
         "--no-progress",
+        "--voxel-size", "0.01",
         "--overwrite",
     )
     assert rc == 0

@@ -104,7 +104,13 @@ def test_pool_builds_the_ten_bunny_scans(small_bunny, tmp_path):
             lines[j] = " ".join(tok)
     moved = small_bunny.with_name("moved.conf")
     moved.write_text("\n".join(lines) + "\n")
-    third = build_collection([], out, manifest=moved, workers=1)
+    # one duplicate-name policy: the same name with another pose is refused without overwrite
+    refused = build_collection([], out, manifest=moved, workers=1)
+    assert [s.name for s in refused.failed] == ["top3"] and len(refused.by_status("skipped")) == 9
+    assert refused.failed[0].error == (
+        f"archive {out} already holds scan 'top3' (built from top3.ply with other contents, pose or "
+        "parameters); pass --overwrite (overwrite=True) to replace it or choose another --name")
+    third = build_collection([], out, manifest=moved, workers=1, overwrite=True)
     assert [s.name for s in third.by_status("built")] == ["top3"]
     assert len(third.by_status("skipped")) == 9
 
@@ -267,7 +273,7 @@ def test_rebuilt_scan_replaces_the_old_one_without_dead_space(tmp_path):
     rng = np.random.default_rng(99)
     pts = rng.random((800, 3))
     write_points(files[1], pts, {"intensity": rng.random(800).astype(np.float32)})
-    res = build_collection(files, out, workers=1, raise_on_failure=True)
+    res = build_collection(files, out, workers=1, raise_on_failure=True, overwrite=True)
     assert [s.name for s in res.by_status("built")] == ["good1"]
     with __import__("lodbuilder").open_archive(out) as arc:
         np.testing.assert_array_equal(np.sort(arc.scan("good1").points(), axis=0), np.sort(pts, axis=0))

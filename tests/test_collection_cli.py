@@ -59,7 +59,7 @@ def test_single_scan_keeps_the_single_build(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv,msg", [
-    (["--name", "x"], "--name names a single scan"),
+    (["--name", "x"], "--name (name=) names a single scan, but the inputs hold 2 scans; a collection names each scan after its file"),
     (["--scheduler", "tcp://127.0.0.1:1", "--dask-local", "1"], "either a Dask scheduler address or dask_local"),
     (["--size", "0"], "size must be a whole number"),
 ])

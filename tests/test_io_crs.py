@@ -130,11 +130,18 @@ def test_bad_crs_option(capsys, tmp_path, shared_data):
     assert not (tmp_path / "b.h5").exists()
 
 
-def test_crs_option_with_a_collection_is_refused(capsys, tmp_path, shared_data):
+def test_crs_option_applies_to_every_scan_of_a_collection(capsys, tmp_path, shared_data):
+    """One pipeline (issue 10.1): --crs gives every scan without a CRS of a collection its CRS."""
+    pytest.importorskip("pyproj")
+    import lodbuilder
+
     rc, out, err = run_cli(capsys, "build", shared_data / "bun_zipper_res4.ply", shared_data / "simple.las",
-                           "-o", tmp_path / "c.h5", "--crs", "EPSG:2992")
-    assert rc == 2
-    assert err == "lodbuilder build: error: --crs applies to one scan file; build the scans of a collection one by one\n"
+                           "-o", tmp_path / "c.h5", "--crs", "EPSG:2992", "--workers", "1")
+    assert rc == 0, err
+    with lodbuilder.open_archive(tmp_path / "c.h5") as arc:
+        crs = {n: arc.scan(n).crs for n in arc.scans}
+    assert set(crs) == {"bun_zipper_res4", "simple"} and len(set(crs.values())) == 1
+    assert "2992" in next(iter(crs.values())) or "Oregon" in next(iter(crs.values()))
 
 
 # ----------------------------------------------------------------------- archive, levels, CLI

@@ -6,6 +6,11 @@ LocalCluster with 2 workers, each into a fresh archive, and prints JSON: wall ti
 times, the speed-up of 2 workers over 1 and the Dask/pool ratio.
 
     python tools/bench_collection.py [--data DIR] [--repeat R] [--size N] [--skip-dask]
+    python tools/bench_collection.py --joint 0.002 0.004     # joint ordering vs separate scans
+
+``--joint RHO...``: instead, the level sizes of the same 10 scans at each density RHO built as
+separate scans (``slice --all-scans``), as one joint ordering (``build --joint``, the tiled path) and
+as the merged cloud ordered in memory as one scan, with the build times.
 """
 
 from __future__ import annotations
@@ -63,7 +68,7 @@ def machine_scaling(path: Path, rounds: int = 3) -> dict:
     at once. The ratio is the best speed-up this machine gives two processes right now."""
     import concurrent.futures as cf
 
-    from lodbuilder.collection.runner import _mp_context
+    from lodbuilder.collection.executors import mp_context as _mp_context
 
     serial, parallel = [], []
     with cf.ProcessPoolExecutor(max_workers=2, mp_context=_mp_context()) as ex:
@@ -115,6 +120,46 @@ def markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def joint(manifest: Path, rhos: list[float]) -> dict:
+    """Level sizes of the bunny scans: separate, joint, merged as one scan (see the docstring)."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    import lodbuilder
+    from lodbuilder.collection import collection_level, expand_inputs
+    from lodbuilder.collection.inputs import apply_pose
+    from lodbuilder.io import Scan, read_scan
+
+    srcs = expand_inputs([manifest])
+    merged = np.vstack([apply_pose(read_scan(s.path).points, s.pose) for s in srcs])
+    out: dict = {"benchmark": "bench_collection --joint", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                 "input": str(manifest), "points": len(merged), "load_avg_1m": round(os.getloadavg()[0], 2),
+                 "levels": []}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        times = {}
+        for tag, kw in (("separate", {"workers": 2}), ("joint", {"joint": True, "workers": 2})):
+            t0 = time.perf_counter()
+            lodbuilder.build_archive([manifest], tmp / f"{tag}.h5", **kw)
+            times[tag] = round(time.perf_counter() - t0, 2)
+        t0 = time.perf_counter()
+        lodbuilder.build_archive(Scan(points=merged, name="merged"), tmp / "one.h5")
+        times["merged_in_memory"] = round(time.perf_counter() - t0, 2)
+        with lodbuilder.open_archive(tmp / "joint.h5") as arc:
+            out["joint_tiles"] = arc.scan("bun").build["tiled"]["tiles"]
+        for rho in rhos:
+            sep = collection_level(tmp / "separate.h5", rho)
+            jnt = collection_level(tmp / "joint.h5", rho)
+            with lodbuilder.open_archive(tmp / "one.h5") as arc:
+                one = arc.scan("merged").level(rho=rho)
+            out["levels"].append({
+                "rho": rho, "separate": len(sep), "joint": len(jnt), "merged_as_one": one.size,
+                "joint_over_merged": round(len(jnt) / one.size, 4),
+                "joint_cover": float(cKDTree(jnt.points).query(merged, workers=-1)[0].max())})
+        out["seconds"] = times
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -127,6 +172,8 @@ def main() -> int:
         help="list every bun.conf scan this many times (a longer collection: fixed executor costs "
         "such as the Dask cluster start-up weigh less)",
     )
+    ap.add_argument("--joint", type=float, nargs="+", metavar="RHO",
+                    help="compare separate scans, a joint ordering and the merged cloud at these densities")
     ap.add_argument("--markdown", help="update the 'collection' section of this file (docs/benchmarks.md)")
     ap.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = ap.parse_args()
@@ -143,6 +190,9 @@ def main() -> int:
     if not manifest.is_file():
         print(json.dumps({"error": f"{manifest} not found"}))
         return 2
+    if args.joint:
+        print(json.dumps(joint(manifest, args.joint), indent=2))
+        return 0
     configs = [("pool_1", {"workers": 1}), ("pool_2", {"workers": 2})]
     if not args.skip_dask:
         configs.append(("dask_local_2", {"dask_local": 2}))

@@ -1,14 +1,13 @@
-"""The collection side of ``lodbuilder build``: many inputs, manifests, a pool or a Dask cluster.
+"""The collection options of ``lodbuilder build`` (manifests, a pool or a Dask cluster, resume) and
+``lodbuilder slice --all-scans``.
 
-``lodbuilder/cli/build.py`` calls :func:`add_arguments` on its parser and hands over to
-:func:`run` when :func:`wants_collection` says the inputs are more than one plain scan.
+``lodbuilder/cli/build.py`` calls :func:`add_arguments` on its parser and passes
+:func:`collection_kwargs` to :func:`lodbuilder.build_archive`.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 from typing import Any
 
 
@@ -17,96 +16,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--manifest", metavar="FILE",
                    help="text file listing scans, one per line, each optionally followed by a pose: 16 numbers "
                         "(row-major 4x4, world = M [p 1]) or the bun.conf form 'bmesh FILE tx ty tz qx qy qz qw'")
-    g.add_argument("--workers", type=int, metavar="N", help="local worker processes (default: all cores)")
+    g.add_argument("--workers", type=int, metavar="N",
+                   help="local worker processes, N >= 1 (default: one scan runs in this process, several on "
+                        "one worker per core)")
     g.add_argument("--scheduler", metavar="ADDRESS", help="run the scans on this Dask scheduler (tcp://host:8786)")
     g.add_argument("--dask-local", type=int, metavar="N", help="start a Dask LocalCluster of N workers and use it")
     g.add_argument("--size", type=int, metavar="N",
                    help="order only the first N points of each scan (quick previews; default: every point)")
     g.add_argument("--force", action="store_true", help="rebuild scans even when source and parameters are unchanged")
+    t = p.add_argument_group("large scans and joint orderings (the tiled, out-of-core path)")
+    t.add_argument("--max-memory", metavar="BYTES",
+                   help="memory budget of the build (this process and its workers; e.g. 3GB, 512MiB): a scan "
+                        "whose in-memory build would not fit is read in chunks, ordered tile by tile on the "
+                        "workers and merged (default: 60%% of this machine's memory)")
+    t.add_argument("--joint", nargs="?", const=True, default=False, metavar="NAME",
+                   help="order every input scan (posed, e.g. by a manifest) as one surface: one scan NAME "
+                        "(default: the manifest's name) whose points keep scan_id and scan_point attributes")
+    t.add_argument("--seam-spacing", type=float, metavar="A",
+                   help="seam repair of the tiled merge, 0..1 (default 1): a point merged from one tile keeps "
+                        "at least A times its radius from earlier points of other tiles; 0 turns it off")
 
 
-def wants_collection(args: argparse.Namespace) -> bool:
-    """True unless the inputs are exactly one plain scan file with no collection option."""
-    from ..collection.inputs import MANIFEST_SUFFIXES, expand_inputs
-
-    inputs = list(args.input or [])
-    if args.manifest or args.workers is not None or args.scheduler or args.dask_local is not None \
-            or args.size is not None or args.force or len(inputs) != 1:
-        return True
-    from pathlib import Path
-
-    p = Path(inputs[0])
-    if p.is_dir() or (not p.exists() and any(c in inputs[0] for c in "*?[")):
-        return True
-    if p.suffix.lower() in MANIFEST_SUFFIXES:
-        return True
-    if p.suffix.lower() == ".e57" and p.is_file():
-        return len(expand_inputs([p])) > 1
-    return False
-
-
-def _status_line(st: Any, done: int, total: int) -> str:
-    if st.status == "built":
-        return f"[{done}/{total}] {st.name}: built ({st.n_points} points, {st.seconds:.1f} s)"
-    if st.status == "failed":
-        return f"[{done}/{total}] {st.name}: FAILED: {st.error}"
-    return f"[{done}/{total}] {st.name}: {st.status}"
-
-
-def run(args: argparse.Namespace) -> int:
-    from ..collection.runner import build_collection
-    from ..errors import InputError
-    from .feature_options import build_kwargs
-
-    if args.name:
-        raise InputError("--name names a single scan; a collection names each scan after its file")
-    if not args.input and not args.manifest:
-        raise InputError("give INPUT files, directories or globs, or --manifest FILE")
-    from .output import QUIET, progress_enabled, say, verbosity
-
-    show = progress_enabled(args) is not False and sys.stderr.isatty()
-    bar: Any = None
-    counter = {"done": 0}
-
-    def on_status(st: Any) -> None:
-        counter["done"] += 1
-        if verbosity(args) == QUIET and st.status != "failed":
-            return
-        line = _status_line(st, counter["done"], total["n"])
-        if bar is not None:
-            bar.write(line, file=sys.stderr)
-            bar.update(1)
-            bar.set_postfix_str(f"{st.name}: {st.status}")
-        else:
-            print(line, file=sys.stderr)
-
-    total = {"n": 0}
-
-    def progress(stage: str, done: int, n: int) -> None:
-        nonlocal bar
-        total["n"] = n
-        if show and bar is None and n:
-            from tqdm import tqdm
-
-            bar = tqdm(total=n, desc="scans", unit="scan", leave=False, file=sys.stderr)
-
-    t0 = time.perf_counter()
-    try:
-        res = build_collection(
-            list(args.input or []), args.output, manifest=args.manifest, workers=args.workers,
-            scheduler=args.scheduler, dask_local=args.dask_local, voxel_size=args.voxel_size,
-            band_radius=args.band_radius, size=args.size, force=args.force,
-            overwrite=getattr(args, "overwrite", False), progress=progress, on_status=on_status,
-            **build_kwargs(args),
-        )
-    finally:
-        if bar is not None:
-            bar.close()
-    counts = res.summary()
-    parts = [f"{counts[k]} {k}" for k in ("built", "recovered", "skipped", "failed") if counts.get(k)]
-    where = f" on {res.executor}" if res.executor else ""
-    say(args, f"{', '.join(parts)} scan(s) into {res.archive}{where} in {time.perf_counter() - t0:.1f} s")
-    return 1 if res.failed else 0
+def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """Keyword arguments of :func:`lodbuilder.build_archive` from the collection options."""
+    return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
+            "dask_local": args.dask_local, "size": args.size, "force": args.force, "max_memory": args.max_memory,
+            "joint": args.joint, "seam_spacing": args.seam_spacing}
 
 
 def slice_all(args: argparse.Namespace) -> int:
@@ -126,8 +61,8 @@ def slice_all(args: argparse.Namespace) -> int:
     lvl = collection_level(args.archive, args.rho)
     from ..archive.reader import open_archive
 
-    with open_archive(args.archive) as arc:
-        metas = [arc.scan(n).format_metadata for n in lvl.scans]
+    with open_archive(args.archive) as arc:  # a joint scan's level lists its members, not itself
+        metas = [arc.scan(n).format_metadata for n in arc.scans]
     meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
     meta["comments"] = [f"scan_id {i} = {name}" for i, name in enumerate(lvl.scans)]
     write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)

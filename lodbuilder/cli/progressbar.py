@@ -1,5 +1,10 @@
 """Turn the library's progress callback into tqdm progress bars (on stderr, only on a terminal
-unless forced)."""
+unless forced).
+
+Stages of one scan (``read``, ``tiles``, ``band``, ``ordering``/``marching``, ``merge``,
+``write``, ...) each get a bar in turn, counting points (tiles for ``tiles``) with their rate; the
+collection stages ``scans`` and ``points`` stay on screen above them for the whole build.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +12,26 @@ import sys
 from typing import Any
 
 NOTES = ("compiling kernels, first run only",)  # stages worth a line even without a terminal
+#: stages whose bar stays while the per-scan phases come and go
+PERSISTENT = ("scans", "points")
+UNITS = {"scans": "scan", "tiles": "tile", "covering": "tile", "coarse": "task"}
 
 
 class ProgressBars:
-    """A ``progress(stage, done, total)`` callable that shows one bar per stage. Without a terminal
-    (and unless disabled on purpose) the stages in NOTES are still printed once, as a line."""
+    """A ``progress(stage, done, total)`` callable that shows one bar per stage (``total`` 0: a
+    counter with a rate and no end). Without a terminal (and unless disabled on purpose) the
+    stages in NOTES are still printed once, as a line."""
 
     def __init__(self, enabled: bool | None = None) -> None:
         self.enabled = sys.stderr.isatty() if enabled is None else enabled
         self._notes = enabled is None
         self._noted: set[str] = set()
-        self._bar: Any = None
+        self._bars: dict[str, Any] = {}
         self._stage: str | None = None
+
+    @property
+    def active(self) -> bool:
+        return bool(self._bars)
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         if not self.enabled:
@@ -28,20 +41,35 @@ class ProgressBars:
             return
         from tqdm import tqdm
 
-        if stage != self._stage:
-            self.close()
-            self._stage = stage
-            self._bar = tqdm(total=total, desc=stage, unit="pt", leave=False, file=sys.stderr)
-        bar = self._bar
-        if bar.total != total:
+        bar = self._bars.get(stage)
+        if bar is None:
+            if stage not in PERSISTENT:
+                self._close_phase()
+                self._stage = stage
+            unit = UNITS.get(stage, "pt")
+            bar = tqdm(total=total or None, desc=stage, unit=unit, unit_scale=unit == "pt", leave=False,
+                       file=sys.stderr, position=len(self._bars), dynamic_ncols=True)
+            self._bars[stage] = bar
+        if total and bar.total != total:
             bar.total = total
         bar.update(done - bar.n)
 
+    def write(self, line: str) -> None:
+        """Print a line above the bars."""
+        from tqdm import tqdm
+
+        tqdm.write(line, file=sys.stderr)
+
+    def _close_phase(self) -> None:
+        if self._stage is not None and self._stage in self._bars:
+            self._bars.pop(self._stage).close()
+        self._stage = None
+
     def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
-            self._stage = None
+        for bar in reversed(list(self._bars.values())):
+            bar.close()
+        self._bars.clear()
+        self._stage = None
 
     def __enter__(self) -> ProgressBars:
         return self

@@ -11,6 +11,11 @@ A **manifest** is a text file listing scans, one per line, paths relative to the
 ``bmesh FILE tx ty tz qx qy qz qw`` means world = p @ R(q) + t with row vectors p, where R(q) is the
 rotation matrix of the unit quaternion (x, y, z, w) (equivalently world = R(q)^T p + t). Paths may be
 quoted. Files named ``*.conf``, ``*.manifest`` or ``*.lst`` given as inputs are read as manifests.
+
+A 4x4 pose must be invertible (a singular matrix would collapse the scan onto a plane, a line or a
+point): it is refused with the manifest line. A pose that is not rigid (its 3x3 part scales or
+shears) is applied as given, with a warning naming the line and its scale factors, and the build
+record of the scan says ``pose_kind: "affine"`` (``"rigid"`` otherwise).
 """
 
 from __future__ import annotations
@@ -37,27 +42,32 @@ MANIFEST_SUFFIXES = (".conf", ".manifest", ".lst")
 @strict_methods
 @dataclass
 class ScanSource:
-    """One scan to build: a file (and, for multi-scan E57 files, which scan) with an optional pose.
+    """One scan to build: a file (and, for multi-scan E57 files, which scan) with an optional pose,
+    or an in-memory ``scan`` (then ``path`` is None).
 
     ``pose`` is a 4x4 matrix acting on column vectors: world = pose[:3, :3] @ p + pose[:3, 3].
     """
 
-    path: Path
+    path: Path | None
     name: str
     pose: np.ndarray | None = None
     scan_index: int | None = None
+    scan: Any = None
 
     def describe(self) -> dict[str, Any]:
         return {"path": str(self.path), "name": self.name, "scan_index": self.scan_index,
                 "pose": None if self.pose is None else self.pose.tolist()}
 
 
-def quaternion_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    """Rotation matrix of the quaternion (x, y, z, w), normalised first."""
+def quaternion_matrix(qx: float, qy: float, qz: float, qw: float, where: str = "") -> np.ndarray:
+    """Rotation matrix of the quaternion (x, y, z, w), normalised first. ``where`` prefixes errors
+    (the manifest line)."""
     q = np.array([qx, qy, qz, qw], dtype=np.float64)
     n = float(np.linalg.norm(q))
     if not np.isfinite(n) or n < 1e-12:
-        raise InputError(f"quaternion {tuple(q)} has zero or non-finite length; give a unit quaternion")
+        text = " ".join(f"{v:g}" for v in q)
+        raise InputError(f"{where + ': ' if where else ''}quaternion ({text}) has zero or non-finite "
+                         "length; give a unit quaternion qx qy qz qw")
     x, y, z, w = q / n
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -66,11 +76,39 @@ def quaternion_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
     ])
 
 
-def bmesh_pose(t: Any, q: Any) -> np.ndarray:
+def bmesh_pose(t: Any, q: Any, where: str = "") -> np.ndarray:
     """4x4 (column-vector) pose for the bun.conf convention world = p @ R(q) + t."""
     m = np.eye(4)
-    m[:3, :3] = quaternion_matrix(*q).T
+    qx, qy, qz, qw = (float(v) for v in q)
+    m[:3, :3] = quaternion_matrix(qx, qy, qz, qw, where=where).T
     m[:3, 3] = np.asarray(t, dtype=np.float64)
+    return m
+
+
+#: a pose is rigid when its 3x3 part is orthonormal within this tolerance (rounding in manifests)
+RIGID_TOL = 1e-6
+
+
+def pose_kind(pose: np.ndarray | None) -> str:
+    """``"rigid"`` (rotation + translation, or no pose) or ``"affine"`` (scales or shears)."""
+    if pose is None:
+        return "rigid"
+    r = np.asarray(pose, dtype=np.float64)[:3, :3]
+    ok = np.allclose(r.T @ r, np.eye(3), atol=RIGID_TOL) and np.linalg.det(r) > 0
+    return "rigid" if ok else "affine"
+
+
+def check_pose(m: np.ndarray, where: str) -> np.ndarray:
+    """Refuse a singular pose (it collapses the scan); warn that a non-rigid one is applied as is."""
+    r = m[:3, :3]
+    sv = np.linalg.svd(r, compute_uv=False)
+    if not np.isfinite(sv).all() or sv[-1] <= 1e-9 * max(float(sv[0]), 1e-300):
+        raise InputError(f"{where}: the 4x4 pose is singular (its 3x3 part has rank < 3) and would collapse "
+                         "the scan; give an invertible pose (a rotation and a translation)")
+    if pose_kind(m) != "rigid":
+        reflect = " and mirrors" if np.linalg.det(r) < 0 else ""
+        log.warning("%s: the pose is not rigid: it scales or shears the scan (scale factors %s)%s; "
+                    "it is applied as given", where, " ".join(f"{v:.6g}" for v in sv), reflect)
     return m
 
 
@@ -114,7 +152,7 @@ def read_manifest(path: str | os.PathLike[str]) -> list[tuple[Path, np.ndarray |
             if len(tokens) != 9:
                 raise InputError(f"{where}: 'bmesh' needs FILE tx ty tz qx qy qz qw, got {len(tokens) - 1} fields")
             vals = _numbers(tokens[2:], where)
-            out.append((base / tokens[1], bmesh_pose(vals[:3], vals[3:])))
+            out.append((base / tokens[1], bmesh_pose(vals[:3], vals[3:], where)))
             continue
         file, rest = tokens[0], tokens[1:]
         if not rest:
@@ -125,7 +163,7 @@ def read_manifest(path: str | os.PathLike[str]) -> list[tuple[Path, np.ndarray |
         m = np.array(_numbers(rest, where)).reshape(4, 4)
         if not np.allclose(m[3], [0, 0, 0, 1]):
             raise InputError(f"{where}: the last row of the 4x4 pose must be 0 0 0 1, got {m[3].tolist()}")
-        out.append((base / file, m))
+        out.append((base / file, check_pose(m, where)))
     if not out:
         raise InputError(f"manifest {mpath} lists no scans; add one file per line")
     return out
@@ -138,6 +176,13 @@ def safe_name(text: str) -> str:
     """A scan name from free text: no path separators or odd characters, not starting with '.'."""
     name = _UNSAFE.sub("_", text).strip("._") or "scan"
     return name[:200]
+
+
+def scan_name(path: Path) -> str:
+    """The one naming rule: a scan is named after its file, without the suffix (``.copc.laz``
+    counts as one suffix), made safe (:func:`safe_name`)."""
+    stem = path.name[: -len(".copc.laz")] if path.name.lower().endswith(".copc.laz") else path.stem
+    return safe_name(stem)
 
 
 def unique_names(names: list[str]) -> list[str]:
@@ -217,11 +262,16 @@ def expand_inputs(inputs: Any = (), manifest: str | os.PathLike[str] | None = No
                 pairs.extend(read_manifest(p))
             else:
                 pairs.append((p, None))
-        elif _has_magic(s):
+        elif _has_magic(s) and not p.exists():
             hits = sorted(Path(h) for h in glob.glob(s, recursive=True) if Path(h).is_file())
             if not hits:
                 raise InputError(f"pattern {s!r} matches no files; check the pattern (quote it in the shell)")
             pairs.extend((h, None) for h in hits)
+        elif p.exists() or p.is_symlink():
+            from ..io._files import check_input_file
+
+            check_input_file(p)  # the reader's own message: a FIFO, a device, a symlink loop...
+            pairs.append((p, None))
         else:
             raise ScanFileError(f"{p}: no such file or directory; check the path")
     if manifest is not None:
@@ -232,9 +282,9 @@ def expand_inputs(inputs: Any = (), manifest: str | os.PathLike[str] | None = No
     for path, pose in pairs:
         sub = _e57_scan_names(path) if path.suffix.lower() == ".e57" and path.is_file() else None
         if sub is None:
-            sources.append(ScanSource(path=path, name=safe_name(path.stem), pose=pose))
+            sources.append(ScanSource(path=path, name=scan_name(path), pose=pose))
         else:
-            sources.extend(ScanSource(path=path, name=safe_name(f"{path.stem}-{n}"), pose=pose, scan_index=i)
+            sources.extend(ScanSource(path=path, name=safe_name(f"{scan_name(path)}-{n}"), pose=pose, scan_index=i)
                            for i, n in enumerate(sub))
     for src, name in zip(sources, unique_names([s.name for s in sources]), strict=True):
         src.name = name

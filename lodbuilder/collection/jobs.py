@@ -1,13 +1,15 @@
-"""One scan build as a self-contained job: what runs on a worker (a local process or a Dask worker).
+"""One scan build as a self-contained job: what runs on a worker (the calling process, a local
+process or a Dask worker).
 
-``build_one(job)`` reads the scan, applies its pose, orders it with FastFPS and writes a one-scan
-*part* archive with the archive writer (atomically: a killed worker leaves no part). The parent
-merges finished parts into the collection archive. Workers need the part directory on a file
-system they share with the parent (always true for a local pool or LocalCluster).
+``build_one(job)`` reads the scan (or takes the in-memory one), applies its pose, orders it and
+writes a one-scan *part* archive with the archive writer (atomically: a killed worker leaves no
+part). The parent merges finished parts into the archive. Workers need the part directory on a
+file system they share with the parent (always true for a local pool or LocalCluster).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -19,25 +21,49 @@ from typing import Any
 
 import numpy as np
 
+from ..progress import ProgressCallback
+
 log = logging.getLogger(__name__)
+
 
 @dataclass
 class ScanJob:
-    """Everything a worker needs to build one scan (picklable, no open handles)."""
+    """Everything a worker needs to build one scan (picklable; ``scan`` holds an in-memory
+    :class:`~lodbuilder.io.Scan` given to the API, and then the job runs in the calling process)."""
 
     name: str
-    path: str
+    path: str | None
     key: str
     part: str
     params: dict[str, Any] = field(default_factory=dict)
     pose: list[list[float]] | None = None
     scan_index: int | None = None
-    sha256: str = ""
-    size_bytes: int = 0
+    sha256: str | None = ""
+    size_bytes: int | None = 0
+    scan: Any = None
+    pose_kind: str = "rigid"
+    tiled: bool = False
+    members: list[dict[str, Any]] = field(default_factory=list)
+    given: str | None = None  # the path as the caller wrote it (for messages)
+
+    @property
+    def source(self) -> str:
+        if self.members:
+            return f"{len(self.members)} scans (joint)"
+        if self.path is None:
+            return "<in-memory scan>"
+        return self.given or self.path
+
+    @property
+    def work(self) -> Path:
+        """The tiled build's work directory (beside its part file: a resumed build finds it)."""
+        part = Path(self.part)
+        return part.with_name(part.name[: -len(".h5")] + ".work")
 
 
-def job_key(sha256: str, params: dict[str, Any], pose: Any, scan_index: int | None, name: str) -> str:
-    """Hash of everything that determines a built scan: source bytes, parameters, pose, scan index, name."""
+def job_key(sha256: str | None, params: dict[str, Any], pose: Any, scan_index: int | None, name: str) -> str:
+    """Hash of everything that determines a built scan: source bytes, parameters, pose, scan index,
+    name. The same key means the archive's scan is up to date (the resume key of every build)."""
     from .. import __version__
 
     payload = {
@@ -49,73 +75,165 @@ def job_key(sha256: str, params: dict[str, Any], pose: Any, scan_index: int | No
         "schema": 1,
         "lodbuilder": __version__.split("+")[0],
     }
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _read(job: ScanJob) -> Any:
+def scan_digest(scan: Any) -> str:
+    """SHA-256 of an in-memory scan's coordinates and attributes (its resume key's source)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(scan.points, dtype=np.float64).tobytes())
+    for k in sorted(scan.attributes):
+        a = np.ascontiguousarray(scan.attributes[k])
+        h.update(k.encode())
+        h.update(str(a.dtype).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def read_job_scan(job: ScanJob) -> Any:
+    """The job's scan, read (or taken from memory), named and posed."""
     from ..io import read_scan, read_scans
+    from .inputs import apply_pose
 
-    if job.scan_index is None:
-        return read_scan(job.path, name=job.name)
-    scans = read_scans(job.path)
-    scan = scans[job.scan_index]
+    crs, override = job.params.get("crs"), bool(job.params.get("crs_override"))
+    if job.scan is not None:
+        # the caller's Scan keeps its name, points and metadata
+        scan = dataclasses.replace(job.scan, metadata=dict(job.scan.metadata))
+        if crs is not None:
+            from ..io.crs import assign_crs
+
+            assign_crs(scan.metadata, crs, override=override, what=f"scan {job.name!r}")
+    elif job.scan_index is None:
+        scan = read_scan(job.path, name=job.name, crs=crs, crs_override=override)  # type: ignore[arg-type]
+    else:
+        scan = read_scans(job.path, crs=crs, crs_override=override)[job.scan_index]  # type: ignore[arg-type]
     scan.name = job.name
+    if job.pose is not None:
+        scan.points = np.ascontiguousarray(apply_pose(scan.points, np.asarray(job.pose)))
     return scan
 
 
-def build_one(job: ScanJob) -> dict[str, Any]:
+def provenance(job: ScanJob, reader: str) -> dict[str, Any]:
+    """The one provenance record of a built scan: source file name, size, SHA-256 and reader."""
+    return {
+        "source_name": None if job.path is None else Path(job.path).name,
+        "source_size": job.size_bytes if job.path is not None else None,
+        "source_sha256": job.sha256 if job.path is not None else None,
+        "reader": reader,
+    }
+
+
+def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[Any, dict[str, float]]:
+    """Read and order the job's scan in memory; returns ``(ScanRecord, phase seconds)``."""
+    from ..api import build_record
+    from ..progress import report
+
+    p = job.params
+    t0 = time.perf_counter()
+    report(progress, "read", 0, 1)
+    scan = read_job_scan(job)
+    report(progress, "read", 1, 1)
+    t_read = time.perf_counter() - t0
+    features = {k: v for k, v in (p.get("features") or {}).items() if v is not None}
+    rec = build_record(scan, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
+                       seeds=p.get("seeds"), size=p.get("size"), rho=p.get("rho"), progress=progress, **features)
+    t_order = time.perf_counter() - t0 - t_read
+    return rec, {"read": t_read, "order": t_order}
+
+
+def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]:
     """Build ``job`` into its part archive; return a summary (runs on a worker)."""
-    from ..archive.writer import ScanRecord, write_archive
-    from ..sampling.fastfps import fastfps
-    from .inputs import apply_pose
+    from ..archive.reader import open_archive
+    from ..archive.writer import write_archive
+    from ..progress import report
 
     t0 = time.perf_counter()
-    scan = _read(job)
-    t_read = time.perf_counter() - t0
-    if job.pose is not None:
-        scan.points = np.ascontiguousarray(apply_pose(scan.points, np.asarray(job.pose)))
+    rec, phases = build_record_of(job, progress)
     p = job.params
-    features = {k: v for k, v in (p.get("features") or {}).items() if v is not None}
-    t1 = time.perf_counter()
-    if p.get("size") is None and p.get("rho") is None:
-        # the same path as a single-scan build (feature options included)
-        from ..api import build_record
-
-        rec = build_record(scan, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"), **features)
-        scan, ordering = rec.scan, rec.ordering
-    else:
-        size = None if p.get("size") is None else min(int(p["size"]), len(scan))
-        ordering = fastfps(scan.points, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
-                           size=size, rho=p.get("rho"))
-        rec = ScanRecord(scan=scan, ordering=ordering)
-    t_order = time.perf_counter() - t1
-    build = {
+    rec.build.update({
         "voxel_size_requested": p.get("voxel_size"),
         "band_radius_requested": p.get("band_radius"),
         "size_requested": p.get("size"),
         "rho_requested": p.get("rho"),
+        "seeds_given": p.get("seeds") is not None,
         "pose": job.pose,
+        "pose_kind": job.pose_kind,
         "scan_index": job.scan_index,
         "collection_key": job.key,
-        "seconds_read": round(t_read, 4),
-        "seconds_order": round(t_order, 4),
+        "method": "in-memory",
+        "seconds_read": round(phases["read"], 4),
+        "seconds_order": round(phases["order"], 4),
         "worker_pid": os.getpid(),
-    }
-    prov = {
-        "source_name": Path(job.path).name,
-        "source_size": job.size_bytes,
-        "source_sha256": job.sha256,
-        "reader": scan.reader,
-    }
-    rec.build.update(build)
-    rec.provenance.update(prov)
+    })
+    rec.provenance.update(provenance(job, rec.scan.reader))
+    t1 = time.perf_counter()
+    report(progress, "write", 0, 1)
     write_archive(job.part, [rec])
+    report(progress, "write", 1, 1)
+    phases["write"] = time.perf_counter() - t1
+    with open_archive(job.part) as arc:
+        encoding = arc.scan(job.name).encoding
     return {
         "name": job.name,
         "part": job.part,
-        "n_points": len(scan),
-        "n_ordered": len(ordering),
+        "n_points": len(rec.scan),
+        "n_ordered": len(rec.ordering),
+        "encoding": encoding,
+        "method": "in-memory",
         "seconds": round(time.perf_counter() - t0, 4),
-        "seconds_order": round(t_order, 4),
+        "phases": {k: round(v, 4) for k, v in phases.items()},
         "worker_pid": os.getpid(),
     }
+
+
+# ------------------------------------------------------------------------------------ tiled
+
+def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
+    """The streams of a tiled job: ``(stream, pose, member id)`` for each scan it orders."""
+    from ..io.stream import open_stream, scan_stream
+
+    crs, override = job.params.get("crs"), bool(job.params.get("crs_override"))
+    if job.members:
+        out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
+                m.get("pose"), i) for i, m in enumerate(job.members)]
+        return out  # type: ignore[return-value]
+    if job.scan is not None:
+        scan = read_job_scan(job)  # the in-memory scan with its CRS
+        return [(scan_stream(scan), None, None)]
+    return [(open_stream(job.path, scan_index=job.scan_index, crs=crs, crs_override=override),  # type: ignore[arg-type]
+             job.pose, None)]
+
+
+def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: ProgressCallback = None) -> dict[str, Any]:
+    """Build ``job`` with the tiled (out-of-core) path, its tiles on ``executor``; the parent runs
+    this (it reads, merges and writes in bounded blocks) and returns the same summary as
+    :func:`build_one`."""
+    from ..sampling.tiled import SEAM_ALPHA, build_tiled
+
+    p = job.params
+    build = {
+        "voxel_size_requested": p.get("voxel_size"),
+        "band_radius_requested": p.get("band_radius"),
+        "size_requested": None,
+        "rho_requested": None,
+        "seeds_given": False,
+        "pose": job.pose,
+        "pose_kind": job.pose_kind,
+        "scan_index": job.scan_index,
+        "collection_key": job.key,
+        "worker_pid": os.getpid(),
+    }
+    if job.members:
+        build["joint"] = {"scans": [{k: m.get(k) for k in ("id", "name", "source", "sha256", "pose", "pose_kind",
+                                                            "scan_index")} for m in job.members]}
+    reader = "joint" if job.members else None
+    res = build_tiled(
+        tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
+        max_memory=p.get("max_memory"), voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
+        alpha=p["seam_alpha"] if p.get("seam_alpha") is not None else SEAM_ALPHA,
+        tile_points=p.get("_tile_points"), build=build,
+        provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
+        progress=progress,
+    )
+    res.update({"name": job.name, "method": "tiled"})
+    return res

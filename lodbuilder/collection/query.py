@@ -57,26 +57,85 @@ def total_points(archive: str | os.PathLike[str]) -> int:
         return int(sum(r["n_points"] for r in arc.index()))
 
 
+def _members(view: Any) -> list[str] | None:
+    """The member scan names of a joint scan (built with ``joint``), else None."""
+    joint = view.build.get("joint") if isinstance(view.build, dict) else None
+    if not joint:
+        return None
+    return [str(m.get("name")) for m in joint.get("scans", [])]
+
+
 @strict_keywords
 def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any = None,
                      attributes: Any = True) -> CollectionLevel:
-    """The level of every scan (or of ``scans``) at density ``rho``, merged, with a scan id."""
+    """The level of every scan (or of ``scans``) at density ``rho``, merged, with a scan id.
+
+    A joint scan (one ordering of several posed scans, ``build --joint``) counts as its member
+    scans: its points carry their own ``scan_id``, ``scans`` lists the member names, and a member
+    named in ``scans`` gives the joint level's points of that member only."""
     from ..archive.reader import open_archive
+    from ..errors import ScanNotFoundError
 
     rho_v = check_positive(rho, "rho", allow_none=False)
+    parts: list[tuple[Any, np.ndarray | None, list[str]]] = []  # (level, member ids or None, names)
     with open_archive(archive) as arc:
-        names = arc.scans if scans is None else [arc.scan(n).name for n in scans]
-        levels = [arc.scan(n).level(rho=rho_v, attributes=attributes) for n in names]
-    common = set.intersection(*(set(lv.attributes) for lv in levels)) if levels else set()
-    pts = np.concatenate([lv.points for lv in levels]) if levels else np.zeros((0, 3))
-    sizes = [len(lv) for lv in levels]
-    sid = np.repeat(np.arange(len(levels), dtype=np.int32), sizes)
-    attrs: dict[str, np.ndarray] = {}
-    for key in sorted(common):
-        attrs[key] = np.concatenate([lv.attributes[key] for lv in levels])
-    attrs["scan_id"] = sid
-    return CollectionLevel(points=pts, attributes=attrs, scan_id=sid, scans=list(names), sizes=sizes,
-                           rho=float(rho_v))  # type: ignore[arg-type]
+        members = {n: _members(arc.scan(n)) for n in arc.scans}
+        wanted: list[tuple[str, str | None]]
+        if scans is None:
+            wanted = [(n, None) for n in arc.scans]
+        else:
+            wanted = []
+            for want in scans:
+                owner = next((j for j, m in members.items() if m and want in m and want not in arc.scans), None)
+                if owner is not None:
+                    wanted.append((owner, str(want)))
+                else:
+                    try:
+                        wanted.append((arc.scan(want).name, None))
+                    except ScanNotFoundError:
+                        joint = [m for ms in members.values() if ms for m in ms]
+                        raise ScanNotFoundError(
+                            f"archive {archive} has no scan {want!r}; it holds {sorted(arc.scans)}"
+                            + (f" and the joint members {sorted(joint)}" if joint else "")) from None
+        for n, member in wanted:
+            lv = arc.scan(n).level(rho=rho_v, attributes=True if members[n] else attributes)
+            ms = members[n]
+            if ms is None:
+                parts.append((lv, None, [n]))
+                continue
+            ids = np.asarray(lv.attributes["scan_id"], dtype=np.int64)
+            if member is None:
+                parts.append((lv, ids, ms))
+            else:
+                keep = ids == ms.index(member)
+                parts.append((_subset(lv, keep), np.zeros(int(keep.sum()), np.int64), [member]))
+    names: list[str] = []
+    sids: list[np.ndarray] = []
+    sizes: list[int] = []
+    pts: list[np.ndarray] = []
+    attr_lists: list[dict[str, np.ndarray]] = []
+    for lv, member_ids, ns in parts:
+        base = len(names)
+        names += ns
+        m = len(lv.points)
+        sid = np.full(m, base, np.int32) if member_ids is None else (member_ids + base).astype(np.int32)
+        sids.append(sid)
+        pts.append(lv.points)
+        attr_lists.append(lv.attributes)
+        sizes += [int((sid == base + j).sum()) for j in range(len(ns))]
+    common = set.intersection(*(set(a) for a in attr_lists)) - {"scan_id", "scan_point"} if attr_lists else set()
+    sid_all = np.concatenate(sids) if sids else np.zeros(0, np.int32)
+    attrs: dict[str, np.ndarray] = {k: np.concatenate([a[k] for a in attr_lists]) for k in sorted(common)}
+    attrs["scan_id"] = sid_all
+    return CollectionLevel(points=np.concatenate(pts) if pts else np.zeros((0, 3)), attributes=attrs,
+                           scan_id=sid_all, scans=names, sizes=sizes, rho=float(rho_v))  # type: ignore[arg-type]
+
+
+def _subset(level: Any, keep: np.ndarray) -> Any:
+    """A level's points and attributes where ``keep``."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(points=level.points[keep], attributes={k: v[keep] for k, v in level.attributes.items()})
 
 
 @strict_keywords

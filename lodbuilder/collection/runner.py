@@ -1,16 +1,23 @@
-"""Build many scans into one archive on a local process pool or a Dask cluster.
+"""The one build pipeline: inputs -> scan jobs -> executor -> part archives -> the archive.
 
-One code path: every scan is a :class:`~lodbuilder.collection.jobs.ScanJob` submitted to a
-``concurrent.futures`` executor: a ``ProcessPoolExecutor`` (``workers``), or the executor of a Dask
-``Client`` (``scheduler`` address, or ``dask_local=N`` to start a ``LocalCluster``; dask is imported
-only then). Each worker writes its scan to its own part archive under ``.<archive>.parts/``; as
-jobs finish, the parent merges their parts into the archive with the archive writer (atomic: the
-archive is replaced as a whole, so a kill at any moment leaves the previous archive intact).
+A single scan is a collection of one. Every input (a file, several files, directories, globs, a
+manifest, an in-memory :class:`~lodbuilder.io.Scan`) becomes a :class:`~lodbuilder.collection.jobs.ScanJob`
+submitted to a ``concurrent.futures`` executor: the calling process (one scan, or in-memory
+scans), a local ``ProcessPoolExecutor`` (``workers``), or a Dask client's executor (``scheduler``
+address, or ``dask_local=N`` for a ``LocalCluster``). Each job writes its scan to its own part
+archive under ``.<archive>.parts/``; as jobs finish, the parent merges their parts into the
+archive with the archive writer (atomic: a kill at any moment leaves the previous archive intact).
 
-Resume: a scan is skipped when the archive already holds it with the same ``collection_key`` (the
-hash of the source file's SHA-256, the build parameters, the pose and the scan name). A part left by
-a killed build whose key still matches is merged without rebuilding. One failing scan is reported
-with its cause and does not stop the others.
+One naming rule (the file stem, made safe and unique; ``name`` for a single scan), one
+duplicate-name policy and one resume key (``collection_key`` in each scan's build record: the hash
+of the source's SHA-256, the build parameters, the pose and the name):
+
+* a scan already in the archive with the same key is ``skipped`` (``force`` rebuilds it);
+* a scan of the same name with another key (other contents, pose or parameters, or another file)
+  is refused unless ``overwrite``, which replaces it;
+* a finished part left by a killed build whose key still matches is merged without rebuilding.
+
+One failing scan is reported with its cause and does not stop the others.
 """
 
 from __future__ import annotations
@@ -19,148 +26,29 @@ import concurrent.futures as cf
 import contextlib
 import logging
 import os
-import sys
+import shutil
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from .._validate import check_positive, strict_methods
-from ..errors import BuildError, InputError, LodbuilderError, MissingDependencyError
+import numpy as np
+
+from .._validate import check_positive, strict_keywords
+from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
 from ..progress import ProgressCallback, report
-from .inputs import ScanSource, expand_inputs
-from .jobs import ScanJob, build_one, job_key
+from .executors import DASK_CONNECT_TIMEOUT, make_executor, one_line
+from .inputs import ScanSource, expand_inputs, pose_kind
+from .jobs import ScanJob, build_one, job_key, scan_digest
+from .result import BuildResult, CollectionResult, ScanStatus, StatusCallback
 
 log = logging.getLogger(__name__)
 
-#: how long to try reaching a Dask scheduler given by address
-DASK_CONNECT_TIMEOUT = "15s"
+__all__ = ["BuildResult", "CollectionResult", "DASK_CONNECT_TIMEOUT", "ScanStatus", "build", "build_collection",
+           "merge_parts", "parts_dir", "plan_jobs"]
 
-
-@strict_methods
-@dataclass
-class ScanStatus:
-    """What happened to one scan: ``built``, ``recovered`` (a finished part merged), ``skipped``
-    (unchanged in the archive) or ``failed`` (with ``error``)."""
-
-    name: str
-    source: str
-    status: str
-    n_points: int | None = None
-    seconds: float | None = None
-    error: str | None = None
-    worker_pid: int | None = None
-
-
-@strict_methods
-@dataclass
-class CollectionResult:
-    archive: Path
-    scans: list[ScanStatus] = field(default_factory=list)
-    seconds: float = 0.0
-    executor: str = ""
-    startup_seconds: float = 0.0  # starting the pool / connecting to or starting the Dask cluster
-    merge_seconds: float = 0.0  # merging finished parts into the archive (in the parent)
-
-    def by_status(self, status: str) -> list[ScanStatus]:
-        return [s for s in self.scans if s.status == status]
-
-    @property
-    def failed(self) -> list[ScanStatus]:
-        return self.by_status("failed")
-
-    @property
-    def ok(self) -> bool:
-        return not self.failed
-
-    def summary(self) -> dict[str, Any]:
-        counts: dict[str, int] = {}
-        for s in self.scans:
-            counts[s.status] = counts.get(s.status, 0) + 1
-        return {"archive": str(self.archive), "seconds": round(self.seconds, 3), "executor": self.executor,
-                "startup_seconds": round(self.startup_seconds, 3), "merge_seconds": round(self.merge_seconds, 3),
-                **counts}
-
-
-StatusCallback = Callable[[ScanStatus], None] | None
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    if isinstance(exc, LodbuilderError):
-        return text
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
-
-
-# ------------------------------------------------------------------------------------ executors
-
-def _start_method() -> str:
-    """How worker processes start: ``forkserver`` (they fork from a clean server process, with no
-    copies of the caller's open files or threads); ``fork`` when the caller's main script has no
-    file to re-import (a script read from stdin)."""
-    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-    return "fork" if main_file is not None and not os.path.isfile(main_file) else "forkserver"
-
-
-def _mp_context() -> Any:
-    import multiprocessing
-
-    method = _start_method()
-    ctx = multiprocessing.get_context(method)
-    if method == "forkserver":
-        # the server imports the build's libraries and loads the compiled kernels once; the
-        # workers forked from it start warm (takes effect when the server starts)
-        ctx.set_forkserver_preload(["lodbuilder.collection.jobs", "lodbuilder.collection._warm"])
-    return ctx
-
-
-@contextlib.contextmanager
-def make_executor(workers: int | None = None, scheduler: str | None = None,
-                  dask_local: int | None = None) -> Iterator[tuple[cf.Executor, str]]:
-    """``(executor, description)``: a local process pool, or a Dask client's executor."""
-    if scheduler is not None and dask_local is not None:
-        raise InputError("give either a Dask scheduler address or dask_local, not both")
-    if scheduler is None and dask_local is None:
-        n = workers or os.cpu_count() or 1
-        if int(n) < 1:
-            raise InputError(f"workers must be >= 1, got {workers}")
-        ctx = _mp_context()
-        with cf.ProcessPoolExecutor(max_workers=int(n), mp_context=ctx) as ex:
-            yield ex, f"process pool ({int(n)} worker{'s' if int(n) > 1 else ''})"
-        return
-    try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError:
-        raise MissingDependencyError(
-            "building on Dask needs dask.distributed; pip install lodbuilder[distributed]"
-        ) from None
-    cluster = None
-    if dask_local is not None:
-        if int(dask_local) < 1:
-            raise InputError(f"dask_local must be >= 1 workers, got {dask_local}")
-        import dask
-
-        # the same start method (and warm forkserver) as the local pool; Dask's default, spawn,
-        # starts every worker cold
-        _mp_context()
-        with dask.config.set({"distributed.worker.multiprocessing-method": _start_method()}):
-            cluster = LocalCluster(n_workers=int(dask_local), threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.WARNING)
-        client = Client(cluster)
-        desc = f"Dask LocalCluster ({int(dask_local)} worker{'s' if int(dask_local) > 1 else ''})"
-    else:
-        try:
-            client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT)
-        except (OSError, TimeoutError) as exc:
-            raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({_one_line(exc)}); check the address") from None
-        desc = f"Dask scheduler {scheduler}"
-    try:
-        yield client.get_executor(pure=False), desc
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+#: the feature-sensitivity options a build takes (see lodbuilder.sampling.adaptive.feature_build)
+FEATURE_OPTIONS = ("importance", "adaptive", "density_floor", "outlier_threshold", "importance_k", "combine")
 
 
 # ---------------------------------------------------------------------------------------- parts
@@ -190,17 +78,22 @@ def _part_ok(part: Path, name: str) -> bool:
         return False
 
 
-def _clean_parts(archive: Path, keep: set[Path]) -> None:
+def _clean_parts(archive: Path, keep: set[Path], running: set[Path]) -> None:
+    """Delete leftovers of earlier builds: parts not in ``keep``, work directories of parts not
+    ``running`` (a tiled build resumes from its work directory), temporaries of dead writers."""
     from ..archive.writer import remove_stale_temps
 
     d = parts_dir(archive)
     if not d.is_dir():
         return
+    work = {p.with_name(p.name[: -len(".h5")] + ".work") for p in running}
     for p in d.iterdir():
         if ".tmp-" in p.name and p.name.startswith("."):
             remove_stale_temps(d / p.name[1:].split(".tmp-")[0])
         elif p.suffix == ".h5" and p not in keep:
             _drop_part(p)
+        elif p.suffix == ".work" and p.is_dir() and p not in work:
+            shutil.rmtree(p, ignore_errors=True)  # the work of a build whose parameters changed
 
 
 def _drop_part(part: Path) -> None:
@@ -208,6 +101,17 @@ def _drop_part(part: Path) -> None:
     for p in (part, part.with_name(f".{part.name}.lock")):
         with contextlib.suppress(OSError):
             p.unlink()
+
+
+def _tidy_parts(archive: Path) -> None:
+    d = parts_dir(archive)
+    if d.is_dir():
+        for lock in d.glob(".*.lock"):  # locks of parts that are gone
+            if not lock.with_name(lock.name[1:-5]).exists():
+                with contextlib.suppress(OSError):
+                    lock.unlink()
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only when empty
 
 
 def _existing_scans(archive: Path) -> dict[str, tuple[str | None, str | None]]:
@@ -224,10 +128,11 @@ def _existing_scans(archive: Path) -> dict[str, tuple[str | None, str | None]]:
         return out
 
 
-# ---------------------------------------------------------------------------------------- build
+# ---------------------------------------------------------------------------------------- plan
 
-def _params(voxel_size: Any, band_radius: Any, size: Any, rho: Any,
-            features: dict[str, Any] | None = None) -> dict[str, Any]:
+def make_params(voxel_size: Any = None, band_radius: Any = None, size: Any = None, rho: Any = None,
+                features: dict[str, Any] | None = None, seeds: Any = None) -> dict[str, Any]:
+    """The validated build parameters of every scan of a build (part of the resume key)."""
     params: dict[str, Any] = {
         "voxel_size": check_positive(voxel_size, "voxel_size"),
         "band_radius": check_positive(band_radius, "band_radius"),
@@ -239,20 +144,54 @@ def _params(voxel_size: Any, band_radius: Any, size: Any, rho: Any,
             raise InputError(f"size must be a whole number of points >= 1, got {size!r}")
         params["size"] = int(size)
     feats = {k: v for k, v in (features or {}).items() if v is not None}
+    unknown = sorted(set(feats) - set(FEATURE_OPTIONS))
+    if unknown:
+        raise InputError(f"unknown build option(s) {', '.join(map(repr, unknown))}; the feature options are "
+                         f"{', '.join(FEATURE_OPTIONS)}")
     if feats:
         if params["size"] is not None or params["rho"] is not None:
             raise InputError("size/rho (partial orderings) do not combine with feature options; drop one")
         params["features"] = feats
+    if seeds is not None:
+        import numpy as np
+
+        params["seeds"] = np.asarray(seeds).reshape(-1).tolist()
     return params
+
+
+_params = make_params  # the name older tests use
+
+
+def tiling_params(params: dict[str, Any], max_memory: Any, seam_alpha: Any, tile_points: Any) -> dict[str, Any]:
+    """Add the tiled build's options to ``params`` (only those given: they enter the resume key)."""
+    from ..sampling.tiled.plan import parse_bytes
+
+    if max_memory is not None:
+        params["max_memory"] = parse_bytes(max_memory, "max_memory")
+    if seam_alpha is not None:
+        try:
+            a = float(seam_alpha)
+        except (TypeError, ValueError):
+            a = float("nan")
+        if not 0.0 <= a <= 1.0:
+            raise InputError(f"seam_spacing must be a number in [0, 1], got {seam_alpha!r}")
+        params["seam_alpha"] = a
+    if tile_points is not None:
+        params["_tile_points"] = int(tile_points)
+    return params
+
+
+def _conflict(archive: Path, name: str, old_source: str | None) -> ArchiveError:
+    src = f"built from {old_source}" if old_source else "built from another input"
+    return ArchiveError(
+        f"archive {archive} already holds scan {name!r} ({src} with other contents, pose or parameters); "
+        "pass --overwrite (overwrite=True) to replace it or choose another --name"
+    )
 
 
 def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], *, force: bool = False,
               overwrite: bool = False):
-    """Split sources into (jobs to run, recovered parts, skipped, failed-before-start).
-
-    A scan already in the archive is rebuilt when its key changed (new file contents, parameters or
-    pose) if it came from a file of the same name, or with ``overwrite``; a same-named scan from
-    another file is refused (failed) otherwise."""
+    """Split sources into (jobs to run, recovered parts, skipped, failed-before-start)."""
     from ..io import file_sha256
 
     existing = _existing_scans(archive)
@@ -261,152 +200,389 @@ def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], 
     skipped: list[ScanStatus] = []
     failed: list[ScanStatus] = []
     for src in sources:
+        where = str(src.path) if src.path is not None else "<in-memory scan>"
         try:
-            if src.path.resolve() == archive.resolve():
-                raise InputError(f"input {src.path} is the archive itself; choose another -o")
-            sha = file_sha256(src.path)
-            nbytes = src.path.stat().st_size
+            if src.path is None:
+                sha, nbytes = scan_digest(src.scan), None
+            else:
+                if src.path.resolve() == archive.resolve():
+                    raise InputError(f"input {src.path} is the archive itself; choose another -o")
+                sha = file_sha256(src.path)
+                nbytes = src.path.stat().st_size
         except LodbuilderError as exc:
-            failed.append(ScanStatus(src.name, str(src.path), "failed", error=_one_line(exc)))
+            failed.append(ScanStatus(src.name, where, "failed", error=one_line(exc), exception=exc))
             continue
         except OSError as exc:
-            failed.append(ScanStatus(src.name, str(src.path), "failed",
-                                     error=f"{src.path}: cannot be read ({exc.strerror or exc}); check the path"))
+            err = ArchiveError(f"{src.path}: cannot be read ({exc.strerror or exc}); check the path")
+            failed.append(ScanStatus(src.name, where, "failed", error=str(err), exception=err))
             continue
         pose = None if src.pose is None else src.pose.tolist()
         key = job_key(sha, params, pose, src.scan_index, src.name)
         part = _part_path(archive, src.name, key)
-        job = ScanJob(name=src.name, path=str(src.path.resolve()), key=key, part=str(part), params=dict(params),
-                      pose=pose, scan_index=src.scan_index, sha256=sha, size_bytes=nbytes)
-        old_key, old_source = existing.get(src.name, (None, None))
-        if not force and old_key == key:
-            skipped.append(ScanStatus(src.name, str(src.path), "skipped"))
-        elif src.name in existing and not overwrite and old_source != src.path.name:
-            failed.append(ScanStatus(src.name, str(src.path), "failed", error=(
-                f"archive {archive} already holds a scan {src.name!r} built from {old_source or 'another input'}; "
-                "pass --overwrite (overwrite=True) to replace it or rename the file")))
-        elif not force and part.is_file() and _part_ok(part, src.name):
-            recovered.append((job, part))
-        else:
-            jobs.append(job)
+        job = ScanJob(name=src.name, path=None if src.path is None else os.path.abspath(src.path), key=key,
+                      part=str(part), params=dict(params), pose=pose, scan_index=src.scan_index, sha256=sha,
+                      size_bytes=nbytes, scan=src.scan, pose_kind=pose_kind(src.pose),
+                      given=None if src.path is None else str(src.path))
+        _place(job, where, existing, archive, force, overwrite, jobs, recovered, skipped, failed)
     return jobs, recovered, skipped, failed
 
 
-def build_collection(
+def _place(job: ScanJob, where: str, existing: dict[str, tuple[str | None, str | None]], archive: Path,
+           force: bool, overwrite: bool, jobs: list, recovered: list, skipped: list, failed: list) -> None:
+    """The one duplicate-name policy: skip an unchanged scan, refuse a changed one unless
+    ``overwrite``, merge a finished part of an interrupted build, else build."""
+    part = Path(job.part)
+    old_key, old_source = existing.get(job.name, (None, None))
+    if job.name in existing and old_key == job.key and not force:
+        skipped.append(ScanStatus(job.name, where, "skipped"))
+    elif job.name in existing and old_key != job.key and not overwrite:
+        err = _conflict(archive, job.name, old_source)
+        failed.append(ScanStatus(job.name, where, "failed", error=str(err), exception=err))
+    elif not force and part.is_file() and _part_ok(part, job.name):
+        recovered.append((job, part))
+    else:
+        jobs.append(job)
+
+
+def plan_joint(sources: list[ScanSource], archive: Path, params: dict[str, Any], name: str, *,
+               force: bool = False, overwrite: bool = False):
+    """One job ordering every source as one surface (a joint build), placed like any scan."""
+    import hashlib
+
+    from ..io import file_sha256
+
+    members: list[dict[str, Any]] = []
+    h = hashlib.sha256()
+    for i, src in enumerate(sources):
+        if src.path is None:
+            raise InputError("a joint build orders scan files; save in-memory scans to files first")
+        if src.path.resolve() == archive.resolve():
+            raise InputError(f"input {src.path} is the archive itself; choose another -o")
+        sha = file_sha256(src.path)
+        h.update(sha.encode())
+        members.append({"id": i, "name": src.name, "path": os.path.abspath(src.path), "source": src.path.name,
+                        "sha256": sha, "pose": None if src.pose is None else src.pose.tolist(),
+                        "pose_kind": pose_kind(src.pose), "scan_index": src.scan_index})
+    key = job_key(h.hexdigest(), {**params, "joint": True}, [m["pose"] for m in members],
+                  None, name)
+    job = ScanJob(name=name, path=None, key=key, part=str(_part_path(archive, name, key)), params=dict(params),
+                  sha256=h.hexdigest(), size_bytes=sum(Path(m["path"]).stat().st_size for m in members),
+                  members=members, tiled=True)
+    out: tuple[list, list, list, list] = ([], [], [], [])
+    _place(job, job.source, _existing_scans(archive), archive, force, overwrite, *out)
+    return out
+
+
+def decide_tiling(jobs: list[ScanJob], params: dict[str, Any]) -> None:
+    """Mark the jobs that take the tiled path: joint builds, and scans whose in-memory build would
+    not fit the memory budget (``max_memory``, default 60 % of this machine's memory).
+    Partial orderings (size/rho), seeds and feature options are in-memory builds only."""
+    from ..io.stream import peek_stream
+    from ..sampling.tiled.plan import needs_tiling
+
+    if params.get("size") is not None or params.get("rho") is not None or params.get("features") \
+            or params.get("seeds") is not None:
+        return
+    for job in jobs:
+        if job.members or params.get("_tile_points"):
+            job.tiled = True
+            continue
+        if job.scan is not None:
+            n = len(job.scan)
+            row = 24 + sum(a.dtype.itemsize * int(a.size // max(n, 1)) for a in job.scan.attributes.values())
+        else:
+            try:
+                st = peek_stream(job.path) if job.scan_index is None else None  # type: ignore[arg-type]
+            except Exception:  # noqa: BLE001 - the build reads the file again and reports its error
+                st = None
+            if st is not None:
+                n = st.n_points
+                row = 24 + sum(int(np.dtype(d).itemsize * max(1, int(np.prod(sh)))) for d, sh in st.fields.values())
+            else:  # a format that does not stream: about 30 bytes of file per point
+                n, row = (job.size_bytes or 0) // 30, 24
+        job.tiled = needs_tiling(n, row, params.get("max_memory"))
+
+
+def _sources(inputs: Any, manifest: Any, name: str | None) -> list[ScanSource]:
+    from ..io import Scan
+
+    items = [inputs] if isinstance(inputs, (str, os.PathLike, Scan)) else list(inputs or [])
+    scans = [x for x in items if isinstance(x, Scan)]
+    files = [x for x in items if not isinstance(x, Scan)]
+    bad = [x for x in files if not isinstance(x, (str, os.PathLike))]
+    if bad:
+        raise InputError(f"build inputs must be file paths or lodbuilder.Scan objects, got {type(bad[0]).__name__}")
+    sources = [] if not files and manifest is None else expand_inputs(files, manifest)
+    from ..archive.layout import check_name
+    from .inputs import safe_name, unique_names
+
+    for s in scans:
+        sources.append(ScanSource(path=None, name=check_name(s.name) if s.name else "scan", scan=s))
+    if not sources:
+        raise InputError("no input scans given; pass files, directories, globs or --manifest")
+    if name is not None:
+        if len(sources) != 1:
+            raise InputError(f"--name (name=) names a single scan, but the inputs hold {len(sources)} scans; "
+                             "a collection names each scan after its file")
+        sources[0].name = check_name(name)
+    elif scans:
+        for src, n in zip(sources, unique_names([safe_name(s.name) if s.scan is None else s.name
+                                                 for s in sources]), strict=True):
+            src.name = n
+    return sources
+
+
+# ---------------------------------------------------------------------------------------- build
+
+def build(
     inputs: Any = (),
     archive: str | os.PathLike[str] = "collection.h5",
     *,
+    name: str | None = None,
     manifest: str | os.PathLike[str] | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
     dask_local: int | None = None,
     voxel_size: float | None = None,
     band_radius: float | None = None,
+    seeds: Any = None,
     size: int | None = None,
     rho: float | None = None,
     force: bool = False,
     overwrite: bool = False,
-    raise_on_failure: bool = False,
+    max_memory: Any = None,
+    joint: bool | str = False,
+    seam_spacing: float | None = None,
+    crs: str | None = None,
+    crs_override: bool = False,
+    raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
+    _tile_points: int | None = None,
     **features: Any,
-) -> CollectionResult:
-    """Build every scan of ``inputs`` (files, directories, globs, manifests) into ``archive``.
-
-    ``force`` rebuilds scans even when unchanged; ``overwrite`` lets a scan replace a same-named
-    scan built from another file. ``size``/``rho`` stop each scan's ordering early (at most ``size`` points; ``size`` larger than a
-    scan means the whole scan); by default every point is ordered. ``features`` are the feature
-    options of a single-scan build (``importance``, ``adaptive``, ``density_floor``, ...). Returns a
-    :class:`CollectionResult` with one status per scan; with ``raise_on_failure`` a BuildError
-    naming the failed scans is raised after all the others are finished and merged.
-    """
+) -> BuildResult:
+    """Build every scan of ``inputs`` into ``archive``; see :func:`lodbuilder.build_archive`."""
     from ..archive.reader import check_archive_file
     from ..archive.writer import check_writable_dir
 
     t0 = time.perf_counter()
-    archive = Path(archive).resolve()  # absolute paths in jobs: Dask workers may run elsewhere
+    archive = Path(os.path.abspath(archive))  # absolute paths in jobs: workers may run elsewhere
     check_writable_dir(archive, "archive")
     if archive.exists():
-        check_archive_file(archive)
-    params = _params(voxel_size, band_radius, size, rho, features)
-    sources = expand_inputs(inputs, manifest)
-    jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force, overwrite=overwrite)
-    result = CollectionResult(archive=archive)
-    total = len(sources)
-    done = 0
+        check_archive_file(archive)  # fail before any expensive work
+    params = tiling_params(make_params(voxel_size, band_radius, size, rho, features, seeds), max_memory,
+                           seam_spacing, _tile_points)
+    if crs is not None:
+        from ..io.crs import crs_from_user
+
+        params["crs"] = crs_from_user(crs)  # WKT: the same CRS given two ways is the same key
+        params["crs_override"] = bool(crs_override)
+    joint_name = _joint_name(joint, name, manifest, inputs) if joint else None
+    sources = _sources(inputs, manifest, None if joint else name)
+    if seeds is not None and (len(sources) != 1 or joint):
+        raise InputError("seeds are input indices of one scan; give a single scan with seeds")
+    if joint and (params.get("size") is not None or params.get("rho") is not None or params.get("features")):
+        raise InputError("a joint build orders every point (size/rho and feature options are not available)")
+    in_memory = any(s.scan is not None for s in sources)
+    if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
+        raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
+    if joint_name is not None:
+        jobs, recovered, skipped, failed = plan_joint(sources, archive, params, joint_name, force=force,
+                                                      overwrite=overwrite)
+        total = 1
+    else:
+        jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force, overwrite=overwrite)
+        total = len(sources)
+    decide_tiling(jobs, params)
+    result = BuildResult(archive=archive)
+    names_in_archive = set(_existing_scans(archive))
+    done = points = 0
 
     def emit(st: ScanStatus) -> None:
-        nonlocal done
+        nonlocal done, points
         result.scans.append(st)
         done += 1
-        # failures are warnings unless the caller shows statuses itself
-        level = logging.WARNING if st.status == "failed" and on_status is None else logging.INFO
-        log.log(level, "[%d/%d] %s: %s%s", done, total, st.name, st.status,
-                f" ({st.error})" if st.error else "")
+        points += st.n_points or 0
+        # failures are warnings unless the caller shows statuses itself (or re-raises them)
+        quiet_failure = on_status is not None or (raise_on_failure is None and total == 1)
+        level = logging.WARNING if st.status == "failed" and not quiet_failure else logging.INFO
+        log.log(level, "[%d/%d] %s: %s%s", done, total, st.name, st.status, f" ({st.error})" if st.error else "")
         if on_status is not None:
             on_status(st)
-        report(progress, "scans", done, total)
+        if total > 1:  # a collection shows scans and points; a single scan shows its phases
+            report(progress, "scans", done, total)
+            report(progress, "points", points, 0)
 
-    report(progress, "scans", 0, total)
+    if total > 1:
+        report(progress, "scans", 0, total)
     for st in skipped + failed:
         emit(st)
     keep_parts = {Path(j.part) for j in jobs} | {p for _, p in recovered}
-    _clean_parts(archive, keep_parts)
+    _clean_parts(archive, keep_parts, {Path(j.part) for j in jobs})
     if recovered:
         merge_parts(archive, [(j.name, p) for j, p in recovered])
         for j, p in recovered:
             _drop_part(p)
-            emit(ScanStatus(j.name, j.path, "recovered"))
+            names_in_archive.add(j.name)
+            emit(ScanStatus(j.name, j.source, "recovered"))
     if jobs:
         parts_dir(archive).mkdir(exist_ok=True)
-        jobs.sort(key=lambda j: -j.size_bytes)  # largest first: better packing on the workers
+        jobs.sort(key=lambda j: -(j.size_bytes or 0))  # largest first: better packing on the workers
+        tiled = [j for j in jobs if j.tiled]
+        small = [j for j in jobs if not j.tiled]
+        default = workers is None and scheduler is None and dask_local is None
+        inline = in_memory or (len(jobs) == 1 and default and not tiled)
         t_start = time.perf_counter()
-        with make_executor(workers, scheduler, dask_local) as (ex, desc):
+        with make_executor(workers, scheduler, dask_local, inline=inline) as (ex, desc):
             result.startup_seconds = time.perf_counter() - t_start
             result.executor = desc
             log.info("building %d scan(s) on %s", len(jobs), desc)
-            pending = {ex.submit(build_one, j): j for j in jobs}
-            try:
-                while pending:
-                    finished, _ = cf.wait(list(pending), return_when=cf.FIRST_COMPLETED)
-                    good: list[tuple[ScanJob, dict[str, Any]]] = []
-                    for fut in finished:
-                        job = pending.pop(fut)
-                        try:
-                            good.append((job, fut.result()))
-                        except cf.process.BrokenProcessPool:
-                            emit(ScanStatus(job.name, job.path, "failed",
-                                            error="its worker process died (killed, out of memory, or failed to start: see the log)"))
-                        except Exception as exc:
-                            emit(ScanStatus(job.name, job.path, "failed", error=_one_line(exc)))
-                    if good:
-                        t_merge = time.perf_counter()
-                        try:
-                            merge_parts(archive, [(j.name, Path(r["part"])) for j, r in good])
-                            result.merge_seconds += time.perf_counter() - t_merge
-                        except Exception as exc:
-                            for j, _ in good:
-                                emit(ScanStatus(j.name, j.path, "failed", error=f"merge failed: {_one_line(exc)}"))
-                            continue
-                        for j, r in good:
-                            _drop_part(Path(r["part"]))
-                            emit(ScanStatus(j.name, j.path, "built", n_points=r["n_points"],
-                                            seconds=r["seconds"], worker_pid=r["worker_pid"]))
-            except BaseException:  # interrupted: do not start the scans still queued
-                for fut in pending:
-                    fut.cancel()
-                raise
-    d = parts_dir(archive)
-    if d.is_dir():
-        for lock in d.glob(".*.lock"):  # locks of parts that are gone
-            if not lock.with_name(lock.name[1:-5]).exists():
-                with contextlib.suppress(OSError):
-                    lock.unlink()
-        with contextlib.suppress(OSError):
-            d.rmdir()  # only when empty
+            if small:
+                _run_jobs(ex, small, archive, result, emit, names_in_archive,
+                          progress if (inline and total == 1) else None)
+            parallel = 1 if inline or scheduler is not None else (dask_local or workers or os.cpu_count() or 1)
+            for job in tiled:
+                _run_tiled(ex, parallel, job, archive, result, emit, names_in_archive,
+                           progress if total == 1 else None)
+    _tidy_parts(archive)
+    result.archive_scans = len(names_in_archive) if archive.exists() else 0
     result.seconds = time.perf_counter() - t0
-    if raise_on_failure and result.failed:
-        names = ", ".join(f"{s.name} ({s.error})" for s in result.failed[:3])
-        more = f" and {len(result.failed) - 3} more" if len(result.failed) > 3 else ""
-        raise BuildError(f"{len(result.failed)} of {total} scan(s) failed: {names}{more}")
+    _raise_failures(result, total, raise_on_failure)
     return result
+
+
+def _run_jobs(ex: cf.Executor, jobs: list[ScanJob], archive: Path, result: BuildResult, emit: Any,
+              names_in_archive: set[str], progress: ProgressCallback) -> None:
+    from .executors import InlineExecutor
+
+    inline = isinstance(ex, InlineExecutor)
+    pending: dict[cf.Future, ScanJob] = {}
+    queue = list(jobs)
+
+    def submit_next() -> None:
+        job = queue.pop(0)
+        pending[ex.submit(build_one, job, progress) if inline else ex.submit(build_one, job)] = job
+
+    try:
+        # in this process, one job at a time (each is merged before the next starts)
+        for _ in range(1 if inline else len(queue)):
+            submit_next()
+        while pending:
+            finished, _ = cf.wait(list(pending), return_when=cf.FIRST_COMPLETED)
+            good: list[tuple[ScanJob, dict[str, Any]]] = []
+            for fut in finished:
+                job = pending.pop(fut)
+                try:
+                    good.append((job, fut.result()))
+                except BrokenProcessPool:
+                    emit(ScanStatus(job.name, job.source, "failed", error=(
+                        "its worker process died (killed, out of memory, or failed to start: see the log)")))
+                except Exception as exc:
+                    exc = _as_given(exc, job)
+                    emit(ScanStatus(job.name, job.source, "failed", error=one_line(exc), exception=exc))
+            if good:
+                t_merge = time.perf_counter()
+                try:
+                    merge_parts(archive, [(j.name, Path(r["part"])) for j, r in good])
+                    result.merge_seconds += time.perf_counter() - t_merge
+                except Exception as exc:
+                    for j, _ in good:
+                        emit(ScanStatus(j.name, j.source, "failed", error=f"merge failed: {one_line(exc)}",
+                                        exception=exc))
+                else:
+                    for j, r in good:
+                        _drop_part(Path(r["part"]))
+                        names_in_archive.add(j.name)
+                        emit(ScanStatus(j.name, j.source, "built", n_points=r["n_points"], seconds=r["seconds"],
+                                        worker_pid=r["worker_pid"], n_ordered=r.get("n_ordered"),
+                                        encoding=r.get("encoding"), method=r.get("method"),
+                                        phases=r.get("phases") or {}))
+            if inline and queue:
+                submit_next()
+    except BaseException:  # interrupted: do not start the scans still queued
+        for fut in pending:
+            fut.cancel()
+        raise
+
+
+def _run_tiled(ex: cf.Executor, parallel: int, job: ScanJob, archive: Path, result: BuildResult, emit: Any,
+               names_in_archive: set[str], progress: ProgressCallback) -> None:
+    """A tiled job: driven from this process, its tiles on the executor; then its part is merged."""
+    from .jobs import build_tiled_job
+
+    try:
+        r = build_tiled_job(job, ex, parallel, progress)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:
+        exc = _as_given(exc, job)
+        emit(ScanStatus(job.name, job.source, "failed", error=one_line(exc), exception=exc))
+        return
+    t_merge = time.perf_counter()
+    try:
+        merge_parts(archive, [(job.name, Path(r["part"]))])
+        result.merge_seconds += time.perf_counter() - t_merge
+    except Exception as exc:
+        emit(ScanStatus(job.name, job.source, "failed", error=f"merge failed: {one_line(exc)}", exception=exc))
+        return
+    _drop_part(Path(r["part"]))
+    names_in_archive.add(job.name)
+    emit(ScanStatus(job.name, job.source, "built", n_points=r["n_points"], seconds=r["seconds"],
+                    worker_pid=r["worker_pid"], n_ordered=r["n_ordered"], encoding=r["encoding"], method="tiled",
+                    phases=r["phases"]))
+
+
+def _joint_name(joint: Any, name: str | None, manifest: Any, inputs: Any) -> str:
+    """The name of a joint scan: ``name``, a string given as ``joint``, the manifest's stem, or
+    "joint"."""
+    from ..archive.layout import check_name
+    from .inputs import MANIFEST_SUFFIXES, safe_name
+
+    if name is not None:
+        return check_name(name)
+    if isinstance(joint, str):
+        return check_name(joint)
+    items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs or [])
+    manifests = [Path(manifest)] if manifest is not None else []
+    manifests += [Path(x) for x in items if isinstance(x, (str, os.PathLike))
+                  and Path(x).suffix.lower() in MANIFEST_SUFFIXES]
+    return safe_name(manifests[0].stem) if len(manifests) == 1 else "joint"
+
+
+def _as_given(exc: Exception, job: ScanJob) -> Exception:
+    """The job's error naming its file as the caller gave it (jobs carry absolute paths)."""
+    if job.path is None or not job.given or job.given == job.path or job.path not in str(exc):
+        return exc
+    if isinstance(exc, LodbuilderError) and len(exc.args) == 1 and isinstance(exc.args[0], str):
+        new = type(exc)(exc.args[0].replace(job.path, job.given))
+        new.__cause__ = exc.__cause__
+        return new
+    return exc
+
+
+def _raise_failures(result: BuildResult, total: int, raise_on_failure: bool | None) -> None:
+    failed = result.failed
+    if not failed or raise_on_failure is False:
+        return
+    if total == 1 and failed[0].exception is not None and isinstance(failed[0].exception, LodbuilderError):
+        raise failed[0].exception
+    if raise_on_failure or total == 1:
+        names = ", ".join(f"{s.name} ({s.error})" for s in failed[:3])
+        more = f" and {len(failed) - 3} more" if len(failed) > 3 else ""
+        raise BuildError(f"{len(failed)} of {total} scan(s) failed: {names}{more}")
+
+
+def _build_keywords() -> list[str]:
+    import inspect
+
+    names = [p.name for p in inspect.signature(build).parameters.values()
+             if p.kind is inspect.Parameter.KEYWORD_ONLY]
+    return names + list(FEATURE_OPTIONS)
+
+
+@strict_keywords(extra=_build_keywords)
+def build_collection(inputs: Any = (), archive: str | os.PathLike[str] = "collection.h5", *,
+                     raise_on_failure: bool = False, **options: Any) -> BuildResult:
+    """:func:`lodbuilder.build_archive` that reports failed scans in the result instead of raising
+    (unless ``raise_on_failure``: then a BuildError names them after every other scan is merged)."""
+    return build(inputs, archive, raise_on_failure=raise_on_failure, **options)

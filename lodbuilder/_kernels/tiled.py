@@ -1,0 +1,568 @@
+"""Kernels of the tiled (out-of-core) build: the seam-repairing k-way merge of tile orderings, the
+exact covering pass over a tile and its halo, and the merge of per-tile covering events.
+
+Spatial lookups use a hash grid of cubic cells (open addressing on the cell key, one linked list
+of points per cell) that accepts insertions and is rebuilt when the cell size must change.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from . import JIT
+
+# ------------------------------------------------------------------------------------ hash grid
+
+_B = 21  # bits per axis of a cell key
+_MASK = (1 << _B) - 1
+
+
+@nb.njit(**JIT)
+def cell_of(x, lo, cell):  # pragma: no cover - compiled
+    c = np.int64(np.floor((x - lo) / cell))
+    if c < 0:
+        return np.int64(0)
+    if c > _MASK:
+        return np.int64(_MASK)
+    return c
+
+
+@nb.njit(**JIT)
+def key3(cx, cy, cz):  # pragma: no cover - compiled
+    return (cx << (2 * _B)) | (cy << _B) | cz
+
+
+@nb.njit(**JIT)
+def _hash(k, mask):  # pragma: no cover - compiled
+    h = (k * np.int64(0x9E3779B97F4A7C15)) >> np.int64(17)
+    return h & mask
+
+
+@nb.njit(**JIT)
+def grid_slot(tkeys, k, mask):  # pragma: no cover - compiled
+    """Slot of cell key ``k`` in the table (the empty slot where it would go if absent)."""
+    i = _hash(k, mask)
+    while tkeys[i] != -1 and tkeys[i] != k:
+        i = (i + 1) & mask
+    return i
+
+
+@nb.njit(**JIT)
+def grid_insert(tkeys, thead, nxt, xyz, lo, cell, mask, j):  # pragma: no cover - compiled
+    k = key3(cell_of(xyz[j, 0], lo[0], cell), cell_of(xyz[j, 1], lo[1], cell), cell_of(xyz[j, 2], lo[2], cell))
+    s = grid_slot(tkeys, k, mask)
+    if tkeys[s] == -1:
+        tkeys[s] = k
+        thead[s] = -1
+    nxt[j] = thead[s]
+    thead[s] = j
+
+
+def table_size(n: int) -> int:
+    """A power of two at least twice ``n`` (the hash table's load stays below one half)."""
+    size = 1024
+    while size < 2 * n:
+        size *= 2
+    return size
+
+
+# ------------------------------------------------------------------------------------ heaps
+
+@nb.njit(**JIT)
+def _up(hkey, hitem, i):  # pragma: no cover - compiled
+    """Max-heap sift up (ties: smaller item first)."""
+    k = hkey[i]
+    it = hitem[i]
+    while i > 0:
+        p = (i - 1) >> 1
+        if hkey[p] > k or (hkey[p] == k and hitem[p] < it):
+            break
+        hkey[i] = hkey[p]
+        hitem[i] = hitem[p]
+        i = p
+    hkey[i] = k
+    hitem[i] = it
+
+
+@nb.njit(**JIT)
+def _down(hkey, hitem, i, n):  # pragma: no cover - compiled
+    k = hkey[i]
+    it = hitem[i]
+    while True:
+        c = 2 * i + 1
+        if c >= n:
+            break
+        if c + 1 < n and (hkey[c + 1] > hkey[c] or (hkey[c + 1] == hkey[c] and hitem[c + 1] < hitem[c])):
+            c += 1
+        if hkey[c] < k or (hkey[c] == k and hitem[c] > it):
+            break
+        hkey[i] = hkey[c]
+        hitem[i] = hitem[c]
+        i = c
+    hkey[i] = k
+    hitem[i] = it
+
+
+# ------------------------------------------------------------------------------------ seam merge
+
+@nb.njit(**JIT)
+def _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius):  # pragma: no cover
+    """Distance from p to the nearest indexed point of another tile (or the head) within ``radius``
+    (inf if none)."""
+    best = np.inf
+    cx0 = cell_of(px - radius, lo[0], cell)
+    cx1 = cell_of(px + radius, lo[0], cell)
+    cy0 = cell_of(py - radius, lo[1], cell)
+    cy1 = cell_of(py + radius, lo[1], cell)
+    cz0 = cell_of(pz - radius, lo[2], cell)
+    cz1 = cell_of(pz + radius, lo[2], cell)
+    for cx in range(cx0, cx1 + 1):
+        for cy in range(cy0, cy1 + 1):
+            for cz in range(cz0, cz1 + 1):
+                s = grid_slot(tkeys, key3(cx, cy, cz), mask)
+                if tkeys[s] == -1:
+                    continue
+                j = thead[s]
+                while j >= 0:
+                    if atile[j] != ptile:
+                        dx = ax[j, 0] - px
+                        dy = ax[j, 1] - py
+                        dz = ax[j, 2] - pz
+                        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                        if d < best:
+                            best = d
+                    j = nxt[j]
+    return best
+
+
+@nb.njit(**JIT)
+def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+               dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key):  # pragma: no cover
+    """Merge tile streams by descending key, repairing seams (see lodbuilder.sampling.tiled.merge).
+
+    ``bufs`` (T, B, 6): per tile, rows (g, key, x, y, z, margin) of its stream; ``bpos``/``blen``
+    the read position and length of each buffer. ``theap``/``tn``: max-heap (T, 2) of the tiles
+    with rows left, by their next key (ties: lower tile); the caller refills the buffer of the top
+    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`). ``state`` (float64):
+    [n_out, n_acc, cell, n_dem, n_demoted_total, min_cell]. ``ax``/``atile``: accepted seam
+    points (and the head, tile -1), indexed in the hash grid (``tkeys``/``thead``/``nxt``).
+    ``dheap_*``: max-heap of demoted points (slots into ``dpool`` (D, 6) rows and ``dtile``).
+
+    Returns (code, t): 0 = all merged; 1 = the buffer of tile t (at the top of the tile heap) needs
+    a refill; 2 = the output buffer is full.
+    """
+    n_out = np.int64(state[0])
+    n_acc = np.int64(state[1])
+    cell = state[2]
+    n_dem = np.int64(state[3])
+    min_cell = state[5]
+    mask = tkeys.shape[0] - 1
+    cap = out_g.shape[0]
+    while True:
+        if n_out >= cap:
+            state[0] = n_out
+            state[1] = n_acc
+            state[2] = cell
+            state[3] = n_dem
+            return 2, -1
+        # next candidate: the top tile stream or the top demoted point
+        ks = -1.0
+        t = -1
+        if tn > 0:
+            t = np.int64(theap[0, 1])
+            if bpos[t] >= blen[t]:  # exhausted buffer: a refill (the caller pops a finished tile)
+                state[0] = n_out
+                state[1] = n_acc
+                state[2] = cell
+                state[3] = n_dem
+                return 1, t
+            ks = bufs[t, bpos[t], 1]
+        kd = dheap_key[0] if n_dem > 0 else -1.0
+        if ks < 0.0 and kd < 0.0:
+            break
+        if ks >= kd:
+            row = bufs[t, bpos[t]]
+            g = np.int64(row[0])
+            key = row[1]
+            px = row[2]
+            py = row[3]
+            pz = row[4]
+            margin = row[5]
+            ptile = t
+            bpos[t] += 1
+            if bpos[t] < blen[t]:
+                theap[0, 0] = bufs[t, bpos[t], 1]
+                _tile_sift(theap, tn)
+            # else: the stale key keeps tile t on top; the next turn asks for its refill
+        else:
+            slot = dheap_item[0]
+            key = dheap_key[0]
+            n_dem -= 1
+            if n_dem > 0:
+                dheap_key[0] = dheap_key[n_dem]
+                dheap_item[0] = dheap_item[n_dem]
+                _down(dheap_key, dheap_item, 0, n_dem)
+            g = np.int64(dpool[slot, 0])
+            px = dpool[slot, 2]
+            py = dpool[slot, 3]
+            pz = dpool[slot, 4]
+            margin = dpool[slot, 5]
+            ptile = dtile[slot]
+        seam = margin < key
+        if seam and alpha > 0.0 and np.isfinite(key):
+            radius = alpha * key
+            if key < 0.5 * cell and key > 0.0:
+                cell = max(key, min_cell)
+                for s in range(tkeys.shape[0]):
+                    tkeys[s] = -1
+                for j in range(n_acc):
+                    grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, j)
+            d = _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius)
+            if d < radius:
+                # too close to an accepted point of another tile: wait until the radius allows it
+                slot = np.int64(state[4])
+                state[4] += 1
+                dpool[slot, 0] = g
+                dpool[slot, 1] = d / alpha
+                dpool[slot, 2] = px
+                dpool[slot, 3] = py
+                dpool[slot, 4] = pz
+                dpool[slot, 5] = margin
+                dtile[slot] = ptile
+                dheap_key[n_dem] = d / alpha
+                dheap_item[n_dem] = slot
+                _up(dheap_key, dheap_item, n_dem)
+                n_dem += 1
+                continue
+        out_g[n_out] = g
+        out_key[n_out] = key
+        n_out += 1
+        if seam:
+            ax[n_acc, 0] = px
+            ax[n_acc, 1] = py
+            ax[n_acc, 2] = pz
+            atile[n_acc] = ptile
+            if cell < np.inf:
+                grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
+            n_acc += 1
+    state[0] = n_out
+    state[1] = n_acc
+    state[2] = cell
+    state[3] = n_dem
+    return 0, -1
+
+
+@nb.njit(**JIT)
+def _tile_sift(theap, n):  # pragma: no cover - compiled
+    """The top of the tile heap changed: sift it down (max by key, ties by tile)."""
+    i = 0
+    k = theap[0, 0]
+    t = theap[0, 1]
+    while True:
+        c = 2 * i + 1
+        if c >= n:
+            break
+        if c + 1 < n and (theap[c + 1, 0] > theap[c, 0] or (theap[c + 1, 0] == theap[c, 0] and theap[c + 1, 1] < theap[c, 1])):
+            c += 1
+        if theap[c, 0] < k or (theap[c, 0] == k and theap[c, 1] > t):
+            break
+        theap[i, 0] = theap[c, 0]
+        theap[i, 1] = theap[c, 1]
+        i = c
+    theap[i, 0] = k
+    theap[i, 1] = t
+
+
+@nb.njit(**JIT)
+def tile_pop(theap, n):  # pragma: no cover - compiled
+    n -= 1
+    if n > 0:
+        theap[0, 0] = theap[n, 0]
+        theap[0, 1] = theap[n, 1]
+        _tile_sift(theap, n)
+    return n
+
+
+@nb.njit(**JIT)
+def tile_heap_refresh(theap, n, t, key):  # pragma: no cover - compiled
+    """Tile t (at the top) got a refilled buffer whose first key is ``key``."""
+    theap[0, 0] = key
+    _tile_sift(theap, n)
+    return n
+
+
+# ------------------------------------------------------------------------------------ covering
+
+@nb.njit(**JIT)
+def _box_dist(px, py, pz, x0, y0, z0, size):  # pragma: no cover - compiled
+    """Distance from p to the axis-aligned cube [x0, x0 + size] x ... (0 inside)."""
+    dx = max(x0 - px, 0.0, px - (x0 + size))
+    dy = max(y0 - py, 0.0, py - (y0 + size))
+    dz = max(z0 - pz, 0.0, pz - (z0 + size))
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@nb.njit(**JIT)
+def cover_pass(xyz, rank, core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_space):  # pragma: no cover
+    """Exact covering radii of a tile's core while the points of its core and halo are inserted in
+    rank order (``rank`` ascending; ``xyz`` in that order).
+
+    Keeps, for every pending core point, its distance to (and the rank of) the nearest inserted
+    point. After each insertion the core's covering radius is the largest pending distance (the root
+    of a max segment tree over the blocks). An insertion updates only the pending points it comes closer to: they sit in cubic
+    cells of size ``cell`` (the non-empty ones, numbered compactly, their points stored together)
+    grouped in blocks of 2^3 cells; each cell and block keeps an upper bound of its points'
+    distances, and a cell or block no nearer to the new point than that bound is skipped. Writes an
+    event (rank + 1, covering radius) whenever the radius changes and, for each inserted core
+    point, its rank, the rank of its nearest earlier point and the distance to it.
+    Returns (number of events, number of core points).
+    """
+    n = xyz.shape[0]
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = np.inf
+        hi[a] = -np.inf
+    for i in range(n):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    g = np.empty(3, np.int64)
+    for a in range(3):
+        g[a] = max(1, np.int64((hi[a] - lo[a]) / cell) + 1)
+    nbx, nby, nbz = (g[0] + 1) // 2, (g[1] + 1) // 2, (g[2] + 1) // 2
+    # core points sorted by cell; cells numbered compactly in that order
+    ncore = 0
+    for i in range(n):
+        if core[i]:
+            ncore += 1
+    pid = np.empty(ncore, np.int64)
+    key = np.empty(ncore, np.int64)
+    m = 0
+    for i in range(n):
+        if core[i]:
+            cx = min(np.int64((xyz[i, 0] - lo[0]) / cell), g[0] - 1)
+            cy = min(np.int64((xyz[i, 1] - lo[1]) / cell), g[1] - 1)
+            cz = min(np.int64((xyz[i, 2] - lo[2]) / cell), g[2] - 1)
+            # block-major key: the cells of a block are neighbours in the order
+            b = ((cx // 2) * nby + cy // 2) * nbz + cz // 2
+            key[m] = (b * 8 + (cx % 2) * 4 + (cy % 2) * 2 + (cz % 2))
+            pid[m] = i
+            m += 1
+    o = np.argsort(key, kind="mergesort")
+    key = key[o]
+    pid = pid[o]
+    nc = 0
+    for j in range(ncore):
+        if j == 0 or key[j] != key[j - 1]:
+            nc += 1
+    cstart = np.empty(nc + 1, np.int64)
+    ccorner = np.empty((nc, 3))
+    cblock = np.empty(nc, np.int64)
+    c = -1
+    for j in range(ncore):
+        if j == 0 or key[j] != key[j - 1]:
+            c += 1
+            cstart[c] = j
+            b = key[j] // 8
+            r = key[j] % 8
+            bz = b % nbz
+            by = (b // nbz) % nby
+            bx = b // (nbz * nby)
+            ccorner[c, 0] = lo[0] + (bx * 2 + r // 4) * cell
+            ccorner[c, 1] = lo[1] + (by * 2 + (r // 2) % 2) * cell
+            ccorner[c, 2] = lo[2] + (bz * 2 + r % 2) * cell
+            cblock[c] = b
+    cstart[nc] = ncore
+    npend = np.empty(nc, np.int64)
+    for c in range(nc):
+        npend[c] = cstart[c + 1] - cstart[c]
+    # point data in slot order (a cell's pending points are contiguous); spos: point -> slot
+    sx = np.empty(ncore)
+    sy = np.empty(ncore)
+    sz = np.empty(ncore)
+    sd = np.full(ncore, np.inf)
+    slab = np.full(ncore, -1, np.int64)
+    sid = pid.copy()
+    scell = np.empty(ncore, np.int64)
+    spos = np.full(n, -1, np.int64)
+    for c in range(nc):
+        for j in range(cstart[c], cstart[c + 1]):
+            scell[j] = c
+    for j in range(ncore):
+        i = pid[j]
+        sx[j] = xyz[i, 0]
+        sy[j] = xyz[i, 1]
+        sz[j] = xyz[i, 2]
+        spos[i] = j
+    cmax = np.full(nc, np.inf)
+    nblock = nbx * nby * nbz
+    bmax = np.full(nblock, -1.0)
+    bfirst = np.full(nblock, -1, np.int64)
+    bcnt = np.zeros(nblock, np.int64)
+    for c in range(nc):
+        b = cblock[c]
+        if bfirst[b] < 0:
+            bfirst[b] = c
+        bcnt[b] += 1
+        bmax[b] = np.inf
+    # a max segment tree over the blocks' maxima: its root is the covering radius of the core
+    size = 1
+    while size < nblock:
+        size *= 2
+    tree = np.full(2 * size, -1.0)
+    for b in range(nblock):
+        tree[size + b] = bmax[b]
+    for t in range(size - 1, 0, -1):
+        tree[t] = max(tree[2 * t], tree[2 * t + 1])
+    pending = ncore
+    ne = 0
+    npt = 0
+    last = -1.0
+    bsize = 2.0 * cell
+    for i in range(n + 1):
+        cr = tree[1] if pending > 0 else 0.0
+        if cr != last:
+            ev_rank[ne] = rank[i - 1] + 1 if i > 0 else 0
+            ev_val[ne] = cr
+            ne += 1
+            last = cr
+        if i == n:
+            break
+        j = spos[i]
+        if j >= 0:
+            pt_rank[npt] = rank[i]
+            pt_parent[npt] = slab[j]
+            pt_space[npt] = sd[j]
+            npt += 1
+            # remove the point from its cell: swap with the cell's last pending slot
+            c = scell[j]
+            removed = sd[j]
+            last_j = cstart[c] + npend[c] - 1
+            if last_j != j:
+                sx[j], sx[last_j] = sx[last_j], sx[j]
+                sy[j], sy[last_j] = sy[last_j], sy[j]
+                sz[j], sz[last_j] = sz[last_j], sz[j]
+                sd[j], sd[last_j] = sd[last_j], sd[j]
+                slab[j], slab[last_j] = slab[last_j], slab[j]
+                other = sid[last_j]
+                sid[j] = other
+                sid[last_j] = i
+                spos[other] = j
+            spos[i] = -1
+            npend[c] -= 1
+            pending -= 1
+            if removed >= cmax[c]:  # the cell's (and maybe its block's) maximum goes down
+                cm = -1.0
+                for jj in range(cstart[c], cstart[c] + npend[c]):
+                    if sd[jj] > cm:
+                        cm = sd[jj]
+                cmax[c] = cm
+                b = cblock[c]
+                bm = -1.0
+                for cc in range(bfirst[b], bfirst[b] + bcnt[b]):
+                    if npend[cc] > 0 and cmax[cc] > bm:
+                        bm = cmax[cc]
+                bmax[b] = bm
+                _tree_set(tree, size, b, bm)
+        if pending == 0:
+            continue
+        px = xyz[i, 0]
+        py = xyz[i, 1]
+        pz = xyz[i, 2]
+        rad = cr
+        if not np.isfinite(rad):
+            rad = 2.0 * (hi[0] - lo[0] + hi[1] - lo[1] + hi[2] - lo[2]) + 1.0
+        b0x = max(np.int64((px - rad - lo[0]) / bsize), 0)
+        b1x = min(np.int64((px + rad - lo[0]) / bsize), nbx - 1)
+        b0y = max(np.int64((py - rad - lo[1]) / bsize), 0)
+        b1y = min(np.int64((py + rad - lo[1]) / bsize), nby - 1)
+        b0z = max(np.int64((pz - rad - lo[2]) / bsize), 0)
+        b1z = min(np.int64((pz + rad - lo[2]) / bsize), nbz - 1)
+        for bx in range(b0x, b1x + 1):
+            for by in range(b0y, b1y + 1):
+                for bz in range(b0z, b1z + 1):
+                    b = (bx * nby + by) * nbz + bz
+                    bm = bmax[b]
+                    if bm < 0.0:
+                        continue
+                    if bm <= _box_dist(px, py, pz, lo[0] + bx * bsize, lo[1] + by * bsize, lo[2] + bz * bsize,
+                                       bsize):
+                        continue
+                    newb = -1.0
+                    for c in range(bfirst[b], bfirst[b] + bcnt[b]):
+                        if npend[c] == 0:
+                            cmax[c] = -1.0
+                            continue
+                        cm = cmax[c]
+                        if cm > _box_dist(px, py, pz, ccorner[c, 0], ccorner[c, 1], ccorner[c, 2], cell):
+                            cm = -1.0
+                            for jj in range(cstart[c], cstart[c] + npend[c]):
+                                dx = sx[jj] - px
+                                dy = sy[jj] - py
+                                dz = sz[jj] - pz
+                                dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                                if dd < sd[jj]:
+                                    sd[jj] = dd
+                                    slab[jj] = rank[i]
+                                if sd[jj] > cm:
+                                    cm = sd[jj]
+                            cmax[c] = cm
+                        if cm > newb:
+                            newb = cm
+                    if newb != bm:
+                        bmax[b] = newb
+                        _tree_set(tree, size, b, newb)
+    return ne, npt
+
+
+@nb.njit(**JIT)
+def _tree_set(tree, size, b, value):  # pragma: no cover - compiled
+    t = size + b
+    tree[t] = value
+    t >>= 1
+    while t >= 1:
+        v = max(tree[2 * t], tree[2 * t + 1])
+        if tree[t] == v:
+            break
+        tree[t] = v
+        t >>= 1
+
+
+# ------------------------------------------------------------------------------------ events
+
+@nb.njit(**JIT)
+def merge_events(ev_rank, ev_val, ev_pos, ev_len, ev_done, cur, k0, k1, bound, radius):
+    """Write radius[k - k0] = min(bound, max over tiles of their covering radius at k) for k in
+    [k0, k1). ``ev_*`` (T, B): per tile its events (rank, value) in rank order, read position,
+    length, exhausted flag; ``cur[t]`` the tile's current value (inf before its first event).
+
+    Returns (k, t): k == k1 when done, else tile t needs more events (k is where to resume)."""  # pragma: no cover
+    T = cur.shape[0]
+    gmax = -np.inf
+    for t in range(T):
+        if cur[t] > gmax:
+            gmax = cur[t]
+    for k in range(k0, k1):
+        for t in range(T):
+            while True:
+                if ev_pos[t] >= ev_len[t]:
+                    if not ev_done[t]:
+                        return k, t
+                    break
+                if ev_rank[t, ev_pos[t]] > k:
+                    break
+                v = ev_val[t, ev_pos[t]]
+                old = cur[t]
+                cur[t] = v
+                ev_pos[t] += 1
+                if v > gmax:
+                    gmax = v
+                elif old == gmax and v < old:
+                    gmax = -np.inf
+                    for u in range(T):
+                        if cur[u] > gmax:
+                            gmax = cur[u]
+        radius[k - k0] = min(bound, gmax)
+    return k1, -1

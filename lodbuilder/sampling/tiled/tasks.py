@@ -1,0 +1,167 @@
+"""The tasks of a tiled build that run on workers (a local process, a pool worker or a Dask worker).
+
+Each task reads its inputs from the work directory and writes its output there (through a
+temporary renamed into place, so a killed task leaves nothing half-written and a finished one is
+reused when the build is resumed). Workers therefore need the work directory on a file system
+they share with the parent: always true for a local pool or a LocalCluster; a real cluster needs a
+shared file system (NFS, Lustre, a mounted object store) under the archive's directory.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .workdir import REC, gather
+
+#: one row of a tile's ordering stream: input index, key (insertion radius), position, margin
+STREAM = np.dtype([("g", "<f8"), ("key", "<f8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("m", "<f8")])
+HEAD = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "<f8"), ("parent", "<i8")])
+EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
+POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
+MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
+
+
+def _publish(arr: np.ndarray, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    arr.tofile(tmp)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
+    """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
+    from ..fastfps import fastfps
+
+    t0 = time.perf_counter()
+    w = Path(work)
+    dec = np.fromfile(w / "decimated.i8", dtype="<i8")
+    pts = gather(w / "points.f64", "<f8", (3,), dec)
+    k = min(size + 1, dec.shape[0])
+    o = fastfps(pts, size=k, max_memory=max_memory)
+    h = min(size, len(o))
+    head = np.empty(h, HEAD)
+    head["g"] = dec[o.order[:h]]
+    hp = pts[o.order[:h]]
+    head["x"], head["y"], head["z"] = hp[:, 0], hp[:, 1], hp[:, 2]
+    head["r"] = o.radius[:h]
+    head["parent"] = o.parent[:h]
+    r_next = float(o.radius[h]) if len(o) > h else 0.0
+    _publish(head, w / "head.bin")
+    return {"n_decimated": int(dec.shape[0]), "head": h, "r_cut": r_next, "voxel_size": o.voxel_size,
+            "band_radius": o.band_radius, "seconds": time.perf_counter() - t0}
+
+
+def _margins(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, interior: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest face its tile shares with another tile."""
+    m = np.full(pts.shape[0], np.inf)
+    for a in range(3):
+        if interior[0, a]:
+            m = np.minimum(m, pts[:, a] - lo[a])
+        if interior[1, a]:
+            m = np.minimum(m, hi[a] - pts[:, a])
+    return np.maximum(m, 0.0)
+
+
+def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
+               halo: float, max_memory: int | None) -> dict[str, Any]:
+    """FastFPS of tile ``t``: its own points, seeded with the head points in its core and halo.
+
+    Writes ``stream.<t>.bin``: the tile's points that are not head points, in its order (keys
+    non-increasing), each with its key (its insertion radius in the tile, or its exact distance to
+    the head when the tile reaches it from no seed), position and margin to the tile's shared faces.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..fastfps import fastfps
+
+    t0 = time.perf_counter()
+    w = Path(work)
+    out = w / f"stream.{t}.bin"
+    core = np.fromfile(w / f"core.{t}.bin", dtype=REC)
+    head = np.fromfile(w / "head.bin", dtype=HEAD)
+    lo, hi = np.asarray(tile["lo"]), np.asarray(tile["hi"])
+    interior = np.asarray(tile["interior"], bool)
+    cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
+    hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
+    in_ext = np.all((hpts >= lo - halo) & (hpts <= hi + halo), axis=1)
+    head_in_core = np.isin(head["g"], core["g"])
+    pos_in_core = np.searchsorted(core["g"], head["g"][head_in_core])  # core is in input order
+    extra = in_ext & ~head_in_core
+    pts = np.concatenate([cpts, hpts[extra]]) if extra.any() else cpts
+    seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
+    is_seed = np.zeros(pts.shape[0], bool)
+    is_seed[seeds] = True
+    o = fastfps(pts, seeds=seeds if seeds.size else None, voxel_size=voxel_size, band_radius=band_radius,
+                max_memory=max_memory)
+    sel = o.order[(o.order < cpts.shape[0]) & ~is_seed[o.order]]
+    rank_in_tile = np.empty(pts.shape[0], np.int64)
+    rank_in_tile[o.order] = np.arange(len(o))
+    key = o.radius[rank_in_tile[sel]].copy()
+    p = cpts[sel]
+    unreached = ~np.isfinite(key)
+    if unreached.any():  # the first point of a band component no seed reaches
+        key[unreached] = cKDTree(hpts).query(p[unreached])[0] if hpts.shape[0] else 0.0
+    if seeds.size:
+        # FastFPS's radii near its seeds can exceed the Euclidean distance to them (its seeding is
+        # exact on the voxel grid, not per point, when there are many seeds): a point is never
+        # further from the seeds than its Euclidean distance to them
+        near = cKDTree(pts[seeds]).query(p)[0]
+        key = np.minimum(key, near)
+    srt = np.argsort(-key, kind="stable")
+    stream = np.empty(sel.shape[0], STREAM)
+    stream["g"] = core["g"][sel][srt]
+    stream["key"] = key[srt]
+    stream["x"], stream["y"], stream["z"] = p[srt, 0], p[srt, 1], p[srt, 2]
+    stream["m"] = _margins(p[srt], lo, hi, interior)
+    _publish(stream, out)
+    n_seam = int((stream["m"] < stream["key"]).sum())
+    return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
+            "n_seam": n_seam, "band_voxels": int(o.stats.get("band_voxels", 0)),
+            "seconds": time.perf_counter() - t0, "worker_pid": os.getpid()}
+
+
+def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
+    """Exact covering radii of tile ``t``'s core in the final order, from its core and halo.
+
+    Writes ``cover.<t>.ev`` (rank, covering radius of the core by every point of smaller rank,
+    whenever it changes) and ``cover.<t>.pt`` (for each core point in rank order: its rank, the
+    rank of its nearest earlier point and the distance to it). Both are exact while the distance
+    is below the halo width and upper bounds beyond it."""
+    from ..._kernels.tiled import cover_pass
+
+    t0 = time.perf_counter()
+    w = Path(work)
+    core = np.fromfile(w / f"core.{t}.bin", dtype=REC)
+    halo = np.fromfile(w / f"halo.{t}.bin", dtype=REC)
+    ext = np.concatenate([core, halo])
+    is_core = np.zeros(ext.shape[0], bool)
+    is_core[: core.shape[0]] = True
+    ranks = gather(w / "rank.i8", "<i8", (), ext["g"])
+    srt = np.argsort(ranks, kind="stable")
+    ranks = np.ascontiguousarray(ranks[srt])
+    xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])
+    is_core = np.ascontiguousarray(is_core[srt])
+    n = ext.shape[0]
+    ev_rank = np.empty(n + 1, np.int64)
+    ev_val = np.empty(n + 1)
+    pt_rank = np.empty(core.shape[0], np.int64)
+    pt_parent = np.empty(core.shape[0], np.int64)
+    pt_space = np.empty(core.shape[0])
+    # cells of about four point spacings (some 16 points of a surface), at most MAX_CELLS of them
+    ext_size = np.ptp(xyz, axis=0) if n else np.ones(3)
+    cell = max(4.0 * spacing, float(np.prod(ext_size + 8 * spacing) / MAX_CELLS) ** (1 / 3), 1e-300)
+    ne, npt = cover_pass(xyz, ranks, is_core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_space)
+    ev = np.empty(ne, EVENT)
+    ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
+    pt = np.empty(npt, POINT)
+    pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
+    _publish(ev, w / f"cover.{t}.ev")
+    _publish(pt, w / f"cover.{t}.pt")
+    return {"tile": t, "n_ext": int(n), "n_events": int(ne), "seconds": time.perf_counter() - t0,
+            "worker_pid": os.getpid()}

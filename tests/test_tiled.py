@@ -1,0 +1,216 @@
+"""The tiled (out-of-core) build of one scan: guarantees against brute force, on small inputs with
+a tiny tile size forcing many tiles (issue 10.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from naive import nearest_earlier, prefix_covering_radii, prefix_spacings
+from scipy.spatial import cKDTree
+from surfaces import jittered_plane, sphere
+
+import lodbuilder
+from lodbuilder.errors import BuildError
+from lodbuilder.io import Scan, write_points
+
+
+def wavy(n, rng):
+    p = jittered_plane(n, rng)
+    p[:, 2] = 0.08 * np.sin(4 * np.pi * p[:, 0]) * np.cos(4 * np.pi * p[:, 1])
+    return p
+
+
+def _build(tmp_path, pts, tile_points, name="t", **kw):
+    scan = Scan(points=pts, attributes={"i": np.arange(len(pts), dtype=np.int32)}, name=name)
+    out = tmp_path / f"{name}.h5"
+    res = lodbuilder.build_archive(scan, out, _tile_points=tile_points, **kw)
+    (st,) = res.scans
+    assert st.status == "built" and st.method == "tiled"
+    with lodbuilder.open_archive(out) as arc:
+        v = arc.scan(name)
+        data = {"order": v.source_index[:], "radius": v.radius[:], "parent": v.parent[:], "points": v.points(),
+                "i": v.attributes()["i"], "build": v.build, "n_ordered": v.n_ordered}
+    return data, out
+
+
+@pytest.mark.parametrize("surface", ["wavy", "sphere"])
+def test_tiled_guarantees_against_brute_force(tmp_path, surface):
+    rng = np.random.default_rng(7)
+    pts = wavy(2500, rng) if surface == "wavy" else sphere(2500, rng)
+    d, out = _build(tmp_path, pts, tile_points=300, seam_spacing=1)
+    n = len(pts)
+    tiled = d["build"]["tiled"]
+    assert tiled["tiles"] >= 8, tiled
+    # every input point exactly once, its data with it
+    assert np.array_equal(np.sort(d["order"]), np.arange(n)) and d["n_ordered"] == n
+    np.testing.assert_array_equal(d["points"], pts[d["order"]])
+    np.testing.assert_array_equal(d["i"], d["order"])
+    # every prefix: the stored radius is a true Euclidean covering radius, radii never increase
+    cr = prefix_covering_radii(pts, d["order"])
+    r = d["radius"]
+    assert np.all(np.diff(r) <= 0)
+    assert np.all(cr[1:n] <= r[1:n] * (1 + 1e-12)), int(np.argmax(cr[1:n] - r[1:n]))
+    # the radii are tight: exact wherever the covering is below the halo width
+    below = cr[1:n] < tiled["halo"]
+    np.testing.assert_allclose(r[1:n][below], cr[1:n][below], rtol=1e-12)
+    # spacing of every level: at least half its radius (the seam repair at seam_spacing 1)
+    sp = prefix_spacings(pts, d["order"])
+    ratio = sp[2:n] / r[2:n]
+    assert ratio.min() >= 0.5, (ratio.min(), int(np.argmin(ratio)) + 2)
+    assert tiled["spacing_over_radius_min"] == pytest.approx(ratio.min(), rel=1e-9)
+    # parents are earlier points: the nearest earlier one (exact below the halo width)
+    par = d["parent"]
+    assert par[0] == -1 and np.all(par[1:] < np.arange(1, n)) and np.all(par[1:] >= 0)
+    k = np.arange(1, n)
+    dpar = np.linalg.norm(pts[d["order"][k]] - pts[d["order"][par[k]]], axis=1)
+    e = nearest_earlier(pts, d["order"])[1:]
+    near = e < tiled["halo"]
+    np.testing.assert_allclose(dpar[near], e[near], rtol=1e-12)
+    # nested levels: a level by rho is the prefix of the stored order
+    with lodbuilder.open_archive(out) as arc:
+        v = arc.scan("t")
+        for rho in (0.2, 0.05, 0.02):
+            lv = v.level(rho=rho)
+            np.testing.assert_array_equal(lv.source_index, d["order"][: lv.size])
+            assert cr[lv.size] <= rho
+
+
+def test_no_seam_repair_keeps_the_covering_guarantee(tmp_path):
+    rng = np.random.default_rng(3)
+    pts = wavy(2000, rng)
+    d, _ = _build(tmp_path, pts, tile_points=250, seam_spacing=0)
+    cr = prefix_covering_radii(pts, d["order"])
+    n = len(pts)
+    assert np.all(cr[1:n] <= d["radius"][1:n] * (1 + 1e-12))
+    assert d["build"]["tiled"]["seam_alpha"] == 0.0 and d["build"]["tiled"]["seam_deferrals"] == 0
+
+
+def test_tiled_and_in_memory_write_the_same_layout(tmp_path):
+    rng = np.random.default_rng(5)
+    pts = wavy(3000, rng)
+    f = write_points(tmp_path / "w.ply", pts, {"intensity": rng.random(len(pts)).astype(np.float32)})
+    a = lodbuilder.build_archive(f, tmp_path / "a.h5", _tile_points=400, workers=2)
+    b = lodbuilder.build_archive(f, tmp_path / "b.h5")
+    assert a.scans[0].method == "tiled" and b.scans[0].method == "in-memory"
+    from lodbuilder.archive.validate import validate_archive
+
+    assert validate_archive(tmp_path / "a.h5") == []
+    with lodbuilder.open_archive(tmp_path / "a.h5") as x, lodbuilder.open_archive(tmp_path / "b.h5") as y:
+        va, vb = x.scan("w"), y.scan("w")
+        assert (va.n_points, va.encoding, sorted(va.attribute_names)) == (vb.n_points, vb.encoding,
+                                                                            sorted(vb.attribute_names))
+        assert va.provenance["source_sha256"] == vb.provenance["source_sha256"]
+        assert va.format_metadata == vb.format_metadata
+        # same rows, another order
+        ia, ib = np.argsort(va.source_index[:]), np.argsort(vb.source_index[:])
+        np.testing.assert_array_equal(va.points()[ia], vb.points()[ib])
+        np.testing.assert_array_equal(va.attributes()["intensity"][ia], vb.attributes()["intensity"][ib])
+
+
+def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypatch):
+    import lodbuilder.sampling.tiled.driver as driver
+
+    rng = np.random.default_rng(1)
+    keep = tmp_path / "t.h5"
+    lodbuilder.build_archive(Scan(points=rng.random((300, 3)), name="other"), keep)
+    before = keep.read_bytes()
+    real = driver.order_tile
+
+    def broken(work, t, *args):
+        if t == 2:
+            raise MemoryError("no room for this tile")
+        return real(work, t, *args)
+
+    monkeypatch.setattr(driver, "order_tile", broken)
+    with pytest.raises(BuildError) as exc:
+        _build(tmp_path, wavy(2000, rng), tile_points=300)
+    assert str(exc.value).startswith("scan 't': ordering of tile 3 of ")
+    assert str(exc.value).endswith(" failed: MemoryError: no room for this tile")
+    assert keep.read_bytes() == before
+    with lodbuilder.open_archive(keep) as arc:
+        assert arc.scans == ["other"]
+
+
+def test_small_blocks_everywhere_give_the_same_archive(tmp_path, monkeypatch):
+    """Chunked reads, bucketed writes and block merges agree with one block (many of each)."""
+    import lodbuilder.sampling.tiled.workdir as workdir
+    import lodbuilder.sampling.tiled.write as write
+
+    rng = np.random.default_rng(9)
+    pts = wavy(2400, rng)
+    big, _ = _build(tmp_path, pts, tile_points=400, name="big")
+    monkeypatch.setattr(workdir, "BLOCK", 333)
+    monkeypatch.setattr(write, "BLOCK", 250)
+    small, _ = _build(tmp_path, pts, tile_points=400, name="small")
+    for key in ("order", "radius", "parent", "points", "i"):
+        np.testing.assert_array_equal(small[key], big[key])
+
+
+def _tile_of(points, boxes):
+    """Index of the tile box holding each point (the first one, on a shared face)."""
+    out = np.full(len(points), -1)
+    for t, b in enumerate(np.asarray(boxes)):
+        inside = np.all((points >= b[:3]) & (points <= b[3:]), axis=1) & (out < 0)
+        out[inside] = t
+    return out
+
+
+@pytest.mark.parametrize("alpha", [0.25, 1.0])
+def test_seam_spacing_across_tiles(tmp_path, alpha):
+    """Every point merged from a tile keeps alpha / (1 + alpha) of the radius of the level it
+    completes from every earlier point of another tile or of the coarse level (alpha times its
+    merge radius, which is at least radius / (1 + alpha)); without the repair, seams crowd."""
+    rng = np.random.default_rng(4)
+    pts = wavy(10_000, rng)
+    n = len(pts)
+    for a, name in ((alpha, "rep"), (0.0, "none")):
+        d, _ = _build(tmp_path, pts, tile_points=1200, seam_spacing=a, name=name)
+        tiled = d["build"]["tiled"]
+        assert tiled["seam_alpha"] == a
+        p = pts[d["order"]]
+        tile = _tile_of(p, tiled["tile_boxes"])
+        tile[: tiled["head_points"]] = -1  # the coarse level counts as another tile for everyone
+        bound = alpha / (1 + alpha)
+        tree = cKDTree(p)
+        j = np.arange(tiled["head_points"], n - 1)
+        close = tree.query_ball_point(p[j], bound * d["radius"][j + 1] * (1 - 1e-12))
+        crowded = [int(k) for k, near in zip(j, close, strict=True)
+                   if any(i < k and tile[i] != tile[k] for i in near)]
+        if name == "rep":
+            assert crowded == []
+        else:
+            assert crowded, "without the seam repair two tiles crowd somewhere"
+
+
+def test_progress_moves_through_the_phases(tmp_path):
+    rng = np.random.default_rng(2)
+    seen: dict[str, list[tuple[int, int]]] = {}
+
+    def progress(stage, done, total):
+        seen.setdefault(stage, []).append((done, total))
+
+    scan = Scan(points=wavy(3000, rng), name="p")
+    lodbuilder.build_archive(scan, tmp_path / "p.h5", _tile_points=500, progress=progress)
+    assert list(seen) == ["read", "split", "coarse", "tiles", "merge", "permute", "covering", "radii", "write"]
+    for stage, calls in seen.items():
+        done = [d for d, _ in calls]
+        assert done == sorted(done) and done[-1] == calls[-1][1], stage  # counts up to the total
+    assert seen["read"][-1] == (len(scan), len(scan))
+    n_tiles = seen["tiles"][-1][1]
+    assert n_tiles >= 4 and seen["covering"][-1] == (n_tiles, n_tiles)
+
+
+@pytest.mark.dask
+def test_tiles_on_a_dask_local_cluster(tmp_path):
+    """The tiles of one scan run on Dask workers (a LocalCluster: they share this file system)."""
+    rng = np.random.default_rng(6)
+    pts = wavy(4000, rng)
+    f = write_points(tmp_path / "d.ply", pts)
+    res = lodbuilder.build_archive(f, tmp_path / "d.h5", dask_local=2, _tile_points=800)
+    (st,) = res.scans
+    assert st.method == "tiled" and res.executor == "Dask LocalCluster (2 workers)"
+    ref = lodbuilder.build_archive(f, tmp_path / "p.h5", workers=2, _tile_points=800)
+    with lodbuilder.open_archive(tmp_path / "d.h5") as a, lodbuilder.open_archive(tmp_path / "p.h5") as b:
+        np.testing.assert_array_equal(a.scan("d").source_index[:], b.scan("d").source_index[:])
+        np.testing.assert_array_equal(a.scan("d").radius[:], b.scan("d").radius[:])
+    assert ref.scans[0].method == "tiled"

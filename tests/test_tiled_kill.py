@@ -1,0 +1,104 @@
+"""kill -9 of a tiled build while it orders tiles, merges them and appends the scan; then the same
+build again: nothing lost (the archive's other scan, every point), nothing built twice (finished
+tiles and finished parts are reused)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+import lodbuilder
+from lodbuilder.archive.validate import validate_archive
+from lodbuilder.io import Scan, write_points
+
+TILE_POINTS = 12_000
+
+SCRIPT = textwrap.dedent("""
+    import sys
+    import lodbuilder
+    if __name__ == "__main__":
+        lodbuilder.build_archive(sys.argv[1], sys.argv[2], workers=2, _tile_points=int(sys.argv[3]))
+""")
+
+
+def _sheet(n, seed=0):
+    rng = np.random.default_rng(seed)
+    side = int(np.sqrt(n))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2).astype(float)
+    g = (g + rng.uniform(-0.3, 0.3, g.shape)) / side
+    return np.c_[g, 0.08 * np.sin(4 * np.pi * g[:, 0]) * np.cos(4 * np.pi * g[:, 1])]
+
+
+def _work_dir(archive):
+    parts = archive.with_name(f".{archive.name}.parts")
+    return next(parts.glob("*.work"), None) if parts.is_dir() else None
+
+
+def _when(archive, moment):
+    """True once the build has reached ``moment``."""
+    w = _work_dir(archive)
+    parts = archive.with_name(f".{archive.name}.parts")
+    if moment == "append":
+        return parts.is_dir() and any(p.suffix == ".h5" for p in parts.iterdir())
+    if w is None or not (w / "distribute.json").exists() or (w / "merge.json").exists():
+        return False
+    n_tiles = len(json.loads((w / "plan.json").read_text())["tiles"])
+    done = len(list(w.glob("order.*.json")))
+    if moment == "tiling":
+        return 2 <= done < n_tiles
+    return done == n_tiles  # merging
+
+
+@pytest.mark.parametrize("moment", ["tiling", "merge", "append"])
+def test_kill_and_resume(tmp_path, moment):
+    pts = _sheet(160_000)
+    src = write_points(tmp_path / "sheet.npy", pts)
+    archive = tmp_path / "site.h5"
+    lodbuilder.build_archive(Scan(points=np.random.default_rng(1).random((500, 3)), name="other"), archive)
+    script = tmp_path / "run.py"
+    script.write_text(SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(src), str(archive), str(TILE_POINTS)],
+                            start_new_session=True, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None and not _when(archive, moment):
+            time.sleep(0.005)
+        assert proc.poll() is None, f"the build finished before the kill at {moment}"
+        os.kill(proc.pid, signal.SIGKILL)  # the build alone: its workers die with it (finding 8)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    time.sleep(0.5)  # the workers' parent-death signals
+    w = _work_dir(archive)
+    ordered = len(list(w.glob("order.*.json"))) if w is not None else 0
+    with lodbuilder.open_archive(archive) as arc:  # nothing lost: the previous archive is whole
+        before = set(arc.scans)
+        assert "other" in before
+    res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=TILE_POINTS)
+    (st,) = res.scans
+    assert st.status in {"built", "recovered", "skipped"}
+    if moment == "append":
+        assert st.status in {"recovered", "skipped"}  # the written part is reused, never rebuilt
+    else:
+        assert st.status == "built"
+    assert validate_archive(archive) == []
+    with lodbuilder.open_archive(archive) as arc:
+        assert arc.scans == ["other", "sheet"]
+        v = arc.scan("sheet")
+        assert np.array_equal(np.sort(v.source_index[:]), np.arange(len(pts)))
+        np.testing.assert_array_equal(v.points(), pts[v.source_index[:]])
+        if st.status == "built":
+            resumed = v.build["tiled"]["resumed"]
+            assert resumed["tiles_ordered_before"] >= ordered  # finished tiles are not ordered again
+            if moment == "merge":
+                assert resumed["tiles_ordered_before"] == v.build["tiled"]["tiles"]
+    assert not archive.with_name(f".{archive.name}.parts").exists()

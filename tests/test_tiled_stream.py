@@ -1,0 +1,68 @@
+"""Streaming readers (lodbuilder.io.stream): chunk by chunk, exactly what read_scan gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lodbuilder.errors import FormatError
+from lodbuilder.io import read_scan, write_points
+from lodbuilder.io.stream import open_stream, peek_stream, streams
+
+
+def _same(path, chunk=777, **kw):
+    s = open_stream(path, **kw)
+    ref = read_scan(path, **kw)
+    chunks = list(s.chunks(chunk))
+    assert [c.start for c in chunks] == list(range(0, len(ref), chunk))
+    np.testing.assert_array_equal(np.concatenate([c.points for c in chunks]), ref.points)
+    assert list(s.fields) == list(ref.attributes)
+    for k, v in ref.attributes.items():
+        a = np.concatenate([c.attributes[k] for c in chunks])
+        assert a.dtype == v.dtype == s.fields[k][0] and a.shape[1:] == s.fields[k][1]
+        np.testing.assert_array_equal(a, v)
+    assert s.metadata == ref.metadata and s.n_points == len(ref) and s.reader == ref.reader
+    return s
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name,streaming", [
+    ("autzen_trim.laz", True), ("simple.las", True), ("igea.ply", True), ("frag_115.ply", True),
+    ("bun000.ply", False), ("bunnyDouble.e57", False),
+])
+def test_real_files_stream_like_read_scan(shared_data, name, streaming):
+    s = _same(shared_data / name, chunk=30_011)
+    assert s.streams is streaming and streams(shared_data / name) is streaming
+    assert (peek_stream(shared_data / name) is not None) is streaming
+
+
+def test_npy_and_ply_layouts(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = rng.random((2000, 3))
+    attrs = {"intensity": rng.random(2000).astype(np.float32), "cls": rng.integers(0, 9, 2000).astype(np.uint8)}
+    for f in (write_points(tmp_path / "plain.npy", pts), write_points(tmp_path / "rec.npy", pts, attrs),
+              write_points(tmp_path / "b.ply", pts, attrs)):
+        assert _same(f).streams
+    big = tmp_path / "big.ply"  # big-endian binary PLY
+    from plyfile import PlyData, PlyElement
+
+    data = np.empty(2000, dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("q", ">i2")])
+    data["x"], data["y"], data["z"], data["q"] = pts[:, 0], pts[:, 1], pts[:, 2], np.arange(2000)
+    PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order=">").write(str(big))
+    assert _same(big).streams
+
+
+def test_truncated_and_bad_values(tmp_path):
+    rng = np.random.default_rng(1)
+    f = write_points(tmp_path / "t.ply", rng.random((1000, 3)))
+    raw = f.read_bytes()
+    f.write_bytes(raw[:-100])
+    with pytest.raises(FormatError, match="PLY header declares 1000 vertices"):
+        open_stream(f)
+    pts = rng.random((1000, 3))
+    pts[700, 1] = np.nan
+    g = write_points(tmp_path / "nan.npy", pts)
+    with pytest.raises(FormatError) as exc:
+        list(open_stream(g).chunks(256))
+    assert str(exc.value) == (f"{g}: 1 point(s) in rows 512..767 have NaN or inf coordinates (first at index "
+                              "700); remove them from the file before building")
