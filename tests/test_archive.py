@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import inspect
 
 import h5py
 import numpy as np
@@ -211,6 +212,50 @@ def test_unknown_scan_and_ambiguous_scan(small, tmp_path):
     with lodbuilder.open_archive(small[2]) as arc:
         with pytest.raises(ScanNotFoundError, match="has no scan 'nope'; it holds wavy"):
             arc.scan("nope")
+
+
+def _public_members(cls):
+    """Every public property and method of ``cls``, collected (so a new one is checked too)."""
+    members = {n: getattr(cls, n) for n in dir(cls) if not n.startswith("_")}
+    return sorted(n for n, m in members.items() if isinstance(m, property) or callable(m))
+
+
+def _use(obj, name):
+    """Read the property ``name`` of ``obj``, or call the method with placeholder arguments (the
+    closed check comes before the arguments are looked at)."""
+    member = getattr(type(obj), name)
+    if isinstance(member, property):
+        return getattr(obj, name)
+    sig = inspect.signature(inspect.unwrap(member))
+    required = [
+        p
+        for p in list(sig.parameters.values())[1:]
+        if p.default is p.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+    ]
+    return getattr(obj, name)(*[None] * len(required))
+
+
+def test_every_public_member_of_a_closed_archive_is_an_archive_error(small):
+    """Before: on a closed archive ScanView.build/.provenance/.attribute_names... returned {} or
+    [], .points()/.radius raised 'is damaged', Archive.scan() said 'the index is damaged'."""
+    from lodbuilder.archive.reader import Archive, ScanView
+
+    path = small[2]
+    with lodbuilder.open_archive(path) as arc:
+        v = arc.scan()
+    views = _public_members(ScanView)
+    archives = [n for n in _public_members(Archive) if n != "close"]
+    assert {"build", "points", "level", "refine_box", "crs", "attribute_names"} <= set(views)
+    assert {"scan", "scans", "index", "file"} <= set(archives)
+    for obj, names in ((v, views), (arc, archives)):
+        for name in names:
+            with pytest.raises(ArchiveError) as info:
+                _use(obj, name)
+            assert str(info.value) == (
+                f"archive {path} is closed; read it inside `with open_archive(...)`"
+            ), name
+    arc.close()  # closing twice is fine
+    assert repr(arc) == f"<Archive {path} scans=['wavy']>"
 
 
 def _flip_byte_in_dataset(path, dataset):

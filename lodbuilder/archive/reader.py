@@ -120,8 +120,13 @@ def open_h5(where: Where, size: int | None = None) -> tuple[Any, Any]:
     return f, rf
 
 
+def _closed(path: Any) -> ArchiveError:
+    return ArchiveError(f"archive {path} is closed; read it inside `with open_archive(...)`")
+
+
 @safety.guarded(lambda self: self.path)
 @strict_methods
+@safety.open_only(allowed=("close",))
 class Archive:
     """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``.
 
@@ -143,6 +148,10 @@ class Archive:
             raise
         self.schema_version = int(self.attrs[L.A_SCHEMA_VERSION])
         self.lodbuilder_version = str(self.attrs.get(L.A_VERSION, ""))
+
+    def _check_open(self) -> None:
+        if not self._file.id.valid:
+            raise _closed(self.path)
 
     @property
     def file(self) -> Any:
@@ -297,7 +306,7 @@ class Archive:
         self.close()
 
     def __repr__(self) -> str:
-        return f"<Archive {self.path} scans={self.scans}>"
+        return f"<Archive {self.path} scans={sorted(self._rows)}>"
 
 
 @strict_keywords
@@ -311,6 +320,7 @@ def open_archive(
 
 @safety.guarded(lambda self: self.archive.path)
 @strict_methods
+@safety.open_only()
 class ScanView:
     """Read access to one scan of an archive. Arrays are in the stored (farthest point) order."""
 
@@ -335,6 +345,11 @@ class ScanView:
 
     def __repr__(self) -> str:
         return f"<ScanView {self.name!r} n_points={self.n_points}>"
+
+    def _check_open(self) -> None:
+        """Every public method and property calls this first (see :func:`safety.open_only`)."""
+        if not self._g.id.valid:
+            raise _closed(self.archive.path)
 
     # -- raw reads ---------------------------------------------------------------------------
     def _read(self, ds: Any, sel: Any = slice(None)) -> np.ndarray:
@@ -614,16 +629,10 @@ class ScanView:
         return {key: cell_average(rep, k, arr) for key, arr in attrs.items()}, counts
 
     # -- CRS (helper io; see lodbuilder.io.crs) -------------------------------------------------
-    def _check_open(self) -> None:
-        if not self._g.id.valid:  # (h5py reads a closed file's attributes as empty, not an error)
-            raise ArchiveError(
-                f"archive {self.archive.path} is closed; read it inside `with open_archive(...)`"
-            )
 
     @property
     def crs(self) -> str | None:
         """The scan's coordinate reference system as WKT text, or None when unknown."""
-        self._check_open()
         wkt = self.format_metadata.get("crs_wkt")
         return str(wkt) if wkt else None
 
@@ -632,7 +641,6 @@ class ScanView:
         """Linear unit name of the CRS (``"metre"``, ``"US survey foot"``, ``"foot"``...): the
         one pyproj gave at build time, else pyproj's answer now; None when unknown (no CRS, or
         no pyproj): never guessed."""
-        self._check_open()
         meta = self.format_metadata
         if meta.get("crs_units"):
             return str(meta["crs_units"])

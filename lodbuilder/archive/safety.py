@@ -278,6 +278,35 @@ def guarded(path_of: Callable[[Any], Any]) -> Callable[[type], type]:
     return deco
 
 
+def open_only(*, allowed: tuple[str, ...] = ()) -> Callable[[type], type]:
+    """Class decorator: every public method and property (but those ``allowed``) first calls
+    ``self._check_open()``, which raises ArchiveError once the archive is closed (h5py reads a
+    closed file's attributes as empty and its datasets as missing, not as an error). Put it below
+    :func:`~lodbuilder._validate.strict_methods`, so that an unknown keyword is reported first."""
+
+    def wrap(fn: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(fn)
+        def inner(self: Any, *args: Any, **kwargs: Any) -> Any:
+            self._check_open()
+            return fn(self, *args, **kwargs)
+
+        return inner
+
+    def deco(cls: type) -> type:
+        for name, member in list(vars(cls).items()):
+            if name.startswith("_") or name in allowed:
+                continue
+            if isinstance(member, property) and member.fget is not None:
+                setattr(
+                    cls, name, property(wrap(member.fget), member.fset, member.fdel, member.__doc__)
+                )
+            elif inspect.isfunction(member):
+                setattr(cls, name, wrap(member))
+        return cls
+
+    return deco
+
+
 def _path_or(path_of: Callable[[Any], Any], obj: Any) -> Any:
     try:
         return path_of(obj)
