@@ -181,6 +181,19 @@ def test_importance_and_extra_ordering(small, tmp_path):
         np.testing.assert_array_equal(lev.source_index, extra.order[:50])
         np.testing.assert_array_equal(lev.points, scan.points[extra.order[:50]])
         assert v.ordering_parameters("other")["kind"] == "test"
+        pos = v.ordering_positions("other")  # the public pair cli floor_level uses
+        np.testing.assert_array_equal(v.source_index[pos], extra.order)
+        same = v.positions_level(pos[:50], rho=lev.rho, ordering="other")
+        np.testing.assert_array_equal(same.points, lev.points)
+        np.testing.assert_array_equal(same.rank, lev.rank)
+        assert (same.rho, same.ordering, same.size) == (lev.rho, "other", 50)
+        with pytest.raises(InputError) as info:
+            v.positions_level([0, len(scan)], rho=1.0)
+        assert str(info.value) == (
+            f"positions must be a list of stored positions 0..{len(scan) - 1} of scan 'wavy'"
+        )
+        with pytest.raises(InputError, match="has no ordering 'nope'"):
+            v.ordering_positions("nope")
         with pytest.raises(InputError, match="has no ordering 'nope'"):
             v.level(size=5, ordering="nope")
         with pytest.raises(InputError, match=r"importance map 'x' must hold one number per point"):

@@ -458,6 +458,11 @@ class ScanView:
     def ordering_parameters(self, name: str) -> dict[str, Any]:
         return checks.json_attr(self._meta, self._ordering_group(name).attrs, L.M_PARAMETERS)
 
+    def ordering_positions(self, name: str) -> np.ndarray:
+        """(n,) int64 stored positions of the extra ordering ``name``, in that ordering's order
+        (its prefix of length k is the ordering's level of size k)."""
+        return self._read(self._ordering_group(name)[L.D_ORDER])
+
     def _ordering_group(self, name: str) -> Any:
         grp = self._g[L.G_ORDERINGS] if L.G_ORDERINGS in self._g else {}
         if name not in grp:
@@ -539,6 +544,20 @@ class ScanView:
         pos = self._read(og[L.D_ORDER], slice(0, k))
         bound = covering_bound(k, kmax, lambda i: self._read(rad_ds, slice(i, i + 1))[0])
         return self._gather(pos, self._read(rad_ds, slice(0, k)), bound, attributes, ordering=name)
+
+    def positions_level(
+        self, positions: Any, *, rho: float, attributes: Any = True, ordering: str | None = None
+    ) -> Level:
+        """The level of the stored ``positions`` (any order, e.g. from :meth:`ordering_positions`),
+        reading the rows up to the largest; ``rho`` is the covering bound the caller's choice of
+        positions guarantees, ``ordering`` the name the level reports."""
+        pos = np.asarray(positions, dtype=np.int64)
+        if pos.ndim != 1 or (pos.size and (pos.min() < 0 or pos.max() >= self.n_points)):
+            raise InputError(
+                f"positions must be a list of stored positions 0..{self.n_points - 1} of scan "
+                f"{self.name!r}"
+            )
+        return self._gather(pos, None, rho, attributes, ordering=ordering)
 
     def _gather(
         self,

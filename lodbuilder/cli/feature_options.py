@@ -101,22 +101,13 @@ def add_slice_options(p: argparse.ArgumentParser) -> None:
 def floor_level(view: Any, rho: float, size: int, ordering: str | None = None) -> Any:
     """The level of a stored scan for a density floor chosen at query time: the uniform prefix
     covering within ``rho`` united with the ``ordering``'s prefix, exactly ``size`` points."""
-    import numpy as np
-
-    from ..archive import layout as L
     from ..archive.levels import covering_bound
     from ..sampling.adaptive import floor_positions
 
     name = ordering or "weighted"
-    og = view._ordering_group(name)
-    w_pos = view._read(og[L.D_ORDER])
-    pos = floor_positions(view.radius, view.n_ordered, w_pos, rho, size)
-    n_u = view.size_for_rho(rho)
-    bound = covering_bound(n_u, view.n_ordered, view.radius.__getitem__)
-    level = view._gather(
-        np.asarray(pos, dtype=np.int64), None, bound, True, ordering=f"{name}+floor"
-    )
-    return level
+    pos = floor_positions(view.radius, view.n_ordered, view.ordering_positions(name), rho, size)
+    bound = covering_bound(view.size_for_rho(rho), view.n_ordered, view.radius.__getitem__)
+    return view.positions_level(pos, rho=bound, ordering=f"{name}+floor")
 
 
 def bound_note(view: Any, level: Any) -> str:
