@@ -21,7 +21,6 @@ import json
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,14 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, cwd=Path(__file__).resolve().parent)
-        return out.stdout.strip() or "?"
-    except OSError:
-        return "?"
+from benchdoc import finish, measured, stamp, write_section  # noqa: E402
 
 
 def synthetic_record(n: int, name: str, seed: int):
@@ -98,17 +90,14 @@ def main(argv: list[str] | None = None) -> int:
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_append_"))
     work.mkdir(parents=True, exist_ok=True)
-    result: dict = {
-        "benchmark": "bench_append",
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "argv": " ".join(sys.argv[1:] if argv is None else argv),
-        "commit": _commit(),
-        "lodbuilder": str(Path(lodbuilder.__file__).parent),
-        "loadavg": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
-        "inputs": f"synthetic wavy scans: {args.points} points each stored, {args.new_points} "
+    result = stamp(
+        "bench_append",
+        argv,
+        inputs=f"synthetic wavy scans: {args.points} points each stored, {args.new_points} "
         "points added (random-permutation orderings)",
-        "cases": [],
-    }
+        synthetic=True,
+    )
+    result.update(lodbuilder=str(Path(lodbuilder.__file__).parent), cases=[])
     new = synthetic_record(args.new_points, "added", 10**6)
     bases, builds = {}, {}
     times: dict[int, list[float]] = {s: [] for s in args.scans}
@@ -161,9 +150,8 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "add_time_ratio_target": 1.3,
     }
+    finish(result)
     if args.markdown:
-        from benchdoc import write_section
-
         write_section(Path(args.markdown), "append", markdown(result))
     print(json.dumps(result, indent=2))
     return 0
@@ -173,8 +161,7 @@ def markdown(result: dict) -> str:
     lines = [
         "## Adding a scan to an archive (tools/bench_append.py)",
         "",
-        f"Measured {result['date']} by `python tools/bench_append.py {result['argv']}` (commit "
-        f"{result['commit']}); load average {result['loadavg']}. Inputs: {result['inputs']}. Each "
+        f"{measured(result)}. Inputs: {result['inputs']}. Each "
         "repeat adds the scan to a fresh copy of the archive (hard links of its files); the cases "
         "run interleaved.",
         "",

@@ -20,14 +20,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchdoc import write_section
+from benchdoc import finish, machine, measured, stamp, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = os.environ.get("LODBUILDER_CHROMIUM", "/usr/bin/chromium")
@@ -36,16 +34,6 @@ CHROMIUM_ARGS = [
     "--use-angle=swiftshader", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
 ]
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-            capture_output=True, text=True, check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "?"
 
 
 def render(path: Path, ready_js: str | None, wait_s: float = 0.0) -> dict:
@@ -154,8 +142,7 @@ def markdown(r: dict) -> str:
     lines = [
         "## Export: COPC and the standalone web page (tools/bench_export.py)",
         "",
-        f"Measured {r['date']} by `python tools/bench_export.py {r['argv']}` (commit {r['commit']}); "
-        f"{r['machine']['cpu_count']} cores, load average at start {r['load_average']}. Input: "
+        f"{measured(r)}; {r['machine']['cpu_count']} cores. Input: "
         f"synthetic wavy sheet with RGB, {r['n_points']:,} points (archive built in "
         f"{r['build_s']} s).",
         "",
@@ -204,19 +191,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.peer_path:
         sys.path.append(args.peer_path)
 
-    import numpy as np
 
     import lodbuilder
     from lodbuilder.archive.demo_surface import demo_scan
 
-    result: dict = {
-        "benchmark": "export: COPC and web page",
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "argv": " ".join(sys.argv[1:] if argv is None else argv),
-        "commit": _commit(),
-        "load_average": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
-        "input": "synthetic wavy sheet with RGB (lodbuilder.archive.demo_surface.demo_scan)",
-    }
+    result = stamp(
+        "bench_export",
+        argv,
+        inputs=f"archive {args.archive}" if args.archive else "synthetic wavy sheet with RGB "
+        f"(lodbuilder.archive.demo_surface.demo_scan), {args.points:,} points",
+        synthetic=not args.archive,
+    )
     with tempfile.TemporaryDirectory(prefix="bench-export-") as tmp:
         arc = Path(args.archive) if args.archive else Path(tmp) / "bench.h5"
         t0 = time.perf_counter()
@@ -233,14 +218,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{k:,}": bench_pyvista(view, Path(tmp) / f"pv{k}.html", k)
                     for k in sorted({min(100_000, view.n_ordered), view.n_ordered})
                 }
-    result["load_average_end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    result["machine"] = {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "numpy": np.__version__,
-        "lodbuilder": lodbuilder.__version__,
-    }
+    finish(result)
+    result["machine"] = machine()
     json.dump(result, sys.stdout, indent=2)
     sys.stdout.write("\n")
     if args.markdown:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import shutil
 import statistics
 import subprocess
@@ -40,20 +39,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import write_section
+from benchdoc import finish, measured, stamp, write_section
 from scipy.spatial import cKDTree
 
 HERE = Path(__file__).resolve().parent
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
-        )
-        return out.stdout.strip() or "?"
-    except OSError:
-        return "?"
 
 
 # --- punching holes --------------------------------------------------------------------------
@@ -370,9 +359,7 @@ def markdown(result: dict) -> str:
     lines = [
         "## Gap filling (tools/bench_fill.py)",
         "",
-        f"Measured {result['date']} by `python tools/bench_fill.py {result['argv']}` (commit "
-        f"{result['commit']}); load average at start {result['loadavg']} (2 shared cores: times "
-        "carry noise).",
+        f"{measured(result)} (2 shared cores: times carry noise).",
         "",
     ]
     for real in result.get("real", []):
@@ -471,14 +458,12 @@ def main(argv: list[str] | None = None) -> int:
         p.error("give one --rho, or one per --scan")
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_fill_"))
     work.mkdir(parents=True, exist_ok=True)
-    result: dict = {
-        "benchmark": "bench_fill",
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "argv": " ".join(sys.argv[1:] if argv is None else argv),
-        "commit": _commit(),
-        "loadavg": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
-        "cpu_count": os.cpu_count(),
-    }
+    inputs = []
+    if args.only in (None, "real"):
+        inputs.append(f"real scans {', '.join(Path(s).name for s in args.scan)}, holes punched")
+    if args.only in (None, "synthetic"):
+        inputs.append(f"a synthetic wavy sheet of {args.n:,} points with round holes")
+    result = stamp("bench_fill", argv, inputs="; ".join(inputs), synthetic=args.only != "real")
     try:
         if args.only in (None, "real"):
             rhos = args.rho * len(args.scan) if len(args.rho) == 1 else args.rho
@@ -494,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if not args.workdir:
             shutil.rmtree(work, ignore_errors=True)
-    result["loadavg_end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    finish(result)
     if args.markdown:
         write_section(Path(args.markdown), "fill", markdown(result))
     print(json.dumps(result, indent=2))

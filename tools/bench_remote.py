@@ -39,14 +39,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 sys.path.insert(0, str(HERE))
 
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, cwd=HERE)
-        return out.stdout.strip() or "?"
-    except OSError:
-        return "?"
+from benchdoc import finish, measured, stamp, write_section  # noqa: E402
 
 
 def level_bytes(path: Path, name: str, k: int) -> float:
@@ -155,10 +148,9 @@ def markdown(result: dict) -> str:
     lines = [
         "## Levels over HTTP and S3 (tools/bench_remote.py)",
         "",
-        f"Measured {result['date']} by `python tools/bench_remote.py {result['argv']}` (commit "
-        f"{result['commit']}), servers on 127.0.0.1 (a Range-honouring HTTP server with "
-        f"{result['latency_s'] * 1e3:.0f} ms added per request, moto's S3 server); load average "
-        f"{result['loadavg']}. Archives are synthetic ({result['inputs']}). Fetched bytes: as "
+        f"{measured(result)}. Servers on 127.0.0.1 (a Range-honouring HTTP server with "
+        f"{result['latency_s'] * 1e3:.0f} ms added per request, moto's S3 server). Archives are "
+        f"synthetic ({result['inputs']}). Fetched bytes: as "
         "sent by the HTTP server; for S3 the sum of the requested ranges (moto records requests, "
         "not answers). The level's bytes: the stored chunk bytes of its rows.",
         "",
@@ -199,8 +191,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.from_json:
         saved = json.loads(Path(args.from_json).read_text())
         if args.markdown:
-            from benchdoc import write_section
-
             write_section(Path(args.markdown), "remote", markdown(saved))
         print(json.dumps(saved.get("targets", {}), indent=2))
         return 0
@@ -211,17 +201,14 @@ def main(argv: list[str] | None = None) -> int:
     from lodbuilder.archive.writer import update_archive, write_record
 
     work = Path(tempfile.mkdtemp(prefix="bench_remote_"))
-    result: dict = {
-        "benchmark": "bench_remote",
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "argv": " ".join(sys.argv[1:] if argv is None else argv),
-        "commit": _commit(),
-        "loadavg": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
-        "latency_s": args.latency,
-        "inputs": f"synthetic wavy scans, {args.n:,} points in one file; "
+    result = stamp(
+        "bench_remote",
+        argv,
+        inputs=f"synthetic wavy scans, {args.n:,} points in one file; "
         f"{', '.join(f'{n:,}' for n in args.parts)} points in an archive with parts",
-        "cases": [],
-    }
+        synthetic=True,
+    )
+    result.update(latency_s=args.latency, cases=[])
     moto = None
     try:
         one = work / "one.h5"
@@ -308,9 +295,8 @@ def main(argv: list[str] | None = None) -> int:
         "cli_remote_s": result["cli"]["remote_s"],
         "cli_target_s": result["cli"]["target_s"],
     }
+    finish(result)
     if args.markdown:
-        from benchdoc import write_section
-
         write_section(Path(args.markdown), "remote", markdown(result))
     print(json.dumps(result, indent=2))
     return 0

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
 import statistics
 import subprocess
@@ -28,42 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import write_section
-
-
-def machine() -> dict:
-    import h5py
-
-    info = {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "numpy": np.__version__,
-        "h5py": h5py.version.version,
-        "hdf5": h5py.version.hdf5_version,
-    }
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    info["cpu"] = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return info
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).resolve().parent,
-        )
-        return out.stdout.strip() or "?"
-    except OSError:
-        return "?"
+from benchdoc import finish, machine, measured, stamp, write_section
 
 
 def synthetic_record(n: int, seed: int, real: bool):
@@ -179,10 +142,9 @@ def markdown(result: dict) -> str:
     lines = [
         "## Level queries from an archive (tools/bench_slice.py)",
         "",
-        f"Measured {result.get('date', '?')} by `python tools/bench_slice.py {result.get('argv', '')}`"
-        f" (commit {result.get('commit', '?')}). Machine: {m.get('cpu', '?')}, {m['cpu_count']} cores, "
-        f"Python {m['python']}, h5py {m['h5py']} / HDF5 {m['hdf5']}; load average at start "
-        f"{result.get('loadavg', '?')} (shared machine: medians carry noise, minima are the figures).",
+        f"{measured(result)} (shared machine: medians carry noise, minima are the figures). "
+        f"Machine: {m.get('cpu', '?')}, {m['cpu_count']} cores, Python {m['python']}, "
+        f"h5py {m['h5py']} / HDF5 {m['hdf5']}.",
         "",
         "Levels are read with their 7 attributes (rgb, normals, intensity), source index and radii. "
         "In-process = `ScanView.level(size=k)` on an open archive; CLI = `lodbuilder slice --size k -o OUT` "
@@ -252,15 +214,18 @@ def main(argv: list[str] | None = None) -> int:
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench_slice_"))
     work.mkdir(parents=True, exist_ok=True)
-    result: dict = {
-        "benchmark": "bench_slice",
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "argv": " ".join(sys.argv[1:] if argv is None else argv),
-        "commit": _commit(),
-        "loadavg": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
-        "machine": machine(),
-        "archives": [],
-    }
+    import h5py
+
+    result = stamp(
+        "bench_slice",
+        argv,
+        inputs="synthetic wavy surfaces of " + ", ".join(f"{n:,}" for n in args.n) + " points"
+        + (" (real orderings)" if args.real_ordering else " (random-permutation orderings)"),
+        synthetic=True,
+    )
+    result.update(
+        machine=machine(h5py=h5py.version.version, hdf5=h5py.version.hdf5_version), archives=[]
+    )
     try:
         for n in args.n:
             rec, how = synthetic_record(n, args.seed, args.real_ordering)
@@ -319,6 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         targets[f"size_ratio_{a['n_points']}"] = a["size_ratio"]
     targets["size_ratio_target"] = 1.3
     result["targets"] = targets
+    finish(result)
     if args.markdown:
         write_section(Path(args.markdown), "slice", markdown(result))
     print(json.dumps(result, indent=2))

@@ -19,14 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchdoc import write_section
+from benchdoc import finish, machine, measured, stamp, write_section
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
@@ -71,8 +70,8 @@ def markdown(out: dict) -> str:
         f"{gl['renderer']} ({gl['vendor']}), i.e. "
         + ("software rendering on the CPU." if "llvmpipe" in gl["renderer"] else "a GPU.")
         + f" Machine: {out['machine']['cpu_count']} cores, {out['machine']['platform']}, "
-        f"pyvista {out['machine']['pyvista']}, VTK {out['machine']['vtk']}; load average at start "
-        f"{out['load_average']}. Medians of {len(out['moves'])} moves (min-max).",
+        f"pyvista {out['machine']['pyvista']}, VTK {out['machine']['vtk']}. {measured(out)}. "
+        f"Medians of {len(out['moves'])} moves (min-max).",
         "",
         "| layout | update in place (ms) | slider move: update + render (ms) | render both panels (ms) |",
         "|---|---:|---:|---:|",
@@ -105,6 +104,7 @@ def main() -> int:
         "--markdown", help="update the viewer section of this file (docs/benchmarks.md)"
     )
     args = ap.parse_args()
+    out = stamp("bench_viewer", None, inputs=f"real scan {Path(args.input).name}", synthetic=False)
 
     import numpy as np
     import pyvista as pv
@@ -127,14 +127,12 @@ def main() -> int:
     rng = np.random.default_rng(0)
     sizes = [int(s) for s in np.clip(k + rng.integers(-k // 20, k // 20, args.moves), 1, n)]
 
-    out = {
-        "benchmark": "viewer slider move",
+    out |= {
         "input": Path(args.input).name,
         "n_points": n,
         "level": k,
         "moves": sizes,
         "window": list(args.window),
-        "load_average": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
         "archive_build_s": round(build_s, 2),
         "load_view_data_s": round(load_s, 3),
         "results": {},
@@ -157,15 +155,8 @@ def main() -> int:
             info = pv.GPUInfo()
             out["gl"] = {"vendor": info.vendor, "renderer": info.renderer, "version": info.version}
         vw.close()
-    out["machine"] = {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "numpy": np.__version__,
-        "pyvista": pv.__version__,
-        "vtk": vtk.vtkVersion.GetVTKVersion(),
-        "lodbuilder": lodbuilder.__version__,
-    }
+    finish(out)
+    out["machine"] = machine(pyvista=pv.__version__, vtk=vtk.vtkVersion.GetVTKVersion())
     json.dump(out, sys.stdout, indent=2)
     sys.stdout.write("\n")
     if args.markdown:
