@@ -379,3 +379,32 @@ def test_reading_a_level_imports_nothing_heavy(small):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["1250", "[]"]
+
+
+def test_output_directory_checks_are_one_check(tmp_path, monkeypatch):
+    """archive.files.check_writable_dir and io._files.check_output_path share
+    io._files.output_dir_problem; each keeps its subject and exception class."""
+    from lodbuilder.archive.files import check_writable_dir
+    from lodbuilder.io._files import check_output_path
+
+    missing = tmp_path / "no" / "a.h5"
+    with pytest.raises(ArchiveError) as info:
+        check_writable_dir(missing, "archive")
+    assert str(info.value) == f"archive directory {tmp_path / 'no'} does not exist; create it first"
+    with pytest.raises(ScanFileError) as info2:
+        check_output_path(missing)
+    assert str(info2.value) == (
+        f"{missing}: output directory {tmp_path / 'no'} does not exist; create it first"
+    )
+    monkeypatch.setattr("lodbuilder.io._files.os.access", lambda *a, **k: False)
+    with pytest.raises(ArchiveError) as info:
+        check_writable_dir(tmp_path / "a.h5", "part")
+    assert str(info.value) == (
+        f"part directory {tmp_path} is not writable; choose another output path"
+    )
+    with pytest.raises(ScanFileError) as info2:
+        check_output_path(tmp_path / "a.ply")
+    assert str(info2.value) == (
+        f"{tmp_path / 'a.ply'}: output directory {tmp_path} is not writable; choose another "
+        "output path"
+    )

@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..errors import ArchiveError
+from ..io._files import output_dir_problem
 from .index import is_url, url_text
 
 log = logging.getLogger(__name__)
@@ -113,11 +114,9 @@ def check_writable_dir(path: str | os.PathLike[str], what: str = "output") -> No
             f"{what} {url_text(path)} is a URL; archives are read-only over HTTP/S3: build into "
             "a local file and upload it (the file and its .scans directory)"
         )
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise ArchiveError(f"{what} directory {parent} does not exist; create it first")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ArchiveError(f"{what} directory {parent} is not writable; choose another output path")
+    parent, problem = output_dir_problem(path)
+    if problem:
+        raise ArchiveError(f"{what} directory {parent} {problem}")
 
 
 def fsync_file(path: Path) -> None:

@@ -50,14 +50,25 @@ def _kind(mode: int) -> str:
     return "a special file"
 
 
-def check_output_path(path: str | os.PathLike[str]) -> Path:
-    """Return ``path`` as a Path if its directory exists and is writable, else raise ScanFileError."""
+def output_dir_problem(path: str | os.PathLike[str]) -> tuple[Path, str | None]:
+    """``(directory, problem)`` of an output ``path``: what is wrong with the directory a new file
+    would go in ("does not exist; create it first", "is not writable; ...") or None. The one
+    check of output directories; the callers add their own subject and exception class."""
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
-        raise ScanFileError(f"{p}: output directory {parent} does not exist; create it first")
+        return parent, "does not exist; create it first"
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise ScanFileError(f"{p}: output directory {parent} is not writable; choose another output path")
+        return parent, "is not writable; choose another output path"
+    return parent, None
+
+
+def check_output_path(path: str | os.PathLike[str]) -> Path:
+    """Return ``path`` as a Path if its directory exists and is writable, else raise ScanFileError."""
+    p = Path(path)
+    parent, problem = output_dir_problem(p)
+    if problem:
+        raise ScanFileError(f"{p}: output directory {parent} {problem}")
     if p.is_dir():
         raise ScanFileError(f"{p}: is a directory; give an output file name")
     return p
