@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -226,6 +227,44 @@ def test_help_everywhere(capsys):
             main([cmd, "--help"])
         assert e.value.code == 0
         assert "usage: lodbuilder " + cmd in capsys.readouterr().out
+
+
+def _subparsers():
+    import argparse
+
+    from lodbuilder.cli.main import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices
+
+
+@pytest.mark.parametrize("cmd", sorted(_subparsers()))
+def test_help_lists_every_option(cmd, capsys):
+    """Every option a command accepts (collected from its parser, so the shared ones from
+    cli/level_options.py too) is named in its --help, and so is ARCHIVE where it takes one."""
+    parser = _subparsers()[cmd]
+    with pytest.raises(SystemExit):
+        main([cmd, "--help"])
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: lodbuilder {cmd}")
+    for action in parser._actions:
+        for opt in action.option_strings:
+            assert re.search(rf"(^|[\s\[(|,]){re.escape(opt)}\b", out), (cmd, opt)
+        if not action.option_strings:
+            assert (action.metavar or action.dest) in out, (cmd, action.dest)
+
+
+def test_level_options_are_shared():
+    """slice, export, view and evaluate take their level options from one place."""
+    parsers = _subparsers()
+    for cmd in ("slice", "export", "view"):
+        opts = {o for a in parsers[cmd]._actions for o in a.option_strings}
+        assert {"--scan", "--rho", "--size", "--fraction"} <= opts, cmd
+    ev = {o for a in parsers["evaluate"]._actions for o in a.option_strings}
+    assert {"--scan", "--rhos", "--sizes", "--fractions", "--ordering"} <= ev
+    for cmd in ("slice", "view"):
+        box = next(a for a in parsers[cmd]._actions if "--box" in a.option_strings)
+        assert box.nargs == 6 and box.metavar == ("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX")
 
 
 def test_slice_path_imports_nothing_heavy(built, tmp_path):

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from ..errors import InputError
+from .level_options import add_level_options, add_ordering_option
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -20,15 +21,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "in the unit of the scan's CRS (shown; 'scan units' when it is unknown)."
         ),
     )
-    p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
-    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--sizes", type=int, nargs="+", metavar="N", help="levels of these sizes")
-    g.add_argument("--rhos", type=float, nargs="+", metavar="R", help="levels of these rhos")
-    g.add_argument(
-        "--fractions", type=float, nargs="+", metavar="F", help="levels of these fractions"
-    )
-    p.add_argument("--ordering", help="an extra ordering stored with the scan (default: uniform)")
+    add_level_options(p, required=False, many=True, what="one level per value: ")
+    add_ordering_option(p, "an extra ordering stored with the scan (default: uniform)")
     p.add_argument(
         "--surface", choices=("plane", "mls"), default="plane", help="local surface (default plane)"
     )

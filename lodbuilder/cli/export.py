@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from .level_options import add_level_options, add_up_option
+
 FORMATS = {".copc.laz": "COPC", ".html": "web page", ".htm": "web page"}
 
 
@@ -24,8 +26,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "web page is capped at --max-points)."
         ),
     )
-    from .slice import add_level_options
-
     add_level_options(p, required=False)
     p.add_argument(
         "--max-points",
@@ -33,10 +33,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=None,
         help="web page: most points it may hold (default 2,000,000: browsers slow down past it)",
     )
-    p.add_argument(
-        "--up",
+    add_up_option(
+        p,
         default=None,
-        choices=("z", "y", "x", "-z", "-y", "-x"),
         help="web page: the scan's up axis for the first view (default z; y for many range scans)",
     )
     p.add_argument(

@@ -6,16 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-
-def add_level_options(p: argparse.ArgumentParser, *, required: bool) -> None:
-    """ARCHIVE, --scan and one of --rho / --size / --fraction: which level of which scan (the
-    options slice and export share)."""
-    p.add_argument("archive", metavar="ARCHIVE")
-    p.add_argument("--scan", help="scan name (may be left out when the archive holds one scan)")
-    g = p.add_mutually_exclusive_group(required=required)
-    g.add_argument("--rho", type=float, help="covering radius of the level")
-    g.add_argument("--size", type=int, help="number of points")
-    g.add_argument("--fraction", type=float, help="fraction of the points, in (0, 1]")
+from .level_options import add_box_option, add_level_options, add_ordering_option
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -30,13 +21,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     add_level_options(p, required=True)
-    p.add_argument(
-        "--box",
-        type=float,
-        nargs=6,
-        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
-        help="refine inside this box (needs --rho outside and --box-rho inside)",
-    )
+    add_box_option(p, "refine inside this box (needs --rho outside and --box-rho inside)")
     p.add_argument("--box-rho", type=float, metavar="R", help="finer rho inside --box")
     p.add_argument(
         "--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"), help="refine near this point"
@@ -45,8 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--slope", type=float, default=None, help="growth of rho per unit distance from --viewpoint"
     )
     p.add_argument("--rho-max", type=float, default=None, help="cap of rho far from --viewpoint")
-    p.add_argument(
-        "--ordering", help="take the prefix of a stored extra ordering instead of the uniform one"
+    add_ordering_option(
+        p, "take the prefix of a stored extra ordering instead of the uniform one"
     )
     p.add_argument(
         "--extra", action="store_true", help="also write source_index, radius and rank per point"

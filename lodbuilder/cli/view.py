@@ -7,6 +7,7 @@ import os
 import sys
 
 from ..errors import InputError
+from .level_options import add_box_option, add_level_options, add_ordering_option, add_up_option
 
 MODES_HELP = (
     "rgb, radius, rank, importance[:NAME], scan, voronoi, gaps (red: near a hole the level "
@@ -26,15 +27,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "without X through EGL)."
         ),
     )
-    p.add_argument("archive", help="archive (.h5) written by lodbuilder build")
-    p.add_argument("--scan", help="scan to show (default: the only scan, or every scan merged)")
-    lev = p.add_mutually_exclusive_group()
-    lev.add_argument("--size", type=int, help="initial level: this many points")
-    lev.add_argument("--rho", type=float, help="initial level: covering radius rho")
-    lev.add_argument("--fraction", type=float, help="initial level: this fraction of the points")
-    p.add_argument(
-        "--ordering", help="show the levels of an extra ordering (e.g. weighted; default uniform)"
+    add_level_options(
+        p,
+        required=False,
+        what="initial level: ",
+        scan_help="scan to show (default: the only scan, or every scan merged)",
     )
+    add_ordering_option(p, "show the levels of an extra ordering (e.g. weighted; default uniform)")
     p.add_argument("--colour", "--color", dest="colour", help=f"colour mode: {MODES_HELP}")
     p.add_argument("--screenshot", metavar="OUT.png", help="render the level off screen to a PNG")
     p.add_argument(
@@ -54,13 +53,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="start with the points lit by their normals (key l; replaces eye-dome lighting, "
         "which darkened colours)",
     )
-    p.add_argument(
-        "--box",
-        type=float,
-        nargs=6,
-        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
-        help="refine inside this box (rho / --refine-factor there)",
-    )
+    add_box_option(p, "refine inside this box (rho / --refine-factor there)")
     p.add_argument("--refine-factor", type=float, default=4.0, help="box refinement (default 4)")
     p.add_argument("--surface", action="store_true", help="show a surface of the level")
     p.add_argument(
@@ -69,10 +62,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         choices=("iso", "xy", "xz", "yz", "yx", "zx", "zy"),
         help="camera direction (default iso)",
     )
-    p.add_argument(
-        "--up",
+    add_up_option(
+        p,
         default="z",
-        choices=("x", "y", "z", "-x", "-y", "-z"),
         help="the scan's up axis for the default view (z for survey data; y for many range scans, "
         "e.g. the Stanford bunny)",
     )
