@@ -13,31 +13,16 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive import layout as L
-from lodbuilder.archive.demo_surface import demo_scan
-from lodbuilder.archive.writer import ScanRecord, update_archive, write_record
+from lodbuilder.archive.writer import update_archive
 from lodbuilder.errors import ArchiveError, NotAnArchiveError, ScanFileError
-from lodbuilder.sampling.ordering import Ordering
 
 sys.path.insert(0, str(Path(__file__).parent))
 from rangeserver import RangeServer  # noqa: E402
+from remote_setup import MotoS3, level_bytes, page_size, write_served  # noqa: E402
+from remote_setup import synthetic_record as synthetic  # noqa: E402
 
 pytest.importorskip("fsspec")
 pytest.importorskip("aiohttp")
-
-
-def synthetic(n, name, seed=0):
-    """A scan with a synthetic ordering (a random permutation, radius sqrt(1/(pi k))): a level's
-    cost depends on the stored layout only, and this builds a 200k-point archive in a second."""
-    scan = demo_scan(n, kind="wavy", seed=seed, name=name)
-    rng = np.random.default_rng(seed)
-    scan.attributes["intensity"] = rng.random(n).astype(np.float32)
-    k = np.arange(n, dtype=np.float64)
-    radius = np.sqrt(1.0 / (np.pi * np.maximum(k, 1.0)))
-    radius[0] = np.inf
-    parent = np.floor(k * rng.random(n)).astype(np.int64)
-    parent[0] = -1
-    order = rng.permutation(n).astype(np.int64)
-    return ScanRecord(scan, Ordering(order, radius, parent, 0.0, 0.0, order[:1].copy(), n))
 
 
 @pytest.fixture(scope="module")
@@ -45,36 +30,9 @@ def served(tmp_path_factory):
     """A directory with a 200k-point single-file archive and a three-scan archive with parts,
     served over HTTP."""
     root = tmp_path_factory.mktemp("served")
-    write_record(root / "one.h5", synthetic(200_000, "big", 1))
-    many = root / "many.h5"
-    for i, n in enumerate((50_000, 300_000, 30_000)):
-        update_archive(many, [synthetic(n, f"s{i}", 10 + i)])
+    write_served(root, 200_000, (50_000, 300_000, 30_000))
     with RangeServer(root) as srv:
         yield root, srv
-
-
-def level_bytes(path, name, k):
-    """Stored bytes of the first k rows of the datasets a level reads (chunk bytes prorated)."""
-    import h5py
-
-    total = 0.0
-    with h5py.File(path, "r") as f:
-        g = f["scans"][name]
-        keys = ["points", "source_index", "radius"] + [f"attributes/{a}" for a in g["attributes"]]
-        for key in keys:
-            ds = g[key]
-            rows = ds.chunks[0]
-            for start in range(0, k, rows):
-                info = ds.id.get_chunk_info_by_coord((start,) + (0,) * (ds.ndim - 1))
-                total += info.size * min(rows, k - start) / rows
-    return total
-
-
-def page(path):
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return f.id.get_create_plist().get_file_space_page_size()
 
 
 def test_a_10k_level_over_http_is_one_head_and_two_gets(served):
@@ -90,7 +48,7 @@ def test_a_10k_level_over_http_is_one_head_and_two_gets(served):
     np.testing.assert_array_equal(lev.source_index, local.source_index)
     assert (srv.count("HEAD"), srv.count("GET")) == (1, 2), srv.log
     assert len(srv.log) == 3
-    budget = 2 * level_bytes(root / "one.h5", "big", 10_000) + page(root / "one.h5")
+    budget = 2 * level_bytes(root / "one.h5", "big", 10_000) + page_size(root / "one.h5")
     assert srv.sent() <= budget, (srv.sent(), budget)
     # a rho level: the radius index is in the metadata, the radius block comes with the level
     with lodbuilder.open_archive(root / "one.h5") as arc:
@@ -240,39 +198,13 @@ def test_a_server_that_ignores_ranges(served):
 @pytest.fixture(scope="module")
 def s3(served, tmp_path_factory):
     """moto's S3 server on 127.0.0.1 holding the served archives; its request recorder counts."""
-    import os
-
     pytest.importorskip("s3fs")
-    # the recorder writes its log to a file (by default ./moto_recording)
-    os.environ["MOTO_RECORDER_FILEPATH"] = str(tmp_path_factory.mktemp("moto") / "recording")
-    moto_server = pytest.importorskip("moto.server")
-    import boto3
-    import requests
-
-    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    endpoint = f"http://{host}:{port}"
-    client = boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="test",
-                          aws_secret_access_key="test", region_name="us-east-1")
-    client.create_bucket(Bucket="lodbuilder-test")
+    pytest.importorskip("moto.server")
     root, _ = served
-    for p in [root / "one.h5", root / "many.h5", *(root / "many.h5.scans").iterdir()]:
-        client.upload_file(str(p), "lodbuilder-test", str(p.relative_to(root)))
-
-    class Recorder:
-        def start(self):
-            requests.post(endpoint + "/moto-api/recorder/reset-recording")
-            requests.post(endpoint + "/moto-api/recorder/start-recording")
-
-        def stop(self):
-            requests.post(endpoint + "/moto-api/recorder/stop-recording")
-            text = requests.get(endpoint + "/moto-api/recorder/download-recording").text
-            return [json.loads(line) for line in text.splitlines() if line.strip()]
-
-    opts = {"endpoint_url": endpoint, "key": "test", "secret": "test"}
-    yield opts, Recorder(), endpoint
-    server.stop()
+    files = [root / "one.h5", root / "many.h5", *(root / "many.h5.scans").iterdir()]
+    moto = MotoS3(root, files, "lodbuilder-test", tmp_path_factory.mktemp("moto") / "recording")
+    yield moto.options, moto, moto.endpoint
+    moto.stop()
 
 
 def test_a_10k_level_from_s3_in_three_requests(served, s3):
@@ -283,13 +215,13 @@ def test_a_10k_level_from_s3_in_three_requests(served, s3):
     rec.start()
     with lodbuilder.open_archive("s3://lodbuilder-test/one.h5", storage_options=opts) as arc:
         lev = arc.scan().level(size=10_000)
-    log = rec.stop()
+    log = rec.recorded()
     np.testing.assert_array_equal(lev.points, local.points)
     assert sorted(r["method"] for r in log) == ["GET", "GET", "HEAD"], [(r["method"], r["url"]) for r in log]
     ranges = [r["headers"].get("Range") for r in log if r["method"] == "GET"]
     assert ranges[0] == "bytes=0-65535"
     fetched = sum(int(b) - int(a) + 1 for a, b in (x[6:].split("-") for x in ranges))
-    assert fetched <= 2 * level_bytes(root / "one.h5", "big", 10_000) + page(root / "one.h5")
+    assert fetched <= 2 * level_bytes(root / "one.h5", "big", 10_000) + page_size(root / "one.h5")
 
 
 def test_slice_cli_from_s3_with_the_endpoint_in_the_environment(served, s3, tmp_path):

@@ -26,28 +26,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from benchdoc import finish, measured, stamp, write_section  # noqa: E402
-
-
-def synthetic_record(n: int, name: str, seed: int):
-    from lodbuilder.archive.demo_surface import demo_scan
-    from lodbuilder.archive.writer import ScanRecord
-    from lodbuilder.sampling.ordering import Ordering
-
-    scan = demo_scan(n, kind="wavy", seed=seed, name=name)
-    rng = np.random.default_rng(seed)
-    scan.attributes["intensity"] = rng.random(n).astype(np.float32)
-    k = np.arange(n, dtype=np.float64)
-    radius = np.sqrt(1.0 / (np.pi * np.maximum(k, 1.0)))
-    radius[0] = np.inf
-    parent = np.floor(k * rng.random(n)).astype(np.int64)
-    parent[0] = -1
-    order = rng.permutation(n).astype(np.int64)
-    return ScanRecord(scan, Ordering(order, radius, parent, 0.0, 0.0, order[:1].copy(), n))
+from remote_setup import synthetic_record  # noqa: E402
 
 
 def files_of(path: Path) -> dict[Path, tuple[int, int]]:

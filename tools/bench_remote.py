@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import statistics
 import subprocess
@@ -40,67 +39,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 sys.path.insert(0, str(HERE))
 
 from benchdoc import finish, measured, stamp, write_section  # noqa: E402
-
-
-def level_bytes(path: Path, name: str, k: int) -> float:
-    """Stored bytes of the first k rows of what a level reads (chunk bytes prorated)."""
-    import h5py
-
-    total = 0.0
-    with h5py.File(path, "r") as f:
-        g = f["scans"][name]
-        keys = ["points", "source_index", "radius"] + [f"attributes/{a}" for a in g["attributes"]]
-        for key in keys:
-            ds = g[key]
-            rows = ds.chunks[0]
-            for start in range(0, k, rows):
-                info = ds.id.get_chunk_info_by_coord((start,) + (0,) * (ds.ndim - 1))
-                total += info.size * min(rows, k - start) / rows
-    return total
-
-
-def page_of(path: Path) -> int:
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return f.id.get_create_plist().get_file_space_page_size()
-
-
-class Moto:
-    """moto's S3 server with the archives uploaded; ``recorded()`` returns the requests."""
-
-    def __init__(self, root: Path, files: list[Path]):
-        import boto3
-        from moto.server import ThreadedMotoServer
-
-        # the recorder writes its log to a file (by default ./moto_recording)
-        os.environ["MOTO_RECORDER_FILEPATH"] = str(root / "moto_recording")
-        self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-        self.server.start()
-        host, port = self.server.get_host_and_port()
-        self.endpoint = f"http://{host}:{port}"
-        client = boto3.client("s3", endpoint_url=self.endpoint, aws_access_key_id="bench",
-                              aws_secret_access_key="bench", region_name="us-east-1")
-        client.create_bucket(Bucket="lodbuilder-bench")
-        for p in files:
-            client.upload_file(str(p), "lodbuilder-bench", str(p.relative_to(root)))
-        self.options = {"endpoint_url": self.endpoint, "key": "bench", "secret": "bench"}
-
-    def start(self) -> None:
-        import requests
-
-        requests.post(self.endpoint + "/moto-api/recorder/reset-recording")
-        requests.post(self.endpoint + "/moto-api/recorder/start-recording")
-
-    def recorded(self) -> list[dict]:
-        import requests
-
-        requests.post(self.endpoint + "/moto-api/recorder/stop-recording")
-        text = requests.get(self.endpoint + "/moto-api/recorder/download-recording").text
-        return [json.loads(line) for line in text.splitlines() if line.strip()]
-
-    def stop(self) -> None:
-        self.server.stop()
+from remote_setup import MotoS3, level_bytes, page_size, write_served  # noqa: E402
 
 
 def _range_bytes(rng: str | None) -> int:
@@ -195,10 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(saved.get("targets", {}), indent=2))
         return 0
 
-    from bench_append import synthetic_record
     from rangeserver import RangeServer
-
-    from lodbuilder.archive.writer import update_archive, write_record
 
     work = Path(tempfile.mkdtemp(prefix="bench_remote_"))
     result = stamp(
@@ -211,23 +147,19 @@ def main(argv: list[str] | None = None) -> int:
     result.update(latency_s=args.latency, cases=[])
     moto = None
     try:
-        one = work / "one.h5"
-        write_record(one, synthetic_record(args.n, "big", 1))
-        many = work / "many.h5"
-        for i, n in enumerate(args.parts):
-            update_archive(many, [synthetic_record(n, f"s{i}", 10 + i)])
-        files = [one, many, *sorted((work / "many.h5.scans").iterdir())]
+        files = write_served(work, args.n, args.parts)
+        one, many = files[:2]
         import lodbuilder
 
         with lodbuilder.open_archive(many) as arc:
             parts = {r.name: work / "many.h5.scans" / r.part for r in arc.rows}
         targets = [("one.h5", "big", one)] + [("many.h5", n, parts[n]) for n in sorted(parts)]
         if not args.no_s3:
-            moto = Moto(work, files)
+            moto = MotoS3(work, files, "lodbuilder-bench", work / "moto_recording")
         with RangeServer(work, delay=args.latency) as srv:
             for rel, name, part in targets:
                 lb = level_bytes(part, name, args.level)
-                page = page_of(part)
+                page = page_size(part)
                 runs = []
                 for _ in range(args.repeat):
                     srv.reset()
