@@ -177,6 +177,17 @@ def strict_methods(cls: _C) -> _C:
     return cls
 
 
+def quoted_names(items: Iterable[Any], limit: int = 10) -> str:
+    """A comma-separated list of names for a message, each quoted with repr (as a message quotes
+    one name: so control characters stay escaped and commas in names stay readable), cut after
+    ``limit`` with ', ...'; 'none' when empty."""
+    items = list(items)
+    text = ", ".join(repr(str(x)) for x in items[:limit])
+    if len(items) > limit:
+        text += ", ..."
+    return text or "none"
+
+
 def unknown_keywords_message(where: str, bad: Sequence[str], valid: Sequence[str]) -> str:
     """One line naming the unknown keyword(s), the closest valid one and every valid one."""
     shown = [k for k in valid if not k.startswith("_")]

@@ -223,7 +223,7 @@ def test_not_an_archive_and_newer_schema(tmp_path, small):
 
 def test_unknown_scan_and_ambiguous_scan(small, tmp_path):
     with lodbuilder.open_archive(small[2]) as arc:
-        with pytest.raises(ScanNotFoundError, match="has no scan 'nope'; it holds wavy"):
+        with pytest.raises(ScanNotFoundError, match="has no scan 'nope'; it holds 'wavy'"):
             arc.scan("nope")
 
 
@@ -408,3 +408,25 @@ def test_output_directory_checks_are_one_check(tmp_path, monkeypatch):
         f"{tmp_path / 'a.ply'}: output directory {tmp_path} is not writable; choose another "
         "output path"
     )
+
+
+def test_messages_quote_the_scan_names(small, tmp_path):
+    """Before: 'it holds wavy' and '(one of a, b)', and add_importance said "it holds ['wavy']"."""
+    scan, ordg, path = small
+    with pytest.raises(ScanNotFoundError) as info:
+        add_importance(path, "nope", "m", np.zeros(len(scan)))
+    assert str(info.value) == f"archive {path} has no scan 'nope'; it holds 'wavy'"
+    many = tmp_path / "many.h5"
+    names = [f"s,{i:02d}" for i in range(12)]  # a comma in a name stays readable
+    scans = [demo_scan(200, seed=i, name=n) for i, n in enumerate(names)]
+    update_archive(many, [ScanRecord(s, lodbuilder.fastfps(s.points)) for s in scans])
+    listed = ", ".join(repr(n) for n in names[:10]) + ", ..."
+    with lodbuilder.open_archive(many) as arc:
+        with pytest.raises(ScanNotFoundError) as info:
+            arc.scan()
+        assert str(info.value) == (
+            f"archive {many} holds 12 scans; choose one with --scan (one of {listed})"
+        )
+        with pytest.raises(ScanNotFoundError) as info:
+            arc.scan("x")
+        assert str(info.value) == f"archive {many} has no scan 'x'; it holds {listed}"

@@ -241,7 +241,7 @@ def test_newer_schema_version(arc, tmp_path, capsys):
         (["--size", "101"], r"size must be between 1 and the number of points (100), got 101"),
         (["--fraction", "0"], "fraction must be a number in (0, 1]"),
         (["--fraction", "2"], "fraction must be a number in (0, 1]"),
-        (["--size", "5", "--scan", "nope"], "has no scan 'nope'; it holds in"),
+        (["--size", "5", "--scan", "nope"], "has no scan 'nope'; it holds 'in'"),
         (["--rho", "0.1", "--box", "0", "0", "0", "1", "1", "1"], "--box needs --box-rho"),
         (["--size", "5", "--ordering", "weighted"], "has no ordering 'weighted'"),
     ],

@@ -103,9 +103,11 @@ def test_error_line():
 
 
 def test_names_are_quoted_and_cut():
-    assert O.names([]) == "none"
-    assert O.names(["a\nb", "c"]) == "'a\\nb', 'c'"
-    assert O.names([str(i) for i in range(12)], limit=2) == "'0', '1', ..."
+    from lodbuilder._validate import quoted_names
+
+    assert quoted_names([]) == "none"
+    assert quoted_names(["a\nb", "c"]) == "'a\\nb', 'c'"
+    assert quoted_names([str(i) for i in range(12)], limit=2) == "'0', '1', ..."
 
 
 def test_check_output_rule(tmp_path):

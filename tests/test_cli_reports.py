@@ -184,14 +184,14 @@ def test_scan_names_with_newlines_stay_on_one_line(odd_names, tmp_path, capsys):
     out = tmp_path / "o.ply"
     msg = one_line_error(capsys, ["slice", odd_names, "--size", "3", "-o", out], "slice")
     assert msg == (
-        f"archive {odd_names} holds 2 scans; choose one with --scan (one of a\\nb, c\\td)"
+        f"archive {odd_names} holds 2 scans; choose one with --scan (one of 'a\\nb', 'c\\td')"
     )
     msg = one_line_error(
         capsys, ["slice", odd_names, "--scan", "x\ny", "--size", "3", "-o", out], "slice"
     )
-    assert msg == f"archive {odd_names} has no scan 'x\\ny'; it holds a\\nb, c\\td"
+    assert msg == f"archive {odd_names} has no scan 'x\\ny'; it holds 'a\\nb', 'c\\td'"
     msg = one_line_error(capsys, ["info", odd_names, "--scan", "nope"], "info")
-    assert msg == f"archive {odd_names} has no scan 'nope'; it holds a\\nb, c\\td"
+    assert msg == f"archive {odd_names} has no scan 'nope'; it holds 'a\\nb', 'c\\td'"
     rc, text, _ = run(capsys, "info", odd_names)
     assert rc == 0 and "scan 'a\\nb': 300 points" in text and "\nb" not in text
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, strict_keywords, strict_methods
+from .._validate import check_positive, check_size, quoted_names, strict_keywords, strict_methods
 from ..errors import (
     ArchiveError,
     CorruptArchiveError,
@@ -189,11 +189,11 @@ class Archive:
             else:
                 raise ScanNotFoundError(
                     f"archive {self.path} holds {len(names)} scans; choose one with --scan "
-                    f"(one of {', '.join(names[:10])}{', ...' if len(names) > 10 else ''})"
+                    f"(one of {quoted_names(names)})"
                 )
         if name not in self._rows:
             raise ScanNotFoundError(
-                f"archive {self.path} has no scan {name!r}; it holds {', '.join(names[:10]) or 'none'}"
+                f"archive {self.path} has no scan {name!r}; it holds {quoted_names(names)}"
             )
         group, io = self._scan_group(name)
         return ScanView(self, name, group, io)

@@ -543,11 +543,7 @@ def _rewrite(
 
     def write(dst: Path) -> PartInfo:
         with open_archive(path) as arc:  # under the archive's lock (called by _commit)
-            if scan not in arc.scans:
-                raise ScanNotFoundError(
-                    f"archive {path} has no scan {scan!r}; it holds {arc.scans}"
-                )
-            view = arc.scan(scan)
+            view = arc.scan(scan)  # ScanNotFoundError naming the scans it holds
             n = view.n_points
             src = view.source_index
             imp = {}

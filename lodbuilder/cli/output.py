@@ -194,16 +194,6 @@ def print_error(command: str | None, exc: BaseException | str) -> None:
     print(error_line(command, exc), file=sys.stderr)
 
 
-def names(items: Iterable[Any], limit: int = 10) -> str:
-    """A comma-separated list of names, each quoted with repr (so control characters stay
-    escaped), cut after ``limit`` with ', ...'; 'none' when empty."""
-    items = list(items)
-    text = ", ".join(repr(str(x)) for x in items[:limit])
-    if len(items) > limit:
-        text += ", ..."
-    return text or "none"
-
-
 # -- the output-path rule --------------------------------------------------------------------
 
 
