@@ -9,7 +9,6 @@ import numpy as np
 
 from .._validate import strict_keywords
 from ..archive import layout as L
-from ..errors import InputError
 from .data import ViewData
 
 COLOUR_ATTRIBUTES = ("red", "green", "blue")
@@ -34,13 +33,8 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
             scan_names=(scan.name,),
             **crs,
         )
-    if ordering not in scan.ordering_names:
-        raise InputError(
-            f"scan {scan.name!r} has no ordering {ordering!r}; it has "
-            f"{', '.join(['uniform'] + list(scan.ordering_names))}"
-        )
+    pos = scan.ordering_positions(ordering)  # (an unknown ordering: the reader's InputError)
     group = f"{L.G_ORDERINGS}/{ordering}"
-    pos = np.asarray(scan.dataset(f"{group}/{L.D_ORDER}")[:], dtype=np.int64)
     return ViewData(
         points=scan.points()[pos],
         radius=np.asarray(scan.dataset(f"{group}/{L.D_RADIUS}")[:]),
