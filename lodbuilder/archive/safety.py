@@ -263,19 +263,9 @@ def guarded(path_of: Callable[[Any], Any]) -> Callable[[type], type]:
 
         return inner
 
-    def deco(cls: type) -> type:
-        for name, member in list(vars(cls).items()):
-            if name.startswith("__") and name not in ("__init__", "__len__", "__getitem__"):
-                continue
-            if isinstance(member, property) and member.fget is not None:
-                setattr(
-                    cls, name, property(wrap(member.fget), member.fset, member.fdel, member.__doc__)
-                )
-            elif inspect.isfunction(member):
-                setattr(cls, name, wrap(member))
-        return cls
-
-    return deco
+    return _wrapping(
+        wrap, lambda name: not name.startswith("__") or name in ("__init__", "__len__", "__getitem__")
+    )
 
 
 def open_only(*, allowed: tuple[str, ...] = ()) -> Callable[[type], type]:
@@ -292,9 +282,17 @@ def open_only(*, allowed: tuple[str, ...] = ()) -> Callable[[type], type]:
 
         return inner
 
+    return _wrapping(wrap, lambda name: not name.startswith("_") and name not in allowed)
+
+
+def _wrapping(
+    wrap: Callable[[Callable[..., Any]], Callable[..., Any]], chosen: Callable[[str], bool]
+) -> Callable[[type], type]:
+    """Class decorator: ``wrap`` every method and property getter whose name is ``chosen``."""
+
     def deco(cls: type) -> type:
         for name, member in list(vars(cls).items()):
-            if name.startswith("_") or name in allowed:
+            if not chosen(name):
                 continue
             if isinstance(member, property) and member.fget is not None:
                 setattr(
