@@ -12,24 +12,30 @@ from typing import Any
 import numpy as np
 
 
-def synthetic_record(n: int, name: str, seed: int = 0) -> Any:
-    """A ``ScanRecord`` of a *synthetic* wavy scan with a synthetic ordering (a random
-    permutation, radius sqrt(1/(pi k)), random earlier parents): a level's cost depends on the
-    stored layout only, and this builds a 200k-point archive in a second."""
-    from lodbuilder.archive.demo_surface import demo_scan
-    from lodbuilder.archive.writer import ScanRecord
+def synthetic_ordering(n: int, rng: np.random.Generator) -> Any:
+    """A *synthetic* ``Ordering`` of n points: a random permutation, radius sqrt(1/(pi k)),
+    random earlier parents (a level's cost depends on the stored layout only)."""
     from lodbuilder.sampling.ordering import Ordering
 
-    scan = demo_scan(n, kind="wavy", seed=seed, name=name)
-    rng = np.random.default_rng(seed)
-    scan.attributes["intensity"] = rng.random(n).astype(np.float32)
     k = np.arange(n, dtype=np.float64)
     radius = np.sqrt(1.0 / (np.pi * np.maximum(k, 1.0)))
     radius[0] = np.inf
     parent = np.floor(k * rng.random(n)).astype(np.int64)
     parent[0] = -1
     order = rng.permutation(n).astype(np.int64)
-    return ScanRecord(scan, Ordering(order, radius, parent, 0.0, 0.0, order[:1].copy(), n))
+    return Ordering(order, radius, parent, 0.0, 0.0, order[:1].copy(), n, {"engine": "synthetic"})
+
+
+def synthetic_record(n: int, name: str, seed: int = 0) -> Any:
+    """A ``ScanRecord`` of a *synthetic* wavy scan with an intensity attribute and a
+    :func:`synthetic_ordering`: this builds a 200k-point archive in a second."""
+    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.archive.writer import ScanRecord
+
+    scan = demo_scan(n, kind="wavy", seed=seed, name=name)
+    rng = np.random.default_rng(seed)
+    scan.attributes["intensity"] = rng.random(n).astype(np.float32)
+    return ScanRecord(scan, synthetic_ordering(n, rng))
 
 
 def write_served(root: Path, n_one: int, parts: list[int] | tuple[int, ...]) -> list[Path]:

@@ -28,11 +28,13 @@ from pathlib import Path
 import numpy as np
 from benchdoc import finish, machine, measured, stamp, write_section
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from remote_setup import synthetic_ordering  # noqa: E402
+
 
 def synthetic_record(n: int, seed: int, real: bool):
     from lodbuilder.archive.demo_surface import demo_scan
     from lodbuilder.archive.writer import ScanRecord
-    from lodbuilder.sampling.ordering import Ordering
 
     scan = demo_scan(n, kind="wavy", seed=seed, name=f"wavy{n}")
     scan.attributes["intensity"] = np.random.default_rng(seed).random(n).astype(np.float32)
@@ -42,14 +44,7 @@ def synthetic_record(n: int, seed: int, real: bool):
         t = time.perf_counter()
         ordg = lodbuilder.fastfps(scan.points)
         return ScanRecord(scan, ordg), f"lodbuilder.fastfps ({time.perf_counter() - t:.1f} s)"
-    rng = np.random.default_rng(seed + 1)
-    k = np.arange(n, dtype=np.float64)
-    radius = np.sqrt(1.0 / (np.pi * np.maximum(k, 1.0)))
-    radius[0] = np.inf
-    parent = np.floor(k * rng.random(n)).astype(np.int64)
-    parent[0] = -1
-    order = rng.permutation(n).astype(np.int64)
-    ordg = Ordering(order, radius, parent, 0.0, 0.0, order[:1].copy(), n, {"engine": "synthetic"})
+    ordg = synthetic_ordering(n, np.random.default_rng(seed + 1))
     return ScanRecord(
         scan, ordg
     ), "synthetic: random permutation, radius = sqrt(1/(pi k)), random earlier parents"
