@@ -11,12 +11,8 @@ docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
-import os
-import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,9 +23,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchdoc import write_section  # noqa: E402
+from benchdoc import finish, machine, measured, stamp, write_section  # noqa: E402
 
-from lodbuilder import __version__  # noqa: E402
 from lodbuilder.io import read_scan  # noqa: E402
 from lodbuilder.io.las import las_layout  # noqa: E402
 
@@ -38,14 +33,6 @@ def _previous_scale(points: np.ndarray) -> float:
     offsets = np.floor(points.min(axis=0))
     span = float(np.max(np.abs(points - offsets)))
     return 10.0 ** math.ceil(math.log10(max(span, 1e-300) / 2.0e9))
-
-
-def _git() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                              text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def bench_file(path: Path) -> dict:
@@ -73,7 +60,7 @@ def markdown(doc: dict) -> str:
     lines = [
         "## LAZ coordinate scale (tools/bench_io.py)",
         "",
-        f"{doc['date']}, commit {doc['git_commit']}, load {doc['loadavg']}. Previous rule: "
+        f"{measured(doc)}. Previous rule: "
         "10^ceil(log10(span / 2e9)); las_layout: the power of ten at or below spacing / 100.",
         "",
         "| file | points | previous scale | bytes | new scale | bytes | max error (new) | size ratio |",
@@ -93,16 +80,10 @@ def main() -> None:
                                                     "pumpAVisualReferenceImage.e57", "bunnyDouble.e57"])
     ap.add_argument("--markdown", help="also write the 'io' section of this markdown file")
     args = ap.parse_args()
-    doc = {
-        "benchmark": "LAZ size and coordinate error by coordinate scale",
-        "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "git_commit": _git(),
-        "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
-        "loadavg": [round(x, 2) for x in os.getloadavg()],
-        "machine": {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count()},
-        "lodbuilder": __version__,
-        "results": [bench_file(Path(args.data) / f) for f in args.files],
-    }
+    doc = stamp("bench_io", None, inputs="real scans " + ", ".join(args.files), synthetic=False)
+    doc["machine"] = machine()
+    doc["results"] = [bench_file(Path(args.data) / f) for f in args.files]
+    finish(doc)
     print(json.dumps(doc, indent=1))
     if args.markdown:
         write_section(Path(args.markdown), "io", markdown(doc))

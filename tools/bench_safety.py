@@ -24,10 +24,7 @@ Measured (minimum over ``--repeat`` runs, milliseconds), each against the same w
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -36,10 +33,9 @@ from typing import Any
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
+sys.path.insert(0, str(HERE))
 
-
-def _git(*args: str) -> str:
-    return subprocess.run(["git", *args], capture_output=True, text=True, cwd=REPO).stdout.strip()
+from benchdoc import finish, stamp  # noqa: E402
 
 
 def best(fn: Any, repeat: int) -> float:
@@ -174,22 +170,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeat", type=int, default=7, help="runs per measurement (minimum kept)")
     args = p.parse_args(argv)
     sys.path.insert(0, str(REPO))
-    load0 = os.getloadavg()
+    doc = stamp(
+        "bench_safety",
+        argv,
+        inputs=f"synthetic: {args.n}-point wavy surface (7 attributes); 30 scans of 20,000 points",
+        synthetic=True,
+    )
     with tempfile.TemporaryDirectory(prefix="bench-safety-") as tmp:
         big, name, coll = build(Path(tmp), args.n)
         res = measure(big, name, coll, args.n, args.repeat)
-    doc = {
-        "benchmark": "bench_safety",
-        "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "git_commit": _git("rev-parse", "--short", "HEAD"),
-        "command": " ".join(
-            ["tools/bench_safety.py", *(argv if argv is not None else sys.argv[1:])]
-        ),
-        "loadavg": [round(x, 2) for x in load0],
-        "loadavg_end": [round(x, 2) for x in os.getloadavg()],
-        "inputs": f"synthetic: {args.n}-point wavy surface (7 attributes); 30 scans of 20,000 points",
-        "ms_min": res,
-    }
+    doc["ms_min"] = res
+    finish(doc)
     print(json.dumps(doc, indent=2))
     return 0
 
