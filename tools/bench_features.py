@@ -13,19 +13,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import write_section
+from benchdoc import finish, machine, measured, stamp, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lodbuilder import __version__, fastfps  # noqa: E402
+from lodbuilder import fastfps  # noqa: E402
 from lodbuilder.features import (  # noqa: E402
     combine_maps,
     compute_importance,
@@ -129,20 +127,17 @@ def main() -> None:
         saved = json.loads(Path(args.from_json).read_text())
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "features", markdown(saved))
         return
-    out = {
-        "benchmark": "feature-sensitive ordering: point-to-plane error at equal size",
+    out = stamp("bench_features", None, inputs="real scans " + ", ".join(args.files), synthetic=False)
+    out |= {
+        "about": "feature-sensitive ordering: point-to-plane error at equal size",
         "metric": "mean distance from input points to the PCA plane of their 8 nearest kept points",
-        "machine": {
-            "python": platform.python_version(),
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
-        },
-        "lodbuilder": __version__,
+        "machine": machine(),
         "cost": "F = max(0.1, (1 - a) + a * w), w = maps normalised by their 5-95 percentiles",
         "results": [
             bench_file(Path(args.data) / f, args.adaptive, args.floor_fraction) for f in args.files
         ],
     }
+    finish(out)
     print(json.dumps(out, indent=1))
     if args.markdown:
         write_section(Path(args.markdown), "features", markdown(out))
@@ -152,7 +147,8 @@ def markdown(out: dict) -> str:
     lines = [
         "## Feature-sensitive orderings (tools/bench_features.py)",
         "",
-        f"Metric: {out['metric']}, as a ratio to the uniform ordering at the same size "
+        (f"{measured(out)}. " if "date" in out else "")
+        + f"Metric: {out['metric']}, as a ratio to the uniform ordering at the same size "
         f"(below 1 is better). Cost: {out['cost']}.",
         "",
     ]
