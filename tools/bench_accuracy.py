@@ -25,12 +25,8 @@ Sections (all inputs synthetic, generated here with fixed seeds):
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -64,18 +60,11 @@ def log(msg: str) -> None:
 
 
 def header(args: argparse.Namespace) -> dict:
-    commit = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
-    return {
-        "benchmark": "bench_accuracy",
-        "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "git_commit": commit,
-        "command": " ".join(["python", "tools/bench_accuracy.py", *sys.argv[1:]]),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
-        "load_avg_at_start": os.getloadavg(),
-        "inputs": "synthetic",
-    }
+    from benchdoc import machine, stamp
+
+    doc = stamp("bench_accuracy", None, inputs="synthetic surfaces (tests/surfaces.py)", synthetic=True)
+    doc["machine"] = machine()
+    return doc
 
 
 # ---- metric ------------------------------------------------------------------------------------
@@ -233,11 +222,12 @@ def section_limit(args) -> list[dict]:
 
 
 def markdown(doc: dict) -> str:
+    from benchdoc import measured
+
     lines = [
         "## Accuracy of the band metric and surface-faithful levels (tools/bench_accuracy.py)",
         "",
-        f"Measured {doc['date']} by `{doc['command']}` (commit {doc['git_commit']}); load average "
-        f"{', '.join(f'{x:.1f}' for x in doc['load_avg_at_start'])} at the start. Inputs synthetic.",
+        f"{measured(doc)}. Inputs synthetic.",
     ]
     if doc.get("metric"):
         lines += [
@@ -296,7 +286,7 @@ def main() -> int:
     ap.add_argument("--markdown", help="write the 'accuracy' section of this markdown file")
     ap.add_argument("--from-json", help="only render --markdown from an earlier run's JSON")
     args = ap.parse_args()
-    from benchdoc import write_section
+    from benchdoc import finish, write_section
 
     if args.from_json:
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "accuracy",
@@ -307,7 +297,7 @@ def main() -> int:
     for sec in args.sections.split(","):
         doc[sec] = {"metric": section_metric, "covering": section_covering, "limit": section_limit}[sec](args)
     doc["total_s"] = time.perf_counter() - t0
-    doc["load_avg_at_end"] = os.getloadavg()
+    finish(doc)
     text = json.dumps(doc, indent=1)
     print(text)
     if args.json:

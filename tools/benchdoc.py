@@ -80,14 +80,20 @@ def machine(**extra: Any) -> dict[str, Any]:
     return {**info, **extra}
 
 
+_LOAD_KEYS = ("loadavg", "load_average", "load_avg_at_start", "load_average_at_start")
+
+
 def measured(result: dict[str, Any]) -> str:
     """The markdown sentence of a stamp: when, by which command, at which commit, under which
     load (also for JSON saved before :func:`stamp`, which had no ``command``)."""
     command = result.get("command") or (
         f"python tools/{result.get('benchmark', '?')}.py {result.get('argv', '')}".rstrip()
     )
-    load = result.get("loadavg", result.get("load_average", "?"))
-    text = f"Measured {result.get('date', '?')} by `{command}` (commit {result.get('commit', '?')})"
+    load = next((result[k] for k in _LOAD_KEYS if k in result), "?")
+    if isinstance(load, list | tuple):
+        load = ", ".join(f"{x:.1f}" for x in load)
+    commit = result.get("commit") or result.get("git_commit") or "?"
+    text = f"Measured {result.get('date', '?')} by `{command}` (commit {commit})"
     text += f"; load average at start {load}"
     if "loadavg_end" in result:
         text += f", at the end {result['loadavg_end']}"
