@@ -29,7 +29,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from benchdoc import finish, measured, stamp, write_section  # noqa: E402
+from benchdoc import measured, publish, stamp  # noqa: E402
 from remote_setup import synthetic_record  # noqa: E402
 
 
@@ -133,10 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "add_time_ratio_target": 1.3,
     }
-    finish(result)
-    if args.markdown:
-        write_section(Path(args.markdown), "append", markdown(result))
-    print(json.dumps(result, indent=2))
+    publish(result, section="append", render=markdown, markdown=args.markdown)
     return 0
 
 

@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchdoc import finish, machine, measured, stamp, write_section
+from benchdoc import machine, measured, publish, stamp, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = os.environ.get("LODBUILDER_CHROMIUM", "/usr/bin/chromium")
@@ -218,12 +218,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{k:,}": bench_pyvista(view, Path(tmp) / f"pv{k}.html", k)
                     for k in sorted({min(100_000, view.n_ordered), view.n_ordered})
                 }
-    finish(result)
     result["machine"] = machine()
-    json.dump(result, sys.stdout, indent=2)
-    sys.stdout.write("\n")
-    if args.markdown:
-        write_section(Path(args.markdown), "export", markdown(result))
+    publish(result, section="export", render=markdown, markdown=args.markdown)
     return 0
 
 

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import finish, machine, measured, stamp, write_section
+from benchdoc import machine, measured, publish, stamp, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -137,10 +137,7 @@ def main() -> None:
             bench_file(Path(args.data) / f, args.adaptive, args.floor_fraction) for f in args.files
         ],
     }
-    finish(out)
-    print(json.dumps(out, indent=1))
-    if args.markdown:
-        write_section(Path(args.markdown), "features", markdown(out))
+    publish(out, section="features", render=markdown, markdown=args.markdown)
 
 
 def markdown(out: dict) -> str:

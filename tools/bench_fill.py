@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import finish, measured, stamp, write_section
+from benchdoc import measured, publish, stamp, write_section
 from scipy.spatial import cKDTree
 
 HERE = Path(__file__).resolve().parent
@@ -479,10 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if not args.workdir:
             shutil.rmtree(work, ignore_errors=True)
-    finish(result)
-    if args.markdown:
-        write_section(Path(args.markdown), "fill", markdown(result))
-    print(json.dumps(result, indent=2))
+    publish(result, section="fill", render=markdown, markdown=args.markdown)
     return 0
 
 

@@ -11,7 +11,6 @@ docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import tempfile
@@ -23,7 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchdoc import finish, machine, measured, stamp, write_section  # noqa: E402
+from benchdoc import machine, measured, publish, stamp  # noqa: E402
 
 from lodbuilder.io import read_scan  # noqa: E402
 from lodbuilder.io.las import las_layout  # noqa: E402
@@ -83,10 +82,7 @@ def main() -> None:
     doc = stamp("bench_io", None, inputs="real scans " + ", ".join(args.files), synthetic=False)
     doc["machine"] = machine()
     doc["results"] = [bench_file(Path(args.data) / f) for f in args.files]
-    finish(doc)
-    print(json.dumps(doc, indent=1))
-    if args.markdown:
-        write_section(Path(args.markdown), "io", markdown(doc))
+    publish(doc, section="io", render=markdown, markdown=args.markdown)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 sys.path.insert(0, str(HERE))
 
-from benchdoc import finish, measured, stamp, write_section  # noqa: E402
+from benchdoc import measured, publish, stamp, write_section  # noqa: E402
 from remote_setup import MotoS3, level_bytes, page_size, write_served  # noqa: E402
 
 
@@ -227,10 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         "cli_remote_s": result["cli"]["remote_s"],
         "cli_target_s": result["cli"]["target_s"],
     }
-    finish(result)
-    if args.markdown:
-        write_section(Path(args.markdown), "remote", markdown(result))
-    print(json.dumps(result, indent=2))
+    publish(result, section="remote", render=markdown, markdown=args.markdown)
     return 0
 
 

@@ -24,7 +24,6 @@ Measured (minimum over ``--repeat`` runs, milliseconds), each against the same w
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -35,7 +34,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(HERE))
 
-from benchdoc import finish, stamp  # noqa: E402
+from benchdoc import publish, stamp  # noqa: E402
 
 
 def best(fn: Any, repeat: int) -> float:
@@ -180,8 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         big, name, coll = build(Path(tmp), args.n)
         res = measure(big, name, coll, args.n, args.repeat)
     doc["ms_min"] = res
-    finish(doc)
-    print(json.dumps(doc, indent=2))
+    publish(doc)
     return 0
 
 

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import finish, machine, measured, stamp, write_section
+from benchdoc import machine, measured, publish, stamp, write_section
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from remote_setup import synthetic_ordering  # noqa: E402
@@ -279,10 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         targets[f"size_ratio_{a['n_points']}"] = a["size_ratio"]
     targets["size_ratio_target"] = 1.3
     result["targets"] = targets
-    finish(result)
-    if args.markdown:
-        write_section(Path(args.markdown), "slice", markdown(result))
-    print(json.dumps(result, indent=2))
+    publish(result, section="slice", render=markdown, markdown=args.markdown)
     return 0
 
 

@@ -17,7 +17,6 @@ without a GPU it is Mesa's llvmpipe (software), which dominates the figures.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -25,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchdoc import finish, machine, measured, stamp, write_section
+from benchdoc import machine, measured, publish, stamp
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
@@ -155,12 +154,8 @@ def main() -> int:
             info = pv.GPUInfo()
             out["gl"] = {"vendor": info.vendor, "renderer": info.renderer, "version": info.version}
         vw.close()
-    finish(out)
     out["machine"] = machine(pyvista=pv.__version__, vtk=vtk.vtkVersion.GetVTKVersion())
-    json.dump(out, sys.stdout, indent=2)
-    sys.stdout.write("\n")
-    if args.markdown:
-        write_section(Path(args.markdown), "viewer", markdown(out))
+    publish(out, section="viewer", render=markdown, markdown=args.markdown)
     return 0
 
 

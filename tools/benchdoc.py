@@ -3,12 +3,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,8 @@ def stamp(
 ) -> dict[str, Any]:
     """What every benchmark's JSON starts with: the benchmark (``tool``, e.g. ``"bench_fill"``),
     date, git commit, the command as run (``argv`` as given to ``main``; None: ``sys.argv``),
-    load average at the start, core count, whether the inputs are synthetic and what they are.
+    load average at the start, core count, whether the inputs are synthetic
+    (``inputs_synthetic``: true when any is) and what they are (``inputs``).
     Call :func:`finish` at the end for the load average then."""
     args = list(sys.argv[1:] if argv is None else argv)
     return {
@@ -46,7 +48,7 @@ def stamp(
         "argv": " ".join(args),
         "loadavg": _load(),
         "cpu_count": os.cpu_count(),
-        "synthetic": synthetic,
+        "inputs_synthetic": synthetic,
         "inputs": inputs,
     }
 
@@ -55,6 +57,21 @@ def finish(result: dict[str, Any]) -> dict[str, Any]:
     """Add the load average at the end of the run to ``result`` (returned)."""
     result["loadavg_end"] = _load()
     return result
+
+
+def publish(
+    result: dict[str, Any],
+    *,
+    section: str | None = None,
+    render: Callable[[dict[str, Any]], str] | None = None,
+    markdown: str | os.PathLike[str] | None = None,
+) -> None:
+    """End a run: :func:`finish` ``result``, write ``render(result)`` as the ``section`` of the
+    ``markdown`` file when one is given, print ``result`` as JSON on stdout."""
+    finish(result)
+    if markdown and section and render:
+        write_section(Path(markdown), section, render(result))
+    print(json.dumps(result, indent=2, default=float))
 
 
 def machine(**extra: Any) -> dict[str, Any]:
