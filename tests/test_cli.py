@@ -302,3 +302,17 @@ def test_build_reports_the_name_the_reader_gave(tmp_path, capsys, shared_data):
     with lodbuilder.open_archive(arc) as a:
         (name,) = a.scans
     assert f"added scan {name!r} (30571 points" in out
+
+
+def test_build_names_the_archive_as_the_user_gave_it(tmp_path, capsys, shared_data, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    src = shared_data / "bun_zipper_res4.ply"
+    rc, out, err = run_cli(capsys, "build", src, "-o", "res4.h5", "--no-progress")
+    assert rc == 0, err
+    assert out.startswith("added scan 'bun_zipper_res4' (453 points, float32 coordinates) to res4.h5 in ")
+    rc, out, err = run_cli(capsys, "build", src, "-o", "res4.h5", "--no-progress")
+    assert out.startswith("scan 'bun_zipper_res4' in res4.h5 is unchanged")
+    rc, out, err = run_cli(capsys, "build", src, shared_data / "bun_zipper_res3.ply", "-o", "two.h5",
+                           "--no-progress")
+    assert rc == 0, err
+    assert out.startswith("2 built scan(s) into two.h5 on ")

@@ -98,12 +98,12 @@ def _status_line(st: Any, done: int, total: int) -> str:
     return f"[{done}/{total}] {st.name}: {st.status}"
 
 
-def _single_line(res: Any) -> str:
+def _single_line(res: Any, shown: str) -> str:
     (st,) = res.scans
     if st.status == "skipped":
-        return (f"scan {st.name!r} in {res.archive} is unchanged (same source, pose and parameters); "
+        return (f"scan {st.name!r} in {shown} is unchanged (same source, pose and parameters); "
                 "nothing to do (pass --force to rebuild it)")
-    return (f"added scan {st.name!r} ({st.n_points} points, {st.encoding} coordinates) to {res.archive} "
+    return (f"added scan {st.name!r} ({st.n_points} points, {st.encoding} coordinates) to {shown} "
             f"in {res.seconds:.1f} s; the archive holds {res.archive_scans} scan(s)")
 
 
@@ -145,5 +145,5 @@ def run(args: argparse.Namespace) -> int:
                             crs_override=args.crs_override, progress=progress, on_status=on_status,
                             **options, **features)
     single = len(res.scans) == 1
-    emit(args, res.to_json(), lambda: _single_line(res) if single else res.describe())
+    emit(args, res.to_json(), lambda: _single_line(res, args.output) if single else res.describe(args.output))
     return 1 if res.failed else 0

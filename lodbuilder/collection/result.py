@@ -108,14 +108,16 @@ class BuildResult:
         doc["scans"] = [s.to_json() for s in self.scans]
         return doc
 
-    def describe(self) -> str:
-        """The one summary line the command line prints."""
+    def describe(self, shown: str | None = None) -> str:
+        """The one summary line the command line prints; ``shown``: the archive's name as the user
+        gave it (default: the resolved path)."""
+        archive = self.archive if shown is None else shown
         counts = self.counts()
         parts = [f"{counts[k]} {k}" for k in STATUSES if counts.get(k)]
         where = f" on {self.executor}" if self.executor else ""
         if not self.archive_exists:
-            return f"{', '.join(parts)} scan(s); no archive written ({self.archive} does not exist)"
-        return (f"{', '.join(parts)} scan(s) into {self.archive}{where} in {self.seconds:.1f} s; "
+            return f"{', '.join(parts)} scan(s); no archive written ({archive} does not exist)"
+        return (f"{', '.join(parts)} scan(s) into {archive}{where} in {self.seconds:.1f} s; "
                 f"the archive holds {self.archive_scans} scan(s)")
 
 
