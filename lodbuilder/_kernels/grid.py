@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import INLINE, JIT
+from . import JIT
 
 MAX_COORD = (1 << 21) - 1  # per axis
 
@@ -27,7 +27,7 @@ _M5 = np.uint64(0x1249249249249249)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _split3(x):  # pragma: no cover - compiled
     x = np.uint64(x) & _M0
     x = (x | (x << np.uint64(32))) & _M1
@@ -38,7 +38,7 @@ def _split3(x):  # pragma: no cover - compiled
     return x
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _compact3(x):  # pragma: no cover - compiled
     x = x & _M5
     x = (x ^ (x >> np.uint64(2))) & _M4
@@ -49,18 +49,18 @@ def _compact3(x):  # pragma: no cover - compiled
     return np.int64(x)
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def morton(x, y, z):  # pragma: no cover - compiled
     return np.int64(_split3(x) | (_split3(y) << np.uint64(1)) | (_split3(z) << np.uint64(2)))
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def unmorton(key):  # pragma: no cover - compiled
     k = np.uint64(key)
     return _compact3(k), _compact3(k >> np.uint64(1)), _compact3(k >> np.uint64(2))
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
