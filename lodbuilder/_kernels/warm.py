@@ -2,8 +2,10 @@
 
 The kernels compile on first use and numba caches them (``cache=True``; in ``__pycache__`` beside
 this package, or in ``NUMBA_CACHE_DIR``). A cold cache costs seconds, so when it is cold the engine
-compiles the ordering kernels in a child process while this process compiles the band kernels
-(two cores do it in about half the time), and says so through the progress callback.
+compiles the marching kernel (``grid_phase`` with the march and its heaps: about half of the
+compile time) in a child process while this process compiles all the others (two cores do it in
+about half the time), and says so through the progress callback. The tail's kernels come last
+here: the helpers they share with the march (heaps, cell keys) are in the cache by then.
 
 Every kernel is compiled for one signature: the dtypes the engine passes are fixed, and the
 prototypes below are those dtypes (a test checks that an ordering compiles nothing else).
@@ -20,6 +22,7 @@ from typing import Any
 import numpy as np
 
 MESSAGE = "compiling kernels, first run only"
+_WARM = False  # every kernel is known to be compiled or cached (in this process)
 
 _F64_2 = np.empty((0, 3))
 _F32_2 = np.empty((0, 3), np.float32)
@@ -35,25 +38,25 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     """Per group, per kernel (module.name): example arguments of the engine's call."""
     i, f, b = np.int64(0), 0.5, True
     return {
-        "band": {
+        "band": {  # this process, in this order
             "grid.cell_order": (_F64_2, _F64, f),
             "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
+            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
             "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
-            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
             "grid.neighbour_table": (_I64,),
             "topology.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
-            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
-        },
-        "ordering": {
-            "march.grid_phase": (
-                _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b,
-            ),
+            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
             "topology.point_components": (_I32_2, _I32, _U8, _F32),
             "grid.coarse_runs": (_I64, _I32, i),
             "tail.euclid_tail": (
                 _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
                 _F64, _I32, _I32, _I32, _F64, _I32, i, i, f,
+            ),
+        },
+        "ordering": {  # the child process
+            "march.grid_phase": (
+                _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b,
             ),
         },
     }
@@ -94,7 +97,7 @@ def is_cold() -> bool:
 
 
 def start_ordering_compile() -> subprocess.Popen | None:
-    """Compile the ordering kernels in a child process (into numba's cache); None if it cannot start."""
+    """Compile the marching kernel in a child process (into numba's cache); None if it cannot start."""
     root = str(Path(__file__).resolve().parents[2])
     code = (
         f"import sys; sys.path.insert(0, {root!r}); "
@@ -115,9 +118,13 @@ def start_ordering_compile() -> subprocess.Popen | None:
 def ensure_compiled(progress: Any = None) -> bool:
     """Compile the engine's kernels if the cache is cold (both groups at once, on two processes),
     reporting MESSAGE as the progress stage meanwhile. Returns whether anything was compiled."""
+    global _WARM
     from ..progress import report
 
+    if _WARM:
+        return False
     if not is_cold():
+        _WARM = True  # checked once per process: the check reads every kernel's cache index
         return False
     report(progress, MESSAGE, 0, 1)
     child = start_ordering_compile()
@@ -126,4 +133,5 @@ def ensure_compiled(progress: Any = None) -> bool:
         child.wait()
     compile_group("ordering")  # loads what the child cached (or compiles it, if the child failed)
     report(progress, MESSAGE, 1, 1)
+    _WARM = True
     return True
