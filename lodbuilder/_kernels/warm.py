@@ -5,7 +5,8 @@ this package, or in ``NUMBA_CACHE_DIR``). A cold cache costs seconds, so when it
 compiles the marching kernel (``grid_phase`` with the march and its heaps: about half of the
 compile time) in a child process while this process compiles all the others (two cores do it in
 about half the time), and says so through the progress callback. The tail's kernels come last
-here: the helpers they share with the march (heaps, cell keys) are in the cache by then.
+here: the helpers they share with the march (heaps, cell keys) are in the cache by then. The two
+kernels of the one-sided band (thin parts only) compile when first used.
 
 Every kernel is compiled for one signature: the dtypes the engine passes are fixed, and the
 prototypes below are those dtypes (a test checks that an ordering compiles nothing else).
@@ -46,13 +47,15 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
             "grid.neighbour_table": (_I64,),
             "topology.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
-            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
-            "topology.point_components": (_I32_2, _I32, _U8, _F32),
             "grid.coarse_runs": (_I64, _I32, i),
             "tail.euclid_tail": (
                 _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
                 _F64, _I32, _I32, _I32, _F64, _I32, i, i, f,
             ),
+        },
+        "thin": {  # only scans with thin parts use these: compiled on first use (about 0.5 s)
+            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
+            "topology.point_components": (_I32_2, _I32, _U8, _F32),
         },
         "ordering": {  # the child process
             "march.grid_phase": (
@@ -96,8 +99,27 @@ def is_cold() -> bool:
     return False
 
 
+def _child_helps() -> bool:
+    """Whether a second process would compile on a free core: at least two cores for this process
+    and a load average below their count minus one. On a busy machine the child only competes
+    with this process and adds its own start-up and the helpers both compile (about 2 s of CPU).
+    ``LODBUILDER_COMPILE_CHILD=0`` or ``1`` decides instead (benchmarks)."""
+    forced = os.environ.get("LODBUILDER_COMPILE_CHILD", "")
+    if forced in ("0", "1"):
+        return forced == "1"
+    try:
+        cores = len(os.sched_getaffinity(0))
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        cores, load = os.cpu_count() or 1, 0.0
+    return cores >= 2 and load <= cores - 1
+
+
 def start_ordering_compile() -> subprocess.Popen | None:
-    """Compile the marching kernel in a child process (into numba's cache); None if it cannot start."""
+    """Compile the marching kernel in a child process (into numba's cache); None if it cannot start
+    or would not help (see :func:`_child_helps`)."""
+    if not _child_helps():
+        return None
     root = str(Path(__file__).resolve().parents[2])
     code = (
         f"import sys; sys.path.insert(0, {root!r}); "
@@ -116,8 +138,9 @@ def start_ordering_compile() -> subprocess.Popen | None:
 
 
 def ensure_compiled(progress: Any = None) -> bool:
-    """Compile the engine's kernels if the cache is cold (both groups at once, on two processes),
-    reporting MESSAGE as the progress stage meanwhile. Returns whether anything was compiled."""
+    """Compile the engine's kernels if the cache is cold (the two groups at once on two processes
+    when a core is free, else one after the other here), reporting MESSAGE as the progress stage
+    meanwhile. Returns whether anything was compiled."""
     global _WARM
     from ..progress import report
 
