@@ -546,6 +546,20 @@ def test_the_compile_child_runs_only_when_a_core_is_free(monkeypatch):
     assert not warm._child_helps()
 
 
+def test_small_orderings_do_not_trim_the_heap(rng, monkeypatch):
+    # malloc_trim walks the heap and the next phase faults the pages in again: a fixed cost that
+    # only pays off when the phases free hundreds of MB
+    import lodbuilder.sampling.fastfps as F
+
+    calls = []
+    monkeypatch.setattr(F, "_LIBC", lambda pad: calls.append(pad))
+    fastfps(sphere(500, rng))
+    assert calls == []
+    F.release_freed_memory(F.TRIM_MIN_POINTS)
+    F.release_freed_memory()
+    assert calls == [0, 0]
+
+
 def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):
     from lodbuilder.cli.progressbar import ProgressBars
 
