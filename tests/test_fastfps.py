@@ -560,6 +560,24 @@ def test_small_orderings_do_not_trim_the_heap(rng, monkeypatch):
     assert calls == [0, 0]
 
 
+def test_compiling_collects_garbage_less_often_and_restores_the_collector(monkeypatch):
+    # numba's compiler makes millions of objects: the collector runs every 10,000 allocations
+    # (not 700) over the objects made since, while compiling only
+    import gc
+
+    from lodbuilder._kernels import warm
+
+    before = gc.get_threshold(), gc.get_freeze_count()
+    seen = []
+    monkeypatch.setattr(warm, "signatures", lambda group: {"grid.cell_order": None})
+    monkeypatch.setattr(warm, "_dispatcher", lambda name: type("D", (), {
+        "compile": staticmethod(lambda sig: seen.append((gc.get_threshold(), gc.get_freeze_count())))
+    }))
+    warm.compile_group("band")
+    assert seen[0][0] == (10_000, 10, 10) and seen[0][1] > 0
+    assert (gc.get_threshold(), gc.get_freeze_count()) == before
+
+
 def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):
     from lodbuilder.cli.progressbar import ProgressBars
 
