@@ -10,3 +10,8 @@ JIT: dict[str, Any] = dict(cache=True, nogil=True)  # one place for JIT options;
 # and its passes (type inference, SSA) grow faster than linearly with a function's size, so it cost
 # more first-run compile time than it saved; LLVM still inlines the small helpers when it links them.
 # For the same reason the large loops are split into a few functions of moderate size.
+# ... except the few small helpers that take arrays and run in hot loops (hash probes, binary
+# searches, heap operations): a call passes its arrays with atomic reference counting (increments
+# and decrements that LLVM cannot remove even after it inlines the helper); copied into the caller
+# at numba's IR level they cost none
+INLINE: dict[str, Any] = dict(JIT, inline="always")

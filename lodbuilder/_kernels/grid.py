@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 
 MAX_COORD = (1 << 21) - 1  # per axis
 
@@ -65,7 +65,7 @@ def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def hash_find(hidx, keys, key):  # pragma: no cover - compiled
     """Index i with keys[i] == key in the index hash ``hidx`` (int32 slots, -1 empty), or -1."""
     mask = hidx.shape[0] - 1
@@ -79,7 +79,7 @@ def hash_find(hidx, keys, key):  # pragma: no cover - compiled
         s = (s + 1) & mask
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def lower_bound(arr, key):  # pragma: no cover - compiled
     """The first index i with arr[i] >= key in the sorted ``arr`` (written out: one compiled
     version for every caller, where np.searchsorted compiles one per argument type)."""
@@ -194,8 +194,9 @@ def band_voxels(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma
         x0 = bx * BLOCK
         y0 = by * BLOCK
         z0 = bz * BLOCK
-        dq[:] = np.inf
-        dc[:] = 0
+        for li in range(nb3):  # (not dq[:] = ...: a slice is a view, reference counted per block)
+            dq[li] = np.inf
+            dc[li] = 0
         touched = False
         for dx in range(-reach_blocks, reach_blocks + 1):
             for dy in range(-reach_blocks, reach_blocks + 1):
