@@ -479,7 +479,7 @@ def test_every_kernel_is_compiled_for_one_signature_only(rng):
     fastfps(sphere(3000, rng))
     fastfps(sphere(3000, rng), cost=rng.uniform(0.2, 1.0, 3000))
     fastfps(folded_sheet(20000, seed=1, gap=0.05)[0])
-    for group in ("band", "ordering"):
+    for group in ("band", "ordering", "thin"):
         for name, sig in signatures(group).items():
             assert _dispatcher(name).signatures == [sig], name
 
@@ -506,6 +506,76 @@ def test_a_cold_cache_is_compiled_with_a_message(tmp_path):
     assert first.stdout.strip() == "True compiling kernels, first run only"
     second = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert second.stdout.strip() == "False band"
+
+
+def test_the_cold_cache_check_runs_once_per_process(rng, monkeypatch):
+    # the check reads every kernel's cache index: once known warm, later orderings skip it
+    from lodbuilder._kernels import warm
+
+    fastfps(sphere(300, rng))
+    assert warm._WARM
+
+    def fail() -> bool:
+        raise AssertionError("is_cold called again")
+
+    monkeypatch.setattr(warm, "is_cold", fail)
+    assert fastfps(sphere(300, rng)).stats["compiled_kernels"] is False
+
+
+def test_the_compile_child_runs_only_when_a_core_is_free(monkeypatch):
+    # on a busy machine a second compiling process only competes with this one (and costs its own
+    # start-up and the helpers both compile): compile here instead
+    import os
+
+    from lodbuilder._kernels import warm
+
+    monkeypatch.delenv("LODBUILDER_COMPILE_CHILD", raising=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.4, 0.4, 0.4))
+    assert warm._child_helps()
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.6, 0.4, 0.4))
+    assert not warm._child_helps()
+    assert warm.start_ordering_compile() is None
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    assert not warm._child_helps()
+    monkeypatch.setenv("LODBUILDER_COMPILE_CHILD", "1")
+    assert warm._child_helps()
+    monkeypatch.setenv("LODBUILDER_COMPILE_CHILD", "0")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert not warm._child_helps()
+
+
+def test_small_orderings_do_not_trim_the_heap(rng, monkeypatch):
+    # malloc_trim walks the heap and the next phase faults the pages in again: a fixed cost that
+    # only pays off when the phases free hundreds of MB
+    import lodbuilder.sampling.fastfps as F
+
+    calls = []
+    monkeypatch.setattr(F, "_LIBC", lambda pad: calls.append(pad))
+    fastfps(sphere(500, rng))
+    assert calls == []
+    F.release_freed_memory(F.TRIM_MIN_POINTS)
+    F.release_freed_memory()
+    assert calls == [0, 0]
+
+
+def test_compiling_collects_garbage_less_often_and_restores_the_collector(monkeypatch):
+    # numba's compiler makes millions of objects: the collector runs every 10,000 allocations
+    # (not 700) over the objects made since, while compiling only
+    import gc
+
+    from lodbuilder._kernels import warm
+
+    before = gc.get_threshold(), gc.get_freeze_count()
+    seen = []
+    monkeypatch.setattr(warm, "signatures", lambda group: {"grid.cell_order": None})
+    monkeypatch.setattr(warm, "_dispatcher", lambda name: type("D", (), {
+        "compile": staticmethod(lambda sig: seen.append((gc.get_threshold(), gc.get_freeze_count())))
+    }))
+    warm.compile_group("band")
+    assert seen[0][0] == (10_000, 10, 10) and seen[0][1] > 0
+    assert (gc.get_threshold(), gc.get_freeze_count()) == before
 
 
 def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):

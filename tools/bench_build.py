@@ -13,8 +13,9 @@ Optional sections:
                              source tree (e.g. an older checkout) the ratio new / baseline
   --cli-rss                  peak RSS of ``lodbuilder build`` on a 1M-point sheet written as a PLY
                              file (whole process), with the RSS before the engine and its own peak
-  --cold                     ``lodbuilder demo`` with an empty numba cache (first-run compile),
-                             then again with the filled cache
+  --cold [--repeat K]        ``lodbuilder demo`` with an empty numba cache (first-run compile),
+                             then again with the filled cache (this tree and the baseline
+                             alternating, medians of K runs)
 
     python tools/bench_build.py                      # 100k, 1M, 4M, bunny
     python tools/bench_build.py --sizes 100000 --no-bunny --no-fpsample
@@ -211,20 +212,36 @@ def cli_rss(n: int, tree: str) -> dict:
     }
 
 
-def cold_start(tree: str) -> dict:
-    """``lodbuilder demo`` (source ``tree``) with an empty numba cache, then with the cache it filled."""
+def cold_start(trees: dict[str, str], repeat: int) -> dict:
+    """``lodbuilder demo`` of each source tree with an empty numba cache, then with the cache it
+    filled: the trees alternate, ``repeat`` times; medians and every run (wall and CPU seconds of
+    the demo process and its children, the load average before each run). The first-run compile
+    uses a child process only when a core is free (see lodbuilder/_kernels/warm.py)."""
+    import statistics
     import tempfile
 
-    out = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        env = dict(os.environ, PYTHONPATH=tree, NUMBA_CACHE_DIR=str(Path(tmp) / "numba"))
-        for label in ("cold_s", "warm_s"):
-            t = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", "demo", "-o",
-                            str(Path(tmp) / label), "--no-progress"], env=env, cwd=tree,
-                           check=True, capture_output=True)
-            out[label] = time.perf_counter() - t
-    return out
+    runs: dict = {name: {"cold_s": [], "warm_s": [], "cold_cpu_s": [], "warm_cpu_s": [], "load1": []} for name in trees}
+
+    def cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return r.ru_utime + r.ru_stime
+
+    for _ in range(repeat):
+        for name, tree in trees.items():
+            with tempfile.TemporaryDirectory() as tmp:
+                env = dict(os.environ, PYTHONPATH=tree, NUMBA_CACHE_DIR=str(Path(tmp) / "numba"))
+                runs[name]["load1"].append(os.getloadavg()[0])
+                for label in ("cold", "warm"):
+                    t, c = time.perf_counter(), cpu()
+                    subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", "demo", "-o",
+                                    str(Path(tmp) / label), "--no-progress"], env=env, cwd=tree,
+                                   check=True, capture_output=True)
+                    runs[name][f"{label}_s"].append(time.perf_counter() - t)
+                    runs[name][f"{label}_cpu_s"].append(cpu() - c)
+    return {
+        name: {k: statistics.median(v) for k, v in r.items() if k != "load1"} | {"runs": r}
+        for name, r in runs.items()
+    }
 
 
 def main() -> None:
@@ -238,7 +255,8 @@ def main() -> None:
     )
     ap.add_argument("--real", action="store_true", help="time every real scan in ../shared/data")
     ap.add_argument("--baseline", help="with --real: a source tree to compare with (its PYTHONPATH)")
-    ap.add_argument("--repeat", type=int, default=2, help="with --real: best of this many runs")
+    ap.add_argument("--repeat", type=int, default=2,
+                    help="with --real: best of this many runs; with --cold: median of this many")
     ap.add_argument("--cli-rss", action="store_true", help="peak RSS of lodbuilder build on 1M points")
     ap.add_argument("--cold", action="store_true", help="first-run compile time of lodbuilder demo")
     ap.add_argument("--markdown", help="also write the 'build' section of this markdown file")
@@ -286,7 +304,7 @@ def main() -> None:
         report["cli_build_rss"] = {name: cli_rss(1_000_000, tree) for name, tree in trees.items()}
         print(json.dumps(report["cli_build_rss"]), file=sys.stderr)
     if args.cold:
-        report["cold_start_demo"] = {name: cold_start(tree) for name, tree in trees.items()}
+        report["cold_start_demo"] = cold_start(trees, args.repeat)
         print(json.dumps(report["cold_start_demo"]), file=sys.stderr)
     by_n = {r["n"]: r for r in results if r["input"].startswith("range")}
     for n in by_n:
@@ -354,7 +372,8 @@ def markdown(report: dict) -> str:
         lines += [
             "",
             f"`lodbuilder demo` with an empty numba cache ({name}): {r['cold_s']:.1f} s; "
-            f"with the cache it filled: {r['warm_s']:.1f} s.",
+            f"with the cache it filled: {r['warm_s']:.1f} s"
+            + (f" (medians of {len(r['runs']['cold_s'])} runs, trees alternating)." if "runs" in r else "."),
         ]
     return "\n".join(lines) + "\n"
 

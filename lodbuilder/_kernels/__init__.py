@@ -6,7 +6,12 @@ Importing this package imports numba; ``import lodbuilder`` never does.
 from typing import Any
 
 JIT: dict[str, Any] = dict(cache=True, nogil=True)  # one place for JIT options; no fastmath: kernels rely on inf
-# small scalar helpers are inlined into their callers at numba's IR level: each separately compiled
-# function costs a fixed part of the first-run compile time (helpers that take arrays stay separate:
-# inlined they bring atomic reference counting into the hot loops)
+# No inline="always" on the helpers: numba's IR-level inlining copies a helper into every call site
+# and its passes (type inference, SSA) grow faster than linearly with a function's size, so it cost
+# more first-run compile time than it saved; LLVM still inlines the small helpers when it links them.
+# For the same reason the large loops are split into a few functions of moderate size.
+# ... except the few small helpers that take arrays and run in hot loops (hash probes, binary
+# searches, heap operations): a call passes its arrays with atomic reference counting (increments
+# and decrements that LLVM cannot remove even after it inlines the helper); copied into the caller
+# at numba's IR level they cost none
 INLINE: dict[str, Any] = dict(JIT, inline="always")

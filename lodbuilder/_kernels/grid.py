@@ -27,7 +27,7 @@ _M5 = np.uint64(0x1249249249249249)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _split3(x):  # pragma: no cover - compiled
     x = np.uint64(x) & _M0
     x = (x | (x << np.uint64(32))) & _M1
@@ -38,7 +38,7 @@ def _split3(x):  # pragma: no cover - compiled
     return x
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _compact3(x):  # pragma: no cover - compiled
     x = x & _M5
     x = (x ^ (x >> np.uint64(2))) & _M4
@@ -49,23 +49,23 @@ def _compact3(x):  # pragma: no cover - compiled
     return np.int64(x)
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def morton(x, y, z):  # pragma: no cover - compiled
     return np.int64(_split3(x) | (_split3(y) << np.uint64(1)) | (_split3(z) << np.uint64(2)))
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def unmorton(key):  # pragma: no cover - compiled
     k = np.uint64(key)
     return _compact3(k), _compact3(k >> np.uint64(1)), _compact3(k >> np.uint64(2))
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _slot(key, mask):  # pragma: no cover - compiled
     return np.int64((np.uint64(key) * _GOLD) >> np.uint64(20)) & mask
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def hash_find(hidx, keys, key):  # pragma: no cover - compiled
     """Index i with keys[i] == key in the index hash ``hidx`` (int32 slots, -1 empty), or -1."""
     mask = hidx.shape[0] - 1
@@ -79,7 +79,7 @@ def hash_find(hidx, keys, key):  # pragma: no cover - compiled
         s = (s + 1) & mask
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def lower_bound(arr, key):  # pragma: no cover - compiled
     """The first index i with arr[i] >= key in the sorted ``arr`` (written out: one compiled
     version for every caller, where np.searchsorted compiles one per argument type)."""
@@ -194,8 +194,9 @@ def band_voxels(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma
         x0 = bx * BLOCK
         y0 = by * BLOCK
         z0 = bz * BLOCK
-        dq[:] = np.inf
-        dc[:] = 0
+        for li in range(nb3):  # (not dq[:] = ...: a slice is a view, reference counted per block)
+            dq[li] = np.inf
+            dc[li] = 0
         touched = False
         for dx in range(-reach_blocks, reach_blocks + 1):
             for dy in range(-reach_blocks, reach_blocks + 1):

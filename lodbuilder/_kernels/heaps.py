@@ -10,10 +10,10 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def maxheap_sift_down(hkey, heap, pos, i, n):  # pragma: no cover - compiled
     """Restore the max-heap below position i (after the key there decreased).
 
@@ -53,7 +53,7 @@ def maxheap_build(hkey, heap, pos, n):  # pragma: no cover - compiled
         maxheap_sift_down(hkey, heap, pos, np.int64(i), n)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def maxheap_decrease(hkey, heap, pos, item, key, n):  # pragma: no cover - compiled
     """Lower the key of ``item`` (if it is still in the heap) to ``key``."""
     i = np.int64(pos[item])
@@ -62,7 +62,7 @@ def maxheap_decrease(hkey, heap, pos, item, key, n):  # pragma: no cover - compi
         maxheap_sift_down(hkey, heap, pos, i, n)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
     """Remove the top item; returns the new size."""
     pos[heap[0]] = -1
@@ -75,7 +75,7 @@ def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
     return n
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
     """Insert ``item`` into an indexed min-heap, or lower its key if it is already there.
 
@@ -101,7 +101,7 @@ def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
     return n
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def iheap_pop(hk, hv, hpos, n):  # pragma: no cover - compiled
     """Pop the smallest entry of an indexed min-heap; returns (key, item, n - 1)."""
     key = hk[0]

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import INLINE, JIT
+from . import JIT
 from .grid import unmorton
 from .heaps import (
     check_maxheap,
@@ -57,7 +57,7 @@ CUBE = 2 * HALF + 1
 NBUCKET = 8 * (HALF + 1) * 2  # eighths of a voxel up to beyond the ball's reach
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     """Upwind solution of |grad T| = f from the three axes' (first, second) upwind values.
 
@@ -115,13 +115,13 @@ def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     return (s + np.sqrt(max(s * s - 3.0 * (q - ff), 0.0))) / 3.0
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _norm(dx, dy, dz):  # pragma: no cover - compiled
     # helpers take scalars only: an array argument in a hot loop costs atomic reference counting
     return np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: no cover - compiled
     """Whether the chord (cx, cy, cz) of length c between two points of thin parts (separations
     sa, sb; unit normals a, b, zero when unknown) is a fair surface distance."""
@@ -132,9 +132,181 @@ def _chord_ok(cx, cy, cz, c, sa, sb, ax, ay, az, bx, by, bz, slope):  # pragma: 
 
 
 @nb.njit(**JIT)
+def seed_scratch():  # pragma: no cover - compiled
+    """Work arrays of the seeding, allocated once per ordering (not once per sample)."""
+    return (
+        np.empty(SEED_QUEUE, np.int32),
+        np.empty(SEED_QUEUE, np.int64),
+        np.empty(SEED_QUEUE, np.int64),
+        np.empty(SEED_QUEUE, np.int64),
+        np.empty(SEED_QUEUE, np.float64),
+        np.full(CUBE * CUBE * CUBE, -1, np.int32),  # ball-local index of the voxels near v0
+        np.zeros(SEED_QUEUE, np.bool_),
+        np.empty(SEED_QUEUE, np.int32),
+        np.zeros(NBUCKET, np.int64),
+    )
+
+
+@nb.njit(**JIT)
+def _seed_sample(
+    i, lb, mark, rnd, acc, u, keys, nbr, cs, cellof, vcost, pcost, weighted, foot, pnrm, slope, thin,
+    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, n, scratch,
+):  # pragma: no cover - compiled
+    """Seed the front of sample ``i`` (label ``lb``): exact distances in the ball of SEED_RADIUS
+    around it (see the module docstring); returns the front heap's new size and the dirty count."""
+    qv, qx, qy, qz, qd, cube, vis, srt, nbk = scratch
+    ci = 1.0
+    if weighted:
+        ci = pcost[i]
+    # the sample's nearest voxel: a corner of its cell (all corners are voxels)
+    a = anchor_of(cs, np.int64(i))
+    v0 = a
+    for ax in range(3):
+        if u[i, ax] - np.floor(u[i, ax]) >= 0.5 and v0 >= 0:
+            v0 = nbr[v0, 2 * ax + 1]
+    if v0 < 0 or vcost[v0] == np.inf:
+        v0 = -1  # not marchable: take the first marchable corner
+        for c in range(8):
+            w = a
+            for ax in range(3):
+                if (c >> ax) & 1 and w >= 0:
+                    w = nbr[w, 2 * ax + 1]
+            if w >= 0 and vcost[w] < np.inf:
+                v0 = w
+                break
+    if v0 < 0:
+        return n, nd
+    x0, y0, z0 = unmorton(keys[v0])
+    # the sample relative to v0 (all ball coordinates below are relative to v0)
+    sx = u[i, 0] - x0
+    sy = u[i, 1] - y0
+    sz = u[i, 2] - z0
+    # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
+    # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken; a
+    # neighbour's coordinates are its voxel's plus one step, no decoding)
+    cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
+    qv[0] = v0
+    qx[0] = 0
+    qy[0] = 0
+    qz[0] = 0
+    qn = 1
+    qi = 0
+    while qi < qn:
+        v = qv[qi]
+        vx, vy, vz = qx[qi], qy[qi], qz[qi]
+        qi += 1
+        for j in range(6):
+            w = nbr[v, j]
+            if w < 0 or qn == SEED_QUEUE or vcost[w] == np.inf:
+                continue
+            step = 2 * (j & 1) - 1
+            x = vx + step if j < 2 else vx
+            y = vy + step if (j >> 1) == 1 else vy
+            z = vz + step if j >= 4 else vz
+            cw = (x + HALF) + CUBE * ((y + HALF) + CUBE * (z + HALF))
+            if cube[cw] >= 0:
+                continue
+            if _norm(sx - x, sy - y, sz - z) <= SEED_RADIUS:
+                cube[cw] = qn
+                qv[qn] = w
+                qx[qn] = x
+                qy[qn] = y
+                qz[qn] = z
+                qn += 1
+    # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
+    # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
+    # then stays in the band (no exact distance across a gap or through the inside of a fold)
+    # (a counting sort in steps of 1/8 voxel: the step back is at least 0.13 nearer, so it
+    # always falls in an earlier bucket)
+    nbk[:] = 0
+    for q in range(qn):
+        qd[q] = _norm(np.float64(qx[q]), np.float64(qy[q]), np.float64(qz[q]))
+        nbk[int(qd[q] * 8.0) + 1] += 1
+    for b in range(1, NBUCKET):
+        nbk[b] += nbk[b - 1]
+    for q in range(qn):
+        b = int(qd[q] * 8.0)
+        srt[nbk[b]] = q
+        nbk[b] += 1
+    for t in range(qn):
+        q = srt[t]
+        v = qv[q]
+        x, y, z = qx[q], qy[q], qz[q]
+        if q == 0:
+            ok = True
+        else:
+            # one step back toward v0 (the sample itself may lie just outside a one-sided band)
+            d = qd[q]
+            bx = int(np.floor(x - x / d + 0.5))
+            by = int(np.floor(y - y / d + 0.5))
+            bz = int(np.floor(z - z / d + 0.5))
+            pq = cube[(bx + HALF) + CUBE * ((by + HALF) + CUBE * (bz + HALF))]
+            ok = pq >= 0 and pq != q and vis[pq]
+        if ok and thin:
+            f = foot[v]
+            ok = _chord_ok(
+                u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
+                _norm(u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2]), np.float32(np.inf),
+                np.float32(np.inf),
+                pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+            )
+        vis[q] = ok
+        if not ok:
+            continue
+        t_ = np.float32(_norm(sx - x, sy - y, sz - z) * 0.5 * (ci + vcost[v]))
+        if t_ < T[v]:
+            T[v] = t_
+            vlab[v] = lb
+            stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
+            n = iheap_push(hk, hv, hpos, n, t_, v)
+        # the points of the 8 cells that have v as a corner get their exact distance (each
+        # cell once per sample)
+        wx = nbr[v, 0]
+        for a_ in range(2):
+            wa = v if a_ == 0 else wx
+            if wa < 0:
+                continue
+            for b_ in range(2):
+                wb = wa if b_ == 0 else nbr[wa, 2]
+                if wb < 0:
+                    continue
+                for c_ in range(2):
+                    w = wb if c_ == 0 else nbr[wb, 4]
+                    if w < 0:
+                        continue
+                    cell = cellof[w]
+                    if cell < 0 or cmark[cell] == mark:
+                        continue
+                    cmark[cell] = mark
+                    for p in range(cs[w], cs[w + 1]):
+                        if rank[p] >= 0:
+                            continue
+                        e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                        if thin and not _chord_ok(
+                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
+                            np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
+                            pnrm[i, 2], slope,
+                        ):
+                            continue
+                        if weighted:
+                            e *= 0.5 * (pcost[p] + ci)
+                        if e < dq[p]:
+                            dq[p] = e
+                            lq[p] = lb
+                            if dstamp[cell] != rnd:
+                                dstamp[cell] = rnd
+                                dirty[nd] = cell
+                                nd += 1
+    for q in range(qn):
+        cube[(qx[q] + HALF) + CUBE * ((qy[q] + HALF) + CUBE * (qz[q] + HALF))] = -1
+        vis[q] = False
+    return n, nd
+
+
+@nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, debug,
+    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, scratch, debug,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
@@ -148,163 +320,12 @@ def march_round(
     acc = np.int32(2 * rnd + 1)
     thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
     n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
-    qv = np.empty(SEED_QUEUE, np.int32)
-    qx = np.empty(SEED_QUEUE, np.int64)
-    qy = np.empty(SEED_QUEUE, np.int64)
-    qz = np.empty(SEED_QUEUE, np.int64)
-    qd = np.empty(SEED_QUEUE, np.float64)
-    cube = np.full(CUBE * CUBE * CUBE, -1, np.int32)  # ball-local index of the voxels near v0
-    vis = np.zeros(SEED_QUEUE, np.bool_)
-    srt = np.empty(SEED_QUEUE, np.int32)
-    nbk = np.zeros(NBUCKET, np.int64)
     for s in range(src.shape[0]):
-        i = src[s]
-        ci = 1.0
-        if weighted:
-            ci = pcost[i]
-        # the sample's nearest voxel: a corner of its cell (all corners are voxels)
-        a = anchor_of(cs, np.int64(i))
-        v0 = a
-        for ax in range(3):
-            if u[i, ax] - np.floor(u[i, ax]) >= 0.5 and v0 >= 0:
-                v0 = nbr[v0, 2 * ax + 1]
-        if v0 < 0 or vcost[v0] == np.inf:
-            v0 = -1  # not marchable: take the first marchable corner
-            for c in range(8):
-                w = a
-                for ax in range(3):
-                    if (c >> ax) & 1 and w >= 0:
-                        w = nbr[w, 2 * ax + 1]
-                if w >= 0 and vcost[w] < np.inf:
-                    v0 = w
-                    break
-        if v0 < 0:
-            continue
-        x0, y0, z0 = unmorton(keys[v0])
-        # the sample relative to v0 (all ball coordinates below are relative to v0)
-        sx = u[i, 0] - x0
-        sy = u[i, 1] - y0
-        sz = u[i, 2] - z0
-        mark = np.int32(rnd * src.shape[0] + s)
-        # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
-        # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken; a
-        # neighbour's coordinates are its voxel's plus one step, no decoding)
-        cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
-        qv[0] = v0
-        qx[0] = 0
-        qy[0] = 0
-        qz[0] = 0
-        qn = 1
-        qi = 0
-        while qi < qn:
-            v = qv[qi]
-            vx, vy, vz = qx[qi], qy[qi], qz[qi]
-            qi += 1
-            for j in range(6):
-                w = nbr[v, j]
-                if w < 0 or qn == SEED_QUEUE or vcost[w] == np.inf:
-                    continue
-                step = 2 * (j & 1) - 1
-                x = vx + step if j < 2 else vx
-                y = vy + step if (j >> 1) == 1 else vy
-                z = vz + step if j >= 4 else vz
-                cw = (x + HALF) + CUBE * ((y + HALF) + CUBE * (z + HALF))
-                if cube[cw] >= 0:
-                    continue
-                if _norm(sx - x, sy - y, sz - z) <= SEED_RADIUS:
-                    cube[cw] = qn
-                    qv[qn] = w
-                    qx[qn] = x
-                    qy[qn] = y
-                    qz[qn] = z
-                    qn += 1
-        # line of sight: in order of distance from v0, a voxel sees the sample when the voxel one
-        # step back toward v0 (strictly nearer v0, so already decided) does: the straight segment
-        # then stays in the band (no exact distance across a gap or through the inside of a fold)
-        # (a counting sort in steps of 1/8 voxel: the step back is at least 0.13 nearer, so it
-        # always falls in an earlier bucket)
-        nbk[:] = 0
-        for q in range(qn):
-            qd[q] = _norm(np.float64(qx[q]), np.float64(qy[q]), np.float64(qz[q]))
-            nbk[int(qd[q] * 8.0) + 1] += 1
-        for b in range(1, NBUCKET):
-            nbk[b] += nbk[b - 1]
-        for q in range(qn):
-            b = int(qd[q] * 8.0)
-            srt[nbk[b]] = q
-            nbk[b] += 1
-        for t in range(qn):
-            q = srt[t]
-            v = qv[q]
-            x, y, z = qx[q], qy[q], qz[q]
-            if q == 0:
-                ok = True
-            else:
-                # one step back toward v0 (the sample itself may lie just outside a one-sided band)
-                d = qd[q]
-                bx = int(np.floor(x - x / d + 0.5))
-                by = int(np.floor(y - y / d + 0.5))
-                bz = int(np.floor(z - z / d + 0.5))
-                pq = cube[(bx + HALF) + CUBE * ((by + HALF) + CUBE * (bz + HALF))]
-                ok = pq >= 0 and pq != q and vis[pq]
-            if ok and thin:
-                f = foot[v]
-                ok = _chord_ok(
-                    u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
-                    _norm(u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2]), np.float32(np.inf),
-                    np.float32(np.inf),
-                    pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
-                )
-            vis[q] = ok
-            if not ok:
-                continue
-            t_ = np.float32(_norm(sx - x, sy - y, sz - z) * 0.5 * (ci + vcost[v]))
-            if t_ < T[v]:
-                T[v] = t_
-                vlab[v] = lab + s
-                stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
-                n = iheap_push(hk, hv, hpos, n, t_, v)
-            # the points of the 8 cells that have v as a corner get their exact distance (each
-            # cell once per sample)
-            wx = nbr[v, 0]
-            for a_ in range(2):
-                wa = v if a_ == 0 else wx
-                if wa < 0:
-                    continue
-                for b_ in range(2):
-                    wb = wa if b_ == 0 else nbr[wa, 2]
-                    if wb < 0:
-                        continue
-                    for c_ in range(2):
-                        w = wb if c_ == 0 else nbr[wb, 4]
-                        if w < 0:
-                            continue
-                        cell = cellof[w]
-                        if cell < 0 or cmark[cell] == mark:
-                            continue
-                        cmark[cell] = mark
-                        for p in range(cs[w], cs[w + 1]):
-                            if rank[p] >= 0:
-                                continue
-                            e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
-                            if thin and not _chord_ok(
-                                u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
-                                np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
-                                pnrm[i, 2], slope,
-                            ):
-                                continue
-                            if weighted:
-                                e *= 0.5 * (pcost[p] + ci)
-                            if e < dq[p]:
-                                dq[p] = e
-                                lq[p] = lab + s
-                                if dstamp[cell] != rnd:
-                                    dstamp[cell] = rnd
-                                    dirty[nd] = cell
-                                    nd += 1
-        for q in range(qn):
-            cube[(qx[q] + HALF) + CUBE * ((qy[q] + HALF) + CUBE * (qz[q] + HALF))] = -1
-            vis[q] = False
+        n, nd = _seed_sample(
+            np.int64(src[s]), np.int32(lab + s), np.int32(rnd * src.shape[0] + s), rnd, acc, u, keys, nbr, cs,
+            cellof, vcost, pcost, weighted, foot, pnrm, slope, thin, T, vlab, stamp, dq, lq, rank, dstamp,
+            cmark, dirty, nd, hk, hv, hpos, n, scratch,
+        )
     pops = 0
     while n > 0:
         if debug and not check_minheap(hk, hv, hpos, n):
@@ -487,6 +508,7 @@ def grid_phase(
     radius = np.empty(k_max, np.float64)
     parent = np.empty(k_max, np.int32)
     src = np.empty(1, np.int32)
+    scratch = seed_scratch()
     nd0 = np.int64(0)
     pops = 0
     k = 0
@@ -523,7 +545,7 @@ def grid_phase(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd0, hk, hv, hpos_v, debug,
+            T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd0, hk, hv, hpos_v, scratch, debug,
         )
         if pp < 0:
             return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
@@ -574,7 +596,7 @@ def multi_source_distance(
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
         dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
-        np.full(nv, -1, np.int32), False,
+        np.full(nv, -1, np.int32), seed_scratch(), False,
     )
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0

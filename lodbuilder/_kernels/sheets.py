@@ -18,13 +18,13 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import INLINE, JIT
+from . import JIT
 from .grid import hash_find, index_hash, morton
 
 PLANAR = 0.25  # a normal counts only where the smallest spread is under this x the middle one
 
 
-@nb.njit(**INLINE)
+@nb.njit(**JIT)
 def _smallest_axis(a, b, c, d, e, f):  # pragma: no cover - compiled
     """Unit eigenvector of the smallest eigenvalue of [[a, d, e], [d, b, f], [e, f, c]]."""
     p1 = d * d + e * e + f * f

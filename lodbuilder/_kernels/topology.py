@@ -7,7 +7,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 
 
 @nb.njit(**JIT)
@@ -81,7 +81,7 @@ def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
     return count + ncomp
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def anchor_of(cs, i):  # pragma: no cover - compiled
     """The voxel whose point range holds point i (cs is non-decreasing): the last v with
     cs[v] <= i. Written out rather than np.searchsorted: one compiled version for every caller."""
@@ -96,7 +96,7 @@ def anchor_of(cs, i):  # pragma: no cover - compiled
     return lo
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)
 def _cell_key(cell, cellv, cs, rank, val):  # pragma: no cover - compiled
     w = cellv[cell]
     best = -1.0

@@ -2,8 +2,14 @@
 
 The kernels compile on first use and numba caches them (``cache=True``; in ``__pycache__`` beside
 this package, or in ``NUMBA_CACHE_DIR``). A cold cache costs seconds, so when it is cold the engine
-compiles the ordering kernels in a child process while this process compiles the band kernels
-(two cores do it in about half the time), and says so through the progress callback.
+compiles the marching kernel (``grid_phase`` with the march and its heaps: about half of the
+compile time) in a child process while this process compiles all the others (two cores do it in
+about half the time), and says so through the progress callback. The tail's kernels come last
+here: the helpers they share with the march (heaps, cell keys) are in the cache by then. The two
+kernels of the one-sided band (thin parts only) compile when first used.
+On a busy machine (load average above the cores minus one) everything compiles in this process:
+a child would only compete with it (measured on 2 cores at load ~4: 17 s instead of 24 s for a
+cold ``lodbuilder demo``). Python's garbage collector runs less often meanwhile.
 
 Every kernel is compiled for one signature: the dtypes the engine passes are fixed, and the
 prototypes below are those dtypes (a test checks that an ordering compiles nothing else).
@@ -11,15 +17,19 @@ prototypes below are those dtypes (a test checks that an ordering compiles nothi
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 MESSAGE = "compiling kernels, first run only"
+_WARM = False  # every kernel is known to be compiled or cached (in this process)
 
 _F64_2 = np.empty((0, 3))
 _F32_2 = np.empty((0, 3), np.float32)
@@ -35,25 +45,27 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     """Per group, per kernel (module.name): example arguments of the engine's call."""
     i, f, b = np.int64(0), 0.5, True
     return {
-        "band": {
+        "band": {  # this process, in this order
             "grid.cell_order": (_F64_2, _F64, f),
             "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
+            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
             "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
-            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
             "grid.neighbour_table": (_I64,),
             "topology.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
-            "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
-        },
-        "ordering": {
-            "march.grid_phase": (
-                _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b,
-            ),
-            "topology.point_components": (_I32_2, _I32, _U8, _F32),
             "grid.coarse_runs": (_I64, _I32, i),
             "tail.euclid_tail": (
                 _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
                 _F64, _I32, _I32, _I32, _F64, _I32, i, i, f,
+            ),
+        },
+        "thin": {  # only scans with thin parts use these: compiled on first use (about 0.5 s)
+            "grid.one_sided_cost": (_I64, _I32, _F64_2, _F64_2, _F64, _F64, f, f),
+            "topology.point_components": (_I32_2, _I32, _U8, _F32),
+        },
+        "ordering": {  # the child process
+            "march.grid_phase": (
+                _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b,
             ),
         },
     }
@@ -73,10 +85,28 @@ def signatures(group: str) -> dict[str, tuple[Any, ...]]:
     return {name: tuple(numba.typeof(a) for a in args) for name, args in _prototypes()[group].items()}
 
 
+@contextlib.contextmanager
+def _fewer_collections() -> Iterator[None]:
+    """Python's cyclic garbage collector, less often: numba's compiler makes millions of small
+    objects and the collections they trigger traverse every object of the process again and
+    again (about 10 % of the compile time). The objects that exist already are frozen (never
+    traversed) and the first generation is collected every 10,000 allocations instead of 700;
+    everything is back as before afterwards (about 20 MB more at the peak)."""
+    old = gc.get_threshold()
+    gc.freeze()
+    gc.set_threshold(10_000, 10, 10)
+    try:
+        yield
+    finally:
+        gc.set_threshold(*old)
+        gc.unfreeze()
+
+
 def compile_group(group: str) -> None:
     """Compile (or load from the cache) every kernel of ``group`` for its signature."""
-    for name, sig in signatures(group).items():
-        _dispatcher(name).compile(sig)
+    with _fewer_collections():
+        for name, sig in signatures(group).items():
+            _dispatcher(name).compile(sig)
 
 
 def is_cold() -> bool:
@@ -93,8 +123,27 @@ def is_cold() -> bool:
     return False
 
 
+def _child_helps() -> bool:
+    """Whether a second process would compile on a free core: at least two cores for this process
+    and a load average below their count minus one. On a busy machine the child only competes
+    with this process and adds its own start-up and the helpers both compile (about 2 s of CPU).
+    ``LODBUILDER_COMPILE_CHILD=0`` or ``1`` decides instead (benchmarks)."""
+    forced = os.environ.get("LODBUILDER_COMPILE_CHILD", "")
+    if forced in ("0", "1"):
+        return forced == "1"
+    try:
+        cores = len(os.sched_getaffinity(0))
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        cores, load = os.cpu_count() or 1, 0.0
+    return cores >= 2 and load <= cores - 1
+
+
 def start_ordering_compile() -> subprocess.Popen | None:
-    """Compile the ordering kernels in a child process (into numba's cache); None if it cannot start."""
+    """Compile the marching kernel in a child process (into numba's cache); None if it cannot start
+    or would not help (see :func:`_child_helps`)."""
+    if not _child_helps():
+        return None
     root = str(Path(__file__).resolve().parents[2])
     code = (
         f"import sys; sys.path.insert(0, {root!r}); "
@@ -113,11 +162,16 @@ def start_ordering_compile() -> subprocess.Popen | None:
 
 
 def ensure_compiled(progress: Any = None) -> bool:
-    """Compile the engine's kernels if the cache is cold (both groups at once, on two processes),
-    reporting MESSAGE as the progress stage meanwhile. Returns whether anything was compiled."""
+    """Compile the engine's kernels if the cache is cold (the two groups at once on two processes
+    when a core is free, else one after the other here), reporting MESSAGE as the progress stage
+    meanwhile. Returns whether anything was compiled."""
+    global _WARM
     from ..progress import report
 
+    if _WARM:
+        return False
     if not is_cold():
+        _WARM = True  # checked once per process: the check reads every kernel's cache index
         return False
     report(progress, MESSAGE, 0, 1)
     child = start_ordering_compile()
@@ -126,4 +180,5 @@ def ensure_compiled(progress: Any = None) -> bool:
         child.wait()
     compile_group("ordering")  # loads what the child cached (or compiles it, if the child failed)
     report(progress, MESSAGE, 1, 1)
+    _WARM = True
     return True
