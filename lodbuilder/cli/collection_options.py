@@ -48,9 +48,11 @@ def slice_all(args: argparse.Namespace) -> int:
     """``lodbuilder slice ARCHIVE --all-scans --rho R -o OUT``: the level of every scan, merged."""
     from pathlib import Path
 
+    from ..archive.reader import open_archive
     from ..collection.query import collection_level
     from ..errors import InputError
     from ..io import write_points
+    from ..io.api import collect_notes
 
     if args.rho is None:
         raise InputError("--all-scans needs --rho (one density for every scan)")
@@ -59,17 +61,42 @@ def slice_all(args: argparse.Namespace) -> int:
         if value is not None:
             raise InputError(f"--all-scans does not combine with {flag}")
     lvl = collection_level(args.archive, args.rho)
-    from ..archive.reader import open_archive
-
     with open_archive(args.archive) as arc:  # a joint scan's level lists its members, not itself
-        metas = [arc.scan(n).format_metadata for n in arc.scans]
+        views = [arc.scan(n) for n in arc.scans]
+        metas = [v.format_metadata for v in views]
+        crss = [(v.name, v.crs, v.units) for v in views]
     meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
+    crs, units, changes = _common_crs(crss)
+    for key in ("crs_wkt", "crs_units", "crs_source"):
+        meta.pop(key, None)
+    if crs:
+        meta["crs_wkt"] = crs  # already WKT (no pyproj on the slice path)
+    if units:
+        meta["crs_units"] = units
     meta["comments"] = [f"scan_id {i} = {name}" for i, name in enumerate(lvl.scans)]
-    write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)
+    with collect_notes() as notes:
+        write_points(Path(args.output), lvl.points, lvl.attributes, metadata=meta)
+    changes += notes
     from .output import emit
 
     doc = {"archive": str(args.archive), "output": str(args.output), "size": len(lvl), "rho": lvl.rho,
-           "scans": lvl.scans, "sizes": lvl.sizes, "attributes": sorted(lvl.attributes)}
-    emit(args, doc, f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to "
-                    f"{args.output} (attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})")
+           "scans": lvl.scans, "sizes": lvl.sizes, "attributes": sorted(lvl.attributes), "crs": crs,
+           "units": units, "changes": changes}
+    emit(args, doc, "\n".join(
+        [f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
+         f"(attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})"]
+        + [f"  changed: {line}" for line in changes]))
     return 0
+
+
+def _common_crs(crss: list[tuple[str, str | None, str | None]]) -> tuple[str | None, str | None, list[str]]:
+    """The CRS (WKT) and units every scan shares, else none and a note naming the scans' CRSs."""
+    wkts = {wkt for _, wkt, _ in crss}
+    if len(wkts) == 1:
+        (wkt,) = wkts
+        units = {u for _, _, u in crss}
+        return wkt, (units.pop() if len(units) == 1 else None), []
+    from ..io.crs import crs_name
+
+    seen = ", ".join(f"{name}: {(crs_name(wkt) or 'a WKT CRS') if wkt else 'none'}" for name, wkt, _ in crss)
+    return None, None, [f"the scans have different coordinate reference systems ({seen}); the output has none"]
