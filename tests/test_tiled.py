@@ -155,22 +155,31 @@ def _tile_of(points, boxes):
     return out
 
 
-@pytest.mark.parametrize("alpha", [0.25, 1.0])
+@pytest.mark.parametrize("alpha", [None, 1.0])
 def test_seam_spacing_across_tiles(tmp_path, alpha):
     """Every point merged from a tile keeps alpha / (1 + alpha) of the radius of the level it
     completes from every earlier point of another tile or of the coarse level (alpha times its
-    merge radius, which is at least radius / (1 + alpha)); without the repair, seams crowd."""
+    merge radius, which is at least radius / (1 + alpha)): 0.2 at the default (None: 0.25), 0.5 at
+    1; without the repair, seams crowd."""
+    from lodbuilder.sampling.tiled import SEAM_ALPHA
+
     rng = np.random.default_rng(4)
     pts = wavy(10_000, rng)
     n = len(pts)
     for a, name in ((alpha, "rep"), (0.0, "none")):
-        d, _ = _build(tmp_path, pts, tile_points=1200, seam_spacing=a, name=name)
+        d, _ = _build(tmp_path, pts, tile_points=1200, name=name, **({} if a is None else {"seam_spacing": a}))
         tiled = d["build"]["tiled"]
-        assert tiled["seam_alpha"] == a
+        assert tiled["tiles"] >= 8
+        assert tiled["seam_alpha"] == (SEAM_ALPHA if a is None else a)
+        if alpha is None and name == "rep":
+            assert SEAM_ALPHA == 0.25
+            assert ("between points of different tiles is at least seam_alpha / (1 + seam_alpha) times the "
+                    "level's radius (0.2 at the default seam_alpha 0.25, 0.5 at seam_alpha 1)") in tiled["guarantees"]
+        alpha_used = tiled["seam_alpha"] if name == "rep" else alpha or SEAM_ALPHA
         p = pts[d["order"]]
         tile = _tile_of(p, tiled["tile_boxes"])
         tile[: tiled["head_points"]] = -1  # the coarse level counts as another tile for everyone
-        bound = alpha / (1 + alpha)
+        bound = alpha_used / (1 + alpha_used)
         tree = cKDTree(p)
         j = np.arange(tiled["head_points"], n - 1)
         close = tree.query_ball_point(p[j], bound * d["radius"][j + 1] * (1 - 1e-12))

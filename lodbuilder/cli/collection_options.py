@@ -33,8 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="order every input scan (posed, e.g. by a manifest) as one surface: one scan NAME "
                         "(default: the manifest's name) whose points keep scan_id and scan_point attributes")
     t.add_argument("--seam-spacing", type=float, metavar="A",
-                   help="seam repair of the tiled merge, 0..1 (default 1): a point merged from one tile keeps "
-                        "at least A times its radius from earlier points of other tiles; 0 turns it off")
+                   help="seam repair of the tiled merge, 0..1 (default 0.25): a point merged from one tile keeps "
+                        "at least A times its merge radius from earlier points of other tiles, so points of "
+                        "different tiles in a level are at least A/(1+A) times its radius apart (0.2; 0.5 at "
+                        "A=1, at some cost in level size); 0 turns it off")
 
 
 def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
