@@ -223,3 +223,19 @@ def test_tiles_on_a_dask_local_cluster(tmp_path):
         np.testing.assert_array_equal(a.scan("d").source_index[:], b.scan("d").source_index[:])
         np.testing.assert_array_equal(a.scan("d").radius[:], b.scan("d").radius[:])
     assert ref.scans[0].method == "tiled"
+
+
+def test_progress_bars_count_points_tiles_and_steps(capsys):
+    """A stage reported as one step (total 1) counts steps, not '1.00 pt'; points and tiles as such."""
+    from lodbuilder.cli.progressbar import ProgressBars
+
+    with ProgressBars(enabled=True) as bars:
+        for stage, total in (("band", 1), ("ordering", 134_000), ("tiles", 16)):
+            bars(stage, 0, total)
+            bars(stage, total, total)
+        bars.close()
+    err = capsys.readouterr().err
+    assert "band:   0%|          | 0/1 [00:00<?, ?step/s]" in err
+    assert "/134k [00:00<?, ?pt/s]" in err
+    assert "tiles:   0%|          | 0/16 [00:00<?, ?tile/s]" in err
+    assert "/1.00 [" not in err
