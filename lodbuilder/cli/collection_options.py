@@ -47,24 +47,26 @@ def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def slice_all(args: argparse.Namespace) -> int:
-    """``lodbuilder slice ARCHIVE --all-scans --rho R -o OUT``: the level of every scan, merged."""
+    """``lodbuilder slice ARCHIVE --all-scans --rho R -o OUT``: the level of every scan, merged (a
+    joint scan counts as its members; ``--scan NAME`` keeps one scan or one member)."""
     from pathlib import Path
 
     from ..archive.reader import open_archive
-    from ..collection.query import collection_level
+    from ..collection.query import collection_level, joint_members
     from ..errors import InputError
     from ..io import write_points
     from ..io.api import collect_notes
 
     if args.rho is None:
         raise InputError("--all-scans needs --rho (one density for every scan)")
-    for flag, value in (("--scan", args.scan), ("--box", args.box), ("--viewpoint", args.viewpoint),
+    for flag, value in (("--box", args.box), ("--viewpoint", args.viewpoint),
                         ("--ordering", args.ordering), ("--floor-rho", getattr(args, "floor_rho", None))):
         if value is not None:
             raise InputError(f"--all-scans does not combine with {flag}")
-    lvl = collection_level(args.archive, args.rho)
+    # --scan NAME: that scan only, or that member of a joint scan (its points of the joint level)
+    lvl = collection_level(args.archive, args.rho, scans=None if args.scan is None else [args.scan])
     with open_archive(args.archive) as arc:  # a joint scan's level lists its members, not itself
-        views = [arc.scan(n) for n in arc.scans]
+        views = [v for v in map(arc.scan, arc.scans) if set([v.name, *(joint_members(v) or [])]) & set(lvl.scans)]
         metas = [v.format_metadata for v in views]
         crss = [(v.name, v.crs, v.units) for v in views]
     meta = dict(metas[0]) if metas and all(m == metas[0] for m in metas) else {}
