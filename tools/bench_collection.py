@@ -177,6 +177,25 @@ def joint(manifest: Path, rhos: list[float], tiles_memory: str | None = None) ->
     return out
 
 
+def joint_markdown(doc: dict) -> str:
+    """The 'joint' section of docs/benchmarks.md from a --joint run."""
+    tags = [k[: -len("_tiles")] for k in doc if k.startswith("joint") and k.endswith("_tiles")]
+    lines = ["## Joint orderings: the 10 posed bunny scans as one surface (tools/bench_collection.py --joint)", "",
+             f"Measured {doc['date']} at commit {doc.get('commit', '?')} by `{doc.get('command', '')}`; load before "
+             f"{', '.join(f'{x:.1f}' for x in doc.get('load_before', [doc.get('load_avg_1m', 0)]))}. "
+             f"{doc['points']:,} points. Level sizes of `slice --all-scans --rho R` on each archive: separate scans, "
+             "the joint ordering (`build --joint`; "
+             + ", ".join(f"{t}: {doc[f'{t}_tiles']} tile(s)" for t in tags) + "), and the merged cloud ordered "
+             "in memory as one scan; covering = largest distance from any input point to the level.", "",
+             "| rho | separate | merged as one | " + " | ".join(f"{t} (ratio, covering)" for t in tags) + " |",
+             "|---:|---:|---:|" + "---:|" * len(tags)]
+    for r in doc["levels"]:
+        cells = [f"{r[t]:,} ({r[f'{t}_over_merged']:.3f}, {r[f'{t}_cover']:.6f})" for t in tags]
+        lines.append(f"| {r['rho']:g} | {r['separate']:,} | {r['merged_as_one']:,} | " + " | ".join(cells) + " |")
+    lines += ["", "Build seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in doc["seconds"].items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -198,19 +217,27 @@ def main() -> int:
     args = ap.parse_args()
     if args.from_json:
         saved = json.loads(Path(args.from_json).read_text())
+        is_joint = saved.get("benchmark") == "bench_collection --joint"
+        text = joint_markdown(saved) if is_joint else markdown(saved)
         if args.markdown:
             sys.path.insert(0, str(HERE.parent))
             from benchdoc import write_section
 
-            write_section(Path(args.markdown), "collection", markdown(saved))
-        print(markdown(saved))
+            write_section(Path(args.markdown), "joint" if is_joint else "collection", text)
+        print(text)
         return 0
     manifest = args.data / "bun.conf"
     if not manifest.is_file():
         print(json.dumps({"error": f"{manifest} not found"}))
         return 2
     if args.joint:
-        print(json.dumps(joint(manifest, args.joint, args.joint_memory), indent=2))
+        doc = joint(manifest, args.joint, args.joint_memory)
+        print(json.dumps(doc, indent=2))
+        if args.markdown:
+            sys.path.insert(0, str(HERE.parent))
+            from benchdoc import write_section
+
+            write_section(Path(args.markdown), "joint", joint_markdown(doc))
         return 0
     configs = [("pool_1", {"workers": 1}), ("pool_2", {"workers": 2})]
     if not args.skip_dask:
