@@ -17,10 +17,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="text file listing scans, one per line, each optionally followed by a pose: 16 numbers "
                         "(row-major 4x4, world = M [p 1]) or the bun.conf form 'bmesh FILE tx ty tz qx qy qz qw'")
     g.add_argument("--workers", type=int, metavar="N",
-                   help="local worker processes, N >= 1 (default: one scan runs in this process, several on "
-                        "one worker per core)")
-    g.add_argument("--scheduler", metavar="ADDRESS", help="run the scans on this Dask scheduler (tcp://host:8786)")
-    g.add_argument("--dask-local", type=int, metavar="N", help="start a Dask LocalCluster of N workers and use it")
+                   help="local worker processes, N >= 1 (default: one scan that fits in memory runs in this "
+                        "process; several scans, or the tiles of a large scan, on one worker per core)")
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the scans (or a large scan's tiles) on this Dask scheduler (tcp://host:8786); its "
+                        "workers must see the archive's directory at the same path (shared file system)")
+    g.add_argument("--dask-local", type=int, metavar="N",
+                   help="start a Dask LocalCluster of N workers and run the scans (or a large scan's tiles) on it")
     g.add_argument("--size", type=int, metavar="N",
                    help="order only the first N points of each scan (quick previews; default: every point)")
     g.add_argument("--force", action="store_true", help="rebuild scans even when source and parameters are unchanged")
