@@ -48,10 +48,12 @@ def _children() -> dict[int, list[int]]:
     return kids
 
 
-def tree_rss(pid: int) -> int:
-    """Resident bytes of ``pid`` and all its descendants."""
+def tree_rss(pid: int, cpu: dict[int, float] | None = None) -> int:
+    """Resident bytes of ``pid`` and all its descendants; ``cpu`` (pid -> CPU seconds so far) is
+    updated for each of them."""
     kids = _children()
     todo, total = [pid], 0
+    tick = os.sysconf("SC_CLK_TCK")
     while todo:
         p = todo.pop()
         todo += kids.get(p, [])
@@ -60,7 +62,11 @@ def tree_rss(pid: int) -> int:
                 for line in f:
                     if line.startswith("VmRSS:"):
                         total += int(line.split()[1]) * 1024
-        except OSError:
+            if cpu is not None:
+                with open(f"/proc/{p}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+                cpu[p] = max(cpu.get(p, 0.0), (int(fields[11]) + int(fields[12])) / tick)  # utime + stime
+        except (OSError, IndexError, ValueError):
             pass
     return total
 
@@ -68,21 +74,18 @@ def tree_rss(pid: int) -> int:
 def run_measured(cmd: list[str], env: dict[str, str] | None = None) -> dict:
     """Run ``cmd``: wall seconds, peak RSS of its process tree, CPU seconds of the tree (user + system
     of every waited-for descendant) and the load average at the end (other users of the machine)."""
-    import resource
-
     t0 = time.perf_counter()
-    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    load_before = os.getloadavg()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     peak = 0
+    cpu: dict[int, float] = {}  # sampled every 0.1 s: misses at most the last 0.1 s of each process
     while proc.poll() is None:
-        peak = max(peak, tree_rss(proc.pid))
+        peak = max(peak, tree_rss(proc.pid, cpu))
         time.sleep(0.1)
     out, err = proc.communicate()
-    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     return {"rc": proc.returncode, "seconds": round(time.perf_counter() - t0, 2), "peak_rss_tree_bytes": peak,
-            "cpu_seconds_tree": round(cpu, 1), "load_after": os.getloadavg(), "stdout": out[-2000:],
-            "stderr": err[-2000:]}
+            "cpu_seconds_tree": round(sum(cpu.values()), 1), "load_before": load_before, "load_after": os.getloadavg(),
+            "stdout": out[-2000:], "stderr": err[-2000:]}
 
 
 def survey(path: Path, max_memory: str, executor: list[str], work: Path) -> dict:
@@ -95,8 +98,9 @@ def survey(path: Path, max_memory: str, executor: list[str], work: Path) -> dict
     cmd = [sys.executable, "-m", "lodbuilder.cli.main", "build", str(path), "-o", str(out), "--max-memory",
            max_memory, "--no-progress", "--json", *executor]
     r = run_measured(cmd, env)
-    res = {"executor": " ".join(executor), "max_memory": max_memory, "load_before": os.getloadavg(),
-           **{k: r[k] for k in ("rc", "seconds", "peak_rss_tree_bytes", "cpu_seconds_tree", "load_after")}}
+    res = {"executor": " ".join(executor), "max_memory": max_memory,
+           **{k: r[k] for k in ("rc", "seconds", "peak_rss_tree_bytes", "cpu_seconds_tree", "load_before",
+                                "load_after")}}
     if r["rc"] != 0:
         res["stderr"] = r["stderr"]
         return res
