@@ -119,9 +119,11 @@ def build_archive(
     ``max_memory`` (bytes, or text like ``"3GB"``; default 60 % of this machine's memory) is the
     budget of the build's whole process tree on this machine (with a remote ``scheduler``: of each
     worker); a scan whose in-memory build would exceed it is read in chunks, cut into tiles ordered
-    on the workers and merged. ``seam_spacing`` (0..1, default 1) is the seam repair of the merge:
+    on the workers and merged. ``seam_spacing`` (0..1, default 0.25) is the seam repair of the merge:
     a point merged from one tile keeps at least this fraction of its merge radius from the earlier
-    points of other tiles (0: no repair). ``joint=True`` (or a scan name) orders every input scan,
+    points of other tiles, so points of different tiles in any level are at least A / (1 + A) times
+    the level's radius apart (0.2 at the default, 0.5 at 1, which costs covering at equal size:
+    see :data:`lodbuilder.sampling.tiled.SEAM_ALPHA`; 0: no repair). ``joint=True`` (or a scan name) orders every input scan,
     posed, as one surface: one scan in the archive whose points keep ``scan_id`` and
     ``scan_point`` (their index in their own scan) attributes.
 

@@ -94,3 +94,56 @@ def test_slice_all_scans_merged_with_scan_id(tmp_path, capsys):
     assert "scan_id 1 = s1" in got.metadata["comments"]
     assert main(["slice", str(arc), "--all-scans", "--size", "5", "-o", str(out)]) == 2
     assert "--all-scans needs --rho" in capsys.readouterr().err
+
+
+def _two_formats(tmp_path, crs=("EPSG:32610", "EPSG:32610")):
+    """Two scans whose format metadata differ (a PLY with an attribute, an NPY), CRSs as given."""
+    rng = np.random.default_rng(5)
+    arc = tmp_path / "c.h5"
+    for k, (suffix, c) in enumerate(zip(("ply", "npy"), crs, strict=True)):
+        t = rng.random(600) * 2 * np.pi
+        pts = np.stack([np.cos(t), np.sin(t), rng.random(600)], 1) + k
+        f = write_points(tmp_path / f"s{k}.{suffix}", pts, {"intensity": rng.random(600).astype(np.float32)})
+        argv = ["build", str(f), "-o", str(arc), "--no-progress"] + (["--crs", c] if c else [])
+        assert main(argv) == 0
+    return arc
+
+
+def test_slice_all_scans_keeps_the_shared_crs_and_prints_changes_once(tmp_path, capsys):
+    import json
+
+    from lodbuilder import open_archive
+    from lodbuilder.io import read_scan
+
+    arc = _two_formats(tmp_path)
+    with open_archive(arc) as a:
+        assert a.scan("s0").format_metadata != a.scan("s1").format_metadata
+        wkt = a.scan("s0").crs
+    assert "UTM zone 10N" in wkt
+    capsys.readouterr()
+    out = tmp_path / "all.las"
+    assert main(["slice", str(arc), "--all-scans", "--rho", "0.2", "-o", str(out)]) == 0
+    text, err = capsys.readouterr()
+    lines = [ln for ln in text.splitlines() if ln.startswith("  changed: ")]
+    assert f"  changed: {out}: coordinates quantised to scale 0.001 (error <= 0.0005) with offset -1, -1, 0" in lines
+    assert len(lines) == 2 and any("intensity: float32 values do not fit" in ln for ln in lines)
+    assert "quantised" not in err and "intensity" not in err  # printed once, not logged too
+    got = read_scan(out)
+    assert "UTM zone 10N" in got.metadata["crs_wkt"]
+    assert main(["slice", str(arc), "--all-scans", "--rho", "0.2", "-o", str(tmp_path / "all.ply"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["crs"] == wkt and doc["units"] == "metre" and doc["changes"] == []
+    assert "UTM zone 10N" in read_scan(tmp_path / "all.ply").metadata["crs_wkt"]
+
+
+def test_slice_all_scans_with_different_crs_says_so(tmp_path, capsys):
+    from lodbuilder.io import read_scan
+
+    arc = _two_formats(tmp_path, ("EPSG:32610", None))
+    capsys.readouterr()
+    out = tmp_path / "all.ply"
+    assert main(["slice", str(arc), "--all-scans", "--rho", "0.2", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert ("  changed: the scans have different coordinate reference systems (s0: WGS 84 / UTM zone 10N, "
+            "s1: none); the output has none") in text.splitlines()
+    assert not read_scan(out).metadata.get("crs_wkt")

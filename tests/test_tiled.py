@@ -155,22 +155,31 @@ def _tile_of(points, boxes):
     return out
 
 
-@pytest.mark.parametrize("alpha", [0.25, 1.0])
+@pytest.mark.parametrize("alpha", [None, 1.0])
 def test_seam_spacing_across_tiles(tmp_path, alpha):
     """Every point merged from a tile keeps alpha / (1 + alpha) of the radius of the level it
     completes from every earlier point of another tile or of the coarse level (alpha times its
-    merge radius, which is at least radius / (1 + alpha)); without the repair, seams crowd."""
+    merge radius, which is at least radius / (1 + alpha)): 0.2 at the default (None: 0.25), 0.5 at
+    1; without the repair, seams crowd."""
+    from lodbuilder.sampling.tiled import SEAM_ALPHA
+
     rng = np.random.default_rng(4)
     pts = wavy(10_000, rng)
     n = len(pts)
     for a, name in ((alpha, "rep"), (0.0, "none")):
-        d, _ = _build(tmp_path, pts, tile_points=1200, seam_spacing=a, name=name)
+        d, _ = _build(tmp_path, pts, tile_points=1200, name=name, **({} if a is None else {"seam_spacing": a}))
         tiled = d["build"]["tiled"]
-        assert tiled["seam_alpha"] == a
+        assert tiled["tiles"] >= 8
+        assert tiled["seam_alpha"] == (SEAM_ALPHA if a is None else a)
+        if alpha is None and name == "rep":
+            assert SEAM_ALPHA == 0.25
+            assert ("between points of different tiles is at least seam_alpha / (1 + seam_alpha) times the "
+                    "level's radius (0.2 at the default seam_alpha 0.25, 0.5 at seam_alpha 1)") in tiled["guarantees"]
+        alpha_used = tiled["seam_alpha"] if name == "rep" else alpha or SEAM_ALPHA
         p = pts[d["order"]]
         tile = _tile_of(p, tiled["tile_boxes"])
         tile[: tiled["head_points"]] = -1  # the coarse level counts as another tile for everyone
-        bound = alpha / (1 + alpha)
+        bound = alpha_used / (1 + alpha_used)
         tree = cKDTree(p)
         j = np.arange(tiled["head_points"], n - 1)
         close = tree.query_ball_point(p[j], bound * d["radius"][j + 1] * (1 - 1e-12))
@@ -214,3 +223,19 @@ def test_tiles_on_a_dask_local_cluster(tmp_path):
         np.testing.assert_array_equal(a.scan("d").source_index[:], b.scan("d").source_index[:])
         np.testing.assert_array_equal(a.scan("d").radius[:], b.scan("d").radius[:])
     assert ref.scans[0].method == "tiled"
+
+
+def test_progress_bars_count_points_tiles_and_steps(capsys):
+    """A stage reported as one step (total 1) counts steps, not '1.00 pt'; points and tiles as such."""
+    from lodbuilder.cli.progressbar import ProgressBars
+
+    with ProgressBars(enabled=True) as bars:
+        for stage, total in (("band", 1), ("ordering", 134_000), ("tiles", 16)):
+            bars(stage, 0, total)
+            bars(stage, total, total)
+        bars.close()
+    err = capsys.readouterr().err
+    assert "band:   0%|          | 0/1 [00:00<?, ?step/s]" in err
+    assert "/134k [00:00<?, ?pt/s]" in err
+    assert "tiles:   0%|          | 0/16 [00:00<?, ?tile/s]" in err
+    assert "/1.00 [" not in err

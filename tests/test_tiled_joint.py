@@ -69,6 +69,11 @@ def test_joint_bunny_keeps_scan_ids_and_slices_per_scan(bunny, tmp_path, capsys)
     np.testing.assert_array_equal(got.points, lvl.points)
     np.testing.assert_array_equal(got.attributes["scan_id"], lvl.scan_id)
     assert f"of {len(srcs)} scans at rho 0.004" in capsys.readouterr().out
+    # one member of the joint scan through the CLI: --all-scans --scan MEMBER
+    assert main(["slice", str(out), "--all-scans", "--scan", "chin", "--rho", "0.004", "-o", str(ply)]) == 0
+    got = read_scan(ply)
+    np.testing.assert_array_equal(got.points, chin.points)
+    assert f"wrote {len(chin)} points of 1 scans at rho 0.004" in capsys.readouterr().out
 
 
 @pytest.mark.data

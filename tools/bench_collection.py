@@ -120,7 +120,7 @@ def markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def joint(manifest: Path, rhos: list[float]) -> dict:
+def joint(manifest: Path, rhos: list[float], tiles_memory: str | None = None) -> dict:
     """Level sizes of the bunny scans: separate, joint, merged as one scan (see the docstring)."""
     import numpy as np
     from scipy.spatial import cKDTree
@@ -132,32 +132,68 @@ def joint(manifest: Path, rhos: list[float]) -> dict:
 
     srcs = expand_inputs([manifest])
     merged = np.vstack([apply_pose(read_scan(s.path).points, s.pose) for s in srcs])
+    import subprocess
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE.parents[1], capture_output=True,
+                            text=True).stdout.strip()
     out: dict = {"benchmark": "bench_collection --joint", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                 "input": str(manifest), "points": len(merged), "load_avg_1m": round(os.getloadavg()[0], 2),
-                 "levels": []}
+                 "commit": commit, "command": " ".join(sys.argv), "input": str(manifest), "points": len(merged),
+                 "load_before": os.getloadavg(), "load_avg_1m": round(os.getloadavg()[0], 2), "levels": []}
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         times = {}
-        for tag, kw in (("separate", {"workers": 2}), ("joint", {"joint": True, "workers": 2})):
+        builds: list[tuple[str, dict]] = [("separate", {"workers": 2}), ("joint", {"joint": True, "workers": 2})]
+        if tiles_memory:  # the joint ordering forced onto several tiles by a small budget
+            builds.append(("joint_tiled", {"joint": True, "workers": 2, "max_memory": tiles_memory}))
+        for tag, kw in builds:
             t0 = time.perf_counter()
             lodbuilder.build_archive([manifest], tmp / f"{tag}.h5", **kw)
             times[tag] = round(time.perf_counter() - t0, 2)
         t0 = time.perf_counter()
         lodbuilder.build_archive(Scan(points=merged, name="merged"), tmp / "one.h5")
         times["merged_in_memory"] = round(time.perf_counter() - t0, 2)
-        with lodbuilder.open_archive(tmp / "joint.h5") as arc:
-            out["joint_tiles"] = arc.scan("bun").build["tiled"]["tiles"]
+        joints = [tag for tag, _ in builds if tag.startswith("joint")]
+        for tag in joints:
+            with lodbuilder.open_archive(tmp / f"{tag}.h5") as arc:
+                out[f"{tag}_tiles"] = arc.scan("bun").build["tiled"]["tiles"]
+        from lodbuilder.cli.main import main as cli
+
         for rho in rhos:
             sep = collection_level(tmp / "separate.h5", rho)
-            jnt = collection_level(tmp / "joint.h5", rho)
             with lodbuilder.open_archive(tmp / "one.h5") as arc:
                 one = arc.scan("merged").level(rho=rho)
-            out["levels"].append({
-                "rho": rho, "separate": len(sep), "joint": len(jnt), "merged_as_one": one.size,
-                "joint_over_merged": round(len(jnt) / one.size, 4),
-                "joint_cover": float(cKDTree(jnt.points).query(merged, workers=-1)[0].max())})
+            row = {"rho": rho, "separate": len(sep), "merged_as_one": one.size}
+            for tag in joints:
+                # the command itself: slice --all-scans --rho R on the joint archive
+                ply = tmp / f"{tag}_{rho}.ply"
+                if cli(["slice", str(tmp / f"{tag}.h5"), "--all-scans", "--rho", str(rho), "-o", str(ply), "-q"]) != 0:
+                    raise SystemExit(f"slice --all-scans failed on {tag}")
+                got = read_scan(ply).points
+                row[tag] = len(got)
+                row[f"{tag}_over_merged"] = round(len(got) / one.size, 4)
+                row[f"{tag}_cover"] = float(cKDTree(got).query(merged, workers=-1)[0].max())
+            out["levels"].append(row)
         out["seconds"] = times
     return out
+
+
+def joint_markdown(doc: dict) -> str:
+    """The 'joint' section of docs/benchmarks.md from a --joint run."""
+    tags = [k[: -len("_tiles")] for k in doc if k.startswith("joint") and k.endswith("_tiles")]
+    lines = ["## Joint orderings: the 10 posed bunny scans as one surface (tools/bench_collection.py --joint)", "",
+             f"Measured {doc['date']} at commit {doc.get('commit', '?')} by `{doc.get('command', '')}`; load before "
+             f"{', '.join(f'{x:.1f}' for x in doc.get('load_before', [doc.get('load_avg_1m', 0)]))}. "
+             f"{doc['points']:,} points. Level sizes of `slice --all-scans --rho R` on each archive: separate scans, "
+             "the joint ordering (`build --joint`; "
+             + ", ".join(f"{t}: {doc[f'{t}_tiles']} tile(s)" for t in tags) + "), and the merged cloud ordered "
+             "in memory as one scan; covering = largest distance from any input point to the level.", "",
+             "| rho | separate | merged as one | " + " | ".join(f"{t} (ratio, covering)" for t in tags) + " |",
+             "|---:|---:|---:|" + "---:|" * len(tags)]
+    for r in doc["levels"]:
+        cells = [f"{r[t]:,} ({r[f'{t}_over_merged']:.3f}, {r[f'{t}_cover']:.6f})" for t in tags]
+        lines.append(f"| {r['rho']:g} | {r['separate']:,} | {r['merged_as_one']:,} | " + " | ".join(cells) + " |")
+    lines += ["", "Build seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in doc["seconds"].items()) + "."]
+    return "\n".join(lines) + "\n"
 
 
 def main() -> int:
@@ -174,24 +210,34 @@ def main() -> int:
     )
     ap.add_argument("--joint", type=float, nargs="+", metavar="RHO",
                     help="compare separate scans, a joint ordering and the merged cloud at these densities")
+    ap.add_argument("--joint-memory", metavar="BYTES",
+                    help="with --joint: also a joint build with this --max-memory (several tiles)")
     ap.add_argument("--markdown", help="update the 'collection' section of this file (docs/benchmarks.md)")
     ap.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = ap.parse_args()
     if args.from_json:
         saved = json.loads(Path(args.from_json).read_text())
+        is_joint = saved.get("benchmark") == "bench_collection --joint"
+        text = joint_markdown(saved) if is_joint else markdown(saved)
         if args.markdown:
             sys.path.insert(0, str(HERE.parent))
             from benchdoc import write_section
 
-            write_section(Path(args.markdown), "collection", markdown(saved))
-        print(markdown(saved))
+            write_section(Path(args.markdown), "joint" if is_joint else "collection", text)
+        print(text)
         return 0
     manifest = args.data / "bun.conf"
     if not manifest.is_file():
         print(json.dumps({"error": f"{manifest} not found"}))
         return 2
     if args.joint:
-        print(json.dumps(joint(manifest, args.joint), indent=2))
+        doc = joint(manifest, args.joint, args.joint_memory)
+        print(json.dumps(doc, indent=2))
+        if args.markdown:
+            sys.path.insert(0, str(HERE.parent))
+            from benchdoc import write_section
+
+            write_section(Path(args.markdown), "joint", joint_markdown(doc))
         return 0
     configs = [("pool_1", {"workers": 1}), ("pool_2", {"workers": 2})]
     if not args.skip_dask:

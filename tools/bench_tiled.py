@@ -48,10 +48,12 @@ def _children() -> dict[int, list[int]]:
     return kids
 
 
-def tree_rss(pid: int) -> int:
-    """Resident bytes of ``pid`` and all its descendants."""
+def tree_rss(pid: int, cpu: dict[int, float] | None = None) -> int:
+    """Resident bytes of ``pid`` and all its descendants; ``cpu`` (pid -> CPU seconds so far) is
+    updated for each of them."""
     kids = _children()
     todo, total = [pid], 0
+    tick = os.sysconf("SC_CLK_TCK")
     while todo:
         p = todo.pop()
         todo += kids.get(p, [])
@@ -60,20 +62,29 @@ def tree_rss(pid: int) -> int:
                 for line in f:
                     if line.startswith("VmRSS:"):
                         total += int(line.split()[1]) * 1024
-        except OSError:
+            if cpu is not None:
+                with open(f"/proc/{p}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+                cpu[p] = max(cpu.get(p, 0.0), (int(fields[11]) + int(fields[12])) / tick)  # utime + stime
+        except (OSError, IndexError, ValueError):
             pass
     return total
 
 
 def run_measured(cmd: list[str], env: dict[str, str] | None = None) -> dict:
+    """Run ``cmd``: wall seconds, peak RSS of its process tree, CPU seconds of the tree (user + system
+    of every waited-for descendant) and the load average at the end (other users of the machine)."""
     t0 = time.perf_counter()
+    load_before = os.getloadavg()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     peak = 0
+    cpu: dict[int, float] = {}  # sampled every 0.1 s: misses at most the last 0.1 s of each process
     while proc.poll() is None:
-        peak = max(peak, tree_rss(proc.pid))
+        peak = max(peak, tree_rss(proc.pid, cpu))
         time.sleep(0.1)
     out, err = proc.communicate()
     return {"rc": proc.returncode, "seconds": round(time.perf_counter() - t0, 2), "peak_rss_tree_bytes": peak,
+            "cpu_seconds_tree": round(sum(cpu.values()), 1), "load_before": load_before, "load_after": os.getloadavg(),
             "stdout": out[-2000:], "stderr": err[-2000:]}
 
 
@@ -87,8 +98,9 @@ def survey(path: Path, max_memory: str, executor: list[str], work: Path) -> dict
     cmd = [sys.executable, "-m", "lodbuilder.cli.main", "build", str(path), "-o", str(out), "--max-memory",
            max_memory, "--no-progress", "--json", *executor]
     r = run_measured(cmd, env)
-    res = {"executor": " ".join(executor), "max_memory": max_memory, **{k: r[k] for k in ("rc", "seconds",
-                                                                                           "peak_rss_tree_bytes")}}
+    res = {"executor": " ".join(executor), "max_memory": max_memory,
+           **{k: r[k] for k in ("rc", "seconds", "peak_rss_tree_bytes", "cpu_seconds_tree", "load_before",
+                                "load_after")}}
     if r["rc"] != 0:
         res["stderr"] = r["stderr"]
         return res
@@ -165,6 +177,24 @@ def quality(n: int, max_memory: str, workers: int, seam: float | None) -> dict:
             "levels": rows, "tiled": tiled}
 
 
+def ratios(doc: dict) -> str:
+    """The target ratios of a run: 2 workers over 1, Dask over the pool, survey time per point over
+    the in-memory reference (each only when both runs are in the doc)."""
+    runs = {r["executor"]: r for r in doc.get("survey", {}).get("runs", []) if not r.get("rc")}
+    out = []
+    w1, w2, dk = runs.get("--workers 1"), runs.get("--workers 2"), runs.get("--dask-local 2")
+    if w1 and w2:
+        out.append(f"2 workers over 1: {w1['seconds'] / w2['seconds']:.2f} x faster (target >= 1.6)")
+    if w2 and dk:
+        out.append(f"Dask LocalCluster over the pool (2 workers): {dk['seconds'] / w2['seconds']:.2f} (target <= 1.15)")
+    ref = doc.get("reference")
+    best = min((r["seconds_per_million"] for r in runs.values()), default=None)
+    if ref and best is not None:
+        out.append(f"time per point, fastest survey run over the in-memory reference: "
+                   f"{best / ref['seconds_per_million']:.2f} (target <= 1.3)")
+    return "; ".join(out) + ("." if out else "")
+
+
 def markdown(doc: dict) -> str:
     """The docs/benchmarks.md section of a run (or of several runs merged: a list of docs)."""
     docs = doc if isinstance(doc, list) else [doc]
@@ -176,15 +206,20 @@ def markdown(doc: dict) -> str:
         if "survey" in d:
             sv = d["survey"]
             lines += [f"Survey `{Path(sv['file']).name}` ({sv['bytes'] / 1e6:.0f} MB LAZ):", "",
-                      "| executor | points | wall s | s per M points | peak RSS of the tree | tiles | phases (s) |",
-                      "|---|---:|---:|---:|---:|---:|---|"]
+                      "| executor | points | wall s | CPU s of the tree | load before / after | s per M points "
+                      "| peak RSS of the tree | tiles | phases (s) |",
+                      "|---|---:|---:|---:|---|---:|---:|---:|---|"]
             for r in sv["runs"]:
                 if r.get("rc"):
-                    lines.append(f"| {r['executor']} | failed | | | | | {r.get('stderr', '')[-120:]} |")
+                    lines.append(f"| {r['executor']} | failed | | | | | | | {r.get('stderr', '')[-120:]} |")
                     continue
                 ph = ", ".join(f"{k} {v:.0f}" for k, v in r["phases"].items())
-                lines.append(f"| {r['executor']} | {r['n_points']:,} | {r['seconds']:.0f} | {r['seconds_per_million']:.2f} "
+                load = (f"{r['load_before'][0]:.1f} / {r['load_after'][0]:.1f}" if "load_before" in r else "")
+                lines.append(f"| {r['executor']} | {r['n_points']:,} | {r['seconds']:.0f} | {r.get('cpu_seconds_tree', '')} "
+                             f"| {load} | {r['seconds_per_million']:.2f} "
                              f"| {r['peak_rss_tree_gb']:.2f} GB | {r['tiled'].get('tiles')} | {ph} |")
+            lines.append("")
+            lines.append(ratios(d))
             lines.append("")
         if "reference" in d:
             r = d["reference"]

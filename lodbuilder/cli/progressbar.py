@@ -2,7 +2,8 @@
 unless forced).
 
 Stages of one scan (``read``, ``tiles``, ``band``, ``ordering``/``marching``, ``merge``,
-``write``, ...) each get a bar in turn, counting points (tiles for ``tiles``) with their rate; the
+``write``, ...) each get a bar in turn, counting points (tiles for ``tiles``, steps for a stage
+reported as one step, such as the in-memory build's ``read``, ``band`` and ``write``) with their rate; the
 collection stages ``scans`` and ``points`` stay on screen above them for the whole build.
 """
 
@@ -46,7 +47,8 @@ class ProgressBars:
             if stage not in PERSISTENT:
                 self._close_phase()
                 self._stage = stage
-            unit = UNITS.get(stage, "pt")
+            # a stage counted in points, or one step (total 1: read a whole file, build the band)
+            unit = UNITS.get(stage, "step" if total == 1 else "pt")
             bar = tqdm(total=total or None, desc=stage, unit=unit, unit_scale=unit == "pt", leave=False,
                        file=sys.stderr, position=len(self._bars), dynamic_ncols=True)
             self._bars[stage] = bar

@@ -39,7 +39,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "--all-scans",
         action="store_true",
-        help="write the --rho level of every scan of the archive, merged, with a scan_id attribute",
+        help="write the --rho level of every scan of the archive, merged, with a scan_id attribute (a joint "
+        "scan counts as its member scans; with --scan NAME only that scan or joint member)",
     )
     p.add_argument(
         "--fill",

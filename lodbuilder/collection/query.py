@@ -57,7 +57,7 @@ def total_points(archive: str | os.PathLike[str]) -> int:
         return int(sum(r["n_points"] for r in arc.index()))
 
 
-def _members(view: Any) -> list[str] | None:
+def joint_members(view: Any) -> list[str] | None:
     """The member scan names of a joint scan (built with ``joint``), else None."""
     joint = view.build.get("joint") if isinstance(view.build, dict) else None
     if not joint:
@@ -79,7 +79,7 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
     rho_v = check_positive(rho, "rho", allow_none=False)
     parts: list[tuple[Any, np.ndarray | None, list[str]]] = []  # (level, member ids or None, names)
     with open_archive(archive) as arc:
-        members = {n: _members(arc.scan(n)) for n in arc.scans}
+        members = {n: joint_members(arc.scan(n)) for n in arc.scans}
         wanted: list[tuple[str, str | None]]
         if scans is None:
             wanted = [(n, None) for n in arc.scans]

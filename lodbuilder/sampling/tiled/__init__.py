@@ -23,7 +23,10 @@ Guarantees (checked by tests, stated in each tiled scan's build record): every p
 radius is a true Euclidean covering radius of the whole scan; radii never increase; every input
 point is stored exactly once; the order is nested like any farthest point order (levels are
 prefixes). Spacing: a point merged from one tile is at least ``seam_alpha`` times its merge key from
-every earlier point of another tile; inside a tile the tile's FastFPS order keeps its spacing.
+every earlier point of another tile, so between points of different tiles every level's spacing is
+at least ``seam_alpha / (1 + seam_alpha)`` times its radius (0.2 at the default 0.25, 0.5 at 1);
+inside a tile the tile's FastFPS order keeps its spacing (at least the insertion radius, in the band
+metric). A larger ``seam_alpha`` costs covering at equal size (see ``SEAM_ALPHA``).
 """
 
 from __future__ import annotations

@@ -28,10 +28,12 @@ from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spil
 log = logging.getLogger(__name__)
 
 #: the seam repair: a point waits while another tile's accepted point lies within SEAM_ALPHA x key.
-#: 0.25 removes the near-duplicates two tiles make at a seam at no cost in level size; 1.0 proves
-#: that every level's spacing across tiles is at least half its radius, but a deferred point leaves
-#: its own tile's side covered only by the other tile's point for a while (levels 1.5-1.7x larger
-#: at a density on the bunny in 4 tiles; see tools/bench_tiled.py)
+#: Across tiles every level's spacing is then at least SEAM_ALPHA / (1 + SEAM_ALPHA) x its radius
+#: (0.2 at 0.25; 0.5 at 1.0), but a deferred point leaves its own tile's side covered only by the
+#: other tile's point for a while, so the covering radius at equal size grows with it (1M-point
+#: sheet in 4 tiles, level of 1 %: 1.007 x the in-memory build without repair, 1.037 at 0.25,
+#: 1.071 at 0.5, 1.285 at 1.0; see tools/bench_tiled.py). 0.25 removes the near-duplicates two
+#: tiles make at a seam at little cost in covering.
 SEAM_ALPHA = 0.25
 #: the decimated copy has at most this many points (its ordering is one task), and at least
 #: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface
@@ -301,5 +303,8 @@ GUARANTEES = (
     "the tile and its halo: exact wherever it is below the halo width; capped by the coarse level's "
     "certified bound); radii never increase; every input point is stored exactly once; a point merged "
     "from one tile is at least seam_alpha times its merge radius from every earlier point of another "
-    "tile or of the coarse level; the points of one tile keep the tile's FastFPS order"
+    "tile or of the coarse level, so the spacing of every level between points of different tiles is "
+    "at least seam_alpha / (1 + seam_alpha) times the level's radius (0.2 at the default seam_alpha "
+    "0.25, 0.5 at seam_alpha 1); the points of one tile keep the tile's FastFPS order (spacing at least "
+    "their insertion radius in the band metric, as in an in-memory build)"
 )
