@@ -85,7 +85,7 @@ def test_no_seam_repair_keeps_the_covering_guarantee(tmp_path):
     assert d["build"]["tiled"]["seam_alpha"] == 0.0 and d["build"]["tiled"]["seam_deferrals"] == 0
 
 
-def test_tiled_and_in_memory_write_the_same_layout(tmp_path):
+def test_tiled_and_in_memory_write_the_same_layout(tmp_path, capsys):
     rng = np.random.default_rng(5)
     pts = wavy(3000, rng)
     f = write_points(tmp_path / "w.ply", pts, {"intensity": rng.random(len(pts)).astype(np.float32)})
@@ -105,6 +105,16 @@ def test_tiled_and_in_memory_write_the_same_layout(tmp_path):
         ia, ib = np.argsort(va.source_index[:]), np.argsort(vb.source_index[:])
         np.testing.assert_array_equal(va.points()[ia], vb.points()[ib])
         np.testing.assert_array_equal(va.attributes()["intensity"][ia], vb.attributes()["intensity"][ib])
+        tiles = va.build["tiled"]["tiles"]
+    # lodbuilder info says how each was built
+    from lodbuilder.cli.main import main
+
+    assert main(["info", str(tmp_path / "a.h5")]) == 0
+    assert main(["info", str(tmp_path / "b.h5")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    builds = [line.split(", ", 2)[2] for line in out if line.startswith("  build ")]
+    assert builds == [f"tiled ({tiles} tiles, seam spacing 0.25: points of different tiles at least 0.2 x the "
+                      "level's radius apart)", "engine band"]
 
 
 def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypatch):

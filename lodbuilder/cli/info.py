@@ -128,12 +128,22 @@ def _text(info: dict[str, Any]) -> str:
             f"  attributes {', '.join(s['attributes']) or '-'}",
             f"  importance {', '.join(s['importance']) or '-'}; "
             f"orderings {', '.join(s['orderings'])}",
-            f"  build      voxel_size {b.get('voxel_size')}, band_radius {b.get('band_radius')}, "
-            f"engine {b.get('engine_stats', {}).get('engine', '?')}",
+            f"  build      {_build_line(b)}",
             f"  source     {src}, reader {prov.get('reader')}, "
             f"{prov.get('created_utc')}, lodbuilder {prov.get('lodbuilder_version')}",
         ]
     return "\n".join(one_line(line) for line in out)
+
+
+def _build_line(b: dict) -> str:
+    """How the ordering was built: the band's parameters, and for a tiled build its tiles and seams."""
+    line = f"voxel_size {b.get('voxel_size')}, band_radius {b.get('band_radius')}, "
+    tiled = b.get("tiled")
+    if b.get("method") != "tiled" or not isinstance(tiled, dict):
+        return line + f"engine {b.get('engine_stats', {}).get('engine', '?')}"
+    alpha = float(tiled.get("seam_alpha", 0.0))
+    return line + (f"tiled ({tiled.get('tiles')} tiles, seam spacing {alpha:g}: points of different tiles "
+                   f"at least {alpha / (1 + alpha):.2g} x the level's radius apart)")
 
 
 def _fmt(v: list[float]) -> str:
