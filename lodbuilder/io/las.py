@@ -171,6 +171,17 @@ def read(path: Path) -> list[Scan]:
         if dim in ("X", "Y", "Z"):
             continue
         attrs[dim] = np.ascontiguousarray(np.asarray(las[dim]))
+    meta, rename = las_metadata(hdr, las.point_format, path)
+    for stored, original in rename.items():
+        attrs[original] = attrs.pop(stored)
+    name = path.stem.split(".")[0] if path.name.lower().endswith(".copc.laz") else path.stem
+    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=meta)]
+
+
+def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
+    """The format metadata of a LAS/LAZ file from its header, and the renaming of the extra
+    dimensions lodbuilder wrote for exact standard fields: the same as :func:`lodbuilder.io.las.read`
+    and the streaming reader (:mod:`lodbuilder.io.stream`) store."""
     wkt = None
     crs_vlrs = []
     for vlr in list(hdr.vlrs) + list(hdr.evlrs or []):
@@ -185,15 +196,16 @@ def read(path: Path) -> list[Scan]:
                 "data_b64": base64.b64encode(bytes(data)).decode("ascii"),
             })
     extra = []
-    for d in las.point_format.extra_dimensions:
+    rename: dict[str, str] = {}
+    for d in point_format.extra_dimensions:
         desc = str(d.description or "")
-        if desc.startswith(EXACT_PREFIX) and d.name in attrs:
-            # written by las_layout: the exact values of a standard field (see EXACT_PREFIX)
-            attrs[desc[len(EXACT_PREFIX):]] = attrs.pop(d.name)
+        if desc.startswith(EXACT_PREFIX):
+            rename[d.name] = desc[len(EXACT_PREFIX):]
             continue
         extra.append({
             "name": d.name,
-            "type": np.dtype(d.dtype).str.lstrip("<>=|") if d.num_elements == 1 else f"{d.num_elements}{np.dtype(d.dtype).base.str.lstrip('<>=|')}",
+            "type": np.dtype(d.dtype).str.lstrip("<>=|") if d.num_elements == 1
+            else f"{d.num_elements}{np.dtype(d.dtype).base.str.lstrip('<>=|')}",
             "description": desc,
             "scales": None if d.scales is None else [float(s) for s in np.atleast_1d(d.scales)],
             "offsets": None if d.offsets is None else [float(s) for s in np.atleast_1d(d.offsets)],
@@ -212,8 +224,8 @@ def read(path: Path) -> list[Scan]:
         "las_compressed": path.suffix.lower() == ".laz",
     }
     set_crs(meta, _file_crs(hdr), "file")
-    name = path.stem.split(".")[0] if path.name.lower().endswith(".copc.laz") else path.stem
-    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=meta)]
+    return meta, rename
+
 
 
 # ------------------------------------------------------------------------------ the mapping

@@ -20,7 +20,6 @@ coordinates and every other field as an attribute in the file's dtype, and the s
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import logging
 import os
@@ -157,58 +156,6 @@ def _whole_stream(p: Path, scan_index: int | None, crs: str | None = None, crs_o
 
 # ------------------------------------------------------------------------------------ LAS/LAZ
 
-def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
-    """The format metadata of a LAS/LAZ file from its header, and the renaming of the extra
-    dimensions lodbuilder wrote for exact standard fields: the same as :func:`lodbuilder.io.las.read`
-    gives (a test keeps the two equal; the pieces it can share it calls)."""
-    from .crs import set_crs
-    from .las import EXACT_PREFIX, _file_crs
-
-    wkt = None
-    crs_vlrs = []
-    for vlr in list(hdr.vlrs) + list(hdr.evlrs or []):
-        if type(vlr).__name__ == "WktCoordinateSystemVlr":
-            wkt = vlr.string
-        if getattr(vlr, "user_id", "") == "LASF_Projection":
-            data = vlr.record_data_bytes() if hasattr(vlr, "record_data_bytes") else vlr.record_data
-            crs_vlrs.append({
-                "user_id": vlr.user_id,
-                "record_id": int(vlr.record_id),
-                "description": str(vlr.description),
-                "data_b64": base64.b64encode(bytes(data)).decode("ascii"),
-            })
-    extra = []
-    rename: dict[str, str] = {}
-    for d in point_format.extra_dimensions:
-        desc = str(d.description or "")
-        if desc.startswith(EXACT_PREFIX):
-            rename[d.name] = desc[len(EXACT_PREFIX):]
-            continue
-        extra.append({
-            "name": d.name,
-            "type": np.dtype(d.dtype).str.lstrip("<>=|") if d.num_elements == 1
-            else f"{d.num_elements}{np.dtype(d.dtype).base.str.lstrip('<>=|')}",
-            "description": desc,
-            "scales": None if d.scales is None else [float(s) for s in np.atleast_1d(d.scales)],
-            "offsets": None if d.offsets is None else [float(s) for s in np.atleast_1d(d.offsets)],
-        })
-    meta: dict[str, Any] = {
-        "las_version": str(hdr.version),
-        "las_point_format": int(hdr.point_format.id),
-        "las_scales": [float(s) for s in hdr.scales],
-        "las_offsets": [float(s) for s in hdr.offsets],
-        "las_crs_wkt": wkt,
-        "las_crs_vlrs": crs_vlrs,
-        "las_wkt_bit": bool(hdr.global_encoding.wkt),
-        "las_extra_dims": extra,
-        "las_system_identifier": str(hdr.system_identifier),
-        "las_generating_software": str(hdr.generating_software),
-        "las_compressed": path.suffix.lower() == ".laz",
-    }
-    set_crs(meta, _file_crs(hdr), "file")
-    return meta, rename
-
-
 def _foreign_error(p: Path, exc: BaseException) -> FormatError:
     """A parser library's own error, worded as :func:`lodbuilder.io.read_scans` words it."""
     from ._files import exc_line
@@ -222,7 +169,14 @@ def _las_error(p: Path, exc: BaseException) -> FormatError:
 
 
 def _las_stream(p: Path) -> PointStream:
-    from .las import _check_chunk_table, _check_laz_backend, _check_vlr_counts, _laspy, _quiet_laspy
+    from .las import (
+        _check_chunk_table,
+        _check_laz_backend,
+        _check_vlr_counts,
+        _laspy,
+        _quiet_laspy,
+        las_metadata,
+    )
 
     laspy = _laspy(p)
     _check_laz_backend(laspy, p)
