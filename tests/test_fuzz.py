@@ -97,6 +97,35 @@ def test_a_laz_chunk_table_larger_than_the_file_is_refused(shared_data, tmp_path
     )
 
 
+@pytest.mark.data
+@pytest.mark.parametrize("streamed", [False, True])
+def test_a_laz_whose_items_have_no_size_is_a_format_error(shared_data, tmp_path, streamed):
+    """Found by the fuzzer (1 of 5,000 LAZ mutants): lazrs panics on a point size of 0 ('attempt to
+    calculate the remainder with a divisor of zero'); pyo3's PanicException is a BaseException, so it
+    escaped as a traceback from the whole-file and the streaming reader."""
+    import laspy
+
+    laz = tmp_path / "bad.laz"
+    laspy.read(str(shared_data / "simple.las")).write(str(laz), laz_backend=laspy.LazBackend.Lazrs)
+    data = bytearray(laz.read_bytes())
+    vlr = data.find(b"laszip encoded") + 52  # the laszip VLR's record data (after its 54-byte header)
+    for k in range(struct.unpack_from("<H", data, vlr + 32)[0]):
+        struct.pack_into("<H", data, vlr + 34 + 6 * k + 2, 0)  # every item's size
+    laz.write_bytes(bytes(data))
+    if streamed:
+        code = (f"from lodbuilder.io.stream import open_stream\n"
+                f"for c in open_stream({str(laz)!r}).chunks(): pass\n")
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                             env={**os.environ, "PYTHONPATH": str(REPO)})
+    else:
+        res = _read_in_child(laz)
+    assert res.returncode == 1, res.stderr
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"lodbuilder.errors.FormatError: {laz}: cannot be read as LAS (attempt to calculate the "
+        "remainder with a divisor of zero); check or re-export the file"
+    )
+
+
 @pytest.mark.parametrize(
     "prop,value,shown",
     [

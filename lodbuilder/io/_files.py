@@ -111,6 +111,12 @@ def exc_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+def library_panic(exc: BaseException) -> bool:
+    """Whether ``exc`` is a Rust library's panic reaching Python: pyo3's PanicException derives from
+    BaseException, not Exception, and lazrs reports some damaged LAZ files this way (a point size of 0)."""
+    return type(exc).__name__ == "PanicException"
+
+
 @strict_keywords
 def file_sha256(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
     """Hex SHA-256 of a file's bytes."""

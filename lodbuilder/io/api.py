@@ -13,7 +13,7 @@ import numpy as np
 
 from .._validate import strict_keywords
 from ..errors import FormatError, InputError, LodbuilderError, ScanFileError
-from ._files import atomic_output, check_input_file, exc_line
+from ._files import atomic_output, check_input_file, exc_line, library_panic
 from .base import Scan
 from .crs import KEY_UNITS, KEY_WKT, assign_crs, crs_from_user, sidecar
 from .registry import reader_for, writer_for
@@ -47,7 +47,9 @@ def read_scans(path: PathLike, *, crs: str | None = None, crs_override: bool = F
         raise FormatError(f"{p}: too large to load into memory; split the scan or use a machine with more memory") from None
     except OSError as exc:
         raise ScanFileError(f"{p}: cannot be read ({exc_line(exc)}); check the file") from None
-    except Exception as exc:  # a parser library's own error on a malformed file
+    except BaseException as exc:  # a parser library's own error on a malformed file (or its panic)
+        if not isinstance(exc, Exception) and not library_panic(exc):
+            raise
         raise FormatError(f"{p}: cannot be read as {fmt.upper()} ({exc_line(exc)}); check or re-export the file") from exc
     if not scans:
         raise FormatError(f"{p}: holds no scans; nothing to read")

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError, LodbuilderError, ScanFileError
+from ._files import library_panic
 from .base import Scan
 
 log = logging.getLogger(__name__)
@@ -196,7 +197,9 @@ def _las_stream(p: Path) -> PointStream:
         raise ScanFileError(f"{p}: cannot be read ({' '.join(str(exc).split())}); check the file") from None
     except LodbuilderError:
         raise
-    except Exception as exc:  # lazrs' own errors on a damaged file: the reader's message
+    except BaseException as exc:  # lazrs' own errors (or panics) on a damaged file: the reader's message
+        if not isinstance(exc, Exception) and not library_panic(exc):
+            raise
         raise _foreign_error(p, exc) from None
     if n == 0:
         raise FormatError(f"{p}: holds no points; a scan needs at least one point")
@@ -230,7 +233,9 @@ def _las_stream(p: Path) -> PointStream:
             raise _las_error(p, exc) from None
         except LodbuilderError:
             raise
-        except Exception as exc:
+        except BaseException as exc:
+            if not isinstance(exc, Exception) and not library_panic(exc):
+                raise
             raise _foreign_error(p, exc) from None
         if start != n:
             raise FormatError(f"{p}: the header declares {n} points but the file holds {start}; re-export it")
