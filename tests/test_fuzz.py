@@ -98,6 +98,27 @@ def test_a_laz_chunk_table_larger_than_the_file_is_refused(shared_data, tmp_path
 
 
 @pytest.mark.data
+def test_a_laz_chunk_size_beyond_the_points_is_refused(shared_data, tmp_path):
+    """Found by the fuzzer (1 of 5,000 LAZ mutants: one byte of the laszip VLR's chunk size, 50,000
+    -> 2,130,756,432): lazrs' parallel decompressor allocated 72 GB for one chunk and aborted."""
+    import laspy
+
+    laz = tmp_path / "bad.laz"
+    laspy.read(str(shared_data / "simple.las")).write(str(laz), laz_backend=laspy.LazBackend.Lazrs)
+    data = bytearray(laz.read_bytes())
+    vlr = data.find(b"laszip encoded") + 52  # the laszip VLR's record data (after its 54-byte header)
+    assert struct.unpack_from("<I", data, vlr + 12)[0] == 50_000
+    data[vlr + 15] = 127
+    laz.write_bytes(bytes(data))
+    res = _read_in_child(laz)
+    assert res.returncode == 1, res.stderr  # an exception, not an abort (-6)
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"lodbuilder.errors.FormatError: {laz}: the LAZ header declares chunks of 2130756432 points "
+        "(67.5 GiB each) for 1065 points; the file is damaged"
+    )
+
+
+@pytest.mark.data
 @pytest.mark.parametrize("streamed", [False, True])
 def test_a_laz_whose_items_have_no_size_is_a_format_error(shared_data, tmp_path, streamed):
     """Found by the fuzzer (1 of 5,000 LAZ mutants): lazrs panics on a point size of 0 ('attempt to

@@ -117,6 +117,11 @@ def _check_vlr_counts(path: Path) -> None:
             )
 
 
+#: the largest LAZ chunk (points x point size) accepted when it is also larger than the whole file's
+#: points: writers use 50,000-point chunks (1-3 MB); lazrs allocates a chunk whole before reading it
+CHUNK_BYTES_MAX = 256 * 2**20
+
+
 def _check_chunk_table(laspy: Any, path: Path) -> None:
     """Refuse a LAZ chunk table that declares more chunks than the file can hold: lazrs
     allocates it whole and aborts the process (SIGABRT) when the allocation fails."""
@@ -140,11 +145,20 @@ def _check_chunk_table(laspy: Any, path: Path) -> None:
             at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
         f.seek(max(0, at))
         raw = f.read(8)
+    lazvlr = lazrs.LazVlr(vlr.record_data)
+    count = int(header.point_count)
+    point_size = int(header.point_format.size)
+    if not lazvlr.uses_variable_size_chunks():
+        # lazrs' parallel decompressor allocates one whole chunk: a damaged chunk size aborts it too
+        chunk_bytes = lazvlr.chunk_size() * point_size
+        if chunk_bytes > max(CHUNK_BYTES_MAX, count * point_size):
+            raise FormatError(
+                f"{path}: the LAZ header declares chunks of {lazvlr.chunk_size()} points "
+                f"({chunk_bytes / 2**30:.1f} GiB each) for {count} points; the file is damaged"
+            )
     if not start + 8 <= at <= size - 8 or len(raw) != 8:
         return  # no chunk table where it should be: lazrs reads the chunks in sequence
     n_chunks = struct.unpack("<II", raw)[1]
-    lazvlr = lazrs.LazVlr(vlr.record_data)
-    count = int(header.point_count)
     most = count if lazvlr.uses_variable_size_chunks() else -(-count // max(1, lazvlr.chunk_size()))
     if n_chunks > max(1, min(most, size - start)):
         raise FormatError(
