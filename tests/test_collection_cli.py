@@ -147,3 +147,19 @@ def test_slice_all_scans_with_different_crs_says_so(tmp_path, capsys):
     assert ("  changed: the scans have different coordinate reference systems (s0: WGS 84 / UTM zone 10N, "
             "s1: none); the output has none") in text.splitlines()
     assert not read_scan(out).metadata.get("crs_wkt")
+
+
+@pytest.mark.dask
+def test_dask_local_build_prints_no_dask_start_up_logs(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    files = _clouds(tmp_path, n=2)
+    res = subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", "build", *map(str, files), "-o",
+                          str(tmp_path / "d.h5"), "--dask-local", "1", "--no-progress"],
+                         capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert res.returncode == 0, res.stderr
+    assert [line for line in res.stderr.splitlines() if "distributed" in line] == []
+    assert "on Dask LocalCluster (1 worker)" in res.stdout

@@ -121,11 +121,28 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, dask
             yield ex, f"process pool ({_plural(n)})"
         return
     try:
-        from dask.distributed import Client, LocalCluster
+        import dask.distributed  # noqa: F401  (a missing extra is said here, before any work)
     except ImportError:
         raise MissingDependencyError(
             "building on Dask needs dask.distributed; pip install lodbuilder[distributed]"
         ) from None
+    # distributed logs its start-up at INFO (scheduler, nannies, workers): follow lodbuilder's level
+    # instead (-v shows them), and leave the caller's setting as it was afterwards
+    dask_logger = logging.getLogger("distributed")
+    dask_level = dask_logger.level
+    dask_logger.setLevel(logging.getLogger("lodbuilder").getEffectiveLevel())
+    try:
+        with _dask_client(dask_local, scheduler) as (client, desc):
+            yield client.get_executor(pure=False), desc
+    finally:
+        dask_logger.setLevel(dask_level)
+
+
+@contextlib.contextmanager
+def _dask_client(dask_local: int | None, scheduler: str | None) -> Iterator[tuple[Any, str]]:
+    """A Dask client on a new LocalCluster of ``dask_local`` workers or on ``scheduler``."""
+    from dask.distributed import Client, LocalCluster
+
     cluster = None
     if dask_local is not None:
         import dask
@@ -145,7 +162,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, dask
             raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({one_line(exc)}); check the address") from None
         desc = f"Dask scheduler {scheduler}"
     try:
-        yield client.get_executor(pure=False), desc
+        yield client, desc
     finally:
         client.close()
         if cluster is not None:
