@@ -163,3 +163,14 @@ def test_dask_local_build_prints_no_dask_start_up_logs(tmp_path):
     assert res.returncode == 0, res.stderr
     assert [line for line in res.stderr.splitlines() if "distributed" in line] == []
     assert "on Dask LocalCluster (1 worker)" in res.stdout
+
+
+def test_slice_all_scans_of_a_missing_scan_quotes_the_names(tmp_path, capsys):
+    files = _clouds(tmp_path, n=2)
+    arc = tmp_path / "two.h5"
+    assert main(["build", *map(str, files), "-o", str(arc), "--no-progress", "-q"]) == 0
+    capsys.readouterr()
+    assert main(["slice", str(arc), "--all-scans", "--rho", "0.5", "--scan", "nope", "-o",
+                 str(tmp_path / "x.ply")]) == 2
+    assert capsys.readouterr().err == (f"lodbuilder slice: error: archive {arc} has no scan 'nope'; "
+                                       "it holds 's0', 's1'\n")

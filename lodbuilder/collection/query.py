@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, strict_keywords, strict_methods
+from .._validate import check_positive, quoted_names, strict_keywords, strict_methods
 
 
 @strict_methods
@@ -95,8 +95,8 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
                     except ScanNotFoundError:
                         joint = [m for ms in members.values() if ms for m in ms]
                         raise ScanNotFoundError(
-                            f"archive {archive} has no scan {want!r}; it holds {sorted(arc.scans)}"
-                            + (f" and the joint members {sorted(joint)}" if joint else "")) from None
+                            f"archive {archive} has no scan {want!r}; it holds {quoted_names(sorted(arc.scans))}"
+                            + (f" and the joint members {quoted_names(sorted(joint))}" if joint else "")) from None
         for n, member in wanted:
             lv = arc.scan(n).level(rho=rho_v, attributes=True if members[n] else attributes)
             ms = members[n]
