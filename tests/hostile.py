@@ -25,6 +25,16 @@ def make_archive(path: Path) -> Path:
     return path
 
 
+def small_ply(path: Path) -> Path:
+    """A binary PLY of 100 random points (x, y, z only), written by hand: an input to build into
+    a damaged or hostile archive."""
+    rows = np.random.default_rng(0).random((100, 3)).astype("<f4")
+    head = "ply\nformat binary_little_endian 1.0\nelement vertex 100\n"
+    head += "".join(f"property float {c}\n" for c in "xyz") + "end_header\n"
+    path.write_bytes(head.encode() + rows.tobytes())
+    return path
+
+
 def copy(src: Path, dst: Path) -> Path:
     shutil.copyfile(src, dst)
     return dst

@@ -5,14 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 
-def naive_euclidean_fps(points: np.ndarray, seeds: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact Euclidean farthest point ordering in O(N^2) NumPy.
+def naive_euclidean_fps(
+    points: np.ndarray, seeds: list[int], cost: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact Euclidean farthest point ordering in O(N^2) NumPy (with ``cost``: a pair's distance
+    scaled by the mean of the two points' costs).
 
     Returns (order, radius, parent) with radius = inf and parent = -1 for seeds; ties go to the
     lowest input index.
     """
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
+    c = np.ones(n) if cost is None else np.asarray(cost, dtype=np.float64)
     d = np.full(n, np.inf)
     lab = np.full(n, -1, dtype=np.int64)
     done = np.zeros(n, dtype=bool)
@@ -28,8 +32,8 @@ def naive_euclidean_fps(points: np.ndarray, seeds: list[int]) -> tuple[np.ndarra
         radius.append(rq)
         parent.append(pq)
         done[q] = True
-        dq = np.linalg.norm(pts - pts[q], axis=1)
-        closer = dq < d
+        dq = np.linalg.norm(pts - pts[q], axis=1) * 0.5 * (c + c[q])
+        closer = (dq < d) & ~done
         d[closer] = dq[closer]
         lab[closer] = k
     return np.array(order), np.array(radius), np.array(parent)
@@ -83,28 +87,7 @@ def naive_farthest_insert(
 def naive_euclidean_fps_cost(points: np.ndarray, seeds: list[int], cost: np.ndarray):
     """Exact farthest point ordering where a pair's distance is scaled by the mean of the two
     points' costs (lodbuilder's weighted Euclidean metric), in O(N^2) NumPy; ties to the lowest index."""
-    pts = np.asarray(points, dtype=np.float64)
-    c = np.asarray(cost, dtype=np.float64)
-    n = pts.shape[0]
-    d = np.full(n, np.inf)
-    lab = np.full(n, -1, dtype=np.int64)
-    done = np.zeros(n, dtype=bool)
-    order, radius, parent = [], [], []
-    for k in range(n):
-        if k < len(seeds):
-            q, rq, pq = seeds[k], np.inf, -1
-        else:
-            q = int(np.argmax(np.where(done, -1.0, d)))
-            rq, pq = float(d[q]), int(lab[q])
-        order.append(q)
-        radius.append(rq)
-        parent.append(pq)
-        done[q] = True
-        dq = np.linalg.norm(pts - pts[q], axis=1) * 0.5 * (c + c[q])
-        closer = (dq < d) & ~done
-        d[closer] = dq[closer]
-        lab[closer] = k
-    return np.array(order), np.array(radius), np.array(parent)
+    return naive_euclidean_fps(points, seeds, cost=cost)
 
 
 # ---- a naive marcher: the kernel's single-source march, written plainly -----------------------

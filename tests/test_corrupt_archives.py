@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from hostile import SCAN, N, copy, edit, make_archive, rewrite, vlen_strings
+from hostile import SCAN, N, copy, edit, make_archive, rewrite, small_ply, vlen_strings
 
 import lodbuilder
 from lodbuilder.archive import layout as L
@@ -90,14 +90,6 @@ def cli(*argv, timeout=120):
     )
 
 
-def _ply(path):
-    rows = np.random.default_rng(0).random((100, 3)).astype("<f4")
-    head = "ply\nformat binary_little_endian 1.0\nelement vertex 100\n"
-    head += "".join(f"property float {c}\n" for c in "xyz") + "end_header\n"
-    path.write_bytes(head.encode() + rows.tobytes())
-    return path
-
-
 HANG_COMMANDS = {
     "info": [],
     "validate": [],
@@ -119,7 +111,7 @@ def test_a_heap_that_never_ends_is_refused_not_looped_on(old, tmp_path, cmd):
     data[at + p + 8 : at + p + 16] = bytes(8)
     arc.write_bytes(bytes(data))
     if cmd == "build":
-        argv = ["build", _ply(tmp_path / "in.ply"), "-o", arc, "--no-progress"]
+        argv = ["build", small_ply(tmp_path / "in.ply"), "-o", arc, "--no-progress"]
     else:
         argv = [cmd, arc, *(a.format(d=tmp_path) for a in HANG_COMMANDS[cmd])]
     res = cli(*argv)  # a regression times out here instead of hanging the suite

@@ -21,6 +21,7 @@ from hostile import (
     external_storage,
     foreign_file,
     make_archive,
+    small_ply,
     virtual,
 )
 
@@ -37,14 +38,6 @@ INTENSITY = f"/scans/{SCAN}/attributes/intensity"
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
     return make_archive(tmp_path_factory.mktemp("base") / "base.h5")
-
-
-def _ply(path):
-    rows = np.random.default_rng(0).random((100, 3)).astype("<f4")
-    head = "ply\nformat binary_little_endian 1.0\nelement vertex 100\n"
-    head += "".join(f"property float {c}\n" for c in "xyz") + "end_header\n"
-    path.write_bytes(head.encode() + rows.tobytes())
-    return path
 
 
 def commands(arc, d):
@@ -117,7 +110,7 @@ KINDS = [
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_command_refuses(base, tmp_path, capsys, monkeypatch, kind, cmd):
     arc, message = _hostile(kind, base, tmp_path)
-    _ply(tmp_path / "in.ply")
+    small_ply(tmp_path / "in.ply")
     before = arc.read_bytes()
     listing = sorted(os.listdir(tmp_path))
     argv, out = commands(arc, tmp_path)[cmd]
@@ -172,7 +165,7 @@ def test_a_name_with_a_newline_stays_on_one_line(base, tmp_path, capsys):
 
 def test_collection_build_into_a_hostile_archive_is_refused(base, tmp_path, capsys):
     arc, message = _hostile("virtual dataset", base, tmp_path)
-    a, b = _ply(tmp_path / "a.ply"), _ply(tmp_path / "b.ply")
+    a, b = small_ply(tmp_path / "a.ply"), small_ply(tmp_path / "b.ply")
     before = arc.read_bytes()
     rc = main(["build", str(a), str(b), "-o", str(arc), "--no-progress"])
     err = capsys.readouterr().err

@@ -62,6 +62,24 @@ MAX_COORD = (1 << 21) - 1
 MAX_POINTS = (1 << 31) - 1  # point and voxel indices are int32
 
 
+def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The points sorted into cubic cells of ``size`` from ``origin``: the cells' Morton keys in
+    that order (one per point), the permutation (input index of each sorted point), the points'
+    grid coordinates in that order and the start of every cell's run (with N at the end)."""
+    from .._kernels.grid import cell_order, grid_coords
+
+    n = points.shape[0]
+    keys = cell_order(points, origin, size)
+    perm = np.argsort(keys, kind="stable").astype(np.int32)
+    keys = keys[perm]
+    u = grid_coords(points, perm, origin, size)
+    first = np.empty(n, dtype=bool)
+    first[0] = True
+    np.not_equal(keys[1:], keys[:-1], out=first[1:])
+    ostart = np.append(np.flatnonzero(first), n).astype(np.int32)
+    return keys, perm, u, ostart
+
+
 def median_spacing(
     points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 500_000
 ) -> float:
@@ -75,7 +93,7 @@ def median_spacing(
     exact: points hashed into cells, the cell size doubled until the k-th neighbour of most queries
     lies within one cell (no k-d tree: scipy.spatial would cost the build process 26 MB).
     """
-    from .._kernels.grid import cell_order, grid_coords, kth_neighbour
+    from .._kernels.grid import kth_neighbour
 
     n = points.shape[0]
     if n < 2:
@@ -95,16 +113,8 @@ def median_spacing(
     c = max(2.5 * ext / math.sqrt(n), ext * 2.0**-20)  # 2.5 x the spacing of n points on a square
     while True:
         origin = lo - c
-        keys = cell_order(points, origin, c)
-        perm = np.argsort(keys, kind="stable").astype(np.int32)
-        keys = keys[perm]
-        u = grid_coords(points, perm, origin, c)
-        first = np.empty(n, dtype=bool)
-        first[0] = True
-        np.not_equal(keys[1:], keys[:-1], out=first[1:])
-        starts = np.flatnonzero(first)
-        ostart = np.append(starts, n).astype(np.int32)
-        dk, sure = kth_neighbour(u, ostart, keys[starts], (q - origin) / c, k + 1)
+        keys, _, u, ostart = cells(points, origin, c)
+        dk, sure = kth_neighbour(u, ostart, keys[ostart[:-1]], (q - origin) / c, k + 1)
         if sure.mean() >= 0.9 or c >= 4 * ext:
             break
         c *= 2.0
@@ -170,20 +180,12 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
     the gap to the nearer other sheet within reach (inf where there is none), the same on the
     opposite side, and the unit normal toward the nearer one (float32; zero where there is none)."""
-    from .._kernels.grid import cell_order, grid_coords
     from .._kernels.sheets import cell_separation
 
     n = points.shape[0]
     origin = points.min(axis=0) - 2 * h
-    ckeys = cell_order(points, origin, h)
-    perm = np.argsort(ckeys, kind="stable").astype(np.int32)
-    ckeys = ckeys[perm]
-    u = grid_coords(points, perm, origin, h)
-    new = np.empty(n, dtype=bool)
-    new[0] = True
-    np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
-    ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
-    del ckeys, new
+    ckeys, perm, u, ostart = cells(points, origin, h)
+    del ckeys
     sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
     counts = np.diff(ostart)
     sep_in = np.empty(n)
@@ -323,7 +325,7 @@ def build_band(
     """Build the band of radius ``r`` (or per-point ``radius``, input order) on a grid of spacing
     ``h`` around ``points``; where ``normal`` (input order, toward the other sheet at distance
     ``separation``) is not zero, only on the side away from it."""
-    from .._kernels.grid import band_voxels, cell_order, grid_coords, neighbour_table
+    from .._kernels.grid import band_voxels, neighbour_table
     from .._kernels.topology import nearest_corners
 
     n = points.shape[0]
@@ -343,15 +345,7 @@ def build_band(
             f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}"
         )
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
-    ckeys = cell_order(points, origin, h)
-    perm = np.argsort(ckeys, kind="stable").astype(np.int32)
-    ckeys = ckeys[perm]
-    u = grid_coords(points, perm, origin, h)
-    new = np.empty(n, dtype=bool)
-    new[0] = True
-    np.not_equal(ckeys[1:], ckeys[:-1], out=new[1:])
-    ostart = np.append(np.flatnonzero(new), n).astype(np.int32)
-    del new
+    ckeys, perm, u, ostart = cells(points, origin, h)
 
     def too_big(count: str) -> MemoryBudgetError:
         return MemoryBudgetError(
