@@ -243,6 +243,12 @@ def _seeds(
     cand, nrm = _level_vertices(level, tree_l, rho)
     d_l, _ = tree_l.query(cand, k=1, workers=-1)
     cand, nrm = cand[d_l > rho], nrm[d_l > rho]
+    # a vertex within rho/2 of a sample point is no seed: that point, its nearest, is within
+    # rho/2 of it along its tangent plane too (the test below). Most vertices stop here, before
+    # the query of 16 neighbours.
+    d_0, _ = tree_s.query(cand, k=1, distance_upper_bound=rho, workers=-1)
+    keep = ~(d_0 <= NEAR_FRACTION * rho)
+    cand, nrm = cand[keep], nrm[keep]
     if cand.shape[0] == 0:
         return empty, empty
     # a vertex lies on its level point's tangent plane: move it onto the plane of the sample
@@ -410,12 +416,21 @@ def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray
 
     hit = np.zeros(points.shape[0], dtype=bool)
     for reg in regions:
-        uv = reg.frame.uv(points)
+        if not reg.candidates.shape[0]:
+            continue
+        # (a point over a node and within 2 rho of the surface is within 4 rho of a candidate,
+        # unless the surface rose by 1.7 rho over a grid step: most regions are far away)
+        lo = reg.candidates.min(axis=0) - 4.0 * rho
+        hi = reg.candidates.max(axis=0) + 4.0 * rho
+        box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
+        if not box.size:
+            continue
+        uv = reg.frame.uv(points[box])
         d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
-        over = np.flatnonzero(np.isfinite(d) & ~hit)
-        if over.size:
-            h = reg.frame.height(points[over])
-            hit[over] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
+        over = np.isfinite(d)
+        if over.any():
+            h = reg.frame.height(points[box[over]])
+            hit[box[over]] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
     return hit
 
 
