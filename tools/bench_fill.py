@@ -255,6 +255,10 @@ def report_regions(filled) -> list[dict]:
 # --- the two parts ---------------------------------------------------------------------------
 
 
+#: depth bins (distance of a synthetic point to the punched scan, in rho) for its error
+DEPTHS = ((0.0, 1.5), (1.5, 2.5), (2.5, 3.5), (3.5, 99.0))
+
+
 def real_part(
     scan_path: Path, rho: float, n_holes: int, seeds: list[int], work: Path, repeat: int
 ) -> dict:
@@ -265,6 +269,7 @@ def real_part(
     faces = read_faces(scan_path)
     runs = []
     errors = []  # of the synthetic points in the punched balls, every seed
+    depths = []  # their distance to the punched scan, in rho
     for seed in seeds:
         keep, centres, radii = punch(original, rho, n_holes, seed)
         path = work / f"real_{scan_path.stem}_{seed}.h5"
@@ -282,6 +287,9 @@ def real_part(
         err, how = surface_distance(syn, original, faces)
         err = err / rho
         errors.append(err[in_ball])
+        # how deep in its hole each synthetic point lies: distance to the nearest point left
+        depth = cKDTree(original[keep]).query(syn[in_ball])[0] / rho
+        depths.append(depth)
         cov_un = coverage(original, level.points, rho, {"punched": holes})
         cov_f = coverage(original, lev.points, rho, {"punched": holes})
         for c, r in zip(centres, radii, strict=True):
@@ -328,13 +336,19 @@ def real_part(
             }
         )
         print(json.dumps({"real": scan_path.name, **runs[-1]}), file=sys.stderr, flush=True)
-    e = np.concatenate(errors)
+    e, dep = np.concatenate(errors), np.concatenate(depths)
     every = {
         "n": int(e.size),
         "max": round(float(e.max()), 3) if e.size else None,
         "p99": round(float(np.percentile(e, 99)), 3) if e.size else None,
         "mean": round(float(e.mean()), 3) if e.size else None,
         "share_within_0.25": round(float((e <= 0.25).mean()), 3) if e.size else None,
+        # the error grows with the depth in the hole (distance to the nearest point left)
+        "max_by_depth": {
+            f"{lo:g}-{hi:g} rho": round(float(e[(dep >= lo) & (dep < hi)].max()), 3)
+            for lo, hi in DEPTHS
+            if ((dep >= lo) & (dep < hi)).any()
+        },
     }
     return {
         "scan": scan_path.name,
@@ -427,7 +441,10 @@ def markdown(result: dict) -> str:
                 "",
                 f"Every seed: {every['n']} synthetic points in the balls, error max {every['max']} / "
                 f"p99 {every['p99']} / mean {every['mean']} rho, {every['share_within_0.25']} of "
-                "them within 0.25 rho.",
+                "them within 0.25 rho; largest error by depth in the hole (distance to the nearest "
+                "point left): "
+                + ", ".join(f"{k} {v}" for k, v in every.get("max_by_depth", {}).items())
+                + ".",
             ]
         lines.append("")
     syn = result.get("synthetic") or []
