@@ -211,7 +211,10 @@ def build_tiled(
 
     # 4. order every tile (on the workers)
     t0 = time.perf_counter()
-    todo = [t for t in tiles if not (work / f"stream.{t.index}.bin").exists() or
+    # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
+    size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
+    by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
+    todo = [t for t in by_size if not (work / f"stream.{t.index}.bin").exists() or
             read_json(work / f"order.{t.index}.json") is None]
     resumed = {"tiles_ordered_before": n_tiles - len(todo)}
     calls: list[tuple[int, Any, tuple]] = [
@@ -236,7 +239,7 @@ def build_tiled(
     # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
     #    the points in stored order (the first pass of the write)
     t0 = time.perf_counter()
-    todo = [t for t in tiles if read_json(work / f"cover.{t.index}.json") is None]
+    todo = [t for t in by_size if read_json(work / f"cover.{t.index}.json") is None]
     resumed["tiles_covered_before"] = n_tiles - len(todo)
     calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
     futs = _submit(executor, calls)
