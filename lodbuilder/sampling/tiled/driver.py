@@ -162,7 +162,10 @@ def build_tiled(
                                  band_radius)
         grid = P.Grid.around(sp.lo, sp.hi)
         span = float(np.max(sp.hi - sp.lo)) or 1.0
-        m_target = min(COARSE_POINTS, max(n // 8, min(n, COARSE_MIN)))
+        fits = P.tile_capacity(budget, parallel)
+        cap = tile_points or fits
+        # the decimated copy is ordered by one worker: no larger than the worker's budget allows
+        m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
         d_cell = max(s * math.sqrt(n / m_target), span / (1 << 20))
         hist = np.zeros(int(np.prod(grid.shape)), np.int64)
         dec = Decimator(grid.lo, d_cell)
@@ -170,7 +173,13 @@ def build_tiled(
             hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
             dec.add(g0, pts)
         n_dec = dec.write(work / "decimated.i8")
-        cap = tile_points or P.tile_capacity(budget, parallel)
+        limit = max(fits, COARSE_MIN)
+        while n_dec > limit:  # the cell count overshot the target: coarser cells, one more pass
+            d_cell *= 1.1 * math.sqrt(n_dec / limit)
+            dec = Decimator(grid.lo, d_cell)
+            for g0, pts in point_blocks(work, n):
+                dec.add(g0, pts)
+            n_dec = dec.write(work / "decimated.i8")
         tiles = P.split_tiles(hist, grid, cap)
         pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
                                   "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
