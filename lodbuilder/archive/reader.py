@@ -452,6 +452,25 @@ class ScanView:
             )
         return self._read(grp[name])
 
+    def stored_rows(self, lo: int, hi: int) -> dict[str, Any]:
+        """Every per-point array of stored rows ``lo:hi``, each checked as it is read: points
+        (decoded), source_index, radius, parent, and the dicts attributes and importance."""
+        sel = slice(int(lo), int(hi))
+        g = self._g
+        return {
+            "points": L.decode_points(self._read(g[L.D_POINTS], sel), self.encoding, self._offset, self._scale),
+            "source_index": self._read(g[L.D_SOURCE_INDEX], sel),
+            "radius": self._read(g[L.D_RADIUS], sel),
+            "parent": self._read(g[L.D_PARENT], sel),
+            "attributes": {k: self._read(g[L.G_ATTRIBUTES][k], sel) for k in self.attribute_names},
+            "importance": {k: self._read(g[L.G_IMPORTANCE][k], sel) for k in self.importance_names},
+        }
+
+    def ordering(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The extra ordering ``name``: (stored positions, radius, parent), checked."""
+        og = self._ordering_group(name)
+        return self._read(og[L.D_ORDER]), self._read(og[L.D_RADIUS]), self._read(og[L.D_PARENT])
+
     def importance_parameters(self, name: str) -> dict[str, Any]:
         return checks.json_attr(self._meta, self._g[L.G_IMPORTANCE][name].attrs, L.M_PARAMETERS)
 
