@@ -15,9 +15,10 @@ on the surface, so each hole's ring chooses by cross-validation
 (:meth:`HeightField.select`): the spline that best predicts the inner ring points of each sixth
 of the ring from the other five sixths, a gap as wide as the hole, is used. On the holes punched
 by ``tools/bench_fill.py`` it lowers the worst holes' largest error (bunny 0.66 -> 0.29 rho,
-Igea 0.52 -> 0.36 and 0.50 -> 0.39 rho) and keeps the thin-plate spline on frag_115's walls;
-where the chosen spline is the worse one, both were within 0.23 rho. What no spline can do is
-guess a bump or a dip that the ring does not show: see docs/benchmarks.md for the errors left.
+Igea 0.52 -> 0.36 and 0.50 -> 0.39 rho) and keeps the thin-plate spline on frag_115's walls.
+The choice is a prediction, not an oracle: on a few holes the other spline was closer (by up to
+0.17 rho, on a bunny hole both miss by 0.6-0.75 rho). No spline guesses a bump or a dip that
+the ring does not show: see docs/benchmarks.md for the errors left.
 """
 
 from __future__ import annotations
