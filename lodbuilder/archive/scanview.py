@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .._validate import check_positive, check_size, strict_methods
+from .._validate import check_positive, check_size, quoted_names, strict_methods
 from ..errors import InputError
 from . import checks, safety
 from . import layout as L
@@ -155,7 +155,7 @@ class ScanView:
         for key in wanted:
             if key not in grp:
                 raise InputError(
-                    f"scan {self.name!r} has no attribute {key!r}; it has {', '.join(grp) or 'none'}"
+                    f"scan {self.name!r} has no attribute {key!r}; it has {quoted_names(grp)}"
                 )
             out[key] = self._read(grp[key], sel)
         return out
@@ -165,7 +165,7 @@ class ScanView:
         grp = self._g[L.G_IMPORTANCE]
         if name not in grp:
             raise InputError(
-                f"scan {self.name!r} has no importance map {name!r}; it has {', '.join(grp) or 'none'}"
+                f"scan {self.name!r} has no importance map {name!r}; it has {quoted_names(grp)}"
             )
         return self._read(grp[name])
 
@@ -203,8 +203,7 @@ class ScanView:
         grp = self._g[L.G_ORDERINGS] if L.G_ORDERINGS in self._g else {}
         if name not in grp:
             raise InputError(
-                f"scan {self.name!r} has no ordering {name!r}; it has "
-                f"{', '.join(['uniform'] + list(grp))}"
+                f"scan {self.name!r} has no ordering {name!r}; it has {quoted_names(['uniform', *grp])}"
             )
         return grp[name]
 
