@@ -137,7 +137,9 @@ def naive_band_march(band, source: int) -> np.ndarray:
     upwind voxels are accepted; a point's value min over its marchable corners of T + |p - v|, or a
     Taylor step along the front at its nearest marchable corner (never below the straight
     distance). A dictionary of coordinates instead of the neighbour table, heapq with lazy entries
-    instead of the indexed heap."""
+    instead of the indexed heap. As in the kernel, T is float32 and equal T pop in voxel order (the
+    heap's entries are (T, voxel)): two tied voxels in line, accepted in the other order, switch a
+    neighbour's second-order update on or off."""
     import heapq
 
     u = band.u

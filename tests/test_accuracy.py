@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from naive import naive_band_march
 from scipy.spatial import cKDTree
@@ -46,6 +46,13 @@ def relative_errors(d: np.ndarray, geo: np.ndarray, h: float) -> np.ndarray:
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**31 - 1), kind=st.sampled_from(["plane", "sphere"]))
+# examples with two voxels of equal (float32) T in line: the kernel's heap popped them in its
+# layout's order, the reference in voxel order, and a neighbour's update switched between first
+# and second order (relative differences up to 5e-4 downstream) until the heap broke ties by voxel
+@example(seed=1233, kind="sphere")
+@example(seed=427, kind="sphere")
+@example(seed=1410, kind="sphere")
+@example(seed=1292, kind="plane")
 def test_march_matches_the_naive_marcher(seed, kind):
     from lodbuilder._kernels.march import multi_source_distance
 

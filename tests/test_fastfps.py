@@ -350,9 +350,30 @@ def test_indexed_min_heap_pops_in_key_order(ops):
     while n > 0:
         k, item, n = iheap_pop(hk, hv, hpos, n)
         out.append((float(k), int(item)))
-    assert sorted(x[0] for x in out) == [x[0] for x in out]
+    assert out == sorted(out)  # by key, equal keys by item
     assert {i: k for k, i in out} == best
     assert (hpos == -1).all()
+
+
+def test_indexed_min_heap_pops_equal_keys_in_item_order():
+    # the marcher's result depends on the order two voxels of equal T are accepted in: it must be
+    # the voxel order, not the heap's layout (which depends on the order of the pushes)
+    from lodbuilder._kernels.heaps import check_minheap, iheap_pop, iheap_push
+
+    hk = np.empty(8, np.float32)
+    hv = np.empty(8, np.int32)
+    hpos = np.full(8, -1, np.int32)
+    n = 0
+    for item in [5, 7, 2, 6, 0, 3]:
+        n = iheap_push(hk, hv, hpos, n, np.float32(1.5), item)
+    n = iheap_push(hk, hv, hpos, n, np.float32(0.5), 4)
+    n = iheap_push(hk, hv, hpos, n, np.float32(1.5), 1)
+    assert check_minheap(hk, hv, hpos, n)
+    out = []
+    while n > 0:
+        _, item, n = iheap_pop(hk, hv, hpos, n)
+        out.append(int(item))
+    assert out == [4, 0, 1, 2, 3, 5, 6, 7]
 
 
 @settings(max_examples=30, deadline=None)

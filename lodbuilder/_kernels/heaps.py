@@ -1,6 +1,6 @@
 """Binary heaps on plain arrays: an indexed min-heap of (float32 key, int32 item) for the marching
-fronts, and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for
-candidates.
+fronts (equal keys pop the smaller item first: the order is (key, item), not the heap's layout),
+and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for candidates.
 Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap).
 ``check_minheap``/``check_maxheap`` verify the invariants in O(n); the engine calls them after every
 operation when its debug switch is on (like scikit-fmm's self test)."""
@@ -89,7 +89,7 @@ def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
         n += 1
     while i > 0:
         p = (i - 1) >> 1
-        if hk[p] <= key:
+        if hk[p] < key or (hk[p] == key and hv[p] < item):
             break
         hk[i] = hk[p]
         hv[i] = hv[p]
@@ -116,9 +116,9 @@ def iheap_pop(hk, hv, hpos, n):  # pragma: no cover - compiled
             c = 2 * i + 1
             if c >= n:
                 break
-            if c + 1 < n and hk[c + 1] < hk[c]:
+            if c + 1 < n and (hk[c + 1] < hk[c] or (hk[c + 1] == hk[c] and hv[c + 1] < hv[c])):
                 c += 1
-            if hk[c] >= lk:
+            if hk[c] > lk or (hk[c] == lk and hv[c] > lv):
                 break
             hk[i] = hk[c]
             hv[i] = hv[c]
@@ -132,11 +132,13 @@ def iheap_pop(hk, hv, hpos, n):  # pragma: no cover - compiled
 
 @nb.njit(**JIT)
 def check_minheap(hk, hv, hpos, n):  # pragma: no cover - compiled
-    """True when the first n entries form a binary min-heap whose positions ``hpos`` agree."""
+    """True when the first n entries form a binary min-heap of (key, item) whose positions ``hpos``
+    agree."""
     for i in range(n):
         if hpos[hv[i]] != i:
             return False
-        if i > 0 and hk[(i - 1) >> 1] > hk[i]:
+        p = (i - 1) >> 1
+        if i > 0 and (hk[p] > hk[i] or (hk[p] == hk[i] and hv[p] > hv[i])):
             return False
     return True
 

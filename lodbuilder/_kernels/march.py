@@ -8,7 +8,9 @@ enters them.
 Per-voxel state: arrival time ``T`` (float32, only ever lowered), the rank of the sample that set it
 (``vlab``) and a round stamp: ``stamp == 2 * rnd`` means "trial in round rnd", ``2 * rnd + 1``
 "accepted in round rnd", anything smaller "known from an earlier round". Nothing is re-initialised per
-sample: a new sample marches only where it lowers ``T``.
+sample: a new sample marches only where it lowers ``T``. The front pops the smallest T first and,
+among equal T (float32 ties happen), the smaller voxel index first: which of two tied voxels in line
+is accepted first decides whether a neighbour's update is second order.
 
 Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
 ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
