@@ -281,24 +281,29 @@ def band_voxels(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma
     return keys[:count].copy(), qo[:count].copy(), fo[:count].copy(), count
 
 
+_AXIS_BITS = (_M5, _M5 << np.uint64(1), _M5 << np.uint64(2))  # the Morton bits of x, y, z
+
+
 @nb.njit(**JIT)
 def neighbour_table(keys):  # pragma: no cover - compiled
-    """The 6-neighbour table (-x, +x, -y, +y, -z, +z; -1 = absent) of the sorted voxel ``keys``."""
+    """The 6-neighbour table (-x, +x, -y, +y, -z, +z; -1 = absent) of the sorted voxel ``keys``.
+
+    Only the + neighbours are looked up (the key one step up an axis: that axis's interleaved
+    bits incremented in place); each found pair fills both directions."""
     v = keys.shape[0]
     hidx = index_hash(keys)
-    nbr = np.empty((v, 6), np.int32)
+    nbr = np.full((v, 6), -1, np.int32)
     for i in range(v):
-        x, y, z = unmorton(keys[i])
-        for j in range(6):
-            ax = j >> 1
-            s = 2 * (j & 1) - 1
-            xx = x + s if ax == 0 else x
-            yy = y + s if ax == 1 else y
-            zz = z + s if ax == 2 else z
-            if xx < 0 or yy < 0 or zz < 0:
-                nbr[i, j] = -1
-            else:
-                nbr[i, j] = hash_find(hidx, keys, morton(xx, yy, zz))
+        k = np.uint64(keys[i])
+        for ax in range(3):
+            m = _AXIS_BITS[ax]
+            up = ((k | ~m) + np.uint64(1)) & m
+            if up == np.uint64(0):
+                continue  # the last coordinate: nothing above it
+            j = hash_find(hidx, keys, np.int64(up | (k & ~m)))
+            if j >= 0:
+                nbr[i, 2 * ax + 1] = j
+                nbr[j, 2 * ax] = i
     return nbr
 
 
