@@ -1,4 +1,4 @@
-"""The point-spacing estimate behind the default voxel size, and the band's shared grid."""
+"""The point-spacing estimate behind the default voxel size."""
 
 from __future__ import annotations
 
@@ -8,17 +8,9 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
-from surfaces import folded_sheet, jittered_plane
+from surfaces import jittered_plane
 
-from lodbuilder.sampling.band import (
-    build_band,
-    build_planned_band,
-    cells,
-    grid_origin,
-    median_spacing,
-    plan_band,
-    sheet_separation,
-)
+from lodbuilder.sampling.band import cells, median_spacing
 
 
 def _kth_reference(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
@@ -65,24 +57,3 @@ def test_median_spacing_is_the_kd_tree_figure():
     q = pts[np.random.default_rng(0).choice(len(pts), 20_000, replace=False)]
     ref = float(np.median(_kth_reference(pts, q, 7))) * math.sqrt(math.pi / 6)
     assert s == np.float64(ref) or abs(s - ref) <= 1e-12 * ref
-
-
-def test_the_sheet_grid_is_the_band_grid():
-    """plan_band sorts the points into the band's grid once: the band built from the plan equals
-    one built from scratch, and the separation measured on the shared cells equals the one
-    measured without them."""
-    pts = folded_sheet(0.01, gap=0.03)[0]
-    plan = plan_band(pts, None, None)
-    assert plan.normal is not None and plan.sorted_cells is not None
-    shared = plan.sorted_cells
-    sep_shared = sheet_separation(pts, plan.h, plan.r, shared)
-    sep_own = sheet_separation(pts, plan.h, plan.r)
-    for a, b in zip(sep_shared, sep_own, strict=True):
-        assert np.array_equal(a, b)
-    origin = grid_origin(pts, plan.h, plan.r)
-    assert np.array_equal(shared[2], cells(pts, origin, plan.h)[2])
-    band, plan2 = build_planned_band(pts, plan)
-    assert plan2.sorted_cells is None
-    ref = build_band(pts, plan.h, plan.r)
-    for name in ("u", "perm", "keys", "nbr", "cs", "foot"):
-        assert np.array_equal(getattr(band, name), getattr(ref, name)), name

@@ -80,22 +80,6 @@ def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarr
     return keys, perm, u, ostart
 
 
-def grid_origin(points: np.ndarray, h: float, rmax: float) -> np.ndarray:
-    """The origin of the band's grid of spacing ``h`` for a largest band radius ``rmax``: a margin
-    of ceil(rmax / h) + 3 voxels below the points' minimum. Raises :class:`InputError` when the
-    bounding box needs more voxels along an axis than the keys can index."""
-    margin = math.ceil(rmax / h) + 3
-    origin = points.min(axis=0) - margin * h
-    extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
-    if extent > MAX_COORD:
-        need = h * extent / MAX_COORD
-        raise InputError(
-            f"voxel_size={h:g} would need {extent:,} voxels along one axis of the bounding box "
-            f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}"
-        )
-    return origin
-
-
 def median_spacing(
     points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 500_000
 ) -> float:
@@ -186,27 +170,22 @@ class BandPlan:
     separation: np.ndarray | None
     normal: np.ndarray | None
     handover: float
-    sorted_cells: tuple | None = None  # cells(points, grid_origin(points, h, r), h), when computed
 
     @property
     def thin_points(self) -> int:
         return 0 if self.separation is None else int(np.isfinite(self.separation).sum())
 
 
-def sheet_separation(
-    points: np.ndarray, h: float, r: float, sorted_cells: tuple | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
     the gap to the nearer other sheet within reach (inf where there is none), the same on the
-    opposite side, and the unit normal toward the nearer one (float32; zero where there is none).
-    The grid is the band's (:func:`grid_origin`), so ``sorted_cells``, the points sorted into it
-    (:func:`cells`), serve both when given."""
+    opposite side, and the unit normal toward the nearer one (float32; zero where there is none)."""
     from .._kernels.sheets import cell_separation
 
     n = points.shape[0]
-    if sorted_cells is None:
-        sorted_cells = cells(points, grid_origin(points, h, r), h)
-    _, perm, u, ostart = sorted_cells
+    origin = points.min(axis=0) - 2 * h
+    ckeys, perm, u, ostart = cells(points, origin, h)
+    del ckeys
     sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
     counts = np.diff(ostart)
     sep_in = np.empty(n)
@@ -225,9 +204,7 @@ def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float |
     plain = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
     if voxel_size is not None or band_radius is not None or points.shape[0] < 16:
         return plain
-    sorted_cells = cells(points, grid_origin(points, h, r), h)  # the band's grid: build_band reuses it
-    plain.sorted_cells = sorted_cells
-    sep_in, sep_out, normal = sheet_separation(points, h, r, sorted_cells)
+    sep_in, sep_out, normal = sheet_separation(points, h, r)
     if not np.isfinite(sep_in).any():
         return plain
     with np.errstate(invalid="ignore"):
@@ -235,7 +212,7 @@ def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float |
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
     typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
     handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
-    return BandPlan(h, r, radius, sep_in, normal, handover, sorted_cells)
+    return BandPlan(h, r, radius, sep_in, normal, handover)
 
 
 _M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,
@@ -344,12 +321,10 @@ def build_band(
     normal: np.ndarray | None = None,
     separation: np.ndarray | None = None,
     depth_cost: float | None = None,
-    sorted_cells: tuple | None = None,
 ) -> Band:
     """Build the band of radius ``r`` (or per-point ``radius``, input order) on a grid of spacing
     ``h`` around ``points``; where ``normal`` (input order, toward the other sheet at distance
-    ``separation``) is not zero, only on the side away from it. ``sorted_cells``: the points
-    already sorted into this grid's cells (:func:`cells` at :func:`grid_origin`), if at hand."""
+    ``separation``) is not zero, only on the side away from it."""
     from .._kernels.grid import band_voxels, neighbour_table
     from .._kernels.topology import nearest_corners
 
@@ -359,12 +334,18 @@ def build_band(
     if max_memory is None:
         max_memory = default_max_memory()
     rmax = r if radius is None else max(r, float(radius.max()))
-    origin = grid_origin(points, h, rmax)
+    margin = math.ceil(rmax / h) + 3
+    lo = points.min(axis=0)
+    origin = lo - margin * h
+    extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
+    if extent > MAX_COORD:
+        need = h * extent / MAX_COORD
+        raise InputError(
+            f"voxel_size={h:g} would need {extent:,} voxels along one axis of the bounding box "
+            f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}"
+        )
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
-    if sorted_cells is None or rmax != r:  # (a larger radius than r moves the origin)
-        sorted_cells = cells(points, origin, h)
-    ckeys, perm, u, ostart = sorted_cells
-    del sorted_cells
+    ckeys, perm, u, ostart = cells(points, origin, h)
 
     def too_big(count: str) -> MemoryBudgetError:
         return MemoryBudgetError(
@@ -421,8 +402,7 @@ def build_planned_band(points: np.ndarray, plan: BandPlan, max_memory: int | Non
     voxels, so both are decided on one band."""
     from .._kernels.topology import point_components
 
-    band = build_band(points, plan.h, plan.r, max_memory, sorted_cells=plan.sorted_cells)
-    plan.sorted_cells = None  # the band holds what it needs of them
+    band = build_band(points, plan.h, plan.r, max_memory)
     if plan.normal is None:
         return band, plan
     vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
