@@ -107,5 +107,5 @@ def test_slice_floor_rho_errors(ply, tmp_path, capsys):
     rc = main(["slice", str(arc), "--floor-rho", "3", "--size", "900", "--ordering", "floor",
                "-o", str(out)])  # fmt: skip
     assert rc == 2
-    assert "has no ordering 'floor'; it has uniform, weighted" in capsys.readouterr().err
+    assert "has no ordering 'floor'; it has 'uniform', 'weighted'" in capsys.readouterr().err
     assert not out.exists()

@@ -24,6 +24,7 @@ PACKAGES = [
     "lodbuilder.viewer",
     "lodbuilder.viewer.source",
     "lodbuilder.archive.reader",
+    "lodbuilder.archive.scanview",
     "lodbuilder.sampling.fill",
 ]
 NOT_HERE: set[str] = set()

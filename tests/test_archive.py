@@ -227,6 +227,22 @@ def test_unknown_scan_and_ambiguous_scan(small, tmp_path):
             arc.scan("nope")
 
 
+def test_missing_attribute_importance_and_ordering_name_the_ones_there_quoted(small):
+    """Like scan names, the names a scan has are quoted (before: 'it has blue, green, ...')."""
+    with lodbuilder.open_archive(small[2]) as arc:
+        v = arc.scan()
+        have = ", ".join(repr(k) for k in v.attribute_names)
+        with pytest.raises(InputError) as exc:
+            v.attributes(names=["nope"])
+        assert str(exc.value) == f"scan 'wavy' has no attribute 'nope'; it has {have}"
+        with pytest.raises(InputError) as exc:
+            v.importance("nope")
+        assert str(exc.value) == "scan 'wavy' has no importance map 'nope'; it has none"
+        with pytest.raises(InputError) as exc:
+            v.ordering("nope")
+        assert str(exc.value) == "scan 'wavy' has no ordering 'nope'; it has 'uniform'"
+
+
 def _public_members(cls):
     """Every public property and method of ``cls``, collected (so a new one is checked too)."""
     members = {n: getattr(cls, n) for n in dir(cls) if not n.startswith("_")}

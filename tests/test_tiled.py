@@ -249,3 +249,17 @@ def test_progress_bars_count_points_tiles_and_steps(capsys):
     assert "/134k [00:00<?, ?pt/s]" in err
     assert "tiles:   0%|          | 0/16 [00:00<?, ?tile/s]" in err
     assert "/1.00 [" not in err
+
+
+def test_the_coarse_copy_fits_one_worker(tmp_path):
+    """The decimated copy is ordered by one worker: it is never larger than a tile the budget allows
+    (before: n // 8 points whatever the budget, so a 4M-point survey at --max-memory 1.6GB with 2
+    workers failed with 'the coarse level failed: ... needs more than ... voxels')."""
+    from lodbuilder.sampling.tiled import plan as P
+
+    budget = P.PARENT_MIN + P.PROCESS_BYTES + 2500 * P.TILE_BYTES_PER_POINT
+    fits = P.tile_capacity(budget, 1)
+    assert 2000 <= fits < 3000
+    pts = wavy(32_000, np.random.default_rng(5))
+    d, _ = _build(tmp_path, pts, tile_points=8000, max_memory=budget)
+    assert d["build"]["tiled"]["coarse_points"] <= fits < len(pts) // 8

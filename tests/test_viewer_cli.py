@@ -200,7 +200,7 @@ def test_view_extra_ordering(shared_data, tmp_path, capsys):
     )
     assert rc == 0 and png.stat().st_size > 0
     assert main(["view", str(arc), "--ordering", "nope", "--screenshot", str(png)]) == 2
-    assert "has no ordering 'nope'; it has uniform, weighted" in capsys.readouterr().err
+    assert "has no ordering 'nope'; it has 'uniform', 'weighted'" in capsys.readouterr().err
 
 
 @pytest.mark.viewer

@@ -143,8 +143,8 @@ def markdown(r: dict) -> str:
         "## Export: COPC and the standalone web page (tools/bench_export.py)",
         "",
         f"{measured(r)}; {r['machine']['cpu_count']} cores. Input: "
-        f"synthetic wavy sheet with RGB, {r['n_points']:,} points (archive built in "
-        f"{r['build_s']} s).",
+        + (f"synthetic wavy sheet with RGB, {r['n_points']:,} points (archive built in {r['build_s']} s)."
+           if r.get("inputs_synthetic", True) else f"{r['inputs']}, {r['n_points']:,} points."),
         "",
         "| output | seconds | size | notes |",
         "|---|---:|---:|---|",

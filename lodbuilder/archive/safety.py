@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from ..errors import CorruptArchiveError, LodbuilderError, UnsafeArchiveError
+from ..errors import ArchiveError, CorruptArchiveError, LodbuilderError, UnsafeArchiveError
 
 MAX_DEPTH = 16  # groups below the root (the layout uses 4)
 MAX_OBJECTS = 1_000_000  # groups and datasets in one file
@@ -266,6 +266,11 @@ def guarded(path_of: Callable[[Any], Any]) -> Callable[[type], type]:
     return _wrapping(
         wrap, lambda name: not name.startswith("__") or name in ("__init__", "__len__", "__getitem__")
     )
+
+
+def closed_error(path: Any) -> ArchiveError:
+    """What every member of a closed archive or scan view raises (see :func:`open_only`)."""
+    return ArchiveError(f"archive {path} is closed; read it inside `with open_archive(...)`")
 
 
 def open_only(*, allowed: tuple[str, ...] = ()) -> Callable[[type], type]:

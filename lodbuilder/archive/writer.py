@@ -190,33 +190,17 @@ def copy_scan(
     try:
         with ScanWriter(path, view.name, n, metadata=view.format_metadata, encoding=view.encoding) as w:
             step = w.rows * 16
-            g = view._g
             for lo in range(0, n, step):
                 hi = min(n, lo + step)
-                sel = slice(lo, hi)
-                imps = {}
-                for key in imp_names:
-                    if key in importance:
-                        imps[key] = np.asarray(importance[key][0])[lo:hi]
-                    else:
-                        imps[key] = view._read(g[L.G_IMPORTANCE][key], sel)
-                w.write(
-                    L.decode_points(view._read(g[L.D_POINTS], sel), view.encoding, view._offset, view._scale),
-                    view._read(g[L.D_SOURCE_INDEX], sel),
-                    view._read(g[L.D_RADIUS], sel),
-                    view._read(g[L.D_PARENT], sel),
-                    attributes={key: view._read(g[L.G_ATTRIBUTES][key], sel) for key in view.attribute_names},
-                    importance=imps,
-                )
+                rows = view.stored_rows(lo, hi)
+                imps = {key: (np.asarray(importance[key][0])[lo:hi] if key in importance else rows["importance"][key])
+                        for key in imp_names}
+                w.write(rows["points"], rows["source_index"], rows["radius"], rows["parent"],
+                        attributes=rows["attributes"], importance=imps)
             params = {key: view.importance_parameters(key) for key in view.importance_names}
             params.update({key: dict(p or {}) for key, (_, p) in importance.items()})
-            olds = {}
-            for key in view.ordering_names:
-                if key in orderings:
-                    continue
-                og = view._ordering_group(key)
-                olds[key] = (view._read(og[L.D_ORDER]), view._read(og[L.D_RADIUS]),
-                             view._read(og[L.D_PARENT]), view.ordering_parameters(key))
+            olds = {key: (*view.ordering(key), view.ordering_parameters(key))
+                    for key in view.ordering_names if key not in orderings}
             olds.update(orderings)
             return w.finish(
                 n_ordered=view.n_ordered,

@@ -52,7 +52,7 @@ def evaluate_scan(
     k: int | None = None,
     progress: ProgressCallback = None,
 ) -> ScanEvaluation:
-    """Evaluate levels of an archive scan (a :class:`lodbuilder.archive.reader.ScanView`).
+    """Evaluate levels of an archive scan (a :class:`lodbuilder.archive.scanview.ScanView`).
 
     The input is every stored point of the scan. Levels come from ``sizes``, ``rhos`` or
     ``fractions`` (default: ten sizes log-spaced from 0.1 % to 100 %). For the stored (uniform)

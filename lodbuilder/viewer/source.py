@@ -16,7 +16,7 @@ COLOUR_ATTRIBUTES = ("red", "green", "blue")
 
 @strict_keywords
 def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
-    """ViewData of one archive scan (a :class:`lodbuilder.archive.reader.ScanView`), in its stored
+    """ViewData of one archive scan (a :class:`lodbuilder.archive.scanview.ScanView`), in its stored
     (uniform) order or in one of its extra orderings (``weighted``, ``floor``, ...), whose levels
     are then the prefixes the viewer shows."""
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]

@@ -162,7 +162,10 @@ def build_tiled(
                                  band_radius)
         grid = P.Grid.around(sp.lo, sp.hi)
         span = float(np.max(sp.hi - sp.lo)) or 1.0
-        m_target = min(COARSE_POINTS, max(n // 8, min(n, COARSE_MIN)))
+        fits = P.tile_capacity(budget, parallel)
+        cap = tile_points or fits
+        # the decimated copy is ordered by one worker: no larger than the worker's budget allows
+        m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
         d_cell = max(s * math.sqrt(n / m_target), span / (1 << 20))
         hist = np.zeros(int(np.prod(grid.shape)), np.int64)
         dec = Decimator(grid.lo, d_cell)
@@ -170,7 +173,13 @@ def build_tiled(
             hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
             dec.add(g0, pts)
         n_dec = dec.write(work / "decimated.i8")
-        cap = tile_points or P.tile_capacity(budget, parallel)
+        limit = max(fits, COARSE_MIN)
+        while n_dec > limit:  # the cell count overshot the target: coarser cells, one more pass
+            d_cell *= 1.1 * math.sqrt(n_dec / limit)
+            dec = Decimator(grid.lo, d_cell)
+            for g0, pts in point_blocks(work, n):
+                dec.add(g0, pts)
+            n_dec = dec.write(work / "decimated.i8")
         tiles = P.split_tiles(hist, grid, cap)
         pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
                                   "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
@@ -211,7 +220,10 @@ def build_tiled(
 
     # 4. order every tile (on the workers)
     t0 = time.perf_counter()
-    todo = [t for t in tiles if not (work / f"stream.{t.index}.bin").exists() or
+    # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
+    size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
+    by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
+    todo = [t for t in by_size if not (work / f"stream.{t.index}.bin").exists() or
             read_json(work / f"order.{t.index}.json") is None]
     resumed = {"tiles_ordered_before": n_tiles - len(todo)}
     calls: list[tuple[int, Any, tuple]] = [
@@ -236,7 +248,7 @@ def build_tiled(
     # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
     #    the points in stored order (the first pass of the write)
     t0 = time.perf_counter()
-    todo = [t for t in tiles if read_json(work / f"cover.{t.index}.json") is None]
+    todo = [t for t in by_size if read_json(work / f"cover.{t.index}.json") is None]
     resumed["tiles_covered_before"] = n_tiles - len(todo)
     calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
     futs = _submit(executor, calls)

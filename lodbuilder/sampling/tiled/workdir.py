@@ -202,29 +202,47 @@ class TileWriter:
             f.close()
 
 
+def opaque_rows(a: np.ndarray) -> np.ndarray:
+    """A structured array seen as opaque fixed-size rows: NumPy gathers and scatters those about
+    ten times faster than structured records (field by field)."""
+    return a.view(np.dtype((np.void, a.dtype.itemsize)))
+
+
 def distribute(work: Path, n: int, tiles: list[Any], grid: Any, lookup: np.ndarray, halo: float,
                progress: ProgressCallback = None) -> tuple[np.ndarray, np.ndarray]:
     """Write the core and halo files of every tile; returns (core counts, halo counts)."""
     tw = TileWriter(work, len(tiles))
-    los = np.array([t.lo for t in tiles]) - halo
-    his = np.array([t.hi for t in tiles]) + halo
+    t_lo = np.array([t.lo for t in tiles], float)
+    t_hi = np.array([t.hi for t in tiles], float)
+    los, his = t_lo - halo, t_hi + halo
     try:
         for g0, pts in point_blocks(work, n):
             m = pts.shape[0]
             rec = np.empty(m, REC)
             rec["g"] = np.arange(g0, g0 + m)
             rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+            raw = opaque_rows(rec)
             own = lookup[grid.index(pts)]
             order = np.argsort(own, kind="stable")
             bounds = np.searchsorted(own[order], np.arange(len(tiles) + 1))
+            # only a point within the halo width of its own tile's faces can lie in another tile's
+            # halo (the tiles' boxes do not overlap): test those against every tile
+            lo_own, hi_own = t_lo[own], t_hi[own]
+            is_near = np.zeros(m, bool)
+            for a in range(3):  # column by column: NumPy reduces a short axis slowly
+                is_near |= pts[:, a] - lo_own[:, a] <= halo
+                is_near |= hi_own[:, a] - pts[:, a] <= halo
+            near = np.flatnonzero(is_near)
+            p_near, own_near = pts[near], own[near]
             for t in range(len(tiles)):
                 sel = order[bounds[t]:bounds[t + 1]]
                 if sel.size:
-                    tw.add("core", t, rec[sel])
-                inside = np.all((pts >= los[t]) & (pts <= his[t]), axis=1)
-                inside &= own != t
+                    tw.add("core", t, raw[sel])
+                inside = own_near != t
+                for a in range(3):
+                    inside &= (p_near[:, a] >= los[t, a]) & (p_near[:, a] <= his[t, a])
                 if inside.any():
-                    tw.add("halo", t, rec[inside])
+                    tw.add("halo", t, raw[near[inside]])
             report(progress, "split", g0 + m, n)
     finally:
         tw.close()

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ...progress import ProgressCallback, report
-from .workdir import attr_file, blocks, point_blocks
+from .workdir import attr_file, blocks, opaque_rows, point_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -59,11 +59,12 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
                     shape = fields[names[i]][1]
                     r[f"a{i}"] = a.reshape(m, *shape) if shape else a
                 dest = r["pos"] // block
-                order = np.argsort(dest, kind="stable")
+                order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
                 cuts = np.searchsorted(dest[order], np.arange(n_buckets + 1))
+                srt = opaque_rows(r)[order]
                 for b in range(n_buckets):
                     if cuts[b + 1] > cuts[b]:
-                        files[b].write(r[order[cuts[b]:cuts[b + 1]]].tobytes())
+                        files[b].write(srt[cuts[b]:cuts[b + 1]].tobytes())
                 report(progress, "permute", g0 + m, n)
     finally:
         for f in files:
@@ -97,7 +98,7 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
             if r.shape[0] != k1 - k0:
                 raise RuntimeError(f"bucket {b} holds {r.shape[0]} rows, expected {k1 - k0}")
             srt = np.empty(k1 - k0, rec)
-            srt[r["pos"] - k0] = r
+            opaque_rows(srt)[r["pos"] - k0] = opaque_rows(r)
             del r
             g = _order_block(work, k0, k1)
             rad = np.fromfile(frad, dtype="<f8", count=k1 - k0)
