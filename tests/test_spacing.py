@@ -5,12 +5,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
-from surfaces import jittered_plane
+from surfaces import folded_sheet, jittered_plane
 
-from lodbuilder.sampling.band import cells, median_spacing
+from lodbuilder.errors import MemoryBudgetError
+from lodbuilder.sampling import band
+from lodbuilder.sampling.band import cells, median_spacing, plan_and_build_band
 
 
 def _kth_reference(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
@@ -57,3 +60,35 @@ def test_median_spacing_is_the_kd_tree_figure():
     q = pts[np.random.default_rng(0).choice(len(pts), 20_000, replace=False)]
     ref = float(np.median(_kth_reference(pts, q, 7))) * math.sqrt(math.pi / 6)
     assert s == np.float64(ref) or abs(s - ref) <= 1e-12 * ref
+
+
+def test_two_threads_answer_like_one(monkeypatch):
+    """The spacing's neighbour queries split over two threads give the same figure as one."""
+    pts = jittered_plane(30_000, np.random.default_rng(5))
+    monkeypatch.setattr(band, "_cores", lambda: 2)
+    two = median_spacing(pts)
+    monkeypatch.setattr(band, "_cores", lambda: 1)
+    assert median_spacing(pts) == two
+
+
+def test_the_band_built_meanwhile_is_the_band_built_after(monkeypatch):
+    """plan_and_build_band builds the plain band on a second thread while the sheets are measured
+    (small inputs, two cores): the same band and plan as one after the other."""
+    pts = folded_sheet(0.01, gap=0.03)[0]
+    results = []
+    for cores, limit in ((2, band.OVERLAP_MAX_POINTS), (1, 0)):
+        monkeypatch.setattr(band, "_cores", lambda c=cores: c)
+        monkeypatch.setattr(band, "OVERLAP_MAX_POINTS", limit)
+        results.append(plan_and_build_band(pts, None, None))
+    (b1, p1, f1), (b2, p2, f2) = results
+    assert f1 == f2 > 0 and p1.thin_points == p2.thin_points
+    for name in ("u", "perm", "keys", "nbr", "cs", "vcost", "foot", "near"):
+        assert np.array_equal(getattr(b1, name), getattr(b2, name)), name
+    assert np.array_equal(p1.separation, p2.separation) and p1.handover == p2.handover
+
+
+def test_a_band_too_big_for_the_budget_fails_the_same_on_the_second_thread():
+    """The plain band's error (built on the second thread) reaches the caller as before."""
+    pts = jittered_plane(5_000, np.random.default_rng(2))
+    with pytest.raises(MemoryBudgetError, match="increase voxel_size or max_memory"):
+        plan_and_build_band(pts, None, None, max_memory=1_000_000)
