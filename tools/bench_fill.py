@@ -8,8 +8,8 @@ Real part: in a real scan, every point inside a few balls of radius 3-5 rho is r
 the scan, at least 4 rho apart, where the scan surrounds the ball all round: no border nor natural
 hole nearby), the archive is built and its level at rho filled. Figures: the covering radius of
 the ORIGINAL scan (before punching) by the unfilled and the filled level, and the distance of
-every synthetic point to the original surface (the mesh when the PLY has faces, else the local
-plane of the 8 nearest original points), split into synthetic points inside the punched balls and
+every synthetic point to the original surface (point to triangle, to the mesh when the PLY has
+faces or triangle strips, else to the local plane of the 8 nearest original points), split into synthetic points inside the punched balls and
 elsewhere (the scan's own holes, for which there is no original surface).
 
 Synthetic part: a *synthetic* wavy sheet of N random points (side 1) with round holes covering 1 %
@@ -119,8 +119,9 @@ def punch_area(points_xy: np.ndarray, rho: float, fraction: float, seed: int, ra
 
 
 def surface_distance(query: np.ndarray, original: np.ndarray, faces: np.ndarray | None):
-    """Distance of ``query`` points to the original surface: the mesh when there are faces
-    (point-cloud-utils), else the plane of the 8 nearest original points."""
+    """Distance of ``query`` points to the original surface: to the nearest point of the mesh's
+    triangles when there are faces (point-cloud-utils), else to the plane of the 8 nearest
+    original points."""
     if query.shape[0] == 0:
         return np.zeros(0), "none"
     if faces is not None:
@@ -158,14 +159,27 @@ def read_faces(path: Path) -> np.ndarray | None:
     from plyfile import PlyData
 
     ply = PlyData.read(str(path))
-    if "face" not in ply:
+    if "face" not in ply and "tristrips" not in ply:
         return None
-    names = ply["face"].data.dtype.names
-    key = "vertex_indices" if "vertex_indices" in names else names[0]
-    rows = ply["face"].data[key]
-    if not all(len(r) == 3 for r in rows[:1000]):
+    if "face" in ply:
+        names = ply["face"].data.dtype.names
+        key = "vertex_indices" if "vertex_indices" in names else names[0]
+        rows = ply["face"].data[key]
+        if not all(len(r) == 3 for r in rows[:1000]):
+            return None
+        return np.stack(rows).astype(np.int64)
+    # triangle strips (igea.ply): one index list, strips separated by -1
+    strips = np.concatenate([np.asarray(r, dtype=np.int64) for r in ply["tristrips"].data[0]])
+    tris = []
+    for strip in np.split(strips, np.flatnonzero(strips < 0)):
+        strip = strip[strip >= 0]
+        if strip.size >= 3:
+            tris.append(np.stack([strip[:-2], strip[1:-1], strip[2:]], axis=1))
+    if not tris:
         return None
-    return np.stack(rows).astype(np.int64)
+    t = np.concatenate(tris)
+    # (a strip's orientation alternates: irrelevant to distances) no degenerate triangles
+    return t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
 
 
 def build(points: np.ndarray, attributes: dict, name: str, path: Path) -> float:
@@ -185,14 +199,15 @@ def fill_times(path: Path, rho: float, repeat: int):
 
     with lodbuilder.open_archive(path) as arc:
         view = arc.scan()
-        ts, tg, tl = [], [], []
+        ts, tc, tg, tl = [], [], [], []
         for _ in range(repeat):
             t = time.perf_counter()
             view.level(rho=rho)
             tl.append(time.perf_counter() - t)
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             filled = fill_level(view, rho)
             ts.append(time.perf_counter() - t)
+            tc.append(time.process_time() - c)
             t = time.perf_counter()
             find_gaps(view, rho)
             tg.append(time.perf_counter() - t)
@@ -200,6 +215,8 @@ def fill_times(path: Path, rho: float, repeat: int):
     times = {
         "fill_level_s_min": round(min(ts), 3),
         "fill_level_s_median": round(statistics.median(ts), 3),
+        # CPU time of the process (every thread: the k-d tree queries use both cores)
+        "fill_level_cpu_s_min": round(min(tc), 3),
         "find_gaps_s_median": round(statistics.median(tg), 3),
         "plain_level_s_median": round(statistics.median(tl), 4),
     }
@@ -238,6 +255,10 @@ def report_regions(filled) -> list[dict]:
 # --- the two parts ---------------------------------------------------------------------------
 
 
+#: depth bins (distance of a synthetic point to the punched scan, in rho) for its error
+DEPTHS = ((0.0, 1.5), (1.5, 2.5), (2.5, 3.5), (3.5, 99.0))
+
+
 def real_part(
     scan_path: Path, rho: float, n_holes: int, seeds: list[int], work: Path, repeat: int
 ) -> dict:
@@ -247,6 +268,8 @@ def real_part(
     original = scan.points
     faces = read_faces(scan_path)
     runs = []
+    errors = []  # of the synthetic points in the punched balls, every seed
+    depths = []  # their distance to the punched scan, in rho
     for seed in seeds:
         keep, centres, radii = punch(original, rho, n_holes, seed)
         path = work / f"real_{scan_path.stem}_{seed}.h5"
@@ -263,6 +286,10 @@ def real_part(
             holes |= np.linalg.norm(original - c, axis=1) < r
         err, how = surface_distance(syn, original, faces)
         err = err / rho
+        errors.append(err[in_ball])
+        # how deep in its hole each synthetic point lies: distance to the nearest point left
+        depth = cKDTree(original[keep]).query(syn[in_ball])[0] / rho
+        depths.append(depth)
         cov_un = coverage(original, level.points, rho, {"punched": holes})
         cov_f = coverage(original, lev.points, rho, {"punched": holes})
         for c, r in zip(centres, radii, strict=True):
@@ -290,6 +317,9 @@ def real_part(
                 "cover_original_filled_rho": cov_f,
                 "synthetic_error_in_balls_rho": {
                     "max": round(float(err[in_ball].max()), 3) if in_ball.any() else None,
+                    "p99": round(float(np.percentile(err[in_ball], 99)), 3)
+                    if in_ball.any()
+                    else None,
                     "mean": round(float(err[in_ball].mean()), 3) if in_ball.any() else None,
                     "share_within_0.25": round(float((err[in_ball] <= 0.25).mean()), 3)
                     if in_ball.any()
@@ -306,7 +336,27 @@ def real_part(
             }
         )
         print(json.dumps({"real": scan_path.name, **runs[-1]}), file=sys.stderr, flush=True)
-    return {"scan": scan_path.name, "n_points": int(original.shape[0]), "rho": rho, "runs": runs}
+    e, dep = np.concatenate(errors), np.concatenate(depths)
+    every = {
+        "n": int(e.size),
+        "max": round(float(e.max()), 3) if e.size else None,
+        "p99": round(float(np.percentile(e, 99)), 3) if e.size else None,
+        "mean": round(float(e.mean()), 3) if e.size else None,
+        "share_within_0.25": round(float((e <= 0.25).mean()), 3) if e.size else None,
+        # the error grows with the depth in the hole (distance to the nearest point left)
+        "max_by_depth": {
+            f"{lo:g}-{hi:g} rho": round(float(e[(dep >= lo) & (dep < hi)].max()), 3)
+            for lo, hi in DEPTHS
+            if ((dep >= lo) & (dep < hi)).any()
+        },
+    }
+    return {
+        "scan": scan_path.name,
+        "n_points": int(original.shape[0]),
+        "rho": rho,
+        "synthetic_error_in_balls_every_seed_rho": every,
+        "runs": runs,
+    }
 
 
 def synthetic_part(
@@ -371,7 +421,7 @@ def markdown(result: dict) -> str:
             "points) and distance of the synthetic points to the original surface (in rho).",
             "",
             "| seed | hole radii (rho) | level | synthetic (in balls) | cover unfilled all / punched | "
-            "cover filled all / punched | synthetic error in balls max / mean / share <= 0.25 | "
+            "cover filled all / punched | synthetic error in balls max / p99 / mean / share <= 0.25 | "
             "fill s |",
             "|---|---|---|---|---|---|---|---|",
         ]
@@ -382,9 +432,20 @@ def markdown(result: dict) -> str:
                 f"| {r['seed']} | {', '.join(f'{x:g}' for x in r['hole_radii_rho'])} | "
                 f"{r['level_size']:,} | {r['n_synthetic']} ({r['n_synthetic_in_punched_balls']}) | "
                 f"{cu['all']} / {cu.get('punched', '-')} | {cf['all']} / {cf.get('punched', '-')} | "
-                f"{e['max']} / {e['mean']} / {e.get('share_within_0.25', '-')} | "
+                f"{e['max']} / {e.get('p99', '-')} / {e['mean']} / {e.get('share_within_0.25', '-')} | "
                 f"{r['fill_level_s_median']} |"
             )
+        every = real.get("synthetic_error_in_balls_every_seed_rho")
+        if every:
+            lines += [
+                "",
+                f"Every seed: {every['n']} synthetic points in the balls, error max {every['max']} / "
+                f"p99 {every['p99']} / mean {every['mean']} rho, {every['share_within_0.25']} of "
+                "them within 0.25 rho; largest error by depth in the hole (distance to the nearest "
+                "point left): "
+                + ", ".join(f"{k} {v}" for k, v in every.get("max_by_depth", {}).items())
+                + ".",
+            ]
         lines.append("")
     syn = result.get("synthetic") or []
     if isinstance(syn, dict):
@@ -396,7 +457,8 @@ def markdown(result: dict) -> str:
             f"covering about {100 * s0['hole_area_fraction']:.1f} % of the area; fill_level in "
             "process (warm), `lodbuilder slice` wall time (process start included).",
             "",
-            "| rho (spacings) | holes (rho) | level + synthetic | fill_level s (min / median) | "
+            "| rho (spacings) | holes (rho) | level + synthetic | fill_level s (min / median; "
+            "CPU min) | "
             "find_gaps s | plain level s | slice wall s | slice --fill wall s | "
             "cover unfilled / filled, holes (rho) | synthetic error (rho) |",
             "|---|---|---|---|---|---|---|---|---|---|",
@@ -406,7 +468,8 @@ def markdown(result: dict) -> str:
                 f"| {s['rho']:.4g} ({s['rho_in_spacings']:g}) | "
                 f"{', '.join(f'{x:g}' for x in s['hole_radii_rho'])} | "
                 f"{s['level_size']:,} + {s['n_synthetic']} | {s['fill_level_s_min']} / "
-                f"{s['fill_level_s_median']} | {s['find_gaps_s_median']} | "
+                f"{s['fill_level_s_median']}; {s.get('fill_level_cpu_s_min', '-')} | "
+                f"{s['find_gaps_s_median']} | "
                 f"{s['plain_level_s_median']} | {s['cli_slice_wall_s']} | "
                 f"{s['cli_slice_fill_wall_s']} | {s['cover_original_unfilled_rho'].get('holes')} / "
                 f"{s['cover_original_filled_rho'].get('holes')} | "

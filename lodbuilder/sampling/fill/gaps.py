@@ -31,7 +31,8 @@ whole scan for exact distances.
    hole wider than ``max_hole * rho``): it is *open* and not filled.
 4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
    squares; the grid is laid again if it moved) and a height field over it
-   (:class:`~lodbuilder.sampling.fill.surface.HeightField`). The region is *rough* (reported, not
+   (:class:`~lodbuilder.sampling.fill.surface.HeightField`; for a gap, the spline that
+   cross-validates best on the ring). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of its normals tilted over 60
    degrees from the plane's normal) or not one smooth piece: fitted to five sixths of the ring
    (angular sectors around the hole), the surface misses the inner ring points (within rho of
@@ -242,6 +243,12 @@ def _seeds(
     cand, nrm = _level_vertices(level, tree_l, rho)
     d_l, _ = tree_l.query(cand, k=1, workers=-1)
     cand, nrm = cand[d_l > rho], nrm[d_l > rho]
+    # a vertex within rho/2 of a sample point is no seed: that point, its nearest, is within
+    # rho/2 of it along its tangent plane too (the test below). Most vertices stop here, before
+    # the query of 16 neighbours.
+    d_0, _ = tree_s.query(cand, k=1, distance_upper_bound=rho, workers=-1)
+    keep = ~(d_0 <= NEAR_FRACTION * rho)
+    cand, nrm = cand[keep], nrm[keep]
     if cand.shape[0] == 0:
         return empty, empty
     # a vertex lies on its level point's tangent plane: move it onto the plane of the sample
@@ -409,12 +416,21 @@ def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray
 
     hit = np.zeros(points.shape[0], dtype=bool)
     for reg in regions:
-        uv = reg.frame.uv(points)
+        if not reg.candidates.shape[0]:
+            continue
+        # (a point over a node and within 2 rho of the surface is within 4 rho of a candidate,
+        # unless the surface rose by 1.7 rho over a grid step: most regions are far away)
+        lo = reg.candidates.min(axis=0) - 4.0 * rho
+        hi = reg.candidates.max(axis=0) + 4.0 * rho
+        box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
+        if not box.size:
+            continue
+        uv = reg.frame.uv(points[box])
         d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
-        over = np.flatnonzero(np.isfinite(d) & ~hit)
-        if over.size:
-            h = reg.frame.height(points[over])
-            hit[over] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
+        over = np.isfinite(d)
+        if over.any():
+            h = reg.frame.height(points[box[over]])
+            hit[box[over]] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
     return hit
 
 
@@ -422,7 +438,8 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
     """Regions around one group of seeds (``None`` for each open one): a grid a little wider
     than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
     once more centred on the region that reached the edge (the seeds' mean can sit off a
-    hole's centre)."""
+    hole's centre). An enclosed region found on one grid is kept; the next grid looks only for
+    the regions of the seeds outside it (a group can hold a hole and a border next to it)."""
     from scipy.spatial import cKDTree
 
     g = GRID_FRACTION * rho
@@ -433,6 +450,7 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
     if not steps or seeds.shape[0] >= MIN_SEEDS_WIDE:
         steps += [0.5 * width, 0.5 * width]
     frame = Frame.of(centre, normal)
+    found: list = []  # enclosed regions of the grids laid so far
     regions: list = []
     for i, half_width in enumerate(steps):
         half = int(math.ceil(half_width / g))
@@ -440,7 +458,7 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
         idx = np.asarray(idx, dtype=np.int64)
         idx = idx[_slab(sample[idx], frame, rho)]
         if idx.size < 8:
-            return []
+            return found
         tree2 = cKDTree(frame.uv(sample[idx]))
         if i == 0:  # quick exit: every seed is near a sample point in the plane
             d, _ = tree2.query(frame.uv(seeds), k=1, distance_upper_bound=NEAR_FRACTION * rho)
@@ -448,11 +466,17 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
                 return []
         local = _Local(sample, idx, tree2)
         regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
+        enclosed = [r for r in regions if r is not None]
+        found += enclosed
         if leak_at is None:
-            break
+            return found
+        if enclosed:  # the next grid: only the seeds of the regions that reached the edge
+            seeds = seeds[~_inside(enclosed, seeds, rho)]
+            if seeds.shape[0] == 0:
+                return found
         if half_width >= 0.5 * width:  # the last try: the widest grid, centred on the leak
             frame = Frame.of(leak_at, normal)
-    return regions
+    return found + [r for r in regions if r is None]
 
 
 @dataclass
@@ -549,8 +573,13 @@ def _assess(reg: Region) -> None:
 
 
 def _finish_region(reg: Region, tree_s: Any, rho: float) -> None:
-    """3D distances to the sample; drop candidates within rho/2 of it (another sheet)."""
+    """3D distances to the sample; drop candidates within rho/2 of it (another sheet). A gap's
+    surface is the spline its ring chooses by cross-validation (``HeightField.select``); its
+    candidates are lifted again onto it (their area weights stay those of the first fit)."""
     d, _ = tree_s.query(reg.candidates, k=1)
+    if (d > rho).any() and reg.surface.select():
+        reg.candidates = reg.frame.lift(reg.uv, reg.surface(reg.uv))
+        d, _ = tree_s.query(reg.candidates, k=1)
     keep = d > NEAR_FRACTION * rho
     reg.candidates = reg.candidates[keep]
     reg.uv = reg.uv[keep]
