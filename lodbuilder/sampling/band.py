@@ -423,21 +423,23 @@ def build_band(
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
     ckeys, perm, u, ostart = cells(points, origin, h)
 
-    def too_big(count: str) -> MemoryBudgetError:
+    def too_big(need: int | None) -> MemoryBudgetError:
+        what = "more voxels than" if need is None else f"at least {need:,} voxels, more than"
+        mem = f"{max_memory / 2**30:.2f} GiB" if max_memory >= 2**30 else f"{max_memory / 2**20:.3g} MiB"
         return MemoryBudgetError(
-            f"voxel_size={h:g} with band_radius={r:g} needs {count} voxels, more than max_memory="
-            f"{max_memory / 2**30:.2f} GiB allows ({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
+            f"voxel_size={h:g} with band_radius={r:g} needs {what} max_memory={mem} allows "
+            f"({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
         )
 
     if budget_voxels < ostart.shape[0] - 1:
-        raise too_big(f"at least {ostart.shape[0] - 1:,}")
+        raise too_big(ostart.shape[0] - 1)
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
     bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
     keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
     del bkey, bstart, cand
     del rad, ostart
     if count < 0:
-        raise too_big(f"more than {budget_voxels:,}")
+        raise too_big(None)
     nbr = neighbour_table(keys)
     cs = np.empty(keys.shape[0] + 1, dtype=np.int32)
     cs[:-1] = np.searchsorted(ckeys, keys)
