@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -229,9 +231,16 @@ def test_grid_that_cannot_be_indexed_is_refused(rng):
 
 
 def test_memory_budget_is_a_clear_error(rng):
+    """Before: 'needs more than 18,413 voxels, more than max_memory=0.00 GiB allows (18,413)'."""
     pts = jittered_plane(2000, rng)
-    with pytest.raises(MemoryBudgetError, match=r"more than max_memory=.*increase voxel_size or max_memory"):
+    with pytest.raises(MemoryBudgetError) as exc:  # the budget runs out while the band is built
         fastfps(pts, voxel_size=0.001, max_memory=2_000_000)
+    assert str(exc.value) == ("voxel_size=0.001 with band_radius=0.0025 needs more voxels than max_memory=1.91 MiB "
+                              "allows (18,413); increase voxel_size or max_memory")
+    with pytest.raises(MemoryBudgetError) as exc:  # known before the band is built: the occupied cells
+        fastfps(pts, voxel_size=0.01, max_memory=200_000)
+    assert re.fullmatch(r"voxel_size=0.01 with band_radius=0.025 needs at least [\d,]+ voxels, more than "
+                        r"max_memory=0.191 MiB allows \(0\); increase voxel_size or max_memory", str(exc.value))
 
 
 @pytest.mark.parametrize(

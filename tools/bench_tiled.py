@@ -139,7 +139,8 @@ def reference(n: int) -> dict:
             "peak_rss_tree_gb": round(r["peak_rss_tree_bytes"] / 1e9, 3)}
 
 
-def quality(n: int, max_memory: str, workers: int, seam: float | None) -> dict:
+def quality(n: int, max_memory: str, workers: int, seam: float | None, tile_points: int | None = None) -> dict:
+    import numpy as np
     from bench_build import range_scan_sheet
     from scipy.spatial import cKDTree
 
@@ -149,7 +150,9 @@ def quality(n: int, max_memory: str, workers: int, seam: float | None) -> dict:
     pts = range_scan_sheet(n)
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as d:
         f = write_points(Path(d) / "sheet.npy", pts)
-        kw = {} if seam is None else {"seam_spacing": seam}
+        kw: dict = {} if seam is None else {"seam_spacing": seam}
+        if tile_points:
+            kw["_tile_points"] = tile_points
         t0 = time.perf_counter()
         res = lodbuilder.build_archive(f, Path(d) / "t.h5", max_memory=max_memory, workers=workers, **kw)
         t_tiled = time.perf_counter() - t0
@@ -172,9 +175,19 @@ def quality(n: int, max_memory: str, workers: int, seam: float | None) -> dict:
                      "cover_ratio": round(ct / cm, 4), "stored_radius_tiled": float(radius[k]),
                      "spacing_over_radius_tiled": round(float(dt / radius[k]), 4),
                      "spacing_over_cover_in_memory": round(float(dm / cm), 4)})
+    # every level from the head's size to 3 %: the worst covering ratio (the hand-over from the head
+    # to the tiles and the seams show there, between the three sizes above)
+    h = int(tiled.get("head_points", 1))
+    sweep = []
+    for k in sorted({int(k) for k in np.geomspace(max(h // 2, 2), max(0.03 * len(pts), h + 2), 24)}):
+        ct = float(cKDTree(pts[order[:k]]).query(pts, workers=-1)[0].max())
+        cm = float(cKDTree(pts[ref.order[:k]]).query(pts, workers=-1)[0].max())
+        sweep.append([k, round(ct / cm, 4)])
+    worst = max(sweep, key=lambda r: r[1])
     return {"input": f"synthetic range-scan sheet {len(pts)}", "max_memory": max_memory, "workers": workers,
-            "method": res.scans[0].method, "seconds_tiled": round(t_tiled, 2), "seconds_in_memory": round(t_mem, 2),
-            "levels": rows, "tiled": tiled}
+            "tile_points": tile_points, "method": res.scans[0].method, "seconds_tiled": round(t_tiled, 2),
+            "seconds_in_memory": round(t_mem, 2), "levels": rows, "sweep": sweep,
+            "sweep_worst": {"size": worst[0], "cover_ratio": worst[1]}, "tiled": tiled}
 
 
 def ratios(doc: dict) -> str:
@@ -237,6 +250,11 @@ def markdown(doc: dict) -> str:
                 lines.append(f"| {r['size']:,} ({r['fraction']:.2%}) | {r['cover_tiled']:.5f} | {r['cover_in_memory']:.5f} "
                              f"| {r['cover_ratio']:.3f} | {r['spacing_over_radius_tiled']:.3f} |")
             lines.append("")
+            if "sweep_worst" in q:
+                w = q["sweep_worst"]
+                lines += [f"Worst covering ratio over {len(q['sweep'])} sizes from half the head "
+                          f"({t.get('head_points')} points) to 3 %: {w['cover_ratio']:.3f} at {w['size']:,} points"
+                          + (f" (tiles of at most {q['tile_points']:,} points)." if q.get("tile_points") else "."), ""]
     return "\n".join(lines)
 
 
@@ -251,6 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quality-memory", default="3GB")
     p.add_argument("--quality-workers", type=int, default=2)
     p.add_argument("--seam-spacing", type=float)
+    p.add_argument("--quality-tile-points", type=int,
+                   help="points per tile of the quality build (a test knob: more tiles than the budget makes)")
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()))
     p.add_argument("--markdown", type=Path, help="write the 'tiled' section of this file (docs/benchmarks.md)")
     p.add_argument("--from-json", type=Path, nargs="+", help="render saved JSON runs into --markdown, no new run")
@@ -279,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
         doc["reference"] = reference(args.reference)
         print(json.dumps(doc["reference"]), file=sys.stderr)
     if args.quality:
-        doc["quality"] = quality(args.quality, args.quality_memory, args.quality_workers, args.seam_spacing)
+        doc["quality"] = quality(args.quality, args.quality_memory, args.quality_workers, args.seam_spacing,
+                                 args.quality_tile_points)
     doc["load_after"] = os.getloadavg()
     print(json.dumps(doc, indent=1))
     if args.markdown:

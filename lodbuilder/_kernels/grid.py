@@ -281,24 +281,29 @@ def band_voxels(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma
     return keys[:count].copy(), qo[:count].copy(), fo[:count].copy(), count
 
 
+_AXIS_BITS = (_M5, _M5 << np.uint64(1), _M5 << np.uint64(2))  # the Morton bits of x, y, z
+
+
 @nb.njit(**JIT)
 def neighbour_table(keys):  # pragma: no cover - compiled
-    """The 6-neighbour table (-x, +x, -y, +y, -z, +z; -1 = absent) of the sorted voxel ``keys``."""
+    """The 6-neighbour table (-x, +x, -y, +y, -z, +z; -1 = absent) of the sorted voxel ``keys``.
+
+    Only the + neighbours are looked up (the key one step up an axis: that axis's interleaved
+    bits incremented in place); each found pair fills both directions."""
     v = keys.shape[0]
     hidx = index_hash(keys)
-    nbr = np.empty((v, 6), np.int32)
+    nbr = np.full((v, 6), -1, np.int32)
     for i in range(v):
-        x, y, z = unmorton(keys[i])
-        for j in range(6):
-            ax = j >> 1
-            s = 2 * (j & 1) - 1
-            xx = x + s if ax == 0 else x
-            yy = y + s if ax == 1 else y
-            zz = z + s if ax == 2 else z
-            if xx < 0 or yy < 0 or zz < 0:
-                nbr[i, j] = -1
-            else:
-                nbr[i, j] = hash_find(hidx, keys, morton(xx, yy, zz))
+        k = np.uint64(keys[i])
+        for ax in range(3):
+            m = _AXIS_BITS[ax]
+            up = ((k | ~m) + np.uint64(1)) & m
+            if up == np.uint64(0):
+                continue  # the last coordinate: nothing above it
+            j = hash_find(hidx, keys, np.int64(up | (k & ~m)))
+            if j >= 0:
+                nbr[i, 2 * ax + 1] = j
+                nbr[j, 2 * ax] = i
     return nbr
 
 
@@ -341,46 +346,81 @@ def coarse_runs(keys, cs, levels):  # pragma: no cover - compiled
     return rkey, index_hash(rkey), rstart, rend
 
 
+# the 27 cells around a query's cell, nearest first (own cell, 6 faces, 12 edges, 8 corners), so
+# that the k nearest found early prune the farther cells
+_OFFS = np.array(
+    sorted(
+        [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)],
+        key=lambda d: abs(d[0]) + abs(d[1]) + abs(d[2]),
+    ),
+    dtype=np.int64,
+)
+
+
 @nb.njit(**JIT)
 def kth_neighbour(u, ostart, cell_keys, queries, k):  # pragma: no cover - compiled
     """For each query point (grid coordinates, cell size 1): the distance to its k-th nearest point
     among ``u`` (sorted by cell; ``ostart`` the cells' ranges, ``cell_keys`` their Morton keys),
     searched in the 27 cells around it, and whether that is certain (the k-th distance is at most 1,
     so no nearer point can lie outside those cells). A query that is one of the points counts itself
-    at distance 0, as a k-d tree query would."""
+    at distance 0, as a k-d tree query would. Cells are visited nearest first and a cell whose box
+    lies farther than the k-th distance found so far is skipped (it cannot change that distance)."""
     hidx = index_hash(cell_keys)
     nq = queries.shape[0]
     out = np.empty(nq)
     sure = np.empty(nq, np.bool_)
     best = np.empty(k)
+    offs = _OFFS
     for q in range(nq):
         qx, qy, qz = queries[q, 0], queries[q, 1], queries[q, 2]
         fx = int(np.floor(qx))
         fy = int(np.floor(qy))
         fz = int(np.floor(qz))
+        # squared distances from the query to the lower and upper face of its cell, per axis
+        lx = (qx - fx) ** 2
+        ly = (qy - fy) ** 2
+        lz = (qz - fz) ** 2
+        hx = (fx + 1 - qx) ** 2
+        hy = (fy + 1 - qy) ** 2
+        hz = (fz + 1 - qz) ** 2
         nk = 0
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    x, y, z = fx + dx, fy + dy, fz + dz
-                    if x < 0 or y < 0 or z < 0:
-                        continue
-                    j = hash_find(hidx, cell_keys, morton(x, y, z))
-                    if j < 0:
-                        continue
-                    for i in range(ostart[j], ostart[j + 1]):
-                        d2 = (u[i, 0] - qx) ** 2 + (u[i, 1] - qy) ** 2 + (u[i, 2] - qz) ** 2
-                        if nk < k:
-                            t = nk
-                            nk += 1
-                        elif d2 < best[k - 1]:
-                            t = k - 1
-                        else:
-                            continue
-                        while t > 0 and best[t - 1] > d2:
-                            best[t] = best[t - 1]
-                            t -= 1
-                        best[t] = d2
+        for o in range(27):
+            dx, dy, dz = offs[o, 0], offs[o, 1], offs[o, 2]
+            if nk == k:
+                box = 0.0
+                if dx < 0:
+                    box += lx
+                elif dx > 0:
+                    box += hx
+                if dy < 0:
+                    box += ly
+                elif dy > 0:
+                    box += hy
+                if dz < 0:
+                    box += lz
+                elif dz > 0:
+                    box += hz
+                if box >= best[k - 1]:
+                    continue
+            x, y, z = fx + dx, fy + dy, fz + dz
+            if x < 0 or y < 0 or z < 0:
+                continue
+            j = hash_find(hidx, cell_keys, morton(x, y, z))
+            if j < 0:
+                continue
+            for i in range(ostart[j], ostart[j + 1]):
+                d2 = (u[i, 0] - qx) ** 2 + (u[i, 1] - qy) ** 2 + (u[i, 2] - qz) ** 2
+                if nk < k:
+                    t = nk
+                    nk += 1
+                elif d2 < best[k - 1]:
+                    t = k - 1
+                else:
+                    continue
+                while t > 0 and best[t - 1] > d2:
+                    best[t] = best[t - 1]
+                    t -= 1
+                best[t] = d2
         if nk < k:
             out[q] = np.inf
             sure[q] = False

@@ -559,13 +559,14 @@ def grid_phase(
             for p in range(cs[w], cs[w + 1]):
                 if rank[p] >= 0:
                     continue
-                s = order[lq[p]]
-                e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
-                if weighted:
-                    e *= 0.5 * (pcost[p] + pcost[s])
-                cand = dq[p] if dq[p] > e else e
-                if cand < val[p]:
-                    val[p] = cand
+                if dq[p] < val[p]:  # (else max(dq, e) cannot lower val)
+                    s = order[lq[p]]
+                    e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                    if weighted:
+                        e *= 0.5 * (pcost[p] + pcost[s])
+                    cand = dq[p] if dq[p] > e else e
+                    if cand < val[p]:
+                        val[p] = cand
                 if val[p] > best:
                     best = val[p]
             maxheap_decrease(ckey, heap, hpos, cc, best, hn)

@@ -16,6 +16,8 @@ from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down
 from .march import _chord_ok, _norm
 from .topology import _cell_key, cell_tables
 
+FAR_MARGIN = 1.0 + 1e-12  # a point is skipped before the square root only when surely not nearer
+
 
 @nb.njit(**JIT)
 def euclid_tail(
@@ -136,10 +138,15 @@ def euclid_tail(
                     for p in range(p0, p1):
                         if rank[p] >= 0:
                             continue
-                        dd = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                        ex = u[p, 0] - u[i, 0]
+                        ey = u[p, 1] - u[i, 1]
+                        ez = u[p, 2] - u[i, 2]
+                        d2 = ex * ex + ey * ey + ez * ez
+                        if not weighted and d2 > d[p] * d[p] * FAR_MARGIN:
+                            continue  # surely no nearer (most points of the coarse cells)
+                        dd = np.sqrt(d2)
                         if thin and not _chord_ok(
-                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], dd,
-                            psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
+                            ex, ey, ez, dd, psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
                             pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
                         ):
                             continue  # across a gap or a tight fold: not a surface distance

@@ -80,6 +80,38 @@ def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarr
     return keys, perm, u, ostart
 
 
+THREAD_MIN_QUERIES = 4096  # fewer queries are answered in this thread alone
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def _in_two_threads(kernel, u, ostart, cell_keys, queries, k):  # noqa: ANN001 - a numba kernel and its arrays
+    """``kernel(u, ostart, cell_keys, queries, k)`` -> per-query arrays, with the second half of
+    the queries answered on a second thread when there are two cores and enough queries (the
+    kernels release the GIL; the result is the same)."""
+    nq = queries.shape[0]
+    if nq < THREAD_MIN_QUERIES or _cores() < 2:
+        return kernel(u, ostart, cell_keys, queries, k)
+    import threading
+
+    half = nq // 2
+    out: list = []
+    t = threading.Thread(target=lambda: out.append(kernel(u, ostart, cell_keys, queries[half:], k)))
+    t.start()
+    try:
+        first = kernel(u, ostart, cell_keys, queries[:half], k)
+    finally:
+        t.join()
+    if not out:  # pragma: no cover - the thread failed (its exception was printed)
+        return kernel(u, ostart, cell_keys, queries, k)
+    return tuple(np.concatenate((a, b)) for a, b in zip(first, out[0], strict=True))
+
+
 def median_spacing(
     points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 500_000
 ) -> float:
@@ -114,7 +146,7 @@ def median_spacing(
     while True:
         origin = lo - c
         keys, _, u, ostart = cells(points, origin, c)
-        dk, sure = kth_neighbour(u, ostart, keys[ostart[:-1]], (q - origin) / c, k + 1)
+        dk, sure = _in_two_threads(kth_neighbour, u, ostart, keys[ostart[:-1]], (q - origin) / c, k + 1)
         if sure.mean() >= 0.9 or c >= 4 * ext:
             break
         c *= 2.0
@@ -197,13 +229,57 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     return sep_in, sep_out, normal
 
 
+def _automatic(points: np.ndarray, voxel_size: float | None, band_radius: float | None) -> bool:
+    """Whether thin parts are looked for (automatic parameters and at least 16 points)."""
+    return voxel_size is None and band_radius is None and points.shape[0] >= 16
+
+
 def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float | None) -> BandPlan:
     """The band's parameters: the overrides as given, or the automatic rule of this module with a
     one-sided band where sheets come close."""
     h, r = choose_parameters(points, voxel_size, band_radius)
+    if not _automatic(points, voxel_size, band_radius):
+        return BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+    return _thin_plan(points, h, r)
+
+
+OVERLAP_MAX_POINTS = 200_000  # below this, the plain band is built on a second thread meanwhile
+
+
+def plan_and_build_band(
+    points: np.ndarray, voxel_size: float | None, band_radius: float | None, max_memory: int | None = None
+) -> tuple[Band, BandPlan, int]:
+    """:func:`plan_band` then :func:`build_planned_band`, and the count of thin points found (the
+    plan returned may have dropped them). With two cores and fewer than OVERLAP_MAX_POINTS points,
+    the plain band (which build_planned_band starts from whatever the plan) is built on a second
+    thread while the sheets are measured (both kernels release the GIL; the result is the same);
+    for more points one after the other, so that their memory peaks do not add up."""
+    from .fastfps import release_freed_memory
+
+    n = points.shape[0]
+    h, r = choose_parameters(points, voxel_size, band_radius)
+    if not _automatic(points, voxel_size, band_radius):
+        plan = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+        return build_band(points, h, r, max_memory), plan, 0
+    if n < OVERLAP_MAX_POINTS and _cores() >= 2:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(1) as pool:
+            plain = pool.submit(build_band, points, h, r, max_memory)
+            plan = _thin_plan(points, h, r)
+            band = plain.result()
+    else:
+        plan = _thin_plan(points, h, r)
+        release_freed_memory(n)
+        band = build_band(points, h, r, max_memory)
+    found = plan.thin_points
+    band, plan = build_planned_band(points, plan, max_memory, band=band)
+    return band, plan, found
+
+
+def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
+    """The plan for grid spacing h and band radius r with the thin parts measured."""
     plain = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
-    if voxel_size is not None or band_radius is not None or points.shape[0] < 16:
-        return plain
     sep_in, sep_out, normal = sheet_separation(points, h, r)
     if not np.isfinite(sep_in).any():
         return plain
@@ -347,21 +423,23 @@ def build_band(
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
     ckeys, perm, u, ostart = cells(points, origin, h)
 
-    def too_big(count: str) -> MemoryBudgetError:
+    def too_big(need: int | None) -> MemoryBudgetError:
+        what = "more voxels than" if need is None else f"at least {need:,} voxels, more than"
+        mem = f"{max_memory / 2**30:.2f} GiB" if max_memory >= 2**30 else f"{max_memory / 2**20:.3g} MiB"
         return MemoryBudgetError(
-            f"voxel_size={h:g} with band_radius={r:g} needs {count} voxels, more than max_memory="
-            f"{max_memory / 2**30:.2f} GiB allows ({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
+            f"voxel_size={h:g} with band_radius={r:g} needs {what} max_memory={mem} allows "
+            f"({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
         )
 
     if budget_voxels < ostart.shape[0] - 1:
-        raise too_big(f"at least {ostart.shape[0] - 1:,}")
+        raise too_big(ostart.shape[0] - 1)
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
     bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
     keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
     del bkey, bstart, cand
     del rad, ostart
     if count < 0:
-        raise too_big(f"more than {budget_voxels:,}")
+        raise too_big(None)
     nbr = neighbour_table(keys)
     cs = np.empty(keys.shape[0] + 1, dtype=np.int32)
     cs[:-1] = np.searchsorted(ckeys, keys)
@@ -394,15 +472,18 @@ def one_sided(
     return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
 
 
-def build_planned_band(points: np.ndarray, plan: BandPlan, max_memory: int | None = None) -> tuple[Band, BandPlan]:
+def build_planned_band(
+    points: np.ndarray, plan: BandPlan, max_memory: int | None = None, *, band: Band | None = None
+) -> tuple[Band, BandPlan]:
     """The band of a plan. A one-sided band must not split the surface into more pieces than the
     plain band does (two registrations of one surface a few spacings apart, in a merged scan, are
     found as two sheets and may be cut apart that way): if it does, the plain band is used for the
     whole scan and the plan returned says so. The one-sided band is a subset of the plain one's
-    voxels, so both are decided on one band."""
+    voxels, so both are decided on one band (``band``: the plain band, when already built)."""
     from .._kernels.topology import point_components
 
-    band = build_band(points, plan.h, plan.r, max_memory)
+    if band is None:
+        band = build_band(points, plan.h, plan.r, max_memory)
     if plan.normal is None:
         return band, plan
     vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)

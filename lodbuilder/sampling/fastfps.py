@@ -233,7 +233,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     import time
 
     from .._kernels.warm import ensure_compiled
-    from .band import TAIL_PER_SEP, TAIL_SLOPE, build_planned_band, plan_band
+    from .band import TAIL_PER_SEP, TAIL_SLOPE, plan_and_build_band
 
     compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
     t0 = time.perf_counter()
@@ -249,10 +249,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         _, first = np.unique(gid[seed_arr], return_index=True)
         useeds = gid[seed_arr][np.sort(first)]
     report(progress, "band", 0, 1)
-    plan = plan_band(upts, voxel_size, band_radius)
-    found = plan.thin_points
-    release_freed_memory(n)
-    band, plan = build_planned_band(upts, plan, max_memory)
+    band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory)
     release_freed_memory(n)
     h, r = plan.h, plan.r
     stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}

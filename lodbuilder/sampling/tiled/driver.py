@@ -30,10 +30,13 @@ log = logging.getLogger(__name__)
 #: the seam repair: a point waits while another tile's accepted point lies within SEAM_ALPHA x key.
 #: Across tiles every level's spacing is then at least SEAM_ALPHA / (1 + SEAM_ALPHA) x its radius
 #: (0.2 at 0.25; 0.5 at 1.0), but a deferred point leaves its own tile's side covered only by the
-#: other tile's point for a while, so the covering radius at equal size grows with it (1M-point
-#: sheet in 4 tiles, level of 1 %: 1.007 x the in-memory build without repair, 1.037 at 0.25,
-#: 1.071 at 0.5, 1.285 at 1.0; see tools/bench_tiled.py). 0.25 removes the near-duplicates two
-#: tiles make at a seam at little cost in covering.
+#: other tile's point for a while (the tile ordered its later points as if it were there), so the
+#: covering radius at equal size grows with it (1M-point sheet in 4 tiles, level of 1 %: 1.007 x
+#: the in-memory build without repair, 1.037 at 0.25, 1.071 at 0.5, 1.285 at 1.0; worst level from
+#: the head to 3 %: 1.11 at 0.25, 1.37 at 1.0; tools/bench_tiled.py --quality-tile-points). 0.25
+#: removes the near-duplicates two tiles make at a seam at little cost in covering. A cheap 1.0
+#: needs tiles that see each other's points near a shared face while they order (seeds that enter
+#: a tile's FastFPS at their own radius), which FastFPS does not offer.
 SEAM_ALPHA = 0.25
 #: the decimated copy has at most this many points (its ordering is one task), and at least
 #: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface

@@ -1,0 +1,94 @@
+"""The point-spacing estimate behind the default voxel size."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+from surfaces import folded_sheet, jittered_plane
+
+from lodbuilder.errors import MemoryBudgetError
+from lodbuilder.sampling import band
+from lodbuilder.sampling.band import cells, median_spacing, plan_and_build_band
+
+
+def _kth_reference(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
+    return cKDTree(points).query(queries, k=[k])[0][:, 0]
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(2, 400),
+    k=st.integers(1, 9),
+    cell=st.floats(0.05, 0.6),
+    kind=st.sampled_from(["cloud", "plane", "clusters"]),
+)
+def test_kth_neighbour_matches_a_kd_tree(seed, n, k, cell, kind):
+    """The grid search (cells visited nearest first, farther ones pruned) finds the same k-th
+    distance as a k-d tree wherever it says it is sure, and never a smaller one elsewhere."""
+    from lodbuilder._kernels.grid import kth_neighbour
+
+    rng = np.random.default_rng(seed)
+    if kind == "cloud":
+        pts = rng.random((n, 3))
+    elif kind == "plane":
+        pts = np.c_[rng.random((n, 2)), np.zeros(n)]
+    else:  # tight clusters with exact duplicates
+        centres = np.repeat(rng.random((n // 4 + 1, 3)), 4, axis=0)[:n]
+        pts = centres + rng.normal(0, 0.01, (n, 3)) * (rng.random((n, 1)) < 0.5)
+    k = min(k, n)
+    origin = pts.min(axis=0) - cell
+    keys, _, u, ostart = cells(pts, origin, cell)
+    queries = np.vstack([pts[: n // 2], rng.random((20, 3))])
+    dk, sure = kth_neighbour(u, ostart, keys[ostart[:-1]], (queries - origin) / cell, k)
+    ref = _kth_reference(pts, queries, k) / cell
+    assert np.allclose(dk[sure], ref[sure], rtol=1e-12, atol=1e-12)
+    assert np.all(dk >= ref - 1e-12)
+    assert np.array_equal(sure, np.isfinite(dk) & (dk <= 1.0))
+
+
+def test_median_spacing_is_the_kd_tree_figure():
+    """median_spacing equals the same statistic computed with a k-d tree on the same sample."""
+    rng = np.random.default_rng(3)
+    pts = jittered_plane(30_000, rng)
+    s = median_spacing(pts)
+    q = pts[np.random.default_rng(0).choice(len(pts), 20_000, replace=False)]
+    ref = float(np.median(_kth_reference(pts, q, 7))) * math.sqrt(math.pi / 6)
+    assert s == np.float64(ref) or abs(s - ref) <= 1e-12 * ref
+
+
+def test_two_threads_answer_like_one(monkeypatch):
+    """The spacing's neighbour queries split over two threads give the same figure as one."""
+    pts = jittered_plane(30_000, np.random.default_rng(5))
+    monkeypatch.setattr(band, "_cores", lambda: 2)
+    two = median_spacing(pts)
+    monkeypatch.setattr(band, "_cores", lambda: 1)
+    assert median_spacing(pts) == two
+
+
+def test_the_band_built_meanwhile_is_the_band_built_after(monkeypatch):
+    """plan_and_build_band builds the plain band on a second thread while the sheets are measured
+    (small inputs, two cores): the same band and plan as one after the other."""
+    pts = folded_sheet(0.01, gap=0.03)[0]
+    results = []
+    for cores, limit in ((2, band.OVERLAP_MAX_POINTS), (1, 0)):
+        monkeypatch.setattr(band, "_cores", lambda c=cores: c)
+        monkeypatch.setattr(band, "OVERLAP_MAX_POINTS", limit)
+        results.append(plan_and_build_band(pts, None, None))
+    (b1, p1, f1), (b2, p2, f2) = results
+    assert f1 == f2 > 0 and p1.thin_points == p2.thin_points
+    for name in ("u", "perm", "keys", "nbr", "cs", "vcost", "foot", "near"):
+        assert np.array_equal(getattr(b1, name), getattr(b2, name)), name
+    assert np.array_equal(p1.separation, p2.separation) and p1.handover == p2.handover
+
+
+def test_a_band_too_big_for_the_budget_fails_the_same_on_the_second_thread():
+    """The plain band's error (built on the second thread) reaches the caller as before."""
+    pts = jittered_plane(5_000, np.random.default_rng(2))
+    with pytest.raises(MemoryBudgetError, match="increase voxel_size or max_memory"):
+        plan_and_build_band(pts, None, None, max_memory=1_000_000)
