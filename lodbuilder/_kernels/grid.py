@@ -357,6 +357,26 @@ _OFFS = np.array(
 )
 
 
+@nb.njit(**INLINE)
+def cell_gap2(px, py, pz, fx, fy, fz, dx, dy, dz):  # pragma: no cover - compiled
+    """Squared distance from the point (px, py, pz) in cell (fx, fy, fz) (grid units) to the box of
+    the neighbour cell (fx + dx, fy + dy, fz + dz), with dx, dy, dz in -1..1."""
+    g = 0.0
+    if dx < 0:
+        g += (px - fx) ** 2
+    elif dx > 0:
+        g += (fx + 1 - px) ** 2
+    if dy < 0:
+        g += (py - fy) ** 2
+    elif dy > 0:
+        g += (fy + 1 - py) ** 2
+    if dz < 0:
+        g += (pz - fz) ** 2
+    elif dz > 0:
+        g += (fz + 1 - pz) ** 2
+    return g
+
+
 @nb.njit(**JIT)
 def kth_neighbour(u, ostart, cell_keys, queries, k):  # pragma: no cover - compiled
     """For each query point (grid coordinates, cell size 1): the distance to its k-th nearest point
@@ -376,32 +396,11 @@ def kth_neighbour(u, ostart, cell_keys, queries, k):  # pragma: no cover - compi
         fx = int(np.floor(qx))
         fy = int(np.floor(qy))
         fz = int(np.floor(qz))
-        # squared distances from the query to the lower and upper face of its cell, per axis
-        lx = (qx - fx) ** 2
-        ly = (qy - fy) ** 2
-        lz = (qz - fz) ** 2
-        hx = (fx + 1 - qx) ** 2
-        hy = (fy + 1 - qy) ** 2
-        hz = (fz + 1 - qz) ** 2
         nk = 0
         for o in range(27):
             dx, dy, dz = offs[o, 0], offs[o, 1], offs[o, 2]
-            if nk == k:
-                box = 0.0
-                if dx < 0:
-                    box += lx
-                elif dx > 0:
-                    box += hx
-                if dy < 0:
-                    box += ly
-                elif dy > 0:
-                    box += hy
-                if dz < 0:
-                    box += lz
-                elif dz > 0:
-                    box += hz
-                if box >= best[k - 1]:
-                    continue
+            if nk == k and cell_gap2(qx, qy, qz, fx, fy, fz, dx, dy, dz) >= best[k - 1]:
+                continue
             x, y, z = fx + dx, fy + dy, fz + dz
             if x < 0 or y < 0 or z < 0:
                 continue

@@ -19,7 +19,7 @@ import numba as nb
 import numpy as np
 
 from . import JIT
-from .grid import hash_find, index_hash, morton
+from .grid import cell_gap2, hash_find, index_hash, morton
 
 PLANAR = 0.25  # a normal counts only where the smallest spread is under this x the middle one
 
@@ -93,18 +93,11 @@ def _cell_normal(u, ostart, mom, cnt, ckey, hidx, c, radius2):  # pragma: no cov
     rx, ry, rz = u[rep, 0], u[rep, 1], u[rep, 2]
     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
     nk = 0
-    # squared gaps from the point to the lower and upper faces of its cell: a neighbour cell whose
-    # box lies farther than the radius holds no point within it (skipped without a lookup)
-    lx, hx = (rx - fx) ** 2, (fx + 1 - rx) ** 2
-    ly, hy = (ry - fy) ** 2, (fy + 1 - ry) ** 2
-    lz, hz = (rz - fz) ** 2, (fz + 1 - rz) ** 2
     for dx in range(-1, 2):
-        bx = lx if dx < 0 else (hx if dx > 0 else 0.0)
         for dy in range(-1, 2):
-            by = ly if dy < 0 else (hy if dy > 0 else 0.0)
             for dz in range(-1, 2):
-                bz = lz if dz < 0 else (hz if dz > 0 else 0.0)
-                if bx + by + bz > radius2:
+                # a neighbour cell whose box lies farther than the radius holds no point within it
+                if cell_gap2(rx, ry, rz, fx, fy, fz, dx, dy, dz) > radius2:
                     continue
                 x, y, z = fx + dx, fy + dy, fz + dz
                 if x < 0 or y < 0 or z < 0:
