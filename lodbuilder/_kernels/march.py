@@ -39,7 +39,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 from .grid import unmorton
 from .heaps import (
     check_maxheap,
@@ -57,6 +57,25 @@ SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
 HALF = 8  # the ball's voxels lie within HALF of the sample's nearest voxel along each axis
 CUBE = 2 * HALF + 1
 NBUCKET = 8 * (HALF + 1) * 2  # eighths of a voxel up to beyond the ball's reach
+
+
+#: which corner (x + 2 y + 4 z) of the k-th cell of :func:`corner_voxels` v is
+CORNER_OF = (0, 4, 2, 6, 1, 5, 3, 7)
+
+
+@nb.njit(**INLINE)
+def corner_voxels(nbr, v):  # pragma: no cover - compiled
+    """The 8 voxels whose cells have voxel v as a corner: v, then its neighbours along -z, -y,
+    -y-z, -x, -x-z, -x-y, -x-y-z (the k-th is 4 dx + 2 dy + dz steps down), -1 where the band has
+    none (``nbr``: the -x, +x, -y, +y, -z, +z neighbour table)."""
+    w1 = np.int64(nbr[v, 4])
+    w2 = np.int64(nbr[v, 2])
+    w3 = np.int64(nbr[w2, 4]) if w2 >= 0 else np.int64(-1)
+    w4 = np.int64(nbr[v, 0])
+    w5 = np.int64(nbr[w4, 4]) if w4 >= 0 else np.int64(-1)
+    w6 = np.int64(nbr[w4, 2]) if w4 >= 0 else np.int64(-1)
+    w7 = np.int64(nbr[w6, 4]) if w6 >= 0 else np.int64(-1)
+    return (np.int64(v), w1, w2, w3, w4, w5, w6, w7)
 
 
 @nb.njit(**JIT)
@@ -263,42 +282,34 @@ def _seed_sample(
             n = iheap_push(hk, hv, hpos, n, t_, v)
         # the points of the 8 cells that have v as a corner get their exact distance (each
         # cell once per sample)
-        wx = nbr[v, 0]
-        for a_ in range(2):
-            wa = v if a_ == 0 else wx
-            if wa < 0:
+        corners = corner_voxels(nbr, v)
+        for k in range(8):
+            w = corners[k]
+            if w < 0:
                 continue
-            for b_ in range(2):
-                wb = wa if b_ == 0 else nbr[wa, 2]
-                if wb < 0:
+            cell = cellof[w]
+            if cell < 0 or cmark[cell] == mark:
+                continue
+            cmark[cell] = mark
+            for p in range(cs[w], cs[w + 1]):
+                if rank[p] >= 0:
                     continue
-                for c_ in range(2):
-                    w = wb if c_ == 0 else nbr[wb, 4]
-                    if w < 0:
-                        continue
-                    cell = cellof[w]
-                    if cell < 0 or cmark[cell] == mark:
-                        continue
-                    cmark[cell] = mark
-                    for p in range(cs[w], cs[w + 1]):
-                        if rank[p] >= 0:
-                            continue
-                        e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
-                        if thin and not _chord_ok(
-                            u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
-                            np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
-                            pnrm[i, 2], slope,
-                        ):
-                            continue
-                        if weighted:
-                            e *= 0.5 * (pcost[p] + ci)
-                        if e < dq[p]:
-                            dq[p] = e
-                            lq[p] = lb
-                            if dstamp[cell] != rnd:
-                                dstamp[cell] = rnd
-                                dirty[nd] = cell
-                                nd += 1
+                e = _norm(u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2])
+                if thin and not _chord_ok(
+                    u[p, 0] - u[i, 0], u[p, 1] - u[i, 1], u[p, 2] - u[i, 2], e,
+                    np.float32(np.inf), np.float32(np.inf), pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[i, 0], pnrm[i, 1],
+                    pnrm[i, 2], slope,
+                ):
+                    continue
+                if weighted:
+                    e *= 0.5 * (pcost[p] + ci)
+                if e < dq[p]:
+                    dq[p] = e
+                    lq[p] = lb
+                    if dstamp[cell] != rnd:
+                        dstamp[cell] = rnd
+                        dirty[nd] = cell
+                        nd += 1
     for q in range(qn):
         cube[(qx[q] + HALF) + CUBE * ((qy[q] + HALF) + CUBE * (qz[q] + HALF))] = -1
         vis[q] = False
@@ -347,78 +358,70 @@ def march_round(
         if weighted:
             csv = pcost[sv]
         # points of the 8 cells that have v as a corner
-        wx = nbr[v, 0]
-        for a in range(2):
-            wa = v if a == 0 else wx
-            if wa < 0:
+        corners = corner_voxels(nbr, v)
+        for k in range(8):
+            w = corners[k]
+            if w < 0:
                 continue
-            for b in range(2):
-                wb = wa if b == 0 else nbr[wa, 2]
-                if wb < 0:
+            cell = cellof[w]
+            if cell < 0:
+                continue
+            corner = CORNER_OF[k]  # v is this corner of the cell
+            for p in range(cs[w], cs[w + 1]):
+                if rank[p] >= 0:
                     continue
-                for c in range(2):
-                    w = wb if c == 0 else nbr[wb, 4]
-                    if w < 0:
-                        continue
-                    cell = cellof[w]
-                    if cell < 0:
-                        continue
-                    corner = a + 2 * b + 4 * c  # v is this corner of the cell
-                    for p in range(cs[w], cs[w + 1]):
-                        if rank[p] >= 0:
-                            continue
-                        ex = u[p, 0] - cx
-                        ey = u[p, 1] - cy
-                        ez = u[p, 2] - cz
-                        if near[p] == corner and gn < 0.0:
-                            # the front's direction at v (upwind differences; upwind neighbours
-                            # are known)
-                            for ax in range(3):
-                                na = nbr[v, 2 * ax]
-                                nb_ = nbr[v, 2 * ax + 1]
-                                ta = np.float64(T[na]) if na >= 0 else np.inf
-                                tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
-                                g = 0.0
-                                if ta < tb and ta < tv:
-                                    g = tv - ta
-                                elif tb < tv:
-                                    g = tb - tv
-                                if ax == 0:
-                                    gx = g
-                                elif ax == 1:
-                                    gy = g
-                                else:
-                                    gz = g
-                            gn = _norm(gx, gy, gz)
-                            if gn > 0.0:
-                                gx /= gn
-                                gy /= gn
-                                gz /= gn
-                        if gn > 0.0 and near[p] == corner:
-                            # v is the point's nearest marchable voxel: first-order Taylor along
-                            # the front, never below the straight distance to the sample (a lower
-                            # bound)
-                            dd = gx * ex + gy * ey + gz * ez
-                            if weighted:
-                                dd *= pcost[p]
-                            dd += tv
-                            e = _norm(u[p, 0] - u[sv, 0], u[p, 1] - u[sv, 1], u[p, 2] - u[sv, 2])
-                            if weighted:
-                                e *= min(pcost[p], csv)
-                            if e > dd:
-                                dd = e
+                ex = u[p, 0] - cx
+                ey = u[p, 1] - cy
+                ez = u[p, 2] - cz
+                if near[p] == corner and gn < 0.0:
+                    # the front's direction at v (upwind differences; upwind neighbours
+                    # are known)
+                    for ax in range(3):
+                        na = nbr[v, 2 * ax]
+                        nb_ = nbr[v, 2 * ax + 1]
+                        ta = np.float64(T[na]) if na >= 0 else np.inf
+                        tb = np.float64(T[nb_]) if nb_ >= 0 else np.inf
+                        g = 0.0
+                        if ta < tb and ta < tv:
+                            g = tv - ta
+                        elif tb < tv:
+                            g = tb - tv
+                        if ax == 0:
+                            gx = g
+                        elif ax == 1:
+                            gy = g
                         else:
-                            dd = _norm(ex, ey, ez)  # an upper bound
-                            if weighted:
-                                dd *= pcost[p]
-                            dd += tv
-                        if dd < dq[p]:
-                            dq[p] = dd
-                            lq[p] = lv
-                            if dstamp[cell] != rnd:
-                                dstamp[cell] = rnd
-                                dirty[nd] = cell
-                                nd += 1
+                            gz = g
+                    gn = _norm(gx, gy, gz)
+                    if gn > 0.0:
+                        gx /= gn
+                        gy /= gn
+                        gz /= gn
+                if gn > 0.0 and near[p] == corner:
+                    # v is the point's nearest marchable voxel: first-order Taylor along
+                    # the front, never below the straight distance to the sample (a lower
+                    # bound)
+                    dd = gx * ex + gy * ey + gz * ez
+                    if weighted:
+                        dd *= pcost[p]
+                    dd += tv
+                    e = _norm(u[p, 0] - u[sv, 0], u[p, 1] - u[sv, 1], u[p, 2] - u[sv, 2])
+                    if weighted:
+                        e *= min(pcost[p], csv)
+                    if e > dd:
+                        dd = e
+                else:
+                    dd = _norm(ex, ey, ez)  # an upper bound
+                    if weighted:
+                        dd *= pcost[p]
+                    dd += tv
+                if dd < dq[p]:
+                    dq[p] = dd
+                    lq[p] = lv
+                    if dstamp[cell] != rnd:
+                        dstamp[cell] = rnd
+                        dirty[nd] = cell
+                        nd += 1
         # march to the 6 neighbours
         for j in range(6):
             m = nbr[v, j]
