@@ -97,19 +97,14 @@ def _in_two_threads(kernel, u, ostart, cell_keys, queries, k):  # noqa: ANN001 -
     nq = queries.shape[0]
     if nq < THREAD_MIN_QUERIES or _cores() < 2:
         return kernel(u, ostart, cell_keys, queries, k)
-    import threading
+    from concurrent.futures import ThreadPoolExecutor
 
     half = nq // 2
-    out: list = []
-    t = threading.Thread(target=lambda: out.append(kernel(u, ostart, cell_keys, queries[half:], k)))
-    t.start()
-    try:
+    with ThreadPoolExecutor(1) as pool:
+        second = pool.submit(kernel, u, ostart, cell_keys, queries[half:], k)
         first = kernel(u, ostart, cell_keys, queries[:half], k)
-    finally:
-        t.join()
-    if not out:  # pragma: no cover - the thread failed (its exception was printed)
-        return kernel(u, ostart, cell_keys, queries, k)
-    return tuple(np.concatenate((a, b)) for a, b in zip(first, out[0], strict=True))
+        rest = second.result()
+    return tuple(np.concatenate((a, b)) for a, b in zip(first, rest, strict=True))
 
 
 def median_spacing(
@@ -207,6 +202,11 @@ class BandPlan:
     def thin_points(self) -> int:
         return 0 if self.separation is None else int(np.isfinite(self.separation).sum())
 
+    @classmethod
+    def plain(cls, h: float, r: float) -> BandPlan:
+        """The plan without thin parts: one band radius everywhere."""
+        return cls(h, r, None, None, None, TAIL_FACTOR * r)
+
 
 def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
@@ -239,7 +239,7 @@ def plan_band(points: np.ndarray, voxel_size: float | None, band_radius: float |
     one-sided band where sheets come close."""
     h, r = choose_parameters(points, voxel_size, band_radius)
     if not _automatic(points, voxel_size, band_radius):
-        return BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+        return BandPlan.plain(h, r)
     return _thin_plan(points, h, r)
 
 
@@ -259,7 +259,7 @@ def plan_and_build_band(
     n = points.shape[0]
     h, r = choose_parameters(points, voxel_size, band_radius)
     if not _automatic(points, voxel_size, band_radius):
-        plan = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+        plan = BandPlan.plain(h, r)
         return build_band(points, h, r, max_memory), plan, 0
     if n < OVERLAP_MAX_POINTS and _cores() >= 2:
         from concurrent.futures import ThreadPoolExecutor
@@ -279,7 +279,7 @@ def plan_and_build_band(
 
 def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     """The plan for grid spacing h and band radius r with the thin parts measured."""
-    plain = BandPlan(h, r, None, None, None, TAIL_FACTOR * r)
+    plain = BandPlan.plain(h, r)
     sep_in, sep_out, normal = sheet_separation(points, h, r)
     if not np.isfinite(sep_in).any():
         return plain
@@ -490,7 +490,7 @@ def build_planned_band(
     pieces = point_components(band.nbr, band.cs, near, vcost)
     if pieces > 1 and point_components(band.nbr, band.cs, band.near, band.vcost) < pieces:
         log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
-        return band, BandPlan(plan.h, plan.r, None, None, None, TAIL_FACTOR * plan.r)
+        return band, BandPlan.plain(plan.h, plan.r)
     band.vcost, band.near = vcost, near
     return band, plan
 
@@ -512,7 +512,7 @@ def band_distance(
 
     pts = validate_points(points)
     src = validate_indices(sources, pts.shape[0], "sources")
-    band, plan = build_planned_band(pts, plan_band(pts, voxel_size, band_radius))
+    band, plan, _ = plan_and_build_band(pts, voxel_size, band_radius)
     h = plan.h
     inv = np.empty(pts.shape[0], dtype=np.int32)
     inv[band.perm] = np.arange(pts.shape[0], dtype=np.int32)
