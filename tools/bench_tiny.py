@@ -6,7 +6,9 @@ Stanford's decimations of bun_zipper.ply (35,947 vertices, 69,451 triangles), wh
 geodesic reference. For every scan and every ordering (the band ordering of each ``--trees`` entry,
 run in a fresh process with that tree on PYTHONPATH, and lodbuilder's exact Euclidean FPS) and
 every size level k = 1, 2, 5, 10, 20 % of the points: the geodesic covering radius of the prefix,
-max over the scan's points of the distance along the surface to the nearest of the first k points.
+max over the scan's points of the distance along the surface to the nearest of the first k points,
+and its ratio to the ordering's own radius there (the next insertion radius: the rho whose level is
+that prefix; Euclidean for Euclidean FPS), and to Euclidean FPS's covering at equal size.
 
 Geodesics: multi-source Dijkstra (scipy.sparse.csgraph, ``min_only``) on the fine mesh's graph,
 edges = the triangles' edges plus the chords to the 2-ring (straight lengths; the 2-ring cuts the
@@ -145,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         dmap, vid = kd.query(pts)
         vid = main_part[vid]
         orders = {t: band_ordering(path, data / name, tmp) for t, path in trees.items()}
-        orders["euclidean_fps"] = {"order": euclidean_fps(pts).order}
+        e = euclidean_fps(pts)
+        orders["euclidean_fps"] = {"order": e.order, "radius": e.radius}  # radius: Euclidean
         entry: dict = {
             "scan": name, "points": n, "map_max": float(dmap.max()), "map_median": float(np.median(dmap)),
             "thin_points": {t: int(o["thin"]) for t, o in orders.items() if "thin" in o},
@@ -163,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
                     lv[f"rho_{t}"] = float(o["radius"][k])  # the next insertion radius
             for t in trees:
                 lv[f"ratio_{t}_vs_fps"] = lv[f"cover_{t}"] / lv["cover_euclidean_fps"]
+            for t in orders:
                 lv[f"ratio_{t}_vs_rho"] = lv[f"cover_{t}"] / lv[f"rho_{t}"]
             entry["levels"].append(lv)
         doc["scans"].append(entry)
