@@ -21,7 +21,8 @@ vertices 2-8 mean edge lengths apart (where the surface is nearly flat, so the g
 to the chord) the ratio of graph distance to Euclidean distance (median, p95) for the 1-ring and
 the 2-ring graph.
 
-    python tools/bench_tiny.py [--trees new=.,old=/tmp/old50_lead] [--json OUT]
+    python tools/bench_tiny.py [--trees new=.,old=/tmp/old50_lead] [--json OUT] [--markdown docs/benchmarks.md]
+    python tools/bench_tiny.py --from-json OUT --markdown docs/benchmarks.md
 """
 
 from __future__ import annotations
@@ -114,6 +115,42 @@ def covering(graph, vid: np.ndarray, order: np.ndarray, k: int) -> float:
     return float(d[vid].max())
 
 
+def markdown(doc: dict) -> str:
+    """The 'tiny' section of docs/benchmarks.md."""
+    from benchdoc import measured
+
+    m = doc["metrication"]
+    names = [*doc["trees"], "euclidean_fps"]
+    lines = [
+        "## Geodesic covering of the small bunny resolutions (tools/bench_tiny.py)",
+        "",
+        f"{measured(doc)}. Inputs real (../shared/data). Trees: "
+        + ", ".join(f"{k} = `{v}`" for k, v in doc["trees"].items())
+        + "; euclidean_fps = lodbuilder's exact Euclidean FPS.",
+        "",
+        "Per level (the first k points): the geodesic covering radius (max over the scan's points of "
+        "the distance along bun_zipper.ply's surface to the nearest of the k, Dijkstra on its 2-ring "
+        "graph) divided by the ordering's own radius there (*cover / rho*: above 1 the level's rho "
+        "promises more than it holds), and divided by Euclidean FPS's covering at the same size "
+        "(*vs FPS*: above 1 the level is coarser). Method error: the 2-ring graph is "
+        f"{100 * (m['2-ring']['median'] - 1):.1f} % longer than the chord on pairs 2-8 edges apart "
+        f"(median, p95 {100 * (m['2-ring']['p95'] - 1):.1f} %; 1-ring {100 * (m['1-ring']['median'] - 1):.1f} %); "
+        "scan points lie up to map_max from their fine vertex (common to all orderings).",
+        "",
+        "| scan | points | map_max mm | k | " + " | ".join(f"{t} cover/rho" for t in names)
+        + " | " + " | ".join(f"{t} vs FPS" for t in doc["trees"]) + " |",
+        "|---|---|---|---|" + "---|" * (len(names) + len(doc["trees"])),
+    ]
+    for sc in doc["scans"]:
+        for lv in sc["levels"]:
+            lines.append(
+                f"| {sc['scan']} | {sc['points']:,} | {1e3 * sc['map_max']:.2f} | {lv['size']} | "
+                + " | ".join(f"{lv[f'ratio_{t}_vs_rho']:.2f}" for t in names)
+                + " | " + " | ".join(f"{lv[f'ratio_{t}_vs_fps']:.2f}" for t in doc["trees"]) + " |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     from benchdoc import publish, stamp
     from scipy.spatial import cKDTree
@@ -125,7 +162,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trees", default=f"new={ROOT},old=/tmp/old50_lead")
     ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--json", help="also write the JSON here")
+    ap.add_argument("--markdown", help="also write the 'tiny' section of this markdown file")
+    ap.add_argument("--from-json", help="render the markdown section from a saved JSON report")
     args = ap.parse_args(argv)
+    if args.from_json:
+        from benchdoc import write_section
+
+        doc = json.loads(Path(args.from_json).read_text())
+        write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "tiny", markdown(doc))
+        return 0
     trees = dict(t.split("=", 1) for t in args.trees.split(","))
     data = Path(args.data)
     doc = stamp("bench_tiny", argv, inputs=f"real: {', '.join(SCANS)}; reference mesh {FINE}", synthetic=False)
@@ -176,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     tmp.unlink(missing_ok=True)
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=2, default=float))
-    publish(doc)
+    publish(doc, section="tiny", render=markdown, markdown=args.markdown)
     return 0
 
 
