@@ -111,7 +111,7 @@ def test_small_inputs_build_the_band_in_this_thread(monkeypatch):
 
     monkeypatch.setattr(concurrent.futures, "ThreadPoolExecutor", Recording)
     monkeypatch.setattr(band, "_cores", lambda: 2)
-    pts = folded_sheet(0.02, gap=0.06)[0]
+    pts = folded_sheet(0.045, gap=0.14)[0]  # 1,056 points, all thin
     assert len(pts) < band.OVERLAP_MIN_POINTS
     _, plan, found = plan_and_build_band(pts, None, None)
     assert found > 0 and "build_band" not in started
