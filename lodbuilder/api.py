@@ -98,6 +98,7 @@ def build_archive(
     progress: ProgressCallback = None,
     on_status: Any = None,
     _tile_points: int | None = None,
+    _tile_passes: int | None = None,
     **features: Any,
 ) -> BuildResult:
     """Order every scan of ``inputs`` and add it to ``archive`` (created when missing).
@@ -149,4 +150,4 @@ def build_archive(
                  rho=rho, force=force, overwrite=overwrite, max_memory=max_memory, joint=joint,
                  seam_spacing=seam_spacing, crs=crs, crs_override=crs_override,
                  raise_on_failure=raise_on_failure, progress=progress,
-                 on_status=on_status, _tile_points=_tile_points, **features)
+                 on_status=on_status, _tile_points=_tile_points, _tile_passes=_tile_passes, **features)

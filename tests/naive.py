@@ -6,10 +6,15 @@ import numpy as np
 
 
 def naive_euclidean_fps(
-    points: np.ndarray, seeds: list[int], cost: np.ndarray | None = None
+    points: np.ndarray, seeds: list[int], cost: np.ndarray | None = None,
+    timed: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact Euclidean farthest point ordering in O(N^2) NumPy (with ``cost``: a pair's distance
     scaled by the mean of the two points' costs).
+
+    ``timed`` = (indices, keys): points never chosen as the farthest; each joins (radius: its key)
+    as soon as the largest distance of the other points is at most its key (by decreasing key,
+    ties in the given order; parent -1), those left at the end come last.
 
     Returns (order, radius, parent) with radius = inf and parent = -1 for seeds; ties go to the
     lowest input index.
@@ -20,14 +25,28 @@ def naive_euclidean_fps(
     d = np.full(n, np.inf)
     lab = np.full(n, -1, dtype=np.int64)
     done = np.zeros(n, dtype=bool)
+    is_timed = np.zeros(n, dtype=bool)
+    pending: list[tuple[int, float]] = []
+    if timed is not None:
+        srt = np.argsort(-np.asarray(timed[1], dtype=np.float64), kind="stable")
+        pending = [(int(timed[0][j]), float(timed[1][j])) for j in srt]
+        is_timed[np.asarray(timed[0], dtype=np.int64)] = True
     order, radius, parent = [], [], []
     for k in range(n):
         if k < len(seeds):
             q, rq, pq = seeds[k], np.inf, -1
         else:
-            masked = np.where(done, -1.0, d)
+            while pending and done[pending[0][0]]:
+                pending.pop(0)
+            masked = np.where(done | is_timed, -1.0, d)
             q = int(np.argmax(masked))
-            rq, pq = float(d[q]), int(lab[q])
+            if pending and (masked[q] < 0 or pending[0][1] >= masked[q]):
+                q, rq = pending.pop(0)
+                pq = -1
+            elif masked[q] < 0:
+                break
+            else:
+                rq, pq = float(d[q]), int(lab[q])
         order.append(q)
         radius.append(rq)
         parent.append(pq)

@@ -79,6 +79,59 @@ def test_matches_exact_euclidean_fps_when_everything_is_in_the_tail(rng):
     assert np.array_equal(o.parent, parent)
 
 
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(3, 200), seed=st.integers(0, 2**31 - 1), n_timed=st.integers(1, 20))
+def test_timed_seeds_match_the_naive_reference_in_the_tail(n, seed, n_timed):
+    # everything in the tail (one voxel for the cloud): the ordering with timed seeds is the exact
+    # Euclidean one of the naive reference, timed seeds at their keys included
+    r = np.random.default_rng(seed)
+    pts = r.random((n, 3))
+    idx = r.choice(np.arange(1, n), size=min(n_timed, n - 1), replace=False)
+    keys = r.random(idx.size) * 0.8
+    o = fastfps(pts, seeds=[0], voxel_size=4.0, timed_seeds=(idx, keys))
+    order, radius, parent = naive_euclidean_fps(pts, [0], timed=(idx, keys))
+    assert np.array_equal(o.order, order)
+    np.testing.assert_allclose(o.radius, radius, rtol=1e-12)
+    assert np.array_equal(o.parent, parent)
+
+
+def test_timed_seeds_join_at_their_key_and_keep_later_points_away(rng):
+    # a plane ordered in its band: the left half's points enter at given keys; every point of the
+    # right half chosen after a timed seed joined lies at least (about) its radius from it
+    pts = jittered_plane(6000, rng)
+    left = np.flatnonzero(pts[:, 0] < 0.5)
+    ref = fastfps(pts[left])
+    keys = np.empty(left.size)
+    keys[ref.order] = ref.radius
+    keys[~np.isfinite(keys)] = 1.0
+    o = fastfps(pts, seeds=[int(np.argmax(pts[:, 0]))], timed_seeds=(left, keys))
+    pos = np.empty(len(pts), np.int64)
+    pos[o.order] = np.arange(len(o))
+    timed_pos = pos[left]
+    np.testing.assert_allclose(o.radius[timed_pos], keys, rtol=1e-12)  # radius: the key (in grid units and back)
+    # none joins late: a point chosen before it had a radius of at least its key
+    right = np.flatnonzero(pts[:, 0] >= 0.5)
+    rpos = np.sort(pos[right])
+    for t in timed_pos[:: max(1, len(timed_pos) // 200)]:
+        before = rpos[rpos < t]
+        if before.size:
+            assert o.radius[before[-1]] >= o.radius[t]
+    # a right point is no nearer to a timed seed that joined before it than 0.97 x its radius
+    tree = cKDTree(pts[left])
+    for p in right[:: 7]:
+        near = tree.query_ball_point(pts[p], 0.97 * o.radius[pos[p]] * (1 - 1e-9))
+        assert all(pos[left[j]] > pos[p] for j in near)
+    assert o.stats["n_timed_seeds"] == left.size
+
+
+def test_timed_seeds_are_checked(rng):
+    pts = rng.random((50, 3))
+    with pytest.raises(InputError, match=r"^timed_seeds needs one non-negative key per index \(2 indices, 1 keys\); "):
+        fastfps(pts, timed_seeds=([1, 2], [0.5]))
+    with pytest.raises(InputError, match="^timed_seeds cannot be combined with cost; pass one or the other$"):
+        fastfps(pts, timed_seeds=([1], [0.5]), cost=np.ones(50))
+
+
 def test_plane_levels_are_as_good_as_exact_fps(rng):
     pts = jittered_plane(3000, rng)
     o = fastfps(pts)

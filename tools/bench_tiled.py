@@ -139,7 +139,8 @@ def reference(n: int) -> dict:
             "peak_rss_tree_gb": round(r["peak_rss_tree_bytes"] / 1e9, 3)}
 
 
-def quality(n: int, max_memory: str, workers: int, seam: float | None, tile_points: int | None = None) -> dict:
+def quality(n: int, max_memory: str, workers: int, seam: float | None, tile_points: int | None = None,
+            passes: int | None = None) -> dict:
     import numpy as np
     from bench_build import range_scan_sheet
     from scipy.spatial import cKDTree
@@ -153,6 +154,8 @@ def quality(n: int, max_memory: str, workers: int, seam: float | None, tile_poin
         kw: dict = {} if seam is None else {"seam_spacing": seam}
         if tile_points:
             kw["_tile_points"] = tile_points
+        if passes:
+            kw["_tile_passes"] = passes
         t0 = time.perf_counter()
         res = lodbuilder.build_archive(f, Path(d) / "t.h5", max_memory=max_memory, workers=workers, **kw)
         t_tiled = time.perf_counter() - t0
@@ -271,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seam-spacing", type=float)
     p.add_argument("--quality-tile-points", type=int,
                    help="points per tile of the quality build (a test knob: more tiles than the budget makes)")
+    p.add_argument("--quality-passes", type=int, help="tile passes of the quality build (default: TILE_PASSES)")
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()))
     p.add_argument("--markdown", type=Path, help="write the 'tiled' section of this file (docs/benchmarks.md)")
     p.add_argument("--from-json", type=Path, nargs="+", help="render saved JSON runs into --markdown, no new run")
@@ -300,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(doc["reference"]), file=sys.stderr)
     if args.quality:
         doc["quality"] = quality(args.quality, args.quality_memory, args.quality_workers, args.seam_spacing,
-                                 args.quality_tile_points)
+                                 args.quality_tile_points, args.quality_passes)
     doc["load_after"] = os.getloadavg()
     print(json.dumps(doc, indent=1))
     if args.markdown:

@@ -478,7 +478,7 @@ def march_round(
 @nb.njit(**JIT)
 def grid_phase(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
-    r_stop, debug,
+    r_stop, debug, tseed, tkey, tpos,
 ):  # pragma: no cover - compiled
     """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
 
@@ -486,6 +486,11 @@ def grid_phase(
     points' ``val``/``lq`` seed the Euclidean tail. ``rho_stop < 0`` means no density stop. With
     ``debug`` the heaps are checked after every operation; pops is -1 (front heap) or -2
     (candidate heap) when one is found broken.
+
+    Timed seeds: ``tseed`` (points, by non-increasing ``tkey``, grid units) are never candidates;
+    each joins the ordering (radius: its key) as soon as the largest candidate distance is at most
+    its key, and its front is marched like a sample's. ``tpos[0]`` counts the timed seeds taken
+    (the tail goes on from there).
     """
     m = u.shape[0]
     nv = keys.shape[0]
@@ -518,6 +523,9 @@ def grid_phase(
     pops = 0
     k = 0
     nseed = seeds.shape[0]
+    nt = tseed.shape[0]
+    for j in range(nt):
+        val[tseed[j]] = -1.0  # never a candidate
     while k < k_max:
         if k < nseed:
             i = seeds[k]
@@ -529,18 +537,33 @@ def grid_phase(
                 break
             top = heap[0]
             kk = ckey[0]
-            if kk < 0.0 or kk <= rho_stop or kk < r_stop:
+            timed = tpos[0] < nt and tkey[tpos[0]] >= kk and tkey[tpos[0]] >= r_stop and tkey[tpos[0]] > rho_stop
+            if not timed and (kk < 0.0 or kk <= rho_stop or kk < r_stop):
                 break
-            w = cellv[top]
-            i = -1
-            best = -1.0
-            for p in range(cs[w], cs[w + 1]):
-                if rank[p] < 0 and val[p] > best:
-                    best = val[p]
-                    i = p
-            rad = val[i]
-            par = lq[i]
-            ci = top
+            if timed:
+                i = tseed[tpos[0]]
+                tpos[0] += 1
+                if rank[i] >= 0:
+                    continue  # already ordered (a seed)
+                rad = tkey[tpos[0] - 1]
+                par = -1  # not chosen by this ordering: no parent
+                ci = cellof[anchor_of(cs, np.int64(i))]
+            else:
+                w = cellv[top]
+                i = -1
+                best = -1.0
+                for p in range(cs[w], cs[w + 1]):
+                    if rank[p] < 0 and val[p] > best:
+                        best = val[p]
+                        i = p
+                if i < 0:  # only timed seeds left in the cell (its key was never refreshed)
+                    maxheap_decrease(ckey, heap, hpos, top, -1.0, hn)
+                    while hn > 0 and ckey[0] < 0.0:
+                        hn = maxheap_pop(ckey, heap, hpos, hn)
+                    continue
+                rad = val[i]
+                par = lq[i]
+                ci = top
         rank[i] = k
         order[k] = i
         radius[k] = rad

@@ -14,7 +14,7 @@ from . import JIT
 from .grid import hash_find, morton
 from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down
 from .march import _chord_ok, _norm
-from .topology import _cell_key, cell_tables
+from .topology import _cell_key, anchor_of, cell_tables
 
 FAR_MARGIN = 1.0 + 1e-12  # a point is skipped before the square root only when surely not nearer
 
@@ -22,7 +22,7 @@ FAR_MARGIN = 1.0 + 1e-12  # a point is skipped before the square root only when 
 @nb.njit(**JIT)
 def euclid_tail(
     u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
-    rank, order, radius, parent, k0, k_max, rho_stop,
+    rank, order, radius, parent, k0, k_max, rho_stop, tseed, tkey, tpos,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
@@ -37,7 +37,10 @@ def euclid_tail(
     query walks the
     neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
     and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
-    at most 27 of them while the radius is within the coarse levels. Returns the new count.
+    at most 27 of them while the radius is within the coarse levels. Timed seeds (``tseed`` by
+    non-increasing ``tkey``, from ``tpos[0]`` on; see :func:`.march.grid_phase`) join as soon as
+    the largest distance is at most their key, and the ones left when every point is ordered come
+    last. Returns the new count.
     """
     cellv, cellof = cell_tables(cs)
     ncell = cellv.shape[0]
@@ -76,18 +79,30 @@ def euclid_tail(
             else:
                 maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
             continue
+        if kk < 0.0:  # no candidate left in the cell (only timed seeds)
+            hn = maxheap_pop(ckey, heap, hpos, hn)
+            continue
         if kk <= rho_stop:
             break
-        w0 = cellv[top]
-        i = -1
-        for p in range(cs[w0], cs[w0 + 1]):
-            if rank[p] < 0 and d[p] == kk:
-                i = p
-                break
+        if tpos[0] < tseed.shape[0] and tkey[tpos[0]] >= kk:
+            i = tseed[tpos[0]]
+            tpos[0] += 1
+            if rank[i] >= 0:
+                continue
+            w0 = anchor_of(cs, np.int64(i))
+            radius[k] = tkey[tpos[0] - 1]
+            parent[k] = -1
+        else:
+            w0 = cellv[top]
+            i = -1
+            for p in range(cs[w0], cs[w0 + 1]):
+                if rank[p] < 0 and d[p] == kk:
+                    i = p
+                    break
+            radius[k] = kk
+            parent[k] = lab[i]
         rank[i] = k
         order[k] = i
-        radius[k] = kk
-        parent[k] = lab[i]
         reach = kk / cmin if weighted else kk
         j = 0
         side = 1.0
@@ -156,4 +171,15 @@ def euclid_tail(
                             d[p] = dd
                             lab[p] = k
         k += 1
+    if hn == 0:  # every candidate is ordered: the timed seeds not taken yet come last
+        while k < k_max and tpos[0] < tseed.shape[0]:
+            i = tseed[tpos[0]]
+            tpos[0] += 1
+            if rank[i] >= 0:
+                continue
+            rank[i] = k
+            order[k] = i
+            radius[k] = tkey[tpos[0] - 1]
+            parent[k] = -1
+            k += 1
     return k

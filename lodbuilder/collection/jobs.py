@@ -231,7 +231,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
         tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
         max_memory=p.get("max_memory"), voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
         alpha=p["seam_alpha"] if p.get("seam_alpha") is not None else SEAM_ALPHA,
-        tile_points=p.get("_tile_points"), build=build,
+        tile_points=p.get("_tile_points"), passes=p.get("_tile_passes") or 0, build=build,
         provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
         progress=progress,
     )

@@ -162,7 +162,8 @@ def make_params(voxel_size: Any = None, band_radius: Any = None, size: Any = Non
 _params = make_params  # the name older tests use
 
 
-def tiling_params(params: dict[str, Any], max_memory: Any, seam_alpha: Any, tile_points: Any) -> dict[str, Any]:
+def tiling_params(params: dict[str, Any], max_memory: Any, seam_alpha: Any, tile_points: Any,
+                  tile_passes: Any = None) -> dict[str, Any]:
     """Add the tiled build's options to ``params`` (only those given: they enter the resume key)."""
     from ..sampling.tiled.plan import parse_bytes
 
@@ -178,6 +179,8 @@ def tiling_params(params: dict[str, Any], max_memory: Any, seam_alpha: Any, tile
         params["seam_alpha"] = a
     if tile_points is not None:
         params["_tile_points"] = int(tile_points)
+    if tile_passes is not None:
+        params["_tile_passes"] = int(tile_passes)
     return params
 
 
@@ -359,6 +362,7 @@ def build(
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
     _tile_points: int | None = None,
+    _tile_passes: int | None = None,
     **features: Any,
 ) -> BuildResult:
     """Build every scan of ``inputs`` into ``archive``; see :func:`lodbuilder.build_archive`."""
@@ -371,7 +375,7 @@ def build(
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work
     params = tiling_params(make_params(voxel_size, band_radius, size, rho, features, seeds), max_memory,
-                           seam_spacing, _tile_points)
+                           seam_spacing, _tile_points, _tile_passes)
     if crs is not None:
         from ..io.crs import crs_from_user
 

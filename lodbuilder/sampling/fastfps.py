@@ -163,6 +163,7 @@ def fastfps(
     cost: Any = None,
     max_memory: int | None = None,
     progress: ProgressCallback = None,
+    timed_seeds: Any = None,
 ) -> Ordering:
     """Farthest point ordering of ``points`` under the band (surface) metric.
 
@@ -177,6 +178,11 @@ def fastfps(
         cost: optional per-point cost F > 0 (feature sensitivity): distances grow F times faster.
         max_memory: bytes the band may use (default: 60 % of physical memory).
         progress: ``progress(stage, done, total)`` callback.
+        timed_seeds: ``(indices, keys)``: points that are never chosen but join the ordering as
+            soon as the largest remaining distance is at most their key (a distance: they stand
+            for points another ordering chose at that radius; used by the tiled build for the
+            neighbours' points near a tile's faces). They appear in the result with their key as
+            radius. Not with ``cost``.
 
     Returns:
         An :class:`Ordering`.
@@ -187,12 +193,31 @@ def fastfps(
     c = None if cost is None else validate_cost(cost, n)
     if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
         raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
-    o = _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress)
+    timed = _timed_seeds(timed_seeds, n, c is not None)
+    o = _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress, timed)
     release_freed_memory(n)  # the band and the kernels' state are gone now
     return check_ordering(o)
 
 
 DEBUG = os.environ.get("LODBUILDER_DEBUG_HEAPS", "") not in ("", "0")  # check heap invariants
+
+
+def _timed_seeds(timed: Any, n: int, weighted: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The timed seeds as (indices, keys) by non-increasing key (stable), checked."""
+    if timed is None:
+        return np.empty(0, np.int64), np.empty(0)
+    if weighted:
+        raise InputError("timed_seeds cannot be combined with cost; pass one or the other")
+    idx, keys = timed
+    idx = validate_indices(idx, n, "timed_seeds")
+    keys = np.asarray(keys, dtype=np.float64).reshape(-1)
+    if keys.shape != idx.shape or not (keys >= 0).all() or np.isnan(keys).any():
+        raise InputError(
+            f"timed_seeds needs one non-negative key per index ({idx.size} indices, {keys.size} keys); "
+            "pass (indices, keys) of equal length"
+        )
+    srt = np.argsort(-keys, kind="stable")
+    return idx[srt], keys[srt]
 
 
 def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -229,7 +254,7 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | 
     return gid, rep
 
 
-def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress):
+def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress, timed=None):
     import time
 
     from .._kernels.warm import ensure_compiled
@@ -269,6 +294,15 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     inv = np.empty(m, dtype=np.int32)
     inv[band.perm] = np.arange(m, dtype=np.int32)
     seeds_c = inv[useeds]
+    tidx, tkeys = timed if timed is not None else (np.empty(0, np.int64), np.empty(0))
+    if gid is not None and tidx.size:  # one timed seed per distinct point: its first (largest key)
+        _, first = np.unique(gid[tidx], return_index=True)
+        first = np.sort(first)
+        tidx, tkeys = gid[tidx[first]], tkeys[first]
+    tseed_c = inv[tidx].astype(np.int32)
+    tkey_g = tkeys / h
+    tpos = np.zeros(1, np.int64)
+    stats["n_timed_seeds"] = int(tidx.size)
     del inv
     if weighted:
         ucost = (cost if rep is None else cost[rep])[band.perm]
@@ -297,7 +331,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
         band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
-        TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG,
+        TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG, tseed_c, tkey_g, tpos,
     )
     del vcost
     release_freed_memory(n)
@@ -322,6 +356,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         k = euclid_tail(
             u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
             weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
+            tseed_c, tkey_g, tpos,
         )
         del rkey, ridx, rstart, rend
     del psep, pnrm, val, lq, rank, u, nbr, cs

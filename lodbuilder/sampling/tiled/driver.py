@@ -31,13 +31,19 @@ log = logging.getLogger(__name__)
 #: Across tiles every level's spacing is then at least SEAM_ALPHA / (1 + SEAM_ALPHA) x its radius
 #: (0.2 at 0.25; 0.5 at 1.0), but a deferred point leaves its own tile's side covered only by the
 #: other tile's point for a while (the tile ordered its later points as if it were there), so the
-#: covering radius at equal size grows with it (1M-point sheet in 4 tiles, level of 1 %: 1.007 x
-#: the in-memory build without repair, 1.037 at 0.25, 1.071 at 0.5, 1.285 at 1.0; worst level from
-#: the head to 3 %: 1.11 at 0.25, 1.37 at 1.0; tools/bench_tiled.py --quality-tile-points). 0.25
-#: removes the near-duplicates two tiles make at a seam at little cost in covering. A cheap 1.0
-#: needs tiles that see each other's points near a shared face while they order (seeds that enter
-#: a tile's FastFPS at their own radius), which FastFPS does not offer.
+#: covering radius at equal size grows with it. 1M-point sheet in 4 tiles, one pass, covering at
+#: 1 % / 0.1 % of the points over the in-memory build's, and the worst of 24 levels from the head to
+#: 3 % (tools/bench_tiled.py --quality 1000000 --quality-tile-points 300000 --quality-workers 1):
+#: 1.018 / 1.006 / 1.091 at 0.25, 1.243 / 1.146 / 1.416 at 1.0 (tiles that did not see each other
+#: at all: 1.037 / 1.012 / 1.111 and 1.285 / 1.146 / 1.374). 0.25 removes the near-duplicates two
+#: tiles make at a seam at little cost in covering.
 SEAM_ALPHA = 0.25
+#: every tile is ordered this many times (see _order_passes). More passes make neighbouring tiles
+#: agree at their seams, but slowly, and each costs a whole ordering of the scan: points within
+#: 0.5 x their level's radius of another tile's earlier point (no repair, first 5 % of the order):
+#: 100k-point sheet in 4 tiles 30 / 5 / 0 after 1 / 2 / 3 passes, 1M-point sheet 71 / 15 after 2 / 3;
+#: with the repair at 0.25 the 1M sheet's covering at 1 % is 1.018 / 1.018 / 1.002 after 1 / 2 / 3.
+TILE_PASSES = 1
 #: the decimated copy has at most this many points (its ordering is one task), and at least
 #: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface
 COARSE_POINTS = 400_000
@@ -63,6 +69,21 @@ def _submit(ex: cf.Executor, calls: list[tuple[int, Any, tuple]]) -> dict[cf.Fut
     return {ex.submit(fn, *args): t for t, fn, args in calls}
 
 
+def _result(fut: cf.Future, name: str, where: str) -> Any:
+    """A finished task's result; its failure fails the scan, naming the task."""
+    try:
+        return fut.result()
+    except LodbuilderError as exc:
+        raise BuildError(f"scan {name!r}: {where} failed: {exc}") from exc
+    except BrokenProcessPool:
+        raise BuildError(f"scan {name!r}: {where} failed: its worker process "
+                         "died (killed or out of memory: lower --max-memory per worker or use fewer "
+                         "workers)") from None
+    except Exception as exc:
+        text = " ".join(str(exc).split())
+        raise BuildError(f"scan {name!r}: {where} failed: {type(exc).__name__}: {text}") from exc
+
+
 def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, progress: ProgressCallback,
              stage: str, on_result: Any = None) -> list[dict[str, Any]]:
     """Wait for submitted tasks; a failure fails the scan, naming the tile. ``on_result(result)``
@@ -76,18 +97,7 @@ def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, pro
     out = []
     try:
         for fut in cf.as_completed(futs):
-            t = futs[fut]
-            try:
-                out.append(fut.result())
-            except LodbuilderError as exc:
-                raise BuildError(f"scan {name!r}: {where(t)} failed: {exc}") from exc
-            except BrokenProcessPool:
-                raise BuildError(f"scan {name!r}: {where(t)} failed: its worker process "
-                                 "died (killed or out of memory: lower --max-memory per worker or use fewer "
-                                 "workers)") from None
-            except Exception as exc:
-                text = " ".join(str(exc).split())
-                raise BuildError(f"scan {name!r}: {where(t)} failed: {type(exc).__name__}: {text}") from exc
+            out.append(_result(fut, name, where(futs[fut])))
             if on_result is not None:
                 on_result(out[-1])
             done += 1
@@ -99,11 +109,49 @@ def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, pro
     return out
 
 
-def _run_tasks(ex: cf.Executor, what: str, name: str, calls: list[tuple[int, Any, tuple]],
-               n_total: int, progress: ProgressCallback, stage: str,
-               on_result: Any = None) -> list[dict[str, Any]]:
-    """Run ``(tile, fn, args)`` calls on the executor and wait for them (see :func:`_collect`)."""
-    return _collect(_submit(ex, calls), what, name, n_total, progress, stage, on_result)
+def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
+                  colour: list[int], passes: int, args: tuple, progress: ProgressCallback) -> int:
+    """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
+    near-face points of its neighbours as they were last ordered (in pass p for the neighbours of a
+    smaller colour, else in pass p - 1). A task starts as soon as those are done, largest tiles
+    first. In the first pass the tiles of the first colour see no neighbour; each later ordering
+    sees its neighbours' latest, and the orderings agree more with each pass (see TILE_PASSES).
+    Returns the number of tile orderings a resume found done."""
+    n_tiles = len(by_size)
+    done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
+            if read_json(work / f"order.{t.index}.{p}.json") is not None}
+    found = len(done)
+
+    def deps(p: int, t: int) -> list[tuple[int, int]]:
+        d = [(p, u) if colour[u] < colour[t] else (p - 1, u) for u in nbrs[t]]
+        return [x for x in [*d, (p - 1, t)] if x[0] >= 1]
+
+    def call(p: int, tile: P.Tile) -> tuple:
+        t = tile.index
+        faces = tuple(str(work / f"face.{u}.{q}.bin") for q, u in deps(p, t) if u != t)
+        return (str(work), t, tile.to_json(), *args, faces, str(work / f"face.{t}.{p}.bin"))
+
+    todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
+    running: dict[cf.Future, tuple[int, int]] = {}
+    total = n_tiles * passes
+    report(progress, "tiles", len(done), total)
+    try:
+        while todo or running:
+            for p, tile in [x for x in todo if all(d in done for d in deps(x[0], x[1].index))]:
+                todo.remove((p, tile))
+                running[ex.submit(order_tile, *call(p, tile))] = (p, tile.index)
+            fin, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            for fut in fin:
+                p, t = running.pop(fut)
+                res = _result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
+                write_json(work / f"order.{t}.{p}.json", res)
+                done.add((p, t))
+                report(progress, "tiles", len(done), total)
+    except BaseException:
+        for f in running:
+            f.cancel()
+        raise
+    return found
 
 
 def _spacing(sample: np.ndarray, n: int) -> float:
@@ -128,6 +176,7 @@ def build_tiled(
     band_radius: float | None = None,
     alpha: float = SEAM_ALPHA,
     tile_points: int | None = None,
+    passes: int = 0,
     build: dict[str, Any] | None = None,
     provenance: dict[str, Any] | None = None,
     progress: ProgressCallback = None,
@@ -140,6 +189,7 @@ def build_tiled(
     from .write import bucket_points, write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
+    passes = passes or TILE_PASSES
     work.mkdir(parents=True, exist_ok=True)
     times: dict[str, float] = {}
     t_all = time.perf_counter()
@@ -221,20 +271,17 @@ def build_tiled(
     halo = float(dist["halo"])
     times["tiles"] = time.perf_counter() - t0
 
-    # 4. order every tile (on the workers)
+    # 4. order every tile (on the workers), in passes
     t0 = time.perf_counter()
     # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
     size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
-    todo = [t for t in by_size if not (work / f"stream.{t.index}.bin").exists() or
-            read_json(work / f"order.{t.index}.json") is None]
-    resumed = {"tiles_ordered_before": n_tiles - len(todo)}
-    calls: list[tuple[int, Any, tuple]] = [
-        (t.index, order_tile, (str(work), t.index, t.to_json(), pl["voxel_size"], pl["band_radius"], halo,
-                               worker_budget)) for t in todo]
-    _run_tasks(executor, "ordering", name, calls, n_tiles, progress, "tiles",
-               lambda res: write_json(work / f"order.{res['tile']}.json", res))
-    stats = [read_json(work / f"order.{t.index}.json") or {} for t in tiles]
+    nbrs = P.tile_neighbours(tiles, halo)
+    colour = P.colour_tiles(nbrs)
+    args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
+    resumed = {"tiles_ordered_before": _order_passes(executor, work, name, by_size, nbrs, colour, passes, args,
+                                                     progress)}
+    stats = [read_json(work / f"order.{t.index}.{passes}.json") or {} for t in tiles]
     times["order"] = time.perf_counter() - t0
 
     # 5. merge the tile orders (in the parent, streaming)
@@ -282,6 +329,7 @@ def build_tiled(
             "head_points": int(head.shape[0]),
             "head_radius": float(coarse["r_cut"]),
             "seam_alpha": alpha,
+            "passes": passes,
             "seam_points": int(merged["seam_points"]),
             "seam_deferrals": int(merged["deferred"]),
             "spacing_over_radius_min": radii["spacing_over_radius_min"],
@@ -290,6 +338,7 @@ def build_tiled(
             "guarantees": GUARANTEES,
             "resumed": resumed,
             "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles],
+            "tile_colours": colour,
         },
         "voxel_size": pl["voxel_size"],
         "band_radius": pl["band_radius"],

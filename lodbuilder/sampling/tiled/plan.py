@@ -174,3 +174,25 @@ def tile_lookup(tiles: list[Tile], grid: Grid) -> np.ndarray:
         (i0, i1), (j0, j1), (k0, k1) = t.cells
         table[i0:i1, j0:j1, k0:k1] = t.index
     return table.reshape(-1)
+
+
+def tile_neighbours(tiles: list[Tile], halo: float) -> list[list[int]]:
+    """For each tile, the tiles whose boxes come within ``halo`` of it (they share halo points)."""
+    lo = np.array([t.lo for t in tiles]).reshape(-1, 3)
+    hi = np.array([t.hi for t in tiles]).reshape(-1, 3)
+    out = []
+    for i in range(len(tiles)):
+        near = np.all((lo <= hi[i] + halo) & (hi >= lo[i] - halo), axis=1)
+        near[i] = False
+        out.append(np.flatnonzero(near).tolist())
+    return out
+
+
+def colour_tiles(neighbours: list[list[int]]) -> list[int]:
+    """A colour per tile, no two neighbours alike (greedy, most neighbours first): tiles of one
+    colour can be ordered at the same time, each seeing the tiles of other colours."""
+    colour = [-1] * len(neighbours)
+    for i in sorted(range(len(neighbours)), key=lambda i: (-len(neighbours[i]), i)):
+        taken = {colour[j] for j in neighbours[i]}
+        colour[i] = next(c for c in range(len(neighbours) + 1) if c not in taken)
+    return colour

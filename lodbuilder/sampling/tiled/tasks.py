@@ -21,6 +21,7 @@ from .workdir import REC, gather
 #: one row of a tile's ordering stream: input index, key (insertion radius), position, margin
 STREAM = np.dtype([("g", "<f8"), ("key", "<f8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("m", "<f8")])
 HEAD = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "<f8"), ("parent", "<i8")])
+FACE = np.dtype([("g", "<i8"), ("key", "<f8")])  # a tile's points near its shared faces, by input index
 EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
 POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -68,13 +69,32 @@ def _margins(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, interior: np.ndarr
     return np.maximum(m, 0.0)
 
 
+def _timed(halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The halo points that neighbouring tiles have ordered: (row in ``halo_rec``, key)."""
+    if not faces or halo_rec.shape[0] == 0:
+        return np.empty(0, np.int64), np.empty(0)
+    known = np.concatenate([np.fromfile(f, dtype=FACE) for f in faces])
+    if known.shape[0] == 0:
+        return np.empty(0, np.int64), np.empty(0)
+    known = known[np.argsort(known["g"], kind="stable")]
+    pos = np.minimum(np.searchsorted(known["g"], halo_rec["g"]), known.shape[0] - 1)
+    rows = np.flatnonzero(known["g"][pos] == halo_rec["g"])
+    return rows, known["key"][pos[rows]]
+
+
 def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
-               halo: float, max_memory: int | None) -> dict[str, Any]:
-    """FastFPS of tile ``t``: its own points, seeded with the head points in its core and halo.
+               halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
+               ) -> dict[str, Any]:
+    """FastFPS of tile ``t``: its own points, seeded with the head points in its core and halo, and
+    with the halo points its neighbours have ordered (``faces``: their face files) as timed seeds:
+    each enters the tile's ordering when the ordering's radius falls to its key, as it entered the
+    neighbour's. So the tile's points keep their distance from the neighbours' points of larger
+    keys, as in one ordering of the whole scan (see :mod:`.driver`, the passes).
 
     Writes ``stream.<t>.bin``: the tile's points that are not head points, in its order (keys
     non-increasing), each with its key (its insertion radius in the tile, or its exact distance to
-    the head when the tile reaches it from no seed), position and margin to the tile's shared faces.
+    the head when the tile reaches it from no seed), position and margin to the tile's shared faces;
+    and ``face_out``: the (input index, key) of its points within the halo width of a shared face.
     """
     from scipy.spatial import cKDTree
 
@@ -93,12 +113,21 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     head_in_core = np.isin(head["g"], core["g"])
     pos_in_core = np.searchsorted(core["g"], head["g"][head_in_core])  # core is in input order
     extra = in_ext & ~head_in_core
-    pts = np.concatenate([cpts, hpts[extra]]) if extra.any() else cpts
+    parts = [cpts, hpts[extra]]
     seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
+    timed = None
+    if faces:
+        hrec = np.fromfile(w / f"halo.{t}.bin", dtype=REC)
+        rows, keys = _timed(hrec, list(faces))
+        if rows.size:
+            first = cpts.shape[0] + int(extra.sum())
+            parts.append(np.stack([hrec["x"][rows], hrec["y"][rows], hrec["z"][rows]], axis=1))
+            timed = (first + np.arange(rows.size), keys)
+    pts = np.concatenate(parts) if len(parts) > 1 else cpts
     is_seed = np.zeros(pts.shape[0], bool)
     is_seed[seeds] = True
     o = fastfps(pts, seeds=seeds if seeds.size else None, voxel_size=voxel_size, band_radius=band_radius,
-                max_memory=max_memory)
+                max_memory=max_memory, timed_seeds=timed)
     sel = o.order[(o.order < cpts.shape[0]) & ~is_seed[o.order]]
     rank_in_tile = np.empty(pts.shape[0], np.int64)
     rank_in_tile[o.order] = np.arange(len(o))
@@ -118,11 +147,17 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     stream["key"] = key[srt]
     stream["x"], stream["y"], stream["z"] = p[srt, 0], p[srt, 1], p[srt, 2]
     stream["m"] = _margins(p[srt], lo, hi, interior)
+    if face_out is not None:
+        near = stream[stream["m"] < halo]
+        face = np.empty(near.shape[0], FACE)
+        face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
+        _publish(face[np.argsort(face["g"], kind="stable")], Path(face_out))
     _publish(stream, out)
     n_seam = int((stream["m"] < stream["key"]).sum())
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
-            "n_seam": n_seam, "band_voxels": int(o.stats.get("band_voxels", 0)),
-            "seconds": time.perf_counter() - t0, "worker_pid": os.getpid()}
+            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
+            "band_voxels": int(o.stats.get("band_voxels", 0)), "seconds": time.perf_counter() - t0,
+            "worker_pid": os.getpid()}
 
 
 def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
