@@ -75,6 +75,7 @@ def test_the_band_built_meanwhile_is_the_band_built_after(monkeypatch):
     """plan_and_build_band builds the plain band on a second thread while the sheets are measured
     (small inputs, two cores): the same band and plan as one after the other."""
     pts = folded_sheet(0.01, gap=0.03)[0]
+    monkeypatch.setattr(band, "OVERLAP_MIN_POINTS", 0)
     results = []
     for cores, limit in ((2, band.OVERLAP_MAX_POINTS), (1, 0)):
         monkeypatch.setattr(band, "_cores", lambda c=cores: c)
@@ -90,6 +91,30 @@ def test_the_band_built_meanwhile_is_the_band_built_after(monkeypatch):
 def test_a_band_too_big_for_the_budget_fails_the_same_on_the_second_thread(monkeypatch):
     """The plain band's error (built on the second thread) reaches the caller as before."""
     monkeypatch.setattr(band, "_cores", lambda: 2)  # the second thread whatever the machine
+    monkeypatch.setattr(band, "OVERLAP_MIN_POINTS", 0)
     pts = jittered_plane(5_000, np.random.default_rng(2))
     with pytest.raises(MemoryBudgetError, match="increase voxel_size or max_memory"):
         plan_and_build_band(pts, None, None, max_memory=1_000_000)
+
+
+def test_small_inputs_build_the_band_in_this_thread(monkeypatch):
+    """Below OVERLAP_MIN_POINTS points the plain band is built after the sheets, in this thread (a
+    second thread costs more than it saves there), even with two cores; above it, on the second."""
+    import concurrent.futures
+
+    started = []
+
+    class Recording(concurrent.futures.ThreadPoolExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            started.append(getattr(fn, "__name__", "?"))
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(concurrent.futures, "ThreadPoolExecutor", Recording)
+    monkeypatch.setattr(band, "_cores", lambda: 2)
+    pts = folded_sheet(0.045, gap=0.14)[0]  # 1,056 points, all thin
+    assert len(pts) < band.OVERLAP_MIN_POINTS
+    _, plan, found = plan_and_build_band(pts, None, None)
+    assert found > 0 and "build_band" not in started
+    monkeypatch.setattr(band, "OVERLAP_MIN_POINTS", len(pts))
+    plan_and_build_band(pts, None, None)
+    assert "build_band" in started

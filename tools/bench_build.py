@@ -8,12 +8,13 @@ of fpsample's full Euclidean ordering (bucket_fps_kdline_sampling asking for all
 ratio (both in the same process, one after the other).
 
 Optional sections:
-  --real [--baseline TREE] [--also NAME=TREE]
+  --real [--baseline TREE] [--also NAME=TREE] [--only NAME,...]
                              every real scan in ../shared/data (one fresh process per scan and tree,
                              alternating): the ordering alone (fastfps, after a warm-up that loads
                              every kernel from the cache), smallest wall and smallest CPU time of
                              --repeat runs; with a baseline source tree (e.g. an older checkout) the
-                             ratios new / baseline (and NAME / baseline for every --also tree)
+                             ratios new / baseline (and NAME / baseline for every --also tree);
+                             --only: just these files (e.g. bun_zipper_res4.ply,simple.las)
   --cli-rss                  peak RSS of ``lodbuilder build`` on a 1M-point sheet written as a PLY
                              file (whole process), with the RSS before the engine and its own peak
   --cold [--repeat K]        ``lodbuilder demo`` with an empty numba cache (first-run compile),
@@ -140,7 +141,9 @@ print(json.dumps({"n": len(pts), "wall": time.perf_counter() - t, "cpu": time.pr
 """
 
 
-def real_scans(baseline: str | None, repeat: int, also: dict[str, str] | None = None) -> list[dict]:
+def real_scans(
+    baseline: str | None, repeat: int, also: dict[str, str] | None = None, only: list[str] | None = None
+) -> list[dict]:
     """Time the ordering (``fastfps`` alone, after a warm-up that loads every kernel from numba's
     cache) of every real scan in fresh processes: this tree, the ``also`` trees and (if given) a
     baseline tree, alternating; per tree the smallest wall time and, separately, the smallest CPU
@@ -148,6 +151,8 @@ def real_scans(baseline: str | None, repeat: int, also: dict[str, str] | None = 
     trees = {"new": str(ROOT)} | (also or {}) | ({"baseline": baseline} if baseline else {})
     out = []
     for path in sorted(p for p in SHARED.iterdir() if p.suffix.lower() in REAL_SUFFIXES):
+        if only and path.name not in only:
+            continue
         row: dict = {"scan": path.name}
         for _ in range(repeat):
             for name, tree in trees.items():
@@ -275,6 +280,7 @@ def main() -> None:
     )
     ap.add_argument("--real", action="store_true", help="time every real scan in ../shared/data")
     ap.add_argument("--baseline", help="with --real: a source tree to compare with (its PYTHONPATH)")
+    ap.add_argument("--only", help="with --real: only these files of ../shared/data (comma-separated)")
     ap.add_argument("--also", action="append", default=[], metavar="NAME=TREE",
                     help="with --real: one more source tree timed in the same alternation (repeatable)")
     ap.add_argument("--repeat", type=int, default=2,
@@ -321,7 +327,8 @@ def main() -> None:
     }
     if args.real:
         also = dict(a.split("=", 1) for a in args.also)
-        report["real_scans"] = real_scans(args.baseline, args.repeat, also)
+        only = args.only.split(",") if args.only else None
+        report["real_scans"] = real_scans(args.baseline, args.repeat, also, only)
     trees = {"new": str(ROOT)} | ({"baseline": args.baseline} if args.baseline else {})
     if args.cli_rss:
         report["cli_build_rss"] = {name: cli_rss(1_000_000, tree) for name, tree in trees.items()}
