@@ -187,10 +187,23 @@ def quality(n: int, max_memory: str, workers: int, seam: float | None, tile_poin
         cm = float(cKDTree(pts[ref.order[:k]]).query(pts, workers=-1)[0].max())
         sweep.append([k, round(ct / cm, 4)])
     worst = max(sweep, key=lambda r: r[1])
+    # seams: points of the first 5 % within half their level's radius of an earlier point of
+    # another tile (the head counts as no tile)
+    boxes = np.asarray(tiled.get("tile_boxes", []))
+    p = pts[order]
+    tile = np.full(len(p), -1)
+    for t, b in enumerate(boxes):
+        inside = np.all((p >= b[:3]) & (p <= b[3:]), axis=1) & (tile < 0)
+        tile[inside] = t
+    tile[:h] = -1
+    j = np.arange(h, max(h, int(0.05 * len(p))))
+    close = cKDTree(p).query_ball_point(p[j], 0.5 * radius[j + 1] * (1 - 1e-12), workers=-1)
+    crowded = sum(1 for k, near in zip(j, close, strict=True)
+                  if any(i < k and tile[i] >= 0 and tile[i] != tile[k] for i in near))
     return {"input": f"synthetic range-scan sheet {len(pts)}", "max_memory": max_memory, "workers": workers,
             "tile_points": tile_points, "method": res.scans[0].method, "seconds_tiled": round(t_tiled, 2),
             "seconds_in_memory": round(t_mem, 2), "levels": rows, "sweep": sweep,
-            "sweep_worst": {"size": worst[0], "cover_ratio": worst[1]}, "tiled": tiled}
+            "sweep_worst": {"size": worst[0], "cover_ratio": worst[1]}, "crowded_first_5pct": crowded, "tiled": tiled}
 
 
 def ratios(doc: dict) -> str:
@@ -244,7 +257,8 @@ def markdown(doc: dict) -> str:
         if "quality" in d:
             q = d["quality"]
             t = q["tiled"]
-            lines += [f"Quality, {q['input']} ({t.get('tiles')} tiles, seam_spacing {t.get('seam_alpha')}; tiled "
+            lines += [f"Quality, {q['input']} ({t.get('tiles')} tiles, {t.get('passes', 1)} pass(es), seam_spacing "
+                      f"{t.get('seam_alpha')}, {t.get('seam_deferrals')} deferrals; tiled "
                       f"{q['seconds_tiled']:.0f} s, in memory {q['seconds_in_memory']:.0f} s); spacing / radius over "
                       f"every level {t.get('spacing_over_radius_min', float('nan')):.3f}:", "",
                       "| size | covering tiled | covering in memory | ratio | spacing / radius (tiled) |",
@@ -257,7 +271,9 @@ def markdown(doc: dict) -> str:
                 w = q["sweep_worst"]
                 lines += [f"Worst covering ratio over {len(q['sweep'])} sizes from half the head "
                           f"({t.get('head_points')} points) to 3 %: {w['cover_ratio']:.3f} at {w['size']:,} points"
-                          + (f" (tiles of at most {q['tile_points']:,} points)." if q.get("tile_points") else "."), ""]
+                          + (f" (tiles of at most {q['tile_points']:,} points)." if q.get("tile_points") else ".")
+                          + (f" Points of the first 5 % within 0.5 x their level's radius of an earlier point of another "
+                             f"tile: {q['crowded_first_5pct']}." if "crowded_first_5pct" in q else ""), ""]
     return "\n".join(lines)
 
 

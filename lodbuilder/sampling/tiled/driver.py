@@ -39,10 +39,11 @@ log = logging.getLogger(__name__)
 #: tiles make at a seam at little cost in covering.
 SEAM_ALPHA = 0.25
 #: every tile is ordered this many times (see _order_passes). More passes make neighbouring tiles
-#: agree at their seams, but slowly, and each costs a whole ordering of the scan: points within
-#: 0.5 x their level's radius of another tile's earlier point (no repair, first 5 % of the order):
-#: 100k-point sheet in 4 tiles 30 / 5 / 0 after 1 / 2 / 3 passes, 1M-point sheet 71 / 15 after 2 / 3;
-#: with the repair at 0.25 the 1M sheet's covering at 1 % is 1.018 / 1.018 / 1.002 after 1 / 2 / 3.
+#: agree at their seams, but slowly, and each costs a whole ordering of the scan (the order phase is
+#: 83 of 132 s on the 21.6M-point survey): on the 1M-point sheet above, points of the first 5 % within
+#: 0.5 x their level's radius of another tile's earlier point without the repair: 132 / 71 / 15 after
+#: 1 / 2 / 3 passes; with the repair at 0.25 the covering at 1 % is 1.018 after 1 pass, 1.002 after 3
+#: (--quality-passes).
 TILE_PASSES = 1
 #: the decimated copy has at most this many points (its ordering is one task), and at least
 #: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface
