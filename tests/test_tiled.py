@@ -33,14 +33,14 @@ def _build(tmp_path, pts, tile_points, name="t", **kw):
     return data, out
 
 
-@pytest.mark.parametrize("surface", ["wavy", "sphere"])
-def test_tiled_guarantees_against_brute_force(tmp_path, surface):
+@pytest.mark.parametrize(("surface", "passes"), [("wavy", 1), ("sphere", 1), ("wavy", 2)])
+def test_tiled_guarantees_against_brute_force(tmp_path, surface, passes):
     rng = np.random.default_rng(7)
     pts = wavy(2500, rng) if surface == "wavy" else sphere(2500, rng)
-    d, out = _build(tmp_path, pts, tile_points=300, seam_spacing=1)
+    d, out = _build(tmp_path, pts, tile_points=300, seam_spacing=1, _tile_passes=passes)
     n = len(pts)
     tiled = d["build"]["tiled"]
-    assert tiled["tiles"] >= 8, tiled
+    assert tiled["tiles"] >= 8 and tiled["passes"] == passes, tiled
     # every input point exactly once, its data with it
     assert np.array_equal(np.sort(d["order"]), np.arange(n)) and d["n_ordered"] == n
     np.testing.assert_array_equal(d["points"], pts[d["order"]])

@@ -25,7 +25,9 @@ SCRIPT = textwrap.dedent("""
     import sys
     import lodbuilder
     if __name__ == "__main__":
-        lodbuilder.build_archive(sys.argv[1], sys.argv[2], workers=2, _tile_points=int(sys.argv[3]))
+        passes = int(sys.argv[4]) if len(sys.argv) > 4 else None
+        lodbuilder.build_archive(sys.argv[1], sys.argv[2], workers=2, _tile_points=int(sys.argv[3]),
+                                 _tile_passes=passes)
 """)
 
 
@@ -102,3 +104,43 @@ def test_kill_and_resume(tmp_path, moment):
             if moment == "merge":
                 assert resumed["tiles_ordered_before"] == v.build["tiled"]["tiles"]
     assert not archive.with_name(f".{archive.name}.parts").exists()
+
+
+def test_a_kill_in_the_second_pass_resumes_to_the_same_order(tmp_path):
+    """Two passes: killed once some tiles finished their second ordering, the resumed build orders
+    only what was left and stores exactly the order of a build that was never interrupted (each
+    ordering reads the face files of the passes it depends on, which stay in the work directory)."""
+    pts = _sheet(90_000, seed=2)
+    src = write_points(tmp_path / "sheet.npy", pts)
+    clean = tmp_path / "clean.h5"
+    lodbuilder.build_archive(src, clean, workers=2, _tile_points=9_000, _tile_passes=2)
+    archive = tmp_path / "site.h5"
+    script = tmp_path / "run.py"
+    script.write_text(SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(src), str(archive), "9000", "2"],
+                            start_new_session=True, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None:
+            w = _work_dir(archive)
+            if w is not None and (w / "plan.json").exists():
+                n_tiles = len(json.loads((w / "plan.json").read_text())["tiles"])
+                if 1 <= len(list(w.glob("order.*.2.json"))) < n_tiles:
+                    break
+            time.sleep(0.005)
+        assert proc.poll() is None, "the build finished before the kill in its second pass"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    time.sleep(0.5)
+    w = _work_dir(archive)
+    done = len(list(w.glob("order.*.json")))
+    res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=9_000, _tile_passes=2)
+    assert res.scans[0].status == "built"
+    with lodbuilder.open_archive(archive) as a, lodbuilder.open_archive(clean) as b:
+        va, vb = a.scan("sheet"), b.scan("sheet")
+        assert va.build["tiled"]["resumed"]["tiles_ordered_before"] == done > va.build["tiled"]["tiles"]
+        np.testing.assert_array_equal(va.source_index[:], vb.source_index[:])
+        np.testing.assert_array_equal(va.radius[:], vb.radius[:])
