@@ -109,19 +109,29 @@ def test_timed_seeds_join_at_their_key_and_keep_later_points_away(rng):
     pos[o.order] = np.arange(len(o))
     timed_pos = pos[left]
     np.testing.assert_allclose(o.radius[timed_pos], keys, rtol=1e-12)  # radius: the key (in grid units and back)
-    # none joins late: a point chosen before it had a radius of at least its key
+    # (radius = key and radii never increase: no timed seed joins early or late)
     right = np.flatnonzero(pts[:, 0] >= 0.5)
-    rpos = np.sort(pos[right])
-    for t in timed_pos[:: max(1, len(timed_pos) // 200)]:
-        before = rpos[rpos < t]
-        if before.size:
-            assert o.radius[before[-1]] >= o.radius[t]
     # a right point is no nearer to a timed seed that joined before it than 0.97 x its radius
     tree = cKDTree(pts[left])
     for p in right[:: 7]:
         near = tree.query_ball_point(pts[p], 0.97 * o.radius[pos[p]] * (1 - 1e-9))
         assert all(pos[left[j]] > pos[p] for j in near)
     assert o.stats["n_timed_seeds"] == left.size
+
+
+def test_a_timed_seed_that_is_a_seed_or_its_copy_is_ordered_once(rng):
+    # seed 0 is also timed, and point 9 is an exact copy of the timed point 3: each comes once,
+    # as the naive reference (which skips what is ordered already) has it
+    pts = rng.random((60, 3))
+    pts[9] = pts[3]
+    idx, keys = np.array([0, 3, 5, 9]), np.array([0.5, 0.4, 0.3, 0.2])
+    o = fastfps(pts, seeds=[0], voxel_size=4.0, timed_seeds=(idx, keys))
+    assert np.array_equal(np.sort(o.order), np.arange(60))
+    order, radius, _ = naive_euclidean_fps(np.delete(pts, 9, axis=0), [0], timed=(np.array([0, 3, 5]), keys[:3]))
+    np.testing.assert_array_equal(o.order[:59], np.where(order >= 9, order + 1, order))
+    np.testing.assert_allclose(o.radius[:59], radius, rtol=1e-12)
+    assert o.order[59] == 9 and o.radius[59] == 0.0  # the copy: after every distinct point
+    assert o.stats["n_timed_seeds"] == 2
 
 
 def test_timed_seeds_are_checked(rng):

@@ -415,6 +415,8 @@ def march_round(
                     if weighted:
                         dd *= pcost[p]
                     dd += tv
+                # written out as in _seed_sample: the same lines as an inlined helper that takes
+                # the arrays made the grid phase of 1M points 3.3 -> 5.1 s (reference counting)
                 if dd < dq[p]:
                     dq[p] = dd
                     lq[p] = lv
@@ -487,9 +489,9 @@ def grid_phase(
     ``debug`` the heaps are checked after every operation; pops is -1 (front heap) or -2
     (candidate heap) when one is found broken.
 
-    Timed seeds: ``tseed`` (points, by non-increasing ``tkey``, grid units) are never candidates;
-    each joins the ordering (radius: its key) as soon as the largest candidate distance is at most
-    its key, and its front is marched like a sample's. ``tpos[0]`` counts the timed seeds taken
+    Timed seeds: ``tseed`` (points, none of them a seed, by non-increasing ``tkey``, grid units) are
+    never candidates; each joins the ordering (radius: its key) as soon as the largest candidate
+    distance is at most its key, and its front is marched like a sample's. ``tpos[0]`` counts the timed seeds taken
     (the tail goes on from there).
     """
     m = u.shape[0]
@@ -542,10 +544,8 @@ def grid_phase(
                 break
             if timed:
                 i = tseed[tpos[0]]
+                rad = tkey[tpos[0]]
                 tpos[0] += 1
-                if rank[i] >= 0:
-                    continue  # already ordered (a seed)
-                rad = tkey[tpos[0] - 1]
                 par = -1  # not chosen by this ordering: no parent
                 ci = cellof[anchor_of(cs, np.int64(i))]
             else:

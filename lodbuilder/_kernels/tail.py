@@ -86,11 +86,9 @@ def euclid_tail(
             break
         if tpos[0] < tseed.shape[0] and tkey[tpos[0]] >= kk:
             i = tseed[tpos[0]]
+            radius[k] = tkey[tpos[0]]
             tpos[0] += 1
-            if rank[i] >= 0:
-                continue
             w0 = anchor_of(cs, np.int64(i))
-            radius[k] = tkey[tpos[0] - 1]
             parent[k] = -1
         else:
             w0 = cellv[top]
@@ -174,12 +172,10 @@ def euclid_tail(
     if hn == 0:  # every candidate is ordered: the timed seeds not taken yet come last
         while k < k_max and tpos[0] < tseed.shape[0]:
             i = tseed[tpos[0]]
-            tpos[0] += 1
-            if rank[i] >= 0:
-                continue
             rank[i] = k
             order[k] = i
-            radius[k] = tkey[tpos[0] - 1]
+            radius[k] = tkey[tpos[0]]
             parent[k] = -1
+            tpos[0] += 1
             k += 1
     return k

@@ -209,6 +209,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     this (it reads, merges and writes in bounded blocks) and returns the same summary as
     :func:`build_one`."""
     from ..sampling.tiled import SEAM_ALPHA, build_tiled
+    from ..sampling.tiled.driver import TILE_PASSES
 
     p = job.params
     build = {
@@ -231,7 +232,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
         tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
         max_memory=p.get("max_memory"), voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
         alpha=p["seam_alpha"] if p.get("seam_alpha") is not None else SEAM_ALPHA,
-        tile_points=p.get("_tile_points"), passes=p.get("_tile_passes") or 0, build=build,
+        tile_points=p.get("_tile_points"), passes=p.get("_tile_passes") or TILE_PASSES, build=build,
         provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
         progress=progress,
     )

@@ -299,6 +299,8 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         _, first = np.unique(gid[tidx], return_index=True)
         first = np.sort(first)
         tidx, tkeys = gid[tidx[first]], tkeys[first]
+    keep = ~np.isin(tidx, useeds)  # a seed is ordered first anyway: the kernels never meet it again
+    tidx, tkeys = tidx[keep], tkeys[keep]
     tseed_c = inv[tidx].astype(np.int32)
     tkey_g = tkeys / h
     tpos = np.zeros(1, np.int64)

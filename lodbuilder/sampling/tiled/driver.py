@@ -177,7 +177,7 @@ def build_tiled(
     band_radius: float | None = None,
     alpha: float = SEAM_ALPHA,
     tile_points: int | None = None,
-    passes: int = 0,
+    passes: int = TILE_PASSES,
     build: dict[str, Any] | None = None,
     provenance: dict[str, Any] | None = None,
     progress: ProgressCallback = None,
@@ -190,7 +190,6 @@ def build_tiled(
     from .write import bucket_points, write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
-    passes = passes or TILE_PASSES
     work.mkdir(parents=True, exist_ok=True)
     times: dict[str, float] = {}
     t_all = time.perf_counter()

@@ -113,7 +113,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     head_in_core = np.isin(head["g"], core["g"])
     pos_in_core = np.searchsorted(core["g"], head["g"][head_in_core])  # core is in input order
     extra = in_ext & ~head_in_core
-    parts = [cpts, hpts[extra]]
+    parts = [cpts, hpts[extra]] if extra.any() else [cpts]
     seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
     timed = None
     if faces:
