@@ -18,7 +18,14 @@ side, more than 0.2 x the separation, so that a slightly misjudged normal cannot
 middle of a gap in). So no voxel lies in the gap and no gap is bridged whatever h is, and a tight
 fold is measured along its outer side (a little longer than the surface, never a shortcut through
 its inside). If there is a sheet on the outer side too, the radius there is capped at
-0.95 (sep - h) / 2 (never below h). The Euclidean tail never lowers a point from a sample farther
+0.95 (sep - h) / 2 (never below h). Then the band is *cut between sheets*
+(:func:`lodbuilder._kernels.sheets.sheet_cut`): of two neighbouring voxels whose nearest points lie
+on different sheets, the one farther from its point leaves the band, and so does a voxel that is a
+corner of a cell holding a point of another sheet; so a sheet between two others is bridged to
+neither. In a stack joined by folds (an accordion) no choice of sides is consistent around every
+fold, so the one-sided band splits it; then the plain band cut between sheets is used (both sides
+of every sheet, each up to about the middle of the gap). Both need a gap of 2 voxels (4 point
+spacings): at 3 spacings the middle sheet of three has no voxel of its own and the plain band is used. The Euclidean tail never lowers a point from a sample farther
 than 0.9 x their separation (a ball smaller than the gap does not reach the other sheet), nor along a
 chord steeper than 24 degrees (sin 0.4) to either end's sheet (around a tight fold the chord is much shorter
 than the surface); when at least THIN_SHARE % of the scan is thin, the band ordering goes on down
@@ -476,14 +483,34 @@ def one_sided(
     return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
 
 
+def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel costs ``vcost`` of ``band`` cut between the sheets of ``plan`` (see
+    :func:`lodbuilder._kernels.sheets.sheet_cut`: no two neighbouring marchable voxels, and no
+    point and the voxels it reads, stand on different sheets) and the points' nearest marchable
+    corners in the result."""
+    from .._kernels.sheets import sheet_cut
+    from .._kernels.topology import nearest_corners
+
+    assert plan.normal is not None and plan.separation is not None
+    perm = band.perm
+    nin = np.ascontiguousarray(plan.normal[perm], dtype=np.float64)
+    psep = np.ascontiguousarray(plan.separation[perm] / band.h)
+    cut = sheet_cut(band.keys, band.nbr, band.cs, band.foot, vcost, band.u, nin, psep)
+    return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
+
+
 def build_planned_band(
     points: np.ndarray, plan: BandPlan, max_memory: int | None = None, *, band: Band | None = None
 ) -> tuple[Band, BandPlan]:
-    """The band of a plan. A one-sided band must not split the surface into more pieces than the
-    plain band does (two registrations of one surface a few spacings apart, in a merged scan, are
-    found as two sheets and may be cut apart that way): if it does, the plain band is used for the
-    whole scan and the plan returned says so. The one-sided band is a subset of the plain one's
-    voxels, so both are decided on one band (``band``: the plain band, when already built)."""
+    """The band of a plan: one-sided where sheets come close, and cut between sheets (so a sheet
+    between two others is bridged to neither). A one-sided band must not split the surface into
+    more pieces than the plain band does: in a stack of sheets joined by folds no choice of sides
+    is consistent around every fold, and two registrations of one surface a few spacings apart, in
+    a merged scan, are found as two sheets and may be cut apart that way. If it does, the plain
+    band cut between sheets is tried (both sides of every sheet, each voxel on its nearest point's
+    sheet); if that splits it too, the plain band is used for the whole scan and the plan returned
+    says so. Every band here is a subset of the plain one's voxels, so all are decided on one band
+    (``band``: the plain band, when already built)."""
     from .._kernels.topology import point_components
 
     if band is None:
@@ -491,10 +518,19 @@ def build_planned_band(
     if plan.normal is None:
         return band, plan
     vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
+    vcost, near = cut_between_sheets(band, vcost, plan)
     pieces = point_components(band.nbr, band.cs, near, vcost)
-    if pieces > 1 and point_components(band.nbr, band.cs, band.near, band.vcost) < pieces:
-        log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
-        return band, BandPlan.plain(plan.h, plan.r)
+    plain = 0
+    if pieces > 1:
+        plain = point_components(band.nbr, band.cs, band.near, band.vcost)
+    if pieces > 1 and plain < pieces:
+        vcost, near = cut_between_sheets(band, band.vcost, plan)
+        pieces = point_components(band.nbr, band.cs, near, vcost)
+        if pieces > plain:
+            log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", pieces)
+            return band, BandPlan.plain(plan.h, plan.r)
+        log.info("one-sided band splits the surface; using the plain band cut between sheets")
+        plan = BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover)
     band.vcost, band.near = vcost, near
     return band, plan
 
