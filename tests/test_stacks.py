@@ -27,7 +27,7 @@ def stack(sheets: int, gap_spacings: float, n: int = N, seed: int = 0):
     return accordion(n, sheets, gap_spacings * spacing, seed=seed)
 
 
-@pytest.mark.parametrize(("sheets", "gap"), [(3, 4.0), (4, 5.0), (5, 6.0), (5, 4.0), (3, 6.0)])
+@pytest.mark.parametrize(("sheets", "gap"), [(3, 4.0), (4, 5.0), (5, 6.0), (5, 4.0), (3, 6.0), (3, 3.0)])
 def test_stacked_sheets_levels_cover_along_the_sheets(sheets, gap):
     # before the cut between sheets, the one-sided band split the stack (no choice of sides is
     # consistent around every fold) and the plain band bridged the inner sheets: 4 sheets 5
