@@ -292,10 +292,38 @@ def sheet_cut(keys, nbr, cs, foot, vcost, u, nin, psep):  # pragma: no cover - c
     result does not depend on the order of the voxels."""
     nv = keys.shape[0]
     out = vcost.copy()
+    # a voxel is tested only where a thin point is near: its foot, a neighbour's foot or a point of
+    # one of its cells (two points without a normal are never apart), so the rule costs little
+    # where few points are thin
+    thin = np.zeros(u.shape[0], np.bool_)
+    for p in range(u.shape[0]):
+        thin[p] = nin[p, 0] != 0.0 or nin[p, 1] != 0.0 or nin[p, 2] != 0.0
+    thin_cell = np.zeros(nv, np.bool_)
+    for v in range(nv):
+        for p in range(cs[v], cs[v + 1]):
+            if thin[p]:
+                thin_cell[v] = True
+                break
     for v in range(nv):
         if vcost[v] == np.inf:
             continue
         f = foot[v]
+        near = thin[f]
+        if not near:
+            for j in range(6):
+                w = nbr[v, j]
+                if w >= 0 and thin[foot[w]]:
+                    near = True
+                    break
+        if not near:
+            corners = corner_voxels(nbr, v)
+            for k in range(8):
+                c = corners[k]
+                if c >= 0 and thin_cell[c]:
+                    near = True
+                    break
+        if not near:
+            continue
         x, y, z = unmorton(keys[v])
         dv = (x - u[f, 0]) ** 2 + (y - u[f, 1]) ** 2 + (z - u[f, 2]) ** 2
         drop = False

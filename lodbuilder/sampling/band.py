@@ -535,7 +535,7 @@ def one_sided(
     from .._kernels.topology import nearest_corners
 
     perm = band.perm
-    nin = np.ascontiguousarray(normal[perm], dtype=np.float64)
+    nin = np.ascontiguousarray(normal[perm], dtype=np.float32)  # (float32 products are exact in float64)
     psep = np.full(perm.shape[0], np.inf) if separation is None else separation[perm] / band.h
     rad = np.full(perm.shape[0], band.r / band.h) if radius is None else radius[perm] / band.h
     vcost = one_sided_cost(band.keys, band.foot, band.u, nin, psep, 1.0 / (rad * rad), SIDE_TOLERANCE, beta)
@@ -552,7 +552,7 @@ def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan) -> tuple[n
 
     assert plan.normal is not None and plan.separation is not None
     perm = band.perm
-    nin = np.ascontiguousarray(plan.normal[perm], dtype=np.float64)
+    nin = np.ascontiguousarray(plan.normal[perm], dtype=np.float32)
     psep = np.ascontiguousarray(plan.separation[perm] / band.h)
     cut = sheet_cut(band.keys, band.nbr, band.cs, band.foot, vcost, band.u, nin, psep)
     return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
