@@ -202,7 +202,9 @@ def wrapped(*a, **k):
     return r
 F._run_engine = wrapped
 from lodbuilder.cli.main import main
+t0 = time.perf_counter()
 main(["build", sys.argv[1], "-o", sys.argv[2], "--no-progress"])
+marks["build_s"] = time.perf_counter() - t0
 import resource
 marks["process_peak"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 print(json.dumps(marks))
@@ -234,6 +236,168 @@ def cli_rss(n: int, tree: str) -> dict:
         "rss_before_engine_mib": m["before_engine"] / 2**20,
         "engine_peak_mib": m["engine_peak"] / 2**20,
         "engine_share_bytes_per_point": (m["engine_peak"] - m["before_engine"]) / n_pts,
+    }
+
+
+_SET_WARM = r"""
+import numpy, lodbuilder
+lodbuilder.fastfps(numpy.random.default_rng(0).random((500, 3)))
+try:
+    from lodbuilder._kernels.warm import _prototypes, compile_group
+except ImportError:
+    pass
+else:
+    for group in _prototypes():
+        compile_group(group)
+"""
+
+
+FPSAMPLE_LIMIT_S = 120.0  # fpsample's full ordering of an airborne scan can take minutes: stop there
+
+
+def _fpsample_child(pts: np.ndarray, conn) -> None:  # noqa: ANN001 - a multiprocessing pipe
+    import fpsample
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    fpsample.bucket_fps_kdline_sampling(pts, len(pts), h=7)
+    conn.send((time.perf_counter() - t0, time.process_time() - c0))
+
+
+def time_fpsample(pts: np.ndarray, limit: float) -> tuple[float, float] | None:
+    """fpsample's full ordering (bucket_fps_kdline_sampling for all N points) in a forked child
+    (the same process image: the points are not copied), stopped after ``limit`` seconds (None)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_fpsample_child, args=(pts, send))
+    child.start()
+    ready = recv.poll(limit)
+    result = recv.recv() if ready else None
+    if child.is_alive():
+        child.kill()
+    child.join()
+    return result
+
+
+def set_one(spec: str, n: int, repeat: int) -> dict:
+    """One input of the set, in this (fresh) process: lodbuilder's full ordering and fpsample's
+    (in a forked child, stopped after FPSAMPLE_LIMIT_S), alternating ``repeat`` times (smallest
+    wall and CPU time of each), with the engine's record."""
+    import lodbuilder
+
+    exec(_SET_WARM, {})
+    pts = load_set_input(spec, n)
+    n = len(pts)
+    time_fpsample(pts[:2000], FPSAMPLE_LIMIT_S)
+    best: dict = {"lodbuilder": (np.inf, np.inf), "fpsample": (np.inf, np.inf)}
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        o = lodbuilder.fastfps(pts)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        best["lodbuilder"] = (min(best["lodbuilder"][0], wall), min(best["lodbuilder"][1], cpu))
+        fps = time_fpsample(pts, FPSAMPLE_LIMIT_S)
+        if fps is not None:
+            best["fpsample"] = (min(best["fpsample"][0], fps[0]), min(best["fpsample"][1], fps[1]))
+    st = o.stats
+    out = {
+        "n": n, "h": o.voxel_size, "thin_points": st.get("thin_points", 0),
+        "thin_points_found": st.get("thin_points_found", 0), "cpu_band_s": st["cpu_band"],
+        "cpu_grid_s": st["cpu_grid"], "cpu_tail_s": st["cpu_tail"],
+        "band_voxels_per_point": st["band_voxels"] / n, "pops_per_voxel": st["pops_per_voxel"],
+        "grid_points": st["grid_points"], "time_band_s": st["time_band"], "time_grid_s": st["time_grid"],
+        "time_tail_s": st["time_tail"], "time_s": best["lodbuilder"][0], "cpu_s": best["lodbuilder"][1],
+    }
+    if best["fpsample"][0] == np.inf:
+        out["fpsample_time_s"] = f"> {FPSAMPLE_LIMIT_S:g} (stopped)"
+        out["ratio_to_fpsample"] = f"< {best['lodbuilder'][0] / FPSAMPLE_LIMIT_S:.3f}"
+        return out
+    out["fpsample_time_s"], out["fpsample_cpu_s"] = best["fpsample"]
+    out["ratio_to_fpsample"] = best["lodbuilder"][0] / best["fpsample"][0]
+    out["cpu_ratio_to_fpsample"] = best["lodbuilder"][1] / best["fpsample"][1]
+    return out
+
+
+def load_set_input(spec: str, n: int) -> np.ndarray:
+    """A synthetic input of bench_inputs (rounded to float32, as its PLY file stores it) or a file."""
+    from bench_inputs import SYNTHETIC, synthetic
+
+    if spec in SYNTHETIC:
+        return synthetic(spec, n).astype(np.float32).astype(np.float64)
+    from lodbuilder.io import read_scan
+
+    return read_scan(spec).points
+
+
+def build_rss(path: Path, tree: str) -> dict:
+    """``lodbuilder build`` of ``path`` in a fresh process: its wall time and peak RSS."""
+    import tempfile
+
+    env = dict(os.environ, PYTHONPATH=tree)
+    with tempfile.TemporaryDirectory() as tmp:
+        res = subprocess.run([sys.executable, "-c", _RSS_CODE, str(path), str(Path(tmp) / "a.h5")],
+                             env=env, cwd=tree, capture_output=True, text=True, check=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def input_set(n: int, data: Path, survey: Path | None, repeat: int, only: list[str] | None) -> list[dict]:
+    """Every input of the set (bench_inputs.py): the ordering against fpsample's in one fresh
+    process per input, then ``lodbuilder build`` of its file in another (peak RSS, build time)."""
+    import tempfile
+
+    from bench_inputs import SYNTHETIC, real_files, synthetic
+
+    from lodbuilder.io import write_points
+
+    specs: list[tuple[str, str, Path | None]] = [(k, f"{k} {n} (synthetic)", None) for k in SYNTHETIC]
+    specs += [(str(p), p.name, p) for p in real_files(data)]
+    if survey is not None:
+        specs.append((str(survey), f"survey {survey.name} (autzen tiled, tools/make_survey.py)", survey))
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec, label, path in specs:
+            if only and not any(o in label for o in only):
+                continue
+            load = os.getloadavg()
+            cmd = [sys.executable, __file__, "--set-one", spec, "--set-n", str(n), "--repeat", str(repeat)]
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode:
+                row = {"input": label, "failed": res.stderr.strip().splitlines()[-1][:300]}
+                out.append(row)
+                print(json.dumps(row), file=sys.stderr)
+                continue
+            row = {"input": label, **json.loads(res.stdout.strip().splitlines()[-1])}
+            if path is None:
+                path = Path(tmp) / f"{spec}.ply"
+                write_points(path, synthetic(spec, n).astype(np.float32).astype(np.float64))
+            m = build_rss(path, str(ROOT))
+            row["build_s"] = m["build_s"]
+            if isinstance(row["fpsample_time_s"], float):
+                row["build_ratio_to_fpsample"] = m["build_s"] / row["fpsample_time_s"]
+            row["build_peak_rss_bytes_per_point"] = m["process_peak"] / row["n"]
+            row["engine_share_bytes_per_point"] = (m["engine_peak"] - m["before_engine"]) / row["n"]
+            row["load_avg"] = [load, os.getloadavg()]
+            out.append(row)
+            print(json.dumps(row), file=sys.stderr)
+    return out
+
+
+def set_summary(rows: list[dict], n: int) -> dict:
+    """The targets of issue 21 over the set: ratios at >= 0.5 n points, peak RSS on every input."""
+    import statistics
+
+    big = [r for r in rows if isinstance(r.get("ratio_to_fpsample"), float) and r["n"] >= n // 2]
+    ok = [r for r in rows if isinstance(r.get("ratio_to_fpsample"), float)]
+    return {
+        "inputs_at_full_size": [r["input"] for r in big],
+        "worst_ratio_full_size": max((r["ratio_to_fpsample"] for r in big), default=None),
+        "median_ratio_full_size": statistics.median([r["ratio_to_fpsample"] for r in big]) if big else None,
+        "median_ratio_all": statistics.median([r["ratio_to_fpsample"] for r in ok]) if ok else None,
+        "worst_build_rss_bytes_per_point_full_size": max(
+            (r["build_peak_rss_bytes_per_point"] for r in big), default=None),
+        "worst_build_rss_bytes_per_point_all": max(
+            (r["build_peak_rss_bytes_per_point"] for r in rows if "build_peak_rss_bytes_per_point" in r), default=None),
+        "fpsample_stopped": [r["input"] for r in rows if isinstance(r.get("fpsample_time_s"), str)],
     }
 
 
@@ -270,6 +434,7 @@ def cold_start(trees: dict[str, str], repeat: int) -> dict:
 
 
 def main() -> None:
+    global SHARED
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 4_000_000])  # none: skip
     ap.add_argument("--no-bunny", action="store_true")
@@ -290,7 +455,17 @@ def main() -> None:
     ap.add_argument("--markdown", help="also write the 'build' section of this markdown file")
     ap.add_argument("--from-json", help="render the markdown section from a saved JSON report")
     ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--set", action="store_true",
+                    help="the input set of tools/bench_inputs.py against fpsample (with --set-n points)")
+    ap.add_argument("--set-n", type=int, default=1_000_000, help="points of the synthetic inputs of --set")
+    ap.add_argument("--set-only", help="with --set: only inputs whose label contains one of these (comma-separated)")
+    ap.add_argument("--survey", help="with --set: a survey LAZ (tools/make_survey.py); made (3 x 3) when absent")
+    ap.add_argument("--data", default=str(SHARED), help="the real scans (default ../shared/data)")
+    ap.add_argument("--set-one", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.set_one:
+        print(json.dumps(set_one(args.set_one, args.set_n, args.repeat)))
+        return
     if args.from_json:
         report = json.loads(Path(args.from_json).read_text())
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "build", markdown(report))
@@ -298,6 +473,7 @@ def main() -> None:
     if args.one:
         print(json.dumps(run_one(args.one, not args.no_fpsample)))
         return
+    SHARED = Path(args.data)
     specs = [str(s) for s in args.sizes] + ([] if args.no_bunny or not SHARED.is_dir() else ["bunny"])
     results = []
     for spec in specs:
@@ -329,6 +505,14 @@ def main() -> None:
         also = dict(a.split("=", 1) for a in args.also)
         only = args.only.split(",") if args.only else None
         report["real_scans"] = real_scans(args.baseline, args.repeat, also, only)
+    if args.set:
+        survey = Path(args.survey) if args.survey else Path("/tmp/lodbuilder_bench_survey_3x3.laz")
+        if not survey.exists():
+            subprocess.run([sys.executable, str(ROOT / "tools" / "make_survey.py"), "--nx", "3", "--ny", "3",
+                            "-o", str(survey)], check=True, capture_output=True)
+        only = args.set_only.split(",") if args.set_only else None
+        report["set"] = input_set(args.set_n, SHARED, survey, args.repeat, only)
+        report["set_summary"] = set_summary(report["set"], args.set_n)
     trees = {"new": str(ROOT)} | ({"baseline": args.baseline} if args.baseline else {})
     if args.cli_rss:
         report["cli_build_rss"] = {name: cli_rss(1_000_000, tree) for name, tree in trees.items()}

@@ -1,0 +1,83 @@
+"""The input set of ``tools/bench_build.py --set``: synthetic surfaces of N points (each a different
+kind of difficulty) and every real scan in ../shared/data, plus a survey LAZ from
+tools/make_survey.py. All synthetic inputs are called synthetic in the report.
+
+    uniform   a wavy sheet on a jittered grid (the range-scan sheet of bench_build)
+    uneven    the same sheet with random points whose density grows 3 x from x = 0 to x = 1
+    noisy     the uniform sheet with Gaussian noise of 0.5 point spacing along z
+    bumpy     a closed bumpy surface (a sphere with radial bumps of 10 %), random points, density
+              2 x from pole to pole and noise of 0.3 spacing along the normal (a closed scan-like
+              surface)
+    stack     four parallel sheets 5 point spacings apart joined by folds (an accordion)
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SYNTHETIC = ("uniform", "uneven", "noisy", "bumpy", "stack")
+REAL_SUFFIXES = (".ply", ".las", ".laz", ".e57")
+
+
+def range_scan_sheet(n: int, seed: int = 0) -> np.ndarray:
+    """About n points of a wavy sheet on a jittered grid (unit square, amplitude 0.08)."""
+    rng = np.random.default_rng(seed)
+    side = int(round(np.sqrt(n)))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2).astype(float)
+    g = (g + rng.uniform(-0.3, 0.3, g.shape)) / side
+    z = 0.08 * np.sin(4 * np.pi * g[:, 0]) * np.cos(4 * np.pi * g[:, 1])
+    return np.c_[g, z]
+
+
+def _wave(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return 0.08 * np.sin(4 * np.pi * x) * np.cos(4 * np.pi * y)
+
+
+def uneven_sheet(n: int, seed: int = 1) -> np.ndarray:
+    """n random points of the wavy sheet, density (1 + 2 x) / 2: 3 x more at x = 1 than at x = 0."""
+    rng = np.random.default_rng(seed)
+    x = (np.sqrt(1.0 + 8.0 * rng.random(n)) - 1.0) / 2.0  # inverse of the CDF (x + x^2) / 2
+    y = rng.random(n)
+    return np.c_[x, y, _wave(x, y)]
+
+
+def noisy_sheet(n: int, seed: int = 2) -> np.ndarray:
+    pts = range_scan_sheet(n, seed)
+    spacing = 1.0 / math.sqrt(len(pts))
+    pts[:, 2] += np.random.default_rng(seed + 100).normal(0.0, 0.5 * spacing, len(pts))
+    return pts
+
+
+def bumpy_closed(n: int, seed: int = 3) -> np.ndarray:
+    """n points of a closed bumpy surface, density 2 x from one pole to the other, with noise."""
+    rng = np.random.default_rng(seed)
+    c = 2.0 * (np.sqrt(1.0 + 3.0 * rng.random(n)) - 1.0) - 1.0  # cos(theta), density (2 + c) / ...
+    phi = 2 * np.pi * rng.random(n)
+    s = np.sqrt(1.0 - c * c)
+    d = np.c_[s * np.cos(phi), s * np.sin(phi), c]
+    r = 1.0 + 0.1 * np.sin(5 * np.arccos(c)) * np.cos(4 * phi)
+    spacing = math.sqrt(4 * np.pi / n)
+    r = r + rng.normal(0.0, 0.3 * spacing, n)
+    return d * r[:, None]
+
+
+def stack(n: int, seed: int = 4) -> np.ndarray:
+    sys.path.insert(0, str(ROOT / "tests"))
+    from surfaces import accordion
+
+    sheets = 4
+    return accordion(n, sheets, 5.0 * math.sqrt(sheets / n), seed=seed)[0]
+
+
+def synthetic(kind: str, n: int) -> np.ndarray:
+    return {"uniform": range_scan_sheet, "uneven": uneven_sheet, "noisy": noisy_sheet,
+            "bumpy": bumpy_closed, "stack": stack}[kind](n)
+
+
+def real_files(data: Path) -> list[Path]:
+    return sorted(p for p in data.iterdir() if p.suffix.lower() in REAL_SUFFIXES)
