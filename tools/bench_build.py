@@ -252,7 +252,7 @@ else:
 """
 
 
-FPSAMPLE_LIMIT_S = 120.0  # fpsample's full ordering of an airborne scan can take minutes: stop there
+FPSAMPLE_LIMIT_S = 150.0  # fpsample's full ordering of an airborne scan can take minutes: stop there
 
 
 def _fpsample_child(pts: np.ndarray, conn) -> None:  # noqa: ANN001 - a multiprocessing pipe
