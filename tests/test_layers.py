@@ -18,7 +18,7 @@ LAYERS = [
     ["levels", "io", "datasets"],
     ["features", "sampling"],
     ["archive"],
-    ["fill", "quality", "export", "viewer"],
+    ["fill", "query", "quality", "export", "viewer"],
     ["build"],
     ["api", "collection"],
     ["cli"],
