@@ -13,7 +13,7 @@ PKG = Path(__file__).resolve().parents[1] / "lodbuilder"
 
 #: rooms, lowest first; a module may import its own room and any lower one
 LAYERS = [
-    ["errors", "progress", "_validate", "_optional", "_resources", "py"],
+    ["errors", "progress", "_validate", "_optional", "_resources", "_atomic", "_json", "py"],
     ["_kernels"],
     ["levels", "io", "datasets"],
     ["features", "sampling"],
