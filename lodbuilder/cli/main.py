@@ -63,6 +63,15 @@ def main(argv: list[str] | None = None) -> int:
             raise  # not an optional dependency: a bug, shown with its traceback
         print_error(args.command, missing_message(exc.name or "", f"lodbuilder {args.command}"))
         return 2
+    except OSError as exc:  # a full disk where no writer of ours said so: still one line
+        import errno
+
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        print_error(args.command, f"{where}no space left on the device; free some space or choose "
+                    "another location")
+        return 2
     except KeyboardInterrupt:
         print(f"lodbuilder {args.command}: interrupted", file=sys.stderr)
         return 130
