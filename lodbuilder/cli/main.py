@@ -10,8 +10,10 @@ share (``--json``, printing, the output-path rule) is in :mod:`lodbuilder.cli.ou
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from importlib import import_module
+from typing import Any
 
 from .. import __version__
 from ..errors import LodbuilderError
@@ -52,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     args.quiet = args.quiet or args.top_quiet
     log_level = setup_logging(args)
     try:
-        return int(args._run(args) or 0)
+        with _remote_settings(args):
+            return int(args._run(args) or 0)
     except LodbuilderError as exc:
         print_error(args.command, exc)
         return 2
@@ -84,6 +87,16 @@ def main(argv: list[str] | None = None) -> int:
         import logging
 
         logging.getLogger("lodbuilder").setLevel(log_level)
+
+
+def _remote_settings(args: argparse.Namespace) -> Any:
+    """--timeout / --follow-redirects of a command that reads archives, for every URL it opens."""
+    timeout, follow = getattr(args, "timeout", None), getattr(args, "follow_redirects", None)
+    if timeout is None and not follow:
+        return contextlib.nullcontext()
+    from ..archive.remote import settings
+
+    return settings(timeout=timeout, follow_redirects=follow)
 
 
 if __name__ == "__main__":  # pragma: no cover
