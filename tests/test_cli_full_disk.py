@@ -17,7 +17,7 @@ import sys
 import pytest
 
 import lodbuilder
-from lodbuilder.archive.demo_surface import demo_scan
+from lodbuilder.datasets import demo_scan
 from lodbuilder.errors import ScanFileError
 from lodbuilder.io import _files
 
