@@ -439,6 +439,32 @@ def ordered_columns(attributes: dict[str, np.ndarray], notes: list[str] | None =
     return first + [c for c in cols if c[0] not in rank]
 
 
+def _ply_name_ok(name: str) -> bool:
+    return bool(name) and all(33 <= ord(c) <= 126 for c in name)
+
+
+def ply_names(cols: list[tuple[str, Any]], notes: list[str]) -> list[tuple[str, Any]]:
+    """``cols`` with every name PLY cannot hold (spaces, characters outside printable ASCII, an
+    empty name) renamed: each such character becomes ``_`` and a name already taken gets ``_2``,
+    ``_3``... (noted)."""
+    taken = set(_XYZ) | {n for n, _ in cols if _ply_name_ok(n)}
+    out = []
+    for name, a in cols:
+        if _ply_name_ok(name):
+            out.append((name, a))
+            continue
+        base = "".join(c if 33 <= ord(c) <= 126 else "_" for c in name) or "attribute"
+        new, k = base, 1
+        while new in taken:
+            k += 1
+            new = f"{base}_{k}"
+        taken.add(new)
+        notes.append(f"attribute {name!r} written as {new!r}: PLY property names are printable "
+                     "ASCII without spaces")
+        out.append((new, a))
+    return out
+
+
 def colour_column(name: str, a: np.ndarray, depth: int, notes: list[str]) -> np.ndarray:
     """A colour column as uchar (``depth`` 8) or ushort (16). 8-bit -> 16-bit multiplies by 257;
     16-bit values all <= 255 (8-bit colours in 16-bit fields, common in LAS) cast unchanged;
@@ -474,6 +500,7 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
     cdt = _coord_dtype(points, metadata)
     cols = [(n, colour_column(n, np.asarray(a), depth, notes) if n in _COLOUR_NAMES else a)
             for n, a in ordered_columns(attributes, notes)]
+    cols = ply_names(cols, notes)
     fields = [(c, cdt) for c in _XYZ] + [(n, _ply_dtype(a, n)) for n, a in cols]
     data = np.empty(points.shape[0], dtype=fields)
     for j, c in enumerate(_XYZ):
