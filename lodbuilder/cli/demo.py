@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         t0 = time.perf_counter()
         with ProgressBars(enabled=progress_enabled(args)) as bars:
-            build_archive(scan, archive, overwrite=True, progress=bars)
+            result = build_archive(scan, archive, overwrite=True, progress=bars)
         t_build = time.perf_counter() - t0
         with open_archive(archive) as arc:
             view = arc.scan("demo")
@@ -90,9 +90,17 @@ def run(args: argparse.Namespace) -> int:
             for size, rho, ms, path in rows
         ],
     }
+    reused = bool(result.by_status("skipped"))
+    doc["reused"] = reused
+    first = (
+        f"reused {archive}: it already holds the generated {args.surface} surface of "
+        f"{args.points:,} points (same seed and parameters); the levels were written again"
+        if reused
+        else f"built {archive} from a generated {args.surface} surface of {args.points:,} points "
+        f"in {t_build:.1f} s"
+    )
     text = [
-        f"built {archive} from a generated {args.surface} surface of {args.points:,} points in "
-        f"{t_build:.1f} s",
+        first,
         f"{'points':>8}  {'covering radius <=':>18}  {'slice ms':>8}  file",
         *(f"{size:>8,}  {rho:>18.5f}  {ms:>8.1f}  {path}" for size, rho, ms, path in rows),
         f"next: lodbuilder info {archive}; lodbuilder slice {archive} --rho 0.01 -o level.ply",

@@ -17,7 +17,7 @@ from typing import Any
 
 from .. import __version__
 from ..errors import LodbuilderError
-from .output import Parser, add_common_options, print_error, setup_logging
+from .output import Parser, add_common_options, check_options, print_error, setup_logging
 
 COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate", "export")
 
@@ -49,7 +49,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    check_options(parser, argv)
+    args, extras = parser.parse_known_args(argv)
+    if extras:  # (from the command's parser, so that the message points to its help)
+        command_parser(parser, args.command).error(f"unrecognized arguments: {' '.join(extras)}")
     args.verbose += args.top_verbose
     args.quiet = args.quiet or args.top_quiet
     log_level = setup_logging(args)
@@ -87,6 +91,14 @@ def main(argv: list[str] | None = None) -> int:
         import logging
 
         logging.getLogger("lodbuilder").setLevel(log_level)
+
+
+def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The parser of ``command`` (a subcommand of ``parser``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action.choices[command]
+    return parser
 
 
 def _remote_settings(args: argparse.Namespace) -> Any:

@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         args,
         doc,
         one_line(
-            f"{args.archive}: valid ({doc['scans']} scan(s), {total} points, schema version "
+            f"{args.archive}: valid ({doc['scans']} scan(s), {total:,} points, schema version "
             f"{doc['schema_version']})"
         ),
     )
