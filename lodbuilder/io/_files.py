@@ -13,6 +13,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from .._atomic import publish
 from .._validate import strict_keywords
 from ..errors import LodbuilderError, ScanFileError
 
@@ -103,7 +104,7 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp_path
         os.chmod(tmp_path, _default_mode())
-        os.replace(tmp_path, p)
+        publish(tmp_path, p)
     except BaseException as exc:
         problem = write_error(p, exc, parent) if isinstance(exc, Exception) else None
         with contextlib.suppress(OSError):
