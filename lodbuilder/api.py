@@ -94,6 +94,7 @@ def build_archive(
     seam_spacing: float | None = None,
     crs: str | None = None,
     crs_override: bool = False,
+    wait: float | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: Any = None,
@@ -114,7 +115,9 @@ def build_archive(
     archive with the same source, pose and parameters is skipped (``force`` rebuilds it); a scan of
     the same name built from other contents is refused unless ``overwrite``. Adding to an archive
     is atomic: the scans already in it are untouched whatever happens, and a killed build resumes
-    where it stopped.
+    where it stopped. One build (or other writer) of an archive runs at a time: while another
+    process writes ``archive``, this build waits for it (with a warning), for at most ``wait``
+    seconds (default: until it finishes; 0: not at all), then raises ArchiveBusyError.
 
     Scans larger than the memory budget take the tiled path (:mod:`lodbuilder.sampling.tiled`):
     ``max_memory`` (bytes, or text like ``"3GB"``; default 60 % of this machine's memory) is the
@@ -148,6 +151,6 @@ def build_archive(
     return build(inputs, archive, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
                  dask_local=dask_local, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, size=size,
                  rho=rho, force=force, overwrite=overwrite, max_memory=max_memory, joint=joint,
-                 seam_spacing=seam_spacing, crs=crs, crs_override=crs_override,
+                 seam_spacing=seam_spacing, crs=crs, crs_override=crs_override, wait=wait,
                  raise_on_failure=raise_on_failure, progress=progress,
                  on_status=on_status, _tile_points=_tile_points, _tile_passes=_tile_passes, **features)

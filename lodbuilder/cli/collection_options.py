@@ -27,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--size", type=int, metavar="N",
                    help="order only the first N points of each scan (quick previews; default: every point)")
     g.add_argument("--force", action="store_true", help="rebuild scans even when source and parameters are unchanged")
+    g.add_argument("--wait", type=float, metavar="SECONDS",
+                   help="while another build (or other writer) of the archive runs, wait for it at most this long "
+                        "(default: until it finishes; 0: fail at once)")
     t = p.add_argument_group("large scans and joint orderings (the tiled, out-of-core path)")
     t.add_argument("--max-memory", metavar="BYTES",
                    help="memory budget of the build (this process and its workers; e.g. 3GB, 512MiB): a scan "
@@ -45,7 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """Keyword arguments of :func:`lodbuilder.build_archive` from the collection options."""
     return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
-            "dask_local": args.dask_local, "size": args.size, "force": args.force, "max_memory": args.max_memory,
+            "dask_local": args.dask_local, "size": args.size, "force": args.force, "wait": args.wait,
+            "max_memory": args.max_memory,
             "joint": args.joint, "seam_spacing": args.seam_spacing}
 
 

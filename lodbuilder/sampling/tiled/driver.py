@@ -11,7 +11,6 @@ import concurrent.futures as cf
 import logging
 import math
 import os
-import shutil
 import time
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -185,12 +184,13 @@ def build_tiled(
     """Order one scan (``sources``: one stream, or several posed streams for a joint build) tile by
     tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
+    from ...archive.files import make_own_dir, remove_own_dir
     from ..band import choose_parameters
     from .merge import assemble_radii, merge_tiles, write_ranks
     from .write import bucket_points, write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
-    work.mkdir(parents=True, exist_ok=True)
+    make_own_dir(work, work.name)  # or check that the one a killed build left is lodbuilder's
     times: dict[str, float] = {}
     t_all = time.perf_counter()
 
@@ -347,7 +347,7 @@ def build_tiled(
     info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
                       {"reader": sp.reader, **(provenance or {})}, progress, _done(work, "buckets"))
     times["write"] = time.perf_counter() - t0
-    shutil.rmtree(work, ignore_errors=True)
+    remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": {k: round(v, 4) for k, v in times.items()}, "seconds": time.perf_counter() - t_all,
             "part": str(info.path), "worker_pid": os.getpid()}
