@@ -45,7 +45,7 @@ HOOKED = textwrap.dedent("""
             time.sleep(0.005)
 
     def hook(name):
-        import lodbuilder.collection.runner as R
+        import lodbuilder.build.runner as R
         if name == "part":  # the scan's part is written in the work directory, not yet merged
             merge = R.merge_parts
             def merge_parts(*a, **k):
@@ -53,16 +53,17 @@ HOOKED = textwrap.dedent("""
                 return merge(*a, **k)
             R.merge_parts = merge_parts
         elif name == "tiles":  # a tiled build has its work directory, about to order its tiles
-            import lodbuilder.sampling.tiled.driver as D
+            import lodbuilder.build.tiled.driver as D
+            from lodbuilder.build.options import BuildOptions
             order = D._order_passes
             def order_passes(*a, **k):
                 pause()
                 return order(*a, **k)
             D._order_passes = order_passes
-            tiling = R.tiling_params
-            def tiling_params(params, max_memory, seam, tile_points, passes=None):
-                return tiling(params, max_memory, seam, 8000, passes)  # tiles of 8,000 points
-            R.tiling_params = tiling_params
+            make = BuildOptions.make.__func__
+            def tiled(cls, **kw):
+                return make(cls, **{**kw, "tile_points": 8000})  # tiles of 8,000 points
+            BuildOptions.make = classmethod(tiled)
 
     if __name__ == "__main__":
         hook(sys.argv[1])
