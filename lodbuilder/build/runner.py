@@ -406,7 +406,9 @@ def _build_locked(sources: list[ScanSource], archive: Path, options: BuildOption
     for st in skipped + failed:
         emit(st)
     keep_parts = {Path(j.part) for j in jobs} | {p for _, p in recovered}
-    _clean_parts(archive, keep_parts, {Path(j.part) for j in jobs})
+    # force: every scan from its source, whatever an interrupted build left (its work files too)
+    _clean_parts(archive, keep_parts - ({Path(j.part) for j in jobs} if force else set()),
+                 set() if force else {Path(j.part) for j in jobs})
     if recovered:
         merge_parts(archive, [(j.name, p) for j, p in recovered])
         for j, p in recovered:
