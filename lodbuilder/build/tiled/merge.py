@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._atomic import publish
 from ...progress import ProgressCallback, report
 from . import workdir as W
 from .sums import SumFile, read_json, sum_file
@@ -128,8 +129,8 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
             r.close()
     if written != n:
         raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
-    (work / "order.i8.tmp").replace(work / "order.i8")
-    (work / "key.f8.tmp").replace(work / "key.f8")
+    publish(work / "order.i8.tmp", work / "order.i8")
+    publish(work / "key.f8.tmp", work / "key.f8")
     return {"deferred": deferred, "seam_points": n_seam, "head": h,
             "files": {"order.i8": fo.sum, "key.f8": fk.sum}}
 
@@ -149,7 +150,7 @@ def write_ranks(work: Path, n: int) -> list[int]:
         rank.flush()
     finally:
         del rank
-    tmp.replace(work / "rank.i8")
+    publish(tmp, work / "rank.i8")
     return sum_file(work / "rank.i8")  # written in random order: summed once, from the page cache
 
 
@@ -256,7 +257,7 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
     finally:
         for r in ev + pt:
             r.close()
-    (work / "radius.f8.tmp").replace(work / "radius.f8")
-    (work / "parent.i8.tmp").replace(work / "parent.i8")
+    publish(work / "radius.f8.tmp", work / "radius.f8")
+    publish(work / "parent.i8.tmp", work / "parent.i8")
     return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at,
             "files": {"radius.f8": fr.sum, "parent.i8": fp.sum}}

@@ -81,13 +81,19 @@ def sum_file(path: Path) -> list[int]:
 
 
 def publish(arr: np.ndarray, path: Path) -> list[int]:
-    """Write ``arr`` to ``path`` through a temporary renamed into place; returns its sum."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with SumFile(tmp) as f:
-        f.write(arr)
-        f._f.flush()
-        os.fsync(f._f.fileno())
-    os.replace(tmp, path)
+    """Replace the file at ``path`` by the raw bytes of ``arr``, atomically
+    (:func:`lodbuilder._atomic.publish`); returns their size and CRC-32."""
+    from ..._atomic import publish as replace_atomically
+    from ..._atomic import temporary
+
+    tmp = temporary(path)
+    try:
+        with SumFile(tmp) as f:
+            f.write(arr)
+        replace_atomically(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return f.sum
 
 
@@ -118,13 +124,14 @@ _SEALED = re.compile(r'(\{.*?)(, )?"_crc32": "([0-9a-f]{8})"\}', re.S)
 
 
 def write_json(path: Path, doc: dict[str, Any]) -> None:
-    """Write a marker: a JSON object whose last member ``_crc32`` is the CRC-32 of the object's
-    text without it (renamed into place)."""
-    body = json.dumps(doc, default=str)
+    """Write a marker atomically: a JSON object (the one convention of :mod:`lodbuilder._json`)
+    whose last member ``_crc32`` is the CRC-32 of the object's text without it."""
+    from ..._atomic import write_bytes
+    from ..._json import dumps
+
+    body = dumps(doc)
     tail = f'"_crc32": "{zlib.crc32(body.encode()):08x}"}}'
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(body[:-1] + (", " if doc else "") + tail)
-    os.replace(tmp, path)
+    write_bytes(path, (body[:-1] + (", " if doc else "") + tail).encode())
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
