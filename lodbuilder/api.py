@@ -69,6 +69,7 @@ def build_archive(
     seam_spacing: float | None = None,
     crs: str | None = None,
     crs_override: bool = False,
+    wait: float | None = None,
     options: BuildOptions | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
@@ -90,7 +91,9 @@ def build_archive(
     archive with the same source, pose and parameters is skipped (``force`` rebuilds it); a scan of
     the same name built from other contents is refused unless ``overwrite``. Adding to an archive
     is atomic: the scans already in it are untouched whatever happens, and a killed build resumes
-    where it stopped.
+    where it stopped. One build (or other writer) of an archive runs at a time: while another
+    process writes ``archive``, this build waits for it (with a warning), for at most ``wait``
+    seconds (default: until it finishes; 0: not at all), then raises ArchiveBusyError.
 
     What each scan stores is decided by the option keywords ``voxel_size``, ``band_radius``,
     ``seeds``, ``size``, ``rho``, ``max_memory``, ``seam_spacing``, ``crs``, ``crs_override`` and the
@@ -119,7 +122,7 @@ def build_archive(
         raise InputError(f"build options given twice: options= and {named}; put them all in options= "
                          "(BuildOptions.make(...)) or pass keywords only")
     return build(inputs, archive, options, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
-                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint,
+                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint, wait=wait,
                  raise_on_failure=raise_on_failure, progress=progress, on_status=on_status)
 
 
