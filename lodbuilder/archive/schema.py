@@ -170,6 +170,7 @@ def build_schema() -> dict[str, Any]:
             L.S_BUILD: JSON_TEXT,
             L.S_PROVENANCE: JSON_TEXT,
             L.S_FORMAT_METADATA: JSON_TEXT,
+            L.S_STOP_RADIUS: {"type": ["number", "string"]},
         },
         required_attrs=[
             L.S_N_POINTS,
