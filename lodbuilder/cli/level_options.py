@@ -5,6 +5,7 @@ evaluate add them from here, each with its own help where its meaning differs.""
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 SCAN_HELP = "scan name (may be left out when the archive holds one scan)"
 
@@ -59,3 +60,19 @@ def add_ordering_option(p: argparse.ArgumentParser, help: str) -> None:
 def add_up_option(p: argparse.ArgumentParser, *, default: str | None, help: str) -> None:
     """--up AXIS: the scan's up axis for the first view."""
     p.add_argument("--up", default=default, choices=("z", "y", "x", "-z", "-y", "-x"), help=help)
+
+
+def level_query(args: argparse.Namespace) -> Any:
+    """The :class:`~lodbuilder.levels.LevelQuery` of a command's level options (checked)."""
+    from ..levels import LevelQuery
+
+    def tup(v: Any) -> Any:
+        return None if v is None else tuple(float(x) for x in v)
+
+    return LevelQuery(
+        rho=getattr(args, "rho", None), size=getattr(args, "size", None), fraction=getattr(args, "fraction", None),
+        ordering=getattr(args, "ordering", None), box=tup(getattr(args, "box", None)),
+        box_rho=getattr(args, "box_rho", None), viewpoint=tup(getattr(args, "viewpoint", None)),
+        slope=getattr(args, "slope", None), rho_max=getattr(args, "rho_max", None),
+        floor_rho=getattr(args, "floor_rho", None), fill=getattr(args, "fill", None),
+    )

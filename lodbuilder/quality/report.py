@@ -19,8 +19,8 @@ from .._validate import (
     strict_methods,
     validate_points,
 )
-from ..archive.levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..errors import InputError
+from ..levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..progress import ProgressCallback, report
 from .metrics import meets_rho, nearest_distances, spacing, uniformity
 from .surface import ErrorStats, surface_error
@@ -70,23 +70,10 @@ class LevelReport:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict (inf and NaN become None)."""
-        return _json_clean(asdict(self))
+        """A JSON-ready dict (lodbuilder's one convention: inf and NaN as strings)."""
+        from .._json import jsonable
 
-
-def _json_clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+        return jsonable(asdict(self))
 
 
 @strict_keywords
