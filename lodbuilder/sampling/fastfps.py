@@ -253,6 +253,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         _, first = np.unique(gid[seed_arr], return_index=True)
         useeds = gid[seed_arr][np.sort(first)]
     report(progress, "band", 0, 1)
+    extent = float(np.ptp(upts, axis=0).max())
     band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory)
     release_freed_memory(n)
     h, r = plan.h, plan.r
@@ -349,9 +350,20 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     report(progress, "ordering", int(k), k_max)
     uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
     del perm, order
-    radius = radius[:k] * h
+    user_grid = voxel_size is not None or band_radius is not None
+    radius, stop, stats["rounding_bound"] = _promised(radius[:k] * h, stop, extent, h, r, user_grid)
     parent = parent[:k].astype(np.int64)
     return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
+
+
+def _promised(radius, stop, extent, h, r, user_grid):
+    """Radii (and the stop radius) raised by the rounding bound of grid-unit arithmetic, after
+    refusing a build whose rounding would swamp them (:mod:`.precision`)."""
+    from .precision import check_precision, promise, promise_one, rounding_bound, span
+
+    delta = rounding_bound(span(extent, h, r))
+    check_precision(radius, delta, extent=extent, h=h, r=r, user_grid=user_grid)
+    return promise(radius, delta), promise_one(stop, delta), delta
 
 
 def _stop_radius(val: np.ndarray, rank: np.ndarray, timed: np.ndarray) -> float:
