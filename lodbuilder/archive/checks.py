@@ -43,6 +43,7 @@ class ScanMeta:
     bounds_max: np.ndarray
     step: int
     n_seeds: int
+    stop_radius: float = 0.0  # covering bound of the whole ordered prefix (layout: stop_radius)
 
     def error(self, detail: str) -> CorruptArchiveError:
         return damaged(self.path, f"scan {self.name!r} {detail}")
@@ -141,7 +142,8 @@ def check_scan_group(obj: Any, path: Any, name: str) -> ScanMeta:
         _expect(seeds, L.D_SEEDS, seeds.shape[:1], "iu", where)
         n_seeds = min(int(seeds.shape[0]) if seeds.ndim == 1 else 0, k)
     _check_members(obj, n, where)
-    return ScanMeta(path, name, n, k, enc, offset, scale, lo, hi, step, n_seeds)
+    stop = _stop_radius(a, n, k, where)
+    return ScanMeta(path, name, n, k, enc, offset, scale, lo, hi, step, n_seeds, stop)
 
 
 def _check_coordinates(obj: Any, n: int, enc: str, where: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -199,6 +201,18 @@ def _check_members(obj: Any, n: int, where: Any) -> None:
                 )
             for rel2, kinds in ((L.D_ORDER, "iu"), (L.D_RADIUS, "f"), (L.D_PARENT, "iu")):
                 _expect(_dataset(grp, rel2, where), f"{rel}/{rel2}", (kk,), kinds, where)
+
+
+def _stop_radius(attrs: Any, n: int, k: int, where: Callable[[str], CorruptArchiveError]) -> float:
+    value = _scalar(attrs.get(L.S_STOP_RADIUS))
+    if value is not None and (
+        isinstance(value, (bool, np.bool_)) or not isinstance(value, (float, int, np.floating, np.integer))
+    ):
+        raise where(f"attribute {L.S_STOP_RADIUS} is {_short(value)}, not a number")
+    stop = L.stop_radius_of(value, n, k)
+    if math.isnan(stop) or stop < 0:
+        raise where(f"has {L.S_STOP_RADIUS}={stop}; it must be a number >= 0 (or inf)")
+    return stop
 
 
 # ---------------------------------------------------------------------------------------------

@@ -406,7 +406,8 @@ def build_band(
         need = h * extent / MAX_COORD
         raise InputError(
             f"voxel_size={h:g} would need {extent:,} voxels along one axis of the bounding box "
-            f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}"
+            f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}, "
+            "or drop points far from the rest (outliers) if they make the box this large"
         )
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
     ckeys, perm, u, ostart = cells(points, origin, h)
