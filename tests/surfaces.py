@@ -89,7 +89,7 @@ def geodesic_cylinder(points: np.ndarray, src: int, radius: float) -> np.ndarray
 
 
 def unfold_folded(points: np.ndarray, gap: float, length: float) -> np.ndarray:
-    """(N, 2) coordinates of ``lodbuilder.archive.demo_surface.folded_sheet`` laid flat.
+    """(N, 2) coordinates of ``lodbuilder.datasets.folded_sheet`` laid flat.
 
     The sheet is developable and unfolds to the rectangle [0, 2 length + pi gap / 2] x [0, width],
     which is convex, so the geodesic distance on the sheet is the Euclidean distance here."""
@@ -104,6 +104,14 @@ def unfold_folded(points: np.ndarray, gap: float, length: float) -> np.ndarray:
 def geodesic_folded(points: np.ndarray, src: int, gap: float, length: float) -> np.ndarray:
     u = unfold_folded(points, gap, length)
     return np.linalg.norm(u - u[src], axis=1)
+
+
+def fibonacci_sphere(n: int, radius: float = 1.0) -> np.ndarray:
+    """(n, 3) points spread evenly over a sphere (the Fibonacci spiral): deterministic."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5**0.5) * i
+    return radius * np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
 
 
 def accordion(n: int, sheets: int, gap: float, length: float = 1.0, width: float = 1.0, seed: int = 0):

@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import write_section
+from benchdoc import load_run, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -56,8 +56,9 @@ def range_scan_sheet(n: int, seed: int = 0) -> np.ndarray:
 
 
 def bunny_points() -> np.ndarray:
-    from lodbuilder.collection.inputs import apply_pose, expand_inputs
+    from lodbuilder.build.inputs import expand_inputs
     from lodbuilder.io import read_scan
+    from lodbuilder.io.pose import apply_pose
 
     parts = []
     for src in expand_inputs(manifest=SHARED / "bun.conf"):
@@ -467,7 +468,7 @@ def main() -> None:
         print(json.dumps(set_one(args.set_one, args.set_n, args.repeat)))
         return
     if args.from_json:
-        report = json.loads(Path(args.from_json).read_text())
+        report = load_run(args.from_json)
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "build", markdown(report))
         return
     if args.one:
@@ -533,8 +534,6 @@ def main() -> None:
 def markdown(report: dict) -> str:
     m = report["machine"]
     lines = [
-        "## Full ordering (tools/bench_build.py)",
-        "",
         f"{m['cpus']} cores, Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}; "
         f"load average at the end {', '.join(f'{x:.2f}' for x in m['load_avg_at_end'])}.",
         "",

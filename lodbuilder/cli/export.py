@@ -82,10 +82,12 @@ def run(args: argparse.Namespace) -> int:
         from ..export.copc import _copclib, export_copc
 
         _copclib()  # a missing copclib: fail before reading anything
-    chosen = args.rho is not None or args.size is not None or args.fraction is not None
+    from ..levels import LevelQuery
+
+    query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        k = view.resolve_size(args.rho, args.size, args.fraction) if chosen else view.n_ordered
+        k = query.prefix_size(view.n_ordered, view.size_for_rho)
         doc: dict[str, Any] = {
             "archive": str(arc_path), "scan": view.name, "output": str(out), "format": fmt
         }
@@ -93,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
             cap = args.max_points or MAX_POINTS
             note = ""
             if k > cap:
-                if chosen:
+                if query.chosen:
                     raise InputError(
                         f"the level has {k:,} points, more than a web page holds ({cap:,}); "
                         "ask for a coarser level (--rho, --size) or raise --max-points"
@@ -122,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
                     f"wrote {copc.n_points:,} of {copc.n_total:,} points of scan {view.name!r} "
                     f"to {out} ({copc.n_bytes / 1e6:.1f} MB, {copc.depths} depth(s), "
                     f"{copc.nodes:,} nodes)",
-                    f"  depths 0..d hold {points} points, covering radius {rhos}",
+                    f"  depths 0..{copc.depths - 1} hold {points} points, covering radius {rhos}",
                 ]
                 + [f"  changed: {line}" for line in changes]
             )

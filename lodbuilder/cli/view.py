@@ -117,9 +117,10 @@ def run(args: argparse.Namespace) -> int:
     from ..viewer.source import load_view_data
 
     data = load_view_data(args.archive, args.scan, args.ordering)
-    size = None
-    if (args.size, args.rho, args.fraction) != (None, None, None):
-        size = data.resolve_size(rho=args.rho, size=args.size, fraction=args.fraction)
+    from ..levels import LevelQuery
+
+    query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)
+    size = query.prefix_size(len(data), data.size_for_rho) if query.chosen else None
     if args.colour:
         data.check_mode(args.colour)
 

@@ -29,6 +29,9 @@ class Ordering:
         band_radius: the band radius r.
         seeds: (S,) int64 input indices that start the ordering, in order.
         stats: counters of the build (band voxels, pops, phases, ...), for benchmarks and logs.
+        stop_radius: covering bound of the whole ordering: 0 when every point is ordered; for an
+            ordering stopped early by ``rho`` or ``size``, the next candidate's distance when it
+            stopped (an upper bound of every unordered point's distance to the ordered ones).
     """
 
     order: np.ndarray
@@ -39,14 +42,15 @@ class Ordering:
     seeds: np.ndarray
     n_points: int
     stats: dict[str, Any] = field(default_factory=dict)
+    stop_radius: float = 0.0
 
     def __len__(self) -> int:
         return int(self.order.shape[0])
 
     def size_for_rho(self, rho: float) -> int:
         """Number of leading points whose prefix covers every input point within ``rho``
-        (:func:`lodbuilder.archive.levels.count_above`)."""
-        from ..archive.levels import count_above
+        (:func:`lodbuilder.levels.count_above`)."""
+        from ..levels import count_above
 
         return count_above(self.radius, rho)
 

@@ -25,6 +25,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     crs = {"crs": scan.crs, "units": scan.units}
     if ordering in (None, "uniform"):
         return ViewData(
+            stop_radius=scan.stop_radius,
             points=scan.points(),
             radius=np.asarray(scan.radius),
             parent=np.asarray(scan.parent),
@@ -55,7 +56,7 @@ def load_view_data(
 
     ``archive`` is a path or an open :class:`lodbuilder.archive.reader.Archive`.
     """
-    from ..api import open_archive
+    from ..archive.reader import open_archive
 
     if isinstance(archive, (str, os.PathLike)):
         with open_archive(archive) as arc:

@@ -1,0 +1,190 @@
+"""Where build jobs run: in the calling process, on a local process pool, or on a Dask cluster.
+
+All three are ``concurrent.futures`` executors, so the pipeline has one loop for them. Dask is
+imported only when a scheduler address or ``dask_local`` is given.
+
+Workers die with their parent: a pool worker and the forkserver it is forked from ask the kernel
+(Linux ``prctl(PR_SET_PDEATHSIG)``) to be killed when their parent dies, so a ``kill -9`` of a
+build leaves no process behind (reliability finding 8).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import logging
+import os
+import signal
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+from ..errors import InputError, LodbuilderError, MissingDependencyError
+
+log = logging.getLogger(__name__)
+
+#: how long to try reaching a Dask scheduler given by address
+DASK_CONNECT_TIMEOUT = "15s"
+
+#: the modules the forkserver imports before forking workers (libraries loaded and kernels warm)
+PRELOAD = ["lodbuilder.build.jobs", "lodbuilder.build._warm"]
+
+
+def one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    if isinstance(exc, LodbuilderError):
+        return text
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def die_with_parent() -> None:
+    """Ask the kernel to SIGKILL this process when its parent dies (Linux; a no-op elsewhere).
+
+    Called in every pool worker (their parent is the forkserver, or the build's process with the
+    ``fork`` start method) and in the forkserver itself (whose parent is the build's process), so a
+    killed build takes its workers with it."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    parent = os.getppid()
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def start_method() -> str:
+    """How worker processes start: ``forkserver`` (they fork from a clean server process, with no
+    copies of the caller's open files or threads); ``fork`` when the caller's main script has no
+    file to re-import (a script read from stdin)."""
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    return "fork" if main_file is not None and not os.path.isfile(main_file) else "forkserver"
+
+
+def mp_context() -> Any:
+    import multiprocessing
+
+    method = start_method()
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        # the server imports the build's libraries and loads the compiled kernels once; the
+        # workers forked from it start warm (takes effect when the server starts)
+        ctx.set_forkserver_preload(PRELOAD)
+    return ctx
+
+
+class InlineExecutor(cf.Executor):
+    """Runs each job in the calling process when it is submitted (a single scan needs no pool)."""
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> cf.Future:
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except BaseException as exc:
+            fut.set_exception(exc)
+        return fut
+
+
+def check_workers(workers: Any, what: str = "workers") -> int | None:
+    """``workers`` as an int >= 1 (None: the default). 0 and negative counts are refused alike."""
+    if workers is None:
+        return None
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InputError(f"{what} must be a whole number of worker processes >= 1, got {workers!r}")
+    return int(workers)
+
+
+#: address schemes of dask.distributed's comm registry
+DASK_SCHEMES = ("inproc", "tcp", "tls", "ucx", "ws", "wss")
+
+
+def check_scheduler(scheduler: Any) -> Any:
+    """``scheduler`` (a Dask address, ``tcp://host:port`` or ``host:port``; None) with its
+    scheme checked before any work: an unknown one is one line, not distributed's traceback."""
+    if scheduler is None:
+        return None
+    if not isinstance(scheduler, str) or not scheduler.strip():
+        raise InputError(f"scheduler must be a Dask address like tcp://HOST:PORT, got {scheduler!r}")
+    scheme, sep, _ = scheduler.partition("://")
+    if sep and scheme.lower() not in DASK_SCHEMES:
+        raise InputError(
+            f"scheduler address {scheduler!r} has an unknown scheme {scheme!r}; give "
+            f"tcp://HOST:PORT (or {', '.join(s for s in DASK_SCHEMES if s != 'tcp')})"
+        )
+    return scheduler
+
+
+def _plural(n: int) -> str:
+    return f"{n} worker{'s' if n > 1 else ''}"
+
+
+@contextlib.contextmanager
+def make_executor(workers: int | None = None, scheduler: str | None = None, dask_local: int | None = None,
+                  *, inline: bool = False) -> Iterator[tuple[cf.Executor, str]]:
+    """``(executor, description)``: the calling process (``inline``), a local process pool of
+    ``workers`` (default: one per core), or a Dask client's executor."""
+    workers = check_workers(workers)
+    dask_local = check_workers(dask_local, "dask_local")
+    check_scheduler(scheduler)
+    if scheduler is not None and dask_local is not None:
+        raise InputError("give either a Dask scheduler address or dask_local, not both")
+    if scheduler is None and dask_local is None:
+        if inline:
+            yield InlineExecutor(), "this process"
+            return
+        n = workers or os.cpu_count() or 1
+        with cf.ProcessPoolExecutor(max_workers=n, mp_context=mp_context(), initializer=die_with_parent) as ex:
+            yield ex, f"process pool ({_plural(n)})"
+        return
+    try:
+        import dask.distributed  # noqa: F401  (a missing extra is said here, before any work)
+    except ImportError:
+        raise MissingDependencyError(
+            "building on Dask needs dask.distributed; pip install lodbuilder[distributed]"
+        ) from None
+    # distributed logs its start-up at INFO (scheduler, nannies, workers): follow lodbuilder's level
+    # instead (-v shows them), and leave the caller's setting as it was afterwards
+    dask_logger = logging.getLogger("distributed")
+    dask_level = dask_logger.level
+    dask_logger.setLevel(logging.getLogger("lodbuilder").getEffectiveLevel())
+    try:
+        with _dask_client(dask_local, scheduler) as (client, desc):
+            yield client.get_executor(pure=False), desc
+    finally:
+        dask_logger.setLevel(dask_level)
+
+
+@contextlib.contextmanager
+def _dask_client(dask_local: int | None, scheduler: str | None) -> Iterator[tuple[Any, str]]:
+    """A Dask client on a new LocalCluster of ``dask_local`` workers or on ``scheduler``."""
+    from dask.distributed import Client, LocalCluster
+
+    cluster = None
+    if dask_local is not None:
+        import dask
+
+        # the same start method (and warm forkserver) as the local pool; Dask's default, spawn,
+        # starts every worker cold
+        mp_context()
+        with dask.config.set({"distributed.worker.multiprocessing-method": start_method()}):
+            cluster = LocalCluster(n_workers=dask_local, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.WARNING)
+        client = Client(cluster)
+        desc = f"Dask LocalCluster ({_plural(dask_local)})"
+    else:
+        try:
+            client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({one_line(exc)}); check the address") from None
+        desc = f"Dask scheduler {scheduler}"
+    try:
+        yield client, desc
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,238 @@
+"""One scan build as a self-contained job: what runs on a worker (the calling process, a local
+process or a Dask worker).
+
+``build_one(job)`` reads the scan (or takes the in-memory one), applies its pose, orders it and
+writes a one-scan *part* archive with the archive writer (atomically: a killed worker leaves no
+part). The parent merges finished parts into the archive. Workers need the part directory on a
+file system they share with the parent (always true for a local pool or LocalCluster).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..progress import ProgressCallback
+from .options import BuildOptions
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ScanJob:
+    """Everything a worker needs to build one scan (picklable; ``scan`` holds an in-memory
+    :class:`~lodbuilder.io.Scan` given to the API, and then the job runs in the calling process)."""
+
+    name: str
+    path: str | None
+    key: str
+    part: str
+    options: BuildOptions = field(default_factory=BuildOptions)
+    pose: list[list[float]] | None = None
+    scan_index: int | None = None
+    sha256: str | None = ""
+    size_bytes: int | None = 0
+    scan: Any = None
+    pose_kind: str = "rigid"
+    tiled: bool = False
+    members: list[dict[str, Any]] = field(default_factory=list)
+    given: str | None = None  # the path as the caller wrote it (for messages)
+
+    @property
+    def source(self) -> str:
+        if self.members:
+            return f"{len(self.members)} scans (joint)"
+        if self.path is None:
+            return "<in-memory scan>"
+        return self.given or self.path
+
+    @property
+    def work(self) -> Path:
+        """The tiled build's work directory (beside its part file: a resumed build finds it)."""
+        part = Path(self.part)
+        return part.with_name(part.name[: -len(".h5")] + ".work")
+
+
+def job_key(sha256: str | None, params: dict[str, Any], pose: Any, scan_index: int | None, name: str) -> str:
+    """Hash of everything that determines a built scan: source bytes, parameters, pose, scan index,
+    name. The same key means the archive's scan is up to date (the resume key of every build)."""
+    from .. import __version__
+
+    payload = {
+        "sha256": sha256,
+        "params": {k: params.get(k) for k in sorted(params)},
+        "pose": None if pose is None else np.asarray(pose, dtype=np.float64).round(15).tolist(),
+        "scan_index": scan_index,
+        "name": name,
+        "schema": 1,
+        "lodbuilder": __version__.split("+")[0],
+    }
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def scan_digest(scan: Any) -> str:
+    """SHA-256 of an in-memory scan's coordinates and attributes (its resume key's source)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(scan.points, dtype=np.float64).tobytes())
+    for k in sorted(scan.attributes):
+        a = np.ascontiguousarray(scan.attributes[k])
+        h.update(k.encode())
+        h.update(str(a.dtype).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def read_job_scan(job: ScanJob) -> Any:
+    """The job's scan, read (or taken from memory), named and posed."""
+    from ..io import read_scan, read_scans
+    from ..io.pose import apply_pose
+
+    crs, override = job.options.crs, job.options.crs_override
+    if job.scan is not None:
+        # the caller's Scan keeps its name, points and metadata
+        scan = dataclasses.replace(job.scan, metadata=dict(job.scan.metadata))
+        if crs is not None:
+            from ..io.crs import assign_crs
+
+            assign_crs(scan.metadata, crs, override=override, what=f"scan {job.name!r}")
+    elif job.scan_index is None:
+        scan = read_scan(job.path, name=job.name, crs=crs, crs_override=override)  # type: ignore[arg-type]
+    else:
+        scan = read_scans(job.path, crs=crs, crs_override=override)[job.scan_index]  # type: ignore[arg-type]
+    scan.name = job.name
+    if job.pose is not None:
+        scan.points = np.ascontiguousarray(apply_pose(scan.points, np.asarray(job.pose)))
+    return scan
+
+
+def provenance(job: ScanJob, reader: str) -> dict[str, Any]:
+    """The one provenance record of a built scan: source file name, size, SHA-256 and reader."""
+    return {
+        "source_name": None if job.path is None else Path(job.path).name,
+        "source_size": job.size_bytes if job.path is not None else None,
+        "source_sha256": job.sha256 if job.path is not None else None,
+        "reader": reader,
+    }
+
+
+def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[Any, dict[str, float]]:
+    """Read and order the job's scan in memory; returns ``(ScanRecord, phase seconds)``."""
+    from ..progress import report
+    from .record import build_record
+
+    t0 = time.perf_counter()
+    report(progress, "read", 0, 1)
+    scan = read_job_scan(job)
+    report(progress, "read", 1, 1)
+    t_read = time.perf_counter() - t0
+    rec = build_record(scan, job.options, progress=progress)
+    t_order = time.perf_counter() - t0 - t_read
+    return rec, {"read": t_read, "order": t_order}
+
+
+def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]:
+    """Build ``job`` into its part archive; return a summary (runs on a worker)."""
+    from ..archive.reader import open_archive
+    from ..archive.writer import write_archive
+    from ..progress import report
+
+    t0 = time.perf_counter()
+    rec, phases = build_record_of(job, progress)
+    o = job.options
+    rec.build.update({
+        "voxel_size_requested": o.voxel_size,
+        "band_radius_requested": o.band_radius,
+        "size_requested": o.size,
+        "rho_requested": o.rho,
+        "seeds_given": o.seeds is not None,
+        "pose": job.pose,
+        "pose_kind": job.pose_kind,
+        "scan_index": job.scan_index,
+        "collection_key": job.key,
+        "method": "in-memory",
+        "seconds_read": round(phases["read"], 4),
+        "seconds_order": round(phases["order"], 4),
+        "worker_pid": os.getpid(),
+    })
+    rec.provenance.update(provenance(job, rec.scan.reader))
+    t1 = time.perf_counter()
+    report(progress, "write", 0, 1)
+    write_archive(job.part, [rec])
+    report(progress, "write", 1, 1)
+    phases["write"] = time.perf_counter() - t1
+    with open_archive(job.part) as arc:
+        encoding = arc.scan(job.name).encoding
+    return {
+        "name": job.name,
+        "part": job.part,
+        "n_points": len(rec.scan),
+        "n_ordered": len(rec.ordering),
+        "encoding": encoding,
+        "method": "in-memory",
+        "seconds": round(time.perf_counter() - t0, 4),
+        "phases": {k: round(v, 4) for k, v in phases.items()},
+        "worker_pid": os.getpid(),
+    }
+
+
+# ------------------------------------------------------------------------------------ tiled
+
+def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
+    """The streams of a tiled job: ``(stream, pose, member id)`` for each scan it orders."""
+    from ..io.stream import open_stream, scan_stream
+
+    crs, override = job.options.crs, job.options.crs_override
+    if job.members:
+        out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
+                m.get("pose"), i) for i, m in enumerate(job.members)]
+        return out  # type: ignore[return-value]
+    if job.scan is not None:
+        scan = read_job_scan(job)  # the in-memory scan with its CRS
+        return [(scan_stream(scan), None, None)]
+    return [(open_stream(job.path, scan_index=job.scan_index, crs=crs, crs_override=override),  # type: ignore[arg-type]
+             job.pose, None)]
+
+
+def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: ProgressCallback = None) -> dict[str, Any]:
+    """Build ``job`` with the tiled (out-of-core) path, its tiles on ``executor``; the parent runs
+    this (it reads, merges and writes in bounded blocks) and returns the same summary as
+    :func:`build_one`."""
+    from .tiled import SEAM_SPACING, build_tiled
+    from .tiled.driver import TILE_PASSES
+
+    o = job.options
+    build: dict[str, Any] = {
+        "voxel_size_requested": o.voxel_size,
+        "band_radius_requested": o.band_radius,
+        "size_requested": None,
+        "rho_requested": None,
+        "seeds_given": False,
+        "pose": job.pose,
+        "pose_kind": job.pose_kind,
+        "scan_index": job.scan_index,
+        "collection_key": job.key,
+        "worker_pid": os.getpid(),
+    }
+    if job.members:
+        build["joint"] = {"scans": [{k: m.get(k) for k in ("id", "name", "source", "sha256", "pose", "pose_kind",
+                                                            "scan_index")} for m in job.members]}
+    reader = "joint" if job.members else None
+    res = build_tiled(
+        tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
+        max_memory=o.max_memory, voxel_size=o.voxel_size, band_radius=o.band_radius,
+        seam_spacing=o.seam_spacing if o.seam_spacing is not None else SEAM_SPACING,
+        tile_points=o.tile_points, passes=o.tile_passes or TILE_PASSES, build=build,
+        provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
+        progress=progress,
+    )
+    res.update({"name": job.name, "method": "tiled"})
+    return res

@@ -1,0 +1,263 @@
+"""Merging the tile orderings into one order, and the exact covering radii of that order.
+
+**Merge.** The head (the coarse global level) comes first, in its own order. Then the tile streams
+are merged by descending key (an external k-way merge: each tile's stream is read block by block,
+never whole). Seam repair: a point closer to a tile boundary than its key (a *seam point*) is
+checked, when its turn comes, against the points of other tiles (and the head) accepted so far;
+if one lies within ``alpha`` times its key it waits: its key becomes (distance / ``alpha``) and it
+is merged again at that key, when the check is repeated (a lazy greedy over the seam points only).
+Every accepted point is therefore at least ``alpha`` times its acceptance key from every earlier
+point of another tile; inside a tile the tile's own farthest point order keeps its points apart.
+
+**Radii.** The keys decide the order; the radii stored with it are proven: for each tile, the
+exact covering radius of its core by every prefix of the final order (computed from the core and
+its halo, exact while below the halo width, an upper bound above it: :func:`cover_tile`), combined
+by a k-way merge over tiles (the maximum), capped by the certified bound of the coarse level
+(its radius on the decimated copy plus the decimation cell's diagonal) and made non-increasing.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..._atomic import publish
+from ...progress import ProgressCallback, report
+from . import workdir as W
+from .sums import SumFile, read_json, sum_file
+from .tasks import EVENT, HEAD, POINT, STREAM
+
+log = logging.getLogger(__name__)
+
+BUF = 1 << 16  # rows per tile buffer in the merge
+
+
+class _StreamReader:
+    def __init__(self, path: Path) -> None:
+        self.f = open(path, "rb")
+        self.left = path.stat().st_size // STREAM.itemsize
+
+    def read(self, rows: int) -> np.ndarray:
+        m = min(rows, self.left)
+        a = np.fromfile(self.f, dtype="<f8", count=6 * m).reshape(m, 6)
+        self.left -= m
+        return a
+
+    def close(self) -> None:
+        self.f.close()
+
+
+def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
+                min_cell: float, progress: ProgressCallback = None) -> dict[str, Any]:
+    """Write ``order.i8`` (input index at each position) and ``key.f8`` (acceptance keys)."""
+    from ..._kernels.tiled import seam_merge, table_size, tile_heap_refresh, tile_pop
+
+    head = np.fromfile(work / "head.bin", dtype=HEAD)
+    h = head.shape[0]
+    n_seam = int(sum(seam_counts))
+    cap_acc = h + n_seam + 1
+    ax = np.empty((cap_acc, 3))
+    ax[:h, 0], ax[:h, 1], ax[:h, 2] = head["x"], head["y"], head["z"]
+    atile = np.full(cap_acc, -1, np.int64)
+    size = table_size(cap_acc)
+    tkeys = np.full(size, -1, np.int64)
+    thead = np.full(size, -1, np.int64)
+    nxt = np.full(cap_acc, -1, np.int64)
+    dheap_key = np.empty(n_seam + 1)
+    dheap_item = np.empty(n_seam + 1, np.int64)
+    # a point may be deferred several times: the pool grows only by the deferrals
+    dpool = np.empty((max(4 * n_seam, 1024), 6))
+    dtile = np.empty(dpool.shape[0], np.int64)
+    state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
+    readers = [_StreamReader(work / f"stream.{t}.bin") for t in range(n_tiles)]
+    bufs = np.zeros((n_tiles, BUF, 6))
+    bpos = np.zeros(n_tiles, np.int64)
+    blen = np.zeros(n_tiles, np.int64)
+    heap_rows = []
+    for t, r in enumerate(readers):
+        a = r.read(BUF)
+        bufs[t, : a.shape[0]] = a
+        blen[t] = a.shape[0]
+        if a.shape[0]:
+            heap_rows.append((-a[0, 1], t))
+    heap_rows.sort()
+    theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
+    tn = theap.shape[0]
+    out_g = np.empty(W.BLOCK, np.int64)
+    out_key = np.empty(W.BLOCK)
+    written = 0
+    deferred = 0
+    try:
+        with SumFile(work / "order.i8.tmp") as fo, SumFile(work / "key.f8.tmp") as fk:
+            fo.write(head["g"].astype("<i8"))
+            fk.write(np.full(h, np.inf))
+            written = h
+            report(progress, "merge", written, n)
+            while True:
+                if state[4] + 2 * n_seam + 16 > dpool.shape[0]:  # room for the next deferrals
+                    grow = dpool.shape[0] * 2
+                    dpool = np.concatenate([dpool, np.empty((grow - dpool.shape[0], 6))])
+                    dtile = np.concatenate([dtile, np.empty(grow - dtile.shape[0], np.int64)])
+                    dheap_key = np.concatenate([dheap_key, np.empty(grow - dheap_key.shape[0])])
+                    dheap_item = np.concatenate([dheap_item, np.empty(grow - dheap_item.shape[0], np.int64)])
+                code, t = seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+                                     dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
+                k = int(state[0])
+                if code == 2 or code == 0:
+                    fo.write(out_g[:k].astype("<i8"))
+                    fk.write(out_key[:k].astype("<f8"))
+                    written += k
+                    state[0] = 0.0
+                    report(progress, "merge", written, n)
+                    if code == 0:
+                        break
+                    continue
+                a = readers[t].read(BUF)  # code 1: refill tile t (at the top of the tile heap)
+                bufs[t, : a.shape[0]] = a
+                bpos[t] = 0
+                blen[t] = a.shape[0]
+                if a.shape[0]:
+                    tn = tile_heap_refresh(theap, tn, t, float(a[0, 1]))
+                else:
+                    tn = tile_pop(theap, tn)
+            deferred = int(state[4])
+    finally:
+        for r in readers:
+            r.close()
+    if written != n:
+        raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
+    publish(work / "order.i8.tmp", work / "order.i8")
+    publish(work / "key.f8.tmp", work / "key.f8")
+    return {"deferred": deferred, "seam_points": n_seam, "head": h,
+            "files": {"order.i8": fo.sum, "key.f8": fk.sum}}
+
+
+def write_ranks(work: Path, n: int) -> list[int]:
+    """``rank.i8``: the position of every input point (the inverse of ``order.i8``); returns its
+    size and CRC-32."""
+    tmp = work / "rank.i8.tmp"
+    rank = np.memmap(tmp, mode="w+", dtype="<i8", shape=(n,))
+    try:
+        with open(work / "order.i8", "rb") as f:
+            k = 0
+            while k < n:
+                g = np.fromfile(f, dtype="<i8", count=min(W.BLOCK, n - k))
+                rank[g] = np.arange(k, k + g.shape[0])
+                k += g.shape[0]
+        rank.flush()
+    finally:
+        del rank
+    publish(tmp, work / "rank.i8")
+    return sum_file(work / "rank.i8")  # written in random order: summed once, from the page cache
+
+
+class _Records:
+    """Sequential reader of a tile's records (events or points) in rank order."""
+
+    def __init__(self, path: Path, dtype: np.dtype) -> None:
+        self.f = open(path, "rb")
+        self.dtype = dtype
+        self.left = path.stat().st_size // dtype.itemsize
+        self.buf = np.zeros(0, dtype)
+        self.pos = 0
+
+    def upto(self, k: int) -> np.ndarray:
+        """Records with rank < k not returned before."""
+        parts = []
+        while True:
+            if self.pos >= self.buf.shape[0]:
+                if self.left == 0:
+                    break
+                m = min(BUF, self.left)
+                self.buf = np.fromfile(self.f, dtype=self.dtype, count=m)
+                self.left -= m
+                self.pos = 0
+            end = self.pos + int(np.searchsorted(self.buf["rank"][self.pos:], k, side="left"))
+            parts.append(self.buf[self.pos:end])
+            self.pos = end
+            if end < self.buf.shape[0]:
+                break
+        return np.concatenate(parts) if parts else np.zeros(0, self.dtype)
+
+    def close(self) -> None:
+        self.f.close()
+
+
+def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: ProgressCallback = None,
+                   block: int | None = None) -> dict[str, Any]:
+    """Write ``radius.f8`` and ``parent.i8`` (per stored position) from the tiles' covering
+    records; returns the verification figures (worst spacing / radius of any level)."""
+    from ..._kernels.tiled import merge_events
+
+    block = block or W.BLOCK
+    head = np.fromfile(work / "head.bin", dtype=HEAD)
+    h = head.shape[0]
+    r_head = head["r"]
+    meta = read_json(work / "coarse.json") or {}
+    r_cut = float(meta["r_cut"])
+    ev = [_Records(work / f"cover.{t}.ev", EVENT) for t in range(n_tiles)]
+    pt = [_Records(work / f"cover.{t}.pt", POINT) for t in range(n_tiles)]
+    cur = np.full(n_tiles, np.inf)
+    run_min = np.inf
+    run_space = np.inf
+    worst = np.inf
+    worst_at = -1
+    try:
+        with SumFile(work / "radius.f8.tmp") as fr, SumFile(work / "parent.i8.tmp") as fp:
+            for k0 in range(0, n, block):
+                k1 = min(n, k0 + block)
+                # events with rank <= k-1 ... merge_events consumes them per position
+                rad = np.empty(k1 - k0)
+                bound = np.full(k1 - k0, r_cut + delta)
+                ks = np.arange(k0, k1)
+                inh = ks < h
+                # the coarse level's certified bound (radius on the decimated copy + its cell diagonal)
+                bound[inh] = np.where(ks[inh] == 0, np.inf, r_head[np.minimum(ks[inh], h - 1)] + delta)
+                evs = [e.upto(k1) for e in ev]
+                m = max([e.shape[0] for e in evs] + [1])
+                ev_rank = np.full((n_tiles, m), np.iinfo(np.int64).max, np.int64)
+                ev_val = np.zeros((n_tiles, m))
+                ev_len = np.zeros(n_tiles, np.int64)
+                for t, e in enumerate(evs):
+                    ev_rank[t, : e.shape[0]] = e["rank"]
+                    ev_val[t, : e.shape[0]] = e["value"]
+                    ev_len[t] = e.shape[0]
+                ev_pos = np.zeros(n_tiles, np.int64)
+                done = np.ones(n_tiles, bool)
+                merge_events(ev_rank, ev_val, ev_pos, ev_len, done, cur, k0, k1, np.inf, rad)
+                rad = np.minimum(rad, bound)
+                rad = np.minimum.accumulate(np.concatenate([[run_min], rad]))[1:]
+                run_min = float(rad[-1])
+                par = np.full(k1 - k0, -1, np.int64)
+                space = np.full(k1 - k0, np.inf)
+                for p in pt:
+                    recs = p.upto(k1)
+                    par[recs["rank"] - k0] = recs["parent"]
+                    space[recs["rank"] - k0] = recs["space"]
+                # a head point with no earlier point in its tile's halo: its parent on the coarse copy
+                hk = (ks < h) & (par < 0) & (ks > 0)
+                par[hk] = head["parent"][ks[hk]]
+                # spacing of level k (its first k points) over its radius
+                sp = np.minimum.accumulate(np.concatenate([[run_space], space]))
+                run_space = float(sp[-1])
+                lvl_space = sp[:-1]  # min distance among points 0..k-1 ... (k = k0 + i)
+                ok = (rad > 0) & np.isfinite(rad) & np.isfinite(lvl_space)
+                if ok.any():
+                    ratio = lvl_space[ok] / rad[ok]
+                    i = int(np.argmin(ratio))
+                    if ratio[i] < worst:
+                        worst = float(ratio[i])
+                        worst_at = int(ks[ok][i])
+                fr.write(rad.astype("<f8"))
+                fp.write(par.astype("<i8"))
+                report(progress, "radii", k1, n)
+    finally:
+        for r in ev + pt:
+            r.close()
+    publish(work / "radius.f8.tmp", work / "radius.f8")
+    publish(work / "parent.i8.tmp", work / "parent.i8")
+    return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at,
+            "files": {"radius.f8": fr.sum, "parent.i8": fp.sum}}

@@ -1,0 +1,178 @@
+"""How a tiled build cuts its work: the memory budget, the tile size, the spatial tiles (a k-d split
+of a point-count histogram) and the parameters every tile shares.
+
+Memory model (measured; see tools/bench_tiled.py): an in-memory build needs about
+``IN_MEMORY_BYTES_PER_POINT`` bytes per point plus the scan's own arrays; a tile ordering about
+``TILE_BYTES_PER_POINT`` per point of the tile. ``max_memory`` is the budget of the whole process
+tree on this machine: the parent keeps ``PARENT_RESERVE`` of it and the rest is shared by the
+workers that run tiles at the same time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..._resources import default_max_memory, parse_bytes  # noqa: F401 - parse_bytes re-exported
+from ...errors import InputError
+
+IN_MEMORY_BYTES_PER_POINT = 900  # FastFPS band + ordering + the stored copy (557-870 B/pt measured)
+TILE_BYTES_PER_POINT = 800  # a tile's FastFPS and its stream, with headroom
+PROCESS_BYTES = 320 << 20  # a worker's own footprint: Python, NumPy, SciPy, h5py, compiled kernels
+PARENT_FRACTION = 0.2  # share of the budget the parent keeps (merge buffers, write blocks)
+PARENT_MIN = 600 << 20
+MIN_TILE_POINTS = 2_000
+HIST_CELLS = 1 << 22  # cells of the count histogram (int32: 16 MiB)
+
+
+def default_budget() -> int:
+    return default_max_memory()
+
+
+def needs_tiling(n_points: int, bytes_per_row: int, max_memory: int | None) -> bool:
+    """True when an in-memory build of ``n_points`` would not fit ``max_memory``."""
+    budget = default_budget() if max_memory is None else max_memory
+    return n_points * (IN_MEMORY_BYTES_PER_POINT + 2 * bytes_per_row) > budget
+
+
+def tile_capacity(max_memory: int, parallel: int) -> int:
+    """Points per tile so that ``parallel`` tiles fit the budget at once beside the parent."""
+    per_worker = worker_budget(max_memory, parallel)
+    cap = int((per_worker - PROCESS_BYTES) / TILE_BYTES_PER_POINT)
+    if cap < MIN_TILE_POINTS:
+        raise InputError(f"max_memory={max_memory / 2**20:.0f} MiB leaves {max(per_worker, 0) / 2**20:.0f} MiB per worker "
+                         f"for {parallel} worker(s): too little for a tile (each worker needs "
+                         f"{(PROCESS_BYTES + MIN_TILE_POINTS * TILE_BYTES_PER_POINT) / 2**20:.0f} MiB at least); give "
+                         "more memory or fewer workers")
+    return cap
+
+
+def worker_budget(max_memory: int, parallel: int) -> int:
+    """Bytes each of ``parallel`` workers may use once the parent's share is set aside."""
+    parent = max(PARENT_MIN, int(PARENT_FRACTION * max_memory))
+    return int((max_memory - parent) / max(parallel, 1))
+
+
+@dataclass
+class Grid:
+    """The count histogram: ``shape`` cells of size ``cell`` from ``lo``."""
+
+    lo: np.ndarray
+    cell: float
+    shape: tuple[int, int, int]
+
+    @classmethod
+    def around(cls, lo: np.ndarray, hi: np.ndarray, cells: int = HIST_CELLS) -> Grid:
+        ext = np.maximum(np.asarray(hi, float) - np.asarray(lo, float), 0.0)
+        span = float(ext.max()) or 1.0
+        # cubic cells, at most ``cells`` of them
+        vol = float(np.prod(np.maximum(ext, span * 1e-6)))
+        cell = max((vol / cells) ** (1 / 3), span / 4096)
+        shape = tuple(int(max(1, math.ceil(e / cell + 1e-9))) for e in ext)
+        while shape[0] * shape[1] * shape[2] > cells:
+            cell *= 1.1
+            shape = tuple(int(max(1, math.ceil(e / cell + 1e-9))) for e in ext)
+        return cls(np.asarray(lo, float), cell, shape)  # type: ignore[arg-type]
+
+    def index(self, pts: np.ndarray) -> np.ndarray:
+        """Flat cell index of each point (clamped into the grid)."""
+        ijk = np.floor((pts - self.lo) / self.cell).astype(np.int64)
+        for a in range(3):
+            np.clip(ijk[:, a], 0, self.shape[a] - 1, out=ijk[:, a])
+        return (ijk[:, 0] * self.shape[1] + ijk[:, 1]) * self.shape[2] + ijk[:, 2]
+
+
+@dataclass
+class Tile:
+    """A box of grid cells ``[i0, i1) x [j0, j1) x [k0, k1)`` and its world bounds; ``interior``
+    marks the faces shared with other tiles (lo/hi per axis), the only ones that make seams."""
+
+    index: int
+    cells: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+    lo: np.ndarray
+    hi: np.ndarray
+    n_points: int
+    interior: np.ndarray = field(default_factory=lambda: np.zeros((2, 3), bool))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"index": self.index, "cells": [list(c) for c in self.cells], "lo": self.lo.tolist(),
+                "hi": self.hi.tolist(), "n_points": self.n_points, "interior": self.interior.tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Tile:
+        return cls(int(d["index"]), tuple(tuple(c) for c in d["cells"]), np.asarray(d["lo"]),  # type: ignore[arg-type]
+                   np.asarray(d["hi"]), int(d["n_points"]), np.asarray(d["interior"], bool))
+
+
+def split_tiles(hist: np.ndarray, grid: Grid, cap: int) -> list[Tile]:
+    """Cut the histogram's occupied box into tiles of at most ``cap`` points (as far as single
+    cells allow): recursive median splits of the longest side, like a k-d tree."""
+    counts = hist.reshape(grid.shape)
+    occ = np.argwhere(counts > 0)
+    if occ.size == 0:
+        raise InputError("no points to tile")
+    full = tuple((0, s) for s in grid.shape)
+    out: list[tuple[tuple[tuple[int, int], ...], int]] = []
+    stack = [full]
+    while stack:
+        box = stack.pop()
+        sub = counts[box[0][0]:box[0][1], box[1][0]:box[1][1], box[2][0]:box[2][1]]
+        n = int(sub.sum())
+        if n == 0:
+            continue
+        sizes = [b[1] - b[0] for b in box]
+        if n <= cap or max(sizes) <= 1:
+            out.append((box, n))
+            continue
+        axis = int(np.argmax(sizes))
+        prof = sub.sum(axis=tuple(a for a in range(3) if a != axis))
+        cum = np.cumsum(prof)
+        cut = int(np.searchsorted(cum, n / 2)) + 1
+        cut = min(max(cut, 1), sizes[axis] - 1)
+        lo_box = list(box)
+        hi_box = list(box)
+        lo_box[axis] = (box[axis][0], box[axis][0] + cut)
+        hi_box[axis] = (box[axis][0] + cut, box[axis][1])
+        stack.append(tuple(hi_box))
+        stack.append(tuple(lo_box))
+    tiles = []
+    for i, (box, n) in enumerate(out):
+        lo = grid.lo + np.array([b[0] for b in box]) * grid.cell
+        hi = grid.lo + np.array([b[1] for b in box]) * grid.cell
+        interior = np.array([[b[0] > 0 for b in box], [b[1] < s for b, s in zip(box, grid.shape, strict=True)]])
+        tiles.append(Tile(i, box, lo, hi, n, interior))  # type: ignore[arg-type]
+    return tiles
+
+
+def tile_lookup(tiles: list[Tile], grid: Grid) -> np.ndarray:
+    """Flat cell index -> tile index (int16; every cell of the grid belongs to one tile)."""
+    table = np.full(grid.shape, -1, dtype=np.int16)
+    for t in tiles:
+        (i0, i1), (j0, j1), (k0, k1) = t.cells
+        table[i0:i1, j0:j1, k0:k1] = t.index
+    return table.reshape(-1)
+
+
+def tile_neighbours(tiles: list[Tile], halo: float) -> list[list[int]]:
+    """For each tile, the tiles whose boxes come within ``halo`` of it (they share halo points)."""
+    lo = np.array([t.lo for t in tiles]).reshape(-1, 3)
+    hi = np.array([t.hi for t in tiles]).reshape(-1, 3)
+    out = []
+    for i in range(len(tiles)):
+        near = np.all((lo <= hi[i] + halo) & (hi >= lo[i] - halo), axis=1)
+        near[i] = False
+        out.append(np.flatnonzero(near).tolist())
+    return out
+
+
+def colour_tiles(neighbours: list[list[int]]) -> list[int]:
+    """A colour per tile, no two neighbours alike (greedy, most neighbours first): tiles of one
+    colour can be ordered at the same time, each seeing the tiles of other colours."""
+    colour = [-1] * len(neighbours)
+    for i in sorted(range(len(neighbours)), key=lambda i: (-len(neighbours[i]), i)):
+        taken = {colour[j] for j in neighbours[i]}
+        colour[i] = next(c for c in range(len(neighbours) + 1) if c not in taken)
+    return colour

@@ -1,0 +1,591 @@
+"""Where a level cannot meet rho: enclosed surface regions far from every input point.
+
+A level at rho covers the *input points* within rho. Where the scanner left a hole wider than rho
+(grazing angles, dark or shiny material, occlusion), the *surface* has points farther than rho from
+every input point, and no subset of the input can cover them. This module finds those regions.
+
+Inputs are two prefixes of the scan's farthest point ordering: the level ``L`` (prefix at rho) and
+a denser *sample* ``S`` (prefix at ``rho / 4``; every input point is within rho/4 of it), or the
+whole scan for exact distances.
+
+1. **Seeds** (on the level, a few thousand points for a typical level). Each level point's
+   neighbours are projected on its PCA tangent plane and sorted by angle; for each pair of
+   angularly consecutive neighbours the circumcentre of the triangle (point, neighbour, next
+   neighbour) is a local Voronoi vertex of the level: the locally farthest surface point from it.
+   Where the angle between the two neighbours is 180 degrees or more (an open side: the scan's
+   border or a large hole) probes along the bisector play that part. A vertex farther than rho
+   from the level is moved onto the plane of its nearest sample points (same normal: this takes
+   off the surface's curvature) and is a *seed* when it is farther than rho/2 from the sample,
+   in 3D and along that plane. Where no seed exists, the level covers the surface within rho (up
+   to the tangent-plane approximation).
+2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``2 * max_hole * rho`` (a
+   long border) is open and left alone.
+3. **Regions** (per group, in the plane of the seeds' level normals). The sample points around the
+   group, near that plane (``|height| <= rho + |distance in the plane| / 2``, which drops other
+   sheets across the plane) are projected on it; a square grid of candidate nodes at spacing
+   rho/4 is laid over them, first a little wider than the seeds' spread, then (for groups of
+   several seeds whose region reached its edge) ``max_hole * rho`` wide. The nodes farther than
+   rho/2 (in the plane) from every projected sample point form regions (4-connected). A region
+   that contains a seed and stays inside the grid is **enclosed**: input points bound it all
+   round. A region that reaches the grid's edge leaks into empty space (the scan's border, or a
+   hole wider than ``max_hole * rho``): it is *open* and not filled.
+4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
+   squares; the grid is laid again if it moved) and a height field over it
+   (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
+   cross-validates best on the ring). The region is *rough* (reported, not
+   filled) when the ring is not a height field (more than 25 % of its normals tilted over 60
+   degrees from the plane's normal) or not one smooth piece: fitted to five sixths of the ring
+   (angular sectors around the hole), the surface misses the inner ring points (within rho of
+   the region) of the sixth left out by more than rho/2 RMS (e.g. an occlusion shadow, whose rim
+   lies on two surfaces at different depths).
+5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
+   sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
+   than rho from every sample point: its area (node count x node area x the height field's
+   slope factor), bounding box and largest distance are reported. Only regions with a gap are
+   assessed (step 4) and filled; smaller ones (farther than rho/2 but not rho from the input:
+   a real scan's sparse spots) are kept in the search's list, never filled.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .._validate import strict_methods
+from ..features.neighbours import Neighbourhoods, local_pca
+from .surface import Frame, HeightField, plane_normal, tangents
+
+#: the sample is the prefix at SAMPLE_FRACTION * rho
+SAMPLE_FRACTION = 0.25
+#: candidate grid spacing, in units of rho
+GRID_FRACTION = 0.25
+#: grid nodes within NEAR_FRACTION * rho of a measured point are not in a region
+NEAR_FRACTION = 0.5
+#: default widest hole filled, in units of rho
+MAX_HOLE = 12.0
+#: ring width around a region (for the surface fit), in units of rho
+RING = 2.0
+#: the ring's inner part (whose prediction judges the fit), in units of rho
+INNER = 1.0
+#: neighbours of a level point in the seed search
+K_LEVEL = 10
+#: neighbours per sample point for normals and the seeds' plane
+K_SAMPLE = 8
+#: a group of fewer seeds is a small hole: its first grid (the seeds' spread + 1.5 rho) is final
+MIN_SEEDS_WIDE = 4
+#: largest share of ring normals tilted more than MAX_TILT from the hole's normal
+MAX_TILTED = 0.25
+MAX_TILT = math.radians(60.0)
+#: largest RMS error predicting a sixth of the ring from the rest, in units of rho
+MAX_RESIDUAL = 0.5
+
+STATUS_FILLABLE = "fillable"
+STATUS_ROUGH = "rough"
+
+
+@strict_methods
+@dataclass
+class Region:
+    """One enclosed region of the surface farther than rho/2 from every input point.
+
+    Attributes:
+        id: the gap's number in the report (0, 1, ... in the order found); -1 for a region that
+            is no gap.
+        status: ``"fillable"``, or ``"rough"`` when the surrounding input is not one smooth height
+            field (not filled; ``reason`` says why). Only gaps are assessed (a region that is no
+            gap is never filled).
+        candidates: (M, 3) grid nodes of the region lifted onto the fitted surface.
+        distance: (M,) distance of each candidate to the nearest sample point.
+        rho: the density asked for.
+        area: area of the part farther than rho from the input (0 when the region only lies
+            between rho/2 and rho from it: not a gap, but the level still misses rho there).
+        region_area: area of the whole region.
+        node_area: surface area each candidate stands for.
+        residual: RMS error of the fitted surface predicting the inner ring points of each sixth
+            of the ring from the rest (NaN for a region that is no gap: not assessed).
+        tilted: share of the ring's normals tilted more than 60 degrees from the plane's.
+        frame: the hole's plane; ``uv`` (M, 2) the candidates' coordinates in it.
+        surface: the height field over the plane.
+        ring: indices (into the sample) of the input points around the region.
+    """
+
+    id: int
+    status: str
+    candidates: np.ndarray
+    distance: np.ndarray
+    rho: float
+    area: float
+    region_area: float
+    node_area: np.ndarray
+    residual: float
+    frame: Frame
+    uv: np.ndarray
+    surface: HeightField
+    ring: np.ndarray
+    tilted: float = 0.0
+    reason: str = ""
+    n_synthetic: int = 0
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self.frame.normal
+
+    @property
+    def is_gap(self) -> bool:
+        """Some of it is farther than rho from every input point."""
+        return bool(self.area > 0)
+
+    @property
+    def max_distance(self) -> float:
+        return float(self.distance.max()) if self.distance.size else 0.0
+
+    def gap_points(self) -> np.ndarray:
+        """Candidates farther than rho from every input point."""
+        return self.candidates[self.distance > self.rho]
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) bounding box of the gap (of the region when it is no gap)."""
+        pts = self.gap_points() if self.is_gap else self.candidates
+        return np.stack([pts.min(axis=0), pts.max(axis=0)])
+
+    def as_dict(self) -> dict[str, Any]:
+        lo, hi = self.bounds
+        return {
+            "id": self.id,
+            "status": self.status,
+            "reason": self.reason,
+            "area": self.area,
+            "region_area": self.region_area,
+            "max_distance": self.max_distance,
+            "bounds_min": lo.tolist(),
+            "bounds_max": hi.tolist(),
+            "centre": self.candidates.mean(axis=0).tolist(),
+            "normal": self.normal.tolist(),
+            "residual": self.residual if math.isfinite(self.residual) else None,
+            "n_synthetic": self.n_synthetic,
+        }
+
+
+@dataclass
+class Search:
+    """What :func:`find_regions` found: the regions and how many seed groups were open."""
+
+    rho: float
+    max_hole: float
+    regions: list[Region] = field(default_factory=list)
+    n_open: int = 0
+    n_seeds: int = 0
+
+
+def _level_vertices(level: np.ndarray, tree_l: Any, rho: float) -> tuple[np.ndarray, np.ndarray]:
+    """Local Voronoi vertices of the level farther than rho from their three points (and probes
+    on open sides), on each level point's tangent plane; with the level normal at each."""
+    n = level.shape[0]
+    k = min(K_LEVEL, n - 1)
+    _, nb = tree_l.query(level, k=k + 1, workers=-1)
+    nb = np.asarray(nb, dtype=np.int64)
+    _, normals, _ = local_pca(level, Neighbourhoods(n, knn=nb))
+    t1, t2 = tangents(normals)
+    off = level[nb[:, 1:]] - level[:, None, :]
+    x = np.einsum("nki,ni->nk", off, t1)
+    y = np.einsum("nki,ni->nk", off, t2)
+    ang = np.arctan2(y, x)
+    order = np.argsort(ang, axis=1)
+    x = np.take_along_axis(x, order, 1)
+    y = np.take_along_axis(y, order, 1)
+    ang = np.take_along_axis(ang, order, 1)
+    x2, y2 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    dang = np.roll(ang, -1, axis=1) - ang
+    dang[:, -1] += 2 * np.pi
+    # circumcentre (ux, uy) of the triangle (0, 0), (x, y), (x2, y2)
+    d = 2.0 * (x * y2 - y * x2)
+    a, b = x * x + y * y, x2 * x2 + y2 * y2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ux = (y2 * a - y * b) / d
+        uy = (x * b - x2 * a) / d
+    r = np.hypot(ux, uy)
+    cap = 3.0 * rho
+    open_side = dang >= np.pi - 1e-6
+    vertex = ~open_side & np.isfinite(r) & (r > rho) & (r <= cap)
+    # most such triangles are not Delaunay: another neighbour lies within rho of the vertex
+    rows = np.flatnonzero(vertex.any(axis=1))
+    vx, vy = ux[rows], uy[rows]
+    d2 = (vx[:, :, None] - x[rows, None, :]) ** 2 + (vy[:, :, None] - y[rows, None, :]) ** 2
+    vertex[rows] &= d2.min(axis=2) > rho * rho
+    # (a far vertex of a wide angle: a big hole's rim; of a narrow one: a skinny triangle)
+    probe = open_side | ((dang > 0.5 * np.pi) & ~(np.isfinite(r) & (r <= cap)))
+    rv, cv = np.nonzero(vertex)
+    pts = [level[rv] + ux[rv, cv, None] * t1[rv] + uy[rv, cv, None] * t2[rv]]
+    src = [rv]
+    # beyond an open side, or where the vertex is far away: probes along the bisector
+    rp, cp = np.nonzero(probe)
+    mid = ang[rp, cp] + 0.5 * dang[rp, cp]
+    direction = np.cos(mid)[:, None] * t1[rp] + np.sin(mid)[:, None] * t2[rp]
+    for dist in (1.5 * rho, cap):
+        pts.append(level[rp] + dist * direction)
+        src.append(rp)
+    source = np.concatenate(src)
+    return np.concatenate(pts), normals[source]
+
+
+def _seeds(
+    level: np.ndarray, tree_l: Any, tree_s: Any, rho: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Seeds (S, 3): level vertices farther than rho from the level and farther than rho/2
+    from the sample; and the level normal at each (S, 3)."""
+    empty = np.zeros((0, 3))
+    if level.shape[0] < 4:
+        return empty, empty
+    cand, nrm = _level_vertices(level, tree_l, rho)
+    d_l, _ = tree_l.query(cand, k=1, workers=-1)
+    cand, nrm = cand[d_l > rho], nrm[d_l > rho]
+    # a vertex within rho/2 of a sample point is no seed: that point, its nearest, is within
+    # rho/2 of it along its tangent plane too (the test below). Most vertices stop here, before
+    # the query of 16 neighbours.
+    d_0, _ = tree_s.query(cand, k=1, distance_upper_bound=rho, workers=-1)
+    keep = ~(d_0 <= NEAR_FRACTION * rho)
+    cand, nrm = cand[keep], nrm[keep]
+    if cand.shape[0] == 0:
+        return empty, empty
+    # a vertex lies on its level point's tangent plane: move it onto the plane of the sample
+    # points around it (same normal), which takes off most of the surface's curvature
+    k = min(2 * K_SAMPLE, tree_s.n)
+    _, nn = tree_s.query(cand, k=k, workers=-1)
+    near = tree_s.data[np.asarray(nn).reshape(cand.shape[0], k)]
+    cand = cand - np.einsum("ni,ni->n", cand - near[:, :K_SAMPLE].mean(axis=1), nrm)[:, None] * nrm
+    # nothing of the sample within rho/2, in 3D nor along the tangent plane (a vertex off a
+    # curved surface can be far from the sample in 3D but not along the surface)
+    off = near - cand[:, None, :]
+    along = off - np.einsum("nki,ni->nk", off, nrm)[:, :, None] * nrm[:, None, :]
+    lim = (NEAR_FRACTION * rho) ** 2
+    far = (np.einsum("nki,nki->nk", along, along) > lim).all(axis=1)
+    d_s, _ = tree_s.query(cand, k=1, workers=-1)
+    far &= d_s > NEAR_FRACTION * rho
+    return cand[far], nrm[far]
+
+
+def _groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
+    """Seed index arrays of the groups linked within 2 rho."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    m = seeds.shape[0]
+    if m == 0:
+        return []
+    pairs = cKDTree(seeds).query_pairs(2.0 * rho, output_type="ndarray")
+    g = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+    n_comp, labels = connected_components(g, directed=False)
+    order = np.argsort(labels, kind="stable")
+    splits = np.cumsum(np.bincount(labels, minlength=n_comp))[:-1]
+    return np.split(order, splits)
+
+
+def _slab(local: np.ndarray, frame: Frame, rho: float) -> np.ndarray:
+    """Mask of the local points near the hole's plane: |h| <= rho + 0.5 |uv| (a cone of about
+    27 degrees), which keeps curved surroundings and drops far sheets across the plane."""
+    h = np.abs(frame.height(local))
+    r = np.linalg.norm(frame.uv(local), axis=1)
+    return h <= rho + 0.5 * r
+
+
+def _normals_at(points: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+    """PCA normals of ``points`` from their nearest points of ``cloud``."""
+    from scipy.spatial import cKDTree
+
+    k = min(K_SAMPLE + 1, cloud.shape[0])
+    _, nb = cKDTree(cloud).query(points, k=k)
+    nbhd = cloud[np.asarray(nb).reshape(points.shape[0], k)]
+    c = nbhd - nbhd.mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    return vec[:, :, 0]
+
+
+class _Grid:
+    """Square grid of nodes at spacing ``g`` and half width ``half`` (in nodes) in a frame."""
+
+    def __init__(self, frame: Frame, g: float, half: int) -> None:
+        self.frame, self.g, self.half = frame, g, half
+        side = 2 * half + 1
+        ij = np.indices((side, side)).reshape(2, -1).T
+        self.uv = (ij - half) * g
+        self.shape = (side, side)
+
+    def area_factor(self, nodes: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Surface area per unit of plane area, sqrt(1 + |grad h|^2), at the grid ``nodes`` of
+        heights ``h``: finite differences with the neighbouring nodes of the same set (forward,
+        else backward; 0 slope along an axis where a node has no neighbour)."""
+        full = np.full(self.shape[0] * self.shape[1], np.nan)
+        full[nodes] = h
+        full = full.reshape(self.shape)
+        grads = []
+        for axis in (0, 1):
+            fwd = np.diff(full, axis=axis, append=np.nan)
+            bwd = np.diff(full, axis=axis, prepend=np.nan)
+            d = np.where(np.isnan(fwd), bwd, fwd)
+            grads.append(np.nan_to_num(d.ravel()[nodes]) / self.g)
+        return np.sqrt(1.0 + grads[0] ** 2 + grads[1] ** 2)
+
+    def node_of(self, uv: np.ndarray) -> np.ndarray:
+        ij = np.rint(uv / self.g).astype(np.int64) + self.half
+        inside = ((ij >= 0) & (ij < self.shape[0])).all(axis=1)
+        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
+        return np.where(inside, flat, -1)
+
+
+def _flood(grid: _Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
+    """Labels of the empty nodes (farther than rho/2 from the projected sample points indexed by
+    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge)."""
+    from scipy import ndimage
+
+    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=NEAR_FRACTION * rho)
+    empty = ~np.isfinite(d)
+    labels, _ = ndimage.label(empty.reshape(grid.shape))
+    labels = labels.ravel()
+    nodes = grid.node_of(seed_uv)
+    hit = np.unique(labels[nodes[nodes >= 0]])
+    hit = hit[hit > 0]
+    lab2 = labels.reshape(grid.shape)
+    edge = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
+    return [(np.flatnonzero(labels == lab), bool(np.isin(lab, edge))) for lab in hit]
+
+
+def find_regions(
+    level: np.ndarray,
+    sample: np.ndarray,
+    rho: float,
+    *,
+    max_hole: float = MAX_HOLE,
+    tree_l: Any = None,
+    tree_s: Any = None,
+) -> Search:
+    """Enclosed regions of the surface farther than rho/2 from every point of ``sample``, where
+    the ``level`` (a subset of the sample covering it within rho) cannot meet rho.
+
+    Args:
+        level: (K, 3) points of the level at rho.
+        sample: (M, 3) input points (the whole scan, or a prefix of its ordering covering it
+            within rho/4).
+        rho: the density.
+        max_hole: widest region examined, in units of rho.
+        tree_l, tree_s: optional prebuilt ``cKDTree`` of ``level`` and ``sample``.
+    """
+    from scipy.spatial import cKDTree
+
+    rho = float(rho)
+    out = Search(rho=rho, max_hole=float(max_hole))
+    if level.shape[0] < 4 or sample.shape[0] < 4:
+        return out
+    tree_l = cKDTree(level, balanced_tree=False) if tree_l is None else tree_l
+    tree_s = cKDTree(sample, balanced_tree=False) if tree_s is None else tree_s
+    seeds, seed_normals = _seeds(level, tree_l, tree_s, rho)
+    out.n_seeds = int(seeds.shape[0])
+    width = max_hole * rho
+    for grp in _groups(seeds, rho):
+        sp = seeds[grp]
+        if float(np.linalg.norm(np.ptp(sp, axis=0))) > 2.0 * width:  # a long border
+            out.n_open += 1
+            continue
+        new = ~_inside(out.regions, sp, rho)  # seeds of a region already found are done
+        grp, sp = grp[new], sp[new]
+        if grp.size == 0:
+            continue
+        nrm = seed_normals[grp]
+        nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
+        regions = _regions_of_group(sample, tree_s, sp, nrm.sum(axis=0), rho, width)
+        for reg in regions:
+            if reg is None:
+                out.n_open += 1
+                continue
+            _finish_region(reg, tree_s, rho)
+            if reg.candidates.shape[0]:
+                reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
+                out.regions.append(reg)
+    return out
+
+
+def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
+    """Mask of ``points`` inside a region found already: over one of its nodes (within a grid
+    step, in its plane) and within 2 rho of its surface. Another group of seeds of the same hole
+    (seeds on a sheet above part of it, say) then finds nothing new."""
+    from scipy.spatial import cKDTree
+
+    hit = np.zeros(points.shape[0], dtype=bool)
+    for reg in regions:
+        if not reg.candidates.shape[0]:
+            continue
+        # (a point over a node and within 2 rho of the surface is within 4 rho of a candidate,
+        # unless the surface rose by 1.7 rho over a grid step: most regions are far away)
+        lo = reg.candidates.min(axis=0) - 4.0 * rho
+        hi = reg.candidates.max(axis=0) + 4.0 * rho
+        box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
+        if not box.size:
+            continue
+        uv = reg.frame.uv(points[box])
+        d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
+        over = np.isfinite(d)
+        if over.any():
+            h = reg.frame.height(points[box[over]])
+            hit[box[over]] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
+    return hit
+
+
+def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
+    """Regions around one group of seeds (``None`` for each open one): a grid a little wider
+    than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
+    once more centred on the region that reached the edge (the seeds' mean can sit off a
+    hole's centre). An enclosed region found on one grid is kept; the next grid looks only for
+    the regions of the seeds outside it (a group can hold a hole and a border next to it)."""
+    from scipy.spatial import cKDTree
+
+    g = GRID_FRACTION * rho
+    centre = seeds.mean(axis=0)
+    spread = float(np.sqrt(((seeds - centre) ** 2).sum(axis=1).max()))
+    first = max(2.0 * rho, spread + 1.5 * rho)
+    steps = [first] if first < 0.5 * width else []
+    if not steps or seeds.shape[0] >= MIN_SEEDS_WIDE:
+        steps += [0.5 * width, 0.5 * width]
+    frame = Frame.of(centre, normal)
+    found: list = []  # enclosed regions of the grids laid so far
+    regions: list = []
+    for i, half_width in enumerate(steps):
+        half = int(math.ceil(half_width / g))
+        idx = tree_s.query_ball_point(frame.origin, math.sqrt(2.0) * half * g + RING * rho)
+        idx = np.asarray(idx, dtype=np.int64)
+        idx = idx[_slab(sample[idx], frame, rho)]
+        if idx.size < 8:
+            return found
+        tree2 = cKDTree(frame.uv(sample[idx]))
+        if i == 0:  # quick exit: every seed is near a sample point in the plane
+            d, _ = tree2.query(frame.uv(seeds), k=1, distance_upper_bound=NEAR_FRACTION * rho)
+            if np.isfinite(d).all():
+                return []
+        local = _Local(sample, idx, tree2)
+        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
+        enclosed = [r for r in regions if r is not None]
+        found += enclosed
+        if leak_at is None:
+            return found
+        if enclosed:  # the next grid: only the seeds of the regions that reached the edge
+            seeds = seeds[~_inside(enclosed, seeds, rho)]
+            if seeds.shape[0] == 0:
+                return found
+        if half_width >= 0.5 * width:  # the last try: the widest grid, centred on the leak
+            frame = Frame.of(leak_at, normal)
+    return found + [r for r in regions if r is None]
+
+
+@dataclass
+class _Local:
+    """The sample points around a group (``idx`` into ``sample``), projected on a plane."""
+
+    sample: np.ndarray
+    idx: np.ndarray
+    tree2: Any
+
+    @property
+    def points(self) -> np.ndarray:
+        return self.sample[self.idx]
+
+
+def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
+    """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
+    reaching the grid's edge), and the centre of the nodes of those that did (None if none)."""
+    from scipy.spatial import cKDTree
+
+    grid = _Grid(frame, g, half)
+    found = _flood(grid, local.tree2, frame.uv(seeds), rho)
+    regions: list = []
+    leaked: list[np.ndarray] = []
+    pts = local.points
+    for nodes, leak in found:
+        if leak:
+            leaked.append(grid.uv[nodes])
+            regions.append(None)
+            continue
+        uv = grid.uv[nodes]
+        d, _ = cKDTree(uv).query(local.tree2.data, k=1, distance_upper_bound=RING * rho)
+        ring = np.isfinite(d)
+        if ring.sum() < 12:
+            continue
+        n_new = plane_normal(pts[ring], frame.normal)
+        if refit and float(n_new @ frame.normal) < math.cos(math.radians(5.0)):
+            # the hole's plane moved: lay the grid again in the plane of this ring
+            frame2 = Frame.of(pts[ring].mean(axis=0), n_new)
+            idx = local.idx[_slab(pts, frame2, rho)]
+            local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])))
+            return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
+        normals = _normals_at(pts[ring], pts)
+        inner = d[ring] <= INNER * rho
+        regions.append(
+            _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
+        )
+    if not leaked:
+        return regions, None
+    uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
+    return regions, frame.lift(uv, np.zeros(1))[0]
+
+
+def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) -> Region:
+    surface = HeightField(frame.uv(ring), frame.height(ring), rho, inner)
+    uv, g = grid.uv[nodes], grid.g
+    h = surface(uv)
+    factor = grid.area_factor(nodes, h)
+    return Region(
+        id=-1,
+        status=STATUS_FILLABLE,
+        candidates=frame.lift(uv, h),
+        distance=np.zeros(uv.shape[0]),
+        rho=rho,
+        area=0.0,
+        region_area=0.0,
+        node_area=g * g * factor,
+        residual=float("nan"),
+        frame=frame,
+        uv=uv,
+        surface=surface,
+        ring=ring_idx,
+        tilted=float((np.abs(ring_normals @ frame.normal) < math.cos(MAX_TILT)).mean()),
+    )
+
+
+def _assess(reg: Region) -> None:
+    """Fillable or rough: is the ring one smooth height field over the hole's plane?"""
+    rho = reg.rho
+    reg.residual = reg.surface.cv
+    if reg.tilted > MAX_TILTED:
+        reg.status = STATUS_ROUGH
+        reg.reason = (
+            f"{100 * reg.tilted:.0f} % of the surrounding normals are tilted more than "
+            f"{math.degrees(MAX_TILT):.0f} degrees from the hole's plane"
+        )
+    elif reg.residual > MAX_RESIDUAL * rho:
+        reg.status = STATUS_ROUGH
+        reg.reason = (
+            f"the surface fitted to the surrounding points misses those next to the hole, when "
+            f"fitted without them, by {reg.residual / rho:.2f} rho (RMS; more than "
+            f"{MAX_RESIDUAL:g} rho)"
+        )
+
+
+def _finish_region(reg: Region, tree_s: Any, rho: float) -> None:
+    """3D distances to the sample; drop candidates within rho/2 of it (another sheet). A gap's
+    surface is the spline its ring chooses by cross-validation (``HeightField.select``); its
+    candidates are lifted again onto it (their area weights stay those of the first fit)."""
+    d, _ = tree_s.query(reg.candidates, k=1)
+    if (d > rho).any() and reg.surface.select():
+        reg.candidates = reg.frame.lift(reg.uv, reg.surface(reg.uv))
+        d, _ = tree_s.query(reg.candidates, k=1)
+    keep = d > NEAR_FRACTION * rho
+    reg.candidates = reg.candidates[keep]
+    reg.uv = reg.uv[keep]
+    reg.distance = np.asarray(d)[keep]
+    reg.node_area = reg.node_area[keep]
+    reg.region_area = float(reg.node_area.sum())
+    reg.area = float(reg.node_area[reg.distance > rho].sum())
+    if reg.is_gap:
+        _assess(reg)
