@@ -81,3 +81,33 @@ def synthetic(kind: str, n: int) -> np.ndarray:
 
 def real_files(data: Path) -> list[Path]:
     return sorted(p for p in data.iterdir() if p.suffix.lower() in REAL_SUFFIXES)
+
+
+def set_markdown(rows: list[dict], summary: dict) -> list[str]:
+    """The set's table and its summary for docs/benchmarks.md."""
+
+    def f(x: object, fmt: str = "{:.2f}") -> str:
+        return fmt.format(x) if isinstance(x, float) else ("-" if x is None else str(x))
+
+    lines = [
+        "",
+        "The input set (`--set`; synthetic inputs marked; CPU seconds are the better measure on a loaded "
+        "machine; fpsample's full ordering runs in a forked child of the same process, alternating):",
+        "",
+        "| input | N | thin points | lodbuilder s | CPU s | fpsample s | CPU s | ratio | CPU ratio "
+        "| build s | build peak RSS B/point |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "failed" in r:
+            lines.append(f"| {r['input']} | failed: {r['failed']} | | | | | | | | | |")
+            continue
+        lines.append(
+            f"| {r['input']} | {r['n']:,} | {r['thin_points']:,} | {f(r['time_s'])} | {f(r['cpu_s'])} | "
+            f"{f(r['fpsample_time_s'])} | {f(r.get('fpsample_cpu_s'))} | {f(r['ratio_to_fpsample'])} | "
+            f"{f(r.get('cpu_ratio_to_fpsample'))} | {f(r.get('build_s'), '{:.1f}')} | "
+            f"{f(r.get('build_peak_rss_bytes_per_point'), '{:.0f}')} |"
+        )
+    lines += ["", "Summary: " + ", ".join(f"{k} {f(v, '{:.3g}')}" for k, v in summary.items()
+                                          if not isinstance(v, list)) + "."]
+    return lines
