@@ -275,7 +275,7 @@ def plan_and_build_band(
     found = plan.thin_points
     thin = plan
     band, plan = build_planned_band(points, plan, max_memory, band=band)
-    if plan.normal is None and found >= REFINE_SHARE * n and _needs_finer(thin):
+    if plan.normal is None and thin.outer is not None:  # (kept only where a finer grid may be needed)
         del band  # (its memory is needed for the finer one)
         refined = _refined(points, thin, max_memory)
         if refined is not None:
@@ -315,10 +315,6 @@ def _typical_separation(thin: BandPlan) -> float:
     return float(np.median(thin.separation[np.isfinite(thin.separation)]))
 
 
-def _needs_finer(thin: BandPlan) -> bool:
-    return _typical_separation(thin) < REFINE_SEP * thin.h
-
-
 def _with_grid(thin: BandPlan, h: float, r: float) -> BandPlan:
     """``thin``'s sheets on a grid of spacing h with band radius r."""
     assert thin.outer is not None
@@ -342,7 +338,10 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
     typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
     handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
-    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out)
+    thin = sep_in[np.isfinite(sep_in)]
+    # the other side's separation is kept only where a finer grid may be needed (see _refined)
+    finer = thin.size >= REFINE_SHARE * sep_in.size and float(np.median(thin)) < REFINE_SEP * h
+    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out if finer else None)
 
 
 _M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,

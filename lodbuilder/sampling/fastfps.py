@@ -309,6 +309,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         psep = (TAIL_PER_SEP / h * plan.separation[band.perm]).astype(np.float32)
         pnrm = plan.normal[band.perm]
         foot = band.foot
+        plan.radius = plan.separation = plan.normal = plan.outer = None  # (copied above: free them)
     rho_g = -1.0 if rho is None else rho / h
     report(progress, "ordering", 0, k_max)
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
