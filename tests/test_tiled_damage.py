@@ -16,6 +16,7 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive.validate import validate_archive
+from lodbuilder.build.tiled import driver as D
 from lodbuilder.io import Scan
 
 TILE_POINTS = 5_000
@@ -44,7 +45,7 @@ def _same(a, b):
 
 
 # the moment of the stop: the module and function that raises (what is done by then: everything before)
-MOMENTS = {"split": ("driver", "distribute"), "merge": ("merge", "merge_tiles"),
+MOMENTS = {"split": ("driver", "distribute"), "tiles": ("driver", "write_json"), "merge": ("merge", "merge_tiles"),
            "radii": ("merge", "assemble_radii"), "write": ("write", "write_scan")}
 
 
@@ -69,6 +70,8 @@ def stopped(tmp_path_factory):
             def stop(*a, **k):
                 raise KeyboardInterrupt
 
+            if fn == "write_json":  # stopped once two tiles are ordered (their markers written)
+                stop = _after_two_orderings(D.write_json)
             mp.setattr(f"lodbuilder.build.tiled.{module}.{fn}", stop)
             with pytest.raises(KeyboardInterrupt):
                 _build(archive)
@@ -79,6 +82,19 @@ def stopped(tmp_path_factory):
     finally:
         mp.undo()
     return out
+
+
+def _after_two_orderings(write_json):
+    written = []
+
+    def write(path, doc):
+        write_json(path, doc)
+        if Path(path).name.startswith("order."):
+            written.append(path)
+            if len(written) == 2:
+                raise KeyboardInterrupt
+
+    return write
 
 
 def _work(parts):
@@ -103,6 +119,8 @@ def _cases():
     """(moment, file, damage): every kind of work file the moment has, each damage in turn."""
     kinds = {
         "split": ["points.f64", "attr.0.bin", "sample.npy", "decimated.i8", "spill.json", "plan.json"],
+        # {t}: a tile whose ordering was done when the build stopped
+        "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.bin", "halo.1.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "points.f64"],
         "radii": ["order.i8", "rank.i8", "bucket.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.bin"],
@@ -123,8 +141,10 @@ def test_a_damaged_work_file_is_made_again(stopped, clean, moment, name, how, ca
     if parts.exists():
         shutil.rmtree(parts)
     shutil.copytree(pristine, parts, symlinks=True)
-    target = _work(parts) / name
-    _damage(target, how)
+    w = _work(parts)
+    if "{t}" in name:
+        name = name.format(t=sorted(w.glob("order.*.1.json"))[0].name.split(".")[1])
+    _damage(w / name, how)
     with caplog.at_level("WARNING", logger="lodbuilder"):
         res = _build(archive)
     assert res.scans[0].status == "built"
