@@ -97,13 +97,19 @@ class Where:
         if self.local is not None:
             return self.local.with_name(L.parts_dir_name(self.local.name))
         assert self.url is not None
-        return self.url + L.PARTS_SUFFIX
+        from .remote import sibling_url
+
+        return sibling_url(self.url, L.PARTS_SUFFIX)
 
     def part(self, name: str) -> Where:
-        """The part file ``name`` (a plain name, already checked) of this archive."""
+        """The part file ``name`` (a plain name, already checked) of this archive; a URL's query
+        (a signed URL) is kept."""
         if self.local is not None:
             return Where(self.parts_dir / name, None, None)
-        return Where(None, f"{self.parts_dir}/{name}", self.options)
+        from .remote import sibling_url
+
+        assert self.url is not None
+        return Where(None, sibling_url(self.url, f"{L.PARTS_SUFFIX}/{name}"), self.options)
 
 
 def read_rows(f: Any, path: Any) -> list[IndexRow]:

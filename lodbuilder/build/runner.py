@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
 from ..io.pose import pose_kind
 from ..progress import ProgressCallback, report
-from .executors import DASK_CONNECT_TIMEOUT, make_executor, one_line
+from .executors import DASK_CONNECT_TIMEOUT, check_scheduler, make_executor, one_line
 from .inputs import ScanSource, expand_inputs
 from .jobs import ScanJob, build_one, job_key, scan_digest
 from .options import BuildOptions
@@ -325,6 +325,7 @@ def build(
 
     t0 = time.perf_counter()
     archive = Path(os.path.abspath(archive))  # absolute paths in jobs: workers may run elsewhere
+    check_scheduler(scheduler)
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work

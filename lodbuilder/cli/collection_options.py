@@ -98,7 +98,7 @@ def slice_all(args: argparse.Namespace) -> int:
            "scans": lvl.scans, "sizes": lvl.sizes, "attributes": sorted(lvl.attributes), "crs": crs,
            "units": units, "changes": changes}
     emit(args, doc, "\n".join(
-        [f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
+        [f"wrote {len(lvl):,} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
          f"(attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})"]
         + [f"  changed: {line}" for line in changes]))
     return 0
