@@ -20,6 +20,7 @@ import numpy as np
 
 from ...errors import BuildError, LodbuilderError
 from ...progress import ProgressCallback, report
+from . import layout as WL
 from . import plan as P
 from .sums import SumFile, write_json
 from .sums import done as piece_done
@@ -64,7 +65,8 @@ def _done(work: Path, phase: str) -> dict[str, Any] | None:
 
 
 def _mark(work: Path, phase: str, doc: dict[str, Any]) -> dict[str, Any]:
-    write_json(work / f"{phase}.json", doc)
+    write_json(work / WL.marker(phase), doc)
+    WL.moment(phase)
     return doc
 
 
@@ -123,7 +125,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
-            if piece_done(work, f"order.{t.index}.{p}", () if p == passes else (f"stream.{t.index}.bin",))
+            if piece_done(work, WL.order_piece(t.index, p), () if p == passes else (WL.stream(t.index),))
             is not None}
     found = len(done)
 
@@ -133,8 +135,8 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
 
     def call(p: int, tile: P.Tile) -> tuple:
         t = tile.index
-        faces = tuple(str(work / f"face.{u}.{q}.bin") for q, u in deps(p, t) if u != t)
-        return (str(work), t, tile.to_json(), *args, faces, str(work / f"face.{t}.{p}.bin"))
+        faces = tuple(str(work / WL.face(u, q)) for q, u in deps(p, t) if u != t)
+        return (str(work), t, tile.to_json(), *args, faces, str(work / WL.face(t, p)))
 
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
@@ -149,7 +151,8 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
             for fut in fin:
                 p, t = running.pop(fut)
                 res = _result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
-                write_json(work / f"order.{t}.{p}.json", res)
+                write_json(work / WL.marker(WL.order_piece(t, p)), res)
+                WL.moment("tile")
                 done.add((p, t))
                 report(progress, "tiles", len(done), total)
     except BaseException:
@@ -232,19 +235,19 @@ def build_tiled(
         for g0, pts in point_blocks(work, n):
             hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
             dec.add(g0, pts)
-        n_dec = dec.write(work / "decimated.i8")
+        n_dec = dec.write(work / WL.DECIMATED)
         limit = max(fits, COARSE_MIN)
         while n_dec > limit:  # the cell count overshot the target: coarser cells, one more pass
             d_cell *= 1.1 * math.sqrt(n_dec / limit)
             dec = Decimator(grid.lo, d_cell)
             for g0, pts in point_blocks(work, n):
                 dec.add(g0, pts)
-            n_dec = dec.write(work / "decimated.i8")
+            n_dec = dec.write(work / WL.DECIMATED)
         tiles = P.split_tiles(hist, grid, cap)
         pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
                                   "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
                                   "tiles": [t.to_json() for t in tiles], "d_cell": d_cell, "span": span,
-                                  "n_decimated": n_dec, "files": {"decimated.i8": dec.sum}})
+                                  "n_decimated": n_dec, "files": {WL.DECIMATED: dec.sum}})
     tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
     grid = P.Grid(np.asarray(pl["grid"]["lo"]), float(pl["grid"]["cell"]), tuple(pl["grid"]["shape"]))
     n_tiles = len(tiles)
@@ -289,7 +292,7 @@ def build_tiled(
     args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
     resumed = {"tiles_ordered_before": _order_passes(executor, work, name, by_size, nbrs, colour, passes, args,
                                                      progress)}
-    stats = [read_json(work / f"order.{t.index}.{passes}.json") or {} for t in tiles]
+    stats = [read_json(work / WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     times["order"] = time.perf_counter() - t0
 
     # 5. merge the tile orders (in the parent, streaming)
@@ -299,14 +302,14 @@ def build_tiled(
         min_cell = float(pl["span"]) / (1 << 20)
         merged = merge_tiles(work, n, n_tiles, [int(s.get("n_seam", 0)) for s in stats], seam_spacing, sp.lo, min_cell,
                              progress)
-        merged["files"]["rank.i8"] = write_ranks(work, n)
+        merged["files"][WL.RANK] = write_ranks(work, n)
         _mark(work, "merge", merged)
     times["merge"] = time.perf_counter() - t0
 
     # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
     #    the points in stored order (the first pass of the write)
     t0 = time.perf_counter()
-    todo = [t for t in by_size if piece_done(work, f"cover.{t.index}") is None]
+    todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
     resumed["tiles_covered_before"] = n_tiles - len(todo)
     calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
     futs = _submit(executor, calls)
@@ -316,7 +319,7 @@ def build_tiled(
             buckets = _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
     finally:
         _collect(futs, "covering", name, n_tiles, progress, "covering",
-                 lambda res: write_json(work / f"cover.{res['tile']}.json", res))
+                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res))
     radii = _done(work, "radii")
     if radii is None:
         radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
@@ -324,8 +327,7 @@ def build_tiled(
 
     # 7. write the part file in stored order
     t0 = time.perf_counter()
-    head = np.fromfile(work / "head.bin", dtype=np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
-                                                             ("r", "<f8"), ("parent", "<i8")]))
+    head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {
         **(build or {}),
         "method": "tiled",
