@@ -64,6 +64,8 @@ CASES = {
     "las": ("slice", "{a}", "--fraction", "0.5", "-o", "{o}.las"),
     "npy": ("slice", "{a}", "--fraction", "0.5", "-o", "{o}.npy"),
     "ply": ("slice", "{a}", "--fraction", "0.5", "-o", "{o}.ply"),
+    "csv": ("slice", "{a}", "--fraction", "0.5", "-o", "{o}.csv"),
+    "npz": ("slice", "{a}", "--fraction", "0.5", "-o", "{o}.npz"),
     "plot": ("evaluate", "{a}", "--plot", "{o}.png"),
     "screenshot": ("view", "{a}", "--size", "5000", "--screenshot", "{o}.png"),
     "animation": ("view", "{a}", "--size", "5000", "--animate", "{o}.gif", "--frames", "3"),
