@@ -128,10 +128,12 @@ def read_rows(f: Any, path: Any) -> list[IndexRow]:
                 raise CorruptArchiveError(
                     f"archive {path}: its index columns have different lengths; the file is damaged"
                 )
-            return [
+            rows = [
                 IndexRow(n, int(c), tuple(a.tolist()), tuple(b.tolist()), p, int(s))
                 for n, c, a, b, p, s in zip(names, *cols, strict=True)
             ]
+            _check_names(rows, path)
+            return rows
         scans = f.get(L.G_SCANS)
         rows = []
         for n in sorted(scans) if scans is not None else []:
@@ -151,6 +153,29 @@ def read_rows(f: Any, path: Any) -> list[IndexRow]:
         raise CorruptArchiveError(
             f"archive {path}: its index cannot be read ({first_line(exc)}); the file is damaged"
         ) from None
+
+
+_LIES = "the index is damaged or crafted: restore the archive from a copy or rebuild it"
+
+
+def _check_names(rows: list[IndexRow], path: Any) -> None:
+    """Every index row names a valid scan, once: a name is never used as an HDF5 path, and no
+    row hides another (a writer would delete the part of the row it cannot see)."""
+    seen: dict[str, IndexRow] = {}
+    for r in rows:
+        try:
+            L.check_name(r.name)
+        except LodbuilderError:
+            raise CorruptArchiveError(
+                f"archive {path}: its index lists a scan named {r.name!r}, which is not a scan name (at most "
+                f"255 bytes, no '/', '\\' or NUL, not starting with '.'); {_LIES}"
+            ) from None
+        if r.name in seen:
+            raise CorruptArchiveError(
+                f"archive {path}: its index lists scan {r.name!r} twice (parts {seen[r.name].part or path} "
+                f"and {r.part or path}); {_LIES}"
+            )
+        seen[r.name] = r
 
 
 def check_part(archive: Where, row: IndexRow, path: Any) -> Where:

@@ -103,7 +103,10 @@ def _single_line(res: Any, shown: str) -> str:
     if st.status == "skipped":
         return (f"scan {st.name!r} in {shown} is unchanged (same source, pose and parameters); "
                 "nothing to do (pass --force to rebuild it)")
-    return (f"added scan {st.name!r} ({st.n_points:,} points, {st.encoding} coordinates) to {shown} "
+    part = ""
+    if st.n_ordered is not None and st.n_points is not None and st.n_ordered < st.n_points:
+        part = f", ordered {st.n_ordered:,} of {st.n_points:,} points"
+    return (f"added scan {st.name!r} ({st.n_points:,} points, {st.encoding} coordinates{part}) to {shown} "
             f"in {res.seconds:.1f} s; the archive holds {res.archive_scans} scan(s)")
 
 

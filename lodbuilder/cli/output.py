@@ -301,11 +301,51 @@ def check_output(
     for what, src in (inputs or {}).items():
         if src is not None and _same_file(p, Path(src)):
             raise InputError(f"{option} {p} is the input {what}; choose another output")
+        if src is not None and what == "archive":
+            own = archive_file(p, src)
+            if own is not None:
+                raise InputError(f"{option} {p} is {own} of the archive {src}; choose another output")
     try:
         check_output_path(p)
     except OSError as exc:
         raise type(exc)(f"{option} {exc}") from None
     return p
+
+
+def archive_file(path: Path, archive: str | os.PathLike[str]) -> str | None:
+    """What ``path`` is of the local archive ``archive`` (its parts directory, its build work
+    directory, its lock file, or a link to one of their files), or None: a command never writes
+    its output there (the archive itself is an input, checked apart)."""
+    from ..archive import files as F
+    from ..archive.index import is_url
+    from ..archive.layout import parts_dir_name
+
+    if is_url(archive):
+        return None
+    a = Path(os.path.abspath(archive))
+    dirs = {"in the parts directory": a.with_name(parts_dir_name(a.name)),
+            "in the build work directory": a.with_name(f".{a.name}.parts")}
+    real = Path(os.path.realpath(path))
+    for what, d in dirs.items():
+        rd = Path(os.path.realpath(d))
+        if real == rd or rd in real.parents:
+            return what
+    if real == Path(os.path.realpath(F.lock_name(a))):
+        return "the lock file"
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    for d in dirs.values():
+        for root, _, names in os.walk(d):  # never follows links to directories
+            for name in names:
+                try:
+                    other = os.stat(os.path.join(root, name), follow_symlinks=False)
+                except OSError:
+                    continue
+                if (other.st_dev, other.st_ino) == (st.st_dev, st.st_ino):
+                    return f"a link to {name}, a file"
+    return None
 
 
 def _same_file(a: Path, b: Path) -> bool:

@@ -25,6 +25,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None) -> ViewData:
     crs = {"crs": scan.crs, "units": scan.units}
     if ordering in (None, "uniform"):
         return ViewData(
+            stop_radius=scan.stop_radius,
             points=scan.points(),
             radius=np.asarray(scan.radius),
             parent=np.asarray(scan.parent),
