@@ -3,8 +3,11 @@
 Input: a synthetic scan (lodbuilder's demo surface: a wavy sheet with RGB, ``--points`` points,
 default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse one). Measured:
 
-* ``copc``: ``export -o OUT.copc.laz`` (copclib; target <= 10 s for 1M points): seconds, bytes,
-  depths, nodes, and a check that every depth query of laspy's CopcReader returns its prefix;
+* ``copc``: ``export -o OUT.copc.laz`` (target <= 10 s for 1M points) without and with
+  ``--rank-radius``: seconds, bytes, depths, nodes, and a check that every depth query of laspy's
+  CopcReader returns its prefix;
+* ``copc_vs_source`` (``--source LAZ``, repeatable: each built into an archive first): the COPC
+  size against the source LAZ's, without and with rank/radius (targets <= 1.15 x and <= 1.5 x);
 * ``web``: ``export -o OUT.html`` (target <= 30 MB for 1M points): seconds, bytes, and the time
   headless Chromium (Debian's, through playwright) takes from navigation to the last frame drawn
   (target <= 15 s), with the requests the page made;
@@ -12,7 +15,8 @@ default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse o
   importable): PyVista's ``Plotter.export_html`` of the same points with RGB, its bytes and
   seconds, and the requests Chromium makes when it opens the file.
 
-    python tools/bench_export.py [--points 1000000] [--archive A.h5] [--markdown docs/benchmarks.md]
+    python tools/bench_export.py [--points 1000000] [--archive A.h5] [--source S.laz ...]
+                                 [--copc-only] [--markdown docs/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -78,23 +82,52 @@ def bench_copc(view, out: Path) -> dict:
 
     from lodbuilder.export.copc import export_copc
 
+    res = {}
+    for rr in (False, True):
+        t0 = time.perf_counter()
+        got = export_copc(view, out, view.n_ordered, rank_radius=rr)
+        secs = time.perf_counter() - t0
+        one = {
+            "seconds": round(secs, 2),
+            "bytes": got.n_bytes,
+            "depths": got.depths,
+            "nodes": got.nodes,
+            "promoted": got.promoted,
+            "points_by_depth": [lv["points"] for lv in got.levels],
+        }
+        if rr:
+            ok = True
+            with laspy.CopcReader.open(str(out)) as reader:
+                for lv in got.levels:
+                    rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
+                    ok &= bool(rank.size == lv["points"])
+                    ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
+            one["depth_queries_return_their_prefix"] = ok
+        res["rank_radius" if rr else "default"] = one
+    return res
+
+
+def bench_source(source: Path, tmp: Path) -> dict:
+    """Build ``source`` (a LAZ file) into an archive with defaults, export its COPC without and
+    with rank/radius, and compare the sizes with the source's."""
+    import lodbuilder
+
+    arc = tmp / (source.stem + ".h5")
     t0 = time.perf_counter()
-    res = export_copc(view, out, view.n_ordered)
-    secs = time.perf_counter() - t0
-    ok = True
-    with laspy.CopcReader.open(str(out)) as reader:
-        for lv in res.levels:
-            rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
-            ok &= bool(rank.size == lv["points"])
-            ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
+    lodbuilder.build_archive(source, arc, name=source.stem)
+    build_s = time.perf_counter() - t0
+    with lodbuilder.open_archive(arc) as a:
+        view = a.scan()
+        res = bench_copc(view, tmp / (source.stem + ".copc.laz"))
+    size = source.stat().st_size
     return {
-        "seconds": round(secs, 2),
-        "bytes": res.n_bytes,
-        "depths": res.depths,
-        "nodes": res.nodes,
-        "promoted": res.promoted,
-        "points_by_depth": [lv["points"] for lv in res.levels],
-        "depth_queries_return_their_prefix": ok,
+        "source": source.name,
+        "source_bytes": size,
+        "points": view.n_ordered,
+        "build_s": round(build_s, 2),
+        "copc": res,
+        "ratio": round(res["default"]["bytes"] / size, 3),
+        "ratio_rank_radius": round(res["rank_radius"]["bytes"] / size, 3),
     }
 
 
@@ -137,8 +170,7 @@ def bench_pyvista(view, out: Path, size: int) -> dict:
 
 
 def markdown(r: dict) -> str:
-    c, w = r["copc"], r["web"]
-    ch = w["chromium"]
+    c, w = r["copc"], r.get("web")
     lines = [
         "## Export: COPC and the standalone web page (tools/bench_export.py)",
         "",
@@ -148,13 +180,27 @@ def markdown(r: dict) -> str:
         "",
         "| output | seconds | size | notes |",
         "|---|---:|---:|---|",
-        f"| COPC (copclib) | {c['seconds']} | {c['bytes'] / 1e6:.1f} MB | {c['depths']} depths, "
-        f"{c['nodes']} nodes, points by depth {', '.join(f'{x:,}' for x in c['points_by_depth'])}; "
-        f"every depth query returns its prefix: {c['depth_queries_return_their_prefix']} |",
-        f"| web page (ours) | {w['seconds']} | {w['bytes'] / 1e6:.1f} MB | headless Chromium: "
-        f"last frame {ch['render_s']} s after navigation (launch {ch['launch_s']} s), "
-        f"{ch['requests']} request(s), outside: {len(ch['outside_requests'])} |",
+        f"| COPC | {c['default']['seconds']} | {c['default']['bytes'] / 1e6:.1f} MB | "
+        f"{c['default']['depths']} depths, {c['default']['nodes']} nodes, points by depth "
+        f"{', '.join(f'{x:,}' for x in c['default']['points_by_depth'])} |",
+        f"| COPC --rank-radius | {c['rank_radius']['seconds']} | {c['rank_radius']['bytes'] / 1e6:.1f} MB | "
+        f"every depth query returns its prefix: {c['rank_radius']['depth_queries_return_their_prefix']} |",
     ]
+    if w:
+        ch = w["chromium"]
+        lines.append(
+            f"| web page (ours) | {w['seconds']} | {w['bytes'] / 1e6:.1f} MB | headless Chromium: "
+            f"last frame {ch['render_s']} s after navigation (launch {ch['launch_s']} s), "
+            f"{ch['requests']} request(s), outside: {len(ch['outside_requests'])} |"
+        )
+    for src in r.get("copc_vs_source", []):
+        lines.append(
+            f"| COPC of {src['source']} ({src['points']:,} points) | "
+            f"{src['copc']['default']['seconds']} | {src['copc']['default']['bytes'] / 1e6:.2f} MB | "
+            f"{src['ratio']} x the source LAZ ({src['source_bytes'] / 1e6:.2f} MB); with "
+            f"--rank-radius {src['ratio_rank_radius']} x; {src['copc']['default']['depths']} depths, "
+            f"points by depth {', '.join(f'{x:,}' for x in src['copc']['default']['points_by_depth'])} |"
+        )
     pv = r.get("pyvista_export_html", {})
     for label, res in pv.items():
         if "skipped" in res:
@@ -175,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--archive", help="reuse this archive (its only scan) instead of building one")
     ap.add_argument("--no-peer", action="store_true", help="skip PyVista's export_html")
+    ap.add_argument("--source", action="append", default=[],
+                    help="a LAZ file: build it, export its COPC and compare sizes (repeatable)")
+    ap.add_argument("--copc-only", action="store_true", help="skip the web page and the peer")
     ap.add_argument(
         "--peer-path",
         help="a directory appended to sys.path for the peer's trame packages "
@@ -212,12 +261,14 @@ def main(argv: list[str] | None = None) -> int:
             view = a.scan()
             result["n_points"] = view.n_ordered
             result["copc"] = bench_copc(view, Path(tmp) / "out.copc.laz")
-            result["web"] = bench_web(view, Path(tmp) / "out.html", view.n_ordered)
-            if not args.no_peer:
+            if not args.copc_only:
+                result["web"] = bench_web(view, Path(tmp) / "out.html", view.n_ordered)
+            if not (args.no_peer or args.copc_only):
                 result["pyvista_export_html"] = {
                     f"{k:,}": bench_pyvista(view, Path(tmp) / f"pv{k}.html", k)
                     for k in sorted({min(100_000, view.n_ordered), view.n_ordered})
                 }
+        result["copc_vs_source"] = [bench_source(Path(src), Path(tmp)) for src in args.source]
     result["machine"] = machine()
     publish(result, section="export", render=markdown, markdown=args.markdown)
     return 0
