@@ -21,7 +21,7 @@ _LAZY = {
     "BuildResult": "lodbuilder.api",
     "open_archive": "lodbuilder.api",
     "Archive": "lodbuilder.api",
-    "Level": "lodbuilder.archive.levels",
+    "Level": "lodbuilder.levels",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]

@@ -14,16 +14,15 @@ from typing import Any
 
 from ._validate import strict_keywords
 from .archive.reader import Archive, open_archive
-from .collection.result import BuildResult
+from .build.options import FEATURE_OPTIONS, BuildOptions
+from .build.result import BuildResult
+from .errors import InputError
 from .progress import ProgressCallback
 
 log = logging.getLogger(__name__)
 
-__all__ = ["build_archive", "open_archive", "Archive", "BuildResult", "build_record"]
-
-#: the feature-sensitivity options (see lodbuilder.sampling.adaptive.feature_build)
-FEATURE_OPTIONS = ("importance", "adaptive", "density_floor", "outlier_threshold", "importance_k", "combine")
-
+__all__ = ["build_archive", "build_collection", "open_archive", "Archive", "BuildOptions", "BuildResult",
+           "build_record"]
 
 @strict_keywords(extra=FEATURE_OPTIONS)
 def build_record(
@@ -39,37 +38,13 @@ def build_record(
 ):
     """Order an in-memory :class:`~lodbuilder.io.Scan` with FastFPS and return the
     :class:`~lodbuilder.archive.writer.ScanRecord` to store (no provenance: the caller adds it).
+    The keywords are those of :class:`~lodbuilder.build.options.BuildOptions`; see
+    :func:`lodbuilder.build.record.build_record`."""
+    from .build.record import build_record as record
 
-    ``size``/``rho`` stop the ordering early (at most ``size`` points; ``size`` larger than the scan
-    means the whole scan). ``features``: ``importance``, ``adaptive``, ``density_floor``,
-    ``outlier_threshold``, ``importance_k``, ``combine`` of
-    :func:`lodbuilder.sampling.adaptive.feature_build` (importance maps, outliers and the extra
-    ``weighted``/``floor`` orderings); they need a full ordering.
-    """
-    from .archive.writer import ScanRecord
-    from .sampling.fastfps import fastfps
-
-    features = {k: v for k, v in features.items() if v is not None}
-    fb = None
-    if features:
-        from .sampling.adaptive import feature_build
-
-        fb = feature_build(scan, seeds=seeds, voxel_size=voxel_size, band_radius=band_radius, progress=progress,
-                           **features)
-        scan, ordering = fb.scan, fb.ordering
-    else:
-        ordering = fastfps(scan.points, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds,
-                           size=None if size is None else min(int(size), len(scan)), rho=rho, progress=progress)
-    build: dict[str, Any] = {"seeds_given": seeds is not None}
-    if fb is not None:
-        build.update(fb.build)
-    return ScanRecord(
-        scan=scan,
-        ordering=ordering,
-        build=build,
-        importance=fb.importance if fb else {},
-        orderings=fb.orderings if fb else {},
-    )
+    options = BuildOptions.make(voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, size=size, rho=rho,
+                                **features)
+    return record(scan, options, progress=progress)
 
 
 @strict_keywords(extra=FEATURE_OPTIONS)
@@ -94,6 +69,7 @@ def build_archive(
     seam_spacing: float | None = None,
     crs: str | None = None,
     crs_override: bool = False,
+    options: BuildOptions | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: Any = None,
@@ -116,7 +92,7 @@ def build_archive(
     is atomic: the scans already in it are untouched whatever happens, and a killed build resumes
     where it stopped.
 
-    Scans larger than the memory budget take the tiled path (:mod:`lodbuilder.sampling.tiled`):
+    Scans larger than the memory budget take the tiled path (:mod:`lodbuilder.build.tiled`):
     ``max_memory`` (bytes, or text like ``"3GB"``; default 60 % of this machine's memory) is the
     budget of the build's whole process tree on this machine (with a remote ``scheduler``: of each
     worker); a scan whose in-memory build would exceed it is read in chunks, cut into tiles ordered
@@ -124,7 +100,7 @@ def build_archive(
     a point merged from one tile keeps at least this fraction of its merge radius from the earlier
     points of other tiles, so points of different tiles in any level are at least A / (1 + A) times
     the level's radius apart (0.2 at the default, 0.5 at 1, which costs covering at equal size:
-    see :data:`lodbuilder.sampling.tiled.SEAM_ALPHA`; 0: no repair). ``joint=True`` (or a scan name) orders every input scan,
+    see :data:`lodbuilder.build.tiled.SEAM_SPACING`; 0: no repair). ``joint=True`` (or a scan name) orders every input scan,
     posed, as one surface: one scan in the archive whose points keep ``scan_id`` and
     ``scan_point`` (their index in their own scan) attributes.
 
@@ -142,12 +118,39 @@ def build_archive(
     (nothing is written); with several, failed scans are reported in the result and the others
     are built (``raise_on_failure=True`` raises a BuildError naming them after the others are in,
     ``False`` never raises).
-    """
-    from .collection.runner import build
 
-    return build(inputs, archive, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
-                 dask_local=dask_local, voxel_size=voxel_size, band_radius=band_radius, seeds=seeds, size=size,
-                 rho=rho, force=force, overwrite=overwrite, max_memory=max_memory, joint=joint,
-                 seam_spacing=seam_spacing, crs=crs, crs_override=crs_override,
-                 raise_on_failure=raise_on_failure, progress=progress,
-                 on_status=on_status, _tile_points=_tile_points, _tile_passes=_tile_passes, **features)
+    ``options``: a :class:`~lodbuilder.build.options.BuildOptions` made beforehand, instead of the
+    option keywords (voxel_size, band_radius, seeds, size, rho, max_memory, seam_spacing, crs,
+    crs_override and the feature options); giving both is refused.
+    """
+    from .build.runner import build
+
+    given = {"voxel_size": voxel_size, "band_radius": band_radius, "seeds": seeds, "size": size, "rho": rho,
+             "max_memory": max_memory, "seam_spacing": seam_spacing, "crs": crs,
+             "tile_points": _tile_points, "tile_passes": _tile_passes,
+             **{k: v for k, v in features.items() if v is not None}}
+    if options is None:
+        options = BuildOptions.make(crs_override=crs_override, **given)
+    elif any(v is not None for v in given.values()) or crs_override:
+        named = ", ".join(k for k, v in given.items() if v is not None) or "crs_override"
+        raise InputError(f"build options given twice: options= and {named}; put them all in options= "
+                         "(BuildOptions.make(...)) or pass keywords only")
+    return build(inputs, archive, options, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
+                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint,
+                 raise_on_failure=raise_on_failure, progress=progress, on_status=on_status)
+
+
+def _build_keywords() -> list[str]:
+    import inspect
+
+    names = [p.name for p in inspect.signature(build_archive).parameters.values()
+             if p.kind is inspect.Parameter.KEYWORD_ONLY]
+    return names + list(FEATURE_OPTIONS)
+
+
+@strict_keywords(extra=_build_keywords)
+def build_collection(inputs: Any = (), archive: str | os.PathLike[str] = "collection.h5", *,
+                     raise_on_failure: bool = False, **options: Any) -> BuildResult:
+    """:func:`build_archive` that reports failed scans in the result instead of raising (unless
+    ``raise_on_failure``: then a BuildError names them after every other scan is merged)."""
+    return build_archive(inputs, archive, raise_on_failure=raise_on_failure, **options)

@@ -15,8 +15,8 @@ N = 300
 def make_archive(path: Path) -> Path:
     """A valid 300-point archive with one scan 'wavy' (normals, colours and a uint16 intensity)."""
     import lodbuilder
-    from lodbuilder.archive.demo_surface import demo_scan
     from lodbuilder.archive.writer import ScanRecord, update_archive
+    from lodbuilder.datasets import demo_scan
 
     scan = demo_scan(N, seed=3, name=SCAN)
     scan.attributes["intensity"] = np.arange(N, dtype=np.uint16) * 7

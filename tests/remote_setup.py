@@ -29,8 +29,8 @@ def synthetic_ordering(n: int, rng: np.random.Generator) -> Any:
 def synthetic_record(n: int, name: str, seed: int = 0) -> Any:
     """A ``ScanRecord`` of a *synthetic* wavy scan with an intensity attribute and a
     :func:`synthetic_ordering`: this builds a 200k-point archive in a second."""
-    from lodbuilder.archive.demo_surface import demo_scan
     from lodbuilder.archive.writer import ScanRecord
+    from lodbuilder.datasets import demo_scan
 
     scan = demo_scan(n, kind="wavy", seed=seed, name=name)
     rng = np.random.default_rng(seed)

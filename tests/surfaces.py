@@ -89,7 +89,7 @@ def geodesic_cylinder(points: np.ndarray, src: int, radius: float) -> np.ndarray
 
 
 def unfold_folded(points: np.ndarray, gap: float, length: float) -> np.ndarray:
-    """(N, 2) coordinates of ``lodbuilder.archive.demo_surface.folded_sheet`` laid flat.
+    """(N, 2) coordinates of ``lodbuilder.datasets.folded_sheet`` laid flat.
 
     The sheet is developable and unfolds to the rectangle [0, 2 length + pi gap / 2] x [0, width],
     which is convex, so the geodesic distance on the sheet is the Euclidean distance here."""

@@ -26,7 +26,7 @@ from surfaces import (
 )
 
 from lodbuilder import fastfps
-from lodbuilder.archive.demo_surface import folded_sheet
+from lodbuilder.datasets import folded_sheet
 from lodbuilder.sampling.band import band_distance, build_band, plan_band, sheet_separation
 
 # a rotation that puts a plane at a generic angle to the grid

@@ -25,7 +25,7 @@ PACKAGES = [
     "lodbuilder.viewer.source",
     "lodbuilder.archive.reader",
     "lodbuilder.archive.scanview",
-    "lodbuilder.sampling.fill",
+    "lodbuilder.fill",
 ]
 NOT_HERE: set[str] = set()
 

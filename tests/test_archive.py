@@ -11,9 +11,9 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive import layout as L
-from lodbuilder.archive.demo_surface import demo_scan
 from lodbuilder.archive.validate import validate_archive
 from lodbuilder.archive.writer import ScanRecord, add_importance, add_ordering, update_archive
+from lodbuilder.datasets import demo_scan
 from lodbuilder.errors import (
     ArchiveError,
     CorruptArchiveError,

@@ -15,7 +15,6 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive import layout as L
-from lodbuilder.archive.demo_surface import demo_scan
 from lodbuilder.archive.validate import validate_archive
 from lodbuilder.archive.writer import (
     ScanRecord,
@@ -23,6 +22,7 @@ from lodbuilder.archive.writer import (
     update_archive,
     write_record,
 )
+from lodbuilder.datasets import demo_scan
 
 CHILD = r"""
 import sys, numpy as np
@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import lodbuilder
 from lodbuilder.archive import files as F, writer as W, scanwriter as SW
-from lodbuilder.archive.demo_surface import demo_scan
+from lodbuilder.datasets import demo_scan
 
 archive, op, moment = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
 pdir = W.parts_dir(archive)
@@ -320,7 +320,7 @@ def test_open_reader_keeps_a_consistent_view_while_a_scan_is_added(base_archive)
 CONCURRENT_CHILD = r"""
 import sys
 import lodbuilder
-from lodbuilder.archive.demo_surface import demo_scan
+from lodbuilder.datasets import demo_scan
 from lodbuilder.archive.writer import ScanRecord, update_archive
 for j in range(4):
     scan = demo_scan(800 + 100 * j, seed=j, name=f"{sys.argv[2]}{j}")

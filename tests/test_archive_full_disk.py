@@ -16,9 +16,9 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive import files as F
-from lodbuilder.archive.demo_surface import demo_scan
 from lodbuilder.archive.validate import validate_archive
 from lodbuilder.archive.writer import ScanRecord, update_archive
+from lodbuilder.datasets import demo_scan
 from lodbuilder.errors import ArchiveError
 
 

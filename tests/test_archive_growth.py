@@ -12,7 +12,6 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive import layout as L
-from lodbuilder.archive.demo_surface import demo_scan
 from lodbuilder.archive.scanwriter import ScanWriter, write_index
 from lodbuilder.archive.validate import validate_archive
 from lodbuilder.archive.writer import (
@@ -24,6 +23,7 @@ from lodbuilder.archive.writer import (
     write_archive,
     write_record,
 )
+from lodbuilder.datasets import demo_scan
 from lodbuilder.errors import ArchiveError, CorruptArchiveError, InputError, UnsafeArchiveError
 from lodbuilder.io import Scan
 

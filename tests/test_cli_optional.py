@@ -54,7 +54,7 @@ def one_error_line(proc, command):
 @pytest.fixture(scope="module")
 def archive(tmp_path_factory):
     import lodbuilder
-    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.datasets import demo_scan
 
     path = tmp_path_factory.mktemp("opt") / "a.h5"
     lodbuilder.build_archive(demo_scan(600, seed=3), path)

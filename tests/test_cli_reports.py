@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import lodbuilder
-from lodbuilder.archive.demo_surface import demo_scan
 from lodbuilder.cli.main import main
+from lodbuilder.datasets import demo_scan
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lodbuilder.build.inputs import expand_inputs
+from lodbuilder.build.runner import parts_dir
 from lodbuilder.collection import (
     build_collection,
     collection_level,
@@ -25,10 +27,9 @@ from lodbuilder.collection import (
     scan_level,
     total_points,
 )
-from lodbuilder.collection.inputs import apply_pose, expand_inputs
-from lodbuilder.collection.runner import parts_dir
 from lodbuilder.errors import BuildError, InputError
 from lodbuilder.io import read_scan, write_points
+from lodbuilder.io.pose import apply_pose
 
 STEP = 8
 
@@ -243,15 +244,15 @@ def test_resume_after_a_killed_build(shared_data, tmp_path):
 
 
 def test_finished_part_of_a_killed_build_is_merged_not_rebuilt(tmp_path):
-    from lodbuilder.collection.jobs import build_one
-    from lodbuilder.collection.runner import _params, plan_jobs
+    from lodbuilder.build.jobs import build_one
+    from lodbuilder.build.options import BuildOptions
+    from lodbuilder.build.runner import plan_jobs
 
     files = _generated(tmp_path)
     out = tmp_path / "r.h5"
     build_collection(files[:2], out, workers=1, raise_on_failure=True)
     # what a worker of a killed build leaves behind: a finished part that was never merged
-    params = _params(None, None, None, None)
-    jobs, recovered, skipped, failed = plan_jobs(expand_inputs(files), out, params)
+    jobs, recovered, skipped, failed = plan_jobs(expand_inputs(files), out, BuildOptions())
     assert [j.name for j in jobs] == ["good2"] and len(skipped) == 2 and not recovered and not failed
     parts_dir(out).mkdir()
     summary = build_one(jobs[0])
@@ -315,7 +316,7 @@ def test_existing_dask_scheduler_address(tmp_path):
 
 
 def test_unreachable_dask_scheduler(tmp_path, monkeypatch):
-    import lodbuilder.collection.runner as runner
+    import lodbuilder.build.runner as runner
 
     monkeypatch.setattr(runner, "DASK_CONNECT_TIMEOUT", "1s")
     files = _generated(tmp_path, n=1, npts=100)

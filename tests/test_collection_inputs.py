@@ -5,16 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lodbuilder.build.inputs import safe_name, unique_names
 from lodbuilder.collection import expand_inputs, read_manifest
-from lodbuilder.collection.inputs import (
-    apply_pose,
-    bmesh_pose,
-    quaternion_matrix,
-    safe_name,
-    unique_names,
-)
 from lodbuilder.errors import InputError, ScanFileError
 from lodbuilder.io import read_scan, write_points
+from lodbuilder.io.pose import apply_pose, bmesh_pose, quaternion_matrix
 
 
 def _touch_ply(path, n=5, seed=0):

@@ -318,7 +318,7 @@ def test_copc_round_trips_through_lodbuilder(autzen, autzen_copc_rr, tmp_path):
 
 def test_export_of_a_level_and_a_coloured_scan(tmp_path, capsys):
     import lodbuilder
-    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.datasets import demo_scan
 
     arc = tmp_path / "demo.h5"
     lodbuilder.build_archive(demo_scan(30000, seed=2), arc, name="demo", importance="curvature")
@@ -482,7 +482,7 @@ def test_export_from_an_archive_over_http(tmp_path):
     from rangeserver import RangeServer  # (tests/rangeserver.py)
 
     import lodbuilder
-    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.datasets import demo_scan
 
     root = tmp_path / "served"
     root.mkdir()

@@ -37,7 +37,7 @@ CHROMIUM_ARGS = [
 def demo_archive(tmp_path_factory):
     """A 3,000-point coloured sheet with a curvature importance map."""
     import lodbuilder
-    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.datasets import demo_scan
 
     out = tmp_path_factory.mktemp("arc") / "demo.h5"
     lodbuilder.build_archive(demo_scan(3000, seed=3), out, name="demo", importance="curvature")

@@ -567,7 +567,7 @@ def test_every_kernel_is_compiled_for_one_signature_only(rng):
     # the warm-up compiles each kernel for one signature; an ordering (plain, weighted, thin) must
     # not need any other, or a cold first run would compile twice
     from lodbuilder._kernels.warm import _dispatcher, signatures
-    from lodbuilder.archive.demo_surface import folded_sheet
+    from lodbuilder.datasets import folded_sheet
 
     fastfps(sphere(3000, rng))
     fastfps(sphere(3000, rng), cost=rng.uniform(0.2, 1.0, 3000))
@@ -642,7 +642,7 @@ def test_the_compile_child_runs_only_when_a_core_is_free(monkeypatch):
 def test_small_orderings_do_not_trim_the_heap(rng, monkeypatch):
     # malloc_trim walks the heap and the next phase faults the pages in again: a fixed cost that
     # only pays off when the phases free hundreds of MB
-    import lodbuilder.sampling.fastfps as F
+    import lodbuilder._resources as F
 
     calls = []
     monkeypatch.setattr(F, "_LIBC", lambda pad: calls.append(pad))

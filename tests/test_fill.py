@@ -15,10 +15,10 @@ from surfaces import jittered_plane, sphere
 import lodbuilder
 from lodbuilder.archive.writer import ScanRecord, update_archive
 from lodbuilder.errors import InputError
+from lodbuilder.fill import SYNTHETIC, fill_level, find_gaps
+from lodbuilder.fill.gaps import GRID_FRACTION, SAMPLE_FRACTION
+from lodbuilder.fill.insert import farthest_insert, region_attributes, stop_distance
 from lodbuilder.io.base import Scan
-from lodbuilder.sampling.fill import SYNTHETIC, fill_level, find_gaps
-from lodbuilder.sampling.fill.gaps import GRID_FRACTION, SAMPLE_FRACTION
-from lodbuilder.sampling.fill.insert import farthest_insert, region_attributes, stop_distance
 
 RHO = 0.03
 #: (centre, radius in units of rho): three holes inside the unit square
@@ -351,7 +351,7 @@ def test_wave_holes_are_filled_on_the_wave(punched_wave):
 def test_the_spline_cross_validated_best_is_chosen():
     """HeightField.select keeps the spline of KERNELS whose sector cross-validation error is the
     smallest, and its heights are that spline's."""
-    from lodbuilder.sampling.fill.surface import KERNELS, HeightField
+    from lodbuilder.fill.surface import KERNELS, HeightField
 
     rng = np.random.default_rng(4)
     uv = rng.uniform(-10, 10, (2000, 2))
@@ -396,7 +396,7 @@ def test_farthest_insert_matches_naive(seed, m, k, stop):
 def test_a_hole_off_the_seeds_centre_is_found(plane):
     """Seeds gathered on one side of a hole put the grid off its centre: the region reaches the
     grid's edge there, and the grid is laid again centred on it (not taken for an open border)."""
-    from lodbuilder.sampling.fill.gaps import _regions_of_group
+    from lodbuilder.fill.gaps import _regions_of_group
 
     view = plane.view
     sample = view.points(view.size_for_rho(SAMPLE_FRACTION * RHO))
@@ -420,7 +420,7 @@ def test_a_hole_next_to_a_border_is_kept(plane):
     hole enclosed and the bite reaching its edge. The grids laid again for the bite (wider, then
     centred on it) no longer hold the whole hole; the hole found first is kept (it was dropped,
     and a hole of a real scan, the bunny's, was left unfilled)."""
-    from lodbuilder.sampling.fill.gaps import _regions_of_group
+    from lodbuilder.fill.gaps import _regions_of_group
 
     view = plane.view
     sample = view.points(view.size_for_rho(SAMPLE_FRACTION * RHO))

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 import lodbuilder
-from lodbuilder.archive.levels import covering_bound
 from lodbuilder.cli.main import main
 from lodbuilder.collection import collection_level, scan_level
 from lodbuilder.errors import InputError
+from lodbuilder.levels import covering_bound
 from lodbuilder.quality import prefix_sizes
 from lodbuilder.sampling.ordering import Ordering
 from lodbuilder.viewer.source import load_view_data
@@ -154,7 +154,7 @@ def test_extra_ordering_levels_agree(archive, tmp_path, capsys):
 def test_merged_scans_in_the_viewer_are_the_collection_level(tmp_path):
     """view of a multi-scan archive merges the scans by radius: its level at rho is the union of
     every scan's level at rho, as collection_level (slice --all-scans) gives it."""
-    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.datasets import demo_scan
 
     path = tmp_path / "two.h5"
     for name, kind in (("wavy", "wavy"), ("ball", "sphere")):

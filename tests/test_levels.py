@@ -11,11 +11,11 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 import lodbuilder
-from lodbuilder.archive import levels as LV
-from lodbuilder.archive.demo_surface import demo_scan
-from lodbuilder.archive.levels import representatives
+from lodbuilder import levels as LV
 from lodbuilder.archive.writer import ScanRecord, update_archive
+from lodbuilder.datasets import demo_scan
 from lodbuilder.errors import InputError
+from lodbuilder.levels import representatives
 
 RHOS = [0.2, 0.08, 0.03, 0.012]
 
@@ -175,7 +175,7 @@ def test_cell_averaged_attributes(arc):
 
 @pytest.mark.parametrize("kind", ["wavy", "sphere", "torus", "folded"])
 def test_generated_surfaces_lie_on_their_surface(kind):
-    from lodbuilder.archive.demo_surface import make_surface
+    from lodbuilder.datasets import make_surface
 
     pts, nrm = make_surface(kind, 2000, seed=4)
     assert pts.shape == (2000, 3) and np.isfinite(pts).all()
@@ -205,7 +205,7 @@ def test_to_polydata(arc):
     assert {"red", "nx", "radius", "rank", "source_index"} <= set(poly.point_data.keys())
 
 
-# --- the level arithmetic of lodbuilder.archive.levels against brute force -------------------
+# --- the level arithmetic of lodbuilder.levels against brute force -------------------
 
 
 def radius_arrays():

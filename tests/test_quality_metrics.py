@@ -177,7 +177,7 @@ def test_prefix_sizes():
     # rho 3: the first prefix whose next radius is <= 3 has 2 points
     assert prefix_sizes(radius, 6, rhos=[3.0, 0.75, 10.0]) == [(2, 3.0), (5, 0.75), (1, 10.0)]
     assert prefix_sizes(radius, 6, fractions=[0.5]) == [(3, 3.0)]
-    # halves go up, as for every level (lodbuilder.archive.levels.size_for_fraction): 2.5 -> 3
+    # halves go up, as for every level (lodbuilder.levels.size_for_fraction): 2.5 -> 3
     assert prefix_sizes(radius[:5], 5, fractions=[0.5]) == [(3, 3.0)]
     with pytest.raises(InputError, match=r"fraction 0.9 is 7 points, more than the 5 the ordering"):
         prefix_sizes(radius[:5], 8, fractions=[0.9])

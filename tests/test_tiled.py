@@ -118,7 +118,7 @@ def test_tiled_and_in_memory_write_the_same_layout(tmp_path, capsys):
 
 
 def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypatch):
-    import lodbuilder.sampling.tiled.driver as driver
+    import lodbuilder.build.tiled.driver as driver
 
     rng = np.random.default_rng(1)
     keep = tmp_path / "t.h5"
@@ -143,8 +143,8 @@ def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypa
 
 def test_small_blocks_everywhere_give_the_same_archive(tmp_path, monkeypatch):
     """Chunked reads, bucketed writes and block merges agree with one block (many of each)."""
-    import lodbuilder.sampling.tiled.workdir as workdir
-    import lodbuilder.sampling.tiled.write as write
+    import lodbuilder.build.tiled.workdir as workdir
+    import lodbuilder.build.tiled.write as write
 
     rng = np.random.default_rng(9)
     pts = wavy(2400, rng)
@@ -171,7 +171,7 @@ def test_seam_spacing_across_tiles(tmp_path, alpha):
     completes from every earlier point of another tile or of the coarse level (alpha times its
     merge radius, which is at least radius / (1 + alpha)): 0.2 at the default (None: 0.25), 0.5 at
     1; without the repair and the second pass, seams crowd."""
-    from lodbuilder.sampling.tiled import SEAM_ALPHA
+    from lodbuilder.build.tiled import SEAM_SPACING
 
     rng = np.random.default_rng(4)
     pts = wavy(10_000, rng)
@@ -182,9 +182,9 @@ def test_seam_spacing_across_tiles(tmp_path, alpha):
         d, _ = _build(tmp_path, pts, tile_points=1200, name=name, **one, **({} if a is None else {"seam_spacing": a}))
         tiled = d["build"]["tiled"]
         assert tiled["tiles"] >= 8
-        assert tiled["seam_alpha"] == (SEAM_ALPHA if a is None else a)
+        assert tiled["seam_alpha"] == (SEAM_SPACING if a is None else a)
         if alpha is None and name == "rep":
-            assert SEAM_ALPHA == 0.25
+            assert SEAM_SPACING == 0.25
             assert ("between points of different tiles is at least seam_alpha / (1 + seam_alpha) times the "
                     "level's radius (0.2 at the default seam_alpha 0.25, 0.5 at seam_alpha 1)") in tiled["guarantees"]
         alpha_used = tiled["seam_alpha"] if name == "rep" else 1.0
@@ -204,7 +204,7 @@ def test_seam_spacing_across_tiles(tmp_path, alpha):
 
 
 def test_tiles_of_one_colour_are_never_neighbours():
-    from lodbuilder.sampling.tiled.plan import Tile, colour_tiles, tile_neighbours
+    from lodbuilder.build.tiled.plan import Tile, colour_tiles, tile_neighbours
 
     # a 3 x 3 board of unit boxes: with a halo every box touches its 8 neighbours (4 colours)
     tiles = [Tile(3 * i + j, ((0, 1), (0, 1), (0, 1)), np.array([i, j, 0.0]), np.array([i + 1, j + 1, 1.0]), 10)
@@ -261,7 +261,7 @@ def test_progress_moves_through_the_phases(tmp_path):
         done = [d for d, _ in calls]
         assert done == sorted(done) and done[-1] == calls[-1][1], stage  # counts up to the total
     assert seen["read"][-1] == (len(scan), len(scan))
-    from lodbuilder.sampling.tiled.driver import TILE_PASSES
+    from lodbuilder.build.tiled.driver import TILE_PASSES
 
     n_tiles = seen["covering"][-1][1]
     assert n_tiles >= 4 and seen["tiles"][-1] == (TILE_PASSES * n_tiles,) * 2  # every tile, every pass
@@ -325,7 +325,7 @@ def test_the_coarse_copy_fits_one_worker(tmp_path):
     """The decimated copy is ordered by one worker: it is never larger than a tile the budget allows
     (before: n // 8 points whatever the budget, so a 4M-point survey at --max-memory 1.6GB with 2
     workers failed with 'the coarse level failed: ... needs more than ... voxels')."""
-    from lodbuilder.sampling.tiled import plan as P
+    from lodbuilder.build.tiled import plan as P
 
     budget = P.PARENT_MIN + P.PROCESS_BYTES + 2500 * P.TILE_BYTES_PER_POINT
     fits = P.tile_capacity(budget, 1)

@@ -10,8 +10,8 @@ from scipy.spatial import cKDTree
 import lodbuilder
 from lodbuilder.cli.main import main
 from lodbuilder.collection import collection_level, expand_inputs
-from lodbuilder.collection.inputs import apply_pose
 from lodbuilder.io import Scan, read_scan, write_points
+from lodbuilder.io.pose import apply_pose
 
 STEP = 4
 

@@ -10,7 +10,7 @@ Sections (all inputs synthetic, generated here with fixed seeds):
   mean and max relative error |d - g| / g over the points with g >= ``--min-geo`` voxels (default
   1, so nearly every point), the signed mean, and the largest absolute error in voxels.
 * ``covering``: the full default ordering of a sheet folded over itself
-  (``lodbuilder.archive.demo_surface.folded_sheet``, two unit squares, random points) at
+  (``lodbuilder.datasets.folded_sheet``, two unit squares, random points) at
   gap 0.02 / 200k points and gap 0.01 / 400k points; for every level rho (a geometric series from
   0.24 down to 3 point spacings) the geodesic covering radius of the prefix (exact: the sheet
   unfolds to a rectangle) divided by rho, and the same for Euclidean FPS (fpsample) at equal size.
@@ -72,7 +72,7 @@ def header(args: argparse.Namespace) -> dict:
 
 def metric_case(kind: str, scale: float, min_geo: float, seed: int = 0) -> dict:
     """Band distance vs geodesic on one surface whose size is ``scale`` default voxels."""
-    from lodbuilder.archive.demo_surface import folded_sheet
+    from lodbuilder.datasets import folded_sheet
     from lodbuilder.sampling.band import band_distance
 
     rng = np.random.default_rng(seed)
@@ -151,7 +151,7 @@ def covering_case(n: int, gap: float, with_fps: bool, seed: int = 5) -> dict:
     from scipy.spatial import cKDTree
 
     import lodbuilder
-    from lodbuilder.archive.demo_surface import folded_sheet
+    from lodbuilder.datasets import folded_sheet
 
     pts, _ = folded_sheet(n, seed=seed, length=1.0, width=1.0, gap=gap)
     spacing = math.sqrt((2 + math.pi * gap / 2) / n)

@@ -56,8 +56,9 @@ def range_scan_sheet(n: int, seed: int = 0) -> np.ndarray:
 
 
 def bunny_points() -> np.ndarray:
-    from lodbuilder.collection.inputs import apply_pose, expand_inputs
+    from lodbuilder.build.inputs import expand_inputs
     from lodbuilder.io import read_scan
+    from lodbuilder.io.pose import apply_pose
 
     parts = []
     for src in expand_inputs(manifest=SHARED / "bun.conf"):

@@ -68,7 +68,7 @@ def machine_scaling(path: Path, rounds: int = 3) -> dict:
     at once. The ratio is the best speed-up this machine gives two processes right now."""
     import concurrent.futures as cf
 
-    from lodbuilder.collection.executors import mp_context as _mp_context
+    from lodbuilder.build.executors import mp_context as _mp_context
 
     serial, parallel = [], []
     with cf.ProcessPoolExecutor(max_workers=2, mp_context=_mp_context()) as ex:
@@ -127,8 +127,8 @@ def joint(manifest: Path, rhos: list[float], tiles_memory: str | None = None) ->
 
     import lodbuilder
     from lodbuilder.collection import collection_level, expand_inputs
-    from lodbuilder.collection.inputs import apply_pose
     from lodbuilder.io import Scan, read_scan
+    from lodbuilder.io.pose import apply_pose
 
     srcs = expand_inputs([manifest])
     merged = np.vstack([apply_pose(read_scan(s.path).points, s.pose) for s in srcs])

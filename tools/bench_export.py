@@ -242,13 +242,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
     import lodbuilder
-    from lodbuilder.archive.demo_surface import demo_scan
+    from lodbuilder.datasets import demo_scan
 
     result = stamp(
         "bench_export",
         argv,
         inputs=f"archive {args.archive}" if args.archive else "synthetic wavy sheet with RGB "
-        f"(lodbuilder.archive.demo_surface.demo_scan), {args.points:,} points",
+        f"(lodbuilder.datasets.demo_scan), {args.points:,} points",
         synthetic=not args.archive,
     )
     with tempfile.TemporaryDirectory(prefix="bench-export-") as tmp:

@@ -195,7 +195,7 @@ def build(points: np.ndarray, attributes: dict, name: str, path: Path) -> float:
 
 def fill_times(path: Path, rho: float, repeat: int):
     import lodbuilder
-    from lodbuilder.sampling.fill import fill_level, find_gaps
+    from lodbuilder.fill import fill_level, find_gaps
 
     with lodbuilder.open_archive(path) as arc:
         view = arc.scan()
@@ -362,7 +362,7 @@ def real_part(
 def synthetic_part(
     n: int, spacings: float, fraction: float, seed: int, work: Path, repeat: int
 ) -> dict:
-    from lodbuilder.archive.demo_surface import wavy_sheet
+    from lodbuilder.datasets import wavy_sheet
 
     pts, _ = wavy_sheet(n, seed=seed)
     rho = spacings / math.sqrt(n)

@@ -67,7 +67,7 @@ def log(msg: str) -> None:
 
 
 def load_inputs(args) -> dict[str, dict]:
-    from lodbuilder.archive.demo_surface import folded_sheet, wavy_sheet
+    from lodbuilder.datasets import folded_sheet, wavy_sheet
     from lodbuilder.io import read_scan
 
     wanted = set(args.only.split(",")) if args.only else None
@@ -81,7 +81,8 @@ def load_inputs(args) -> dict[str, dict]:
             continue
         out[name] = {"points": read_scan(path).points, "source": fn, "kind": "real scan"}
     if not wanted or "bunny_posed" in wanted:
-        from lodbuilder.collection.inputs import apply_pose, expand_inputs
+        from lodbuilder.build.inputs import expand_inputs
+        from lodbuilder.io.pose import apply_pose
 
         conf = DATA / "bun.conf"
         if conf.exists():

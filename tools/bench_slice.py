@@ -33,8 +33,8 @@ from remote_setup import synthetic_ordering  # noqa: E402
 
 
 def synthetic_record(n: int, seed: int, real: bool):
-    from lodbuilder.archive.demo_surface import demo_scan
     from lodbuilder.archive.writer import ScanRecord
+    from lodbuilder.datasets import demo_scan
 
     scan = demo_scan(n, kind="wavy", seed=seed, name=f"wavy{n}")
     scan.attributes["intensity"] = np.random.default_rng(seed).random(n).astype(np.float32)

@@ -118,7 +118,7 @@ def limits_picture(out: Path, work: Path) -> str:
     import matplotlib.pyplot as plt
 
     import lodbuilder
-    from lodbuilder.sampling.fill import SYNTHETIC, fill_level
+    from lodbuilder.fill import SYNTHETIC, fill_level
 
     rho = 0.03
     rng = np.random.default_rng(4)
@@ -189,8 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import lodbuilder
+    from lodbuilder.fill import SYNTHETIC, fill_level
     from lodbuilder.io import read_scan
-    from lodbuilder.sampling.fill import SYNTHETIC, fill_level
 
     scan = read_scan(args.scan)
     keep, centres, _ = punch(scan.points, args.rho, args.holes, args.seed)

@@ -2,7 +2,7 @@
 
     python tools/surfaces.py wavy -n 20000 --seed 1 --noise 0.0005 -o wavy.ply
 
-The generators live in the package (lodbuilder.archive.demo_surface) so that ``lodbuilder demo``
+The generators live in the package (lodbuilder.datasets) so that ``lodbuilder demo``
 works from an installed package; this script is their command line. Import ``make_surface`` or
 ``demo_scan`` from here or from the package.
 """
@@ -13,7 +13,7 @@ import argparse
 import json
 import sys
 
-from lodbuilder.archive.demo_surface import SURFACES, demo_scan, make_surface
+from lodbuilder.datasets import SURFACES, demo_scan, make_surface
 
 __all__ = ["SURFACES", "demo_scan", "make_surface", "main"]
 

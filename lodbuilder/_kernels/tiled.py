@@ -139,7 +139,7 @@ def _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, pti
 @nb.njit(**JIT)
 def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
                dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key):  # pragma: no cover
-    """Merge tile streams by descending key, repairing seams (see lodbuilder.sampling.tiled.merge).
+    """Merge tile streams by descending key, repairing seams (see lodbuilder.build.tiled.merge).
 
     ``bufs`` (T, B, 6): per tile, rows (g, key, x, y, z, margin) of its stream; ``bpos``/``blen``
     the read position and length of each buffer. ``theap``/``tn``: max-heap (T, 2) of the tiles

@@ -216,6 +216,15 @@ def from_json(text: Any) -> Any:
 # coordinates
 
 
+def choose_encoding(encodings: set[str]) -> str:
+    """One coordinate encoding for every block of a scan written in blocks: the one all chunks share, else the widest."""
+    if len(encodings) == 1:
+        return next(iter(encodings))
+    if encodings <= {"int32", "int64"}:
+        return "int64"
+    return "float64"
+
+
 def encode_points(points: np.ndarray, metadata: dict[str, Any] | None = None):
     """Choose the smallest lossless storage of ``points``.
 

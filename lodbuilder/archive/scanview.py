@@ -12,9 +12,7 @@ import numpy as np
 
 from .._validate import check_positive, check_size, quoted_names, strict_methods
 from ..errors import InputError
-from . import checks, safety
-from . import layout as L
-from .levels import (
+from ..levels import (
     Level,
     box_positions,
     cell_average,
@@ -30,6 +28,8 @@ from .levels import (
     viewpoint_positions,
     viewpoint_sizes,
 )
+from . import checks, safety
+from . import layout as L
 
 if TYPE_CHECKING:
     from .reader import Archive
@@ -327,7 +327,7 @@ class ScanView:
     def refine_box(
         self, box: Any, rho_inner: Any, rho_outer: Any, *, attributes: Any = True
     ) -> Level:
-        """Finer level inside ``box`` ((2, 3) or 6 numbers): see :mod:`lodbuilder.archive.levels`.
+        """Finer level inside ``box`` ((2, 3) or 6 numbers): see :mod:`lodbuilder.levels`.
 
         Every input point inside the box is within ``rho_inner`` of a kept point; every input
         point is within ``rho_outer``."""

@@ -110,8 +110,9 @@ def _single_line(res: Any, shown: str) -> str:
 def run(args: argparse.Namespace) -> int:
     from .._validate import check_positive
     from ..api import build_archive
+    from ..build.options import BuildOptions
     from ..errors import InputError
-    from .collection_options import collection_kwargs
+    from .collection_options import collection_kwargs, option_kwargs
     from .feature_options import build_kwargs
     from .output import emit, one_line, progress_enabled, verbosity
     from .progressbar import ProgressBars
@@ -121,8 +122,9 @@ def run(args: argparse.Namespace) -> int:
     out = check_archive_output(args.output, list(args.input or []))
     check_positive(args.voxel_size, "--voxel-size")
     check_positive(args.band_radius, "--band-radius")
-    features = build_kwargs(args)
-    options = collection_kwargs(args)
+    options = BuildOptions.make(voxel_size=args.voxel_size, band_radius=args.band_radius, crs=args.crs,
+                                crs_override=args.crs_override, **option_kwargs(args), **build_kwargs(args))
+    how = collection_kwargs(args)
     show_lines = verbosity(args) >= 0 and not getattr(args, "json", False)
     counter = {"done": 0, "total": 0}
     bars = ProgressBars(enabled=progress_enabled(args))
@@ -140,10 +142,8 @@ def run(args: argparse.Namespace) -> int:
             bars.write(line) if bars.active else print(line, file=sys.stderr)
 
     with bars:
-        res = build_archive(list(args.input or []), out, name=args.name, voxel_size=args.voxel_size,
-                            band_radius=args.band_radius, overwrite=args.overwrite, crs=args.crs,
-                            crs_override=args.crs_override, progress=progress, on_status=on_status,
-                            **options, **features)
+        res = build_archive(list(args.input or []), out, options=options, name=args.name,
+                            overwrite=args.overwrite, progress=progress, on_status=on_status, **how)
     single = len(res.scans) == 1
     emit(args, res.to_json(), lambda: _single_line(res, args.output) if single else res.describe(args.output))
     return 1 if res.failed else 0

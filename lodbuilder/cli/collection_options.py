@@ -43,10 +43,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """Keyword arguments of :func:`lodbuilder.build_archive` from the collection options."""
+    """How :func:`lodbuilder.build_archive` runs, from the collection options (what it stores is
+    in the build's :class:`~lodbuilder.build.options.BuildOptions`: :func:`option_kwargs`)."""
     return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
-            "dask_local": args.dask_local, "size": args.size, "force": args.force, "max_memory": args.max_memory,
-            "joint": args.joint, "seam_spacing": args.seam_spacing}
+            "dask_local": args.dask_local, "force": args.force, "joint": args.joint}
+
+
+def option_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """The collection options that are build options (keywords of ``BuildOptions.make``)."""
+    return {"size": args.size, "max_memory": args.max_memory, "seam_spacing": args.seam_spacing}
 
 
 def slice_all(args: argparse.Namespace) -> int:

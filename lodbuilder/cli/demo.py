@@ -43,9 +43,9 @@ FRACTIONS = (0.01, 0.05, 0.25)
 
 def run(args: argparse.Namespace) -> int:
     from ..api import build_archive
-    from ..archive.demo_surface import demo_scan
     from ..archive.reader import open_archive
     from ..archive.writer import check_writable_dir
+    from ..datasets import demo_scan
     from ..errors import InputError
     from ..io import write_points
     from .output import emit, progress_enabled

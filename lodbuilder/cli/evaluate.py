@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         )
     doc, gaps = ev.as_dict(), []
     if args.gaps is not None:
-        from ..sampling.fill import archive_gaps
+        from ..fill import archive_gaps
 
         gaps = archive_gaps(args.archive, args.scan, args.rhos, max_hole=args.gaps)
         doc["gaps"] = [g.as_dict() for g in gaps]

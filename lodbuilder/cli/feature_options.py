@@ -101,7 +101,7 @@ def add_slice_options(p: argparse.ArgumentParser) -> None:
 def floor_level(view: Any, rho: float, size: int, ordering: str | None = None) -> Any:
     """The level of a stored scan for a density floor chosen at query time: the uniform prefix
     covering within ``rho`` united with the ``ordering``'s prefix, exactly ``size`` points."""
-    from ..archive.levels import covering_bound
+    from ..levels import covering_bound
     from ..sampling.adaptive import floor_positions
 
     name = ordering or "weighted"

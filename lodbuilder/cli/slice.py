@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
         if args.fill is not None:
-            from ..sampling.fill import fill_level
+            from ..fill import fill_level
 
             filled = fill_level(view, args.rho, max_hole=args.fill)
             level = filled.level

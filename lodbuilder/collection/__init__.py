@@ -9,9 +9,10 @@ Dask is imported only when a scheduler or dask_local is given.
 
 from __future__ import annotations
 
-from .inputs import ScanSource, expand_inputs, read_manifest
+from ..api import build_collection
+from ..build.inputs import ScanSource, expand_inputs, read_manifest
+from ..build.result import CollectionResult, ScanStatus
 from .query import CollectionLevel, collection_level, list_scans, scan_level, total_points
-from .runner import CollectionResult, ScanStatus, build_collection
 
 __all__ = [
     "CollectionLevel", "CollectionResult", "ScanSource", "ScanStatus", "build_collection",

@@ -141,7 +141,7 @@ def _subset(level: Any, keep: np.ndarray) -> Any:
 @strict_keywords
 def scan_level(archive: str | os.PathLike[str], scan: str | None = None, *, rho: Any = None,
                size: Any = None, fraction: Any = None, attributes: Any = True) -> Any:
-    """A level of one scan (the archive reader's :class:`~lodbuilder.archive.levels.Level`)."""
+    """A level of one scan (the archive reader's :class:`~lodbuilder.levels.Level`)."""
     from ..archive.reader import open_archive
 
     with open_archive(archive) as arc:

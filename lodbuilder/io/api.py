@@ -185,7 +185,7 @@ def write_points(
 ) -> Path:
     """Write points (and per-point attributes) to ``path``, the format chosen by its suffix.
 
-    ``points`` is an (N, 3) array, or a :class:`lodbuilder.archive.levels.Level` (its points,
+    ``points`` is an (N, 3) array, or a :class:`lodbuilder.levels.Level` (its points,
     attributes and CRS are written; ``attributes`` and ``crs`` given here take precedence).
 
     Formats: ``.ply`` (binary little-endian; x, y, z first, then nx ny nz, red green blue alpha,

@@ -121,7 +121,7 @@ def evaluate_archive(
     **kw: Any,
 ) -> ScanEvaluation:
     """Open the archive at ``path`` and evaluate one scan (see :func:`evaluate_scan`)."""
-    from ..api import open_archive
+    from ..archive.reader import open_archive
 
     with open_archive(path) as arc:
         return evaluate_scan(arc.scan(scan), **kw)

@@ -19,8 +19,8 @@ from .._validate import (
     strict_methods,
     validate_points,
 )
-from ..archive.levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..errors import InputError
+from ..levels import count_above, covering_bound, log_sizes, nonempty, size_for_fraction
 from ..progress import ProgressCallback, report
 from .metrics import meets_rho, nearest_distances, spacing, uniformity
 from .surface import ErrorStats, surface_error

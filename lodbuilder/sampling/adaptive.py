@@ -227,7 +227,7 @@ def floor_query_arrays(
     w_order = np.asarray(weighted_order, dtype=np.int64)
     radius = np.asarray(uniform_radius, dtype=np.float64)
     n_ordered = u_order.shape[0]
-    from ..archive.levels import count_above
+    from ..levels import count_above
 
     n_u = count_above(radius, rho)
     if n_u == n_ordered and n_ordered < n_points and (n_ordered == 0 or radius[-1] > rho):

@@ -34,11 +34,12 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from .._resources import cores as _cores
+from .._resources import default_max_memory, release_freed_memory
 from ..errors import InputError, MemoryBudgetError
 
 log = logging.getLogger(__name__)
@@ -81,13 +82,6 @@ def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarr
 
 
 THREAD_MIN_QUERIES = 4096  # fewer queries are answered in this thread alone
-
-
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
 
 
 def _in_two_threads(kernel, u, ostart, cell_keys, queries, k):  # noqa: ANN001 - a numba kernel and its arrays
@@ -150,15 +144,6 @@ def median_spacing(
     if s <= 0.0:
         s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
     return s
-
-
-def default_max_memory() -> int:
-    """60 % of the physical memory."""
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
-        total = 8 << 30
-    return int(0.6 * total)
 
 
 def choose_parameters(
@@ -258,7 +243,6 @@ def plan_and_build_band(
     than OVERLAP_MIN_POINTS too (the thread's start and the hand-overs of the GIL between the two
     threads' NumPy steps cost more than the overlap saves: 1.14 vs 1.00 ms for 453 points, 1.70 vs
     1.65 ms for 1,065; 3.4 vs 3.9 ms the other way for 1,889, with a free core)."""
-    from .fastfps import release_freed_memory
 
     n = points.shape[0]
     h, r = choose_parameters(points, voxel_size, band_radius)

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from .._resources import TRIM_MIN_POINTS, release_freed_memory  # noqa: F401 - TRIM_MIN_POINTS re-exported
 from .._validate import (
     check_positive,
     check_size,
@@ -20,35 +21,6 @@ from ..progress import ProgressCallback, report
 from .ordering import Ordering
 
 log = logging.getLogger(__name__)
-
-
-_LIBC: Any = None
-
-
-TRIM_MIN_POINTS = 200_000  # below this the phases free a few MB: trimming costs more than it returns
-
-
-def release_freed_memory(n_points: int | None = None) -> None:
-    """Give freed heap memory back to the system (glibc's malloc_trim; a no-op elsewhere).
-
-    The kernels allocate and free hundreds of MB per phase through malloc; glibc keeps much of it
-    (its mmap threshold grows with the blocks freed), so without this the process's resident size
-    after a phase stays near that phase's peak and the next phase stacks on top of it. For an
-    ordering of fewer than TRIM_MIN_POINTS points (``n_points``) it does nothing: a trim walks the
-    heap and the next phase faults the returned pages in again (about 6 ms of a 40k-point scan's
-    270 ms)."""
-    global _LIBC
-    if n_points is not None and n_points < TRIM_MIN_POINTS:
-        return
-    if _LIBC is None:
-        try:
-            import ctypes
-
-            _LIBC = ctypes.CDLL("libc.so.6").malloc_trim
-        except (OSError, AttributeError):  # not glibc
-            _LIBC = False
-    if _LIBC:
-        _LIBC(0)
 
 
 def default_seed(points: np.ndarray) -> int:
@@ -119,7 +91,7 @@ def check_ordering(o: Ordering) -> Ordering:
 def _truncate(order, radius, parent, rho, size):
     k = order.shape[0]
     if rho is not None:
-        from ..archive.levels import count_above
+        from ..levels import count_above
 
         k = min(k, count_above(radius, rho))
     if size is not None:

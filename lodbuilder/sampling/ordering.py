@@ -45,8 +45,8 @@ class Ordering:
 
     def size_for_rho(self, rho: float) -> int:
         """Number of leading points whose prefix covers every input point within ``rho``
-        (:func:`lodbuilder.archive.levels.count_above`)."""
-        from ..archive.levels import count_above
+        (:func:`lodbuilder.levels.count_above`)."""
+        from ..levels import count_above
 
         return count_above(self.radius, rho)
 

@@ -490,7 +490,7 @@ class LevelViewer:
         out = Path(out)
         n = len(self.data)
         lo = start if start is not None else max(1, min(n, 10))
-        from ..archive.levels import log_sizes
+        from ..levels import log_sizes
 
         sizes = log_sizes(lo, n, max(2, int(frames)))
         images = []

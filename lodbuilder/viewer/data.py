@@ -113,18 +113,18 @@ class ViewData:
 
     # ---- levels -------------------------------------------------------------------------------
 
-    # the arithmetic is lodbuilder.archive.levels', as for every other level of an archive
+    # the arithmetic is lodbuilder.levels', as for every other level of an archive
 
     def size_for_rho(self, rho: float) -> int:
         """Shortest prefix whose next insertion radius is <= rho (at least 1 point)."""
-        from ..archive.levels import size_for_rho
+        from ..levels import size_for_rho
 
         return size_for_rho(self.radius, float(rho))
 
     def rho_for_size(self, k: int) -> float:
         """The density a prefix of ``k`` points guarantees: the next insertion radius (0 at N;
         the largest finite radius where it is a seed's inf)."""
-        from ..archive.levels import covering_bound
+        from ..levels import covering_bound
 
         r = covering_bound(int(k), len(self), self.radius.__getitem__)
         return r if math.isfinite(r) else self._rmax
@@ -132,14 +132,14 @@ class ViewData:
     def clamp_size(self, k: float) -> int:
         """A point count (the slider's) as a level size: nearest whole number, halves up, in
         [1, N]."""
-        from ..archive.levels import round_size
+        from ..levels import round_size
 
         return round_size(k, len(self))
 
     def resolve_size(self, rho=None, size=None, fraction=None) -> int:
         """Size of the level asked by exactly one of ``rho``, ``size`` or ``fraction``, as an
         archive scan's ``level`` computes it."""
-        from ..archive.levels import resolve_size
+        from ..levels import resolve_size
 
         return resolve_size(len(self), rho, size, fraction, rho_size=self.size_for_rho)
 
@@ -150,7 +150,7 @@ class ViewData:
 
         Every point inside the box is then within rho / factor of a shown point. Sorted positions.
         """
-        from ..archive.levels import box_positions, check_box
+        from ..levels import box_positions, check_box
 
         k = self.clamp_size(k)
         box = check_box(np.concatenate([np.ravel(lo), np.ravel(hi)]))
@@ -219,8 +219,8 @@ class ViewData:
     def gap_codes(self, shown: int | np.ndarray) -> np.ndarray:
         """(N,) 0 / 1 / 2: away from gaps / near a fillable gap / near a rough one, at the level
         shown (its prefix part, for a level refined in a box); see
-        :func:`lodbuilder.sampling.fill.near_gaps`."""
-        from ..sampling.fill import SAMPLE_FRACTION, near_gaps
+        :func:`lodbuilder.fill.near_gaps`."""
+        from ..fill import SAMPLE_FRACTION, near_gaps
 
         if np.isscalar(shown):
             k = self.clamp_size(shown)  # type: ignore[arg-type]

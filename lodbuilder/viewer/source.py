@@ -55,7 +55,7 @@ def load_view_data(
 
     ``archive`` is a path or an open :class:`lodbuilder.archive.reader.Archive`.
     """
-    from ..api import open_archive
+    from ..archive.reader import open_archive
 
     if isinstance(archive, (str, os.PathLike)):
         with open_archive(archive) as arc:

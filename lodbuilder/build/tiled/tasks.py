@@ -37,7 +37,7 @@ def _publish(arr: np.ndarray, path: Path) -> None:
 
 def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
-    from ..fastfps import fastfps
+    from ...sampling.fastfps import fastfps
 
     t0 = time.perf_counter()
     w = Path(work)
@@ -98,7 +98,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     """
     from scipy.spatial import cKDTree
 
-    from ..fastfps import fastfps
+    from ...sampling.fastfps import fastfps
 
     t0 = time.perf_counter()
     w = Path(work)

@@ -11,8 +11,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..errors import InputError
-from ..io.base import Scan
+from .errors import InputError
+from .io.base import Scan
 
 
 def _finish(points, normals, noise, rng):

@@ -1,7 +1,7 @@
 """The one build pipeline: inputs -> scan jobs -> executor -> part archives -> the archive.
 
 A single scan is a collection of one. Every input (a file, several files, directories, globs, a
-manifest, an in-memory :class:`~lodbuilder.io.Scan`) becomes a :class:`~lodbuilder.collection.jobs.ScanJob`
+manifest, an in-memory :class:`~lodbuilder.io.Scan`) becomes a :class:`~lodbuilder.build.jobs.ScanJob`
 submitted to a ``concurrent.futures`` executor: the calling process (one scan, or in-memory
 scans), a local ``ProcessPoolExecutor`` (``workers``), or a Dask client's executor (``scheduler``
 address, or ``dask_local=N`` for a ``LocalCluster``). Each job writes its scan to its own part
@@ -34,22 +34,19 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_positive, strict_keywords
 from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
+from ..io.pose import pose_kind
 from ..progress import ProgressCallback, report
 from .executors import DASK_CONNECT_TIMEOUT, make_executor, one_line
-from .inputs import ScanSource, expand_inputs, pose_kind
+from .inputs import ScanSource, expand_inputs
 from .jobs import ScanJob, build_one, job_key, scan_digest
+from .options import BuildOptions
 from .result import BuildResult, CollectionResult, ScanStatus, StatusCallback
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BuildResult", "CollectionResult", "DASK_CONNECT_TIMEOUT", "ScanStatus", "build", "build_collection",
-           "merge_parts", "parts_dir", "plan_jobs"]
-
-#: the feature-sensitivity options a build takes (see lodbuilder.sampling.adaptive.feature_build)
-FEATURE_OPTIONS = ("importance", "adaptive", "density_floor", "outlier_threshold", "importance_k", "combine")
-
+__all__ = ["BuildResult", "CollectionResult", "DASK_CONNECT_TIMEOUT", "ScanStatus", "build", "merge_parts",
+           "parts_dir", "plan_jobs"]
 
 # ---------------------------------------------------------------------------------------- parts
 
@@ -130,60 +127,6 @@ def _existing_scans(archive: Path) -> dict[str, tuple[str | None, str | None]]:
 
 # ---------------------------------------------------------------------------------------- plan
 
-def make_params(voxel_size: Any = None, band_radius: Any = None, size: Any = None, rho: Any = None,
-                features: dict[str, Any] | None = None, seeds: Any = None) -> dict[str, Any]:
-    """The validated build parameters of every scan of a build (part of the resume key)."""
-    params: dict[str, Any] = {
-        "voxel_size": check_positive(voxel_size, "voxel_size"),
-        "band_radius": check_positive(band_radius, "band_radius"),
-        "rho": check_positive(rho, "rho"),
-        "size": None,
-    }
-    if size is not None:
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-            raise InputError(f"size must be a whole number of points >= 1, got {size!r}")
-        params["size"] = int(size)
-    feats = {k: v for k, v in (features or {}).items() if v is not None}
-    unknown = sorted(set(feats) - set(FEATURE_OPTIONS))
-    if unknown:
-        raise InputError(f"unknown build option(s) {', '.join(map(repr, unknown))}; the feature options are "
-                         f"{', '.join(FEATURE_OPTIONS)}")
-    if feats:
-        if params["size"] is not None or params["rho"] is not None:
-            raise InputError("size/rho (partial orderings) do not combine with feature options; drop one")
-        params["features"] = feats
-    if seeds is not None:
-        import numpy as np
-
-        params["seeds"] = np.asarray(seeds).reshape(-1).tolist()
-    return params
-
-
-_params = make_params  # the name older tests use
-
-
-def tiling_params(params: dict[str, Any], max_memory: Any, seam_alpha: Any, tile_points: Any,
-                  tile_passes: Any = None) -> dict[str, Any]:
-    """Add the tiled build's options to ``params`` (only those given: they enter the resume key)."""
-    from ..sampling.tiled.plan import parse_bytes
-
-    if max_memory is not None:
-        params["max_memory"] = parse_bytes(max_memory, "max_memory")
-    if seam_alpha is not None:
-        try:
-            a = float(seam_alpha)
-        except (TypeError, ValueError):
-            a = float("nan")
-        if not 0.0 <= a <= 1.0:
-            raise InputError(f"seam_spacing must be a number in [0, 1], got {seam_alpha!r}")
-        params["seam_alpha"] = a
-    if tile_points is not None:
-        params["_tile_points"] = int(tile_points)
-    if tile_passes is not None:
-        params["_tile_passes"] = int(tile_passes)
-    return params
-
-
 def _conflict(archive: Path, name: str, old_source: str | None) -> ArchiveError:
     src = f"built from {old_source}" if old_source else "built from another input"
     return ArchiveError(
@@ -192,7 +135,7 @@ def _conflict(archive: Path, name: str, old_source: str | None) -> ArchiveError:
     )
 
 
-def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], *, force: bool = False,
+def plan_jobs(sources: list[ScanSource], archive: Path, options: BuildOptions, *, force: bool = False,
               overwrite: bool = False):
     """Split sources into (jobs to run, recovered parts, skipped, failed-before-start)."""
     from ..io import file_sha256
@@ -220,10 +163,10 @@ def plan_jobs(sources: list[ScanSource], archive: Path, params: dict[str, Any], 
             failed.append(ScanStatus(src.name, where, "failed", error=str(err), exception=err))
             continue
         pose = None if src.pose is None else src.pose.tolist()
-        key = job_key(sha, params, pose, src.scan_index, src.name)
+        key = job_key(sha, options.key_params, pose, src.scan_index, src.name)
         part = _part_path(archive, src.name, key)
         job = ScanJob(name=src.name, path=None if src.path is None else os.path.abspath(src.path), key=key,
-                      part=str(part), params=dict(params), pose=pose, scan_index=src.scan_index, sha256=sha,
+                      part=str(part), options=options, pose=pose, scan_index=src.scan_index, sha256=sha,
                       size_bytes=nbytes, scan=src.scan, pose_kind=pose_kind(src.pose),
                       given=None if src.path is None else str(src.path))
         _place(job, where, existing, archive, force, overwrite, jobs, recovered, skipped, failed)
@@ -247,7 +190,7 @@ def _place(job: ScanJob, where: str, existing: dict[str, tuple[str | None, str |
         jobs.append(job)
 
 
-def plan_joint(sources: list[ScanSource], archive: Path, params: dict[str, Any], name: str, *,
+def plan_joint(sources: list[ScanSource], archive: Path, options: BuildOptions, name: str, *,
                force: bool = False, overwrite: bool = False):
     """One job ordering every source as one surface (a joint build), placed like any scan."""
     import hashlib
@@ -266,9 +209,9 @@ def plan_joint(sources: list[ScanSource], archive: Path, params: dict[str, Any],
         members.append({"id": i, "name": src.name, "path": os.path.abspath(src.path), "source": src.path.name,
                         "sha256": sha, "pose": None if src.pose is None else src.pose.tolist(),
                         "pose_kind": pose_kind(src.pose), "scan_index": src.scan_index})
-    key = job_key(h.hexdigest(), {**params, "joint": True}, [m["pose"] for m in members],
+    key = job_key(h.hexdigest(), {**options.key_params, "joint": True}, [m["pose"] for m in members],
                   None, name)
-    job = ScanJob(name=name, path=None, key=key, part=str(_part_path(archive, name, key)), params=dict(params),
+    job = ScanJob(name=name, path=None, key=key, part=str(_part_path(archive, name, key)), options=options,
                   sha256=h.hexdigest(), size_bytes=sum(Path(m["path"]).stat().st_size for m in members),
                   members=members, tiled=True)
     out: tuple[list, list, list, list] = ([], [], [], [])
@@ -276,18 +219,17 @@ def plan_joint(sources: list[ScanSource], archive: Path, params: dict[str, Any],
     return out
 
 
-def decide_tiling(jobs: list[ScanJob], params: dict[str, Any]) -> None:
+def decide_tiling(jobs: list[ScanJob], options: BuildOptions) -> None:
     """Mark the jobs that take the tiled path: joint builds, and scans whose in-memory build would
     not fit the memory budget (``max_memory``, default 60 % of this machine's memory).
     Partial orderings (size/rho), seeds and feature options are in-memory builds only."""
     from ..io.stream import peek_stream
-    from ..sampling.tiled.plan import needs_tiling
+    from .tiled.plan import needs_tiling
 
-    if params.get("size") is not None or params.get("rho") is not None or params.get("features") \
-            or params.get("seeds") is not None:
+    if options.in_memory_only:
         return
     for job in jobs:
-        if job.members or params.get("_tile_points"):
+        if job.members or options.tile_points:
             job.tiled = True
             continue
         if job.scan is not None:
@@ -303,7 +245,7 @@ def decide_tiling(jobs: list[ScanJob], params: dict[str, Any]) -> None:
                 row = 24 + sum(int(np.dtype(d).itemsize * max(1, int(np.prod(sh)))) for d, sh in st.fields.values())
             else:  # a format that does not stream: about 30 bytes of file per point
                 n, row = (job.size_bytes or 0) // 30, 24
-        job.tiled = needs_tiling(n, row, params.get("max_memory"))
+        job.tiled = needs_tiling(n, row, options.max_memory)
 
 
 def _sources(inputs: Any, manifest: Any, name: str | None) -> list[ScanSource]:
@@ -338,32 +280,21 @@ def _sources(inputs: Any, manifest: Any, name: str | None) -> list[ScanSource]:
 # ---------------------------------------------------------------------------------------- build
 
 def build(
-    inputs: Any = (),
-    archive: str | os.PathLike[str] = "collection.h5",
+    inputs: Any,
+    archive: str | os.PathLike[str],
+    options: BuildOptions,
     *,
     name: str | None = None,
     manifest: str | os.PathLike[str] | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
     dask_local: int | None = None,
-    voxel_size: float | None = None,
-    band_radius: float | None = None,
-    seeds: Any = None,
-    size: int | None = None,
-    rho: float | None = None,
     force: bool = False,
     overwrite: bool = False,
-    max_memory: Any = None,
     joint: bool | str = False,
-    seam_spacing: float | None = None,
-    crs: str | None = None,
-    crs_override: bool = False,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
-    _tile_points: int | None = None,
-    _tile_passes: int | None = None,
-    **features: Any,
 ) -> BuildResult:
     """Build every scan of ``inputs`` into ``archive``; see :func:`lodbuilder.build_archive`."""
     from ..archive.reader import check_archive_file
@@ -374,30 +305,23 @@ def build(
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work
-    params = tiling_params(make_params(voxel_size, band_radius, size, rho, features, seeds), max_memory,
-                           seam_spacing, _tile_points, _tile_passes)
-    if crs is not None:
-        from ..io.crs import crs_from_user
-
-        params["crs"] = crs_from_user(crs)  # WKT: the same CRS given two ways is the same key
-        params["crs_override"] = bool(crs_override)
     joint_name = _joint_name(joint, name, manifest, inputs) if joint else None
     sources = _sources(inputs, manifest, None if joint else name)
-    if seeds is not None and (len(sources) != 1 or joint):
+    if options.seeds is not None and (len(sources) != 1 or joint):
         raise InputError("seeds are input indices of one scan; give a single scan with seeds")
-    if joint and (params.get("size") is not None or params.get("rho") is not None or params.get("features")):
+    if joint and (options.partial or options.features):
         raise InputError("a joint build orders every point (size/rho and feature options are not available)")
     in_memory = any(s.scan is not None for s in sources)
     if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
         raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
     if joint_name is not None:
-        jobs, recovered, skipped, failed = plan_joint(sources, archive, params, joint_name, force=force,
+        jobs, recovered, skipped, failed = plan_joint(sources, archive, options, joint_name, force=force,
                                                       overwrite=overwrite)
         total = 1
     else:
-        jobs, recovered, skipped, failed = plan_jobs(sources, archive, params, force=force, overwrite=overwrite)
+        jobs, recovered, skipped, failed = plan_jobs(sources, archive, options, force=force, overwrite=overwrite)
         total = len(sources)
-    decide_tiling(jobs, params)
+    decide_tiling(jobs, options)
     result = BuildResult(archive=archive)
     names_in_archive = set(_existing_scans(archive))
     done = points = 0
@@ -574,19 +498,3 @@ def _raise_failures(result: BuildResult, total: int, raise_on_failure: bool | No
         names = ", ".join(f"{s.name} ({s.error})" for s in failed[:3])
         more = f" and {len(failed) - 3} more" if len(failed) > 3 else ""
         raise BuildError(f"{len(failed)} of {total} scan(s) failed: {names}{more}")
-
-
-def _build_keywords() -> list[str]:
-    import inspect
-
-    names = [p.name for p in inspect.signature(build).parameters.values()
-             if p.kind is inspect.Parameter.KEYWORD_ONLY]
-    return names + list(FEATURE_OPTIONS)
-
-
-@strict_keywords(extra=_build_keywords)
-def build_collection(inputs: Any = (), archive: str | os.PathLike[str] = "collection.h5", *,
-                     raise_on_failure: bool = False, **options: Any) -> BuildResult:
-    """:func:`lodbuilder.build_archive` that reports failed scans in the result instead of raising
-    (unless ``raise_on_failure``: then a BuildError names them after every other scan is merged)."""
-    return build(inputs, archive, raise_on_failure=raise_on_failure, **options)

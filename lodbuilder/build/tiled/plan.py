@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._resources import default_max_memory, parse_bytes  # noqa: F401 - parse_bytes re-exported
 from ...errors import InputError
 
 IN_MEMORY_BYTES_PER_POINT = 900  # FastFPS band + ordering + the stored copy (557-870 B/pt measured)
@@ -27,28 +28,7 @@ MIN_TILE_POINTS = 2_000
 HIST_CELLS = 1 << 22  # cells of the count histogram (int32: 16 MiB)
 
 
-def parse_bytes(text: Any, what: str = "--max-memory") -> int:
-    """``3GB``, ``512MiB``, ``2e9`` or a plain number of bytes -> int (decimal and binary units)."""
-    if isinstance(text, (int, np.integer)) and not isinstance(text, bool):
-        value = float(text)
-    else:
-        s = str(text).strip().replace("_", "")
-        units = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "m": 1e6, "mb": 1e6, "g": 1e9, "gb": 1e9, "t": 1e12, "tb": 1e12,
-                 "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
-        num = s.rstrip("kmgtibKMGTIB")
-        unit = s[len(num):].lower()
-        try:
-            value = float(num) * units[unit]
-        except (ValueError, KeyError):
-            raise InputError(f"{what} must be a number of bytes such as 3GB, 512MiB or 2e9, got {text!r}") from None
-    if not math.isfinite(value) or value < 64 << 20:
-        raise InputError(f"{what} must be at least 64 MiB, got {text!r}")
-    return int(value)
-
-
 def default_budget() -> int:
-    from ..band import default_max_memory
-
     return default_max_memory()
 
 

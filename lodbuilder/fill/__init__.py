@@ -13,7 +13,7 @@ round (in the plane of the surrounding surface), at most ``max_hole * rho`` wide
 surroundings are one smooth height field. What is not: open borders (the scan's edge, a hole
 reaching it), holes wider than ``max_hole * rho``, and *rough* holes (surroundings tilted or not
 one smooth surface, e.g. occlusion shadows whose rim lies at two depths): these are reported, not
-filled. See :mod:`lodbuilder.sampling.fill.gaps` for the method.
+filled. See :mod:`lodbuilder.fill.gaps` for the method.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from ..._validate import check_positive, strict_keywords, strict_methods
-from ...errors import InputError
+from .._validate import check_positive, strict_keywords, strict_methods
+from ..errors import InputError
 from .gaps import (
     GRID_FRACTION,
     MAX_HOLE,
@@ -259,7 +259,7 @@ def archive_gaps(
     path: Any, scan: str | None, rhos: Any, *, max_hole: Any = MAX_HOLE
 ) -> list[GapReport]:
     """Exact :func:`find_gaps` reports of one scan of the archive at ``path``, one per rho."""
-    from ...archive.reader import open_archive
+    from ..archive.reader import open_archive
 
     with open_archive(path) as arc:
         view = arc.scan(scan)

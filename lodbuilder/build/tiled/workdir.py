@@ -79,9 +79,8 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
     """Read every source (``(PointStream, pose or None, member id or None)``) chunk by chunk into
     the work directory. A joint build (several sources) keeps the attributes all of them have and
     adds ``scan_id`` (int32) and ``scan_point`` (int64: the index in its own scan)."""
-    from ...archive.layout import encode_points
-    from ...collection.inputs import apply_pose
-    from .write import choose_encoding
+    from ...archive.layout import choose_encoding, encode_points
+    from ...io.pose import apply_pose
 
     joint = len(sources) > 1 or sources[0][2] is not None
     common = set(sources[0][0].fields)

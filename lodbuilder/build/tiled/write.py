@@ -28,15 +28,6 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
     return np.dtype(spec)
 
 
-def choose_encoding(encodings: set[str]) -> str:
-    """One coordinate encoding for every block: the one all chunks share, else the widest."""
-    if len(encodings) == 1:
-        return next(iter(encodings))
-    if encodings <= {"int32", "int64"}:
-        return "int64"
-    return "float64"
-
-
 def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                   progress: ProgressCallback = None, block: int | None = None) -> dict[str, Any]:
     """The first pass: every input block split by destination block into bucket files."""

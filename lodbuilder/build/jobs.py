@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..progress import ProgressCallback
+from .options import BuildOptions
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ class ScanJob:
     path: str | None
     key: str
     part: str
-    params: dict[str, Any] = field(default_factory=dict)
+    options: BuildOptions = field(default_factory=BuildOptions)
     pose: list[list[float]] | None = None
     scan_index: int | None = None
     sha256: str | None = ""
@@ -93,9 +94,9 @@ def scan_digest(scan: Any) -> str:
 def read_job_scan(job: ScanJob) -> Any:
     """The job's scan, read (or taken from memory), named and posed."""
     from ..io import read_scan, read_scans
-    from .inputs import apply_pose
+    from ..io.pose import apply_pose
 
-    crs, override = job.params.get("crs"), bool(job.params.get("crs_override"))
+    crs, override = job.options.crs, job.options.crs_override
     if job.scan is not None:
         # the caller's Scan keeps its name, points and metadata
         scan = dataclasses.replace(job.scan, metadata=dict(job.scan.metadata))
@@ -125,18 +126,15 @@ def provenance(job: ScanJob, reader: str) -> dict[str, Any]:
 
 def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[Any, dict[str, float]]:
     """Read and order the job's scan in memory; returns ``(ScanRecord, phase seconds)``."""
-    from ..api import build_record
     from ..progress import report
+    from .record import build_record
 
-    p = job.params
     t0 = time.perf_counter()
     report(progress, "read", 0, 1)
     scan = read_job_scan(job)
     report(progress, "read", 1, 1)
     t_read = time.perf_counter() - t0
-    features = {k: v for k, v in (p.get("features") or {}).items() if v is not None}
-    rec = build_record(scan, voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
-                       seeds=p.get("seeds"), size=p.get("size"), rho=p.get("rho"), progress=progress, **features)
+    rec = build_record(scan, job.options, progress=progress)
     t_order = time.perf_counter() - t0 - t_read
     return rec, {"read": t_read, "order": t_order}
 
@@ -149,13 +147,13 @@ def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]
 
     t0 = time.perf_counter()
     rec, phases = build_record_of(job, progress)
-    p = job.params
+    o = job.options
     rec.build.update({
-        "voxel_size_requested": p.get("voxel_size"),
-        "band_radius_requested": p.get("band_radius"),
-        "size_requested": p.get("size"),
-        "rho_requested": p.get("rho"),
-        "seeds_given": p.get("seeds") is not None,
+        "voxel_size_requested": o.voxel_size,
+        "band_radius_requested": o.band_radius,
+        "size_requested": o.size,
+        "rho_requested": o.rho,
+        "seeds_given": o.seeds is not None,
         "pose": job.pose,
         "pose_kind": job.pose_kind,
         "scan_index": job.scan_index,
@@ -192,7 +190,7 @@ def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
     """The streams of a tiled job: ``(stream, pose, member id)`` for each scan it orders."""
     from ..io.stream import open_stream, scan_stream
 
-    crs, override = job.params.get("crs"), bool(job.params.get("crs_override"))
+    crs, override = job.options.crs, job.options.crs_override
     if job.members:
         out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
                 m.get("pose"), i) for i, m in enumerate(job.members)]
@@ -208,13 +206,13 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     """Build ``job`` with the tiled (out-of-core) path, its tiles on ``executor``; the parent runs
     this (it reads, merges and writes in bounded blocks) and returns the same summary as
     :func:`build_one`."""
-    from ..sampling.tiled import SEAM_ALPHA, build_tiled
-    from ..sampling.tiled.driver import TILE_PASSES
+    from .tiled import SEAM_SPACING, build_tiled
+    from .tiled.driver import TILE_PASSES
 
-    p = job.params
-    build = {
-        "voxel_size_requested": p.get("voxel_size"),
-        "band_radius_requested": p.get("band_radius"),
+    o = job.options
+    build: dict[str, Any] = {
+        "voxel_size_requested": o.voxel_size,
+        "band_radius_requested": o.band_radius,
         "size_requested": None,
         "rho_requested": None,
         "seeds_given": False,
@@ -230,9 +228,9 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     reader = "joint" if job.members else None
     res = build_tiled(
         tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
-        max_memory=p.get("max_memory"), voxel_size=p.get("voxel_size"), band_radius=p.get("band_radius"),
-        alpha=p["seam_alpha"] if p.get("seam_alpha") is not None else SEAM_ALPHA,
-        tile_points=p.get("_tile_points"), passes=p.get("_tile_passes") or TILE_PASSES, build=build,
+        max_memory=o.max_memory, voxel_size=o.voxel_size, band_radius=o.band_radius,
+        seam_spacing=o.seam_spacing if o.seam_spacing is not None else SEAM_SPACING,
+        tile_points=o.tile_points, passes=o.tile_passes or TILE_PASSES, build=build,
         provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
         progress=progress,
     )

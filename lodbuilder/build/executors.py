@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 DASK_CONNECT_TIMEOUT = "15s"
 
 #: the modules the forkserver imports before forking workers (libraries loaded and kernels warm)
-PRELOAD = ["lodbuilder.collection.jobs", "lodbuilder.collection._warm"]
+PRELOAD = ["lodbuilder.build.jobs", "lodbuilder.build._warm"]
 
 
 def one_line(exc: BaseException) -> str:

@@ -73,7 +73,7 @@ def region_attributes(
     picked: np.ndarray,
 ) -> dict[str, np.ndarray]:
     """Attributes of the candidates ``picked`` of ``region`` (a
-    :class:`~lodbuilder.sampling.fill.gaps.Region`), interpolated from its ring of input points
+    :class:`~lodbuilder.fill.gaps.Region`), interpolated from its ring of input points
     (``attributes`` are per sample point, same rows as ``sample``)."""
     from scipy.spatial import cKDTree
 

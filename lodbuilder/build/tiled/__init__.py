@@ -13,7 +13,7 @@ ordered in seven phases:
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
    tile and its halo (tasks on a process pool or a Dask cluster);
 5. **merge**: the tile orders are merged by descending insertion radius (an external k-way merge),
-   with the seam repair of :mod:`lodbuilder.sampling.tiled.merge`;
+   with the seam repair of :mod:`lodbuilder.build.tiled.merge`;
 6. **covering**: for each tile, the exact Euclidean covering radius of its points by every prefix
    of the merged order (from the tile and its halo); the stored radius of a prefix is the largest
    over the tiles, capped by the coarse bound, never increasing;
@@ -26,12 +26,12 @@ prefixes). Spacing: a point merged from one tile is at least ``seam_alpha`` time
 every earlier point of another tile, so between points of different tiles every level's spacing is
 at least ``seam_alpha / (1 + seam_alpha)`` times its radius (0.2 at the default 0.25, 0.5 at 1);
 inside a tile the tile's FastFPS order keeps its spacing (at least the insertion radius, in the band
-metric). A larger ``seam_alpha`` costs covering at equal size (see ``SEAM_ALPHA``).
+metric). A larger ``seam_alpha`` costs covering at equal size (see ``SEAM_SPACING``).
 """
 
 from __future__ import annotations
 
-from .driver import GUARANTEES, SEAM_ALPHA, build_tiled
+from .driver import GUARANTEES, SEAM_SPACING, build_tiled
 from .plan import needs_tiling, parse_bytes, tile_capacity
 
-__all__ = ["GUARANTEES", "SEAM_ALPHA", "build_tiled", "needs_tiling", "parse_bytes", "tile_capacity"]
+__all__ = ["GUARANTEES", "SEAM_SPACING", "build_tiled", "needs_tiling", "parse_bytes", "tile_capacity"]

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import check_fraction, check_positive, check_size, strict_methods
-from ..errors import InputError
+from ._validate import check_fraction, check_positive, check_size, strict_methods
+from .errors import InputError
 
 
 @strict_methods
@@ -82,7 +82,7 @@ class Level:
 
     def to_polydata(self) -> Any:
         """A ``pyvista.PolyData`` of the level with its attributes as point data."""
-        from .._optional import require
+        from ._optional import require
 
         pv = require("pyvista", "Level.to_polydata")
         poly = pv.PolyData(np.ascontiguousarray(self.points))

@@ -27,8 +27,8 @@ from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spil
 
 log = logging.getLogger(__name__)
 
-#: the seam repair: a point waits while another tile's accepted point lies within SEAM_ALPHA x key.
-#: Across tiles every level's spacing is then at least SEAM_ALPHA / (1 + SEAM_ALPHA) x its radius
+#: the seam repair: a point waits while another tile's accepted point lies within SEAM_SPACING x key.
+#: Across tiles every level's spacing is then at least SEAM_SPACING / (1 + SEAM_SPACING) x its radius
 #: (0.2 at 0.25; 0.5 at 1.0), but a deferred point leaves its own tile's side covered only by the
 #: other tile's point for a while (the tile ordered its later points as if it were there), so the
 #: covering radius at equal size grows with it. 1M-point sheet in 4 tiles, one pass, covering at
@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 #: 1.018 / 1.006 / 1.091 at 0.25, 1.243 / 1.146 / 1.416 at 1.0 (tiles that did not see each other
 #: at all: 1.037 / 1.012 / 1.111 and 1.285 / 1.146 / 1.374). 0.25 removes the near-duplicates two
 #: tiles make at a seam at little cost in covering.
-SEAM_ALPHA = 0.25
+SEAM_SPACING = 0.25
 #: every tile is ordered this many times (see _order_passes). More passes make neighbouring tiles
 #: agree at their seams, but slowly, and each costs a whole ordering of the scan (the order phase is
 #: 83 of 132 s on the 21.6M-point survey): on the 1M-point sheet above, points of the first 5 % within
@@ -156,7 +156,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
 
 
 def _spacing(sample: np.ndarray, n: int) -> float:
-    from ..band import median_spacing
+    from ...sampling.band import median_spacing
 
     if sample.shape[0] < 2:
         return 1.0
@@ -175,7 +175,7 @@ def build_tiled(
     max_memory: int | None = None,
     voxel_size: float | None = None,
     band_radius: float | None = None,
-    alpha: float = SEAM_ALPHA,
+    seam_spacing: float = SEAM_SPACING,
     tile_points: int | None = None,
     passes: int = TILE_PASSES,
     build: dict[str, Any] | None = None,
@@ -185,7 +185,7 @@ def build_tiled(
     """Order one scan (``sources``: one stream, or several posed streams for a joint build) tile by
     tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
-    from ..band import choose_parameters
+    from ...sampling.band import choose_parameters
     from .merge import assemble_radii, merge_tiles, write_ranks
     from .write import bucket_points, write_scan
 
@@ -289,7 +289,7 @@ def build_tiled(
     merged = _done(work, "merge")
     if merged is None:
         min_cell = float(pl["span"]) / (1 << 20)
-        merged = merge_tiles(work, n, n_tiles, [int(s.get("n_seam", 0)) for s in stats], alpha, sp.lo, min_cell,
+        merged = merge_tiles(work, n, n_tiles, [int(s.get("n_seam", 0)) for s in stats], seam_spacing, sp.lo, min_cell,
                              progress)
         write_ranks(work, n)
         _mark(work, "merge", merged)
@@ -328,7 +328,7 @@ def build_tiled(
             "coarse_cell": float(pl["d_cell"]),
             "head_points": int(head.shape[0]),
             "head_radius": float(coarse["r_cut"]),
-            "seam_alpha": alpha,
+            "seam_alpha": seam_spacing,  # the record's name of seam_spacing (stored in archives)
             "passes": passes,
             "seam_points": int(merged["seam_points"]),
             "seam_deferrals": int(merged["deferred"]),
@@ -355,7 +355,7 @@ def build_tiled(
 
 def P_VOXEL(spacing: float) -> float:
     """The engine's automatic voxel size for a point spacing (lodbuilder.sampling.band)."""
-    from ..band import VOXEL_PER_SPACING
+    from ...sampling.band import VOXEL_PER_SPACING
 
     return VOXEL_PER_SPACING * spacing
 

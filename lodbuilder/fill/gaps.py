@@ -31,7 +31,7 @@ whole scan for exact distances.
    hole wider than ``max_hole * rho``): it is *open* and not filled.
 4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
    squares; the grid is laid again if it moved) and a height field over it
-   (:class:`~lodbuilder.sampling.fill.surface.HeightField`; for a gap, the spline that
+   (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
    cross-validates best on the ring). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of its normals tilted over 60
    degrees from the plane's normal) or not one smooth piece: fitted to five sixths of the ring
@@ -54,8 +54,8 @@ from typing import Any
 
 import numpy as np
 
-from ..._validate import strict_methods
-from ...features.neighbours import Neighbourhoods, local_pca
+from .._validate import strict_methods
+from ..features.neighbours import Neighbourhoods, local_pca
 from .surface import Frame, HeightField, plane_normal, tangents
 
 #: the sample is the prefix at SAMPLE_FRACTION * rho
