@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .level_options import add_level_options, add_up_option
+from .level_options import add_filter_options, add_level_options, add_up_option, filter_from_args
 
 FORMATS = {".copc.laz": "COPC", ".html": "web page", ".htm": "web page"}
 
@@ -49,6 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     from .output import add_json_option
 
+    add_filter_options(p)
     add_json_option(p)
     return p
 
@@ -82,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
                 raise InputError(f"{opt} applies to a web page (-o OUT.html) only")
     elif args.rank_radius:
         raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
+    flt = filter_from_args(args)
     if args.max_points is not None and args.max_points < 1:
         raise InputError(f"--max-points must be at least 1, got {args.max_points}")
     if web:
@@ -107,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
                         "ask for a coarser level (--rho, --size) or raise --max-points"
                     )
                 k, note = cap, f", capped at --max-points {cap:,}"
-            page = export_web(view, out, k, up=args.up or "z")
+            page = export_web(view, out, k, up=args.up or "z", flt=flt)
             rho = f"rho = {page.rho:.4g}" if page.rho > 0 else "every point"
             doc.update(size=page.n_points, n_points=page.n_total, rho=page.rho,
                        bytes=page.n_bytes, chunks=page.chunks, capped=bool(note))
@@ -119,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
             from ..io.api import collect_notes
 
             with collect_notes() as changes:
-                copc = export_copc(view, out, k, rank_radius=args.rank_radius)
+                copc = export_copc(view, out, k, rank_radius=args.rank_radius, flt=flt)
             doc.update(size=copc.n_points, n_points=copc.n_total, rho=copc.rho,
                        bytes=copc.n_bytes, depths=copc.depths, nodes=copc.nodes,
                        spacing=copc.spacing, levels=copc.levels, changes=changes)
@@ -134,5 +136,13 @@ def run(args: argparse.Namespace) -> int:
                 ]
                 + [f"  changed: {line}" for line in changes]
             )
+    if flt is not None:
+        kept = doc["size"]
+        doc.update(filter=flt.describe(), level_size=k, guarantee=flt.guarantee(doc["rho"]))
+        first, _, rest = text.partition("\n")
+        text = "\n".join(
+            [first, f"  filter {flt.describe()}: {kept:,} of the level's {k:,} points",
+             f"  guarantee: {doc['guarantee']}"] + ([rest] if rest else [])
+        )
     emit(args, doc, text)
     return 0

@@ -6,7 +6,13 @@ import argparse
 import time
 from pathlib import Path
 
-from .level_options import add_box_option, add_level_options, add_ordering_option
+from .level_options import (
+    add_box_option,
+    add_filter_options,
+    add_level_options,
+    add_ordering_option,
+    filter_from_args,
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -65,6 +71,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     from .output import add_json_option
 
     add_slice_options(p)
+    add_filter_options(p)
     add_json_option(p)
     return p
 
@@ -93,6 +100,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give either --box or --viewpoint, not both")
     if args.fill is not None:
         _check_fill(args)
+    flt = filter_from_args(args)
+    if flt is not None and getattr(args, "all_scans", False):
+        raise InputError("survey filters apply to one scan's level; leave out --all-scans")
     if getattr(args, "all_scans", False):
         from .collection_options import slice_all
 
@@ -126,6 +136,12 @@ def run(args: argparse.Namespace) -> int:
         from .feature_options import bound_note
 
         note = bound_note(view, level)
+    guarantee = None
+    if flt is not None:
+        before = level.size
+        level = flt.apply(level)
+        guarantee = flt.guarantee(level.rho)
+        note = f"filter {flt.describe()}: {level.size:,} of the level's {before:,} points; {note} before the filter"
     attrs = dict(level.attributes)
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
@@ -149,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
         "units": level.units,
         "changes": changes,
     }
+    if flt is not None:
+        doc.update(filter=flt.describe(), level_size=level.region["level_size"], guarantee=guarantee)
     what = f"{level.size} of {view.n_points} points"
     if filled is not None:
         doc["synthetic"] = filled.n_synthetic
@@ -158,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         doc,
         "\n".join(
             [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
+            + ([f"  guarantee: {guarantee}"] if guarantee else [])
             + [f"  changed: {line}" for line in changes]
         ),
     )

@@ -224,6 +224,9 @@ def write_copc(
     n_total: int | None = None,
     name: str = "scan",
     rank_radius: bool = False,
+    rank: np.ndarray | None = None,
+    filtered: str | None = None,
+    bounds: np.ndarray | None = None,
 ) -> CopcFile:
     """Write a level (points in farthest-point order, their insertion radii, the level's covering
     bound ``rho``) as a COPC 1.0 file whose octree depths are its levels (module docstring),
@@ -233,7 +236,12 @@ def write_copc(
     with ``metadata`` (the scan's format metadata: LAS scale/offset, CRS...); with
     ``rank_radius``, also ``rank`` and ``radius`` extra bytes (the exact ordering, at a cost in
     size: LAZ compresses neither well). What the mapping changed is in ``notes`` and logged as
-    warnings of lodbuilder.io, as :func:`lodbuilder.io.write_points` does."""
+    warnings of lodbuilder.io, as :func:`lodbuilder.io.write_points` does.
+
+    ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: the
+    description of a filter that removed points from the level (the points are then a
+    subsequence of it), with ``bounds`` the covering bound of each prefix
+    (:func:`lodbuilder.filters.prefix_bounds`; default ``radius``)."""
     check_copc_dependencies()
     from ..io._files import atomic_output
     from ..io.api import log_notes
@@ -254,7 +262,8 @@ def write_copc(
 
     attrs = dict(attributes)
     if rank_radius:
-        attrs["rank"] = np.arange(k, dtype=np.uint32 if n_total < 2**32 else np.uint64)
+        order_rank = np.arange(k) if rank is None else np.asarray(rank)
+        attrs["rank"] = order_rank.astype(np.uint32 if n_total < 2**32 else np.uint64)
         attrs["radius"] = radius
     fmt = copc_point_format(meta, set(attributes))
     layout = las_layout(pts, attrs, meta, point_format=fmt, version="1.4")
@@ -293,7 +302,7 @@ def write_copc(
     header.number_of_points_by_return = returns[1:16]
     gps_range = (float(gps.min()), float(gps.max())) if gps is not None else (0.0, 0.0)
 
-    levels = _levels(radius, band, depth, rho, spacing)
+    levels = _levels(radius if bounds is None else np.asarray(bounds), band, depth, rho, spacing)
     doc = {
         "format": "lodbuilder farthest-point levels",
         "version": 1,
@@ -308,6 +317,8 @@ def write_copc(
         if rank_radius else {},
         "levels": levels,
     }
+    if filtered is not None:
+        doc["filter"] = filtered
     import laspy
 
     ours = laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, VLR_DESCRIPTION,
@@ -334,10 +345,12 @@ def write_copc(
 
 
 def _levels(
-    radius: np.ndarray, band: np.ndarray, depth: np.ndarray, rho: float, spacing: float
+    bounds: np.ndarray, band: np.ndarray, depth: np.ndarray, rho: float, spacing: float
 ) -> list[dict[str, Any]]:
     """Per depth D: points at depths <= D, the farthest-point prefix among them, the points
-    moved up to keep the octree connected, and the covering radius of the prefix."""
+    moved up to keep the octree connected, and the covering radius of the prefix (``bounds[p]``
+    for a prefix of p points: the next insertion radius, see :func:`write_copc`)."""
+    radius = bounds
     k = radius.size
     out = []
     for d in range(int(depth.max()) + 1):
@@ -358,16 +371,23 @@ def _levels(
     return out
 
 
-def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bool = False) -> CopcFile:
+def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bool = False,
+                flt: Any = None) -> CopcFile:
     """Write the level of ``size`` points of an archive scan (a ScanView) as COPC, with every
     attribute, its importance maps (extra bytes ``importance_<name>``), and with
-    ``rank_radius`` the rank and insertion radius of every point."""
+    ``rank_radius`` the rank and insertion radius of every point; with ``flt`` (a
+    :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it (the depths
+    are then the filtered prefixes, their rho still the level's before the filter)."""
+    from ..filters import prefix_bounds
+
     level = scan.level(size=size)
+    if flt is not None:
+        level = flt.apply(level)
     attrs = dict(level.attributes)
     for m in scan.importance_names:
         key = f"importance_{m}"[:32]
         if key not in attrs:
-            attrs[key] = np.asarray(scan.importance(m)[:size], dtype=np.float32)
+            attrs[key] = np.asarray(scan.importance(m)[:size], dtype=np.float32)[level.rank]
     return write_copc(
         out,
         level.points,
@@ -378,4 +398,7 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bo
         n_total=scan.n_ordered,
         name=scan.name,
         rank_radius=rank_radius,
+        rank=level.rank,
+        filtered=flt.describe() if flt is not None else None,
+        bounds=prefix_bounds(scan.radius, level.rank) if flt is not None else None,
     )

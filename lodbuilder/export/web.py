@@ -98,6 +98,8 @@ def write_web_page(
     crs: str | None = None,
     units: str | None = None,
     up: str = "z",
+    bounds: np.ndarray | None = None,
+    note: str = "",
 ) -> WebPage:
     """Write the points of a level (farthest-point order) as one HTML page, atomically.
 
@@ -110,6 +112,9 @@ def write_web_page(
         importance: per-point maps to colour by.
         crs, units: the coordinates' CRS (WKT) and linear unit, shown on the page.
         up: the scan's up axis for the first view (``z``, ``y``, ``x``, ``-z``, ...).
+        bounds: the covering bound of each prefix of k points (default ``radius``; a filtered
+            level's from :func:`lodbuilder.filters.prefix_bounds`).
+        note: a line shown with the scan's name (a filter).
     """
     from ..io._files import atomic_output
     from ..viewer.data import (
@@ -161,14 +166,15 @@ def write_web_page(
         "lut": colormap(np.linspace(0.0, 1.0, 256)).ravel().tolist(),
         "chunks": chunks,
         "bytes_per_point": per_point,
-        "steps": _steps(radius, rho),
+        "steps": _steps(radius if bounds is None else np.asarray(bounds), rho),
         "lo": lo.tolist(),
         "span": span.tolist(),
         "diag": float(np.linalg.norm(span)),
         "spacing": spacing,
         "unit": unit,
         "up": up,
-        "info": f"{name}: {k:,} of {n_total:,} points; {crs_label(crs, units)}",
+        "info": f"{name}: {k:,} of {n_total:,} points; {crs_label(crs, units)}"
+        + (f"; {note}" if note else ""),
     }
     from ._page import HEAD
 
@@ -201,15 +207,24 @@ def export_web(
     size: int,
     *,
     up: str = "z",
+    flt: Any = None,
 ) -> WebPage:
     """Write the level of ``size`` points of an archive scan (a ScanView) as a web page, with its
-    RGB (when the scan has red/green/blue) and its importance maps."""
+    RGB (when the scan has red/green/blue) and its importance maps; with ``flt`` (a
+    :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it."""
     names = [c for c in ("red", "green", "blue") if c in scan.attribute_names]
-    level = scan.level(size=size, attributes=names if len(names) == 3 else False)
+    wanted = (names if len(names) == 3 else []) + (flt.fields() if flt is not None else [])
+    level = scan.level(size=size, attributes=sorted(set(wanted)) if wanted else False)
+    bounds = None
+    if flt is not None:
+        from ..filters import prefix_bounds
+
+        level = flt.apply(level)
+        bounds = prefix_bounds(scan.radius, level.rank)
     rgb = None
     if len(names) == 3:
         rgb = np.column_stack([level.attributes[c] for c in names])
-    importance = {m: np.asarray(scan.importance(m)[:size]) for m in scan.importance_names}
+    importance = {m: np.asarray(scan.importance(m)[:size])[level.rank] for m in scan.importance_names}
     return write_web_page(
         out,
         level.points,
@@ -222,4 +237,6 @@ def export_web(
         crs=scan.crs,
         units=scan.units,
         up=up,
+        bounds=bounds,
+        note=f"filter {flt.describe()}" if flt is not None else "",
     )
