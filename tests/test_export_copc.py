@@ -438,7 +438,7 @@ def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
         (["-o", str(tmp_path / "x.html"), "--rank-radius"],
          "--rank-radius applies to a COPC file (-o OUT.copc.laz) only"),
         (["-o", str(tmp_path / "x.laz")],
-         f"-o {tmp_path / 'x.laz'}: name it OUT.copc.laz (COPC) or OUT.html (web page); for "
+         f"-o {tmp_path / 'x.laz'}: name it OUT.copc.laz (COPC), OUT.html (web page) or DIR/tileset.json (3D Tiles); for "
          ".ply, .las, .laz, .csv, .npy... use lodbuilder slice"),
     ]
     for args, message in cases:

@@ -290,7 +290,7 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     cases = [
         (
             ["-o", str(tmp_path / "x.ply")],
-            f"-o {tmp_path / 'x.ply'}: name it OUT.copc.laz (COPC) or OUT.html (web page); "
+            f"-o {tmp_path / 'x.ply'}: name it OUT.copc.laz (COPC), OUT.html (web page) or DIR/tileset.json (3D Tiles); "
             "for .ply, .las, .laz, .csv, .npy... use lodbuilder slice",
         ),
         (

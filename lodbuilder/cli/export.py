@@ -8,7 +8,7 @@ from typing import Any
 
 from .level_options import add_filter_options, add_level_options, add_up_option, filter_from_args
 
-FORMATS = {".copc.laz": "COPC", ".html": "web page", ".htm": "web page"}
+FORMATS = {".copc.laz": "COPC", ".html": "web page", ".htm": "web page", ".json": "3D Tiles"}
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -45,7 +45,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="web page: the scan's up axis for the first view (default z; y for many range scans)",
     )
     p.add_argument(
-        "-o", "--output", required=True, metavar="OUT", help="OUT.copc.laz or OUT.html"
+        "-o", "--output", required=True, metavar="OUT",
+        help="OUT.copc.laz, OUT.html or DIR/tileset.json (3D Tiles 1.1: the tiles go to "
+        "DIR/tileset_tiles/)"
     )
     from .output import add_json_option
 
@@ -63,7 +65,7 @@ def output_format(out: Path) -> str:
         if name.endswith(suffix):
             return fmt
     raise UnsupportedFormatError(
-        f"-o {out}: name it OUT.copc.laz (COPC) or OUT.html (web page); "
+        f"-o {out}: name it OUT.copc.laz (COPC), OUT.html (web page) or DIR/tileset.json (3D Tiles); "
         "for .ply, .las, .laz, .csv, .npy... use lodbuilder slice"
     )
 
@@ -77,17 +79,20 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
     fmt = output_format(out)
     web = fmt == "web page"
+    tiles = fmt == "3D Tiles"
     if not web:
         for opt, value in (("--max-points", args.max_points), ("--up", args.up)):
             if value is not None:
                 raise InputError(f"{opt} applies to a web page (-o OUT.html) only")
-    elif args.rank_radius:
+    if args.rank_radius and fmt != "COPC":
         raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
     flt = filter_from_args(args)
     if args.max_points is not None and args.max_points < 1:
         raise InputError(f"--max-points must be at least 1, got {args.max_points}")
     if web:
         from ..export.web import MAX_POINTS, export_web
+    elif tiles:
+        from ..export.tiles import export_tiles
     else:
         from ..export.copc import check_copc_dependencies, export_copc
 
@@ -116,6 +121,17 @@ def run(args: argparse.Namespace) -> int:
             text = (
                 f"wrote {page.n_points:,} of {page.n_total:,} points of scan {view.name!r} to "
                 f"{out} ({page.n_bytes / 1e6:.1f} MB, {rho}{note})"
+            )
+        elif tiles:
+            ts = export_tiles(view, out, k, flt=flt)
+            doc.update(size=ts.n_points, n_points=ts.n_total, rho=ts.rho, bytes=ts.n_bytes,
+                       tiles=ts.tiles, depths=ts.depths, geometric_errors=ts.geometric_errors,
+                       placement=ts.placed)
+            errs = " / ".join(f"{e:.3g}" for e in ts.geometric_errors)
+            text = (
+                f"wrote {ts.n_points:,} of {ts.n_total:,} points of scan {view.name!r} to {out} "
+                f"({ts.n_bytes / 1e6:.1f} MB, {ts.tiles:,} tiles, {ts.depths} depth(s))\n"
+                f"  geometricError by depth (covering radius, metres): {errs}\n  {ts.placed}"
             )
         else:
             from ..io.api import collect_notes
