@@ -11,6 +11,9 @@ default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse o
 * ``web``: ``export -o OUT.html`` (target <= 30 MB for 1M points): seconds, bytes, and the time
   headless Chromium (Debian's, through playwright) takes from navigation to the last frame drawn
   (target <= 15 s), with the requests the page made;
+* ``tiles``: ``export -o DIR/tileset.json`` (3D Tiles 1.1; target: valid against the schema subset
+  of tests/schemas, drawn by CesiumJS in headless Chromium within 20 s with 0 requests outside the
+  local server): seconds, bytes, tiles, and the seconds from navigation until every tile is loaded;
 * ``pyvista_export_html`` (the peer, when trame, trame-vtk, trame-vuetify and trame-pyvista are
   importable): PyVista's ``Plotter.export_html`` of the same points with RGB, its bytes and
   seconds, and the requests Chromium makes when it opens the file.
@@ -107,6 +110,66 @@ def bench_copc(view, out: Path) -> dict:
     return res
 
 
+def bench_tiles(view, tmp: Path) -> dict:
+    """Export 3D Tiles, validate the tileset, and time CesiumJS drawing it (tools/cesiumjs)."""
+    import functools
+    import http.server
+    import shutil
+    import threading
+
+    import jsonschema
+
+    from lodbuilder.export.tiles import export_tiles
+
+    out = tmp / "tiles" / "tileset.json"
+    out.parent.mkdir()
+    t0 = time.perf_counter()
+    ts = export_tiles(view, out, view.n_ordered)
+    res = {"seconds": round(time.perf_counter() - t0, 2), "bytes": ts.n_bytes, "tiles": ts.tiles,
+           "depths": ts.depths, "geometric_errors": ts.geometric_errors}
+    schema = json.loads((ROOT / "tests" / "schemas" / "tileset-1.1-subset.schema.json").read_text())
+    res["schema_valid"] = jsonschema.Draft202012Validator(schema).is_valid(json.loads(out.read_text()))
+    build = ROOT / "tools" / "cesiumjs" / "node_modules" / "cesium" / "Build" / "Cesium"
+    if not build.is_dir():
+        res["cesium"] = {"skipped": "npm install in tools/cesiumjs first"}
+        return res
+    site = tmp / "site"
+    site.mkdir()
+    (site / "cesium").symlink_to(build)
+    (site / "tiles").symlink_to(out.parent)
+    shutil.copy(ROOT / "tools" / "cesiumjs" / "view.html", site / "index.html")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(site)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}/"
+    from playwright.sync_api import sync_playwright
+
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1200, "height": 800})
+            requests: list[str] = []
+            page.on("request", lambda r: requests.append(r.url))
+            t0 = time.perf_counter()
+            page.goto(base + "index.html")
+            page.wait_for_function("() => LOD.loaded || LOD.error", timeout=300_000)
+            state = page.evaluate("() => LOD")
+            res["cesium"] = {
+                "all_tiles_loaded_s": round(time.perf_counter() - t0, 2),
+                "tiles_loaded": state["tiles"], "error": state["error"],
+                "requests": len(requests),
+                "outside_requests": sorted({u for u in requests if not u.startswith(base)}),
+            }
+            browser.close()
+    finally:
+        server.shutdown()
+    return res
+
+
 def bench_source(source: Path, tmp: Path) -> dict:
     """Build ``source`` (a LAZ file) into an archive with defaults, export its COPC without and
     with rank/radius, and compare the sizes with the source's."""
@@ -193,6 +256,16 @@ def markdown(r: dict) -> str:
             f"last frame {ch['render_s']} s after navigation (launch {ch['launch_s']} s), "
             f"{ch['requests']} request(s), outside: {len(ch['outside_requests'])} |"
         )
+    t = r.get("tiles")
+    if t:
+        ce = t.get("cesium", {})
+        lines.append(
+            f"| 3D Tiles 1.1 | {t['seconds']} | {t['bytes'] / 1e6:.1f} MB | {t['tiles']} tiles, "
+            f"{t['depths']} depths; schema subset valid: {t['schema_valid']}; CesiumJS: "
+            + (f"every tile loaded {ce['all_tiles_loaded_s']} s after navigation, "
+               f"{len(ce['outside_requests'])} request(s) outside the local server |"
+               if "all_tiles_loaded_s" in ce else f"{ce.get('skipped')} |")
+        )
     for src in r.get("copc_vs_source", []):
         lines.append(
             f"| COPC of {src['source']} ({src['points']:,} points) | "
@@ -263,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
             result["copc"] = bench_copc(view, Path(tmp) / "out.copc.laz")
             if not args.copc_only:
                 result["web"] = bench_web(view, Path(tmp) / "out.html", view.n_ordered)
+                result["tiles"] = bench_tiles(view, Path(tmp))
             if not (args.no_peer or args.copc_only):
                 result["pyvista_export_html"] = {
                     f"{k:,}": bench_pyvista(view, Path(tmp) / f"pv{k}.html", k)
