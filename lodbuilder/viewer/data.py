@@ -24,13 +24,6 @@ LEVEL_MODES = ("voronoi", "gaps")
 #: ``gaps`` colours: away from gaps, near a fillable gap, near a rough one
 GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
 
-#: the unit of each built-in importance map (lodbuilder.features.registry), for the legend
-IMPORTANCE_UNITS = {
-    "curvature": "lambda0 / sum lambda, no unit",
-    "normal": "mean angle, rad",
-    "colour": "CIE76 Delta-E",
-    "noise": "x local median residual",
-}
 #: neighbours of the PCA normals that shade the points
 NORMAL_K = 12
 
@@ -54,6 +47,114 @@ class Legend:
         return (v - self.lo) / ((self.hi - self.lo) or 1.0)
 
 
+@dataclass(frozen=True)
+class Categories:
+    """How a categorical colour mode colours values: ``values[i]`` is drawn in ``colours[i]``
+    and named ``names[i]`` in the legend (classification, scan)."""
+
+    title: str
+    values: tuple[int, ...]
+    names: tuple[str, ...]
+    colours: tuple[tuple[int, int, int], ...]
+
+    def colour(self, labels: np.ndarray) -> np.ndarray:
+        """(M, 3) uint8 colours of ``labels`` (a value not listed: a hashed colour)."""
+        lab = np.asarray(labels).astype(np.int64)
+        out = categorical(lab)
+        lut = np.asarray(self.colours, dtype=np.uint8).reshape(-1, 3)
+        vals = np.asarray(self.values, dtype=np.int64)
+        if vals.size:
+            order = np.argsort(vals)
+            pos = np.clip(np.searchsorted(vals[order], lab), 0, vals.size - 1)
+            hit = vals[order][pos] == lab
+            out[hit] = lut[order][pos[hit]]
+        return out
+
+
+#: ASPRS classes (lodbuilder.filters.ASPRS_CLASSES) in the colours survey viewers use
+ASPRS_COLOURS: dict[int, tuple[int, int, int]] = {
+    0: (160, 160, 160), 1: (200, 200, 200), 2: (166, 118, 64), 3: (170, 230, 120),
+    4: (80, 190, 60), 5: (20, 110, 30), 6: (220, 60, 40), 7: (255, 0, 255), 8: (120, 120, 120),
+    9: (40, 110, 230), 10: (120, 60, 160), 11: (90, 90, 90), 12: (230, 230, 120),
+    13: (255, 220, 0), 14: (255, 180, 0), 15: (200, 140, 0), 16: (255, 240, 120),
+    17: (0, 190, 200), 18: (255, 120, 200),
+}
+#: distinct colours for scans (Tableau 10, then its light half): neighbours never look alike
+SCAN_PALETTE: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+    (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+    (174, 199, 232), (255, 187, 120), (152, 223, 138), (255, 152, 150), (197, 176, 213),
+    (196, 156, 148), (247, 182, 210), (199, 199, 199), (219, 219, 141), (158, 218, 229),
+)
+
+
+def facing_camera(points: np.ndarray, up: str = "z") -> tuple[np.ndarray, np.ndarray]:
+    """(direction from the centre to the camera, view-up) of a first view that faces the scan.
+
+    A flat scan (its thinnest principal axis within 37 degrees of up: an airborne tile, a
+    floor) is seen from above and the south (-y for z up), tilted 25 degrees. Otherwise (a
+    statue, a facade) the camera looks along the thinnest principal axis, levelled to the
+    horizon and raised 20 degrees, from the front side by the usual convention of scanners
+    and 3D tools: +z for a y-up scan, -y for a z-up one (x up: +z)."""
+    axis = "xyz".index(up[-1])
+    u = np.zeros(3)
+    u[axis] = -1.0 if up.startswith("-") else 1.0
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] > 50_000:
+        pts = pts[:: pts.shape[0] // 50_000]
+    front = np.zeros(3)
+    front[{1: 2, 2: 1, 0: 2}[axis]] = 1.0 if axis != 2 else -1.0
+    if pts.shape[0] < 3:
+        return _unit(front + 0.35 * u), u
+    w, v = np.linalg.eigh(np.cov((pts - pts.mean(axis=0)).T))
+    n = v[:, int(np.argmin(w))]
+    if abs(float(n @ u)) > 0.8:
+        return _unit(u + 0.47 * front), u
+    n = n - (n @ u) * u
+    if float(np.linalg.norm(n)) < 1e-9:
+        n = front
+    n = _unit(n)
+    if float(n @ front) < 0:
+        n = -n
+    return _unit(n + 0.36 * u), u
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / (float(np.linalg.norm(v)) or 1.0)
+
+
+def classification_legend(codes: np.ndarray) -> Categories:
+    """The ASPRS names and colours of the classes present in ``codes``."""
+    from ..filters import ASPRS_CLASSES
+
+    present = [int(c) for c in np.unique(np.asarray(codes).astype(np.int64))]
+    names = tuple(f"{c} {ASPRS_CLASSES.get(c, 'user class')}" for c in present)
+    colours = tuple(ASPRS_COLOURS.get(c, tuple(int(v) for v in categorical(np.array([c]))[0]))
+                    for c in present)
+    return Categories("classification", tuple(present), names, colours)  # type: ignore[arg-type]
+
+
+def scan_legend(names: Sequence[str]) -> Categories:
+    """Distinct colours for scans 0..n-1 (a palette of 20, then hashed) with their names."""
+    n = len(names)
+    colours = tuple(SCAN_PALETTE[i] if i < len(SCAN_PALETTE)
+                    else tuple(int(v) for v in categorical(np.array([i]))[0]) for i in range(n))
+    return Categories("scan", tuple(range(n)), tuple(names), colours)  # type: ignore[arg-type]
+
+
+def elevation_legend(values: np.ndarray, axis: str, units: str | None) -> Legend:
+    """Linear scale of elevation (the up axis) from its 1st to its 99th percentile."""
+    lo, hi = np.percentile(values, [1, 99]) if values.size > 1 else (0.0, 1.0)
+    return Legend(f"elevation {axis} ({units or 'scan units'})", float(lo), float(max(hi, lo)), False)
+
+
+def intensity_legend(values: np.ndarray) -> Legend:
+    """Linear scale of intensity from its 1st to its 99th percentile."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = np.percentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
+    return Legend("intensity", float(lo), float(max(hi, lo)), False)
+
+
 @strict_methods
 @dataclass
 class ViewData:
@@ -69,6 +170,7 @@ class ViewData:
         scan_names: the names of the scans shown.
         crs: the scans' coordinate reference system (WKT), None when unknown or mixed.
         units: the linear unit of the coordinates (``metre``, ``foot``...), None when unknown.
+        up: the scan's up axis (``z``, ``y``, ``-y``...): what ``elevation`` colours.
     """
 
     points: np.ndarray
@@ -80,6 +182,7 @@ class ViewData:
     scan_names: tuple[str, ...] = ("scan",)
     crs: str | None = None
     units: str | None = None
+    up: str = "z"
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -243,12 +346,18 @@ class ViewData:
         modes = []
         if all(c in self.attributes for c in ("red", "green", "blue")):
             modes.append("rgb")
-        modes += ["radius", "rank"]
+        modes += ["radius", "rank", "elevation"]
+        modes += [m for m in ("intensity", "classification") if m in self.attributes]
         modes += [f"importance:{name}" for name in self.importance]
         if len(self.scan_names) > 1:
             modes.append("scan")
         modes.append("voronoi")
         return modes
+
+    def elevation(self) -> np.ndarray:
+        """(N,) the coordinate along the up axis (negated for ``-y``...)."""
+        v = self.points[:, "xyz".index(self.up[-1])]
+        return -v if self.up.startswith("-") else v
 
     def check_mode(self, mode: str) -> str:
         if mode == "gaps":
@@ -262,9 +371,18 @@ class ViewData:
             )
         return mode
 
-    def legend(self, mode: str) -> Legend | None:
-        """The scale of a scalar colour mode (radius, rank, importance), None for the others."""
+    def legend(self, mode: str) -> Legend | Categories | None:
+        """The scale of a scalar colour mode (radius, rank, importance, elevation, intensity),
+        the categories of classification and scan, None for the others."""
         mode = self.check_mode(mode)
+        if mode == "elevation":
+            return elevation_legend(self.elevation(), self.up, self.units)
+        if mode == "intensity":
+            return intensity_legend(self.attributes["intensity"])
+        if mode == "classification":
+            return classification_legend(self.attributes["classification"])
+        if mode == "scan":
+            return scan_legend(self.scan_names)
         if mode == "radius":
             return radius_legend(self.radius, self.units)
         if mode == "rank":
@@ -291,15 +409,20 @@ class ViewData:
                 [np.asarray(self.attributes[c])[sel] for c in ("red", "green", "blue")]
             )
             return _to_uint8_rgb(rgb)
-        if mode == "scan":
-            return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
             return categorical(self.cells(shown)[sel])
         if mode == "gaps":
             return GAP_COLOURS[self.gap_codes(shown)[sel]]
         legend = self.legend(mode)
+        if isinstance(legend, Categories):
+            labels = self.scan_id if mode == "scan" else self.attributes["classification"]
+            return legend.colour(np.asarray(labels)[sel])
         assert legend is not None
-        if mode == "radius":
+        if mode == "elevation":
+            values = self.elevation()[sel]
+        elif mode == "intensity":
+            values = np.asarray(self.attributes["intensity"], dtype=np.float64)[sel]
+        elif mode == "radius":
             r = self.radius[sel]
             values = np.where(
                 np.isfinite(r) & (r > 0), r, np.where(np.isinf(r), self._rmax, self._rmin)
@@ -362,20 +485,19 @@ def radius_legend(radius: np.ndarray, units: str | None = None) -> Legend:
     finite = r[np.isfinite(r) & (r > 0)]
     lo = float(np.percentile(finite, 1)) if finite.size else 1.0
     hi = float(finite.max()) if finite.size else 1.0
-    return Legend(f"insertion radius ({units or 'scan units'}, log)", lo, max(hi, lo), True)
+    return Legend(f"radius ({units or 'scan units'}, log)", lo, max(hi, lo), True)
 
 
 def rank_legend(n: int) -> Legend:
     """Log scale of ranks 1..n (the first point is rank 1)."""
-    return Legend("rank (1 = first point, log)", 1.0, float(max(n, 2)), True)
+    return Legend("rank (log)", 1.0, float(max(n, 2)), True)
 
 
 def importance_legend(name: str, values: np.ndarray) -> Legend:
     """Linear scale of an importance map from its 1st to its 99th percentile."""
     v = np.asarray(values, dtype=np.float64)
     lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
-    unit = IMPORTANCE_UNITS.get(name, "as stored")
-    return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
+    return Legend(f"importance: {name}", float(lo), float(hi), False)
 
 
 def crs_label(crs: str | None, units: str | None) -> str:

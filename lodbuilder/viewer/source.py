@@ -39,6 +39,7 @@ def filter_view(data: ViewData, flt: Any, scan: str = "") -> ViewData:
         parent=parent,
         attributes={k: np.asarray(v)[idx] for k, v in data.attributes.items()},
         importance={k: np.asarray(v)[idx] for k, v in data.importance.items()},
+        scan_id=np.asarray(data.scan_id)[idx],
         scan_names=data.scan_names,
         crs=data.crs,
         units=data.units,
@@ -56,10 +57,21 @@ def view_data_from_scan(scan: Any, ordering: str | None = None, flt: Any = None)
 
 
 def _view_data_from_scan(scan: Any, ordering: str | None, flt: Any) -> ViewData:
+    from ..collection.query import joint_members
+
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]
     wanted = (names if len(names) == 3 else []) + (flt.fields() if flt is not None else [])
-    wanted = [a for a in dict.fromkeys(wanted) if a in scan.attribute_names or a not in names]
+    # the attributes colour modes read (elevation needs none)
+    wanted += [a for a in ("intensity", "classification") if a in scan.attribute_names]
+    members = joint_members(scan)
+    if members and "scan_id" in scan.attribute_names:
+        wanted.append("scan_id")
+    wanted = list(dict.fromkeys(wanted))
     attrs = scan.attributes(None, wanted if wanted else False)
+    joint: dict[str, Any] = {}
+    if members and "scan_id" in attrs:  # a joint scan: its points keep their member scan
+        joint = {"scan_id": np.asarray(attrs.pop("scan_id"), dtype=np.int32),
+                 "scan_names": tuple(members)}
     importance = {m: np.asarray(scan.importance(m)) for m in scan.importance_names}
     crs = {"crs": scan.crs, "units": scan.units}
     if ordering in (None, "uniform"):
@@ -69,7 +81,7 @@ def _view_data_from_scan(scan: Any, ordering: str | None, flt: Any) -> ViewData:
             parent=np.asarray(scan.parent),
             attributes=attrs,
             importance=importance,
-            scan_names=(scan.name,),
+            **({"scan_names": (scan.name,)} | joint),
             **crs,
         )
     pos = scan.ordering_positions(ordering)  # (an unknown ordering: the reader's InputError)
@@ -80,7 +92,8 @@ def _view_data_from_scan(scan: Any, ordering: str | None, flt: Any) -> ViewData:
         parent=np.asarray(scan.dataset(f"{group}/{L.D_PARENT}")[:]),
         attributes={k: np.asarray(v)[pos] for k, v in attrs.items()},
         importance={k: v[pos] for k, v in importance.items()},
-        scan_names=(f"{scan.name} ({ordering})",),
+        scan_id=joint["scan_id"][pos] if joint else None,
+        scan_names=joint["scan_names"] if joint else (f"{scan.name} ({ordering})",),
         **crs,
     )
 
