@@ -371,3 +371,85 @@ def cell_average(rep: np.ndarray, k: int, values: np.ndarray) -> np.ndarray:
     if dt.kind == "b":
         return np.nan_to_num(mean) >= 0.5
     return mean.astype(dt if np.issubdtype(dt, np.floating) else np.float64)
+
+
+# --- the one level query ----------------------------------------------------------------------
+
+@strict_methods
+@dataclass(frozen=True)
+class LevelQuery:
+    """Which level of a scan to read, checked once: every command and the Python API ask for a level
+    through one of these, and :func:`lodbuilder.query.read_level` answers it with the level and the
+    sentence stating its guarantee.
+
+    * a prefix: exactly one of ``rho`` / ``size`` / ``fraction``, of the uniform ordering or of the
+      stored extra ``ordering``;
+    * refined inside a box: ``rho`` outside, ``box_rho`` inside ``box`` (6 numbers);
+    * refined near a point: ``rho`` at ``viewpoint``, growing by ``slope`` per unit distance,
+      capped at ``rho_max``;
+    * a density floor chosen at query time: ``floor_rho`` with ``size`` (and ``ordering``, default
+      weighted): the uniform level at ``floor_rho`` filled to exactly ``size`` points;
+    * filled: ``fill`` (the widest hole to fill, in units of ``rho``) with ``rho``.
+    """
+
+    rho: float | None = None
+    size: int | None = None
+    fraction: float | None = None
+    ordering: str | None = None
+    box: tuple[float, ...] | None = None
+    box_rho: float | None = None
+    viewpoint: tuple[float, ...] | None = None
+    slope: float | None = None
+    rho_max: float | None = None
+    floor_rho: float | None = None
+    fill: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.box is not None and self.box_rho is None:
+            raise InputError("--box needs --box-rho (the finer rho inside the box)")
+        if self.box_rho is not None and self.box is None:
+            raise InputError("--box-rho needs --box XMIN YMIN ZMIN XMAX YMAX ZMAX")
+        if (self.viewpoint is None) != (self.slope is None):
+            raise InputError("--viewpoint and --slope go together")
+        if self.rho_max is not None and self.viewpoint is None:
+            raise InputError("--rho-max caps rho far from --viewpoint: give --viewpoint X Y Z and --slope")
+        refine = self.box is not None or self.viewpoint is not None
+        if refine and self.rho is None:
+            raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
+        if self.box is not None and self.viewpoint is not None:
+            raise InputError("give either --box or --viewpoint, not both")
+        if self.fill is not None:
+            if self.rho is None:
+                raise InputError("--fill needs --rho R (the density the filled level meets)")
+            if refine or self.ordering not in (None, "uniform"):
+                raise InputError("--fill fills the plain --rho level of the uniform ordering; leave out --box, "
+                                 "--viewpoint and --ordering")
+            if self.floor_rho is not None:
+                raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")
+        if self.floor_rho is not None and self.size is None:
+            raise InputError("--floor-rho needs --size N (the exact number of points)")
+
+    @property
+    def kind(self) -> str:
+        """``"fill"``, ``"box"``, ``"viewpoint"``, ``"floor"`` or ``"prefix"``."""
+        if self.fill is not None:
+            return "fill"
+        if self.box is not None:
+            return "box"
+        if self.viewpoint is not None:
+            return "viewpoint"
+        if self.floor_rho is not None:
+            return "floor"
+        return "prefix"
+
+    @property
+    def chosen(self) -> bool:
+        """True when one of rho / size / fraction is given (else: every ordered point)."""
+        return (self.rho, self.size, self.fraction) != (None, None, None)
+
+    def prefix_size(self, n_ordered: int, rho_size: Callable[[float], int]) -> int:
+        """The prefix size of a plain query over ``n_ordered`` ordered points (all of them when
+        none of rho / size / fraction is given); see :func:`resolve_size`."""
+        if not self.chosen:
+            return n_ordered
+        return resolve_size(n_ordered, self.rho, self.size, self.fraction, rho_size=rho_size)

@@ -104,3 +104,11 @@ def unfold_folded(points: np.ndarray, gap: float, length: float) -> np.ndarray:
 def geodesic_folded(points: np.ndarray, src: int, gap: float, length: float) -> np.ndarray:
     u = unfold_folded(points, gap, length)
     return np.linalg.norm(u - u[src], axis=1)
+
+
+def fibonacci_sphere(n: int, radius: float = 1.0) -> np.ndarray:
+    """(n, 3) points spread evenly over a sphere (the Fibonacci spiral): deterministic."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5**0.5) * i
+    return radius * np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]

@@ -11,16 +11,11 @@ import sys
 import h5py
 import numpy as np
 import pytest
+from clirun import run as run_cli
 
 from lodbuilder.archive import layout as L
 from lodbuilder.cli.main import main
 from lodbuilder.io import read_scan
-
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def files_in(d):

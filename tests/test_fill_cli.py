@@ -6,11 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from clirun import run
 from surfaces import jittered_plane
 
 import lodbuilder
 from lodbuilder.archive.writer import ScanRecord, update_archive
-from lodbuilder.cli.main import main
 from lodbuilder.io import read_scan, write_points
 from lodbuilder.io.base import Scan
 
@@ -37,10 +37,6 @@ def arc(tmp_path_factory):
     return path
 
 
-def run(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def test_slice_fill(arc, tmp_path, capsys):

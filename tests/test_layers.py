@@ -13,12 +13,12 @@ PKG = Path(__file__).resolve().parents[1] / "lodbuilder"
 
 #: rooms, lowest first; a module may import its own room and any lower one
 LAYERS = [
-    ["errors", "progress", "_validate", "_optional", "_resources", "py"],
+    ["errors", "progress", "_validate", "_optional", "_resources", "_atomic", "_json", "py"],
     ["_kernels"],
     ["levels", "io", "datasets"],
     ["features", "sampling"],
     ["archive"],
-    ["fill", "quality", "export", "viewer"],
+    ["fill", "query", "quality", "export", "viewer"],
     ["build"],
     ["api", "collection"],
     ["cli"],
@@ -126,3 +126,11 @@ def test_no_module_over_the_size_limit_outside_the_kernels():
     big = {str(p.relative_to(PKG.parent)) for p in PKG.rglob("*.py")
            if "_kernels" not in p.parts and len(p.read_text().splitlines()) > 600}
     assert big == OVER_LIMIT
+
+
+def test_one_current_json_per_benchmark():
+    # docs/bench keeps the current result of each tools/bench_*.py (history is in git)
+    root = PKG.parent
+    benches = {p.stem for p in (root / "tools").glob("bench_*.py")}
+    stray = sorted(p.name for p in (root / "docs" / "bench").glob("*") if p.stem not in benches or p.suffix != ".json")
+    assert stray == []

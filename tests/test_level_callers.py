@@ -96,7 +96,7 @@ def test_every_caller_gives_the_same_size(archive, tmp_path, capsys):
 def test_floor_query_uses_the_same_rho_level(archive, tmp_path, capsys):
     """The density-floor query keeps the uniform level of its rho: with exactly that many points
     it is that level; one point fewer is refused naming the size."""
-    from lodbuilder.cli.feature_options import floor_level
+    from lodbuilder.query import floor_level
 
     path, radius = archive
     with lodbuilder.open_archive(path) as arc:
@@ -163,3 +163,42 @@ def test_merged_scans_in_the_viewer_are_the_collection_level(tmp_path):
     for rho in (0.3, 0.05, 0.02, 0.004):
         lvl = collection_level(path, rho, attributes=False)
         assert data.size_for_rho(rho) == sum(lvl.sizes) == len(lvl)
+
+
+def test_the_level_query_gives_the_same_levels_as_the_scan_view(archive):
+    # LevelQuery -> read_level is the one front of every query kind; a plain prefix is exactly the
+    # ScanView's level and says its covering radius
+    from lodbuilder.levels import LevelQuery
+    from lodbuilder.query import read_level
+
+    path, radius = archive
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        for kind, v in queries(radius):
+            q = LevelQuery(**{kind: v})
+            ans = read_level(view, q)
+            assert q.kind == "prefix" and ans.filled is None
+            assert ans.level.size == view.level(**{kind: v}).size == q.prefix_size(view.n_ordered, view.size_for_rho)
+            assert ans.guarantee == f"covering radius <= {ans.level.rho:.6g}"
+        box = (-1.0, -1.0, -1.0, 0.0, 1.0, 1.0)
+        refined = read_level(view, LevelQuery(rho=0.01, box=box, box_rho=0.004)).level
+        np.testing.assert_array_equal(refined.source_index, view.refine_box(box, 0.004, 0.01).source_index)
+        weighted = read_level(view, LevelQuery(size=100, ordering="weighted"))
+        assert weighted.guarantee.endswith("not a Euclidean covering radius")
+        assert LevelQuery().prefix_size(view.n_ordered, view.size_for_rho) == view.n_ordered
+
+
+@pytest.mark.parametrize(("kw", "message"), [
+    ({"rho": 0.01, "box": (0, 0, 0, 1, 1, 1)}, "--box needs --box-rho (the finer rho inside the box)"),
+    ({"rho": 0.01, "box_rho": 0.1}, "--box-rho needs --box XMIN YMIN ZMIN XMAX YMAX ZMAX"),
+    ({"rho": 0.01, "viewpoint": (0, 0, 0)}, "--viewpoint and --slope go together"),
+    ({"size": 5, "floor_rho": 0.1, "fill": 12.0}, "--fill needs --rho R (the density the filled level meets)"),
+    ({"floor_rho": 0.1}, "--floor-rho needs --size N (the exact number of points)"),
+    ({"viewpoint": (0, 0, 0), "slope": 0.1}, "--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)"),
+])
+def test_a_level_query_is_checked_once_with_exact_messages(kw, message):
+    from lodbuilder.levels import LevelQuery
+
+    with pytest.raises(InputError) as exc:
+        LevelQuery(**kw)
+    assert str(exc.value) == message

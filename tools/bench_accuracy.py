@@ -225,8 +225,6 @@ def markdown(doc: dict) -> str:
     from benchdoc import measured
 
     lines = [
-        "## Accuracy of the band metric and surface-faithful levels (tools/bench_accuracy.py)",
-        "",
         f"{measured(doc)}. Inputs synthetic.",
     ]
     if doc.get("metric"):
@@ -286,11 +284,11 @@ def main() -> int:
     ap.add_argument("--markdown", help="write the 'accuracy' section of this markdown file")
     ap.add_argument("--from-json", help="only render --markdown from an earlier run's JSON")
     args = ap.parse_args()
-    from benchdoc import finish, write_section
+    from benchdoc import finish, load_run, write_section
 
     if args.from_json:
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "accuracy",
-                      markdown(json.loads(Path(args.from_json).read_text())))
+                      markdown(load_run(args.from_json)))
         return 0
     doc = header(args)
     t0 = time.perf_counter()

@@ -139,8 +139,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def markdown(result: dict) -> str:
     lines = [
-        "## Adding a scan to an archive (tools/bench_append.py)",
-        "",
         f"{measured(result)}. Inputs: {result['inputs']}. Each "
         "repeat adds the scan to a fresh copy of the archive (hard links of its files); the cases "
         "run interleaved.",

@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import write_section
+from benchdoc import load_run, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -293,7 +293,7 @@ def main() -> None:
     ap.add_argument("--one", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.from_json:
-        report = json.loads(Path(args.from_json).read_text())
+        report = load_run(args.from_json)
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "build", markdown(report))
         return
     if args.one:
@@ -350,8 +350,6 @@ def main() -> None:
 def markdown(report: dict) -> str:
     m = report["machine"]
     lines = [
-        "## Full ordering (tools/bench_build.py)",
-        "",
         f"{m['cpus']} cores, Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}; "
         f"load average at the end {', '.join(f'{x:.2f}' for x in m['load_avg_at_end'])}.",
         "",

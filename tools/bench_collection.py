@@ -92,8 +92,6 @@ def markdown(r: dict) -> str:
     runs = r["runs"]
     sc = r["machine_two_process_scaling"]
     lines = [
-        "## Collections: the 10 bunny scans on a process pool and on Dask",
-        "",
         f"`python tools/bench_collection.py --repeat {r.get('repeat', '?')}` ({r.get('date', '')}, "
         f"{r['machine']['cpus']} cores, load {r['machine']['load_avg_1m']} at the end): "
         f"{r['input']['scans']} scans, {r['input']['points']:,} points, full orderings, each run into a "
@@ -180,8 +178,7 @@ def joint(manifest: Path, rhos: list[float], tiles_memory: str | None = None) ->
 def joint_markdown(doc: dict) -> str:
     """The 'joint' section of docs/benchmarks.md from a --joint run."""
     tags = [k[: -len("_tiles")] for k in doc if k.startswith("joint") and k.endswith("_tiles")]
-    lines = ["## Joint orderings: the 10 posed bunny scans as one surface (tools/bench_collection.py --joint)", "",
-             f"Measured {doc['date']} at commit {doc.get('commit', '?')} by `{doc.get('command', '')}`; load before "
+    lines = [f"Measured {doc['date']} at commit {doc.get('commit', '?')} by `{doc.get('command', '')}`; load before "
              f"{', '.join(f'{x:.1f}' for x in doc.get('load_before', [doc.get('load_avg_1m', 0)]))}. "
              f"{doc['points']:,} points. Level sizes of `slice --all-scans --rho R` on each archive: separate scans, "
              "the joint ordering (`build --joint`; "
@@ -216,7 +213,10 @@ def main() -> int:
     ap.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = ap.parse_args()
     if args.from_json:
-        saved = json.loads(Path(args.from_json).read_text())
+        sys.path.insert(0, str(HERE.parent))
+        from benchdoc import load_run
+
+        saved = load_run(args.from_json)
         is_joint = saved.get("benchmark") == "bench_collection --joint"
         text = joint_markdown(saved) if is_joint else markdown(saved)
         if args.markdown:

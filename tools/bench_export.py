@@ -25,14 +25,13 @@ default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse o
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchdoc import machine, measured, publish, stamp, write_section
+from benchdoc import load_run, machine, measured, publish, stamp, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = os.environ.get("LODBUILDER_CHROMIUM", "/usr/bin/chromium")
@@ -235,8 +234,6 @@ def bench_pyvista(view, out: Path, size: int) -> dict:
 def markdown(r: dict) -> str:
     c, w = r["copc"], r.get("web")
     lines = [
-        "## Export: COPC and the standalone web page (tools/bench_export.py)",
-        "",
         f"{measured(r)}; {r['machine']['cpu_count']} cores. Input: "
         + (f"synthetic wavy sheet with RGB, {r['n_points']:,} points (archive built in {r['build_s']} s)."
            if r.get("inputs_synthetic", True) else f"{r['inputs']}, {r['n_points']:,} points."),
@@ -308,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.from_json:
         if not args.markdown:
             ap.error("--from-json needs --markdown")
-        write_section(Path(args.markdown), "export", markdown(json.loads(Path(args.from_json).read_text())))
+        write_section(Path(args.markdown), "export", markdown(load_run(args.from_json)))
         return 0
     if args.peer_path:
         sys.path.append(args.peer_path)

@@ -12,13 +12,12 @@ and density-floor orderings (uniform up to the 1 % level, then weighted with a =
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import machine, measured, publish, stamp, write_section
+from benchdoc import load_run, machine, measured, publish, stamp, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -124,7 +123,7 @@ def main() -> None:
     ap.add_argument("--from-json", help="render the markdown section from a saved JSON run")
     args = ap.parse_args()
     if args.from_json:
-        saved = json.loads(Path(args.from_json).read_text())
+        saved = load_run(args.from_json)
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "features", markdown(saved))
         return
     out = stamp("bench_features", None, inputs="real scans " + ", ".join(args.files), synthetic=False)
@@ -142,8 +141,6 @@ def main() -> None:
 
 def markdown(out: dict) -> str:
     lines = [
-        "## Feature-sensitive orderings (tools/bench_features.py)",
-        "",
         (f"{measured(out)}. " if "date" in out else "")
         + f"Metric: {out['metric']}, as a ratio to the uniform ordering at the same size "
         f"(below 1 is better). Cost: {out['cost']}.",

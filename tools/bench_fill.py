@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import measured, publish, stamp, write_section
+from benchdoc import load_run, measured, publish, stamp, write_section
 from scipy.spatial import cKDTree
 
 HERE = Path(__file__).resolve().parent
@@ -407,8 +407,6 @@ def synthetic_part(
 
 def markdown(result: dict) -> str:
     lines = [
-        "## Gap filling (tools/bench_fill.py)",
-        "",
         f"{measured(result)} (2 shared cores: times carry noise).",
         "",
     ]
@@ -513,7 +511,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--from-json", help="re-render a saved JSON result into --markdown")
     args = p.parse_args(argv)
     if args.from_json:
-        result = json.loads(Path(args.from_json).read_text())
+        result = load_run(args.from_json)
         if args.markdown:
             write_section(Path(args.markdown), "fill", markdown(result))
         return 0

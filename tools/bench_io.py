@@ -57,8 +57,6 @@ def bench_file(path: Path) -> dict:
 
 def markdown(doc: dict) -> str:
     lines = [
-        "## LAZ coordinate scale (tools/bench_io.py)",
-        "",
         f"{measured(doc)}. Previous rule: "
         "10^ceil(log10(span / 2e9)); las_layout: the power of ten at or below spacing / 100.",
         "",

@@ -42,7 +42,7 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
-from benchdoc import write_section
+from benchdoc import load_run, write_section
 from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -351,8 +351,6 @@ def markdown(doc: dict) -> str:
     m = doc["machine"]
     v = m["versions"]
     lines = [
-        "## lodbuilder against peer simplifiers (tools/bench_peers.py)",
-        "",
         f"Measured {doc['date']} by `python tools/bench_peers.py{doc['flags']}` "
         f"(commit {m['git_commit'] or '?'}); the run took {doc['total_s']:.0f} s.",
         "",
@@ -485,7 +483,7 @@ def main() -> int:
         if not args.markdown:
             ap.error("--from-json needs --markdown")
         write_section(
-            Path(args.markdown), "peers", markdown(json.loads(Path(args.from_json).read_text()))
+            Path(args.markdown), "peers", markdown(load_run(args.from_json))
         )
         return 0
     methods = [m for m in args.methods.split(",") if m]

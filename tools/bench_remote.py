@@ -38,7 +38,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 sys.path.insert(0, str(HERE))
 
-from benchdoc import measured, publish, stamp, write_section  # noqa: E402
+from benchdoc import load_run, measured, publish, stamp, write_section  # noqa: E402
 from remote_setup import MotoS3, level_bytes, page_size, write_served  # noqa: E402
 
 
@@ -85,8 +85,6 @@ def cli_slice(src: str, name: str, k: int, out: Path, env: dict | None = None) -
 
 def markdown(result: dict) -> str:
     lines = [
-        "## Levels over HTTP and S3 (tools/bench_remote.py)",
-        "",
         f"{measured(result)}. Servers on 127.0.0.1 (a Range-honouring HTTP server with "
         f"{result['latency_s'] * 1e3:.0f} ms added per request, moto's S3 server). Archives are "
         f"synthetic ({result['inputs']}). Fetched bytes: as "
@@ -128,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = p.parse_args(argv)
     if args.from_json:
-        saved = json.loads(Path(args.from_json).read_text())
+        saved = load_run(args.from_json)
         if args.markdown:
             write_section(Path(args.markdown), "remote", markdown(saved))
         print(json.dumps(saved.get("targets", {}), indent=2))

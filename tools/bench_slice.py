@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchdoc import machine, measured, publish, stamp, write_section
+from benchdoc import load_run, machine, measured, publish, stamp, write_section
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from remote_setup import synthetic_ordering  # noqa: E402
@@ -135,8 +135,6 @@ def time_fpsample(points: np.ndarray, k: int) -> float | None:
 def markdown(result: dict) -> str:
     m = result["machine"]
     lines = [
-        "## Level queries from an archive (tools/bench_slice.py)",
-        "",
         f"{measured(result)} (shared machine: medians carry noise, minima are the figures). "
         f"Machine: {m.get('cpu', '?')}, {m['cpu_count']} cores, Python {m['python']}, "
         f"h5py {m['h5py']} / HDF5 {m['hdf5']}.",
@@ -199,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--from-json", help="re-render a saved JSON result into --markdown, no new run")
     args = p.parse_args(argv)
     if args.from_json:
-        result = json.loads(Path(args.from_json).read_text())
+        result = load_run(args.from_json)
         if args.markdown:
             write_section(Path(args.markdown), "slice", markdown(result))
         print(json.dumps(result.get("targets", {}), indent=2))

@@ -227,7 +227,7 @@ def ratios(doc: dict) -> str:
 def markdown(doc: dict) -> str:
     """The docs/benchmarks.md section of a run (or of several runs merged: a list of docs)."""
     docs = doc if isinstance(doc, list) else [doc]
-    lines = ["## Tiled (out-of-core) builds: tools/bench_tiled.py", ""]
+    lines: list[str] = []
     for d in docs:
         lines.append(f"Run {d['date']} at commit {d['commit']} ({d['cpus']} cpus, load before "
                      f"{', '.join(f'{x:.1f}' for x in d['load_before'])}): `{d['command']}`")
@@ -293,10 +293,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quality-passes", type=int, help="tile passes of the quality build (default: TILE_PASSES)")
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()))
     p.add_argument("--markdown", type=Path, help="write the 'tiled' section of this file (docs/benchmarks.md)")
-    p.add_argument("--from-json", type=Path, nargs="+", help="render saved JSON runs into --markdown, no new run")
+    p.add_argument("--from-json", nargs="+", help="render saved JSON runs into --markdown, no new run")
     args = p.parse_args(argv)
     if args.from_json:
-        docs = [json.loads(f.read_text()) for f in args.from_json]
+        from benchdoc import load_run
+
+        docs = [load_run(f) for f in args.from_json]
         text = markdown(docs)
         if args.markdown:
             from benchdoc import write_section

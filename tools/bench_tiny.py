@@ -122,8 +122,6 @@ def markdown(doc: dict) -> str:
     m = doc["metrication"]
     names = [*doc["trees"], "euclidean_fps"]
     lines = [
-        "## Geodesic covering of the small bunny resolutions (tools/bench_tiny.py)",
-        "",
         f"{measured(doc)}. Inputs real (../shared/data). Trees: "
         + ", ".join(f"{k} = `{v}`" for k, v in doc["trees"].items())
         + "; euclidean_fps = lodbuilder's exact Euclidean FPS.",
@@ -166,9 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--from-json", help="render the markdown section from a saved JSON report")
     args = ap.parse_args(argv)
     if args.from_json:
-        from benchdoc import write_section
+        from benchdoc import load_run, write_section
 
-        doc = json.loads(Path(args.from_json).read_text())
+        doc = load_run(args.from_json)
         write_section(Path(args.markdown or ROOT / "docs" / "benchmarks.md"), "tiny", markdown(doc))
         return 0
     trees = dict(t.split("=", 1) for t in args.trees.split(","))

@@ -62,8 +62,6 @@ def markdown(out: dict) -> str:
     r = out["results"]
     gl = out["gl"]
     lines = [
-        "## Viewer: a slider move on a 100k-point level (tools/bench_viewer.py)",
-        "",
         f"Input {out['input']} ({out['n_points']:,} points), levels around {out['level']:,} points, "
         f"window {out['window'][0]}x{out['window'][1]}, off screen through EGL; OpenGL: "
         f"{gl['renderer']} ({gl['vendor']}), i.e. "

@@ -1,5 +1,17 @@
 """Shared by the benchmark programs: the stamp every result carries (:func:`stamp`, :func:`finish`,
-:func:`measured`) and one section each in docs/benchmarks.md (:func:`write_section`)."""
+:func:`measured`), one JSON file per program in docs/bench (:func:`store`, :func:`load_run`) and one
+block each in docs/benchmarks.md (:func:`write_section`).
+
+docs/bench/<program>.json (e.g. bench_tiled.json) maps the kind of a run (``"survey"``,
+``"quality"``; ``"run"`` where the program has one kind) to that run's JSON as the program printed
+it, stamp included. It holds the current run of each kind only; earlier runs are in git history.
+Store a run with::
+
+    python tools/bench_tiled.py --survey S.laz --workers 2 > run.json
+    python tools/benchdoc.py store docs/bench/bench_tiled.json survey run.json
+
+and render a stored run into the page with the program's ``--from-json
+docs/bench/bench_tiled.json:survey --markdown docs/benchmarks.md``."""
 
 from __future__ import annotations
 
@@ -14,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+BENCH_DIR = ROOT / "docs" / "bench"
+PAGE = ROOT / "docs" / "benchmarks.md"
 
 
 def commit() -> str:
@@ -117,18 +131,74 @@ def measured(result: dict[str, Any]) -> str:
     return text
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def store(path: str | os.PathLike[str], kind: str, run: dict[str, Any]) -> None:
+    """Make ``run`` the current run of ``kind`` in the docs/bench file at ``path`` (other kinds
+    are kept)."""
+    if "benchmark" not in run:
+        raise SystemExit("not one run as a benchmark program printed it (no 'benchmark' key)")
+    path = Path(path)
+    runs = json.loads(path.read_text()) if path.exists() else {}
+    if not isinstance(runs, dict) or "benchmark" in runs:
+        raise SystemExit(f"{path} is not a file of runs by kind; move it away or give a new path")
+    runs[kind] = run
+    _write_atomic(path, json.dumps(runs, indent=1, default=float) + "\n")
+
+
+def load_run(spec: str | os.PathLike[str]) -> Any:
+    """The run named by ``spec``: ``FILE`` (a run as a program printed it, or a docs/bench file
+    with one kind) or ``FILE:KIND`` (that kind of a docs/bench file)."""
+    text, kind = str(spec), None
+    if not Path(text).exists() and ":" in text:
+        text, kind = text.rsplit(":", 1)
+    doc = json.loads(Path(text).read_text())
+    if not isinstance(doc, dict) or "benchmark" in doc:
+        if kind is not None:
+            raise SystemExit(f"{text} holds one run, not runs by kind: give it without ':{kind}'")
+        return doc
+    if kind is None and len(doc) == 1:
+        return next(iter(doc.values()))
+    if kind not in doc:
+        raise SystemExit(f"give FILE:KIND with KIND one of {', '.join(doc)} (got {kind!r})")
+    return doc[kind]
+
+
 def write_section(path: Path, name: str, text: str) -> None:
     """Put ``text`` between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` in the markdown file
-    at ``path`` (replacing that section, or appending it), leaving other sections as they are."""
+    at ``path`` (replacing that block, or appending it), leaving the rest of the page as it is:
+    each section's heading and its text above the block are written by hand."""
     begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
     block = f"{begin}\n{text.rstrip()}\n{end}\n"
     old = path.read_text() if path.exists() else "# Benchmarks\n\n"
     if begin in old and end in old:
         head, rest = old.split(begin, 1)
-        new = head + block + rest.split(end, 1)[1].lstrip("\n")
+        tail = rest.split(end, 1)[1].lstrip("\n")
+        new = head + block + ("\n" + tail if tail else "")
     else:
         new = old.rstrip("\n") + "\n\n" + block
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(new)
-    os.replace(tmp, path)
+    _write_atomic(path, new)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python tools/benchdoc.py store FILE KIND RUN.json``: see the module's docstring."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description="store a benchmark run in its docs/bench file")
+    sub = ap.add_subparsers(dest="command", required=True)
+    st = sub.add_parser("store", help="make RUN the current run of KIND in FILE")
+    st.add_argument("file", type=Path)
+    st.add_argument("kind")
+    st.add_argument("run", type=Path, help="the JSON the benchmark printed")
+    args = ap.parse_args(argv)
+    store(args.file, args.kind, json.loads(args.run.read_text()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

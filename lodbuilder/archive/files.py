@@ -21,6 +21,7 @@ import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
+from .._atomic import fsync_dir, fsync_file, publish  # noqa: F401 - the archive writer publishes through F
 from ..errors import ArchiveError
 from ..io._files import output_dir_problem
 from .index import is_url, url_text
@@ -117,30 +118,6 @@ def check_writable_dir(path: str | os.PathLike[str], what: str = "output") -> No
     parent, problem = output_dir_problem(path)
     if problem:
         raise ArchiveError(f"{what} directory {parent} {problem}")
-
-
-def fsync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def fsync_dir(directory: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def publish(tmp: Path, path: Path) -> None:
-    """fsync ``tmp``, rename it onto ``path`` and fsync the directory (the atomic step)."""
-    fsync_file(tmp)
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
 
 
 def unlink_quietly(path: Path) -> None:

@@ -168,40 +168,11 @@ def parts_dir_name(archive_name: str) -> str:
 
 
 def to_json(value: Any) -> str:
-    """JSON text of ``value``, converting NumPy scalars and arrays; non-finite floats as strings."""
+    """JSON text of ``value`` (sorted keys) by lodbuilder's one convention (:mod:`lodbuilder._json`:
+    NumPy values converted, non-finite floats as strings)."""
+    from .._json import dumps
 
-    def default(o: Any) -> Any:
-        if isinstance(o, np.integer):
-            return int(o)
-        if isinstance(o, np.floating):
-            return _finite_or_str(float(o))
-        if isinstance(o, np.bool_):
-            return bool(o)
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, (set, tuple)):
-            return list(o)
-        return str(o)
-
-    return json.dumps(_clean(value), default=default, sort_keys=True, allow_nan=False)
-
-
-def _finite_or_str(v: float) -> Any:
-    return v if math.isfinite(v) else str(v)
-
-
-def _clean(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, float):
-        return _finite_or_str(value)
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    if isinstance(value, np.floating):
-        return _finite_or_str(float(value))
-    return value
+    return dumps(value, sort_keys=True)
 
 
 def from_json(text: Any) -> Any:

@@ -102,18 +102,9 @@ VEC3 = {"type": "array", "items": {"type": ["number", "string"]}, "minItems": 3,
 UTC = {"type": "string", "pattern": r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}"}
 
 
-def build_schema() -> dict[str, Any]:
-    attribute_ds = _ds(
-        INT_DTYPES + FLOAT_DTYPES + ["bool"], description="an input attribute, stored order"
-    )
-    importance_ds = _ds(
-        "float32",
-        1,
-        attrs={L.M_PARAMETERS: JSON_TEXT},
-        required_attrs=[L.M_PARAMETERS],
-        description="an importance map, stored order",
-    )
-    ordering = _group(
+def _ordering_schema() -> dict[str, Any]:
+    """An extra ordering's group."""
+    return _group(
         {
             L.D_ORDER: _ds("int64", 1, description="positions into the stored points", small=True),
             L.D_RADIUS: _ds(
@@ -129,7 +120,36 @@ def build_schema() -> dict[str, Any]:
         required_attrs=[L.M_PARAMETERS],
         description="an extra ordering (feature-sensitive, density floor, ...)",
     )
-    scan = _group(
+
+
+#: a scan's attributes, all required
+_SCAN_ATTRS: dict[str, Any] = {
+    L.S_N_POINTS: {"type": "integer", "minimum": 1},
+    L.S_N_ORDERED: {"type": "integer", "minimum": 1},
+    L.S_ENCODING: {"enum": list(L.ENCODINGS)},
+    L.S_BOUNDS_MIN: VEC3,
+    L.S_BOUNDS_MAX: VEC3,
+    L.S_RADIUS_STEP: {"type": "integer", "minimum": 1},
+    L.S_BUILD: JSON_TEXT,
+    L.S_PROVENANCE: JSON_TEXT,
+    L.S_FORMAT_METADATA: JSON_TEXT,
+}
+
+
+def _scan_schema() -> dict[str, Any]:
+    """One scan's group."""
+    attribute_ds = _ds(
+        INT_DTYPES + FLOAT_DTYPES + ["bool"], description="an input attribute, stored order"
+    )
+    importance_ds = _ds(
+        "float32",
+        1,
+        attrs={L.M_PARAMETERS: JSON_TEXT},
+        required_attrs=[L.M_PARAMETERS],
+        description="an importance map, stored order",
+    )
+    ordering = _ordering_schema()
+    return _group(
         {
             L.D_POINTS: _ds(
                 list(L.ENCODINGS),
@@ -160,30 +180,14 @@ def build_schema() -> dict[str, Any]:
             L.D_SEEDS,
             L.G_ATTRIBUTES,
         ],
-        attrs={
-            L.S_N_POINTS: {"type": "integer", "minimum": 1},
-            L.S_N_ORDERED: {"type": "integer", "minimum": 1},
-            L.S_ENCODING: {"enum": list(L.ENCODINGS)},
-            L.S_BOUNDS_MIN: VEC3,
-            L.S_BOUNDS_MAX: VEC3,
-            L.S_RADIUS_STEP: {"type": "integer", "minimum": 1},
-            L.S_BUILD: JSON_TEXT,
-            L.S_PROVENANCE: JSON_TEXT,
-            L.S_FORMAT_METADATA: JSON_TEXT,
-        },
-        required_attrs=[
-            L.S_N_POINTS,
-            L.S_N_ORDERED,
-            L.S_ENCODING,
-            L.S_BOUNDS_MIN,
-            L.S_BOUNDS_MAX,
-            L.S_RADIUS_STEP,
-            L.S_BUILD,
-            L.S_PROVENANCE,
-            L.S_FORMAT_METADATA,
-        ],
+        attrs=_SCAN_ATTRS,
+        required_attrs=list(_SCAN_ATTRS),
         description="one scan",
     )
+
+
+def _index_schema() -> dict[str, Any]:
+    """The index group: one row per scan."""
     index = _group(
         {
             L.I_NAME: _ds(
@@ -216,6 +220,12 @@ def build_schema() -> dict[str, Any]:
             "type": "string",
             "pattern": r"^S\d+$",
         }
+    return index
+
+
+def build_schema() -> dict[str, Any]:
+    """The archive's JSON Schema, derived from :mod:`lodbuilder.archive.layout`."""
+    scan, index = _scan_schema(), _index_schema()
     root = _group(
         {
             L.G_SCANS: _group({}, [], additional=scan, description="scans by name"),

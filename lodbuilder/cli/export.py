@@ -97,10 +97,12 @@ def run(args: argparse.Namespace) -> int:
         from ..export.copc import check_copc_dependencies, export_copc
 
         check_copc_dependencies()  # a missing laspy or lazrs: fail before reading anything
-    chosen = args.rho is not None or args.size is not None or args.fraction is not None
+    from ..levels import LevelQuery
+
+    query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        k = view.resolve_size(args.rho, args.size, args.fraction) if chosen else view.n_ordered
+        k = query.prefix_size(view.n_ordered, view.size_for_rho)
         doc: dict[str, Any] = {
             "archive": str(arc_path), "scan": view.name, "output": str(out), "format": fmt
         }
@@ -108,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
             cap = args.max_points or MAX_POINTS
             note = ""
             if k > cap:
-                if chosen:
+                if query.chosen:
                     raise InputError(
                         f"the level has {k:,} points, more than a web page holds ({cap:,}); "
                         "ask for a coarser level (--rho, --size) or raise --max-points"

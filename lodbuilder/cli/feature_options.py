@@ -1,7 +1,7 @@
 """Command-line options of feature sensitivity, shared by ``lodbuilder build`` and ``slice``.
 
 The command modules call :func:`add_build_options` / :func:`build_kwargs` and
-:func:`add_slice_options` / :func:`floor_level`; everything about the options lives here.
+:func:`add_slice_options` (the query itself: :func:`lodbuilder.query.floor_level`).
 """
 
 from __future__ import annotations
@@ -96,36 +96,3 @@ def add_slice_options(p: argparse.ArgumentParser) -> None:
         help="with --size N and --ordering NAME: keep the uniform level that covers within R and "
         "fill it to exactly N points from ordering NAME (default: weighted)",
     )
-
-
-def floor_level(view: Any, rho: float, size: int, ordering: str | None = None) -> Any:
-    """The level of a stored scan for a density floor chosen at query time: the uniform prefix
-    covering within ``rho`` united with the ``ordering``'s prefix, exactly ``size`` points."""
-    from ..levels import covering_bound
-    from ..sampling.adaptive import floor_positions
-
-    name = ordering or "weighted"
-    pos = floor_positions(view.radius, view.n_ordered, view.ordering_positions(name), rho, size)
-    bound = covering_bound(view.size_for_rho(rho), view.n_ordered, view.radius.__getitem__)
-    return view.positions_level(pos, rho=bound, ordering=f"{name}+floor")
-
-
-def bound_note(view: Any, level: Any) -> str:
-    """What the level's radius guarantees, for the slice message.
-
-    A prefix of the uniform ordering (or a floor query) covers within its radius; a prefix of a
-    weighted ordering only within its *weighted* radius (see :mod:`lodbuilder.sampling.adaptive`);
-    a prefix of a density-floor ordering past its uniform part covers within rho0."""
-    name = getattr(level, "ordering", None)
-    if name in (None, "uniform") or str(name).endswith("+floor"):
-        return f"covering radius <= {level.rho:.6g}"
-    params = view.ordering_parameters(name)
-    kind = params.get("kind")
-    if kind == "density_floor" and level.size > int(params.get("n_floor", 0)):
-        return (
-            f"covering radius <= {float(params['rho0']):.6g} (the density floor); weighted radius "
-            f"{level.rho:.6g}"
-        )
-    if kind == "weighted":
-        return f"weighted radius {level.rho:.6g}, not a Euclidean covering radius"
-    return f"covering radius <= {level.rho:.6g}"

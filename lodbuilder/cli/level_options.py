@@ -5,7 +5,7 @@ evaluate add them from here, each with its own help where its meaning differs.""
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from ..filters import LevelFilter
@@ -103,3 +103,19 @@ def filter_from_args(args: argparse.Namespace) -> LevelFilter | None:
         polygons=parse_polygon(args.filter_polygon) if getattr(args, "filter_polygon", None) else None,
     )
     return None if flt.empty else flt
+
+
+def level_query(args: argparse.Namespace) -> Any:
+    """The :class:`~lodbuilder.levels.LevelQuery` of a command's level options (checked)."""
+    from ..levels import LevelQuery
+
+    def tup(v: Any) -> Any:
+        return None if v is None else tuple(float(x) for x in v)
+
+    return LevelQuery(
+        rho=getattr(args, "rho", None), size=getattr(args, "size", None), fraction=getattr(args, "fraction", None),
+        ordering=getattr(args, "ordering", None), box=tup(getattr(args, "box", None)),
+        box_rho=getattr(args, "box_rho", None), viewpoint=tup(getattr(args, "viewpoint", None)),
+        slope=getattr(args, "slope", None), rho_max=getattr(args, "rho_max", None),
+        floor_rho=getattr(args, "floor_rho", None), fill=getattr(args, "fill", None),
+    )

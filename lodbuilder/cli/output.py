@@ -26,14 +26,15 @@ prints the command's result and warnings; ``-v`` adds details and INFO log lines
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import math
 import os
 import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, NoReturn
+
+from .. import _json
+from .._json import jsonable  # noqa: F401 - the commands convert with it
 
 QUIET, NORMAL, VERBOSE, DEBUG = -1, 0, 1, 2
 
@@ -137,27 +138,8 @@ def emit(args: argparse.Namespace, doc: dict[str, Any], text: str | Callable[[],
         print(text() if callable(text) else text)
 
 
-def jsonable(value: Any) -> Any:
-    """``value`` with NumPy scalars/arrays as Python values, tuples as lists and non-finite floats
-    as the strings "inf", "-inf", "nan" (the archive's own JSON convention): standard JSON."""
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, (str, bool, int)) or value is None:
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else str(value)
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    tolist = getattr(value, "tolist", None)  # NumPy scalars and arrays
-    if callable(tolist):
-        return jsonable(tolist())
-    return str(value)
-
-
 def dumps(doc: Any) -> str:
-    return json.dumps(jsonable(doc), indent=2, allow_nan=False)
+    return _json.dumps(doc, indent=2)
 
 
 def write_json(doc: Any, out: str | os.PathLike[str] = "-") -> None:

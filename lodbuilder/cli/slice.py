@@ -80,26 +80,16 @@ def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
     from ..errors import InputError
     from ..io.registry import writer_for
+    from ..query import read_level
+    from .level_options import level_query
     from .output import VERBOSE, check_output, emit, say
 
     arc_path = Path(args.archive)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
     writer_for(out)  # unknown output suffix (or .copc.laz): fail before reading anything
-    if args.box is not None and args.box_rho is None:
-        raise InputError("--box needs --box-rho (the finer rho inside the box)")
-    if args.box_rho is not None and args.box is None:
-        raise InputError("--box-rho needs --box XMIN YMIN ZMIN XMAX YMAX ZMAX")
-    if (args.viewpoint is None) != (args.slope is None):
-        raise InputError("--viewpoint and --slope go together")
-    if args.rho_max is not None and args.viewpoint is None:
-        raise InputError("--rho-max caps rho far from --viewpoint: give --viewpoint X Y Z and --slope")
-    refine = args.box is not None or args.viewpoint is not None
-    if refine and args.rho is None:
-        raise InputError("--box / --viewpoint need --rho (the coarse rho, or rho at the viewpoint)")
-    if args.box is not None and args.viewpoint is not None:
-        raise InputError("give either --box or --viewpoint, not both")
-    if args.fill is not None:
-        _check_fill(args)
+    query = level_query(args)  # one check of the level options, before anything is read
+    if args.fill is not None and getattr(args, "all_scans", False):
+        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")
     flt = filter_from_args(args)
     if flt is not None and getattr(args, "all_scans", False):
         raise InputError("survey filters apply to one scan's level; leave out --all-scans")
@@ -109,33 +99,12 @@ def run(args: argparse.Namespace) -> int:
         return slice_all(args)
 
     t0 = time.perf_counter()
-    filled = None
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        if args.fill is not None:
-            from ..fill import fill_level
-
-            filled = fill_level(view, args.rho, max_hole=args.fill)
-            level = filled.level
-        elif args.box is not None:
-            level = view.refine_box(args.box, args.box_rho, args.rho)
-        elif args.viewpoint is not None:
-            level = view.refine_viewpoint(args.viewpoint, args.rho, args.slope, args.rho_max)
-        elif getattr(args, "floor_rho", None) is not None:
-            from .feature_options import floor_level
-
-            if args.size is None:
-                raise InputError("--floor-rho needs --size N (the exact number of points)")
-            level = floor_level(view, args.floor_rho, args.size, args.ordering)
-        else:
-            level = view.level(
-                args.rho, size=args.size, fraction=args.fraction, ordering=args.ordering
-            )
+        answer = read_level(view, query)
+        level, filled, note = answer.level, answer.filled, answer.guarantee
         metadata = view.format_metadata
         say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
-        from .feature_options import bound_note
-
-        note = bound_note(view, level)
     guarantee = None
     if flt is not None:
         before = level.size
@@ -181,17 +150,3 @@ def run(args: argparse.Namespace) -> int:
         ),
     )
     return 0
-
-
-def _check_fill(args: argparse.Namespace) -> None:
-    from ..errors import InputError
-
-    if args.rho is None:
-        raise InputError("--fill needs --rho R (the density the filled level meets)")
-    if args.box is not None or args.viewpoint is not None or args.ordering not in (None, "uniform"):
-        raise InputError(
-            "--fill fills the plain --rho level of the uniform ordering; leave out --box, "
-            "--viewpoint and --ordering"
-        )
-    if getattr(args, "all_scans", False) or getattr(args, "floor_rho", None) is not None:
-        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")

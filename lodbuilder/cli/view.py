@@ -128,9 +128,10 @@ def run(args: argparse.Namespace) -> int:
     data = load_view_data(args.archive, args.scan, args.ordering, flt)
     if flt is not None:
         say(args, f"filter {flt.describe()}: {len(data):,} points kept; {flt.guarantee(None)}")
-    size = None
-    if (args.size, args.rho, args.fraction) != (None, None, None):
-        size = data.resolve_size(rho=args.rho, size=args.size, fraction=args.fraction)
+    from ..levels import LevelQuery
+
+    query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)
+    size = query.prefix_size(len(data), data.size_for_rho) if query.chosen else None
     if args.colour:
         data.check_mode(args.colour)
 

@@ -11,6 +11,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from .._atomic import publish
 from .._validate import strict_keywords
 from ..errors import ScanFileError
 
@@ -98,7 +99,7 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         yield tmp_path
         os.chmod(tmp_path, _default_mode())
-        os.replace(tmp_path, p)
+        publish(tmp_path, p)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp_path.unlink()

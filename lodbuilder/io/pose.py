@@ -14,20 +14,17 @@ log = logging.getLogger(__name__)
 
 
 def quaternion_matrix(qx: float, qy: float, qz: float, qw: float, where: str = "") -> np.ndarray:
-    """Rotation matrix of the quaternion (x, y, z, w), normalised first. ``where`` prefixes errors
-    (the manifest line)."""
+    """Rotation matrix of the quaternion (x, y, z, w), normalised first (scipy's Rotation).
+    ``where`` prefixes errors (the manifest line)."""
+    from scipy.spatial.transform import Rotation
+
     q = np.array([qx, qy, qz, qw], dtype=np.float64)
     n = float(np.linalg.norm(q))
     if not np.isfinite(n) or n < 1e-12:
         text = " ".join(f"{v:g}" for v in q)
         raise InputError(f"{where + ': ' if where else ''}quaternion ({text}) has zero or non-finite "
                          "length; give a unit quaternion qx qy qz qw")
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return Rotation.from_quat(q / n).as_matrix()
 
 
 def bmesh_pose(t: Any, q: Any, where: str = "") -> np.ndarray:

@@ -70,23 +70,19 @@ class LevelReport:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict (inf and NaN become None)."""
-        return _json_clean(asdict(self))
+        """A JSON-ready dict (lodbuilder's one convention: inf and NaN as strings)."""
+        from .._json import jsonable
+
+        return jsonable(asdict(self))
 
 
-def _json_clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+def _claimed_rho(rho: Any) -> float | None:
+    if rho is None:
+        return None
+    rho = float(rho)
+    if math.isnan(rho) or rho < 0:
+        raise InputError(f"rho must be a number >= 0, got {rho!r}")
+    return rho
 
 
 @strict_keywords
@@ -114,10 +110,7 @@ def evaluate_level(
     t0 = time.perf_counter()
     pts = validate_points(points, "points")
     lev = validate_points(level, "level")
-    if rho is not None:
-        rho = float(rho)
-        if math.isnan(rho) or rho < 0:
-            raise InputError(f"rho must be a number >= 0, got {rho!r}")
+    rho = _claimed_rho(rho)
     level_tree = cKDTree(lev)
     if input_tree is None:
         input_tree = cKDTree(pts)

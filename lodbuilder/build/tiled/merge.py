@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._atomic import publish
 from ...progress import ProgressCallback, report
 from . import workdir as W
 from .tasks import EVENT, HEAD, POINT, STREAM
@@ -128,8 +129,8 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
             r.close()
     if written != n:
         raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
-    (work / "order.i8.tmp").replace(work / "order.i8")
-    (work / "key.f8.tmp").replace(work / "key.f8")
+    publish(work / "order.i8.tmp", work / "order.i8")
+    publish(work / "key.f8.tmp", work / "key.f8")
     return {"deferred": deferred, "seam_points": n_seam, "head": h}
 
 
@@ -147,7 +148,7 @@ def write_ranks(work: Path, n: int) -> None:
         rank.flush()
     finally:
         del rank
-    tmp.replace(work / "rank.i8")
+    publish(tmp, work / "rank.i8")
 
 
 class _Records:
@@ -253,6 +254,6 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
     finally:
         for r in ev + pt:
             r.close()
-    (work / "radius.f8.tmp").replace(work / "radius.f8")
-    (work / "parent.i8.tmp").replace(work / "parent.i8")
+    publish(work / "radius.f8.tmp", work / "radius.f8")
+    publish(work / "parent.i8.tmp", work / "parent.i8")
     return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at}

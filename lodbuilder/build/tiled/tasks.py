@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._atomic import write_array
 from .workdir import REC, gather
 
 #: one row of a tile's ordering stream: input index, key (insertion radius), position, margin
@@ -25,14 +26,6 @@ FACE = np.dtype([("g", "<i8"), ("key", "<f8")])  # a tile's points near its shar
 EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
 POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
-
-
-def _publish(arr: np.ndarray, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    arr.tofile(tmp)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
@@ -53,7 +46,7 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     head["r"] = o.radius[:h]
     head["parent"] = o.parent[:h]
     r_next = float(o.radius[h]) if len(o) > h else 0.0
-    _publish(head, w / "head.bin")
+    write_array(w / "head.bin", head)
     return {"n_decimated": int(dec.shape[0]), "head": h, "r_cut": r_next, "voxel_size": o.voxel_size,
             "band_radius": o.band_radius, "seconds": time.perf_counter() - t0}
 
@@ -151,8 +144,8 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
         near = stream[stream["m"] < halo]
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
-        _publish(face[np.argsort(face["g"], kind="stable")], Path(face_out))
-    _publish(stream, out)
+        write_array(Path(face_out), face[np.argsort(face["g"], kind="stable")])
+    write_array(out, stream)
     n_seam = int((stream["m"] < stream["key"]).sum())
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
@@ -195,7 +188,7 @@ def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
-    _publish(ev, w / f"cover.{t}.ev")
-    _publish(pt, w / f"cover.{t}.pt")
+    write_array(w / f"cover.{t}.ev", ev)
+    write_array(w / f"cover.{t}.pt", pt)
     return {"tile": t, "n_ext": int(n), "n_events": int(ne), "seconds": time.perf_counter() - t0,
             "worker_pid": os.getpid()}

@@ -15,7 +15,6 @@ resident memory of the process that runs it stays at one block.
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from ..._atomic import write_bytes
+from ..._json import dumps
 from ...progress import ProgressCallback, report
 
 REC = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
@@ -58,9 +59,7 @@ class Spill:
 
 
 def write_json(path: Path, doc: dict[str, Any]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, default=str))
-    os.replace(tmp, path)
+    write_bytes(path, dumps(doc).encode())
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
