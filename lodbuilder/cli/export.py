@@ -34,6 +34,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="web page: most points it may hold (default 2,000,000: browsers slow down past it)",
     )
     p.add_argument(
+        "--all-scans",
+        action="store_true",
+        help="COPC or web page of every scan of the archive (a joint scan counts as its member "
+        "scans), merged at --rho (default: every point), with each point's scan as attribute "
+        "scan_id and the scans' names in the file",
+    )
+    p.add_argument(
         "--rank-radius",
         action="store_true",
         help="COPC: also store each point's farthest-point rank and insertion radius as extra "
@@ -87,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
     if args.rank_radius and fmt != "COPC":
         raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
     flt = filter_from_args(args)
+    if args.all_scans:
+        return _run_all_scans(args, out, fmt, flt)
     if args.max_points is not None and args.max_points < 1:
         raise InputError(f"--max-points must be at least 1, got {args.max_points}")
     if web:
@@ -163,4 +172,40 @@ def run(args: argparse.Namespace) -> int:
              f"  guarantee: {doc['guarantee']}"] + ([rest] if rest else [])
         )
     emit(args, doc, text)
+    return 0
+
+
+def _run_all_scans(args: argparse.Namespace, out: Any, fmt: str, flt: Any) -> int:
+    """``export --all-scans``: one COPC file or web page of the whole collection."""
+    from ..archive.reader import open_archive
+    from ..errors import InputError
+    from ..export.collection import export_collection
+    from .output import emit
+
+    for opt, bad in (("--scan", args.scan is not None), ("--size", args.size is not None),
+                     ("--fraction", args.fraction is not None), ("a survey filter", flt is not None),
+                     ("--rank-radius", args.rank_radius)):
+        if bad:
+            raise InputError(f"--all-scans merges every scan at one --rho; leave out {opt}")
+    if fmt == "3D Tiles":
+        raise InputError("--all-scans writes a COPC file or a web page; 3D Tiles take one scan (--scan NAME)")
+    if fmt == "COPC":
+        from ..export.copc import check_copc_dependencies
+
+        check_copc_dependencies()
+    from ..export.web import MAX_POINTS
+    from ..io.api import collect_notes
+
+    with open_archive(args.archive) as arc, collect_notes() as changes:
+        written, merged = export_collection(arc, out, args.rho, fmt=fmt,
+                                            max_points=args.max_points or MAX_POINTS, up=args.up or "z")
+    doc: dict[str, Any] = {"archive": str(args.archive), "scans": merged.names, "output": str(out),
+                           "format": fmt, "size": written.n_points, "n_points": merged.n_total,
+                           "rho": merged.rho, "bytes": written.n_bytes, "changes": changes}
+    rho = f"rho = {merged.rho:.4g}" if merged.rho > 0 else "every point"
+    text = (f"wrote {written.n_points:,} of {merged.n_total:,} points of {len(merged.names)} scans "
+            f"to {out} ({written.n_bytes / 1e6:.1f} MB, {rho}; attribute scan_id: "
+            + ", ".join(f"{i} {n}" for i, n in enumerate(merged.names[:8]))
+            + (", ..." if len(merged.names) > 8 else "") + ")")
+    emit(args, doc, "\n".join([text] + [f"  changed: {line}" for line in changes]))
     return 0

@@ -227,6 +227,7 @@ def write_copc(
     rank: np.ndarray | None = None,
     filtered: str | None = None,
     bounds: np.ndarray | None = None,
+    scans: list[str] | None = None,
 ) -> CopcFile:
     """Write a level (points in farthest-point order, their insertion radii, the level's covering
     bound ``rho``) as a COPC 1.0 file whose octree depths are its levels (module docstring),
@@ -241,7 +242,9 @@ def write_copc(
     ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: the
     description of a filter that removed points from the level (the points are then a
     subsequence of it), with ``bounds`` the covering bound of each prefix
-    (:func:`lodbuilder.filters.prefix_bounds`; default ``radius``)."""
+    (:func:`lodbuilder.filters.prefix_bounds`; default ``radius``). ``scans``: the names of the
+    scans that attribute ``scan_id`` indexes (a collection or a joint scan), written in the
+    EVLR."""
     check_copc_dependencies()
     from ..io._files import atomic_output
     from ..io.api import log_notes
@@ -268,6 +271,8 @@ def write_copc(
     fmt = copc_point_format(meta, set(attributes))
     layout = las_layout(pts, attrs, meta, point_format=fmt, version="1.4")
     for ed in layout.extra_dims:
+        if scans and ed.name == "scan_id":
+            ed.description = "scan index: names in EVLR"
         if rank_radius and ed.name == "rank":
             ed.description = "lodbuilder farthest-point rank"
         elif rank_radius and ed.name == "radius":
@@ -319,6 +324,8 @@ def write_copc(
     }
     if filtered is not None:
         doc["filter"] = filtered
+    if scans:
+        doc["scans"] = list(scans)
     import laspy
 
     ours = laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, VLR_DESCRIPTION,
@@ -378,6 +385,7 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bo
     ``rank_radius`` the rank and insertion radius of every point; with ``flt`` (a
     :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it (the depths
     are then the filtered prefixes, their rho still the level's before the filter)."""
+    from ..collection.query import joint_members
     from ..filters import prefix_bounds
 
     level = scan.level(size=size)
@@ -401,4 +409,5 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bo
         rank=level.rank,
         filtered=flt.describe() if flt is not None else None,
         bounds=prefix_bounds(scan.radius, level.rank) if flt is not None else None,
+        scans=joint_members(scan) if "scan_id" in level.attributes else None,
     )

@@ -245,7 +245,12 @@ def export_web(
     RGB (when the scan has red/green/blue) and its importance maps; with ``flt`` (a
     :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it."""
     names = [c for c in ("red", "green", "blue") if c in scan.attribute_names]
+    from ..collection.query import joint_members
+
+    members = joint_members(scan)
     survey = [a for a in ("intensity", "classification") if a in scan.attribute_names]
+    if members and "scan_id" in scan.attribute_names and len(members) <= 256:
+        survey.append("scan_id")
     wanted = (names if len(names) == 3 else []) + survey + (flt.fields() if flt is not None else [])
     level = scan.level(size=size, attributes=sorted(set(wanted)) if wanted else False)
     bounds = None
@@ -266,6 +271,10 @@ def export_web(
     if "intensity" in level.attributes:
         extra["intensity"] = (level.attributes["intensity"], intensity_legend(level.attributes["intensity"]))
     cats = {}
+    if members and "scan_id" in level.attributes:  # a joint scan: its member scans
+        from ..viewer.data import scan_legend
+
+        cats["scan"] = (np.asarray(level.attributes["scan_id"]), scan_legend(members))
     if "classification" in level.attributes:
         codes = np.asarray(level.attributes["classification"])
         cats["classification"] = (codes, classification_legend(codes))
