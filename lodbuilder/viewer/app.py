@@ -143,7 +143,7 @@ class LevelViewer:
         self.plotter.renderers[-1].AddViewProp(self.scalar_bar)
         self.legend_box = overlays.legend_box()
         self.plotter.renderers[-1].AddViewProp(self.legend_box)
-        overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode), self.legend_box)
+        overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode, self.shown), self.legend_box)
         self.plotter.subplot(0, 0)
         self.crs_label = crs_label(data.crs, data.units)
         self._crs_text = self.plotter.add_text(
@@ -203,6 +203,10 @@ class LevelViewer:
         if self.mode in LEVEL_MODES:
             self._colours = self.data.colours(self.mode, self.shown)
             self._update_full_colours()
+            if self.mode == "radius" and getattr(self, "scalar_bar", None) is not None:
+                # (its scale follows the level: ViewData.legend)
+                overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode, self.shown),
+                                        self.legend_box)
         sel = slice(0, k) if self._pos is None else self._pos
         normals = self.data.normals()[sel] if self.shade else None
         pts, col = self.data.points[sel], self._colours[sel]
@@ -268,7 +272,7 @@ class LevelViewer:
         self._colours = self.data.colours(self.mode, self.shown)
         self._update_level_arrays()
         self._update_full_colours()
-        overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode), self.legend_box)
+        overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode, self.shown), self.legend_box)
         self._update_text()
         if render:
             self.plotter.render()

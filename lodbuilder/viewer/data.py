@@ -20,7 +20,7 @@ from ..errors import InputError
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
 #: modes whose colours depend on the level shown (recomputed when it changes); ``gaps`` is asked
 #: for by name (``--colour gaps``), not cycled through: it searches the level for holes
-LEVEL_MODES = ("voronoi", "gaps")
+LEVEL_MODES = ("voronoi", "gaps", "radius")
 #: ``gaps`` colours: away from gaps, near a fillable gap, near a rough one
 GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
 
@@ -371,10 +371,18 @@ class ViewData:
             )
         return mode
 
-    def legend(self, mode: str) -> Legend | Categories | None:
+    def legend(self, mode: str, shown: int | np.ndarray | None = None) -> Legend | Categories | None:
         """The scale of a scalar colour mode (radius, rank, importance, elevation, intensity),
-        the categories of classification and scan, None for the others."""
+        the categories of classification and scan, None for the others. With ``shown`` (the
+        level displayed), radius runs from the level's rho to the largest radius: the spread
+        of radii inside the level shows (from the 1st percentile of every radius, a uniform
+        level was one flat colour), and points finer than the level share the lowest colour."""
         mode = self.check_mode(mode)
+        if mode == "radius" and shown is not None:
+            k = self.clamp_size(shown) if np.isscalar(shown) else int(np.size(shown))  # type: ignore[arg-type]
+            rho = self.rho_for_size(k)
+            lo = rho if math.isfinite(rho) and rho > 0 else self._rmin
+            return Legend(f"radius ({self.units or 'scan units'}, log)", lo, max(self._rmax, lo * (1 + 1e-9)), True)
         if mode == "elevation":
             return elevation_legend(self.elevation(), self.up, self.units)
         if mode == "intensity":
@@ -413,7 +421,7 @@ class ViewData:
             return categorical(self.cells(shown)[sel])
         if mode == "gaps":
             return GAP_COLOURS[self.gap_codes(shown)[sel]]
-        legend = self.legend(mode)
+        legend = self.legend(mode, shown if mode == "radius" else None)
         if isinstance(legend, Categories):
             labels = self.scan_id if mode == "scan" else self.attributes["classification"]
             return legend.colour(np.asarray(labels)[sel])
