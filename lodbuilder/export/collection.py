@@ -36,7 +36,7 @@ class MergedLevel:
 def merged_level(arc: Any, rho: float | None) -> MergedLevel:
     """Every scan's level at ``rho`` (None: every point), merged by insertion radius. Scans in
     different CRSs are refused (one file has one CRS)."""
-    from ..collection.query import joint_members
+    from . import joint_member_names as joint_members
 
     parts = []
     names: list[str] = []

@@ -385,8 +385,8 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bo
     ``rank_radius`` the rank and insertion radius of every point; with ``flt`` (a
     :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it (the depths
     are then the filtered prefixes, their rho still the level's before the filter)."""
-    from ..collection.query import joint_members
     from ..filters import prefix_bounds
+    from . import joint_member_names as joint_members
 
     level = scan.level(size=size)
     if flt is not None:

@@ -245,7 +245,7 @@ def export_web(
     RGB (when the scan has red/green/blue) and its importance maps; with ``flt`` (a
     :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it."""
     names = [c for c in ("red", "green", "blue") if c in scan.attribute_names]
-    from ..collection.query import joint_members
+    from . import joint_member_names as joint_members
 
     members = joint_members(scan)
     survey = [a for a in ("intensity", "classification") if a in scan.attribute_names]

@@ -57,7 +57,7 @@ def view_data_from_scan(scan: Any, ordering: str | None = None, flt: Any = None)
 
 
 def _view_data_from_scan(scan: Any, ordering: str | None, flt: Any) -> ViewData:
-    from ..collection.query import joint_members
+    from ..export import joint_member_names as joint_members
 
     names = [a for a in COLOUR_ATTRIBUTES if a in scan.attribute_names]
     wanted = (names if len(names) == 3 else []) + (flt.fields() if flt is not None else [])
