@@ -25,6 +25,7 @@ default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse o
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
