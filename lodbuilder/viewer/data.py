@@ -374,15 +374,20 @@ class ViewData:
     def legend(self, mode: str, shown: int | np.ndarray | None = None) -> Legend | Categories | None:
         """The scale of a scalar colour mode (radius, rank, importance, elevation, intensity),
         the categories of classification and scan, None for the others. With ``shown`` (the
-        level displayed), radius runs from the level's rho to the largest radius: the spread
-        of radii inside the level shows (from the 1st percentile of every radius, a uniform
-        level was one flat colour), and points finer than the level share the lowest colour."""
+        level displayed), radius runs from the level's rho to the radius where the level had
+        1/64 of its points: the spread of radii inside the level shows (from the 1st percentile
+        of every radius, a uniform level was one flat colour); finer points share the lowest
+        colour, the level's coarsest the highest."""
         mode = self.check_mode(mode)
         if mode == "radius" and shown is not None:
             k = self.clamp_size(shown) if np.isscalar(shown) else int(np.size(shown))  # type: ignore[arg-type]
             rho = self.rho_for_size(k)
             lo = rho if math.isfinite(rho) and rho > 0 else self._rmin
-            return Legend(f"radius ({self.units or 'scan units'}, log)", lo, max(self._rmax, lo * (1 + 1e-9)), True)
+            # top: the radius where the level had 1/64 of its points (8 x rho on a surface), so
+            # its points spread over the colours; its first, coarsest points saturate
+            top = self.rho_for_size(max(1, k // 64))
+            hi = top if math.isfinite(top) and top > lo else self._rmax
+            return Legend(f"radius ({self.units or 'scan units'}, log)", lo, max(hi, lo * (1 + 1e-9)), True)
         if mode == "elevation":
             return elevation_legend(self.elevation(), self.up, self.units)
         if mode == "intensity":
