@@ -196,7 +196,7 @@ def test_cesiumjs_draws_the_tileset(tiles, tmp_path):
             page.on("request", lambda r: requests.append(r.url))
             page.on("pageerror", lambda e: errors.append(str(e)))
             t0 = time.perf_counter()
-            page.goto(base + "index.html")
+            page.goto(base + "index.html?sse=1")  # every tile
             page.wait_for_function("() => LOD.loaded || LOD.error", timeout=120_000)
             seconds = time.perf_counter() - t0
             state = page.evaluate("() => LOD")
