@@ -16,6 +16,15 @@ class InputError(LodbuilderError, ValueError):
     """An argument (array, option, parameter) is not acceptable."""
 
 
+class LevelBeyondOrderingError(InputError):
+    """A level finer than a partial build (``--size``/``--rho``) ordered: rebuild further."""
+
+
+class PrecisionError(InputError):
+    """The coordinates' spread or the voxel/band size leaves no radius float arithmetic can
+    promise (a stored radius must never be below the true covering radius)."""
+
+
 class FormatError(LodbuilderError, ValueError):
     """A scan file is malformed, truncated or lacks what lodbuilder needs (e.g. x/y/z)."""
 
@@ -71,3 +80,8 @@ class EngineError(LodbuilderError, RuntimeError):
 class UnsafeArchiveError(ArchiveError):
     """The archive points outside itself (external links, external raw storage, virtual
     datasets): refused before anything is read."""
+
+
+class ArchiveBusyError(ArchiveError):
+    """Another process is writing the archive (a build, or an update) and did not finish within
+    the time the caller agreed to wait."""

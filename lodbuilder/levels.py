@@ -175,14 +175,35 @@ def log_sizes(lo: float, n: int, count: int) -> list[int]:
     return sorted({round_size(float(v), n) for v in values} | {int(n)})
 
 
-def covering_bound(k: int, n: int, radius_at: Callable[[int], Any]) -> float:
+def covering_bound(k: int, n: int, radius_at: Callable[[int], Any], stop: float = 0.0) -> float:
     """Covering bound of the prefix of length ``k`` of an ordering of ``n`` points:
-    ``radius[k]`` (``radius_at(k)``; read only when ``k < n``), 0 for the whole ordering.
+    ``radius[k]`` (``radius_at(k)``; read only when ``k < n``), ``stop`` for the whole ordering
+    (0 when it holds every point; a partial build's ``stop_radius`` otherwise).
 
     Proof: ``radius[k]`` is the distance, when point ``k`` was inserted, from the farthest input
     point to the first ``k`` points (farthest point order inserts the farthest point next);
-    distances to a fixed prefix do not change afterwards. The whole ordering holds every point."""
-    return 0.0 if k >= n else float(radius_at(k))
+    distances to a fixed prefix do not change afterwards. The whole ordering holds every point,
+    or (stopped early) was left when the next candidate, the farthest point, was at ``stop``."""
+    return float(stop) if k >= n else float(radius_at(k))
+
+
+def check_within_ordering(
+    scan: str, rho: float, n_ordered: int, n_points: int, stop: float
+) -> None:
+    """Refuse a level by ``rho`` finer than a partial ordering reaches: the whole ordered prefix
+    covers only within ``stop`` (> rho), so no prefix of it covers within rho.
+
+    Raises :class:`~lodbuilder.errors.LevelBeyondOrderingError` naming the radius and the fix."""
+    if rho >= stop:
+        return
+    from .errors import LevelBeyondOrderingError
+
+    raise LevelBeyondOrderingError(
+        f"scan {scan!r} is ordered only down to covering radius {stop:.4g} ({n_ordered:,} of "
+        f"{n_points:,} points: a build with --size or --rho), so no level covers within "
+        f"rho={rho:.4g}; rebuild it with 'lodbuilder build SOURCE -o ARCHIVE --force' without "
+        f"--size, or with --rho {rho:.4g}"
+    )
 
 
 def resolve_size(

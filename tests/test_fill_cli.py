@@ -54,7 +54,7 @@ def test_slice_fill(arc, tmp_path, capsys):
     assert m > 10 and back.points.shape[0] == k + m
     assert (flag[:k] == 0).all() and (flag[k:] == 1).all()
     assert text.strip() == (
-        f"wrote {k} of {n} points + {m} synthetic (synthetic = 1) in 2 filled gap(s) of scan "
+        f"wrote {k:,} of {n:,} points + {m:,} synthetic (synthetic = 1) in 2 filled gap(s) of scan "
         f"'p' to {out} (covering radius <= {lev.rho:.6g})"
     )
     # the measured points are the plain level's, in the same order, with the same attributes

@@ -181,7 +181,7 @@ def test_slice_export_and_view_filters(sheet, tmp_path, capsys):
     text = capsys.readouterr().out
     n = int(want.sum())
     assert text.startswith(
-        f"wrote {n} of 6000 points of scan 'sheet' to {out} (filter class 2; return first; box x "
+        f"wrote {n:,} of 6,000 points of scan 'sheet' to {out} (filter class 2; return first; box x "
         f"0..10 y 0..10: {n:,} of the level's 2,000 points; covering radius <= "
     )
     assert f"  guarantee: every scan point is within {level.rho:.6g} of a point of the level before the filter; the filter may have removed that point\n" in text

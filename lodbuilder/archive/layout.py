@@ -15,7 +15,7 @@ holds more than one scan, the directory ``NAME.h5.scans/`` beside it with one *p
         part_bytes             (S,) int64: size of that part file (0 for a scan stored here)
     /scans/<name>/             attrs: n_points, n_ordered, coordinate_encoding, bounds_min,
                                       bounds_max, radius_index_step, build (JSON),
-                                      provenance (JSON), format_metadata (JSON)
+                                      provenance (JSON), format_metadata (JSON), stop_radius
         points                 (N, 3) float64 | float32 | int32 | int64 (+ attrs offset, scale)
         source_index           (N,) int64: input index of each stored point
         radius                 (N,) float64: insertion radii, non-increasing; inf for seeds
@@ -34,6 +34,13 @@ A part file is itself an archive holding its scan under /scans/<name> (so one pa
 single-scan archive, is self-contained). The stored order *is* the default (uniform) farthest
 point ordering, so a level is a prefix. Stored points beyond ``n_ordered`` (points left out of the
 ordering, e.g. outliers) come last with radius 0 and parent -1.
+
+``stop_radius`` is the covering bound of the whole ordered prefix: 0 when every point the ordering
+was built on is ordered, else (a build stopped by ``size`` or ``rho``) the distance of the next
+candidate when it stopped, an upper bound of the distance from every unordered point (outliers
+excepted: they are left out of the ordering by design) to the ordered ones. Archives written
+before it existed lack it: a reader takes 0 when ``n_ordered == n_points`` and inf (no bound
+known) otherwise (:func:`stop_radius_of`).
 
 Storage: files are written with HDF5 paged aggregation (all metadata in the first page(s)); the
 per-point datasets of a scan share one chunk length and are written in *row groups* (the chunks of
@@ -104,6 +111,7 @@ S_RADIUS_STEP = "radius_index_step"
 S_BUILD = "build"
 S_PROVENANCE = "provenance"
 S_FORMAT_METADATA = "format_metadata"
+S_STOP_RADIUS = "stop_radius"
 P_OFFSET = "offset"
 P_SCALE = "scale"
 M_PARAMETERS = "parameters"
@@ -127,6 +135,14 @@ COMPRESS_BELOW = 0.6
 LIBVER = ("v110", "latest")
 
 _FORBIDDEN_NAME_CHARS = set("/\\\x00")
+
+
+def stop_radius_of(value: Any, n_points: int, n_ordered: int) -> float:
+    """The ``stop_radius`` attribute's value (``None`` when absent), as a float: a missing one is
+    0 for a complete ordering and inf (no bound known) for a partial one."""
+    if value is None:
+        return 0.0 if n_ordered >= n_points else math.inf
+    return float(np.asarray(value, dtype=np.float64).reshape(-1)[0])
 
 
 def check_name(name: Any, what: str = "scan name") -> str:

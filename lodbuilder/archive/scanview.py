@@ -11,13 +11,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .._validate import check_positive, check_size, quoted_names, strict_methods
-from ..errors import InputError
+from ..errors import InputError, LevelBeyondOrderingError
 from ..levels import (
     Level,
     box_positions,
     cell_average,
     check_box,
     check_viewpoint,
+    check_within_ordering,
     covering_bound,
     nonempty,
     prefix_for_rho,
@@ -54,6 +55,8 @@ class ScanView:
 
             self._prefetch = Prefetcher(io, group, self.n_points)
         self.n_ordered, self.encoding = m.n_ordered, m.encoding
+        #: covering bound of the whole ordered prefix: 0, or where a partial build stopped
+        self.stop_radius = m.stop_radius
         self.bounds = (m.bounds_min, m.bounds_max)
         self._step = m.step
         self._rindex: np.ndarray | None = None
@@ -222,15 +225,30 @@ class ScanView:
             self.n_ordered,
             rho,
         )
+        if k >= self.n_ordered:
+            check_within_ordering(self.name, rho, self.n_ordered, self.n_points, self.stop_radius)
         checks.check_rho_prefix(self._meta, nonempty(k), rho, self._rows)
         return nonempty(k)
 
     def _bound(self, k: int) -> float:
         """Covering bound of the prefix of length k: radius[k], 0 for the whole ordering."""
         ds = self._g[L.D_RADIUS]
-        return covering_bound(k, self.n_ordered, lambda i: self._read(ds, slice(i, i + 1))[0])
+        return covering_bound(
+            k, self.n_ordered, lambda i: self._read(ds, slice(i, i + 1))[0], self.stop_radius
+        )
 
     def resolve_size(self, rho: Any = None, size: Any = None, fraction: Any = None) -> int:
+        if (
+            self.stop_radius > 0
+            and isinstance(size, (int, np.integer))
+            and self.n_ordered < size <= self.n_points
+        ):
+            raise LevelBeyondOrderingError(
+                f"scan {self.name!r} is ordered only down to covering radius {self.stop_radius:.4g} "
+                f"({self.n_ordered:,} of {self.n_points:,} points: a build with --size or --rho), so "
+                f"no level holds {size:,} points; rebuild it with 'lodbuilder build SOURCE -o "
+                f"ARCHIVE --force' without --size, or with --size {size}"
+            )
         return resolve_size(self.n_ordered, rho, size, fraction, rho_size=self.size_for_rho)
 
     # -- levels ------------------------------------------------------------------------------
@@ -260,7 +278,7 @@ class ScanView:
             source_index=self._read(g[L.D_SOURCE_INDEX], slice(0, k)),
             radius=radius[:k],
             rank=np.arange(k, dtype=np.int64),
-            rho=covering_bound(k, self.n_ordered, radius.__getitem__),
+            rho=covering_bound(k, self.n_ordered, radius.__getitem__, self.stop_radius),
             size=k,
             scan=self.name,
             crs=self.crs,

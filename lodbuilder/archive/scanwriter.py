@@ -450,6 +450,7 @@ class ScanWriter:
         format_metadata: Mapping[str, Any] | None = None,
         importance_parameters: Mapping[str, Mapping[str, Any]] | None = None,
         orderings: Mapping[str, tuple[Any, Any, Any, Mapping[str, Any] | None]] | None = None,
+        stop_radius: float = 0.0,
     ) -> PartInfo:
         """Write what is known at the end and move the file into place; returns a PartInfo.
 
@@ -459,13 +460,14 @@ class ScanWriter:
         lodbuilder_version and created_utc); ``format_metadata`` defaults to the ``metadata``
         given at the start; ``importance_parameters`` the parameters of each importance map;
         ``orderings`` extra orderings ``name -> (positions, radius, parent, parameters)`` with
-        positions into the stored rows."""
+        positions into the stored rows; ``stop_radius`` the covering bound of the whole ordered
+        prefix (0 for a complete ordering; where a build stopped by size or rho left off)."""
         if self._done:
             raise ArchiveError(f"ScanWriter of scan {self.name!r} is finished or aborted")
         try:
             info = self._finish(
                 n_ordered, seeds, build, provenance, format_metadata, importance_parameters,
-                orderings,
+                orderings, stop_radius,
             )
         except BaseException:
             self.abort()
@@ -473,7 +475,7 @@ class ScanWriter:
         self._done = True
         return info
 
-    def _finish(self, n_ordered, seeds, build, provenance, format_metadata, imp_params, orderings):
+    def _finish(self, n_ordered, seeds, build, provenance, format_metadata, imp_params, orderings, stop):
         where = f"scan {self.name!r}"
         if self._written != self.n:
             raise InputError(
@@ -490,6 +492,9 @@ class ScanWriter:
                 f"{where}: stored row {self._last_tail} is beyond n_ordered={k} but has a radius "
                 "or a parent; rows after the ordering must have radius 0 and parent -1"
             )
+        stop = float(stop)
+        if not stop >= 0.0:  # also NaN
+            raise InputError(f"stop_radius of {where} must be a number >= 0 (or inf), got {stop!r}")
         seeds_arr = np.asarray([] if seeds is None else seeds, dtype=np.int64).reshape(-1)
         if seeds_arr.size and (seeds_arr.min() < 0 or seeds_arr.max() >= self.n):
             raise InputError(f"seeds of {where} must be input indices in [0, {self.n})")
@@ -529,6 +534,7 @@ class ScanWriter:
             a[L.S_BOUNDS_MIN] = self._lo
             a[L.S_BOUNDS_MAX] = self._hi
             a[L.S_RADIUS_STEP] = np.int64(L.RADIUS_INDEX_STEP)
+            a[L.S_STOP_RADIUS] = np.float64(stop)
             for key, text in meta_text.items():
                 a[key] = L.text(text)
             row = IndexRow(self.name, self.n, tuple(self._lo), tuple(self._hi))

@@ -134,6 +134,8 @@ _SCAN_ATTRS: dict[str, Any] = {
     L.S_PROVENANCE: JSON_TEXT,
     L.S_FORMAT_METADATA: JSON_TEXT,
 }
+#: optional scan attributes (older archives lack them)
+_SCAN_OPTIONAL_ATTRS: dict[str, Any] = {L.S_STOP_RADIUS: {"type": ["number", "string"]}}
 
 
 def _scan_schema() -> dict[str, Any]:
@@ -180,7 +182,7 @@ def _scan_schema() -> dict[str, Any]:
             L.D_SEEDS,
             L.G_ATTRIBUTES,
         ],
-        attrs=_SCAN_ATTRS,
+        attrs={**_SCAN_ATTRS, **_SCAN_OPTIONAL_ATTRS},
         required_attrs=list(_SCAN_ATTRS),
         description="one scan",
     )

@@ -84,6 +84,11 @@ def _check_scan(meta: checks.ScanMeta, g: Any) -> list[str]:
         faults.append(f"{where}: source_index is not a permutation of 0..{n - 1}")
     radius, parent = data[L.D_RADIUS], data[L.D_PARENT]
     faults += _check_order_arrays(where, radius[:k], parent[:k])
+    if k and not meta.stop_radius <= radius[k - 1]:
+        faults.append(
+            f"{where}: stop_radius {meta.stop_radius!r} is above the last radius {float(radius[k - 1])!r}; "
+            "radii must be non-increasing"
+        )
     if k < n and ((radius[k:] != 0).any() or (parent[k:] != -1).any()):
         faults.append(f"{where}: points beyond n_ordered={k} must have radius 0 and parent -1")
     seeds = data.get(L.D_SEEDS)
@@ -104,6 +109,8 @@ def _check_scan(meta: checks.ScanMeta, g: Any) -> list[str]:
         np.allclose(pts.min(0), meta.bounds_min) and np.allclose(pts.max(0), meta.bounds_max)
     ):
         faults.append(f"{where}: bounds_min/bounds_max attributes do not match the points")
+    else:
+        faults += _check_covering(where, pts, radius, k, meta.stop_radius)
     for rel, arr in data.items():
         parts = rel.split("/")
         if parts[0] == L.G_ORDERINGS and len(parts) == 3 and parts[2] == L.D_ORDER:
@@ -114,6 +121,49 @@ def _check_scan(meta: checks.ScanMeta, g: Any) -> list[str]:
             if arr.size and (arr.min() < 0 or arr.max() >= n or np.unique(arr).size != arr.size):
                 faults.append(f"{ow}: order must hold distinct positions in [0, {n})")
             faults += _check_order_arrays(ow, rad, par)
+    return faults
+
+
+COVER_SAMPLE = 20_000  # stored points checked against each prefix
+COVER_PREFIX_MAX = 2_000_000  # prefixes up to this size get a k-d tree
+COVER_TOLERANCE = 1e-12  # relative: the check's own rounding (cKDTree's distances in float64)
+
+
+def cover_prefixes(k: int) -> list[int]:
+    """The prefix lengths the guarantee is checked at: 1, 10, 100, ... below ``k``, and ``k``."""
+    sizes = [10**j for j in range(7) if 10**j < k]
+    return [s for s in sizes + [k] if s <= COVER_PREFIX_MAX]
+
+
+def _check_covering(where: str, pts: np.ndarray, radius: np.ndarray, k: int, stop: float) -> list[str]:
+    """The guarantee itself, by brute force: a sample of the stored points (every one of a small
+    scan; points beyond ``n_ordered`` too unless the ordering is complete, as outliers are left
+    out of it by design) is no farther from each checked prefix than the prefix's covering
+    bound (``radius[s]``, ``stop`` for the whole ordering). One fault per lying radius."""
+    from scipy.spatial import cKDTree
+
+    from ..levels import covering_bound
+
+    n = pts.shape[0]
+    pool = n if stop > 0 else k  # a complete ordering does not cover the outliers it left out
+    rng = np.random.default_rng(0)
+    sample = np.sort(rng.choice(pool, COVER_SAMPLE, replace=False)) if pool > COVER_SAMPLE else np.arange(pool)
+    q = pts[sample]
+    faults = []
+    for s in cover_prefixes(k):
+        bound = covering_bound(s, k, radius.__getitem__, stop)
+        if not np.isfinite(bound):
+            continue
+        dist, _ = cKDTree(pts[:s]).query(q)
+        far = np.flatnonzero(dist > bound * (1 + COVER_TOLERANCE))
+        if far.size:
+            i = int(far[np.argmax(dist[far])])
+            d = float(dist[i])
+            faults.append(
+                f"{where}: the first {s:,} points claim to cover every point within {bound:.6g}, but the "
+                f"point at stored position {int(sample[i])} is {d:.6g} from them; the radii lie, "
+                "rebuild the scan from its source"
+            )
     return faults
 
 
@@ -132,12 +182,16 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
             if schema:
                 faults += validate_description(L.describe(arc.file))
             counts: dict[str, int] = {}
+            bounds: dict[str, Any] = {}
             for name in arc.scans:
                 try:
                     view = arc.scan(name)  # the scan's header is checked here
                     g = view._g
                     counts[name] = view.n_points
-                    if schema and g.file != arc.file:  # a scan in a part file of the archive
+                    bounds[name] = view.bounds
+                    if g.file != arc.file:  # a scan in a part file of the archive
+                        faults += _check_part_holds(arc, name, g.file)
+                    if schema and g.file != arc.file:
                         faults += [
                             f"part of scan {name!r}: {x}"
                             for x in validate_description(L.describe(g.file))
@@ -160,7 +214,32 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
                     faults.append(
                         f"index: scan {row['name']!r} has n_points {row['n_points']}, scan says {n}"
                     )
+                b = bounds.get(row["name"])
+                if b is not None and not _same_bounds(row, b):
+                    faults.append(
+                        f"index: scan {row['name']!r} has bounds {_box(row['bounds_min'], row['bounds_max'])}, "
+                        f"the scan's points span {_box(*b)}"
+                    )
     return faults
+
+
+def _check_part_holds(arc: Any, name: str, f: Any) -> list[str]:
+    """A part file holds exactly the one scan its index row names."""
+    row = next(r for r in arc.rows if r.name == name)
+    held = sorted(f[L.G_SCANS]) if L.G_SCANS in f else []
+    if held != [name]:
+        return [f"part {row.part} of scan {name!r} holds scans {held}; a part holds its one scan only"]
+    return []
+
+
+def _same_bounds(row: dict[str, Any], b: Any) -> bool:
+    lo, hi = (np.asarray(x, dtype=float) for x in b)
+    return bool(np.allclose(row["bounds_min"], lo, rtol=1e-9, atol=0, equal_nan=True)
+                and np.allclose(row["bounds_max"], hi, rtol=1e-9, atol=0, equal_nan=True))
+
+
+def _box(lo: Any, hi: Any) -> str:
+    return "[" + ", ".join(f"{float(x):.6g}" for x in lo) + "] .. [" + ", ".join(f"{float(x):.6g}" for x in hi) + "]"
 
 
 def check_valid(path: str | os.PathLike[str]) -> None:

@@ -168,6 +168,7 @@ def write_record(path: str | os.PathLike[str], rec: ScanRecord) -> PartInfo:
             provenance={"reader": scan.reader, **rec.provenance},
             importance_parameters={key: p for key, (_, p) in rec.importance.items()},
             orderings=orderings,
+            stop_radius=ordg.stop_radius,
         )
 
 
@@ -210,6 +211,7 @@ def copy_scan(
                 format_metadata=view.format_metadata,
                 importance_parameters=params,
                 orderings=olds,
+                stop_radius=view.stop_radius,
             )
     except InputError as exc:
         raise CorruptArchiveError(
@@ -359,6 +361,7 @@ def _commit(
     with F.lock(path):
         F.remove_stale_temps(path)
         rows, created = _current(path)
+        F.check_plain_dir(parts_dir(path))  # never a link followed, nor a mount point emptied
         if replace_all:
             rows = []
         clash = sorted({r.name for r in rows} & set(names))

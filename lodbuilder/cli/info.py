@@ -15,6 +15,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "levels, the build parameters and the provenance.",
     )
     p.add_argument("archive", metavar="ARCHIVE")
+    from .level_options import add_remote_options
+
+    add_remote_options(p)
     p.add_argument("--scan", help="describe only this scan")
     from .output import add_json_option
 
@@ -41,11 +44,13 @@ def scan_info(view: Any) -> dict[str, Any]:
         for rho in sorted(
             {_round2(x) for x in np.geomspace(r_hi, max(r_lo, r_hi * 1e-3), 5)}, reverse=True
         ):
-            levels.append({"rho": rho, "size": view.size_for_rho(rho)})
+            if rho >= view.stop_radius:  # a partial build has no finer level
+                levels.append({"rho": rho, "size": view.size_for_rho(rho)})
     return {
         "name": view.name,
         "n_points": view.n_points,
         "n_ordered": view.n_ordered,
+        "stop_radius": view.stop_radius,
         "n_seeds": int(np.isinf(rad).sum()),
         "coordinate_encoding": view.encoding,
         "bounds_min": view.bounds[0].tolist(),
@@ -125,6 +130,7 @@ def _text(info: dict[str, Any]) -> str:
             f"  radius     {s['radius_max_finite']:.4g} .. {s['radius_min_positive']:.4g} "
             f"({s['n_seeds']} seed(s) with radius inf)",
             "  levels     " + ", ".join(f"rho {lv['rho']:g}: {lv['size']:,}" for lv in s["levels"]),
+            *_stop_lines(s),
             f"  attributes {', '.join(s['attributes']) or '-'}",
             f"  importance {', '.join(s['importance']) or '-'}; "
             f"orderings {', '.join(s['orderings'])}",
@@ -133,6 +139,15 @@ def _text(info: dict[str, Any]) -> str:
             f"{prov.get('created_utc')}, lodbuilder {prov.get('lodbuilder_version')}",
         ]
     return "\n".join(one_line(line) for line in out)
+
+
+def _stop_lines(s: dict[str, Any]) -> list[str]:
+    """A partial build's limit: the covering radius where its ordering stops."""
+    stop = s.get("stop_radius") or 0.0
+    if stop <= 0.0:
+        return []
+    return [f"  stops at   covering radius {stop:.4g}: the ordering holds {s['n_ordered']:,} of "
+            f"{s['n_points']:,} points (a build with --size or --rho); no level is finer"]
 
 
 def _build_line(b: dict) -> str:

@@ -65,7 +65,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         type=int,
         choices=(8, 16),
         default=None,
-        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
+        help="PLY colour: 8 (uchar, the default: every viewer reads it) or 16 (ushort; "
+        "CloudCompare 2.11 shows 16-bit PLY colour as black)",
     )
     from .feature_options import add_slice_options
     from .output import add_json_option
@@ -136,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     }
     if flt is not None:
         doc.update(filter=flt.describe(), level_size=level.region["level_size"], guarantee=guarantee)
-    what = f"{level.size} of {view.n_points} points"
+    what = f"{level.size:,} of {view.n_points:,} points"
     if filled is not None:
         doc["synthetic"] = filled.n_synthetic
         what = filled.summary(view.n_points)

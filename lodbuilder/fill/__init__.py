@@ -164,11 +164,12 @@ class Filled:
         return int(self.level.size - self.n_synthetic)
 
     def summary(self, n_points: int) -> str:
-        """``"K of N points + M synthetic (synthetic = 1) in G filled gap(s)"``."""
+        """``"K of N points + M synthetic (synthetic = 1) in G filled gap(s)"`` (thousands
+        separated by commas, as every count the command line prints)."""
         gaps = sum(r.n_synthetic > 0 for r in self.report.regions)
         rough = sum(r.status == STATUS_ROUGH for r in self.report.gaps)
         text = (
-            f"{self.n_measured} of {n_points} points + {self.n_synthetic} synthetic "
+            f"{self.n_measured:,} of {n_points:,} points + {self.n_synthetic:,} synthetic "
             f"(synthetic = 1) in {gaps} filled gap(s)"
         )
         if rough:

@@ -278,8 +278,11 @@ def _join_at_floor(w: Ordering, uniform: Ordering, n0: int) -> tuple[np.ndarray,
         # only numerical slack of the band engine can get here (the bound says <= rho0 < radius[n0-1])
         cap = radius[n0 - 1]
         clamped = int((radius[n0:] > cap).sum())
-        log.warning(
-            "density floor: %d weighted radii above the floor's last radius, capped", clamped
+        # (INFO, not a warning: nothing for the user to do, and no guarantee changes)
+        log.info(
+            "density floor: %d weighted radii just past the floor were above its last radius "
+            "(numerical slack of the band metric) and were capped to it, so that radii never "
+            "increase; every level past the floor still covers within rho0", clamped
         )
         radius[n0:] = np.minimum(radius[n0:], cap)
     return radius, parent, clamped

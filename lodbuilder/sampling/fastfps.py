@@ -78,6 +78,8 @@ def check_ordering(o: Ordering) -> Ordering:
         raise fail("an index appears twice")
     if not np.isinf(radius[0]) or np.isnan(radius).any():
         raise fail(f"radius[0] = {radius[0]} (inf expected) or NaN radii")
+    if not (0.0 <= o.stop_radius <= radius[-1]) or (k == n and o.stop_radius != 0.0):
+        raise fail(f"stop radius {o.stop_radius} after the last radius {radius[-1]} of {k:,} points")
     bad = np.flatnonzero(radius[1:] > radius[:-1])
     if bad.size:
         raise fail(f"radius increases at position {bad[0] + 1}")
@@ -89,6 +91,8 @@ def check_ordering(o: Ordering) -> Ordering:
 
 
 def _truncate(order, radius, parent, rho, size):
+    """The prefix asked by ``rho``/``size`` of an ordering computed one point further (or to the
+    end), and its stop radius: the radius of the first point left out, 0 when none is."""
     k = order.shape[0]
     if rho is not None:
         from ..levels import count_above
@@ -96,7 +100,8 @@ def _truncate(order, radius, parent, rho, size):
         k = min(k, count_above(radius, rho))
     if size is not None:
         k = min(k, size)
-    return order[:k].copy(), radius[:k].copy(), parent[:k].copy()
+    stop = float(radius[k]) if k < order.shape[0] else 0.0
+    return order[:k].copy(), radius[:k].copy(), parent[:k].copy(), stop
 
 
 @strict_keywords
@@ -117,10 +122,12 @@ def euclidean_fps(
     c = np.ones(n) if cost is None else validate_cost(cost, n)
     from .._kernels.euclid import euclidean_fps_kernel
 
-    k_max = n if size is None else max(size, seed_arr.size)
+    k_max = n if size is None else min(n, max(size, seed_arr.size) + 1)  # one more: the stop radius
     order, radius, parent = euclidean_fps_kernel(pts, seed_arr, k_max, c)
-    order, radius, parent = _truncate(order, radius, parent, rho, size)
-    return check_ordering(Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"}))
+    order, radius, parent, stop = _truncate(order, radius, parent, rho, size)
+    return check_ordering(
+        Ordering(order, radius, parent, 0.0, 0.0, seed_arr, n, {"engine": "euclidean"}, stop)
+    )
 
 
 @strict_keywords
@@ -246,6 +253,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         _, first = np.unique(gid[seed_arr], return_index=True)
         useeds = gid[seed_arr][np.sort(first)]
     report(progress, "band", 0, 1)
+    extent = float(np.ptp(upts, axis=0).max())
     band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory)
     release_freed_memory(n)
     h, r = plan.h, plan.r
@@ -333,6 +341,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
             tseed_c, tkey_g, tpos,
         )
         del rkey, ridx, rstart, rend
+    stop = _stop_radius(val, rank, tseed_c) * h
     del psep, pnrm, val, lq, rank, u, nbr, cs
     release_freed_memory(n)
     t3 = time.perf_counter()
@@ -341,12 +350,33 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     report(progress, "ordering", int(k), k_max)
     uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
     del perm, order
-    radius = radius[:k] * h
+    user_grid = voxel_size is not None or band_radius is not None
+    radius, stop, stats["rounding_bound"] = _promised(radius[:k] * h, stop, extent, h, r, user_grid)
     parent = parent[:k].astype(np.int64)
-    return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats)
+    return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
 
 
-def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats):
+def _promised(radius, stop, extent, h, r, user_grid):
+    """Radii (and the stop radius) raised by the rounding bound of grid-unit arithmetic, after
+    refusing a build whose rounding would swamp them (:mod:`.precision`)."""
+    from .precision import check_precision, promise, promise_one, rounding_bound, span
+
+    delta = rounding_bound(span(extent, h, r))
+    check_precision(radius, delta, extent=extent, h=h, r=r, user_grid=user_grid)
+    return promise(radius, delta), promise_one(stop, delta), delta
+
+
+def _stop_radius(val: np.ndarray, rank: np.ndarray, timed: np.ndarray) -> float:
+    """The next candidate's distance (grid units) when the kernels stopped: the largest value of
+    a point not ordered (timed seeds are not candidates), 0 when every point is ordered. Each
+    value is an upper bound of the point's band distance to the ordered points, so this bounds
+    the covering radius of the whole ordering."""
+    left = rank < 0
+    left[timed] = False
+    return float(val[left].max()) if left.any() else 0.0
+
+
+def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop=0.0):
     """Map the distinct-point ordering back to input indices; add duplicate seeds and duplicates."""
     n = pts.shape[0]
     m = n if rep is None else rep.shape[0]
@@ -354,8 +384,9 @@ def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, 
     if rep is None:  # no duplicates: the engine's ordering is the answer
         stats["n_duplicate_seeds"] = 0
         if size is not None and uorder.shape[0] > size:
+            stop = max(stop, float(radius[size]))
             uorder, radius, parent = uorder[:size], radius[:size], parent[:size]
-        return Ordering(uorder, radius, parent, h, r, seed_arr, n, stats)
+        return Ordering(uorder, radius, parent, h, r, seed_arr, n, stats, stop)
     nseed_u = int(np.unique(gid[seed_arr]).size)
     extra = seed_arr[rep[gid[seed_arr]] != seed_arr]  # seeds that are copies of an earlier seed
     head = seed_arr  # all user seeds, in the given order, radius inf
@@ -383,6 +414,7 @@ def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, 
         rad = np.concatenate([rad, np.zeros(dups.shape[0])])
         par = np.concatenate([par, rk[srt]])
     if size is not None and order.shape[0] > size:
+        stop = max(stop, float(rad[size]))
         order, rad, par = order[:size], rad[:size], par[:size]
     stats["n_duplicate_seeds"] = int(extra.size)
-    return Ordering(order.astype(np.int64), rad, par.astype(np.int64), h, r, seed_arr, n, stats)
+    return Ordering(order.astype(np.int64), rad, par.astype(np.int64), h, r, seed_arr, n, stats, stop)

@@ -29,6 +29,9 @@ class Ordering:
         band_radius: the band radius r.
         seeds: (S,) int64 input indices that start the ordering, in order.
         stats: counters of the build (band voxels, pops, phases, ...), for benchmarks and logs.
+        stop_radius: covering bound of the whole ordering: 0 when every point is ordered; for an
+            ordering stopped early by ``rho`` or ``size``, the next candidate's distance when it
+            stopped (an upper bound of every unordered point's distance to the ordered ones).
     """
 
     order: np.ndarray
@@ -39,6 +42,7 @@ class Ordering:
     seeds: np.ndarray
     n_points: int
     stats: dict[str, Any] = field(default_factory=dict)
+    stop_radius: float = 0.0
 
     def __len__(self) -> int:
         return int(self.order.shape[0])

@@ -171,6 +171,8 @@ class ViewData:
         crs: the scans' coordinate reference system (WKT), None when unknown or mixed.
         units: the linear unit of the coordinates (``metre``, ``foot``...), None when unknown.
         up: the scan's up axis (``z``, ``y``, ``-y``...): what ``elevation`` colours.
+        stop_radius: no prefix covers finer than this: where a partial build (``--size`` or
+            ``--rho``) stopped ordering (the largest over merged scans), 0 for full orderings.
     """
 
     points: np.ndarray
@@ -183,6 +185,7 @@ class ViewData:
     crs: str | None = None
     units: str | None = None
     up: str = "z"
+    stop_radius: float = 0.0
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -229,7 +232,7 @@ class ViewData:
         the largest finite radius where it is a seed's inf)."""
         from ..levels import covering_bound
 
-        r = covering_bound(int(k), len(self), self.radius.__getitem__)
+        r = max(covering_bound(int(k), len(self), self.radius.__getitem__), self.stop_radius)
         return r if math.isfinite(r) else self._rmax
 
     def clamp_size(self, k: float) -> int:
@@ -486,6 +489,7 @@ class ViewData:
             scan_names=tuple(names) if names else tuple(n for p in parts for n in p.scan_names),
             crs=parts[0].crs if all(p.crs == parts[0].crs for p in parts) else None,
             units=parts[0].units if all(p.units == parts[0].units for p in parts) else None,
+            stop_radius=max(p.stop_radius for p in parts),
         )
 
 

@@ -43,6 +43,8 @@ def filter_view(data: ViewData, flt: Any, scan: str = "") -> ViewData:
         scan_names=data.scan_names,
         crs=data.crs,
         units=data.units,
+        up=data.up,
+        stop_radius=data.stop_radius,
     )
 
 
@@ -76,6 +78,7 @@ def _view_data_from_scan(scan: Any, ordering: str | None, flt: Any) -> ViewData:
     crs = {"crs": scan.crs, "units": scan.units}
     if ordering in (None, "uniform"):
         return ViewData(
+            stop_radius=scan.stop_radius,
             points=scan.points(),
             radius=np.asarray(scan.radius),
             parent=np.asarray(scan.parent),

@@ -15,7 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
+from . import layout as WL
+from .sums import SumFile
 from .workdir import attr_file, blocks, opaque_rows, point_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
@@ -35,11 +38,11 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
     rec = record_dtype(fields)
     names = list(fields)
     n_buckets = (n + block - 1) // block
-    files = [open(work / f"bucket.{b}.bin", "wb") for b in range(n_buckets)]
+    files = [SumFile(work / WL.bucket(b)) for b in range(n_buckets)]
     attr_iters = [blocks(attr_file(work, i), np.dtype(fields[k][0]), n * int(np.prod(fields[k][1] or (1,))),
                          block * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
     try:
-        with open(work / "rank.i8", "rb") as fr:
+        with open(work / WL.RANK, "rb") as fr:
             for g0, pts in point_blocks(work, n, block):
                 m = pts.shape[0]
                 r = np.empty(m, rec)
@@ -55,7 +58,7 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
                 srt = opaque_rows(r)[order]
                 for b in range(n_buckets):
                     if cuts[b + 1] > cuts[b]:
-                        files[b].write(srt[cuts[b]:cuts[b + 1]].tobytes())
+                        files[b].write(srt[cuts[b]:cuts[b + 1]])
                 report(progress, "permute", g0 + m, n)
     finally:
         for f in files:
@@ -63,7 +66,7 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
         for it in attr_iters:
             with contextlib.suppress(Exception):
                 it.close()  # type: ignore[attr-defined]
-    return {"block": block, "buckets": n_buckets}
+    return {"block": block, "buckets": n_buckets, "files": {f.path.name: f.sum for f in files}}
 
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
@@ -72,17 +75,29 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
                buckets: dict[str, Any] | None = None) -> Any:
     """Write the bucketed points (:func:`bucket_points`, done first if ``buckets`` is None) in
     stored order as the part ``part``, with their radii and parents."""
-    from ...archive.scanwriter import ScanWriter
-
     if buckets is None:
         buckets = bucket_points(work, n, fields, progress)
+    try:
+        return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
+                              buckets)
+    except InputError as exc:  # the scan writer's own check: the work files disagree with each other
+        what = str(exc).split(";")[0]
+        raise BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
+                         "the build again with --force") from None
+
+
+def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+                   metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
+                   provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any]) -> Any:
+    from ...archive.scanwriter import ScanWriter
+
     block = int(buckets["block"])
     rec = record_dtype(fields)
     names = list(fields)
     with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, \
-            open(work / "radius.f8", "rb") as frad, open(work / "parent.i8", "rb") as fpar:
+            open(work / WL.RADIUS, "rb") as frad, open(work / WL.PARENT, "rb") as fpar:
         for b in range(int(buckets["buckets"])):
-            path = work / f"bucket.{b}.bin"
+            path = work / WL.bucket(b)
             k0 = b * block
             k1 = min(n, k0 + block)
             r = np.fromfile(path, dtype=rec)
@@ -100,6 +115,6 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
 
 
 def _order_block(work: Path, k0: int, k1: int) -> np.ndarray:
-    with open(work / "order.i8", "rb") as f:
+    with open(work / WL.ORDER, "rb") as f:
         f.seek(k0 * 8)
         return np.fromfile(f, dtype="<i8", count=k1 - k0)
