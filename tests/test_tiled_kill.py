@@ -137,11 +137,14 @@ def test_a_kill_in_the_second_pass_resumes_to_the_same_order(tmp_path):
     time.sleep(0.5)
     w = _work_dir(archive)
     done = len(list(w.glob("order.*.json")))
+    second = len(list(w.glob("order.*.2.json")))
     res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=9_000, _tile_passes=2)
     assert res.scans[0].status == "built"
     with lodbuilder.open_archive(archive) as a, lodbuilder.open_archive(clean) as b:
         va, vb = a.scan("sheet"), b.scan("sheet")
-        assert va.build["tiled"]["resumed"]["tiles_ordered_before"] == done > va.build["tiled"]["tiles"]
+        # a tile's second ordering may start before every first one is done (it waits only for its
+        # neighbours): count the second orderings, not the total against the tile count
+        assert va.build["tiled"]["resumed"]["tiles_ordered_before"] == done and second >= 1
         np.testing.assert_array_equal(va.source_index[:], vb.source_index[:])
         np.testing.assert_array_equal(va.radius[:], vb.radius[:])
 
