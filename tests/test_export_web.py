@@ -198,6 +198,19 @@ def test_level_slider_shows_the_prefixes(demo_archive, browser, tmp_path):
         text = p.inner_text("#levelText")
         assert text.startswith(f" {k:,} of 3,000 points")
         assert f"rho = {js_number(float(radius[k]))} scan units" in text
+        # radius colours follow the level: the scale starts at its rho (it was page-wide)
+        p.select_option("#mode", "s0")
+        p.wait_for_timeout(100)
+        assert p.inner_text("#legendLo") == js_number(float(radius[k]))
+        by_level = page.image()
+        p.eval_on_selector("#level", "el => { el.value = '0'; el.dispatchEvent(new Event('input')); }")
+        p.eval_on_selector(
+            "#level",
+            f"el => {{ el.value = '{n_stops // 2}'; el.dispatchEvent(new Event('input')); }}",
+        )
+        p.wait_for_timeout(100)
+        assert np.abs(page.image().astype(int) - by_level).mean() < 0.5  # the same level, same colours
+        p.select_option("#mode", "rgb")
         coarse = page.image()
         assert drawn_share(coarse) < drawn_share(full) or np.abs(coarse.astype(int) - full).mean() > 1
     finally:

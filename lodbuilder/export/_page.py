@@ -135,10 +135,32 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
       return;
     }
     const logN = Math.log(Math.max(H.n_total, 2));
+    const remap = mode.scalar === 0 ? radiusRemap() : null;
     for (let i = start; i < end; i++) {
-      const t = mode.key === "rank" ? Math.min(255, Math.floor(255 * Math.log(i + 1) / logN)) : scalars[mode.scalar][i];
+      let t = mode.key === "rank" ? Math.min(255, Math.floor(255 * Math.log(i + 1) / logN)) : scalars[mode.scalar][i];
+      if (remap) t = remap[t];
       colours[3 * i] = lut[3 * t]; colours[3 * i + 1] = lut[3 * t + 1]; colours[3 * i + 2] = lut[3 * t + 2];
     }
+  }
+  // radius: its scale follows the level shown, from its rho to the rho where it had 1/64 of
+  // its points (the page-wide scale drew a uniform level in one colour); finer points get the
+  // lowest colour, the level's coarsest the highest
+  function radiusRange() {
+    const s = H.scalars[0], [k, rho] = current();
+    let top = -1;
+    for (const [sk, sr] of H.steps) if (sk <= Math.max(1, Math.floor(k / 64))) top = sr;
+    const lo = rho > 0 ? Math.min(Math.max(rho, s.lo), s.hi) : s.lo;
+    const hi = top > lo ? Math.min(top, s.hi) : s.hi;
+    return [lo, hi > lo ? hi : lo * 1.000001];
+  }
+  function radiusRemap() {
+    const s = H.scalars[0], [lo, hi] = radiusRange(), out = new Uint8Array(256);
+    const a = Math.log(s.lo), b = Math.log(s.hi) - a, c = Math.log(lo), d = Math.log(hi) - c;
+    for (let t = 0; t < 256; t++) {
+      const v = a + (t / 255) * b;
+      out[t] = Math.max(0, Math.min(255, Math.round(255 * (v - c) / (d || 1))));
+    }
+    return out;
   }
   function uploadColours(start, end) {
     if (!gl || end <= start) return;
@@ -167,8 +189,9 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
     box.style.display = "block";
     $("legendScale").style.display = "block";
     $("legendTitle").textContent = spec.title;
-    $("legendHi").textContent = fmt(spec.hi);
-    $("legendLo").textContent = fmt(spec.lo);
+    const [lo, hi] = mode.scalar === 0 ? radiusRange() : [spec.lo, spec.hi];
+    $("legendHi").textContent = fmt(hi);
+    $("legendLo").textContent = fmt(lo);
     const c = $("legendBar"), g = c.getContext("2d");
     for (let y = 0; y < c.height; y++) {
       const t = Math.round(255 * (1 - y / (c.height - 1)));
@@ -197,7 +220,10 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
     if (state.ready) status(shown.toLocaleString("en") + " of " + N.toLocaleString("en") + " points drawn" +
       (N < H.n_total ? " (the level's prefix: coarse to fine)" : ""));
   }
-  level.addEventListener("input", redraw);
+  level.addEventListener("input", () => {
+    if (mode.scalar === 0) { fillColours(0, state.loaded); uploadColours(0, state.loaded); legend(); }
+    redraw();
+  });
   $("psize").addEventListener("input", redraw);
 
   // ---- camera: orbit around the centre of the bounding box ----
