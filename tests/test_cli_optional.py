@@ -112,9 +112,9 @@ def test_animate_mp4_without_ffmpeg(archive, tmp_path):
         (["lazrs"], ["slice", "{arc}", "--size", "10", "-o", "{tmp}/o.laz"],
          "{tmp}/o.laz: LAZ needs lazrs, which is not installed; install it with: "
          "pip install 'lodbuilder[las]'"),
-        (["copclib"], ["export", "{arc}", "-o", "{tmp}/o.copc.laz"],
-         "COPC export needs copclib, which is not installed; install it with: "
-         "pip install 'lodbuilder[copc]'"),
+        (["lazrs"], ["export", "{arc}", "-o", "{tmp}/o.copc.laz"],
+         "COPC export needs lazrs, which is not installed; install it with: "
+         "pip install 'lodbuilder[las]'"),
     ],
 )  # fmt: skip
 def test_readers_and_writers_name_their_extra(archive, shared_data, tmp_path, blocked, argv, message):

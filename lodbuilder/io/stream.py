@@ -170,22 +170,16 @@ def _las_error(p: Path, exc: BaseException) -> FormatError:
 
 
 def _las_stream(p: Path) -> PointStream:
-    from .las import (
-        _check_chunk_table,
-        _check_laz_backend,
-        _check_vlr_counts,
-        _laspy,
-        _quiet_laspy,
-        las_metadata,
-    )
+    from .las.common import check_laz_backend, laspy_module, quiet_laspy
+    from .las.read import check_chunk_table, check_vlr_counts, las_metadata
 
-    laspy = _laspy(p)
-    _check_laz_backend(laspy, p)
+    laspy = laspy_module(p)
+    check_laz_backend(laspy, p)
     try:
-        _check_vlr_counts(p)
+        check_vlr_counts(p)
         if p.suffix.lower() == ".laz":
-            _check_chunk_table(laspy, p)
-        with _quiet_laspy(), laspy.open(str(p)) as reader:
+            check_chunk_table(laspy, p)
+        with quiet_laspy(), laspy.open(str(p)) as reader:
             hdr = reader.header
             n = int(hdr.point_count)
             meta, rename = las_metadata(hdr, hdr.point_format, p)
@@ -216,7 +210,7 @@ def _las_stream(p: Path) -> PointStream:
     def it(size: int) -> Iterator[Chunk]:
         start = 0
         try:
-            with _quiet_laspy(), laspy.open(str(p)) as reader:
+            with quiet_laspy(), laspy.open(str(p)) as reader:
                 for rec in reader.chunk_iterator(size):
                     m = len(rec)
                     if m == 0:

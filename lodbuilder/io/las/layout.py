@@ -1,46 +1,36 @@
-"""LAS / LAZ / COPC reader and writer, built on laspy (``pip install lodbuilder[las]``).
-
-Reading keeps every point dimension (standard ones and extra bytes) as an attribute, with laspy's
-dtypes (bit fields as uint8, extra bytes scaled when the file says so); coordinates are the scaled
-doubles. ``metadata`` keeps what is needed to write the same format back: LAS version, point format
-id, scales, offsets, the CRS (WKT string and the raw LASF_Projection VLRs), the extra-byte
-definitions, system identifier and generating software; ``crs_wkt`` holds the CRS as WKT (the WKT
-VLR as written, else the GeoTIFF keys through pyproj).
-
-Writing goes through :func:`las_layout`, the one mapping from points + attributes + metadata to
-what laspy writes (the COPC exporter uses it too); see its docstring for every rule. In short:
-nothing is dropped; a value that does not fit its standard LAS field exactly is written to an
-extra-bytes dimension in its own dtype (and the standard field gets a scaled copy for viewers);
-8-bit colours are scaled x257; the coordinate scale comes from the source LAS or from the point
-spacing; every change is logged as a warning and listed in :attr:`LasLayout.notes`.
-"""
+"""The one mapping from points + attributes + metadata to what laspy writes (LAS, LAZ and COPC):
+point format, fields and extra bytes, colours, coordinate scale, CRS; every change noted."""
 
 from __future__ import annotations
 
 import base64
-import contextlib
 import logging
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import FormatError, InputError, MissingDependencyError
-from ._files import exc_line
-from .base import Scan
-from .crs import KEY_SOURCE, KEY_WKT, normalise_wkt, pyproj_wkt, set_crs
+from ...errors import InputError
+from .._files import exc_line
+from ..crs import KEY_SOURCE, KEY_WKT
+from .common import EXACT_PREFIX, laspy_module
 
 log = logging.getLogger(__name__)
 
-#: description prefix of an extra-bytes dimension that holds the exact values of a standard field
-EXACT_PREFIX = "lodbuilder exact "
+
 _COLOURS = ("red", "green", "blue", "nir")
+
+
 _GEOTIFF_IDS = (34735, 34736, 34737)
+
+
 _WKT_ID = 2112
+
+
 _EXTRA_TYPES = {"u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8", "f4", "f8"}
+
+
 #: a standard field that the other point-format family holds under another name and unit:
 #: field -> (its twin, factor from the twin's unit to the field's, how)
 _TWINS = {
@@ -48,238 +38,6 @@ _TWINS = {
     "scan_angle_rank": ("scan_angle", 0.006, "0.006-degree units to degrees"),  # formats 0-5
 }
 
-
-def _laspy(path: Path | str) -> Any:
-    from .._optional import require
-
-    return require("laspy", f"{path}: LAS/LAZ")
-
-
-def _check_laz_backend(laspy: Any, path: Path) -> None:
-    if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
-        from .._optional import missing_message
-
-        raise MissingDependencyError(missing_message("lazrs", f"{path}: LAZ"))
-
-
-@contextlib.contextmanager
-def _quiet_laspy() -> Iterator[None]:
-    """laspy logs an ERROR line before raising on a damaged file; the raised error is reported
-    as one line by the caller, so the log line would only repeat it."""
-    lg = logging.getLogger("laspy")
-    old = lg.level
-    lg.setLevel(logging.CRITICAL)
-    try:
-        yield
-    finally:
-        lg.setLevel(old)
-
-
-# ---------------------------------------------------------------------------------------- reader
-
-def _file_crs(hdr: Any) -> str | None:
-    for vlr in list(hdr.vlrs) + list(hdr.evlrs or []):
-        if type(vlr).__name__ == "WktCoordinateSystemVlr" and normalise_wkt(vlr.string):
-            return normalise_wkt(vlr.string)
-    try:
-        crs = hdr.parse_crs()
-    except ImportError:  # GeoTIFF keys need pyproj: CRS unknown, the raw VLRs still travel
-        return None
-    except Exception as exc:
-        log.warning("LAS CRS keys not understood (%s); CRS unknown", exc_line(exc))
-        return None
-    return None if crs is None else pyproj_wkt(crs)
-
-
-def _check_points_layout(path: Path, head: bytes, size: int) -> None:
-    """Refuse a coordinate scale of 0 (or not finite: every point would get one coordinate) and a
-    point-data offset inside the header or with the points running past the end of the file
-    (laspy then reads no points, or fails with a NumPy message)."""
-    import math
-    import struct
-
-    if len(head) < 179:
-        return  # laspy says what is wrong
-    header_size, offset = struct.unpack_from("<HI", head, 94)
-    record, legacy = struct.unpack_from("<HI", head, 105)
-    scales = struct.unpack_from("<3d", head, 131)
-    if not all(math.isfinite(s) and s > 0 for s in scales):
-        raise FormatError(
-            f"{path}: the LAS header's coordinate scale is {', '.join(f'{s:g}' for s in scales)} "
-            "(x, y, z); a scale must be a finite number above 0 (with 0 every point has the same "
-            "coordinate): the file is damaged; re-export it"
-        )
-    if offset < header_size:
-        raise FormatError(
-            f"{path}: the LAS header says the points start at byte {offset}, inside the "
-            f"{header_size}-byte header; the file is damaged"
-        )
-    count = legacy
-    if head[25] >= 4 and len(head) >= 255 and not legacy:
-        count = struct.unpack_from("<Q", head, 247)[0]
-    compressed = bool(head[104] & 0x80)  # (LAZ: the point format's top bit)
-    need = count * record if not compressed else 0
-    if offset + need > size:
-        raise FormatError(
-            f"{path}: the LAS header declares {count} points of {record} bytes from byte {offset} "
-            f"({need:,} bytes), but the file ends at byte {size}: its point-data offset or point "
-            "count is wrong; the file is damaged"
-        )
-
-
-def _check_vlr_counts(path: Path) -> None:
-    """Refuse VLR counts the file cannot hold: laspy reads that many VLRs from the stream, past
-    its end, and a damaged count (billions) keeps it busy forever."""
-    import struct
-
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(255)
-    if len(head) < 104 or head[:4] != b"LASF":
-        return  # laspy says what is wrong
-    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
-    _check_points_layout(path, head, size)
-    room = max(0, min(offset, size) - header_size)
-    if n_vlrs * 54 > room:  # a VLR header alone is 54 bytes
-        raise FormatError(
-            f"{path}: the LAS header declares {n_vlrs} VLRs but only {room} bytes lie between the "
-            "header and the points; the file is damaged"
-        )
-    if head[25] >= 4 and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
-        start, n_evlrs = struct.unpack_from("<QI", head, 235)
-        if n_evlrs and n_evlrs * 60 > max(0, size - start):
-            raise FormatError(
-                f"{path}: the LAS header declares {n_evlrs} extended VLRs at byte {start} of a "
-                f"{size}-byte file; the file is damaged"
-            )
-
-
-#: the largest LAZ chunk (points x point size) accepted when it is also larger than the whole file's
-#: points: writers use 50,000-point chunks (1-3 MB); lazrs allocates a chunk whole before reading it
-CHUNK_BYTES_MAX = 256 * 2**20
-
-
-def _check_chunk_table(laspy: Any, path: Path) -> None:
-    """Refuse a LAZ chunk table that declares more chunks than the file can hold: lazrs
-    allocates it whole and aborts the process (SIGABRT) when the allocation fails."""
-    import struct
-
-    import lazrs
-
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        header = laspy.LasHeader.read_from(f)
-        vlr = next((v for v in header.vlrs if type(v).__name__ == "LasZipVlr"), None)
-        if vlr is None:
-            return  # laspy says what is missing
-        start = int(header.offset_to_point_data)
-        f.seek(start)
-        raw = f.read(8)
-        at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
-        if at == -1:  # written at the end: the last 8 bytes say where
-            f.seek(max(0, size - 8))
-            raw = f.read(8)
-            at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
-        f.seek(max(0, at))
-        raw = f.read(8)
-    lazvlr = lazrs.LazVlr(vlr.record_data)
-    count = int(header.point_count)
-    point_size = int(header.point_format.size)
-    if not lazvlr.uses_variable_size_chunks():
-        # lazrs' parallel decompressor allocates one whole chunk: a damaged chunk size aborts it too
-        chunk_bytes = lazvlr.chunk_size() * point_size
-        if chunk_bytes > max(CHUNK_BYTES_MAX, count * point_size):
-            raise FormatError(
-                f"{path}: the LAZ header declares chunks of {lazvlr.chunk_size()} points "
-                f"({chunk_bytes / 2**30:.1f} GiB each) for {count} points; the file is damaged"
-            )
-    if not start + 8 <= at <= size - 8 or len(raw) != 8:
-        return  # no chunk table where it should be: lazrs reads the chunks in sequence
-    n_chunks = struct.unpack("<II", raw)[1]
-    most = count if lazvlr.uses_variable_size_chunks() else -(-count // max(1, lazvlr.chunk_size()))
-    if n_chunks > max(1, min(most, size - start)):
-        raise FormatError(
-            f"{path}: the LAZ chunk table declares {n_chunks} chunks for {count} points in "
-            f"{size} bytes; the file is damaged"
-        )
-
-
-def read(path: Path) -> list[Scan]:
-    laspy = _laspy(path)
-    _check_laz_backend(laspy, path)
-    try:
-        _check_vlr_counts(path)
-        if path.suffix.lower() == ".laz":
-            _check_chunk_table(laspy, path)
-        with _quiet_laspy():
-            las = laspy.read(str(path))
-    except laspy.errors.LaspyException as exc:
-        raise FormatError(f"{path}: not a readable LAS/LAZ file ({exc_line(exc)}); check or re-export it") from None
-    hdr = las.header
-    pts = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
-    attrs: dict[str, np.ndarray] = {}
-    for dim in las.point_format.dimension_names:
-        if dim in ("X", "Y", "Z"):
-            continue
-        attrs[dim] = np.ascontiguousarray(np.asarray(las[dim]))
-    meta, rename = las_metadata(hdr, las.point_format, path)
-    for stored, original in rename.items():
-        attrs[original] = attrs.pop(stored)
-    name = path.stem.split(".")[0] if path.name.lower().endswith(".copc.laz") else path.stem
-    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=meta)]
-
-
-def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
-    """The format metadata of a LAS/LAZ file from its header, and the renaming of the extra
-    dimensions lodbuilder wrote for exact standard fields: the same as :func:`lodbuilder.io.las.read`
-    and the streaming reader (:mod:`lodbuilder.io.stream`) store."""
-    wkt = None
-    crs_vlrs = []
-    for vlr in list(hdr.vlrs) + list(hdr.evlrs or []):
-        if type(vlr).__name__ == "WktCoordinateSystemVlr":
-            wkt = vlr.string
-        if getattr(vlr, "user_id", "") == "LASF_Projection":
-            data = vlr.record_data_bytes() if hasattr(vlr, "record_data_bytes") else vlr.record_data
-            crs_vlrs.append({
-                "user_id": vlr.user_id,
-                "record_id": int(vlr.record_id),
-                "description": str(vlr.description),
-                "data_b64": base64.b64encode(bytes(data)).decode("ascii"),
-            })
-    extra = []
-    rename: dict[str, str] = {}
-    for d in point_format.extra_dimensions:
-        desc = str(d.description or "")
-        if desc.startswith(EXACT_PREFIX):
-            rename[d.name] = desc[len(EXACT_PREFIX):]
-            continue
-        extra.append({
-            "name": d.name,
-            "type": np.dtype(d.dtype).str.lstrip("<>=|") if d.num_elements == 1
-            else f"{d.num_elements}{np.dtype(d.dtype).base.str.lstrip('<>=|')}",
-            "description": desc,
-            "scales": None if d.scales is None else [float(s) for s in np.atleast_1d(d.scales)],
-            "offsets": None if d.offsets is None else [float(s) for s in np.atleast_1d(d.offsets)],
-        })
-    meta: dict[str, Any] = {
-        "las_version": str(hdr.version),
-        "las_point_format": int(hdr.point_format.id),
-        "las_scales": [float(s) for s in hdr.scales],
-        "las_offsets": [float(s) for s in hdr.offsets],
-        "las_crs_wkt": wkt,
-        "las_crs_vlrs": crs_vlrs,
-        "las_wkt_bit": bool(hdr.global_encoding.wkt),
-        "las_extra_dims": extra,
-        "las_system_identifier": str(hdr.system_identifier),
-        "las_generating_software": str(hdr.generating_software),
-        "las_compressed": path.suffix.lower() == ".laz",
-    }
-    set_crs(meta, _file_crs(hdr), "file")
-    return meta, rename
-
-
-
-# ------------------------------------------------------------------------------ the mapping
 
 @dataclass
 class ExtraDim:
@@ -290,6 +48,7 @@ class ExtraDim:
     description: str = ""
     scales: list[float] | None = None
     offsets: list[float] | None = None
+    no_data: list[int | float | str] | None = None
 
 
 @dataclass
@@ -317,7 +76,7 @@ class LasLayout:
     def header(self) -> Any:
         """A ``laspy.LasHeader`` with version, point format, scales, offsets, extra dimensions,
         CRS VLRs and the global-encoding WKT bit set."""
-        laspy = _laspy("LAS output")
+        laspy = laspy_module("LAS output")
         header = laspy.LasHeader(point_format=int(self.point_format), version=self.version)
         header.scales = self.scales
         header.offsets = self.offsets
@@ -325,6 +84,8 @@ class LasLayout:
             kw: dict[str, Any] = {"name": d.name, "type": d.type, "description": d.description}
             if d.scales is not None:
                 kw.update(scales=np.asarray(d.scales), offsets=np.asarray(d.offsets))
+            if d.no_data is not None:
+                kw.update(no_data=np.asarray([float(v) if isinstance(v, str) else v for v in d.no_data]))
             header.add_extra_dim(laspy.ExtraBytesParams(**kw))
         for v in self.vlrs:
             header.vlrs.append(laspy.VLR(user_id=v["user_id"], record_id=int(v["record_id"]),
@@ -340,7 +101,7 @@ class LasLayout:
 
     def las_data(self, points: np.ndarray) -> Any:
         """A ``laspy.LasData`` holding ``points`` and every dimension, ready to write."""
-        laspy = _laspy("LAS output")
+        laspy = laspy_module("LAS output")
         las = laspy.LasData(self.header())
         las.x = points[:, 0]
         las.y = points[:, 1]
@@ -355,7 +116,7 @@ class LasLayout:
 
 def _standard_dims(fmt: int) -> dict[str, tuple[float, float, bool]]:
     """Standard dimension -> (min, max, integer) of what it holds exactly (X/Y/Z left out)."""
-    laspy = _laspy("LAS output")
+    laspy = laspy_module("LAS output")
     out: dict[str, tuple[float, float, bool]] = {}
     for d in laspy.PointFormat(fmt).dimensions:
         if not d.is_standard or d.name in ("X", "Y", "Z"):
@@ -513,14 +274,16 @@ def las_layout(
         * **Other attributes** become extra-bytes dimensions in their own dtype ((N, 2) and (N, 3)
           as array dimensions; wider ones as ``name_0``, ``name_1``...; bool as uint8); a LAS
           source's scaled extra bytes keep their scale and offset. Names longer than 32 bytes are
-          cut (noted).
+          cut (noted). A source's extra-bytes description and no-data value are kept where the
+          values keep the source's type.
         * **Twin fields.** A change of point-format family (a format 3 source written as 7 for
           COPC) leaves a standard field empty whose values the source holds under another name:
           ``scan_angle`` (formats 6-10, int16 in 0.006 degrees) is filled from ``scan_angle_rank``
           (formats 0-5, int8 degrees) rounded, and the other way round (clipped to int8); the
           source field keeps its exact values in extra bytes like any other attribute (noted).
-        * **CRS.** ``crs_wkt`` as a WKT VLR, and for point formats 6-10 (and LAS 1.4 files that
-          use WKT) the global-encoding WKT bit the specification requires. A LAS source's own CRS
+        * **CRS.** ``crs_wkt`` as a WKT VLR; the global-encoding WKT bit for point formats 6-10
+          always (the specification requires it, CRS or not) and for LAS 1.4 files of formats 0-5
+          whose source set it. A LAS source's own CRS
           VLRs are copied unchanged for point formats 0-5 (GeoTIFF keys included); for 6-10 only
           the WKT VLR is written. A CRS assigned with ``build --crs`` replaces the source's VLRs.
 
@@ -590,6 +353,8 @@ def las_layout(
 
     _fill_twins(layout, attributes, standard, notes)
     _layout_crs(layout, meta, from_las, notes)
+    if fmt >= 6:  # LAS 1.4: point formats 6-10 require the WKT bit, with or without a CRS
+        layout.wkt_bit = True
     layout.notes = notes
     return layout
 
@@ -614,13 +379,17 @@ def _add_extra(layout: LasLayout, name: str, a: np.ndarray, extra_defs: dict[str
     k = a.shape[1] if a.ndim == 2 else 1
     if d is not None and d.get("scales") is not None and a.dtype.kind == "f" and not str(d["type"])[0].isdigit():
         layout.extra_dims.append(ExtraDim(las_name, str(d["type"]), str(d.get("description", "")),
-                                          list(d["scales"]), list(d["offsets"])))
+                                          list(d["scales"]), list(d["offsets"]), d.get("no_data")))
         layout.dimensions[las_name] = a
         return
     vals, typ = _extra_type(name, a, notes)
     if a.dtype == np.bool_:
         notes.append(f"{name}: bool written as uint8 extra bytes")
-    layout.extra_dims.append(ExtraDim(las_name, f"{k}{typ}" if k > 1 else typ, str((d or {}).get("description", ""))[:32]))
+    typ = f"{k}{typ}" if k > 1 else typ
+    # the source's no-data value, where the values keep the source's type
+    keep = d is not None and d.get("no_data") is not None and str(d["type"]) == typ
+    layout.extra_dims.append(ExtraDim(las_name, typ, str((d or {}).get("description", ""))[:32],
+                                      no_data=d.get("no_data") if keep and d is not None else None))
     layout.dimensions[las_name] = vals
 
 
@@ -688,20 +457,3 @@ def _geotiff_vlrs(wkt: str) -> list[dict[str, Any]]:
         out.append({"user_id": v.user_id, "record_id": int(v.record_id), "description": str(v.description),
                     "data": bytes(v.record_data_bytes())})
     return out
-
-
-def check_output(path: Path) -> None:
-    """Refuse, before any work, a LAS/LAZ output this installation cannot write (no laspy, or
-    no LAZ backend for .laz); see ``registry.writer_for``."""
-    _check_laz_backend(_laspy(path), path)
-
-
-def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], metadata: dict[str, Any] | None) -> list[str]:
-    """Write through :func:`las_layout` (``check_output`` has run); returns its notes (what was
-    changed)."""
-    compress = path.suffix.lower() == ".laz"
-    layout = las_layout(points, attributes, metadata)
-    las = layout.las_data(points)
-    with open(path, "wb") as f:
-        las.write(f, do_compress=compress)
-    return layout.notes
