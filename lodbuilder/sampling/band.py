@@ -23,8 +23,9 @@ its inside). If there is a sheet on the outer side too, the radius there is capp
 on different sheets, the one farther from its point leaves the band, and so does a voxel that is a
 corner of a cell holding a point of another sheet; so a sheet between two others is bridged to
 neither. In a stack joined by folds (an accordion) no choice of sides is consistent around every
-fold, so the one-sided band splits it; then the plain band cut between sheets is used (both sides
-of every sheet, each up to about the middle of the gap). Both need a gap of about 2 voxels (4 point
+fold, so the one-sided band splits it; then, when at least THIN_SHARE % of the scan is thin, the
+plain band cut between sheets is used (both sides of every sheet, each up to about the middle of the
+gap); with fewer thin points the plain band, as before. Both need a gap of about 2 voxels (4 point
 spacings): when no band cut between sheets holds together, at least REFINE_SHARE of the scan is thin
 and its median separation is under REFINE_SEP voxels, the band is built on a grid of that separation /
 REFINE_SEP (3 spacings apart: 1.36 spacings instead of 2, about 2.2 x the voxels); if that does not hold
@@ -559,12 +560,21 @@ def build_planned_band(
         band = build_band(points, plan.h, plan.r, max_memory)
     if plan.normal is None:
         return band, plan
-    vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
-    vcost, near = cut_between_sheets(band, vcost, plan)
+    side, side_near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
+    vcost, near = cut_between_sheets(band, side, plan)
     pieces = point_components(band.nbr, band.cs, near, vcost)
     plain = 0
     if pieces > 1:
         plain = point_components(band.nbr, band.cs, band.near, band.vcost)
+    if pieces > 1 and plain < pieces:  # the one-sided band alone, when the cut is what splits it
+        alone = point_components(band.nbr, band.cs, side_near, side)
+        if alone <= plain:
+            vcost, near, pieces = side, side_near, alone
+    del side, side_near
+    stack = plan.thin_points >= THIN_SHARE / 100 * band.u.shape[0]  # (a few thin parts: as before)
+    if pieces > 1 and plain < pieces and not stack:
+        log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
+        return band, BandPlan.plain(plan.h, plan.r)
     if pieces > 1 and plain < pieces:
         vcost, near = cut_between_sheets(band, band.vcost, plan)
         pieces = point_components(band.nbr, band.cs, near, vcost)
