@@ -299,6 +299,10 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         cmin = 1.0
     from .._kernels.march import grid_phase
     from .._kernels.tail import euclid_tail
+    from .._kernels.topology import point_pieces
+
+    piece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    stats["pieces"] = int(npiece)
 
     if plan.separation is None:
         psep = np.full(1, np.inf, dtype=np.float32)
@@ -314,7 +318,9 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
         band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
         TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG, tseed_c, tkey_g, tpos,
+        piece, np.int64(npiece),
     )
+    del piece
     del vcost
     release_freed_memory(n)
     if pops < 0:
