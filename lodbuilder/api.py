@@ -69,6 +69,7 @@ def build_archive(
     seam_spacing: float | None = None,
     crs: str | None = None,
     crs_override: bool = False,
+    wait: float | None = None,
     options: BuildOptions | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
@@ -90,38 +91,23 @@ def build_archive(
     archive with the same source, pose and parameters is skipped (``force`` rebuilds it); a scan of
     the same name built from other contents is refused unless ``overwrite``. Adding to an archive
     is atomic: the scans already in it are untouched whatever happens, and a killed build resumes
-    where it stopped.
+    where it stopped. One build (or other writer) of an archive runs at a time: while another
+    process writes ``archive``, this build waits for it (with a warning), for at most ``wait``
+    seconds (default: until it finishes; 0: not at all), then raises ArchiveBusyError.
 
-    Scans larger than the memory budget take the tiled path (:mod:`lodbuilder.build.tiled`):
-    ``max_memory`` (bytes, or text like ``"3GB"``; default 60 % of this machine's memory) is the
-    budget of the build's whole process tree on this machine (with a remote ``scheduler``: of each
-    worker); a scan whose in-memory build would exceed it is read in chunks, cut into tiles ordered
-    on the workers and merged. ``seam_spacing`` (0..1, default 0.25) is the seam repair of the merge:
-    a point merged from one tile keeps at least this fraction of its merge radius from the earlier
-    points of other tiles, so points of different tiles in any level are at least A / (1 + A) times
-    the level's radius apart (0.2 at the default, 0.5 at 1, which costs covering at equal size:
-    see :data:`lodbuilder.build.tiled.SEAM_SPACING`; 0: no repair). ``joint=True`` (or a scan name) orders every input scan,
-    posed, as one surface: one scan in the archive whose points keep ``scan_id`` and
-    ``scan_point`` (their index in their own scan) attributes.
-
-    ``crs`` (EPSG:XXXX, WKT or a file holding WKT) gives every scan without one a coordinate
-    reference system; a scan whose file declares another is refused unless ``crs_override``.
-
-    ``size``/``rho`` stop each ordering early; ``seeds`` (one scan only) are must-keep input
-    indices. Feature sensitivity (see :func:`lodbuilder.sampling.adaptive.feature_build`):
-    ``importance="curvature,colour"`` stores importance maps, ``adaptive=A`` adds the ``weighted``
-    ordering, ``density_floor=RHO0`` the ``floor`` ordering, ``outlier_threshold=T`` leaves points
-    with a noise score above T out of every ordering (kept in the archive, flagged ``outlier``).
+    What each scan stores is decided by the option keywords ``voxel_size``, ``band_radius``,
+    ``seeds``, ``size``, ``rho``, ``max_memory``, ``seam_spacing``, ``crs``, ``crs_override`` and the
+    feature options (``importance``, ``adaptive``, ``density_floor``, ``outlier_threshold``, ...),
+    documented once in :class:`~lodbuilder.build.options.BuildOptions`; or by ``options``, a
+    BuildOptions made beforehand (giving both is refused). Scans larger than ``max_memory`` take
+    the tiled path (:mod:`lodbuilder.build.tiled`). ``joint=True`` (or a scan name) orders every
+    input scan, posed, as one surface: one scan whose points keep ``scan_id`` and ``scan_point``.
 
     Returns a :class:`BuildResult` (one :class:`~lodbuilder.collection.ScanStatus` per scan: name,
     status, points, seconds, encoding, method). Failures: with one scan its error is raised
     (nothing is written); with several, failed scans are reported in the result and the others
     are built (``raise_on_failure=True`` raises a BuildError naming them after the others are in,
     ``False`` never raises).
-
-    ``options``: a :class:`~lodbuilder.build.options.BuildOptions` made beforehand, instead of the
-    option keywords (voxel_size, band_radius, seeds, size, rho, max_memory, seam_spacing, crs,
-    crs_override and the feature options); giving both is refused.
     """
     from .build.runner import build
 
@@ -136,7 +122,7 @@ def build_archive(
         raise InputError(f"build options given twice: options= and {named}; put them all in options= "
                          "(BuildOptions.make(...)) or pass keywords only")
     return build(inputs, archive, options, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
-                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint,
+                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint, wait=wait,
                  raise_on_failure=raise_on_failure, progress=progress, on_status=on_status)
 
 

@@ -80,3 +80,8 @@ class EngineError(LodbuilderError, RuntimeError):
 class UnsafeArchiveError(ArchiveError):
     """The archive points outside itself (external links, external raw storage, virtual
     datasets): refused before anything is read."""
+
+
+class ArchiveBusyError(ArchiveError):
+    """Another process is writing the archive (a build, or an update) and did not finish within
+    the time the caller agreed to wait."""

@@ -315,3 +315,53 @@ def nearest_earlier(points: np.ndarray, order: np.ndarray) -> np.ndarray:
     for k in range(1, len(order)):
         e[k] = float(np.linalg.norm(pts[:k] - pts[k], axis=1).min())
     return e
+
+
+def naive_sheet_cut(band, vcost: np.ndarray, normal: np.ndarray, sep: np.ndarray) -> np.ndarray:
+    """The rule of ``lodbuilder._kernels.sheets.sheet_cut`` written plainly: voxels by coordinates in
+    a dict, every pair tested from scratch (``normal``, ``sep``: per point in the band's point order,
+    grid units)."""
+    from lodbuilder._kernels.sheets import CUT_CONE, CUT_PARALLEL, CUT_SHARE
+
+    u = band.u
+    coord = [tuple(int(c) for c in row) for row in band.coord]
+    index = {c: i for i, c in enumerate(coord)}
+    cells: dict[tuple[int, int, int], list[int]] = {}
+    for p in range(u.shape[0]):
+        cells.setdefault(tuple(int(c) for c in np.floor(u[p])), []).append(p)
+
+    def across(e: int, o: int) -> bool:
+        n = normal[e]
+        if not n.any():
+            return False
+        d = u[o] - u[e]
+        a = abs(float(d @ n))
+        dist = float(np.linalg.norm(d))
+        if a < CUT_SHARE * sep[e] or a < CUT_CONE * dist:
+            return False
+        return dist >= sep[e] or not normal[o].any() or abs(float(n @ normal[o])) >= CUT_PARALLEL
+
+    def apart(f: int, g: int) -> bool:
+        return f != g and (across(f, g) or across(g, f))
+
+    def depth(v: int) -> float:
+        return float(np.sum((np.array(coord[v]) - u[band.foot[v]]) ** 2))
+
+    out = vcost.copy()
+    for v, c in enumerate(coord):
+        if not np.isfinite(vcost[v]):
+            continue
+        f = int(band.foot[v])
+        for step in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)):
+            w = index.get((c[0] + step[0], c[1] + step[1], c[2] + step[2]), -1)
+            if w < 0 or not np.isfinite(vcost[w]) or not apart(f, int(band.foot[w])):
+                continue
+            if depth(w) < depth(v) or (depth(w) == depth(v) and w < v):
+                out[v] = np.inf
+        for dx in (0, -1):
+            for dy in (0, -1):
+                for dz in (0, -1):
+                    for p in cells.get((c[0] + dx, c[1] + dy, c[2] + dz), []):
+                        if apart(f, p):
+                            out[v] = np.inf
+    return out

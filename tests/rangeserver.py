@@ -15,12 +15,15 @@ _RANGE = re.compile(r"bytes=(\d+)-(\d*)$")
 class RangeServer:
     """``with RangeServer(root) as srv: srv.url("a.h5")``; ``srv.log`` lists (method, path,
     range header, bytes sent) of every request; ``delay`` seconds are slept before each answer
-    (a stand-in for network latency)."""
+    (a stand-in for network latency, or a stalled server); ``redirects`` maps a request path
+    (without its query) to the URL a 302 answer sends the client to."""
 
-    def __init__(self, root: str | os.PathLike[str], delay: float = 0.0, honour_range: bool = True):
+    def __init__(self, root: str | os.PathLike[str], delay: float = 0.0, honour_range: bool = True,
+                 redirects: dict[str, str] | None = None):
         self.root = Path(root)
         self.delay = delay
         self.honour_range = honour_range
+        self.redirects = dict(redirects or {})
         self.log: list[tuple[str, str, str | None, int]] = []
         self._lock = threading.Lock()
         server = self
@@ -43,8 +46,16 @@ class RangeServer:
 
                 if server.delay:
                     time.sleep(server.delay)
-                p = self._file()
                 rng = self.headers.get("Range")
+                target = server.redirects.get(self.path.split("?", 1)[0])
+                if target is not None:
+                    self.send_response(302)
+                    self.send_header("Location", target)
+                    self.send_header("Content-Length", "0")
+                    self.end_headers()
+                    server._record(self.command, self.path, rng, 0)
+                    return
+                p = self._file()
                 if p is None:
                     self.send_response(404)
                     self.send_header("Content-Length", "0")
@@ -73,7 +84,10 @@ class RangeServer:
                 # recorded before the client can see the answer, so a count taken after a read
                 # returned includes it
                 server._record(self.command, self.path, rng, len(data))
-                self.wfile.write(data)
+                try:
+                    self.wfile.write(data)
+                except (BrokenPipeError, ConnectionResetError):  # the client gave up (a timeout)
+                    pass
 
             def do_GET(self) -> None:  # noqa: N802
                 self._answer(head=False)
@@ -89,8 +103,8 @@ class RangeServer:
         with self._lock:
             self.log.append((method, path, rng, sent))
 
-    def url(self, rel: str) -> str:
-        return f"http://127.0.0.1:{self._httpd.server_address[1]}/{rel}"
+    def url(self, rel: str, host: str = "127.0.0.1") -> str:
+        return f"http://{host}:{self._httpd.server_address[1]}/{rel}"
 
     def count(self, method: str = "GET") -> int:
         with self._lock:

@@ -104,3 +104,33 @@ def unfold_folded(points: np.ndarray, gap: float, length: float) -> np.ndarray:
 def geodesic_folded(points: np.ndarray, src: int, gap: float, length: float) -> np.ndarray:
     u = unfold_folded(points, gap, length)
     return np.linalg.norm(u - u[src], axis=1)
+
+
+def fibonacci_sphere(n: int, radius: float = 1.0) -> np.ndarray:
+    """(n, 3) points spread evenly over a sphere (the Fibonacci spiral): deterministic."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5**0.5) * i
+    return radius * np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
+
+
+def accordion(n: int, sheets: int, gap: float, length: float = 1.0, width: float = 1.0, seed: int = 0):
+    """A stack of ``sheets`` parallel sheets z = k gap over [0, length] x [0, width], joined by
+    half-cylinders of radius gap / 2 alternately along x = length and x = 0 (an accordion), n
+    random points. Returns (points, uv): uv are the points laid flat on the rectangle
+    [0, sheets length + (sheets - 1) pi gap / 2] x [0, width], which is convex, so the geodesic
+    distance on the stack is the Euclidean distance there."""
+    r = gap / 2
+    arc = np.pi * r
+    rng = np.random.default_rng(seed)
+    s = rng.random(n) * (sheets * length + (sheets - 1) * arc)
+    y = rng.random(n) * width
+    k = np.minimum((s // (length + arc)).astype(int), sheets - 1)
+    t = s - k * (length + arc)
+    forward = k % 2 == 0  # sheet k runs toward +x when k is even
+    pts = np.column_stack([np.where(forward, t, length - t), y, k * gap])
+    fold = t >= length
+    a = (t[fold] - length) / r  # the angle around the fold, 0..pi
+    pts[fold, 0] = np.where(forward[fold], length + r * np.sin(a), -r * np.sin(a))
+    pts[fold, 2] = k[fold] * gap + r - r * np.cos(a)
+    return pts, np.column_stack([s, y])

@@ -66,7 +66,7 @@ def test_build_info_slice_with_features(ply, tmp_path, capsys):
     assert q["points"].shape == (300, 3)
     d, _ = cKDTree(q["points"]).query(inliers)
     assert d.max() <= 5.0
-    assert "wrote 300 of 1800 points" in capsys.readouterr().out
+    assert "wrote 300 of 1,800 points" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(

@@ -11,16 +11,11 @@ import sys
 import h5py
 import numpy as np
 import pytest
+from clirun import run as run_cli
 
 from lodbuilder.archive import layout as L
 from lodbuilder.cli.main import main
 from lodbuilder.io import read_scan
-
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def files_in(d):
@@ -52,7 +47,7 @@ def test_build_info_validate(built, capsys, shared_data):
     rc, out, _ = run_cli(capsys, "info", built)
     assert rc == 0 and "1,889 points" in out and "sha256 d628625d14fbe5de" in out
     rc, out, _ = run_cli(capsys, "validate", built)
-    assert rc == 0 and "valid (1 scan(s), 1889 points" in out
+    assert rc == 0 and "valid (1 scan(s), 1,889 points" in out
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".npy", ".csv"])
@@ -65,7 +60,7 @@ def test_slice_writes_level_with_attributes(built, capsys, tmp_path, shared_data
     with lodbuilder.open_archive(built) as arc:
         lev = arc.scan().level(rho=0.01)
     got = read_scan(out_path)
-    assert len(got) == lev.size and f"wrote {lev.size} of 1889 points" in out
+    assert len(got) == lev.size and f"wrote {lev.size:,} of 1,889 points" in out
     # float32 coordinates and attributes: CSV prints them as float32 (the source precision)
     np.testing.assert_array_equal(got.points.astype(np.float32), lev.points.astype(np.float32))
     for key in ("confidence", "intensity"):
@@ -301,7 +296,7 @@ def test_build_reports_the_name_the_reader_gave(tmp_path, capsys, shared_data):
 
     with lodbuilder.open_archive(arc) as a:
         (name,) = a.scans
-    assert f"added scan {name!r} (30571 points" in out
+    assert f"added scan {name!r} (30,571 points" in out
 
 
 def test_build_names_the_archive_as_the_user_gave_it(tmp_path, capsys, shared_data, monkeypatch):

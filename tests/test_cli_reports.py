@@ -12,8 +12,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import clirun
 import numpy as np
 import pytest
+from clirun import run
 
 import lodbuilder
 from lodbuilder.cli.main import main
@@ -22,19 +24,11 @@ from lodbuilder.datasets import demo_scan
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def one_line_error(capsys, argv, cmd):
-    rc, out, err = run(capsys, *argv)
-    assert rc == 2, (rc, out, err)
-    assert out == "" and err.endswith("\n") and err.count("\n") == 1, err
-    prefix = f"lodbuilder {cmd}: error: "
-    assert err.startswith(prefix), err
-    return err[len(prefix) : -1]
+    assert argv[0] == cmd
+    return clirun.one_line_error(capsys, cmd, *argv[1:])
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lodbuilder.archive.files import make_own_dir
 from lodbuilder.build.inputs import expand_inputs
 from lodbuilder.build.runner import parts_dir
 from lodbuilder.collection import (
@@ -256,7 +257,7 @@ def test_finished_part_of_a_killed_build_is_merged_not_rebuilt(tmp_path):
     # what a worker of a killed build leaves behind: a finished part that was never merged
     jobs, recovered, skipped, failed = plan_jobs(expand_inputs(files), out, BuildOptions())
     assert [j.name for j in jobs] == ["good2"] and len(skipped) == 2 and not recovered and not failed
-    parts_dir(out).mkdir()
+    make_own_dir(parts_dir(out), out.name)  # as the killed build made it, with its marker
     summary = build_one(jobs[0])
     stray = parts_dir(out) / ".good9.h5.tmp-999999999-dead"  # a temp of a killed writer
     stray.write_bytes(b"partial")

@@ -16,13 +16,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from clirun import one_line_error, run
 from hostile import SCAN, N, copy, edit, make_archive, rewrite, small_ply, vlen_strings
 
 import lodbuilder
 from lodbuilder.archive import layout as L
 from lodbuilder.archive.safety import check_heap_collection
 from lodbuilder.archive.validate import validate_archive
-from lodbuilder.cli.main import main
 from lodbuilder.errors import CorruptArchiveError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,18 +46,9 @@ def old(base, tmp_path):
     return vlen_strings(copy(base, tmp_path / "a.h5"))
 
 
-def run(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
-def one_error(capsys, cmd, *argv):
-    rc, out, err = run(capsys, cmd, *argv)
-    assert rc == 2, (rc, out, err)
-    lines = err.splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"lodbuilder {cmd}: error: "), err
-    return lines[0][len(f"lodbuilder {cmd}: error: ") :]
+one_error = one_line_error
 
 
 # --- finding 2: the one-byte hang ----------------------------------------------------------

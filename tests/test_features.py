@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from surfaces import fibonacci_sphere
 
 from lodbuilder.errors import InputError, ScanFileError
 from lodbuilder.features import (
@@ -30,13 +31,6 @@ def grid_plane(n=30, spacing=1.0, jitter=0.0, seed=0):
     )
     g = g + rng.uniform(-jitter, jitter, g.shape) * spacing
     return np.c_[g, np.zeros(len(g))]
-
-
-def fibonacci_sphere(n, radius=1.0):
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5**0.5) * i
-    return radius * np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
 
 
 # ---------------------------------------------------------------- surface variation

@@ -181,7 +181,7 @@ def test_flags_and_bookkeeping(plane, plane_filled):
     assert lev.rho == base.rho
     assert sum(r.n_synthetic for r in plane_filled.report.regions) == m
     assert plane_filled.summary(view.n_points) == (
-        f"{k} of {view.n_points} points + {m} synthetic (synthetic = 1) in 3 filled gap(s)"
+        f"{k:,} of {view.n_points:,} points + {m:,} synthetic (synthetic = 1) in 3 filled gap(s)"
     )
 
 

@@ -6,11 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from clirun import run
 from surfaces import jittered_plane
 
 import lodbuilder
 from lodbuilder.archive.writer import ScanRecord, update_archive
-from lodbuilder.cli.main import main
 from lodbuilder.io import read_scan, write_points
 from lodbuilder.io.base import Scan
 
@@ -37,10 +37,6 @@ def arc(tmp_path_factory):
     return path
 
 
-def run(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def test_slice_fill(arc, tmp_path, capsys):
@@ -58,7 +54,7 @@ def test_slice_fill(arc, tmp_path, capsys):
     assert m > 10 and back.points.shape[0] == k + m
     assert (flag[:k] == 0).all() and (flag[k:] == 1).all()
     assert text.strip() == (
-        f"wrote {k} of {n} points + {m} synthetic (synthetic = 1) in 2 filled gap(s) of scan "
+        f"wrote {k:,} of {n:,} points + {m:,} synthetic (synthetic = 1) in 2 filled gap(s) of scan "
         f"'p' to {out} (covering radius <= {lev.rho:.6g})"
     )
     # the measured points are the plain level's, in the same order, with the same attributes

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from clirun import run as run_cli
 
 from lodbuilder.cli.main import main
 from lodbuilder.errors import InputError, MissingDependencyError
@@ -19,10 +20,6 @@ pyproj = pytest.importorskip("pyproj")
 AUTZEN_WKT_START = 'PROJCS["NAD_1983_HARN_Lambert_Conformal_Conic",GEOGCS["GCS_North_American_1983_HARN"'
 
 
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")

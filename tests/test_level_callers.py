@@ -65,7 +65,7 @@ def test_every_caller_gives_the_same_size(archive, tmp_path, capsys):
         out = tmp_path / "lvl.npy"
         assert main(["slice", str(path), f"--{kind}", repr(v), "-o", str(out)]) == 0
         line = capsys.readouterr().out
-        assert re.search(rf"^wrote {size} of {N} points", line), (kind, v, line)
+        assert re.search(rf"^wrote {size:,} of {N:,} points", line), (kind, v, line)
 
     # view: the viewer's level list (what `lodbuilder view --size/--rho/--fraction` shows)
     data = load_view_data(path)
@@ -114,7 +114,7 @@ def test_floor_query_uses_the_same_rho_level(archive, tmp_path, capsys):
     k = api_sizes(path, [("rho", 0.01)])[0]
     argv = ["slice", str(path), "--floor-rho", "0.01", "--size", str(k + 10), "-o", str(out)]
     assert main(argv + ["--ordering", "weighted"]) == 0
-    assert f"wrote {k + 10} of {N} points" in capsys.readouterr().out
+    assert f"wrote {k + 10:,} of {N:,} points" in capsys.readouterr().out
 
 
 def test_info_levels_are_api_levels(archive, capsys):

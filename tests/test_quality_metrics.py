@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from surfaces import fibonacci_sphere
 
 from lodbuilder.errors import InputError
 from lodbuilder.quality import (
@@ -31,15 +32,6 @@ def grid(n: int = 10) -> np.ndarray:
 def even_subgrid(pts: np.ndarray) -> np.ndarray:
     keep = (pts[:, 0] % 2 == 0) & (pts[:, 1] % 2 == 0)
     return pts[keep]
-
-
-def fibonacci_sphere(n: int, r: float = 1.0) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = math.pi * (1 + 5**0.5) * i
-    return r * np.column_stack(
-        [np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
-    )
 
 
 def test_grid_metrics_by_hand():
@@ -91,8 +83,8 @@ def test_octahedron_covers_sphere_by_hand():
 
 
 def test_sphere_surface_error_offset_shell():
-    level = fibonacci_sphere(20000, r=1.0)
-    shell = fibonacci_sphere(500, r=1.05)  # every input point 0.05 off the unit sphere
+    level = fibonacci_sphere(20000, radius=1.0)
+    shell = fibonacci_sphere(500, radius=1.05)  # every input point 0.05 off the unit sphere
     plane = surface_error(shell, level, k=8)
     mls = surface_error(shell, level, method="mls", k=16)
     # MLS fits the curvature: error ~ 0.05 within a small fraction of the neighbour spacing

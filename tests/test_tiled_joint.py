@@ -73,7 +73,7 @@ def test_joint_bunny_keeps_scan_ids_and_slices_per_scan(bunny, tmp_path, capsys)
     assert main(["slice", str(out), "--all-scans", "--scan", "chin", "--rho", "0.004", "-o", str(ply)]) == 0
     got = read_scan(ply)
     np.testing.assert_array_equal(got.points, chin.points)
-    assert f"wrote {len(chin)} points of 1 scans at rho 0.004" in capsys.readouterr().out
+    assert f"wrote {len(chin):,} points of 1 scans at rho 0.004" in capsys.readouterr().out
 
 
 @pytest.mark.data

@@ -18,10 +18,14 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
-from .grid import cell_gap2, hash_find, index_hash, morton
+from . import INLINE, JIT
+from .grid import cell_gap2, hash_find, index_hash, morton, unmorton
+from .march import corner_voxels
 
 PLANAR = 0.25  # a normal counts only where the smallest spread is under this x the middle one
+CUT_SHARE = 0.5  # two points lie on different sheets when one is this share of the separation ...
+CUT_CONE = 0.7  # ... or more along the other's normal, and that offset is this share of their distance,
+CUT_PARALLEL = 0.7  # ... and, nearer than the separation, their normals (where both have one) agree within 46 deg
 
 
 @nb.njit(**JIT)
@@ -246,3 +250,79 @@ def cell_separation(u, ostart, reach, gap_min, cone, normal_radius):  # pragma: 
                     for a in range(3):
                         out_n[j, a] = nrm[c, a]
     return out_in, out_out, out_n
+
+
+@nb.njit(**INLINE)
+def apart(u, nin, psep, f, g):  # pragma: no cover - compiled
+    """Whether points f and g lie on different sheets: along the normal of either one (where it
+    has one: a thin part), the other lies at least CUT_SHARE x that point's separation away, and
+    that offset is at least CUT_CONE x their distance (a sheet's own points lie beside it)."""
+    if f == g:
+        return False
+    dx = u[g, 0] - u[f, 0]
+    dy = u[g, 1] - u[f, 1]
+    dz = u[g, 2] - u[f, 2]
+    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return _across(dx, dy, dz, d, nin, psep, f, g) or _across(dx, dy, dz, d, nin, psep, g, f)
+
+
+@nb.njit(**INLINE)
+def _across(dx, dy, dz, d, nin, psep, e, o):  # pragma: no cover - compiled
+    """Whether o lies across the gap from e along e's normal."""
+    nx, ny, nz = nin[e, 0], nin[e, 1], nin[e, 2]
+    if nx == 0.0 and ny == 0.0 and nz == 0.0:
+        return False
+    a = abs(dx * nx + dy * ny + dz * nz)
+    if a < CUT_SHARE * psep[e] or a < CUT_CONE * d:
+        return False
+    mx, my, mz = nin[o, 0], nin[o, 1], nin[o, 2]
+    if d >= psep[e] or (mx == 0.0 and my == 0.0 and mz == 0.0):
+        return True
+    return abs(nx * mx + ny * my + nz * mz) >= CUT_PARALLEL
+
+
+@nb.njit(**JIT)
+def sheet_cut(keys, nbr, cs, foot, vcost, u, nin, psep):  # pragma: no cover - compiled
+    """The voxel costs of a band cut between sheets (inf: not marchable). A marchable voxel whose
+    foot (nearest point) lies on another sheet (:func:`apart`) than the foot of a marchable
+    6-neighbour is dropped when it is the farther of the two from its foot (the larger index on a
+    tie), so no two neighbours of the result stand on different sheets; and a voxel is dropped when
+    a point of one of the 8 cells it is a corner of lies on another sheet than its foot, so no point
+    reads a distance from another sheet. Both tests look at the band as given (``vcost``), so the
+    result does not depend on the order of the voxels."""
+    nv = keys.shape[0]
+    out = vcost.copy()
+    for v in range(nv):
+        if vcost[v] == np.inf:
+            continue
+        f = foot[v]
+        x, y, z = unmorton(keys[v])
+        dv = (x - u[f, 0]) ** 2 + (y - u[f, 1]) ** 2 + (z - u[f, 2]) ** 2
+        drop = False
+        for j in range(6):
+            w = nbr[v, j]
+            if w < 0 or vcost[w] == np.inf:
+                continue
+            g = foot[w]
+            if not apart(u, nin, psep, f, g):
+                continue
+            wx, wy, wz = unmorton(keys[w])
+            dw = (wx - u[g, 0]) ** 2 + (wy - u[g, 1]) ** 2 + (wz - u[g, 2]) ** 2
+            if dw < dv or (dw == dv and w < v):
+                drop = True
+                break
+        if not drop:
+            corners = corner_voxels(nbr, v)
+            for k in range(8):
+                c = corners[k]
+                if c < 0:
+                    continue
+                for p in range(cs[c], cs[c + 1]):
+                    if apart(u, nin, psep, f, p):
+                        drop = True
+                        break
+                if drop:
+                    break
+        if drop:
+            out[v] = np.inf
+    return out

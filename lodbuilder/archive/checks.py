@@ -131,6 +131,23 @@ def check_scan_group(obj: Any, path: Any, name: str) -> ScanMeta:
     if step < 1:
         raise where(f"has radius_index_step={step}; it must be a positive integer")
 
+    offset, scale = _check_coordinates(obj, n, enc, where)
+    _expect(_dataset(obj, L.D_SOURCE_INDEX, where), L.D_SOURCE_INDEX, (n,), "iu", where)
+    _expect(_dataset(obj, L.D_RADIUS, where), L.D_RADIUS, (n,), "f", where)
+    _expect(_dataset(obj, L.D_PARENT, where), L.D_PARENT, (n,), "iu", where)
+    _expect(_dataset(obj, L.D_RADIUS_INDEX, where), L.D_RADIUS_INDEX, (-(-n // step),), "f", where)
+    seeds = _dataset(obj, L.D_SEEDS, where, required=False)
+    n_seeds = 0
+    if seeds is not None:
+        _expect(seeds, L.D_SEEDS, seeds.shape[:1], "iu", where)
+        n_seeds = min(int(seeds.shape[0]) if seeds.ndim == 1 else 0, k)
+    _check_members(obj, n, where)
+    stop = _stop_radius(a, n, k, where)
+    return ScanMeta(path, name, n, k, enc, offset, scale, lo, hi, step, n_seeds, stop)
+
+
+def _check_coordinates(obj: Any, n: int, enc: str, where: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The points dataset's shape and dtype, and the offset and scale of integer coordinates."""
     pts = _dataset(obj, L.D_POINTS, where)
     if (
         pts.shape != (n, 3)
@@ -149,15 +166,13 @@ def check_scan_group(obj: Any, path: Any, name: str) -> ScanMeta:
         scale = _vec3(pts.attrs[L.P_SCALE], "the points scale", where)
         if (scale <= 0).any():
             raise where(f"has points scale {scale.tolist()}; scales must be > 0")
-    _expect(_dataset(obj, L.D_SOURCE_INDEX, where), L.D_SOURCE_INDEX, (n,), "iu", where)
-    _expect(_dataset(obj, L.D_RADIUS, where), L.D_RADIUS, (n,), "f", where)
-    _expect(_dataset(obj, L.D_PARENT, where), L.D_PARENT, (n,), "iu", where)
-    _expect(_dataset(obj, L.D_RADIUS_INDEX, where), L.D_RADIUS_INDEX, (-(-n // step),), "f", where)
-    seeds = _dataset(obj, L.D_SEEDS, where, required=False)
-    n_seeds = 0
-    if seeds is not None:
-        _expect(seeds, L.D_SEEDS, seeds.shape[:1], "iu", where)
-        n_seeds = min(int(seeds.shape[0]) if seeds.ndim == 1 else 0, k)
+    return offset, scale
+
+
+def _check_members(obj: Any, n: int, where: Any) -> None:
+    """The attributes and importance groups (one row per point) and the extra orderings."""
+    import h5py
+
     for grp_name, ndim_ok in ((L.G_ATTRIBUTES, True), (L.G_IMPORTANCE, False)):
         grp = obj.get(grp_name)
         if grp is None:
@@ -186,8 +201,6 @@ def check_scan_group(obj: Any, path: Any, name: str) -> ScanMeta:
                 )
             for rel2, kinds in ((L.D_ORDER, "iu"), (L.D_RADIUS, "f"), (L.D_PARENT, "iu")):
                 _expect(_dataset(grp, rel2, where), f"{rel}/{rel2}", (kk,), kinds, where)
-    stop = _stop_radius(a, n, k, where)
-    return ScanMeta(path, name, n, k, enc, offset, scale, lo, hi, step, n_seeds, stop)
 
 
 def _stop_radius(attrs: Any, n: int, k: int, where: Callable[[str], CorruptArchiveError]) -> float:

@@ -18,6 +18,10 @@ import errno
 import logging
 import os
 import secrets
+import shutil
+import stat
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -78,34 +82,224 @@ def remove_stale_temps(path: Path) -> list[Path]:
     return removed
 
 
+#: this thread's held archive locks: lock file -> (descriptor, depth); a writer that holds an
+#: archive (a build) may call writers of that archive (its merges) without waiting for itself
+_held = threading.local()
+
+
+def _held_locks() -> dict[str, list[int]]:
+    if not hasattr(_held, "locks"):
+        _held.locks = {}
+    return _held.locks
+
+
 @contextlib.contextmanager
-def lock(path: Path) -> Iterator[None]:
+def lock(path: Path, *, wait: float | None = None, what: str = "an update") -> Iterator[None]:
     """Hold the advisory lock of archive ``path``; the lock file is removed when released.
+
+    Every writer of an archive (a whole build, an update, a merge) holds it while it changes
+    anything under the archive's directory. Another process that holds it makes this one wait:
+    with a warning naming that process, for at most ``wait`` seconds (None: until it finishes;
+    0: not at all), then ArchiveBusyError. ``what`` is how this writer is named to the others
+    ("a build"). The same thread may take the lock again (its depth is counted).
 
     Removing a lock file is safe because a waiter that wakes up on a removed (or replaced) file
     sees that the name no longer refers to the file it locked, and tries again."""
+    lp = lock_name(path)
+    held = _held_locks()
+    key = os.path.abspath(lp)
+    if key in held:
+        held[key][1] += 1
+        try:
+            yield
+        finally:
+            held[key][1] -= 1
+        return
+    fd = _acquire(path, lp, wait)
+    with contextlib.suppress(OSError):  # who holds it, for the messages of those who wait
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {what}\n".encode(), 0)
+    held[key] = [fd, 1]
+    try:
+        yield
+    finally:
+        del held[key]
+        with contextlib.suppress(OSError):
+            os.unlink(lp)
+        os.close(fd)
+
+
+def _acquire(path: Path, lp: Path, wait: float | None) -> int:
+    """Open and lock ``lp`` (see :func:`lock`); returns the locked descriptor."""
     import fcntl
 
-    lp = lock_name(path)
+    t0 = time.monotonic()
+    told = False
     while True:
         try:
-            fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = os.open(lp, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise _foreign(lp, "is a symbolic link") from None
             raise disk_error(exc, path) from None
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
+            os.close(fd)
+            raise _foreign(lp, "is not a plain file of its own (a hard link or a special file)")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            left = None if wait is None else wait - (time.monotonic() - t0)
+            if left is not None and left <= 0:
+                os.close(fd)
+                raise _busy(path, holder, wait) from None
+            if not told:
+                limit = "for it (--wait SECONDS limits the wait)" if wait is None else \
+                    f"for it (at most {_seconds(wait)} s)"
+                log.warning("archive %s is being written by another process (%s); waiting %s", path, holder, limit)
+                told = True
+            if left is None:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            else:
+                os.close(fd)
+                time.sleep(min(0.05, left))
+                continue
         try:
             same = os.stat(lp).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
             same = False
         if same:
-            break
+            return fd
         os.close(fd)
+
+
+def _holder(fd: int) -> str:
+    """Who holds the lock file ``fd``, as its holder wrote it ("pid 12, a build")."""
     try:
-        yield
-    finally:
+        pid, _, what = os.pread(fd, 200, 0).decode("utf-8", "replace").strip().partition(" ")
+        return f"pid {int(pid)}, {what or 'a writer'}"
+    except (OSError, ValueError):
+        return "a writer"
+
+
+def _seconds(s: float) -> str:
+    return f"{s:g}"
+
+
+def _busy(path: Path, holder: str, wait: float | None) -> ArchiveError:
+    from ..errors import ArchiveBusyError
+
+    held = f"archive {path} is being written by another process ({holder})"
+    if not wait:
+        return ArchiveBusyError(f"{held}; run again when it has finished, or pass --wait SECONDS to wait for it")
+    return ArchiveBusyError(f"{held} and did not finish within --wait {_seconds(wait)} s; run again later "
+                            "or wait longer")
+
+
+def _foreign(path: Path, why: str) -> ArchiveError:
+    return ArchiveError(f"{path} {why}; lodbuilder uses and cleans only the files and directories it made "
+                        "beside an archive: move it away (or delete it yourself) and run again")
+
+
+# ------------------------------------------------------------------------------ own directories
+
+#: the file that marks a directory lodbuilder made beside an archive (holding the archive's name)
+MARKER = ".lodbuilder-work"
+
+
+def _marker_text(owner: str) -> str:
+    return f"lodbuilder work directory of {owner}\n"
+
+
+def dir_problem(directory: Path) -> str | None:
+    """Why ``directory`` is not a plain directory lodbuilder may write and clean (a symbolic
+    link, a file, a mount point), or None."""
+    try:
+        st = os.lstat(directory)
+    except FileNotFoundError:
+        return "does not exist"
+    if stat.S_ISLNK(st.st_mode):
+        return "is a symbolic link"
+    if not stat.S_ISDIR(st.st_mode):
+        return "is not a directory"
+    if os.path.ismount(directory):
+        return "is a mount point"
+    return None
+
+
+def check_plain_dir(directory: Path) -> None:
+    """Raise ArchiveError when ``directory`` exists and is not a plain directory (see
+    :func:`dir_problem`)."""
+    if os.path.lexists(directory):
+        problem = dir_problem(directory)
+        if problem is not None:
+            raise _foreign(directory, problem)
+
+
+def own_dir_problem(directory: Path, owner: str) -> str | None:
+    """Why ``directory`` is not a work directory lodbuilder made for ``owner`` (an archive's file
+    name), or None when it is: a plain directory (not a symbolic link, not a mount point) holding
+    the marker file naming ``owner``."""
+    problem = dir_problem(directory)
+    if problem is not None:
+        return problem
+    marker = directory / MARKER
+    try:
+        mst = os.lstat(marker)
+        ok = stat.S_ISREG(mst.st_mode) and mst.st_size < 4096 and marker.read_text("utf-8") == _marker_text(owner)
+    except (OSError, UnicodeDecodeError):
+        ok = False
+    if not ok:
+        return f"was not made by lodbuilder for {owner} (it has no {MARKER} file naming it)"
+    return None
+
+
+def check_own_dir(directory: Path, owner: str) -> None:
+    """Raise ArchiveError unless ``directory`` is a work directory lodbuilder made for ``owner``."""
+    problem = own_dir_problem(directory, owner)
+    if problem is not None:
+        raise _foreign(directory, problem)
+
+
+def make_own_dir(directory: Path, owner: str) -> Path:
+    """Create the work directory ``directory`` for ``owner`` with its marker, or check that the one
+    there is lodbuilder's (see :func:`own_dir_problem`)."""
+    try:
+        directory.mkdir()
+    except FileExistsError:
+        check_own_dir(directory, owner)
+        return directory
+    except OSError as exc:
+        raise disk_error(exc, directory) from None
+    try:
+        (directory / MARKER).write_text(_marker_text(owner), "utf-8")
+    except OSError as exc:
         with contextlib.suppress(OSError):
-            os.unlink(lp)
-        os.close(fd)
+            directory.rmdir()
+        raise disk_error(exc, directory) from None
+    return directory
+
+
+def remove_own_dir(directory: Path, owner: str) -> None:
+    """Delete the work directory ``directory`` and what it holds, once checked to be lodbuilder's
+    (a directory that is not is refused, never followed or emptied). Nothing to do if missing."""
+    if not os.path.lexists(directory):
+        return
+    check_own_dir(directory, owner)
+    shutil.rmtree(directory, ignore_errors=True)  # never follows the links it holds
+
+
+def remove_own_dir_if_empty(directory: Path, owner: str) -> None:
+    """Delete the work directory ``directory`` of ``owner`` when it holds nothing but its marker."""
+    if own_dir_problem(directory, owner) is not None:
+        return
+    try:
+        if {e.name for e in os.scandir(directory)} == {MARKER}:
+            (directory / MARKER).unlink()
+            directory.rmdir()
+    except OSError:
+        pass
 
 
 def check_writable_dir(path: str | os.PathLike[str], what: str = "output") -> None:

@@ -97,13 +97,19 @@ class Where:
         if self.local is not None:
             return self.local.with_name(L.parts_dir_name(self.local.name))
         assert self.url is not None
-        return self.url + L.PARTS_SUFFIX
+        from .remote import sibling_url
+
+        return sibling_url(self.url, L.PARTS_SUFFIX)
 
     def part(self, name: str) -> Where:
-        """The part file ``name`` (a plain name, already checked) of this archive."""
+        """The part file ``name`` (a plain name, already checked) of this archive; a URL's query
+        (a signed URL) is kept."""
         if self.local is not None:
             return Where(self.parts_dir / name, None, None)
-        return Where(None, f"{self.parts_dir}/{name}", self.options)
+        from .remote import sibling_url
+
+        assert self.url is not None
+        return Where(None, sibling_url(self.url, f"{L.PARTS_SUFFIX}/{name}"), self.options)
 
 
 def read_rows(f: Any, path: Any) -> list[IndexRow]:
@@ -122,10 +128,12 @@ def read_rows(f: Any, path: Any) -> list[IndexRow]:
                 raise CorruptArchiveError(
                     f"archive {path}: its index columns have different lengths; the file is damaged"
                 )
-            return [
+            rows = [
                 IndexRow(n, int(c), tuple(a.tolist()), tuple(b.tolist()), p, int(s))
                 for n, c, a, b, p, s in zip(names, *cols, strict=True)
             ]
+            _check_names(rows, path)
+            return rows
         scans = f.get(L.G_SCANS)
         rows = []
         for n in sorted(scans) if scans is not None else []:
@@ -145,6 +153,29 @@ def read_rows(f: Any, path: Any) -> list[IndexRow]:
         raise CorruptArchiveError(
             f"archive {path}: its index cannot be read ({first_line(exc)}); the file is damaged"
         ) from None
+
+
+_LIES = "the index is damaged or crafted: restore the archive from a copy or rebuild it"
+
+
+def _check_names(rows: list[IndexRow], path: Any) -> None:
+    """Every index row names a valid scan, once: a name is never used as an HDF5 path, and no
+    row hides another (a writer would delete the part of the row it cannot see)."""
+    seen: dict[str, IndexRow] = {}
+    for r in rows:
+        try:
+            L.check_name(r.name)
+        except LodbuilderError:
+            raise CorruptArchiveError(
+                f"archive {path}: its index lists a scan named {r.name!r}, which is not a scan name (at most "
+                f"255 bytes, no '/', '\\' or NUL, not starting with '.'); {_LIES}"
+            ) from None
+        if r.name in seen:
+            raise CorruptArchiveError(
+                f"archive {path}: its index lists scan {r.name!r} twice (parts {seen[r.name].part or path} "
+                f"and {r.part or path}); {_LIES}"
+            )
+        seen[r.name] = r
 
 
 def check_part(archive: Where, row: IndexRow, path: Any) -> Where:

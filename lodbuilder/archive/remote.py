@@ -16,13 +16,22 @@ that only grows by what is asked for:
 
 Opening an archive and reading a 10k-point level of one scan is then one HEAD (the file size)
 and two or three GETs. Nothing here is imported unless a URL is opened.
+
+Every read is bounded: a server that does not answer (connect, or send the next bytes) within
+``timeout`` seconds (default :data:`DEFAULT_TIMEOUT`) ends the read with one line; an HTTP
+redirect to another host is refused unless ``follow_redirects``. Both are storage options of
+lodbuilder's own (``open_archive(url, storage_options={"timeout": 5})``), and the command line's
+``--timeout`` / ``--follow-redirects`` set them for the whole command (:func:`settings`). A URL's
+query (a signed URL) is kept on every part of a grown archive (:func:`sibling_url`).
 """
 
 from __future__ import annotations
 
 import bisect
+import contextlib
 import io
 import logging
+from collections.abc import Iterator
 from typing import Any
 
 from ..errors import ArchiveError, InputError, MissingDependencyError, ScanFileError
@@ -36,6 +45,97 @@ FIRST_BLOCK = 1 << 16
 SMALL_FILE = 1 << 18
 #: cache block before the file's page size is known
 BLOCK = 1 << 16
+#: seconds a server may take to connect or to send the next bytes of an answer
+DEFAULT_TIMEOUT = 30.0
+
+_SETTINGS: dict[str, Any] = {"timeout": DEFAULT_TIMEOUT, "follow_redirects": False}
+
+
+@contextlib.contextmanager
+def settings(*, timeout: float | None = None, follow_redirects: bool | None = None) -> Iterator[None]:
+    """The defaults of ``timeout`` and ``follow_redirects`` for every URL opened inside the block
+    (the command line's --timeout and --follow-redirects); storage options still win."""
+    before = dict(_SETTINGS)
+    if timeout is not None:
+        _SETTINGS["timeout"] = check_timeout(timeout)
+    if follow_redirects is not None:
+        _SETTINGS["follow_redirects"] = bool(follow_redirects)
+    try:
+        yield
+    finally:
+        _SETTINGS.clear()
+        _SETTINGS.update(before)
+
+
+def check_timeout(value: Any) -> float:
+    """``value`` as a number of seconds above 0, else InputError."""
+    try:
+        t = float(value)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not t > 0 or t == float("inf"):
+        raise InputError(f"timeout must be a number of seconds above 0, got {value!r}")
+    return t
+
+
+def sibling_url(url: str, tail: str) -> str:
+    """``url`` with ``tail`` appended to its path, its query kept: the part
+    ``g.h5.scans/p.h5?sig=...`` of the archive ``g.h5?sig=...`` (a fragment is dropped)."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    parts = urlsplit(url)
+    return urlunsplit((parts.scheme, parts.netloc, parts.path + tail, parts.query, ""))
+
+
+class RedirectRefused(Exception):
+    """An HTTP redirect to another host, refused (``follow_redirects`` is off)."""
+
+    def __init__(self, target: str) -> None:
+        super().__init__(target)
+        self.target = target
+
+
+def _same_host_only() -> Any:
+    """An aiohttp trace config that refuses a redirect to another scheme, host or port."""
+    import aiohttp
+    from yarl import URL
+
+    async def on_redirect(session: Any, ctx: Any, params: Any) -> None:
+        location = params.response.headers.get("Location", "")
+        target = params.url.join(URL(location))
+        if (target.scheme, target.host, target.port) != (
+            params.url.scheme, params.url.host, params.url.port
+        ):
+            raise RedirectRefused(str(target))
+
+    trace = aiohttp.TraceConfig()
+    trace.on_request_redirect.append(on_redirect)
+    return trace
+
+
+def _bounded(scheme: str, options: dict[str, Any]) -> tuple[dict[str, Any], float]:
+    """fsspec options with lodbuilder's ``timeout`` and ``follow_redirects`` applied, and the
+    timeout."""
+    opts = dict(options)
+    timeout = check_timeout(opts.pop("timeout", _SETTINGS["timeout"]))
+    follow = bool(opts.pop("follow_redirects", _SETTINGS["follow_redirects"]))
+    if scheme in ("http", "https"):
+        import aiohttp
+
+        opts.setdefault("encoded", True)  # a URL as given: a signature's %2F stays %2F
+        client = dict(opts.get("client_kwargs") or {})
+        client.setdefault(
+            "timeout", aiohttp.ClientTimeout(total=None, sock_connect=timeout, sock_read=timeout)
+        )
+        if not follow:
+            client["trace_configs"] = [*client.get("trace_configs", []), _same_host_only()]
+        opts["client_kwargs"] = client
+    elif scheme == "s3":
+        config = dict(opts.get("config_kwargs") or {})
+        config.setdefault("connect_timeout", timeout)
+        config.setdefault("read_timeout", timeout)
+        opts["config_kwargs"] = config
+    return opts, timeout
 
 
 def normalise_url(url: str) -> str:
@@ -54,7 +154,9 @@ def normalise_url(url: str) -> str:
 
 
 def filesystem(url: str, storage_options: dict[str, Any] | None = None) -> tuple[Any, str]:
-    """``(fsspec filesystem, path)`` for ``url``; a one-line error when the extra is missing."""
+    """``(fsspec filesystem, path)`` for ``url``; a one-line error when the extra is missing.
+    ``storage_options`` go to fsspec, but for lodbuilder's ``timeout`` and ``follow_redirects``
+    (module docstring)."""
     scheme = url.split(":", 1)[0]
     try:
         import fsspec.core
@@ -63,7 +165,8 @@ def filesystem(url: str, storage_options: dict[str, Any] | None = None) -> tuple
             "reading archives over HTTP/S3 needs fsspec: pip install 'lodbuilder[remote]'"
         ) from None
     try:
-        return fsspec.core.url_to_fs(url, **(storage_options or {}))
+        opts, _ = _bounded(scheme, storage_options or {})
+        return fsspec.core.url_to_fs(url, **opts)
     except ImportError:
         need, extra = ("s3fs", "s3") if scheme == "s3" else ("aiohttp", "remote")
         raise MissingDependencyError(
@@ -73,8 +176,22 @@ def filesystem(url: str, storage_options: dict[str, Any] | None = None) -> tuple
         raise InputError(f"{url}: bad storage options ({exc})") from None
 
 
-def _remote_error(exc: BaseException, url: str) -> BaseException:
+def _remote_error(exc: BaseException, url: str, timeout: float | None = None) -> BaseException:
     """A one-line error for a failed request."""
+    cause: BaseException | None = exc
+    while cause is not None:  # (fsspec reports any failure of its size lookup as "not found")
+        if isinstance(cause, RedirectRefused):
+            return ArchiveError(
+                f"archive {url}: the server redirects to another host ({cause.target}); pass "
+                "--follow-redirects to follow it, or use that URL"
+            )
+        if isinstance(cause, TimeoutError):
+            return ArchiveError(
+                f"archive {url}: the server did not answer within "
+                f"{timeout or _SETTINGS['timeout']:g} s; "
+                "try again later or give more time with --timeout SECONDS"
+            )
+        cause = cause.__cause__ or cause.__context__
     if isinstance(exc, FileNotFoundError):
         return ScanFileError(f"archive {url} does not exist (the server has no such file); check the URL")
     if isinstance(exc, PermissionError):
@@ -89,9 +206,12 @@ class RemoteFile(io.RawIOBase):
     ``requests`` and ``bytes_fetched`` count what went over the network (GETs; the size lookup,
     when the size is not given, is one HEAD, counted in ``heads``)."""
 
-    def __init__(self, fs: Any, path: str, url: str, size: int | None = None) -> None:
+    def __init__(
+        self, fs: Any, path: str, url: str, size: int | None = None, timeout: float | None = None
+    ) -> None:
         super().__init__()
         self.fs, self.path, self.url = fs, path, url
+        self.timeout = timeout
         self.requests = 0
         self.heads = 0
         self.bytes_fetched = 0
@@ -116,6 +236,8 @@ class RemoteFile(io.RawIOBase):
             self.bytes_fetched += len(head)
             if len(head) == self.size or len(head) == min(self.size, FIRST_BLOCK):
                 self._insert(0, bytes(head[: self.size]))
+                if len(head) > FIRST_BLOCK:
+                    self._warn_whole()
             else:
                 raise ArchiveError(
                     f"archive {url}: asked for its first {FIRST_BLOCK} bytes, got {len(head)} of "
@@ -144,7 +266,7 @@ class RemoteFile(io.RawIOBase):
                 return sync(fs.loop, both)
             return fs.info(path), fs.cat_file(path, start=0, end=FIRST_BLOCK)
         except Exception as exc:  # noqa: BLE001 - any backend error becomes one line
-            raise _remote_error(exc, self.url) from None
+            raise _remote_error(exc, self.url, self.timeout) from None
 
     # -- io.RawIOBase ----------------------------------------------------------------------------
     def readable(self) -> bool:
@@ -249,13 +371,13 @@ class RemoteFile(io.RawIOBase):
                     on_error="raise",
                 )
         except Exception as exc:  # noqa: BLE001 - any backend error becomes one line
-            raise _remote_error(exc, self.url) from None
+            raise _remote_error(exc, self.url, self.timeout) from None
         self.requests += len(ranges)
         for (a, z), data in zip(ranges, datas, strict=True):
             self.bytes_fetched += len(data)
             if len(data) == self.size and z - a != self.size:
                 # the server ignored the Range header and sent the whole file: keep all of it
-                log.warning("%s: the server ignores range requests; read the whole file", self.url)
+                self._warn_whole()
                 self._starts, self._spans = [0], {0: bytes(data)}
                 return
             if len(data) != z - a:
@@ -264,6 +386,13 @@ class RemoteFile(io.RawIOBase):
                     "changed or is shorter than expected"
                 )
             self._insert(a, bytes(data))
+
+    def _warn_whole(self) -> None:
+        log.warning(
+            "%s: the server ignores range requests, so the whole file was read (%.1f MB); serve "
+            "it with range support (e.g. RangeHTTPServer, nginx, S3) to read levels in a few "
+            "small requests", self.url, self.size / 1e6,
+        )
 
     def _insert(self, lo: int, data: bytes) -> None:
         bisect.insort(self._starts, lo)
@@ -293,7 +422,8 @@ def open_remote(
 ) -> RemoteFile:
     """A :class:`RemoteFile` for ``url`` (``size`` known saves the HEAD request)."""
     fs, path = filesystem(url, storage_options)
-    return RemoteFile(fs, path, url, size)
+    timeout = check_timeout((storage_options or {}).get("timeout", _SETTINGS["timeout"]))
+    return RemoteFile(fs, path, url, size, timeout)
 
 
 def chunk_ranges(ds: Any, lo: int, hi: int) -> list[tuple[int, int]]:

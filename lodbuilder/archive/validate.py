@@ -182,12 +182,16 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
             if schema:
                 faults += validate_description(L.describe(arc.file))
             counts: dict[str, int] = {}
+            bounds: dict[str, Any] = {}
             for name in arc.scans:
                 try:
                     view = arc.scan(name)  # the scan's header is checked here
                     g = view._g
                     counts[name] = view.n_points
-                    if schema and g.file != arc.file:  # a scan in a part file of the archive
+                    bounds[name] = view.bounds
+                    if g.file != arc.file:  # a scan in a part file of the archive
+                        faults += _check_part_holds(arc, name, g.file)
+                    if schema and g.file != arc.file:
                         faults += [
                             f"part of scan {name!r}: {x}"
                             for x in validate_description(L.describe(g.file))
@@ -210,7 +214,32 @@ def validate_archive(path: str | os.PathLike[str], *, schema: bool = True) -> li
                     faults.append(
                         f"index: scan {row['name']!r} has n_points {row['n_points']}, scan says {n}"
                     )
+                b = bounds.get(row["name"])
+                if b is not None and not _same_bounds(row, b):
+                    faults.append(
+                        f"index: scan {row['name']!r} has bounds {_box(row['bounds_min'], row['bounds_max'])}, "
+                        f"the scan's points span {_box(*b)}"
+                    )
     return faults
+
+
+def _check_part_holds(arc: Any, name: str, f: Any) -> list[str]:
+    """A part file holds exactly the one scan its index row names."""
+    row = next(r for r in arc.rows if r.name == name)
+    held = sorted(f[L.G_SCANS]) if L.G_SCANS in f else []
+    if held != [name]:
+        return [f"part {row.part} of scan {name!r} holds scans {held}; a part holds its one scan only"]
+    return []
+
+
+def _same_bounds(row: dict[str, Any], b: Any) -> bool:
+    lo, hi = (np.asarray(x, dtype=float) for x in b)
+    return bool(np.allclose(row["bounds_min"], lo, rtol=1e-9, atol=0, equal_nan=True)
+                and np.allclose(row["bounds_max"], hi, rtol=1e-9, atol=0, equal_nan=True))
+
+
+def _box(lo: Any, hi: Any) -> str:
+    return "[" + ", ".join(f"{float(x):.6g}" for x in lo) + "] .. [" + ", ".join(f"{float(x):.6g}" for x in hi) + "]"
 
 
 def check_valid(path: str | os.PathLike[str]) -> None:

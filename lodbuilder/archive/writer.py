@@ -361,6 +361,7 @@ def _commit(
     with F.lock(path):
         F.remove_stale_temps(path)
         rows, created = _current(path)
+        F.check_plain_dir(parts_dir(path))  # never a link followed, nor a mount point emptied
         if replace_all:
             rows = []
         clash = sorted({r.name for r in rows} & set(names))

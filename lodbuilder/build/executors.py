@@ -99,6 +99,26 @@ def check_workers(workers: Any, what: str = "workers") -> int | None:
     return int(workers)
 
 
+#: address schemes of dask.distributed's comm registry
+DASK_SCHEMES = ("inproc", "tcp", "tls", "ucx", "ws", "wss")
+
+
+def check_scheduler(scheduler: Any) -> Any:
+    """``scheduler`` (a Dask address, ``tcp://host:port`` or ``host:port``; None) with its
+    scheme checked before any work: an unknown one is one line, not distributed's traceback."""
+    if scheduler is None:
+        return None
+    if not isinstance(scheduler, str) or not scheduler.strip():
+        raise InputError(f"scheduler must be a Dask address like tcp://HOST:PORT, got {scheduler!r}")
+    scheme, sep, _ = scheduler.partition("://")
+    if sep and scheme.lower() not in DASK_SCHEMES:
+        raise InputError(
+            f"scheduler address {scheduler!r} has an unknown scheme {scheme!r}; give "
+            f"tcp://HOST:PORT (or {', '.join(s for s in DASK_SCHEMES if s != 'tcp')})"
+        )
+    return scheduler
+
+
 def _plural(n: int) -> str:
     return f"{n} worker{'s' if n > 1 else ''}"
 
@@ -110,6 +130,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, dask
     ``workers`` (default: one per core), or a Dask client's executor."""
     workers = check_workers(workers)
     dask_local = check_workers(dask_local, "dask_local")
+    check_scheduler(scheduler)
     if scheduler is not None and dask_local is not None:
         raise InputError("give either a Dask scheduler address or dask_local, not both")
     if scheduler is None and dask_local is None:
@@ -158,7 +179,7 @@ def _dask_client(dask_local: int | None, scheduler: str | None) -> Iterator[tupl
     else:
         try:
             client = Client(scheduler, timeout=DASK_CONNECT_TIMEOUT)
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, ValueError) as exc:
             raise InputError(f"cannot reach Dask scheduler {scheduler!r} ({one_line(exc)}); check the address") from None
         desc = f"Dask scheduler {scheduler}"
     try:

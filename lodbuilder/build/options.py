@@ -25,11 +25,28 @@ FEATURE_OPTIONS = ("importance", "adaptive", "density_floor", "outlier_threshold
 class BuildOptions:
     """What a build stores. Make one with :meth:`make` (checked); the fields are read-only.
 
-    ``size``/``rho`` stop each ordering early; ``seeds`` are must-keep input indices of one scan;
-    ``features`` the feature options as ``(name, value)`` pairs; ``max_memory`` the budget in bytes
-    (None: 60 % of this machine); ``seam_spacing`` the tiled merge's seam repair (0..1; None: the
-    default); ``crs`` a WKT given to scans without one (``crs_override``: also to scans whose file
-    declares another); ``tile_points``/``tile_passes`` are private knobs of the tiled path."""
+    ``voxel_size``/``band_radius``: the band's grid (default: from the point spacing, see
+    :mod:`lodbuilder.sampling.band`). ``size``/``rho`` stop each ordering early (a partial
+    ordering); ``seeds`` (one scan only) are must-keep input indices.
+
+    ``features`` (``(name, value)`` pairs; keywords of :meth:`make`), see
+    :func:`lodbuilder.sampling.adaptive.feature_build`: ``importance="curvature,colour"`` stores
+    importance maps, ``adaptive=A`` adds the ``weighted`` ordering, ``density_floor=RHO0`` the
+    ``floor`` ordering, ``outlier_threshold=T`` leaves points with a noise score above T out of
+    every ordering (kept in the archive, flagged ``outlier``); ``importance_k``, ``combine``.
+
+    ``max_memory`` (bytes, or text like ``"3GB"``; None: 60 % of this machine's memory) is the
+    budget of the build's whole process tree on this machine (with a remote scheduler: of each
+    worker); a scan whose in-memory build would exceed it is read in chunks, cut into tiles ordered
+    on the workers and merged. ``seam_spacing`` (0..1, None: 0.25) is the seam repair of that merge:
+    a point merged from one tile keeps at least this fraction of its merge radius from the earlier
+    points of other tiles, so points of different tiles in any level are at least A / (1 + A) times
+    the level's radius apart (0.2 at the default, 0.5 at 1, which costs covering at equal size; 0:
+    no repair; see :data:`lodbuilder.build.tiled.SEAM_SPACING`).
+
+    ``crs`` (EPSG:XXXX, WKT or a file holding WKT; stored as WKT) gives every scan without one a
+    coordinate reference system; a scan whose file declares another is refused unless
+    ``crs_override``. ``tile_points``/``tile_passes`` are private knobs of the tiled path."""
 
     voxel_size: float | None = None
     band_radius: float | None = None

@@ -26,7 +26,6 @@ import concurrent.futures as cf
 import contextlib
 import logging
 import os
-import shutil
 import time
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -37,7 +36,7 @@ import numpy as np
 from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
 from ..io.pose import pose_kind
 from ..progress import ProgressCallback, report
-from .executors import DASK_CONNECT_TIMEOUT, make_executor, one_line
+from .executors import DASK_CONNECT_TIMEOUT, check_scheduler, make_executor, one_line
 from .inputs import ScanSource, expand_inputs
 from .jobs import ScanJob, build_one, job_key, scan_digest
 from .options import BuildOptions
@@ -66,31 +65,51 @@ def merge_parts(archive: Path, parts: list[tuple[str, Path]]) -> None:
 
 
 def _part_ok(part: Path, name: str) -> bool:
+    """True when ``part`` is a regular file (never a link followed) holding exactly scan ``name``."""
+    import stat
+
     from ..archive.reader import open_archive
 
     try:
+        if not stat.S_ISREG(os.lstat(part).st_mode):
+            return False
         with open_archive(part) as arc:
             return arc.scans == [name]
     except Exception:
         return False
 
 
+def _check_parts_dir(archive: Path) -> None:
+    """Refuse a work directory beside ``archive`` that lodbuilder did not make (a symbolic link, a
+    mount point, a directory without lodbuilder's marker): it is never read, followed or emptied."""
+    from ..archive.files import check_own_dir
+
+    d = parts_dir(archive)
+    if os.path.lexists(d):
+        check_own_dir(d, archive.name)
+
+
 def _clean_parts(archive: Path, keep: set[Path], running: set[Path]) -> None:
     """Delete leftovers of earlier builds: parts not in ``keep``, work directories of parts not
-    ``running`` (a tiled build resumes from its work directory), temporaries of dead writers."""
+    ``running`` (a tiled build resumes from its work directory), temporaries of dead writers.
+    Runs under the archive's lock, in a work directory checked to be lodbuilder's."""
+    from ..archive.files import MARKER, remove_own_dir
     from ..archive.writer import remove_stale_temps
 
     d = parts_dir(archive)
-    if not d.is_dir():
+    if not os.path.lexists(d):
         return
+    _check_parts_dir(archive)
     work = {p.with_name(p.name[: -len(".h5")] + ".work") for p in running}
     for p in d.iterdir():
+        if p.name == MARKER:
+            continue
         if ".tmp-" in p.name and p.name.startswith("."):
             remove_stale_temps(d / p.name[1:].split(".tmp-")[0])
         elif p.suffix == ".h5" and p not in keep:
-            _drop_part(p)
-        elif p.suffix == ".work" and p.is_dir() and p not in work:
-            shutil.rmtree(p, ignore_errors=True)  # the work of a build whose parameters changed
+            _drop_part(p)  # a link is removed, never followed
+        elif p.suffix == ".work" and p not in work:
+            remove_own_dir(p, p.name)  # the work of a build whose parameters changed (refused if not ours)
 
 
 def _drop_part(part: Path) -> None:
@@ -101,14 +120,17 @@ def _drop_part(part: Path) -> None:
 
 
 def _tidy_parts(archive: Path) -> None:
+    """Remove locks of parts that are gone, and the work directory when nothing else is left."""
+    from ..archive.files import own_dir_problem, remove_own_dir_if_empty
+
     d = parts_dir(archive)
-    if d.is_dir():
-        for lock in d.glob(".*.lock"):  # locks of parts that are gone
-            if not lock.with_name(lock.name[1:-5]).exists():
-                with contextlib.suppress(OSError):
-                    lock.unlink()
-        with contextlib.suppress(OSError):
-            d.rmdir()  # only when empty
+    if own_dir_problem(d, archive.name) is not None:
+        return
+    for lock in d.glob(".*.lock"):  # locks of parts that are gone
+        if not lock.with_name(lock.name[1:-5]).exists():
+            with contextlib.suppress(OSError):
+                lock.unlink()
+    remove_own_dir_if_empty(d, archive.name)
 
 
 def _existing_scans(archive: Path) -> dict[str, tuple[str | None, str | None]]:
@@ -292,6 +314,7 @@ def build(
     force: bool = False,
     overwrite: bool = False,
     joint: bool | str = False,
+    wait: float | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
@@ -302,6 +325,7 @@ def build(
 
     t0 = time.perf_counter()
     archive = Path(os.path.abspath(archive))  # absolute paths in jobs: workers may run elsewhere
+    check_scheduler(scheduler)
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work
@@ -314,6 +338,44 @@ def build(
     in_memory = any(s.scan is not None for s in sources)
     if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
         raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
+    if wait is not None:
+        wait = _check_wait(wait)
+    result = BuildResult(archive=archive)
+    # one writer of the archive at a time, from the plan to the last merge: everything this build
+    # creates or removes beside the archive (its work directory, parts, tidy-ups) happens under the
+    # archive's lock, so another build waits for it and never sees (or removes) its files
+    from ..archive.files import lock
+
+    with lock(archive, wait=wait, what="a build"):
+        try:
+            total = _build_locked(sources, archive, options, result, joint_name, in_memory, force=force,
+                                  overwrite=overwrite, workers=workers, scheduler=scheduler,
+                                  dask_local=dask_local, progress=progress, on_status=on_status,
+                                  raise_on_failure=raise_on_failure)
+        finally:
+            _tidy_parts(archive)
+    result.seconds = time.perf_counter() - t0
+    _raise_failures(result, total, raise_on_failure)
+    return result
+
+
+def _check_wait(wait: Any) -> float:
+    try:
+        w = float(wait)
+    except (TypeError, ValueError):
+        w = float("nan")
+    if isinstance(wait, bool) or not w >= 0 or w == float("inf"):
+        raise InputError(f"wait must be a number of seconds >= 0, got {wait!r}")
+    return w
+
+
+def _build_locked(sources: list[ScanSource], archive: Path, options: BuildOptions, result: BuildResult,
+                  joint_name: str | None, in_memory: bool, *, force: bool, overwrite: bool, workers: int | None,
+                  scheduler: str | None, dask_local: int | None, progress: ProgressCallback,
+                  on_status: StatusCallback, raise_on_failure: bool | None) -> int:
+    """Plan, run and merge the build (the caller holds the archive's lock); returns the number of
+    scans it was given (a joint build: 1)."""
+    _check_parts_dir(archive)  # before a part in it is read
     if joint_name is not None:
         jobs, recovered, skipped, failed = plan_joint(sources, archive, options, joint_name, force=force,
                                                       overwrite=overwrite)
@@ -322,7 +384,6 @@ def build(
         jobs, recovered, skipped, failed = plan_jobs(sources, archive, options, force=force, overwrite=overwrite)
         total = len(sources)
     decide_tiling(jobs, options)
-    result = BuildResult(archive=archive)
     names_in_archive = set(_existing_scans(archive))
     done = points = 0
 
@@ -346,7 +407,9 @@ def build(
     for st in skipped + failed:
         emit(st)
     keep_parts = {Path(j.part) for j in jobs} | {p for _, p in recovered}
-    _clean_parts(archive, keep_parts, {Path(j.part) for j in jobs})
+    # force: every scan from its source, whatever an interrupted build left (its work files too)
+    _clean_parts(archive, keep_parts - ({Path(j.part) for j in jobs} if force else set()),
+                 set() if force else {Path(j.part) for j in jobs})
     if recovered:
         merge_parts(archive, [(j.name, p) for j, p in recovered])
         for j, p in recovered:
@@ -354,7 +417,9 @@ def build(
             names_in_archive.add(j.name)
             emit(ScanStatus(j.name, j.source, "recovered"))
     if jobs:
-        parts_dir(archive).mkdir(exist_ok=True)
+        from ..archive.files import make_own_dir
+
+        make_own_dir(parts_dir(archive), archive.name)
         jobs.sort(key=lambda j: -(j.size_bytes or 0))  # largest first: better packing on the workers
         tiled = [j for j in jobs if j.tiled]
         small = [j for j in jobs if not j.tiled]
@@ -372,11 +437,8 @@ def build(
             for job in tiled:
                 _run_tiled(ex, parallel, job, archive, result, emit, names_in_archive,
                            progress if total == 1 else None)
-    _tidy_parts(archive)
     result.archive_scans = len(names_in_archive) if archive.exists() else 0
-    result.seconds = time.perf_counter() - t0
-    _raise_failures(result, total, raise_on_failure)
-    return result
+    return total
 
 
 def _run_jobs(ex: cf.Executor, jobs: list[ScanJob], archive: Path, result: BuildResult, emit: Any,

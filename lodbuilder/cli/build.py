@@ -106,7 +106,7 @@ def _single_line(res: Any, shown: str) -> str:
     part = ""
     if st.n_ordered is not None and st.n_points is not None and st.n_ordered < st.n_points:
         part = f", ordered {st.n_ordered:,} of {st.n_points:,} points"
-    return (f"added scan {st.name!r} ({st.n_points} points, {st.encoding} coordinates{part}) to {shown} "
+    return (f"added scan {st.name!r} ({st.n_points:,} points, {st.encoding} coordinates{part}) to {shown} "
             f"in {res.seconds:.1f} s; the archive holds {res.archive_scans} scan(s)")
 
 
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     how = collection_kwargs(args)
     show_lines = verbosity(args) >= 0 and not getattr(args, "json", False)
     counter = {"done": 0, "total": 0}
-    bars = ProgressBars(enabled=progress_enabled(args))
+    bars = ProgressBars(enabled=progress_enabled(args), stage_lines=bool(args.joint) and show_lines)
 
     def progress(stage: str, done: int, total: int) -> None:
         counter["total"] = total if stage == "scans" else counter["total"]

@@ -27,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--size", type=int, metavar="N",
                    help="order only the first N points of each scan (quick previews; default: every point)")
     g.add_argument("--force", action="store_true", help="rebuild scans even when source and parameters are unchanged")
+    g.add_argument("--wait", type=float, metavar="SECONDS",
+                   help="while another build (or other writer) of the archive runs, wait for it at most this long "
+                        "(default: until it finishes; 0: fail at once)")
     t = p.add_argument_group("large scans and joint orderings (the tiled, out-of-core path)")
     t.add_argument("--max-memory", metavar="BYTES",
                    help="memory budget of the build (this process and its workers; e.g. 3GB, 512MiB): a scan "
@@ -46,7 +49,7 @@ def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """How :func:`lodbuilder.build_archive` runs, from the collection options (what it stores is
     in the build's :class:`~lodbuilder.build.options.BuildOptions`: :func:`option_kwargs`)."""
     return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
-            "dask_local": args.dask_local, "force": args.force, "joint": args.joint}
+            "dask_local": args.dask_local, "force": args.force, "wait": args.wait, "joint": args.joint}
 
 
 def option_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -95,7 +98,7 @@ def slice_all(args: argparse.Namespace) -> int:
            "scans": lvl.scans, "sizes": lvl.sizes, "attributes": sorted(lvl.attributes), "crs": crs,
            "units": units, "changes": changes}
     emit(args, doc, "\n".join(
-        [f"wrote {len(lvl)} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
+        [f"wrote {len(lvl):,} points of {len(lvl.scans)} scans at rho {args.rho:g} to {args.output} "
          f"(attribute scan_id: {', '.join(f'{i}={n}' for i, n in enumerate(lvl.scans))})"]
         + [f"  changed: {line}" for line in changes]))
     return 0

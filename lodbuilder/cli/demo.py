@@ -57,23 +57,29 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(f"output {out} exists and is not a directory; choose another -o DIR")
     check_writable_dir(out / "x", "output") if out.is_dir() else check_writable_dir(out, "output")
+    created = not out.is_dir()
     out.mkdir(exist_ok=True)
     scan = demo_scan(args.points, kind=args.surface, seed=args.seed)
     archive = out / "demo.h5"
-    t0 = time.perf_counter()
-    with ProgressBars(enabled=progress_enabled(args)) as bars:
-        build_archive(scan, archive, overwrite=True, progress=bars)
-    t_build = time.perf_counter() - t0
-    rows = []
-    with open_archive(archive) as arc:
-        view = arc.scan("demo")
-        for f in FRACTIONS:
-            t = time.perf_counter()
-            level = view.level(fraction=f)
-            ms = (time.perf_counter() - t) * 1e3
-            path = out / f"level_{level.size}.ply"
-            write_points(path, level.points, level.attributes, metadata=view.format_metadata)
-            rows.append((level.size, level.rho, ms, path))
+    rows: list[tuple[int, float, float, Path]] = []
+    try:
+        t0 = time.perf_counter()
+        with ProgressBars(enabled=progress_enabled(args)) as bars:
+            result = build_archive(scan, archive, overwrite=True, progress=bars)
+        t_build = time.perf_counter() - t0
+        with open_archive(archive) as arc:
+            view = arc.scan("demo")
+            for f in FRACTIONS:
+                t = time.perf_counter()
+                level = view.level(fraction=f)
+                ms = (time.perf_counter() - t) * 1e3
+                path = out / f"level_{level.size}.ply"
+                write_points(path, level.points, level.attributes, metadata=view.format_metadata)
+                rows.append((level.size, level.rho, ms, path))
+    except BaseException:
+        if created:  # a folder this run made: take back what it wrote, then the folder
+            _remove_created(out, [archive] + [row[3] for row in rows])
+        raise
     doc = {
         "archive": str(archive),
         "surface": args.surface,
@@ -84,12 +90,32 @@ def run(args: argparse.Namespace) -> int:
             for size, rho, ms, path in rows
         ],
     }
+    reused = bool(result.by_status("skipped"))
+    doc["reused"] = reused
+    first = (
+        f"reused {archive}: it already holds the generated {args.surface} surface of "
+        f"{args.points:,} points (same seed and parameters); the levels were written again"
+        if reused
+        else f"built {archive} from a generated {args.surface} surface of {args.points:,} points "
+        f"in {t_build:.1f} s"
+    )
     text = [
-        f"built {archive} from a generated {args.surface} surface of {args.points:,} points in "
-        f"{t_build:.1f} s",
+        first,
         f"{'points':>8}  {'covering radius <=':>18}  {'slice ms':>8}  file",
         *(f"{size:>8,}  {rho:>18.5f}  {ms:>8.1f}  {path}" for size, rho, ms, path in rows),
         f"next: lodbuilder info {archive}; lodbuilder slice {archive} --rho 0.01 -o level.ply",
     ]
     emit(args, doc, "\n".join(text))
     return 0
+
+
+def _remove_created(folder: Path, files: list[Path]) -> None:
+    """Remove ``files`` and then ``folder`` when nothing else is in it (a failed first demo)."""
+    import contextlib
+    import os
+
+    for path in files:
+        with contextlib.suppress(OSError):
+            path.unlink()
+    with contextlib.suppress(OSError):
+        os.rmdir(folder)

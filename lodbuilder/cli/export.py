@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
                     f"wrote {copc.n_points:,} of {copc.n_total:,} points of scan {view.name!r} "
                     f"to {out} ({copc.n_bytes / 1e6:.1f} MB, {copc.depths} depth(s), "
                     f"{copc.nodes:,} nodes)",
-                    f"  depths 0..d hold {points} points, covering radius {rhos}",
+                    f"  depths 0..{copc.depths - 1} hold {points} points, covering radius {rhos}",
                 ]
                 + [f"  changed: {line}" for line in changes]
             )

@@ -15,6 +15,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "levels, the build parameters and the provenance.",
     )
     p.add_argument("archive", metavar="ARCHIVE")
+    from .level_options import add_remote_options
+
+    add_remote_options(p)
     p.add_argument("--scan", help="describe only this scan")
     from .output import add_json_option
 

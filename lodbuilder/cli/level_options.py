@@ -16,6 +16,35 @@ def add_archive_options(p: argparse.ArgumentParser, *, scan_help: str = SCAN_HEL
         "archive", metavar="ARCHIVE", help="archive written by lodbuilder build (file or URL)"
     )
     p.add_argument("--scan", help=scan_help)
+    add_remote_options(p)
+
+
+def seconds(text: str) -> float:
+    """argparse type of --timeout: a number of seconds above 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text!r}")
+    return value
+
+
+def add_remote_options(p: argparse.ArgumentParser) -> None:
+    """--timeout and --follow-redirects: how an archive at a URL is read (every command that
+    reads an archive; ``main`` applies them with :func:`lodbuilder.archive.remote.settings`)."""
+    g = p.add_argument_group("archives at a URL")
+    g.add_argument(
+        "--timeout",
+        type=seconds,
+        metavar="SECONDS",
+        help="give up when the server does not answer for SECONDS (default 30)",
+    )
+    g.add_argument(
+        "--follow-redirects",
+        action="store_true",
+        help="follow an HTTP redirect to another host (refused by default)",
+    )
 
 
 def add_level_options(

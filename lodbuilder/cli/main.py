@@ -10,12 +10,14 @@ share (``--json``, printing, the output-path rule) is in :mod:`lodbuilder.cli.ou
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from importlib import import_module
+from typing import Any
 
 from .. import __version__
 from ..errors import LodbuilderError
-from .output import Parser, add_common_options, print_error, setup_logging
+from .output import Parser, add_common_options, check_options, print_error, setup_logging
 
 COMMANDS = ("demo", "build", "slice", "info", "validate", "view", "evaluate", "export")
 
@@ -47,12 +49,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    check_options(parser, argv)
+    args, extras = parser.parse_known_args(argv)
+    if extras:  # (from the command's parser, so that the message points to its help)
+        command_parser(parser, args.command).error(f"unrecognized arguments: {' '.join(extras)}")
     args.verbose += args.top_verbose
     args.quiet = args.quiet or args.top_quiet
     log_level = setup_logging(args)
     try:
-        return int(args._run(args) or 0)
+        with _remote_settings(args):
+            return int(args._run(args) or 0)
     except LodbuilderError as exc:
         print_error(args.command, exc)
         return 2
@@ -62,6 +69,15 @@ def main(argv: list[str] | None = None) -> int:
         if extra_for(exc.name) is None:
             raise  # not an optional dependency: a bug, shown with its traceback
         print_error(args.command, missing_message(exc.name or "", f"lodbuilder {args.command}"))
+        return 2
+    except OSError as exc:  # a full disk where no writer of ours said so: still one line
+        import errno
+
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        print_error(args.command, f"{where}no space left on the device; free some space or choose "
+                    "another location")
         return 2
     except KeyboardInterrupt:
         print(f"lodbuilder {args.command}: interrupted", file=sys.stderr)
@@ -75,6 +91,24 @@ def main(argv: list[str] | None = None) -> int:
         import logging
 
         logging.getLogger("lodbuilder").setLevel(log_level)
+
+
+def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The parser of ``command`` (a subcommand of ``parser``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action.choices[command]
+    return parser
+
+
+def _remote_settings(args: argparse.Namespace) -> Any:
+    """--timeout / --follow-redirects of a command that reads archives, for every URL it opens."""
+    timeout, follow = getattr(args, "timeout", None), getattr(args, "follow_redirects", None)
+    if timeout is None and not follow:
+        return contextlib.nullcontext()
+    from ..archive.remote import settings
+
+    return settings(timeout=timeout, follow_redirects=follow)
 
 
 if __name__ == "__main__":  # pragma: no cover

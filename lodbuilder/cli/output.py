@@ -13,7 +13,7 @@ A command module uses it like this::
     def run(args):
         out = check_output(args.output, "-o", inputs={"archive": args.archive})
         ...                                     # the work
-        emit(args, {"wrote": str(out), "size": k}, f"wrote {k} points to {out}")
+        emit(args, {"wrote": str(out), "size": k}, f"wrote {k:,} points to {out}")
         return 0
 
 ``main`` adds ``-q/--quiet`` and ``-v/--verbose`` to every command (:func:`add_common_options`),
@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -49,6 +50,93 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {one_line(message)} (see '{self.prog} --help')\n")
+
+
+_NEGATIVE = re.compile(r"^-\d+$|^-\d*\.\d+$")
+#: a digit typed for the letter it looks like (``-0`` for ``-o``)
+_LOOKALIKE = {"0": "o", "1": "l", "O": "o", "I": "l"}
+
+
+def check_options(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """Before argparse parses ``argv``: an option the command does not have is an error that
+    names the closest one (``unknown option --rhoo: did you mean --rho?``), from the command's
+    parser, so that it points to the command's help. argparse would otherwise report a missing
+    required option first, or the unknown one from the top parser."""
+    sub_action = next(
+        (a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None
+    )
+    i = 0
+    while i < len(argv) and argv[i].startswith("-"):  # top-level options (no values)
+        i += 1
+    if sub_action is None or i >= len(argv) or argv[i] not in sub_action.choices:
+        return
+    sub = sub_action.choices[argv[i]]
+    bad = _unknown_option(sub, argv[i + 1:])
+    if bad is None:
+        return
+    name, hint = bad
+    sub.error(f"unknown option {name}" + (f": did you mean {hint}?" if hint else ""))
+
+
+def _unknown_option(p: argparse.ArgumentParser, tokens: list[str]) -> tuple[str, str | None] | None:
+    """The first option of ``tokens`` that ``p`` does not know and the closest it knows (option
+    values, abbreviations argparse accepts and anything after ``--`` are skipped)."""
+    import difflib
+
+    known = p._option_string_actions
+    longs = sorted(s for s in known if s.startswith("--"))
+    i = 0
+    while i < len(tokens):
+        t = tokens[i]
+        i += 1
+        if t == "--":
+            return None
+        if not t.startswith("-") or t == "-":
+            continue
+        name = t.split("=", 1)[0]
+        if name.startswith("--"):
+            hits = [name] if name in known else [s for s in longs if s.startswith(name)]
+            action = known[hits[0]] if len(hits) == 1 else None
+            if len(hits) > 1:
+                return None  # argparse says "ambiguous option"
+        elif _NEGATIVE.match(t):
+            letter = _LOOKALIKE.get(t[1:])
+            if letter is not None and f"-{letter}" in known:
+                return t, f"-{letter}"
+            continue  # a negative number
+        else:
+            action = known.get(t[:2])
+            name = t[:2] if action is None and len(t) > 2 else name
+        if action is None:
+            if name.startswith("--"):
+                close = difflib.get_close_matches(name, longs, n=1, cutoff=0.6)
+            else:
+                letter = _LOOKALIKE.get(name[1:], name[1:].lower())
+                close = [f"-{letter}"] if f"-{letter}" in known else []
+            return name, close[0] if close else None
+        if "=" in t or (not t.startswith("--") and len(t) > 2):
+            continue  # the value is in the token
+        i = _skip_values(action, tokens, i)
+    return None
+
+
+def _skip_values(action: argparse.Action, tokens: list[str], i: int) -> int:
+    """Index after the values of ``action`` that follow position ``i``."""
+    nargs = action.nargs
+    if nargs == 0:
+        return i
+    if nargs is None:
+        return i + 1
+    if isinstance(nargs, int):
+        return i + nargs
+    n = 0
+    while i + n < len(tokens) and (
+        not tokens[i + n].startswith("-") or _NEGATIVE.match(tokens[i + n])
+    ):
+        n += 1
+        if nargs == "?":
+            break
+    return i + n
 
 
 def add_common_options(p: argparse.ArgumentParser) -> None:
@@ -213,11 +301,51 @@ def check_output(
     for what, src in (inputs or {}).items():
         if src is not None and _same_file(p, Path(src)):
             raise InputError(f"{option} {p} is the input {what}; choose another output")
+        if src is not None and what == "archive":
+            own = archive_file(p, src)
+            if own is not None:
+                raise InputError(f"{option} {p} is {own} of the archive {src}; choose another output")
     try:
         check_output_path(p)
     except OSError as exc:
         raise type(exc)(f"{option} {exc}") from None
     return p
+
+
+def archive_file(path: Path, archive: str | os.PathLike[str]) -> str | None:
+    """What ``path`` is of the local archive ``archive`` (its parts directory, its build work
+    directory, its lock file, or a link to one of their files), or None: a command never writes
+    its output there (the archive itself is an input, checked apart)."""
+    from ..archive import files as F
+    from ..archive.index import is_url
+    from ..archive.layout import parts_dir_name
+
+    if is_url(archive):
+        return None
+    a = Path(os.path.abspath(archive))
+    dirs = {"in the parts directory": a.with_name(parts_dir_name(a.name)),
+            "in the build work directory": a.with_name(f".{a.name}.parts")}
+    real = Path(os.path.realpath(path))
+    for what, d in dirs.items():
+        rd = Path(os.path.realpath(d))
+        if real == rd or rd in real.parents:
+            return what
+    if real == Path(os.path.realpath(F.lock_name(a))):
+        return "the lock file"
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    for d in dirs.values():
+        for root, _, names in os.walk(d):  # never follows links to directories
+            for name in names:
+                try:
+                    other = os.stat(os.path.join(root, name), follow_symlinks=False)
+                except OSError:
+                    continue
+                if (other.st_dev, other.st_ino) == (st.st_dev, st.st_ino):
+                    return f"a link to {name}, a file"
+    return None
 
 
 def _same_file(a: Path, b: Path) -> bool:

@@ -21,11 +21,14 @@ UNITS = {"scans": "scan", "tiles": "tile", "covering": "tile", "coarse": "task"}
 class ProgressBars:
     """A ``progress(stage, done, total)`` callable that shows one bar per stage (``total`` 0: a
     counter with a rate and no end). Without a terminal (and unless disabled on purpose) the
-    stages in NOTES are still printed once, as a line."""
+    stages in NOTES are still printed once, as a line (every stage with ``stage_lines``)."""
 
-    def __init__(self, enabled: bool | None = None) -> None:
+    def __init__(self, enabled: bool | None = None, *, stage_lines: bool = False) -> None:
         self.enabled = sys.stderr.isatty() if enabled is None else enabled
         self._notes = enabled is None
+        # without a terminal: a line as each stage starts (a joint build is one long scan, with
+        # no per-scan lines to show that it moves)
+        self._stage_lines = stage_lines and enabled is None
         self._noted: set[str] = set()
         self._bars: dict[str, Any] = {}
         self._stage: str | None = None
@@ -36,7 +39,8 @@ class ProgressBars:
 
     def __call__(self, stage: str, done: int, total: int) -> None:
         if not self.enabled:
-            if self._notes and stage in NOTES and stage not in self._noted:
+            wanted = stage in NOTES or (self._stage_lines and stage not in PERSISTENT)
+            if self._notes and wanted and stage not in self._noted:
                 self._noted.add(stage)
                 print(f"{stage} ...", file=sys.stderr, flush=True)
             return

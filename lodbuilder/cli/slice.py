@@ -59,7 +59,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         type=int,
         choices=(8, 16),
         default=None,
-        help="bits per PLY colour channel: 8 (uchar, the default: what PLY viewers expect) or 16",
+        help="PLY colour: 8 (uchar, the default: every viewer reads it) or 16 (ushort; "
+        "CloudCompare 2.11 shows 16-bit PLY colour as black)",
     )
     from .feature_options import add_slice_options
     from .output import add_json_option
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         "units": level.units,
         "changes": changes,
     }
-    what = f"{level.size} of {view.n_points} points"
+    what = f"{level.size:,} of {view.n_points:,} points"
     if filled is not None:
         doc["synthetic"] = filled.n_synthetic
         what = filled.summary(view.n_points)

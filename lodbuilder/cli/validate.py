@@ -18,6 +18,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     p.add_argument("archive", metavar="ARCHIVE")
+    from .level_options import add_remote_options
+
+    add_remote_options(p)
     from .output import add_json_option
 
     add_json_option(p)
@@ -44,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         args,
         doc,
         one_line(
-            f"{args.archive}: valid ({doc['scans']} scan(s), {total} points, schema version "
+            f"{args.archive}: valid ({doc['scans']} scan(s), {total:,} points, schema version "
             f"{doc['schema_version']})"
         ),
     )

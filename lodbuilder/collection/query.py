@@ -74,30 +74,12 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
     scans: its points carry their own ``scan_id``, ``scans`` lists the member names, and a member
     named in ``scans`` gives the joint level's points of that member only."""
     from ..archive.reader import open_archive
-    from ..errors import ScanNotFoundError
 
     rho_v = check_positive(rho, "rho", allow_none=False)
     parts: list[tuple[Any, np.ndarray | None, list[str]]] = []  # (level, member ids or None, names)
     with open_archive(archive) as arc:
         members = {n: joint_members(arc.scan(n)) for n in arc.scans}
-        wanted: list[tuple[str, str | None]]
-        if scans is None:
-            wanted = [(n, None) for n in arc.scans]
-        else:
-            wanted = []
-            for want in scans:
-                owner = next((j for j, m in members.items() if m and want in m and want not in arc.scans), None)
-                if owner is not None:
-                    wanted.append((owner, str(want)))
-                else:
-                    try:
-                        wanted.append((arc.scan(want).name, None))
-                    except ScanNotFoundError:
-                        joint = [m for ms in members.values() if ms for m in ms]
-                        raise ScanNotFoundError(
-                            f"archive {archive} has no scan {want!r}; it holds {quoted_names(sorted(arc.scans))}"
-                            + (f" and the joint members {quoted_names(sorted(joint))}" if joint else "")) from None
-        for n, member in wanted:
+        for n, member in _wanted(arc, archive, members, scans):
             lv = arc.scan(n).level(rho=rho_v, attributes=True if members[n] else attributes)
             ms = members[n]
             if ms is None:
@@ -109,6 +91,35 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
             else:
                 keep = ids == ms.index(member)
                 parts.append((_subset(lv, keep), np.zeros(int(keep.sum()), np.int64), [member]))
+    return _merged(parts, float(rho_v))  # type: ignore[arg-type]
+
+
+def _wanted(arc: Any, archive: Any, members: dict[str, list[str] | None],
+            scans: Any) -> list[tuple[str, str | None]]:
+    """``(scan, joint member or None)`` of each scan asked for (every scan when ``scans`` is None);
+    a name that is neither a scan nor a joint member is refused with the names there are."""
+    from ..errors import ScanNotFoundError
+
+    if scans is None:
+        return [(n, None) for n in arc.scans]
+    wanted: list[tuple[str, str | None]] = []
+    for want in scans:
+        owner = next((j for j, m in members.items() if m and want in m and want not in arc.scans), None)
+        if owner is not None:
+            wanted.append((owner, str(want)))
+            continue
+        try:
+            wanted.append((arc.scan(want).name, None))
+        except ScanNotFoundError:
+            joint = [m for ms in members.values() if ms for m in ms]
+            raise ScanNotFoundError(
+                f"archive {archive} has no scan {want!r}; it holds {quoted_names(sorted(arc.scans))}"
+                + (f" and the joint members {quoted_names(sorted(joint))}" if joint else "")) from None
+    return wanted
+
+
+def _merged(parts: list[tuple[Any, np.ndarray | None, list[str]]], rho: float) -> CollectionLevel:
+    """One level of the parts' points, with a scan id counting joint members as scans."""
     names: list[str] = []
     sids: list[np.ndarray] = []
     sizes: list[int] = []
@@ -128,7 +139,7 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
     attrs: dict[str, np.ndarray] = {k: np.concatenate([a[k] for a in attr_lists]) for k in sorted(common)}
     attrs["scan_id"] = sid_all
     return CollectionLevel(points=np.concatenate(pts) if pts else np.zeros((0, 3)), attributes=attrs,
-                           scan_id=sid_all, scans=names, sizes=sizes, rho=float(rho_v))  # type: ignore[arg-type]
+                           scan_id=sid_all, scans=names, sizes=sizes, rho=rho)
 
 
 def _subset(level: Any, keep: np.ndarray) -> Any:

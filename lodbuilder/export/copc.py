@@ -219,7 +219,7 @@ def write_copc(
     ``radius`` extra bytes. What the mapping changed is in ``notes`` and logged as warnings of
     lodbuilder.io, as :func:`lodbuilder.io.write_points` does."""
     copclib = _copclib()
-    from ..io._files import atomic_output
+    from ..io._files import atomic_output, run_isolated
     from ..io.api import log_notes
     from ..io.las import las_layout
 
@@ -303,7 +303,8 @@ def write_copc(
         "extra_bytes": {"rank": "position in the farthest-point order", "radius": "insertion radius"},
         "levels": levels,
     }
-    with atomic_output(out) as tmp:
+
+    def write_nodes(tmp: Path) -> None:
         writer = copclib.FileWriter(str(tmp), config)
         try:
             for s, e in zip(starts, ends, strict=True):
@@ -317,6 +318,10 @@ def write_copc(
                 writer.AddNode(key, copclib.VectorChar(data))
         finally:
             writer.Close()
+
+    with atomic_output(out) as tmp:
+        # copclib aborts the process when a write fails (a full disk): it writes in a child
+        run_isolated(write_nodes, tmp, "copclib")
         _append_evlr(
             tmp,
             VLR_USER_ID,

@@ -164,11 +164,12 @@ class Filled:
         return int(self.level.size - self.n_synthetic)
 
     def summary(self, n_points: int) -> str:
-        """``"K of N points + M synthetic (synthetic = 1) in G filled gap(s)"``."""
+        """``"K of N points + M synthetic (synthetic = 1) in G filled gap(s)"`` (thousands
+        separated by commas, as every count the command line prints)."""
         gaps = sum(r.n_synthetic > 0 for r in self.report.regions)
         rough = sum(r.status == STATUS_ROUGH for r in self.report.gaps)
         text = (
-            f"{self.n_measured} of {n_points} points + {self.n_synthetic} synthetic "
+            f"{self.n_measured:,} of {n_points:,} points + {self.n_synthetic:,} synthetic "
             f"(synthetic = 1) in {gaps} filled gap(s)"
         )
         if rough:
@@ -291,6 +292,45 @@ def near_gaps(
     return out
 
 
+def _insert(gaps: list[Region], tree_l: Any, stop: float) -> list[tuple[Region, np.ndarray, np.ndarray]]:
+    """Farthest-point insertion in every fillable gap, each starting from the level and the points
+    inserted in the gaps before it: ``(region, candidate indices, radii)`` of the gaps that got points."""
+    from scipy.spatial import cKDTree
+
+    picks: list[tuple[Region, np.ndarray, np.ndarray]] = []
+    done: Any = None  # k-d tree of the points inserted so far
+    for reg in gaps:
+        if reg.status != STATUS_FILLABLE:
+            continue
+        start, _ = tree_l.query(reg.candidates, k=1)
+        if done is not None:
+            start = np.minimum(start, done.query(reg.candidates, k=1)[0])
+        idx, radii = farthest_insert(reg.candidates, start, stop)
+        reg.n_synthetic = int(idx.size)
+        if idx.size:
+            picks.append((reg, idx, radii))
+            done = cKDTree(np.concatenate([r.candidates[i] for r, i, _ in picks]))
+    return picks
+
+
+def _filled_attributes(scan: Any, level: Any, k_sample: int, sample: np.ndarray,
+                       picks: list[tuple[Region, np.ndarray, np.ndarray]], m: int) -> dict[str, np.ndarray]:
+    """The level's attributes followed by the synthetic points' (interpolated around each hole),
+    with the ``synthetic`` flag."""
+    attrs = dict(level.attributes)
+    if attrs and picks:
+        names = list(attrs)
+        measured = scan.attributes(k_sample, names)
+        extra = [region_attributes(measured, sample, r, i) for r, i, _ in picks]
+        attrs = {k: np.concatenate([attrs[k]] + [e[k] for e in extra]) for k in names}
+    flag = np.concatenate([np.zeros(level.size, np.uint8), np.ones(m, np.uint8)])
+    if SYNTHETIC in attrs:  # filling a level of a scan that was built from a filled level
+        attrs[SYNTHETIC] = np.where(flag == 1, 1, attrs[SYNTHETIC]).astype(attrs[SYNTHETIC].dtype)
+    else:
+        attrs[SYNTHETIC] = flag
+    return attrs
+
+
 @strict_keywords
 def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any = True) -> Filled:
     """The level of an archive scan (a ``ScanView``) at ``rho``, with synthetic points added in
@@ -319,34 +359,11 @@ def fill_level(scan: Any, rho: Any, *, max_hole: Any = MAX_HOLE, attributes: Any
         scan=scan.name,
         trees=(tree_l, tree_s),
     )
-    stop = stop_distance(rho, GRID_FRACTION * rho)
-    picks: list[tuple[Region, np.ndarray, np.ndarray]] = []
-    done: Any = None  # k-d tree of the points inserted so far
-    for reg in report.gaps:
-        if reg.status != STATUS_FILLABLE:
-            continue
-        start, _ = tree_l.query(reg.candidates, k=1)
-        if done is not None:
-            start = np.minimum(start, done.query(reg.candidates, k=1)[0])
-        idx, radii = farthest_insert(reg.candidates, start, stop)
-        reg.n_synthetic = int(idx.size)
-        if idx.size:
-            picks.append((reg, idx, radii))
-            done = cKDTree(np.concatenate([r.candidates[i] for r, i, _ in picks]))
+    picks = _insert(report.gaps, tree_l, stop_distance(rho, GRID_FRACTION * rho))
     pts = np.concatenate([r.candidates[i] for r, i, _ in picks]) if picks else np.zeros((0, 3))
     rad = np.concatenate([d for _, _, d in picks]) if picks else np.zeros(0)
     m = pts.shape[0]
-    attrs = dict(level.attributes)
-    if attrs and picks:
-        names = list(attrs)
-        measured = scan.attributes(k_sample, names)
-        extra = [region_attributes(measured, sample, r, i) for r, i, _ in picks]
-        attrs = {k: np.concatenate([attrs[k]] + [e[k] for e in extra]) for k in names}
-    flag = np.concatenate([np.zeros(level.size, np.uint8), np.ones(m, np.uint8)])
-    if SYNTHETIC in attrs:  # filling a level of a scan that was built from a filled level
-        attrs[SYNTHETIC] = np.where(flag == 1, 1, attrs[SYNTHETIC]).astype(attrs[SYNTHETIC].dtype)
-    else:
-        attrs[SYNTHETIC] = flag
+    attrs = _filled_attributes(scan, level, k_sample, sample, picks, m)
     minus = np.full(m, -1, dtype=np.int64)
     # the level's other fields (scan, ordering, and any the reader adds) are kept as they are
     filled = dataclasses.replace(

@@ -6,14 +6,16 @@ import contextlib
 import errno
 import hashlib
 import os
+import signal
 import stat
+import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from .._atomic import publish
 from .._validate import strict_keywords
-from ..errors import ScanFileError
+from ..errors import LodbuilderError, ScanFileError
 
 
 def check_input_file(path: str | os.PathLike[str]) -> Path:
@@ -93,17 +95,99 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
     """
     p = check_output_path(path)
     parent = p.parent if str(p.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{p.name}.", suffix=".part" + "".join(p.suffixes[-1:]))
+    try:
+        fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{p.name}.", suffix=".part" + "".join(p.suffixes[-1:]))
+    except OSError as exc:
+        raise write_error(p, exc) or exc from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         os.chmod(tmp_path, _default_mode())
         publish(tmp_path, p)
-    except BaseException:
+    except BaseException as exc:
+        problem = write_error(p, exc, parent) if isinstance(exc, Exception) else None
         with contextlib.suppress(OSError):
             tmp_path.unlink()
+        if problem is not None:
+            raise problem from None
         raise
+
+
+#: a write that failed with this little space left on its device failed for want of space (a
+#: library that reports no errno: lazrs' "IoError: Failed to call write", NumPy's "N requested
+#: and M written", copclib's abort)
+NEARLY_FULL = 1 << 20
+
+
+def write_error(path: Path, exc: BaseException, parent: Path | None = None) -> ScanFileError | None:
+    """The one-line error for a failed write of the output ``path``, or None when ``exc`` is not
+    a failed write (a bug, or an error of ours that already says what to do). A full disk (ENOSPC,
+    a quota, or any library error while the device has under :data:`NEARLY_FULL` bytes free) is
+    named as such; another OSError keeps its reason. Called while the partial file still takes its
+    space."""
+    if isinstance(exc, LodbuilderError):
+        return None
+    no = getattr(exc, "errno", None)
+    if no in (errno.ENOSPC, errno.EDQUOT) or (no is None and _nearly_full(parent or path.parent)):
+        return ScanFileError(f"{path}: no space left on the device; free some space or choose "
+                             "another location (nothing was written)")
+    if isinstance(exc, OSError) or library_io_error(exc):
+        reason = getattr(exc, "strerror", None) or exc_line(exc)
+        return ScanFileError(f"{path}: cannot be written ({reason}); check the disk and "
+                             "permissions (nothing was written)")
+    return None
+
+
+def _nearly_full(directory: Path) -> bool:
+    try:
+        st = os.statvfs(directory)
+    except (OSError, AttributeError):  # (no statvfs on Windows)
+        return False
+    return st.f_bavail * st.f_frsize < NEARLY_FULL
+
+
+def library_io_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is an I/O failure reported by a native library without an errno (lazrs:
+    ``LazrsError: IoError: ...``)."""
+    return type(exc).__name__ == "LazrsError" and "IoError" in str(exc)
+
+
+def run_isolated(write: Callable[[Path], object], path: Path, library: str) -> None:
+    """``write(path)`` in a forked child process, for a native library that may abort the process
+    instead of raising (copclib calls std::terminate when a write fails, e.g. on a full disk):
+    an abort then ends the child only, and its failure is raised here as an OSError without
+    errno naming ``library`` and what it printed (which :func:`atomic_output` turns into one line). Where there is no
+    fork (Windows) ``write`` runs in this process."""
+    if not hasattr(os, "fork"):
+        write(path)
+        return
+    with tempfile.TemporaryFile() as err:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover (the child; coverage does not follow it)
+            code = 0
+            try:
+                os.dup2(err.fileno(), 2)
+                write(path)
+            except BaseException as exc:  # noqa: BLE001 (reported to the parent)
+                with contextlib.suppress(Exception):
+                    os.write(2, f"\n{type(exc).__name__}: {exc_line(exc)}\n".encode())
+                code = 1
+            finally:
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        if os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
+            return
+        err.seek(0)
+        lines = [ln.strip() for ln in err.read().decode("utf-8", "replace").splitlines()]
+        said = next((ln for ln in reversed(lines) if ln and not ln.startswith("what():")), "")
+        said = next((ln for ln in lines if ln.startswith("terminate called")), said)
+    how = (f"was killed by {signal.Signals(os.WTERMSIG(status)).name}" if os.WIFSIGNALED(status)
+           else f"stopped with exit status {os.WEXITSTATUS(status)}")
+    raise OSError(f"{library} {how}{': ' + said if said else ''}")
 
 
 def exc_line(exc: BaseException) -> str:

@@ -239,15 +239,10 @@ def write_points(
     pts = np.ascontiguousarray(pts)
     attrs = _prepare_attributes(pts, attributes, rank)
     wkt = meta.get(KEY_WKT)
-    with atomic_output(path) as tmp:
-        try:
-            notes = module.write(tmp, pts, attrs, meta) or []
-            if fmt in SIDECAR_CRS and Path(path).suffix.lower() != ".npz":
-                _write_sidecar(Path(path), wkt)
-        except LodbuilderError:
-            raise
-        except OSError as exc:
-            raise ScanFileError(f"{path}: cannot be written ({exc_line(exc)}); check the disk and permissions") from None
+    with atomic_output(path) as tmp:  # (a full disk or another failed write: one line)
+        notes = module.write(tmp, pts, attrs, meta) or []
+        if fmt in SIDECAR_CRS and Path(path).suffix.lower() != ".npz":
+            _write_sidecar(Path(path), wkt)
     log_notes(path, notes)
     log.info("wrote %d points to %s (%s)", pts.shape[0], path, fmt)
     return Path(path)

@@ -91,6 +91,42 @@ def _file_crs(hdr: Any) -> str | None:
     return None if crs is None else pyproj_wkt(crs)
 
 
+def _check_points_layout(path: Path, head: bytes, size: int) -> None:
+    """Refuse a coordinate scale of 0 (or not finite: every point would get one coordinate) and a
+    point-data offset inside the header or with the points running past the end of the file
+    (laspy then reads no points, or fails with a NumPy message)."""
+    import math
+    import struct
+
+    if len(head) < 179:
+        return  # laspy says what is wrong
+    header_size, offset = struct.unpack_from("<HI", head, 94)
+    record, legacy = struct.unpack_from("<HI", head, 105)
+    scales = struct.unpack_from("<3d", head, 131)
+    if not all(math.isfinite(s) and s > 0 for s in scales):
+        raise FormatError(
+            f"{path}: the LAS header's coordinate scale is {', '.join(f'{s:g}' for s in scales)} "
+            "(x, y, z); a scale must be a finite number above 0 (with 0 every point has the same "
+            "coordinate): the file is damaged; re-export it"
+        )
+    if offset < header_size:
+        raise FormatError(
+            f"{path}: the LAS header says the points start at byte {offset}, inside the "
+            f"{header_size}-byte header; the file is damaged"
+        )
+    count = legacy
+    if head[25] >= 4 and len(head) >= 255 and not legacy:
+        count = struct.unpack_from("<Q", head, 247)[0]
+    compressed = bool(head[104] & 0x80)  # (LAZ: the point format's top bit)
+    need = count * record if not compressed else 0
+    if offset + need > size:
+        raise FormatError(
+            f"{path}: the LAS header declares {count} points of {record} bytes from byte {offset} "
+            f"({need:,} bytes), but the file ends at byte {size}: its point-data offset or point "
+            "count is wrong; the file is damaged"
+        )
+
+
 def _check_vlr_counts(path: Path) -> None:
     """Refuse VLR counts the file cannot hold: laspy reads that many VLRs from the stream, past
     its end, and a damaged count (billions) keeps it busy forever."""
@@ -98,10 +134,11 @@ def _check_vlr_counts(path: Path) -> None:
 
     size = path.stat().st_size
     with open(path, "rb") as f:
-        head = f.read(247)
+        head = f.read(255)
     if len(head) < 104 or head[:4] != b"LASF":
         return  # laspy says what is wrong
     header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    _check_points_layout(path, head, size)
     room = max(0, min(offset, size) - header_size)
     if n_vlrs * 54 > room:  # a VLR header alone is 54 bytes
         raise FormatError(

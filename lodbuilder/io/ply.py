@@ -56,6 +56,8 @@ def _is_crs_comment(c: str) -> bool:
 LINE_CAP = 4096
 #: total bytes of comment/obj_info text kept from one header (the rest is dropped, with a note)
 COMMENTS_CAP = 65536
+#: most properties a header may declare (all elements): parsing 200,000 took minutes and 3.5 GB
+MAX_PROPERTIES = 1024
 
 
 def _header_bytes(f: Any, path: Path, notes: list[str]) -> bytes:
@@ -65,6 +67,7 @@ def _header_bytes(f: Any, path: Path, notes: list[str]) -> bytes:
     out: list[bytes] = []
     kept = 0
     dropped = 0
+    properties = 0
     first = True
     while True:
         line = f.readline(LINE_CAP + 1)
@@ -98,6 +101,14 @@ def _header_bytes(f: Any, path: Path, notes: list[str]) -> bytes:
         if long_line:
             raise FormatError(f"{path}: not a valid PLY header (a header line is longer than {LINE_CAP} bytes); "
                               "check that it is a PLY file")
+        if word == b"property":
+            properties += 1
+            if properties > MAX_PROPERTIES:
+                raise FormatError(
+                    f"{path}: its PLY header declares more than {MAX_PROPERTIES:,} properties; "
+                    f"lodbuilder reads at most {MAX_PROPERTIES:,} (a scan has x, y, z and a few "
+                    "attributes): check that the header is not damaged"
+                )
         out.append(line)
         if line.strip() == b"end_header":
             break
@@ -169,10 +180,11 @@ def read(path: Path) -> list[Scan]:
             )
         count = int(vertex.count)
         before = header.elements[:vi]
+        last = vi == len(names) - 1
         if header.text:
-            data = _read_ascii(f, path, size, body_start, before, vertex, count)
+            data = _read_ascii(f, path, size, body_start, before, vertex, count, last)
         else:
-            data = _read_binary(f, path, size, body_start, before, vertex, count, header.byte_order)
+            data = _read_binary(f, path, size, body_start, before, vertex, count, header.byte_order, last)
         if data is None:  # a layout the fast paths do not handle: let plyfile read up to the vertices
             f.seek(body_start)
             data = _read_plyfile(f, path, header, vi)
@@ -215,7 +227,7 @@ def _check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
         )
 
 
-def _read_binary(f, path, size, body_start, before, vertex, count, byte_order):
+def _read_binary(f, path, size, body_start, before, vertex, count, byte_order, last=False):
     dtype = vertex.dtype(byte_order)
     if _has_lists(vertex):
         # lower bound: the scalar part of every vertex
@@ -228,11 +240,21 @@ def _read_binary(f, path, size, body_start, before, vertex, count, byte_order):
     offset = body_start + sum(int(e.count) * e.dtype(byte_order).itemsize for e in before)
     need = dtype.itemsize * count
     _check_size(path, count, need, size - offset)
+    extra = size - offset - need
+    if last and dtype.itemsize and extra >= dtype.itemsize:  # (a trailing newline is fine)
+        raise FormatError(
+            f"{path}: PLY header declares {count} vertices but {extra:,} more bytes follow them "
+            f"({extra // dtype.itemsize:,} more vertices): {_LONGER}"
+        )
     f.seek(offset)
     data = np.fromfile(f, dtype=dtype, count=count)
     if data.shape[0] != count:  # the file shrank under us
         raise FormatError(f"{path}: PLY body is truncated: read {data.shape[0]} of {count} vertices; re-export the file")
     return data.astype(vertex.dtype("="), copy=False)
+
+
+_LONGER = ("the vertex count is wrong or the file has trailing data; fix the 'element vertex' "
+           "line or re-export the scan")
 
 
 def _check_size(path, count, need, avail):
@@ -243,7 +265,7 @@ def _check_size(path, count, need, avail):
         )
 
 
-def _read_ascii(f, path, size, body_start, before, vertex, count):
+def _read_ascii(f, path, size, body_start, before, vertex, count, last=False):
     nprops = len(vertex.properties)
     # every value takes at least one character and one separator
     _check_size(path, count, 2 * nprops * count, size - body_start)
@@ -258,6 +280,11 @@ def _read_ascii(f, path, size, body_start, before, vertex, count):
         raise FormatError(
             f"{path}: PLY header declares {count} vertices but the file holds only {len(lines)} vertex lines: "
             "the file is truncated or its vertex count is wrong; re-export the scan"
+        )
+    if last and any(line.strip() for line in itertools.islice(f, 1000)):
+        raise FormatError(
+            f"{path}: PLY header declares {count} vertices but more vertex lines follow them: "
+            f"{_LONGER}"
         )
     if count == 0:
         return np.zeros(0, dtype=vertex.dtype("="))
@@ -412,6 +439,32 @@ def ordered_columns(attributes: dict[str, np.ndarray], notes: list[str] | None =
     return first + [c for c in cols if c[0] not in rank]
 
 
+def _ply_name_ok(name: str) -> bool:
+    return bool(name) and all(33 <= ord(c) <= 126 for c in name)
+
+
+def ply_names(cols: list[tuple[str, Any]], notes: list[str]) -> list[tuple[str, Any]]:
+    """``cols`` with every name PLY cannot hold (spaces, characters outside printable ASCII, an
+    empty name) renamed: each such character becomes ``_`` and a name already taken gets ``_2``,
+    ``_3``... (noted)."""
+    taken = set(_XYZ) | {n for n, _ in cols if _ply_name_ok(n)}
+    out = []
+    for name, a in cols:
+        if _ply_name_ok(name):
+            out.append((name, a))
+            continue
+        base = "".join(c if 33 <= ord(c) <= 126 else "_" for c in name) or "attribute"
+        new, k = base, 1
+        while new in taken:
+            k += 1
+            new = f"{base}_{k}"
+        taken.add(new)
+        notes.append(f"attribute {name!r} written as {new!r}: PLY property names are printable "
+                     "ASCII without spaces")
+        out.append((new, a))
+    return out
+
+
 def colour_column(name: str, a: np.ndarray, depth: int, notes: list[str]) -> np.ndarray:
     """A colour column as uchar (``depth`` 8) or ushort (16). 8-bit -> 16-bit multiplies by 257;
     16-bit values all <= 255 (8-bit colours in 16-bit fields, common in LAS) cast unchanged;
@@ -447,6 +500,7 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
     cdt = _coord_dtype(points, metadata)
     cols = [(n, colour_column(n, np.asarray(a), depth, notes) if n in _COLOUR_NAMES else a)
             for n, a in ordered_columns(attributes, notes)]
+    cols = ply_names(cols, notes)
     fields = [(c, cdt) for c in _XYZ] + [(n, _ply_dtype(a, n)) for n, a in cols]
     data = np.empty(points.shape[0], dtype=fields)
     for j, c in enumerate(_XYZ):

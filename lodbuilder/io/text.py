@@ -43,6 +43,7 @@ def read(path: Path) -> list[Scan]:
     dtypes: list[str] | None = None
     skip = 0
     header: list[str] | None = None
+    header_line = ""
     delim: str | None = None
     first_data: list[str] | None = None
     for line in head:
@@ -59,7 +60,7 @@ def read(path: Path) -> list[Scan]:
         delim = "," if "," in s else (";" if ";" in s else None)
         toks = _split(s, delim)
         if header is None and first_data is None and not all(_is_num(t) for t in toks):
-            header = [t.lstrip("/").strip().strip('"') for t in toks]
+            header, header_line = [], s  # (its names are read with the data's delimiter below)
             skip += 1
             continue
         if header is None and first_data is None and len(toks) == 1 and re.fullmatch(r"\d+", toks[0]):
@@ -69,6 +70,8 @@ def read(path: Path) -> list[Scan]:
         break
     if first_data is None:
         raise FormatError(f"{path}: no point lines found; a text scan needs lines of 'x y z ...'")
+    if header is not None:
+        header = _header_fields(header_line, delim)
     try:
         table = np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip, comments="#", ndmin=2)
     except ValueError as exc:
@@ -148,16 +151,49 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
 
     notes: list[str] = []
     cols = columns(attributes, notes)
-    names = ["x", "y", "z"] + [n for n, _ in cols]
+    names = ["x", "y", "z"] + [_safe_name(n, notes) for n, _ in cols]
     cdt = _coord_dtype(points, metadata)
     coords = points.astype(cdt, copy=False)
     arrays = [coords[:, 0], coords[:, 1], coords[:, 2]] + [np.asarray(a) for _, a in cols]
     sep = "," if path.suffix.lower() == ".csv" else " "
     n = points.shape[0]
     with open(path, "w", encoding="utf-8", newline="\n") as f:
-        f.write(sep.join(names) + "\n")
+        f.write(sep.join(_quoted(name, sep) for name in names) + "\n")
         step = 100_000
         for s in range(0, n, step):
             texts = [_text(a[s:s + step]) for a in arrays]
             f.write("".join(sep.join(row) + "\n" for row in zip(*texts, strict=True)))
     return notes
+
+
+#: first characters that make a spreadsheet read a cell as a formula (OWASP's CSV injection list)
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def _safe_name(name: str, notes: list[str]) -> str:
+    """A column name a spreadsheet will not run: one starting like a formula gets a leading
+    ``'`` (noted)."""
+    if not name.startswith(FORMULA_START):
+        return name
+    notes.append(f"attribute {name!r} written as {chr(39) + name!r}: a name starting with = + - "
+                 "or @ reads as a formula in spreadsheets")
+    return "'" + name
+
+
+def _quoted(name: str, sep: str) -> str:
+    """``name`` as a header field (RFC 4180): in double quotes, its own quotes doubled, when it
+    holds the separator, a quote, a line break or (space-separated files) white space."""
+    if any(c in name for c in (sep, '"', "\n", "\r")) or (sep == " " and any(c.isspace() for c in name)):
+        return '"' + name.replace('"', '""') + '"'
+    return name
+
+
+def _header_fields(line: str, delim: str | None) -> list[str]:
+    """The names of a header line, quoted fields (RFC 4180) read as such."""
+    import csv
+
+    if delim:
+        fields = next(csv.reader([line], delimiter=delim))
+    else:
+        fields = [f for f in next(csv.reader([line], delimiter=" ", skipinitialspace=True)) if f]
+    return [f.strip().lstrip("/").strip() for f in fields]

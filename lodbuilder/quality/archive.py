@@ -41,6 +41,22 @@ class ScanEvaluation:
 
 
 @strict_keywords
+def _level_queries(n_ordered: int, sizes: Any, rhos: Any, fractions: Any,
+                   extra: str | None) -> list[tuple[str, Any]]:
+    """``(kind, value)`` of every level to evaluate, checked (default: ten log-spaced sizes); an
+    ``extra`` ordering's levels are asked by size or fraction only."""
+    if extra and rhos:
+        raise InputError(
+            f"levels of ordering {extra!r} are asked by --sizes or --fractions: its radii are not "
+            "Euclidean, so a rho does not name a level of it"
+        )
+    queries: list[tuple[str, Any]] = []
+    queries += [("size", check_size(s, n_ordered)) for s in sizes or ()]
+    queries += [("fraction", check_fraction(f)) for f in fractions or ()]
+    queries += [("rho", check_positive(r, "rho", allow_none=False)) for r in rhos or ()]
+    return queries or [("size", s) for s in default_sizes(n_ordered)]
+
+
 def evaluate_scan(
     scan: Any,
     *,
@@ -63,17 +79,7 @@ def evaluate_scan(
     pts = scan.points()
     n = pts.shape[0]
     extra = ordering not in (None, "uniform")
-    if extra and rhos:
-        raise InputError(
-            f"levels of ordering {ordering!r} are asked by --sizes or --fractions: its radii are not "
-            "Euclidean, so a rho does not name a level of it"
-        )
-    queries: list[tuple[str, Any]] = []
-    queries += [("size", check_size(s, scan.n_ordered)) for s in sizes or ()]
-    queries += [("fraction", check_fraction(f)) for f in fractions or ()]
-    queries += [("rho", check_positive(r, "rho", allow_none=False)) for r in rhos or ()]
-    if not queries:
-        queries = [("size", s) for s in default_sizes(scan.n_ordered)]
+    queries = _level_queries(scan.n_ordered, sizes, rhos, fractions, ordering if extra else None)
     tree = cKDTree(pts)
     reports = []
     for i, (kind, value) in enumerate(queries):

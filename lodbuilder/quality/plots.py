@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,24 @@ def plot_quality(
     unit = units or "scan units"
     ncols = 2 if radius is not None else 1
     fig, axes = plt.subplots(1, ncols, figsize=(6.0 * ncols, 4.5), squeeze=False)
-    ax = axes[0, 0]
+    _plot_errors(axes[0, 0], reports, unit)
+    if radius is not None:
+        _plot_radius(axes[0, 1], radius, unit)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    from ..io._files import atomic_output
+
+    try:
+        with atomic_output(out) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+    finally:
+        plt.close(fig)
+    return out
+
+
+def _plot_errors(ax: Any, reports: Sequence[LevelReport], unit: str) -> None:
+    """Error measures against level size (log-log), the claimed rho and the levels that violate it."""
     reps = sorted(reports, key=lambda r: r.size)
     size = np.array([r.size for r in reps], dtype=float)
     series = {
@@ -78,26 +96,17 @@ def plot_quality(
     ax.set_title("error vs size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    if radius is not None:
-        ax2 = axes[0, 1]
-        r = np.asarray(radius, dtype=float)
-        rank = np.arange(1, r.size + 1)
-        ok = np.isfinite(r) & (r > 0)
-        ax2.plot(rank[ok], r[ok], lw=1)
-        ax2.set_xscale("log")
-        ax2.set_yscale("log")
-        ax2.set_xlabel("rank (position in the ordering, 1-based)")
-        ax2.set_ylabel(f"insertion radius ({unit})")
-        ax2.set_title("insertion radius vs rank")
-        ax2.grid(True, which="both", alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    from ..io._files import atomic_output
 
-    try:
-        with atomic_output(out) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    finally:
-        plt.close(fig)
-    return out
+
+def _plot_radius(ax: Any, radius: np.ndarray, unit: str) -> None:
+    """Insertion radius against rank (log-log)."""
+    r = np.asarray(radius, dtype=float)
+    rank = np.arange(1, r.size + 1)
+    ok = np.isfinite(r) & (r > 0)
+    ax.plot(rank[ok], r[ok], lw=1)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("rank (position in the ordering, 1-based)")
+    ax.set_ylabel(f"insertion radius ({unit})")
+    ax.set_title("insertion radius vs rank")
+    ax.grid(True, which="both", alpha=0.3)

@@ -76,6 +76,15 @@ class LevelReport:
         return jsonable(asdict(self))
 
 
+def _claimed_rho(rho: Any) -> float | None:
+    if rho is None:
+        return None
+    rho = float(rho)
+    if math.isnan(rho) or rho < 0:
+        raise InputError(f"rho must be a number >= 0, got {rho!r}")
+    return rho
+
+
 @strict_keywords
 def evaluate_level(
     points,
@@ -101,10 +110,7 @@ def evaluate_level(
     t0 = time.perf_counter()
     pts = validate_points(points, "points")
     lev = validate_points(level, "level")
-    if rho is not None:
-        rho = float(rho)
-        if math.isnan(rho) or rho < 0:
-            raise InputError(f"rho must be a number >= 0, got {rho!r}")
+    rho = _claimed_rho(rho)
     level_tree = cKDTree(lev)
     if input_tree is None:
         input_tree = cKDTree(pts)

@@ -168,40 +168,9 @@ def density_floor_ordering(
         raise InputError(f"cost must be <= 1 for a density floor, got max {f.max():g}; rescale it")
     rho0 = float(check_positive(rho0, "rho0", allow_none=False))  # type: ignore[arg-type]
     ex = check_exclude(exclude, n)
-    n_ordered = n - (0 if ex is None else int(ex.sum()))
-    if uniform is None:
-        uniform = order_subset(pts, ex, rho=rho0, **engine)
-        n0 = len(uniform)
-    else:
-        if uniform.n_points != n:
-            raise InputError(
-                f"uniform ordering is of {uniform.n_points} points but points has {n}; "
-                "pass the ordering of these points"
-            )
-        n0 = uniform.size_for_rho(rho0)
-        if n0 == len(uniform) and len(uniform) < n_ordered:
-            raise InputError(
-                f"uniform ordering stops at radius {uniform.radius[-1]:g} > rho0 = {rho0:g}; "
-                "pass a full uniform ordering or one stopped at rho0"
-            )
-    if ex is not None and ex[uniform.order[:n0]].any():
-        raise InputError(
-            "uniform ordering includes excluded points; build it with the same exclude"
-        )
+    uniform, n0 = _floor_prefix(pts, ex, rho0, uniform, engine)
     w = order_subset(pts, ex, cost=f, seeds=uniform.order[:n0], **engine)
-    radius = w.radius.copy()
-    parent = w.parent.copy()
-    radius[:n0] = uniform.radius[:n0]
-    parent[:n0] = uniform.parent[:n0]
-    clamped = 0
-    if n0 and n0 < radius.size and radius[n0] > radius[n0 - 1]:
-        # only numerical slack of the band engine can get here (the bound says <= rho0 < radius[n0-1])
-        cap = radius[n0 - 1]
-        clamped = int((radius[n0:] > cap).sum())
-        log.warning(
-            "density floor: %d weighted radii above the floor's last radius, capped", clamped
-        )
-        radius[n0:] = np.minimum(radius[n0:], cap)
+    radius, parent, clamped = _join_at_floor(w, uniform, n0)
     stats = dict(w.stats) | {
         "kind": "density_floor",
         "rho0": rho0,
@@ -269,6 +238,56 @@ def floor_query(uniform: Ordering, weighted: Ordering, rho: float, size: int) ->
     )
 
 
+def _floor_prefix(pts: np.ndarray, ex: np.ndarray | None, rho0: float, uniform: Ordering | None,
+                  engine: dict[str, Any]) -> tuple[Ordering, int]:
+    """The uniform ordering of a density floor (given, or ordered down to ``rho0``) and the size of
+    its prefix at ``rho0``, checked against the points and the excluded ones."""
+    n = pts.shape[0]
+    n_ordered = n - (0 if ex is None else int(ex.sum()))
+    if uniform is None:
+        uniform = order_subset(pts, ex, rho=rho0, **engine)
+        n0 = len(uniform)
+    else:
+        if uniform.n_points != n:
+            raise InputError(
+                f"uniform ordering is of {uniform.n_points} points but points has {n}; "
+                "pass the ordering of these points"
+            )
+        n0 = uniform.size_for_rho(rho0)
+        if n0 == len(uniform) and len(uniform) < n_ordered:
+            raise InputError(
+                f"uniform ordering stops at radius {uniform.radius[-1]:g} > rho0 = {rho0:g}; "
+                "pass a full uniform ordering or one stopped at rho0"
+            )
+    if ex is not None and ex[uniform.order[:n0]].any():
+        raise InputError(
+            "uniform ordering includes excluded points; build it with the same exclude"
+        )
+    return uniform, n0
+
+
+def _join_at_floor(w: Ordering, uniform: Ordering, n0: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Radii and parents of the floor ordering: the uniform prefix's for its first ``n0`` points,
+    the weighted ordering's after, capped at the floor's last radius (and how many were capped)."""
+    radius = w.radius.copy()
+    parent = w.parent.copy()
+    radius[:n0] = uniform.radius[:n0]
+    parent[:n0] = uniform.parent[:n0]
+    clamped = 0
+    if n0 and n0 < radius.size and radius[n0] > radius[n0 - 1]:
+        # only numerical slack of the band engine can get here (the bound says <= rho0 < radius[n0-1])
+        cap = radius[n0 - 1]
+        clamped = int((radius[n0:] > cap).sum())
+        # (INFO, not a warning: nothing for the user to do, and no guarantee changes)
+        log.info(
+            "density floor: %d weighted radii just past the floor were above its last radius "
+            "(numerical slack of the band metric) and were capped to it, so that radii never "
+            "increase; every level past the floor still covers within rho0", clamped
+        )
+        radius[n0:] = np.minimum(radius[n0:], cap)
+    return radius, parent, clamped
+
+
 def build_orderings(
     points: Any,
     maps: Mapping[str, Any],
@@ -307,33 +326,11 @@ def build_orderings(
         ``{"weighted": Ordering}`` when ``adaptive`` is set, plus ``{"floor": Ordering}`` when
         ``density_floor`` is set. Each Ordering's ``stats`` names its kind and parameters.
     """
-    from ..features.weights import DEFAULT_EPS, DEFAULT_PERCENTILES, combine_maps, cost_from_weights
-
     pts = validate_points(points)
-    n = pts.shape[0]
     if adaptive is None and density_floor is None:
         return {}
     a = 1.0 if adaptive is None else adaptive
-    names = list(weight_maps) if weight_maps is not None else [m for m in maps if m != "noise"]
-    missing = [m for m in names if m not in maps]
-    if missing:
-        raise InputError(f"weight maps {missing} were not computed; add them to --importance")
-    if not names:
-        raise InputError(
-            "an adaptive ordering needs an importance map other than noise; "
-            "add e.g. curvature to --importance"
-        )
-    eps = DEFAULT_EPS if eps is None else eps
-    pct = DEFAULT_PERCENTILES if percentiles is None else percentiles
-    w = combine_maps({m: maps[m] for m in names}, n, combine=combine, percentiles=pct)
-    cost = cost_from_weights(w, a, eps)
-    params = {
-        "maps": names,
-        "adaptivity": float(a),
-        "combine": combine,
-        "eps": float(eps),
-        "percentiles": [float(pct[0]), float(pct[1])],
-    }
+    cost, params = _cost(maps, pts.shape[0], a, weight_maps, combine, eps, percentiles)
     out: dict[str, Ordering] = {}
     total = int(adaptive is not None) + int(density_floor is not None)
     report(progress, "orderings", 0, total)
@@ -348,6 +345,33 @@ def build_orderings(
         out["floor"] = _with_stats(o, params)
         report(progress, "orderings", total, total)
     return out
+
+
+def _cost(maps: Mapping[str, Any], n: int, a: float, weight_maps: Sequence[str] | None, combine: str,
+          eps: float | None, percentiles: tuple[float, float] | None) -> tuple[np.ndarray, dict[str, Any]]:
+    """The per-point cost of adaptivity ``a`` from the weight maps, and its parameters."""
+    from ..features.weights import DEFAULT_EPS, DEFAULT_PERCENTILES, combine_maps, cost_from_weights
+
+    names = list(weight_maps) if weight_maps is not None else [m for m in maps if m != "noise"]
+    missing = [m for m in names if m not in maps]
+    if missing:
+        raise InputError(f"weight maps {missing} were not computed; add them to --importance")
+    if not names:
+        raise InputError(
+            "an adaptive ordering needs an importance map other than noise; "
+            "add e.g. curvature to --importance"
+        )
+    eps = DEFAULT_EPS if eps is None else eps
+    pct = DEFAULT_PERCENTILES if percentiles is None else percentiles
+    w = combine_maps({m: maps[m] for m in names}, n, combine=combine, percentiles=pct)
+    params = {
+        "maps": names,
+        "adaptivity": float(a),
+        "combine": combine,
+        "eps": float(eps),
+        "percentiles": [float(pct[0]), float(pct[1])],
+    }
+    return cost_from_weights(w, a, eps), params
 
 
 def _with_stats(o: Ordering, params: dict[str, Any]) -> Ordering:
@@ -417,58 +441,60 @@ def feature_build(
             ``build["outliers"]``. ``noise`` is computed (and stored) when not asked for.
         importance_k: neighbours per point of the built-in maps.
     """
-    from ..features.registry import compute_importance, map_name, parse_names
+    from ..features.registry import compute_importance
 
     pts = validate_points(scan.points)
-    names: list[str] = [] if importance is None else parse_names(importance)
-    if not names and (adaptive is not None or density_floor is not None):
-        names = ["curvature"]
-    thr = None
-    if outlier_threshold is not None:
-        thr = float(check_positive(outlier_threshold, "outlier threshold", allow_none=False))  # type: ignore[arg-type]
-        if "noise" not in [map_name(s) for s in names]:
-            names.append("noise")
-        if OUTLIER_ATTRIBUTE in scan.attributes:
-            raise InputError(
-                f"scan {scan.name!r} already has an attribute {OUTLIER_ATTRIBUTE!r}; rename it "
-                "before flagging outliers"
-            )
+    names, thr = _map_names(scan, importance, adaptive is not None or density_floor is not None, outlier_threshold)
     maps = compute_importance(scan, names, k=importance_k, progress=progress) if names else {}
     engine: dict[str, Any] = {"voxel_size": voxel_size, "band_radius": band_radius}
-    if max_memory is not None:
-        engine["max_memory"] = max_memory
+    engine |= {} if max_memory is None else {"max_memory": max_memory}
     build: dict[str, Any] = {}
     exclude = None
     if thr is not None:
-        mask = maps["noise"][0] > thr
-        n_out = int(mask.sum())
-        build["outliers"] = {"map": "noise", "threshold": thr, "count": n_out}
-        if n_out:
-            exclude = check_exclude(mask, pts.shape[0])
-            attrs = dict(scan.attributes) | {OUTLIER_ATTRIBUTE: mask}
-            scan = replace(scan, attributes=attrs)
-        log.info(
-            "outliers: %d point(s) with noise score > %g left out of the orderings", n_out, thr
-        )
+        scan, exclude, build["outliers"] = _flag_outliers(scan, maps["noise"][0], thr)
     main = order_subset(pts, exclude, seeds=seeds, progress=progress, **engine)
-    extra = build_orderings(
-        pts,
-        maps,
-        adaptive,
-        density_floor,
-        combine=combine,
-        exclude=exclude,
-        uniform=main,
-        seeds=seeds,
-        progress=progress,
-        **engine,
-    )
+    extra = build_orderings(pts, maps, adaptive, density_floor, combine=combine, exclude=exclude, uniform=main,
+                            seeds=seeds, progress=progress, **engine)
     orderings = {name: (o, _ordering_params(o)) for name, o in extra.items()}
     if maps:
         build["importance"] = {name: params for name, (_, params) in maps.items()}
     if orderings:
         build["orderings"] = {name: p for name, (_, p) in orderings.items()}
     return FeatureBuild(scan, main, dict(maps), orderings, build)
+
+
+def _map_names(scan: Any, importance: Any, ordered_by_maps: bool, outlier_threshold: Any) -> tuple[list[str], float | None]:
+    """The importance maps to compute (curvature when an ordering needs one and none is named;
+    noise when outliers are flagged) and the checked outlier threshold."""
+    from ..features.registry import map_name, parse_names
+
+    names: list[str] = [] if importance is None else parse_names(importance)
+    if not names and ordered_by_maps:
+        names = ["curvature"]
+    if outlier_threshold is None:
+        return names, None
+    thr = float(check_positive(outlier_threshold, "outlier threshold", allow_none=False))  # type: ignore[arg-type]
+    if "noise" not in [map_name(s) for s in names]:
+        names.append("noise")
+    if OUTLIER_ATTRIBUTE in scan.attributes:
+        raise InputError(
+            f"scan {scan.name!r} already has an attribute {OUTLIER_ATTRIBUTE!r}; rename it "
+            "before flagging outliers"
+        )
+    return names, thr
+
+
+def _flag_outliers(scan: Any, noise: np.ndarray, thr: float) -> tuple[Any, np.ndarray | None, dict[str, Any]]:
+    """The scan with its ``outlier`` attribute (when any point's noise score exceeds ``thr``), the
+    mask to exclude from the orderings (None when none) and the build record's entry."""
+    mask = noise > thr
+    n_out = int(mask.sum())
+    exclude = None
+    if n_out:
+        exclude = check_exclude(mask, mask.shape[0])
+        scan = replace(scan, attributes=dict(scan.attributes) | {OUTLIER_ATTRIBUTE: mask})
+    log.info("outliers: %d point(s) with noise score > %g left out of the orderings", n_out, thr)
+    return scan, exclude, {"map": "noise", "threshold": thr, "count": n_out}
 
 
 def _ordering_params(o: Ordering) -> dict[str, Any]:

@@ -18,7 +18,18 @@ side, more than 0.2 x the separation, so that a slightly misjudged normal cannot
 middle of a gap in). So no voxel lies in the gap and no gap is bridged whatever h is, and a tight
 fold is measured along its outer side (a little longer than the surface, never a shortcut through
 its inside). If there is a sheet on the outer side too, the radius there is capped at
-0.95 (sep - h) / 2 (never below h). The Euclidean tail never lowers a point from a sample farther
+0.95 (sep - h) / 2 (never below h). Then the band is *cut between sheets*
+(:func:`lodbuilder._kernels.sheets.sheet_cut`): of two neighbouring voxels whose nearest points lie
+on different sheets, the one farther from its point leaves the band, and so does a voxel that is a
+corner of a cell holding a point of another sheet; so a sheet between two others is bridged to
+neither. In a stack joined by folds (an accordion) no choice of sides is consistent around every
+fold, so the one-sided band splits it; then the plain band cut between sheets is used (both sides
+of every sheet, each up to about the middle of the gap). Both need a gap of about 2 voxels (4 point
+spacings): when no band cut between sheets holds together, at least REFINE_SHARE of the scan is thin
+and its median separation is under REFINE_SEP voxels, the band is built on a grid of that separation /
+REFINE_SEP (3 spacings apart: 1.36 spacings instead of 2, about 2.2 x the voxels); if that does not hold
+together either, the plain band of the default grid is used (5 sheets 3 spacings apart still are: a
+few points at the folds' ends form islands of their own). The Euclidean tail never lowers a point from a sample farther
 than 0.9 x their separation (a ball smaller than the gap does not reach the other sheet), nor along a
 chord steeper than 24 degrees (sin 0.4) to either end's sheet (around a tight fold the chord is much shorter
 than the surface); when at least THIN_SHARE % of the scan is thin, the band ordering goes on down
@@ -182,6 +193,7 @@ class BandPlan:
     separation: np.ndarray | None
     normal: np.ndarray | None
     handover: float
+    outer: np.ndarray | None = None  # the separation on the other side (inf: none)
 
     @property
     def thin_points(self) -> int:
@@ -261,8 +273,63 @@ def plan_and_build_band(
         release_freed_memory(n)
         band = build_band(points, h, r, max_memory)
     found = plan.thin_points
+    thin = plan
     band, plan = build_planned_band(points, plan, max_memory, band=band)
+    if plan.normal is None and found >= REFINE_SHARE * n and _needs_finer(thin):
+        del band  # (its memory is needed for the finer one)
+        refined = _refined(points, thin, max_memory)
+        if refined is not None:
+            return refined[0], refined[1], found
+        band = build_band(points, plan.h, plan.r, max_memory)
     return band, plan, found
+
+
+REFINE_SHARE = 0.5  # when this share of the scan is thin and its sheets are closer than ...
+REFINE_SEP = 2.2  # ... this many voxels, and no band cut between them holds together, a finer grid
+
+
+def _refined(points: np.ndarray, thin: BandPlan, max_memory: int | None) -> tuple[Band, BandPlan] | None:
+    """The band of ``thin`` (a plan whose band fell back to the plain one) on a grid fine enough
+    that its typical separation is REFINE_SEP voxels, when it is less; None when that band still
+    falls back (or does not fit in memory). The sheets are the ones measured on the default grid
+    (separations and normals are lengths and directions, whatever the grid)."""
+    from .fastfps import release_freed_memory
+
+    h = _typical_separation(thin) / REFINE_SEP
+    r = BAND_PER_VOXEL * h
+    plan = _with_grid(thin, h, r)
+    release_freed_memory(points.shape[0])
+    try:
+        band = build_band(points, h, r, max_memory)
+    except MemoryBudgetError:
+        return None
+    band, plan = build_planned_band(points, plan, max_memory, band=band)
+    if plan.normal is None:
+        return None
+    log.info("sheets close together: a grid of %.3g instead of %.3g keeps them apart", h, thin.h)
+    return band, plan
+
+
+def _typical_separation(thin: BandPlan) -> float:
+    assert thin.separation is not None
+    return float(np.median(thin.separation[np.isfinite(thin.separation)]))
+
+
+def _needs_finer(thin: BandPlan) -> bool:
+    return _typical_separation(thin) < REFINE_SEP * thin.h
+
+
+def _with_grid(thin: BandPlan, h: float, r: float) -> BandPlan:
+    """``thin``'s sheets on a grid of spacing h with band radius r."""
+    assert thin.outer is not None
+    radius = _thin_radius(thin.outer, h, r)
+    return BandPlan(h, r, radius, thin.separation, thin.normal, min(TAIL_FACTOR * r, thin.handover), thin.outer)
+
+
+def _thin_radius(sep_out: np.ndarray, h: float, r: float) -> np.ndarray:
+    """The band radius where sheets come close: capped at 0.95 (sep_out - h) / 2 (never below h)."""
+    with np.errstate(invalid="ignore"):
+        return np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
 
 
 def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
@@ -271,12 +338,11 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     sep_in, sep_out, normal = sheet_separation(points, h, r)
     if not np.isfinite(sep_in).any():
         return plain
-    with np.errstate(invalid="ignore"):
-        radius = np.clip(0.95 * (sep_out - h) / 2, THIN_RADIUS_MIN * h, r)
+    radius = _thin_radius(sep_out, h, r)
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
     typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
     handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
-    return BandPlan(h, r, radius, sep_in, normal, handover)
+    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out)
 
 
 _M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,
@@ -461,14 +527,34 @@ def one_sided(
     return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
 
 
+def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel costs ``vcost`` of ``band`` cut between the sheets of ``plan`` (see
+    :func:`lodbuilder._kernels.sheets.sheet_cut`: no two neighbouring marchable voxels, and no
+    point and the voxels it reads, stand on different sheets) and the points' nearest marchable
+    corners in the result."""
+    from .._kernels.sheets import sheet_cut
+    from .._kernels.topology import nearest_corners
+
+    assert plan.normal is not None and plan.separation is not None
+    perm = band.perm
+    nin = np.ascontiguousarray(plan.normal[perm], dtype=np.float64)
+    psep = np.ascontiguousarray(plan.separation[perm] / band.h)
+    cut = sheet_cut(band.keys, band.nbr, band.cs, band.foot, vcost, band.u, nin, psep)
+    return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
+
+
 def build_planned_band(
     points: np.ndarray, plan: BandPlan, max_memory: int | None = None, *, band: Band | None = None
 ) -> tuple[Band, BandPlan]:
-    """The band of a plan. A one-sided band must not split the surface into more pieces than the
-    plain band does (two registrations of one surface a few spacings apart, in a merged scan, are
-    found as two sheets and may be cut apart that way): if it does, the plain band is used for the
-    whole scan and the plan returned says so. The one-sided band is a subset of the plain one's
-    voxels, so both are decided on one band (``band``: the plain band, when already built)."""
+    """The band of a plan: one-sided where sheets come close, and cut between sheets (so a sheet
+    between two others is bridged to neither). A one-sided band must not split the surface into
+    more pieces than the plain band does: in a stack of sheets joined by folds no choice of sides
+    is consistent around every fold, and two registrations of one surface a few spacings apart, in
+    a merged scan, are found as two sheets and may be cut apart that way. If it does, the plain
+    band cut between sheets is tried (both sides of every sheet, each voxel on its nearest point's
+    sheet); if that splits it too, the plain band is used for the whole scan and the plan returned
+    says so. Every band here is a subset of the plain one's voxels, so all are decided on one band
+    (``band``: the plain band, when already built)."""
     from .._kernels.topology import point_components
 
     if band is None:
@@ -476,10 +562,19 @@ def build_planned_band(
     if plan.normal is None:
         return band, plan
     vcost, near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
+    vcost, near = cut_between_sheets(band, vcost, plan)
     pieces = point_components(band.nbr, band.cs, near, vcost)
-    if pieces > 1 and point_components(band.nbr, band.cs, band.near, band.vcost) < pieces:
-        log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
-        return band, BandPlan.plain(plan.h, plan.r)
+    plain = 0
+    if pieces > 1:
+        plain = point_components(band.nbr, band.cs, band.near, band.vcost)
+    if pieces > 1 and plain < pieces:
+        vcost, near = cut_between_sheets(band, band.vcost, plan)
+        pieces = point_components(band.nbr, band.cs, near, vcost)
+        if pieces > plain:
+            log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", pieces)
+            return band, BandPlan.plain(plan.h, plan.r)
+        log.info("one-sided band splits the surface; using the plain band cut between sheets")
+        plan = BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover, plan.outer)
     band.vcost, band.near = vcost, near
     return band, plan
 

@@ -11,7 +11,6 @@ import concurrent.futures as cf
 import logging
 import math
 import os
-import shutil
 import time
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -22,8 +21,10 @@ import numpy as np
 from ...errors import BuildError, LodbuilderError
 from ...progress import ProgressCallback, report
 from . import plan as P
+from .sums import SumFile, write_json
+from .sums import done as piece_done
 from .tasks import coarse_task, cover_tile, order_tile
-from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spill, write_json
+from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spill
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,8 @@ HALO_FACTOR = 0.3
 
 
 def _done(work: Path, phase: str) -> dict[str, Any] | None:
-    return read_json(work / f"{phase}.json")
+    """The marker of a finished phase whose files all check out (see :mod:`.sums`), else None."""
+    return piece_done(work, phase)
 
 
 def _mark(work: Path, phase: str, doc: dict[str, Any]) -> dict[str, Any]:
@@ -119,8 +121,10 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     sees its neighbours' latest, and the orderings agree more with each pass (see TILE_PASSES).
     Returns the number of tile orderings a resume found done."""
     n_tiles = len(by_size)
+    # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
-            if read_json(work / f"order.{t.index}.{p}.json") is not None}
+            if piece_done(work, f"order.{t.index}.{p}", () if p == passes else (f"stream.{t.index}.bin",))
+            is not None}
     found = len(done)
 
     def deps(p: int, t: int) -> list[tuple[int, int]]:
@@ -185,12 +189,13 @@ def build_tiled(
     """Order one scan (``sources``: one stream, or several posed streams for a joint build) tile by
     tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
+    from ...archive.files import make_own_dir, remove_own_dir
     from ...sampling.band import choose_parameters
     from .merge import assemble_radii, merge_tiles, write_ranks
     from .write import bucket_points, write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
-    work.mkdir(parents=True, exist_ok=True)
+    make_own_dir(work, work.name)  # or check that the one a killed build left is lodbuilder's
     times: dict[str, float] = {}
     t_all = time.perf_counter()
 
@@ -199,7 +204,9 @@ def build_tiled(
     doc = _done(work, "spill")
     if doc is None:
         sp = spill(sources, work, progress)
-        np.save(work / "sample.npy", sp.sample)
+        with SumFile(work / "sample.npy") as f:
+            np.save(f, sp.sample)
+        sp.files = {**(sp.files or {}), "sample.npy": f.sum}
         _mark(work, "spill", sp.to_json())
     else:
         sp = Spill.from_json(doc, np.load(work / "sample.npy"))
@@ -237,7 +244,7 @@ def build_tiled(
         pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
                                   "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
                                   "tiles": [t.to_json() for t in tiles], "d_cell": d_cell, "span": span,
-                                  "n_decimated": n_dec})
+                                  "n_decimated": n_dec, "files": {"decimated.i8": dec.sum}})
     tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
     grid = P.Grid(np.asarray(pl["grid"]["lo"]), float(pl["grid"]["cell"]), tuple(pl["grid"]["shape"]))
     n_tiles = len(tiles)
@@ -262,8 +269,9 @@ def build_tiled(
             r_est = pl["d_cell"] * math.sqrt(m_est / head_est)
             halo = HALO_FACTOR * (r_est + delta)
             lookup = P.tile_lookup(tiles, grid)
-            n_core, n_halo = distribute(work, n, tiles, grid, lookup, halo, progress)
-            dist = _mark(work, "distribute", {"halo": halo, "n_core": n_core.tolist(), "n_halo": n_halo.tolist()})
+            n_core, n_halo, sums = distribute(work, n, tiles, grid, lookup, halo, progress)
+            dist = _mark(work, "distribute", {"halo": halo, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(),
+                                              "files": sums})
     finally:
         if coarse is None:
             (coarse,) = _collect(pending, "the coarse level", name, 1, progress, "coarse")
@@ -291,20 +299,21 @@ def build_tiled(
         min_cell = float(pl["span"]) / (1 << 20)
         merged = merge_tiles(work, n, n_tiles, [int(s.get("n_seam", 0)) for s in stats], seam_spacing, sp.lo, min_cell,
                              progress)
-        write_ranks(work, n)
+        merged["files"]["rank.i8"] = write_ranks(work, n)
         _mark(work, "merge", merged)
     times["merge"] = time.perf_counter() - t0
 
     # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
     #    the points in stored order (the first pass of the write)
     t0 = time.perf_counter()
-    todo = [t for t in by_size if read_json(work / f"cover.{t.index}.json") is None]
+    todo = [t for t in by_size if piece_done(work, f"cover.{t.index}") is None]
     resumed["tiles_covered_before"] = n_tiles - len(todo)
     calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
     futs = _submit(executor, calls)
     try:
-        if _done(work, "buckets") is None:
-            _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
+        buckets = _done(work, "buckets")
+        if buckets is None:
+            buckets = _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
     finally:
         _collect(futs, "covering", name, n_tiles, progress, "covering",
                  lambda res: write_json(work / f"cover.{res['tile']}.json", res))
@@ -345,9 +354,9 @@ def build_tiled(
         "phase_seconds": {k: round(v, 3) for k, v in times.items()},
     }
     info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
-                      {"reader": sp.reader, **(provenance or {})}, progress, _done(work, "buckets"))
+                      {"reader": sp.reader, **(provenance or {})}, progress, buckets)
     times["write"] = time.perf_counter() - t0
-    shutil.rmtree(work, ignore_errors=True)
+    remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": {k: round(v, 4) for k, v in times.items()}, "seconds": time.perf_counter() - t_all,
             "part": str(info.path), "worker_pid": os.getpid()}

@@ -18,7 +18,6 @@ by a k-way merge over tiles (the maximum), capped by the certified bound of the 
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ import numpy as np
 from ..._atomic import publish
 from ...progress import ProgressCallback, report
 from . import workdir as W
+from .sums import SumFile, read_json, sum_file
 from .tasks import EVENT, HEAD, POINT, STREAM
 
 log = logging.getLogger(__name__)
@@ -91,9 +91,9 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     written = 0
     deferred = 0
     try:
-        with open(work / "order.i8.tmp", "wb") as fo, open(work / "key.f8.tmp", "wb") as fk:
-            head["g"].astype("<i8").tofile(fo)
-            np.full(h, np.inf).tofile(fk)
+        with SumFile(work / "order.i8.tmp") as fo, SumFile(work / "key.f8.tmp") as fk:
+            fo.write(head["g"].astype("<i8"))
+            fk.write(np.full(h, np.inf))
             written = h
             report(progress, "merge", written, n)
             while True:
@@ -107,8 +107,8 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
                                      dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
                 k = int(state[0])
                 if code == 2 or code == 0:
-                    out_g[:k].astype("<i8").tofile(fo)
-                    out_key[:k].astype("<f8").tofile(fk)
+                    fo.write(out_g[:k].astype("<i8"))
+                    fk.write(out_key[:k].astype("<f8"))
                     written += k
                     state[0] = 0.0
                     report(progress, "merge", written, n)
@@ -131,11 +131,13 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
         raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
     publish(work / "order.i8.tmp", work / "order.i8")
     publish(work / "key.f8.tmp", work / "key.f8")
-    return {"deferred": deferred, "seam_points": n_seam, "head": h}
+    return {"deferred": deferred, "seam_points": n_seam, "head": h,
+            "files": {"order.i8": fo.sum, "key.f8": fk.sum}}
 
 
-def write_ranks(work: Path, n: int) -> None:
-    """``rank.i8``: the position of every input point (the inverse of ``order.i8``)."""
+def write_ranks(work: Path, n: int) -> list[int]:
+    """``rank.i8``: the position of every input point (the inverse of ``order.i8``); returns its
+    size and CRC-32."""
     tmp = work / "rank.i8.tmp"
     rank = np.memmap(tmp, mode="w+", dtype="<i8", shape=(n,))
     try:
@@ -149,6 +151,7 @@ def write_ranks(work: Path, n: int) -> None:
     finally:
         del rank
     publish(tmp, work / "rank.i8")
+    return sum_file(work / "rank.i8")  # written in random order: summed once, from the page cache
 
 
 class _Records:
@@ -193,7 +196,7 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
     head = np.fromfile(work / "head.bin", dtype=HEAD)
     h = head.shape[0]
     r_head = head["r"]
-    meta = json.loads((work / "coarse.json").read_text())
+    meta = read_json(work / "coarse.json") or {}
     r_cut = float(meta["r_cut"])
     ev = [_Records(work / f"cover.{t}.ev", EVENT) for t in range(n_tiles)]
     pt = [_Records(work / f"cover.{t}.pt", POINT) for t in range(n_tiles)]
@@ -203,7 +206,7 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
     worst = np.inf
     worst_at = -1
     try:
-        with open(work / "radius.f8.tmp", "wb") as fr, open(work / "parent.i8.tmp", "wb") as fp:
+        with SumFile(work / "radius.f8.tmp") as fr, SumFile(work / "parent.i8.tmp") as fp:
             for k0 in range(0, n, block):
                 k1 = min(n, k0 + block)
                 # events with rank <= k-1 ... merge_events consumes them per position
@@ -248,12 +251,13 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
                     if ratio[i] < worst:
                         worst = float(ratio[i])
                         worst_at = int(ks[ok][i])
-                rad.astype("<f8").tofile(fr)
-                par.astype("<i8").tofile(fp)
+                fr.write(rad.astype("<f8"))
+                fp.write(par.astype("<i8"))
                 report(progress, "radii", k1, n)
     finally:
         for r in ev + pt:
             r.close()
     publish(work / "radius.f8.tmp", work / "radius.f8")
     publish(work / "parent.i8.tmp", work / "parent.i8")
-    return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at}
+    return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at,
+            "files": {"radius.f8": fr.sum, "parent.i8": fp.sum}}

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ..._atomic import write_array
+from .sums import publish as _publish
 from .workdir import REC, gather
 
 #: one row of a tile's ordering stream: input index, key (insertion radius), position, margin
@@ -46,9 +46,9 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     head["r"] = o.radius[:h]
     head["parent"] = o.parent[:h]
     r_next = float(o.radius[h]) if len(o) > h else 0.0
-    write_array(w / "head.bin", head)
+    files = {"head.bin": _publish(head, w / "head.bin")}
     return {"n_decimated": int(dec.shape[0]), "head": h, "r_cut": r_next, "voxel_size": o.voxel_size,
-            "band_radius": o.band_radius, "seconds": time.perf_counter() - t0}
+            "band_radius": o.band_radius, "seconds": time.perf_counter() - t0, "files": files}
 
 
 def _margins(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, interior: np.ndarray) -> np.ndarray:
@@ -140,17 +140,18 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     stream["key"] = key[srt]
     stream["x"], stream["y"], stream["z"] = p[srt, 0], p[srt, 1], p[srt, 2]
     stream["m"] = _margins(p[srt], lo, hi, interior)
+    files = {}
     if face_out is not None:
         near = stream[stream["m"] < halo]
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
-        write_array(Path(face_out), face[np.argsort(face["g"], kind="stable")])
-    write_array(out, stream)
+        files[Path(face_out).name] = _publish(face[np.argsort(face["g"], kind="stable")], Path(face_out))
+    files[out.name] = _publish(stream, out)
     n_seam = int((stream["m"] < stream["key"]).sum())
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
             "band_voxels": int(o.stats.get("band_voxels", 0)), "seconds": time.perf_counter() - t0,
-            "worker_pid": os.getpid()}
+            "worker_pid": os.getpid(), "files": files}
 
 
 def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
@@ -188,7 +189,6 @@ def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
-    write_array(w / f"cover.{t}.ev", ev)
-    write_array(w / f"cover.{t}.pt", pt)
+    files = {f"cover.{t}.ev": _publish(ev, w / f"cover.{t}.ev"), f"cover.{t}.pt": _publish(pt, w / f"cover.{t}.pt")}
     return {"tile": t, "n_ext": int(n), "n_events": int(ne), "seconds": time.perf_counter() - t0,
-            "worker_pid": os.getpid()}
+            "worker_pid": os.getpid(), "files": files}

@@ -14,7 +14,6 @@ resident memory of the process that runs it stays at one block.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,9 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from ..._atomic import write_bytes
-from ..._json import dumps
 from ...progress import ProgressCallback, report
+from .sums import SumFile, read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
 
 REC = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 BLOCK = 1 << 20  # rows per read/write block
@@ -44,29 +42,19 @@ class Spill:
     reader: str
     members: list[dict[str, Any]]
     encoding: str = "float64"
+    files: dict[str, list[int]] | None = None  # size and CRC-32 of each file written
 
     def to_json(self) -> dict[str, Any]:
         return {"n": self.n, "lo": self.lo.tolist(), "hi": self.hi.tolist(),
                 "fields": {k: [d, list(s)] for k, (d, s) in self.fields.items()},
                 "metadata": self.metadata, "reader": self.reader, "members": self.members,
-                "encoding": self.encoding}
+                "encoding": self.encoding, "files": self.files or {}}
 
     @classmethod
     def from_json(cls, d: dict[str, Any], sample: np.ndarray) -> Spill:
         return cls(int(d["n"]), np.asarray(d["lo"]), np.asarray(d["hi"]),
                    {k: (v[0], tuple(v[1])) for k, v in d["fields"].items()}, sample, d["metadata"], d["reader"],
                    d.get("members") or [], d.get("encoding", "float64"))
-
-
-def write_json(path: Path, doc: dict[str, Any]) -> None:
-    write_bytes(path, dumps(doc).encode())
-
-
-def read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
 
 
 def attr_file(work: Path, i: int) -> Path:
@@ -95,31 +83,31 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     samples = []
-    files = {k: open(attr_file(work, i), "wb") for i, k in enumerate(fields)}
+    files = {k: SumFile(attr_file(work, i)) for i, k in enumerate(fields)}
     members = []
     encodings: set[str] = set()
     meta = dict(sources[0][0].metadata) if not joint else {}
     g = 0
     try:
-        with open(work / "points.f64", "wb") as fp:
+        with SumFile(work / "points.f64") as fp:
             report(progress, "read", 0, n_total)
             for stream, pose, member in sources:
                 first = g
                 for chunk in stream.chunks(chunk_rows or BLOCK):
                     pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
                     pts = np.ascontiguousarray(pts, dtype="<f8")
-                    fp.write(pts.tobytes())
+                    fp.write(pts)
                     encodings.add(encode_points(pts, meta)[1])
                     lo = np.minimum(lo, pts.min(axis=0))
                     hi = np.maximum(hi, pts.max(axis=0))
                     off = (-g) % step
                     samples.append(pts[off::step].copy())
                     for k in names:
-                        files[k].write(np.ascontiguousarray(chunk.attributes[k], dtype=fields[k][0]).tobytes())
+                        files[k].write(np.ascontiguousarray(chunk.attributes[k], dtype=fields[k][0]))
                     if joint:
                         m = len(chunk)
-                        files["scan_id"].write(np.full(m, member if member is not None else 0, "<i4").tobytes())
-                        files["scan_point"].write(np.arange(chunk.start, chunk.start + m, dtype="<i8").tobytes())
+                        files["scan_id"].write(np.full(m, member if member is not None else 0, "<i4"))
+                        files["scan_point"].write(np.arange(chunk.start, chunk.start + m, dtype="<i8"))
                     g += len(chunk)
                     report(progress, "read", g, n_total)
                 members.append({"id": member, "n_points": g - first, "first": first})
@@ -127,8 +115,9 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
         for f in files.values():
             f.close()
     sample = np.concatenate(samples) if samples else np.zeros((0, 3))
+    sums = {"points.f64": fp.sum, **{f.path.name: f.sum for f in files.values()}}
     return Spill(g, lo, hi, fields, sample, meta, sources[0][0].reader if not joint else "joint", members,
-                 choose_encoding(encodings or {"float64"}))
+                 choose_encoding(encodings or {"float64"}), sums)
 
 
 def blocks(path: Path, dtype: Any, count: int | None = None, rows: int | None = None,
@@ -186,18 +175,21 @@ class TileWriter:
     """Appends records to the core and halo files of every tile."""
 
     def __init__(self, work: Path, n_tiles: int) -> None:
-        self.core = [open(work / f"core.{t}.bin", "wb") for t in range(n_tiles)]
-        self.halo = [open(work / f"halo.{t}.bin", "wb") for t in range(n_tiles)]
+        self.core = [SumFile(work / f"core.{t}.bin") for t in range(n_tiles)]
+        self.halo = [SumFile(work / f"halo.{t}.bin") for t in range(n_tiles)]
         self.n_core = np.zeros(n_tiles, np.int64)
         self.n_halo = np.zeros(n_tiles, np.int64)
 
     def add(self, which: str, t: int, rec: np.ndarray) -> None:
-        (self.core if which == "core" else self.halo)[t].write(rec.tobytes())
+        (self.core if which == "core" else self.halo)[t].write(rec)
         (self.n_core if which == "core" else self.n_halo)[t] += rec.shape[0]
 
     def close(self) -> None:
         for f in self.core + self.halo:
             f.close()
+
+    def sums(self) -> dict[str, list[int]]:
+        return {f.path.name: f.sum for f in self.core + self.halo}
 
 
 def opaque_rows(a: np.ndarray) -> np.ndarray:
@@ -207,8 +199,9 @@ def opaque_rows(a: np.ndarray) -> np.ndarray:
 
 
 def distribute(work: Path, n: int, tiles: list[Any], grid: Any, lookup: np.ndarray, halo: float,
-               progress: ProgressCallback = None) -> tuple[np.ndarray, np.ndarray]:
-    """Write the core and halo files of every tile; returns (core counts, halo counts)."""
+               progress: ProgressCallback = None) -> tuple[np.ndarray, np.ndarray, dict[str, list[int]]]:
+    """Write the core and halo files of every tile; returns (core counts, halo counts, the files'
+    sums)."""
     tw = TileWriter(work, len(tiles))
     t_lo = np.array([t.lo for t in tiles], float)
     t_hi = np.array([t.hi for t in tiles], float)
@@ -244,7 +237,7 @@ def distribute(work: Path, n: int, tiles: list[Any], grid: Any, lookup: np.ndarr
             report(progress, "split", g0 + m, n)
     finally:
         tw.close()
-    return tw.n_core, tw.n_halo
+    return tw.n_core, tw.n_halo, tw.sums()
 
 
 class Decimator:
@@ -256,6 +249,7 @@ class Decimator:
         self.cell = float(cell)
         self.keys: list[np.ndarray] = []
         self.gs: list[np.ndarray] = []
+        self.sum: list[int] = [0, 0]  # size and CRC-32 of the file written
 
     def add(self, g0: int, pts: np.ndarray) -> None:
         c = np.floor((pts - self.lo) / self.cell).astype(np.int64)
@@ -271,6 +265,8 @@ class Decimator:
         keys, gs = keys[order], gs[order]
         keep = np.ones(keys.shape[0], bool)
         keep[1:] = keys[1:] != keys[:-1]
-        dec = np.sort(gs[keep])
-        dec.astype("<i8").tofile(path)
+        dec = np.sort(gs[keep]).astype("<i8")
+        with SumFile(path) as f:
+            f.write(dec)
+        self.sum = f.sum
         return int(dec.shape[0])

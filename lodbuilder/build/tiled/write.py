@@ -15,7 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
+from .sums import SumFile
 from .workdir import attr_file, blocks, opaque_rows, point_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
@@ -35,7 +37,7 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
     rec = record_dtype(fields)
     names = list(fields)
     n_buckets = (n + block - 1) // block
-    files = [open(work / f"bucket.{b}.bin", "wb") for b in range(n_buckets)]
+    files = [SumFile(work / f"bucket.{b}.bin") for b in range(n_buckets)]
     attr_iters = [blocks(attr_file(work, i), np.dtype(fields[k][0]), n * int(np.prod(fields[k][1] or (1,))),
                          block * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
     try:
@@ -55,7 +57,7 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
                 srt = opaque_rows(r)[order]
                 for b in range(n_buckets):
                     if cuts[b + 1] > cuts[b]:
-                        files[b].write(srt[cuts[b]:cuts[b + 1]].tobytes())
+                        files[b].write(srt[cuts[b]:cuts[b + 1]])
                 report(progress, "permute", g0 + m, n)
     finally:
         for f in files:
@@ -63,7 +65,7 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
         for it in attr_iters:
             with contextlib.suppress(Exception):
                 it.close()  # type: ignore[attr-defined]
-    return {"block": block, "buckets": n_buckets}
+    return {"block": block, "buckets": n_buckets, "files": {f.path.name: f.sum for f in files}}
 
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
@@ -72,10 +74,22 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
                buckets: dict[str, Any] | None = None) -> Any:
     """Write the bucketed points (:func:`bucket_points`, done first if ``buckets`` is None) in
     stored order as the part ``part``, with their radii and parents."""
-    from ...archive.scanwriter import ScanWriter
-
     if buckets is None:
         buckets = bucket_points(work, n, fields, progress)
+    try:
+        return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
+                              buckets)
+    except InputError as exc:  # the scan writer's own check: the work files disagree with each other
+        what = str(exc).split(";")[0]
+        raise BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
+                         "the build again with --force") from None
+
+
+def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+                   metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
+                   provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any]) -> Any:
+    from ...archive.scanwriter import ScanWriter
+
     block = int(buckets["block"])
     rec = record_dtype(fields)
     names = list(fields)
