@@ -187,6 +187,15 @@ def covering_bound(k: int, n: int, radius_at: Callable[[int], Any], stop: float 
     return float(stop) if k >= n else float(radius_at(k))
 
 
+def pieces_reached(entries: Any, k: int) -> int:
+    """How many pieces of the band the prefix of length ``k`` holds a point of, from the ascending
+    ranks at which each piece's first point entered (``entries``, the build record's
+    ``piece_entries``): the count of entries below k."""
+    import bisect
+
+    return bisect.bisect_left(list(entries), int(k))
+
+
 def check_within_ordering(
     scan: str, rho: float, n_ordered: int, n_points: int, stop: float
 ) -> None:
