@@ -147,3 +147,15 @@ def test_a_joint_build_shows_its_stages_without_a_terminal(tmp_path):
                         tmp_path / "s1.npy", "--joint", "-o", tmp_path / "k.h5", "--no-progress"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and r.stderr == "", r.stderr
+
+
+def test_info_counts_bytes_with_commas(tmp_path, capsys):
+    pts = np.random.default_rng(0).random((1500, 3))
+    src = tmp_path / "s.npy"
+    np.save(src, pts)
+    a = tmp_path / "a.h5"
+    assert run(capsys, "build", src, "-o", a, "--no-progress")[0] == 0
+    code, out, _ = run(capsys, "info", a)
+    assert code == 0
+    size = src.stat().st_size
+    assert f"  source     s.npy ({size:,} bytes, sha256 " in out, out

@@ -149,3 +149,18 @@ def test_no_output_goes_into_the_archive_s_own_files(grown, tmp_path, where):
         _refused(r, "-o", out, what, path)
     assert part.read_bytes() == before
     assert np.all(validate_archive(path) == [])
+
+
+def test_build_cannot_write_an_archive_into_another_archive_s_parts(grown, tmp_path):
+    path, part = grown
+    src = tmp_path / "s.npy"
+    np.save(src, np.random.default_rng(0).random((200, 3)))
+    before = part.read_bytes()
+    for out in (part, path.with_name("a.h5.scans") / "new.h5", tmp_path / ".b.h5.parts" / "c.h5"):
+        out.parent.mkdir(exist_ok=True)
+        r = subprocess.run([*CLI, "build", str(src), "-o", str(out)], capture_output=True, text=True)
+        archive = path if out.parent.name.endswith(".scans") else tmp_path / "b.h5"
+        where = "in the parts directory" if archive == path else "in the build work directory"
+        assert (r.returncode, r.stderr) == (2, f"lodbuilder build: error: -o {out} is {where} of the archive "
+                                               f"{archive}; choose another output\n")
+    assert part.read_bytes() == before

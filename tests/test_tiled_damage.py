@@ -16,6 +16,7 @@ import pytest
 
 import lodbuilder
 from lodbuilder.archive.validate import validate_archive
+from lodbuilder.build.tiled import driver as D
 from lodbuilder.io import Scan
 
 TILE_POINTS = 5_000
@@ -44,7 +45,7 @@ def _same(a, b):
 
 
 # the moment of the stop: the module and function that raises (what is done by then: everything before)
-MOMENTS = {"split": ("driver", "distribute"), "merge": ("merge", "merge_tiles"),
+MOMENTS = {"split": ("driver", "distribute"), "tiles": ("driver", "write_json"), "merge": ("merge", "merge_tiles"),
            "radii": ("merge", "assemble_radii"), "write": ("write", "write_scan")}
 
 
@@ -69,6 +70,8 @@ def stopped(tmp_path_factory):
             def stop(*a, **k):
                 raise KeyboardInterrupt
 
+            if fn == "write_json":  # stopped once two tiles are ordered (their markers written)
+                stop = _after_two_orderings(D.write_json)
             mp.setattr(f"lodbuilder.build.tiled.{module}.{fn}", stop)
             with pytest.raises(KeyboardInterrupt):
                 _build(archive)
@@ -79,6 +82,19 @@ def stopped(tmp_path_factory):
     finally:
         mp.undo()
     return out
+
+
+def _after_two_orderings(write_json):
+    written = []
+
+    def write(path, doc):
+        write_json(path, doc)
+        if Path(path).name.startswith("order."):
+            written.append(path)
+            if len(written) == 2:
+                raise KeyboardInterrupt
+
+    return write
 
 
 def _work(parts):
@@ -103,6 +119,8 @@ def _cases():
     """(moment, file, damage): every kind of work file the moment has, each damage in turn."""
     kinds = {
         "split": ["points.f64", "attr.0.bin", "sample.npy", "decimated.i8", "spill.json", "plan.json"],
+        # {t}: a tile whose ordering was done when the build stopped
+        "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.bin", "halo.1.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "points.f64"],
         "radii": ["order.i8", "rank.i8", "bucket.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.bin"],
@@ -123,8 +141,10 @@ def test_a_damaged_work_file_is_made_again(stopped, clean, moment, name, how, ca
     if parts.exists():
         shutil.rmtree(parts)
     shutil.copytree(pristine, parts, symlinks=True)
-    target = _work(parts) / name
-    _damage(target, how)
+    w = _work(parts)
+    if "{t}" in name:
+        name = name.format(t=sorted(w.glob("order.*.1.json"))[0].name.split(".")[1])
+    _damage(w / name, how)
     with caplog.at_level("WARNING", logger="lodbuilder"):
         res = _build(archive)
     assert res.scans[0].status == "built"
@@ -212,3 +232,56 @@ def test_a_forged_las_work_file_names_no_internal_option(tmp_path, monkeypatch):
     with lodbuilder.open_archive(archive) as x, lodbuilder.open_archive(clean) as y:
         np.testing.assert_array_equal(x.scan("simple").points(), y.scan("simple").points())
         np.testing.assert_array_equal(x.scan("simple").radius[:], y.scan("simple").radius[:])
+
+
+KILLED = """
+import os, signal, sys
+from pathlib import Path
+import lodbuilder
+from lodbuilder.build.tiled import driver as D
+
+if __name__ == "__main__":
+    write_json = D.write_json
+    written = []
+
+    def write(path, doc):  # kill -9 once two tiles are ordered (their markers written)
+        write_json(path, doc)
+        if Path(path).name.startswith("order."):
+            written.append(path)
+            if len(written) == 2:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    D.write_json = write
+    lodbuilder.build_archive(sys.argv[1], sys.argv[2], workers=2, _tile_points=5000)
+"""
+
+
+def test_kill_9_then_damage_then_resume(tmp_path):
+    """A real kill -9 (the pool's workers die with the build) in the tile phase, then a flipped
+    points.f64 and a truncated halo file of an ordered tile: the resumed build redoes both pieces and
+    stores exactly what an uninterrupted build stores."""
+    import subprocess
+    import sys
+
+    from lodbuilder.io import write_points
+
+    src = write_points(tmp_path / "sheet.npy", _scan().points)
+    clean = tmp_path / "clean.h5"
+    lodbuilder.build_archive(src, clean, workers=2, _tile_points=5000)
+    archive = tmp_path / "a.h5"
+    script = tmp_path / "killed.py"
+    script.write_text(KILLED)
+    r = subprocess.run([sys.executable, str(script), str(src), str(archive)], capture_output=True, timeout=300)
+    assert r.returncode == -9, r.stderr
+    w = _work(tmp_path / ".a.h5.parts")
+    t = sorted(w.glob("order.*.1.json"))[0].name.split(".")[1]
+    _damage(w / "points.f64", "flip")
+    _damage(w / f"halo.{t}.bin", "truncate")
+    res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=5000)
+    assert res.scans[0].status == "built"
+    with lodbuilder.open_archive(archive) as x, lodbuilder.open_archive(clean) as y:
+        va, vb = x.scan("sheet"), y.scan("sheet")
+        np.testing.assert_array_equal(va.source_index[:], vb.source_index[:])
+        np.testing.assert_array_equal(va.radius[:], vb.radius[:])
+        np.testing.assert_array_equal(va.points(), vb.points())
+        assert va.build["tiled"]["resumed"]["tiles_ordered_before"] >= 1

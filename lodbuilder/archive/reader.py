@@ -108,7 +108,9 @@ class Archive:
     """An open archive. Use as a context manager: ``with open_archive(p) as a: ...``.
 
     ``path`` is a local file or an ``http(s)://`` / ``s3://`` URL (read through fsspec, which the
-    ``remote`` extra installs); ``storage_options`` go to fsspec (e.g. an S3 ``endpoint_url``)."""
+    ``remote`` extra installs); ``storage_options`` go to fsspec (e.g. an S3 ``endpoint_url``),
+    but for lodbuilder's own ``timeout`` (seconds a server may stay silent, default 30) and
+    ``follow_redirects`` (an HTTP redirect to another host is refused without it)."""
 
     def __init__(
         self, path: str | os.PathLike[str], *, storage_options: dict[str, Any] | None = None

@@ -271,9 +271,25 @@ class ScanWriter:
             bad = lo + int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
             raise InputError(f"points of {where} hold NaN or inf at stored row {bad}")
         src, rad, par = arrays[L.D_SOURCE_INDEX], arrays[L.D_RADIUS], arrays[L.D_PARENT]
-        if m and (src.min() < 0 or src.max() >= self.n):
+        self._check_order(src, rad, par, lo, where)
+        self._seen[src] = True
+        if m:
+            self._last_radius = float(rad[-1])
+            tail = np.flatnonzero((rad != 0) | (par != -1))
+            if tail.size:
+                self._last_tail = lo + int(tail[-1])
+        arrays[L.D_POINTS] = pts
+        self._check_extras(arrays, attributes, m, where, "attribute", lo)
+        self._check_extras(arrays, importance, m, where, "importance map", lo)
+        return arrays
+
+    def _check_order(self, src: np.ndarray, rad: np.ndarray, par: np.ndarray, lo: int, where: str) -> None:
+        """A block's source indices (in range, each input point once), radii (non-increasing, >= 0)
+        and parents (earlier rows or -1), from stored row ``lo`` on."""
+        m = src.size
+        if src.size and (src.min() < 0 or src.max() >= self.n):
             raise InputError(f"source_index of {where} must be in [0, {self.n}); got values outside")
-        if m and self._seen[src].any():
+        if src.size and self._seen[src].any():
             raise InputError(f"source_index of {where} repeats an input index; each point goes once")
         if np.isnan(rad).any() or (rad < 0).any():
             raise InputError(f"radius of {where} holds NaN or negative values")
@@ -293,22 +309,12 @@ class ScanWriter:
                 f"parent of {where} at stored row {lo + i} is {int(par[i])}; parents must be "
                 "earlier rows or -1"
             )
-        if m > 1:
+        if src.size > 1:
             ordered = np.sort(src)
             if (ordered[1:] == ordered[:-1]).any():  # a repeat inside this block
                 raise InputError(
                     f"source_index of {where} repeats an input index; each point goes once"
                 )
-        self._seen[src] = True
-        if m:
-            self._last_radius = float(rad[-1])
-            tail = np.flatnonzero((rad != 0) | (par != -1))
-            if tail.size:
-                self._last_tail = lo + int(tail[-1])
-        arrays[L.D_POINTS] = pts
-        self._check_extras(arrays, attributes, m, where, "attribute", lo)
-        self._check_extras(arrays, importance, m, where, "importance map", lo)
-        return arrays
 
     def _check_extras(self, arrays, extras, m, where, what, lo) -> None:
         extras = dict(extras or {})
@@ -475,15 +481,10 @@ class ScanWriter:
         self._done = True
         return info
 
-    def _finish(self, n_ordered, seeds, build, provenance, format_metadata, imp_params, orderings, stop):
-        where = f"scan {self.name!r}"
-        if self._written != self.n:
-            raise InputError(
-                f"{where}: {self._written} rows written but the ScanWriter was opened for "
-                f"n_points={self.n}"
-            )
-        if self._n_pending:
-            self._flush_group(self._n_pending)
+    def _checked_finish(self, n_ordered: Any, stop: Any, seeds: Any, imp_params: Any,
+                        where: str) -> tuple[int, float, np.ndarray, dict[str, Any]]:
+        """The ordered count, the stop radius, the seeds and the importance maps' parameters of
+        :meth:`finish`, checked."""
         k = self.n if n_ordered is None else int(n_ordered)
         if not 1 <= k <= self.n:
             raise InputError(f"n_ordered of {where} must be in [1, {self.n}], got {n_ordered!r}")
@@ -502,6 +503,18 @@ class ScanWriter:
         unknown = sorted(set(imp_params) - set(self._imp_names or []))
         if unknown:
             raise InputError(f"importance_parameters name maps {unknown} that were not written")
+        return k, stop, seeds_arr, imp_params
+
+    def _finish(self, n_ordered, seeds, build, provenance, format_metadata, imp_params, orderings, stop):
+        where = f"scan {self.name!r}"
+        if self._written != self.n:
+            raise InputError(
+                f"{where}: {self._written} rows written but the ScanWriter was opened for "
+                f"n_points={self.n}"
+            )
+        if self._n_pending:
+            self._flush_group(self._n_pending)
+        k, stop, seeds_arr, imp_params = self._checked_finish(n_ordered, stop, seeds, imp_params, where)
         g, f = self._g, self._f
         assert g is not None and f is not None and self._tmp is not None
         meta_text = {

@@ -116,7 +116,7 @@ def _text(info: dict[str, Any]) -> str:
         b = s["build"]
         if prov.get("source_name"):
             src = (
-                f"{prov['source_name']} ({prov.get('source_size')} bytes, sha256 "
+                f"{prov['source_name']} ({_count(prov.get('source_size'))} bytes, sha256 "
                 f"{str(prov.get('source_sha256'))[:16]}...)"
             )
         else:
@@ -163,3 +163,8 @@ def _build_line(b: dict) -> str:
 
 def _fmt(v: list[float]) -> str:
     return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
+
+
+def _count(value: Any) -> str:
+    """An integer with thousands separated by commas (as every count the command line prints)."""
+    return f"{value:,}" if isinstance(value, int) else str(value)

@@ -305,11 +305,29 @@ def check_output(
             own = archive_file(p, src)
             if own is not None:
                 raise InputError(f"{option} {p} is {own} of the archive {src}; choose another output")
+    inside = inside_archive_dir(p)
+    if inside is not None:
+        raise InputError(f"{option} {p} is {inside[1]} of the archive {inside[0]}; choose another output")
     try:
         check_output_path(p)
     except OSError as exc:
         raise type(exc)(f"{option} {exc}") from None
     return p
+
+
+def inside_archive_dir(path: Path) -> tuple[Path, str] | None:
+    """(archive, "in its parts directory" ...) when ``path`` lies in the parts directory of an
+    archive (``NAME.h5.scans/`` beside ``NAME.h5``) or in a build work directory
+    (``.NAME.h5.parts/``), whatever archive the command reads."""
+    from ..archive.layout import PARTS_SUFFIX
+
+    real = Path(os.path.realpath(path))
+    for d in real.parents:
+        if d.name.endswith(PARTS_SUFFIX) and d.with_name(d.name[: -len(PARTS_SUFFIX)]).is_file():
+            return d.with_name(d.name[: -len(PARTS_SUFFIX)]), "in the parts directory"
+        if d.name.startswith(".") and d.name.endswith(".parts") and len(d.name) > len("..parts"):
+            return d.with_name(d.name[1 : -len(".parts")]), "in the build work directory"
+    return None
 
 
 def archive_file(path: Path, archive: str | os.PathLike[str]) -> str | None:

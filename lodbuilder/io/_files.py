@@ -171,6 +171,9 @@ def run_isolated(write: Callable[[Path], object], path: Path, library: str) -> N
             code = 0
             try:
                 os.dup2(err.fileno(), 2)
+                import faulthandler
+
+                faulthandler.disable()  # (an abort here is reported by the parent, in one line)
                 write(path)
             except BaseException as exc:  # noqa: BLE001 (reported to the parent)
                 with contextlib.suppress(Exception):

@@ -24,7 +24,7 @@ from .base import Scan
 
 log = logging.getLogger(__name__)
 
-_XYZ = ("x", "y", "z")
+XYZ = ("x", "y", "z")
 #: a header comment carrying the CRS as WKT on one line (``crs_json`` + a JSON string when the
 #: WKT has non-ASCII characters, which PLY headers cannot hold)
 CRS_COMMENT = "crs "
@@ -118,7 +118,7 @@ def _header_bytes(f: Any, path: Path, notes: list[str]) -> bytes:
     return b"".join(out)
 
 
-def _parse_header(f: Any, path: Path, notes: list[str] | None = None) -> Any:
+def parse_header(f: Any, path: Path, notes: list[str] | None = None) -> Any:
     from plyfile import PlyData, PlyParseError
 
     head = _header_bytes(f, path, notes if notes is not None else [])
@@ -130,13 +130,13 @@ def _parse_header(f: Any, path: Path, notes: list[str] | None = None) -> Any:
         raise FormatError(f"{path}: not a valid PLY header ({exc_line(exc)}); check that it is a PLY file") from None
 
 
-def _has_lists(element: Any) -> bool:
+def has_lists(element: Any) -> bool:
     from plyfile import PlyListProperty
 
     return any(isinstance(p, PlyListProperty) for p in element.properties)
 
 
-def _metadata(header: Any, vertex: Any, notes: list[str]) -> dict[str, Any]:
+def header_metadata(header: Any, vertex: Any, notes: list[str]) -> dict[str, Any]:
     from .crs import KEY_WKT, set_crs, to_wkt
 
     fmt = "ascii" if header.text else {"<": "binary_little_endian", ">": "binary_big_endian"}.get(
@@ -164,7 +164,7 @@ def read(path: Path) -> list[Scan]:
     size = path.stat().st_size
     notes: list[str] = []
     with open(path, "rb") as f:
-        header = _parse_header(f, path, notes)
+        header = parse_header(f, path, notes)
         body_start = f.tell()
         names = [e.name for e in header.elements]
         if "vertex" not in names:
@@ -172,7 +172,7 @@ def read(path: Path) -> list[Scan]:
         vi = names.index("vertex")
         vertex = header.elements[vi]
         prop_names = [p.name for p in vertex.properties]
-        missing = [c for c in _XYZ if c not in prop_names]
+        missing = [c for c in XYZ if c not in prop_names]
         if missing:
             raise FormatError(
                 f"{path}: PLY vertices lack {'/'.join(missing)} (properties: {', '.join(prop_names) or 'none'}); "
@@ -191,7 +191,7 @@ def read(path: Path) -> list[Scan]:
     if not header.text:
         _check_byte_order(path, data, header.byte_order)
     scan = _to_scan(path, data, notes)
-    scan.metadata = _metadata(header, vertex, notes)
+    scan.metadata = header_metadata(header, vertex, notes)
     for n in notes:
         log.warning("%s: %s", path, n)
     return [scan]
@@ -209,7 +209,7 @@ def _bad_values(a: np.ndarray) -> int:
 def _check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
     """Refuse a binary PLY whose float coordinates read as garbage in the declared byte order but
     as ordinary numbers in the other one: its header names the wrong byte order."""
-    fields = [c for c in _XYZ if data.dtype[c].kind == "f"]
+    fields = [c for c in XYZ if data.dtype[c].kind == "f"]
     if not fields or data.shape[0] == 0:
         return
     sample = data[: min(data.shape[0], 10000)]
@@ -229,17 +229,17 @@ def _check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
 
 def _read_binary(f, path, size, body_start, before, vertex, count, byte_order, last=False):
     dtype = vertex.dtype(byte_order)
-    if _has_lists(vertex):
+    if has_lists(vertex):
         # lower bound: the scalar part of every vertex
         min_item = sum(np.dtype(p.val_dtype).itemsize if not hasattr(p, "len_dtype") else np.dtype(p.len_dtype).itemsize for p in vertex.properties)
-        _check_size(path, count, min_item * count, size - body_start)
+        check_size(path, count, min_item * count, size - body_start)
         return None
-    if any(_has_lists(e) for e in before):
-        _check_size(path, count, dtype.itemsize * count, size - body_start)
+    if any(has_lists(e) for e in before):
+        check_size(path, count, dtype.itemsize * count, size - body_start)
         return None
     offset = body_start + sum(int(e.count) * e.dtype(byte_order).itemsize for e in before)
     need = dtype.itemsize * count
-    _check_size(path, count, need, size - offset)
+    check_size(path, count, need, size - offset)
     extra = size - offset - need
     if last and dtype.itemsize and extra >= dtype.itemsize:  # (a trailing newline is fine)
         raise FormatError(
@@ -257,7 +257,7 @@ _LONGER = ("the vertex count is wrong or the file has trailing data; fix the 'el
            "line or re-export the scan")
 
 
-def _check_size(path, count, need, avail):
+def check_size(path, count, need, avail):
     if need > avail:
         raise FormatError(
             f"{path}: PLY header declares {count} vertices (>= {need} bytes) but only {max(avail, 0)} bytes follow "
@@ -268,8 +268,8 @@ def _check_size(path, count, need, avail):
 def _read_ascii(f, path, size, body_start, before, vertex, count, last=False):
     nprops = len(vertex.properties)
     # every value takes at least one character and one separator
-    _check_size(path, count, 2 * nprops * count, size - body_start)
-    if _has_lists(vertex):
+    check_size(path, count, 2 * nprops * count, size - body_start)
+    if has_lists(vertex):
         return None
     for e in before:  # ascii PLY: one line per element instance
         skipped = sum(1 for _ in itertools.islice(f, int(e.count)))
@@ -358,11 +358,11 @@ def _list_column(name: str, col: np.ndarray, notes: list[str]) -> np.ndarray | N
 
 def _to_scan(path: Path, data: np.ndarray, notes: list[str]) -> Scan:
     pts = np.empty((data.shape[0], 3), dtype=np.float64)
-    for j, c in enumerate(_XYZ):
+    for j, c in enumerate(XYZ):
         pts[:, j] = data[c]
     attrs: dict[str, np.ndarray] = {}
     for name in data.dtype.names or ():
-        if name in _XYZ:
+        if name in XYZ:
             continue
         col = data[name]
         if col.dtype == object:  # a list property
@@ -400,7 +400,7 @@ def _ply_dtype(arr: np.ndarray, name: str) -> np.dtype:
     raise InputError(f"attribute {name!r} has dtype {dt}, which PLY cannot store; convert it to a number type")
 
 
-def _coord_dtype(points: np.ndarray, metadata: dict[str, Any] | None) -> np.dtype:
+def coord_dtype(points: np.ndarray, metadata: dict[str, Any] | None) -> np.dtype:
     """float32 when the source stored float32 and the values survive the round trip, else float64."""
     props = (metadata or {}).get("vertex_properties") or {}
     if props.get("x") == "f4" and points.size:
@@ -447,7 +447,7 @@ def ply_names(cols: list[tuple[str, Any]], notes: list[str]) -> list[tuple[str, 
     """``cols`` with every name PLY cannot hold (spaces, characters outside printable ASCII, an
     empty name) renamed: each such character becomes ``_`` and a name already taken gets ``_2``,
     ``_3``... (noted)."""
-    taken = set(_XYZ) | {n for n, _ in cols if _ply_name_ok(n)}
+    taken = set(XYZ) | {n for n, _ in cols if _ply_name_ok(n)}
     out = []
     for name, a in cols:
         if _ply_name_ok(name):
@@ -497,13 +497,13 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
     meta = metadata or {}
     notes: list[str] = []
     depth = int(meta.get("write_colour_depth") or 8)
-    cdt = _coord_dtype(points, metadata)
+    cdt = coord_dtype(points, metadata)
     cols = [(n, colour_column(n, np.asarray(a), depth, notes) if n in _COLOUR_NAMES else a)
             for n, a in ordered_columns(attributes, notes)]
     cols = ply_names(cols, notes)
-    fields = [(c, cdt) for c in _XYZ] + [(n, _ply_dtype(a, n)) for n, a in cols]
+    fields = [(c, cdt) for c in XYZ] + [(n, _ply_dtype(a, n)) for n, a in cols]
     data = np.empty(points.shape[0], dtype=fields)
-    for j, c in enumerate(_XYZ):
+    for j, c in enumerate(XYZ):
         data[c] = points[:, j]
     for n, a in cols:
         data[n] = a

@@ -256,12 +256,12 @@ def _check_finite(p: Path, pts: np.ndarray, start: int) -> None:
 
 def _ply_stream(p: Path) -> PointStream | None:
     """Binary PLY with fixed-size vertex rows after fixed-size elements; None otherwise."""
-    from .ply import _XYZ, _check_size, _has_lists, _metadata, _parse_header
+    from .ply import XYZ, check_size, has_lists, header_metadata, parse_header
 
     size = p.stat().st_size
     notes: list[str] = []
     with open(p, "rb") as f:
-        header = _parse_header(f, p, notes)
+        header = parse_header(f, p, notes)
         body_start = f.tell()
     if header.text:
         return None
@@ -271,10 +271,10 @@ def _ply_stream(p: Path) -> PointStream | None:
     vi = names.index("vertex")
     vertex = header.elements[vi]
     before = header.elements[:vi]
-    if _has_lists(vertex) or any(_has_lists(e) for e in before):
+    if has_lists(vertex) or any(has_lists(e) for e in before):
         return None
     props = [q.name for q in vertex.properties]
-    if any(c not in props for c in _XYZ):
+    if any(c not in props for c in XYZ):
         return None  # the reader's own error
     order = header.byte_order
     dtype = vertex.dtype(order)
@@ -282,9 +282,9 @@ def _ply_stream(p: Path) -> PointStream | None:
     if count == 0:
         return None
     offset = body_start + sum(int(e.count) * e.dtype(order).itemsize for e in before)
-    _check_size(p, count, dtype.itemsize * count, size - offset)
+    check_size(p, count, dtype.itemsize * count, size - offset)
     native = vertex.dtype("=")
-    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {n: (native[n], ()) for n in native.names if n not in _XYZ}
+    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {n: (native[n], ()) for n in native.names if n not in XYZ}
 
     def it(rows: int) -> Iterator[Chunk]:
         with open(p, "rb") as f:
@@ -298,14 +298,14 @@ def _ply_stream(p: Path) -> PointStream | None:
                                       "vertices; re-export the file")
                 data = data.astype(native, copy=False)
                 pts = np.empty((m, 3), dtype=np.float64)
-                for j, c in enumerate(_XYZ):
+                for j, c in enumerate(XYZ):
                     pts[:, j] = data[c]
                 _check_finite(p, pts, start)
                 attrs = {n: np.ascontiguousarray(data[n]) for n in fields}
                 yield Chunk(start, pts, attrs)
                 start += m
 
-    return PointStream(p, p.stem, "ply", count, _metadata(header, vertex, notes), fields, True, it)
+    return PointStream(p, p.stem, "ply", count, header_metadata(header, vertex, notes), fields, True, it)
 
 
 # ------------------------------------------------------------------------------------ NPY

@@ -147,12 +147,12 @@ def write(path: Path, points: np.ndarray, attributes: dict[str, np.ndarray], met
     float32 attributes print as float32, float64 as float64, integers as integers. Text carries
     no dtypes: reading back gives float64 columns (and uint8 colours) whose values cast back to
     the source dtype exactly."""
-    from .ply import _coord_dtype, columns
+    from .ply import columns, coord_dtype
 
     notes: list[str] = []
     cols = columns(attributes, notes)
     names = ["x", "y", "z"] + [_safe_name(n, notes) for n, _ in cols]
-    cdt = _coord_dtype(points, metadata)
+    cdt = coord_dtype(points, metadata)
     coords = points.astype(cdt, copy=False)
     arrays = [coords[:, 0], coords[:, 1], coords[:, 2]] + [np.asarray(a) for _, a in cols]
     sep = "," if path.suffix.lower() == ".csv" else " "

@@ -20,6 +20,7 @@ import numpy as np
 
 from ...errors import BuildError, LodbuilderError
 from ...progress import ProgressCallback, report
+from . import layout as WL
 from . import plan as P
 from .sums import SumFile, write_json
 from .sums import done as piece_done
@@ -64,7 +65,8 @@ def _done(work: Path, phase: str) -> dict[str, Any] | None:
 
 
 def _mark(work: Path, phase: str, doc: dict[str, Any]) -> dict[str, Any]:
-    write_json(work / f"{phase}.json", doc)
+    write_json(work / WL.marker(phase), doc)
+    WL.moment(phase)
     return doc
 
 
@@ -123,7 +125,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
-            if piece_done(work, f"order.{t.index}.{p}", () if p == passes else (f"stream.{t.index}.bin",))
+            if piece_done(work, WL.order_piece(t.index, p), () if p == passes else (WL.stream(t.index),))
             is not None}
     found = len(done)
 
@@ -133,8 +135,8 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
 
     def call(p: int, tile: P.Tile) -> tuple:
         t = tile.index
-        faces = tuple(str(work / f"face.{u}.{q}.bin") for q, u in deps(p, t) if u != t)
-        return (str(work), t, tile.to_json(), *args, faces, str(work / f"face.{t}.{p}.bin"))
+        faces = tuple(str(work / WL.face(u, q)) for q, u in deps(p, t) if u != t)
+        return (str(work), t, tile.to_json(), *args, faces, str(work / WL.face(t, p)))
 
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
@@ -149,7 +151,8 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
             for fut in fin:
                 p, t = running.pop(fut)
                 res = _result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
-                write_json(work / f"order.{t}.{p}.json", res)
+                write_json(work / WL.marker(WL.order_piece(t, p)), res)
+                WL.moment("tile")
                 done.add((p, t))
                 report(progress, "tiles", len(done), total)
     except BaseException:
@@ -168,39 +171,161 @@ def _spacing(sample: np.ndarray, n: int) -> float:
     return s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
 
 
-def build_tiled(
-    sources: list[tuple[Any, Any, int | None]],
-    part: Path,
-    name: str,
-    work: Path,
-    executor: cf.Executor,
-    *,
-    parallel: int = 1,
-    max_memory: int | None = None,
-    voxel_size: float | None = None,
-    band_radius: float | None = None,
-    seam_spacing: float = SEAM_SPACING,
-    tile_points: int | None = None,
-    passes: int = TILE_PASSES,
-    build: dict[str, Any] | None = None,
-    provenance: dict[str, Any] | None = None,
-    progress: ProgressCallback = None,
-) -> dict[str, Any]:
+def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: str, work: Path, executor: cf.Executor,
+                *, parallel: int = 1, max_memory: int | None = None, voxel_size: float | None = None,
+                band_radius: float | None = None, seam_spacing: float = SEAM_SPACING, tile_points: int | None = None,
+                passes: int = TILE_PASSES, build: dict[str, Any] | None = None,
+                provenance: dict[str, Any] | None = None, progress: ProgressCallback = None) -> dict[str, Any]:
     """Order one scan (``sources``: one stream, or several posed streams for a joint build) tile by
     tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
     from ...archive.files import make_own_dir, remove_own_dir
-    from ...sampling.band import choose_parameters
-    from .merge import assemble_radii, merge_tiles, write_ranks
-    from .write import bucket_points, write_scan
+    from .write import write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
     make_own_dir(work, work.name)  # or check that the one a killed build left is lodbuilder's
-    times: dict[str, float] = {}
-    t_all = time.perf_counter()
+    clock = _Clock()
 
     # 1. read: the scan into raw files, with bounds, a sample and the coordinate encoding
-    t0 = time.perf_counter()
+    sp = _read(work, sources, progress)
+    n = sp.n
+    clock.lap("read")
+
+    # 2. plan: parameters, histogram, tiles, the decimated copy
+    pl = _plan(work, sp, voxel_size, band_radius, budget, parallel, tile_points)
+    tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
+    grid = P.Grid(np.asarray(pl["grid"]["lo"]), float(pl["grid"]["cell"]), tuple(pl["grid"]["shape"]))
+    n_tiles = len(tiles)
+    delta = float(pl["d_cell"]) * math.sqrt(3.0)  # every point is within a cell diagonal of the copy
+    clock.lap("plan")
+    log.info("scan %r: %d points in %d tile(s) of at most %d points", name, n, n_tiles, pl["tile_cap"])
+
+    # 3. the coarse level (on a worker) while the parent writes the tiles' core and halo files
+    worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
+    coarse, dist = _coarse_and_tiles(executor, work, name, n, pl, tiles, grid, delta, worker_budget, progress)
+    halo = float(dist["halo"])
+    clock.lap("tiles")
+
+    # 4. order every tile (on the workers), in passes
+    args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
+    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress)
+    resumed = {"tiles_ordered_before": ordered}
+    clock.lap("order")
+
+    # 5. merge the tile orders (in the parent, streaming)
+    merged = _merge(work, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
+    clock.lap("merge")
+
+    # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
+    #    the points in stored order (the first pass of the write)
+    buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, float(pl["spacing"]),
+                                                             delta, progress)
+    clock.lap("cover")
+
+    # 7. write the part file in stored order
+    head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
+    record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
+              "phase_seconds": clock.rounded(3),
+              "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
+                        "passes": passes, **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
+                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
+                        "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
+    info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
+                      {"reader": sp.reader, **(provenance or {})}, progress, buckets)
+    clock.lap("write")
+    remove_own_dir(work, work.name)
+    return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
+            "phases": clock.rounded(4), "seconds": clock.total(),
+            "part": str(info.path), "worker_pid": os.getpid()}
+
+
+def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
+           args: tuple, progress: ProgressCallback) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
+    """Phase 4: every tile ordered on the workers, in colour classes and passes. Returns the tiles
+    largest first, their colours, how many orderings a resume found done, and each tile's marker."""
+    # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
+    size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
+    by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
+    nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
+    colour = P.colour_tiles(nbrs)
+    ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, progress)
+    stats = [read_json(work / WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
+    return by_size, colour, ordered, stats
+
+
+def _merge(work: Path, n: int, stats: list[dict[str, Any]], seam_spacing: float, lo: np.ndarray, span: float,
+           progress: ProgressCallback) -> dict[str, Any]:
+    """Phase 5: the tile orders merged by descending key with the seam repair, and the ranks (or
+    what a finished merge recorded)."""
+    from .merge import merge_tiles, write_ranks
+
+    merged = _done(work, "merge")
+    if merged is None:
+        merged = merge_tiles(work, n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo,
+                             span / (1 << 20), progress)
+        merged["files"][WL.RANK] = write_ranks(work, n)
+        _mark(work, "merge", merged)
+    return merged
+
+
+def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: list[P.Tile], spacing: float,
+           delta: float, progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """Phase 6: the exact covering radii of every tile on the workers, combined, while the parent
+    puts the points in stored order (the first pass of the write). Returns the buckets' and the
+    radii's markers and how many tiles a resume found covered."""
+    from .merge import assemble_radii
+    from .write import bucket_points
+
+    n, n_tiles = sp.n, len(by_size)
+    todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
+    futs = _submit(executor, [(t.index, cover_tile, (str(work), t.index, spacing)) for t in todo])
+    try:
+        buckets = _done(work, "buckets")
+        if buckets is None:
+            buckets = _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
+    finally:
+        _collect(futs, "covering", name, n_tiles, progress, "covering",
+                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res))
+    radii = _done(work, "radii")
+    if radii is None:
+        radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
+    return buckets, radii, n_tiles - len(todo)
+
+
+def _merge_record(merged: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
+    """The build record's entries of the merge and of the radii."""
+    return {"seam_points": int(merged["seam_points"]), "seam_deferrals": int(merged["deferred"]),
+            "spacing_over_radius_min": radii["spacing_over_radius_min"]}
+
+
+class _Clock:
+    """Seconds of each phase of a build (:meth:`lap` ends one) and of the whole."""
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.times: dict[str, float] = {}
+
+    def lap(self, phase: str) -> None:
+        now = time.perf_counter()
+        self.times[phase] = now - self.last
+        self.last = now
+
+    def rounded(self, digits: int) -> dict[str, float]:
+        return {k: round(v, digits) for k, v in self.times.items()}
+
+    def total(self) -> float:
+        return time.perf_counter() - self.start
+
+
+def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict[str, Any]) -> dict[str, Any]:
+    """The build record's entries of the plan and the coarse level."""
+    return {"tile_points_max": int(pl["tile_cap"]), "halo": halo, "coarse_points": int(pl["n_decimated"]),
+            "coarse_cell": float(pl["d_cell"]), "head_points": int(head_points),
+            "head_radius": float(coarse["r_cut"])}
+
+
+def _read(work: Path, sources: list[tuple[Any, Any, int | None]], progress: ProgressCallback) -> Spill:
+    """Phase 1: the sources spilled into the work directory (or what a finished spill recorded)."""
     doc = _done(work, "spill")
     if doc is None:
         sp = spill(sources, work, progress)
@@ -210,11 +335,16 @@ def build_tiled(
         _mark(work, "spill", sp.to_json())
     else:
         sp = Spill.from_json(doc, np.load(work / "sample.npy"))
-    n = sp.n
-    times["read"] = time.perf_counter() - t0
+    return sp
 
-    # 2. plan: parameters, histogram, tiles, the decimated copy
-    t0 = time.perf_counter()
+
+def _plan(work: Path, sp: Spill, voxel_size: float | None, band_radius: float | None, budget: int,
+          parallel: int, tile_points: int | None) -> dict[str, Any]:
+    """Phase 2: the shared parameters, the tiles (a k-d split of a point-count histogram) and the
+    decimated copy (one point per cell of about the head's spacing), or what a finished plan recorded."""
+    from ...sampling.band import choose_parameters
+
+    n = sp.n
     pl = _done(work, "plan")
     if pl is None:
         s = _spacing(sp.sample, n)
@@ -232,29 +362,27 @@ def build_tiled(
         for g0, pts in point_blocks(work, n):
             hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
             dec.add(g0, pts)
-        n_dec = dec.write(work / "decimated.i8")
+        n_dec = dec.write(work / WL.DECIMATED)
         limit = max(fits, COARSE_MIN)
         while n_dec > limit:  # the cell count overshot the target: coarser cells, one more pass
             d_cell *= 1.1 * math.sqrt(n_dec / limit)
             dec = Decimator(grid.lo, d_cell)
             for g0, pts in point_blocks(work, n):
                 dec.add(g0, pts)
-            n_dec = dec.write(work / "decimated.i8")
+            n_dec = dec.write(work / WL.DECIMATED)
         tiles = P.split_tiles(hist, grid, cap)
         pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
                                   "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
                                   "tiles": [t.to_json() for t in tiles], "d_cell": d_cell, "span": span,
-                                  "n_decimated": n_dec, "files": {"decimated.i8": dec.sum}})
-    tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
-    grid = P.Grid(np.asarray(pl["grid"]["lo"]), float(pl["grid"]["cell"]), tuple(pl["grid"]["shape"]))
-    n_tiles = len(tiles)
-    delta = float(pl["d_cell"]) * math.sqrt(3.0)  # every point is within a cell diagonal of the copy
-    times["plan"] = time.perf_counter() - t0
-    log.info("scan %r: %d points in %d tile(s) of at most %d points", name, n, n_tiles, pl["tile_cap"])
+                                  "n_decimated": n_dec, "files": {WL.DECIMATED: dec.sum}})
+    return pl
 
-    # 3. the coarse level (on a worker) while the parent writes the tiles' core and halo files
-    t0 = time.perf_counter()
-    worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
+
+def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, n: int, pl: dict[str, Any],
+                      tiles: list[P.Tile], grid: P.Grid, delta: float, worker_budget: int,
+                      progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Phase 3: the coarse level ordered on a worker while the parent writes every tile's core and
+    halo files; returns their markers (coarse, distribute)."""
     coarse = _done(work, "coarse")
     pending: dict[cf.Future, int] = {}
     if coarse is None:
@@ -276,90 +404,7 @@ def build_tiled(
         if coarse is None:
             (coarse,) = _collect(pending, "the coarse level", name, 1, progress, "coarse")
             _mark(work, "coarse", coarse)
-    halo = float(dist["halo"])
-    times["tiles"] = time.perf_counter() - t0
-
-    # 4. order every tile (on the workers), in passes
-    t0 = time.perf_counter()
-    # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
-    size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
-    by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
-    nbrs = P.tile_neighbours(tiles, halo)
-    colour = P.colour_tiles(nbrs)
-    args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
-    resumed = {"tiles_ordered_before": _order_passes(executor, work, name, by_size, nbrs, colour, passes, args,
-                                                     progress)}
-    stats = [read_json(work / f"order.{t.index}.{passes}.json") or {} for t in tiles]
-    times["order"] = time.perf_counter() - t0
-
-    # 5. merge the tile orders (in the parent, streaming)
-    t0 = time.perf_counter()
-    merged = _done(work, "merge")
-    if merged is None:
-        min_cell = float(pl["span"]) / (1 << 20)
-        merged = merge_tiles(work, n, n_tiles, [int(s.get("n_seam", 0)) for s in stats], seam_spacing, sp.lo, min_cell,
-                             progress)
-        merged["files"]["rank.i8"] = write_ranks(work, n)
-        _mark(work, "merge", merged)
-    times["merge"] = time.perf_counter() - t0
-
-    # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
-    #    the points in stored order (the first pass of the write)
-    t0 = time.perf_counter()
-    todo = [t for t in by_size if piece_done(work, f"cover.{t.index}") is None]
-    resumed["tiles_covered_before"] = n_tiles - len(todo)
-    calls = [(t.index, cover_tile, (str(work), t.index, float(pl["spacing"]))) for t in todo]
-    futs = _submit(executor, calls)
-    try:
-        buckets = _done(work, "buckets")
-        if buckets is None:
-            buckets = _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
-    finally:
-        _collect(futs, "covering", name, n_tiles, progress, "covering",
-                 lambda res: write_json(work / f"cover.{res['tile']}.json", res))
-    radii = _done(work, "radii")
-    if radii is None:
-        radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
-    times["cover"] = time.perf_counter() - t0
-
-    # 7. write the part file in stored order
-    t0 = time.perf_counter()
-    head = np.fromfile(work / "head.bin", dtype=np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
-                                                             ("r", "<f8"), ("parent", "<i8")]))
-    record = {
-        **(build or {}),
-        "method": "tiled",
-        "tiled": {
-            "tiles": n_tiles,
-            "tile_points_max": int(pl["tile_cap"]),
-            "halo": halo,
-            "coarse_points": int(pl["n_decimated"]),
-            "coarse_cell": float(pl["d_cell"]),
-            "head_points": int(head.shape[0]),
-            "head_radius": float(coarse["r_cut"]),
-            "seam_alpha": seam_spacing,  # the record's name of seam_spacing (stored in archives)
-            "passes": passes,
-            "seam_points": int(merged["seam_points"]),
-            "seam_deferrals": int(merged["deferred"]),
-            "spacing_over_radius_min": radii["spacing_over_radius_min"],
-            "max_memory": budget,
-            "parallel": parallel,
-            "guarantees": GUARANTEES,
-            "resumed": resumed,
-            "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles],
-            "tile_colours": colour,
-        },
-        "voxel_size": pl["voxel_size"],
-        "band_radius": pl["band_radius"],
-        "phase_seconds": {k: round(v, 3) for k, v in times.items()},
-    }
-    info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
-                      {"reader": sp.reader, **(provenance or {})}, progress, buckets)
-    times["write"] = time.perf_counter() - t0
-    remove_own_dir(work, work.name)
-    return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
-            "phases": {k: round(v, 4) for k, v in times.items()}, "seconds": time.perf_counter() - t_all,
-            "part": str(info.path), "worker_pid": os.getpid()}
+    return coarse, dist
 
 
 def P_VOXEL(spacing: float) -> float:

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..._atomic import publish
 from ...progress import ProgressCallback, report
+from . import layout as WL
 from . import workdir as W
 from .sums import SumFile, read_json, sum_file
 from .tasks import EVENT, HEAD, POINT, STREAM
@@ -55,7 +56,7 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     """Write ``order.i8`` (input index at each position) and ``key.f8`` (acceptance keys)."""
     from ..._kernels.tiled import seam_merge, table_size, tile_heap_refresh, tile_pop
 
-    head = np.fromfile(work / "head.bin", dtype=HEAD)
+    head = np.fromfile(work / WL.HEAD_FILE, dtype=HEAD)
     h = head.shape[0]
     n_seam = int(sum(seam_counts))
     cap_acc = h + n_seam + 1
@@ -72,7 +73,7 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     dpool = np.empty((max(4 * n_seam, 1024), 6))
     dtile = np.empty(dpool.shape[0], np.int64)
     state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
-    readers = [_StreamReader(work / f"stream.{t}.bin") for t in range(n_tiles)]
+    readers = [_StreamReader(work / WL.stream(t)) for t in range(n_tiles)]
     bufs = np.zeros((n_tiles, BUF, 6))
     bpos = np.zeros(n_tiles, np.int64)
     blen = np.zeros(n_tiles, np.int64)
@@ -91,7 +92,7 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     written = 0
     deferred = 0
     try:
-        with SumFile(work / "order.i8.tmp") as fo, SumFile(work / "key.f8.tmp") as fk:
+        with SumFile(work / WL.writing(WL.ORDER)) as fo, SumFile(work / WL.writing(WL.KEY)) as fk:
             fo.write(head["g"].astype("<i8"))
             fk.write(np.full(h, np.inf))
             written = h
@@ -129,19 +130,19 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
             r.close()
     if written != n:
         raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
-    publish(work / "order.i8.tmp", work / "order.i8")
-    publish(work / "key.f8.tmp", work / "key.f8")
+    publish(work / WL.writing(WL.ORDER), work / WL.ORDER)
+    publish(work / WL.writing(WL.KEY), work / WL.KEY)
     return {"deferred": deferred, "seam_points": n_seam, "head": h,
-            "files": {"order.i8": fo.sum, "key.f8": fk.sum}}
+            "files": {WL.ORDER: fo.sum, WL.KEY: fk.sum}}
 
 
 def write_ranks(work: Path, n: int) -> list[int]:
     """``rank.i8``: the position of every input point (the inverse of ``order.i8``); returns its
     size and CRC-32."""
-    tmp = work / "rank.i8.tmp"
+    tmp = work / WL.writing(WL.RANK)
     rank = np.memmap(tmp, mode="w+", dtype="<i8", shape=(n,))
     try:
-        with open(work / "order.i8", "rb") as f:
+        with open(work / WL.ORDER, "rb") as f:
             k = 0
             while k < n:
                 g = np.fromfile(f, dtype="<i8", count=min(W.BLOCK, n - k))
@@ -150,8 +151,8 @@ def write_ranks(work: Path, n: int) -> list[int]:
         rank.flush()
     finally:
         del rank
-    publish(tmp, work / "rank.i8")
-    return sum_file(work / "rank.i8")  # written in random order: summed once, from the page cache
+    publish(tmp, work / WL.RANK)
+    return sum_file(work / WL.RANK)  # written in random order: summed once, from the page cache
 
 
 class _Records:
@@ -193,20 +194,20 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
     from ..._kernels.tiled import merge_events
 
     block = block or W.BLOCK
-    head = np.fromfile(work / "head.bin", dtype=HEAD)
+    head = np.fromfile(work / WL.HEAD_FILE, dtype=HEAD)
     h = head.shape[0]
     r_head = head["r"]
-    meta = read_json(work / "coarse.json") or {}
+    meta = read_json(work / WL.marker("coarse")) or {}
     r_cut = float(meta["r_cut"])
-    ev = [_Records(work / f"cover.{t}.ev", EVENT) for t in range(n_tiles)]
-    pt = [_Records(work / f"cover.{t}.pt", POINT) for t in range(n_tiles)]
+    ev = [_Records(work / WL.cover_events(t), EVENT) for t in range(n_tiles)]
+    pt = [_Records(work / WL.cover_points(t), POINT) for t in range(n_tiles)]
     cur = np.full(n_tiles, np.inf)
     run_min = np.inf
     run_space = np.inf
     worst = np.inf
     worst_at = -1
     try:
-        with SumFile(work / "radius.f8.tmp") as fr, SumFile(work / "parent.i8.tmp") as fp:
+        with SumFile(work / WL.writing(WL.RADIUS)) as fr, SumFile(work / WL.writing(WL.PARENT)) as fp:
             for k0 in range(0, n, block):
                 k1 = min(n, k0 + block)
                 # events with rank <= k-1 ... merge_events consumes them per position
@@ -257,7 +258,7 @@ def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: Pro
     finally:
         for r in ev + pt:
             r.close()
-    publish(work / "radius.f8.tmp", work / "radius.f8")
-    publish(work / "parent.i8.tmp", work / "parent.i8")
+    publish(work / WL.writing(WL.RADIUS), work / WL.RADIUS)
+    publish(work / WL.writing(WL.PARENT), work / WL.PARENT)
     return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at,
-            "files": {"radius.f8": fr.sum, "parent.i8": fp.sum}}
+            "files": {WL.RADIUS: fr.sum, WL.PARENT: fp.sum}}

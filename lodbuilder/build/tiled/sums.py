@@ -25,6 +25,8 @@ from typing import Any, cast
 
 import numpy as np
 
+from . import layout as WL
+
 log = logging.getLogger(__name__)
 
 CHUNK = 1 << 23  # bytes per read when a file is checked
@@ -156,7 +158,7 @@ def read_json(path: Path) -> dict[str, Any] | None:
 def done(work: Path, name: str, skip: tuple[str, ...] = ()) -> dict[str, Any] | None:
     """The marker ``<name>.json`` of a finished phase or task when it and every file it lists
     check out; else None, and a marker that is there but fails is deleted (the piece is redone)."""
-    path = work / f"{name}.json"
+    path = work / WL.marker(name)
     if not path.exists():
         return None
     doc = read_json(path)

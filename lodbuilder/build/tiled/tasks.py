@@ -16,15 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from . import layout as WL
 from .sums import publish as _publish
 from .workdir import REC, gather
 
-#: one row of a tile's ordering stream: input index, key (insertion radius), position, margin
-STREAM = np.dtype([("g", "<f8"), ("key", "<f8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("m", "<f8")])
-HEAD = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "<f8"), ("parent", "<i8")])
-FACE = np.dtype([("g", "<i8"), ("key", "<f8")])  # a tile's points near its shared faces, by input index
-EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
-POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
+STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
 
 
@@ -34,8 +30,8 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     w = Path(work)
-    dec = np.fromfile(w / "decimated.i8", dtype="<i8")
-    pts = gather(w / "points.f64", "<f8", (3,), dec)
+    dec = np.fromfile(w / WL.DECIMATED, dtype="<i8")
+    pts = gather(w / WL.POINTS, "<f8", (3,), dec)
     k = min(size + 1, dec.shape[0])
     o = fastfps(pts, size=k, max_memory=max_memory)
     h = min(size, len(o))
@@ -46,7 +42,7 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     head["r"] = o.radius[:h]
     head["parent"] = o.parent[:h]
     r_next = float(o.radius[h]) if len(o) > h else 0.0
-    files = {"head.bin": _publish(head, w / "head.bin")}
+    files = {WL.HEAD_FILE: _publish(head, w / WL.HEAD_FILE)}
     return {"n_decimated": int(dec.shape[0]), "head": h, "r_cut": r_next, "voxel_size": o.voxel_size,
             "band_radius": o.band_radius, "seconds": time.perf_counter() - t0, "files": files}
 
@@ -95,9 +91,9 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
 
     t0 = time.perf_counter()
     w = Path(work)
-    out = w / f"stream.{t}.bin"
-    core = np.fromfile(w / f"core.{t}.bin", dtype=REC)
-    head = np.fromfile(w / "head.bin", dtype=HEAD)
+    out = w / WL.stream(t)
+    core = np.fromfile(w / WL.core(t), dtype=REC)
+    head = np.fromfile(w / WL.HEAD_FILE, dtype=HEAD)
     lo, hi = np.asarray(tile["lo"]), np.asarray(tile["hi"])
     interior = np.asarray(tile["interior"], bool)
     cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
@@ -110,7 +106,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
     timed = None
     if faces:
-        hrec = np.fromfile(w / f"halo.{t}.bin", dtype=REC)
+        hrec = np.fromfile(w / WL.halo(t), dtype=REC)
         rows, keys = _timed(hrec, list(faces))
         if rows.size:
             first = cpts.shape[0] + int(extra.sum())
@@ -165,12 +161,12 @@ def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     w = Path(work)
-    core = np.fromfile(w / f"core.{t}.bin", dtype=REC)
-    halo = np.fromfile(w / f"halo.{t}.bin", dtype=REC)
+    core = np.fromfile(w / WL.core(t), dtype=REC)
+    halo = np.fromfile(w / WL.halo(t), dtype=REC)
     ext = np.concatenate([core, halo])
     is_core = np.zeros(ext.shape[0], bool)
     is_core[: core.shape[0]] = True
-    ranks = gather(w / "rank.i8", "<i8", (), ext["g"])
+    ranks = gather(w / WL.RANK, "<i8", (), ext["g"])
     srt = np.argsort(ranks, kind="stable")
     ranks = np.ascontiguousarray(ranks[srt])
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])
@@ -189,6 +185,6 @@ def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
-    files = {f"cover.{t}.ev": _publish(ev, w / f"cover.{t}.ev"), f"cover.{t}.pt": _publish(pt, w / f"cover.{t}.pt")}
+    files = {WL.cover_events(t): _publish(ev, w / WL.cover_events(t)), WL.cover_points(t): _publish(pt, w / WL.cover_points(t))}
     return {"tile": t, "n_ext": int(n), "n_events": int(ne), "seconds": time.perf_counter() - t0,
             "worker_pid": os.getpid(), "files": files}

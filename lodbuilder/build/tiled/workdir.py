@@ -1,12 +1,5 @@
-"""The work directory of a tiled build: the scan spilled to raw files, read back in chunks.
-
-Files (all little-endian raw arrays; ``meta.json`` describes them)::
-
-    points.f64            (N, 3) float64 coordinates in input order (poses applied)
-    attr.<k>.bin          attribute k in input order (dtype and shape in meta.json)
-    core.<t>.bin          the points of tile t: records (g, x, y, z), g the input index
-    halo.<t>.bin          the points within the halo width of tile t owned by other tiles
-    decimated.i8          input indices of the decimated copy (one point per grid cell)
+"""The work directory of a tiled build: the scan spilled to raw files, read back in chunks (the
+files and their records are listed in :mod:`.layout`).
 
 Every pass reads these with explicit reads of bounded blocks (no memory maps left open), so the
 resident memory of the process that runs it stays at one block.
@@ -22,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from ...progress import ProgressCallback, report
+from . import layout as WL
 from .sums import SumFile, read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
 
-REC = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+REC = WL.REC
 BLOCK = 1 << 20  # rows per read/write block
 SAMPLE = 400_000  # points kept for the spacing estimate
 
@@ -58,7 +52,7 @@ class Spill:
 
 
 def attr_file(work: Path, i: int) -> Path:
-    return work / f"attr.{i}.bin"
+    return work / WL.attr(i)
 
 
 def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: ProgressCallback = None,
@@ -89,7 +83,7 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
     meta = dict(sources[0][0].metadata) if not joint else _joint_crs(sources)
     g = 0
     try:
-        with SumFile(work / "points.f64") as fp:
+        with SumFile(work / WL.POINTS) as fp:
             report(progress, "read", 0, n_total)
             for stream, pose, member in sources:
                 first = g
@@ -115,7 +109,7 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
         for f in files.values():
             f.close()
     sample = np.concatenate(samples) if samples else np.zeros((0, 3))
-    sums = {"points.f64": fp.sum, **{f.path.name: f.sum for f in files.values()}}
+    sums = {WL.POINTS: fp.sum, **{f.path.name: f.sum for f in files.values()}}
     return Spill(g, lo, hi, fields, sample, meta, sources[0][0].reader if not joint else "joint", members,
                  choose_encoding(encodings or {"float64"}), sums)
 
@@ -157,7 +151,7 @@ def blocks(path: Path, dtype: Any, count: int | None = None, rows: int | None = 
 
 def point_blocks(work: Path, n: int, rows: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
     rows = rows or BLOCK
-    for lo, a in blocks(work / "points.f64", "<f8", 3 * n, 3 * rows):
+    for lo, a in blocks(work / WL.POINTS, "<f8", 3 * n, 3 * rows):
         yield lo // 3, a.reshape(-1, 3)
 
 
@@ -191,8 +185,8 @@ class TileWriter:
     """Appends records to the core and halo files of every tile."""
 
     def __init__(self, work: Path, n_tiles: int) -> None:
-        self.core = [SumFile(work / f"core.{t}.bin") for t in range(n_tiles)]
-        self.halo = [SumFile(work / f"halo.{t}.bin") for t in range(n_tiles)]
+        self.core = [SumFile(work / WL.core(t)) for t in range(n_tiles)]
+        self.halo = [SumFile(work / WL.halo(t)) for t in range(n_tiles)]
         self.n_core = np.zeros(n_tiles, np.int64)
         self.n_halo = np.zeros(n_tiles, np.int64)
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
+from . import layout as WL
 from .sums import SumFile
 from .workdir import attr_file, blocks, opaque_rows, point_blocks
 
@@ -37,11 +38,11 @@ def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ..
     rec = record_dtype(fields)
     names = list(fields)
     n_buckets = (n + block - 1) // block
-    files = [SumFile(work / f"bucket.{b}.bin") for b in range(n_buckets)]
+    files = [SumFile(work / WL.bucket(b)) for b in range(n_buckets)]
     attr_iters = [blocks(attr_file(work, i), np.dtype(fields[k][0]), n * int(np.prod(fields[k][1] or (1,))),
                          block * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
     try:
-        with open(work / "rank.i8", "rb") as fr:
+        with open(work / WL.RANK, "rb") as fr:
             for g0, pts in point_blocks(work, n, block):
                 m = pts.shape[0]
                 r = np.empty(m, rec)
@@ -94,9 +95,9 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
     rec = record_dtype(fields)
     names = list(fields)
     with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, \
-            open(work / "radius.f8", "rb") as frad, open(work / "parent.i8", "rb") as fpar:
+            open(work / WL.RADIUS, "rb") as frad, open(work / WL.PARENT, "rb") as fpar:
         for b in range(int(buckets["buckets"])):
-            path = work / f"bucket.{b}.bin"
+            path = work / WL.bucket(b)
             k0 = b * block
             k1 = min(n, k0 + block)
             r = np.fromfile(path, dtype=rec)
@@ -114,6 +115,6 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
 
 
 def _order_block(work: Path, k0: int, k1: int) -> np.ndarray:
-    with open(work / "order.i8", "rb") as f:
+    with open(work / WL.ORDER, "rb") as f:
         f.seek(k0 * 8)
         return np.fromfile(f, dtype="<i8", count=k1 - k0)
