@@ -209,9 +209,8 @@ def check_within_ordering(
 
     raise LevelBeyondOrderingError(
         f"scan {scan!r} is ordered only down to covering radius {stop:.4g} ({n_ordered:,} of "
-        f"{n_points:,} points: a build with --size or --rho), so no level covers within "
-        f"rho={rho:.4g}; rebuild it with 'lodbuilder build SOURCE -o ARCHIVE --force' without "
-        f"--size, or with --rho {rho:.4g}"
+        f"{n_points:,} points: a partial build), so no level covers within rho={rho:.4g}; rebuild it "
+        "without --size to order every point: lodbuilder build SOURCE -o ARCHIVE --force"
     )
 
 

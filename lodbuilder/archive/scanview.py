@@ -256,9 +256,9 @@ class ScanView:
         ):
             raise LevelBeyondOrderingError(
                 f"scan {self.name!r} is ordered only down to covering radius {self.stop_radius:.4g} "
-                f"({self.n_ordered:,} of {self.n_points:,} points: a build with --size or --rho), so "
-                f"no level holds {size:,} points; rebuild it with 'lodbuilder build SOURCE -o "
-                f"ARCHIVE --force' without --size, or with --size {size}"
+                f"({self.n_ordered:,} of {self.n_points:,} points: a partial build), so no level holds "
+                f"{size:,} points; rebuild it with --size {size} or without --size: lodbuilder build "
+                "SOURCE -o ARCHIVE --force"
             )
         return resolve_size(self.n_ordered, rho, size, fraction, rho_size=self.size_for_rho)
 
