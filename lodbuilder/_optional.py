@@ -24,7 +24,7 @@ EXTRAS: dict[str, tuple[str, str]] = {
     "laspy": ("laspy", "las"),
     "lazrs": ("lazrs", "las"),
     "pye57": ("pye57", "e57"),
-    "copclib": ("copclib", "copc"),
+    "copclib": ("copclib", "dev"),
     "dask": ("dask", "distributed"),
     "distributed": ("distributed", "distributed"),
 }

@@ -24,3 +24,19 @@ def shared_data() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+def _slow_tests() -> set[str]:
+    """The tests listed in tests/slow_tests.txt (written by tools/slow_tests.py from a full run)."""
+    path = Path(__file__).with_name("slow_tests.txt")
+    if not path.exists():
+        return set()
+    return {ln.strip() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark the listed slow tests ``slow``: ``pytest -m "not slow"`` is the fast lane."""
+    slow = _slow_tests()
+    for item in items:
+        if item.nodeid in slow:
+            item.add_marker(pytest.mark.slow)

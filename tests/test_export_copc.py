@@ -1,12 +1,15 @@
-"""``lodbuilder export ARCHIVE -o OUT.copc.laz``: a valid COPC file (read back with laspy's
-CopcReader and copclib's reader) whose octree depths are farthest-point levels, with every
-attribute, the CRS, scale and offset, the rank and the insertion radius."""
+"""``lodbuilder export ARCHIVE -o OUT.copc.laz``: a COPC 1.0 file (read back with laspy's
+CopcReader, copclib's reader and the npm ``copc`` reader) whose octree depths are farthest-point
+levels, with every attribute, the CRS, scale and offset, and with --rank-radius the rank and
+the insertion radius."""
 
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +19,13 @@ from hypothesis import strategies as st
 from lodbuilder.cli.main import main
 
 laspy = pytest.importorskip("laspy")
-pytest.importorskip("copclib", reason="copclib is not installed (pip install 'lodbuilder[copc]')")
+
+ROOT = Path(__file__).resolve().parents[1]
+COPCJS = ROOT / "tools" / "copcjs"
+
+
+def copclib():
+    return pytest.importorskip("copclib", reason="copclib is not installed (pip install 'lodbuilder[dev]')")
 
 
 @pytest.fixture(scope="module")
@@ -31,8 +40,17 @@ def autzen(shared_data, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def autzen_copc(autzen, tmp_path_factory):
+    """The default export: no rank or radius."""
     out = tmp_path_factory.mktemp("copc") / "autzen.copc.laz"
     assert main(["export", str(autzen), "-o", str(out), "-q"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def autzen_copc_rr(autzen, tmp_path_factory):
+    """With --rank-radius: every point says where it is in the ordering."""
+    out = tmp_path_factory.mktemp("copc") / "autzen_rr.copc.laz"
+    assert main(["export", str(autzen), "-o", str(out), "-q", "--rank-radius"]) == 0
     return out
 
 
@@ -44,25 +62,26 @@ def our_vlr(path) -> dict:
 
 def nodes(path) -> list:
     """(depth, offset, byte_size, point_count) of every node of the COPC hierarchy."""
-    import copclib
+    with laspy.CopcReader.open(str(path)) as reader:
+        from laspy.copc import load_octree_for_query
 
-    reader = copclib.FileReader(str(path))
-    try:
-        return [(n.key.d, n.offset, n.byte_size, n.point_count) for n in reader.GetAllNodes()]
-    finally:
-        reader.Close()
+        found = load_octree_for_query(reader.source, reader.copc_info, reader.root_page,
+                                      query_bounds=None, level_range=None)
+        return [(n.key.level, n.offset, n.byte_size, n.point_count) for n in found]
 
 
-def test_every_depth_query_returns_the_prefix_written(autzen, autzen_copc):
+def test_every_depth_query_returns_the_prefix_written(autzen, autzen_copc_rr):
     import lodbuilder
 
-    doc = our_vlr(autzen_copc)
+    doc = our_vlr(autzen_copc_rr)
     with lodbuilder.open_archive(autzen) as arc:
         radius = np.asarray(arc.scan().radius)
     assert doc["n_points"] == doc["n_points_scan"] == 110000
     levels = doc["levels"]
-    assert len(levels) >= 3 and levels[-1]["points"] == 110000
-    with laspy.CopcReader.open(str(autzen_copc)) as reader:
+    assert len(levels) >= 2 and levels[-1]["points"] == 110000
+    # the deepest depth holds at least 3/4 of the points, every other depth its band
+    assert levels[-1]["points"] - levels[-2]["points"] >= 110000 * 3 // 4
+    with laspy.CopcReader.open(str(autzen_copc_rr)) as reader:
         assert reader.copc_info.spacing == pytest.approx(doc["spacing"])
         for lv in levels:
             d = lv["depth"]
@@ -74,13 +93,157 @@ def test_every_depth_query_returns_the_prefix_written(autzen, autzen_copc):
             # its covering radius is the next insertion radius, within the depth's band
             k = lv["fps_prefix"]
             assert lv["rho"] == (float(radius[k]) if k < radius.size else 0.0)
-            assert lv["rho"] <= doc["spacing"] / 2 ** (d + 1)
+            assert lv["rho"] <= doc["spacing"] / 2 ** (d + 1) or d == len(levels) - 1
             # and the points of depth d alone have radii in (s0 / 2^(d+1), s0 / 2^d]
             one = reader.query(level=d)
             r = np.asarray(one["radius"])
             top = doc["spacing"] / 2**d
             assert np.all(r > doc["spacing"] / 2 ** (d + 1)) or d == len(levels) - 1
             assert d == 0 or np.all(r <= top)
+
+
+def depth_of_rank(doc: dict, rank: np.ndarray) -> np.ndarray:
+    """The depth of each rank by the EVLR's prefixes (no promoted points)."""
+    prefixes = np.array([lv["fps_prefix"] for lv in doc["levels"]])
+    return np.searchsorted(prefixes, rank, side="right")
+
+
+def test_spatial_and_resolution_queries_equal_brute_force(autzen_copc_rr):
+    """laspy's CopcReader chooses nodes from the info VLR's cube: every box and resolution
+    query returns exactly the points a mask over the whole file gives."""
+    from laspy.copc import Bounds
+
+    doc = our_vlr(autzen_copc_rr)
+    every = laspy.read(str(autzen_copc_rr))  # read as a plain LAZ file, front to back
+    xyz = np.column_stack([np.asarray(every.x), np.asarray(every.y), np.asarray(every.z)])
+    rank = np.asarray(every["rank"], dtype=np.int64)
+    depth = depth_of_rank(doc, rank)
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    rng = np.random.default_rng(3)
+    with laspy.CopcReader.open(str(autzen_copc_rr)) as reader:
+        assert reader.header.point_count == xyz.shape[0]
+        for _ in range(12):
+            a, b = lo + rng.random(3) * (hi - lo), lo + rng.random(3) * (hi - lo)
+            box = Bounds(np.minimum(a, b), np.maximum(a, b))
+            for levels in (None, range(0, 1), range(0, len(doc["levels"]))):
+                got = reader.query(bounds=box, level=levels)
+                mask = np.all((xyz >= box.mins - 1e-9) & (xyz <= box.maxs + 1e-9), axis=1)
+                if levels is not None:
+                    mask &= depth < levels.stop
+                assert np.array_equal(np.sort(np.asarray(got["rank"])), np.sort(rank[mask]))
+        for res in (100.0, doc["spacing"], doc["spacing"] / 2, doc["spacing"] / 8, 0.01):
+            got = reader.query(resolution=res)
+            level_max = max(1, int(np.ceil(np.log2(doc["spacing"] / res))) + 1)
+            assert np.array_equal(np.sort(np.asarray(got["rank"])), np.sort(rank[depth < level_max]))
+
+
+def test_copc_1_0_details(shared_data, autzen, autzen_copc):
+    """GPS-time range in the info VLR, the CRS as a WKT VLR that CopcReader finds, no legacy
+    extents VLR, the info VLR first at 375, the header's bounds around every point, a cube that
+    contains them strictly, and copclib's ValidateSpatialBounds."""
+    src = laspy.read(str(shared_data / "autzen_trim.laz"))
+    raw = autzen_copc.read_bytes()
+    assert raw[377:381] == b"copc" and raw[393:395] == b"\x01\x00"
+    assert raw[104] & 0x3F in (6, 7, 8) and raw[104] & 0x80  # compressed point format 7
+    with laspy.CopcReader.open(str(autzen_copc)) as reader:
+        info = reader.copc_info
+        assert (info.gps_min, info.gps_max) == (src.gps_time.min(), src.gps_time.max())
+        crs = reader.header.parse_crs()
+        assert crs is not None and crs.to_wkt() and "Lambert" in crs.to_wkt()
+        records = list(reader.header.vlrs) + list(reader.header.evlrs or [])
+        assert not [v for v in records if v.user_id == "copc" and v.record_id == 10000]
+        assert [type(v).__name__ for v in reader.header.vlrs][0] == "CopcInfoVlr"
+        assert reader.header.global_encoding.wkt
+        every = reader.query()
+        xyz = np.column_stack([np.asarray(every.x), np.asarray(every.y), np.asarray(every.z)])
+        mins, maxs = reader.header.mins, reader.header.maxs
+        assert np.all(xyz >= mins) and np.all(xyz <= maxs)
+        np.testing.assert_allclose(mins, xyz.min(axis=0) - 0.01)  # padded by one step
+        cube_lo, cube_hi = info.center - info.halfsize, info.center + info.halfsize
+        assert np.all(xyz > cube_lo) and np.all(xyz < cube_hi)
+        np.testing.assert_allclose(cube_lo, mins)
+    check_copclib(autzen_copc)
+
+
+def check_copclib(path) -> None:
+    reader = copclib().FileReader(str(path))
+    try:
+        assert reader.ValidateSpatialBounds()
+        assert sum(n.point_count for n in reader.GetAllNodes()) == reader.copc_config.las_header.point_count
+    finally:
+        reader.Close()
+
+
+def test_points_on_the_faces_of_the_bounding_box(tmp_path):
+    """A flat grid whose points lie on every face of its bounding box (the case where copclib's
+    ValidateSpatialBounds failed with an unpadded cube) is valid, and every point is found."""
+    from lodbuilder.export.copc import write_copc
+
+    g = np.linspace(0.0, 100.0, 201)
+    xx, yy = np.meshgrid(g, g)
+    pts = np.column_stack([xx.ravel(), yy.ravel(), (xx.ravel() > 50) * 5.0])
+    rng = np.random.default_rng(1)
+    pts = pts[rng.permutation(pts.shape[0])]
+    radius = 200.0 / np.sqrt(np.arange(1, pts.shape[0] + 1))
+    radius[0] = np.inf
+    out = write_copc(tmp_path / "g.copc.laz", pts, {}, radius, 0.0,
+                     metadata={"las_scales": [0.5, 0.5, 0.5], "las_offsets": [0.0, 0.0, 0.0]})
+    assert out.depths >= 2
+    check_copclib(tmp_path / "g.copc.laz")
+    with laspy.CopcReader.open(str(tmp_path / "g.copc.laz")) as reader:
+        got = reader.query()
+        assert len(got) == pts.shape[0]
+        xyz = np.column_stack([np.asarray(got.x), np.asarray(got.y), np.asarray(got.z)])
+        assert sorted(map(tuple, xyz.tolist())) == sorted(map(tuple, pts.tolist()))
+
+
+def test_points_inside_a_node_go_by_gps_time(autzen_copc):
+    """Inside each node the points follow GPS time (what LAZ compresses well), not the
+    farthest-point order."""
+    gps = np.asarray(laspy.read(str(autzen_copc)).gps_time)  # the file front to back
+    start = 0
+    for _, _, _, count in sorted(nodes(autzen_copc), key=lambda n: n[1]):  # nodes in file order
+        assert np.all(np.diff(gps[start:start + count]) >= 0)
+        start += count
+    assert start == gps.size == 110000
+
+
+def copcjs() -> Path:
+    """tools/copcjs with the npm 'copc' reader installed (npm install there), or skip."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed: the npm copc reader cannot run")
+    if not (COPCJS / "node_modules" / "copc").is_dir():
+        npm = shutil.which("npm")
+        if npm is None:
+            pytest.skip("npm is not installed: cannot install the npm copc reader")
+        r = subprocess.run([npm, "install", "--no-audit", "--no-fund"], cwd=COPCJS,
+                           capture_output=True, text=True, timeout=300)
+        if r.returncode != 0:
+            pytest.skip(f"npm install in tools/copcjs failed (offline?): {r.stderr.strip()[-200:]}")
+    return COPCJS / "decode.js"
+
+
+def decode_with_copcjs(path) -> dict:
+    r = subprocess.run(["node", str(copcjs()), str(path)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+@pytest.mark.parametrize("which", ["autzen_copc", "autzen_copc_rr"])
+def test_the_npm_copc_reader_decodes_every_node(which, request):
+    path = request.getfixturevalue(which)
+    out = decode_with_copcjs(path)
+    las = laspy.read(str(path))
+    assert out["pointFormat"] == 7 and out["pointCount"] == len(las) == 110000
+    assert out["info"]["gpsTimeRange"] == [float(las.gps_time.min()), float(las.gps_time.max())]
+    assert out["wkt"] and "Lambert" in out["wkt"]
+    assert len(out["nodes"]) == len(nodes(path))
+    for node in out["nodes"].values():
+        assert node["decoded"] == node["declared"] > 0
+    assert sum(n["decoded"] for n in out["nodes"].values()) == 110000
+    sums = np.sum([n["sums"] for n in out["nodes"].values()], axis=0)
+    np.testing.assert_allclose(sums, [np.sum(las.x), np.sum(las.y), np.sum(las.z)], rtol=1e-12)
 
 
 def test_depths_are_written_breadth_first_in_one_byte_range(autzen_copc):
@@ -94,10 +257,10 @@ def test_depths_are_written_breadth_first_in_one_byte_range(autzen_copc):
         assert end <= min(deeper)  # before every deeper node
 
 
-def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc):
-    import copclib
-
+def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc_rr):
     import lodbuilder
+
+    autzen_copc = autzen_copc_rr
 
     src = laspy.read(str(shared_data / "autzen_trim.laz"))
     with lodbuilder.open_archive(autzen) as arc:
@@ -109,8 +272,8 @@ def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc
     np.testing.assert_array_equal(out.header.scales, src.header.scales)
     np.testing.assert_array_equal(out.header.offsets, src.header.offsets)
     assert out.header.global_encoding.wkt
-    records = list(out.header.vlrs) + list(out.header.evlrs or [])  # (copclib writes an EVLR)
-    (wkt_vlr,) = [v for v in records if type(v).__name__ == "WktCoordinateSystemVlr"]
+    (wkt_vlr,) = [v for v in out.header.vlrs if type(v).__name__ == "WktCoordinateSystemVlr"]
+    assert not [v for v in out.header.evlrs if type(v).__name__ == "WktCoordinateSystemVlr"]
     assert wkt and wkt_vlr.string.rstrip("\0") == wkt
     # every point, by rank: the same integer coordinates and every field of the source
     rank = np.asarray(out["rank"], dtype=np.int64)
@@ -132,20 +295,16 @@ def test_copc_keeps_dimensions_crs_scale_offset(shared_data, autzen, autzen_copc
         out.header.number_of_points_by_return[:5], np.bincount(src.return_number, minlength=6)[1:6]
     )
     # copclib reads it back and finds every point inside its node's box and the header bounds
-    reader = copclib.FileReader(str(autzen_copc))
-    try:
-        assert reader.ValidateSpatialBounds()
-    finally:
-        reader.Close()
+    check_copclib(autzen_copc)
 
 
-def test_copc_round_trips_through_lodbuilder(autzen, autzen_copc, tmp_path):
+def test_copc_round_trips_through_lodbuilder(autzen, autzen_copc_rr, tmp_path):
     """Reading the COPC file back gives the level's points and attributes, and building an
     archive from it gives the same ordering (rank and radius came along)."""
     import lodbuilder
     from lodbuilder.io import read_scans
 
-    (scan,) = read_scans(autzen_copc)
+    (scan,) = read_scans(autzen_copc_rr)
     with lodbuilder.open_archive(autzen) as arc:
         level = arc.scan().level(size=110000)
         wkt = arc.scan().crs
@@ -164,12 +323,14 @@ def test_export_of_a_level_and_a_coloured_scan(tmp_path, capsys):
     arc = tmp_path / "demo.h5"
     lodbuilder.build_archive(demo_scan(30000, seed=2), arc, name="demo", importance="curvature")
     out = tmp_path / "demo.copc.laz"
-    assert main(["export", str(arc), "--size", "20000", "-o", str(out)]) == 0
+    assert main(["export", str(arc), "--size", "20000", "-o", str(out), "--rank-radius"]) == 0
     text = capsys.readouterr().out
     assert text.startswith(f"wrote 20,000 of 30,000 points of scan 'demo' to {out} (")
+    # 20,000 points: the root's band (10,000) reaches past K / 4, so one depth holds them all
+
     assert f"  changed: {out}: red: 8-bit values scaled x 257 into the 16-bit LAS field\n" in text
     doc = our_vlr(out)
-    assert f"  depths 0..{doc['levels'][-1]['depth']} hold 10,000 / " in text
+    assert f"  depths 0..{doc['levels'][-1]['depth']} hold 20,000 points, covering radius " in text
     with lodbuilder.open_archive(arc) as a:
         view = a.scan()
         radius = np.asarray(view.radius)
@@ -255,7 +416,7 @@ def test_promoted_points_end_to_end(tmp_path, monkeypatch):
     pts[1:300, :2] *= 0.2  # the coarse points in one corner, the fine ones everywhere
     radius = 50 / np.sqrt(np.arange(1, 3001))  # radii unrelated to where the points are
     radius[0] = np.inf
-    out = write_copc(tmp_path / "p.copc.laz", pts, {}, radius, 0.0)
+    out = write_copc(tmp_path / "p.copc.laz", pts, {}, radius, 0.0, rank_radius=True)
     assert out.promoted > 0 and out.depths >= 4
     with laspy.CopcReader.open(str(tmp_path / "p.copc.laz")) as reader:
         for lv in out.levels:
@@ -275,8 +436,10 @@ def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
          "--max-points applies to a web page (-o OUT.html) only"),
         (["-o", str(tmp_path / "x.copc.laz"), "--up", "y"],
          "--up applies to a web page (-o OUT.html) only"),
+        (["-o", str(tmp_path / "x.html"), "--rank-radius"],
+         "--rank-radius applies to a COPC file (-o OUT.copc.laz) only"),
         (["-o", str(tmp_path / "x.laz")],
-         f"-o {tmp_path / 'x.laz'}: name it OUT.copc.laz (COPC) or OUT.html (web page); for "
+         f"-o {tmp_path / 'x.laz'}: name it OUT.copc.laz (COPC), OUT.html (web page) or DIR/tileset.json (3D Tiles); for "
          ".ply, .las, .laz, .csv, .npy... use lodbuilder slice"),
     ]
     for args, message in cases:
@@ -290,12 +453,15 @@ def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
         f"lodbuilder export ARCHIVE -o {out} (in Python: lodbuilder.export.copc.export_copc)\n"
     )
     with pytest.raises(InputError, match=r"^attribute 'rank' would clash with the rank the COPC"):
-        write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {"rank": np.zeros(2)}, np.ones(2), 0)
+        write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {"rank": np.zeros(2)}, np.ones(2), 0,
+                   rank_radius=True)
+    # copclib is not needed to write (laspy and lazrs write COPC here); lazrs is
     monkeypatch.setitem(sys.modules, "copclib", None)
-    with pytest.raises(MissingDependencyError, match=r"^COPC export needs copclib, which is not installed; install it with: pip install 'lodbuilder\[copc\]'$"):
+    monkeypatch.setitem(sys.modules, "lazrs", None)
+    with pytest.raises(MissingDependencyError, match=r"^COPC export needs lazrs, which is not installed; install it with: pip install 'lodbuilder\[las\]'$"):
         write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {}, np.ones(2), 0)
     assert main(["export", arc, "-o", str(tmp_path / "z.copc.laz")]) == 2
-    assert "COPC export needs copclib" in capsys.readouterr().err
+    assert "COPC export needs lazrs" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
 
 

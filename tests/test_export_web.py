@@ -143,11 +143,11 @@ def test_colour_modes_and_legend(demo_archive, browser, tmp_path):
     try:
         p = page.page
         options = p.eval_on_selector_all("#mode option", "els => els.map(e => e.textContent)")
-        assert options == ["RGB", "radius", "importance: curvature", "rank"]
+        assert options == ["RGB", "radius", "elevation", "importance: curvature", "rank"]
         assert not p.is_visible("#legend")  # RGB has no scale
         rgb = page.image()
         shots = {}
-        for value, label in (("s0", "radius"), ("s1", "importance: curvature"), ("rank", "rank")):
+        for value, label in (("s0", "radius"), ("s2", "importance: curvature"), ("rank", "rank")):
             p.select_option("#mode", value)
             p.wait_for_timeout(100)
             assert page.state()["mode"] == value
@@ -155,11 +155,11 @@ def test_colour_modes_and_legend(demo_archive, browser, tmp_path):
             shots[label] = page.image()
             assert np.abs(shots[label].astype(int) - rgb).mean() > 1.0
         p.select_option("#mode", "s0")
-        assert p.inner_text("#legendTitle") == "insertion radius (scan units, log)"
+        assert p.inner_text("#legendTitle") == "radius (scan units, log)"
         p.select_option("#mode", "s1")
-        assert p.inner_text("#legendTitle") == (
-            "importance curvature (lambda0 / sum lambda, no unit)"
-        )
+        assert p.inner_text("#legendTitle") == "elevation z (scan units)"
+        p.select_option("#mode", "s2")
+        assert p.inner_text("#legendTitle") == "importance: curvature"
         assert np.abs(shots["radius"].astype(int) - shots["rank"]).mean() > 0.5
         assert page.errors == [] and page.requests == [page.own]
     finally:
@@ -178,9 +178,14 @@ def test_level_slider_shows_the_prefixes(demo_archive, browser, tmp_path):
         p = page.page
         full = page.image()
         assert "3,000 of 3,000 points (100 %), rho = 0 (every point)" in p.inner_text("#levelText")
+        assert p.inner_text("#status") == "3,000 of 3,000 points drawn"
         p.eval_on_selector("#level", "el => { el.value = '0'; el.dispatchEvent(new Event('input')); }")
         p.wait_for_timeout(100)
         assert page.state()["drawn"] == 1
+        # one point is no level of 'every point' (it read 'rho = 0 (every point)'), and the
+        # corner counter follows the level (it kept the full count)
+        assert p.inner_text("#levelText").startswith(f" 1 of 3,000 points (0.0333 %), rho = {js_number(float(radius[1]))} ")
+        assert p.inner_text("#status") == "1 of 3,000 points drawn"
         # a middle stop: the prefix of k points and its covering radius radius[k]
         n_stops = int(p.get_attribute("#level", "max")) + 1
         p.eval_on_selector(
@@ -193,6 +198,19 @@ def test_level_slider_shows_the_prefixes(demo_archive, browser, tmp_path):
         text = p.inner_text("#levelText")
         assert text.startswith(f" {k:,} of 3,000 points")
         assert f"rho = {js_number(float(radius[k]))} scan units" in text
+        # radius colours follow the level: the scale starts at its rho (it was page-wide)
+        p.select_option("#mode", "s0")
+        p.wait_for_timeout(100)
+        assert p.inner_text("#legendLo") == js_number(float(radius[k]))
+        by_level = page.image()
+        p.eval_on_selector("#level", "el => { el.value = '0'; el.dispatchEvent(new Event('input')); }")
+        p.eval_on_selector(
+            "#level",
+            f"el => {{ el.value = '{n_stops // 2}'; el.dispatchEvent(new Event('input')); }}",
+        )
+        p.wait_for_timeout(100)
+        assert np.abs(page.image().astype(int) - by_level).mean() < 0.5  # the same level, same colours
+        p.select_option("#mode", "rgb")
         coarse = page.image()
         assert drawn_share(coarse) < drawn_share(full) or np.abs(coarse.astype(int) - full).mean() > 1
     finally:
@@ -268,7 +286,7 @@ def test_large_page_draws_coarse_points_first(browser, tmp_path, monkeypatch):
             page.wait_for_timeout(50)
         assert state["loaded"] == state["drawn"] == 20000
         assert state["history"][0] <= 1024 and state["history"] == sorted(state["history"])
-        assert page.inner_text("#status") == "20,000 points (the level's prefix: coarse to fine)"
+        assert page.inner_text("#status") == "20,000 of 20,000 points drawn (the level's prefix: coarse to fine)"
         assert seen == [server.url]
         page.close()
     finally:
@@ -290,7 +308,7 @@ def test_export_errors(demo_archive, tmp_path, capsys):
     cases = [
         (
             ["-o", str(tmp_path / "x.ply")],
-            f"-o {tmp_path / 'x.ply'}: name it OUT.copc.laz (COPC) or OUT.html (web page); "
+            f"-o {tmp_path / 'x.ply'}: name it OUT.copc.laz (COPC), OUT.html (web page) or DIR/tileset.json (3D Tiles); "
             "for .ply, .las, .laz, .csv, .npy... use lodbuilder slice",
         ),
         (
@@ -358,5 +376,37 @@ def test_web_page_names_the_crs_and_units(shared_data, tmp_path):
         "coordinates in foot"
     )
     assert header["unit"] == "foot"
-    assert header["scalars"][0]["title"] == "insertion radius (foot, log)"
+    assert header["scalars"][0]["title"] == "radius (foot, log)"
     assert header["rgb"] and header["n"] == 5000 and header["n_total"] == 110000
+
+
+def test_survey_colours_and_a_level_without_bound(shared_data, browser, tmp_path):
+    """An airborne tile: elevation, intensity and classification (ASPRS names in a legend of
+    swatches, drawn in their colours); its first point is followed by a seed of another piece,
+    so the coarsest stop says there is no bound yet (it read 'rho = 0 (every point)')."""
+    import lodbuilder
+
+    arc = tmp_path / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", arc, name="autzen")
+    with lodbuilder.open_archive(arc) as a:
+        assert np.isinf(np.asarray(a.scan().radius)[1])
+    out = tmp_path / "a.html"
+    assert main(["export", str(arc), "--size", "20000", "-o", str(out), "-q"]) == 0
+    page = Page(browser, out)
+    try:
+        p = page.page
+        options = p.eval_on_selector_all("#mode option", "els => els.map(e => e.textContent)")
+        assert options == ["RGB", "radius", "elevation", "intensity", "classification", "rank"]
+        p.select_option("#mode", "c0")
+        p.wait_for_timeout(150)
+        assert p.inner_text("#legendTitle") == "classification"
+        assert p.inner_text("#legendList").split("\n") == ["1 unassigned", "2 ground"]
+        img = page.image()
+        ground = np.all(np.abs(img.astype(int) - [166, 118, 64]) <= 6, axis=2)
+        assert ground.sum() > 500  # ground points (and the legend swatch) in ASPRS brown
+        p.eval_on_selector("#level", "el => { el.value = '0'; el.dispatchEvent(new Event('input')); }")
+        p.wait_for_timeout(100)
+        assert p.inner_text("#levelText") == " 1 of 110,000 points (0.000909 %), rho = none yet (new pieces follow)"
+        assert page.errors == [] and page.requests == [page.own]
+    finally:
+        page.close()

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import lodbuilder
-from lodbuilder.archive.scanwriter import write_index
+from lodbuilder.archive.index import write_index
 from lodbuilder.archive.validate import validate_archive
 from lodbuilder.archive.writer import ScanRecord, update_archive
 from lodbuilder.datasets import demo_scan

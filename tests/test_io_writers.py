@@ -101,10 +101,90 @@ def test_wkt_bit_and_vlr_for_point_formats_6_to_10(tmp_path):
     assert read_scan(out).metadata["crs_wkt"] == WKT_UTM33
 
 
-def test_no_crs_no_wkt_bit(tmp_path):
+def test_no_crs_no_crs_vlr_and_the_wkt_bit_by_point_format(tmp_path):
+    """Without a CRS no CRS VLR is written; the WKT bit is set for point formats 6-10 all the
+    same (LAS 1.4 requires it: it failed before, the bit was left 0) and not for formats 0-5."""
     pts, attrs = _ply_like()
     hdr = laspy.read(str(write_points(tmp_path / "n.las", pts, attrs))).header
-    assert not hdr.global_encoding.wkt and not any(v.user_id == "LASF_Projection" for v in hdr.vlrs)
+    assert hdr.point_format.id == 7 and hdr.global_encoding.wkt
+    assert not any(v.user_id == "LASF_Projection" for v in hdr.vlrs)
+    old = write_points(tmp_path / "o.las", pts, attrs, metadata={"las_point_format": 3, "las_version": "1.2"})
+    hdr = laspy.read(str(old)).header
+    assert hdr.point_format.id == 3 and not hdr.global_encoding.wkt
+
+
+def _survey_source(path, fmt=7, crs=True):
+    """A LAS 1.4 file of point format ``fmt`` with the WKT bit set and three extra-bytes fields:
+    a float with a no-data value, a uint16 with one, a scaled int32 (scale and offset)."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    h = laspy.LasHeader(point_format=fmt, version="1.4")
+    h.scales, h.offsets = [0.01] * 3, [0.0, 0.0, 0.0]
+    h.add_extra_dim(laspy.ExtraBytesParams("alpha", "f4", "first field", no_data=[-9999.0]))
+    h.add_extra_dim(laspy.ExtraBytesParams("beta", "u2", "second field", no_data=[65535]))
+    h.add_extra_dim(laspy.ExtraBytesParams("gamma", "i4", "scaled", scales=[0.1], offsets=[5.0]))
+    h.add_extra_dim(laspy.ExtraBytesParams("vec", "3f4", "three", no_data=[np.nan, 0, 0]))
+    if crs:
+        pytest.importorskip("pyproj")
+        import pyproj
+
+        h.add_crs(pyproj.CRS.from_epsg(32633))
+    h.global_encoding.wkt = True
+    las = laspy.LasData(h)
+    xy = rng.random((n, 2)) * 100
+    las.x, las.y, las.z = xy[:, 0], xy[:, 1], np.sin(xy[:, 0] / 10)
+    las.alpha = rng.random(n).astype("f4")
+    las.alpha[:10] = -9999
+    las.beta = rng.integers(0, 100, n)
+    las.gamma = np.round(rng.random(n) * 10, 1) + 5
+    las.vec = rng.random((n, 3))
+    las.write(str(path))
+    return path
+
+
+def _extra_structs(path) -> list:
+    hdr = laspy.read(str(path)).header
+    (vlr,) = [v for v in hdr.vlrs if type(v).__name__ == "ExtraBytesVlr"]
+    return [(s.name.rstrip(b"\0"), s.description.rstrip(b"\0"), int(s.data_type), int(s.options) & 25,
+             None if s.no_data is None else np.asarray(s.no_data).tolist(),
+             None if s.scale is None else np.asarray(s.scale).tolist(),
+             None if s.offset is None else np.asarray(s.offset).tolist())
+            for s in vlr.extra_bytes_structs]
+
+
+@pytest.mark.parametrize("crs", [True, False])
+def test_wkt_bit_and_extra_bytes_from_every_source(tmp_path, crs):
+    """A LAS 1.4 format-7 source with the WKT bit and extra bytes with names, descriptions,
+    no-data values (option bit 0), scales and offsets; built, then written as LAS, LAZ and COPC,
+    and built again from the COPC file: every output keeps the WKT bit and every extra-bytes
+    field as laspy reads it (the no-data options were dropped before, 7 -> 6)."""
+    from lodbuilder.cli.main import main
+
+    src = _survey_source(tmp_path / "src.las", crs=crs)
+    want = _extra_structs(src)
+    assert [w[3] for w in want] == [1, 1, 24, 1]  # no-data / scale+offset bits of the source
+    arc, arc2 = tmp_path / "a.h5", tmp_path / "b.h5"
+    assert main(["build", str(src), "-o", str(arc), "-q"]) == 0
+    outs = [tmp_path / "o.las", tmp_path / "o.laz", tmp_path / "o.copc.laz"]
+    for out in outs:
+        cmd = "export" if out.name.endswith(".copc.laz") else "slice"
+        assert main([cmd, str(arc), "--size", "3000", "-o", str(out), "-q"]) == 0
+    assert main(["build", str(outs[2]), "-o", str(arc2), "-q"]) == 0
+    outs.append(tmp_path / "again.laz")
+    assert main(["slice", str(arc2), "--size", "3000", "-o", str(outs[3]), "-q"]) == 0
+    s = laspy.read(str(src))
+    for out in outs:
+        got = laspy.read(str(out))
+        assert got.header.global_encoding.wkt, out.name
+        assert _extra_structs(out) == want or _nan_equal(_extra_structs(out), want), out.name
+        order = np.lexsort((np.asarray(got.Y), np.asarray(got.X)))
+        ref = np.lexsort((np.asarray(s.Y), np.asarray(s.X)))
+        for name in ("alpha", "beta", "gamma", "vec"):
+            np.testing.assert_array_equal(np.asarray(got[name])[order], np.asarray(s[name])[ref], name)
+
+
+def _nan_equal(a, b) -> bool:
+    return repr(a).replace("nan", "N") == repr(b).replace("nan", "N")
 
 
 def test_every_cast_is_a_warning(tmp_path, caplog):

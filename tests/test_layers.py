@@ -15,7 +15,7 @@ PKG = Path(__file__).resolve().parents[1] / "lodbuilder"
 LAYERS = [
     ["errors", "progress", "_validate", "_optional", "_resources", "_atomic", "_json", "py"],
     ["_kernels"],
-    ["levels", "io", "datasets"],
+    ["levels", "filters", "io", "datasets"],
     ["features", "sampling"],
     ["archive"],
     ["fill", "query", "quality", "export", "viewer"],

@@ -300,6 +300,6 @@ def test_view_names_the_crs_and_units(shared_data, tmp_path):
         label = "CRS NAD_1983_HARN_Lambert_Conformal_Conic, coordinates in foot"
         assert viewer.crs_label == label
         assert viewer._crs_text.GetText(1) == label  # the lower-right corner of the level pane
-        assert " ".join(viewer.scalar_bar.GetTitle().split()) == "insertion radius (foot, log)"
+        assert " ".join(viewer.scalar_bar.GetTitle().split()) == "radius (foot, log)"
     finally:
         viewer.close()

@@ -116,7 +116,7 @@ def test_merge_keeps_each_scans_levels(rng):
 
 def test_colour_modes(rng):
     d = ordered(rng, rgb=True)
-    assert d.colour_modes() == ["rgb", "radius", "rank", "importance:z", "voronoi"]
+    assert d.colour_modes() == ["rgb", "radius", "rank", "elevation", "importance:z", "voronoi"]
     for mode in d.colour_modes() + ["importance"]:
         c = d.colours(mode, 40)
         assert c.shape == (len(d), 3) and c.dtype == np.uint8
@@ -138,23 +138,28 @@ def test_legends_name_the_unit_and_match_the_colours(rng):
     d = ordered(rng)
     d.units = "metre"
     radius = d.legend("radius")
-    assert radius.title == "insertion radius (metre, log)" and radius.log
+    assert radius.title == "radius (metre, log)" and radius.log
     finite = d.radius[np.isfinite(d.radius)]
     assert radius.lo == pytest.approx(np.percentile(finite, 1)) and radius.hi == finite.max()
     rank = d.legend("rank")
-    assert (rank.title, rank.lo, rank.hi, rank.log) == ("rank (1 = first point, log)", 1, 600, True)
+    assert (rank.title, rank.lo, rank.hi, rank.log) == ("rank (log)", 1, 600, True)
     imp = d.legend("importance")
-    assert imp.title == "importance z (as stored)" and not imp.log
+    assert imp.title == "importance: z" and not imp.log
     assert d.legend("voronoi") is None
     d.importance["curvature"] = d.importance["z"]
-    assert d.legend("importance:curvature").title.endswith("(lambda0 / sum lambda, no unit)")
+    assert d.legend("importance:curvature").title == "importance: curvature"
     # the colours are the colour map of the legend's normalised values
     np.testing.assert_array_equal(d.colours("rank", 1)[[0, 599]], colormap(np.array([0.0, 1.0])))
-    np.testing.assert_array_equal(
-        d.colours("radius", 1), colormap(radius.normalise(np.where(np.isinf(d.radius), finite.max(), d.radius)))
-    )
+    values = np.where(np.isinf(d.radius), finite.max(), d.radius)
+    at = d.legend("radius", shown=300)  # the scale of the level shown: rho .. the largest radius
+    assert (at.lo, at.hi) == (d.rho_for_size(300), d.rho_for_size(300 // 64))
+    np.testing.assert_array_equal(d.colours("radius", 300), colormap(at.normalise(values)))
+    # the level's own points spread over the scale (with the scan-wide scale they were one
+    # flat colour: a uniform level's radii lie within a factor of about 2)
+    assert np.std(at.normalise(values[:300])) > 0.15
+    assert np.std(radius.normalise(values[:300])) < 0.15
     plain = ordered(rng)
-    assert plain.legend("radius").title == "insertion radius (scan units, log)"
+    assert plain.legend("radius").title == "radius (scan units, log)"
 
 
 def test_merge_keeps_a_common_crs(rng):

@@ -3,21 +3,29 @@
 Input: a synthetic scan (lodbuilder's demo surface: a wavy sheet with RGB, ``--points`` points,
 default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse one). Measured:
 
-* ``copc``: ``export -o OUT.copc.laz`` (copclib; target <= 10 s for 1M points): seconds, bytes,
-  depths, nodes, and a check that every depth query of laspy's CopcReader returns its prefix;
+* ``copc``: ``export -o OUT.copc.laz`` (target <= 10 s for 1M points) without and with
+  ``--rank-radius``: seconds, bytes, depths, nodes, and a check that every depth query of laspy's
+  CopcReader returns its prefix;
+* ``copc_vs_source`` (``--source LAZ``, repeatable: each built into an archive first): the COPC
+  size against the source LAZ's, without and with rank/radius (targets <= 1.15 x and <= 1.5 x);
 * ``web``: ``export -o OUT.html`` (target <= 30 MB for 1M points): seconds, bytes, and the time
   headless Chromium (Debian's, through playwright) takes from navigation to the last frame drawn
   (target <= 15 s), with the requests the page made;
+* ``tiles``: ``export -o DIR/tileset.json`` (3D Tiles 1.1; target: valid against the schema subset
+  of tests/schemas, drawn by CesiumJS in headless Chromium within 20 s with 0 requests outside the
+  local server): seconds, bytes, tiles, and the seconds from navigation until every tile is loaded;
 * ``pyvista_export_html`` (the peer, when trame, trame-vtk, trame-vuetify and trame-pyvista are
   importable): PyVista's ``Plotter.export_html`` of the same points with RGB, its bytes and
   seconds, and the requests Chromium makes when it opens the file.
 
-    python tools/bench_export.py [--points 1000000] [--archive A.h5] [--markdown docs/benchmarks.md]
+    python tools/bench_export.py [--points 1000000] [--archive A.h5] [--source S.laz ...]
+                                 [--copc-only] [--markdown docs/benchmarks.md]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -77,23 +85,115 @@ def bench_copc(view, out: Path) -> dict:
 
     from lodbuilder.export.copc import export_copc
 
+    res = {}
+    for rr in (False, True):
+        t0 = time.perf_counter()
+        got = export_copc(view, out, view.n_ordered, rank_radius=rr)
+        secs = time.perf_counter() - t0
+        one = {
+            "seconds": round(secs, 2),
+            "bytes": got.n_bytes,
+            "depths": got.depths,
+            "nodes": got.nodes,
+            "promoted": got.promoted,
+            "points_by_depth": [lv["points"] for lv in got.levels],
+        }
+        if rr:
+            ok = True
+            with laspy.CopcReader.open(str(out)) as reader:
+                for lv in got.levels:
+                    rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
+                    ok &= bool(rank.size == lv["points"])
+                    ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
+            one["depth_queries_return_their_prefix"] = ok
+        res["rank_radius" if rr else "default"] = one
+    return res
+
+
+def bench_tiles(view, tmp: Path) -> dict:
+    """Export 3D Tiles, validate the tileset, and time CesiumJS drawing it (tools/cesiumjs)."""
+    import functools
+    import http.server
+    import shutil
+    import threading
+
+    import jsonschema
+
+    from lodbuilder.export.tiles import export_tiles
+
+    out = tmp / "tiles" / "tileset.json"
+    out.parent.mkdir()
     t0 = time.perf_counter()
-    res = export_copc(view, out, view.n_ordered)
-    secs = time.perf_counter() - t0
-    ok = True
-    with laspy.CopcReader.open(str(out)) as reader:
-        for lv in res.levels:
-            rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
-            ok &= bool(rank.size == lv["points"])
-            ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
+    ts = export_tiles(view, out, view.n_ordered)
+    res = {"seconds": round(time.perf_counter() - t0, 2), "bytes": ts.n_bytes, "tiles": ts.tiles,
+           "depths": ts.depths, "geometric_errors": ts.geometric_errors}
+    schema = json.loads((ROOT / "tests" / "schemas" / "tileset-1.1-subset.schema.json").read_text())
+    res["schema_valid"] = jsonschema.Draft202012Validator(schema).is_valid(json.loads(out.read_text()))
+    build = ROOT / "tools" / "cesiumjs" / "node_modules" / "cesium" / "Build" / "Cesium"
+    if not build.is_dir():
+        res["cesium"] = {"skipped": "npm install in tools/cesiumjs first"}
+        return res
+    site = tmp / "site"
+    site.mkdir()
+    (site / "cesium").symlink_to(build)
+    (site / "tiles").symlink_to(out.parent)
+    shutil.copy(ROOT / "tools" / "cesiumjs" / "view.html", site / "index.html")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(site)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}/"
+    from playwright.sync_api import sync_playwright
+
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+            res["cesium"] = {}
+            for sse in (16, 1):  # Cesium's default screen-space error, and every tile
+                page = browser.new_page(viewport={"width": 1200, "height": 800})
+                requests: list[str] = []
+                page.on("request", lambda r, requests=requests: requests.append(r.url))
+                t0 = time.perf_counter()
+                page.goto(base + f"index.html?sse={sse}")
+                page.wait_for_function("() => LOD.loaded || LOD.error", timeout=300_000)
+                state = page.evaluate("() => LOD")
+                res["cesium"][f"sse_{sse}"] = {
+                    "all_tiles_loaded_s": round(time.perf_counter() - t0, 2),
+                    "tiles_loaded": state["tiles"], "points_drawn": state["points"],
+                    "error": state["error"], "requests": len(requests),
+                    "outside_requests": sorted({u for u in requests if not u.startswith(base)}),
+                }
+                page.close()
+            browser.close()
+    finally:
+        server.shutdown()
+    return res
+
+
+def bench_source(source: Path, tmp: Path) -> dict:
+    """Build ``source`` (a LAZ file) into an archive with defaults, export its COPC without and
+    with rank/radius, and compare the sizes with the source's."""
+    import lodbuilder
+
+    arc = tmp / (source.stem + ".h5")
+    t0 = time.perf_counter()
+    lodbuilder.build_archive(source, arc, name=source.stem)
+    build_s = time.perf_counter() - t0
+    with lodbuilder.open_archive(arc) as a:
+        view = a.scan()
+        res = bench_copc(view, tmp / (source.stem + ".copc.laz"))
+    size = source.stat().st_size
     return {
-        "seconds": round(secs, 2),
-        "bytes": res.n_bytes,
-        "depths": res.depths,
-        "nodes": res.nodes,
-        "promoted": res.promoted,
-        "points_by_depth": [lv["points"] for lv in res.levels],
-        "depth_queries_return_their_prefix": ok,
+        "source": source.name,
+        "source_bytes": size,
+        "points": view.n_ordered,
+        "build_s": round(build_s, 2),
+        "copc": res,
+        "ratio": round(res["default"]["bytes"] / size, 3),
+        "ratio_rank_radius": round(res["rank_radius"]["bytes"] / size, 3),
     }
 
 
@@ -136,8 +236,7 @@ def bench_pyvista(view, out: Path, size: int) -> dict:
 
 
 def markdown(r: dict) -> str:
-    c, w = r["copc"], r["web"]
-    ch = w["chromium"]
+    c, w = r["copc"], r.get("web")
     lines = [
         f"{measured(r)}; {r['machine']['cpu_count']} cores. Input: "
         + (f"synthetic wavy sheet with RGB, {r['n_points']:,} points (archive built in {r['build_s']} s)."
@@ -145,13 +244,38 @@ def markdown(r: dict) -> str:
         "",
         "| output | seconds | size | notes |",
         "|---|---:|---:|---|",
-        f"| COPC (copclib) | {c['seconds']} | {c['bytes'] / 1e6:.1f} MB | {c['depths']} depths, "
-        f"{c['nodes']} nodes, points by depth {', '.join(f'{x:,}' for x in c['points_by_depth'])}; "
-        f"every depth query returns its prefix: {c['depth_queries_return_their_prefix']} |",
-        f"| web page (ours) | {w['seconds']} | {w['bytes'] / 1e6:.1f} MB | headless Chromium: "
-        f"last frame {ch['render_s']} s after navigation (launch {ch['launch_s']} s), "
-        f"{ch['requests']} request(s), outside: {len(ch['outside_requests'])} |",
+        f"| COPC | {c['default']['seconds']} | {c['default']['bytes'] / 1e6:.1f} MB | "
+        f"{c['default']['depths']} depths, {c['default']['nodes']} nodes, points by depth "
+        f"{', '.join(f'{x:,}' for x in c['default']['points_by_depth'])} |",
+        f"| COPC --rank-radius | {c['rank_radius']['seconds']} | {c['rank_radius']['bytes'] / 1e6:.1f} MB | "
+        f"every depth query returns its prefix: {c['rank_radius']['depth_queries_return_their_prefix']} |",
     ]
+    if w:
+        ch = w["chromium"]
+        lines.append(
+            f"| web page (ours) | {w['seconds']} | {w['bytes'] / 1e6:.1f} MB | headless Chromium: "
+            f"last frame {ch['render_s']} s after navigation (launch {ch['launch_s']} s), "
+            f"{ch['requests']} request(s), outside: {len(ch['outside_requests'])} |"
+        )
+    t = r.get("tiles")
+    if t:
+        ce = t.get("cesium", {})
+        runs = [f"SSE {k[4:]}: {v['tiles_loaded']} tiles, {v['points_drawn']:,} points drawn in "
+                f"{v['all_tiles_loaded_s']} s, {len(v['outside_requests'])} request(s) outside"
+                for k, v in ce.items() if k.startswith("sse_")]
+        lines.append(
+            f"| 3D Tiles 1.1 | {t['seconds']} | {t['bytes'] / 1e6:.1f} MB | {t['tiles']} tiles, "
+            f"{t['depths']} depths; schema subset valid: {t['schema_valid']}; CesiumJS "
+            + ("; ".join(runs) if runs else str(ce.get("skipped"))) + " |"
+        )
+    for src in r.get("copc_vs_source", []):
+        lines.append(
+            f"| COPC of {src['source']} ({src['points']:,} points) | "
+            f"{src['copc']['default']['seconds']} | {src['copc']['default']['bytes'] / 1e6:.2f} MB | "
+            f"{src['ratio']} x the source LAZ ({src['source_bytes'] / 1e6:.2f} MB); with "
+            f"--rank-radius {src['ratio_rank_radius']} x; {src['copc']['default']['depths']} depths, "
+            f"points by depth {', '.join(f'{x:,}' for x in src['copc']['default']['points_by_depth'])} |"
+        )
     pv = r.get("pyvista_export_html", {})
     for label, res in pv.items():
         if "skipped" in res:
@@ -172,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--archive", help="reuse this archive (its only scan) instead of building one")
     ap.add_argument("--no-peer", action="store_true", help="skip PyVista's export_html")
+    ap.add_argument("--source", action="append", default=[],
+                    help="a LAZ file: build it, export its COPC and compare sizes (repeatable)")
+    ap.add_argument("--copc-only", action="store_true", help="skip the web page and the peer")
     ap.add_argument(
         "--peer-path",
         help="a directory appended to sys.path for the peer's trame packages "
@@ -209,12 +336,15 @@ def main(argv: list[str] | None = None) -> int:
             view = a.scan()
             result["n_points"] = view.n_ordered
             result["copc"] = bench_copc(view, Path(tmp) / "out.copc.laz")
-            result["web"] = bench_web(view, Path(tmp) / "out.html", view.n_ordered)
-            if not args.no_peer:
+            if not args.copc_only:
+                result["web"] = bench_web(view, Path(tmp) / "out.html", view.n_ordered)
+                result["tiles"] = bench_tiles(view, Path(tmp))
+            if not (args.no_peer or args.copc_only):
                 result["pyvista_export_html"] = {
                     f"{k:,}": bench_pyvista(view, Path(tmp) / f"pv{k}.html", k)
                     for k in sorted({min(100_000, view.n_ordered), view.n_ordered})
                 }
+        result["copc_vs_source"] = [bench_source(Path(src), Path(tmp)) for src in args.source]
     result["machine"] = machine()
     publish(result, section="export", render=markdown, markdown=args.markdown)
     return 0

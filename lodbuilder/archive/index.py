@@ -225,3 +225,24 @@ def check_part(archive: Where, row: IndexRow, path: Any) -> Where:
                 "or truncated"
             )
     return where
+
+
+def write_index(root: Any, rows: list[IndexRow]) -> None:
+    """Write /index of the open file ``root``: one row per scan, sorted by name."""
+    rows = sorted(rows, key=lambda r: r.name)
+    if L.G_INDEX in root:
+        del root[L.G_INDEX]
+    ig = root.create_group(L.G_INDEX)
+    names = [r.name.encode("utf-8") for r in rows]
+    parts = [r.part.encode("ascii") for r in rows]
+    L.create_dataset(ig, L.I_NAME, np.array(names, dtype=f"S{max([len(e) for e in names] + [1])}"))
+    L.create_dataset(ig, L.I_N_POINTS, np.array([r.n_points for r in rows], dtype=np.int64))
+    L.create_dataset(
+        ig, L.I_BOUNDS_MIN, np.array([r.bounds_min for r in rows], np.float64).reshape(-1, 3)
+    )
+    L.create_dataset(
+        ig, L.I_BOUNDS_MAX, np.array([r.bounds_max for r in rows], np.float64).reshape(-1, 3)
+    )
+    L.create_dataset(ig, L.I_PART, np.array(parts, dtype=f"S{max([len(e) for e in parts] + [1])}"))
+    L.create_dataset(ig, L.I_PART_BYTES, np.array([r.part_bytes for r in rows], dtype=np.int64))
+    ig.attrs[L.A_N_SCANS] = np.int64(len(rows))

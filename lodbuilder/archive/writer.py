@@ -40,8 +40,9 @@ from ..sampling.ordering import Ordering
 from . import files as F
 from . import layout as L
 from .files import check_writable_dir, remove_stale_temps  # noqa: F401 - public re-exports
+from .index import write_index
 from .layout import IndexRow
-from .scanwriter import PartInfo, ScanWriter, close_quietly, new_file, write_index
+from .scanwriter import PartInfo, ScanWriter, close_quietly, new_file
 
 log = logging.getLogger(__name__)
 

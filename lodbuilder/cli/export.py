@@ -6,9 +6,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .level_options import add_level_options, add_up_option
+from .level_options import add_filter_options, add_level_options, add_up_option, filter_from_args
 
-FORMATS = {".copc.laz": "COPC", ".html": "web page", ".htm": "web page"}
+FORMATS = {".copc.laz": "COPC", ".html": "web page", ".htm": "web page", ".json": "3D Tiles"}
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -19,8 +19,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "Write a level of a scan for other tools. OUT.copc.laz: a Cloud Optimized Point Cloud "
             "(QGIS, Potree, viewer.copc.io, CloudCompare, PDAL, laspy) whose octree depths are the "
             "farthest-point levels (the points of depths 0..D cover the scan within the rho "
-            "written in the file), with every attribute, the CRS, the rank and the insertion "
-            "radius. OUT.html: one self-contained page (no network) that draws the level with "
+            "written in the file), with every attribute and the CRS; --rank-radius adds the rank "
+            "and the insertion radius of every point. OUT.html: one self-contained page (no network) that draws the level with "
             "WebGL, coarse points first, with a slider over its coarser levels and colours by "
             "RGB, radius, importance or rank. Without --rho/--size/--fraction: the whole scan (a "
             "web page is capped at --max-points)."
@@ -33,16 +33,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=None,
         help="web page: most points it may hold (default 2,000,000: browsers slow down past it)",
     )
+    p.add_argument(
+        "--all-scans",
+        action="store_true",
+        help="COPC or web page of every scan of the archive (a joint scan counts as its member "
+        "scans), merged at --rho (default: every point), with each point's scan as attribute "
+        "scan_id and the scans' names in the file",
+    )
+    p.add_argument(
+        "--rank-radius",
+        action="store_true",
+        help="COPC: also store each point's farthest-point rank and insertion radius as extra "
+        "bytes (the exact ordering; about 2.5 x the file size on airborne data)",
+    )
     add_up_option(
         p,
         default=None,
         help="web page: the scan's up axis for the first view (default z; y for many range scans)",
     )
     p.add_argument(
-        "-o", "--output", required=True, metavar="OUT", help="OUT.copc.laz or OUT.html"
+        "-o", "--output", required=True, metavar="OUT",
+        help="OUT.copc.laz, OUT.html or DIR/tileset.json (3D Tiles 1.1: the tiles go to "
+        "DIR/tileset_tiles/)"
     )
     from .output import add_json_option
 
+    add_filter_options(p)
     add_json_option(p)
     return p
 
@@ -56,7 +72,7 @@ def output_format(out: Path) -> str:
         if name.endswith(suffix):
             return fmt
     raise UnsupportedFormatError(
-        f"-o {out}: name it OUT.copc.laz (COPC) or OUT.html (web page); "
+        f"-o {out}: name it OUT.copc.laz (COPC), OUT.html (web page) or DIR/tileset.json (3D Tiles); "
         "for .ply, .las, .laz, .csv, .npy... use lodbuilder slice"
     )
 
@@ -70,18 +86,26 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
     fmt = output_format(out)
     web = fmt == "web page"
+    tiles = fmt == "3D Tiles"
     if not web:
         for opt, value in (("--max-points", args.max_points), ("--up", args.up)):
             if value is not None:
                 raise InputError(f"{opt} applies to a web page (-o OUT.html) only")
+    if args.rank_radius and fmt != "COPC":
+        raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
+    flt = filter_from_args(args)
+    if args.all_scans:
+        return _run_all_scans(args, out, fmt, flt)
     if args.max_points is not None and args.max_points < 1:
         raise InputError(f"--max-points must be at least 1, got {args.max_points}")
     if web:
         from ..export.web import MAX_POINTS, export_web
+    elif tiles:
+        from ..export.tiles import export_tiles
     else:
-        from ..export.copc import _copclib, export_copc
+        from ..export.copc import check_copc_dependencies, export_copc
 
-        _copclib()  # a missing copclib: fail before reading anything
+        check_copc_dependencies()  # a missing laspy or lazrs: fail before reading anything
     from ..levels import LevelQuery
 
     query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)
@@ -101,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                         "ask for a coarser level (--rho, --size) or raise --max-points"
                     )
                 k, note = cap, f", capped at --max-points {cap:,}"
-            page = export_web(view, out, k, up=args.up or "z")
+            page = export_web(view, out, k, up=args.up or "z", flt=flt)
             rho = f"rho = {page.rho:.4g}" if page.rho > 0 else "every point"
             doc.update(size=page.n_points, n_points=page.n_total, rho=page.rho,
                        bytes=page.n_bytes, chunks=page.chunks, capped=bool(note))
@@ -109,11 +133,22 @@ def run(args: argparse.Namespace) -> int:
                 f"wrote {page.n_points:,} of {page.n_total:,} points of scan {view.name!r} to "
                 f"{out} ({page.n_bytes / 1e6:.1f} MB, {rho}{note})"
             )
+        elif tiles:
+            ts = export_tiles(view, out, k, flt=flt)
+            doc.update(size=ts.n_points, n_points=ts.n_total, rho=ts.rho, bytes=ts.n_bytes,
+                       tiles=ts.tiles, depths=ts.depths, geometric_errors=ts.geometric_errors,
+                       placement=ts.placed)
+            errs = " / ".join(f"{e:.3g}" for e in ts.geometric_errors)
+            text = (
+                f"wrote {ts.n_points:,} of {ts.n_total:,} points of scan {view.name!r} to {out} "
+                f"({ts.n_bytes / 1e6:.1f} MB, {ts.tiles:,} tiles, {ts.depths} depth(s))\n"
+                f"  geometricError by depth (covering radius, metres): {errs}\n  {ts.placed}"
+            )
         else:
             from ..io.api import collect_notes
 
             with collect_notes() as changes:
-                copc = export_copc(view, out, k)
+                copc = export_copc(view, out, k, rank_radius=args.rank_radius, flt=flt)
             doc.update(size=copc.n_points, n_points=copc.n_total, rho=copc.rho,
                        bytes=copc.n_bytes, depths=copc.depths, nodes=copc.nodes,
                        spacing=copc.spacing, levels=copc.levels, changes=changes)
@@ -128,5 +163,49 @@ def run(args: argparse.Namespace) -> int:
                 ]
                 + [f"  changed: {line}" for line in changes]
             )
+    if flt is not None:
+        kept = doc["size"]
+        doc.update(filter=flt.describe(), level_size=k, guarantee=flt.guarantee(doc["rho"]))
+        first, _, rest = text.partition("\n")
+        text = "\n".join(
+            [first, f"  filter {flt.describe()}: {kept:,} of the level's {k:,} points",
+             f"  guarantee: {doc['guarantee']}"] + ([rest] if rest else [])
+        )
     emit(args, doc, text)
+    return 0
+
+
+def _run_all_scans(args: argparse.Namespace, out: Any, fmt: str, flt: Any) -> int:
+    """``export --all-scans``: one COPC file or web page of the whole collection."""
+    from ..archive.reader import open_archive
+    from ..errors import InputError
+    from ..export.collection import export_collection
+    from .output import emit
+
+    for opt, bad in (("--scan", args.scan is not None), ("--size", args.size is not None),
+                     ("--fraction", args.fraction is not None), ("a survey filter", flt is not None),
+                     ("--rank-radius", args.rank_radius)):
+        if bad:
+            raise InputError(f"--all-scans merges every scan at one --rho; leave out {opt}")
+    if fmt == "3D Tiles":
+        raise InputError("--all-scans writes a COPC file or a web page; 3D Tiles take one scan (--scan NAME)")
+    if fmt == "COPC":
+        from ..export.copc import check_copc_dependencies
+
+        check_copc_dependencies()
+    from ..export.web import MAX_POINTS
+    from ..io.api import collect_notes
+
+    with open_archive(args.archive) as arc, collect_notes() as changes:
+        written, merged = export_collection(arc, out, args.rho, fmt=fmt,
+                                            max_points=args.max_points or MAX_POINTS, up=args.up or "z")
+    doc: dict[str, Any] = {"archive": str(args.archive), "scans": merged.names, "output": str(out),
+                           "format": fmt, "size": written.n_points, "n_points": merged.n_total,
+                           "rho": merged.rho, "bytes": written.n_bytes, "changes": changes}
+    rho = f"rho = {merged.rho:.4g}" if merged.rho > 0 else "every point"
+    text = (f"wrote {written.n_points:,} of {merged.n_total:,} points of {len(merged.names)} scans "
+            f"to {out} ({written.n_bytes / 1e6:.1f} MB, {rho}; attribute scan_id: "
+            + ", ".join(f"{i} {n}" for i, n in enumerate(merged.names[:8]))
+            + (", ..." if len(merged.names) > 8 else "") + ")")
+    emit(args, doc, "\n".join([text] + [f"  changed: {line}" for line in changes]))
     return 0

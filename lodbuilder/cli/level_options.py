@@ -5,7 +5,10 @@ evaluate add them from here, each with its own help where its meaning differs.""
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ..filters import LevelFilter
 
 SCAN_HELP = "scan name (may be left out when the archive holds one scan)"
 
@@ -89,6 +92,46 @@ def add_ordering_option(p: argparse.ArgumentParser, help: str) -> None:
 def add_up_option(p: argparse.ArgumentParser, *, default: str | None, help: str) -> None:
     """--up AXIS: the scan's up axis for the first view."""
     p.add_argument("--up", default=default, choices=("z", "y", "x", "-z", "-y", "-x"), help=help)
+
+
+def add_filter_options(p: argparse.ArgumentParser) -> None:
+    """--class, --return, --where, --clip-box, --polygon: keep the points of the level that pass
+    (one :class:`lodbuilder.filters.LevelFilter`, built by :func:`filter_from_args`)."""
+    g = p.add_argument_group(
+        "survey filters (keep the level's points that pass all of them; coordinates in the "
+        "archive's CRS)"
+    )
+    g.add_argument("--class", dest="filter_class", metavar="CODES",
+                   help="classification codes or ASPRS names, e.g. 2,6 or ground,building")
+    g.add_argument("--return", dest="filter_return", metavar="R",
+                   help="return numbers and/or first, last, only (e.g. first or 1,2)")
+    g.add_argument("--where", dest="filter_where", action="append", metavar="NAME=LO:HI",
+                   help="attribute range, bounds included, either may be left out "
+                   "(repeatable): intensity=100:2000")
+    g.add_argument("--clip-box", dest="filter_box", type=float, nargs="+", metavar="V",
+                   help="XMIN YMIN XMAX YMAX, or XMIN YMIN ZMIN XMAX YMAX ZMAX")
+    g.add_argument("--polygon", dest="filter_polygon", metavar="WKT|GEOJSON|FILE",
+                   help="keep the points inside a polygon (x, y): WKT POLYGON/MULTIPOLYGON, "
+                   "GeoJSON, or a file holding either")
+
+
+def filter_from_args(args: argparse.Namespace) -> LevelFilter | None:
+    """The :class:`lodbuilder.filters.LevelFilter` of the filter options, None when none given."""
+    from ..filters import LevelFilter, parse_classes, parse_polygon, parse_range, parse_returns
+
+    box = getattr(args, "filter_box", None)
+    if box is not None and len(box) not in (4, 6):
+        from ..errors import InputError
+
+        raise InputError(f"--clip-box takes 4 numbers (XMIN YMIN XMAX YMAX) or 6, got {len(box)}")
+    flt = LevelFilter(
+        classes=parse_classes(args.filter_class) if getattr(args, "filter_class", None) else None,
+        returns=parse_returns(args.filter_return) if getattr(args, "filter_return", None) else None,
+        ranges=tuple(parse_range(w) for w in getattr(args, "filter_where", None) or ()),
+        box=tuple(box) if box is not None else None,
+        polygons=parse_polygon(args.filter_polygon) if getattr(args, "filter_polygon", None) else None,
+    )
+    return None if flt.empty else flt
 
 
 def level_query(args: argparse.Namespace) -> Any:

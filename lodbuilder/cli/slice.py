@@ -6,7 +6,13 @@ import argparse
 import time
 from pathlib import Path
 
-from .level_options import add_box_option, add_level_options, add_ordering_option
+from .level_options import (
+    add_box_option,
+    add_filter_options,
+    add_level_options,
+    add_ordering_option,
+    filter_from_args,
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -66,6 +72,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     from .output import add_json_option
 
     add_slice_options(p)
+    add_filter_options(p)
     add_json_option(p)
     return p
 
@@ -84,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
     query = level_query(args)  # one check of the level options, before anything is read
     if args.fill is not None and getattr(args, "all_scans", False):
         raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")
+    flt = filter_from_args(args)
+    if flt is not None and getattr(args, "all_scans", False):
+        raise InputError("survey filters apply to one scan's level; leave out --all-scans")
     if getattr(args, "all_scans", False):
         from .collection_options import slice_all
 
@@ -102,6 +112,12 @@ def run(args: argparse.Namespace) -> int:
         note = "; ".join([note, *facts_text(facts, rho_asked)])
         metadata = view.format_metadata
         say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
+    guarantee = None
+    if flt is not None:
+        before = level.size
+        level = flt.apply(level)
+        guarantee = flt.guarantee(level.rho)
+        note = f"filter {flt.describe()}: {level.size:,} of the level's {before:,} points; {note} before the filter"
     attrs = dict(level.attributes)
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
@@ -128,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
         "units": level.units,
         "changes": changes,
     }
+    if flt is not None:
+        doc.update(filter=flt.describe(), level_size=level.region["level_size"], guarantee=guarantee)
     what = f"{level.size:,} of {view.n_points:,} points"
     if filled is not None:
         doc["synthetic"] = filled.n_synthetic
@@ -137,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         doc,
         "\n".join(
             [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
+            + ([f"  guarantee: {guarantee}"] if guarantee else [])
             + [f"  changed: {line}" for line in changes]
         ),
     )

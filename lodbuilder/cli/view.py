@@ -7,7 +7,14 @@ import os
 import sys
 
 from ..errors import InputError
-from .level_options import add_box_option, add_level_options, add_ordering_option, add_up_option
+from .level_options import (
+    add_box_option,
+    add_filter_options,
+    add_level_options,
+    add_ordering_option,
+    add_up_option,
+    filter_from_args,
+)
 
 MODES_HELP = (
     "rgb, radius, rank, importance[:NAME], scan, voronoi, gaps (red: near a hole the level "
@@ -69,6 +76,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "e.g. the Stanford bunny)",
     )
     p.add_argument("--point-scale", type=float, default=1.0, help="scale the rho point size (> 0; default 1)")
+    add_filter_options(p)
     return p
 
 
@@ -116,7 +124,10 @@ def run(args: argparse.Namespace) -> int:
 
     from ..viewer.source import load_view_data
 
-    data = load_view_data(args.archive, args.scan, args.ordering)
+    flt = filter_from_args(args)
+    data = load_view_data(args.archive, args.scan, args.ordering, flt)
+    if flt is not None:
+        say(args, f"filter {flt.describe()}: {len(data):,} points kept; {flt.guarantee(None)}")
     from ..levels import LevelQuery
 
     query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)

@@ -12,6 +12,17 @@ import numpy as np
 from ..errors import InputError
 
 
+def joint_member_names(view: object) -> list[str] | None:
+    """The member scan names of a joint scan (``build --joint``; its points carry ``scan_id``),
+    else None. (The same rule as :func:`lodbuilder.collection.query.joint_members`, which lives
+    a room above the exporters and the viewer.)"""
+    build = getattr(view, "build", None)
+    joint = build.get("joint") if isinstance(build, dict) else None
+    if not joint:
+        return None
+    return [str(m.get("name")) for m in joint.get("scans", [])]
+
+
 def check_level_output(
     out: str | os.PathLike, kind: str, suffixes: tuple[str, ...], points: object, radius: object
 ) -> tuple[Path, np.ndarray, np.ndarray]:

@@ -32,7 +32,10 @@ html, body { margin: 0; height: 100%; overflow: hidden; background: #fff;
 #level { width: 16em; vertical-align: middle; }
 #legend { right: 8px; top: 8px; display: none; text-align: center; }
 #legend canvas { display: block; margin: 4px auto; border: 1px solid #999; }
-#legendTitle { max-width: 11em; font-weight: 600; }
+#legendTitle { font-weight: 600; white-space: nowrap; }
+#legendList { text-align: left; }
+#legendList span { display: inline-block; width: 12px; height: 12px; margin-right: 6px;
+  vertical-align: middle; border: 1px solid #777; }
 #status { left: 8px; bottom: 8px; color: #444; }
 #help { right: 8px; bottom: 8px; color: #666; font-size: 12px; }
 </style>
@@ -48,8 +51,8 @@ html, body { margin: 0; height: 100%; overflow: hidden; background: #fff;
     <label>up <select id="up"><option>z</option><option>y</option><option>x</option><option>-z</option><option>-y</option><option>-x</option></select></label>
   </div>
 </div>
-<div id="legend" class="box"><div id="legendTitle"></div><div id="legendHi"></div>
-<canvas id="legendBar" width="22" height="180"></canvas><div id="legendLo"></div></div>
+<div id="legend" class="box"><div id="legendTitle"></div><div id="legendScale"><div id="legendHi"></div>
+<canvas id="legendBar" width="22" height="180"></canvas><div id="legendLo"></div></div><div id="legendList"></div></div>
 <div id="status" class="box">loading...</div>
 <div id="help" class="box">drag: turn &middot; shift/right drag: move &middot; wheel: zoom &middot; double click: reset</div>
 <script id="lod-header" type="application/json">@HEADER@</script>
@@ -67,6 +70,13 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
   // ---- data kept on the CPU (colours are recomputed when the mode changes) ----
   const rgb = H.rgb ? new Uint8Array(3 * N) : null;
   const scalars = H.scalars.map(() => new Uint8Array(N));
+  const cats = H.cats.map(() => new Uint8Array(N));
+  // per category mode: 256 x rgb, listed labels in their colours, others mid grey
+  const catLut = H.cats.map((c) => {
+    const t = new Uint8Array(768).fill(150);
+    for (const [v, , col] of c.table) { t[3 * v] = col[0]; t[3 * v + 1] = col[1]; t[3 * v + 2] = col[2]; }
+    return t;
+  });
   const colours = new Uint8Array(3 * N);
   const lut = H.lut;
 
@@ -110,6 +120,7 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
   const modes = [];
   if (H.rgb) modes.push({ key: "rgb", label: "RGB" });
   H.scalars.forEach((s, i) => modes.push({ key: "s" + i, label: s.label, scalar: i }));
+  H.cats.forEach((c, i) => modes.push({ key: "c" + i, label: c.label, cat: i }));
   modes.push({ key: "rank", label: "rank" });
   const modeSel = $("mode");
   for (const m of modes) { const o = document.createElement("option"); o.value = m.key; o.textContent = m.label; modeSel.appendChild(o); }
@@ -118,11 +129,38 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
 
   function fillColours(start, end) {
     if (mode.key === "rgb") { colours.set(rgb.subarray(3 * start, 3 * end), 3 * start); return; }
+    if (mode.cat !== undefined) {
+      const t = catLut[mode.cat], c = cats[mode.cat];
+      for (let i = start; i < end; i++) { const v = 3 * c[i]; colours[3 * i] = t[v]; colours[3 * i + 1] = t[v + 1]; colours[3 * i + 2] = t[v + 2]; }
+      return;
+    }
     const logN = Math.log(Math.max(H.n_total, 2));
+    const remap = mode.scalar === 0 ? radiusRemap() : null;
     for (let i = start; i < end; i++) {
-      const t = mode.key === "rank" ? Math.min(255, Math.floor(255 * Math.log(i + 1) / logN)) : scalars[mode.scalar][i];
+      let t = mode.key === "rank" ? Math.min(255, Math.floor(255 * Math.log(i + 1) / logN)) : scalars[mode.scalar][i];
+      if (remap) t = remap[t];
       colours[3 * i] = lut[3 * t]; colours[3 * i + 1] = lut[3 * t + 1]; colours[3 * i + 2] = lut[3 * t + 2];
     }
+  }
+  // radius: its scale follows the level shown, from its rho to the rho where it had 1/64 of
+  // its points (the page-wide scale drew a uniform level in one colour); finer points get the
+  // lowest colour, the level's coarsest the highest
+  function radiusRange() {
+    const s = H.scalars[0], [k, rho] = current();
+    let top = -1;
+    for (const [sk, sr] of H.steps) if (sk <= Math.max(1, Math.floor(k / 64))) top = sr;
+    const lo = rho > 0 ? Math.min(Math.max(rho, s.lo), s.hi) : s.lo;
+    const hi = top > lo ? Math.min(top, s.hi) : s.hi;
+    return [lo, hi > lo ? hi : lo * 1.000001];
+  }
+  function radiusRemap() {
+    const s = H.scalars[0], [lo, hi] = radiusRange(), out = new Uint8Array(256);
+    const a = Math.log(s.lo), b = Math.log(s.hi) - a, c = Math.log(lo), d = Math.log(hi) - c;
+    for (let t = 0; t < 256; t++) {
+      const v = a + (t / 255) * b;
+      out[t] = Math.max(0, Math.min(255, Math.round(255 * (v - c) / (d || 1))));
+    }
+    return out;
   }
   function uploadColours(start, end) {
     if (!gl || end <= start) return;
@@ -132,12 +170,28 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
   function fmt(v) { return Math.abs(v) >= 1e4 || (Math.abs(v) < 1e-2 && v !== 0) ? v.toExponential(2) : String(+v.toPrecision(3)); }
   function legend() {
     const box = $("legend");
+    const list = $("legendList");
+    while (list.firstChild) list.removeChild(list.firstChild);
+    if (mode.cat !== undefined) {  // named swatches (textContent only: names come from files)
+      const c = H.cats[mode.cat];
+      box.style.display = "block";
+      $("legendScale").style.display = "none";
+      $("legendTitle").textContent = c.title;
+      for (const [, name, col] of c.table) {
+        const row = document.createElement("div"), sw = document.createElement("span");
+        sw.style.background = "rgb(" + col[0] + "," + col[1] + "," + col[2] + ")";
+        row.appendChild(sw); row.appendChild(document.createTextNode(name)); list.appendChild(row);
+      }
+      return;
+    }
     const spec = mode.key === "rank" ? H.rank : (mode.scalar !== undefined ? H.scalars[mode.scalar] : null);
     if (!spec) { box.style.display = "none"; return; }
     box.style.display = "block";
+    $("legendScale").style.display = "block";
     $("legendTitle").textContent = spec.title;
-    $("legendHi").textContent = fmt(spec.hi);
-    $("legendLo").textContent = fmt(spec.lo);
+    const [lo, hi] = mode.scalar === 0 ? radiusRange() : [spec.lo, spec.hi];
+    $("legendHi").textContent = fmt(hi);
+    $("legendLo").textContent = fmt(lo);
     const c = $("legendBar"), g = c.getContext("2d");
     for (let y = 0; y < c.height; y++) {
       const t = Math.round(255 * (1 - y / (c.height - 1)));
@@ -158,15 +212,23 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
   function levelText() {
     const [k, rho] = current(), shown = Math.min(k, state.loaded);
     const pct = (100 * k / H.n_total).toPrecision(3);
+    // rho < 0: the next point starts a piece of its own, so no bound holds yet
+    const bound = rho > 0 ? fmt(rho) + " " + H.unit : (rho < 0 ? "none yet (new pieces follow)" :
+      (k >= H.n_total ? "0 (every point)" : "0"));
     $("levelText").textContent = " " + shown.toLocaleString("en") + " of " + H.n_total.toLocaleString("en") +
-      " points (" + pct + " %), rho = " + (rho > 0 ? fmt(rho) + " " + H.unit : "0 (every point)") +
-      (shown < k ? " (loading)" : "");
+      " points (" + pct + " %), rho = " + bound + (shown < k ? " (loading)" : "");
+    if (state.ready) status(shown.toLocaleString("en") + " of " + N.toLocaleString("en") + " points drawn" +
+      (N < H.n_total ? " (the level's prefix: coarse to fine)" : ""));
   }
-  level.addEventListener("input", redraw);
+  level.addEventListener("input", () => {
+    if (mode.scalar === 0) { fillColours(0, state.loaded); uploadColours(0, state.loaded); legend(); }
+    redraw();
+  });
   $("psize").addEventListener("input", redraw);
 
   // ---- camera: orbit around the centre of the bounding box ----
-  const cam = { yaw: -0.785, pitch: 0.6, dist: 2.0 * H.diag, target: [0, 0, 0] };
+  // the first view faces the scan (lodbuilder.viewer.data.facing_camera, as yaw and pitch)
+  const cam = { yaw: H.view[0], pitch: H.view[1], dist: 2.0 * H.diag, target: [0, 0, 0] };
   const upSel = $("up");
   upSel.value = H.up;
   upSel.addEventListener("change", redraw);
@@ -217,7 +279,7 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
     redraw();
   });
   canvas.addEventListener("wheel", (e) => { e.preventDefault(); cam.dist *= Math.exp(e.deltaY * 0.001); redraw(); }, { passive: false });
-  canvas.addEventListener("dblclick", () => { cam.yaw = -0.785; cam.pitch = 0.6; cam.dist = 2.0 * H.diag; cam.target = [0, 0, 0]; redraw(); });
+  canvas.addEventListener("dblclick", () => { cam.yaw = H.view[0]; cam.pitch = H.view[1]; cam.dist = 2.0 * H.diag; cam.target = [0, 0, 0]; redraw(); });
 
   // ---- drawing ----
   let pending = false;
@@ -264,14 +326,14 @@ var LOD = (function () {  // (var: window.LOD, for the chunk scripts and tests)
     let off = 6 * n;
     if (rgb) { rgb.set(bytes.subarray(off, off + 3 * n), 3 * start); off += 3 * n; }
     for (const s of scalars) { s.set(bytes.subarray(off, off + n), start); off += n; }
+    for (const c of cats) { c.set(bytes.subarray(off, off + n), start); off += n; }
     fillColours(start, end); uploadColours(start, end);
     state.loaded = end;
     status("loaded " + end.toLocaleString("en") + " of " + N.toLocaleString("en") + " points...");
     redraw();
   }
   function done() {
-    status(N.toLocaleString("en") + " points" + (N < H.n_total ? " (the level's prefix: coarse to fine)" : ""));
-    requestAnimationFrame(() => { draw(); state.ready = true; });
+    requestAnimationFrame(() => { draw(); state.ready = true; levelText(); });
   }
   $("info").textContent = H.info;
   legend();

@@ -1,27 +1,31 @@
-"""A level as a COPC file (Cloud Optimized Point Cloud): ``lodbuilder export A.h5 -o OUT.copc.laz``.
+"""A level as a COPC 1.0 file (Cloud Optimized Point Cloud): ``lodbuilder export A.h5 -o OUT.copc.laz``.
 
 COPC stores points in the nodes of an octree; a reader takes the nodes down to the depth it needs.
 Here the depths follow the farthest-point ordering: with ``s0`` the spacing written in the COPC
-info VLR (the cube side / 128, the usual convention), a point of insertion radius ``r`` belongs
-to depth ``floor(log2(s0 / r))`` (seeds to depth 0), i.e. depth d holds the radii in
-``(s0 / 2**(d+1), s0 / 2**d]``. Radii never increase along the ordering, so the points of depths
-<= D are a prefix of it, of length ``n_D``, which covers the scan within ``rho_D = radius[n_D]``
-(<= s0 / 2**(D+1)): every depth prefix is a level with a known covering radius. The file says so
-in an EVLR of ours (user id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points
-and rho) and keeps ``rank`` and ``radius`` as extra bytes, so the exact ordering can be rebuilt.
+info VLR (twice the insertion radius of point ROOT_POINTS), a point of insertion radius ``r``
+belongs to depth ``floor(log2(s0 / r))`` (seeds to depth 0; the deepest depth takes the rest,
+see :func:`octree_spacing`), i.e. depth d holds the radii in ``(s0 / 2**(d+1), s0 / 2**d]``.
+Radii never increase along the ordering, so the points of depths <= D are a prefix of it, of
+length ``n_D``, which covers the scan within ``rho_D = radius[n_D]`` (<= s0 / 2**(D+1)): every
+depth prefix is a level with a known covering radius. The file says so in an EVLR of ours (user
+id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and rho); with
+``rank_radius`` it also keeps ``rank`` and ``radius`` as extra bytes, so the exact ordering can be
+rebuilt (LAZ compresses neither well: about 9 bytes a point, so it is off by default).
+
+Inside a node the order is free (the depths carry the levels): points go by GPS time where they
+have one (the scanner's order, which LAZ's delta coding compresses best), else by Morton code.
 
 One exception keeps the octree walkable: a reader descends from the root, so every node's parent
-must exist, and copclib cannot write an empty node. When the parent voxel of a point holds no
-point of the depth above (a voxel that only grazes the surface), the point moves up to the first
-missing depth of its chain (points taken in rank order, so the earliest ones move). Depths <= D
-then hold the prefix of n_D points plus those few moved points (``promoted`` per depth in the
-EVLR); their covering radius is still at most rho_D.
+must exist. When the parent voxel of a point holds no point of the depth above (a voxel that
+only grazes the surface), the point moves up to the first missing depth of its chain (points
+taken in rank order, so the earliest ones move). Depths <= D then hold the prefix of n_D points
+plus those few moved points (``promoted`` per depth in the EVLR); their covering radius is still
+at most rho_D.
 
 Nodes are written breadth-first (depth 0, then 1, ...), so the points of depths <= D are one
 contiguous byte range of the file. Attributes, scale, offset and CRS go through
 :func:`lodbuilder.io.las.las_layout` (point format 6, 7 or 8: the ones COPC allows; a format 0-5
-source maps to its LAS 1.4 equivalent) and copclib writes the file (``pip install
-lodbuilder[copc]``).
+source maps to its LAS 1.4 equivalent); :mod:`._copc_file` writes the bytes (laspy and lazrs).
 """
 
 from __future__ import annotations
@@ -29,8 +33,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import struct
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,8 +53,6 @@ MAX_DEPTH = 21
 VLR_USER_ID = "lodbuilder"
 VLR_RECORD_ID = 1
 VLR_DESCRIPTION = "farthest-point levels per depth"
-#: LAS 1.4 header: offset of "Start of first EVLR" (uint64) and "Number of EVLRs" (uint32)
-_EVLR_START, _EVLR_COUNT = 235, 243
 
 
 @dataclass(frozen=True)
@@ -75,10 +75,12 @@ class CopcFile:
         return int(sum(lv["promoted_here"] for lv in self.levels))
 
 
-def _copclib() -> Any:
+def check_copc_dependencies() -> None:
+    """Raise MissingDependencyError when laspy or lazrs (what COPC export needs) is missing."""
     from .._optional import require
 
-    return require("copclib", "COPC export")
+    require("laspy", "COPC export")
+    require("lazrs", "COPC export")
 
 
 def copc_point_format(metadata: dict[str, Any], attribute_names: set[str]) -> int:
@@ -98,16 +100,19 @@ def octree_spacing(radius: np.ndarray, width: float) -> tuple[float, int]:
 
     s0 = 2 radius[ROOT_POINTS]: the root holds the first ~ROOT_POINTS points and each depth about
     4x more on a surface (radii halve per depth), so nodes keep a few thousand points. The deepest
-    depth is one below the band of radius[K / 2]: it takes the tail of the ordering (radii far
-    below the scan's spacing, near-duplicates), which would otherwise spread over many deep,
-    nearly empty nodes."""
+    depth is the band of radius[K / 4]: it takes the rest of the ordering, at least 3/4 of the
+    points (as the fourfold growth per depth of a surface gives), never a thin tail. A deeper
+    cut costs size, not levels worth having: LAZ codes each point from its predecessor, and a
+    depth is a sparse subsample of the scan (about 10 bytes a point on airborne data against
+    5.5 for the dense scan, tools/bench_export.py), so the bytes grow with the share of points
+    in the coarse depths."""
     k = radius.size
     r_root = float(radius[min(ROOT_POINTS, k - 1)])
     spacing = 2.0 * r_root if math.isfinite(r_root) and r_root > 0 else width / ROOT_CELLS
-    r_mid = float(radius[k // 2])
-    if not (math.isfinite(r_mid) and r_mid > 0):
+    r_tail = float(radius[k // 4])
+    if not (math.isfinite(r_tail) and r_tail > 0):
         return spacing, 0
-    return spacing, int(min(MAX_DEPTH, max(0, math.floor(math.log2(spacing / r_mid)) + 1)))
+    return spacing, int(min(MAX_DEPTH, max(0, math.floor(math.log2(spacing / r_tail)))))
 
 
 def depth_bands(radius: np.ndarray, spacing: float, max_depth: int) -> np.ndarray:
@@ -171,33 +176,41 @@ def assign_depths(
     return depth, codes
 
 
-def _extra_bytes_vlr(copclib: Any, header: Any) -> Any:
-    """copclib's extra-bytes VLR for a laspy header: copclib builds one only from a file, so a
-    one-point LAZ with that header is written and read back (its Python API has no other way)."""
-    import laspy
+def morton_codes(ijk: np.ndarray) -> np.ndarray:
+    """(N,) uint64 Morton (Z-order) codes of (N, 3) non-negative voxel coordinates < 2**21."""
+    code = np.zeros(ijk.shape[0], dtype=np.uint64)
+    for axis in range(3):
+        v = ijk[:, axis].astype(np.uint64) & np.uint64(0x1FFFFF)
+        for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                            (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+            v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+        code |= v << np.uint64(axis)
+    return code
 
-    with tempfile.TemporaryDirectory(prefix="lodbuilder-copc-") as tmp:
-        path = os.path.join(tmp, "eb.laz")
-        one = laspy.LasData(header)
-        one.points = laspy.ScaleAwarePointRecord.zeros(1, header=header)
-        one.write(path, do_compress=True)
-        return copclib.LazReader(path).laz_config.extra_bytes_vlr
+
+def node_order(depth: np.ndarray, codes: np.ndarray, stored: np.ndarray, lo: np.ndarray,
+               width: float, gps_time: np.ndarray | None) -> np.ndarray:
+    """The file order of the points: by depth, then node (breadth-first), then inside a node by
+    GPS time where the points have one that varies (the order a scanner recorded them, which
+    LAZ's delta coding compresses best), else by Morton code of their position. The order
+    inside a node carries nothing: the depths hold the levels."""
+    if gps_time is not None and np.ptp(gps_time) > 0:
+        inner = np.asarray(gps_time, dtype=np.float64)
+        tie = morton_codes(_voxels(stored, lo, width, MAX_DEPTH))
+        return np.lexsort((tie, inner, codes, depth))
+    return np.lexsort((morton_codes(_voxels(stored, lo, width, MAX_DEPTH)), codes, depth))
 
 
-def _append_evlr(path: Path, user_id: str, record_id: int, description: str, data: bytes) -> None:
-    """Append an EVLR to a finished LAS 1.4 file and count it in the header (laspy serialises the
-    record; the header's EVLR count and start are two fixed fields of the LAS 1.4 header)."""
-    import laspy
-    from laspy.vlrs.vlrlist import VLRList
-
-    with open(path, "r+b") as f:
-        f.seek(_EVLR_START)
-        start, count = struct.unpack("<QI", f.read(12))
-        f.seek(0, os.SEEK_END)
-        end = f.tell()
-        VLRList([laspy.VLR(user_id, record_id, description, data)]).write_to(f, as_extended=True)
-        f.seek(_EVLR_START)
-        f.write(struct.pack("<QI", start if count else end, count + 1))
+def octree_cube(stored: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """(lo, width, margin): the octree cube [lo, lo + width]^3 around the stored coordinates,
+    padded by ``margin`` (one quantisation step) on every side so that no point lies on a face
+    of the cube. The header's bounds are written as [lo, pmax + margin]: copclib takes node boxes
+    from the header's minimum and its longest side (COPC 1.0 readers from the info VLR's centre
+    and half size), and both then give the same cube, so ValidateSpatialBounds holds."""
+    pmin, pmax = stored.min(axis=0), stored.max(axis=0)
+    margin = float(np.max(scales))
+    width = float((pmax - pmin).max()) + 2.0 * margin
+    return pmin - margin, width, margin
 
 
 def write_copc(
@@ -210,86 +223,91 @@ def write_copc(
     metadata: dict[str, Any] | None = None,
     n_total: int | None = None,
     name: str = "scan",
+    rank_radius: bool = False,
+    rank: np.ndarray | None = None,
+    filtered: str | None = None,
+    bounds: np.ndarray | None = None,
+    scans: list[str] | None = None,
 ) -> CopcFile:
     """Write a level (points in farthest-point order, their insertion radii, the level's covering
-    bound ``rho``) as a COPC file whose octree depths are its levels (module docstring), atomically.
+    bound ``rho``) as a COPC 1.0 file whose octree depths are its levels (module docstring),
+    atomically.
 
     ``attributes`` are written as LAS fields or extra bytes by :func:`lodbuilder.io.las.las_layout`
-    with ``metadata`` (the scan's format metadata: LAS scale/offset, CRS...), plus ``rank`` and
-    ``radius`` extra bytes. What the mapping changed is in ``notes`` and logged as warnings of
-    lodbuilder.io, as :func:`lodbuilder.io.write_points` does."""
-    copclib = _copclib()
-    from ..io._files import atomic_output, run_isolated
+    with ``metadata`` (the scan's format metadata: LAS scale/offset, CRS...); with
+    ``rank_radius``, also ``rank`` and ``radius`` extra bytes (the exact ordering, at a cost in
+    size: LAZ compresses neither well). What the mapping changed is in ``notes`` and logged as
+    warnings of lodbuilder.io, as :func:`lodbuilder.io.write_points` does.
+
+    ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: the
+    description of a filter that removed points from the level (the points are then a
+    subsequence of it), with ``bounds`` the covering bound of each prefix
+    (:func:`lodbuilder.filters.prefix_bounds`; default ``radius``). ``scans``: the names of the
+    scans that attribute ``scan_id`` indexes (a collection or a joint scan), written in the
+    EVLR."""
+    check_copc_dependencies()
+    from ..io._files import atomic_output
     from ..io.api import log_notes
     from ..io.las import las_layout
+    from ._copc_file import Octree, write_copc_file
 
     out, pts, radius = check_level_output(out, "COPC output", (".copc.laz",), points, radius)
     k = pts.shape[0]
-    for reserved in ("rank", "radius"):
-        if reserved in attributes:
-            raise InputError(
-                f"attribute {reserved!r} would clash with the {reserved} the COPC file records; "
-                "rename it"
-            )
+    if rank_radius:
+        for reserved in ("rank", "radius"):
+            if reserved in attributes:
+                raise InputError(
+                    f"attribute {reserved!r} would clash with the {reserved} the COPC file "
+                    "records; rename it"
+                )
     meta = dict(metadata or {})
     n_total = int(n_total or k)
 
-    # the records: attributes, rank and radius through the one LAS mapping of lodbuilder.io
     attrs = dict(attributes)
-    attrs["rank"] = np.arange(k, dtype=np.uint32 if n_total < 2**32 else np.uint64)
-    attrs["radius"] = radius
+    if rank_radius:
+        order_rank = np.arange(k) if rank is None else np.asarray(rank)
+        attrs["rank"] = order_rank.astype(np.uint32 if n_total < 2**32 else np.uint64)
+        attrs["radius"] = radius
     fmt = copc_point_format(meta, set(attributes))
     layout = las_layout(pts, attrs, meta, point_format=fmt, version="1.4")
     for ed in layout.extra_dims:
-        if ed.name == "rank":
+        if scans and ed.name == "scan_id":
+            ed.description = "scan index: names in EVLR"
+        if rank_radius and ed.name == "rank":
             ed.description = "lodbuilder farthest-point rank"
-        elif ed.name == "radius":
+        elif rank_radius and ed.name == "radius":
             ed.description = "lodbuilder insertion radius"
     las = layout.las_data(pts)
     records = las.points.array
 
-    # the octree: a cube from the minimum corner of the stored (quantised) coordinates, as
-    # copclib derives node boxes from the header's minimum; spacing s0 at the root
+    # the octree: a padded cube around the stored (quantised) coordinates, spacing s0 at the root
     stored = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-    pmin, pmax = stored.min(axis=0), stored.max(axis=0)
-    half = max(float((pmax - pmin).max()) / 2.0, float(layout.scales.max()))
-    width = 2.0 * half
-    lo = pmin
-    centre = pmin + half
+    lo, width, margin = octree_cube(stored, layout.scales)
+    half = width / 2.0
+    centre = lo + half
     spacing, max_depth = octree_spacing(radius, width)
     band = depth_bands(radius, spacing, max_depth)
     depth, codes = assign_depths(stored, band, lo, width)
 
-    # in the file's order: depth, node, rank (breadth-first, so depths <= D are one byte range)
-    order = np.lexsort((np.arange(k), codes, depth))
+    gps = np.asarray(las.gps_time, dtype=np.float64) if "gps_time" in las.point_format.dimension_names else None
+    order = node_order(depth, codes, stored, lo, width, gps)
     records = records[order]
     d_sorted, c_sorted = depth[order], codes[order]
     cut = np.flatnonzero((np.diff(d_sorted) != 0) | (np.diff(c_sorted) != 0)) + 1
-    starts = np.concatenate([[0], cut])
-    ends = np.concatenate([cut, [k]])
+    starts = np.concatenate([[0], cut]).astype(np.int64)
+    ends = np.concatenate([cut, [k]]).astype(np.int64)
+    c0 = c_sorted[starts]
+    keys = np.column_stack([d_sorted[starts], c0 >> 42, (c0 >> 21) & 0x1FFFFF, c0 & 0x1FFFFF])
 
-    header = layout.header()
-    header.global_encoding.wkt = True  # (COPC is LAS 1.4 with WKT)
-    config = copclib.CopcConfigWriter(
-        fmt,
-        copclib.Vector3(*map(float, layout.scales)),
-        copclib.Vector3(*map(float, layout.offsets)),
-        layout.crs_wkt or "",
-        _extra_bytes_vlr(copclib, header),
-    )
-    info = config.copc_info
-    info.center_x, info.center_y, info.center_z = map(float, centre)
-    info.halfsize = half
-    info.spacing = spacing
-    config.las_header.min = copclib.Vector3(*map(float, pmin))
-    config.las_header.max = copclib.Vector3(*map(float, pmax))
-    if layout.system_identifier:
-        config.las_header.system_identifier = layout.system_identifier[:32]
-    config.las_header.generating_software = "lodbuilder"
+    header = las.header
+    header.point_count = k
+    header.mins = lo
+    header.maxs = stored.max(axis=0) + margin
     returns = np.bincount(np.asarray(las.return_number, dtype=np.int64), minlength=16)
-    config.las_header.points_by_return = [int(c) for c in returns[1:16]]
+    header.number_of_points_by_return = returns[1:16]
+    gps_range = (float(gps.min()), float(gps.max())) if gps is not None else (0.0, 0.0)
 
-    levels = _levels(radius, band, depth, rho, spacing)
+    levels = _levels(radius if bounds is None else np.asarray(bounds), band, depth, rho, spacing)
     doc = {
         "format": "lodbuilder farthest-point levels",
         "version": 1,
@@ -300,35 +318,23 @@ def write_copc(
         "rule": "depth d holds the points of insertion radius in (spacing/2^(d+1), spacing/2^d]; "
         "depths <= d hold the prefix of fps_prefix points of the farthest-point order (plus "
         "'promoted' points that keep the octree connected) and cover the scan within rho",
-        "extra_bytes": {"rank": "position in the farthest-point order", "radius": "insertion radius"},
+        "extra_bytes": {"rank": "position in the farthest-point order", "radius": "insertion radius"}
+        if rank_radius else {},
         "levels": levels,
     }
+    if filtered is not None:
+        doc["filter"] = filtered
+    if scans:
+        doc["scans"] = list(scans)
+    import laspy
 
-    def write_nodes(tmp: Path) -> None:
-        writer = copclib.FileWriter(str(tmp), config)
-        try:
-            for s, e in zip(starts, ends, strict=True):
-                key = copclib.VoxelKey(
-                    int(d_sorted[s]),
-                    int(c_sorted[s] >> 42),
-                    int((c_sorted[s] >> 21) & 0x1FFFFF),
-                    int(c_sorted[s] & 0x1FFFFF),
-                )
-                data = np.frombuffer(records[s:e].tobytes(), dtype=np.int8)
-                writer.AddNode(key, copclib.VectorChar(data))
-        finally:
-            writer.Close()
-
+    ours = laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, VLR_DESCRIPTION,
+                     json.dumps(doc, allow_nan=False).encode("utf-8"))
+    octree = Octree((float(centre[0]), float(centre[1]), float(centre[2])), half, spacing)
     with atomic_output(out) as tmp:
-        # copclib aborts the process when a write fails (a full disk): it writes in a child
-        run_isolated(write_nodes, tmp, "copclib")
-        _append_evlr(
-            tmp,
-            VLR_USER_ID,
-            VLR_RECORD_ID,
-            VLR_DESCRIPTION,
-            json.dumps(doc, allow_nan=False).encode("utf-8"),
-        )
+        with open(tmp, "wb") as f:
+            write_copc_file(f, header, records, keys, starts, ends, octree, gps_range,
+                            layout.crs_wkt, [ours])
         n_bytes = tmp.stat().st_size
     log_notes(out, layout.notes)
     return CopcFile(
@@ -346,10 +352,12 @@ def write_copc(
 
 
 def _levels(
-    radius: np.ndarray, band: np.ndarray, depth: np.ndarray, rho: float, spacing: float
+    bounds: np.ndarray, band: np.ndarray, depth: np.ndarray, rho: float, spacing: float
 ) -> list[dict[str, Any]]:
     """Per depth D: points at depths <= D, the farthest-point prefix among them, the points
-    moved up to keep the octree connected, and the covering radius of the prefix."""
+    moved up to keep the octree connected, and the covering radius of the prefix (``bounds[p]``
+    for a prefix of p points: the next insertion radius, see :func:`write_copc`)."""
+    radius = bounds
     k = radius.size
     out = []
     for d in range(int(depth.max()) + 1):
@@ -370,15 +378,24 @@ def _levels(
     return out
 
 
-def export_copc(scan: Any, out: str | os.PathLike, size: int) -> CopcFile:
+def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bool = False,
+                flt: Any = None) -> CopcFile:
     """Write the level of ``size`` points of an archive scan (a ScanView) as COPC, with every
-    attribute, its importance maps (extra bytes ``importance_<name>``), rank and radius."""
+    attribute, its importance maps (extra bytes ``importance_<name>``), and with
+    ``rank_radius`` the rank and insertion radius of every point; with ``flt`` (a
+    :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it (the depths
+    are then the filtered prefixes, their rho still the level's before the filter)."""
+    from ..filters import prefix_bounds
+    from . import joint_member_names as joint_members
+
     level = scan.level(size=size)
+    if flt is not None:
+        level = flt.apply(level)
     attrs = dict(level.attributes)
     for m in scan.importance_names:
         key = f"importance_{m}"[:32]
         if key not in attrs:
-            attrs[key] = np.asarray(scan.importance(m)[:size], dtype=np.float32)
+            attrs[key] = np.asarray(scan.importance(m)[:size], dtype=np.float32)[level.rank]
     return write_copc(
         out,
         level.points,
@@ -388,4 +405,9 @@ def export_copc(scan: Any, out: str | os.PathLike, size: int) -> CopcFile:
         metadata=scan.format_metadata,  # (the CRS included: ScanView.crs is read from it)
         n_total=scan.n_ordered,
         name=scan.name,
+        rank_radius=rank_radius,
+        rank=level.rank,
+        filtered=flt.describe() if flt is not None else None,
+        bounds=prefix_bounds(scan.radius, level.rank) if flt is not None else None,
+        scans=joint_members(scan) if "scan_id" in level.attributes else None,
     )

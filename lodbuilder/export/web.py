@@ -75,14 +75,28 @@ def _quantise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _steps(radius: np.ndarray, rho: float) -> list[list[float]]:
     """[k, rho_k] at log-spaced k in [1, K]: rho_k = radius[k] (the next insertion radius), and
-    the level's own ``rho`` at k = K."""
+    the level's own ``rho`` at k = K; -1 where rho_k is infinite (the next point is a seed of
+    another piece: the prefix promises no bound; 0 would read as 'every point')."""
     k_all = len(radius)
     ks = np.unique(np.rint(np.geomspace(1, k_all, min(STEPS, k_all))).astype(np.int64))
     out = []
     for k in ks:
         r = float(radius[k]) if k < k_all else float(rho)
-        out.append([int(k), r if math.isfinite(r) else 0.0])
+        out.append([int(k), r if math.isfinite(r) else -1.0])
     return out
+
+
+def _first_view(points: np.ndarray, up: str) -> list[float]:
+    """[yaw, pitch] of the page's orbit camera (its basis: U = up, A = the next axis, B = the
+    one after, times up's sign) for :func:`lodbuilder.viewer.data.facing_camera`."""
+    from ..viewer.data import facing_camera
+
+    d, _ = facing_camera(points, up)
+    a = "xyz".index(up[-1])
+    sign = -1.0 if up.startswith("-") else 1.0
+    along_a, along_b = float(d[(a + 1) % 3]), float(d[(a + 2) % 3]) * sign
+    pitch = math.asin(max(-1.0, min(1.0, float(d[a]) * sign)))
+    return [math.atan2(along_b, along_a), pitch]
 
 
 def write_web_page(
@@ -98,6 +112,10 @@ def write_web_page(
     crs: str | None = None,
     units: str | None = None,
     up: str = "z",
+    bounds: np.ndarray | None = None,
+    note: str = "",
+    scalars: dict[str, tuple[np.ndarray, Any]] | None = None,
+    categories: dict[str, tuple[np.ndarray, Any]] | None = None,
 ) -> WebPage:
     """Write the points of a level (farthest-point order) as one HTML page, atomically.
 
@@ -110,6 +128,13 @@ def write_web_page(
         importance: per-point maps to colour by.
         crs, units: the coordinates' CRS (WKT) and linear unit, shown on the page.
         up: the scan's up axis for the first view (``z``, ``y``, ``x``, ``-z``, ...).
+        bounds: the covering bound of each prefix of k points (default ``radius``; a filtered
+            level's from :func:`lodbuilder.filters.prefix_bounds`).
+        note: a line shown with the scan's name (a filter).
+        scalars: more scalar colour modes, label -> (values, a viewer ``Legend``): elevation,
+            intensity.
+        categories: categorical colour modes, label -> (integer labels, a viewer
+            ``Categories``): classification, scan. Labels are stored as one byte (0..255).
     """
     from ..io._files import atomic_output
     from ..viewer.data import (
@@ -132,8 +157,9 @@ def write_web_page(
     columns: list[np.ndarray] = [q.view(np.uint8)]  # (K, 6): little-endian uint16 x, y, z
     if rgb is not None:
         columns.append(_to_uint8_rgb(np.asarray(rgb)).reshape(k, 3))
-    scalars = []
+    scalar_specs = []
     legends = [("radius", radius_legend(radius, units), radius)]
+    legends += [(label, legend, v) for label, (v, legend) in (scalars or {}).items()]
     legends += [(f"importance: {m}", importance_legend(m, v), v) for m, v in (importance or {}).items()]
     for label, legend, values in legends:
         v = np.asarray(values, dtype=np.float64)
@@ -143,7 +169,16 @@ def write_web_page(
             v = np.where(np.isfinite(v) & (v > 0), v, top)
         idx = np.clip(np.nan_to_num(legend.normalise(v), nan=0.0) * 255.0, 0, 255).astype(np.uint8)
         columns.append(idx.reshape(k, 1))
-        scalars.append({"label": label, "title": legend.title, "lo": legend.lo, "hi": legend.hi})
+        scalar_specs.append({"label": label, "title": legend.title, "lo": legend.lo, "hi": legend.hi})
+    cats = []
+    for label, (labels, cat) in (categories or {}).items():
+        lab = np.asarray(labels).astype(np.int64)
+        if lab.size and (lab.min() < 0 or lab.max() > 255):
+            raise InputError(f"colour {label!r}: labels must lie in 0..255 to fit one byte")
+        columns.append(lab.astype(np.uint8).reshape(k, 1))
+        cats.append({"label": label, "title": cat.title,
+                     "table": [[int(v), str(n), [int(c) for c in rgb_]]
+                               for v, n, rgb_ in zip(cat.values, cat.names, cat.colours, strict=True)]})
     per_point = sum(c.shape[1] for c in columns)
     rank = rank_legend(n_total)
     finite = radius[np.isfinite(radius) & (radius > 0)]
@@ -156,19 +191,22 @@ def write_web_page(
         "n": k,
         "n_total": n_total,
         "rgb": rgb is not None,
-        "scalars": scalars,
+        "scalars": scalar_specs,
+        "cats": cats,
         "rank": {"title": rank.title, "lo": rank.lo, "hi": rank.hi},
         "lut": colormap(np.linspace(0.0, 1.0, 256)).ravel().tolist(),
         "chunks": chunks,
         "bytes_per_point": per_point,
-        "steps": _steps(radius, rho),
+        "steps": _steps(radius if bounds is None else np.asarray(bounds), rho),
         "lo": lo.tolist(),
         "span": span.tolist(),
         "diag": float(np.linalg.norm(span)),
         "spacing": spacing,
         "unit": unit,
         "up": up,
-        "info": f"{name}: {k:,} of {n_total:,} points; {crs_label(crs, units)}",
+        "view": _first_view(pts, up),
+        "info": f"{name}: {k:,} of {n_total:,} points; {crs_label(crs, units)}"
+        + (f"; {note}" if note else ""),
     }
     from ._page import HEAD
 
@@ -201,15 +239,45 @@ def export_web(
     size: int,
     *,
     up: str = "z",
+    flt: Any = None,
 ) -> WebPage:
     """Write the level of ``size`` points of an archive scan (a ScanView) as a web page, with its
-    RGB (when the scan has red/green/blue) and its importance maps."""
+    RGB (when the scan has red/green/blue) and its importance maps; with ``flt`` (a
+    :class:`lodbuilder.filters.LevelFilter`) only the level's points that pass it."""
     names = [c for c in ("red", "green", "blue") if c in scan.attribute_names]
-    level = scan.level(size=size, attributes=names if len(names) == 3 else False)
+    from . import joint_member_names as joint_members
+
+    members = joint_members(scan)
+    survey = [a for a in ("intensity", "classification") if a in scan.attribute_names]
+    if members and "scan_id" in scan.attribute_names and len(members) <= 256:
+        survey.append("scan_id")
+    wanted = (names if len(names) == 3 else []) + survey + (flt.fields() if flt is not None else [])
+    level = scan.level(size=size, attributes=sorted(set(wanted)) if wanted else False)
+    bounds = None
+    if flt is not None:
+        from ..filters import prefix_bounds
+
+        level = flt.apply(level)
+        bounds = prefix_bounds(scan.radius, level.rank)
     rgb = None
     if len(names) == 3:
         rgb = np.column_stack([level.attributes[c] for c in names])
-    importance = {m: np.asarray(scan.importance(m)[:size]) for m in scan.importance_names}
+    importance = {m: np.asarray(scan.importance(m)[:size])[level.rank] for m in scan.importance_names}
+    from ..viewer.data import classification_legend, elevation_legend, intensity_legend
+
+    axis = "xyz".index(up[-1])
+    elev = level.points[:, axis] * (-1.0 if up.startswith("-") else 1.0)
+    extra = {"elevation": (elev, elevation_legend(elev, up, scan.units))}
+    if "intensity" in level.attributes:
+        extra["intensity"] = (level.attributes["intensity"], intensity_legend(level.attributes["intensity"]))
+    cats = {}
+    if members and "scan_id" in level.attributes:  # a joint scan: its member scans
+        from ..viewer.data import scan_legend
+
+        cats["scan"] = (np.asarray(level.attributes["scan_id"]), scan_legend(members))
+    if "classification" in level.attributes:
+        codes = np.asarray(level.attributes["classification"])
+        cats["classification"] = (codes, classification_legend(codes))
     return write_web_page(
         out,
         level.points,
@@ -222,4 +290,8 @@ def export_web(
         crs=scan.crs,
         units=scan.units,
         up=up,
+        bounds=bounds,
+        note=f"filter {flt.describe()}" if flt is not None else "",
+        scalars=extra,
+        categories=cats,
     )

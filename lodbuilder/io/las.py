@@ -229,6 +229,25 @@ def read(path: Path) -> list[Scan]:
     return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=meta)]
 
 
+def _extra_no_data(hdr: Any) -> dict[str, list[int | float | str]]:
+    """The no-data values of the extra-bytes dimensions that declare one (option bit 0), by
+    name, as JSON can hold them: integers as int, finite floats as float, nan/inf as a string
+    that float() reads back."""
+    out: dict[str, list[int | float | str]] = {}
+    for vlr in hdr.vlrs:
+        if type(vlr).__name__ != "ExtraBytesVlr":
+            continue
+        for eb in vlr.extra_bytes_structs:
+            values = eb.no_data
+            if values is None:
+                continue
+            name = eb.name.rstrip(b"\0").decode("ascii", "replace")
+            out[name] = [int(v) if np.asarray(v).dtype.kind in "iu" else
+                         (float(v) if math.isfinite(float(v)) else str(float(v)))
+                         for v in np.atleast_1d(values)]
+    return out
+
+
 def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any], dict[str, str]]:
     """The format metadata of a LAS/LAZ file from its header, and the renaming of the extra
     dimensions lodbuilder wrote for exact standard fields: the same as :func:`lodbuilder.io.las.read`
@@ -248,6 +267,7 @@ def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any
             })
     extra = []
     rename: dict[str, str] = {}
+    no_data = _extra_no_data(hdr)
     for d in point_format.extra_dimensions:
         desc = str(d.description or "")
         if desc.startswith(EXACT_PREFIX):
@@ -260,6 +280,7 @@ def las_metadata(hdr: Any, point_format: Any, path: Path) -> tuple[dict[str, Any
             "description": desc,
             "scales": None if d.scales is None else [float(s) for s in np.atleast_1d(d.scales)],
             "offsets": None if d.offsets is None else [float(s) for s in np.atleast_1d(d.offsets)],
+            "no_data": no_data.get(d.name),
         })
     meta: dict[str, Any] = {
         "las_version": str(hdr.version),
@@ -290,6 +311,7 @@ class ExtraDim:
     description: str = ""
     scales: list[float] | None = None
     offsets: list[float] | None = None
+    no_data: list[int | float | str] | None = None
 
 
 @dataclass
@@ -325,6 +347,8 @@ class LasLayout:
             kw: dict[str, Any] = {"name": d.name, "type": d.type, "description": d.description}
             if d.scales is not None:
                 kw.update(scales=np.asarray(d.scales), offsets=np.asarray(d.offsets))
+            if d.no_data is not None:
+                kw.update(no_data=np.asarray([float(v) if isinstance(v, str) else v for v in d.no_data]))
             header.add_extra_dim(laspy.ExtraBytesParams(**kw))
         for v in self.vlrs:
             header.vlrs.append(laspy.VLR(user_id=v["user_id"], record_id=int(v["record_id"]),
@@ -513,14 +537,16 @@ def las_layout(
         * **Other attributes** become extra-bytes dimensions in their own dtype ((N, 2) and (N, 3)
           as array dimensions; wider ones as ``name_0``, ``name_1``...; bool as uint8); a LAS
           source's scaled extra bytes keep their scale and offset. Names longer than 32 bytes are
-          cut (noted).
+          cut (noted). A source's extra-bytes description and no-data value are kept where the
+          values keep the source's type.
         * **Twin fields.** A change of point-format family (a format 3 source written as 7 for
           COPC) leaves a standard field empty whose values the source holds under another name:
           ``scan_angle`` (formats 6-10, int16 in 0.006 degrees) is filled from ``scan_angle_rank``
           (formats 0-5, int8 degrees) rounded, and the other way round (clipped to int8); the
           source field keeps its exact values in extra bytes like any other attribute (noted).
-        * **CRS.** ``crs_wkt`` as a WKT VLR, and for point formats 6-10 (and LAS 1.4 files that
-          use WKT) the global-encoding WKT bit the specification requires. A LAS source's own CRS
+        * **CRS.** ``crs_wkt`` as a WKT VLR; the global-encoding WKT bit for point formats 6-10
+          always (the specification requires it, CRS or not) and for LAS 1.4 files of formats 0-5
+          whose source set it. A LAS source's own CRS
           VLRs are copied unchanged for point formats 0-5 (GeoTIFF keys included); for 6-10 only
           the WKT VLR is written. A CRS assigned with ``build --crs`` replaces the source's VLRs.
 
@@ -590,6 +616,8 @@ def las_layout(
 
     _fill_twins(layout, attributes, standard, notes)
     _layout_crs(layout, meta, from_las, notes)
+    if fmt >= 6:  # LAS 1.4: point formats 6-10 require the WKT bit, with or without a CRS
+        layout.wkt_bit = True
     layout.notes = notes
     return layout
 
@@ -614,13 +642,17 @@ def _add_extra(layout: LasLayout, name: str, a: np.ndarray, extra_defs: dict[str
     k = a.shape[1] if a.ndim == 2 else 1
     if d is not None and d.get("scales") is not None and a.dtype.kind == "f" and not str(d["type"])[0].isdigit():
         layout.extra_dims.append(ExtraDim(las_name, str(d["type"]), str(d.get("description", "")),
-                                          list(d["scales"]), list(d["offsets"])))
+                                          list(d["scales"]), list(d["offsets"]), d.get("no_data")))
         layout.dimensions[las_name] = a
         return
     vals, typ = _extra_type(name, a, notes)
     if a.dtype == np.bool_:
         notes.append(f"{name}: bool written as uint8 extra bytes")
-    layout.extra_dims.append(ExtraDim(las_name, f"{k}{typ}" if k > 1 else typ, str((d or {}).get("description", ""))[:32]))
+    typ = f"{k}{typ}" if k > 1 else typ
+    # the source's no-data value, where the values keep the source's type
+    keep = d is not None and d.get("no_data") is not None and str(d["type"]) == typ
+    layout.extra_dims.append(ExtraDim(las_name, typ, str((d or {}).get("description", ""))[:32],
+                                      no_data=d.get("no_data") if keep and d is not None else None))
     layout.dimensions[las_name] = vals
 
 

@@ -40,7 +40,6 @@ class ScanEvaluation:
         }
 
 
-@strict_keywords
 def _level_queries(n_ordered: int, sizes: Any, rhos: Any, fractions: Any,
                    extra: str | None) -> list[tuple[str, Any]]:
     """``(kind, value)`` of every level to evaluate, checked (default: ten log-spaced sizes); an
@@ -57,6 +56,7 @@ def _level_queries(n_ordered: int, sizes: Any, rhos: Any, fractions: Any,
     return queries or [("size", s) for s in default_sizes(n_ordered)]
 
 
+@strict_keywords
 def evaluate_scan(
     scan: Any,
     *,

@@ -293,7 +293,6 @@ def _refined(points: np.ndarray, thin: BandPlan, max_memory: int | None) -> tupl
     that its typical separation is REFINE_SEP voxels, when it is less; None when that band still
     falls back (or does not fit in memory). The sheets are the ones measured on the default grid
     (separations and normals are lengths and directions, whatever the grid)."""
-    from .fastfps import release_freed_memory
 
     h = _typical_separation(thin) / REFINE_SEP
     r = BAND_PER_VOXEL * h

@@ -81,6 +81,7 @@ class LevelViewer:
         if up not in UPS:
             raise InputError(f"up must be one of {', '.join(UPS)}, got {up!r}")
         self.up = up
+        data.up = up  # (what colour mode ``elevation`` reads)
         self.data = data
         n = len(data)
         self.k = data.clamp_size(size if size is not None else min(n, max(1000, n // 20)))
@@ -140,7 +141,9 @@ class LevelViewer:
         # the scale of the colour mode, in the rightmost pane; the CRS in the level pane's corner
         self.scalar_bar = overlays.scalar_bar()
         self.plotter.renderers[-1].AddViewProp(self.scalar_bar)
-        overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode))
+        self.legend_box = overlays.legend_box()
+        self.plotter.renderers[-1].AddViewProp(self.legend_box)
+        overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode, self.shown), self.legend_box)
         self.plotter.subplot(0, 0)
         self.crs_label = crs_label(data.crs, data.units)
         self._crs_text = self.plotter.add_text(
@@ -200,6 +203,10 @@ class LevelViewer:
         if self.mode in LEVEL_MODES:
             self._colours = self.data.colours(self.mode, self.shown)
             self._update_full_colours()
+            if self.mode == "radius" and getattr(self, "scalar_bar", None) is not None:
+                # (its scale follows the level: ViewData.legend)
+                overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode, self.shown),
+                                        self.legend_box)
         sel = slice(0, k) if self._pos is None else self._pos
         normals = self.data.normals()[sel] if self.shade else None
         pts, col = self.data.points[sel], self._colours[sel]
@@ -265,7 +272,7 @@ class LevelViewer:
         self._colours = self.data.colours(self.mode, self.shown)
         self._update_level_arrays()
         self._update_full_colours()
-        overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode))
+        overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode, self.shown), self.legend_box)
         self._update_text()
         if render:
             self.plotter.render()
@@ -330,22 +337,17 @@ class LevelViewer:
         bounds = np.column_stack(
             [self.data.points.min(axis=0), self.data.points.max(axis=0)]
         ).ravel()
-        if view == "iso" and self.up != "z":
-            # isometric from above, with the scan's own up axis pointing up on screen
-            axis = "xyz".index(self.up[-1])
-            sign = -1.0 if self.up.startswith("-") else 1.0
-            up = np.zeros(3)
-            up[axis] = sign
-            direction = np.ones(3)
-            direction[axis] = sign
+        if view == "iso":
+            # facing the scan: see lodbuilder.viewer.data.facing_camera
+            from .data import facing_camera
+
+            direction, up = facing_camera(self.data.points, self.up)
             lo, hi = bounds[0::2], bounds[1::2]
             centre = (lo + hi) / 2
             far = float(np.linalg.norm(hi - lo)) or 1.0
             self.plotter.camera_position = [
                 tuple(centre + direction * far), tuple(centre), tuple(up)
             ]
-        elif view == "iso":
-            self.plotter.view_isometric(bounds=bounds)
         else:
             getattr(self.plotter, f"view_{view}")(bounds=bounds)
         self.plotter.reset_camera(bounds=bounds)

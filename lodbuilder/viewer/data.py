@@ -16,42 +16,67 @@ import numpy as np
 
 from .._validate import strict_keywords, strict_methods
 from ..errors import InputError
+from .colours import (  # noqa: F401 - the legends are part of the data a view shows
+    ASPRS_COLOURS,
+    GAP_COLOURS,
+    SCAN_PALETTE,
+    Categories,
+    Legend,
+    _to_uint8_rgb,
+    _viridis,
+    categorical,
+    classification_legend,
+    colormap,
+    elevation_legend,
+    importance_legend,
+    intensity_legend,
+    radius_legend,
+    rank_legend,
+    scan_legend,
+)
 
 BASE_MODES = ("rgb", "radius", "rank", "scan", "voronoi")
 #: modes whose colours depend on the level shown (recomputed when it changes); ``gaps`` is asked
 #: for by name (``--colour gaps``), not cycled through: it searches the level for holes
-LEVEL_MODES = ("voronoi", "gaps")
-#: ``gaps`` colours: away from gaps, near a fillable gap, near a rough one
-GAP_COLOURS = np.array([[200, 200, 200], [220, 30, 30], [240, 150, 0]], dtype=np.uint8)
+LEVEL_MODES = ("voronoi", "gaps", "radius")
 
-#: the unit of each built-in importance map (lodbuilder.features.registry), for the legend
-IMPORTANCE_UNITS = {
-    "curvature": "lambda0 / sum lambda, no unit",
-    "normal": "mean angle, rad",
-    "colour": "CIE76 Delta-E",
-    "noise": "x local median residual",
-}
 #: neighbours of the PCA normals that shade the points
 NORMAL_K = 12
 
 
-@dataclass(frozen=True)
-class Legend:
-    """How a scalar colour mode maps values to viridis: ``lo`` -> 0, ``hi`` -> 1, linearly or on a
-    log scale; ``title`` names the quantity and its unit (what a scalar bar shows)."""
+def facing_camera(points: np.ndarray, up: str = "z") -> tuple[np.ndarray, np.ndarray]:
+    """(direction from the centre to the camera, view-up) of a first view that faces the scan.
 
-    title: str
-    lo: float
-    hi: float
-    log: bool
+    A flat scan (its thinnest principal axis within 37 degrees of up: an airborne tile, a
+    floor) is seen from above and the south (-y for z up), tilted 25 degrees. Otherwise (a
+    statue, a facade) the camera looks along the thinnest principal axis, levelled to the
+    horizon and raised 20 degrees, from the front side by the usual convention of scanners
+    and 3D tools: +z for a y-up scan, -y for a z-up one (x up: +z)."""
+    axis = "xyz".index(up[-1])
+    u = np.zeros(3)
+    u[axis] = -1.0 if up.startswith("-") else 1.0
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[0] > 50_000:
+        pts = pts[:: pts.shape[0] // 50_000]
+    front = np.zeros(3)
+    front[{1: 2, 2: 1, 0: 2}[axis]] = 1.0 if axis != 2 else -1.0
+    if pts.shape[0] < 3:
+        return _unit(front + 0.35 * u), u
+    w, v = np.linalg.eigh(np.cov((pts - pts.mean(axis=0)).T))
+    n = v[:, int(np.argmin(w))]
+    if abs(float(n @ u)) > 0.8:
+        return _unit(u + 0.47 * front), u
+    n = n - (n @ u) * u
+    if float(np.linalg.norm(n)) < 1e-9:
+        n = front
+    n = _unit(n)
+    if float(n @ front) < 0:
+        n = -n
+    return _unit(n + 0.36 * u), u
 
-    def normalise(self, values: np.ndarray) -> np.ndarray:
-        v = np.asarray(values, dtype=np.float64)
-        if self.log:
-            lo, hi = math.log(self.lo), math.log(self.hi)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                return (np.log(np.maximum(v, self.lo)) - lo) / ((hi - lo) or 1.0)
-        return (v - self.lo) / ((self.hi - self.lo) or 1.0)
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / (float(np.linalg.norm(v)) or 1.0)
 
 
 @strict_methods
@@ -69,6 +94,7 @@ class ViewData:
         scan_names: the names of the scans shown.
         crs: the scans' coordinate reference system (WKT), None when unknown or mixed.
         units: the linear unit of the coordinates (``metre``, ``foot``...), None when unknown.
+        up: the scan's up axis (``z``, ``y``, ``-y``...): what ``elevation`` colours.
         stop_radius: no prefix covers finer than this: where a partial build (``--size`` or
             ``--rho``) stopped ordering (the largest over merged scans), 0 for full orderings.
     """
@@ -82,6 +108,7 @@ class ViewData:
     scan_names: tuple[str, ...] = ("scan",)
     crs: str | None = None
     units: str | None = None
+    up: str = "z"
     stop_radius: float = 0.0
 
     def __post_init__(self) -> None:
@@ -246,12 +273,18 @@ class ViewData:
         modes = []
         if all(c in self.attributes for c in ("red", "green", "blue")):
             modes.append("rgb")
-        modes += ["radius", "rank"]
+        modes += ["radius", "rank", "elevation"]
+        modes += [m for m in ("intensity", "classification") if m in self.attributes]
         modes += [f"importance:{name}" for name in self.importance]
         if len(self.scan_names) > 1:
             modes.append("scan")
         modes.append("voronoi")
         return modes
+
+    def elevation(self) -> np.ndarray:
+        """(N,) the coordinate along the up axis (negated for ``-y``...)."""
+        v = self.points[:, "xyz".index(self.up[-1])]
+        return -v if self.up.startswith("-") else v
 
     def check_mode(self, mode: str) -> str:
         if mode == "gaps":
@@ -265,9 +298,31 @@ class ViewData:
             )
         return mode
 
-    def legend(self, mode: str) -> Legend | None:
-        """The scale of a scalar colour mode (radius, rank, importance), None for the others."""
+    def legend(self, mode: str, shown: int | np.ndarray | None = None) -> Legend | Categories | None:
+        """The scale of a scalar colour mode (radius, rank, importance, elevation, intensity),
+        the categories of classification and scan, None for the others. With ``shown`` (the
+        level displayed), radius runs from the level's rho to the radius where the level had
+        1/64 of its points: the spread of radii inside the level shows (from the 1st percentile
+        of every radius, a uniform level was one flat colour); finer points share the lowest
+        colour, the level's coarsest the highest."""
         mode = self.check_mode(mode)
+        if mode == "radius" and shown is not None:
+            k = self.clamp_size(shown) if np.isscalar(shown) else int(np.size(shown))  # type: ignore[arg-type]
+            rho = self.rho_for_size(k)
+            lo = rho if math.isfinite(rho) and rho > 0 else self._rmin
+            # top: the radius where the level had 1/64 of its points (8 x rho on a surface), so
+            # its points spread over the colours; its first, coarsest points saturate
+            top = self.rho_for_size(max(1, k // 64))
+            hi = top if math.isfinite(top) and top > lo else self._rmax
+            return Legend(f"radius ({self.units or 'scan units'}, log)", lo, max(hi, lo * (1 + 1e-9)), True)
+        if mode == "elevation":
+            return elevation_legend(self.elevation(), self.up, self.units)
+        if mode == "intensity":
+            return intensity_legend(self.attributes["intensity"])
+        if mode == "classification":
+            return classification_legend(self.attributes["classification"])
+        if mode == "scan":
+            return scan_legend(self.scan_names)
         if mode == "radius":
             return radius_legend(self.radius, self.units)
         if mode == "rank":
@@ -294,15 +349,20 @@ class ViewData:
                 [np.asarray(self.attributes[c])[sel] for c in ("red", "green", "blue")]
             )
             return _to_uint8_rgb(rgb)
-        if mode == "scan":
-            return categorical(np.asarray(self.scan_id)[sel])
         if mode == "voronoi":
             return categorical(self.cells(shown)[sel])
         if mode == "gaps":
             return GAP_COLOURS[self.gap_codes(shown)[sel]]
-        legend = self.legend(mode)
+        legend = self.legend(mode, shown if mode == "radius" else None)
+        if isinstance(legend, Categories):
+            labels = self.scan_id if mode == "scan" else self.attributes["classification"]
+            return legend.colour(np.asarray(labels)[sel])
         assert legend is not None
-        if mode == "radius":
+        if mode == "elevation":
+            values = self.elevation()[sel]
+        elif mode == "intensity":
+            values = np.asarray(self.attributes["intensity"], dtype=np.float64)[sel]
+        elif mode == "radius":
             r = self.radius[sel]
             values = np.where(
                 np.isfinite(r) & (r > 0), r, np.where(np.isinf(r), self._rmax, self._rmin)
@@ -357,31 +417,6 @@ class ViewData:
         )
 
 
-def radius_legend(radius: np.ndarray, units: str | None = None) -> Legend:
-    """Log scale of insertion radii, from their 1st percentile to the largest finite one.
-
-    (The last radii of an ordering, near-duplicates, reach far below the scan's spacing: from
-    the smallest one, every other point would get one colour.)"""
-    r = np.asarray(radius, dtype=np.float64)
-    finite = r[np.isfinite(r) & (r > 0)]
-    lo = float(np.percentile(finite, 1)) if finite.size else 1.0
-    hi = float(finite.max()) if finite.size else 1.0
-    return Legend(f"insertion radius ({units or 'scan units'}, log)", lo, max(hi, lo), True)
-
-
-def rank_legend(n: int) -> Legend:
-    """Log scale of ranks 1..n (the first point is rank 1)."""
-    return Legend("rank (1 = first point, log)", 1.0, float(max(n, 2)), True)
-
-
-def importance_legend(name: str, values: np.ndarray) -> Legend:
-    """Linear scale of an importance map from its 1st to its 99th percentile."""
-    v = np.asarray(values, dtype=np.float64)
-    lo, hi = np.nanpercentile(v, [1, 99]) if v.size > 1 else (0.0, 1.0)
-    unit = IMPORTANCE_UNITS.get(name, "as stored")
-    return Legend(f"importance {name} ({unit})", float(lo), float(hi), False)
-
-
 def crs_label(crs: str | None, units: str | None) -> str:
     """One line naming the coordinates' CRS and unit (``CRS unknown`` when there is none)."""
     unit = units or "scan units"
@@ -390,56 +425,6 @@ def crs_label(crs: str | None, units: str | None) -> str:
     from ..io.crs import crs_name  # (pyproj names it, when installed)
 
     return f"CRS {crs_name(crs) or 'given as WKT (install pyproj to name it)'}, coordinates in {unit}"
-
-
-def _to_uint8_rgb(rgb: np.ndarray) -> np.ndarray:
-    if rgb.dtype == np.uint8:
-        return np.ascontiguousarray(rgb)
-    rgb = rgb.astype(np.float64)
-    top = float(np.nanmax(rgb)) if rgb.size else 1.0
-    if np.issubdtype(rgb.dtype, np.floating) and top <= 1.0:
-        scale = 255.0
-    elif top <= 255:
-        scale = 1.0
-    else:
-        scale = 255.0 / 65535.0  # 16-bit colours (LAS)
-    return np.clip(rgb * scale, 0, 255).astype(np.uint8)
-
-
-_LUT: np.ndarray | None = None
-
-
-def _viridis() -> np.ndarray:
-    global _LUT
-    if _LUT is None:
-        try:
-            import matplotlib
-
-            lut = matplotlib.colormaps["viridis"](np.linspace(0, 1, 256))[:, :3]
-        except ImportError:  # a two-stop fallback: dark blue to yellow
-            t = np.linspace(0, 1, 256)[:, None]
-            lut = (1 - t) * np.array([0.27, 0.0, 0.33]) + t * np.array([0.99, 0.91, 0.14])
-        _LUT = np.round(lut * 255).astype(np.uint8)
-    return _LUT
-
-
-def colormap(t: np.ndarray) -> np.ndarray:
-    """(M, 3) uint8 viridis colours of values ``t`` in [0, 1] (clipped; NaN -> 0)."""
-    t = np.nan_to_num(np.asarray(t, dtype=np.float64), nan=0.0)
-    idx = np.clip((t * 255.0).astype(np.int64), 0, 255)
-    return _viridis()[idx]
-
-
-def categorical(labels: np.ndarray) -> np.ndarray:
-    """(M, 3) uint8 well-spread colours of integer labels (a hash, so equal labels match)."""
-    x = np.asarray(labels).astype(np.int64).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-    x ^= x >> np.uint64(29)
-    x = x * np.uint64(0xBF58476D1CE4E5B9)
-    x ^= x >> np.uint64(32)
-    rgb = np.column_stack([(x >> np.uint64(s)) & np.uint64(0xFF) for s in (0, 8, 16)]).astype(
-        np.int64
-    )
-    return (48 + rgb * 207 // 255).astype(np.uint8)  # avoid near-black cells
 
 
 @strict_keywords

@@ -18,7 +18,7 @@ import numpy as np
 from vtkmodules.vtkCommonCore import vtkLookupTable
 from vtkmodules.vtkRenderingAnnotation import vtkScalarBarActor
 
-from .data import Legend, colormap
+from .data import Categories, Legend, colormap
 
 #: lighting of shaded points: ambient + diffuse = 1 keeps a colour where the normal faces the light
 AMBIENT, DIFFUSE = 0.35, 0.65
@@ -53,10 +53,12 @@ def scalar_bar() -> vtkScalarBarActor:
     bar.SetTextPositionToPrecedeScalarBar()
     pos = bar.GetPositionCoordinate()
     pos.SetCoordinateSystemToNormalizedViewport()
-    pos.SetValue(0.84, 0.12)
-    bar.SetWidth(0.14)
-    bar.SetHeight(0.7)
-    bar.SetBarRatio(0.25)
+    pos.SetValue(0.70, 0.08)
+    bar.SetWidth(0.29)
+    bar.SetHeight(0.72)
+    bar.SetBarRatio(0.12)
+    bar.SetTitleRatio(0.25)
+    bar.SetVerticalTitleSeparation(6)
     for prop in (bar.GetTitleTextProperty(), bar.GetLabelTextProperty()):
         prop.SetColor(0.0, 0.0, 0.0)
         prop.SetFontSize(11)
@@ -67,25 +69,80 @@ def scalar_bar() -> vtkScalarBarActor:
     return bar
 
 
-def set_scalar_bar(bar: vtkScalarBarActor, legend: Legend | None) -> None:
-    """Show ``legend`` on ``bar``, or hide it (None: a mode without a scale)."""
+def legend_box() -> Any:
+    """A box of named colour swatches (categories) at the top right of its pane, hidden until
+    set."""
+    from vtkmodules.vtkRenderingAnnotation import vtkLegendBoxActor
+
+    box = vtkLegendBoxActor()
+    pos = box.GetPositionCoordinate()
+    pos.SetCoordinateSystemToNormalizedViewport()
+    box.SetBorder(True)
+    box.SetBox(True)
+    box.GetBoxProperty().SetColor(1.0, 1.0, 1.0)
+    box.SetUseBackground(True)
+    box.SetBackgroundColor(1.0, 1.0, 1.0)
+    box.SetBackgroundOpacity(0.85)
+    box.ScalarVisibilityOn()  # swatches take their own colours, the names the text's
+    prop = box.GetEntryTextProperty()
+    prop.SetColor(0.0, 0.0, 0.0)
+    prop.SetFontSize(12)
+    prop.SetBold(False)
+    prop.SetItalic(False)
+    prop.SetShadow(False)
+    box.SetVisibility(False)
+    return box
+
+
+def _swatch(rgb: tuple[int, int, int] | None) -> Any:
+    """A square coloured ``rgb`` by its own cell scalars (the entry's text stays black), or an
+    empty symbol (None: the title line)."""
+    from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
+    from vtkmodules.vtkCommonDataModel import vtkPolyData
+    from vtkmodules.vtkFiltersSources import vtkRegularPolygonSource
+
+    if rgb is None:
+        return vtkPolyData()
+    square = vtkRegularPolygonSource()
+    square.SetNumberOfSides(4)
+    square.Update()
+    poly = square.GetOutput()
+    colours = vtkUnsignedCharArray()
+    colours.SetNumberOfComponents(3)
+    for _ in range(poly.GetNumberOfCells()):
+        colours.InsertNextTuple3(*rgb)
+    poly.GetCellData().SetScalars(colours)
+    return poly
+
+
+def set_scalar_bar(bar: vtkScalarBarActor, legend: Legend | Categories | None,
+                   box: Any = None) -> None:
+    """Show ``legend`` on ``bar`` (a scale with a one-line title: titles are kept short, e.g.
+    ``radius (foot, log)``), or categories as named swatches in ``box`` (the title first), or
+    hide both (None: a mode without a legend)."""
+    bar.SetVisibility(False)
+    if box is not None:
+        box.SetVisibility(False)
+    if isinstance(legend, Categories):
+        if box is None:
+            return
+        n = len(legend.values)
+        box.SetNumberOfEntries(n + 1)
+        box.SetEntry(0, _swatch(None), legend.title, (0.0, 0.0, 0.0))
+        for i, (name, rgb) in enumerate(zip(legend.names, legend.colours, strict=True)):
+            box.SetEntry(i + 1, _swatch(rgb), name, (0.0, 0.0, 0.0))
+        height = min(0.9, 0.032 * (n + 1))
+        width = min(0.3, 0.03 + 0.0085 * max(len(t) for t in (legend.title, *legend.names)))
+        box.GetPositionCoordinate().SetValue(0.99 - width, 0.93 - height)
+        box.GetPosition2Coordinate().SetCoordinateSystemToNormalizedViewport()
+        box.GetPosition2Coordinate().SetValue(width, height)
+        box.SetVisibility(True)
+        return
     if legend is None:
-        bar.SetVisibility(False)
         return
     bar.SetLookupTable(lookup_table(legend))
-    bar.SetTitle(wrap_title(legend.title))
+    bar.SetTitle(legend.title)
     bar.SetVisibility(True)
-
-
-def wrap_title(title: str, width: int = 14) -> str:
-    """Break a long title at spaces into lines of about ``width`` characters."""
-    lines: list[str] = []
-    for word in title.split():
-        if lines and len(lines[-1]) + 1 + len(word) <= width:
-            lines[-1] += " " + word
-        else:
-            lines.append(word)
-    return "\n".join(lines)
 
 
 def set_shading(actor: Any, on: bool) -> None:
