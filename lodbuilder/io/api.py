@@ -172,6 +172,35 @@ def _is_level(obj: Any) -> bool:
     return all(hasattr(obj, a) for a in ("points", "attributes", "source_index", "radius", "crs"))
 
 
+def _what_to_write(points: Any, attributes: Any, metadata: Any, crs: Any,
+                   colour_depth: Any) -> tuple[np.ndarray, Any, dict[str, Any]]:
+    """The (N, 3) float64 points, the attributes and the metadata :func:`write_points` writes: a
+    Level's own unless given, the CRS as WKT, the PLY colour depth; checked."""
+    meta = dict(metadata or {})
+    if _is_level(points):
+        level = points
+        if attributes is None:
+            attributes = level.attributes
+        if crs is None and level.crs is not None:
+            meta[KEY_WKT] = level.crs  # already WKT: no pyproj on the slice path
+        if level.units and not meta.get(KEY_UNITS):
+            meta[KEY_UNITS] = level.units
+        points = level.points
+    if crs is not None:
+        meta[KEY_WKT] = crs_from_user(crs)
+    if colour_depth is not None:
+        if colour_depth not in (8, 16):
+            raise InputError(f"colour_depth must be 8 or 16, got {colour_depth!r}")
+        meta["write_colour_depth"] = int(colour_depth)
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"points must be an (N, 3) array of numbers, got {type(points).__name__}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"points must have shape (N, 3), got {pts.shape}")
+    return np.ascontiguousarray(pts), attributes, meta
+
+
 @strict_keywords
 def write_points(
     path: PathLike,
@@ -214,29 +243,7 @@ def write_points(
     failure never leaves a partial file under ``path``. Returns the path written.
     """
     fmt, module = writer_for(path)
-    meta = dict(metadata or {})
-    if _is_level(points):
-        level = points
-        if attributes is None:
-            attributes = level.attributes
-        if crs is None and level.crs is not None:
-            meta[KEY_WKT] = level.crs  # already WKT: no pyproj on the slice path
-        if level.units and not meta.get(KEY_UNITS):
-            meta[KEY_UNITS] = level.units
-        points = level.points
-    if crs is not None:
-        meta[KEY_WKT] = crs_from_user(crs)
-    if colour_depth is not None:
-        if colour_depth not in (8, 16):
-            raise InputError(f"colour_depth must be 8 or 16, got {colour_depth!r}")
-        meta["write_colour_depth"] = int(colour_depth)
-    try:
-        pts = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"points must be an (N, 3) array of numbers, got {type(points).__name__}") from None
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points must have shape (N, 3), got {pts.shape}")
-    pts = np.ascontiguousarray(pts)
+    pts, attributes, meta = _what_to_write(points, attributes, metadata, crs, colour_depth)
     attrs = _prepare_attributes(pts, attributes, rank)
     wkt = meta.get(KEY_WKT)
     with atomic_output(path) as tmp:  # (a full disk or another failed write: one line)

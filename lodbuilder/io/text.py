@@ -40,6 +40,33 @@ def _is_num(tok: str) -> bool:
 def read(path: Path) -> list[Scan]:
     with open(path, encoding="utf-8", errors="replace") as f:
         head = list(itertools.islice(f, 64))
+    dtypes, skip, header, header_line, delim, first_data = _layout(head)
+    if first_data is None:
+        raise FormatError(f"{path}: no point lines found; a text scan needs lines of 'x y z ...'")
+    if header is not None:
+        header = _header_fields(header_line, delim)
+    try:
+        table = np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip, comments="#", ndmin=2)
+    except ValueError as exc:
+        raise FormatError(f"{path}: malformed line in text scan ({exc_line(exc)}); every line needs the same number of values") from None
+    ncol = table.shape[1]
+    names = _column_names(path, header, ncol, table)
+    lower = [n.lower() for n in names]
+    try:
+        ix = [lower.index(c) for c in ("x", "y", "z")]
+    except ValueError:
+        raise FormatError(f"{path}: text header has no x/y/z columns (columns: {', '.join(names)}); name them x, y, z") from None
+    pts = np.ascontiguousarray(table[:, ix])
+    attrs = _attributes(table, names, ix, dtypes)
+    meta: dict[str, Any] = {"columns": names, "delimiter": delim or " ", "header": header is not None}
+    set_crs(meta, read_sidecar(path), "file")
+    return [Scan(points=pts, attributes=attrs, name=path.stem, source=str(path), reader="text", metadata=meta)]
+
+
+def _layout(head: list[str]) -> tuple[list[str] | None, int, list[str] | None, str, str | None,
+                                      list[str] | None]:
+    """From the first lines of a text scan: the dtypes comment, the lines to skip, whether there is a
+    header (and its line), the delimiter and the first data line's values."""
     dtypes: list[str] | None = None
     skip = 0
     header: list[str] | None = None
@@ -68,28 +95,17 @@ def read(path: Path) -> list[Scan]:
             continue
         first_data = toks
         break
-    if first_data is None:
-        raise FormatError(f"{path}: no point lines found; a text scan needs lines of 'x y z ...'")
-    if header is not None:
-        header = _header_fields(header_line, delim)
-    try:
-        table = np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip, comments="#", ndmin=2)
-    except ValueError as exc:
-        raise FormatError(f"{path}: malformed line in text scan ({exc_line(exc)}); every line needs the same number of values") from None
-    ncol = table.shape[1]
-    names = _column_names(path, header, ncol, table)
-    lower = [n.lower() for n in names]
-    try:
-        ix = [lower.index(c) for c in ("x", "y", "z")]
-    except ValueError:
-        raise FormatError(f"{path}: text header has no x/y/z columns (columns: {', '.join(names)}); name them x, y, z") from None
-    pts = np.ascontiguousarray(table[:, ix])
+    return dtypes, skip, header, header_line, delim, first_data
+
+
+def _attributes(table: np.ndarray, names: list[str], ix: list[int], dtypes: list[str] | None) -> dict[str, np.ndarray]:
+    """Every column but x, y, z, in the dtype the ``# dtypes:`` comment gives (colours as integers)."""
     attrs: dict[str, np.ndarray] = {}
     for j, n in enumerate(names):
         if j in ix:
             continue
         col = table[:, j]
-        if dtypes is not None and len(dtypes) == ncol:
+        if dtypes is not None and len(dtypes) == table.shape[1]:
             try:
                 attrs[n] = col.astype(np.dtype(dtypes[j]))
                 continue
@@ -99,9 +115,7 @@ def read(path: Path) -> list[Scan]:
             attrs[n] = col.astype(np.uint8 if col.max() <= 255 else np.uint16)
         else:
             attrs[n] = col
-    meta: dict[str, Any] = {"columns": names, "delimiter": delim or " ", "header": header is not None}
-    set_crs(meta, read_sidecar(path), "file")
-    return [Scan(points=pts, attributes=attrs, name=path.stem, source=str(path), reader="text", metadata=meta)]
+    return attrs
 
 
 def _column_names(path: Path, header: list[str] | None, ncol: int, table: np.ndarray) -> list[str]:

@@ -14,6 +14,7 @@ from .data import ViewData
 COLOUR_ATTRIBUTES = ("red", "green", "blue")
 
 
+@strict_keywords
 def filter_view(data: ViewData, flt: Any, scan: str = "") -> ViewData:
     """The points of ``data`` that pass ``flt`` (a :class:`lodbuilder.filters.LevelFilter`), in
     the same order. The slider's rho of a prefix stays a true covering bound: ``radius`` becomes
