@@ -69,6 +69,7 @@ def build_archive(
     seam_spacing: float | None = None,
     crs: str | None = None,
     crs_override: bool = False,
+    to_crs: str | None = None,
     wait: float | None = None,
     options: BuildOptions | None = None,
     raise_on_failure: bool | None = None,
@@ -96,7 +97,7 @@ def build_archive(
     seconds (default: until it finishes; 0: not at all), then raises ArchiveBusyError.
 
     What each scan stores is decided by the option keywords ``voxel_size``, ``band_radius``,
-    ``seeds``, ``size``, ``rho``, ``max_memory``, ``seam_spacing``, ``crs``, ``crs_override`` and the
+    ``seeds``, ``size``, ``rho``, ``max_memory``, ``seam_spacing``, ``crs``, ``crs_override``, ``to_crs`` and the
     feature options (``importance``, ``adaptive``, ``density_floor``, ``outlier_threshold``, ...),
     documented once in :class:`~lodbuilder.build.options.BuildOptions`; or by ``options``, a
     BuildOptions made beforehand (giving both is refused). Scans larger than ``max_memory`` take
@@ -112,7 +113,7 @@ def build_archive(
     from .build.runner import build
 
     given = {"voxel_size": voxel_size, "band_radius": band_radius, "seeds": seeds, "size": size, "rho": rho,
-             "max_memory": max_memory, "seam_spacing": seam_spacing, "crs": crs,
+             "max_memory": max_memory, "seam_spacing": seam_spacing, "crs": crs, "to_crs": to_crs,
              "tile_points": _tile_points, "tile_passes": _tile_passes,
              **{k: v for k, v in features.items() if v is not None}}
     if options is None:

@@ -187,6 +187,15 @@ def covering_bound(k: int, n: int, radius_at: Callable[[int], Any], stop: float 
     return float(stop) if k >= n else float(radius_at(k))
 
 
+def pieces_reached(entries: Any, k: int) -> int:
+    """How many pieces of the band the prefix of length ``k`` holds a point of, from the ascending
+    ranks at which each piece's first point entered (``entries``, the build record's
+    ``piece_entries``): the count of entries below k."""
+    import bisect
+
+    return bisect.bisect_left(list(entries), int(k))
+
+
 def check_within_ordering(
     scan: str, rho: float, n_ordered: int, n_points: int, stop: float
 ) -> None:
@@ -200,9 +209,8 @@ def check_within_ordering(
 
     raise LevelBeyondOrderingError(
         f"scan {scan!r} is ordered only down to covering radius {stop:.4g} ({n_ordered:,} of "
-        f"{n_points:,} points: a build with --size or --rho), so no level covers within "
-        f"rho={rho:.4g}; rebuild it with 'lodbuilder build SOURCE -o ARCHIVE --force' without "
-        f"--size, or with --rho {rho:.4g}"
+        f"{n_points:,} points: a partial build), so no level covers within rho={rho:.4g}; rebuild it "
+        "without --size to order every point: lodbuilder build SOURCE -o ARCHIVE --force"
     )
 
 

@@ -27,12 +27,18 @@ from lodbuilder.datasets import demo_scan
 CHILD = r"""
 import sys, numpy as np
 from lodbuilder.io import Scan
+from lodbuilder.sampling.ordering import Ordering
 from lodbuilder.archive.writer import ScanRecord, update_archive
 n = int(sys.argv[2])
 rng = np.random.default_rng(1)
 pts = rng.random((n, 3))
-import lodbuilder
-ordg = lodbuilder.euclidean_fps(pts)  # true radii: validate checks them against the points
+if n <= 100_000:  # true radii: validate checks them against the points
+    import lodbuilder
+    ordg = lodbuilder.euclidean_fps(pts)
+else:  # a big write to kill part-way (the archive is never validated): any valid-looking order
+    radius = np.sort(rng.random(n))[::-1].copy(); radius[0] = np.inf
+    parent = (np.arange(n) * rng.random(n)).astype(np.int64); parent[0] = -1
+    ordg = Ordering(rng.permutation(n).astype(np.int64), radius, parent, 0.0, 0.0, np.zeros(1, np.int64), n)
 rec = ScanRecord(Scan(points=pts, attributes={"i": rng.random(n)}, name="big"), ordg)
 print("ready", flush=True)
 update_archive(sys.argv[1], [rec])

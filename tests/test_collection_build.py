@@ -28,7 +28,7 @@ from lodbuilder.collection import (
     scan_level,
     total_points,
 )
-from lodbuilder.errors import BuildError, InputError
+from lodbuilder.errors import BuildError, InputError, LevelBeyondOrderingError
 from lodbuilder.io import read_scan, write_points
 from lodbuilder.io.pose import apply_pose
 
@@ -171,7 +171,9 @@ def test_merged_level_keeps_common_attributes(tmp_path):
     b = write_points(tmp_path / "b.npz", np.random.default_rng(2).random((200, 3)) + 2, {"w": np.zeros(200)})
     out = tmp_path / "ab.h5"
     build_collection([a, b], out, workers=1, size=50, raise_on_failure=True)
-    lvl = collection_level(out, rho=0.3)
+    with pytest.raises(LevelBeyondOrderingError, match="is ordered only down to covering radius"):
+        collection_level(out, rho=0.3)  # finer than 50 points reach (it claimed 0.3 before issue 20)
+    lvl = collection_level(out, rho=0.6)
     assert set(lvl.attributes) == {"w", "scan_id"}
     w = lvl.attributes["w"]
     np.testing.assert_array_equal(w, (lvl.attributes["scan_id"] == 0).astype(float))

@@ -275,10 +275,12 @@ def test_disconnected_objects_are_all_covered(rng):
     pts = np.vstack([a, b])
     o = fastfps(pts)
     check_invariants(pts, o)
-    # the seed's component is reached by the band; the other component starts at radius inf
-    assert np.isinf(o.radius[:2]).all()
+    # the seed's component is reached by the band; the other component enters at its Euclidean
+    # distance to the seed, the largest there is (issue 20: it entered with radius inf before)
+    assert np.isinf(o.radius[0]) and np.isfinite(o.radius[1:]).all()
     assert {o.order[0] < 900, o.order[1] < 900} == {True, False}
-    assert np.isfinite(o.radius[2:]).all()
+    d = np.sqrt(((pts - pts[o.order[0]]) ** 2).sum(axis=1))
+    assert o.radius[1] == pytest.approx(d.max(), rel=1e-12) and o.parent[1] == 0
     check_covering(pts, o, [2, 10, 100, 1000])
 
 

@@ -96,11 +96,12 @@ def test_finer_level_is_refused_with_the_rebuild(partial, tmp_path, capsys):
     assert rc != 0 and not (tmp_path / "x.ply").exists()
     assert err.strip() == (
         f"lodbuilder slice: error: scan 'bun_zipper_res3' is ordered only down to covering radius "
-        f"{stop:.4g} (150 of 1,889 points: a build with --size or --rho), so no level covers within "
-        "rho=0.001; rebuild it with 'lodbuilder build SOURCE -o ARCHIVE --force' without --size, or "
-        "with --rho 0.001"
+        f"{stop:.4g} (150 of 1,889 points: a partial build), so no level covers within rho=0.001; "
+        "rebuild it without --size to order every point: lodbuilder build SOURCE -o ARCHIVE --force"
     )
-    with lodbuilder.open_archive(partial) as arc, pytest.raises(LevelBeyondOrderingError, match="holds 151"):
+    with lodbuilder.open_archive(partial) as arc, pytest.raises(
+        LevelBeyondOrderingError, match="no level holds 151 points; rebuild it with --size 151 or without --size"
+    ):
         arc.scan().level(size=151)
 
 
@@ -112,7 +113,7 @@ def test_slice_info_evaluate_report_the_stop_radius(partial, tmp_path, capsys, r
     assert doc["rho"] == stop > 0
     rc, out, err = run_cli(capsys, "info", partial)
     assert (f"stops at   covering radius {stop:.4g}: the ordering holds 150 of 1,889 points "
-            "(a build with --size or --rho); no level is finer") in out
+            "(a partial build); no level is finer") in out
     rc, out, err = run_cli(capsys, "info", partial, "--json")
     assert json.loads(out)["scans"][0]["stop_radius"] == stop
     rc, out, err = run_cli(capsys, "evaluate", partial, "--json", tmp_path / "e.json")

@@ -50,6 +50,7 @@ from .heaps import (
     maxheap_decrease,
     maxheap_pop,
 )
+from .pieces import piece_tables, refresh_piece
 from .topology import _cell_key, anchor_of, cell_tables
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
@@ -480,7 +481,7 @@ def march_round(
 @nb.njit(**JIT)
 def grid_phase(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
-    r_stop, debug, tseed, tkey, tpos,
+    r_stop, debug, tseed, tkey, tpos, piece, npiece,
 ):  # pragma: no cover - compiled
     """Farthest point ordering under the band metric until the radius falls below ``r_stop``.
 
@@ -493,6 +494,15 @@ def grid_phase(
     never candidates; each joins the ordering (radius: its key) as soon as the largest candidate
     distance is at most its key, and its front is marched like a sample's. ``tpos[0]`` counts the timed seeds taken
     (the tail goes on from there).
+
+    Pieces (``piece``: the band piece of every point, ``npiece`` of them): a piece no sample has
+    reached is dormant; its points' values are Euclidean distances to the samples, refreshed
+    lazily (:mod:`.pieces`) when one of them reaches the top of the candidate heap. When a
+    refreshed point is still the farthest, it enters with its exact Euclidean distance as radius
+    and the nearest sample as parent, and wakes its piece: from then on the piece's points are
+    lowered by the march (along the surface) from its samples. Only the seeds have radius inf.
+    Before returning, every dormant piece is refreshed (the tail and the stop radius see exact
+    values).
     """
     m = u.shape[0]
     nv = keys.shape[0]
@@ -528,6 +538,15 @@ def grid_phase(
     nt = tseed.shape[0]
     for j in range(nt):
         val[tseed[j]] = -1.0  # never a candidate
+    awake = np.zeros(npiece, np.bool_)
+    psync = np.zeros(npiece, np.int64)
+    pmax = np.full(npiece, np.inf)
+    pstart, pidx, pbox = piece_tables(piece, npiece, u)
+    pmark = np.full(ncell, -1, np.int64)
+    cmin = 1.0
+    if weighted:
+        cmin = pcost.min()
+    nref = 0
     while k < k_max:
         if k < nseed:
             i = seeds[k]
@@ -561,6 +580,16 @@ def grid_phase(
                     while hn > 0 and ckey[0] < 0.0:
                         hn = maxheap_pop(ckey, heap, hpos, hn)
                     continue
+                c = piece[i]
+                if not awake[c] and psync[c] < k:  # a dormant piece: its values may be stale
+                    refresh_piece(
+                        c, k, order, u, val, lq, rank, pstart, pidx, pbox, psync, pmax, weighted, pcost,
+                        cmin, cs, cellv, cellof, ckey, heap, hpos, hn, pmark, np.int64(nref),
+                    )
+                    nref += 1
+                    while hn > 0 and ckey[0] < 0.0:
+                        hn = maxheap_pop(ckey, heap, hpos, hn)
+                    continue
                 rad = val[i]
                 par = lq[i]
                 ci = top
@@ -568,6 +597,7 @@ def grid_phase(
         order[k] = i
         radius[k] = rad
         parent[k] = par
+        awake[piece[i]] = True
         # an exhausted cell (key -1) sinks and is dropped when it reaches the top
         maxheap_decrease(ckey, heap, hpos, ci, _cell_key(np.int64(ci), cellv, cs, rank, val), hn)
         src[0] = i
@@ -602,6 +632,13 @@ def grid_phase(
         if debug and not check_maxheap(ckey, heap, hpos, hn):
             return order, radius, parent, k, val, lq, rank, np.int64(-2)  # debug: a broken heap
         k += 1
+    for c in range(npiece):  # exact values for the tail and the stop radius
+        if not awake[c] and psync[c] < k:
+            refresh_piece(
+                c, k, order, u, val, lq, rank, pstart, pidx, pbox, psync, pmax, weighted, pcost,
+                cmin, cs, cellv, cellof, ckey, heap, hpos, hn, pmark, np.int64(nref),
+            )
+            nref += 1
     return order, radius, parent, k, val, lq, rank, pops
 
 

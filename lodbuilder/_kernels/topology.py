@@ -46,23 +46,33 @@ def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
 def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
     """How many connected pieces of the band (marchable voxels, 6-neighbours) hold points; a point
     without a marchable corner counts as a piece of its own."""
+    return point_pieces(nbr, cs, near, vcost)[1]
+
+
+@nb.njit(**JIT)
+def point_pieces(nbr, cs, near, vcost):  # pragma: no cover - compiled
+    """The piece of every point (point order) and the number of pieces: the connected piece of the
+    band (marchable voxels, 6-neighbours) that holds the point's nearest marchable corner, which a
+    march from any point of the piece reaches; a point without a marchable corner is a piece of
+    its own. Pieces are numbered in point order of their first point."""
     nv = nbr.shape[0]
     lab = np.full(nv, -1, np.int32)
     queue = np.empty(nv, np.int32)
+    piece = np.empty(cs[nv], np.int32)
     ncomp = 0
-    # label the pieces that hold a point's nearest marchable corner
-    count = 0
     for a in range(nv):
         for p in range(cs[a], cs[a + 1]):
             c = near[p]
             if c == 255:
-                count += 1
+                piece[p] = ncomp
+                ncomp += 1
                 continue
             w = a
             for ax in range(3):
                 if (c >> ax) & 1:
                     w = nbr[w, 2 * ax + 1]
             if lab[w] >= 0:
+                piece[p] = lab[w]
                 continue
             lab[w] = ncomp
             queue[0] = w
@@ -77,8 +87,9 @@ def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
                         lab[x] = ncomp
                         queue[qn] = x
                         qn += 1
+            piece[p] = ncomp
             ncomp += 1
-    return count + ncomp
+    return piece, ncomp
 
 
 @nb.njit(**INLINE)

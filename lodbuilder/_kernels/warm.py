@@ -53,6 +53,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "grid.band_voxels": (_F64_2, _F64, _F64, _I32, _I64, _I32, _I64, i),
             "grid.neighbour_table": (_I64,),
             "topology.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
+            "topology.point_pieces": (_I32_2, _I32, _U8, _F32),
             "grid.coarse_runs": (_I64, _I32, i),
             "tail.euclid_tail": (
                 _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
@@ -67,6 +68,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
         "ordering": {  # the child process
             "march.grid_phase": (
                 _F64_2, _I64, _I32_2, _I32, _U8, _F32, _F64, b, _I32, _F32_2, f, _I32, i, f, f, b, _I32, _F64, _I64,
+                _I32, i,
             ),
         },
     }

@@ -237,6 +237,17 @@ class ScanView:
             k, self.n_ordered, lambda i: self._read(ds, slice(i, i + 1))[0], self.stop_radius
         )
 
+    def largest_finite_radius(self) -> float:
+        """The first finite insertion radius (the one after the seeds): a rho at or above it gives
+        the first point(s) only. 0 when the ordering holds only seeds."""
+        ds = self._g[L.D_RADIUS]
+        hi = min(self.n_ordered, self._meta.n_seeds + 1)
+        head = self._read(ds, slice(0, hi))
+        finite = head[np.isfinite(head)]
+        if finite.size:
+            return float(finite[0])
+        return float(self._read(ds, slice(hi, hi + 1))[0]) if hi < self.n_ordered else 0.0
+
     def resolve_size(self, rho: Any = None, size: Any = None, fraction: Any = None) -> int:
         if (
             self.stop_radius > 0
@@ -245,9 +256,9 @@ class ScanView:
         ):
             raise LevelBeyondOrderingError(
                 f"scan {self.name!r} is ordered only down to covering radius {self.stop_radius:.4g} "
-                f"({self.n_ordered:,} of {self.n_points:,} points: a build with --size or --rho), so "
-                f"no level holds {size:,} points; rebuild it with 'lodbuilder build SOURCE -o "
-                f"ARCHIVE --force' without --size, or with --size {size}"
+                f"({self.n_ordered:,} of {self.n_points:,} points: a partial build), so no level holds "
+                f"{size:,} points; rebuild it with --size {size} or without --size: lodbuilder build "
+                "SOURCE -o ARCHIVE --force"
             )
         return resolve_size(self.n_ordered, rho, size, fraction, rho_size=self.size_for_rho)
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..io.crs import KEY_REPROJECTION
 from ..progress import ProgressCallback
 from .options import BuildOptions
 
@@ -111,6 +112,10 @@ def read_job_scan(job: ScanJob) -> Any:
     scan.name = job.name
     if job.pose is not None:
         scan.points = np.ascontiguousarray(apply_pose(scan.points, np.asarray(job.pose)))
+    if job.options.to_crs is not None:
+        from ..io.crs import reproject_scan
+
+        reproject_scan(scan, job.options.to_crs)
     return scan
 
 
@@ -164,6 +169,8 @@ def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]
         "worker_pid": os.getpid(),
     })
     rec.provenance.update(provenance(job, rec.scan.reader))
+    if KEY_REPROJECTION in rec.scan.metadata:
+        rec.provenance[KEY_REPROJECTION] = rec.scan.metadata[KEY_REPROJECTION]
     t1 = time.perf_counter()
     report(progress, "write", 0, 1)
     write_archive(job.part, [rec])
@@ -194,12 +201,43 @@ def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
     if job.members:
         out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
                 m.get("pose"), i) for i, m in enumerate(job.members)]
-        return out  # type: ignore[return-value]
+        names = [Path(m["path"]).name for m in job.members]
+        return one_crs(out, names, job.options.to_crs)  # type: ignore[arg-type]
     if job.scan is not None:
-        scan = read_job_scan(job)  # the in-memory scan with its CRS
+        scan = read_job_scan(job)  # the in-memory scan with its CRS (reprojected already)
         return [(scan_stream(scan), None, None)]
-    return [(open_stream(job.path, scan_index=job.scan_index, crs=crs, crs_override=override),  # type: ignore[arg-type]
-             job.pose, None)]
+    one: list[tuple[Any, Any, int | None]] = [
+        (open_stream(job.path, scan_index=job.scan_index, crs=crs, crs_override=override),  # type: ignore[arg-type]
+         job.pose, None)]
+    return one_crs(one, [Path(job.path).name], job.options.to_crs)  # type: ignore[arg-type]
+
+
+def one_crs(sources: list[tuple[Any, Any, int | None]], names: list[str], to_crs: str | None
+            ) -> list[tuple[Any, Any, int | None]]:
+    """The streams of one ordering in one CRS: refused when they disagree (see
+    :func:`lodbuilder.io.crs.common_crs`), or each wrapped to reproject its chunks to ``to_crs``
+    (after its pose) with the transform recorded in its metadata."""
+    from ..io.crs import KEY_WKT, Reprojection, common_crs, reproject_metadata
+    from ..io.pose import apply_pose
+
+    target = common_crs([(n, s.metadata.get(KEY_WKT)) for n, (s, _, _) in zip(names, sources, strict=True)], to_crs)
+    if to_crs is None:
+        return sources
+    out = []
+    for stream, pose, member in sources:
+        if stream.metadata.get(KEY_WKT) == target:
+            out.append((stream, pose, member))
+            continue
+        rep = Reprojection(stream.metadata[KEY_WKT], target)  # type: ignore[arg-type]
+
+        def it(size: int, stream: Any = stream, pose: Any = pose, rep: Reprojection = rep) -> Any:
+            for chunk in stream.chunks(size):
+                pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
+                yield dataclasses.replace(chunk, points=rep(pts))
+
+        out.append((dataclasses.replace(stream, metadata=reproject_metadata(stream.metadata, rep), _iter=it),
+                    None, member))
+    return out
 
 
 def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: ProgressCallback = None) -> dict[str, Any]:
@@ -226,12 +264,17 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
         build["joint"] = {"scans": [{k: m.get(k) for k in ("id", "name", "source", "sha256", "pose", "pose_kind",
                                                             "scan_index")} for m in job.members]}
     reader = "joint" if job.members else None
+    sources = tiled_sources(job)
+    prov = provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"}
+    reps = [s.metadata[KEY_REPROJECTION] for s, _, _ in sources if KEY_REPROJECTION in s.metadata]
+    if reps:
+        prov[KEY_REPROJECTION] = reps if job.members else reps[0]
     res = build_tiled(
-        tiled_sources(job), Path(job.part), job.name, job.work, executor, parallel=parallel,
+        sources, Path(job.part), job.name, job.work, executor, parallel=parallel,
         max_memory=o.max_memory, voxel_size=o.voxel_size, band_radius=o.band_radius,
         seam_spacing=o.seam_spacing if o.seam_spacing is not None else SEAM_SPACING,
         tile_points=o.tile_points, passes=o.tile_passes or TILE_PASSES, build=build,
-        provenance=provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"},
+        provenance=prov,
         progress=progress,
     )
     res.update({"name": job.name, "method": "tiled"})

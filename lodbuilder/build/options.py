@@ -46,7 +46,10 @@ class BuildOptions:
 
     ``crs`` (EPSG:XXXX, WKT or a file holding WKT; stored as WKT) gives every scan without one a
     coordinate reference system; a scan whose file declares another is refused unless
-    ``crs_override``. ``tile_points``/``tile_passes`` are private knobs of the tiled path."""
+    ``crs_override``. ``to_crs`` (EPSG:XXXX or WKT; needs pyproj) reprojects every scan to that
+    CRS before ordering (the transform is recorded in the scan's provenance); without it, the scans
+    of a joint build must share one CRS. ``tile_points``/``tile_passes`` are private knobs of the
+    tiled path."""
 
     voxel_size: float | None = None
     band_radius: float | None = None
@@ -58,6 +61,7 @@ class BuildOptions:
     seam_spacing: float | None = None
     crs: str | None = None
     crs_override: bool = False
+    to_crs: str | None = None
     tile_points: int | None = None
     tile_passes: int | None = None
 
@@ -65,7 +69,7 @@ class BuildOptions:
     @strict_keywords(extra=FEATURE_OPTIONS)
     def make(cls, *, voxel_size: Any = None, band_radius: Any = None, size: Any = None, rho: Any = None,
              seeds: Any = None, max_memory: Any = None, seam_spacing: Any = None, crs: Any = None,
-             crs_override: bool = False, tile_points: Any = None, tile_passes: Any = None,
+             crs_override: bool = False, to_crs: Any = None, tile_points: Any = None, tile_passes: Any = None,
              **features: Any) -> BuildOptions:
         """Check every option once and return them frozen (one-line InputError otherwise)."""
         if size is not None and (isinstance(size, bool) or not isinstance(size, int) or size < 1):
@@ -93,6 +97,7 @@ class BuildOptions:
             seam_spacing=None if seam_spacing is None else _seam_spacing(seam_spacing),
             crs=None if crs is None else _crs(crs),
             crs_override=bool(crs_override) if crs is not None else False,
+            to_crs=None if to_crs is None else _crs(to_crs),
             tile_points=None if tile_points is None else int(tile_points),
             tile_passes=None if tile_passes is None else int(tile_passes),
         )
@@ -128,6 +133,8 @@ class BuildOptions:
         if self.crs is not None:
             params["crs"] = self.crs
             params["crs_override"] = self.crs_override
+        if self.to_crs is not None:
+            params["to_crs"] = self.to_crs
         return params
 
 

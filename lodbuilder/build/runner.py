@@ -385,23 +385,8 @@ def _build_locked(sources: list[ScanSource], archive: Path, options: BuildOption
         total = len(sources)
     decide_tiling(jobs, options)
     names_in_archive = set(_existing_scans(archive))
-    done = points = 0
-
-    def emit(st: ScanStatus) -> None:
-        nonlocal done, points
-        result.scans.append(st)
-        done += 1
-        points += st.n_points or 0
-        # failures are warnings unless the caller shows statuses itself (or re-raises them)
-        quiet_failure = on_status is not None or (raise_on_failure is None and total == 1)
-        level = logging.WARNING if st.status == "failed" and not quiet_failure else logging.INFO
-        log.log(level, "[%d/%d] %s: %s%s", done, total, st.name, st.status, f" ({st.error})" if st.error else "")
-        if on_status is not None:
-            on_status(st)
-        if total > 1:  # a collection shows scans and points; a single scan shows its phases
-            report(progress, "scans", done, total)
-            report(progress, "points", points, 0)
-
+    emit = _Statuses(result, total, progress, on_status,
+                     quiet_failure=on_status is not None or (raise_on_failure is None and total == 1))
     if total > 1:
         report(progress, "scans", 0, total)
     for st in skipped + failed:
@@ -417,28 +402,61 @@ def _build_locked(sources: list[ScanSource], archive: Path, options: BuildOption
             names_in_archive.add(j.name)
             emit(ScanStatus(j.name, j.source, "recovered"))
     if jobs:
-        from ..archive.files import make_own_dir
-
-        make_own_dir(parts_dir(archive), archive.name)
-        jobs.sort(key=lambda j: -(j.size_bytes or 0))  # largest first: better packing on the workers
-        tiled = [j for j in jobs if j.tiled]
-        small = [j for j in jobs if not j.tiled]
-        default = workers is None and scheduler is None and dask_local is None
-        inline = in_memory or (len(jobs) == 1 and default and not tiled)
-        t_start = time.perf_counter()
-        with make_executor(workers, scheduler, dask_local, inline=inline) as (ex, desc):
-            result.startup_seconds = time.perf_counter() - t_start
-            result.executor = desc
-            log.info("building %d scan(s) on %s", len(jobs), desc)
-            if small:
-                _run_jobs(ex, small, archive, result, emit, names_in_archive,
-                          progress if (inline and total == 1) else None)
-            parallel = 1 if inline or scheduler is not None else (dask_local or workers or os.cpu_count() or 1)
-            for job in tiled:
-                _run_tiled(ex, parallel, job, archive, result, emit, names_in_archive,
-                           progress if total == 1 else None)
+        _run(jobs, archive, result, emit, names_in_archive, in_memory, total, workers, scheduler, dask_local,
+             progress)
     result.archive_scans = len(names_in_archive) if archive.exists() else 0
     return total
+
+
+class _Statuses:
+    """Reports each scan's status as it is known: into the result, the log, ``on_status`` and, for a
+    collection, the progress of scans and points (failures are warnings unless ``quiet_failure``:
+    the caller shows or raises them)."""
+
+    def __init__(self, result: BuildResult, total: int, progress: ProgressCallback, on_status: StatusCallback,
+                 *, quiet_failure: bool) -> None:
+        self.result, self.total, self.progress, self.on_status = result, total, progress, on_status
+        self.quiet_failure = quiet_failure
+        self.done = self.points = 0
+
+    def __call__(self, st: ScanStatus) -> None:
+        self.result.scans.append(st)
+        self.done += 1
+        self.points += st.n_points or 0
+        level = logging.WARNING if st.status == "failed" and not self.quiet_failure else logging.INFO
+        log.log(level, "[%d/%d] %s: %s%s", self.done, self.total, st.name, st.status,
+                f" ({st.error})" if st.error else "")
+        if self.on_status is not None:
+            self.on_status(st)
+        if self.total > 1:  # a collection shows scans and points; a single scan shows its phases
+            report(self.progress, "scans", self.done, self.total)
+            report(self.progress, "points", self.points, 0)
+
+
+def _run(jobs: list[ScanJob], archive: Path, result: BuildResult, emit: Any, names_in_archive: set[str],
+         in_memory: bool, total: int, workers: int | None, scheduler: str | None, dask_local: int | None,
+         progress: ProgressCallback) -> None:
+    """Run the jobs (in memory ones first, then the tiled ones) on one executor, merging each part."""
+    from ..archive.files import make_own_dir
+
+    make_own_dir(parts_dir(archive), archive.name)
+    jobs.sort(key=lambda j: -(j.size_bytes or 0))  # largest first: better packing on the workers
+    tiled = [j for j in jobs if j.tiled]
+    small = [j for j in jobs if not j.tiled]
+    default = workers is None and scheduler is None and dask_local is None
+    inline = in_memory or (len(jobs) == 1 and default and not tiled)
+    t_start = time.perf_counter()
+    with make_executor(workers, scheduler, dask_local, inline=inline) as (ex, desc):
+        result.startup_seconds = time.perf_counter() - t_start
+        result.executor = desc
+        log.info("building %d scan(s) on %s", len(jobs), desc)
+        if small:
+            _run_jobs(ex, small, archive, result, emit, names_in_archive,
+                      progress if (inline and total == 1) else None)
+        parallel = 1 if inline or scheduler is not None else (dask_local or workers or os.cpu_count() or 1)
+        for job in tiled:
+            _run_tiled(ex, parallel, job, archive, result, emit, names_in_archive,
+                       progress if total == 1 else None)
 
 
 def _run_jobs(ex: cf.Executor, jobs: list[ScanJob], archive: Path, result: BuildResult, emit: Any,

@@ -58,6 +58,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         action="store_true",
         help="let --crs replace the CRS a scan file declares",
     )
+    p.add_argument(
+        "--to-crs",
+        metavar="EPSG:XXXX|WKT",
+        help="reproject every scan to this CRS before ordering (with pyproj; the transform is recorded "
+        "in provenance): scans of a joint build in different CRSs need it",
+    )
     p.add_argument("--no-progress", action="store_true", help="do not show progress bars")
     from .output import add_json_option
 
@@ -126,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
     check_positive(args.voxel_size, "--voxel-size")
     check_positive(args.band_radius, "--band-radius")
     options = BuildOptions.make(voxel_size=args.voxel_size, band_radius=args.band_radius, crs=args.crs,
-                                crs_override=args.crs_override, **option_kwargs(args), **build_kwargs(args))
+                                crs_override=args.crs_override, to_crs=args.to_crs, **option_kwargs(args), **build_kwargs(args))
     how = collection_kwargs(args)
     show_lines = verbosity(args) >= 0 and not getattr(args, "json", False)
     counter = {"done": 0, "total": 0}

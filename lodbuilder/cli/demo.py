@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -80,6 +81,14 @@ def run(args: argparse.Namespace) -> int:
         if created:  # a folder this run made: take back what it wrote, then the folder
             _remove_created(out, [archive] + [row[3] for row in rows])
         raise
+    doc, text = _report(args, archive, t_build, rows, bool(result.by_status("skipped")))
+    emit(args, doc, text)
+    return 0
+
+
+def _report(args: argparse.Namespace, archive: Path, t_build: float, rows: list[tuple[int, float, float, Path]],
+            reused: bool) -> tuple[dict[str, Any], str]:
+    """The demo's --json document and its table."""
     doc = {
         "archive": str(archive),
         "surface": args.surface,
@@ -90,7 +99,6 @@ def run(args: argparse.Namespace) -> int:
             for size, rho, ms, path in rows
         ],
     }
-    reused = bool(result.by_status("skipped"))
     doc["reused"] = reused
     first = (
         f"reused {archive}: it already holds the generated {args.surface} surface of "
@@ -105,8 +113,7 @@ def run(args: argparse.Namespace) -> int:
         *(f"{size:>8,}  {rho:>18.5f}  {ms:>8.1f}  {path}" for size, rho, ms, path in rows),
         f"next: lodbuilder info {archive}; lodbuilder slice {archive} --rho 0.01 -o level.ply",
     ]
-    emit(args, doc, "\n".join(text))
-    return 0
+    return doc, "\n".join(text)
 
 
 def _remove_created(folder: Path, files: list[Path]) -> None:

@@ -45,9 +45,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def _table(ev) -> str:
+    from .level_facts import piece_counts
+
+    uniform = ev.ordering in (None, "uniform")
+    counts = {r.size: piece_counts(ev.build, r.size) for r in ev.reports} if uniform else {}
+    known = any(c is not None and c[1] > 1 for c in counts.values())
     head = (
         f"{'size':>9} {'rho':>10} {'cover':>10} {'ok':>3} {'hausdorff':>10} {'chamfer':>10} "
-        f"{'min sp.':>10} {'unif.':>6} {'surf rms':>10} {'surf max':>10}"
+        f"{'min sp.':>10} {'unif.':>6} {'surf rms':>10} {'surf max':>10}" + (f" {'pieces':>13}" if known else "")
     )
     unit = ev.units or "scan units (unit unknown)"
     lines = [
@@ -63,9 +68,33 @@ def _table(ev) -> str:
         lines.append(
             f"{r.size:>9,} {f(r.rho)} {f(r.covering_radius)} {ok:>3} {f(r.hausdorff)} "
             f"{f(r.chamfer)} {f(r.min_spacing)} {r.uniformity:6.3f} "
-            f"{f(r.surface_error['rms'])} {f(r.surface_error['max'])}"
+            f"{f(r.surface_error['rms'])} {f(r.surface_error['max'])}" + (_pieces(counts.get(r.size)) if known else "")
         )
+    lines += _first_point_notes(ev)
     return "\n".join(lines)
+
+
+def _pieces(c) -> str:
+    if c is None:
+        return f" {'-':>13}"
+    return f" {('>=' if not c[2] else '') + f'{c[0]:,}/{c[1]:,}':>13}"
+
+
+def _first_point_notes(ev) -> list[str]:
+    """A note for each level asked by a rho at or above the scan's largest finite radius."""
+    import numpy as np
+
+    radius = np.asarray(ev.radius)
+    finite = radius[np.isfinite(radius)]
+    if ev.ordering not in (None, "uniform") or not finite.size:
+        return []
+    top = float(finite[0])
+    out = []
+    for r in ev.reports:
+        if r.label.startswith("rho=") and float(r.label[4:]) >= top > 0:
+            out.append(f"level {r.label}: rho is at least the scan's largest finite radius {top:.4g}: the level "
+                       "is the first point only; ask for a smaller rho for more")
+    return out
 
 
 def run(args: argparse.Namespace) -> int:

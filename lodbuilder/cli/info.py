@@ -147,7 +147,7 @@ def _stop_lines(s: dict[str, Any]) -> list[str]:
     if stop <= 0.0:
         return []
     return [f"  stops at   covering radius {stop:.4g}: the ordering holds {s['n_ordered']:,} of "
-            f"{s['n_points']:,} points (a build with --size or --rho); no level is finer"]
+            f"{s['n_points']:,} points (a partial build); no level is finer"]
 
 
 def _build_line(b: dict) -> str:

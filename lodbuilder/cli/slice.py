@@ -104,6 +104,12 @@ def run(args: argparse.Namespace) -> int:
         view = arc.scan(args.scan)
         answer = read_level(view, query)
         level, filled, note = answer.level, answer.filled, answer.guarantee
+        from .level_facts import facts_text, level_facts
+
+        plain = query.box is None and query.viewpoint is None and query.fill is None and query.floor_rho is None
+        rho_asked = query.rho if plain else None
+        facts = level_facts(view, level, rho_asked)
+        note = "; ".join([note, *facts_text(facts, rho_asked)])
         metadata = view.format_metadata
         say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
     guarantee = None
@@ -129,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
         "rho": level.rho,
         "ordering": level.ordering or "uniform",
         "bound": note,
+        "pieces_reached": facts["pieces_reached"],
+        "pieces": facts["pieces"],
+        "first_point_only": facts["first_point_only"],
         "region": level.region,
         "attributes": sorted(attrs),
         "crs": level.crs,

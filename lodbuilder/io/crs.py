@@ -36,8 +36,11 @@ log = logging.getLogger(__name__)
 #: metadata keys every reader and writer uses
 KEY_WKT = "crs_wkt"
 KEY_UNITS = "crs_units"
-#: how the scan got its CRS: "file" (read from the scan file) or "assigned" (build --crs)
+#: how the scan got its CRS: "file" (read from the scan file), "assigned" (build --crs) or
+#: "reprojected" (build --to-crs)
 KEY_SOURCE = "crs_source"
+#: the transform of a reprojected scan (build --to-crs): Reprojection.record
+KEY_REPROJECTION = "crs_reprojection"
 
 _WKT_START = re.compile(
     r"^\s*(PROJCS|GEOGCS|GEOCCS|COMPD_CS|VERT_CS|LOCAL_CS|PROJCRS|GEOGCRS|GEODCRS|BOUNDCRS|"
@@ -222,3 +225,102 @@ def read_sidecar(path: str | os.PathLike[str]) -> str | None:
     except OSError:
         return None
     return to_wkt(text, what=str(side))
+
+
+def describe_crs(wkt: str | None) -> str:
+    """A CRS for a message: its name and EPSG code when pyproj knows them, else the WKT's start."""
+    if not wkt:
+        return "no CRS"
+    name, code = crs_name(wkt), epsg_code(wkt)
+    text = name or (wkt[:60] + ("..." if len(wkt) > 60 else ""))
+    return f"{text} (EPSG:{code})" if code else text
+
+
+def common_crs(inputs: list[tuple[str, str | None]], to_crs: str | None = None) -> str | None:
+    """The one CRS of scans joined into one ordering (``inputs``: (name, WKT or None) each), or
+    ``to_crs`` (WKT) when they are to be reprojected to it.
+
+    Scans in different CRSs are refused naming both, unless ``to_crs`` is given; a scan without a
+    CRS among scans with one is refused (its coordinates cannot be placed), even with ``to_crs``:
+    ``--crs`` assigns it one."""
+    have = [(n, w) for n, w in inputs if w]
+    missing = [n for n, w in inputs if not w]
+    if have and missing:
+        raise InputError(
+            f"scan {missing[0]!r} has no CRS while {have[0][0]!r} is in {describe_crs(have[0][1])}; "
+            "give the scans without one a CRS with --crs EPSG:XXXX (or WKT), or build them separately"
+        )
+    if to_crs:
+        if not have:
+            raise InputError("--to-crs needs scans with a CRS to reproject from; give them one with --crs")
+        return to_crs
+    for n, w in have[1:]:
+        if w != have[0][1]:
+            raise InputError(
+                f"scans {have[0][0]!r} and {n!r} are in different CRSs ({describe_crs(have[0][1])} and "
+                f"{describe_crs(w)}); reproject them to one with --to-crs EPSG:XXXX (needs pyproj), or "
+                "build them separately"
+            )
+    return have[0][1] if have else None
+
+
+class Reprojection:
+    """Coordinates from one CRS to another (pyproj, x/y in the CRSs' own axis units and order
+    "x east, y north" whatever the CRS's declared axis order; z passes through the transform,
+    unchanged unless the CRSs have vertical parts). ``record`` is what provenance stores."""
+
+    def __init__(self, src_wkt: str, dst_wkt: str) -> None:
+        pyproj = _pyproj()
+        if pyproj is None:
+            raise MissingDependencyError(f"--to-crs reprojects with pyproj; {_HINT}")
+        self.src, self.dst = src_wkt, dst_wkt
+        self._t = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(src_wkt), pyproj.CRS.from_wkt(dst_wkt),
+                                              always_xy=True)
+        self.record = {"from": describe_crs(src_wkt), "to": describe_crs(dst_wkt),
+                       "from_units": linear_units(src_wkt), "to_units": linear_units(dst_wkt),
+                       "transform": self._t.description, "pipeline": self._pipeline(), "always_xy": True}
+
+    def _pipeline(self) -> str:
+        """The PROJ pipeline (pyproj names it only once it has chosen one operation; where several
+        apply, it chooses per point and says so)."""
+        try:
+            text = self._t.to_proj4()
+        except Exception:
+            text = None
+        return str(text or self._t.definition)
+
+    def __call__(self, points: Any) -> Any:
+        import numpy as np
+
+        pts = np.asarray(points, dtype=np.float64)
+        x, y, z = self._t.transform(pts[:, 0], pts[:, 1], pts[:, 2])
+        out = np.ascontiguousarray(np.stack([x, y, z], axis=1), dtype=np.float64)
+        if not np.isfinite(out).all():
+            raise InputError(
+                f"reprojecting from {self.record['from']} to {self.record['to']} gave non-finite "
+                "coordinates (points outside the target CRS's area?); choose another --to-crs"
+            )
+        return out
+
+
+def reproject_metadata(metadata: dict[str, Any], rep: Reprojection) -> dict[str, Any]:
+    """The metadata of a scan reprojected by ``rep``: the target CRS, its units, the transform;
+    LAS scale/offset dropped (they described the old coordinates)."""
+    meta = {k: v for k, v in metadata.items() if k not in ("scale", "offset", "las_scales", "las_offsets")}
+    set_crs(meta, rep.dst, "reprojected")
+    meta[KEY_REPROJECTION] = rep.record
+    return meta
+
+
+def reproject_scan(scan: Any, to_crs: str) -> None:
+    """Reproject an in-memory Scan (points and metadata) to ``to_crs`` (WKT), in place; nothing
+    to do when it is in that CRS already. A scan without a CRS is refused (nothing to reproject
+    from: --crs assigns one)."""
+    src = scan.metadata.get(KEY_WKT)
+    if not src:
+        raise InputError(f"scan {scan.name!r} has no CRS to reproject from; give it one with --crs EPSG:XXXX")
+    if src == to_crs:
+        return
+    rep = Reprojection(src, to_crs)
+    scan.points = rep(scan.points)
+    scan.metadata = reproject_metadata(scan.metadata, rep)

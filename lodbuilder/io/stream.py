@@ -170,31 +170,10 @@ def _las_error(p: Path, exc: BaseException) -> FormatError:
 
 
 def _las_stream(p: Path) -> PointStream:
-    from .las.common import check_laz_backend, laspy_module, quiet_laspy
-    from .las.read import check_chunk_table, check_vlr_counts, las_metadata
+    from .las.common import laspy_module, quiet_laspy
 
     laspy = laspy_module(p)
-    check_laz_backend(laspy, p)
-    try:
-        check_vlr_counts(p)
-        if p.suffix.lower() == ".laz":
-            check_chunk_table(laspy, p)
-        with quiet_laspy(), laspy.open(str(p)) as reader:
-            hdr = reader.header
-            n = int(hdr.point_count)
-            meta, rename = las_metadata(hdr, hdr.point_format, p)
-            dims = [d for d in hdr.point_format.dimension_names if d not in ("X", "Y", "Z")]
-            probe = reader.read_points(1) if n else None
-    except laspy.errors.LaspyException as exc:
-        raise _las_error(p, exc) from None
-    except OSError as exc:
-        raise ScanFileError(f"{p}: cannot be read ({' '.join(str(exc).split())}); check the file") from None
-    except LodbuilderError:
-        raise
-    except BaseException as exc:  # lazrs' own errors (or panics) on a damaged file: the reader's message
-        if not isinstance(exc, Exception) and not library_panic(exc):
-            raise
-        raise _foreign_error(p, exc) from None
+    n, meta, rename, dims, probe = _las_header(laspy, p)
     if n == 0:
         raise FormatError(f"{p}: holds no points; a scan needs at least one point")
     names = {d: rename.get(d, d) for d in dims}
@@ -235,6 +214,36 @@ def _las_stream(p: Path) -> PointStream:
             raise FormatError(f"{p}: the header declares {n} points but the file holds {start}; re-export it")
 
     return PointStream(p, name, "las", n, meta, fields, True, it)
+
+
+def _las_header(laspy: Any, p: Path) -> tuple[int, dict[str, Any], dict[str, str], list[str], Any]:
+    """A LAS/LAZ file's point count, metadata, renamed fields, dimensions and first point, after the
+    checks that refuse a damaged file; one line for every failure."""
+    from .las.common import check_laz_backend, quiet_laspy
+    from .las.read import check_chunk_table, check_vlr_counts, las_metadata
+
+    check_laz_backend(laspy, p)
+    try:
+        check_vlr_counts(p)
+        if p.suffix.lower() == ".laz":
+            check_chunk_table(laspy, p)
+        with quiet_laspy(), laspy.open(str(p)) as reader:
+            hdr = reader.header
+            n = int(hdr.point_count)
+            meta, rename = las_metadata(hdr, hdr.point_format, p)
+            dims = [d for d in hdr.point_format.dimension_names if d not in ("X", "Y", "Z")]
+            probe = reader.read_points(1) if n else None
+    except laspy.errors.LaspyException as exc:
+        raise _las_error(p, exc) from None
+    except OSError as exc:
+        raise ScanFileError(f"{p}: cannot be read ({' '.join(str(exc).split())}); check the file") from None
+    except LodbuilderError:
+        raise
+    except BaseException as exc:  # lazrs' own errors (or panics) on a damaged file: the reader's message
+        if not isinstance(exc, Exception) and not library_panic(exc):
+            raise
+        raise _foreign_error(p, exc) from None
+    return n, meta, rename, dims, probe
 
 
 def _check_finite(p: Path, pts: np.ndarray, start: int) -> None:

@@ -299,6 +299,10 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         cmin = 1.0
     from .._kernels.march import grid_phase
     from .._kernels.tail import euclid_tail
+    from .._kernels.topology import point_pieces
+
+    piece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    stats["pieces"] = int(npiece)
 
     if plan.separation is None:
         psep = np.full(1, np.inf, dtype=np.float32)
@@ -315,6 +319,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     order, radius, parent, k, val, lq, rank, pops = grid_phase(
         band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
         TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG, tseed_c, tkey_g, tpos,
+        piece, np.int64(npiece),
     )
     del vcost
     release_freed_memory(n)
@@ -349,6 +354,8 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     stats["time_tail"] = t3 - t2
     stats["cpu_tail"] = time.process_time() - c2
     report(progress, "ordering", int(k), k_max)
+    stats["piece_entries"] = _piece_entries(piece, order[:k])
+    del piece
     uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
     del perm, order
     user_grid = voxel_size is not None or band_radius is not None
@@ -365,6 +372,16 @@ def _promised(radius, stop, extent, h, r, user_grid):
     delta = rounding_bound(span(extent, h, r))
     check_precision(radius, delta, extent=extent, h=h, r=r, user_grid=user_grid)
     return promise(radius, delta), promise_one(stop, delta), delta
+
+
+PIECE_ENTRIES_MAX = 10_000  # the ranks kept in the build record (a scan of noise has a piece per point)
+
+
+def _piece_entries(piece: np.ndarray, order: np.ndarray) -> list[int]:
+    """The rank at which each piece's first point entered the ordering, ascending (at most
+    PIECE_ENTRIES_MAX of them: the first ones), for "the level reaches P of the pieces"."""
+    _, where = np.unique(piece[order], return_index=True)
+    return np.sort(where)[:PIECE_ENTRIES_MAX].tolist()
 
 
 def _stop_radius(val: np.ndarray, rank: np.ndarray, timed: np.ndarray) -> float:
@@ -390,6 +407,8 @@ def _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, 
         return Ordering(uorder, radius, parent, h, r, seed_arr, n, stats, stop)
     nseed_u = int(np.unique(gid[seed_arr]).size)
     extra = seed_arr[rep[gid[seed_arr]] != seed_arr]  # seeds that are copies of an earlier seed
+    shift = seed_arr.shape[0] - nseed_u  # every user seed comes first, copies too
+    stats["piece_entries"] = [e if e < nseed_u else e + shift for e in stats.get("piece_entries", [])]
     head = seed_arr  # all user seeds, in the given order, radius inf
     body = rep[uorder[nseed_u:]]
     order = np.concatenate([head, body])

@@ -21,10 +21,12 @@ class Ordering:
         radius: (K,) float64, non-increasing. ``radius[k]`` is the insertion radius of the k-th point:
             an upper bound of the distance from every input point to the first k points
             (the prefix ``order[:k]`` covers the whole input within ``radius[k]``).
-            Convention: seeds (and the first point of every band component the seeds do not reach)
-            have radius ``inf``; exact duplicates of an earlier point have radius 0.
+            Convention: seeds have radius ``inf``; the first point of every other piece of the band
+            enters when the radius falls to its Euclidean distance to the points before it, with that
+            distance as radius and the nearest of them as parent; exact duplicates of an earlier
+            point have radius 0.
         parent: (K,) int64. Position in the ordering of the nearest earlier point at insertion time
-            (the Voronoi cell the point fell in); -1 for seeds and component starts.
+            (the Voronoi cell the point fell in); -1 for seeds.
         voxel_size: the grid spacing h used by the band.
         band_radius: the band radius r.
         seeds: (S,) int64 input indices that start the ordering, in order.

@@ -80,7 +80,7 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
     files = {k: SumFile(attr_file(work, i)) for i, k in enumerate(fields)}
     members = []
     encodings: set[str] = set()
-    meta = dict(sources[0][0].metadata) if not joint else {}
+    meta = dict(sources[0][0].metadata) if not joint else _joint_crs(sources)
     g = 0
     try:
         with SumFile(work / WL.POINTS) as fp:
@@ -112,6 +112,22 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
     sums = {WL.POINTS: fp.sum, **{f.path.name: f.sum for f in files.values()}}
     return Spill(g, lo, hi, fields, sample, meta, sources[0][0].reader if not joint else "joint", members,
                  choose_encoding(encodings or {"float64"}), sums)
+
+
+def _joint_crs(sources: list[tuple[Any, Any, int | None]]) -> dict[str, Any]:
+    """The CRS metadata of a joint scan: the sources' own when they all share one CRS (the build
+    refused them otherwise, or reprojected them to one), else none."""
+    from ...io.crs import KEY_REPROJECTION, KEY_SOURCE, KEY_UNITS, KEY_WKT
+
+    metas = [s.metadata for s, _, _ in sources]
+    if not metas[0].get(KEY_WKT) or any(m.get(KEY_WKT) != metas[0][KEY_WKT] for m in metas):
+        return {}
+    keys = (KEY_WKT, KEY_UNITS, KEY_SOURCE)
+    out = {k: metas[0][k] for k in keys if metas[0].get(k) is not None}
+    reps = [m[KEY_REPROJECTION] for m in metas if KEY_REPROJECTION in m]
+    if reps:
+        out[KEY_REPROJECTION] = reps
+    return out
 
 
 def blocks(path: Path, dtype: Any, count: int | None = None, rows: int | None = None,

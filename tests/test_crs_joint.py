@@ -1,0 +1,122 @@
+"""CRS across the scans of one ordering (issue 20, finding 17 of reliability-3): a joint build
+keeps the CRS its inputs share, refuses inputs in different CRSs or without one, and --to-crs
+reprojects them with pyproj (checked against pyproj directly)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import lodbuilder
+from lodbuilder.cli.main import main
+from lodbuilder.errors import InputError
+from lodbuilder.io import read_scan, write_points
+
+pyproj = pytest.importorskip("pyproj")
+
+UTM10 = pyproj.CRS.from_epsg(32610)
+
+
+def run_cli(capsys, *argv):
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.fixture(scope="module")
+def autzen(shared_data):
+    return read_scan(shared_data / "autzen_trim.laz")
+
+
+@pytest.fixture
+def halves(autzen, tmp_path):
+    """Two tiles of autzen (every 4th point, split at the median x), as LAZ files with its CRS."""
+    pts = autzen.points[::4]
+    left = pts[:, 0] < np.median(pts[:, 0])
+    wkt = autzen.metadata["crs_wkt"]
+    a = write_points(tmp_path / "a.laz", pts[left], crs=wkt)
+    b = write_points(tmp_path / "b.laz", pts[~left], crs=wkt)
+    return a, b, pts[left], pts[~left], wkt
+
+
+def test_joint_build_keeps_the_shared_crs(halves, tmp_path, capsys):
+    a, b, _, _, wkt = halves
+    rc, out, err = run_cli(capsys, "build", a, b, "--joint", "-o", tmp_path / "j.h5", "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(tmp_path / "j.h5") as arc:
+        assert arc.scan().crs == wkt and arc.scan().units == "foot"
+    rc, out, err = run_cli(capsys, "info", tmp_path / "j.h5")
+    assert "crs        none" not in out and "units foot" in out
+
+
+def test_joint_build_of_different_crss_is_refused(halves, tmp_path, capsys):
+    a, _, _, right, _ = halves
+    utm = write_points(tmp_path / "u.laz", right, crs=UTM10.to_wkt("WKT1_GDAL"))
+    rc, out, err = run_cli(capsys, "build", a, utm, "--joint", "-o", tmp_path / "j.h5", "--no-progress")
+    assert rc == 2 and not (tmp_path / "j.h5").exists()
+    assert err == (
+        "lodbuilder build: error: scans 'a.laz' and 'u.laz' are in different CRSs "
+        "(NAD_1983_HARN_Lambert_Conformal_Conic and WGS 84 / UTM zone 10N (EPSG:32610)); reproject them "
+        "to one with --to-crs EPSG:XXXX (needs pyproj), or build them separately\n"
+    )
+
+
+def test_a_scan_without_crs_among_scans_with_one(halves, tmp_path, capsys):
+    a, _, _, right, wkt = halves
+    bare = write_points(tmp_path / "bare.npy", right)
+    rc, out, err = run_cli(capsys, "build", a, bare, "--joint", "-o", tmp_path / "j.h5", "--no-progress")
+    assert rc == 2 and not (tmp_path / "j.h5").exists()
+    assert err == (
+        "lodbuilder build: error: scan 'bare.npy' has no CRS while 'a.laz' is in "
+        "NAD_1983_HARN_Lambert_Conformal_Conic; give the scans without one a CRS with --crs EPSG:XXXX "
+        "(or WKT), or build them separately\n"
+    )
+    prj = tmp_path / "autzen.prj"
+    prj.write_text(wkt)
+    rc, out, err = run_cli(capsys, "build", a, bare, "--joint", "--crs", prj, "-o", tmp_path / "j.h5",
+                           "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(tmp_path / "j.h5") as arc:
+        assert arc.scan().crs == wkt
+
+
+def test_to_crs_reprojects_like_pyproj(halves, tmp_path, capsys):
+    a, _, left, right, wkt = halves
+    utm_wkt = UTM10.to_wkt("WKT1_GDAL")
+    t = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(utm_wkt), pyproj.CRS.from_wkt(wkt), always_xy=True)
+    x, y, z = t.transform(right[:, 0], right[:, 1], right[:, 2])
+    utm = write_points(tmp_path / "u.npy", np.c_[x, y, z], crs=utm_wkt)  # the right half, in UTM metres
+    rc, out, err = run_cli(capsys, "build", a, utm, "--joint", "--to-crs", "EPSG:32610", "-o", tmp_path / "j.h5",
+                           "--no-progress")
+    assert rc == 0, err
+    back = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(wkt), UTM10, always_xy=True)
+    with lodbuilder.open_archive(tmp_path / "j.h5") as arc:
+        scan = arc.scan()
+        assert scan.units == "metre" and scan.crs and "UTM zone 10N" in scan.crs
+        pts = scan.points()
+        sid = scan.attributes(None)["scan_id"]
+        spt = scan.attributes(None)["scan_point"]
+        prov = scan.provenance
+    ex, ey, ez = back.transform(left[:, 0], left[:, 1], left[:, 2])
+    want_left = np.c_[ex, ey, ez]
+    np.testing.assert_allclose(pts[sid == 0][np.argsort(spt[sid == 0])], want_left, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(pts[sid == 1][np.argsort(spt[sid == 1])], np.c_[x, y, z], rtol=0, atol=1e-9)
+    rec = prov["crs_reprojection"]
+    assert rec[0]["from_units"] == "foot" and rec[0]["to_units"] == "metre"
+    assert "UTM zone 10N" in rec[0]["to"] and rec[0]["transform"]
+    assert "+proj=utm +zone=10" in rec[0]["pipeline"] or "unavailable" in rec[0]["pipeline"]
+
+
+def test_to_crs_for_a_collection_of_scans(halves, tmp_path):
+    a, b, left, _, wkt = halves
+    lodbuilder.build_archive([a, b], tmp_path / "c.h5", to_crs="EPSG:32610", workers=1)
+    t = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(wkt), UTM10, always_xy=True)
+    with lodbuilder.open_archive(tmp_path / "c.h5") as arc:
+        scan = arc.scan("a")
+        assert scan.units == "metre"
+        pts = scan.points()[np.argsort(scan.source_index[:])]
+        assert scan.provenance["crs_reprojection"]["to"] == "WGS 84 / UTM zone 10N (EPSG:32610)"
+    x, y, z = t.transform(left[:, 0], left[:, 1], left[:, 2])
+    np.testing.assert_allclose(pts, np.c_[x, y, z], rtol=0, atol=1e-6)
+    with pytest.raises(InputError, match="is not a CRS pyproj understands"):
+        lodbuilder.build_archive(a, tmp_path / "d.h5", to_crs="EPSG:999999")

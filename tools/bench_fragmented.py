@@ -1,0 +1,124 @@
+"""Coarse levels of fragmented scans: the Euclidean covering radius of lodbuilder's prefixes
+against exact Euclidean farthest point sampling (fpsample) of the same size.
+
+    python tools/bench_fragmented.py -o docs/bench/bench_fragmented.json
+    python tools/bench_fragmented.py --quick            # one small generated scene, no real scans
+
+Scenes: synthetic fragmented scenes of tools/make_fragmented.py (several seeds and piece counts)
+and the real scans autzen_trim.laz and the bunny scans of ../shared/data. For each scene: the
+ordering's time, its band pieces, and at sizes log-spaced from 1 point to 5 % of N the covering
+radius (largest distance from any input point to the prefix, by k-d tree) of lodbuilder's prefix
+and of fpsample's (``fps_sampling``, exact Euclidean FPS from the same first point),
+their ratio, and whether the stored radius bounds the covering radius. Targets (issue 20): ratio
+<= 1.25 at every size, <= 1.05 from 1 % of N on. Each scene also gets the SHA-256 of its order
+(to compare orderings between commits). Prints JSON (stamped with date, commit and command).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+
+REAL = ("autzen_trim.laz", "bun000.ply", "bun045.ply", "bun_zipper.ply", "bun_zipper_res2.ply")
+GENERATED = ((0, 50, 100_000), (1, 300, 200_000), (2, 1000, 200_000), (3, 2000, 300_000))
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def covering(pts: np.ndarray, kept: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    return float(cKDTree(kept).query(pts)[0].max())
+
+
+def sizes_for(n: int, count: int = 14) -> list[int]:
+    top = max(1, int(0.05 * n))
+    return sorted({int(round(x)) for x in np.geomspace(1, top, count)} | {max(1, int(0.01 * n)), top})
+
+
+def scene(name: str, pts: np.ndarray) -> dict:
+    import fpsample
+
+    from lodbuilder.sampling.fastfps import fastfps
+
+    n = pts.shape[0]
+    t0 = time.perf_counter()
+    o = fastfps(pts)
+    seconds = time.perf_counter() - t0
+    sizes = sizes_for(n)
+    top = sizes[-1]
+    # the plain O(N k) FPS: fpsample's k-d variants (1.0.2) do not start from ``start_idx``
+    ref = np.asarray(fpsample.fps_sampling(pts, top, start_idx=int(o.order[0])))
+    levels = []
+    for k in sizes:
+        ours = covering(pts, pts[o.order[:k]])
+        theirs = covering(pts, pts[ref[:k]])
+        bound = float(o.radius[k]) if k < len(o) else 0.0
+        levels.append({"size": k, "fraction": k / n, "cover": ours, "fpsample_cover": theirs,
+                       "ratio": ours / theirs if theirs > 0 else 1.0, "stored_radius": bound,
+                       "bound_holds": ours <= bound})
+    late = [lv["ratio"] for lv in levels if lv["size"] >= 0.01 * n]
+    return {
+        "scene": name, "points": n, "seconds": round(seconds, 3), "pieces": o.stats.get("pieces"),
+        "seeds_with_inf": int(np.isinf(o.radius).sum()),
+        "order_sha256": hashlib.sha256(np.ascontiguousarray(o.order, dtype=np.int64).tobytes()).hexdigest(),
+        "max_ratio": max(lv["ratio"] for lv in levels), "max_ratio_from_1pct": max(late) if late else None,
+        "bound_holds": all(lv["bound_holds"] for lv in levels), "levels": levels,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("-o", "--output", help="write the JSON here too")
+    ap.add_argument("--quick", action="store_true", help="one small generated scene only")
+    a = ap.parse_args(argv)
+    from make_fragmented import fragmented_scene
+
+    from lodbuilder.io import read_scan
+
+    out = []
+    gen = GENERATED[:1] if a.quick else GENERATED
+    for seed, pieces, points in gen:
+        out.append(scene(f"synthetic fragmented seed={seed} objects={pieces}", fragmented_scene(seed, pieces, points)))
+        print(json.dumps({k: v for k, v in out[-1].items() if k != "levels"}), file=sys.stderr)
+    if not a.quick:
+        for f in REAL:
+            if (DATA / f).exists():
+                out.append(scene(f, read_scan(DATA / f).points))
+                print(json.dumps({k: v for k, v in out[-1].items() if k != "levels"}), file=sys.stderr)
+    doc = {
+        "benchmark": "bench_fragmented",
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "commit": _commit(),
+        "command": " ".join(["python", "tools/bench_fragmented.py", *(argv if argv is not None else sys.argv[1:])]),
+        "targets": {"max_ratio": 1.25, "max_ratio_from_1pct": 1.05},
+        "scenes": out,
+    }
+    text = json.dumps(doc, indent=1)
+    if a.output:
+        Path(a.output).write_text(text + "\n")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
