@@ -53,6 +53,7 @@ import numpy as np
 from .._resources import cores as _cores
 from .._resources import default_max_memory, release_freed_memory
 from ..errors import InputError, MemoryBudgetError
+from .morton import morton_np, unmorton_np
 
 log = logging.getLogger(__name__)
 
@@ -342,35 +343,6 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     # the other side's separation is kept only where a finer grid may be needed (see _refined)
     finer = thin.size >= REFINE_SHARE * sep_in.size and float(np.median(thin)) < REFINE_SEP * h
     return BandPlan(h, r, radius, sep_in, normal, handover, sep_out if finer else None)
-
-
-_M = [np.uint64(m) for m in (0x1FFFFF, 0x1F00000000FFFF, 0x1F0000FF0000FF, 0x100F00F00F00F00F,
-                               0x10C30C30C30C30C3, 0x1249249249249249)]
-
-
-def _spread(x: np.ndarray) -> np.ndarray:
-    x = x.astype(np.uint64) & _M[0]
-    for shift, mask in zip((32, 16, 8, 4, 2), _M[1:], strict=True):
-        x = (x | (x << np.uint64(shift))) & mask
-    return x
-
-
-def _compact(x: np.ndarray) -> np.ndarray:
-    x = x & _M[5]
-    for shift, mask in zip((2, 4, 8, 16, 32), _M[4::-1], strict=True):
-        x = (x ^ (x >> np.uint64(shift))) & mask
-    return x.astype(np.int64)
-
-
-def morton_np(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Morton keys of non-negative integer coordinates (NumPy; the kernels have their own)."""
-    return (_spread(x) | (_spread(y) << np.uint64(1)) | (_spread(z) << np.uint64(2))).astype(np.int64)
-
-
-def unmorton_np(keys: np.ndarray) -> np.ndarray:
-    """(K, 3) coordinates of Morton keys."""
-    k = keys.astype(np.uint64)
-    return np.stack([_compact(k >> np.uint64(a)) for a in range(3)], axis=1)
 
 
 def block_plan(cell_keys: np.ndarray, reach_voxels: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
