@@ -341,10 +341,12 @@ def test_partial_ordering_tail_is_stored_last(tmp_path, rng):
         assert sorted(v.source_index) == list(range(300))
         assert (v.radius[200:] == 0).all()
         assert v.level(fraction=1.0).size == 200
-        with pytest.raises(
-            InputError, match=r"size must be between 1 and the number of points \(200\)"
-        ):
+        with pytest.raises(InputError) as exc:
             v.level(size=201)
+        assert str(exc.value).startswith(
+            "scan 'p' is ordered only down to covering radius ") and str(exc.value).endswith(
+            " (200 of 300 points: a partial build), so no level holds 201 points; rebuild it with "
+            "--size 201 or without --size: lodbuilder build SOURCE -o ARCHIVE --force")
     assert validate_archive(tmp_path / "f.h5") == []
 
 

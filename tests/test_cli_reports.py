@@ -72,6 +72,9 @@ def test_slice_json_matches_the_text(arc, tmp_path, capsys):
         "crs": None,
         "units": None,
         "changes": [],
+        "pieces": 1,
+        "pieces_reached": 1,
+        "first_point_only": False,
     }
     rc, js, _ = run(capsys, "slice", arc, "--rho", "0.05", "--box", 0, 0, -1, 0.3, 0.3, 1,
                     "--box-rho", "0.02", "-o", out, "--json")  # fmt: skip

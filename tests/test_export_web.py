@@ -380,16 +380,17 @@ def test_web_page_names_the_crs_and_units(shared_data, tmp_path):
     assert header["rgb"] and header["n"] == 5000 and header["n_total"] == 110000
 
 
-def test_survey_colours_and_a_level_without_bound(shared_data, browser, tmp_path):
+def test_survey_colours_and_the_coarsest_level(shared_data, browser, tmp_path):
     """An airborne tile: elevation, intensity and classification (ASPRS names in a legend of
-    swatches, drawn in their colours); its first point is followed by a seed of another piece,
-    so the coarsest stop says there is no bound yet (it read 'rho = 0 (every point)')."""
+    swatches, drawn in their colours); the coarsest stop (the first point) says its covering radius:
+    the second piece enters at its Euclidean distance (it read 'rho = 0 (every point)')."""
     import lodbuilder
 
     arc = tmp_path / "autzen.h5"
     lodbuilder.build_archive(shared_data / "autzen_trim.laz", arc, name="autzen")
     with lodbuilder.open_archive(arc) as a:
-        assert np.isinf(np.asarray(a.scan().radius)[1])
+        r1 = float(np.asarray(a.scan().radius)[1])
+        assert np.isfinite(r1)  # only the first point has radius inf
     out = tmp_path / "a.html"
     assert main(["export", str(arc), "--size", "20000", "-o", str(out), "-q"]) == 0
     page = Page(browser, out)
@@ -406,7 +407,7 @@ def test_survey_colours_and_a_level_without_bound(shared_data, browser, tmp_path
         assert ground.sum() > 500  # ground points (and the legend swatch) in ASPRS brown
         p.eval_on_selector("#level", "el => { el.value = '0'; el.dispatchEvent(new Event('input')); }")
         p.wait_for_timeout(100)
-        assert p.inner_text("#levelText") == " 1 of 110,000 points (0.000909 %), rho = none yet (new pieces follow)"
+        assert p.inner_text("#levelText") == f" 1 of 110,000 points (0.000909 %), rho = {float(f'{r1:.3g}'):g} foot"
         assert page.errors == [] and page.requests == [page.own]
     finally:
         page.close()
