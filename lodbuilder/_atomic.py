@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -47,25 +48,19 @@ def temporary(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
+def replace_with(path: Path, write: Callable[[Path], Any]) -> None:
+    """Replace the file at ``path`` by what ``write(tmp)`` writes to a temporary beside it,
+    atomically (see the module's guarantee); on any error the temporary is removed."""
+    tmp = temporary(path)
+    try:
+        write(tmp)
+        publish(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
 def write_bytes(path: Path, data: bytes) -> None:
-    """Replace the file at ``path`` by ``data``, atomically (see the module's guarantee)."""
-    tmp = temporary(path)
-    try:
-        tmp.write_bytes(data)
-        publish(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-
-
-def write_array(path: Path, arr: Any) -> None:
-    """Replace the file at ``path`` by the raw bytes of the NumPy array ``arr``, atomically."""
-    tmp = temporary(path)
-    try:
-        arr.tofile(tmp)
-        publish(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
+    """Replace the file at ``path`` by ``data``, atomically."""
+    replace_with(path, lambda tmp: tmp.write_bytes(data))

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -40,3 +42,31 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if item.nodeid in slow:
             item.add_marker(pytest.mark.slow)
+
+
+@contextlib.contextmanager
+def mounted_tmpfs(directory: Path, covered_by: str) -> Iterator[Path]:
+    """A 3 MB tmpfs mounted on ``directory`` (created), unmounted afterwards; the test is skipped,
+    naming ``covered_by`` (what covers the same paths), where this process may not mount one."""
+    import subprocess
+
+    directory.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(directory)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode}); {covered_by}")
+    try:
+        yield directory
+    finally:
+        subprocess.run(["umount", "-l", str(directory)], capture_output=True)
+
+
+@pytest.fixture(scope="session")
+def autzen_archive_full(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An archive of the whole autzen_trim.laz (LAS 1.2 point format 3, CRS in a WKT VLR, feet),
+    scan name 'autzen', built once for the export tests."""
+    import lodbuilder
+
+    out = tmp_path_factory.mktemp("autzen") / "autzen.h5"
+    lodbuilder.build_archive(shared_data / "autzen_trim.laz", out, name="autzen")
+    return out

@@ -13,6 +13,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import mounted_tmpfs
 
 import lodbuilder
 from lodbuilder.archive import files as F
@@ -38,17 +39,8 @@ def everything(d):
 @pytest.fixture
 def tiny_disk(tmp_path):
     """A 3 MB tmpfs (skipped where this process may not mount one)."""
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(d)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode}); the "
-                    "simulated full-disk tests cover the same paths")
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "the simulated full-disk tests cover the same paths") as d:
         yield d
-    finally:
-        subprocess.run(["umount", "-l", str(d)], capture_output=True)
 
 
 def cli(*args):

@@ -15,6 +15,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import mounted_tmpfs
 
 import lodbuilder
 from lodbuilder.datasets import demo_scan
@@ -32,19 +33,10 @@ def archive(tmp_path_factory):
 @pytest.fixture
 def full_disk(tmp_path):
     """A 3 MB tmpfs filled to its last 16 kB (skipped where this process may not mount one)."""
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(d)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode}); "
-                    "test_a_failed_write_is_one_line covers the conversion")
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "test_a_failed_write_is_one_line covers the conversion") as d:
         st = os.statvfs(d)
         (d / "filler").write_bytes(b"\0" * (st.f_bavail * st.f_frsize - 16_384))
         yield d
-    finally:
-        subprocess.run(["umount", "-l", str(d)], capture_output=True)
 
 
 def cli(*args):

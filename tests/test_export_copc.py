@@ -29,13 +29,8 @@ def copclib():
 
 
 @pytest.fixture(scope="module")
-def autzen(shared_data, tmp_path_factory):
-    """An archive of autzen_trim.laz (LAS 1.2 point format 3, CRS in a WKT VLR, feet)."""
-    import lodbuilder
-
-    out = tmp_path_factory.mktemp("arc") / "autzen.h5"
-    lodbuilder.build_archive(shared_data / "autzen_trim.laz", out, name="autzen")
-    return out
+def autzen(autzen_archive_full):
+    return autzen_archive_full
 
 
 @pytest.fixture(scope="module")

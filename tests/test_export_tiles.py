@@ -28,12 +28,8 @@ CESIUMJS = ROOT / "tools" / "cesiumjs"
 
 
 @pytest.fixture(scope="module")
-def autzen(shared_data, tmp_path_factory):
-    import lodbuilder
-
-    out = tmp_path_factory.mktemp("arc") / "autzen.h5"
-    lodbuilder.build_archive(shared_data / "autzen_trim.laz", out, name="autzen")
-    return out
+def autzen(autzen_archive_full):
+    return autzen_archive_full
 
 
 @pytest.fixture(scope="module")

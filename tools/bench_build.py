@@ -39,20 +39,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_inputs import range_scan_sheet
 from benchdoc import load_run, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
-
-
-def range_scan_sheet(n: int, seed: int = 0) -> np.ndarray:
-    """About n points of a wavy sheet on a jittered grid (unit square, amplitude 0.08)."""
-    rng = np.random.default_rng(seed)
-    side = int(round(np.sqrt(n)))
-    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2).astype(float)
-    g = (g + rng.uniform(-0.3, 0.3, g.shape)) / side
-    z = 0.08 * np.sin(4 * np.pi * g[:, 0]) * np.cos(4 * np.pi * g[:, 1])
-    return np.c_[g, z]
 
 
 def bunny_points() -> np.ndarray:

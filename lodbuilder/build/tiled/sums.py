@@ -85,18 +85,17 @@ def sum_file(path: Path) -> list[int]:
 def publish(arr: np.ndarray, path: Path) -> list[int]:
     """Replace the file at ``path`` by the raw bytes of ``arr``, atomically
     (:func:`lodbuilder._atomic.publish`); returns their size and CRC-32."""
-    from ..._atomic import publish as replace_atomically
-    from ..._atomic import temporary
+    from ..._atomic import replace_with
 
-    tmp = temporary(path)
-    try:
+    sums: list[list[int]] = []
+
+    def write(tmp: Path) -> None:
         with SumFile(tmp) as f:
             f.write(arr)
-        replace_atomically(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return f.sum
+        sums.append(f.sum)
+
+    replace_with(path, write)
+    return sums[0]
 
 
 def check_sums(work: Path, files: dict[str, Any], skip: tuple[str, ...] = ()) -> str | None:
