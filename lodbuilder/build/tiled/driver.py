@@ -25,6 +25,7 @@ from . import plan as P
 from .sums import SumFile, write_json
 from .sums import done as piece_done
 from .tasks import coarse_task, cover_tile, order_tile
+from .timing import parent_cpu, task_table
 from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spill
 
 log = logging.getLogger(__name__)
@@ -225,7 +226,9 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     # 7. write the part file in stored order
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              "phase_seconds": clock.rounded(3),
+              "phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
+              "phase_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+              "build_started": clock.epoch, "tasks": task_table(work, clock.epoch),
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
@@ -304,11 +307,12 @@ class _Clock:
     def __init__(self) -> None:
         self.start = self.last = time.perf_counter()
         self.times: dict[str, float] = {}
+        self.epoch, self.cpu_last, self.cpu = time.time(), parent_cpu(), {}  # the parent's CPU per phase
 
     def lap(self, phase: str) -> None:
-        now = time.perf_counter()
-        self.times[phase] = now - self.last
-        self.last = now
+        now, cpu = time.perf_counter(), parent_cpu()
+        self.times[phase], self.cpu[phase] = now - self.last, cpu - self.cpu_last
+        self.last, self.cpu_last = now, cpu
 
     def rounded(self, digits: int) -> dict[str, float]:
         return {k: round(v, digits) for k, v in self.times.items()}
