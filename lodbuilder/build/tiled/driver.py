@@ -307,7 +307,8 @@ class _Clock:
     def __init__(self) -> None:
         self.start = self.last = time.perf_counter()
         self.times: dict[str, float] = {}
-        self.epoch, self.cpu_last, self.cpu = time.time(), parent_cpu(), {}  # the parent's CPU per phase
+        self.epoch, self.cpu_last = time.time(), parent_cpu()
+        self.cpu: dict[str, float] = {}  # the parent's CPU seconds per phase
 
     def lap(self, phase: str) -> None:
         now, cpu = time.perf_counter(), parent_cpu()
