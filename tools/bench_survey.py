@@ -1,8 +1,8 @@
 """Benchmark survey-scale tiled builds (issue 19's targets): prints one JSON document and writes it
 to docs/bench/bench_survey.json.
 
-``lodbuilder build`` runs as a subprocess on a survey (one LAS/LAZ file, or a directory or list of
-files ordered as one surface with ``--joint``) once per executor and worker count. For each run:
+``lodbuilder build`` runs as a subprocess on each survey given (one LAS/LAZ file, or a directory of
+them ordered as one surface: ``--joint``) once per executor and worker count. For each run:
 
 * wall seconds and points per second;
 * CPU seconds of the whole process tree (every descendant's user + system time, sampled from /proc
@@ -18,9 +18,9 @@ files ordered as one surface with ``--joint``) once per executor and worker coun
   LocalCluster over the process pool at equal workers (target <= 1.2).
 
     python tools/make_survey.py --nx 4 --ny 4 -o /work/bench_data/survey_4x4.laz
-    python tools/bench_survey.py /work/bench_data/survey_4x4.laz --workers 1,2 --executor pool,dask
     python tools/make_survey.py --nx 4 --ny 4 --files /work/bench_data/survey_4x4
-    python tools/bench_survey.py /work/bench_data/survey_4x4 --joint survey --workers 1,2
+    python tools/bench_survey.py /work/bench_data/survey_4x4.laz /work/bench_data/survey_4x4 \\
+        --workers 1,2 --executor pool,dask --max-memory 1.5GB
 
 Timings depend on the machine and its load (the load average before and after each run is in the
 JSON): on a shared machine, compare runs of one invocation only.
@@ -331,9 +331,9 @@ def _ints(text: str) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    p.add_argument("inputs", nargs="+", type=Path, help="a LAS/LAZ file, or a directory / files with --joint")
-    p.add_argument("--joint", help="order the files as one surface of this name (default for a directory or "
-                                   "several files: survey)")
+    p.add_argument("surveys", nargs="+", type=Path,
+                   help="surveys to measure, each a LAS/LAZ file or a directory of them (ordered as one surface)")
+    p.add_argument("--joint", default="survey", help="the scan name of a directory's joint build (default survey)")
     p.add_argument("--workers", type=_ints, default=[1, 2], help="worker counts, comma-separated (default 1,2)")
     p.add_argument("--executor", default="pool", help="pool, dask or pool,dask (Dask LocalCluster)")
     p.add_argument("--max-memory", default="3GB")
@@ -343,29 +343,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-warm-up", action="store_true", help="skip the unmeasured small build that fills numba's cache")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
-    joint = args.joint or ("survey" if len(args.inputs) > 1 or args.inputs[0].is_dir() else None)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
-    if not set(executors) <= {"pool", "dask"}:
+    if not executors or not set(executors) <= {"pool", "dask"}:
         p.error(f"--executor takes pool, dask or pool,dask, got {args.executor!r}")
     doc: dict[str, Any] = {"benchmark": "bench_survey", "date": _dt.datetime.now().isoformat(timespec="seconds"),
                            "commit": _commit(), "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
                            "machine": platform.machine(), "cpus": os.cpu_count(),
                            "note": "the machine may be shared: see each run's load average before/after",
-                           "input": describe_inputs(args.inputs), "joint": joint, "runs": []}
+                           "surveys": []}
     args.work.mkdir(parents=True, exist_ok=True)
     if not args.no_warm_up:
         doc["warm_up_seconds"] = {ex: warm_up(args.work, ex) for ex in executors}
-    for ex in executors:
-        for w in args.workers:
-            doc["runs"].append(run_build(args.inputs, joint, ex, w, args.max_memory, args.work, args.interval,
-                                         args.tile_points))
-            print(json.dumps({k: v for k, v in doc["runs"][-1].items() if k != "simulation"}), file=sys.stderr)
-    doc.update(ratios(doc["runs"]))
+    for survey in args.surveys:
+        joint = args.joint if survey.is_dir() else None
+        sv: dict[str, Any] = {"input": describe_inputs([survey]), "joint": joint, "runs": []}
+        doc["surveys"].append(sv)
+        for ex in executors:
+            for w in args.workers:
+                sv["runs"].append(run_build([survey], joint, ex, w, args.max_memory, args.work, args.interval,
+                                            args.tile_points))
+                print(json.dumps({k: v for k, v in sv["runs"][-1].items() if k != "simulation"}), file=sys.stderr)
+        sv.update(ratios(sv["runs"]))
     text = json.dumps(doc, indent=1)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text + "\n")
-    return 0 if all(r.get("rc") == 0 for r in doc["runs"]) else 1
+    return 0 if all(r.get("rc") == 0 for sv in doc["surveys"] for r in sv["runs"]) else 1
 
 
 if __name__ == "__main__":

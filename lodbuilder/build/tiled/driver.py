@@ -19,13 +19,13 @@ from typing import Any
 import numpy as np
 
 from ...errors import BuildError, LodbuilderError
-from ...progress import ProgressCallback, report
+from ...progress import ProgressCallback, TaskCounts, report, report_tasks
 from . import layout as WL
 from . import plan as P
 from .sums import SumFile, write_json
 from .sums import done as piece_done
 from .tasks import coarse_task, cover_tile, order_tile
-from .timing import parent_cpu, task_table
+from .timing import failure_where, parent_cpu, task_table
 from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spill
 
 log = logging.getLogger(__name__)
@@ -80,26 +80,35 @@ def _result(fut: cf.Future, name: str, where: str) -> Any:
     try:
         return fut.result()
     except LodbuilderError as exc:
-        raise BuildError(f"scan {name!r}: {where} failed: {exc}") from exc
+        raise BuildError(f"scan {name!r}: {failure_where(where, exc)} failed: {exc}") from exc
     except BrokenProcessPool:
         raise BuildError(f"scan {name!r}: {where} failed: its worker process "
                          "died (killed or out of memory: lower --max-memory per worker or use fewer "
                          "workers)") from None
     except Exception as exc:
         text = " ".join(str(exc).split())
-        raise BuildError(f"scan {name!r}: {where} failed: {type(exc).__name__}: {text}") from exc
+        raise BuildError(f"scan {name!r}: {failure_where(where, exc)} failed: {type(exc).__name__}: {text}") from exc
 
 
 def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, progress: ProgressCallback,
-             stage: str, on_result: Any = None) -> list[dict[str, Any]]:
+             stage: str, on_result: Any = None, points: list[int] | None = None) -> list[dict[str, Any]]:
     """Wait for submitted tasks; a failure fails the scan, naming the tile. ``on_result(result)``
-    is called as each task finishes (to record it for a resume)."""
+    is called as each task finishes (to record it for a resume); ``points``: each tile's points,
+    for the progress of points (else it counts tasks)."""
 
     def where(t: int) -> str:
         return what if n_total == 1 and stage == "coarse" else f"{what} of tile {t + 1} of {n_total}"
 
     done = n_total - len(futs)
-    report(progress, stage, done, n_total)
+    left = sum(points[t] for t in futs.values()) if points else 0
+
+    def tell() -> None:
+        if points is None:
+            report(progress, stage, done, n_total)
+        else:
+            report_tasks(progress, stage, TaskCounts(done, n_total, sum(points) - left, sum(points), n_total - done))
+
+    tell()
     out = []
     try:
         for fut in cf.as_completed(futs):
@@ -107,7 +116,8 @@ def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, pro
             if on_result is not None:
                 on_result(out[-1])
             done += 1
-            report(progress, stage, done, n_total)
+            left -= points[futs[fut]] if points else 0
+            tell()
     except BaseException:
         for f in futs:
             f.cancel()
@@ -142,7 +152,13 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
     total = n_tiles * passes
-    report(progress, "tiles", len(done), total)
+    size = {t.index: t.n_points for t in by_size}
+
+    def tell() -> None:
+        report_tasks(progress, "tiles", TaskCounts(len(done), total, sum(size[t] for _, t in done),
+                                                   passes * sum(size.values()), len(running)))
+
+    tell()
     try:
         while todo or running:
             for p, tile in [x for x in todo if all(d in done for d in deps(x[0], x[1].index))]:
@@ -155,7 +171,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
                 write_json(work / WL.marker(WL.order_piece(t, p)), res)
                 WL.moment("tile")
                 done.add((p, t))
-                report(progress, "tiles", len(done), total)
+                tell()
     except BaseException:
         for f in running:
             f.cancel()
@@ -288,7 +304,8 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
             buckets = _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
     finally:
         _collect(futs, "covering", name, n_tiles, progress, "covering",
-                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res))
+                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
+                 [t.n_points for t in sorted(by_size, key=lambda t: t.index)])
     radii = _done(work, "radii")
     if radii is None:
         radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))

@@ -104,7 +104,9 @@ def spill(sources: list[tuple[Any, Any, int | None]], work: Path, progress: Prog
                         files["scan_point"].write(np.arange(chunk.start, chunk.start + m, dtype="<i8"))
                     g += len(chunk)
                     report(progress, "read", g, n_total)
-                members.append({"id": member, "n_points": g - first, "first": first})
+                source = getattr(stream, "path", None)  # (for messages: the file a failed tile's points came from)
+                members.append({"id": member, "n_points": g - first, "first": first,
+                                "source": Path(source).name if source and Path(source).is_file() else None})
     finally:
         for f in files.values():
             f.close()
