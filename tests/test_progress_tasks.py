@@ -110,15 +110,9 @@ def test_the_bar_counts_points_with_the_tasks_beside(capsys):
 
 def _small_survey(tmp_path: Path) -> list[Path]:
     """autzen_trim.laz thinned to 2,200 points, copied 2 x 1 side by side as 2 LAZ files."""
-    import laspy
-    from make_survey import SOURCE, make_files
+    from make_survey import make_files
 
-    src = laspy.read(str(SOURCE))
-    small = laspy.LasData(src.header)
-    small.points = laspy.ScaleAwarePointRecord(src.points.array[::50].copy(), src.header.point_format,
-                                               src.header.scales, src.header.offsets)
-    small.write(str(tmp_path / "small.laz"))
-    make_files(tmp_path / "survey", 2, 1, tmp_path / "small.laz")
+    make_files(tmp_path / "survey", 2, 1, thin=50)
     return sorted((tmp_path / "survey").glob("*.laz"))
 
 

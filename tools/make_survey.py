@@ -46,6 +46,18 @@ def _header(hdr: Any) -> Any:
     return header
 
 
+def _read(source: Path, thin: int = 1) -> Any:
+    """The source (every ``thin``-th point: tiny surveys for tests)."""
+    import laspy
+
+    src = laspy.read(str(source))
+    if thin > 1:
+        src.points = laspy.ScaleAwarePointRecord(src.points.array[::thin].copy(), src.header.point_format,
+                                                 src.header.scales, src.header.offsets)
+        src.update_header()
+    return src
+
+
 def _copies(src: Any, nx: int, ny: int) -> Iterator[tuple[int, int, Any]]:
     """(i, j, points of copy (i, j)), one copy in memory at a time."""
     hdr = src.header
@@ -73,12 +85,10 @@ def _write(out: Path, header: Any, chunks: Iterator[Any]) -> int:
     return n
 
 
-def make(out: Path, nx: int, ny: int, source: Path = SOURCE) -> dict:
+def make(out: Path, nx: int, ny: int, source: Path = SOURCE, thin: int = 1) -> dict:
     """One file of NX x NY copies."""
-    import laspy
-
     t0 = time.perf_counter()
-    src = laspy.read(str(source))
+    src = _read(source, thin)
     out.parent.mkdir(parents=True, exist_ok=True)
     n = _write(out, _header(src.header), (pts for _, _, pts in _copies(src, nx, ny)))
     return {"output": str(out), "points": n, "copies": [nx, ny], "source": source.name,
@@ -91,12 +101,10 @@ def file_name(i: int, j: int, nx: int, ny: int) -> str:
     return f"survey_{j:0{w}d}_{i:0{w}d}.laz"
 
 
-def make_files(out_dir: Path, nx: int, ny: int, source: Path = SOURCE) -> dict:
+def make_files(out_dir: Path, nx: int, ny: int, source: Path = SOURCE, thin: int = 1) -> dict:
     """NX x NY files, one per copy, in ``out_dir`` (same CRS, scale and point format)."""
-    import laspy
-
     t0 = time.perf_counter()
-    src = laspy.read(str(source))
+    src = _read(source, thin)
     out_dir.mkdir(parents=True, exist_ok=True)
     n, size = 0, 0
     for i, j, pts in _copies(src, nx, ny):
@@ -115,13 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     dest.add_argument("-o", "--output", help="one LAZ file holding every copy")
     dest.add_argument("--files", metavar="DIR", help="a directory of NX x NY LAZ files, one per copy")
     p.add_argument("--source", default=str(SOURCE), help="the LAS/LAZ file to copy (default: autzen_trim.laz)")
+    p.add_argument("--thin", type=int, default=1, help="keep every THIN-th point of the source (tiny surveys for tests)")
     args = p.parse_args(argv)
-    if args.nx < 1 or args.ny < 1:
-        p.error(f"--nx and --ny must be >= 1, got {args.nx} x {args.ny}")
+    if args.nx < 1 or args.ny < 1 or args.thin < 1:
+        p.error(f"--nx, --ny and --thin must be >= 1, got {args.nx}, {args.ny} and {args.thin}")
     if args.files:
-        doc = make_files(Path(args.files), args.nx, args.ny, Path(args.source))
+        doc = make_files(Path(args.files), args.nx, args.ny, Path(args.source), args.thin)
     else:
-        doc = make(Path(args.output), args.nx, args.ny, Path(args.source))
+        doc = make(Path(args.output), args.nx, args.ny, Path(args.source), args.thin)
     json.dump(doc, sys.stdout)
     print()
     return 0

@@ -242,9 +242,7 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     # 7. write the part file in stored order
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              "phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
-              "phase_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
-              "build_started": clock.epoch, "tasks": task_table(work, clock.epoch),
+              **_timings(clock, work),
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
@@ -337,6 +335,14 @@ class _Clock:
 
     def total(self) -> float:
         return time.perf_counter() - self.start
+
+
+def _timings(clock: _Clock, work: Path) -> dict[str, Any]:
+    """The build record's phase seconds (and their order), the parent's CPU seconds per phase and
+    the table of every task (see :mod:`.timing`)."""
+    return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
+            "phase_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+            "build_started": clock.epoch, "tasks": task_table(work, clock.epoch)}
 
 
 def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict[str, Any]) -> dict[str, Any]:
