@@ -114,6 +114,19 @@ def peek_stream(path: str | os.PathLike[str]) -> PointStream | None:
     return _streaming(check_input_file(path))
 
 
+def declared_crs(path: str | os.PathLike[str]) -> str | None:
+    """The CRS a scan file declares (WKT or None) without reading its points: the LAS/LAZ or PLY
+    header, an E57's root ``coordinateMetadata``, an NPZ's metadata, else the ``.prj`` sidecar."""
+    from .crs import KEY_WKT, read_sidecar
+    from .registry import reader_for
+
+    stream = peek_stream(path)
+    if stream is not None:
+        return stream.metadata.get(KEY_WKT)
+    peek = getattr(reader_for(path)[1], "declared_crs", None)
+    return peek(Path(path)) if peek is not None else read_sidecar(path)
+
+
 def _streaming(p: Path) -> PointStream | None:
     from .registry import reader_for
 
