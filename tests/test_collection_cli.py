@@ -151,13 +151,12 @@ def test_slice_all_scans_with_different_crs_says_so(tmp_path, capsys):
 
 @pytest.mark.dask
 def test_dask_local_build_prints_no_dask_start_up_logs(tmp_path):
+    import contextlib
     import os
+    import socket
     import subprocess
     import sys
     from pathlib import Path
-
-    import contextlib
-    import socket
 
     files = _clouds(tmp_path, n=2)
     with contextlib.ExitStack() as stack:
