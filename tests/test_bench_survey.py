@@ -88,6 +88,8 @@ def test_bench_survey_document(bench_doc, capsys):
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1
             assert kinds["order_tile"]["tasks"] == kinds["cover_tile"]["tasks"] == r["tiles"] >= 4
+            for kind in ("read_block", "survey_block", "distribute_block", "bucket_block"):
+                assert kinds[kind]["tasks"] >= 1, kind
             assert 1 <= r["tasks"]["workers_seen"] <= r["workers"]
             sim = r["simulation"]
             assert [p["workers"] for p in sim["predicted"]] == [1, 2, 4, 8, 16]

@@ -135,7 +135,9 @@ def _build_inline(tmp_path, files, monkeypatch, fail_tile=None):
             return real(pts, **kw)
 
         monkeypatch.setattr(ff, "fastfps", fastfps)
-    sources = [(open_stream(f), None, i) for i, f in enumerate(files)]
+    from lodbuilder.build.jobs import TiledInput
+
+    sources = [(open_stream(f), None, i, TiledInput(str(f), None, None, False, None, None)) for i, f in enumerate(files)]
     work = tmp_path / "s.work"
     return build_tiled(sources, tmp_path / "s.h5", "survey", work, InlineExecutor(), tile_points=700), work
 
@@ -161,7 +163,7 @@ def test_a_failed_tile_is_named_with_its_files_and_worker(tmp_path, monkeypatch)
     msg = str(exc.value)
     work = tmp_path / "s.work"
     tiles = read_json(work / "plan.json")["tiles"]
-    m = re.fullmatch(r"scan 'survey': ordering of tile (\d+) of (\d+) \((.*)\) failed: MemoryError: no room for this tile",
+    m = re.fullmatch(r"scan 'survey': ordering of tile (\d+) of (\d+) failed: MemoryError: no room for this tile \((.*)\)",
                      msg)
     assert m, msg
     t = int(m.group(1)) - 1
@@ -192,13 +194,46 @@ def test_tile_files_name_the_files_of_every_tile(tmp_path, monkeypatch):
     assert tile_files(tmp_path / "elsewhere", 0) is None
 
 
-def test_failure_where_names_at_most_four_files():
-    from lodbuilder.build.tiled.timing import failure_where
+def test_failure_note_names_at_most_four_files():
+    from lodbuilder.build.tiled.timing import failure_note
 
     exc = ValueError("x")
-    assert failure_where("ordering of tile 2 of 9", exc) == "ordering of tile 2 of 9"
+    assert failure_note(exc) == ""  # no task marked it
     exc.lodbuilder_task = {"pid": 77, "files": [f"f{i}.laz" for i in range(6)]}
-    assert failure_where("ordering of tile 2 of 9", exc) == (
-        "ordering of tile 2 of 9 (files f0.laz, f1.laz, f2.laz, f3.laz and 2 more; worker 77)")
+    assert failure_note(exc, "ordering of tile 2 of 9") == " (files f0.laz, f1.laz, f2.laz, f3.laz and 2 more; worker 77)"
     exc.lodbuilder_task = {"pid": 77, "files": None}
-    assert failure_where("covering of tile 1 of 9", exc) == "covering of tile 1 of 9 (worker 77)"
+    assert failure_note(exc, "covering of tile 1 of 9") == " (worker 77)"
+    exc.lodbuilder_task = {"pid": 77, "files": ["a.laz"]}
+    assert failure_note(exc, "reading /data/a.laz") == " (worker 77)"  # the file is named already
+
+
+def test_timed_tasks_log_their_timing_and_the_table_names_them(tmp_path):
+    from lodbuilder.build.tiled.timing import TASK_COLUMNS, task_table, timed_task
+
+    @timed_task
+    def order_tile(work, t):
+        return {"tile": t}
+
+    @timed_task
+    def survey_block(work, b, boom=False):
+        if boom:
+            raise ValueError("bad block")
+        return {}
+
+    started = __import__("time").time()
+    res = order_tile(str(tmp_path), 3)
+    assert res["tile"] == 3 and set(res["timing"]) == {"kind", "start", "seconds", "cpu_seconds", "pid"}
+    assert res["timing"]["kind"] == "order_tile" and res["timing"]["pid"] == os.getpid()
+    order_tile(str(tmp_path), 3)  # its second pass
+    survey_block(str(tmp_path), 0)
+    survey_block(str(tmp_path), 0)  # the plan's second pass over the blocks
+    with pytest.raises(ValueError, match="bad block") as exc:
+        survey_block(str(tmp_path), 1, boom=True)
+    assert exc.value.lodbuilder_task["kind"] == "survey_block" and exc.value.lodbuilder_task["block"] == 1
+    assert exc.value.lodbuilder_task["files"] is None  # no read phase here: not known
+    table = task_table(tmp_path, started)
+    assert table["columns"] == list(TASK_COLUMNS)
+    rows = [dict(zip(TASK_COLUMNS, r, strict=True)) for r in table["rows"]]
+    assert sorted(r["piece"] for r in rows) == ["order.3.1", "order.3.2", "survey_block.0", "survey_block.0#2"]
+    assert all(r["pid"] == os.getpid() and r["start"] >= 0 and r["cpu_seconds"] >= 0 for r in rows)
+    assert [r["tile"] for r in rows if r["kind"] == "order_tile"] == [3, 3]

@@ -74,18 +74,19 @@ def test_stages_are_amdahl():
 
 def _record() -> dict:
     """A build record of 3 tiles in a row (0 | 1 | 2; 1 touches both), colours 1, 0, 1."""
-    rows = [["coarse_task", "coarse", None, 2.5, 3.0, 2.9, 11],
-            ["order_tile", "order.1.1", 1, 6.0, 4.0, 3.9, 11],
-            ["order_tile", "order.0.1", 0, 10.0, 2.0, 2.0, 11],
-            ["order_tile", "order.2.1", 2, 10.0, 2.0, 2.0, 12],
-            ["cover_tile", "cover.0", 0, 12.5, 1.0, 1.0, 11],
-            ["cover_tile", "cover.1", 1, 12.5, 1.0, 1.0, 12],
-            ["cover_tile", "cover.2", 2, 13.5, 1.0, 1.0, 11],
-            ["order_tile", "order.9.1", 9, -50.0, 1.0, 1.0, 10]]  # done before a resume
+    rows = [["coarse_task", "coarse_task", None, None, 2.5, 3.0, 2.9, 11],
+            ["order_tile", "order.1.1", 1, None, 6.0, 4.0, 3.9, 11],
+            ["order_tile", "order.0.1", 0, None, 10.0, 2.0, 2.0, 11],
+            ["order_tile", "order.2.1", 2, None, 10.0, 2.0, 2.0, 12],
+            ["cover_tile", "cover_tile.0", 0, None, 12.5, 1.0, 1.0, 11],
+            ["cover_tile", "cover_tile.1", 1, None, 12.5, 1.0, 1.0, 12],
+            ["cover_tile", "cover_tile.2", 2, None, 13.5, 1.0, 1.0, 11],
+            ["order_tile", "order.9.1", 9, None, -50.0, 1.0, 1.0, 10]]  # done before a resume
     return {"phase_seconds": {"cover": 3.0, "order": 6.0, "plan": 1.0, "read": 1.0, "tiles": 4.0},
             "phase_order": ["read", "plan", "tiles", "order", "cover"],
-            "phase_cpu_seconds": {"read": 0.9, "plan": 1.0, "tiles": 3.5, "order": 0.1, "cover": 0.5},
-            "tasks": {"columns": ["kind", "piece", "tile", "start", "seconds", "cpu_seconds", "pid"], "rows": rows},
+            "parent_cpu_seconds": {"read": 0.9, "plan": 1.0, "tiles": 3.5, "order": 0.1, "cover": 0.5},
+            "tasks": {"columns": ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"],
+                      "rows": rows},
             "tiled": {"tile_colours": [1, 0, 1], "halo": 0.1,
                       "tile_boxes": [[0, 0, 0, 1, 1, 1], [1, 0, 0, 2, 1, 1], [2, 0, 0, 3, 1, 1]]}}
 
@@ -96,7 +97,7 @@ def test_model_of_a_build_record():
     assert list(st) == ["read", "plan", "tiles", "order", "cover", "rest"]
     assert st["read"].parent_seconds == 1.0 and not st["read"].tasks  # a parent phase: its wall seconds
     assert st["tiles"].parent_seconds == 3.5  # beside tasks: the parent's CPU seconds
-    assert [t.id for t in st["tiles"].tasks] == ["coarse"]
+    assert [t.id for t in st["tiles"].tasks] == ["coarse_task"]
     order = {t.id: t.deps for t in st["order"].tasks}
     assert order == {"order.1.1": [], "order.0.1": ["order.1.1"], "order.2.1": ["order.1.1"]}
     assert len(st["cover"].tasks) == 3

@@ -235,7 +235,7 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "n_points": n, "method": rec.get("method"), "points_per_second": round(n / wall),
         "cpu_tree_seconds": round(tree_cpu, 2), "cpu_parent_seconds": round(rus["self_cpu"], 2),
         "parent_cpu_share": round(rus["self_cpu"] / tree_cpu, 4) if tree_cpu else None,
-        "cpu_parent_by_phase": rec.get("phase_cpu_seconds", {}),
+        "cpu_parent_by_phase": rec.get("parent_cpu_seconds", {}),
         "processes_seen": len(sampler.cpu), "peak_rss_tree_bytes": sampler.peak_rss,
         "peak_rss_parent_bytes": rus["self_maxrss"],
         "peak_work_dir_bytes": sampler.peak_work, "peak_written_bytes": sampler.peak_all,

@@ -150,12 +150,12 @@ def _order_deps(piece: str, colour: list[int], nbrs: list[list[int]]) -> list[st
 
 def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str, Any] | None = None
                       ) -> dict[str, Any]:
-    """The stages of a tiled build's record (``build`` of its scan: ``phase_seconds``,
-    ``phase_cpu_seconds``, ``tasks``, ``tiled``); ``rest``: serial seconds the record does not
+    """The stages of a tiled build's record (``build`` of its scan: ``phase_seconds`` and
+    ``phase_order``, ``parent_cpu_seconds``, ``tasks``, ``tiled``); ``rest``: serial seconds the record does not
     cover; ``measured``: ``{"workers", "wall_seconds"}`` of the run, for the calibration."""
     secs = rec.get("phase_seconds") or {}
     phases = {k: secs[k] for k in rec.get("phase_order") or secs}  # (the stored record sorts its keys)
-    cpu = rec.get("phase_cpu_seconds") or {}
+    cpu = rec.get("parent_cpu_seconds") or {}
     table = rec.get("tasks") or {"columns": [], "rows": []}
     rows = [dict(zip(table["columns"], r, strict=True)) for r in table["rows"]]
     tiled = rec.get("tiled") or {}

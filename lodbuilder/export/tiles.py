@@ -177,7 +177,7 @@ def write_tiles(
     half = float(np.abs(local).max()) * (1 + 1e-9) + 1e-9
     lo, width = np.full(3, -half), 2.0 * half
     r_local = radius * factor
-    spacing, max_depth = octree_spacing(r_local, width)
+    spacing, max_depth = octree_spacing(r_local, width, tail=4)
     band = depth_bands(r_local, spacing, max_depth)
     depth, codes = assign_depths(local, band, lo, width)
     b = r_local if bounds is None else np.asarray(bounds, dtype=np.float64) * factor

@@ -1,17 +1,19 @@
 """What a tiled build's tasks tell about themselves: where the time goes (every task's wall and CPU
-seconds and worker, and the parent's CPU seconds per phase: the build record's ``tasks`` and
-``phase_cpu_seconds``), and which worker failed on which tile of which source files.
+seconds and worker: the build record's ``tasks``, beside the parent's ``parent_cpu_seconds`` per
+phase), and which worker failed on which tile or block of which source files.
 
-A task function decorated with :func:`timed_task` adds ``timing`` to the dict it returns: its kind
-(the function's name), when it started (seconds since the epoch), its wall and CPU seconds (CPU of
-the worker process while it ran, every thread counted) and the worker's pid. The driver keeps each
-finished task's result as its marker (``<piece>.json``), so :func:`task_table` gathers them from the
-work directory, whatever the task kinds and however the build was resumed: tools/simulate_schedule.py
-replays them on any number of workers, tools/bench_survey.py reports them.
+A task function decorated with :func:`timed_task` (its first parameter the work directory, and
+``t`` a tile or ``b`` a read block if it works on one) adds ``timing`` to the dict it returns (its
+kind, the function's name; when it started, seconds since the epoch; its wall and CPU seconds, CPU
+of the worker process while it ran, every thread counted; the worker's pid) and appends the same
+as one line to the worker's log in the work directory (``tasks.<pid>.jsonl``:
+:func:`lodbuilder.build.tiled.layout.task_log`), so :func:`task_table` finds every task, whatever
+its kind and whether or not its result is kept as a marker. tools/simulate_schedule.py replays the
+table on any number of workers; tools/bench_survey.py reports it.
 
 A decorated task that fails leaves ``lodbuilder_task`` on its exception (kind, worker pid, seconds,
-and for a task of one tile, its parameter ``t``, the tile and the names of the source files its
-points came from); :func:`failure_where` puts them in the build's error message.
+its tile or block, and the names of the source files its points came from);
+:func:`failure_note` ends the build's error message with them.
 """
 
 from __future__ import annotations
@@ -29,53 +31,112 @@ from typing import Any, TypeVar
 F = TypeVar("F", bound=Callable[..., Any])
 
 #: the columns of the build record's task table (``start``: seconds after the build started,
-#: negative for a task a resumed build found done)
-TASK_COLUMNS = ("kind", "piece", "tile", "start", "seconds", "cpu_seconds", "pid")
+#: negative for a task of an earlier, interrupted run; ``tile``/``block``: the task's, or None)
+TASK_COLUMNS = ("kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid")
 
 
 def timed_task(fn: F) -> F:
-    """Decorate a task that returns a dict: the dict gains ``timing`` (see the module); a failure
-    leaves ``lodbuilder_task`` on the exception."""
+    """Decorate a task that returns a dict (see the module)."""
     params = list(inspect.signature(fn).parameters)
-    tile_at = params.index("t") if "t" in params else None
+    at = {k: params.index(k) for k in ("t", "b") if k in params}
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Any:
         start, t0, c0 = time.time(), time.perf_counter(), time.process_time()
+        ids = {k: kwargs.get(k, args[i] if i < len(args) else None) for k, i in at.items()}
         try:
             res = fn(*args, **kwargs)
         except Exception as exc:
             info: dict[str, Any] = {"kind": fn.__name__, "pid": os.getpid(), "seconds": time.perf_counter() - t0}
-            tile = kwargs.get("t", args[tile_at] if tile_at is not None and len(args) > tile_at else None)
-            if isinstance(tile, int) and args:
-                info.update(tile=tile, files=tile_files(Path(args[0]), tile))
+            t, b = ids.get("t"), ids.get("b")
+            if args and isinstance(t, int):
+                info.update(tile=t, files=tile_files(Path(args[0]), t))
+            elif args and isinstance(b, int):
+                info.update(block=b, files=block_files(Path(args[0]), b))
             with contextlib.suppress(Exception):  # (an exception that takes no attributes)
                 exc.lodbuilder_task = info  # type: ignore[attr-defined]
             raise
+        timing = {"kind": fn.__name__, "start": start, "seconds": time.perf_counter() - t0,
+                  "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
         if isinstance(res, dict):
-            res["timing"] = {"kind": fn.__name__, "start": start, "seconds": time.perf_counter() - t0,
-                             "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
+            res["timing"] = timing
+        if args:
+            _log(Path(args[0]), {**timing, "tile": ids.get("t"), "block": ids.get("b")})
         return res
 
     return run  # type: ignore[return-value]
 
 
-def tile_files(work: Path, t: int) -> list[str] | None:
-    """The names of the source files that tile ``t``'s points came from (from the read phase's
-    members and the tile's core file); None where that is not known."""
-    import numpy as np
+def _log(work: Path, row: dict[str, Any]) -> None:
+    from . import layout as WL
 
+    with contextlib.suppress(OSError), open(work / WL.task_log(os.getpid()), "a") as f:
+        f.write(json.dumps(row) + "\n")  # one short line: one write, whole or absent
+
+
+def task_table(work: Path, started: float) -> dict[str, Any]:
+    """The build record's table of every task the workers' logs in ``work`` hold, in order of
+    start (``started``: the build's start, seconds since the epoch). A row's piece names the task
+    (``<kind>.<tile or block>``; a task run again gets ``#2``, ...); a tile's orderings are its passes
+    in order of start (``order.<t>.<p>``, as the driver names them)."""
+    from . import layout as WL
+
+    rows = []
+    for f in sorted(work.glob(WL.task_log("*"))):
+        with contextlib.suppress(OSError):
+            for line in f.read_text().splitlines():
+                with contextlib.suppress(ValueError, KeyError, TypeError):
+                    r = json.loads(line)
+                    rows.append([r["kind"], None, r.get("tile"), r.get("block"), round(float(r["start"]) - started, 3),
+                                 round(float(r["seconds"]), 4), round(float(r["cpu_seconds"]), 4), int(r["pid"])])
+    rows.sort(key=lambda r: (r[4], r[0], r[2] if r[2] is not None else -1, r[3] if r[3] is not None else -1))
+    passes: dict[int, int] = {}
+    seen: dict[str, int] = {}
+    for r in rows:
+        if r[0] == "order_tile" and r[2] is not None:
+            passes[r[2]] = passes.get(r[2], 0) + 1
+            r[1] = WL.order_piece(r[2], passes[r[2]])
+        else:
+            r[1] = ".".join([r[0], *(str(x) for x in (r[2], r[3]) if x is not None)])
+        seen[r[1]] = seen.get(r[1], 0) + 1
+        if seen[r[1]] > 1:  # the same task again (a plan's second pass over the blocks)
+            r[1] = f"{r[1]}#{seen[r[1]]}"
+    return {"columns": list(TASK_COLUMNS), "rows": rows}
+
+
+def _spill_members(work: Path) -> list[dict[str, Any]] | None:
+    from . import layout as WL
+
+    members = json.loads((work / WL.marker("spill")).read_text()).get("members") or []
+    return None if not members or any(not m.get("source") for m in members) else members
+
+
+def tile_files(work: Path, t: int) -> list[str] | None:
+    """The names of the source files that tile ``t``'s points came from (the read blocks of its
+    core pieces); None where that is not known."""
     from . import layout as WL
 
     with contextlib.suppress(Exception):
-        members = json.loads((work / WL.marker("spill")).read_text()).get("members") or []
-        if not members or any(not m.get("source") for m in members):
+        members = _spill_members(work)
+        if members is None:
             return None
-        if len(members) == 1:
-            return [members[0]["source"]]
-        g = np.memmap(work / WL.core(t), dtype=WL.REC, mode="r")["g"]
-        first = np.asarray([m["first"] for m in members], np.int64)
-        return [members[i]["source"] for i in np.unique(np.searchsorted(first, g, side="right") - 1).tolist()]
+        blocks = json.loads((work / WL.marker("spill")).read_text())["blocks"]
+        mine = set(json.loads((work / WL.marker("distribute")).read_text())["pieces"]["core"][t])
+        inputs = sorted({int(blocks[b][0]) for b in range(len(blocks)) if WL.core(t, b) in mine})
+        return [members[i]["source"] for i in inputs]
+    return None
+
+
+def block_files(work: Path, b: int) -> list[str] | None:
+    """The name of the source file read block ``b`` came from; None where that is not known."""
+    from . import layout as WL
+
+    with contextlib.suppress(Exception):
+        members = _spill_members(work)
+        if members is None:
+            return None
+        doc = json.loads((work / WL.marker("spill")).read_text())
+        return [members[int(doc["blocks"][b][0])]["source"]]
     return None
 
 
@@ -83,41 +144,17 @@ def tile_files(work: Path, t: int) -> list[str] | None:
 FILES_NAMED = 4
 
 
-def failure_where(where: str, exc: BaseException) -> str:
-    """``where`` (the failed task, as the build names it: "ordering of tile 3 of 16") followed by
-    what the task said of itself: its tile's source files and the worker's pid."""
+def failure_note(exc: BaseException, where: str = "") -> str:
+    """What a failed task said of itself, to end the build's error message: `` (files A, B;
+    worker PID)``, its tile's or block's source files (those ``where`` does not name already) and
+    its worker's pid; empty for an exception no task marked."""
     info = getattr(exc, "lodbuilder_task", None)
     if not isinstance(info, dict):
-        return where
+        return ""
     parts = []
-    files = info.get("files") or []
+    files = [f for f in info.get("files") or [] if f not in where]  # ("reading FILE" names it already)
     if files:
         more = f" and {len(files) - FILES_NAMED} more" if len(files) > FILES_NAMED else ""
         parts.append(f"{'file' if len(files) == 1 else 'files'} {', '.join(files[:FILES_NAMED])}{more}")
     parts.append(f"worker {info.get('pid')}")
-    return f"{where} ({'; '.join(parts)})"
-
-
-def task_table(work: Path, started: float) -> dict[str, Any]:
-    """The build record's table of the tasks whose markers are in ``work`` (one row per task, in
-    order of start; ``started``: the build's start, seconds since the epoch)."""
-    rows = []
-    for f in sorted(work.glob("*.json")):
-        try:
-            doc = json.loads(f.read_text())
-        except (OSError, ValueError):
-            continue
-        tm = doc.get("timing") if isinstance(doc, dict) else None
-        if not isinstance(tm, dict):
-            continue
-        tile = doc.get("tile")
-        rows.append([tm["kind"], f.name[: -len(".json")], tile if isinstance(tile, int) else None,
-                     round(float(tm["start"]) - started, 3), round(float(tm["seconds"]), 4),
-                     round(float(tm["cpu_seconds"]), 4), int(tm["pid"])])
-    rows.sort(key=lambda r: (r[3], r[1]))
-    return {"columns": list(TASK_COLUMNS), "rows": rows}
-
-
-def parent_cpu() -> float:
-    """CPU seconds of this process so far (every thread)."""
-    return time.process_time()
+    return f" ({'; '.join(parts)})"
