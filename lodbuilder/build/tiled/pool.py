@@ -21,7 +21,7 @@ def result(fut: cf.Future, name: str, where: str) -> Any:
     try:
         return fut.result()
     except LodbuilderError as exc:
-        raise BuildError(f"scan {name!r}: {where} failed: {exc}{failure_note(exc, where)}") from exc
+        raise BuildError(f"scan {name!r}: {where} failed: {exc}") from exc  # (names the input and its fix)
     except BrokenProcessPool:
         raise BuildError(f"scan {name!r}: {where} failed: its worker process "
                          "died (killed or out of memory: lower --max-memory per worker or use fewer "

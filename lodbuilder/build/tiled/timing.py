@@ -145,9 +145,10 @@ FILES_NAMED = 4
 
 
 def failure_note(exc: BaseException, where: str = "") -> str:
-    """What a failed task said of itself, to end the build's error message: `` (files A, B;
-    worker PID)``, its tile's or block's source files (those ``where`` does not name already) and
-    its worker's pid; empty for an exception no task marked."""
+    """What a failed task said of itself, to end the build's error message for an unexpected
+    failure (a lodbuilder error names its input and its fix already): `` (files A, B; worker
+    PID)``, its tile's or block's source files (those ``where`` does not name already) and its
+    worker's pid; empty for an exception no task marked."""
     info = getattr(exc, "lodbuilder_task", None)
     if not isinstance(info, dict):
         return ""
