@@ -349,6 +349,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()), help="where the runs write")
     p.add_argument("--out", type=Path, default=OUT, help="the JSON file to write (default docs/bench/bench_survey.json)")
     p.add_argument("--no-warm-up", action="store_true", help="skip the unmeasured small build that fills numba's cache")
+    p.add_argument("--append", action="store_true",
+                   help="add the surveys to those of --out (one JSON for runs that need different executors)")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
@@ -373,6 +375,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps({k: v for k, v in sv["runs"][-1].items() if not k.startswith("simulation")}),
                       file=sys.stderr)
         sv.update(ratios(sv["runs"]))
+    if args.append and args.out.exists():
+        old = json.loads(args.out.read_text())
+        doc["earlier"] = [*old.pop("earlier", []), {k: old[k] for k in ("date", "commit", "command") if k in old}]
+        doc["surveys"] = old.get("surveys", []) + doc["surveys"]
     text = json.dumps(doc, indent=1)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
