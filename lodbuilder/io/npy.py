@@ -47,6 +47,27 @@ def _from_structured(path: Path, arr: np.ndarray) -> tuple[np.ndarray, dict[str,
     return pts, attrs
 
 
+def _metadata(entry: np.ndarray) -> dict[str, Any]:
+    """An NPZ's ``metadata`` entry (a 0-d JSON string) as a dict ({} when it is anything else)."""
+    if entry.ndim != 0:
+        return {}
+    try:
+        loaded = json.loads(str(entry))
+    except ValueError:
+        return {}
+    return loaded if isinstance(loaded, dict) else {}
+
+
+def declared_crs(path: Path) -> str | None:
+    """The CRS of a .npy (its ``.prj`` sidecar) or an .npz (its metadata), without its points."""
+    if path.suffix.lower() == ".npy":
+        return read_sidecar(path)
+    with _load(path) as obj:
+        meta = _metadata(obj["metadata"]) if "metadata" in obj.files else {}
+    wkt = meta.get(KEY_WKT)
+    return to_wkt(wkt, what=f"{path} metadata") if wkt else None
+
+
 def read(path: Path) -> list[Scan]:
     obj = _load(path)
     meta: dict[str, Any] = {}
@@ -63,11 +84,7 @@ def read(path: Path) -> list[Scan]:
         with obj:
             files = {k: obj[k] for k in obj.files}
         if "metadata" in files and files["metadata"].ndim == 0:
-            try:
-                loaded = json.loads(str(files.pop("metadata")))
-                meta = loaded if isinstance(loaded, dict) else {}
-            except ValueError:
-                meta = {}
+            meta = _metadata(files.pop("metadata"))
         if "points" in files:
             p = files.pop("points")
             if p.ndim != 2 or p.shape[1] != 3:

@@ -69,9 +69,12 @@ class PointStream:
     streams: bool
     _iter: Any = field(default=None, repr=False)
 
-    def chunks(self, size: int = CHUNK) -> Iterator[Chunk]:
-        """The rows in file order, ``size`` at a time (the last chunk may be shorter)."""
-        yield from self._iter(max(1, int(size)))
+    def chunks(self, size: int = CHUNK, start: int = 0, stop: int | None = None) -> Iterator[Chunk]:
+        """The rows ``start .. stop`` (default: all) in file order, ``size`` at a time (the last
+        chunk may be shorter); a chunk's ``start`` is its first row in the whole file. LAS/LAZ,
+        PLY and NPY seek to ``start`` (a LAZ file through its chunk table)."""
+        stop = self.n_points if stop is None else min(int(stop), self.n_points)
+        yield from self._iter(max(1, int(size)), max(0, int(start)), stop)
 
 
 def streams(path: str | os.PathLike[str]) -> bool:
@@ -114,6 +117,19 @@ def peek_stream(path: str | os.PathLike[str]) -> PointStream | None:
     return _streaming(check_input_file(path))
 
 
+def declared_crs(path: str | os.PathLike[str]) -> str | None:
+    """The CRS a scan file declares (WKT or None) without reading its points: the LAS/LAZ or PLY
+    header, an E57's root ``coordinateMetadata``, an NPZ's metadata, else the ``.prj`` sidecar."""
+    from .crs import KEY_WKT, read_sidecar
+    from .registry import reader_for
+
+    stream = peek_stream(path)
+    if stream is not None:
+        return stream.metadata.get(KEY_WKT)
+    peek = getattr(reader_for(path)[1], "declared_crs", None)
+    return peek(Path(path)) if peek is not None else read_sidecar(path)
+
+
 def _streaming(p: Path) -> PointStream | None:
     from .registry import reader_for
 
@@ -136,9 +152,9 @@ def _scan_fields(scan: Scan) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
 def scan_stream(scan: Scan, path: Path | None = None) -> PointStream:
     """A stream over an in-memory scan (its rows handed out in chunks)."""
 
-    def it(size: int) -> Iterator[Chunk]:
-        for lo in range(0, len(scan), size):
-            hi = min(len(scan), lo + size)
+    def it(size: int, start: int, stop: int) -> Iterator[Chunk]:
+        for lo in range(start, stop, size):
+            hi = min(stop, lo + size)
             yield Chunk(lo, scan.points[lo:hi], {k: np.asarray(v)[lo:hi] for k, v in scan.attributes.items()})
 
     return PointStream(path or Path(scan.source or scan.name), scan.name, scan.reader, len(scan),
@@ -186,14 +202,17 @@ def _las_stream(p: Path) -> PointStream:
             fields[names[d]] = (a.dtype, tuple(a.shape[1:]))
     name = p.name[: -len(".copc.laz")] if p.name.lower().endswith(".copc.laz") else p.stem
 
-    def it(size: int) -> Iterator[Chunk]:
-        start = 0
+    def it(size: int, first: int, stop: int) -> Iterator[Chunk]:
+        start = first
         try:
             with quiet_laspy(), laspy.open(str(p)) as reader:
-                for rec in reader.chunk_iterator(size):
+                if first:
+                    reader.seek(first)
+                while start < stop:
+                    rec = reader.read_points(min(size, stop - start))
                     m = len(rec)
                     if m == 0:
-                        continue
+                        break
                     pts = np.empty((m, 3), dtype=np.float64)
                     pts[:, 0] = rec.x
                     pts[:, 1] = rec.y
@@ -210,7 +229,7 @@ def _las_stream(p: Path) -> PointStream:
             if not isinstance(exc, Exception) and not library_panic(exc):
                 raise
             raise _foreign_error(p, exc) from None
-        if start != n:
+        if start != stop:
             raise FormatError(f"{p}: the header declares {n} points but the file holds {start}; re-export it")
 
     return PointStream(p, name, "las", n, meta, fields, True, it)
@@ -289,12 +308,12 @@ def _ply_stream(p: Path) -> PointStream | None:
     native = vertex.dtype("=")
     fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {n: (native[n], ()) for n in native.names if n not in XYZ}
 
-    def it(rows: int) -> Iterator[Chunk]:
+    def it(rows: int, first: int, stop: int) -> Iterator[Chunk]:
         with open(p, "rb") as f:
-            f.seek(offset)
-            start = 0
-            while start < count:
-                m = min(rows, count - start)
+            f.seek(offset + first * dtype.itemsize)
+            start = first
+            while start < stop:
+                m = min(rows, stop - start)
                 data = np.fromfile(f, dtype=dtype, count=m)
                 if data.shape[0] != m:
                     raise FormatError(f"{p}: PLY body is truncated: read {start + data.shape[0]} of {count} "
@@ -333,11 +352,11 @@ def _npy_stream(p: Path) -> PointStream | None:
         return None
     del arr
 
-    def it(size: int) -> Iterator[Chunk]:
+    def it(size: int, start: int, stop: int) -> Iterator[Chunk]:
         a = np.load(p, mmap_mode="r", allow_pickle=False)
         try:
-            for lo in range(0, n, size):
-                hi = min(n, lo + size)
+            for lo in range(start, stop, size):
+                hi = min(stop, lo + size)
                 block = np.array(a[lo:hi])  # a copy: the map is dropped chunk by chunk
                 if block.dtype.names:
                     pts = np.stack([np.asarray(block[c], dtype=np.float64) for c in xyz], axis=1)

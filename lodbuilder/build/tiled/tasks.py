@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from . import layout as WL
+from .blocks import tile_records
 from .sums import publish as _publish
 from .workdir import REC, gather
 
@@ -30,8 +31,9 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     w = Path(work)
-    dec = np.fromfile(w / WL.DECIMATED, dtype="<i8")
-    pts = gather(w / WL.POINTS, "<f8", (3,), dec)
+    rec = np.fromfile(w / WL.DECIMATED, dtype=REC)
+    dec = rec["g"]
+    pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
     k = min(size + 1, dec.shape[0])
     o = fastfps(pts, size=k, max_memory=max_memory)
     h = min(size, len(o))
@@ -92,7 +94,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     t0 = time.perf_counter()
     w = Path(work)
     out = w / WL.stream(t)
-    core = np.fromfile(w / WL.core(t), dtype=REC)
+    core = tile_records(w, tile["core"])
     head = np.fromfile(w / WL.HEAD_FILE, dtype=HEAD)
     lo, hi = np.asarray(tile["lo"]), np.asarray(tile["hi"])
     interior = np.asarray(tile["interior"], bool)
@@ -106,7 +108,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
     timed = None
     if faces:
-        hrec = np.fromfile(w / WL.halo(t), dtype=REC)
+        hrec = tile_records(w, tile["halo"])
         rows, keys = _timed(hrec, list(faces))
         if rows.size:
             first = cpts.shape[0] + int(extra.sum())
@@ -150,8 +152,10 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
             "worker_pid": os.getpid(), "files": files}
 
 
-def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
-    """Exact covering radii of tile ``t``'s core in the final order, from its core and halo.
+def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
+               ) -> dict[str, Any]:
+    """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their
+    pieces, in block order).
 
     Writes ``cover.<t>.ev`` (rank, covering radius of the core by every point of smaller rank,
     whenever it changes) and ``cover.<t>.pt`` (for each core point in rank order: its rank, the
@@ -161,8 +165,8 @@ def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     w = Path(work)
-    core = np.fromfile(w / WL.core(t), dtype=REC)
-    halo = np.fromfile(w / WL.halo(t), dtype=REC)
+    core = tile_records(w, core_pieces)
+    halo = tile_records(w, halo_pieces)
     ext = np.concatenate([core, halo])
     is_core = np.zeros(ext.shape[0], bool)
     is_core[: core.shape[0]] = True
