@@ -277,7 +277,7 @@ def radius_table(rank: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, byte
     table[rank] = r32
     bits = table.view(np.uint32).astype(np.int64)
     diff = np.diff(bits, prepend=np.int64(0)).astype("<i4")
-    return table, zlib.compress(diff.tobytes(), 9)
+    return table, zlib.compress(diff.tobytes(), 6)  # (level 9: 10x the time for 6 % less)
 
 
 def read_radius_table(path: str | os.PathLike) -> np.ndarray:
