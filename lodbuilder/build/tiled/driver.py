@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ...progress import ProgressCallback, report
+from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
 from .pool import collect, result, submit
@@ -25,6 +25,7 @@ from .sums import done as piece_done
 from .sums import read_json, write_json
 from .survey import distribute_phase, plan_phase, read_phase
 from .tasks import coarse_task, cover_tile, order_tile
+from .timing import task_table
 from .workdir import Spill
 
 log = logging.getLogger(__name__)
@@ -99,7 +100,13 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
     total = n_tiles * passes
-    report(progress, "tiles", len(done), total)
+    size = {t.index: t.n_points for t in by_size}
+
+    def tell() -> None:
+        report_tasks(progress, "tiles", TaskCounts(len(done), total, sum(size[t] for _, t in done),
+                                                   passes * sum(size.values()), len(running)))
+
+    tell()
     try:
         while todo or running:
             for p, tile in [x for x in todo if all(d in done for d in deps(x[0], x[1].index))]:
@@ -112,7 +119,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
                 write_json(work / WL.marker(WL.order_piece(t, p)), res)
                 WL.moment("tile")
                 done.add((p, t))
-                report(progress, "tiles", len(done), total)
+                tell()
     except BaseException:
         for f in running:
             f.cancel()
@@ -182,8 +189,7 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     # 7. write the part file in stored order
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              "phase_seconds": clock.rounded(3),
-              "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+              **_timings(clock, work),
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
@@ -242,7 +248,8 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
         buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
-                lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res))
+                lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
+                points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
     radii = _done(work, "radii")
     if radii is None:
         radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
@@ -260,6 +267,7 @@ class _Clock:
 
     def __init__(self) -> None:
         self.start = self.last = time.perf_counter()
+        self.epoch = time.time()  # (the task table's times are seconds after it)
         self.cpu_last = time.process_time()
         self.times: dict[str, float] = {}
         self.cpu: dict[str, float] = {}  # the parent's own CPU seconds (its workers' not counted)
@@ -275,6 +283,14 @@ class _Clock:
 
     def total(self) -> float:
         return time.perf_counter() - self.start
+
+
+def _timings(clock: _Clock, work: Path) -> dict[str, Any]:
+    """The build record's phase seconds (and their order: the record's keys are sorted), the
+    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`)."""
+    return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
+            "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+            "build_started": clock.epoch, "tasks": task_table(work, clock.epoch)}
 
 
 def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict[str, Any]) -> dict[str, Any]:

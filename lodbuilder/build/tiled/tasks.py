@@ -19,12 +19,14 @@ import numpy as np
 from . import layout as WL
 from .blocks import tile_records
 from .sums import publish as _publish
+from .timing import timed_task
 from .workdir import REC, gather
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
 
 
+@timed_task
 def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
     from ...sampling.fastfps import fastfps
@@ -73,6 +75,7 @@ def _timed(halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarr
     return rows, known["key"][pos[rows]]
 
 
+@timed_task
 def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
                halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
                ) -> dict[str, Any]:
@@ -152,6 +155,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
             "worker_pid": os.getpid(), "files": files}
 
 
+@timed_task
 def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
                ) -> dict[str, Any]:
     """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their
