@@ -117,7 +117,8 @@ def octree_spacing(radius: np.ndarray, width: float, tail: int = 8) -> tuple[flo
     of the scan (10-11 bytes a point on airborne data against 5.6 for the dense rest, 5.4 for
     the source in scanner order: tools/bench_export.py), so the bytes grow with the share of
     points in the coarse depths (the 4x4 survey: 1.33 x its source LAZ with tail 4, 1.10 x with
-    tail 8). 3D Tiles take tail 4 (smaller leaf tiles)."""
+    tail 8). 3D Tiles take the same depths: fewer, bigger tiles that CesiumJS loads in fewer
+    frames (1M points: 41 tiles instead of 169)."""
     k = radius.size
     r_root = float(radius[min(ROOT_POINTS, k - 1)])
     spacing = 2.0 * r_root if math.isfinite(r_root) and r_root > 0 else width / ROOT_CELLS
@@ -276,7 +277,7 @@ def radius_table(rank: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, byte
     table[rank] = r32
     bits = table.view(np.uint32).astype(np.int64)
     diff = np.diff(bits, prepend=np.int64(0)).astype("<i4")
-    return table, zlib.compress(diff.tobytes(), 9)
+    return table, zlib.compress(diff.tobytes(), 6)  # (level 9: 10x the time for 6 % less)
 
 
 def read_radius_table(path: str | os.PathLike) -> np.ndarray:

@@ -24,7 +24,7 @@ from .pool import collect, result, submit
 from .sums import done as piece_done
 from .sums import read_json, write_json
 from .survey import distribute_phase, plan_phase, read_phase
-from .tasks import coarse_task, cover_tile, order_tile
+from .tasks import coarse_task, cover_tile, order_tile, parameters_task
 from .timing import task_table
 from .workdir import Spill
 
@@ -125,15 +125,6 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
             f.cancel()
         raise
     return found
-
-
-def _spacing(sample: np.ndarray, n: int) -> float:
-    from ...sampling.band import median_spacing
-
-    if sample.shape[0] < 2:
-        return 1.0
-    s = median_spacing(sample) * math.sqrt(sample.shape[0] / max(n, 1))
-    return s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
 
 
 def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: str, work: Path, executor: cf.Executor,
@@ -305,18 +296,17 @@ def _plan(executor: cf.Executor, work: Path, name: str, sp: Spill, voxel_size: f
           progress: ProgressCallback) -> dict[str, Any]:
     """Phase 2: the shared parameters, the tiles (a k-d split of a point-count histogram) and the
     decimated copy (one point per cell of about the head's spacing), or what a finished plan recorded."""
-    from ...sampling.band import choose_parameters
-
     pl = _done(work, "plan")
     if pl is not None:
         return pl
     n = sp.n
-    s = _spacing(sp.sample, n)
-    h, r = choose_parameters(sp.sample, voxel_size if voxel_size is not None else P_VOXEL(s), band_radius)
+    # the spacing and the band's parameters from the sample, on a worker (the parent loads no kernel)
+    pending = submit(executor, [(0, parameters_task, (str(work), n, voxel_size, band_radius))])
+    (params,) = collect(pending, lambda _: "the plan's parameters", name, 1, None, "plan")
     fits = P.tile_capacity(budget, parallel)
     # the decimated copy is ordered by one worker: no larger than the worker's budget allows
     m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
-    return plan_phase(executor, work, name, sp, {"spacing": s, "voxel_size": h, "band_radius": r},
+    return plan_phase(executor, work, name, sp, {k: params[k] for k in ("spacing", "voxel_size", "band_radius")},
                       max(fits, COARSE_MIN), tile_points or fits, m_target, progress)
 
 
@@ -341,13 +331,6 @@ def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, sp: Spill, p
             (coarse,) = collect(pending, lambda _: "the coarse level", name, 1, progress, "coarse")
             _mark(work, "coarse", coarse)
     return coarse, dist
-
-
-def P_VOXEL(spacing: float) -> float:
-    """The engine's automatic voxel size for a point spacing (lodbuilder.sampling.band)."""
-    from ...sampling.band import VOXEL_PER_SPACING
-
-    return VOXEL_PER_SPACING * spacing
 
 
 #: what a tiled archive guarantees (also stored in its build record)
