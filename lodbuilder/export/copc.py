@@ -12,13 +12,13 @@ id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and r
 ``rank_radius`` it also keeps each point's ``rank`` (extra bytes) and the insertion radius by
 rank (record 2, :func:`read_radius_table`), so the exact ordering and every level can be rebuilt.
 
-What that costs (bytes a point over the file without, tools/bench_export.py; autzen / the 4x4
-survey): the rank as uint32 extra bytes 2.1 / 2.6 (relative to its depth's first rank: the same;
-the ranks of a depth are a random permutation of it in any order LAZ compresses, log2(m!) / m
-bits at least: 2.4 bytes for the survey's 1.6M-point deepest depth), the radius table 1.0 / 0.3;
-radius as float64 extra bytes instead 6.9, as float32 3.2; a one-byte radius quantised to 1/16
-octave (16 levels a depth, no rank) 0.7. Not cheap next to the 5.5 bytes a point of the source
-LAZ: off by default.
+What that costs (bytes a point over the file without; autzen / the 4x4 survey / the synthetic
+1M sheet of tools/bench_export.py): the rank as uint32 extra bytes 2.1 / 2.6 / 2.6 (relative to
+its depth's first rank: the same; the ranks of a depth are a random permutation of it in any
+order LAZ compresses well, log2(m!) / m bits at least: 2.4 bytes for the survey's 1.6M-point
+deepest depth), the radius table 1.0 / 0.3 / 1.3; radius as float64 extra bytes instead 6.9, as
+float32 3.2; a one-byte radius quantised to 1/16 octave (16 levels a depth, no rank) 0.7. Not
+cheap next to the 5.5 bytes a point of the source LAZ: off by default.
 
 Inside a node the order is free (the depths carry the levels): points go by GPS time where they
 have one (the scanner's order, which LAZ's delta coding compresses best), else by Morton code.
@@ -267,7 +267,7 @@ def radius_table(rank: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, byte
     in the file), as float32 rounded up (an upper bound stays one), and the payload of our
     EVLR record RADIUS_RECORD_ID: zlib of the little-endian int32 differences of the table's
     float32 bit patterns (radii never increase along the ranks, so the differences are small:
-    0.3-1.0 bytes a point; per-point float64 extra bytes cost 6.9, float32 3.2)."""
+    0.3-1.3 bytes a point; per-point float64 extra bytes cost 6.9, float32 3.2)."""
     import zlib
 
     r32 = radius.astype(np.float32)
@@ -340,7 +340,7 @@ def write_copc(
     with ``metadata``, the scan's format metadata; what the mapping changed is in ``notes`` and
     logged as lodbuilder.io warnings). With ``rank_radius``, also each point's ``rank`` (extra
     bytes) and the insertion radius by rank (an EVLR, :func:`read_radius_table`): the exact
-    ordering, at 2.6-3.1 bytes a point.
+    ordering, at 2.6-3.8 bytes a point.
 
     ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: what
     filter removed points from the level (they are a subsequence of it), with ``bounds`` the
