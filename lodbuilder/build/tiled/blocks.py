@@ -30,6 +30,7 @@ from ...errors import FormatError
 from . import layout as WL
 from .plan import Grid, Tile, tile_lookup
 from .sums import SumFile
+from .timing import timed_task
 from .workdir import REC, blocks, opaque_rows
 
 JOINT_FIELDS = ("scan_id", "scan_point")
@@ -58,6 +59,7 @@ class _Out:
         return {name: f.sum for name, f in self.files.items()}
 
 
+@timed_task
 def read_block(work: str, b: int, source: Any, member: int | None, start: int, stop: int, g0: int,
                spec: dict[str, Any]) -> dict[str, Any]:
     """Read rows ``start .. stop`` of one input (``source``: a picklable opener returning
@@ -109,6 +111,7 @@ def _xyz_blocks(work: Path, b: int, m: int, rows: int) -> Any:
         yield lo // 3, a.reshape(-1, 3)
 
 
+@timed_task
 def survey_block(work: str, b: int, g0: int, m: int, rows: int, grid: dict[str, Any], d_cell: float,
                  histogram: bool = True) -> dict[str, Any]:
     """Block ``b``'s count histogram on ``grid`` (sparse: occupied cells and counts, when
@@ -156,6 +159,7 @@ def decimated_copy(parts: list[dict[str, Any]]) -> np.ndarray:
     return out
 
 
+@timed_task
 def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[dict[str, Any]],
                      grid: dict[str, Any], halo: float) -> dict[str, Any]:
     """Write block ``b``'s points into the pieces of the tiles (``core.<t>.<b>.bin``: the tile's

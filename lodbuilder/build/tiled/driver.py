@@ -17,14 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from ...progress import ProgressCallback, report
+from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
 from .pool import collect, result, submit
 from .sums import done as piece_done
 from .sums import read_json, write_json
 from .survey import distribute_phase, plan_phase, read_phase
-from .tasks import coarse_task, cover_tile, order_tile
+from .tasks import coarse_task, cover_tile, order_tile, parameters_task
+from .timing import task_table
 from .workdir import Spill
 
 log = logging.getLogger(__name__)
@@ -99,7 +100,13 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
     total = n_tiles * passes
-    report(progress, "tiles", len(done), total)
+    size = {t.index: t.n_points for t in by_size}
+
+    def tell() -> None:
+        report_tasks(progress, "tiles", TaskCounts(len(done), total, sum(size[t] for _, t in done),
+                                                   passes * sum(size.values()), len(running)))
+
+    tell()
     try:
         while todo or running:
             for p, tile in [x for x in todo if all(d in done for d in deps(x[0], x[1].index))]:
@@ -112,21 +119,12 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
                 write_json(work / WL.marker(WL.order_piece(t, p)), res)
                 WL.moment("tile")
                 done.add((p, t))
-                report(progress, "tiles", len(done), total)
+                tell()
     except BaseException:
         for f in running:
             f.cancel()
         raise
     return found
-
-
-def _spacing(sample: np.ndarray, n: int) -> float:
-    from ...sampling.band import median_spacing
-
-    if sample.shape[0] < 2:
-        return 1.0
-    s = median_spacing(sample) * math.sqrt(sample.shape[0] / max(n, 1))
-    return s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
 
 
 def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: str, work: Path, executor: cf.Executor,
@@ -182,8 +180,7 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     # 7. write the part file in stored order
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              "phase_seconds": clock.rounded(3),
-              "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+              **_timings(clock, work),
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
@@ -242,7 +239,8 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
         buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
-                lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res))
+                lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
+                points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
     radii = _done(work, "radii")
     if radii is None:
         radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
@@ -260,6 +258,7 @@ class _Clock:
 
     def __init__(self) -> None:
         self.start = self.last = time.perf_counter()
+        self.epoch = time.time()  # (the task table's times are seconds after it)
         self.cpu_last = time.process_time()
         self.times: dict[str, float] = {}
         self.cpu: dict[str, float] = {}  # the parent's own CPU seconds (its workers' not counted)
@@ -277,6 +276,14 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
+def _timings(clock: _Clock, work: Path) -> dict[str, Any]:
+    """The build record's phase seconds (and their order: the record's keys are sorted), the
+    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`)."""
+    return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
+            "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+            "build_started": clock.epoch, "tasks": task_table(work, clock.epoch)}
+
+
 def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict[str, Any]) -> dict[str, Any]:
     """The build record's entries of the plan and the coarse level."""
     return {"tile_points_max": int(pl["tile_cap"]), "halo": halo, "coarse_points": int(pl["n_decimated"]),
@@ -289,18 +296,17 @@ def _plan(executor: cf.Executor, work: Path, name: str, sp: Spill, voxel_size: f
           progress: ProgressCallback) -> dict[str, Any]:
     """Phase 2: the shared parameters, the tiles (a k-d split of a point-count histogram) and the
     decimated copy (one point per cell of about the head's spacing), or what a finished plan recorded."""
-    from ...sampling.band import choose_parameters
-
     pl = _done(work, "plan")
     if pl is not None:
         return pl
     n = sp.n
-    s = _spacing(sp.sample, n)
-    h, r = choose_parameters(sp.sample, voxel_size if voxel_size is not None else P_VOXEL(s), band_radius)
+    # the spacing and the band's parameters from the sample, on a worker (the parent loads no kernel)
+    pending = submit(executor, [(0, parameters_task, (str(work), n, voxel_size, band_radius))])
+    (params,) = collect(pending, lambda _: "the plan's parameters", name, 1, None, "plan")
     fits = P.tile_capacity(budget, parallel)
     # the decimated copy is ordered by one worker: no larger than the worker's budget allows
     m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
-    return plan_phase(executor, work, name, sp, {"spacing": s, "voxel_size": h, "band_radius": r},
+    return plan_phase(executor, work, name, sp, {k: params[k] for k in ("spacing", "voxel_size", "band_radius")},
                       max(fits, COARSE_MIN), tile_points or fits, m_target, progress)
 
 
@@ -325,13 +331,6 @@ def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, sp: Spill, p
             (coarse,) = collect(pending, lambda _: "the coarse level", name, 1, progress, "coarse")
             _mark(work, "coarse", coarse)
     return coarse, dist
-
-
-def P_VOXEL(spacing: float) -> float:
-    """The engine's automatic voxel size for a point spacing (lodbuilder.sampling.band)."""
-    from ...sampling.band import VOXEL_PER_SPACING
-
-    return VOXEL_PER_SPACING * spacing
 
 
 #: what a tiled archive guarantees (also stored in its build record)

@@ -134,6 +134,11 @@ def cover_piece(t: int) -> str:
     return f"cover.{t}"
 
 
+def task_log(pid: int | str) -> str:
+    """A worker's log of the tasks it ran (one JSON line each: see :mod:`.timing`)."""
+    return f"tasks.{pid}.jsonl"
+
+
 def marker(piece: str) -> str:
     """The marker file of a finished phase or task."""
     return f"{piece}.json"

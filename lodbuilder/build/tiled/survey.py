@@ -68,7 +68,9 @@ def plan_inputs(sources: list[tuple[Any, ...]], parallel: int, rows: int) -> dic
         m = int(s[0].n_points)
         step = m if s[3] is None else per  # a scan the parent hands out is one block
         blocks += [[i, a, min(m, a + step), g + a] for a in range(0, m, step)]
-        members.append({"id": s[2], "n_points": m, "first": g})
+        path = getattr(s[0], "path", None)  # (the file a failed task's points came from: see .timing)
+        members.append({"id": s[2], "n_points": m, "first": g,
+                        "source": Path(path).name if path and Path(path).is_file() else None})
         g += m
     return {"n": n, "fields": fields, "joint": joint, "rows": rows, "step": max(1, n // SAMPLE),
             "metadata": dict(first.metadata) if not joint else joint_crs(sources),

@@ -9,6 +9,7 @@ shared file system (NFS, Lustre, a mounted object store) under the archive's dir
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from pathlib import Path
@@ -19,12 +20,32 @@ import numpy as np
 from . import layout as WL
 from .blocks import tile_records
 from .sums import publish as _publish
+from .timing import timed_task
 from .workdir import REC, gather
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
 
 
+@timed_task
+def parameters_task(work: str, n: int, voxel_size: float | None, band_radius: float | None) -> dict[str, Any]:
+    """The point spacing of the scan (from the sample of the read phase, ``sample.npy``) and the
+    voxel size and band radius every tile shares."""
+    from ...sampling.band import VOXEL_PER_SPACING, choose_parameters, median_spacing
+
+    t0 = time.perf_counter()
+    sample = np.load(Path(work) / WL.SAMPLE)
+    if sample.shape[0] < 2:
+        s = 1.0
+    else:
+        s = median_spacing(sample) * math.sqrt(sample.shape[0] / max(n, 1))
+        s = s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
+    h, r = choose_parameters(sample, voxel_size if voxel_size is not None else VOXEL_PER_SPACING * s, band_radius)
+    return {"spacing": s, "voxel_size": h, "band_radius": r, "seconds": time.perf_counter() - t0,
+            "worker_pid": os.getpid()}
+
+
+@timed_task
 def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
     from ...sampling.fastfps import fastfps
@@ -73,6 +94,7 @@ def _timed(halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarr
     return rows, known["key"][pos[rows]]
 
 
+@timed_task
 def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
                halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
                ) -> dict[str, Any]:
@@ -152,6 +174,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
             "worker_pid": os.getpid(), "files": files}
 
 
+@timed_task
 def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
                ) -> dict[str, Any]:
     """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their

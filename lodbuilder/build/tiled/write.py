@@ -22,6 +22,7 @@ from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from .sums import SumFile
+from .timing import timed_task
 from .workdir import blocks, opaque_rows
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
@@ -34,6 +35,7 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
     return np.dtype(spec)
 
 
+@timed_task
 def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
                  block: int, rows: int) -> dict[str, Any]:
     """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
