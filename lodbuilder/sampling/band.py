@@ -274,6 +274,7 @@ def plan_and_build_band(
         plan = _thin_plan(points, h, r)
         release_freed_memory(n)
         band = build_band(points, h, r, max_memory)
+        release_freed_memory(n)  # (the band's temporaries: the planned band is decided on top of it)
     found = plan.thin_points
     thin = plan
     band, plan = build_planned_band(points, plan, max_memory, band=band)
@@ -451,8 +452,12 @@ def build_band(
     cs[-1] = n
     del ckeys
     beta = DEPTH_COST if depth_cost is None else depth_cost
-    vcost = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf).astype(np.float32)
+    vcost64 = beta * q2  # = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf), one temporary less
+    vcost64 += 1.0
+    vcost64[~(q2 <= 1.0)] = np.inf
     del q2
+    vcost = vcost64.astype(np.float32)
+    del vcost64
     near = nearest_corners(u, nbr, cs, vcost)
     band = Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, near, None if radius is None else radius / h)
     if normal is not None:
