@@ -337,23 +337,14 @@ def write_copc(
     k = pts.shape[0]
     meta = dict(metadata or {})
     bounds = radius if bounds is None else np.asarray(bounds)
-    order_rank = (np.arange(k) if rank is None else np.asarray(rank)) if mode == "exact" else None
-    ours = ({} if order_rank is None else
-            {"rank": order_rank.astype(np.uint32 if order_rank.max() < 2**32 else np.uint64)})
-    if mode == "level":
-        ours["sublevel"] = np.zeros(k, dtype=np.uint8)  # (filled once the depths are known)
+    order_rank, ours = _our_dims(mode, rank, k)
     layout = _layout(pts, attributes, meta, ours, scans)
     las = layout.las_data(pts)
-    stored = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-    gps = (np.asarray(las.gps_time, dtype=np.float64)
-           if "gps_time" in las.point_format.dimension_names else None)
+    stored, gps = _stored(las)
     tree = build_tree(stored, layout.scales, radius, gps)
     octree = _header(las, stored, tree)
     levels = _levels(bounds, tree.band, tree.depth, rho, tree.spacing)
-    table = None
-    if mode == "level":
-        sub, table = sublevels(tree.band, tree.depth, bounds, rho)
-        las["sublevel"] = sub
+    table = _fill_sublevels(las, tree, bounds, rho) if mode == "level" else None
     doc = _doc(name, k, int(n_total or k), tree.spacing, levels, mode, filtered, scans)
     evlrs = _evlrs(doc, order_rank, radius, table)
     gps_range = (float(gps.min()), float(gps.max())) if gps is not None else (0.0, 0.0)
@@ -366,6 +357,33 @@ def write_copc(
     return CopcFile(path=out, n_points=k, n_total=int(n_total or k), rho=float(rho),
                     n_bytes=n_bytes, depths=int(tree.depth.max()) + 1, nodes=len(tree.starts),
                     spacing=tree.spacing, levels=levels, notes=list(layout.notes))
+
+
+def _our_dims(mode: str | None, rank: np.ndarray | None,
+              k: int) -> tuple[np.ndarray | None, dict[str, np.ndarray]]:
+    """(rank of each point or None, our extra dimensions): ``rank`` for the exact mode,
+    ``sublevel`` (zeros until the depths are known) for the level mode."""
+    if mode == "level":
+        return None, {"sublevel": np.zeros(k, dtype=np.uint8)}
+    if mode != "exact":
+        return None, {}
+    order_rank = np.arange(k) if rank is None else np.asarray(rank)
+    return order_rank, {"rank": order_rank.astype(np.uint32 if order_rank.max() < 2**32 else np.uint64)}
+
+
+def _fill_sublevels(las: Any, tree: _Tree, bounds: np.ndarray, rho: float) -> np.ndarray:
+    """Set each point's ``sublevel``; return the sub-level table (:func:`sublevels`)."""
+    sub, table = sublevels(tree.band, tree.depth, bounds, rho)
+    las["sublevel"] = sub
+    return table
+
+
+def _stored(las: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the quantised coordinates, the GPS times or None) of a LasData."""
+    stored = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    gps = (np.asarray(las.gps_time, dtype=np.float64)
+           if "gps_time" in las.point_format.dimension_names else None)
+    return stored, gps
 
 
 def _header(las: Any, stored: np.ndarray, tree: _Tree) -> Any:
