@@ -55,6 +55,15 @@ def _coordinate_metadata(e57: Any, path: Path) -> str | None:
     return to_wkt(text, what=f"{path} coordinateMetadata")
 
 
+def declared_crs(path: Path) -> str | None:
+    """The file's CRS (its root ``coordinateMetadata``) without reading any scan."""
+    e57 = _pye57(path).E57(str(path), mode="r")
+    try:
+        return _coordinate_metadata(e57, path)
+    finally:
+        e57.close()
+
+
 def read(path: Path) -> list[Scan]:
     pye57 = _pye57(path)
     e57 = pye57.E57(str(path), mode="r")

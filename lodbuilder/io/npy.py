@@ -49,6 +49,27 @@ def _from_structured(path: Path, arr: np.ndarray) -> tuple[np.ndarray, dict[str,
     return pts, attrs
 
 
+def _metadata(entry: np.ndarray) -> dict[str, Any]:
+    """An NPZ's ``metadata`` entry (a 0-d JSON string) as a dict ({} when it is anything else)."""
+    if entry.ndim != 0:
+        return {}
+    try:
+        loaded = json.loads(str(entry))
+    except ValueError:
+        return {}
+    return loaded if isinstance(loaded, dict) else {}
+
+
+def declared_crs(path: Path) -> str | None:
+    """The CRS of a .npy (its ``.prj`` sidecar) or an .npz (its metadata), without its points."""
+    if path.suffix.lower() == ".npy":
+        return read_sidecar(path)
+    with _load(path) as obj:
+        meta = _metadata(obj["metadata"]) if "metadata" in obj.files else {}
+    wkt = meta.get(KEY_WKT)
+    return to_wkt(wkt, what=f"{path} metadata") if wkt else None
+
+
 @dataclass
 class NpyLayout:
     """Where the rows of a ``.npy`` file lie: from byte ``offset``, ``n`` rows of ``dtype``
@@ -94,13 +115,15 @@ def npy_layout(path: Path) -> NpyLayout | None:
     return NpyLayout(offset, n, dtype, per_row, fields)
 
 
-def npy_rows(path: Path, layout: NpyLayout, size: int) -> Iterator[Rows]:
+def npy_rows(path: Path, layout: NpyLayout, size: int, first: int = 0, stop: int | None = None) -> Iterator[Rows]:
     """The one read of a ``.npy`` file's rows (see :func:`npy_layout`): ``(first row, float64
-    (m, 3) points, attributes)``, ``size`` rows at a time, straight from the file."""
+    (m, 3) points, attributes)``, ``size`` rows at a time from row ``first`` to ``stop`` (default:
+    the last), straight from the file."""
+    stop = layout.n if stop is None else stop
     with open(path, "rb") as f:
-        f.seek(layout.offset)
-        for lo in range(0, layout.n, size):
-            m = min(layout.n, lo + size) - lo
+        f.seek(layout.offset + first * layout.per_row * layout.dtype.itemsize)
+        for lo in range(first, stop, size):
+            m = min(stop, lo + size) - lo
             block = np.fromfile(f, dtype=layout.dtype, count=m * layout.per_row)
             if block.shape[0] != m * layout.per_row:  # the file shrank under us
                 raise FormatError(f"{path}: truncated or damaged NumPy file (read {lo + block.shape[0] // layout.per_row} "
@@ -138,11 +161,7 @@ def read(path: Path) -> list[Scan]:
         with obj:
             files = {k: obj[k] for k in obj.files}
         if "metadata" in files and files["metadata"].ndim == 0:
-            try:
-                loaded = json.loads(str(files.pop("metadata")))
-                meta = loaded if isinstance(loaded, dict) else {}
-            except ValueError:
-                meta = {}
+            meta = _metadata(files.pop("metadata"))
         if "points" in files:
             p = files.pop("points")
             if p.ndim != 2 or p.shape[1] != 3:

@@ -270,15 +270,17 @@ def binary_layout(path: Path, size: int, body_start: int, header: Any, vi: int) 
     return offset, dtype, count
 
 
-def vertex_rows(path: Path, offset: int, dtype: np.dtype, count: int, rows: int) -> Generator[tuple[int, np.ndarray], None, None]:
+def vertex_rows(path: Path, offset: int, dtype: np.dtype, count: int, rows: int, first: int = 0,
+                stop: int | None = None) -> Generator[tuple[int, np.ndarray], None, None]:
     """The one read of fixed-size binary vertex rows: ``(first row, rows in native byte order)``,
-    ``rows`` at a time, straight from the file."""
+    ``rows`` at a time from row ``first`` to ``stop`` (default: the last), straight from the file."""
     native = dtype.newbyteorder("=")
+    stop = count if stop is None else stop
     with open(path, "rb") as f:
-        f.seek(offset)
-        start = 0
-        while start < count:
-            m = min(rows, count - start)
+        f.seek(offset + first * dtype.itemsize)
+        start = first
+        while start < stop:
+            m = min(rows, stop - start)
             data = np.fromfile(f, dtype=dtype, count=m)
             if data.shape[0] != m:  # the file shrank under us
                 raise FormatError(f"{path}: PLY body is truncated: read {start + data.shape[0]} of {count} "

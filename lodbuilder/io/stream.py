@@ -71,9 +71,12 @@ class PointStream:
     streams: bool
     _iter: Any = field(default=None, repr=False)
 
-    def chunks(self, size: int = CHUNK) -> Iterator[Chunk]:
-        """The rows in file order, ``size`` at a time (the last chunk may be shorter)."""
-        yield from self._iter(max(1, int(size)))
+    def chunks(self, size: int = CHUNK, start: int = 0, stop: int | None = None) -> Iterator[Chunk]:
+        """The rows ``start .. stop`` (default: all) in file order, ``size`` at a time (the last
+        chunk may be shorter); a chunk's ``start`` is its first row in the whole file. LAS/LAZ,
+        PLY and NPY seek to ``start`` (a LAZ file through its chunk table)."""
+        stop = self.n_points if stop is None else min(int(stop), self.n_points)
+        yield from self._iter(max(1, int(size)), max(0, int(start)), stop)
 
 
 def streams(path: str | os.PathLike[str]) -> bool:
@@ -116,6 +119,19 @@ def peek_stream(path: str | os.PathLike[str]) -> PointStream | None:
     return _streaming(check_input_file(path))
 
 
+def declared_crs(path: str | os.PathLike[str]) -> str | None:
+    """The CRS a scan file declares (WKT or None) without reading its points: the LAS/LAZ or PLY
+    header, an E57's root ``coordinateMetadata``, an NPZ's metadata, else the ``.prj`` sidecar."""
+    from .crs import KEY_WKT, read_sidecar
+    from .registry import reader_for
+
+    stream = peek_stream(path)
+    if stream is not None:
+        return stream.metadata.get(KEY_WKT)
+    peek = getattr(reader_for(path)[1], "declared_crs", None)
+    return peek(Path(path)) if peek is not None else read_sidecar(path)
+
+
 def _streaming(p: Path) -> PointStream | None:
     from .registry import reader_for
 
@@ -138,9 +154,9 @@ def _scan_fields(scan: Scan) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
 def scan_stream(scan: Scan, path: Path | None = None) -> PointStream:
     """A stream over an in-memory scan (its rows handed out in chunks)."""
 
-    def it(size: int) -> Iterator[Chunk]:
-        for lo in range(0, len(scan), size):
-            hi = min(len(scan), lo + size)
+    def it(size: int, start: int, stop: int) -> Iterator[Chunk]:
+        for lo in range(start, stop, size):
+            hi = min(stop, lo + size)
             yield Chunk(lo, scan.points[lo:hi], {k: np.asarray(v)[lo:hi] for k, v in scan.attributes.items()})
 
     return PointStream(path or Path(scan.source or scan.name), scan.name, scan.reader, len(scan),
@@ -174,8 +190,8 @@ def _las_stream(p: Path) -> PointStream:
     fields = {k: (a.dtype, tuple(a.shape[1:])) for k, a in probe.items()}
     name = p.name[: -len(".copc.laz")] if p.name.lower().endswith(".copc.laz") else p.stem
 
-    def it(size: int) -> Iterator[Chunk]:
-        for start, pts, attrs in las_rows(laspy, p, header, size):
+    def it(size: int, first: int, stop: int) -> Iterator[Chunk]:
+        for start, pts, attrs in las_rows(laspy, p, header, size, first, stop):
             _check_finite(p, pts, start)
             yield Chunk(start, pts, attrs)
 
@@ -230,8 +246,8 @@ def _ply_stream(p: Path) -> PointStream | None:
     native = dtype.newbyteorder("=")
     fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {n: (native[n], ()) for n in native.names or () if n not in XYZ}
 
-    def it(rows: int) -> Iterator[Chunk]:
-        for start, data in vertex_rows(p, offset, dtype, count, rows):
+    def it(rows: int, first: int, stop: int) -> Iterator[Chunk]:
+        for start, data in vertex_rows(p, offset, dtype, count, rows, first, stop):
             pts = vertex_points(data)
             _check_finite(p, pts, start)
             yield Chunk(start, pts, {n: np.ascontiguousarray(data[n]) for n in fields})
@@ -249,8 +265,8 @@ def _npy_stream(p: Path) -> PointStream | None:
     if layout is None:
         return None  # the reader's own error, or a layout read whole
 
-    def it(size: int) -> Iterator[Chunk]:
-        for start, pts, attrs in npy_rows(p, layout, size):
+    def it(size: int, first: int, stop: int) -> Iterator[Chunk]:
+        for start, pts, attrs in npy_rows(p, layout, size, first, stop):
             _check_finite(p, pts, start)
             yield Chunk(start, pts, attrs)
 

@@ -189,17 +189,23 @@ def las_header(laspy: Any, p: Path) -> LasHeader:
     return LasHeader(n, meta, order, {d: rename.get(d, d) for d in dims})
 
 
-def las_rows(laspy: Any, p: Path, header: LasHeader, size: int) -> Generator[Rows, None, None]:
+def las_rows(laspy: Any, p: Path, header: LasHeader, size: int, first: int = 0,
+             stop: int | None = None) -> Generator[Rows, None, None]:
     """The one read of a LAS/LAZ file's points: ``(start, float64 (m, 3) points, attributes)``,
-    ``size`` rows at a time, through laspy's chunk iterator (LAZ decompressed chunk by chunk).
+    ``size`` rows at a time from row ``first`` to ``stop`` (default: the end; laspy seeks, a LAZ
+    file through its chunk table, and decompresses chunk by chunk).
     Coordinates are not checked for NaN/inf here: the whole read and the stream each say where."""
-    start = 0
+    stop = header.n_points if stop is None else stop
+    start = first
     try:
         with quiet_laspy(), laspy.open(str(p)) as reader:
-            for rec in reader.chunk_iterator(size):
+            if first:
+                reader.seek(first)
+            while start < stop:
+                rec = reader.read_points(min(size, stop - start))
                 m = len(rec)
                 if m == 0:
-                    continue
+                    break
                 pts = np.empty((m, 3), dtype=np.float64)
                 pts[:, 0] = rec.x
                 pts[:, 1] = rec.y
@@ -211,7 +217,7 @@ def las_rows(laspy: Any, p: Path, header: LasHeader, size: int) -> Generator[Row
         raise
     except BaseException as exc:
         raise _las_failure(laspy, p, exc) from None
-    if start != header.n_points:
+    if start != stop:
         raise FormatError(
             f"{p}: the header declares {header.n_points} points but the file holds {start}; re-export it"
         )
