@@ -52,31 +52,15 @@ def build_archive(
     inputs: Any,
     archive: str | os.PathLike[str],
     *,
-    name: str | None = None,
-    manifest: str | os.PathLike[str] | None = None,
-    workers: int | None = None,
-    scheduler: str | None = None,
-    dask_local: int | None = None,
-    voxel_size: float | None = None,
-    band_radius: float | None = None,
-    seeds: Any = None,
-    size: int | None = None,
-    rho: float | None = None,
-    force: bool = False,
-    overwrite: bool = False,
-    max_memory: Any = None,
-    joint: bool | str = False,
-    seam_spacing: float | None = None,
-    crs: str | None = None,
-    crs_override: bool = False,
-    to_crs: str | None = None,
-    wait: float | None = None,
-    options: BuildOptions | None = None,
-    raise_on_failure: bool | None = None,
-    progress: ProgressCallback = None,
-    on_status: Any = None,
-    _tile_points: int | None = None,
-    _tile_passes: int | None = None,
+    name: str | None = None, manifest: str | os.PathLike[str] | None = None,
+    workers: int | None = None, scheduler: str | None = None, dask_local: int | None = None,
+    voxel_size: float | None = None, band_radius: float | None = None, seeds: Any = None,
+    size: int | None = None, rho: float | None = None, force: bool = False, overwrite: bool = False,
+    max_memory: Any = None, joint: bool | str = False, seam_spacing: float | None = None,
+    crs: str | None = None, crs_override: bool = False, to_crs: str | None = None,
+    wait: float | None = None, options: BuildOptions | None = None,
+    raise_on_failure: bool | None = None, progress: ProgressCallback = None, on_status: Any = None,
+    _tile_points: int | None = None, _tile_passes: int | None = None,
     **features: Any,
 ) -> BuildResult:
     """Order every scan of ``inputs`` and add it to ``archive`` (created when missing).
@@ -116,15 +100,21 @@ def build_archive(
              "max_memory": max_memory, "seam_spacing": seam_spacing, "crs": crs, "to_crs": to_crs,
              "tile_points": _tile_points, "tile_passes": _tile_passes,
              **{k: v for k, v in features.items() if v is not None}}
-    if options is None:
-        options = BuildOptions.make(crs_override=crs_override, **given)
-    elif any(v is not None for v in given.values()) or crs_override:
-        named = ", ".join(k for k, v in given.items() if v is not None) or "crs_override"
-        raise InputError(f"build options given twice: options= and {named}; put them all in options= "
-                         "(BuildOptions.make(...)) or pass keywords only")
+    options = _one_options(options, given, crs_override)
     return build(inputs, archive, options, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
                  dask_local=dask_local, force=force, overwrite=overwrite, joint=joint, wait=wait,
                  raise_on_failure=raise_on_failure, progress=progress, on_status=on_status)
+
+
+def _one_options(options: BuildOptions | None, given: dict[str, Any], crs_override: bool) -> BuildOptions:
+    """``options``, or the BuildOptions of the keywords ``given``; refused when both are given."""
+    if options is None:
+        return BuildOptions.make(crs_override=crs_override, **given)
+    if any(v is not None for v in given.values()) or crs_override:
+        named = ", ".join(k for k, v in given.items() if v is not None) or "crs_override"
+        raise InputError(f"build options given twice: options= and {named}; put them all in options= "
+                         "(BuildOptions.make(...)) or pass keywords only")
+    return options
 
 
 def _build_keywords() -> list[str]:

@@ -151,15 +151,24 @@ def test_slice_all_scans_with_different_crs_says_so(tmp_path, capsys):
 
 @pytest.mark.dask
 def test_dask_local_build_prints_no_dask_start_up_logs(tmp_path):
+    import contextlib
     import os
+    import socket
     import subprocess
     import sys
     from pathlib import Path
 
     files = _clouds(tmp_path, n=2)
-    res = subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", "build", *map(str, files), "-o",
-                          str(tmp_path / "d.h5"), "--dask-local", "1", "--no-progress"],
-                         capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    with contextlib.ExitStack() as stack:
+        # Dask's default dashboard port taken (another build, a notebook): the build must not mind
+        busy = stack.enter_context(socket.socket())
+        with contextlib.suppress(OSError):
+            busy.bind(("", 8787))
+            busy.listen()
+        res = subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", "build", *map(str, files), "-o",
+                              str(tmp_path / "d.h5"), "--dask-local", "1", "--no-progress"],
+                             capture_output=True, text=True, timeout=300,
+                             env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
     assert res.returncode == 0, res.stderr
     assert [line for line in res.stderr.splitlines() if "distributed" in line] == []
     assert "on Dask LocalCluster (1 worker)" in res.stdout

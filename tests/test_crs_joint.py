@@ -120,3 +120,56 @@ def test_to_crs_for_a_collection_of_scans(halves, tmp_path):
     np.testing.assert_allclose(pts, np.c_[x, y, z], rtol=0, atol=1e-6)
     with pytest.raises(InputError, match="is not a CRS pyproj understands"):
         lodbuilder.build_archive(a, tmp_path / "d.h5", to_crs="EPSG:999999")
+
+
+# ------------------------------------------------------------------ collections (issue 20, item 4)
+
+def test_a_collection_of_different_crss_is_refused_before_any_work(halves, tmp_path, capsys):
+    a, _, _, right, _ = halves
+    utm = write_points(tmp_path / "u.laz", right, crs=UTM10.to_wkt("WKT1_GDAL"))
+    rc, out, err = run_cli(capsys, "build", a, utm, "-o", tmp_path / "c.h5", "--no-progress")
+    assert rc == 2 and not (tmp_path / "c.h5").exists() and not (tmp_path / "c.h5.scans").exists()
+    assert err == (
+        "lodbuilder build: error: scans 'a.laz' and 'u.laz' are in different CRSs "
+        "(NAD_1983_HARN_Lambert_Conformal_Conic and WGS 84 / UTM zone 10N (EPSG:32610)); reproject them "
+        "to one with --to-crs EPSG:XXXX (needs pyproj), or build them separately\n"
+    )
+
+
+def test_a_collection_scan_without_crs_needs_crs(halves, tmp_path, capsys):
+    a, _, _, right, wkt = halves
+    bare = write_points(tmp_path / "bare.npz", right)  # the CRS would be in the NPZ's metadata
+    rc, out, err = run_cli(capsys, "build", a, bare, "-o", tmp_path / "c.h5", "--no-progress")
+    assert rc == 2 and not (tmp_path / "c.h5").exists()
+    assert err == (
+        "lodbuilder build: error: scan 'bare.npz' has no CRS while 'a.laz' is in "
+        "NAD_1983_HARN_Lambert_Conformal_Conic; give the scans without one a CRS with --crs EPSG:XXXX "
+        "(or WKT), or build them separately\n"
+    )
+    prj = tmp_path / "autzen.prj"
+    prj.write_text(wkt)
+    rc, out, err = run_cli(capsys, "build", a, bare, "--crs", prj, "-o", tmp_path / "c.h5", "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(tmp_path / "c.h5") as arc:
+        assert arc.scan("a").crs == wkt and arc.scan("bare").crs == wkt
+
+
+def test_a_collection_keeps_a_shared_crs_and_scans_without_any(halves, tmp_path):
+    a, b, left, right, wkt = halves
+    lodbuilder.build_archive([a, b], tmp_path / "c.h5", workers=1)
+    p = write_points(tmp_path / "p.ply", left)
+    q = write_points(tmp_path / "q.npy", right)
+    lodbuilder.build_archive([p, q], tmp_path / "d.h5", workers=1)
+    with lodbuilder.open_archive(tmp_path / "c.h5") as c, lodbuilder.open_archive(tmp_path / "d.h5") as d:
+        assert c.scan("a").crs == c.scan("b").crs == wkt
+        assert d.scan("p").crs is None and d.scan("q").crs is None
+
+
+def test_the_crs_a_file_declares_is_read_from_its_header(halves, tmp_path):
+    from lodbuilder.io.stream import declared_crs
+
+    a, _, left, _, wkt = halves
+    assert declared_crs(a) == wkt
+    for name in ("x.ply", "x.npz", "x.npy", "x.csv"):
+        assert declared_crs(write_points(tmp_path / name, left[:50], crs=wkt)) == wkt, name
+        assert declared_crs(write_points(tmp_path / ("bare_" + name), left[:50])) is None, name

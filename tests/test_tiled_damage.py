@@ -45,7 +45,7 @@ def _same(a, b):
 
 
 # the moment of the stop: the module and function that raises (what is done by then: everything before)
-MOMENTS = {"split": ("driver", "distribute"), "tiles": ("driver", "write_json"), "merge": ("merge", "merge_tiles"),
+MOMENTS = {"split": ("driver", "distribute_phase"), "tiles": ("driver", "write_json"), "merge": ("merge", "merge_tiles"),
            "radii": ("merge", "assemble_radii"), "write": ("write", "write_scan")}
 
 
@@ -118,14 +118,15 @@ def _damage(path: Path, how: str) -> None:
 def _cases():
     """(moment, file, damage): every kind of work file the moment has, each damage in turn."""
     kinds = {
-        "split": ["points.f64", "attr.0.bin", "sample.npy", "decimated.i8", "spill.json", "plan.json"],
+        # (a read or split task's marker is not read again once its phase's marker is written)
+        "split": ["raw.0.xyz", "raw.0.attr", "sample.npy", "decimated.bin", "spill.json", "plan.json", "sample.0.f64"],
         # {t}: a tile whose ordering was done when the build stopped
-        "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.bin", "head.bin", "coarse.json"],
-        "merge": ["core.0.bin", "halo.1.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
-                  "distribute.json", "points.f64"],
-        "radii": ["order.i8", "rank.i8", "bucket.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.bin"],
+        "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
+        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
+                  "distribute.json", "raw.0.xyz"],
+        "radii": ["order.i8", "rank.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
         "write": ["key.f8", "radius.f8", "parent.i8", "merge.json", "radii.json", "coarse.json", "stream.0.bin",
-                  "attr.0.bin"],
+                  "raw.0.attr"],
     }
     how = ["flip", "truncate", "zero"]
     out = []
@@ -171,8 +172,8 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
     for name in files:
         if not name.startswith("stream."):  # an earlier pass's marker lists the stream of its pass
             assert sum_file(w / name) == listed[name] or name in {n for n in listed if n.startswith("stream.")}
-    raw = (w / "points.f64").read_bytes()
-    assert listed["points.f64"] == [len(raw), zlib.crc32(raw)]
+    raw = (w / "raw.0.xyz").read_bytes()
+    assert listed["raw.0.xyz"] == [len(raw), zlib.crc32(raw)]
 
 
 def test_force_recovers_from_a_forged_work_directory(stopped, clean):
@@ -185,10 +186,11 @@ def test_force_recovers_from_a_forged_work_directory(stopped, clean):
         shutil.rmtree(parts)
     shutil.copytree(pristine, parts, symlinks=True)
     w = _work(parts)
-    _damage(w / "halo.0.bin", "flip")
-    doc = read_json(w / "distribute.json")
-    doc["files"]["halo.0.bin"] = sum_file(w / "halo.0.bin")
-    write_json(w / "distribute.json", doc)
+    _damage(w / "halo.0.0.bin", "flip")
+    for marker in ("distribute.json", "split.0.json"):
+        doc = read_json(w / marker)
+        doc["files"]["halo.0.0.bin"] = sum_file(w / "halo.0.0.bin")
+        write_json(w / marker, doc)
     res = _build(archive, force=True)
     assert res.scans[0].status == "built"
     _same(archive, clean)
@@ -215,12 +217,12 @@ def test_a_forged_las_work_file_names_no_internal_option(tmp_path, monkeypatch):
         with pytest.raises(KeyboardInterrupt):
             lodbuilder.build_archive(src, archive, _tile_points=400)
     (w,) = (tmp_path / ".a.h5.parts").glob("*.work")
-    bucket = w / "bucket.0.bin"
+    bucket = w / "bucket.0.0.bin"
     data = bytearray(bucket.read_bytes())
     data[8] ^= 0x01  # the lowest bit of the first record's x (after its 8-byte position)
     bucket.write_bytes(bytes(data))
     doc = read_json(w / "buckets.json")
-    doc["files"]["bucket.0.bin"] = sum_file(bucket)
+    doc["files"]["bucket.0.0.bin"] = sum_file(bucket)
     write_json(w / "buckets.json", doc)
     with pytest.raises(BuildError) as e:
         lodbuilder.build_archive(src, archive, _tile_points=400)
@@ -258,7 +260,7 @@ if __name__ == "__main__":
 
 def test_kill_9_then_damage_then_resume(tmp_path):
     """A real kill -9 (the pool's workers die with the build) in the tile phase, then a flipped
-    points.f64 and a truncated halo file of an ordered tile: the resumed build redoes both pieces and
+    raw block and a truncated halo piece of an ordered tile: the resumed build redoes both pieces and
     stores exactly what an uninterrupted build stores."""
     import subprocess
     import sys
@@ -275,8 +277,8 @@ def test_kill_9_then_damage_then_resume(tmp_path):
     assert r.returncode == -9, r.stderr
     w = _work(tmp_path / ".a.h5.parts")
     t = sorted(w.glob("order.*.1.json"))[0].name.split(".")[1]
-    _damage(w / "points.f64", "flip")
-    _damage(w / f"halo.{t}.bin", "truncate")
+    _damage(w / "raw.0.xyz", "flip")
+    _damage(w / f"halo.{t}.0.bin", "truncate")
     res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=5000)
     assert res.scans[0].status == "built"
     with lodbuilder.open_archive(archive) as x, lodbuilder.open_archive(clean) as y:

@@ -66,3 +66,25 @@ def test_truncated_and_bad_values(tmp_path):
         list(open_stream(g).chunks(256))
     assert str(exc.value) == (f"{g}: 1 point(s) in rows 512..767 have NaN or inf coordinates (first at index "
                               "700); remove them from the file before building")
+
+
+def test_stream_refuses_what_read_scan_refuses(tmp_path):
+    """One read per format: a binary PLY with more rows than its header declares, or whose header
+    names the wrong byte order, is refused by the stream with read_scan's message (the stream read
+    such files before)."""
+    rng = np.random.default_rng(2)
+    rows = np.empty(25, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    for c in "xyz":
+        rows[c] = rng.random(25)
+    head = ("ply\nformat {} 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n"
+            "end_header\n")
+    long = tmp_path / "long.ply"
+    long.write_bytes(head.format("binary_little_endian", 10).encode() + rows.tobytes())
+    swapped = tmp_path / "swapped.ply"
+    swapped.write_bytes(head.format("binary_big_endian", 25).encode() + rows.tobytes())
+    for f in (long, swapped):
+        with pytest.raises(FormatError) as whole:
+            read_scan(f)
+        with pytest.raises(FormatError) as chunked:
+            list(open_stream(f).chunks(7))
+        assert str(chunked.value) == str(whole.value)

@@ -7,13 +7,16 @@ default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse o
   ``--rank-radius``: seconds, bytes, depths, nodes, and a check that every depth query of laspy's
   CopcReader returns its prefix;
 * ``copc_vs_source`` (``--source LAZ``, repeatable: each built into an archive first): the COPC
-  size against the source LAZ's, without and with rank/radius (targets <= 1.15 x and <= 1.5 x);
+  size against the source LAZ's, without and with rank/radius (targets <= 1.15 x and <= 1.5 x),
+  the bytes a point of each depth, and the bytes of the radius-by-rank table;
 * ``web``: ``export -o OUT.html`` (target <= 30 MB for 1M points): seconds, bytes, and the time
   headless Chromium (Debian's, through playwright) takes from navigation to the last frame drawn
   (target <= 15 s), with the requests the page made;
 * ``tiles``: ``export -o DIR/tileset.json`` (3D Tiles 1.1; target: valid against the schema subset
   of tests/schemas, drawn by CesiumJS in headless Chromium within 20 s with 0 requests outside the
-  local server): seconds, bytes, tiles, and the seconds from navigation until every tile is loaded;
+  local server): seconds, bytes, tiles, and the seconds from navigation until every tile is loaded
+  (tools/cesiumjs/view.html: Cesium's defaults; then every tile, ``?sse=1``; every tile without
+  MSAA; every tile with point attenuation), the frames drawn and when the last tile arrived;
 * ``pyvista_export_html`` (the peer, when trame, trame-vtk, trame-vuetify and trame-pyvista are
   importable): PyVista's ``Plotter.export_html`` of the same points with RGB, its bytes and
   seconds, and the requests Chromium makes when it opens the file.
@@ -79,6 +82,33 @@ def render(path: Path, ready_js: str | None, wait_s: float = 0.0) -> dict:
     return out
 
 
+def bytes_by_depth(path: Path) -> list[float]:
+    """Compressed bytes per point of each depth's nodes (from the COPC hierarchy): where the
+    bytes go (a coarse depth is a sparse subsample, which LAZ codes at about twice the cost)."""
+    import laspy
+    from laspy.copc import load_octree_for_query
+
+    with laspy.CopcReader.open(str(path)) as reader:
+        found = load_octree_for_query(reader.source, reader.copc_info, reader.root_page,
+                                      query_bounds=None, level_range=None)
+    size: dict[int, list[int]] = {}
+    for n in found:
+        acc = size.setdefault(n.key.level, [0, 0])
+        acc[0] += n.byte_size
+        acc[1] += n.point_count
+    return [round(size[d][0] / size[d][1], 2) for d in sorted(size)]
+
+
+def radius_table_bytes(path: Path) -> int:
+    import laspy
+
+    from lodbuilder.export.copc import RADIUS_RECORD_ID, VLR_USER_ID
+
+    with laspy.open(str(path)) as r:
+        return sum(len(v.record_data) for v in r.header.evlrs
+                   if v.user_id == VLR_USER_ID and v.record_id == RADIUS_RECORD_ID)
+
+
 def bench_copc(view, out: Path) -> dict:
     import laspy
     import numpy as np
@@ -97,8 +127,10 @@ def bench_copc(view, out: Path) -> dict:
             "nodes": got.nodes,
             "promoted": got.promoted,
             "points_by_depth": [lv["points"] for lv in got.levels],
+            "bytes_per_point_by_depth": bytes_by_depth(out),
         }
         if rr:
+            one["radius_table_bytes"] = radius_table_bytes(out)
             ok = True
             with laspy.CopcReader.open(str(out)) as reader:
                 for lv in got.levels:
@@ -152,16 +184,24 @@ def bench_tiles(view, tmp: Path) -> dict:
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
             res["cesium"] = {}
-            for sse in (16, 1):  # Cesium's default screen-space error, and every tile
+            # Cesium's defaults (screen-space error 16, MSAA 4, no point attenuation); every tile
+            # (sse 1); every tile without MSAA (cheaper in SwiftShader); with attenuation
+            for key, query in (("sse_16", "sse=16"), ("sse_1", "sse=1"),
+                               ("sse_1_msaa_1", "sse=1&msaa=1"), ("sse_1_attenuation", "sse=1&att=1")):
                 page = browser.new_page(viewport={"width": 1200, "height": 800})
                 requests: list[str] = []
                 page.on("request", lambda r, requests=requests: requests.append(r.url))
                 t0 = time.perf_counter()
-                page.goto(base + f"index.html?sse={sse}")
-                page.wait_for_function("() => LOD.loaded || LOD.error", timeout=300_000)
+                page.goto(base + f"index.html?{query}")
+                page.wait_for_function("() => LOD.loaded || LOD.error", timeout=300_000, polling=50)
                 state = page.evaluate("() => LOD")
-                res["cesium"][f"sse_{sse}"] = {
+                frames = state["frames"]
+                last = next((f[0] for f in frames if f[1] == state["tiles"]), None)
+                res["cesium"][key] = {
+                    "query": query,
                     "all_tiles_loaded_s": round(time.perf_counter() - t0, 2),
+                    "last_tile_loaded_s": None if last is None else round(last / 1000, 2),
+                    "frames": len(frames),
                     "tiles_loaded": state["tiles"], "points_drawn": state["points"],
                     "error": state["error"], "requests": len(requests),
                     "outside_requests": sorted({u for u in requests if not u.startswith(base)}),
@@ -260,7 +300,7 @@ def markdown(r: dict) -> str:
     t = r.get("tiles")
     if t:
         ce = t.get("cesium", {})
-        runs = [f"SSE {k[4:]}: {v['tiles_loaded']} tiles, {v['points_drawn']:,} points drawn in "
+        runs = [f"`?{v.get('query', k)}`: {v['tiles_loaded']} tiles, {v['points_drawn']:,} points drawn in "
                 f"{v['all_tiles_loaded_s']} s, {len(v['outside_requests'])} request(s) outside"
                 for k, v in ce.items() if k.startswith("sse_")]
         lines.append(

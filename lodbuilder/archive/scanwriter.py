@@ -511,25 +511,7 @@ class ScanWriter:
         extra += sum(np.asarray(o[0]).size * 24 for o in orderings.values())
         F.reserve(self._tmp, 2 * extra + self._margin, f"scan {self.name!r}")
         try:
-            L.create_dataset(g, L.D_RADIUS_INDEX, np.concatenate(self._rindex))
-            L.create_dataset(g, L.D_SEEDS, seeds_arr)
-            for key, params in imp_params.items():
-                g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json(dict(params or {})))
-            for key in self._imp_names or []:
-                if L.M_PARAMETERS not in g[L.G_IMPORTANCE][key].attrs:
-                    g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json({}))
-            for oname, (pos, rad, par, params) in orderings.items():
-                write_ordering(g, oname, pos, rad, par, params)
-            a = g.attrs
-            a[L.S_N_POINTS] = np.int64(self.n)
-            a[L.S_N_ORDERED] = np.int64(k)
-            a[L.S_ENCODING] = L.text(self._enc)
-            a[L.S_BOUNDS_MIN] = self._lo
-            a[L.S_BOUNDS_MAX] = self._hi
-            a[L.S_RADIUS_STEP] = np.int64(L.RADIUS_INDEX_STEP)
-            a[L.S_STOP_RADIUS] = np.float64(stop)
-            for key, text in meta_text.items():
-                a[key] = L.text(text)
+            self._write_ends(g, k, stop, seeds_arr, imp_params, orderings, meta_text)
             row = IndexRow(self.name, self.n, tuple(self._lo), tuple(self._hi))
             write_index(f, [row])
             f.flush()
@@ -548,6 +530,31 @@ class ScanWriter:
             bounds_max=tuple(float(x) for x in self._hi),
             nbytes=self.path.stat().st_size,
         )
+
+    def _write_ends(self, g: Any, k: int, stop: float, seeds_arr: np.ndarray, imp_params: dict[str, Any],
+                    orderings: dict[str, Any], meta_text: dict[str, str]) -> None:
+        """What :meth:`finish` knows: the radius index, the seeds, the importance maps' parameters,
+        the extra orderings and the scan's attributes."""
+        assert self._enc is not None  # (set by the first row group)
+        L.create_dataset(g, L.D_RADIUS_INDEX, np.concatenate(self._rindex))
+        L.create_dataset(g, L.D_SEEDS, seeds_arr)
+        for key, params in imp_params.items():
+            g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json(dict(params or {})))
+        for key in self._imp_names or []:
+            if L.M_PARAMETERS not in g[L.G_IMPORTANCE][key].attrs:
+                g[L.G_IMPORTANCE][key].attrs[L.M_PARAMETERS] = L.text(L.to_json({}))
+        for oname, (pos, rad, par, params) in orderings.items():
+            write_ordering(g, oname, pos, rad, par, params)
+        a = g.attrs
+        a[L.S_N_POINTS] = np.int64(self.n)
+        a[L.S_N_ORDERED] = np.int64(k)
+        a[L.S_ENCODING] = L.text(self._enc)
+        a[L.S_BOUNDS_MIN] = self._lo
+        a[L.S_BOUNDS_MAX] = self._hi
+        a[L.S_RADIUS_STEP] = np.int64(L.RADIUS_INDEX_STEP)
+        a[L.S_STOP_RADIUS] = np.float64(stop)
+        for key, text in meta_text.items():
+            a[key] = L.text(text)
 
 
 def _write_rows(ds: Any, lo: int, data: np.ndarray) -> None:

@@ -169,11 +169,13 @@ def _dask_client(dask_local: int | None, scheduler: str | None) -> Iterator[tupl
         import dask
 
         # the same start method (and warm forkserver) as the local pool; Dask's default, spawn,
-        # starts every worker cold
+        # starts every worker cold. The scheduler's HTTP server always starts (None keeps the
+        # default port 8787, and a second build at once warned "Port 8787 is already in use"):
+        # any free port instead
         mp_context()
         with dask.config.set({"distributed.worker.multiprocessing-method": start_method()}):
             cluster = LocalCluster(n_workers=dask_local, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.WARNING)
+                                   dashboard_address=":0", silence_logs=logging.WARNING)
         client = Client(cluster)
         desc = f"Dask LocalCluster ({_plural(dask_local)})"
     else:

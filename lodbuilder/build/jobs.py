@@ -193,51 +193,73 @@ def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]
 
 # ------------------------------------------------------------------------------------ tiled
 
-def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None]]:
-    """The streams of a tiled job: ``(stream, pose, member id)`` for each scan it orders."""
+def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None, Any]]:
+    """The streams of a tiled job: ``(stream, pose, member id, reopen)`` for each scan it orders.
+    ``reopen`` (a picklable :class:`TiledInput`) opens the same stream again on a worker; None for
+    a scan held in memory or read whole (a format that does not stream: the parent hands it out)."""
     from ..io.stream import open_stream, scan_stream
 
     crs, override = job.options.crs, job.options.crs_override
-    if job.members:
-        out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
-                m.get("pose"), i) for i, m in enumerate(job.members)]
-        names = [Path(m["path"]).name for m in job.members]
-        return one_crs(out, names, job.options.to_crs)  # type: ignore[arg-type]
     if job.scan is not None:
         scan = read_job_scan(job)  # the in-memory scan with its CRS (reprojected already)
-        return [(scan_stream(scan), None, None)]
-    one: list[tuple[Any, Any, int | None]] = [
-        (open_stream(job.path, scan_index=job.scan_index, crs=crs, crs_override=override),  # type: ignore[arg-type]
-         job.pose, None)]
-    return one_crs(one, [Path(job.path).name], job.options.to_crs)  # type: ignore[arg-type]
+        return [(scan_stream(scan), None, None, None)]
+    members = job.members or [{"path": job.path, "scan_index": job.scan_index, "pose": job.pose}]
+    out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
+            m.get("pose"), i if job.members else None) for i, m in enumerate(members)]
+    names = [Path(m["path"]).name for m in members]
+    target = one_crs(out, names, job.options.to_crs)  # type: ignore[arg-type]
+    return [(*to_target(s, pose, member, target),
+             TiledInput(str(m["path"]), m.get("scan_index"), crs, override, target, pose) if s.streams else None)
+            for (s, pose, member), m in zip(out, members, strict=True)]
 
 
-def one_crs(sources: list[tuple[Any, Any, int | None]], names: list[str], to_crs: str | None
-            ) -> list[tuple[Any, Any, int | None]]:
-    """The streams of one ordering in one CRS: refused when they disagree (see
-    :func:`lodbuilder.io.crs.common_crs`), or each wrapped to reproject its chunks to ``to_crs``
-    (after its pose) with the transform recorded in its metadata."""
-    from ..io.crs import KEY_WKT, Reprojection, common_crs, reproject_metadata
-    from ..io.pose import apply_pose
+@dataclass(frozen=True)
+class TiledInput:
+    """How a worker opens one input of a tiled job again: the file, its CRS options, the CRS to
+    reproject it to (None: none) and its pose; calling it gives ``(stream, pose)`` as
+    :func:`tiled_sources` gives them to the parent."""
+
+    path: str
+    scan_index: int | None
+    crs: str | None
+    crs_override: bool
+    target: str | None
+    pose: Any
+
+    def __call__(self) -> tuple[Any, Any]:
+        from ..io.stream import open_stream
+
+        s = open_stream(self.path, scan_index=self.scan_index, crs=self.crs, crs_override=self.crs_override)
+        stream, pose, _ = to_target(s, self.pose, None, self.target)
+        return stream, pose
+
+
+def one_crs(sources: list[tuple[Any, Any, int | None]], names: list[str], to_crs: str | None) -> str | None:
+    """The CRS one ordering's streams are stored in: refused when they disagree (see
+    :func:`lodbuilder.io.crs.common_crs`); None when no ``to_crs`` asks to reproject them
+    (:func:`to_target` then leaves each as it is)."""
+    from ..io.crs import KEY_WKT, common_crs
 
     target = common_crs([(n, s.metadata.get(KEY_WKT)) for n, (s, _, _) in zip(names, sources, strict=True)], to_crs)
-    if to_crs is None:
-        return sources
-    out = []
-    for stream, pose, member in sources:
-        if stream.metadata.get(KEY_WKT) == target:
-            out.append((stream, pose, member))
-            continue
-        rep = Reprojection(stream.metadata[KEY_WKT], target)  # type: ignore[arg-type]
+    return None if to_crs is None else target
 
-        def it(size: int, stream: Any = stream, pose: Any = pose, rep: Reprojection = rep) -> Any:
-            for chunk in stream.chunks(size):
-                pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
-                yield dataclasses.replace(chunk, points=rep(pts))
 
-        out.append((dataclasses.replace(stream, metadata=reproject_metadata(stream.metadata, rep), _iter=it),
-                    None, member))
-    return out
+def to_target(stream: Any, pose: Any, member: int | None, target: str | None) -> tuple[Any, Any, int | None]:
+    """``(stream, pose, member)`` with the stream wrapped to reproject its chunks to ``target``
+    (after its pose, which the wrapper applies) with the transform recorded in its metadata."""
+    from ..io.crs import KEY_WKT, Reprojection, reproject_metadata
+    from ..io.pose import apply_pose
+
+    if target is None or stream.metadata.get(KEY_WKT) == target:
+        return stream, pose, member
+    rep = Reprojection(stream.metadata[KEY_WKT], target)
+
+    def it(size: int, start: int, stop: int) -> Any:
+        for chunk in stream.chunks(size, start, stop):
+            pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
+            yield dataclasses.replace(chunk, points=rep(pts))
+
+    return dataclasses.replace(stream, metadata=reproject_metadata(stream.metadata, rep), _iter=it), None, member
 
 
 def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: ProgressCallback = None) -> dict[str, Any]:
@@ -266,7 +288,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     reader = "joint" if job.members else None
     sources = tiled_sources(job)
     prov = provenance(job, reader) if reader else {k: v for k, v in provenance(job, "").items() if k != "reader"}
-    reps = [s.metadata[KEY_REPROJECTION] for s, _, _ in sources if KEY_REPROJECTION in s.metadata]
+    reps = [s[0].metadata[KEY_REPROJECTION] for s in sources if KEY_REPROJECTION in s[0].metadata]
     if reps:
         prov[KEY_REPROJECTION] = reps if job.members else reps[0]
     res = build_tiled(

@@ -142,6 +142,8 @@ def run(args: argparse.Namespace) -> int:
         counter["total"] = total if stage == "scans" else counter["total"]
         bars(stage, done, total)
 
+    progress.tasks = bars.tasks  # type: ignore[attr-defined]  # phases of tasks (lodbuilder.progress.report_tasks)
+
     def on_status(st: Any) -> None:
         counter["done"] += 1
         if counter["total"] <= 1:

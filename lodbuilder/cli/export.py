@@ -43,8 +43,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "--rank-radius",
         action="store_true",
-        help="COPC: also store each point's farthest-point rank and insertion radius as extra "
-        "bytes (the exact ordering; about 2.5 x the file size on airborne data)",
+        help="COPC: also store each point's farthest-point rank (extra bytes) and the insertion "
+        "radius by rank (an EVLR): the exact ordering, 2.6-3.8 bytes a point (about 1.5 x the "
+        "file size on airborne data)",
     )
     add_up_option(
         p,
@@ -79,35 +80,21 @@ def output_format(out: Path) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
-    from ..errors import InputError
+    from ..levels import LevelQuery
     from .output import check_output, emit
 
     arc_path = args.archive  # (a path or an https:// / s3:// URL: open_archive reads both)
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
     fmt = output_format(out)
-    web = fmt == "web page"
-    tiles = fmt == "3D Tiles"
-    if not web:
-        for opt, value in (("--max-points", args.max_points), ("--up", args.up)):
-            if value is not None:
-                raise InputError(f"{opt} applies to a web page (-o OUT.html) only")
-    if args.rank_radius and fmt != "COPC":
-        raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
+    _check_format_options(args, fmt)
     flt = filter_from_args(args)
     if args.all_scans:
         return _run_all_scans(args, out, fmt, flt)
-    if args.max_points is not None and args.max_points < 1:
-        raise InputError(f"--max-points must be at least 1, got {args.max_points}")
-    if web:
-        from ..export.web import MAX_POINTS, export_web
-    elif tiles:
-        from ..export.tiles import export_tiles
-    else:
-        from ..export.copc import check_copc_dependencies, export_copc
+    _check_max_points(args)
+    if fmt == "COPC":
+        from ..export.copc import check_copc_dependencies
 
         check_copc_dependencies()  # a missing laspy or lazrs: fail before reading anything
-    from ..levels import LevelQuery
-
     query = LevelQuery(rho=args.rho, size=args.size, fraction=args.fraction)
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
@@ -115,64 +102,109 @@ def run(args: argparse.Namespace) -> int:
         doc: dict[str, Any] = {
             "archive": str(arc_path), "scan": view.name, "output": str(out), "format": fmt
         }
-        if web:
-            cap = args.max_points or MAX_POINTS
-            note = ""
-            if k > cap:
-                if query.chosen:
-                    raise InputError(
-                        f"the level has {k:,} points, more than a web page holds ({cap:,}); "
-                        "ask for a coarser level (--rho, --size) or raise --max-points"
-                    )
-                k, note = cap, f", capped at --max-points {cap:,}"
-            page = export_web(view, out, k, up=args.up or "z", flt=flt)
-            rho = f"rho = {page.rho:.4g}" if page.rho > 0 else "every point"
-            doc.update(size=page.n_points, n_points=page.n_total, rho=page.rho,
-                       bytes=page.n_bytes, chunks=page.chunks, capped=bool(note))
-            text = (
-                f"wrote {page.n_points:,} of {page.n_total:,} points of scan {view.name!r} to "
-                f"{out} ({page.n_bytes / 1e6:.1f} MB, {rho}{note})"
-            )
-        elif tiles:
-            ts = export_tiles(view, out, k, flt=flt)
-            doc.update(size=ts.n_points, n_points=ts.n_total, rho=ts.rho, bytes=ts.n_bytes,
-                       tiles=ts.tiles, depths=ts.depths, geometric_errors=ts.geometric_errors,
-                       placement=ts.placed)
-            errs = " / ".join(f"{e:.3g}" for e in ts.geometric_errors)
-            text = (
-                f"wrote {ts.n_points:,} of {ts.n_total:,} points of scan {view.name!r} to {out} "
-                f"({ts.n_bytes / 1e6:.1f} MB, {ts.tiles:,} tiles, {ts.depths} depth(s))\n"
-                f"  geometricError by depth (covering radius, metres): {errs}\n  {ts.placed}"
-            )
-        else:
-            from ..io.api import collect_notes
-
-            with collect_notes() as changes:
-                copc = export_copc(view, out, k, rank_radius=args.rank_radius, flt=flt)
-            doc.update(size=copc.n_points, n_points=copc.n_total, rho=copc.rho,
-                       bytes=copc.n_bytes, depths=copc.depths, nodes=copc.nodes,
-                       spacing=copc.spacing, levels=copc.levels, changes=changes)
-            points = " / ".join(f"{lv['points']:,}" for lv in copc.levels)
-            rhos = " / ".join("inf" if lv["rho"] is None else f"{lv['rho']:.3g}" for lv in copc.levels)
-            text = "\n".join(
-                [
-                    f"wrote {copc.n_points:,} of {copc.n_total:,} points of scan {view.name!r} "
-                    f"to {out} ({copc.n_bytes / 1e6:.1f} MB, {copc.depths} depth(s), "
-                    f"{copc.nodes:,} nodes)",
-                    f"  depths 0..{copc.depths - 1} hold {points} points, covering radius {rhos}",
-                ]
-                + [f"  changed: {line}" for line in changes]
-            )
+        write = {"web page": _write_web, "3D Tiles": _write_tiles, "COPC": _write_copc}[fmt]
+        text = write(args, view, out, k, query.chosen, flt, doc)
     if flt is not None:
-        kept = doc["size"]
-        doc.update(filter=flt.describe(), level_size=k, guarantee=flt.guarantee(doc["rho"]))
-        first, _, rest = text.partition("\n")
-        text = "\n".join(
-            [first, f"  filter {flt.describe()}: {kept:,} of the level's {k:,} points",
-             f"  guarantee: {doc['guarantee']}"] + ([rest] if rest else [])
-        )
+        text = _with_filter(flt, doc, text, k)
     emit(args, doc, text)
     return 0
+
+
+def _check_format_options(args: argparse.Namespace, fmt: str) -> None:
+    """Refuse the options that do not apply to the output's format."""
+    from ..errors import InputError
+
+    if fmt != "web page":
+        for opt, value in (("--max-points", args.max_points), ("--up", args.up)):
+            if value is not None:
+                raise InputError(f"{opt} applies to a web page (-o OUT.html) only")
+    if args.rank_radius and fmt != "COPC":
+        raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
+
+
+def _check_max_points(args: argparse.Namespace) -> None:
+    from ..errors import InputError
+
+    if args.max_points is not None and args.max_points < 1:
+        raise InputError(f"--max-points must be at least 1, got {args.max_points}")
+
+
+def _write_web(args: argparse.Namespace, view: Any, out: Path, k: int, chosen: bool, flt: Any,
+               doc: dict[str, Any]) -> str:
+    """The web page of the level's first ``k`` points (capped at --max-points unless the level was
+    asked for); its figures go to ``doc``; returns the report."""
+    from ..errors import InputError
+    from ..export.web import MAX_POINTS, export_web
+
+    cap = args.max_points or MAX_POINTS
+    note = ""
+    if k > cap:
+        if chosen:
+            raise InputError(
+                f"the level has {k:,} points, more than a web page holds ({cap:,}); "
+                "ask for a coarser level (--rho, --size) or raise --max-points"
+            )
+        k, note = cap, f", capped at --max-points {cap:,}"
+    page = export_web(view, out, k, up=args.up or "z", flt=flt)
+    rho = f"rho = {page.rho:.4g}" if page.rho > 0 else "every point"
+    doc.update(size=page.n_points, n_points=page.n_total, rho=page.rho,
+               bytes=page.n_bytes, chunks=page.chunks, capped=bool(note))
+    return (
+        f"wrote {page.n_points:,} of {page.n_total:,} points of scan {view.name!r} to "
+        f"{out} ({page.n_bytes / 1e6:.1f} MB, {rho}{note})"
+    )
+
+
+def _write_tiles(args: argparse.Namespace, view: Any, out: Path, k: int, chosen: bool, flt: Any,
+                 doc: dict[str, Any]) -> str:
+    """The 3D Tiles of the level's first ``k`` points; its figures go to ``doc``; returns the report."""
+    from ..export.tiles import export_tiles
+
+    ts = export_tiles(view, out, k, flt=flt)
+    doc.update(size=ts.n_points, n_points=ts.n_total, rho=ts.rho, bytes=ts.n_bytes,
+               tiles=ts.tiles, depths=ts.depths, geometric_errors=ts.geometric_errors,
+               placement=ts.placed)
+    errs = " / ".join(f"{e:.3g}" for e in ts.geometric_errors)
+    return (
+        f"wrote {ts.n_points:,} of {ts.n_total:,} points of scan {view.name!r} to {out} "
+        f"({ts.n_bytes / 1e6:.1f} MB, {ts.tiles:,} tiles, {ts.depths} depth(s))\n"
+        f"  geometricError by depth (covering radius, metres): {errs}\n  {ts.placed}"
+    )
+
+
+def _write_copc(args: argparse.Namespace, view: Any, out: Path, k: int, chosen: bool, flt: Any,
+                doc: dict[str, Any]) -> str:
+    """The COPC file of the level's first ``k`` points; its figures go to ``doc``; returns the report."""
+    from ..export.copc import export_copc
+    from ..io.api import collect_notes
+
+    with collect_notes() as changes:
+        copc = export_copc(view, out, k, rank_radius=args.rank_radius, flt=flt)
+    doc.update(size=copc.n_points, n_points=copc.n_total, rho=copc.rho,
+               bytes=copc.n_bytes, depths=copc.depths, nodes=copc.nodes,
+               spacing=copc.spacing, levels=copc.levels, changes=changes)
+    points = " / ".join(f"{lv['points']:,}" for lv in copc.levels)
+    rhos = " / ".join("inf" if lv["rho"] is None else f"{lv['rho']:.3g}" for lv in copc.levels)
+    return "\n".join(
+        [
+            f"wrote {copc.n_points:,} of {copc.n_total:,} points of scan {view.name!r} "
+            f"to {out} ({copc.n_bytes / 1e6:.1f} MB, {copc.depths} depth(s), "
+            f"{copc.nodes:,} nodes)",
+            f"  depths 0..{copc.depths - 1} hold {points} points, covering radius {rhos}",
+        ]
+        + [f"  changed: {line}" for line in changes]
+    )
+
+
+def _with_filter(flt: Any, doc: dict[str, Any], text: str, k: int) -> str:
+    """The report with the survey filter's count and guarantee under its first line (also in ``doc``)."""
+    kept = doc["size"]
+    doc.update(filter=flt.describe(), level_size=k, guarantee=flt.guarantee(doc["rho"]))
+    first, _, rest = text.partition("\n")
+    return "\n".join(
+        [first, f"  filter {flt.describe()}: {kept:,} of the level's {k:,} points",
+         f"  guarantee: {doc['guarantee']}"] + ([rest] if rest else [])
+    )
 
 
 def _run_all_scans(args: argparse.Namespace, out: Any, fmt: str, flt: Any) -> int:

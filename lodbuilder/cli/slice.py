@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 from .level_options import (
     add_box_option,
@@ -79,9 +80,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     from ..archive.reader import open_archive
-    from ..errors import InputError
+    from ..io import write_points
+    from ..io.api import collect_notes
     from ..io.registry import writer_for
-    from ..query import read_level
     from .level_options import level_query
     from .output import VERBOSE, check_output, emit, say
 
@@ -89,11 +90,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.output, "-o", inputs={"archive": arc_path})
     writer_for(out)  # unknown output suffix (or .copc.laz): fail before reading anything
     query = level_query(args)  # one check of the level options, before anything is read
-    if args.fill is not None and getattr(args, "all_scans", False):
-        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")
-    flt = filter_from_args(args)
-    if flt is not None and getattr(args, "all_scans", False):
-        raise InputError("survey filters apply to one scan's level; leave out --all-scans")
+    flt = _check_scans(args)
     if getattr(args, "all_scans", False):
         from .collection_options import slice_all
 
@@ -102,14 +99,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     with open_archive(arc_path) as arc:
         view = arc.scan(args.scan)
-        answer = read_level(view, query)
-        level, filled, note = answer.level, answer.filled, answer.guarantee
-        from .level_facts import facts_text, level_facts
-
-        plain = query.box is None and query.viewpoint is None and query.fill is None and query.floor_rho is None
-        rho_asked = query.rho if plain else None
-        facts = level_facts(view, level, rho_asked)
-        note = "; ".join([note, *facts_text(facts, rho_asked)])
+        level, filled, note, facts = _read(view, query)
         metadata = view.format_metadata
         say(args, f"read the level in {(time.perf_counter() - t0) * 1e3:.1f} ms", VERBOSE)
     guarantee = None
@@ -121,12 +111,56 @@ def run(args: argparse.Namespace) -> int:
     attrs = dict(level.attributes)
     if args.extra:
         attrs.update(source_index=level.source_index, radius=level.radius, rank=level.rank)
-    from ..io import write_points
-    from ..io.api import collect_notes
-
     with collect_notes() as changes:
         write_points(out, level, attrs, metadata=metadata, colour_depth=args.colour_depth)
-    doc = {
+    doc = _document(arc_path, view, out, level, note, facts, attrs, changes)
+    if flt is not None:
+        doc.update(filter=flt.describe(), level_size=level.region["level_size"], guarantee=guarantee)
+    what = f"{level.size:,} of {view.n_points:,} points"
+    if filled is not None:
+        doc["synthetic"] = filled.n_synthetic
+        what = filled.summary(view.n_points)
+    emit(
+        args,
+        doc,
+        "\n".join(
+            [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
+            + ([f"  guarantee: {guarantee}"] if guarantee else [])
+            + [f"  changed: {line}" for line in changes]
+        ),
+    )
+    return 0
+
+
+def _check_scans(args: argparse.Namespace) -> Any:
+    """The survey filter of the options (or None), after refusing what --all-scans cannot do."""
+    from ..errors import InputError
+
+    if args.fill is not None and getattr(args, "all_scans", False):
+        raise InputError("--fill fills one scan's --rho level; leave out --all-scans and --floor-rho")
+    flt = filter_from_args(args)
+    if flt is not None and getattr(args, "all_scans", False):
+        raise InputError("survey filters apply to one scan's level; leave out --all-scans")
+    return flt
+
+
+def _read(view: Any, query: Any) -> tuple[Any, Any, str, dict[str, Any]]:
+    """(level, filled level or None, its bound sentence with the level's facts, the facts)."""
+    from ..query import read_level
+    from .level_facts import facts_text, level_facts
+
+    answer = read_level(view, query)
+    plain = query.box is None and query.viewpoint is None and query.fill is None and query.floor_rho is None
+    rho_asked = query.rho if plain else None
+    facts = level_facts(view, answer.level, rho_asked)
+    note = "; ".join([answer.guarantee, *facts_text(facts, rho_asked)])
+    return answer.level, answer.filled, note, facts
+
+
+def _document(arc_path: Path, view: Any, out: Path, level: Any, note: str, facts: dict[str, Any],
+              attrs: dict[str, Any], changes: list[str]) -> dict[str, Any]:
+    """The --json document of the level written."""
+    return {
         "archive": str(arc_path),
         "scan": view.name,
         "output": str(out),
@@ -144,19 +178,3 @@ def run(args: argparse.Namespace) -> int:
         "units": level.units,
         "changes": changes,
     }
-    if flt is not None:
-        doc.update(filter=flt.describe(), level_size=level.region["level_size"], guarantee=guarantee)
-    what = f"{level.size:,} of {view.n_points:,} points"
-    if filled is not None:
-        doc["synthetic"] = filled.n_synthetic
-        what = filled.summary(view.n_points)
-    emit(
-        args,
-        doc,
-        "\n".join(
-            [f"wrote {what} of scan {view.name!r} to {out} ({note})"]
-            + ([f"  guarantee: {guarantee}"] if guarantee else [])
-            + [f"  changed: {line}" for line in changes]
-        ),
-    )
-    return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import Any
 
 from ..errors import InputError
 from .level_options import (
@@ -87,35 +88,10 @@ def _has_display() -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .output import check_output, say
+    from .output import say
 
     off_screen = bool(args.screenshot or args.animate)
-    for opt, out, suffixes in (
-        ("--screenshot", args.screenshot, (".png",)),
-        ("--animate", args.animate, (".gif", ".mp4")),
-    ):
-        if out:
-            check_output(out, opt, inputs={"archive": args.archive}, suffixes=suffixes)
-    if args.animate:
-        from ..viewer.movie import check_movie_path
-
-        check_movie_path(args.animate)
-    if args.frames < 2:
-        raise InputError(f"--frames must be at least 2, got {args.frames}")
-    if args.fps <= 0:
-        raise InputError(f"--fps must be > 0, got {args.fps}")
-    from ..viewer.options import check_point_scale, check_window_size
-
-    if args.window_size is not None:
-        check_window_size(args.window_size)
-    check_point_scale(args.point_scale)
-    if args.refine_factor <= 1:
-        raise InputError(f"--refine-factor must be > 1, got {args.refine_factor}")
-    if not off_screen and not _has_display():
-        raise InputError(
-            "no display to open a window on (DISPLAY is not set); render off screen with "
-            "--screenshot OUT.png or --animate OUT.gif"
-        )
+    _check_options(args, off_screen)
     if off_screen:
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     from .._optional import require
@@ -151,19 +127,57 @@ def run(args: argparse.Namespace) -> int:
         refine_factor=args.refine_factor,
     )
     try:
-        if args.box:
-            viewer.set_box(args.box[:3], args.box[3:], render=False)
-        if args.surface:
-            viewer.toggle_surface()
-        if not off_screen:
-            viewer.show()
-            return 0
-        if args.screenshot:
-            out = viewer.screenshot(args.screenshot)
-            say(args, f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
-        if args.animate:
-            out = viewer.animate(args.animate, frames=args.frames, fps=args.fps)
-            say(args, f"wrote {out} ({args.frames} frames, coarse to fine)")
+        _show(args, viewer, off_screen)
     finally:
         viewer.close()
     return 0
+
+
+def _check_options(args: argparse.Namespace, off_screen: bool) -> None:
+    """Refuse bad outputs and numbers, and a window without a display, before reading anything."""
+    from ..viewer.options import check_point_scale, check_window_size
+    from .output import check_output
+
+    for opt, out, suffixes in (
+        ("--screenshot", args.screenshot, (".png",)),
+        ("--animate", args.animate, (".gif", ".mp4")),
+    ):
+        if out:
+            check_output(out, opt, inputs={"archive": args.archive}, suffixes=suffixes)
+    if args.animate:
+        from ..viewer.movie import check_movie_path
+
+        check_movie_path(args.animate)
+    if args.frames < 2:
+        raise InputError(f"--frames must be at least 2, got {args.frames}")
+    if args.fps <= 0:
+        raise InputError(f"--fps must be > 0, got {args.fps}")
+    if args.window_size is not None:
+        check_window_size(args.window_size)
+    check_point_scale(args.point_scale)
+    if args.refine_factor <= 1:
+        raise InputError(f"--refine-factor must be > 1, got {args.refine_factor}")
+    if not off_screen and not _has_display():
+        raise InputError(
+            "no display to open a window on (DISPLAY is not set); render off screen with "
+            "--screenshot OUT.png or --animate OUT.gif"
+        )
+
+
+def _show(args: argparse.Namespace, viewer: Any, off_screen: bool) -> None:
+    """The box and surface asked for, then the window, or the screenshot and the animation."""
+    from .output import say
+
+    if args.box:
+        viewer.set_box(args.box[:3], args.box[3:], render=False)
+    if args.surface:
+        viewer.toggle_surface()
+    if not off_screen:
+        viewer.show()
+        return
+    if args.screenshot:
+        out = viewer.screenshot(args.screenshot)
+        say(args, f"wrote {out} ({viewer.n_displayed:,} points, colour {viewer.mode})")
+    if args.animate:
+        out = viewer.animate(args.animate, frames=args.frames, fps=args.fps)
+        say(args, f"wrote {out} ({args.frames} frames, coarse to fine)")

@@ -9,8 +9,16 @@ Radii never increase along the ordering, so the points of depths <= D are a pref
 length ``n_D``, which covers the scan within ``rho_D = radius[n_D]`` (<= s0 / 2**(D+1)): every
 depth prefix is a level with a known covering radius. The file says so in an EVLR of ours (user
 id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and rho); with
-``rank_radius`` it also keeps ``rank`` and ``radius`` as extra bytes, so the exact ordering can be
-rebuilt (LAZ compresses neither well: about 9 bytes a point, so it is off by default).
+``rank_radius`` it also keeps each point's ``rank`` (extra bytes) and the insertion radius by
+rank (record 2, :func:`read_radius_table`), so the exact ordering and every level can be rebuilt.
+
+What that costs (bytes a point over the file without, tools/bench_export.py; autzen / the 4x4
+survey): the rank as uint32 extra bytes 2.1 / 2.6 (relative to its depth's first rank: the same;
+the ranks of a depth are a random permutation of it in any order LAZ compresses, log2(m!) / m
+bits at least: 2.4 bytes for the survey's 1.6M-point deepest depth), the radius table 1.0 / 0.3;
+radius as float64 extra bytes instead 6.9, as float32 3.2; a one-byte radius quantised to 1/16
+octave (16 levels a depth, no rank) 0.7. Not cheap next to the 5.5 bytes a point of the source
+LAZ: off by default.
 
 Inside a node the order is free (the depths carry the levels): points go by GPS time where they
 have one (the scanner's order, which LAZ's delta coding compresses best), else by Morton code.
@@ -53,6 +61,9 @@ MAX_DEPTH = 21
 VLR_USER_ID = "lodbuilder"
 VLR_RECORD_ID = 1
 VLR_DESCRIPTION = "farthest-point levels per depth"
+#: our EVLR of the insertion radius by rank (with rank_radius)
+RADIUS_RECORD_ID = 2
+RADIUS_DESCRIPTION = "insertion radius by rank"
 
 
 @dataclass(frozen=True)
@@ -95,21 +106,23 @@ def copc_point_format(metadata: dict[str, Any], attribute_names: set[str]) -> in
     return 6
 
 
-def octree_spacing(radius: np.ndarray, width: float) -> tuple[float, int]:
+def octree_spacing(radius: np.ndarray, width: float, tail: int = 8) -> tuple[float, int]:
     """(s0, deepest depth) for a level's insertion radii in a cube of side ``width``.
 
     s0 = 2 radius[ROOT_POINTS]: the root holds the first ~ROOT_POINTS points and each depth about
     4x more on a surface (radii halve per depth), so nodes keep a few thousand points. The deepest
-    depth is the band of radius[K / 4]: it takes the rest of the ordering, at least 3/4 of the
-    points (as the fourfold growth per depth of a surface gives), never a thin tail. A deeper
-    cut costs size, not levels worth having: LAZ codes each point from its predecessor, and a
-    depth is a sparse subsample of the scan (about 10 bytes a point on airborne data against
-    5.5 for the dense scan, tools/bench_export.py), so the bytes grow with the share of points
-    in the coarse depths."""
+    depth is the band of radius[K / tail]: it takes the rest of the ordering, at least
+    1 - 1/tail of the points, never a thin tail. A deeper cut costs size, not levels worth
+    having: LAZ codes each point from its predecessor, and a coarse depth is a sparse subsample
+    of the scan (10-11 bytes a point on airborne data against 5.6 for the dense rest, 5.4 for
+    the source in scanner order: tools/bench_export.py), so the bytes grow with the share of
+    points in the coarse depths (the 4x4 survey: 1.33 x its source LAZ with tail 4, 1.10 x with
+    tail 8). 3D Tiles take the same depths: fewer, bigger tiles that CesiumJS loads in fewer
+    frames (1M points: 41 tiles instead of 169)."""
     k = radius.size
     r_root = float(radius[min(ROOT_POINTS, k - 1)])
     spacing = 2.0 * r_root if math.isfinite(r_root) and r_root > 0 else width / ROOT_CELLS
-    r_tail = float(radius[k // 4])
+    r_tail = float(radius[k // tail])
     if not (math.isfinite(r_tail) and r_tail > 0):
         return spacing, 0
     return spacing, int(min(MAX_DEPTH, max(0, math.floor(math.log2(spacing / r_tail)))))
@@ -213,6 +226,98 @@ def octree_cube(stored: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, flo
     return pmin - margin, width, margin
 
 
+@dataclass(frozen=True)
+class _Tree:
+    """The octree of a level: the padded cube, the spacing, each point's depth band, depth and
+    voxel code, and the nodes (file order of the points, node i = ``order[starts[i]:ends[i]]``
+    with voxel key ``keys[i]`` = (depth, x, y, z))."""
+
+    lo: np.ndarray
+    width: float
+    margin: float
+    spacing: float
+    band: np.ndarray
+    depth: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+    keys: np.ndarray
+
+
+def build_tree(stored: np.ndarray, scales: np.ndarray, radius: np.ndarray,
+               gps: np.ndarray | None) -> _Tree:
+    """The octree of the stored (quantised) coordinates: a padded cube, spacing s0 at the root,
+    depths from the insertion radii (module docstring), nodes breadth-first."""
+    lo, width, margin = octree_cube(stored, scales)
+    spacing, max_depth = octree_spacing(radius, width)
+    band = depth_bands(radius, spacing, max_depth)
+    depth, codes = assign_depths(stored, band, lo, width)
+    order = node_order(depth, codes, stored, lo, width, gps)
+    d_sorted, c_sorted = depth[order], codes[order]
+    cut = np.flatnonzero((np.diff(d_sorted) != 0) | (np.diff(c_sorted) != 0)) + 1
+    starts = np.concatenate([[0], cut]).astype(np.int64)
+    ends = np.concatenate([cut, [order.size]]).astype(np.int64)
+    c0 = c_sorted[starts]
+    keys = np.column_stack([d_sorted[starts], c0 >> 42, (c0 >> 21) & 0x1FFFFF, c0 & 0x1FFFFF])
+    return _Tree(lo, width, margin, spacing, band, depth, order, starts, ends, keys)
+
+
+def radius_table(rank: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, bytes]:
+    """(table, payload): the insertion radius by rank (ranks 0..max(rank); NaN for a rank not
+    in the file), as float32 rounded up (an upper bound stays one), and the payload of our
+    EVLR record RADIUS_RECORD_ID: zlib of the little-endian int32 differences of the table's
+    float32 bit patterns (radii never increase along the ranks, so the differences are small:
+    0.3-1.0 bytes a point; per-point float64 extra bytes cost 6.9, float32 3.2)."""
+    import zlib
+
+    r32 = radius.astype(np.float32)
+    low = r32.astype(np.float64) < radius
+    r32[low] = np.nextafter(r32[low], np.float32(np.inf))
+    table = np.full(int(rank.max()) + 1, np.nan, dtype=np.float32)
+    table[rank] = r32
+    bits = table.view(np.uint32).astype(np.int64)
+    diff = np.diff(bits, prepend=np.int64(0)).astype("<i4")
+    return table, zlib.compress(diff.tobytes(), 6)  # (level 9: 10x the time for 6 % less)
+
+
+def read_radius_table(path: str | os.PathLike) -> np.ndarray:
+    """The insertion radius by rank that ``write_copc(..., rank_radius=True)`` stored (float32,
+    rounded up; NaN for ranks not in the file): ``read_radius_table(f)[las["rank"]]`` is each
+    point's radius. Needs laspy; raises InputError when the file has no such table."""
+    import zlib
+
+    import laspy
+
+    with laspy.open(str(path)) as reader:
+        found = [v for v in reader.header.evlrs
+                 if v.user_id == VLR_USER_ID and v.record_id == RADIUS_RECORD_ID]
+    if not found:
+        raise InputError(f"{path} has no radius table; export it with --rank-radius")
+    diff = np.frombuffer(zlib.decompress(found[0].record_data), dtype="<i4")
+    return np.cumsum(diff, dtype=np.int64).astype(np.uint32).view(np.float32)
+
+
+def _layout(pts: np.ndarray, attributes: dict[str, np.ndarray], meta: dict[str, Any],
+            rank: np.ndarray | None, scans: list[str] | None) -> Any:
+    """The LAS layout of the points and attributes (with ``rank`` as extra bytes when given)."""
+    from ..io.las import las_layout
+
+    attrs = dict(attributes)
+    if rank is not None:
+        if "rank" in attributes:
+            raise InputError("attribute 'rank' would clash with the rank the COPC file records; "
+                             "rename it")
+        attrs["rank"] = rank.astype(np.uint32 if rank.max() < 2**32 else np.uint64)
+    layout = las_layout(pts, attrs, meta, point_format=copc_point_format(meta, set(attributes)),
+                        version="1.4")
+    for ed in layout.extra_dims:
+        if scans and ed.name == "scan_id":
+            ed.description = "scan index: names in EVLR"
+        if rank is not None and ed.name == "rank":
+            ed.description = "lodbuilder farthest-point rank"
+    return layout
+
+
 def write_copc(
     out: str | os.PathLike,
     points: np.ndarray,
@@ -231,86 +336,83 @@ def write_copc(
 ) -> CopcFile:
     """Write a level (points in farthest-point order, their insertion radii, the level's covering
     bound ``rho``) as a COPC 1.0 file whose octree depths are its levels (module docstring),
-    atomically.
+    atomically. ``attributes``: LAS fields or extra bytes (:func:`lodbuilder.io.las.las_layout`
+    with ``metadata``, the scan's format metadata; what the mapping changed is in ``notes`` and
+    logged as lodbuilder.io warnings). With ``rank_radius``, also each point's ``rank`` (extra
+    bytes) and the insertion radius by rank (an EVLR, :func:`read_radius_table`): the exact
+    ordering, at 2.6-3.1 bytes a point.
 
-    ``attributes`` are written as LAS fields or extra bytes by :func:`lodbuilder.io.las.las_layout`
-    with ``metadata`` (the scan's format metadata: LAS scale/offset, CRS...); with
-    ``rank_radius``, also ``rank`` and ``radius`` extra bytes (the exact ordering, at a cost in
-    size: LAZ compresses neither well). What the mapping changed is in ``notes`` and logged as
-    warnings of lodbuilder.io, as :func:`lodbuilder.io.write_points` does.
-
-    ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: the
-    description of a filter that removed points from the level (the points are then a
-    subsequence of it), with ``bounds`` the covering bound of each prefix
-    (:func:`lodbuilder.filters.prefix_bounds`; default ``radius``). ``scans``: the names of the
-    scans that attribute ``scan_id`` indexes (a collection or a joint scan), written in the
-    EVLR."""
+    ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: what
+    filter removed points from the level (they are a subsequence of it), with ``bounds`` the
+    covering bound of each prefix (:func:`lodbuilder.filters.prefix_bounds`; default
+    ``radius``). ``scans``: the scan names that attribute ``scan_id`` indexes (in the EVLR)."""
     check_copc_dependencies()
     from ..io._files import atomic_output
     from ..io.api import log_notes
-    from ..io.las import las_layout
-    from ._copc_file import Octree, write_copc_file
+    from ._copc_file import write_copc_file
 
     out, pts, radius = check_level_output(out, "COPC output", (".copc.laz",), points, radius)
     k = pts.shape[0]
-    if rank_radius:
-        for reserved in ("rank", "radius"):
-            if reserved in attributes:
-                raise InputError(
-                    f"attribute {reserved!r} would clash with the {reserved} the COPC file "
-                    "records; rename it"
-                )
     meta = dict(metadata or {})
-    n_total = int(n_total or k)
-
-    attrs = dict(attributes)
-    if rank_radius:
-        order_rank = np.arange(k) if rank is None else np.asarray(rank)
-        attrs["rank"] = order_rank.astype(np.uint32 if n_total < 2**32 else np.uint64)
-        attrs["radius"] = radius
-    fmt = copc_point_format(meta, set(attributes))
-    layout = las_layout(pts, attrs, meta, point_format=fmt, version="1.4")
-    for ed in layout.extra_dims:
-        if scans and ed.name == "scan_id":
-            ed.description = "scan index: names in EVLR"
-        if rank_radius and ed.name == "rank":
-            ed.description = "lodbuilder farthest-point rank"
-        elif rank_radius and ed.name == "radius":
-            ed.description = "lodbuilder insertion radius"
+    order_rank = (np.arange(k) if rank is None else np.asarray(rank)) if rank_radius else None
+    layout = _layout(pts, attributes, meta, order_rank, scans)
     las = layout.las_data(pts)
-    records = las.points.array
-
-    # the octree: a padded cube around the stored (quantised) coordinates, spacing s0 at the root
     stored = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-    lo, width, margin = octree_cube(stored, layout.scales)
-    half = width / 2.0
-    centre = lo + half
-    spacing, max_depth = octree_spacing(radius, width)
-    band = depth_bands(radius, spacing, max_depth)
-    depth, codes = assign_depths(stored, band, lo, width)
+    gps = (np.asarray(las.gps_time, dtype=np.float64)
+           if "gps_time" in las.point_format.dimension_names else None)
+    tree = build_tree(stored, layout.scales, radius, gps)
+    octree = _header(las, stored, tree)
+    levels = _levels(radius if bounds is None else np.asarray(bounds), tree.band, tree.depth, rho,
+                     tree.spacing)
+    doc = _doc(name, k, int(n_total or k), tree.spacing, levels, order_rank is not None,
+               filtered, scans)
+    evlrs = _evlrs(doc, order_rank, radius)
+    gps_range = (float(gps.min()), float(gps.max())) if gps is not None else (0.0, 0.0)
+    with atomic_output(out) as tmp:
+        with open(tmp, "wb") as f:
+            write_copc_file(f, las.header, las.points.array[tree.order], tree.keys, tree.starts,
+                            tree.ends, octree, gps_range, layout.crs_wkt, evlrs)
+        n_bytes = tmp.stat().st_size
+    log_notes(out, layout.notes)
+    return CopcFile(path=out, n_points=k, n_total=int(n_total or k), rho=float(rho),
+                    n_bytes=n_bytes, depths=int(tree.depth.max()) + 1, nodes=len(tree.starts),
+                    spacing=tree.spacing, levels=levels, notes=list(layout.notes))
 
-    gps = np.asarray(las.gps_time, dtype=np.float64) if "gps_time" in las.point_format.dimension_names else None
-    order = node_order(depth, codes, stored, lo, width, gps)
-    records = records[order]
-    d_sorted, c_sorted = depth[order], codes[order]
-    cut = np.flatnonzero((np.diff(d_sorted) != 0) | (np.diff(c_sorted) != 0)) + 1
-    starts = np.concatenate([[0], cut]).astype(np.int64)
-    ends = np.concatenate([cut, [k]]).astype(np.int64)
-    c0 = c_sorted[starts]
-    keys = np.column_stack([d_sorted[starts], c0 >> 42, (c0 >> 21) & 0x1FFFFF, c0 & 0x1FFFFF])
+
+def _header(las: Any, stored: np.ndarray, tree: _Tree) -> Any:
+    """Set the LAS header's point counts and bounds (the padded cube's minimum, the maximum
+    point plus the margin: see :func:`octree_cube`); return the COPC info VLR's octree."""
+    from ._copc_file import Octree
 
     header = las.header
-    header.point_count = k
-    header.mins = lo
-    header.maxs = stored.max(axis=0) + margin
+    header.point_count = stored.shape[0]
+    header.mins = tree.lo
+    header.maxs = stored.max(axis=0) + tree.margin
     returns = np.bincount(np.asarray(las.return_number, dtype=np.int64), minlength=16)
     header.number_of_points_by_return = returns[1:16]
-    gps_range = (float(gps.min()), float(gps.max())) if gps is not None else (0.0, 0.0)
+    centre = tree.lo + tree.width / 2.0
+    return Octree((float(centre[0]), float(centre[1]), float(centre[2])), tree.width / 2.0,
+                  tree.spacing)
 
-    levels = _levels(radius if bounds is None else np.asarray(bounds), band, depth, rho, spacing)
-    doc = {
+
+def _evlrs(doc: dict[str, Any], rank: np.ndarray | None, radius: np.ndarray) -> list[Any]:
+    """Our EVLRs: the levels (JSON) and, with ``rank``, the radius by rank."""
+    import laspy
+
+    evlrs = [laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, VLR_DESCRIPTION,
+                       json.dumps(doc, allow_nan=False).encode("utf-8"))]
+    if rank is not None:
+        evlrs.append(laspy.VLR(VLR_USER_ID, RADIUS_RECORD_ID, RADIUS_DESCRIPTION,
+                               radius_table(rank, radius)[1]))
+    return evlrs
+
+
+def _doc(name: str, k: int, n_total: int, spacing: float, levels: list[dict[str, Any]],
+         ranked: bool, filtered: str | None, scans: list[str] | None) -> dict[str, Any]:
+    """The JSON of our EVLR (record VLR_RECORD_ID)."""
+    doc: dict[str, Any] = {
         "format": "lodbuilder farthest-point levels",
-        "version": 1,
+        "version": 2,
         "scan": name,
         "n_points": k,
         "n_points_scan": n_total,
@@ -318,37 +420,21 @@ def write_copc(
         "rule": "depth d holds the points of insertion radius in (spacing/2^(d+1), spacing/2^d]; "
         "depths <= d hold the prefix of fps_prefix points of the farthest-point order (plus "
         "'promoted' points that keep the octree connected) and cover the scan within rho",
-        "extra_bytes": {"rank": "position in the farthest-point order", "radius": "insertion radius"}
-        if rank_radius else {},
+        "extra_bytes": {"rank": "position in the farthest-point order"} if ranked else {},
         "levels": levels,
     }
+    if ranked:
+        doc["radius_by_rank"] = {
+            "user_id": VLR_USER_ID, "record_id": RADIUS_RECORD_ID,
+            "encoding": "zlib of little-endian int32 differences of the float32 bit patterns of "
+            "the insertion radius of ranks 0, 1, ... (rounded up to float32; NaN: rank not in "
+            "the file); radius = cumsum(differences) as uint32 viewed as float32",
+        }
     if filtered is not None:
         doc["filter"] = filtered
     if scans:
         doc["scans"] = list(scans)
-    import laspy
-
-    ours = laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, VLR_DESCRIPTION,
-                     json.dumps(doc, allow_nan=False).encode("utf-8"))
-    octree = Octree((float(centre[0]), float(centre[1]), float(centre[2])), half, spacing)
-    with atomic_output(out) as tmp:
-        with open(tmp, "wb") as f:
-            write_copc_file(f, header, records, keys, starts, ends, octree, gps_range,
-                            layout.crs_wkt, [ours])
-        n_bytes = tmp.stat().st_size
-    log_notes(out, layout.notes)
-    return CopcFile(
-        path=out,
-        n_points=k,
-        n_total=n_total,
-        rho=float(rho),
-        n_bytes=n_bytes,
-        depths=int(depth.max()) + 1,
-        nodes=len(starts),
-        spacing=spacing,
-        levels=levels,
-        notes=list(layout.notes),
-    )
+    return doc
 
 
 def _levels(

@@ -162,7 +162,6 @@ def write_tiles(
     :func:`lodbuilder.filters.prefix_bounds`). The tiles' folder is written first, then the
     tileset JSON; a previous export's folder is replaced, any other folder of that name refused."""
     from ..io._files import atomic_output
-    from .copc import _levels, assign_depths, depth_bands, octree_spacing
 
     out, pts, radius = check_level_output(out, "3D Tiles output", (".json",), points, radius)
     k = pts.shape[0]
@@ -174,53 +173,22 @@ def write_tiles(
     centre = (pmin + pmax) / 2.0
     transform, factor, placed = enu_frame(crs, centre)
     local = (pts - centre) * factor
-    half = float(np.abs(local).max()) * (1 + 1e-9) + 1e-9
-    lo, width = np.full(3, -half), 2.0 * half
-    r_local = radius * factor
-    spacing, max_depth = octree_spacing(r_local, width)
-    band = depth_bands(r_local, spacing, max_depth)
-    depth, codes = assign_depths(local, band, lo, width)
-    b = r_local if bounds is None else np.asarray(bounds, dtype=np.float64) * factor
-    levels = _levels(b, band, depth, rho * factor, spacing)
+    b = None if bounds is None else np.asarray(bounds, dtype=np.float64) * factor
+    octree = _octree(local, radius * factor, b, rho * factor)
     diagonal = float(np.linalg.norm(local.max(axis=0) - local.min(axis=0))) or 1.0
     # (a prefix whose next radius is a seed's inf covers nothing for sure: the whole diagonal)
-    errors = [diagonal if lv["rho"] is None else float(lv["rho"]) for lv in levels]
-    colours = _colours(local, rgb)
-    order = np.lexsort((np.arange(k), codes, depth))
-    d_s, c_s = depth[order], codes[order]
-    cut = np.flatnonzero((np.diff(d_s) != 0) | (np.diff(c_s) != 0)) + 1
-    starts, ends = np.concatenate([[0], cut]), np.concatenate([cut, [k]])
-    tiles: dict[tuple[int, int], dict[str, Any]] = {}
+    errors = [diagonal if lv["rho"] is None else float(lv["rho"]) for lv in octree["levels"]]
     tmp_dir = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=out.parent))
     try:
-        for s, e in zip(starts, ends, strict=True):
-            d, c = int(d_s[s]), int(c_s[s])
-            ijk = np.array([c >> 42, (c >> 21) & 0x1FFFFF, c & 0x1FFFFF], dtype=np.float64)
-            w = width / 2**d
-            mid = lo + (ijk + 0.5) * w
-            sel = order[s:e]
-            p = local[sel]
-            uri = f"{d}-{c >> 42}-{(c >> 21) & 0x1FFFFF}-{c & 0x1FFFFF}.glb"
-            (tmp_dir / uri).write_bytes(glb_points(np.column_stack([p[:, 0], p[:, 2], -p[:, 1]]),
-                                                   colours[sel]))
-            tiles[(d, c)] = {
-                "boundingVolume": {"box": [*mid.tolist(), w / 2, 0, 0, 0, w / 2, 0, 0, 0, w / 2]},
-                "geometricError": errors[d],
-                "content": {"uri": f"{folder.name}/{uri}"},
-            }
+        tiles = _write_tiles(tmp_dir, folder.name, local, _colours(local, rgb), octree, errors)
         (tmp_dir / MARKER).write_text("written by lodbuilder export; replaced by the next export\n")
-        root = _tree(tiles)
-        root["refine"] = "ADD"
-        root["transform"] = transform
-        doc = {
-            "asset": {"version": "1.1", "generator": "lodbuilder",
-                      "extras": {"scan": name, "points": k, "points_scan": int(n_total or k),
-                                 "placement": placed, "metres_per_unit": factor, "filter": note,
-                                 "geometricError": "covering radius of the points of depths "
-                                 "<= the tile's depth (metres)"}},
-            "geometricError": max(diagonal, errors[0]),
-            "root": root,
-        }
+        root = {**_tree(tiles), "refine": "ADD", "transform": transform}
+        extras = {"scan": name, "points": k, "points_scan": int(n_total or k),
+                  "placement": placed, "metres_per_unit": factor, "filter": note,
+                  "geometricError": "covering radius of the points of depths <= the tile's "
+                  "depth (metres)"}
+        doc = {"asset": {"version": "1.1", "generator": "lodbuilder", "extras": extras},
+               "geometricError": max(diagonal, errors[0]), "root": root}
         if folder.exists():
             shutil.rmtree(folder)
         os.replace(tmp_dir, folder)
@@ -230,8 +198,49 @@ def write_tiles(
     with atomic_output(out) as tmp:
         tmp.write_text(json.dumps(doc, indent=1, allow_nan=False), encoding="utf-8")
     n_bytes = out.stat().st_size + sum(f.stat().st_size for f in folder.iterdir())
-    return Tileset(out, k, int(n_total or k), float(rho), len(tiles), len(levels), n_bytes,
+    return Tileset(out, k, int(n_total or k), float(rho), len(tiles), len(errors), n_bytes,
                    placed, errors)
+
+
+def _octree(local: np.ndarray, r_local: np.ndarray, bounds: np.ndarray | None,
+            rho: float) -> dict[str, Any]:
+    """The COPC octree of the points (metres, centred): the cube, each point's depth and voxel
+    code, the levels (:func:`lodbuilder.export.copc._levels`)."""
+    from .copc import _levels, assign_depths, depth_bands, octree_spacing
+
+    half = float(np.abs(local).max()) * (1 + 1e-9) + 1e-9
+    lo, width = np.full(3, -half), 2.0 * half
+    spacing, max_depth = octree_spacing(r_local, width)
+    band = depth_bands(r_local, spacing, max_depth)
+    depth, codes = assign_depths(local, band, lo, width)
+    levels = _levels(r_local if bounds is None else bounds, band, depth, rho, spacing)
+    return {"lo": lo, "width": width, "depth": depth, "codes": codes, "levels": levels}
+
+
+def _write_tiles(folder: Path, name: str, local: np.ndarray, colours: np.ndarray,
+                 octree: dict[str, Any], errors: list[float]) -> dict[tuple[int, int], dict[str, Any]]:
+    """Write one .glb a node into ``folder``; return each node's tile (without children)."""
+    depth, codes, lo, width = octree["depth"], octree["codes"], octree["lo"], octree["width"]
+    order = np.lexsort((np.arange(depth.size), codes, depth))
+    d_s, c_s = depth[order], codes[order]
+    cut = np.flatnonzero((np.diff(d_s) != 0) | (np.diff(c_s) != 0)) + 1
+    tiles: dict[tuple[int, int], dict[str, Any]] = {}
+    for s, e in zip(np.concatenate([[0], cut]), np.concatenate([cut, [depth.size]]), strict=True):
+        d, c = int(d_s[s]), int(c_s[s])
+        ijk = np.array([c >> 42, (c >> 21) & 0x1FFFFF, c & 0x1FFFFF], dtype=np.float64)
+        w = width / 2**d
+        mid = lo + (ijk + 0.5) * w
+        sel = order[s:e]
+        p = local[sel]
+        uri = f"{d}-{c >> 42}-{(c >> 21) & 0x1FFFFF}-{c & 0x1FFFFF}.glb"
+        (folder / uri).write_bytes(glb_points(np.column_stack([p[:, 0], p[:, 2], -p[:, 1]]),
+                                              colours[sel]))
+        tiles[(d, c)] = {
+            "boundingVolume": {"box": [*mid.tolist(), w / 2, 0, 0, 0, w / 2, 0, 0, 0, w / 2]},
+            "geometricError": errors[d],
+            "content": {"uri": f"{name}/{uri}"},
+        }
+    return tiles
 
 
 def _tree(tiles: dict[tuple[int, int], dict[str, Any]]) -> dict[str, Any]:

@@ -119,48 +119,64 @@ def write_web_page(
 ) -> WebPage:
     """Write the points of a level (farthest-point order) as one HTML page, atomically.
 
-    Args:
-        points: (K, 3) coordinates, a prefix of the scan's ordering.
-        radius: (K,) their insertion radii (the covering bound of the prefix of k is radius[k]).
-        rho: the covering bound of the whole level (0 when it is the whole scan).
-        n_total: points of the scan (default K).
-        rgb: (K, 3) colours (uint8, or 16-bit / unit floats, scaled as the viewer does).
-        importance: per-point maps to colour by.
-        crs, units: the coordinates' CRS (WKT) and linear unit, shown on the page.
-        up: the scan's up axis for the first view (``z``, ``y``, ``x``, ``-z``, ...).
-        bounds: the covering bound of each prefix of k points (default ``radius``; a filtered
-            level's from :func:`lodbuilder.filters.prefix_bounds`).
-        note: a line shown with the scan's name (a filter).
-        scalars: more scalar colour modes, label -> (values, a viewer ``Legend``): elevation,
-            intensity.
-        categories: categorical colour modes, label -> (integer labels, a viewer
-            ``Categories``): classification, scan. Labels are stored as one byte (0..255).
-    """
+    ``points`` (K, 3): a prefix of the scan's ordering; ``radius`` (K,): their insertion radii
+    (the prefix of k is covered within radius[k]); ``rho``: the whole level's bound (0: the whole
+    scan); ``n_total``: points of the scan (default K); ``rgb`` (K, 3): uint8, 16-bit or unit
+    floats (scaled as the viewer does); ``importance``: maps to colour by; ``crs``/``units``:
+    shown on the page; ``up``: the up axis of the first view (``z``, ``-y``...); ``bounds``: the
+    covering bound of each prefix (default ``radius``; a filtered level's from
+    :func:`lodbuilder.filters.prefix_bounds`); ``note``: a line shown with the name (a filter);
+    ``scalars``: label -> (values, a viewer ``Legend``) (elevation, intensity); ``categories``:
+    label -> (integer labels 0..255, a viewer ``Categories``) (classification, scan)."""
     from ..io._files import atomic_output
-    from ..viewer.data import (
-        _to_uint8_rgb,
-        colormap,
-        crs_label,
-        importance_legend,
-        radius_legend,
-        rank_legend,
-    )
+    from ..viewer.data import crs_label
+    from ._page import HEAD
 
     if up not in UPS:
         raise InputError(f"up must be one of {', '.join(UPS)}, got {up!r}")
     out, pts, radius = check_level_output(out, "web page", (".html", ".htm"), points, radius)
     k = pts.shape[0]
     n_total = int(n_total or k)
-    unit = units or "scan units"
-
     q, lo, span = _quantise(pts)
     columns: list[np.ndarray] = [q.view(np.uint8)]  # (K, 6): little-endian uint16 x, y, z
     if rgb is not None:
-        columns.append(_to_uint8_rgb(np.asarray(rgb)).reshape(k, 3))
-    scalar_specs = []
+        columns.append(_rgb_bytes(rgb).reshape(k, 3))
+    scalar_specs = _scalar_columns(columns, radius, units, scalars, importance)
+    cats = _category_columns(columns, categories)
+    chunks = _chunks(k)
+    header = {
+        "n": k, "n_total": n_total, "rgb": rgb is not None, "scalars": scalar_specs,
+        "cats": cats, "chunks": chunks, "bytes_per_point": sum(c.shape[1] for c in columns),
+        "lo": lo.tolist(), "span": span.tolist(), "up": up, "view": _first_view(pts, up),
+        **_header(pts, radius, rho, bounds, span, n_total, units),
+        "info": f"{name}: {k:,} of {n_total:,} points; {crs_label(crs, units)}"
+        + (f"; {note}" if note else ""),
+    }
+    head = HEAD.replace("@TITLE@", html.escape(f"{name} - lodbuilder", quote=True)).replace(
+        "@HEADER@", json.dumps(header, allow_nan=False).replace("<", "\\u003c")
+    )
+    with atomic_output(out) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as f:
+        f.writelines(_page_parts(head, columns, chunks))
+    return WebPage(out, k, n_total, float(rho), out.stat().st_size, len(chunks))
+
+
+def _rgb_bytes(rgb: np.ndarray) -> np.ndarray:
+    from ..viewer.data import _to_uint8_rgb
+
+    return _to_uint8_rgb(np.asarray(rgb))
+
+
+def _scalar_columns(columns: list[np.ndarray], radius: np.ndarray, units: str | None,
+                    scalars: dict[str, tuple[np.ndarray, Any]] | None,
+                    importance: dict[str, np.ndarray] | None) -> list[dict[str, Any]]:
+    """Append one byte a point per scalar colour mode (radius, ``scalars``, importance maps:
+    the legend's 0..255 index) to ``columns``; return the modes' specs for the page."""
+    from ..viewer.data import importance_legend, radius_legend
+
     legends = [("radius", radius_legend(radius, units), radius)]
     legends += [(label, legend, v) for label, (v, legend) in (scalars or {}).items()]
     legends += [(f"importance: {m}", importance_legend(m, v), v) for m, v in (importance or {}).items()]
+    specs = []
     for label, legend, values in legends:
         v = np.asarray(values, dtype=np.float64)
         if label == "radius":
@@ -168,57 +184,46 @@ def write_web_page(
             top = float(finite.max()) if finite.size else 1.0
             v = np.where(np.isfinite(v) & (v > 0), v, top)
         idx = np.clip(np.nan_to_num(legend.normalise(v), nan=0.0) * 255.0, 0, 255).astype(np.uint8)
-        columns.append(idx.reshape(k, 1))
-        scalar_specs.append({"label": label, "title": legend.title, "lo": legend.lo, "hi": legend.hi})
+        columns.append(idx.reshape(-1, 1))
+        specs.append({"label": label, "title": legend.title, "lo": legend.lo, "hi": legend.hi})
+    return specs
+
+
+def _category_columns(columns: list[np.ndarray],
+                      categories: dict[str, tuple[np.ndarray, Any]] | None) -> list[dict[str, Any]]:
+    """Append one byte a point per categorical colour mode to ``columns``; return their tables."""
     cats = []
     for label, (labels, cat) in (categories or {}).items():
         lab = np.asarray(labels).astype(np.int64)
         if lab.size and (lab.min() < 0 or lab.max() > 255):
             raise InputError(f"colour {label!r}: labels must lie in 0..255 to fit one byte")
-        columns.append(lab.astype(np.uint8).reshape(k, 1))
+        columns.append(lab.astype(np.uint8).reshape(-1, 1))
         cats.append({"label": label, "title": cat.title,
                      "table": [[int(v), str(n), [int(c) for c in rgb_]]
                                for v, n, rgb_ in zip(cat.values, cat.names, cat.colours, strict=True)]})
-    per_point = sum(c.shape[1] for c in columns)
+    return cats
+
+
+def _header(pts: np.ndarray, radius: np.ndarray, rho: float, bounds: np.ndarray | None,
+            span: np.ndarray, n_total: int, units: str | None) -> dict[str, Any]:
+    """The page header's rank legend, colour table, slider stops and point size."""
+    from ..viewer.data import colormap, rank_legend
+
+    k = pts.shape[0]
     rank = rank_legend(n_total)
     finite = radius[np.isfinite(radius) & (radius > 0)]
     # points of the finest level are squares 1.5 spacing wide: rho, or the scan's own spacing
     spacing = float(radius[k // 2]) if k > 1 and rho == 0 else float(rho)
     if not math.isfinite(spacing) or spacing <= 0:
         spacing = float(finite.min()) if finite.size else float(np.linalg.norm(span)) * 1e-3
-    chunks = _chunks(k)
-    header = {
-        "n": k,
-        "n_total": n_total,
-        "rgb": rgb is not None,
-        "scalars": scalar_specs,
-        "cats": cats,
+    return {
         "rank": {"title": rank.title, "lo": rank.lo, "hi": rank.hi},
         "lut": colormap(np.linspace(0.0, 1.0, 256)).ravel().tolist(),
-        "chunks": chunks,
-        "bytes_per_point": per_point,
         "steps": _steps(radius if bounds is None else np.asarray(bounds), rho),
-        "lo": lo.tolist(),
-        "span": span.tolist(),
         "diag": float(np.linalg.norm(span)),
         "spacing": spacing,
-        "unit": unit,
-        "up": up,
-        "view": _first_view(pts, up),
-        "info": f"{name}: {k:,} of {n_total:,} points; {crs_label(crs, units)}"
-        + (f"; {note}" if note else ""),
+        "unit": units or "scan units",
     }
-    from ._page import HEAD
-
-    head = HEAD.replace("@TITLE@", html.escape(f"{name} - lodbuilder", quote=True)).replace(
-        "@HEADER@", json.dumps(header, allow_nan=False).replace("<", "\\u003c")
-    )
-    n_bytes = 0
-    with atomic_output(out) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as f:
-        for text in _page_parts(head, columns, chunks):
-            f.write(text)
-            n_bytes += len(text.encode("utf-8"))
-    return WebPage(out, k, n_total, float(rho), n_bytes, len(chunks))
 
 
 def _page_parts(head: str, columns: list[np.ndarray], chunks: list[tuple[int, int]]):
@@ -263,21 +268,7 @@ def export_web(
     if len(names) == 3:
         rgb = np.column_stack([level.attributes[c] for c in names])
     importance = {m: np.asarray(scan.importance(m)[:size])[level.rank] for m in scan.importance_names}
-    from ..viewer.data import classification_legend, elevation_legend, intensity_legend
-
-    axis = "xyz".index(up[-1])
-    elev = level.points[:, axis] * (-1.0 if up.startswith("-") else 1.0)
-    extra = {"elevation": (elev, elevation_legend(elev, up, scan.units))}
-    if "intensity" in level.attributes:
-        extra["intensity"] = (level.attributes["intensity"], intensity_legend(level.attributes["intensity"]))
-    cats = {}
-    if members and "scan_id" in level.attributes:  # a joint scan: its member scans
-        from ..viewer.data import scan_legend
-
-        cats["scan"] = (np.asarray(level.attributes["scan_id"]), scan_legend(members))
-    if "classification" in level.attributes:
-        codes = np.asarray(level.attributes["classification"])
-        cats["classification"] = (codes, classification_legend(codes))
+    extra, cats = _survey_colours(level, up, scan.units, members)
     return write_web_page(
         out,
         level.points,
@@ -295,3 +286,25 @@ def export_web(
         scalars=extra,
         categories=cats,
     )
+
+
+def _survey_colours(level: Any, up: str, units: str | None,
+                    members: list[str] | None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(scalar, categorical) colour modes of a level: elevation along ``up``, intensity;
+    the member scans of a joint scan, classification."""
+    from ..viewer.data import classification_legend, elevation_legend, intensity_legend
+
+    axis = "xyz".index(up[-1])
+    elev = level.points[:, axis] * (-1.0 if up.startswith("-") else 1.0)
+    extra = {"elevation": (elev, elevation_legend(elev, up, units))}
+    if "intensity" in level.attributes:
+        extra["intensity"] = (level.attributes["intensity"], intensity_legend(level.attributes["intensity"]))
+    cats = {}
+    if members and "scan_id" in level.attributes:  # a joint scan: its member scans
+        from ..viewer.data import scan_legend
+
+        cats["scan"] = (np.asarray(level.attributes["scan_id"]), scan_legend(members))
+    if "classification" in level.attributes:
+        codes = np.asarray(level.attributes["classification"])
+        cats["classification"] = (codes, classification_legend(codes))
+    return extra, cats

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,3 +36,19 @@ class Scan:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+
+#: what a format's chunked read yields: (first row, float64 (m, 3) points, attributes of those rows)
+Rows = tuple[int, np.ndarray, dict[str, np.ndarray]]
+
+
+def whole(rows: Iterable[Rows]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The points and attributes of every chunk of a chunked read, concatenated (a single chunk,
+    as a whole read asks for, is returned as it is: no copy)."""
+    chunks = list(rows)
+    if len(chunks) == 1:
+        return chunks[0][1], chunks[0][2]
+    if not chunks:
+        return np.empty((0, 3), dtype=np.float64), {}
+    pts = np.concatenate([c[1] for c in chunks])
+    return pts, {k: np.concatenate([c[2][k] for c in chunks]) for k in chunks[0][2]}

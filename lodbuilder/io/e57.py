@@ -7,6 +7,9 @@ Points whose ``cartesianInvalidState`` (or ``sphericalInvalidState``) is non-zer
 count is logged and kept in ``metadata["invalid_dropped"]``. Every other point field becomes an
 attribute; ``colorRed/Green/Blue`` are renamed ``red/green/blue`` like the other formats. The root
 ``coordinateMetadata`` string, when not empty, is the CRS (see :mod:`lodbuilder.io.crs`).
+
+An E57 file does not stream: pye57 reads a scan's points whole (``read_scan_raw``), so this reader
+is the one path, and :func:`lodbuilder.io.stream.open_stream` hands its scan out in chunks.
 """
 
 from __future__ import annotations
@@ -50,6 +53,15 @@ def _coordinate_metadata(e57: Any, path: Path) -> str | None:
     except Exception:  # absent (it is optional) or not a string
         return None
     return to_wkt(text, what=f"{path} coordinateMetadata")
+
+
+def declared_crs(path: Path) -> str | None:
+    """The file's CRS (its root ``coordinateMetadata``) without reading any scan."""
+    e57 = _pye57(path).E57(str(path), mode="r")
+    try:
+        return _coordinate_metadata(e57, path)
+    finally:
+        e57.close()
 
 
 def read(path: Path) -> list[Scan]:

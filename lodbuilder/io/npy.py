@@ -13,6 +13,8 @@ its CRS in a ``<file>.prj`` sidecar (WKT).
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +22,7 @@ import numpy as np
 
 from ..errors import FormatError
 from ._files import exc_line
-from .base import Scan
+from .base import Rows, Scan, whole
 from .crs import KEY_WKT, read_sidecar, set_crs, to_wkt
 
 _XYZ = ("x", "y", "z")
@@ -47,9 +49,105 @@ def _from_structured(path: Path, arr: np.ndarray) -> tuple[np.ndarray, dict[str,
     return pts, attrs
 
 
+def _metadata(entry: np.ndarray) -> dict[str, Any]:
+    """An NPZ's ``metadata`` entry (a 0-d JSON string) as a dict ({} when it is anything else)."""
+    if entry.ndim != 0:
+        return {}
+    try:
+        loaded = json.loads(str(entry))
+    except ValueError:
+        return {}
+    return loaded if isinstance(loaded, dict) else {}
+
+
+def declared_crs(path: Path) -> str | None:
+    """The CRS of a .npy (its ``.prj`` sidecar) or an .npz (its metadata), without its points."""
+    if path.suffix.lower() == ".npy":
+        return read_sidecar(path)
+    with _load(path) as obj:
+        meta = _metadata(obj["metadata"]) if "metadata" in obj.files else {}
+    wkt = meta.get(KEY_WKT)
+    return to_wkt(wkt, what=f"{path} metadata") if wkt else None
+
+
+@dataclass
+class NpyLayout:
+    """Where the rows of a ``.npy`` file lie: from byte ``offset``, ``n`` rows of ``dtype``
+    (``per_row`` values each: 3 for a plain (N, 3) array, 1 for a structured one), and the
+    attribute fields (dtype, per-point shape)."""
+
+    offset: int
+    n: int
+    dtype: np.dtype
+    per_row: int
+    fields: dict[str, tuple[np.dtype, tuple[int, ...]]]
+
+
+def npy_layout(path: Path) -> NpyLayout | None:
+    """The layout of a ``.npy`` file that :func:`npy_rows` reads (a C-order (N, 3) numeric array,
+    or a 1-d structured array with x, y, z; N > 0; every row in the file), from its header; None
+    for any other file (:func:`read` loads it whole, and says what is wrong with it)."""
+    fmt = np.lib.format
+    try:
+        with open(path, "rb") as f:
+            version = fmt.read_magic(f)
+            if version not in ((1, 0), (2, 0)):
+                return None
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            offset = f.tell()
+    except (ValueError, OSError, EOFError):
+        return None
+    if fortran or dtype.hasobject or not shape or not shape[0]:
+        return None
+    if dtype.names:
+        if any(c not in dtype.names for c in _XYZ) or len(shape) != 1:
+            return None
+        fields = {n: (dtype[n].base, dtype[n].shape) for n in dtype.names if n not in _XYZ}
+        per_row = 1
+    elif len(shape) == 2 and shape[1] == 3 and dtype.kind in "iuf":
+        fields, per_row = {}, 3
+    else:
+        return None
+    n = int(shape[0])
+    if path.stat().st_size < offset + n * per_row * dtype.itemsize:
+        return None  # truncated: numpy's own message
+    return NpyLayout(offset, n, dtype, per_row, fields)
+
+
+def npy_rows(path: Path, layout: NpyLayout, size: int, first: int = 0, stop: int | None = None) -> Iterator[Rows]:
+    """The one read of a ``.npy`` file's rows (see :func:`npy_layout`): ``(first row, float64
+    (m, 3) points, attributes)``, ``size`` rows at a time from row ``first`` to ``stop`` (default:
+    the last), straight from the file."""
+    stop = layout.n if stop is None else stop
+    with open(path, "rb") as f:
+        f.seek(layout.offset + first * layout.per_row * layout.dtype.itemsize)
+        for lo in range(first, stop, size):
+            m = min(stop, lo + size) - lo
+            block = np.fromfile(f, dtype=layout.dtype, count=m * layout.per_row)
+            if block.shape[0] != m * layout.per_row:  # the file shrank under us
+                raise FormatError(f"{path}: truncated or damaged NumPy file (read {lo + block.shape[0] // layout.per_row} "
+                                  f"of {layout.n} rows); save it again")
+            if block.dtype.names:
+                pts = np.stack([np.asarray(block[c], dtype=np.float64) for c in _XYZ], axis=1)
+                attrs = {k: np.ascontiguousarray(block[k]) for k in layout.fields}
+            else:
+                pts, attrs = np.asarray(block.reshape(m, 3), dtype=np.float64), {}
+            yield lo, pts, attrs
+
+
 def read(path: Path) -> list[Scan]:
+    """A ``.npy`` file that :func:`npy_rows` reads is its chunked read in one chunk; other files
+    (``.npz``, arrays of other shapes, which do not stream) are loaded whole."""
+    layout = npy_layout(path) if path.suffix.lower() == ".npy" else None
+    if layout is not None:
+        pts, attrs = whole(npy_rows(path, layout, layout.n))
+        meta: dict[str, Any] = {"npy_layout": "structured" if layout.fields else "plain"}
+        set_crs(meta, read_sidecar(path), "file")
+        return [Scan(points=np.ascontiguousarray(pts), attributes=attrs, name=path.stem, source=str(path),
+                     reader="npy", metadata=meta)]
     obj = _load(path)
-    meta: dict[str, Any] = {}
+    meta = {}
     if isinstance(obj, np.ndarray):
         if obj.dtype.names:
             pts, attrs = _from_structured(path, obj)
@@ -63,11 +161,7 @@ def read(path: Path) -> list[Scan]:
         with obj:
             files = {k: obj[k] for k in obj.files}
         if "metadata" in files and files["metadata"].ndim == 0:
-            try:
-                loaded = json.loads(str(files.pop("metadata")))
-                meta = loaded if isinstance(loaded, dict) else {}
-            except ValueError:
-                meta = {}
+            meta = _metadata(files.pop("metadata"))
         if "points" in files:
             p = files.pop("points")
             if p.ndim != 2 or p.shape[1] != 3:

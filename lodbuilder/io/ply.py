@@ -13,6 +13,7 @@ import itertools
 import json
 import logging
 import warnings
+from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
@@ -184,12 +185,12 @@ def read(path: Path) -> list[Scan]:
         if header.text:
             data = _read_ascii(f, path, size, body_start, before, vertex, count, last)
         else:
-            data = _read_binary(f, path, size, body_start, before, vertex, count, header.byte_order, last)
+            data = _read_binary(path, size, body_start, header, vi)
         if data is None:  # a layout the fast paths do not handle: let plyfile read up to the vertices
             f.seek(body_start)
             data = _read_plyfile(f, path, header, vi)
     if not header.text:
-        _check_byte_order(path, data, header.byte_order)
+        check_byte_order(path, data, header.byte_order)
     scan = _to_scan(path, data, notes)
     scan.metadata = header_metadata(header, vertex, notes)
     for n in notes:
@@ -206,13 +207,17 @@ def _bad_values(a: np.ndarray) -> int:
         return int((~np.isfinite(m) | (m > 1e15) | ((m > 0) & (m < 1e-30))).sum())
 
 
-def _check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
+#: the leading vertices whose coordinates :func:`check_byte_order` looks at
+BYTE_ORDER_SAMPLE = 10_000
+
+
+def check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
     """Refuse a binary PLY whose float coordinates read as garbage in the declared byte order but
     as ordinary numbers in the other one: its header names the wrong byte order."""
     fields = [c for c in XYZ if data.dtype[c].kind == "f"]
     if not fields or data.shape[0] == 0:
         return
-    sample = data[: min(data.shape[0], 10000)]
+    sample = data[: min(data.shape[0], BYTE_ORDER_SAMPLE)]
     bad = sum(_bad_values(sample[c]) for c in fields)
     if bad * 100 <= sample.shape[0] * len(fields):  # at most 1 % odd values: plausibly fine
         return
@@ -227,7 +232,23 @@ def _check_byte_order(path: Path, data: np.ndarray, byte_order: str) -> None:
         )
 
 
-def _read_binary(f, path, size, body_start, before, vertex, count, byte_order, last=False):
+def _read_binary(path: Path, size: int, body_start: int, header: Any, vi: int) -> np.ndarray | None:
+    """The vertices of a binary PLY whose rows have a fixed size: its chunked read
+    (:func:`vertex_rows`) in one chunk; None for list properties (plyfile reads them)."""
+    layout = binary_layout(path, size, body_start, header, vi)
+    if layout is None:
+        return None
+    offset, dtype, count = layout
+    blocks = [block for _, block in vertex_rows(path, offset, dtype, count, max(count, 1))]
+    return blocks[0] if blocks else np.zeros(0, dtype=dtype.newbyteorder("="))
+
+
+def binary_layout(path: Path, size: int, body_start: int, header: Any, vi: int) -> tuple[int, np.dtype, int] | None:
+    """(byte offset, file dtype, count) of the vertex rows of binary PLY element ``vi``, after
+    checking that the file holds them (and no more rows when the vertices come last); None when the
+    vertices or an element before them have list properties (rows of varying size)."""
+    vertex, before, byte_order = header.elements[vi], header.elements[:vi], header.byte_order
+    count = int(vertex.count)
     dtype = vertex.dtype(byte_order)
     if has_lists(vertex):
         # lower bound: the scalar part of every vertex
@@ -241,16 +262,31 @@ def _read_binary(f, path, size, body_start, before, vertex, count, byte_order, l
     need = dtype.itemsize * count
     check_size(path, count, need, size - offset)
     extra = size - offset - need
-    if last and dtype.itemsize and extra >= dtype.itemsize:  # (a trailing newline is fine)
+    if vi == len(header.elements) - 1 and dtype.itemsize and extra >= dtype.itemsize:  # (a trailing newline is fine)
         raise FormatError(
             f"{path}: PLY header declares {count} vertices but {extra:,} more bytes follow them "
             f"({extra // dtype.itemsize:,} more vertices): {_LONGER}"
         )
-    f.seek(offset)
-    data = np.fromfile(f, dtype=dtype, count=count)
-    if data.shape[0] != count:  # the file shrank under us
-        raise FormatError(f"{path}: PLY body is truncated: read {data.shape[0]} of {count} vertices; re-export the file")
-    return data.astype(vertex.dtype("="), copy=False)
+    return offset, dtype, count
+
+
+def vertex_rows(path: Path, offset: int, dtype: np.dtype, count: int, rows: int, first: int = 0,
+                stop: int | None = None) -> Generator[tuple[int, np.ndarray], None, None]:
+    """The one read of fixed-size binary vertex rows: ``(first row, rows in native byte order)``,
+    ``rows`` at a time from row ``first`` to ``stop`` (default: the last), straight from the file."""
+    native = dtype.newbyteorder("=")
+    stop = count if stop is None else stop
+    with open(path, "rb") as f:
+        f.seek(offset + first * dtype.itemsize)
+        start = first
+        while start < stop:
+            m = min(rows, stop - start)
+            data = np.fromfile(f, dtype=dtype, count=m)
+            if data.shape[0] != m:  # the file shrank under us
+                raise FormatError(f"{path}: PLY body is truncated: read {start + data.shape[0]} of {count} "
+                                  "vertices; re-export the file")
+            yield start, data.astype(native, copy=False)
+            start += m
 
 
 _LONGER = ("the vertex count is wrong or the file has trailing data; fix the 'element vertex' "
@@ -356,10 +392,16 @@ def _list_column(name: str, col: np.ndarray, notes: list[str]) -> np.ndarray | N
     return None
 
 
-def _to_scan(path: Path, data: np.ndarray, notes: list[str]) -> Scan:
+def vertex_points(data: np.ndarray) -> np.ndarray:
+    """The float64 (N, 3) coordinates of vertex rows."""
     pts = np.empty((data.shape[0], 3), dtype=np.float64)
     for j, c in enumerate(XYZ):
         pts[:, j] = data[c]
+    return pts
+
+
+def _to_scan(path: Path, data: np.ndarray, notes: list[str]) -> Scan:
+    pts = vertex_points(data)
     attrs: dict[str, np.ndarray] = {}
     for name in data.dtype.names or ():
         if name in XYZ:

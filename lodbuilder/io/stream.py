@@ -13,14 +13,17 @@ Every other input (ASCII PLY, PLY with list properties, E57, XYZ/CSV/TXT/PTS, NP
 stream: :func:`open_stream` reads it whole with :func:`lodbuilder.io.read_scans` and hands it out in
 chunks (``PointStream.streams`` is False), so it must fit in memory once.
 
-A chunk gives exactly what :func:`lodbuilder.io.read_scan` gives for the same rows: float64
-coordinates and every other field as an attribute in the file's dtype, and the stream's
-``metadata`` equals the reader's (a test checks both per format).
+Each streaming format has one reading path, in its own module, that both this module and
+:func:`lodbuilder.io.read_scan` use (laspy's chunk iterator pattern): ``las.read.las_rows``,
+``ply.vertex_rows`` and ``npy.npy_rows`` yield the rows in chunks; a whole read is that read in one
+chunk. So a chunk gives exactly what :func:`lodbuilder.io.read_scan` gives for the same rows:
+float64 coordinates and every other field as an attribute in the file's dtype, and the stream's
+``metadata`` equals the reader's (a test checks both per format). Coordinates that are NaN or inf
+are refused per chunk here (naming its rows) and per scan by the whole read.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 from collections.abc import Iterator
@@ -30,8 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FormatError, LodbuilderError, ScanFileError
-from ._files import library_panic
+from ..errors import FormatError, LodbuilderError
 from .base import Scan
 
 log = logging.getLogger(__name__)
@@ -69,9 +71,12 @@ class PointStream:
     streams: bool
     _iter: Any = field(default=None, repr=False)
 
-    def chunks(self, size: int = CHUNK) -> Iterator[Chunk]:
-        """The rows in file order, ``size`` at a time (the last chunk may be shorter)."""
-        yield from self._iter(max(1, int(size)))
+    def chunks(self, size: int = CHUNK, start: int = 0, stop: int | None = None) -> Iterator[Chunk]:
+        """The rows ``start .. stop`` (default: all) in file order, ``size`` at a time (the last
+        chunk may be shorter); a chunk's ``start`` is its first row in the whole file. LAS/LAZ,
+        PLY and NPY seek to ``start`` (a LAZ file through its chunk table)."""
+        stop = self.n_points if stop is None else min(int(stop), self.n_points)
+        yield from self._iter(max(1, int(size)), max(0, int(start)), stop)
 
 
 def streams(path: str | os.PathLike[str]) -> bool:
@@ -114,6 +119,19 @@ def peek_stream(path: str | os.PathLike[str]) -> PointStream | None:
     return _streaming(check_input_file(path))
 
 
+def declared_crs(path: str | os.PathLike[str]) -> str | None:
+    """The CRS a scan file declares (WKT or None) without reading its points: the LAS/LAZ or PLY
+    header, an E57's root ``coordinateMetadata``, an NPZ's metadata, else the ``.prj`` sidecar."""
+    from .crs import KEY_WKT, read_sidecar
+    from .registry import reader_for
+
+    stream = peek_stream(path)
+    if stream is not None:
+        return stream.metadata.get(KEY_WKT)
+    peek = getattr(reader_for(path)[1], "declared_crs", None)
+    return peek(Path(path)) if peek is not None else read_sidecar(path)
+
+
 def _streaming(p: Path) -> PointStream | None:
     from .registry import reader_for
 
@@ -136,9 +154,9 @@ def _scan_fields(scan: Scan) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
 def scan_stream(scan: Scan, path: Path | None = None) -> PointStream:
     """A stream over an in-memory scan (its rows handed out in chunks)."""
 
-    def it(size: int) -> Iterator[Chunk]:
-        for lo in range(0, len(scan), size):
-            hi = min(len(scan), lo + size)
+    def it(size: int, start: int, stop: int) -> Iterator[Chunk]:
+        for lo in range(start, stop, size):
+            hi = min(stop, lo + size)
             yield Chunk(lo, scan.points[lo:hi], {k: np.asarray(v)[lo:hi] for k, v in scan.attributes.items()})
 
     return PointStream(path or Path(scan.source or scan.name), scan.name, scan.reader, len(scan),
@@ -157,93 +175,27 @@ def _whole_stream(p: Path, scan_index: int | None, crs: str | None = None, crs_o
 
 # ------------------------------------------------------------------------------------ LAS/LAZ
 
-def _foreign_error(p: Path, exc: BaseException) -> FormatError:
-    """A parser library's own error, worded as :func:`lodbuilder.io.read_scans` words it."""
-    from ._files import exc_line
-
-    return FormatError(f"{p}: cannot be read as LAS ({exc_line(exc)}); check or re-export the file")
-
-
-def _las_error(p: Path, exc: BaseException) -> FormatError:
-    msg = " ".join(str(exc).split())
-    return FormatError(f"{p}: not a readable LAS/LAZ file ({msg}); check or re-export it")
-
-
 def _las_stream(p: Path) -> PointStream:
-    from .las.common import laspy_module, quiet_laspy
+    from .las.common import laspy_module
+    from .las.read import las_header, las_rows
 
     laspy = laspy_module(p)
-    n, meta, rename, dims, probe = _las_header(laspy, p)
+    header = las_header(laspy, p)
+    n = header.n_points
     if n == 0:
         raise FormatError(f"{p}: holds no points; a scan needs at least one point")
-    names = {d: rename.get(d, d) for d in dims}
-    # read() keeps the standard field's place in its dict when an exact copy replaces it
-    order = [d for d in dims if d not in rename] + [d for d in dims if d in rename]
-    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}
-    if probe is not None:
-        for d in order:
-            a = np.asarray(probe[d])
-            fields[names[d]] = (a.dtype, tuple(a.shape[1:]))
+    first = las_rows(laspy, p, header, 1)
+    _, _, probe = next(first)  # the first point: the attributes' dtypes and shapes
+    first.close()
+    fields = {k: (a.dtype, tuple(a.shape[1:])) for k, a in probe.items()}
     name = p.name[: -len(".copc.laz")] if p.name.lower().endswith(".copc.laz") else p.stem
 
-    def it(size: int) -> Iterator[Chunk]:
-        start = 0
-        try:
-            with quiet_laspy(), laspy.open(str(p)) as reader:
-                for rec in reader.chunk_iterator(size):
-                    m = len(rec)
-                    if m == 0:
-                        continue
-                    pts = np.empty((m, 3), dtype=np.float64)
-                    pts[:, 0] = rec.x
-                    pts[:, 1] = rec.y
-                    pts[:, 2] = rec.z
-                    attrs = {names[d]: np.ascontiguousarray(np.asarray(rec[d])) for d in order}
-                    _check_finite(p, pts, start)
-                    yield Chunk(start, pts, attrs)
-                    start += m
-        except laspy.errors.LaspyException as exc:
-            raise _las_error(p, exc) from None
-        except LodbuilderError:
-            raise
-        except BaseException as exc:
-            if not isinstance(exc, Exception) and not library_panic(exc):
-                raise
-            raise _foreign_error(p, exc) from None
-        if start != n:
-            raise FormatError(f"{p}: the header declares {n} points but the file holds {start}; re-export it")
+    def it(size: int, first: int, stop: int) -> Iterator[Chunk]:
+        for start, pts, attrs in las_rows(laspy, p, header, size, first, stop):
+            _check_finite(p, pts, start)
+            yield Chunk(start, pts, attrs)
 
-    return PointStream(p, name, "las", n, meta, fields, True, it)
-
-
-def _las_header(laspy: Any, p: Path) -> tuple[int, dict[str, Any], dict[str, str], list[str], Any]:
-    """A LAS/LAZ file's point count, metadata, renamed fields, dimensions and first point, after the
-    checks that refuse a damaged file; one line for every failure."""
-    from .las.common import check_laz_backend, quiet_laspy
-    from .las.read import check_chunk_table, check_vlr_counts, las_metadata
-
-    check_laz_backend(laspy, p)
-    try:
-        check_vlr_counts(p)
-        if p.suffix.lower() == ".laz":
-            check_chunk_table(laspy, p)
-        with quiet_laspy(), laspy.open(str(p)) as reader:
-            hdr = reader.header
-            n = int(hdr.point_count)
-            meta, rename = las_metadata(hdr, hdr.point_format, p)
-            dims = [d for d in hdr.point_format.dimension_names if d not in ("X", "Y", "Z")]
-            probe = reader.read_points(1) if n else None
-    except laspy.errors.LaspyException as exc:
-        raise _las_error(p, exc) from None
-    except OSError as exc:
-        raise ScanFileError(f"{p}: cannot be read ({' '.join(str(exc).split())}); check the file") from None
-    except LodbuilderError:
-        raise
-    except BaseException as exc:  # lazrs' own errors (or panics) on a damaged file: the reader's message
-        if not isinstance(exc, Exception) and not library_panic(exc):
-            raise
-        raise _foreign_error(p, exc) from None
-    return n, meta, rename, dims, probe
+    return PointStream(p, name, "las", n, header.metadata, fields, True, it)
 
 
 def _check_finite(p: Path, pts: np.ndarray, start: int) -> None:
@@ -259,7 +211,16 @@ def _check_finite(p: Path, pts: np.ndarray, start: int) -> None:
 
 def _ply_stream(p: Path) -> PointStream | None:
     """Binary PLY with fixed-size vertex rows after fixed-size elements; None otherwise."""
-    from .ply import XYZ, check_size, has_lists, header_metadata, parse_header
+    from .ply import (
+        BYTE_ORDER_SAMPLE,
+        XYZ,
+        binary_layout,
+        check_byte_order,
+        header_metadata,
+        parse_header,
+        vertex_points,
+        vertex_rows,
+    )
 
     size = p.stat().st_size
     notes: list[str] = []
@@ -273,40 +234,23 @@ def _ply_stream(p: Path) -> PointStream | None:
         return None  # the reader's own error
     vi = names.index("vertex")
     vertex = header.elements[vi]
-    before = header.elements[:vi]
-    if has_lists(vertex) or any(has_lists(e) for e in before):
-        return None
-    props = [q.name for q in vertex.properties]
-    if any(c not in props for c in XYZ):
+    if any(c not in [q.name for q in vertex.properties] for c in XYZ) or int(vertex.count) == 0:
         return None  # the reader's own error
-    order = header.byte_order
-    dtype = vertex.dtype(order)
-    count = int(vertex.count)
-    if count == 0:
+    layout = binary_layout(p, size, body_start, header, vi)
+    if layout is None:
         return None
-    offset = body_start + sum(int(e.count) * e.dtype(order).itemsize for e in before)
-    check_size(p, count, dtype.itemsize * count, size - offset)
-    native = vertex.dtype("=")
-    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {n: (native[n], ()) for n in native.names if n not in XYZ}
+    offset, dtype, count = layout
+    sample = vertex_rows(p, offset, dtype, count, BYTE_ORDER_SAMPLE)
+    check_byte_order(p, next(sample)[1], header.byte_order)  # on the rows the whole read checks
+    sample.close()
+    native = dtype.newbyteorder("=")
+    fields: dict[str, tuple[np.dtype, tuple[int, ...]]] = {n: (native[n], ()) for n in native.names or () if n not in XYZ}
 
-    def it(rows: int) -> Iterator[Chunk]:
-        with open(p, "rb") as f:
-            f.seek(offset)
-            start = 0
-            while start < count:
-                m = min(rows, count - start)
-                data = np.fromfile(f, dtype=dtype, count=m)
-                if data.shape[0] != m:
-                    raise FormatError(f"{p}: PLY body is truncated: read {start + data.shape[0]} of {count} "
-                                      "vertices; re-export the file")
-                data = data.astype(native, copy=False)
-                pts = np.empty((m, 3), dtype=np.float64)
-                for j, c in enumerate(XYZ):
-                    pts[:, j] = data[c]
-                _check_finite(p, pts, start)
-                attrs = {n: np.ascontiguousarray(data[n]) for n in fields}
-                yield Chunk(start, pts, attrs)
-                start += m
+    def it(rows: int, first: int, stop: int) -> Iterator[Chunk]:
+        for start, data in vertex_rows(p, offset, dtype, count, rows, first, stop):
+            pts = vertex_points(data)
+            _check_finite(p, pts, start)
+            yield Chunk(start, pts, {n: np.ascontiguousarray(data[n]) for n in fields})
 
     return PointStream(p, p.stem, "ply", count, header_metadata(header, vertex, notes), fields, True, it)
 
@@ -314,44 +258,18 @@ def _ply_stream(p: Path) -> PointStream | None:
 # ------------------------------------------------------------------------------------ NPY
 
 def _npy_stream(p: Path) -> PointStream | None:
-    try:
-        arr = np.load(p, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError):
-        return None  # the reader's own error
-    xyz = ("x", "y", "z")
-    if arr.dtype.names:
-        if any(c not in arr.dtype.names for c in xyz) or arr.ndim != 1:
-            return None
-        fields = {n: (arr.dtype[n].base, arr.dtype[n].shape) for n in arr.dtype.names if n not in xyz}
-        layout = "structured" if fields else "plain"
-    elif arr.ndim == 2 and arr.shape[1] == 3 and arr.dtype.kind in "iuf":
-        fields, layout = {}, "plain"
-    else:
-        return None
-    n = int(arr.shape[0])
-    if n == 0:
-        return None
-    del arr
-
-    def it(size: int) -> Iterator[Chunk]:
-        a = np.load(p, mmap_mode="r", allow_pickle=False)
-        try:
-            for lo in range(0, n, size):
-                hi = min(n, lo + size)
-                block = np.array(a[lo:hi])  # a copy: the map is dropped chunk by chunk
-                if block.dtype.names:
-                    pts = np.stack([np.asarray(block[c], dtype=np.float64) for c in xyz], axis=1)
-                    attrs = {k: np.ascontiguousarray(block[k]) for k in fields}
-                else:
-                    pts, attrs = np.asarray(block, dtype=np.float64), {}
-                _check_finite(p, pts, lo)
-                yield Chunk(lo, pts, attrs)
-        finally:
-            with contextlib.suppress(AttributeError):
-                a._mmap.close()
-
     from .crs import read_sidecar, set_crs
+    from .npy import npy_layout, npy_rows
 
-    meta: dict[str, Any] = {"npy_layout": layout}
+    layout = npy_layout(p)
+    if layout is None:
+        return None  # the reader's own error, or a layout read whole
+
+    def it(size: int, first: int, stop: int) -> Iterator[Chunk]:
+        for start, pts, attrs in npy_rows(p, layout, size, first, stop):
+            _check_finite(p, pts, start)
+            yield Chunk(start, pts, attrs)
+
+    meta: dict[str, Any] = {"npy_layout": "structured" if layout.fields else "plain"}
     set_crs(meta, read_sidecar(p), "file")  # as lodbuilder.io.npy.read: a .prj sidecar
-    return PointStream(p, p.stem, "npy", n, meta, fields, True, it)
+    return PointStream(p, p.stem, "npy", layout.n, meta, layout.fields, True, it)

@@ -10,6 +10,9 @@ count) is skipped. Lines starting with ``#`` are comments; a ``# dtypes: f8,f8,f
 (written by lodbuilder before 0.2) restores each column's dtype; otherwise integer-valued columns
 named red/green/blue become uint8 (or uint16 when > 255) and every other column stays float64.
 The CRS is read from a ``<file>.prj`` sidecar (WKT) when there is one.
+
+Text does not stream: the column layout and dtypes are decided from the whole file, so this
+reader is the one path, and :func:`lodbuilder.io.stream.open_stream` hands its scan out in chunks.
 """
 
 from __future__ import annotations

@@ -434,38 +434,17 @@ def build_band(
         raise InputError(f"points has {n:,} points; at most {MAX_POINTS:,} can be ordered in one run")
     if max_memory is None:
         max_memory = default_max_memory()
-    rmax = r if radius is None else max(r, float(radius.max()))
-    margin = math.ceil(rmax / h) + 3
-    lo = points.min(axis=0)
-    origin = lo - margin * h
-    extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
-    if extent > MAX_COORD:
-        need = h * extent / MAX_COORD
-        raise InputError(
-            f"voxel_size={h:g} would need {extent:,} voxels along one axis of the bounding box "
-            f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}, "
-            "or drop points far from the rest (outliers) if they make the box this large"
-        )
+    origin = _grid_origin(points, h, r, radius)
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
     ckeys, perm, u, ostart = cells(points, origin, h)
-
-    def too_big(need: int | None) -> MemoryBudgetError:
-        what = "more voxels than" if need is None else f"at least {need:,} voxels, more than"
-        mem = f"{max_memory / 2**30:.2f} GiB" if max_memory >= 2**30 else f"{max_memory / 2**20:.3g} MiB"
-        return MemoryBudgetError(
-            f"voxel_size={h:g} with band_radius={r:g} needs {what} max_memory={mem} allows "
-            f"({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
-        )
-
     if budget_voxels < ostart.shape[0] - 1:
-        raise too_big(ostart.shape[0] - 1)
+        raise _too_big(h, r, max_memory, budget_voxels, ostart.shape[0] - 1)
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
     bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
     keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
-    del bkey, bstart, cand
-    del rad, ostart
+    del bkey, bstart, cand, rad, ostart
     if count < 0:
-        raise too_big(None)
+        raise _too_big(h, r, max_memory, budget_voxels, None)
     nbr = neighbour_table(keys)
     cs = np.empty(keys.shape[0] + 1, dtype=np.int32)
     cs[:-1] = np.searchsorted(ckeys, keys)
@@ -479,6 +458,33 @@ def build_band(
     if normal is not None:
         band.vcost, band.near = one_sided(band, normal, separation, radius, beta)
     return band
+
+
+def _grid_origin(points: np.ndarray, h: float, r: float, radius: np.ndarray | None) -> np.ndarray:
+    """The grid's origin, a margin of the largest band radius (+ 3 voxels) below the points;
+    refuses a grid too large to index."""
+    rmax = r if radius is None else max(r, float(radius.max()))
+    margin = math.ceil(rmax / h) + 3
+    origin = points.min(axis=0) - margin * h
+    extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
+    if extent > MAX_COORD:
+        need = h * extent / MAX_COORD
+        raise InputError(
+            f"voxel_size={h:g} would need {extent:,} voxels along one axis of the bounding box "
+            f"(at most {MAX_COORD:,} can be indexed); use a voxel_size of at least {need:.3g}, "
+            "or drop points far from the rest (outliers) if they make the box this large"
+        )
+    return origin
+
+
+def _too_big(h: float, r: float, max_memory: int, budget_voxels: int, need: int | None) -> MemoryBudgetError:
+    """The refusal of a band over the voxel budget (of at least ``need`` voxels when known)."""
+    what = "more voxels than" if need is None else f"at least {need:,} voxels, more than"
+    mem = f"{max_memory / 2**30:.2f} GiB" if max_memory >= 2**30 else f"{max_memory / 2**20:.3g} MiB"
+    return MemoryBudgetError(
+        f"voxel_size={h:g} with band_radius={r:g} needs {what} max_memory={mem} allows "
+        f"({max(budget_voxels, 0):,}); increase voxel_size or max_memory"
+    )
 
 
 def one_sided(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from typing import Any
 
 import numpy as np
@@ -234,45 +235,81 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | 
 
 
 def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress, timed=None):
-    import time
-
     from .._kernels.warm import ensure_compiled
-    from .band import TAIL_PER_SEP, TAIL_SLOPE, plan_and_build_band
 
     compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
-    t0 = time.perf_counter()
-    c0 = time.process_time()
+    t0, c0 = time.perf_counter(), time.process_time()
     n = pts.shape[0]
+    gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
+    m = upts.shape[0]
+    extent = float(np.ptp(upts, axis=0).max())
+    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
+    band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
+    del upts
+    h, r = plan.h, plan.r
+    k_max = m if size is None else min(m, size)
+    t1, c1 = time.perf_counter(), time.process_time()
+    stats.update(time_band=t1 - t0, cpu_band=c1 - c0)
+    report(progress, "band", 1, 1)
+    seeds_c, tseed_c, tkey_g = _engine_seeds(band.perm, m, useeds, gid, timed, h)
+    tpos = np.zeros(1, np.int64)  # the timed seeds' cursor, shared by the grid phase and the tail
+    stats["n_timed_seeds"] = int(tseed_c.size)
+    vcost, pcost, cmin, cscale = _engine_costs(cost, rep, band)
+    piece, npiece = _pieces(band, stats)
+    psep, pnrm, foot = _tail_fields(band, plan)
+    rho_g = -1.0 if rho is None else rho / h
+    report(progress, "ordering", 0, k_max)
+    order, radius, parent, k, val, lq, rank, pops = _grid_phase(
+        band, vcost, pcost, cost is not None, foot, pnrm, seeds_c, k_max, rho_g,
+        plan.handover / h * cscale, tseed_c, tkey_g, tpos, piece, npiece,
+    )
+    del vcost
+    release_freed_memory(n)
+    t2, c2 = time.perf_counter(), time.process_time()
+    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
+    stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
+    report(progress, "ordering", int(k), k_max)
+    # the tail needs the points, the neighbour table and the point ranges only
+    u, nbr, cs, perm, keys = band.u, band.nbr, band.cs, band.perm, band.keys
+    del band, foot
+    runs = _tail_runs(keys, cs, plan.handover / h * cscale / cmin) if k < k_max else None
+    del keys  # (before the tail: it holds the coarse runs instead)
+    if runs is not None:
+        k = _euclid_tail(
+            u, nbr, cs, runs, pcost, cost is not None, cmin, psep, pnrm, val, lq, rank,
+            order, radius, parent, k, k_max, rho_g, tseed_c, tkey_g, tpos,
+        )
+    del runs
+    stop = _stop_radius(val, rank, tseed_c) * h
+    del psep, pnrm, val, lq, rank, u, nbr, cs
+    release_freed_memory(n)
+    stats.update(time_tail=time.perf_counter() - t2, cpu_tail=time.process_time() - c2)
+    report(progress, "ordering", int(k), k_max)
+    stats["piece_entries"] = _piece_entries(piece, order[:k])
+    del piece
+    uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
+    del perm, order
+    user_grid = voxel_size is not None or band_radius is not None
+    radius, stop, stats["rounding_bound"] = _promised(radius[:k] * h, stop, extent, h, r, user_grid)
+    parent = parent[:k].astype(np.int64)  # (the kernels' int32 positions)
+    return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
+
+
+def _distinct_points(pts, seed_arr):
+    """The engine's input: (group id per point, representative per group, the distinct points,
+    the engine seeds). Without duplicates the ids are None and the points and seeds are the input's."""
     gid, rep = _duplicate_groups(pts, seed_arr)
     if gid is None or rep is None:  # no duplicates
-        m, upts, useeds = n, pts, seed_arr
-    else:
-        m = rep.shape[0]
-        upts = pts[rep]
-        # engine seeds: the groups of the seeds, first occurrence, in order
-        _, first = np.unique(gid[seed_arr], return_index=True)
-        useeds = gid[seed_arr][np.sort(first)]
-    report(progress, "band", 0, 1)
-    extent = float(np.ptp(upts, axis=0).max())
-    band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory)
-    release_freed_memory(n)
-    h, r = plan.h, plan.r
-    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
-    stats["thin_points"] = plan.thin_points
-    stats["thin_points_found"] = found
-    stats["compiled_kernels"] = compiled
-    k_max = m if size is None else min(m, size)
-    del upts
-    stats["band_voxels"] = band.n_voxels
-    stats["band_bytes"] = band.nbytes
-    t1 = time.perf_counter()
-    c1 = time.process_time()
-    stats["time_band"] = t1 - t0
-    stats["cpu_band"] = c1 - c0
-    report(progress, "band", 1, 1)
-    weighted = cost is not None
+        return None, None, pts, seed_arr
+    # engine seeds: the groups of the seeds, first occurrence, in order
+    _, first = np.unique(gid[seed_arr], return_index=True)
+    return gid, rep, pts[rep], gid[seed_arr][np.sort(first)]
+
+
+def _engine_seeds(perm, m, useeds, gid, timed, h):
+    """The seeds and the timed seeds in band (Morton) numbering, and the timed keys in grid units."""
     inv = np.empty(m, dtype=np.int32)
-    inv[band.perm] = np.arange(m, dtype=np.int32)
+    inv[perm] = np.arange(m, dtype=np.int32)
     seeds_c = inv[useeds]
     tidx, tkeys = timed if timed is not None else (np.empty(0, np.int64), np.empty(0))
     if gid is not None and tidx.size:  # one timed seed per distinct point: its first (largest key)
@@ -281,87 +318,97 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
         tidx, tkeys = gid[tidx[first]], tkeys[first]
     keep = ~np.isin(tidx, useeds)  # a seed is ordered first anyway: the kernels never meet it again
     tidx, tkeys = tidx[keep], tkeys[keep]
-    tseed_c = inv[tidx].astype(np.int32)
-    tkey_g = tkeys / h
-    tpos = np.zeros(1, np.int64)
-    stats["n_timed_seeds"] = int(tidx.size)
-    del inv
-    if weighted:
-        ucost = (cost if rep is None else cost[rep])[band.perm]
-        vcost = band.vcost * ucost[band.foot].astype(np.float32)
-        pcost = ucost
-        cmin = float(ucost.min())
-        cscale = float(ucost.mean())  # hand over at the same Euclidean scale as an unweighted run
-    else:
-        cscale = 1.0
-        vcost = band.vcost
-        pcost = np.ones(1)
-        cmin = 1.0
+    return seeds_c, inv[tidx].astype(np.int32), tkeys / h
+
+
+def _engine_costs(cost, rep, band):
+    """(voxel cost, point cost, least point cost, cost scale): ones for an unweighted run."""
+    if cost is None:
+        return band.vcost, np.ones(1), 1.0, 1.0
+    ucost = (cost if rep is None else cost[rep])[band.perm]
+    vcost = band.vcost * ucost[band.foot].astype(np.float32)
+    # the scale: hand over at the same Euclidean scale as an unweighted run
+    return vcost, ucost, float(ucost.min()), float(ucost.mean())
+
+
+def _tail_fields(band, plan):
+    """(separation, normal, foot voxel) per point for the thin-sheet slope of the ordering; stand-ins
+    of one element when the plan found no thin sheets. Frees what the ordering no longer needs."""
+    from .band import TAIL_PER_SEP
+
+    if plan.separation is None:
+        band.foot = np.zeros(1, dtype=np.int32)  # not needed any more: free it before the ordering
+        return np.full(1, np.inf, dtype=np.float32), np.zeros((1, 3), dtype=np.float32), band.foot
+    psep = (TAIL_PER_SEP / plan.h * plan.separation[band.perm]).astype(np.float32)
+    pnrm = plan.normal[band.perm]
+    plan.radius = plan.separation = plan.normal = plan.outer = None  # (copied above: free them)
+    return psep, pnrm, band.foot
+
+
+def _grid_phase(band, vcost, pcost, weighted, foot, pnrm, seeds_c, k_max, rho_g, handover_g,
+                tseed_c, tkey_g, tpos, piece, npiece):
+    """The ordering on the grid, down to the hand-over radius: the compiled kernel, checked."""
     from .._kernels.march import grid_phase
-    from .._kernels.tail import euclid_tail
+    from .band import TAIL_SLOPE
+
+    out = grid_phase(
+        band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
+        TAIL_SLOPE, seeds_c, k_max, rho_g, handover_g, DEBUG, tseed_c, tkey_g, tpos,
+        piece, np.int64(npiece),
+    )
+    pops = out[-1]
+    if pops < 0:
+        which = "front" if pops == -1 else "candidate"
+        raise EngineError(f"the {which} heap broke its invariant (debug check); this is a bug, please report it")
+    return out
+
+
+def _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats):
+    """Plan and build the band of the distinct points; its figures go to ``stats``."""
+    from .band import plan_and_build_band
+
+    report(progress, "band", 0, 1)
+    band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory)
+    release_freed_memory(stats["n_points"])
+    stats["thin_points"] = plan.thin_points
+    stats["thin_points_found"] = found
+    stats["compiled_kernels"] = compiled
+    stats["band_voxels"] = band.n_voxels
+    stats["band_bytes"] = band.nbytes
+    return band, plan
+
+
+def _pieces(band, stats):
+    """The connected piece of the band of each point, and their count (also in ``stats``)."""
     from .._kernels.topology import point_pieces
 
     piece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
     stats["pieces"] = int(npiece)
+    return piece, npiece
 
-    if plan.separation is None:
-        psep = np.full(1, np.inf, dtype=np.float32)
-        pnrm = np.zeros((1, 3), dtype=np.float32)
-        foot = np.zeros(1, dtype=np.int32)
-        band.foot = foot  # not needed any more: free it before the ordering
-    else:
-        psep = (TAIL_PER_SEP / h * plan.separation[band.perm]).astype(np.float32)
-        pnrm = plan.normal[band.perm]
-        foot = band.foot
-        plan.radius = plan.separation = plan.normal = plan.outer = None  # (copied above: free them)
-    rho_g = -1.0 if rho is None else rho / h
-    report(progress, "ordering", 0, k_max)
-    order, radius, parent, k, val, lq, rank, pops = grid_phase(
-        band.u, band.keys, band.nbr, band.cs, band.near, vcost, pcost, weighted, foot, pnrm,
-        TAIL_SLOPE, seeds_c, k_max, rho_g, plan.handover / h * cscale, DEBUG, tseed_c, tkey_g, tpos,
-        piece, np.int64(npiece),
+
+def _tail_runs(keys, cs, reach):
+    """The coarse runs of the voxel keys that the Euclidean tail searches, for balls of up to
+    ``reach`` voxels: (rkey, ridx, rstart, rend, levels)."""
+    from .._kernels.grid import coarse_runs
+
+    levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
+    return (*coarse_runs(keys, cs, levels), levels)
+
+
+def _euclid_tail(u, nbr, cs, runs, pcost, weighted, cmin, psep, pnrm, val, lq, rank,
+                 order, radius, parent, k, k_max, rho_g, tseed_c, tkey_g, tpos):
+    """The ordering below the hand-over radius with exact distances among neighbours (in place);
+    returns the new count."""
+    from .._kernels.tail import euclid_tail
+    from .band import TAIL_SLOPE
+
+    rkey, ridx, rstart, rend, levels = runs
+    return euclid_tail(
+        u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
+        weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
+        tseed_c, tkey_g, tpos,
     )
-    del vcost
-    release_freed_memory(n)
-    if pops < 0:
-        which = "front" if pops == -1 else "candidate"
-        raise EngineError(f"the {which} heap broke its invariant (debug check); this is a bug, please report it")
-    t2 = time.perf_counter()
-    c2 = time.process_time()
-    stats.update(grid_points=int(k), pops=int(pops), time_grid=t2 - t1, cpu_grid=c2 - c1)
-    stats["pops_per_voxel"] = pops / max(band.n_voxels, 1)
-    report(progress, "ordering", int(k), k_max)
-    # the tail needs the points, the neighbour table and the point ranges only
-    u, nbr, cs, perm, keys = band.u, band.nbr, band.cs, band.perm, band.keys
-    del band, foot
-    if k < k_max:
-        from .._kernels.grid import coarse_runs
-
-        reach = plan.handover / h * cscale / cmin  # the largest ball of the tail, in voxels
-        levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
-        rkey, ridx, rstart, rend = coarse_runs(keys, cs, levels)
-        del keys
-        k = euclid_tail(
-            u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
-            weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
-            tseed_c, tkey_g, tpos,
-        )
-        del rkey, ridx, rstart, rend
-    stop = _stop_radius(val, rank, tseed_c) * h
-    del psep, pnrm, val, lq, rank, u, nbr, cs
-    release_freed_memory(n)
-    t3 = time.perf_counter()
-    stats["time_tail"] = t3 - t2
-    stats["cpu_tail"] = time.process_time() - c2
-    report(progress, "ordering", int(k), k_max)
-    stats["piece_entries"] = _piece_entries(piece, order[:k])
-    del piece
-    uorder = perm[order[:k]].astype(np.int64)  # distinct-point index
-    del perm, order
-    user_grid = voxel_size is not None or band_radius is not None
-    radius, stop, stats["rounding_bound"] = _promised(radius[:k] * h, stop, extent, h, r, user_grid)
-    parent = parent[:k].astype(np.int64)
-    return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
 
 
 def _promised(radius, stop, extent, h, r, user_grid):

@@ -101,6 +101,22 @@ class LevelViewer:
         self.full_mesh: pv.PolyData | None = None
         # the full scan's spacing, from the level of half the points (rho ~ 1/sqrt(k) on a surface)
         self._full_rho = data.rho_for_size(max(1, len(data) // 2)) / math.sqrt(2.0)
+        self.plotter: Any = self._make_plotter(off_screen, full_scan, window_size)
+        self.level_mesh = pv.PolyData()
+        self._update_level_arrays()
+        self._add_level_pane(show_help and not off_screen)
+        if full_scan:
+            self._add_full_pane()
+        self._add_overlays()
+        self._set_view(view)
+        self._update_point_size()
+        self._update_text()
+        if shade:
+            self.toggle_shading()
+
+    @staticmethod
+    def _make_plotter(off_screen: bool, full_scan: bool, window_size: Sequence[int] | None) -> Any:
+        """A white plotter of one pane, or two side by side for the full scan."""
         if window_size is None:
             window_size = (1600, 800) if full_scan else (1000, 800)
         window_size = check_window_size(window_size, "window_size")
@@ -108,52 +124,51 @@ class LevelViewer:
         plotter_cls: Any = pv.Plotter  # (pyvista's decorated __init__ confuses type checkers)
         # No multisampling: points do not need it, and 8x MSAA (PyVista's default) costs ~70 ms a
         # frame at 1600x800 under software OpenGL (llvmpipe), more than drawing 100k points.
-        self.plotter: Any = plotter_cls(
-            off_screen=off_screen, shape=shape, window_size=list(window_size)
-        )
-        self.plotter.ren_win.SetMultiSamples(0)
-        self.plotter.set_background("white")
+        plotter = plotter_cls(off_screen=off_screen, shape=shape, window_size=list(window_size))
+        plotter.ren_win.SetMultiSamples(0)
+        plotter.set_background("white")
+        return plotter
 
-        self.level_mesh = pv.PolyData()
-        self._update_level_arrays()
+    def _add_level_pane(self, show_help: bool) -> None:
+        """The level's points and its text (and the key help) in the left pane."""
         self.plotter.subplot(0, 0)
         self.level_actor = self.plotter.add_mesh(
             self.level_mesh, scalars="colours", rgb=True, style="points", point_size=3.0
         )
         self._text = self.plotter.add_text("", position="upper_left", font_size=10, color="black")
-        if show_help and not off_screen:
+        if show_help:
             self.plotter.add_text(HELP, position="lower_left", font_size=9, color="gray")
-        if full_scan:
-            self.plotter.subplot(0, 1)
-            self.full_mesh = pv.PolyData()
-            self._set_arrays(self.full_mesh, data.points, n, self._colours)
-            self.full_actor = self.plotter.add_mesh(
-                self.full_mesh, scalars="colours", rgb=True, style="points", point_size=2.0
-            )
-            names = ", ".join(data.scan_names)
-            self.plotter.add_text(
-                f"full scan: {n:,} points ({names})",
-                position="upper_left",
-                font_size=10,
-                color="black",
-            )
-            self.plotter.link_views()
-        # the scale of the colour mode, in the rightmost pane; the CRS in the level pane's corner
+
+    def _add_full_pane(self) -> None:
+        """Every point of the scan in the right pane, its camera linked to the level's."""
+        n = len(self.data)
+        self.plotter.subplot(0, 1)
+        self.full_mesh = pv.PolyData()
+        self._set_arrays(self.full_mesh, self.data.points, n, self._colours)
+        self.full_actor = self.plotter.add_mesh(
+            self.full_mesh, scalars="colours", rgb=True, style="points", point_size=2.0
+        )
+        names = ", ".join(self.data.scan_names)
+        self.plotter.add_text(
+            f"full scan: {n:,} points ({names})",
+            position="upper_left",
+            font_size=10,
+            color="black",
+        )
+        self.plotter.link_views()
+
+    def _add_overlays(self) -> None:
+        """The scale of the colour mode in the rightmost pane; the CRS in the level pane's corner."""
         self.scalar_bar = overlays.scalar_bar()
         self.plotter.renderers[-1].AddViewProp(self.scalar_bar)
         self.legend_box = overlays.legend_box()
         self.plotter.renderers[-1].AddViewProp(self.legend_box)
-        overlays.set_scalar_bar(self.scalar_bar, data.legend(self.mode, self.shown), self.legend_box)
+        overlays.set_scalar_bar(self.scalar_bar, self.data.legend(self.mode, self.shown), self.legend_box)
         self.plotter.subplot(0, 0)
-        self.crs_label = crs_label(data.crs, data.units)
+        self.crs_label = crs_label(self.data.crs, self.data.units)
         self._crs_text = self.plotter.add_text(
             self.crs_label, position="lower_right", font_size=9, color="black"
         )
-        self._set_view(view)
-        self._update_point_size()
-        self._update_text()
-        if shade:
-            self.toggle_shading()
 
     # ---- arrays -------------------------------------------------------------------------------
 

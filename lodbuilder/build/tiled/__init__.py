@@ -1,23 +1,32 @@
 """Out-of-core, tiled farthest point ordering of one scan (the build path for scans that do not fit
-in memory, and for joint orderings of registered collections).
+in memory, and for joint orderings of registered collections: a survey of many files ordered as one
+surface).
 
-The scan is read in chunks (:mod:`lodbuilder.io.stream`) into a work directory, cut into spatial
-tiles (a k-d split of a point-count histogram, each tile small enough for the memory budget), and
-ordered in seven phases:
+The parent plans from the inputs' headers (point counts, fields, CRS) and never reads a point in
+the first three phases: tasks (on a process pool or a Dask cluster) read, survey and cut the scan,
+one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; see
+:mod:`.survey` and :mod:`.blocks`). The phases:
 
-1. **read**: the input, chunk by chunk, into raw files (coordinates with poses applied, attributes);
-2. **plan**: point spacing, voxel size and band radius shared by every tile, the tiles;
+1. **read** (tasks): each block decoded, posed and written raw (coordinates and attributes); the
+   parent sums the blocks' counts, exact bounds, encodings and spacing sample;
+2. **plan** (tasks, then the parent): each block's count histogram and its cells' first points of
+   a decimated copy, summed; point spacing, voxel size and band radius shared by every tile; the
+   tiles (a k-d split of the histogram, each tile small enough for the memory budget);
 3. **coarse level**: a decimated copy (one point per grid cell) is ordered with FastFPS; its first
    points (the *head*) come first in the archive, with the certified bound "radius on the copy +
-   the cell diagonal" (every point lies within a cell diagonal of the copy);
+   the cell diagonal" (every point lies within a cell diagonal of the copy); meanwhile tasks cut
+   every block into the tiles' core and halo pieces;
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
-   tile and its halo (tasks on a process pool or a Dask cluster);
-5. **merge**: the tile orders are merged by descending insertion radius (an external k-way merge),
-   with the seam repair of :mod:`lodbuilder.build.tiled.merge`;
-6. **covering**: for each tile, the exact Euclidean covering radius of its points by every prefix
-   of the merged order (from the tile and its halo); the stored radius of a prefix is the largest
-   over the tiles, capped by the coarse bound, never increasing;
-7. **write**: the points in merged order, streamed into the archive part (external permutation).
+   tile and its halo (tasks);
+5. **merge** (parent): the tile orders are merged by descending insertion radius (an external
+   k-way merge), with the seam repair of :mod:`lodbuilder.build.tiled.merge`;
+6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
+   prefix of the merged order (from the tile and its halo); the stored radius of a prefix is the
+   largest over the tiles, capped by the coarse bound, never increasing (parent);
+7. **write** (parent): the points in merged order, streamed into the archive part (external
+   permutation).
+
+Phases 5 and 7 (and the radii of 6) still pass over every point in the parent (issue 19, item 2).
 
 Guarantees (checked by tests, stated in each tiled scan's build record): every prefix's stored
 radius is a true Euclidean covering radius of the whole scan; radii never increase; every input

@@ -12,20 +12,21 @@ import logging
 import math
 import os
 import time
-from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ...errors import BuildError, LodbuilderError
-from ...progress import ProgressCallback, report
+from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
-from .sums import SumFile, write_json
+from .pool import collect, result, submit
 from .sums import done as piece_done
-from .tasks import coarse_task, cover_tile, order_tile
-from .workdir import Decimator, Spill, distribute, point_blocks, read_json, spill
+from .sums import read_json, write_json
+from .survey import distribute_phase, plan_phase, read_phase
+from .tasks import coarse_task, cover_tile, order_tile, parameters_task
+from .timing import task_table
+from .workdir import Spill
 
 log = logging.getLogger(__name__)
 
@@ -70,52 +71,9 @@ def _mark(work: Path, phase: str, doc: dict[str, Any]) -> dict[str, Any]:
     return doc
 
 
-def _submit(ex: cf.Executor, calls: list[tuple[int, Any, tuple]]) -> dict[cf.Future, int]:
-    return {ex.submit(fn, *args): t for t, fn, args in calls}
-
-
-def _result(fut: cf.Future, name: str, where: str) -> Any:
-    """A finished task's result; its failure fails the scan, naming the task."""
-    try:
-        return fut.result()
-    except LodbuilderError as exc:
-        raise BuildError(f"scan {name!r}: {where} failed: {exc}") from exc
-    except BrokenProcessPool:
-        raise BuildError(f"scan {name!r}: {where} failed: its worker process "
-                         "died (killed or out of memory: lower --max-memory per worker or use fewer "
-                         "workers)") from None
-    except Exception as exc:
-        text = " ".join(str(exc).split())
-        raise BuildError(f"scan {name!r}: {where} failed: {type(exc).__name__}: {text}") from exc
-
-
-def _collect(futs: dict[cf.Future, int], what: str, name: str, n_total: int, progress: ProgressCallback,
-             stage: str, on_result: Any = None) -> list[dict[str, Any]]:
-    """Wait for submitted tasks; a failure fails the scan, naming the tile. ``on_result(result)``
-    is called as each task finishes (to record it for a resume)."""
-
-    def where(t: int) -> str:
-        return what if n_total == 1 and stage == "coarse" else f"{what} of tile {t + 1} of {n_total}"
-
-    done = n_total - len(futs)
-    report(progress, stage, done, n_total)
-    out = []
-    try:
-        for fut in cf.as_completed(futs):
-            out.append(_result(fut, name, where(futs[fut])))
-            if on_result is not None:
-                on_result(out[-1])
-            done += 1
-            report(progress, stage, done, n_total)
-    except BaseException:
-        for f in futs:
-            f.cancel()
-        raise
-    return out
-
-
 def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
-                  colour: list[int], passes: int, args: tuple, progress: ProgressCallback) -> int:
+                  colour: list[int], passes: int, args: tuple, pieces: dict[str, Any], progress: ProgressCallback
+                  ) -> int:
     """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
     near-face points of its neighbours as they were last ordered (in pass p for the neighbours of a
     smaller colour, else in pass p - 1). A task starts as soon as those are done, largest tiles
@@ -136,12 +94,19 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     def call(p: int, tile: P.Tile) -> tuple:
         t = tile.index
         faces = tuple(str(work / WL.face(u, q)) for q, u in deps(p, t) if u != t)
-        return (str(work), t, tile.to_json(), *args, faces, str(work / WL.face(t, p)))
+        doc = {**tile.to_json(), "core": pieces["core"][t], "halo": pieces["halo"][t]}
+        return (str(work), t, doc, *args, faces, str(work / WL.face(t, p)))
 
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
     total = n_tiles * passes
-    report(progress, "tiles", len(done), total)
+    size = {t.index: t.n_points for t in by_size}
+
+    def tell() -> None:
+        report_tasks(progress, "tiles", TaskCounts(len(done), total, sum(size[t] for _, t in done),
+                                                   passes * sum(size.values()), len(running)))
+
+    tell()
     try:
         while todo or running:
             for p, tile in [x for x in todo if all(d in done for d in deps(x[0], x[1].index))]:
@@ -150,25 +115,16 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
             fin, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
             for fut in fin:
                 p, t = running.pop(fut)
-                res = _result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
+                res = result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
                 write_json(work / WL.marker(WL.order_piece(t, p)), res)
                 WL.moment("tile")
                 done.add((p, t))
-                report(progress, "tiles", len(done), total)
+                tell()
     except BaseException:
         for f in running:
             f.cancel()
         raise
     return found
-
-
-def _spacing(sample: np.ndarray, n: int) -> float:
-    from ...sampling.band import median_spacing
-
-    if sample.shape[0] < 2:
-        return 1.0
-    s = median_spacing(sample) * math.sqrt(sample.shape[0] / max(n, 1))
-    return s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
 
 
 def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: str, work: Path, executor: cf.Executor,
@@ -187,14 +143,13 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     clock = _Clock()
 
     # 1. read: the scan into raw files, with bounds, a sample and the coordinate encoding
-    sp = _read(work, sources, progress)
+    sp = read_phase(executor, work, name, sources, parallel, progress)
     n = sp.n
     clock.lap("read")
 
     # 2. plan: parameters, histogram, tiles, the decimated copy
-    pl = _plan(work, sp, voxel_size, band_radius, budget, parallel, tile_points)
+    pl = _plan(executor, work, name, sp, voxel_size, band_radius, budget, parallel, tile_points, progress)
     tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
-    grid = P.Grid(np.asarray(pl["grid"]["lo"]), float(pl["grid"]["cell"]), tuple(pl["grid"]["shape"]))
     n_tiles = len(tiles)
     delta = float(pl["d_cell"]) * math.sqrt(3.0)  # every point is within a cell diagonal of the copy
     clock.lap("plan")
@@ -202,7 +157,7 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
 
     # 3. the coarse level (on a worker) while the parent writes the tiles' core and halo files
     worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
-    coarse, dist = _coarse_and_tiles(executor, work, name, n, pl, tiles, grid, delta, worker_budget, progress)
+    coarse, dist = _coarse_and_tiles(executor, work, name, sp, pl, delta, worker_budget, progress)
     halo = float(dist["halo"])
     clock.lap("tiles")
 
@@ -218,16 +173,16 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
 
     # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
     #    the points in stored order (the first pass of the write)
-    buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, float(pl["spacing"]),
-                                                             delta, progress)
+    buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
+                                                             float(pl["spacing"]), delta, progress)
     clock.lap("cover")
 
     # 7. write the part file in stored order
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              "phase_seconds": clock.rounded(3),
+              **_timings(clock, work),
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
-                        "passes": passes, **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
+                        "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
     info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
@@ -248,7 +203,7 @@ def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], di
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
     nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
     colour = P.colour_tiles(nbrs)
-    ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, progress)
+    ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress)
     stats = [read_json(work / WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     return by_size, colour, ordered, stats
 
@@ -268,24 +223,24 @@ def _merge(work: Path, n: int, stats: list[dict[str, Any]], seam_spacing: float,
     return merged
 
 
-def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: list[P.Tile], spacing: float,
-           delta: float, progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any], int]:
-    """Phase 6: the exact covering radii of every tile on the workers, combined, while the parent
-    puts the points in stored order (the first pass of the write). Returns the buckets' and the
-    radii's markers and how many tiles a resume found covered."""
+def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
+           spacing: float, delta: float, progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """Phase 6: the exact covering radii of every tile on the workers, combined, while other
+    tasks put the points in stored order (the first pass of the write). Returns the buckets' and
+    the radii's markers and how many tiles a resume found covered."""
     from .merge import assemble_radii
-    from .write import bucket_points
+    from .write import buckets_phase
 
     n, n_tiles = sp.n, len(by_size)
     todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
-    futs = _submit(executor, [(t.index, cover_tile, (str(work), t.index, spacing)) for t in todo])
+    futs = submit(executor, [(t.index, cover_tile, (str(work), t.index, spacing, pieces["core"][t.index],
+                                                    pieces["halo"][t.index])) for t in todo])
     try:
-        buckets = _done(work, "buckets")
-        if buckets is None:
-            buckets = _mark(work, "buckets", bucket_points(work, n, sp.fields, progress))
+        buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
-        _collect(futs, "covering", name, n_tiles, progress, "covering",
-                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res))
+        collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
+                lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
+                points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
     radii = _done(work, "radii")
     if radii is None:
         radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
@@ -303,18 +258,30 @@ class _Clock:
 
     def __init__(self) -> None:
         self.start = self.last = time.perf_counter()
+        self.epoch = time.time()  # (the task table's times are seconds after it)
+        self.cpu_last = time.process_time()
         self.times: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}  # the parent's own CPU seconds (its workers' not counted)
 
     def lap(self, phase: str) -> None:
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.process_time()
         self.times[phase] = now - self.last
-        self.last = now
+        self.cpu[phase] = cpu - self.cpu_last
+        self.last, self.cpu_last = now, cpu
 
     def rounded(self, digits: int) -> dict[str, float]:
         return {k: round(v, digits) for k, v in self.times.items()}
 
     def total(self) -> float:
         return time.perf_counter() - self.start
+
+
+def _timings(clock: _Clock, work: Path) -> dict[str, Any]:
+    """The build record's phase seconds (and their order: the record's keys are sorted), the
+    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`)."""
+    return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
+            "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
+            "build_started": clock.epoch, "tasks": task_table(work, clock.epoch)}
 
 
 def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict[str, Any]) -> dict[str, Any]:
@@ -324,94 +291,46 @@ def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict
             "head_radius": float(coarse["r_cut"])}
 
 
-def _read(work: Path, sources: list[tuple[Any, Any, int | None]], progress: ProgressCallback) -> Spill:
-    """Phase 1: the sources spilled into the work directory (or what a finished spill recorded)."""
-    doc = _done(work, "spill")
-    if doc is None:
-        sp = spill(sources, work, progress)
-        with SumFile(work / "sample.npy") as f:
-            np.save(f, sp.sample)
-        sp.files = {**(sp.files or {}), "sample.npy": f.sum}
-        _mark(work, "spill", sp.to_json())
-    else:
-        sp = Spill.from_json(doc, np.load(work / "sample.npy"))
-    return sp
-
-
-def _plan(work: Path, sp: Spill, voxel_size: float | None, band_radius: float | None, budget: int,
-          parallel: int, tile_points: int | None) -> dict[str, Any]:
+def _plan(executor: cf.Executor, work: Path, name: str, sp: Spill, voxel_size: float | None,
+          band_radius: float | None, budget: int, parallel: int, tile_points: int | None,
+          progress: ProgressCallback) -> dict[str, Any]:
     """Phase 2: the shared parameters, the tiles (a k-d split of a point-count histogram) and the
     decimated copy (one point per cell of about the head's spacing), or what a finished plan recorded."""
-    from ...sampling.band import choose_parameters
-
-    n = sp.n
     pl = _done(work, "plan")
-    if pl is None:
-        s = _spacing(sp.sample, n)
-        h, r = choose_parameters(sp.sample, voxel_size if voxel_size is not None else P_VOXEL(s),
-                                 band_radius)
-        grid = P.Grid.around(sp.lo, sp.hi)
-        span = float(np.max(sp.hi - sp.lo)) or 1.0
-        fits = P.tile_capacity(budget, parallel)
-        cap = tile_points or fits
-        # the decimated copy is ordered by one worker: no larger than the worker's budget allows
-        m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
-        d_cell = max(s * math.sqrt(n / m_target), span / (1 << 20))
-        hist = np.zeros(int(np.prod(grid.shape)), np.int64)
-        dec = Decimator(grid.lo, d_cell)
-        for g0, pts in point_blocks(work, n):
-            hist += np.bincount(grid.index(pts), minlength=hist.shape[0])
-            dec.add(g0, pts)
-        n_dec = dec.write(work / WL.DECIMATED)
-        limit = max(fits, COARSE_MIN)
-        while n_dec > limit:  # the cell count overshot the target: coarser cells, one more pass
-            d_cell *= 1.1 * math.sqrt(n_dec / limit)
-            dec = Decimator(grid.lo, d_cell)
-            for g0, pts in point_blocks(work, n):
-                dec.add(g0, pts)
-            n_dec = dec.write(work / WL.DECIMATED)
-        tiles = P.split_tiles(hist, grid, cap)
-        pl = _mark(work, "plan", {"spacing": s, "voxel_size": h, "band_radius": r, "tile_cap": cap,
-                                  "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
-                                  "tiles": [t.to_json() for t in tiles], "d_cell": d_cell, "span": span,
-                                  "n_decimated": n_dec, "files": {WL.DECIMATED: dec.sum}})
-    return pl
+    if pl is not None:
+        return pl
+    n = sp.n
+    # the spacing and the band's parameters from the sample, on a worker (the parent loads no kernel)
+    pending = submit(executor, [(0, parameters_task, (str(work), n, voxel_size, band_radius))])
+    (params,) = collect(pending, lambda _: "the plan's parameters", name, 1, None, "plan")
+    fits = P.tile_capacity(budget, parallel)
+    # the decimated copy is ordered by one worker: no larger than the worker's budget allows
+    m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
+    return plan_phase(executor, work, name, sp, {k: params[k] for k in ("spacing", "voxel_size", "band_radius")},
+                      max(fits, COARSE_MIN), tile_points or fits, m_target, progress)
 
 
-def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, n: int, pl: dict[str, Any],
-                      tiles: list[P.Tile], grid: P.Grid, delta: float, worker_budget: int,
-                      progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Phase 3: the coarse level ordered on a worker while the parent writes every tile's core and
-    halo files; returns their markers (coarse, distribute)."""
+def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, sp: Spill, pl: dict[str, Any],
+                      delta: float, worker_budget: int, progress: ProgressCallback
+                      ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Phase 3: the coarse level ordered on a worker while the other workers write every tile's
+    core and halo pieces; returns their markers (coarse, distribute)."""
     coarse = _done(work, "coarse")
     pending: dict[cf.Future, int] = {}
     if coarse is None:
         head_size = max(HEAD_MIN, int(pl["n_decimated"]) // HEAD_DECIMATION)
-        pending = _submit(executor, [(0, coarse_task, (str(work), head_size, worker_budget))])
+        pending = submit(executor, [(0, coarse_task, (str(work), head_size, worker_budget))])
     try:
-        dist = _done(work, "distribute")
-        if dist is None:
-            # the halo: a fraction of the coarse level's covering radius, estimated from its size
-            m_est = max(1, int(pl["n_decimated"]))
-            head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
-            r_est = pl["d_cell"] * math.sqrt(m_est / head_est)
-            halo = HALO_FACTOR * (r_est + delta)
-            lookup = P.tile_lookup(tiles, grid)
-            n_core, n_halo, sums = distribute(work, n, tiles, grid, lookup, halo, progress)
-            dist = _mark(work, "distribute", {"halo": halo, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(),
-                                              "files": sums})
+        # the halo: a fraction of the coarse level's covering radius, estimated from its size
+        m_est = max(1, int(pl["n_decimated"]))
+        head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
+        halo = HALO_FACTOR * (pl["d_cell"] * math.sqrt(m_est / head_est) + delta)
+        dist = distribute_phase(executor, work, name, sp, pl, halo, progress)
     finally:
         if coarse is None:
-            (coarse,) = _collect(pending, "the coarse level", name, 1, progress, "coarse")
+            (coarse,) = collect(pending, lambda _: "the coarse level", name, 1, progress, "coarse")
             _mark(work, "coarse", coarse)
     return coarse, dist
-
-
-def P_VOXEL(spacing: float) -> float:
-    """The engine's automatic voxel size for a point spacing (lodbuilder.sampling.band)."""
-    from ...sampling.band import VOXEL_PER_SPACING
-
-    return VOXEL_PER_SPACING * spacing
 
 
 #: what a tiled archive guarantees (also stored in its build record)

@@ -3,11 +3,14 @@ markers of finished pieces, and the named moments at which tests stop a build.
 
 Files (little-endian raw arrays unless said otherwise), by the phase that writes them::
 
-    spill       points.f64          (N, 3) float64 coordinates in input order (poses applied)
-                attr.<k>.bin        attribute k in input order (dtype and shape in spill.json)
-                decimated.i8        input indices of the decimated copy (one point per grid cell)
-    distribute  core.<t>.bin        the points of tile t: REC records (g, x, y, z), g the input index
-                halo.<t>.bin        the REC records within the halo width of tile t owned by others
+    inputs      (a marker only)     the read blocks: input, row range, first input index of each
+    read        raw.<b>.xyz         block b's (m, 3) float64 coordinates in input order (poses applied)
+                raw.<b>.attr        block b's attributes, one record per point (attr_record)
+                sample.<b>.f64      block b's points whose input index is a multiple of the sample step
+    spill       sample.npy          the sample of the whole scan (for the spacing), in input order
+    plan        decimated.bin       the decimated copy (one point per grid cell): REC records
+    distribute  core.<t>.<b>.bin    the points of tile t from block b: REC records (g, x, y, z), g the input index
+                halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others
     coarse      head.bin            HEAD records: the coarse global level (the head)
     order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin)
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
@@ -15,7 +18,7 @@ Files (little-endian raw arrays unless said otherwise), by the phase that writes
                 rank.i8             the position of every input point (the inverse of order.i8)
     cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass
     radii       radius.f8, parent.i8  the stored radius and parent of each position
-    buckets     bucket.<b>.bin      the external permutation's buckets (see write.py)
+    buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
 it wrote with their size and CRC-32 (:mod:`.sums`); a resumed build trusts a piece only when its
@@ -47,8 +50,8 @@ POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
 
 # ------------------------------------------------------------------------------------ names
 
-POINTS = "points.f64"
-DECIMATED = "decimated.i8"
+DECIMATED = "decimated.bin"
+SAMPLE = "sample.npy"
 HEAD_FILE = "head.bin"
 ORDER = "order.i8"
 KEY = "key.f8"
@@ -57,19 +60,43 @@ RADIUS = "radius.f8"
 PARENT = "parent.i8"
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
-PHASES = ("spill", "plan", "distribute", "coarse", "merge", "buckets", "radii")
+PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "buckets", "radii")
 
 
-def attr(i: int) -> str:
-    return f"attr.{i}.bin"
+def attr_record(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
+    """The record of a raw block's attribute file: field ``a<i>`` holds attribute i of ``fields``."""
+    return np.dtype([(f"a{i}", dt, tuple(shape)) if shape else (f"a{i}", dt)
+                     for i, (dt, shape) in enumerate(fields.values())])
 
 
-def core(t: int) -> str:
-    return f"core.{t}.bin"
+def raw_xyz(b: int) -> str:
+    return f"raw.{b}.xyz"
 
 
-def halo(t: int) -> str:
-    return f"halo.{t}.bin"
+def raw_attr(b: int) -> str:
+    return f"raw.{b}.attr"
+
+
+def sample(b: int) -> str:
+    return f"sample.{b}.f64"
+
+
+def core(t: int, b: int) -> str:
+    return f"core.{t}.{b}.bin"
+
+
+def halo(t: int, b: int) -> str:
+    return f"halo.{t}.{b}.bin"
+
+
+def read_piece(b: int) -> str:
+    """The piece name of reading block ``b`` (a read task)."""
+    return f"read.{b}"
+
+
+def split_piece(b: int) -> str:
+    """The piece name of cutting block ``b`` into the tiles' pieces (a distribute task)."""
+    return f"split.{b}"
 
 
 def stream(t: int) -> str:
@@ -88,8 +115,14 @@ def cover_points(t: int) -> str:
     return f"cover.{t}.pt"
 
 
-def bucket(b: int) -> str:
-    return f"bucket.{b}.bin"
+def bucket(k: int, b: int) -> str:
+    """The piece of destination bucket ``k`` from raw block ``b``."""
+    return f"bucket.{k}.{b}.bin"
+
+
+def bucket_piece(b: int) -> str:
+    """The piece name of splitting raw block ``b`` into the buckets (a task)."""
+    return f"permute.{b}"
 
 
 def order_piece(t: int, p: int) -> str:
@@ -99,6 +132,11 @@ def order_piece(t: int, p: int) -> str:
 
 def cover_piece(t: int) -> str:
     return f"cover.{t}"
+
+
+def task_log(pid: int | str) -> str:
+    """A worker's log of the tasks it ran (one JSON line each: see :mod:`.timing`)."""
+    return f"tasks.{pid}.jsonl"
 
 
 def marker(piece: str) -> str:
@@ -115,8 +153,9 @@ def writing(name: str) -> str:
 
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
-#: the named moments: after each phase's marker, and after the first tile ordering's marker
-MOMENTS = (*PHASES, "tile")
+#: the named moments: after each phase's marker, after the first tile ordering's marker, and after
+#: the first read, split and permute task's markers
+MOMENTS = (*PHASES, "tile", "read", "split", "permute")
 
 
 def moment(name: str) -> None:

@@ -9,6 +9,7 @@ shared file system (NFS, Lustre, a mounted object store) under the archive's dir
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from pathlib import Path
@@ -17,21 +18,43 @@ from typing import Any
 import numpy as np
 
 from . import layout as WL
+from .blocks import tile_records
 from .sums import publish as _publish
+from .timing import timed_task
 from .workdir import REC, gather
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
 
 
+@timed_task
+def parameters_task(work: str, n: int, voxel_size: float | None, band_radius: float | None) -> dict[str, Any]:
+    """The point spacing of the scan (from the sample of the read phase, ``sample.npy``) and the
+    voxel size and band radius every tile shares."""
+    from ...sampling.band import VOXEL_PER_SPACING, choose_parameters, median_spacing
+
+    t0 = time.perf_counter()
+    sample = np.load(Path(work) / WL.SAMPLE)
+    if sample.shape[0] < 2:
+        s = 1.0
+    else:
+        s = median_spacing(sample) * math.sqrt(sample.shape[0] / max(n, 1))
+        s = s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
+    h, r = choose_parameters(sample, voxel_size if voxel_size is not None else VOXEL_PER_SPACING * s, band_radius)
+    return {"spacing": s, "voxel_size": h, "band_radius": r, "seconds": time.perf_counter() - t0,
+            "worker_pid": os.getpid()}
+
+
+@timed_task
 def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
     from ...sampling.fastfps import fastfps
 
     t0 = time.perf_counter()
     w = Path(work)
-    dec = np.fromfile(w / WL.DECIMATED, dtype="<i8")
-    pts = gather(w / WL.POINTS, "<f8", (3,), dec)
+    rec = np.fromfile(w / WL.DECIMATED, dtype=REC)
+    dec = rec["g"]
+    pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
     k = min(size + 1, dec.shape[0])
     o = fastfps(pts, size=k, max_memory=max_memory)
     h = min(size, len(o))
@@ -71,6 +94,7 @@ def _timed(halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarr
     return rows, known["key"][pos[rows]]
 
 
+@timed_task
 def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
                halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
                ) -> dict[str, Any]:
@@ -92,7 +116,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     t0 = time.perf_counter()
     w = Path(work)
     out = w / WL.stream(t)
-    core = np.fromfile(w / WL.core(t), dtype=REC)
+    core = tile_records(w, tile["core"])
     head = np.fromfile(w / WL.HEAD_FILE, dtype=HEAD)
     lo, hi = np.asarray(tile["lo"]), np.asarray(tile["hi"])
     interior = np.asarray(tile["interior"], bool)
@@ -106,7 +130,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
     timed = None
     if faces:
-        hrec = np.fromfile(w / WL.halo(t), dtype=REC)
+        hrec = tile_records(w, tile["halo"])
         rows, keys = _timed(hrec, list(faces))
         if rows.size:
             first = cpts.shape[0] + int(extra.sum())
@@ -150,8 +174,11 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
             "worker_pid": os.getpid(), "files": files}
 
 
-def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
-    """Exact covering radii of tile ``t``'s core in the final order, from its core and halo.
+@timed_task
+def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
+               ) -> dict[str, Any]:
+    """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their
+    pieces, in block order).
 
     Writes ``cover.<t>.ev`` (rank, covering radius of the core by every point of smaller rank,
     whenever it changes) and ``cover.<t>.pt`` (for each core point in rank order: its rank, the
@@ -161,8 +188,8 @@ def cover_tile(work: str, t: int, spacing: float) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     w = Path(work)
-    core = np.fromfile(w / WL.core(t), dtype=REC)
-    halo = np.fromfile(w / WL.halo(t), dtype=REC)
+    core = tile_records(w, core_pieces)
+    halo = tile_records(w, halo_pieces)
     ext = np.concatenate([core, halo])
     is_core = np.zeros(ext.shape[0], bool)
     is_core[: core.shape[0]] = True

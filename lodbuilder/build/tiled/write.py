@@ -1,25 +1,29 @@
 """Writing a tiled scan into its part file, in stored (prefix) order, without holding it.
 
-The points, attributes and ranks sit in input order in the work directory; the archive wants them
-in the merged order. An external permutation does it in two sequential passes: every input block
-is split by destination block into bucket files (one record per point: position, coordinates,
-attributes), then each bucket is read, put in order and handed to the archive's
+The points and attributes sit in input order in the raw blocks of the work directory, the ranks in
+``rank.i8``; the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
+destination block into bucket pieces (one record per point: position, coordinates, attributes; a
+task per raw block, :func:`bucket_block`), then each bucket's pieces are read, put in order and handed to the archive's
 :class:`~lodbuilder.archive.scanwriter.ScanWriter` with its radii and parents. Memory: one block.
 """
 
 from __future__ import annotations
 
-import contextlib
+import os
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..._atomic import publish
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from .sums import SumFile
-from .workdir import attr_file, blocks, opaque_rows, point_blocks
+from .timing import timed_task
+from .workdir import blocks, opaque_rows
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -31,52 +35,110 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
     return np.dtype(spec)
 
 
-def bucket_points(work: Path, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
-                  progress: ProgressCallback = None, block: int | None = None) -> dict[str, Any]:
-    """The first pass: every input block split by destination block into bucket files."""
-    block = block or BLOCK
-    rec = record_dtype(fields)
-    names = list(fields)
+@timed_task
+def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
+                 block: int, rows: int) -> dict[str, Any]:
+    """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
+    positions (``rank.i8`` rows ``g0 .. g0 + m``), split by destination block (``block`` rows of
+    the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
+    t0 = time.perf_counter()
+    w = Path(work)
     n_buckets = (n + block - 1) // block
-    files = [SumFile(work / WL.bucket(b)) for b in range(n_buckets)]
-    attr_iters = [blocks(attr_file(work, i), np.dtype(fields[k][0]), n * int(np.prod(fields[k][1] or (1,))),
-                         block * int(np.prod(fields[k][1] or (1,)))) for i, k in enumerate(names)]
+    counts = np.zeros(n_buckets, np.int64)
+    out: dict[str, SumFile] = {}
     try:
-        with open(work / WL.RANK, "rb") as fr:
-            for g0, pts in point_blocks(work, n, block):
-                m = pts.shape[0]
-                r = np.empty(m, rec)
-                r["pos"] = np.fromfile(fr, dtype="<i8", count=m)
-                r["xyz"] = pts
-                for i, it in enumerate(attr_iters):
-                    _, a = next(it)
-                    shape = fields[names[i]][1]
-                    r[f"a{i}"] = a.reshape(m, *shape) if shape else a
+        with open(w / WL.RANK, "rb") as fr:
+            fr.seek(8 * g0)
+            for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
+                r["pos"] = np.fromfile(fr, dtype="<i8", count=r.shape[0])
                 dest = r["pos"] // block
                 order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
                 cuts = np.searchsorted(dest[order], np.arange(n_buckets + 1))
                 srt = opaque_rows(r)[order]
-                for b in range(n_buckets):
-                    if cuts[b + 1] > cuts[b]:
-                        files[b].write(srt[cuts[b]:cuts[b + 1]])
-                report(progress, "permute", g0 + m, n)
+                for k in np.flatnonzero(np.diff(cuts)):
+                    name = WL.bucket(int(k), b)
+                    if name not in out:
+                        out[name] = SumFile(w / WL.writing(name))
+                    out[name].write(srt[cuts[k]:cuts[k + 1]])
+                    counts[k] += cuts[k + 1] - cuts[k]
     finally:
-        for f in files:
+        for f in out.values():
             f.close()
-        for it in attr_iters:
-            with contextlib.suppress(Exception):
-                it.close()  # type: ignore[attr-defined]
-    return {"block": block, "buckets": n_buckets, "files": {f.path.name: f.sum for f in files}}
+    for name in out:
+        publish(w / WL.writing(name), w / name)
+    return {"block": b, "counts": counts.tolist(), "seconds": time.perf_counter() - t0, "worker_pid": os.getpid(),
+            "files": {name: f.sum for name, f in out.items()}}
+
+
+def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+                  raw: list[list[int]], rows: int, progress: ProgressCallback = None) -> dict[str, Any]:
+    """The first pass of the write as tasks, one per raw block (or what a finished one recorded)."""
+    from .pool import collect, submit
+    from .sums import done, write_json
+
+    doc = done(work, "buckets")
+    if doc is not None:
+        return doc
+    results: dict[int, dict[str, Any]] = {}
+    calls = []
+    for b, (_, a, z, g0) in enumerate(raw):
+        prev = done(work, WL.bucket_piece(b))
+        if prev is not None:
+            results[b] = prev
+        else:
+            calls.append((b, bucket_block, (str(work), b, int(g0), int(z) - int(a), fields, n, BLOCK, rows)))
+
+    def record(res: dict[str, Any]) -> None:
+        write_json(work / WL.marker(WL.bucket_piece(res["block"])), res)
+        WL.moment("permute")
+        results[res["block"]] = res
+
+    collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
+            lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
+    doc = bucket_pieces([results[b] for b in range(len(raw))], BLOCK)
+    write_json(work / WL.marker("buckets"), doc)
+    WL.moment("buckets")
+    return doc
+
+
+def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
+    """The buckets phase's marker from every block's result: each bucket's pieces in block order."""
+    counts = np.array([r["counts"] for r in results], np.int64).reshape(len(results), -1)
+    pieces = [[WL.bucket(k, b) for b in np.flatnonzero(counts[:, k])] for k in range(counts.shape[1])]
+    return {"block": block, "buckets": counts.shape[1], "pieces": pieces,
+            "files": {k: v for r in results for k, v in r["files"].items()}}
+
+
+def _raw_records(work: Path, fields: dict[str, tuple[str, tuple[int, ...]]], raw: list[list[int]],
+                 rows: int, first: int = 0) -> Iterator[tuple[int, np.ndarray]]:
+    """``(first input index, records)``: the raw blocks ``raw`` (numbered from ``first``)'s
+    coordinates and attributes as bucket records (``pos`` left to fill), ``rows`` at a time, in
+    input order."""
+    rec = record_dtype(fields)
+    attr = WL.attr_record(fields)
+    for b, (_, a, z, g0) in enumerate(raw, start=first):
+        m_b = int(z) - int(a)
+        ats = blocks(work / WL.raw_attr(b), attr, m_b, rows) if attr.itemsize else None
+        try:
+            for r0, xyz in blocks(work / WL.raw_xyz(b), "<f8", 3 * m_b, 3 * rows):
+                pts = xyz.reshape(-1, 3)
+                r = np.empty(pts.shape[0], rec)
+                r["xyz"] = pts
+                if ats is not None:
+                    _, at = next(ats)
+                    for i in range(len(fields)):
+                        r[f"a{i}"] = at[f"a{i}"]
+                yield int(g0) + r0 // 3, r
+        finally:
+            if ats is not None:
+                ats.close()
 
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-               provenance: dict[str, Any], progress: ProgressCallback = None,
-               buckets: dict[str, Any] | None = None) -> Any:
-    """Write the bucketed points (:func:`bucket_points`, done first if ``buckets`` is None) in
-    stored order as the part ``part``, with their radii and parents."""
-    if buckets is None:
-        buckets = bucket_points(work, n, fields, progress)
+               provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any]) -> Any:
+    """Write the bucketed points (``buckets``: what :func:`bucket_points` recorded) in stored
+    order as the part ``part``, with their radii and parents."""
     try:
         return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
                               buckets)
@@ -97,10 +159,9 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
     with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, \
             open(work / WL.RADIUS, "rb") as frad, open(work / WL.PARENT, "rb") as fpar:
         for b in range(int(buckets["buckets"])):
-            path = work / WL.bucket(b)
             k0 = b * block
             k1 = min(n, k0 + block)
-            r = np.fromfile(path, dtype=rec)
+            r = np.concatenate([np.fromfile(work / p, dtype=rec) for p in buckets["pieces"][b]] or [np.zeros(0, rec)])
             if r.shape[0] != k1 - k0:
                 raise RuntimeError(f"bucket {b} holds {r.shape[0]} rows, expected {k1 - k0}")
             srt = np.empty(k1 - k0, rec)

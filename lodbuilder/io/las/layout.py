@@ -1,5 +1,41 @@
 """The one mapping from points + attributes + metadata to what laspy writes (LAS, LAZ and COPC):
-point format, fields and extra bytes, colours, coordinate scale, CRS; every change noted."""
+point format, fields and extra bytes, colours, coordinate scale, CRS; every change noted.
+
+The rules of :func:`las_layout`:
+
+* **Version and point format.** A LAS source's own (``las_version``/``las_point_format``);
+  otherwise LAS 1.4 with point format 6, 7 when red/green/blue are all given, 8 with nir.
+* **Coordinates.** A LAS source's scale and offset when the points fit them in int32 (they
+  then come back exactly); else the coarsest power of ten 10^-k (k <= 9) on which every
+  coordinate lies exactly (:func:`exact_decimal_quantization`: text with fixed decimals,
+  E57 scaled integers); else :func:`choose_quantization`: the power of ten at or below
+  spacing / 100 (``metadata["point_spacing"]`` or an estimate), error <= scale / 2 (noted).
+* **Standard fields** (intensity, classification, gps_time, red...) take an attribute of
+  the same name when every value fits the field exactly (integers in range; any number for
+  gps_time). uint8 colours (red/green/blue/nir) are scaled x 257 into the 16-bit fields
+  (255 -> 65535; read back, ``value // 257`` is the source value).
+* **Values that do not fit** a standard field (a float intensity, a negative or too large
+  integer) keep their exact values in an extra-bytes dimension ``<name>_<dtype>`` (e.g.
+  ``intensity_float32``) whose description is ``"lodbuilder exact <name>"`` (this reader
+  restores the attribute under its own name), and the standard field gets a scaled copy for
+  viewers: colours in [0, 1] x 65535, colours in [0, 255] x 257, anything else mapped
+  linearly from [min(0, min), max] to the field's range.
+* **Other attributes** become extra-bytes dimensions in their own dtype ((N, 2) and (N, 3)
+  as array dimensions; wider ones as ``name_0``, ``name_1``...; bool as uint8); a LAS
+  source's scaled extra bytes keep their scale and offset. Names longer than 32 bytes are
+  cut (noted). A source's extra-bytes description and no-data value are kept where the
+  values keep the source's type.
+* **Twin fields.** A change of point-format family (a format 3 source written as 7 for
+  COPC) leaves a standard field empty whose values the source holds under another name:
+  ``scan_angle`` (formats 6-10, int16 in 0.006 degrees) is filled from ``scan_angle_rank``
+  (formats 0-5, int8 degrees) rounded, and the other way round (clipped to int8); the
+  source field keeps its exact values in extra bytes like any other attribute (noted).
+* **CRS.** ``crs_wkt`` as a WKT VLR; the global-encoding WKT bit for point formats 6-10
+  always (the specification requires it, CRS or not) and for LAS 1.4 files of formats 0-5
+  whose source set it. A LAS source's own CRS
+  VLRs are copied unchanged for point formats 0-5 (GeoTIFF keys included); for 6-10 only
+  the WKT VLR is written. A CRS assigned with ``build --crs`` replaces the source's VLRs.
+"""
 
 from __future__ import annotations
 
@@ -253,70 +289,17 @@ def las_layout(
             e.g. 6/7/8 and "1.4" for COPC; dimensions of the source that the format lacks become
             extra bytes like any other attribute.
 
-    Rules:
-        * **Version and point format.** A LAS source's own (``las_version``/``las_point_format``);
-          otherwise LAS 1.4 with point format 6, 7 when red/green/blue are all given, 8 with nir.
-        * **Coordinates.** A LAS source's scale and offset when the points fit them in int32 (they
-          then come back exactly); else the coarsest power of ten 10^-k (k <= 9) on which every
-          coordinate lies exactly (:func:`exact_decimal_quantization`: text with fixed decimals,
-          E57 scaled integers); else :func:`choose_quantization`: the power of ten at or below
-          spacing / 100 (``metadata["point_spacing"]`` or an estimate), error <= scale / 2 (noted).
-        * **Standard fields** (intensity, classification, gps_time, red...) take an attribute of
-          the same name when every value fits the field exactly (integers in range; any number for
-          gps_time). uint8 colours (red/green/blue/nir) are scaled x 257 into the 16-bit fields
-          (255 -> 65535; read back, ``value // 257`` is the source value).
-        * **Values that do not fit** a standard field (a float intensity, a negative or too large
-          integer) keep their exact values in an extra-bytes dimension ``<name>_<dtype>`` (e.g.
-          ``intensity_float32``) whose description is ``"lodbuilder exact <name>"`` (this reader
-          restores the attribute under its own name), and the standard field gets a scaled copy for
-          viewers: colours in [0, 1] x 65535, colours in [0, 255] x 257, anything else mapped
-          linearly from [min(0, min), max] to the field's range.
-        * **Other attributes** become extra-bytes dimensions in their own dtype ((N, 2) and (N, 3)
-          as array dimensions; wider ones as ``name_0``, ``name_1``...; bool as uint8); a LAS
-          source's scaled extra bytes keep their scale and offset. Names longer than 32 bytes are
-          cut (noted). A source's extra-bytes description and no-data value are kept where the
-          values keep the source's type.
-        * **Twin fields.** A change of point-format family (a format 3 source written as 7 for
-          COPC) leaves a standard field empty whose values the source holds under another name:
-          ``scan_angle`` (formats 6-10, int16 in 0.006 degrees) is filled from ``scan_angle_rank``
-          (formats 0-5, int8 degrees) rounded, and the other way round (clipped to int8); the
-          source field keeps its exact values in extra bytes like any other attribute (noted).
-        * **CRS.** ``crs_wkt`` as a WKT VLR; the global-encoding WKT bit for point formats 6-10
-          always (the specification requires it, CRS or not) and for LAS 1.4 files of formats 0-5
-          whose source set it. A LAS source's own CRS
-          VLRs are copied unchanged for point formats 0-5 (GeoTIFF keys included); for 6-10 only
-          the WKT VLR is written. A CRS assigned with ``build --crs`` replaces the source's VLRs.
+    The rules (version and point format, coordinates, standard fields, values that do not fit,
+    other attributes, twin fields, CRS) are in this module's docstring.
 
     Every change is in ``notes`` (one line each), which :func:`write` logs as warnings.
     """
     meta = metadata or {}
     notes: list[str] = []
     n = points.shape[0]
-    names = set(attributes)
     from_las = meta.get("las_point_format") is not None
-    if point_format is not None:
-        fmt = int(point_format)
-        version = str(version or ("1.4" if fmt >= 6 else meta.get("las_version") or "1.2"))
-    elif from_las:
-        fmt, version = int(meta["las_point_format"]), str(version or meta.get("las_version") or "1.4")
-    else:
-        fmt, version = 6, str(version or "1.4")
-        if {"red", "green", "blue"} <= names:
-            fmt = 8 if "nir" in names else 7
-
-    scales = np.asarray(meta.get("las_scales") or [], dtype=np.float64)
-    offsets = np.asarray(meta.get("las_offsets") or [], dtype=np.float64)
-    if not _source_quantization_fits(points, scales, offsets):
-        if scales.shape == (3,):
-            notes.append("coordinates do not fit the source LAS scale/offset in int32; new ones chosen")
-        grid = exact_decimal_quantization(points)
-        if grid is not None:
-            scales, offsets = grid
-        else:
-            scales, offsets = choose_quantization(points, meta.get("point_spacing"))
-            notes.append(f"coordinates quantised to scale {scales[0]:g} (error <= {scales[0] / 2:g}) with offset "
-                         f"{', '.join(f'{o:g}' for o in offsets)}")
-
+    fmt, version = _format_and_version(point_format, version, meta, set(attributes))
+    scales, offsets = _coordinate_grid(points, meta, notes)
     standard = _standard_dims(fmt)
     extra_defs = {d["name"]: d for d in meta.get("las_extra_dims") or []}
     layout = LasLayout(version=version, point_format=fmt, scales=scales, offsets=offsets,
@@ -327,29 +310,9 @@ def las_layout(
         if a.shape[:1] != (n,):
             raise InputError(f"attribute {name!r} has shape {a.shape}; expected first dimension {n}")
         if name in standard:
-            lo, hi, integer = standard[name]
-            if name in _COLOURS and a.dtype == np.uint8:
-                layout.dimensions[name] = a.astype(np.uint16) * np.uint16(257)
-                notes.append(f"{name}: 8-bit values scaled x 257 into the 16-bit LAS field")
-                continue
-            if _fits(a, lo, hi, integer):
-                layout.dimensions[name] = a
-                continue
-            exact = f"{name}_{a.dtype.name}"[:32]
-            vals, typ = _extra_type(exact, a, notes)
-            layout.extra_dims.append(ExtraDim(exact, typ, (EXACT_PREFIX + name)[:32]))
-            layout.dimensions[exact] = vals
-            used.add(exact)
-            if integer and a.ndim == 1 and math.isfinite(hi) and a.dtype.kind in "iuf":
-                scaled, how = _scaled_rendition(name, a, hi)
-                layout.dimensions[name] = scaled
-                notes.append(f"{name}: {a.dtype} values do not fit the LAS field; exact values in extra bytes "
-                             f"{exact!r}, the standard field holds a scaled copy ({how})")
-            else:
-                notes.append(f"{name}: values do not fit the LAS field; exact values in extra bytes {exact!r}, "
-                             "the standard field is left 0")
-            continue
-        _add_extra(layout, name, a, extra_defs, used, notes)
+            _add_standard(layout, name, a, standard[name], used, notes)
+        else:
+            _add_extra(layout, name, a, extra_defs, used, notes)
 
     _fill_twins(layout, attributes, standard, notes)
     _layout_crs(layout, meta, from_las, notes)
@@ -357,6 +320,65 @@ def las_layout(
         layout.wkt_bit = True
     layout.notes = notes
     return layout
+
+
+def _format_and_version(point_format: int | None, version: str | None, meta: dict[str, Any],
+                        names: set[str]) -> tuple[int, str]:
+    """The point format and LAS version to write: the ones asked, else a LAS source's, else 1.4
+    with format 6 (7 with red/green/blue, 8 with nir too)."""
+    if point_format is not None:
+        fmt = int(point_format)
+        return fmt, str(version or ("1.4" if fmt >= 6 else meta.get("las_version") or "1.2"))
+    if meta.get("las_point_format") is not None:
+        return int(meta["las_point_format"]), str(version or meta.get("las_version") or "1.4")
+    if {"red", "green", "blue"} <= names:
+        return (8 if "nir" in names else 7), str(version or "1.4")
+    return 6, str(version or "1.4")
+
+
+def _coordinate_grid(points: np.ndarray, meta: dict[str, Any], notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(scales, offsets): the source's when the points fit them, else an exact decimal grid, else
+    :func:`choose_quantization` (noted)."""
+    scales = np.asarray(meta.get("las_scales") or [], dtype=np.float64)
+    offsets = np.asarray(meta.get("las_offsets") or [], dtype=np.float64)
+    if _source_quantization_fits(points, scales, offsets):
+        return scales, offsets
+    if scales.shape == (3,):
+        notes.append("coordinates do not fit the source LAS scale/offset in int32; new ones chosen")
+    grid = exact_decimal_quantization(points)
+    if grid is not None:
+        return grid
+    scales, offsets = choose_quantization(points, meta.get("point_spacing"))
+    notes.append(f"coordinates quantised to scale {scales[0]:g} (error <= {scales[0] / 2:g}) with offset "
+                 f"{', '.join(f'{o:g}' for o in offsets)}")
+    return scales, offsets
+
+
+def _add_standard(layout: LasLayout, name: str, a: np.ndarray, limits: tuple[float, float, bool],
+                  used: set[str], notes: list[str]) -> None:
+    """Attribute ``name`` into its standard field (x 257 for 8-bit colours) when it fits; else its
+    exact values into extra bytes and a scaled copy (or 0) into the field (noted)."""
+    lo, hi, integer = limits
+    if name in _COLOURS and a.dtype == np.uint8:
+        layout.dimensions[name] = a.astype(np.uint16) * np.uint16(257)
+        notes.append(f"{name}: 8-bit values scaled x 257 into the 16-bit LAS field")
+        return
+    if _fits(a, lo, hi, integer):
+        layout.dimensions[name] = a
+        return
+    exact = f"{name}_{a.dtype.name}"[:32]
+    vals, typ = _extra_type(exact, a, notes)
+    layout.extra_dims.append(ExtraDim(exact, typ, (EXACT_PREFIX + name)[:32]))
+    layout.dimensions[exact] = vals
+    used.add(exact)
+    if integer and a.ndim == 1 and math.isfinite(hi) and a.dtype.kind in "iuf":
+        scaled, how = _scaled_rendition(name, a, hi)
+        layout.dimensions[name] = scaled
+        notes.append(f"{name}: {a.dtype} values do not fit the LAS field; exact values in extra bytes "
+                     f"{exact!r}, the standard field holds a scaled copy ({how})")
+    else:
+        notes.append(f"{name}: values do not fit the LAS field; exact values in extra bytes {exact!r}, "
+                     "the standard field is left 0")
 
 
 def _add_extra(layout: LasLayout, name: str, a: np.ndarray, extra_defs: dict[str, Any],

@@ -6,14 +6,16 @@ from __future__ import annotations
 import base64
 import logging
 import math
+from collections.abc import Generator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ...errors import FormatError
-from .._files import exc_line
-from ..base import Scan
+from ...errors import FormatError, LodbuilderError, ScanFileError
+from .._files import exc_line, library_panic
+from ..base import Rows, Scan, whole
 from ..crs import normalise_wkt, pyproj_wkt, set_crs
 from .common import EXACT_PREFIX, check_laz_backend, laspy_module, quiet_laspy
 
@@ -148,28 +150,92 @@ def check_chunk_table(laspy: Any, path: Path) -> None:
 
 
 def read(path: Path) -> list[Scan]:
+    """The whole file: its chunked read (:func:`las_rows`) in one chunk."""
     laspy = laspy_module(path)
-    check_laz_backend(laspy, path)
-    try:
-        check_vlr_counts(path)
-        if path.suffix.lower() == ".laz":
-            check_chunk_table(laspy, path)
-        with quiet_laspy():
-            las = laspy.read(str(path))
-    except laspy.errors.LaspyException as exc:
-        raise FormatError(f"{path}: not a readable LAS/LAZ file ({exc_line(exc)}); check or re-export it") from None
-    hdr = las.header
-    pts = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
-    attrs: dict[str, np.ndarray] = {}
-    for dim in las.point_format.dimension_names:
-        if dim in ("X", "Y", "Z"):
-            continue
-        attrs[dim] = np.ascontiguousarray(np.asarray(las[dim]))
-    meta, rename = las_metadata(hdr, las.point_format, path)
-    for stored, original in rename.items():
-        attrs[original] = attrs.pop(stored)
+    header = las_header(laspy, path)
+    pts, attrs = whole(las_rows(laspy, path, header, max(header.n_points, 1)))
     name = path.stem.split(".")[0] if path.name.lower().endswith(".copc.laz") else path.stem
-    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=meta)]
+    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=header.metadata)]
+
+
+@dataclass
+class LasHeader:
+    """What :func:`las_header` learns before any point is read: the point count, the format
+    metadata, the point dimensions to read in order (X/Y/Z left out; a standard field that an exact
+    copy replaces after the others, as the whole read always had it) and the attribute name of each."""
+
+    n_points: int
+    metadata: dict[str, Any]
+    order: list[str]
+    names: dict[str, str]
+
+
+def las_header(laspy: Any, p: Path) -> LasHeader:
+    """The header of a LAS/LAZ file, after the checks that refuse a damaged file; one line for
+    every failure."""
+    check_laz_backend(laspy, p)
+    try:
+        check_vlr_counts(p)
+        if p.suffix.lower() == ".laz":
+            check_chunk_table(laspy, p)
+        with quiet_laspy(), laspy.open(str(p)) as reader:
+            hdr = reader.header
+            n = int(hdr.point_count)
+            meta, rename = las_metadata(hdr, hdr.point_format, p)
+            dims = [d for d in hdr.point_format.dimension_names if d not in ("X", "Y", "Z")]
+    except BaseException as exc:
+        raise _las_failure(laspy, p, exc) from None
+    order = [d for d in dims if d not in rename] + [d for d in dims if d in rename]
+    return LasHeader(n, meta, order, {d: rename.get(d, d) for d in dims})
+
+
+def las_rows(laspy: Any, p: Path, header: LasHeader, size: int, first: int = 0,
+             stop: int | None = None) -> Generator[Rows, None, None]:
+    """The one read of a LAS/LAZ file's points: ``(start, float64 (m, 3) points, attributes)``,
+    ``size`` rows at a time from row ``first`` to ``stop`` (default: the end; laspy seeks, a LAZ
+    file through its chunk table, and decompresses chunk by chunk).
+    Coordinates are not checked for NaN/inf here: the whole read and the stream each say where."""
+    stop = header.n_points if stop is None else stop
+    start = first
+    try:
+        with quiet_laspy(), laspy.open(str(p)) as reader:
+            if first:
+                reader.seek(first)
+            while start < stop:
+                rec = reader.read_points(min(size, stop - start))
+                m = len(rec)
+                if m == 0:
+                    break
+                pts = np.empty((m, 3), dtype=np.float64)
+                pts[:, 0] = rec.x
+                pts[:, 1] = rec.y
+                pts[:, 2] = rec.z
+                attrs = {header.names[d]: np.ascontiguousarray(np.asarray(rec[d])) for d in header.order}
+                yield start, pts, attrs
+                start += m
+    except GeneratorExit:
+        raise
+    except BaseException as exc:
+        raise _las_failure(laspy, p, exc) from None
+    if start != stop:
+        raise FormatError(
+            f"{p}: the header declares {header.n_points} points but the file holds {start}; re-export it"
+        )
+
+
+def _las_failure(laspy: Any, p: Path, exc: BaseException) -> BaseException:
+    """The error to raise for ``exc`` met while reading ``p``: laspy's and the parser libraries'
+    own errors (lazrs' panics included) worded as one line; lodbuilder's own errors and
+    interruptions unchanged."""
+    if isinstance(exc, LodbuilderError) or not isinstance(exc, Exception) and not library_panic(exc):
+        return exc
+    if isinstance(exc, laspy.errors.LaspyException):
+        return FormatError(f"{p}: not a readable LAS/LAZ file ({exc_line(exc)}); check or re-export it")
+    if isinstance(exc, MemoryError):
+        return FormatError(f"{p}: too large to load into memory; split the scan or use a machine with more memory")
+    if isinstance(exc, OSError):
+        return ScanFileError(f"{p}: cannot be read ({exc_line(exc)}); check the file")
+    return FormatError(f"{p}: cannot be read as LAS ({exc_line(exc)}); check or re-export the file")
 
 
 def _extra_no_data(hdr: Any) -> dict[str, list[int | float | str]]:

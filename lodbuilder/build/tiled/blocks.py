@@ -1,0 +1,223 @@
+"""The tasks that read a survey and cut it into tiles, one block of input points each (run on the
+workers; the parent only plans them and sums what they return).
+
+A *block* is a range of rows of one input file (a whole small file, or a range of a big LAS/LAZ,
+PLY or NPY file that the reader seeks to). Its points have the consecutive input indices
+``g0 .. g0 + m`` (the inputs one after the other, as listed). Three tasks per block:
+
+* :func:`read_block`: decode the rows, apply the pose, write the raw block (coordinates and
+  attributes) and return its count, exact bounds, the coordinate encodings it allows, and its
+  points of the scan's spacing sample (input index a multiple of the sample step);
+* :func:`survey_block`: the block's share of the plan: its count histogram on the plan's grid and
+  its cell representatives of the decimated copy (the first point of each cell in input order);
+* :func:`distribute_block`: the block's points written into per-tile pieces (core and halo).
+
+Every file is written to a temporary and published when complete (:mod:`lodbuilder._atomic`); a
+task's result lists its files with their sums, and the parent records it as the task's marker.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..._atomic import publish
+from ...errors import FormatError
+from . import layout as WL
+from .plan import Grid, Tile, tile_lookup
+from .sums import SumFile
+from .timing import timed_task
+from .workdir import REC, blocks, opaque_rows
+
+JOINT_FIELDS = ("scan_id", "scan_point")
+
+
+class _Out:
+    """Work files written through temporaries, published together by :meth:`publish`."""
+
+    def __init__(self, work: Path) -> None:
+        self.work = work
+        self.files: dict[str, SumFile] = {}
+
+    def write(self, name: str, data: np.ndarray) -> None:
+        if name not in self.files:
+            self.files[name] = SumFile(self.work / WL.writing(name))
+        self.files[name].write(data)
+
+    def close(self) -> None:
+        for f in self.files.values():
+            f.close()
+
+    def publish(self) -> dict[str, list[int]]:
+        self.close()
+        for name in self.files:
+            publish(self.work / WL.writing(name), self.work / name)
+        return {name: f.sum for name, f in self.files.items()}
+
+
+@timed_task
+def read_block(work: str, b: int, source: Any, member: int | None, start: int, stop: int, g0: int,
+               spec: dict[str, Any]) -> dict[str, Any]:
+    """Read rows ``start .. stop`` of one input (``source``: a picklable opener returning
+    ``(stream, pose)``, or that pair) as block ``b`` (input indices from ``g0``). ``spec``: the
+    fields kept, whether the build is joint, the metadata the encoding is chosen by, the sample
+    step and the rows per chunk."""
+    from ...archive.layout import encode_points
+    from ...io.pose import apply_pose
+
+    t0 = time.perf_counter()
+    stream, pose = source() if callable(source) else source
+    fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
+    rec_dt = WL.attr_record(fields)
+    own = [k for k in fields if not (spec["joint"] and k in JOINT_FIELDS)]
+    step, meta = int(spec["step"]), spec["metadata"]
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    samples, encodings = [], set()
+    out = _Out(Path(work))
+    g = g0
+    try:
+        for chunk in stream.chunks(int(spec["rows"]), start, stop):
+            pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
+            pts = np.ascontiguousarray(pts, dtype="<f8")
+            m = pts.shape[0]
+            out.write(WL.raw_xyz(b), pts)
+            encodings.add(encode_points(pts, meta)[1])
+            lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+            samples.append(pts[(-g) % step::step])
+            if rec_dt.itemsize:
+                rec = np.empty(m, rec_dt)
+                for i, k in enumerate(fields):
+                    rec[f"a{i}"] = chunk.attributes[k] if k in own else (
+                        np.full(m, member or 0) if k == "scan_id" else np.arange(chunk.start, chunk.start + m))
+                out.write(WL.raw_attr(b), rec)
+            g += m
+    finally:
+        out.close()
+    if g - g0 != stop - start:
+        raise FormatError(f"{stream.path}: rows {start}..{stop} hold {g - g0} points, the header declares "
+                          f"{stop - start}; re-export the file")
+    smp = np.concatenate(samples) if samples else np.zeros((0, 3))
+    out.write(WL.sample(b), np.ascontiguousarray(smp, dtype="<f8"))
+    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings),
+            "seconds": time.perf_counter() - t0, "worker_pid": os.getpid(), "files": out.publish()}
+
+
+def _xyz_blocks(work: Path, b: int, m: int, rows: int) -> Any:
+    for lo, a in blocks(work / WL.raw_xyz(b), "<f8", 3 * m, 3 * rows):
+        yield lo // 3, a.reshape(-1, 3)
+
+
+@timed_task
+def survey_block(work: str, b: int, g0: int, m: int, rows: int, grid: dict[str, Any], d_cell: float,
+                 histogram: bool = True) -> dict[str, Any]:
+    """Block ``b``'s count histogram on ``grid`` (sparse: occupied cells and counts, when
+    ``histogram``) and its representatives of the decimated copy: for each cubic cell of size
+    ``d_cell`` (from the grid's corner) its first point (cell key, input index, coordinates)."""
+    t0 = time.perf_counter()
+    w = Path(work)
+    gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))  # type: ignore[arg-type]
+    hist = np.zeros(int(np.prod(gr.shape)) if histogram else 0, np.int64)
+    keys, gs, xyz = [], [], []
+    for r0, pts in _xyz_blocks(w, b, m, rows):
+        if histogram:
+            hist += np.bincount(gr.index(pts), minlength=hist.shape[0])
+        c = np.floor((pts - gr.lo) / d_cell).astype(np.int64)
+        key = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+        ukey, first = np.unique(key, return_index=True)
+        keys.append(ukey)
+        gs.append(first + g0 + r0)
+        xyz.append(pts[first])
+    key_a, g_a, p_a = np.concatenate(keys), np.concatenate(gs), np.concatenate(xyz)
+    order = np.lexsort((g_a, key_a))
+    key_a, g_a, p_a = key_a[order], g_a[order], p_a[order]
+    keep = np.ones(key_a.shape[0], bool)
+    keep[1:] = key_a[1:] != key_a[:-1]
+    cells = np.flatnonzero(hist)
+    return {"block": b, "n": m, "cells": cells, "counts": hist[cells], "keys": key_a[keep], "g": g_a[keep],
+            "xyz": p_a[keep], "seconds": time.perf_counter() - t0, "worker_pid": os.getpid()}
+
+
+def decimated_copy(parts: list[dict[str, Any]]) -> np.ndarray:
+    """The decimated copy from every block's representatives: the first point of each cell in
+    input order, as REC records in input order."""
+    keys = np.concatenate([p["keys"] for p in parts])
+    gs = np.concatenate([p["g"] for p in parts])
+    xyz = np.concatenate([p["xyz"] for p in parts])
+    order = np.lexsort((gs, keys))
+    keys, gs, xyz = keys[order], gs[order], xyz[order]
+    keep = np.ones(keys.shape[0], bool)
+    keep[1:] = keys[1:] != keys[:-1]
+    sel = np.flatnonzero(keep)
+    sel = sel[np.argsort(gs[sel], kind="stable")]
+    out = np.empty(sel.shape[0], REC)
+    out["g"] = gs[sel]
+    out["x"], out["y"], out["z"] = xyz[sel, 0], xyz[sel, 1], xyz[sel, 2]
+    return out
+
+
+@timed_task
+def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[dict[str, Any]],
+                     grid: dict[str, Any], halo: float) -> dict[str, Any]:
+    """Write block ``b``'s points into the pieces of the tiles (``core.<t>.<b>.bin``: the tile's
+    own points; ``halo.<t>.<b>.bin``: points of other tiles within ``halo`` of its box); returns
+    the rows of each tile's pieces."""
+    t0 = time.perf_counter()
+    w = Path(work)
+    tl = [Tile.from_json(t) for t in tiles]
+    gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))  # type: ignore[arg-type]
+    lookup = tile_lookup(tl, gr)
+    t_lo = np.array([t.lo for t in tl], float).reshape(-1, 3)
+    t_hi = np.array([t.hi for t in tl], float).reshape(-1, 3)
+    n_core = np.zeros(len(tl), np.int64)
+    n_halo = np.zeros(len(tl), np.int64)
+    out = _Out(w)
+    try:
+        for r0, pts in _xyz_blocks(w, b, m, rows):
+            _split(out, b, g0 + r0, pts, lookup[gr.index(pts)], t_lo, t_hi, halo, n_core, n_halo)
+    finally:
+        out.close()
+    return {"block": b, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(), "seconds": time.perf_counter() - t0,
+            "worker_pid": os.getpid(), "files": out.publish()}
+
+
+def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: np.ndarray, t_hi: np.ndarray,
+           halo: float, n_core: np.ndarray, n_halo: np.ndarray) -> None:
+    """One chunk of a block into the tiles' core and halo pieces."""
+    m, n_tiles = pts.shape[0], t_lo.shape[0]
+    rec = np.empty(m, REC)
+    rec["g"] = np.arange(g0, g0 + m)
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    raw = opaque_rows(rec)
+    order = np.argsort(own, kind="stable")
+    bounds = np.searchsorted(own[order], np.arange(n_tiles + 1))
+    # only a point within the halo width of its own tile's faces can lie in another tile's halo
+    # (the tiles' boxes do not overlap): test those against every tile
+    lo_own, hi_own = t_lo[own], t_hi[own]
+    is_near = np.zeros(m, bool)
+    for a in range(3):  # column by column: NumPy reduces a short axis slowly
+        is_near |= pts[:, a] - lo_own[:, a] <= halo
+        is_near |= hi_own[:, a] - pts[:, a] <= halo
+    near = np.flatnonzero(is_near)
+    p_near, own_near = pts[near], own[near]
+    los, his = t_lo - halo, t_hi + halo
+    for t in range(n_tiles):
+        sel = order[bounds[t]:bounds[t + 1]]
+        if sel.size:
+            out.write(WL.core(t, b), raw[sel])
+            n_core[t] += sel.size
+        inside = own_near != t
+        for a in range(3):
+            inside &= (p_near[:, a] >= los[t, a]) & (p_near[:, a] <= his[t, a])
+        if inside.any():
+            out.write(WL.halo(t, b), raw[near[inside]])
+            n_halo[t] += int(inside.sum())
+
+
+def tile_records(work: Path, names: list[str]) -> np.ndarray:
+    """A tile's core or halo: its pieces (``names``, in block order) one after the other."""
+    parts = [np.fromfile(work / n, dtype=REC) for n in names]
+    return np.concatenate(parts) if parts else np.zeros(0, REC)

@@ -1,0 +1,221 @@
+"""The first three phases of a tiled build as tasks: read, plan and distribute (the parent plans
+them from the inputs' headers and sums what the tasks return; it reads no point).
+
+* **inputs** (parent): the inputs' headers (point counts, fields, CRS) cut into read blocks: a
+  small input is one block, a big one ranges of rows (a multiple of the chunk size, so that the
+  chunks are the ones a single reader would read); the input index ``g`` of a point is its row in
+  the inputs read one after the other, as listed.
+* **read** (tasks, :func:`.blocks.read_block`): each block decoded, posed and written raw; the
+  parent sums counts, bounds, encodings and the spacing sample into the ``spill`` marker.
+* **plan** (tasks, :func:`.blocks.survey_block`): the count histogram on a grid over the exact
+  bounds, and the decimated copy (the first point of each cell in input order), summed by the
+  parent, which cuts the tiles (a k-d split of the histogram).
+* **distribute** (tasks, :func:`.blocks.distribute_block`): each block cut into the tiles' core and
+  halo pieces; a tile task reads its pieces in block order (its points in input order).
+
+Everything the tasks return is the same whatever the blocks are (sums, minima and maxima, the
+first point of a cell by input index), so the plan, the tiles and the order equal those of one
+reader that reads every point in input order.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...progress import ProgressCallback
+from . import layout as WL
+from . import plan as P
+from . import workdir as W
+from .blocks import decimated_copy, distribute_block, read_block, survey_block
+from .pool import collect, submit
+from .sums import SumFile, done, write_json
+from .sums import publish as publish_array
+from .workdir import SAMPLE, Spill
+
+#: read tasks per worker (a big input is cut into about this many blocks per worker)
+READ_TASKS_PER_WORKER = 2
+
+
+def _mark(work: Path, piece: str, doc: dict[str, Any]) -> dict[str, Any]:
+    write_json(work / WL.marker(piece), doc)
+    WL.moment(piece.split(".")[0])
+    return doc
+
+
+def plan_inputs(sources: list[tuple[Any, ...]], parallel: int, rows: int) -> dict[str, Any]:
+    """The read blocks of ``sources`` (``(stream, pose, member, reopen)``) from their headers, and
+    what the scan keeps: its fields (a joint build keeps those every input has, and adds
+    ``scan_id`` and ``scan_point``), metadata and members."""
+    joint = len(sources) > 1 or sources[0][2] is not None
+    first = sources[0][0]
+    common = set(first.fields)
+    for s in sources[1:]:
+        common &= {k for k, v in s[0].fields.items() if v == first.fields.get(k)}
+    names = sorted(common) if joint else list(first.fields)
+    fields = {k: [np.dtype(first.fields[k][0]).str, list(first.fields[k][1])] for k in names}
+    if joint:
+        fields["scan_id"] = [np.dtype(np.int32).str, []]
+        fields["scan_point"] = [np.dtype(np.int64).str, []]
+    n = sum(int(s[0].n_points) for s in sources)
+    per = rows * max(1, math.ceil(n / (rows * READ_TASKS_PER_WORKER * max(1, parallel))))
+    blocks, members, g = [], [], 0
+    for i, s in enumerate(sources):
+        m = int(s[0].n_points)
+        step = m if s[3] is None else per  # a scan the parent hands out is one block
+        blocks += [[i, a, min(m, a + step), g + a] for a in range(0, m, step)]
+        path = getattr(s[0], "path", None)  # (the file a failed task's points came from: see .timing)
+        members.append({"id": s[2], "n_points": m, "first": g,
+                        "source": Path(path).name if path and Path(path).is_file() else None})
+        g += m
+    return {"n": n, "fields": fields, "joint": joint, "rows": rows, "step": max(1, n // SAMPLE),
+            "metadata": dict(first.metadata) if not joint else joint_crs(sources),
+            "reader": first.reader if not joint else "joint", "members": members, "blocks": blocks}
+
+
+def joint_crs(sources: list[tuple[Any, ...]]) -> dict[str, Any]:
+    """The CRS metadata of a joint scan: the sources' own when they all share one CRS (the build
+    refused them otherwise, or reprojected them to one), else none."""
+    from ...io.crs import KEY_REPROJECTION, KEY_SOURCE, KEY_UNITS, KEY_WKT
+
+    metas = [s[0].metadata for s in sources]
+    if not metas[0].get(KEY_WKT) or any(m.get(KEY_WKT) != metas[0][KEY_WKT] for m in metas):
+        return {}
+    out = {k: metas[0][k] for k in (KEY_WKT, KEY_UNITS, KEY_SOURCE) if metas[0].get(k) is not None}
+    reps = [m[KEY_REPROJECTION] for m in metas if KEY_REPROJECTION in m]
+    if reps:
+        out[KEY_REPROJECTION] = reps
+    return out
+
+
+def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, ...]], parallel: int,
+               progress: ProgressCallback) -> Spill:
+    """Phases inputs and read: every block read by a task (an input the parent holds in memory by
+    the parent), summed into the ``spill`` marker (or what a finished read recorded)."""
+    doc = done(work, "spill")
+    if doc is not None:
+        return Spill.from_json(doc, np.load(work / WL.SAMPLE))
+    inp = done(work, "inputs") or _mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
+    spec = {k: inp[k] for k in ("fields", "joint", "metadata", "step", "rows")}
+    results = {}
+    calls, inline = [], []
+    for b, (i, a, z, g0) in enumerate(inp["blocks"]):
+        prev = done(work, WL.read_piece(b))
+        if prev is not None:
+            results[b] = prev
+            continue
+        stream, pose, member, reopen = sources[i]
+        args = (str(work), b, reopen if reopen is not None else (stream, pose), member, a, z, g0, spec)
+        (calls if reopen is not None else inline).append((b, read_block, args))
+    futs = submit(ex, calls)
+
+    def record(res: dict[str, Any]) -> None:
+        results[res["block"]] = _mark(work, WL.read_piece(res["block"]), res)
+
+    def where(b: int) -> str:
+        return f"reading {sources[inp['blocks'][b][0]][0].path}"
+
+    try:
+        for _, fn, args in inline:
+            record(fn(*args))
+    finally:
+        start = sum(int(r["n"]) for r in results.values())
+        collect(futs, where, name, int(inp["n"]), progress, "read", record, lambda r: int(r["n"]), start)
+    return _spill(work, inp, [results[b] for b in range(len(inp["blocks"]))])
+
+
+def _spill(work: Path, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill:
+    """The read blocks summed: the ``spill`` marker (and the whole sample, ``sample.npy``)."""
+    from ...archive.layout import choose_encoding
+
+    n = sum(int(r["n"]) for r in res)
+    if n != int(inp["n"]):
+        raise RuntimeError(f"the read blocks hold {n} points, the inputs' headers {inp['n']}")
+    sample = np.concatenate([np.fromfile(work / WL.sample(b), "<f8").reshape(-1, 3) for b in range(len(res))])
+    with SumFile(work / WL.SAMPLE) as f:
+        np.save(f, sample)  # type: ignore[arg-type]
+    files = {k: v for r in res for k, v in r["files"].items()}
+    enc = choose_encoding({e for r in res for e in r["encodings"]} or {"float64"})
+    sp = Spill(n, np.min([r["lo"] for r in res], axis=0), np.max([r["hi"] for r in res], axis=0),
+               {k: (v[0], tuple(v[1])) for k, v in inp["fields"].items()}, sample, inp["metadata"], inp["reader"],
+               inp["members"], enc, {**files, WL.SAMPLE: f.sum}, inp["blocks"], int(inp["rows"]))
+    _mark(work, "spill", sp.to_json())
+    return sp
+
+
+def _blocks(sp: Spill) -> list[tuple[int, int, int]]:
+    """(block, first input index, rows) of every read block."""
+    return [(b, int(g0), int(z) - int(a)) for b, (_, a, z, g0) in enumerate(sp.blocks or [])]
+
+
+def _survey(ex: cf.Executor, work: Path, name: str, sp: Spill, grid: P.Grid, d_cell: float, histogram: bool,
+            progress: ProgressCallback) -> list[dict[str, Any]]:
+    g = {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)}
+    calls = [(b, survey_block, (str(work), b, g0, m, sp.rows, g, d_cell, histogram)) for b, g0, m in _blocks(sp)]
+    return collect(submit(ex, calls), lambda b: f"the plan of block {b + 1}", name, sp.n, progress, "plan",
+                   count=lambda r: int(r["n"]), start=0)
+
+
+def plan_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, params: dict[str, Any], limit: int, cap: int,
+               m_target: int, progress: ProgressCallback) -> dict[str, Any]:
+    """Phase plan: the count histogram and the decimated copy from the blocks (tasks), the tiles
+    (a k-d split of the histogram); ``params``: the spacing, voxel size and band radius. Returns
+    the plan marker (or what a finished plan recorded)."""
+    pl = done(work, "plan")
+    if pl is not None:
+        return pl
+    n, s = sp.n, float(params["spacing"])
+    grid = P.Grid.around(sp.lo, sp.hi)
+    span = float(np.max(sp.hi - sp.lo)) or 1.0
+    d_cell = max(s * math.sqrt(n / m_target), span / (1 << 20))
+    parts = _survey(ex, work, name, sp, grid, d_cell, True, progress)
+    hist = np.zeros(int(np.prod(grid.shape)), np.int64)
+    for p in parts:
+        hist[p["cells"]] += p["counts"]  # a block's cells are distinct
+    dec = decimated_copy(parts)
+    while dec.shape[0] > limit:  # the cell count overshot the target: coarser cells, one more pass
+        d_cell *= 1.1 * math.sqrt(dec.shape[0] / limit)
+        dec = decimated_copy(_survey(ex, work, name, sp, grid, d_cell, False, progress))
+    sums = publish_array(dec, work / WL.DECIMATED)
+    tiles = P.split_tiles(hist, grid, cap)
+    return _mark(work, "plan", {**params, "tile_cap": cap, "tiles": [t.to_json() for t in tiles],
+                                "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
+                                "d_cell": d_cell, "span": span, "n_decimated": int(dec.shape[0]),
+                                "files": {WL.DECIMATED: sums}})
+
+
+def distribute_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, pl: dict[str, Any], halo: float,
+                     progress: ProgressCallback) -> dict[str, Any]:
+    """Phase distribute: every block cut into the tiles' pieces by a task; the marker holds the
+    halo width, each tile's core and halo sizes and the names of its pieces in block order."""
+    dist = done(work, "distribute")
+    if dist is not None:
+        return dist
+    results = {}
+    calls = []
+    for b, g0, m in _blocks(sp):
+        prev = done(work, WL.split_piece(b))
+        if prev is not None:
+            results[b] = prev
+        else:
+            calls.append((b, distribute_block, (str(work), b, g0, m, sp.rows, pl["tiles"], pl["grid"], halo)))
+
+    def record(res: dict[str, Any]) -> None:
+        results[res["block"]] = _mark(work, WL.split_piece(res["block"]), res)
+
+    collect(submit(ex, calls), lambda b: f"the split of block {b + 1}", name, sp.n, progress, "split", record,
+            lambda r: int(np.sum(r["n_core"])), sum(int(np.sum(r["n_core"])) for r in results.values()))
+    res = [results[b] for b in range(len(results))]
+    n_tiles = len(pl["tiles"])
+    core = np.array([r["n_core"] for r in res], np.int64).reshape(len(res), n_tiles)
+    hal = np.array([r["n_halo"] for r in res], np.int64).reshape(len(res), n_tiles)
+    pieces = {"core": [[WL.core(t, b) for b in np.flatnonzero(core[:, t])] for t in range(n_tiles)],
+              "halo": [[WL.halo(t, b) for b in np.flatnonzero(hal[:, t])] for t in range(n_tiles)]}
+    files = {k: v for r in res for k, v in r["files"].items()}
+    return _mark(work, "distribute", {"halo": halo, "n_core": core.sum(axis=0).tolist(),
+                                      "n_halo": hal.sum(axis=0).tolist(), "pieces": pieces, "files": files})
+

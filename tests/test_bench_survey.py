@@ -1,0 +1,106 @@
+"""tools/make_survey.py (one file, or one file per copy) and tools/bench_survey.py on a tiny survey:
+the JSON's keys and invariants, never its times."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+import make_survey  # noqa: E402
+
+
+def test_make_survey_files_are_shifted_copies_with_the_source_crs(tmp_path):
+    import laspy
+
+    doc = make_survey.make_files(tmp_path / "s", 3, 2, thin=100)
+    files = sorted((tmp_path / "s").glob("*.laz"))
+    assert [f.name for f in files] == [f"survey_{j}_{i}.laz" for j in range(2) for i in range(3)]
+    assert doc["files"] == 6 and doc["points"] == 6 * 1_100 and doc["bytes"] == sum(f.stat().st_size for f in files)
+    assert not list((tmp_path / "s").glob("*.part"))
+    src = laspy.read(str(make_survey.SOURCE))
+    x0, y0 = np.asarray(src.points.X)[::100], np.asarray(src.points.Y)[::100]
+    one = make_survey.make(tmp_path / "one.laz", 3, 2, thin=100)
+    whole = laspy.read(str(tmp_path / "one.laz"))
+    assert one["points"] == len(whole) == doc["points"]
+    boxes = []
+    for k, f in enumerate(files):
+        las = laspy.read(str(f))
+        assert las.header.parse_crs() == src.header.parse_crs() is not None
+        dx, dy = np.asarray(las.points.X) - x0, np.asarray(las.points.Y) - y0
+        assert np.ptp(dx) == 0 and np.ptp(dy) == 0  # the source, shifted as a whole
+        np.testing.assert_array_equal(las.intensity, src.intensity[::100])
+        # the one-file mode holds the same copies in the same order
+        np.testing.assert_array_equal(las.points.X, whole.points.X[k * 1_100:(k + 1) * 1_100])
+        boxes.append((las.header.mins, las.header.maxs))
+    for a in range(len(boxes)):
+        for b in range(a):  # the copies do not touch
+            assert np.any(boxes[a][0][:2] > boxes[b][1][:2]) or np.any(boxes[b][0][:2] > boxes[a][1][:2])
+
+
+def test_make_survey_refuses_bad_counts(capsys):
+    with pytest.raises(SystemExit):
+        make_survey.main(["--nx", "0", "--files", "x"])
+    assert "--nx, --ny and --thin must be >= 1, got 0, 14 and 1" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def bench_doc(tmp_path_factory):
+    import bench_survey
+
+    d = tmp_path_factory.mktemp("bench")
+    make_survey.make_files(d / "files", 2, 1, thin=50)
+    make_survey.make(d / "one.laz", 2, 1, thin=50)
+    out = d / "bench.json"
+    rc = bench_survey.main([str(d / "one.laz"), str(d / "files"), "--workers", "1,2", "--max-memory", "2GB",
+                            "--tile-points", "700", "--no-warm-up", "--work", str(d / "runs"), "--out", str(out),
+                            "--interval", "0.05"])
+    return rc, json.loads(out.read_text()), d
+
+
+def test_bench_survey_document(bench_doc, capsys):
+    rc, doc, d = bench_doc
+    assert rc == 0
+    assert {"benchmark", "date", "commit", "command", "cpus", "surveys"} <= set(doc)
+    assert doc["benchmark"] == "bench_survey" and "bench_survey.py" in doc["command"]
+    single, joint = doc["surveys"]
+    assert single["joint"] is None and single["input"]["files"] == 1
+    assert joint["joint"] == "survey" and joint["input"]["files"] == 2
+    assert not any((d / "runs").iterdir())  # every run cleans up after itself
+    for sv in doc["surveys"]:
+        assert [(r["executor"], r["workers"]) for r in sv["runs"]] == [("pool", 1), ("pool", 2)]
+        for r in sv["runs"]:
+            assert r["rc"] == 0 and r["method"] == "tiled" and r["n_points"] == 4_400
+            assert r["points_per_second"] == pytest.approx(4_400 / r["wall_seconds"], rel=0.01, abs=1)
+            assert 0 < r["cpu_parent_seconds"] < r["cpu_tree_seconds"]
+            assert r["parent_cpu_share"] == pytest.approx(r["cpu_parent_seconds"] / r["cpu_tree_seconds"], abs=0.01)
+            assert r["processes_seen"] >= 1 + r["workers"]  # the parent and its workers, at least
+            assert r["peak_rss_tree_bytes"] > 0 and r["peak_rss_parent_bytes"] > 0
+            assert 0 < r["peak_work_dir_bytes"] <= r["peak_written_bytes"]
+            assert r["work_over_archive"] == pytest.approx(r["peak_work_dir_bytes"] / r["archive_bytes"], abs=1e-3)
+            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover"]
+            assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
+            kinds = r["tasks"]["by_kind"]
+            assert kinds["coarse_task"]["tasks"] == 1
+            assert kinds["order_tile"]["tasks"] == kinds["cover_tile"]["tasks"] == r["tiles"] >= 4
+            for kind in ("read_block", "survey_block", "distribute_block", "bucket_block"):
+                assert kinds[kind]["tasks"] >= 1, kind
+            assert 1 <= r["tasks"]["workers_seen"] <= r["workers"]
+            sim = r["simulation"]
+            assert [p["workers"] for p in sim["predicted"]] == [1, 2, 4, 8, 16]
+            assert sim["predicted"][0]["speedup_over_1"] == 1.0
+            assert all(p["wall_seconds"] >= sim["serial_parent_seconds"] for p in sim["predicted"])
+            assert sim["calibration"]["workers"] == r["workers"]
+            assert "not measured" in sim["notes"][0]
+        one, two = sv["runs"]
+        assert sv["speedup_over_1_worker"] == {"pool 2": round(one["wall_seconds"] / two["wall_seconds"], 3)}
+        t = sv["targets"]
+        assert t["parent_cpu_share"]["worst"] == max(r["parent_cpu_share"] for r in sv["runs"])
+        assert t["parent_cpu_share"]["met"] == (t["parent_cpu_share"]["worst"] <= 0.03)
+        assert t["speedup_2_over_1"]["met"] == (t["speedup_2_over_1"]["value"] >= 1.9)
+        assert t["work_over_archive"]["target_max"] == 2.0

@@ -1,0 +1,110 @@
+"""tools/simulate_schedule.py: list scheduling on hand-made task lists whose optimal makespans are
+known, the stage model (serial parent work beside the tasks), and the model of a build record
+(tile orderings wait for their neighbours of a smaller colour)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+from simulate_schedule import Stage, Task, makespan, model_from_record, predict, simulate  # noqa: E402
+
+
+def _tasks(*seconds: float) -> list[Task]:
+    return [Task(f"t{i}", s) for i, s in enumerate(seconds)]
+
+
+@pytest.mark.parametrize(("seconds", "workers", "optimal"), [
+    ((4, 3, 3, 2), 2, 6.0),  # 4+2 | 3+3: largest first finds it
+    ((5, 5, 4, 4, 3, 3), 3, 8.0),  # 5+3 | 5+3 | 4+4
+    ((1,) * 8, 4, 2.0),
+    ((7, 1, 1, 1), 4, 7.0),  # the largest task bounds it
+    ((2, 2, 2), 1, 6.0),  # one worker: the sum
+    ((3,), 16, 3.0),
+])
+def test_independent_tasks_reach_the_optimum(seconds, workers, optimal):
+    assert makespan(_tasks(*seconds), workers) == pytest.approx(optimal)
+
+
+def test_largest_first_is_within_grahams_bound_where_it_misses_the_optimum():
+    # 3+3 | 2+2+2 = 6 is optimal; largest first puts 3 | 3, then 2 | 2, then 2: 7 <= 4/3 x 6
+    assert makespan(_tasks(3, 3, 2, 2, 2), 2) == pytest.approx(7.0)
+
+
+def test_dependencies_a_chain_and_a_diamond():
+    chain = [Task("a", 1), Task("b", 2, ["a"]), Task("c", 3, ["b"])]
+    assert makespan(chain, 1) == makespan(chain, 8) == pytest.approx(6.0)  # the critical path
+    diamond = [Task("a", 1), Task("b", 2, ["a"]), Task("c", 3, ["a"]), Task("d", 1, ["b", "c"])]
+    assert makespan(diamond, 2) == pytest.approx(5.0)  # a, then b || c, then d
+    assert makespan(diamond, 1) == pytest.approx(7.0)
+    # a dependency outside the list counts as done
+    assert makespan([Task("x", 2, ["elsewhere"])], 1) == pytest.approx(2.0)
+
+
+def test_priority_orders_the_ready_tasks():
+    # largest first: A | B, then C, then D (C's follower) alone: 7; C first lets D start at 3: 6
+    tasks = [Task("A", 3), Task("B", 3), Task("C", 1), Task("D", 3, ["C"])]
+    assert makespan(tasks, 2) == pytest.approx(7.0)
+    tasks[2].priority = 10
+    assert makespan(tasks, 2) == pytest.approx(6.0)
+
+
+def test_refuses_cycles_duplicate_ids_and_no_workers():
+    with pytest.raises(ValueError, match="cycle"):
+        makespan([Task("a", 1, ["b"]), Task("b", 1, ["a"])], 2)
+    with pytest.raises(ValueError, match="unique"):
+        makespan([Task("a", 1), Task("a", 2)], 2)
+    with pytest.raises(ValueError, match="workers must be >= 1, got 0"):
+        makespan(_tasks(1), 0)
+
+
+def test_stages_are_amdahl():
+    stages = [Stage("read", 10.0), Stage("order", 0.5, _tasks(*[10.0] * 8)), Stage("write", 5.0)]
+    assert simulate(stages, 1)["total"] == pytest.approx(95.0)
+    assert simulate(stages, 8)["total"] == pytest.approx(25.0)
+    # the parent's own work in a stage with tasks bounds that stage
+    assert simulate([Stage("tiles", 7.0, _tasks(2.0))], 4)["total"] == pytest.approx(7.0)
+    rows = predict({"stages": stages}, [1, 8])["predicted"]
+    assert [r["speedup_over_1"] for r in rows] == [1.0, 3.8]
+
+
+def _record() -> dict:
+    """A build record of 3 tiles in a row (0 | 1 | 2; 1 touches both), colours 1, 0, 1."""
+    rows = [["coarse_task", "coarse_task", None, None, 2.5, 3.0, 2.9, 11],
+            ["order_tile", "order.1.1", 1, None, 6.0, 4.0, 3.9, 11],
+            ["order_tile", "order.0.1", 0, None, 10.0, 2.0, 2.0, 11],
+            ["order_tile", "order.2.1", 2, None, 10.0, 2.0, 2.0, 12],
+            ["cover_tile", "cover_tile.0", 0, None, 12.5, 1.0, 1.0, 11],
+            ["cover_tile", "cover_tile.1", 1, None, 12.5, 1.0, 1.0, 12],
+            ["cover_tile", "cover_tile.2", 2, None, 13.5, 1.0, 1.0, 11],
+            ["order_tile", "order.9.1", 9, None, -50.0, 1.0, 1.0, 10]]  # done before a resume
+    return {"phase_seconds": {"cover": 3.0, "order": 6.0, "plan": 1.0, "read": 1.0, "tiles": 4.0},
+            "phase_order": ["read", "plan", "tiles", "order", "cover"],
+            "parent_cpu_seconds": {"read": 0.9, "plan": 1.0, "tiles": 3.5, "order": 0.1, "cover": 0.5},
+            "tasks": {"columns": ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"],
+                      "rows": rows},
+            "tiled": {"tile_colours": [1, 0, 1], "halo": 0.1,
+                      "tile_boxes": [[0, 0, 0, 1, 1, 1], [1, 0, 0, 2, 1, 1], [2, 0, 0, 3, 1, 1]]}}
+
+
+def test_model_of_a_build_record():
+    model = model_from_record(_record(), rest=2.0, measured={"workers": 2, "wall_seconds": 17.0})
+    st = {s.name: s for s in model["stages"]}
+    assert list(st) == ["read", "plan", "tiles", "order", "cover", "rest"]
+    assert st["read"].parent_seconds == 1.0 and not st["read"].tasks  # a parent phase: its wall seconds
+    assert st["tiles"].parent_seconds == 3.5  # beside tasks: the parent's CPU seconds
+    assert [t.id for t in st["tiles"].tasks] == ["coarse_task"]
+    order = {t.id: t.deps for t in st["order"].tasks}
+    assert order == {"order.1.1": [], "order.0.1": ["order.1.1"], "order.2.1": ["order.1.1"]}
+    assert len(st["cover"].tasks) == 3
+    assert any("1 task(s) were done before a resume" in n for n in model["notes"])
+    out = predict(model, [1, 2])
+    # 1 worker: 1 + 1 + max(3.5, 3) + (4 + 2 + 2) + max(0.5, 3) + 2 = 18.5; 2 workers: order 4 + 2, cover 2
+    assert [r["wall_seconds"] for r in out["predicted"]] == [18.5, 15.5]
+    assert out["calibration"] == {"workers": 2, "measured_wall_seconds": 17.0, "predicted_wall_seconds": 15.5,
+                                  "predicted_over_measured": 0.912}
+    assert "not measured" in out["notes"][0]

@@ -1,0 +1,142 @@
+"""A survey of many files ordered as one surface (issue 19): the read, plan and distribute phases
+run as tasks, one per file or range of a big file; guarantees against brute force, blocks that do
+not change the archive, and a damaged tile file that fails the build by its name."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from naive import prefix_covering_radii
+
+import lodbuilder
+from lodbuilder.errors import BuildError
+from lodbuilder.io import Scan, read_scan
+
+laspy = pytest.importorskip("laspy")
+
+
+def _surface(n, seed=0):
+    rng = np.random.default_rng(seed)
+    side = int(np.sqrt(n))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2).astype(float)
+    g = (g + rng.uniform(-0.3, 0.3, g.shape)) / side * 100.0
+    return np.c_[g, 8 * np.sin(g[:, 0] / 8) * np.cos(g[:, 1] / 8)]
+
+
+def _las(path, pts, fmt, extra=None, seed=0):
+    """A LAS/LAZ file of point format ``fmt`` (with a float32 extra-bytes field ``extra``)."""
+    hdr = laspy.LasHeader(point_format=fmt, version="1.4")
+    hdr.scales = np.array([0.001, 0.001, 0.001])
+    hdr.offsets = np.array([0.0, 0.0, 0.0])
+    if extra:
+        hdr.add_extra_dims([laspy.ExtraBytesParams(name=extra, type=np.float32)])
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.intensity = np.random.default_rng(seed).integers(0, 60000, len(pts)).astype(np.uint16)
+    if extra:
+        las[extra] = np.arange(len(pts), dtype=np.float32)
+    las.write(str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    """Six files cut from one surface in strips: LAS and LAZ, point formats 0, 1, 3, 6, 7, 8, some
+    with extra bytes."""
+    d = tmp_path_factory.mktemp("survey")
+    pts = _surface(3000)
+    strips = np.array_split(np.argsort(pts[:, 0], kind="stable"), 6)
+    spec = [(0, ".las", None), (1, ".laz", "height"), (3, ".laz", None), (6, ".las", "height"),
+            (7, ".laz", "amp"), (8, ".las", None)]
+    files = [_las(d / f"tile{i}{suf}", pts[idx], fmt, extra, seed=i)
+             for i, (idx, (fmt, suf, extra)) in enumerate(zip(strips, spec, strict=True))]
+    return files, [read_scan(f) for f in files]
+
+
+def _read(out):
+    with lodbuilder.open_archive(out) as arc:
+        v = arc.scan()
+        return {"order": v.source_index[:], "radius": v.radius[:], "points": v.points(), "attrs": v.attributes(),
+                "build": v.build, "n_ordered": v.n_ordered}
+
+
+@pytest.mark.slow
+def test_a_survey_of_files_against_brute_force(survey, tmp_path):
+    files, scans = survey
+    out = tmp_path / "s.h5"
+    res = lodbuilder.build_archive(files, out, joint="site", workers=2, _tile_points=250)
+    assert [(s.name, s.status, s.method) for s in res.scans] == [("site", "built", "tiled")]
+    d = _read(out)
+    merged = np.vstack([s.points for s in scans])
+    n = len(merged)
+    assert d["build"]["tiled"]["tiles"] >= 10 and d["n_ordered"] == n
+    # every point exactly once, with its own file's attributes (those every file has)
+    assert np.array_equal(np.sort(d["order"]), np.arange(n))
+    np.testing.assert_array_equal(d["points"], merged[d["order"]])
+    a = d["attrs"]
+    assert "height" not in a and "amp" not in a  # not in every file
+    first = np.cumsum([0] + [len(s) for s in scans])
+    np.testing.assert_array_equal(first[a["scan_id"]] + a["scan_point"], d["order"])
+    intensity = np.concatenate([s.attributes["intensity"] for s in scans])
+    np.testing.assert_array_equal(a["intensity"], intensity[d["order"]])
+    # every stored radius a true Euclidean covering radius of the whole survey; never increasing
+    cr = prefix_covering_radii(merged, d["order"])
+    r = d["radius"]
+    assert np.all(np.diff(r) <= 0)
+    assert np.all(cr[1:n] <= r[1:n] * (1 + 1e-12)), int(np.argmax(cr[1:n] - r[1:n]))
+
+
+@pytest.mark.slow
+def test_blocks_do_not_change_the_archive(survey, tmp_path, monkeypatch):
+    """A big file read in ranges (its reader seeks, LAZ through its chunk table), in small chunks,
+    gives the archive of one block per file."""
+    import lodbuilder.build.tiled.workdir as workdir
+
+    files, scans = survey
+    one = _las(tmp_path / "one.laz", np.vstack([s.points for s in scans]), 3)
+    ref = _read(_build(one, tmp_path / "ref.h5"))
+    monkeypatch.setattr(workdir, "BLOCK", 200)
+    small = _read(_build(one, tmp_path / "small.h5"))
+    assert small["build"]["tiled"]["read_blocks"] >= 4 and ref["build"]["tiled"]["read_blocks"] == 1
+    for key in ("order", "radius", "points"):
+        np.testing.assert_array_equal(small[key], ref[key])
+    np.testing.assert_array_equal(small["attrs"]["intensity"], ref["attrs"]["intensity"])
+
+
+def _build(src, out):
+    lodbuilder.build_archive(src, out, workers=2, _tile_points=400)
+    return out
+
+
+@pytest.mark.parametrize("damage", ["body", "truncated"])
+def test_a_damaged_tile_file_fails_the_build_by_its_name(survey, tmp_path, damage):
+    """A LAZ file whose compressed points are damaged (its header is fine): the read task that
+    decodes it fails the build with the file's name; a file shorter than its header says is
+    refused from its header, before any task. Either way the archive stays as it was."""
+    from lodbuilder.errors import FormatError
+
+    files, _ = survey
+    bad = tmp_path / "bad.laz"
+    data = bytearray(files[1].read_bytes())
+    if damage == "body":
+        mid = len(data) // 2
+        data[mid:mid + 64] = bytes(b ^ 0xFF for b in data[mid:mid + 64])
+    else:
+        bad = tmp_path / "bad.las"
+        data = bytearray(files[0].read_bytes())[:-2000]
+    bad.write_bytes(bytes(data))
+    keep = tmp_path / "t.h5"
+    lodbuilder.build_archive(Scan(points=np.random.default_rng(1).random((300, 3)), name="other"), keep)
+    before = keep.read_bytes()
+    with pytest.raises((BuildError, FormatError)) as exc:
+        lodbuilder.build_archive([files[2], bad], keep, joint="site", workers=2, _tile_points=250)
+    msg = str(exc.value)
+    if damage == "body":
+        # the decoder's own words (lazrs) in the middle
+        assert msg.startswith(f"scan 'site': reading {bad} failed: {bad}: cannot be read as LAS ("), msg
+        assert msg.endswith("); check or re-export the file")
+    else:
+        assert msg.startswith(f"{bad}: the LAS header declares "), msg
+    assert keep.read_bytes() == before
+    with lodbuilder.open_archive(keep) as arc:
+        assert arc.scans == ["other"]

@@ -1,0 +1,375 @@
+"""Benchmark survey-scale tiled builds (issue 19's targets): prints one JSON document and writes it
+to docs/bench/bench_survey.json.
+
+``lodbuilder build`` runs as a subprocess on each survey given (one LAS/LAZ file, or a directory of
+them ordered as one surface: ``--joint``) once per executor and worker count. For each run:
+
+* wall seconds and points per second;
+* CPU seconds of the whole process tree (every descendant's user + system time, sampled from /proc
+  every ``--interval`` seconds: a process's last interval is missed) and of the parent alone (its
+  exact getrusage at exit), the parent's share (target <= 3 %) and its CPU per phase (build record);
+* peak RSS of the process tree (the sum over the tree at each sample);
+* the largest size on disk of the work directory over the run (sampled likewise) beside the
+  archive's size (target <= 2 x), and the largest size of everything the build wrote;
+* the build record's phase seconds, tile count and per-task table summed by kind (tasks, seconds,
+  CPU seconds, workers seen), and the scheduler simulation's prediction for 1-16 workers
+  (tools/simulate_schedule.py) from that record;
+* the speed-up of each worker count over 1 worker (target: 2 workers >= 1.9 x), and Dask
+  LocalCluster over the process pool at equal workers (target <= 1.2).
+
+    python tools/make_survey.py --nx 4 --ny 4 -o /work/bench_data/survey_4x4.laz
+    python tools/make_survey.py --nx 4 --ny 4 --files /work/bench_data/survey_4x4
+    python tools/bench_survey.py /work/bench_data/survey_4x4.laz /work/bench_data/survey_4x4 \\
+        --workers 1,2 --executor pool,dask --max-memory 1.5GB
+
+Timings depend on the machine and its load (the load average before and after each run is in the
+JSON): on a shared machine, compare runs of one invocation only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+OUT = ROOT / "docs" / "bench" / "bench_survey.json"
+
+#: the targets of issue 19 that one machine can check
+TARGETS = {"parent_cpu_share_max": 0.03, "speedup_2_over_1_min": 1.9, "work_over_archive_max": 2.0,
+           "dask_over_pool_max": 1.2}
+
+#: the child: ``lodbuilder build`` in this process, its own CPU (getrusage) written at exit.
+#: ``BENCH_SURVEY_TILE_POINTS`` (a test knob) orders a small survey tiled in tiles of that many points.
+CHILD = """
+import atexit, json, os, resource, sys
+def _rusage():
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    with open(os.environ["BENCH_SURVEY_RUSAGE"], "w") as f:
+        json.dump({"self_cpu": s.ru_utime + s.ru_stime, "children_cpu": c.ru_utime + c.ru_stime,
+                   "self_maxrss": s.ru_maxrss * 1024}, f)
+atexit.register(_rusage)
+tp = os.environ.get("BENCH_SURVEY_TILE_POINTS")
+if tp:
+    from lodbuilder.build.tiled import plan
+    plan.needs_tiling = lambda *a, **k: True
+    plan.tile_capacity = lambda *a, **k: int(tp)
+from lodbuilder.cli.main import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+# ------------------------------------------------------------------------------------ sampling
+
+def _proc_table() -> dict[int, tuple[int, int, float]]:
+    """pid -> (parent pid, start time in ticks, CPU seconds) of every process."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for e in os.listdir("/proc"):
+        if not e.isdigit():
+            continue
+        try:
+            with open(f"/proc/{e}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            out[int(e)] = (int(fields[1]), int(fields[19]), (int(fields[11]) + int(fields[12])) / tick)
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+def _rss(pid: int) -> int:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def tree(root: int) -> tuple[dict[tuple[int, int], float], int]:
+    """The descendants of ``root`` (``root`` included): {(pid, start): CPU seconds}, summed RSS."""
+    table = _proc_table()
+    kids: dict[int, list[int]] = {}
+    for pid, (ppid, _, _) in table.items():
+        kids.setdefault(ppid, []).append(pid)
+    todo, cpu, rss = [root], {}, 0
+    while todo:
+        p = todo.pop()
+        if p not in table:
+            continue
+        todo += kids.get(p, [])
+        cpu[(p, table[p][1])] = table[p][2]
+        rss += _rss(p)
+    return cpu, rss
+
+
+def disk_bytes(path: Path, only_work: bool) -> int:
+    """Bytes allocated on disk under ``path`` (``only_work``: in ``*.work`` directories only)."""
+    total = 0
+    for dirpath, _, files in os.walk(path):
+        if only_work and ".work" not in Path(dirpath).relative_to(path).as_posix():
+            continue
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(dirpath, name)).st_blocks * 512
+            except OSError:
+                pass
+    return total
+
+
+class Sampler(threading.Thread):
+    """Samples a process tree and a directory every ``interval`` seconds until :meth:`stop`."""
+
+    def __init__(self, pid: int, where: Path, interval: float) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.where, self.interval = pid, where, interval
+        self.cpu: dict[tuple[int, int], float] = {}
+        self.peak_rss = self.peak_work = self.peak_all = self.samples = 0
+        self.processes_max = 0
+        self._halt = threading.Event()
+
+    def sample(self) -> None:
+        cpu, rss = tree(self.pid)
+        for k, v in cpu.items():
+            self.cpu[k] = max(self.cpu.get(k, 0.0), v)
+        self.peak_rss = max(self.peak_rss, rss)
+        self.processes_max = max(self.processes_max, len(cpu))
+        self.peak_work = max(self.peak_work, disk_bytes(self.where, True))
+        self.peak_all = max(self.peak_all, disk_bytes(self.where, False))
+        self.samples += 1
+
+    def run(self) -> None:
+        while not self._halt.is_set():
+            self.sample()
+            self._halt.wait(self.interval)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join()
+
+
+# ------------------------------------------------------------------------------------ one run
+
+def _record(archive: Path, name: str) -> dict[str, Any]:
+    import lodbuilder
+
+    with lodbuilder.open_archive(archive) as arc:
+        b = dict(arc.scan(name).build)
+    b.get("tiled", {}).pop("guarantees", None)
+    return b
+
+
+def task_summary(tasks: dict[str, Any] | None) -> dict[str, Any]:
+    """The build record's task table summed by kind: tasks, wall and CPU seconds, the largest task,
+    and how many worker processes ran them."""
+    if not tasks:
+        return {}
+    cols = tasks["columns"]
+    rows = [dict(zip(cols, r, strict=True)) for r in tasks["rows"]]
+    out: dict[str, Any] = {}
+    for r in rows:
+        k = out.setdefault(r["kind"], {"tasks": 0, "seconds": 0.0, "cpu_seconds": 0.0, "largest_seconds": 0.0})
+        k["tasks"] += 1
+        k["seconds"] += r["seconds"]
+        k["cpu_seconds"] += r["cpu_seconds"]
+        k["largest_seconds"] = max(k["largest_seconds"], r["seconds"])
+    for k in out.values():
+        k.update({x: round(k[x], 3) for x in ("seconds", "cpu_seconds", "largest_seconds")})
+    return {"by_kind": out, "workers_seen": len({r["pid"] for r in rows}),
+            "task_seconds": round(sum(r["seconds"] for r in rows), 3),
+            "task_cpu_seconds": round(sum(r["cpu_seconds"] for r in rows), 3)}
+
+
+def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
+              interval: float, tile_points: int | None = None) -> dict[str, Any]:
+    """One measured ``lodbuilder build`` of ``inputs`` (see the module)."""
+    where = Path(tempfile.mkdtemp(prefix=f"{executor}{workers}_", dir=base))
+    archive = where / "survey.h5"
+    ex = ["--workers", str(workers)] if executor == "pool" else ["--dask-local", str(workers)]
+    args = ["build", *map(str, inputs), "-o", str(archive), "--max-memory", max_memory, "--no-progress", "--json", *ex]
+    if joint:
+        args += ["--joint", joint]
+    env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"))
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    if tile_points:
+        env["BENCH_SURVEY_TILE_POINTS"] = str(tile_points)
+    load_before = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=where)
+    sampler = Sampler(proc.pid, where, interval)
+    sampler.start()
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    sampler.stop()
+    res: dict[str, Any] = {"executor": executor, "workers": workers, "max_memory": max_memory,
+                           "command": "lodbuilder " + " ".join(args), "rc": proc.returncode,
+                           "wall_seconds": round(wall, 2), "load_before": load_before,
+                           "load_after": os.getloadavg()[0], "samples": sampler.samples}
+    if proc.returncode != 0:
+        res["stderr"] = err[-2000:]
+        shutil.rmtree(where, ignore_errors=True)
+        return res
+    rus = json.loads((where / "rusage.json").read_text())
+    (scan,) = json.loads(out)["scans"]
+    rec = _record(archive, scan["name"])
+    parent_key = next((k for k in sampler.cpu if k[0] == proc.pid), None)
+    others = sum(v for k, v in sampler.cpu.items() if k != parent_key)
+    tree_cpu = others + rus["self_cpu"]
+    n = int(scan["n_points"])
+    archive_bytes = archive.stat().st_blocks * 512
+    res.update({
+        "n_points": n, "method": rec.get("method"), "points_per_second": round(n / wall),
+        "cpu_tree_seconds": round(tree_cpu, 2), "cpu_parent_seconds": round(rus["self_cpu"], 2),
+        "parent_cpu_share": round(rus["self_cpu"] / tree_cpu, 4) if tree_cpu else None,
+        "cpu_parent_by_phase": rec.get("parent_cpu_seconds", {}),
+        "processes_seen": len(sampler.cpu), "peak_rss_tree_bytes": sampler.peak_rss,
+        "peak_rss_parent_bytes": rus["self_maxrss"],
+        "peak_work_dir_bytes": sampler.peak_work, "peak_written_bytes": sampler.peak_all,
+        "archive_bytes": archive_bytes,
+        "work_over_archive": round(sampler.peak_work / archive_bytes, 3) if archive_bytes else None,
+        "phase_seconds": {k: rec["phase_seconds"][k] for k in rec.get("phase_order") or rec.get("phase_seconds", {})},
+        "tiles": rec.get("tiled", {}).get("tiles"),
+        "tasks": task_summary(rec.get("tasks")),
+    })
+    res["simulation"] = _simulate(rec, wall, workers)
+    shutil.rmtree(where, ignore_errors=True)
+    return res
+
+
+def warm_up(base: Path, executor: str) -> float:
+    """A small tiled build (a synthetic 30,000-point sheet in tiles of 6,000 points), not measured:
+    numba's cache of every kernel a tiled build uses is filled (a first run on a fresh checkout
+    compiles them for minutes) and the files are in the page cache. Returns its seconds."""
+    import numpy as np
+
+    from lodbuilder.io import write_points
+
+    where = Path(tempfile.mkdtemp(prefix="warm_", dir=base))
+    rng = np.random.default_rng(0)
+    xy = rng.random((30_000, 2))
+    sheet = write_points(where / "sheet.npy", np.c_[xy, 0.05 * np.sin(6 * xy[:, 0])])
+    ex = ["--workers", "1"] if executor == "pool" else ["--dask-local", "1"]
+    env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"), BENCH_SURVEY_TILE_POINTS="6000")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", CHILD, "build", str(sheet), "-o", str(where / "warm.h5"), "--max-memory",
+                    "2GB", "--no-progress", "--json", *ex], env=env, capture_output=True, check=True, cwd=where)
+    shutil.rmtree(where, ignore_errors=True)
+    return round(time.perf_counter() - t0, 2)
+
+
+def _simulate(rec: dict[str, Any], wall: float, workers: int) -> dict[str, Any] | None:
+    """The scheduler simulation of the run's record (the wall time outside the record's phases is
+    serial parent work), calibrated on the run's own wall time."""
+    if not rec.get("tasks"):
+        return None
+    from simulate_schedule import model_from_record, predict
+
+    rest = max(0.0, wall - sum(rec.get("phase_seconds", {}).values()))
+    return predict(model_from_record(rec, rest, {"workers": workers, "wall_seconds": round(wall, 2)}))
+
+
+# ------------------------------------------------------------------------------------ the document
+
+def ratios(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Speed-ups over 1 worker per executor, Dask over the pool at equal workers, and the targets."""
+    ok = [r for r in runs if r.get("rc") == 0]
+    wall = {(r["executor"], r["workers"]): r["wall_seconds"] for r in ok}
+    out: dict[str, Any] = {"speedup_over_1_worker": {}, "dask_over_pool": {}}
+    for (ex, w), s in sorted(wall.items()):
+        if (ex, 1) in wall and w != 1:
+            out["speedup_over_1_worker"][f"{ex} {w}"] = round(wall[(ex, 1)] / s, 3)
+        if ex == "dask" and ("pool", w) in wall:
+            out["dask_over_pool"][str(w)] = round(s / wall[("pool", w)], 3)
+    checks = {}
+    if ok:
+        checks["parent_cpu_share"] = {"worst": max(r["parent_cpu_share"] for r in ok),
+                                      "target_max": TARGETS["parent_cpu_share_max"]}
+        checks["work_over_archive"] = {"worst": max(r["work_over_archive"] for r in ok),
+                                       "target_max": TARGETS["work_over_archive_max"]}
+    if "pool 2" in out["speedup_over_1_worker"]:
+        checks["speedup_2_over_1"] = {"value": out["speedup_over_1_worker"]["pool 2"],
+                                      "target_min": TARGETS["speedup_2_over_1_min"]}
+    if out["dask_over_pool"]:
+        checks["dask_over_pool"] = {"worst": max(out["dask_over_pool"].values()),
+                                    "target_max": TARGETS["dask_over_pool_max"]}
+    for c in checks.values():
+        v = c.get("worst", c.get("value"))
+        c["met"] = v <= c["target_max"] if "target_max" in c else v >= c["target_min"]
+    out["targets"] = checks
+    return out
+
+
+def describe_inputs(inputs: list[Path]) -> dict[str, Any]:
+    files = [f for p in inputs for f in (sorted(p.iterdir()) if p.is_dir() else [p]) if f.is_file()]
+    return {"paths": [str(p) for p in inputs], "files": len(files), "bytes": sum(f.stat().st_size for f in files),
+            "kind": "synthetic survey: the real autzen_trim.laz copied side by side (tools/make_survey.py)"}
+
+
+def _commit() -> str:
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                          text=True).stdout.strip()
+
+
+def _ints(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    p.add_argument("surveys", nargs="+", type=Path,
+                   help="surveys to measure, each a LAS/LAZ file or a directory of them (ordered as one surface)")
+    p.add_argument("--joint", default="survey", help="the scan name of a directory's joint build (default survey)")
+    p.add_argument("--workers", type=_ints, default=[1, 2], help="worker counts, comma-separated (default 1,2)")
+    p.add_argument("--executor", default="pool", help="pool, dask or pool,dask (Dask LocalCluster)")
+    p.add_argument("--max-memory", default="3GB")
+    p.add_argument("--interval", type=float, default=0.2, help="seconds between samples of /proc and the disk")
+    p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()), help="where the runs write")
+    p.add_argument("--out", type=Path, default=OUT, help="the JSON file to write (default docs/bench/bench_survey.json)")
+    p.add_argument("--no-warm-up", action="store_true", help="skip the unmeasured small build that fills numba's cache")
+    p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
+    args = p.parse_args(argv)
+    executors = [e.strip() for e in args.executor.split(",") if e.strip()]
+    if not executors or not set(executors) <= {"pool", "dask"}:
+        p.error(f"--executor takes pool, dask or pool,dask, got {args.executor!r}")
+    doc: dict[str, Any] = {"benchmark": "bench_survey", "date": _dt.datetime.now().isoformat(timespec="seconds"),
+                           "commit": _commit(), "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+                           "machine": platform.machine(), "cpus": os.cpu_count(),
+                           "note": "the machine may be shared: see each run's load average before/after",
+                           "surveys": []}
+    args.work.mkdir(parents=True, exist_ok=True)
+    if not args.no_warm_up:
+        doc["warm_up_seconds"] = {ex: warm_up(args.work, ex) for ex in executors}
+    for survey in args.surveys:
+        joint = args.joint if survey.is_dir() else None
+        sv: dict[str, Any] = {"input": describe_inputs([survey]), "joint": joint, "runs": []}
+        doc["surveys"].append(sv)
+        for ex in executors:
+            for w in args.workers:
+                sv["runs"].append(run_build([survey], joint, ex, w, args.max_memory, args.work, args.interval,
+                                            args.tile_points))
+                print(json.dumps({k: v for k, v in sv["runs"][-1].items() if k != "simulation"}), file=sys.stderr)
+        sv.update(ratios(sv["runs"]))
+    text = json.dumps(doc, indent=1)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text + "\n")
+    return 0 if all(r.get("rc") == 0 for sv in doc["surveys"] for r in sv["runs"]) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,203 @@
+"""Predict a tiled build's wall time on W workers from the task durations its build record keeps
+(a scheduler simulation: issue 19 allows it for the 16-core figures where no such machine is at hand).
+
+The model is a sequence of stages (the build's phases, in order). A stage runs the parent's own
+work (``parent_seconds``) while its tasks run on the workers; it ends when both are done, and the
+next stage starts then. Tasks start when their dependencies are done, on the first free worker, in
+priority order (list scheduling, largest first as the driver submits them). From a build record
+(:func:`model_from_record`):
+
+* a phase without tasks is the parent's alone: its wall seconds;
+* a phase with tasks: the tasks are those that started in it (the record's task table), and the
+  parent's share is its CPU seconds in that phase (its waits for the tasks are not work);
+* tile orderings depend on their neighbours of a smaller colour (the order phase's colour classes;
+  on the previous pass's orderings too when there are several passes);
+* ``rest``: seconds of the wall time the record does not cover (start-up, the write phase, the
+  archive's commit), serial in the parent.
+
+The prediction assumes that a task takes as long on W workers as it took when measured (no
+contention for memory bandwidth, disk or cores) and that the parent's phases do not change:
+durations measured on a loaded 2-core machine make every prediction an estimate, and the
+calibration (the prediction at the measured worker count over the measured wall time) says how far
+to trust it.
+
+    python tools/simulate_schedule.py ARCHIVE [--scan NAME] [--rest SECONDS] [--workers 1,2,4,8,16]
+"""
+
+from __future__ import annotations
+
+import argparse
+import heapq
+import json
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+WORKERS = (1, 2, 4, 8, 16)
+
+
+@dataclass
+class Task:
+    id: str
+    seconds: float
+    deps: list[str] = field(default_factory=list)
+    priority: float | None = None  # larger first (default: seconds)
+
+
+@dataclass
+class Stage:
+    name: str
+    parent_seconds: float = 0.0
+    tasks: list[Task] = field(default_factory=list)
+
+
+def makespan(tasks: list[Task], workers: int) -> float:
+    """Wall time of ``tasks`` on ``workers`` workers by list scheduling: whenever a worker is free,
+    it takes the ready task (all dependencies finished) of the highest priority. Dependencies on
+    tasks not in the list count as finished."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    ids = {t.id for t in tasks}
+    if len(ids) != len(tasks):
+        raise ValueError("task ids must be unique")
+    waiting = {t.id: {d for d in t.deps if d in ids} for t in tasks}
+    users: dict[str, list[str]] = {}
+    for t in tasks:
+        for d in waiting[t.id]:
+            users.setdefault(d, []).append(t.id)
+    by_id = {t.id: t for t in tasks}
+    rank = {t.id: i for i, t in enumerate(sorted(tasks, key=lambda t: (-(t.seconds if t.priority is None
+                                                                            else t.priority), t.id)))}
+    ready = [(rank[i], i) for i, w in waiting.items() if not w]
+    heapq.heapify(ready)
+    running: list[tuple[float, str]] = []  # (end time, id)
+    now, free, done = 0.0, workers, 0
+    while done < len(tasks):
+        while free and ready:
+            _, i = heapq.heappop(ready)
+            heapq.heappush(running, (now + by_id[i].seconds, i))
+            free -= 1
+        if not running:
+            raise ValueError("the task dependencies have a cycle")
+        now, i = heapq.heappop(running)
+        finished = [i]
+        while running and running[0][0] <= now:
+            finished.append(heapq.heappop(running)[1])
+        for i in finished:
+            free += 1
+            done += 1
+            for u in users.get(i, []):
+                waiting[u].discard(i)
+                if not waiting[u]:
+                    heapq.heappush(ready, (rank[u], u))
+    return now
+
+
+def simulate(stages: list[Stage], workers: int) -> dict[str, float]:
+    """Seconds of each stage and of the whole on ``workers`` workers."""
+    out = {s.name: max(s.parent_seconds, makespan(s.tasks, workers)) for s in stages}
+    out["total"] = sum(out.values())
+    return out
+
+
+def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKERS) -> dict[str, Any]:
+    """Predicted wall seconds and speed-up over 1 worker for each worker count (``model`` from
+    :func:`model_from_record`), with the model's notes."""
+    stages = model["stages"]
+    walls = {w: simulate(stages, w) for w in sorted({1, *workers})}
+    one = walls[1]["total"]
+    rows = [{"workers": w, "wall_seconds": round(walls[w]["total"], 2),
+             "speedup_over_1": round(one / walls[w]["total"], 3) if walls[w]["total"] else None,
+             "stages": {k: round(v, 2) for k, v in walls[w].items() if k != "total"}} for w in workers]
+    serial = sum(s.parent_seconds for s in stages if not s.tasks)
+    out = {"predicted": rows, "serial_parent_seconds": round(serial, 2),
+           "task_seconds": round(sum(t.seconds for s in stages for t in s.tasks), 2),
+           "notes": model.get("notes", [])}
+    if model.get("measured"):
+        m = model["measured"]
+        sim = simulate(stages, m["workers"])["total"]
+        out["calibration"] = {"workers": m["workers"], "measured_wall_seconds": m["wall_seconds"],
+                              "predicted_wall_seconds": round(sim, 2),
+                              "predicted_over_measured": round(sim / m["wall_seconds"], 3)}
+    return out
+
+
+# ------------------------------------------------------------------------------------ build records
+
+_ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
+
+
+def _neighbours(boxes: list[list[float]], halo: float) -> list[list[int]]:
+    """The tiles whose boxes come within ``halo`` of each other (as lodbuilder.build.tiled.plan)."""
+    out = []
+    for i, a in enumerate(boxes):
+        out.append([j for j, b in enumerate(boxes) if j != i and all(
+            b[k] <= a[k + 3] + halo and b[k + 3] >= a[k] - halo for k in range(3))])
+    return out
+
+
+def _order_deps(piece: str, colour: list[int], nbrs: list[list[int]]) -> list[str]:
+    """A tile ordering's dependencies, as the driver's order phase has them."""
+    m = _ORDER.match(piece)
+    if not m or not colour:
+        return []
+    t, p = int(m.group(1)), int(m.group(2))
+    deps = [(p, u) if colour[u] < colour[t] else (p - 1, u) for u in nbrs[t]] + [(p - 1, t)]
+    return [f"order.{u}.{q}" for q, u in deps if q >= 1]
+
+
+def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str, Any] | None = None
+                      ) -> dict[str, Any]:
+    """The stages of a tiled build's record (``build`` of its scan: ``phase_seconds`` and
+    ``phase_order``, ``parent_cpu_seconds``, ``tasks``, ``tiled``); ``rest``: serial seconds the record does not
+    cover; ``measured``: ``{"workers", "wall_seconds"}`` of the run, for the calibration."""
+    secs = rec.get("phase_seconds") or {}
+    phases = {k: secs[k] for k in rec.get("phase_order") or secs}  # (the stored record sorts its keys)
+    cpu = rec.get("parent_cpu_seconds") or {}
+    table = rec.get("tasks") or {"columns": [], "rows": []}
+    rows = [dict(zip(table["columns"], r, strict=True)) for r in table["rows"]]
+    tiled = rec.get("tiled") or {}
+    colour = list(tiled.get("tile_colours") or [])
+    nbrs = _neighbours(tiled.get("tile_boxes") or [], float(tiled.get("halo") or 0.0)) if colour else []
+    notes = ["predicted by list scheduling of the recorded task durations (tools/simulate_schedule.py), not "
+             "measured: tasks are assumed to take as long as they did when recorded"]
+    stages, t0 = [], 0.0
+    resumed = [r for r in rows if r["start"] < 0]
+    if resumed:
+        notes.append(f"{len(resumed)} task(s) were done before a resume: left out")
+    for name, secs in phases.items():
+        t1 = t0 + float(secs)
+        mine = [r for r in rows if t0 <= r["start"] < t1 or (name == list(phases)[-1] and r["start"] >= t1)]
+        tasks = [Task(r["piece"], float(r["seconds"]), _order_deps(r["piece"], colour, nbrs)) for r in mine]
+        parent = float(secs) if not tasks else float(cpu.get(name, 0.0))
+        stages.append(Stage(name, parent, tasks))
+        t0 = t1
+    if rest > 0:
+        stages.append(Stage("rest", float(rest)))
+        notes.append(f"{rest:.2f} s of the measured wall time outside the record's phases (start-up, write, "
+                     "commit) counted as serial parent work")
+    return {"stages": stages, "notes": notes, "measured": measured}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    p.add_argument("archive", type=Path, help="an archive with a tiled scan (its build record)")
+    p.add_argument("--scan", help="the scan's name (default: the archive's only scan)")
+    p.add_argument("--rest", type=float, default=0.0,
+                   help="serial seconds not in the record (the run's wall time minus its phases)")
+    p.add_argument("--workers", default=",".join(map(str, WORKERS)), help="worker counts (default 1,2,4,8,16)")
+    args = p.parse_args(argv)
+    import lodbuilder
+
+    with lodbuilder.open_archive(args.archive) as arc:
+        name = args.scan or arc.scans[0]
+        rec = dict(arc.scan(name).build)
+    model = model_from_record(rec, args.rest)
+    print(json.dumps(predict(model, [int(w) for w in args.workers.split(",")]), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
