@@ -318,3 +318,45 @@ def test_curved_holes_over_several_draws():
         tube.append(_statuses(full, centres, 2 * TUBE_RHO, TUBE_RHO))
     assert corner == ["f"] * 8
     assert "".join(tube).count("f") >= 15, tube
+
+
+# --- refusals, word for word -----------------------------------------------------------------------
+
+
+def test_rough_reasons_word_for_word(punched_corner):
+    from dataclasses import replace
+
+    from lodbuilder.fill.gaps import _assess
+
+    (gap,) = punched_corner.filled.report.gaps
+    tilted = replace(gap, status="fillable", reason="", tilted=0.4)
+    _assess(tilted)
+    assert tilted.status == "rough"
+    assert tilted.reason == (
+        "40 % of the input points next to the hole have normals tilted more than 60 degrees "
+        "from the hole's plane (more than 25 %)"
+    )
+    rho = punched_corner.rho
+    missed = replace(gap, status="fillable", reason="", tilted=0.0)
+    missed.surface._cv[missed.surface.kernel] = 0.8 * rho  # the cross-validation's result
+    _assess(missed)
+    assert missed.status == "rough"
+    assert missed.reason == (
+        "the surface fitted to the surrounding points misses those next to the hole, when "
+        "fitted without them, by 0.80 rho (RMS; more than 0.5 rho)"
+    )
+
+
+def test_open_regions_line_word_for_word(tmp_path, rng):
+    rho = 0.04
+    t = rng.uniform(0, 2 * np.pi, 20_000)
+    tube = np.c_[0.3 * np.cos(t), 0.3 * np.sin(t), rng.uniform(-0.6, 0.6, t.size)]
+    with lodbuilder.open_archive(_archive(tmp_path / "tube.h5", tube, "tube")) as arc:
+        rep = find_gaps(arc.scan(), rho, exact=True)
+    assert rep.gaps == [] and rep.n_open >= 2
+    assert rep.table().splitlines() == [
+        "scan 'tube': 0 gap(s) at rho 0.04 (surface farther than rho from every input point, "
+        "enclosed, at most 12 rho wide), area 0",
+        f"  {rep.n_open} open region(s) not examined: they reach into empty space (the scan's "
+        "border, or a hole wider than 12 rho)",
+    ]

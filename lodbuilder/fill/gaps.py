@@ -525,8 +525,9 @@ def _assess(reg: Region) -> None:
     if reg.tilted > MAX_TILTED:
         reg.status = STATUS_ROUGH
         reg.reason = (
-            f"{100 * reg.tilted:.0f} % of the surrounding normals are tilted more than "
-            f"{math.degrees(MAX_TILT):.0f} degrees from the hole's plane"
+            f"{100 * reg.tilted:.0f} % of the input points next to the hole have normals tilted "
+            f"more than {math.degrees(MAX_TILT):.0f} degrees from the hole's plane (more than "
+            f"{100 * MAX_TILTED:.0f} %)"
         )
     elif reg.residual > MAX_RESIDUAL * rho:
         reg.status = STATUS_ROUGH
