@@ -340,10 +340,11 @@ def find_regions(
         n_open = sum(r is None for r in regions)
         enclosed = [r for r in regions if r is not None]
         _add(out, enclosed, tree_s, rho, fillable_only=False)
-        if n_open:
-            # open over the plane: look again over the seeds' sheet only (along the surface);
-            # a fillable gap found there is kept, anything else stays open
-            rest = sp[~_inside(enclosed, sp, rho)] if enclosed else sp
+        rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
+        if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
+            # open over the plane, and its seeds fit in one hole: look again over the seeds'
+            # sheet only (along the surface); a fillable gap found there is kept, anything
+            # else stays open
             again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
             n_open -= min(n_open, _add(out, again, tree_s, rho, fillable_only=True))
         out.n_open += n_open
