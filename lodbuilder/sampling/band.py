@@ -452,12 +452,8 @@ def build_band(
     cs[-1] = n
     del ckeys
     beta = DEPTH_COST if depth_cost is None else depth_cost
-    vcost64 = beta * q2  # = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf), one temporary less
-    vcost64 += 1.0
-    vcost64[~(q2 <= 1.0)] = np.inf
+    vcost = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf).astype(np.float32)
     del q2
-    vcost = vcost64.astype(np.float32)
-    del vcost64
     near = nearest_corners(u, nbr, cs, vcost)
     band = Band(origin, h, r, u, perm, keys, nbr, cs, vcost, foot, near, None if radius is None else radius / h)
     if normal is not None:
