@@ -97,3 +97,23 @@ def test_archive_written_by_row_groups(tmp_path, k):
             assert got[key].dtype == a.dtype and np.array_equal(got[key], a[perm])
     with h5py.File(tmp_path / "a.h5") as f:
         assert np.array_equal(f[f"{L.G_SCANS}/s/{L.G_IMPORTANCE}/w"][()], imp[perm].astype(np.float32))
+
+
+def test_build_orders_in_memory_when_the_scan_cannot_be_set_aside(tmp_path, monkeypatch):
+    """A full disk (or any failure to write the work files) is no reason to fail the build."""
+    import errno
+
+    src = tmp_path / "s.ply"
+    rng = np.random.default_rng(3)
+    write_points(src, rng.random((3000, 3)).astype(np.float32).astype(np.float64))
+    monkeypatch.setattr(jobs, "ASIDE_MIN_POINTS", 10**12)
+    lodbuilder.build_archive(src, tmp_path / "plain.h5")
+
+    def full(arr, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(jobs, "_map_aside", full)
+    monkeypatch.setattr(jobs, "ASIDE_MIN_POINTS", 0)
+    lodbuilder.build_archive(src, tmp_path / "full.h5")
+    a, b = _datasets(tmp_path / "plain.h5"), _datasets(tmp_path / "full.h5")
+    assert a.keys() == b.keys() and [k for k in a if a[k] != b[k]] == []

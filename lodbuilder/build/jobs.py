@@ -164,12 +164,18 @@ def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> Progr
     from ..archive.files import make_own_dir
     from ..progress import report
 
-    make_own_dir(work, work.name)
-    pts = _map_aside(scan.points, work / "points.bin")
+    try:
+        make_own_dir(work, work.name)
+        pts = _map_aside(scan.points, work / "points.bin")
+        maps = {key: _map_aside(arr, work / f"a{i}.bin")
+                for i, (key, arr) in enumerate(scan.attributes.items()) if not arr.dtype.hasobject}
+    except OSError as exc:  # a full disk, a work directory that is not ours, ...: order it in memory
+        log.info("scan %r stays in memory while it is ordered: %s", scan.name, exc)
+        return progress
     scan.points = np.ndarray(scan.points.shape, scan.points.dtype, buffer=pts)
-    for i, (key, arr) in enumerate(list(scan.attributes.items())):
-        if not arr.dtype.hasobject:
-            scan.attributes[key] = np.ndarray(arr.shape, arr.dtype, buffer=_map_aside(arr, work / f"a{i}.bin"))
+    for key, mm in maps.items():
+        arr = scan.attributes[key]
+        scan.attributes[key] = np.ndarray(arr.shape, arr.dtype, buffer=mm)
 
     def aside_progress(stage: str, done: int, total: int) -> None:
         if stage == "band" and done == total:
@@ -194,7 +200,8 @@ def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]
     try:
         return _build_one(job, progress)
     finally:
-        remove_own_dir(job.work, job.work.name)  # what set_aside left (the maps stay valid)
+        with contextlib.suppress(OSError):  # (a directory that is not lodbuilder's is left alone)
+            remove_own_dir(job.work, job.work.name)  # what set_aside left (the maps stay valid)
 
 
 def _build_one(job: ScanJob, progress: ProgressCallback) -> dict[str, Any]:
