@@ -207,7 +207,7 @@ def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None, Any]]:
     out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
             m.get("pose"), i if job.members else None) for i, m in enumerate(members)]
     names = [Path(m["path"]).name for m in members]
-    target = one_crs(out, names, job.options.to_crs)  # type: ignore[arg-type]
+    target = one_crs(out, names, job.options.to_crs)
     return [(*to_target(s, pose, member, target),
              TiledInput(str(m["path"]), m.get("scan_index"), crs, override, target, pose) if s.streams else None)
             for (s, pose, member), m in zip(out, members, strict=True)]

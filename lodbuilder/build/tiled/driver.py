@@ -127,13 +127,14 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     return found
 
 
-def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: str, work: Path, executor: cf.Executor,
+def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Path, executor: cf.Executor,
                 *, parallel: int = 1, max_memory: int | None = None, voxel_size: float | None = None,
                 band_radius: float | None = None, seam_spacing: float = SEAM_SPACING, tile_points: int | None = None,
                 passes: int = TILE_PASSES, build: dict[str, Any] | None = None,
                 provenance: dict[str, Any] | None = None, progress: ProgressCallback = None) -> dict[str, Any]:
-    """Order one scan (``sources``: one stream, or several posed streams for a joint build) tile by
-    tile and write it to the part file ``part``; returns what was built and how long each phase
+    """Order one scan (``sources``: ``(stream, pose, member id, reopen)`` of one input, or of each
+    input of a joint build; ``reopen`` opens the stream again on a worker, None: the parent reads
+    it) tile by tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
     from ...archive.files import make_own_dir, remove_own_dir
     from .write import write_scan
@@ -186,7 +187,7 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
     info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
-                      {"reader": sp.reader, **(provenance or {})}, progress, buckets)
+                      {"reader": sp.reader, **(provenance or {})}, progress, buckets, radii)
     clock.lap("write")
     remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
@@ -228,7 +229,8 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
     tasks put the points in stored order (the first pass of the write). Returns the buckets' and
     the radii's markers and how many tiles a resume found covered."""
-    from .merge import assemble_radii
+    from . import workdir as W
+    from .radii import radii_phase
     from .write import buckets_phase
 
     n, n_tiles = sp.n, len(by_size)
@@ -241,9 +243,7 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
                 points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    radii = _done(work, "radii")
-    if radii is None:
-        radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
+    radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
     return buckets, radii, n_tiles - len(todo)
 
 
