@@ -19,7 +19,7 @@ rho, Igea 0.52 -> 0.36 and 0.50 -> 0.39 rho) and kept the thin-plate spline on f
 The choice is a prediction, not an oracle: on a few holes the other spline was closer (by up to
 0.17 rho, on a bunny hole both miss by 0.6-0.75 rho). No spline guesses a bump or a dip that
 the ring does not show. On issue 21's holes (3-10 rho wide at random enclosed points, 21 per scan)
-the best of 25 fits per hole, chosen knowing the true surface (thin-plate or cubic spline at three
+the best of 28 fits per hole, chosen knowing the true surface (thin-plate or cubic spline at three
 smoothings, quadratic and cubic polynomials, moving least squares, rings 2-4 rho wide), still
 misses by up to 0.56 rho on the bunny and 0.74 rho on Igea: the errors left are the surface's
 own detail inside the holes, not the choice of fit.
