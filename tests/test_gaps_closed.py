@@ -360,3 +360,18 @@ def test_open_regions_line_word_for_word(tmp_path, rng):
         f"  {rep.n_open} open region(s) not examined: they reach into empty space (the scan's "
         "border, or a hole wider than 12 rho)",
     ]
+
+
+@pytest.mark.data
+def test_a_region_is_reported_once(shared_data, tmp_path):
+    """Two groups of seeds found one region twice (top2.ply at 2 mm: once fillable, once rough,
+    their centres 0.7 rho apart; pumpA has two such pairs at 2 cm): a region is reported once."""
+    rho = 0.002
+    path = tmp_path / "top2.h5"
+    lodbuilder.build_archive(shared_data / "top2.ply", path)
+    with lodbuilder.open_archive(path) as arc:
+        rep = find_gaps(arc.scan(), rho)
+    centres = np.array([g.candidates.mean(axis=0) for g in rep.regions])
+    assert len(rep.gaps) >= 3
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(len(centres)) * 1e9
+    assert d.min() > rho
