@@ -137,7 +137,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     it) tile by tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
     from ...archive.files import make_own_dir, remove_own_dir
-    from .write import write_scan
+    from .write import write_task
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
     make_own_dir(work, work.name)  # or check that the one a killed build left is lodbuilder's
@@ -169,7 +169,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     clock.lap("order")
 
     # 5. merge the tile orders (in the parent, streaming)
-    merged = _merge(work, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
+    merged = _merge(executor, work, name, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
     # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
@@ -186,8 +186,11 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
-    info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
-                      {"reader": sp.reader, **(provenance or {})}, progress, buckets, radii)
+    args = (str(work), str(part), name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
+            {"reader": sp.reader, **(provenance or {})}, buckets, radii)
+    (done,) = collect(submit(executor, [(0, write_task, args)]), lambda _: "writing the part", name, 1, progress,
+                      "write")
+    info = done["info"]
     clock.lap("write")
     remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
@@ -209,17 +212,16 @@ def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], di
     return by_size, colour, ordered, stats
 
 
-def _merge(work: Path, n: int, stats: list[dict[str, Any]], seam_spacing: float, lo: np.ndarray, span: float,
-           progress: ProgressCallback) -> dict[str, Any]:
+def _merge(executor: cf.Executor, work: Path, name: str, n: int, stats: list[dict[str, Any]], seam_spacing: float,
+           lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
     """Phase 5: the tile orders merged by descending key with the seam repair, and the ranks (or
-    what a finished merge recorded)."""
-    from .merge import merge_tiles, write_ranks
+    what a finished merge recorded): one task, on a worker (still one pass over every point)."""
+    from .merge import merge_task
 
     merged = _done(work, "merge")
     if merged is None:
-        merged = merge_tiles(work, n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo,
-                             span / (1 << 20), progress)
-        merged["files"][WL.RANK] = write_ranks(work, n)
+        args = (str(work), n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
+        (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
         _mark(work, "merge", merged)
     return merged
 
