@@ -26,7 +26,8 @@ def report(progress: ProgressCallback, stage: str, done: int, total: int) -> Non
 
 class TaskCounts(NamedTuple):
     """How far a phase of tasks is: tasks and their points, done and in all (points of finished
-    tasks only: a running task counts when it finishes), and how many tasks are running."""
+    tasks only: a running task counts when it finishes), and how many tasks are submitted and not
+    finished (queued on the executor or running)."""
 
     done: int
     total: int
@@ -102,7 +103,7 @@ def task_line(stage: str, counts: TaskCounts, rate: Rate) -> str:
     if c.done >= c.total:
         speed = f" ({_points(c.points_total / rate.elapsed())} points/s)" if rate.elapsed() > 0 else ""
         return f"{head} in {_duration(rate.elapsed())}{speed}"
-    running = f", {c.running} running" if c.running else ""
+    running = f", {c.running} queued or running" if c.running else ""
     if r is None:
         return f"{head}{running}"
     left = rate.seconds_left(c.points_total)

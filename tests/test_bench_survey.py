@@ -97,6 +97,7 @@ def test_bench_survey_document(bench_doc, capsys):
             assert all(p["wall_seconds"] >= sim["serial_parent_seconds"] for p in sim["predicted"])
             assert sim["calibration"]["workers"] == r["workers"]
             assert "not measured" in sim["notes"][0]
+            assert "task CPU seconds" in r["simulation_cpu"]["notes"][0]
         one, two = sv["runs"]
         assert sv["speedup_over_1_worker"] == {"pool 2": round(one["wall_seconds"] / two["wall_seconds"], 3)}
         t = sv["targets"]

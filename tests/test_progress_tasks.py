@@ -30,11 +30,11 @@ def test_task_lines_exact_text():
     rate = Rate(clock=clock)
     c = TaskCounts(0, 16, 0, 1_760_000, running=2)
     rate.add(0)
-    assert task_line("tiles", c, rate) == "tiles: 0 of 16 tiles, 0 of 1.76 M points, 2 running"
+    assert task_line("tiles", c, rate) == "tiles: 0 of 16 tiles, 0 of 1.76 M points, 2 queued or running"
     clock.now = 10.0
     rate.add(440_000)
     c = TaskCounts(4, 16, 440_000, 1_760_000, running=2)
-    assert task_line("tiles", c, rate) == ("tiles: 4 of 16 tiles, 0.44 M of 1.76 M points, 2 running, "
+    assert task_line("tiles", c, rate) == ("tiles: 4 of 16 tiles, 0.44 M of 1.76 M points, 2 queued or running, "
                                            "44,000 points/s, about 30 s left")
     clock.now = 40.0
     rate.add(1_760_000)
@@ -237,3 +237,25 @@ def test_timed_tasks_log_their_timing_and_the_table_names_them(tmp_path):
     assert sorted(r["piece"] for r in rows) == ["order.3.1", "order.3.2", "survey_block.0", "survey_block.0#2"]
     assert all(r["pid"] == os.getpid() and r["start"] >= 0 and r["cpu_seconds"] >= 0 for r in rows)
     assert [r["tile"] for r in rows if r["kind"] == "order_tile"] == [3, 3]
+
+
+def test_the_cli_prints_task_lines_of_a_joint_build_without_a_terminal(tmp_path, monkeypatch, capsys):
+    from lodbuilder.build.tiled import plan
+    from lodbuilder.cli.main import main
+
+    files = _small_survey(tmp_path)
+    monkeypatch.setattr(plan, "needs_tiling", lambda *a, **k: True)  # (the survey is tiny: tiles anyway)
+    monkeypatch.setattr(plan, "tile_capacity", lambda *a, **k: 700)
+    rc = main(["build", str(files[0].parent), "--joint", "s", "-o", str(tmp_path / "s.h5"), "--workers", "1",
+               "--max-memory", "2GB"])
+    assert rc == 0
+    err = capsys.readouterr().err.splitlines()
+    for stage in ("tiles", "covering"):
+        lines = [x for x in err if x.startswith(f"{stage}: ")]
+        assert re.fullmatch(rf"{stage}: 0 of (\d+) tiles, 0 of 4,400 points(, \d+ queued or running)?", lines[0]), lines
+        n = int(re.match(rf"{stage}: 0 of (\d+)", lines[0]).group(1))
+        assert re.fullmatch(rf"{stage}: {n} of {n} tiles, 4,400 of 4,400 points in \d+ s \([\d,]+ points/s\)",
+                            lines[-1]), lines
+    rc = main(["build", str(files[0].parent), "--joint", "s2", "-o", str(tmp_path / "s.h5"), "--workers", "1",
+               "--max-memory", "2GB", "--json"])
+    assert rc == 0 and not [x for x in capsys.readouterr().err.splitlines() if x.startswith(("tiles: ", "covering: "))]

@@ -108,3 +108,15 @@ def test_model_of_a_build_record():
     assert out["calibration"] == {"workers": 2, "measured_wall_seconds": 17.0, "predicted_wall_seconds": 15.5,
                                   "predicted_over_measured": 0.912}
     assert "not measured" in out["notes"][0]
+
+
+def test_cpu_durations_replay_cpu_seconds():
+    model = model_from_record(_record(), rest=0.5, durations="cpu")
+    st = {s.name: s for s in model["stages"]}
+    assert st["read"].parent_seconds == 0.9  # the parent's CPU, not the phase's wall
+    assert [t.seconds for t in st["order"].tasks] == [3.9, 2.0, 2.0]
+    assert "task CPU seconds" in model["notes"][0]
+    # 0.9 + 1.0 + max(3.5, 2.9) + (3.9 + 2.0) + max(0.5, 1 + 1) + 0.5 on 2 workers
+    assert predict(model, [2])["predicted"][0]["wall_seconds"] == 13.8
+    with pytest.raises(ValueError, match="durations must be wall or cpu, got 'gpu'"):
+        model_from_record(_record(), durations="gpu")

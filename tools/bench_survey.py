@@ -13,7 +13,9 @@ them ordered as one surface: ``--joint``) once per executor and worker count. Fo
   archive's size (target <= 2 x), and the largest size of everything the build wrote;
 * the build record's phase seconds, tile count and per-task table summed by kind (tasks, seconds,
   CPU seconds, workers seen), and the scheduler simulation's prediction for 1-16 workers
-  (tools/simulate_schedule.py) from that record;
+  (tools/simulate_schedule.py) from that record: from the tasks' wall seconds (``simulation``,
+  calibrated against the run) and from their CPU seconds (``simulation_cpu``: a free core for every
+  process, the figure to read on a loaded machine);
 * the speed-up of each worker count over 1 worker (target: 2 workers >= 1.9 x), and Dask
   LocalCluster over the process pool at equal workers (target <= 1.2).
 
@@ -246,6 +248,7 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "tasks": task_summary(rec.get("tasks")),
     })
     res["simulation"] = _simulate(rec, wall, workers)
+    res["simulation_cpu"] = _simulate(rec, wall, workers, rus["self_cpu"])
     shutil.rmtree(where, ignore_errors=True)
     return res
 
@@ -272,15 +275,20 @@ def warm_up(base: Path, executor: str) -> float:
     return round(time.perf_counter() - t0, 2)
 
 
-def _simulate(rec: dict[str, Any], wall: float, workers: int) -> dict[str, Any] | None:
-    """The scheduler simulation of the run's record (the wall time outside the record's phases is
-    serial parent work), calibrated on the run's own wall time."""
+def _simulate(rec: dict[str, Any], wall: float, workers: int, parent_cpu: float | None = None) -> dict[str, Any] | None:
+    """The scheduler simulation of the run's record, calibrated on the run's own wall time: the
+    tasks' wall seconds (the wall time outside the record's phases is serial parent work), or with
+    ``parent_cpu`` (the parent's CPU seconds) their CPU seconds (the parent's CPU outside the phases
+    is serial): what the run would take with a free core for every process."""
     if not rec.get("tasks"):
         return None
     from simulate_schedule import model_from_record, predict
 
-    rest = max(0.0, wall - sum(rec.get("phase_seconds", {}).values()))
-    return predict(model_from_record(rec, rest, {"workers": workers, "wall_seconds": round(wall, 2)}))
+    if parent_cpu is None:
+        rest, durations = max(0.0, wall - sum(rec.get("phase_seconds", {}).values())), "wall"
+    else:
+        rest, durations = max(0.0, parent_cpu - sum(rec.get("parent_cpu_seconds", {}).values())), "cpu"
+    return predict(model_from_record(rec, rest, {"workers": workers, "wall_seconds": round(wall, 2)}, durations))
 
 
 # ------------------------------------------------------------------------------------ the document
@@ -341,6 +349,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()), help="where the runs write")
     p.add_argument("--out", type=Path, default=OUT, help="the JSON file to write (default docs/bench/bench_survey.json)")
     p.add_argument("--no-warm-up", action="store_true", help="skip the unmeasured small build that fills numba's cache")
+    p.add_argument("--append", action="store_true",
+                   help="add the surveys to those of --out (one JSON for runs that need different executors)")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
@@ -362,8 +372,13 @@ def main(argv: list[str] | None = None) -> int:
             for w in args.workers:
                 sv["runs"].append(run_build([survey], joint, ex, w, args.max_memory, args.work, args.interval,
                                             args.tile_points))
-                print(json.dumps({k: v for k, v in sv["runs"][-1].items() if k != "simulation"}), file=sys.stderr)
+                print(json.dumps({k: v for k, v in sv["runs"][-1].items() if not k.startswith("simulation")}),
+                      file=sys.stderr)
         sv.update(ratios(sv["runs"]))
+    if args.append and args.out.exists():
+        old = json.loads(args.out.read_text())
+        doc["earlier"] = [*old.pop("earlier", []), {k: old[k] for k in ("date", "commit", "command") if k in old}]
+        doc["surveys"] = old.get("surveys", []) + doc["surveys"]
     text = json.dumps(doc, indent=1)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

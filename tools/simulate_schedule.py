@@ -148,11 +148,16 @@ def _order_deps(piece: str, colour: list[int], nbrs: list[list[int]]) -> list[st
     return [f"order.{u}.{q}" for q, u in deps if q >= 1]
 
 
-def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str, Any] | None = None
-                      ) -> dict[str, Any]:
+def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str, Any] | None = None,
+                      durations: str = "wall") -> dict[str, Any]:
     """The stages of a tiled build's record (``build`` of its scan: ``phase_seconds`` and
-    ``phase_order``, ``parent_cpu_seconds``, ``tasks``, ``tiled``); ``rest``: serial seconds the record does not
-    cover; ``measured``: ``{"workers", "wall_seconds"}`` of the run, for the calibration."""
+    ``phase_order``, ``parent_cpu_seconds``, ``tasks``, ``tiled``); ``rest``: serial seconds the
+    record does not cover; ``measured``: ``{"workers", "wall_seconds"}`` of the run, for the
+    calibration. ``durations="cpu"``: every task and every parent phase takes its CPU seconds (what
+    a machine with a free core for each would give, if the work is CPU-bound: a build measured on a
+    loaded machine waited for cores; ``rest`` is then the parent's CPU outside the phases)."""
+    if durations not in ("wall", "cpu"):
+        raise ValueError(f"durations must be wall or cpu, got {durations!r}")
     secs = rec.get("phase_seconds") or {}
     phases = {k: secs[k] for k in rec.get("phase_order") or secs}  # (the stored record sorts its keys)
     cpu = rec.get("parent_cpu_seconds") or {}
@@ -161,23 +166,25 @@ def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str
     tiled = rec.get("tiled") or {}
     colour = list(tiled.get("tile_colours") or [])
     nbrs = _neighbours(tiled.get("tile_boxes") or [], float(tiled.get("halo") or 0.0)) if colour else []
-    notes = ["predicted by list scheduling of the recorded task durations (tools/simulate_schedule.py), not "
+    what = "wall" if durations == "wall" else "CPU"
+    notes = [f"predicted by list scheduling of the recorded task {what} seconds (tools/simulate_schedule.py), not "
              "measured: tasks are assumed to take as long as they did when recorded"]
     stages, t0 = [], 0.0
     resumed = [r for r in rows if r["start"] < 0]
     if resumed:
         notes.append(f"{len(resumed)} task(s) were done before a resume: left out")
+    key = "seconds" if durations == "wall" else "cpu_seconds"
     for name, secs in phases.items():
         t1 = t0 + float(secs)
         mine = [r for r in rows if t0 <= r["start"] < t1 or (name == list(phases)[-1] and r["start"] >= t1)]
-        tasks = [Task(r["piece"], float(r["seconds"]), _order_deps(r["piece"], colour, nbrs)) for r in mine]
-        parent = float(secs) if not tasks else float(cpu.get(name, 0.0))
+        tasks = [Task(r["piece"], float(r[key]), _order_deps(r["piece"], colour, nbrs)) for r in mine]
+        parent = float(secs) if not tasks and durations == "wall" else float(cpu.get(name, 0.0))
         stages.append(Stage(name, parent, tasks))
         t0 = t1
     if rest > 0:
         stages.append(Stage("rest", float(rest)))
-        notes.append(f"{rest:.2f} s of the measured wall time outside the record's phases (start-up, write, "
-                     "commit) counted as serial parent work")
+        notes.append(f"{rest:.2f} s outside the record's phases (start-up, write, commit) counted as serial "
+                     "parent work")
     return {"stages": stages, "notes": notes, "measured": measured}
 
 
@@ -188,13 +195,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rest", type=float, default=0.0,
                    help="serial seconds not in the record (the run's wall time minus its phases)")
     p.add_argument("--workers", default=",".join(map(str, WORKERS)), help="worker counts (default 1,2,4,8,16)")
+    p.add_argument("--durations", choices=("wall", "cpu"), default="wall",
+                   help="replay the tasks' wall seconds, or their CPU seconds (a loaded machine's record)")
     args = p.parse_args(argv)
     import lodbuilder
 
     with lodbuilder.open_archive(args.archive) as arc:
         name = args.scan or arc.scans[0]
         rec = dict(arc.scan(name).build)
-    model = model_from_record(rec, args.rest)
+    model = model_from_record(rec, args.rest, durations=args.durations)
     print(json.dumps(predict(model, [int(w) for w in args.workers.split(",")]), indent=1))
     return 0
 

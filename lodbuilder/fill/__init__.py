@@ -9,8 +9,9 @@ The flow is level -> gaps -> fill, through the public archive API only (two pref
 ordering: the level at rho and a sample at rho/4), computed on the fly: nothing is stored.
 
 What is filled: regions farther than rho/2 from every input point, bounded by input points all
-round (in the plane of the surrounding surface), at most ``max_hole * rho`` wide, whose
-surroundings are one smooth height field. What is not: open borders (the scan's edge, a hole
+round (over the plane of the surrounding surface, or, where the surface curves away from that
+plane, by the points of their own sheet, reached along the surface), at most ``max_hole * rho``
+wide, whose surroundings are one smooth height field. What is not: open borders (the scan's edge, a hole
 reaching it), holes wider than ``max_hole * rho``, and *rough* holes (surroundings tilted or not
 one smooth surface, e.g. occlusion shadows whose rim lies at two depths): these are reported, not
 filled. See :mod:`lodbuilder.fill.gaps` for the method.
