@@ -360,3 +360,44 @@ def test_open_regions_line_word_for_word(tmp_path, rng):
         f"  {rep.n_open} open region(s) not examined: they reach into empty space (the scan's "
         "border, or a hole wider than 12 rho)",
     ]
+
+
+@pytest.mark.data
+def test_a_region_is_reported_once(shared_data, tmp_path):
+    """Two groups of seeds found one region twice (top2.ply at 2 mm: once fillable, once rough,
+    their centres 0.7 rho apart; pumpA has two such pairs at 2 cm): a region is reported once."""
+    rho = 0.002
+    path = tmp_path / "top2.h5"
+    lodbuilder.build_archive(shared_data / "top2.ply", path)
+    with lodbuilder.open_archive(path) as arc:
+        rep = find_gaps(arc.scan(), rho)
+    centres = np.array([g.candidates.mean(axis=0) for g in rep.regions])
+    assert len(rep.gaps) >= 3
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=2) + np.eye(len(centres)) * 1e9
+    assert d.min() > rho
+
+
+def test_a_hole_the_surface_bends_across_is_reported_as_such():
+    """A hole 7 rho wide on a sphere of radius 5 rho: over its plane the rim is too steep to keep
+    and the hole leaked (it was counted as an open border of a closed surface); along the
+    surface it is enclosed, but no height field over one plane fits its rim (rough). Reported
+    as a region enclosed along the surface and not filled, not as an open border."""
+    rho, radius = 0.05, 5 * 0.05
+    full = sphere(int(4 * np.pi * radius**2 / (0.2 * rho) ** 2), np.random.default_rng(1), radius)
+    statuses = _statuses(full, [np.array([0.0, 0.0, radius])], 3.5 * rho, rho)
+    assert statuses == ""
+    pts = full[np.linalg.norm(full - np.array([0.0, 0.0, radius]), axis=1) > 3.5 * rho]
+    order = lodbuilder.fastfps(pts)
+    ordered = pts[np.asarray(order.order)]
+    rep = gaps_of_points(
+        ordered[: order.size_for_rho(rho)],
+        ordered[: order.size_for_rho(0.25 * rho)],
+        rho,
+        scan="ball",
+    )
+    assert rep.gaps == [] and rep.n_open == 0 and rep.n_bent == 1
+    assert rep.as_dict()["n_bent"] == 1
+    assert rep.table().splitlines()[-1] == (
+        "  1 region(s) enclosed only along the surface not filled: the surface bends too much "
+        "across them for one smooth height field"
+    )

@@ -88,3 +88,15 @@ def test_stream_refuses_what_read_scan_refuses(tmp_path):
         with pytest.raises(FormatError) as chunked:
             list(open_stream(f).chunks(7))
         assert str(chunked.value) == str(whole.value)
+
+
+def test_a_copc_file_is_named_alike_by_every_path(tmp_path):
+    """``a.b.copc.laz``: the whole read named the scan 'a', the stream and the build 'a.b'."""
+    import shutil
+
+    from lodbuilder.build.inputs import scan_name
+
+    pts = np.random.default_rng(0).random((50, 3))
+    p = tmp_path / "a.b.copc.laz"
+    shutil.copy(write_points(tmp_path / "plain.laz", pts), p)
+    assert read_scan(p).name == open_stream(p).name == scan_name(p) == "a.b"

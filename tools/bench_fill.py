@@ -80,9 +80,10 @@ RADII = (1.5, 5.0)
 GAP = 2.0
 
 
-def punch(points: np.ndarray, rho: float, n_holes: int, seed: int, radii=RADII):
+def punch(points: np.ndarray, rho: float, n_holes: int, seed: int, radii=RADII, apart: float = GAP):
     """(keep mask, centres, radii): every point within a ball of radius in ``radii`` x rho of a
-    centre removed; centres at random scan points, at least ``GAP`` rho apart (ball to ball), each
+    centre removed; centres at random scan points, at least ``apart`` rho apart (ball to ball; a
+    negative ``apart`` lets balls overlap), each
     ball enclosed by the scan (:func:`surrounded`)."""
     rng = np.random.default_rng(seed)
     tree = cKDTree(points)
@@ -92,7 +93,8 @@ def punch(points: np.ndarray, rho: float, n_holes: int, seed: int, radii=RADII):
         c = points[i]
         r = rho * rng.uniform(*radii)
         if any(
-            np.linalg.norm(c - c2) < r + r2 + GAP * rho for c2, r2 in zip(centres, rs, strict=True)
+            np.linalg.norm(c - c2) < r + r2 + apart * rho
+            for c2, r2 in zip(centres, rs, strict=True)
         ):
             continue
         if not surrounded(points, tree, c, r + 0.5 * rho, r + 3 * rho):
@@ -276,7 +278,14 @@ DEPTHS = ((0.0, 1.5), (1.5, 2.5), (2.5, 3.5), (3.5, 99.0))
 
 
 def real_part(
-    scan_path: Path, rho: float, n_holes: int, seeds: list[int], work: Path, repeat: int
+    scan_path: Path,
+    rho: float,
+    n_holes: int,
+    seeds: list[int],
+    work: Path,
+    repeat: int,
+    radii_rho: tuple[float, float] = RADII,
+    apart: float = GAP,
 ) -> dict:
     from lodbuilder.io import read_scan
 
@@ -287,9 +296,14 @@ def real_part(
     errors = []  # of the synthetic points in the punched balls, every seed
     depths = []  # their distance to the punched scan, in rho
     for seed in seeds:
-        keep, centres, radii = punch(original, rho, n_holes, seed)
+        keep, centres, radii = punch(original, rho, n_holes, seed, radii_rho, apart)
         # the archive depends on the punch only: a --workdir keeps it for the next run
-        path = work / f"real_{scan_path.stem}_{rho:g}_{n_holes}_{seed}.h5"
+        tag = f"{rho:g}_{n_holes}_{seed}" + (
+            ""
+            if (radii_rho, apart) == (RADII, GAP)
+            else f"_{radii_rho[0]:g}-{radii_rho[1]:g}_{apart:g}"
+        )
+        path = work / f"real_{scan_path.stem}_{tag}.h5"
         attrs = {k: v[keep] for k, v in scan.attributes.items()}
         t_build = None if path.exists() else build(original[keep], attrs, scan.name, path)
         filled, level, times = fill_times(path, rho, repeat)
@@ -529,6 +543,15 @@ def main(argv: list[str] | None = None) -> int:
         "--rho", type=float, nargs="+", default=[0.002, 0.003, 0.012], help="rho per --scan"
     )
     p.add_argument("--holes", type=int, default=7, help="holes per seed")
+    p.add_argument(
+        "--radii", type=float, nargs=2, default=list(RADII), help="hole radii range, in rho"
+    )
+    p.add_argument(
+        "--apart",
+        type=float,
+        default=GAP,
+        help="least ball-to-ball distance, in rho (< 0: overlap)",
+    )
     p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     p.add_argument("--n", type=int, default=1_000_000, help="synthetic sheet size")
     p.add_argument(
@@ -563,7 +586,16 @@ def main(argv: list[str] | None = None) -> int:
         if args.only in (None, "real"):
             rhos = args.rho * len(args.scan) if len(args.rho) == 1 else args.rho
             result["real"] = [
-                real_part(Path(s), r, args.holes, args.seeds, work, args.repeat)
+                real_part(
+                    Path(s),
+                    r,
+                    args.holes,
+                    args.seeds,
+                    work,
+                    args.repeat,
+                    tuple(args.radii),
+                    args.apart,
+                )
                 for s, r in zip(args.scan, rhos, strict=True)
             ]
         if args.only in (None, "synthetic"):

@@ -51,8 +51,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "default): a one-byte extra dimension 'sublevel' (up to 256 equal-count sub-levels a "
         "depth) and, per depth and sub-level, the prefix and its exact covering radius (an "
         "EVLR): the points of depths < D and those of depth D with sublevel <= s are that "
-        "prefix; about 1 byte a point (1.3 x the source LAZ on airborne data). exact: each "
-        "point's rank (uint32 extra bytes) and the insertion radius by rank (an EVLR), 2.6-3.8 "
+        "prefix; about 1 byte a point (1.28-1.31 x the source LAZ on airborne data). exact: each "
+        "point's rank (uint32 extra bytes) and the insertion radius by rank (an EVLR), 2.9-3.8 "
         "bytes a point (1.6-1.7 x)",
     )
     add_up_option(

@@ -8,17 +8,25 @@ see :func:`octree_spacing`), i.e. depth d holds the radii in ``(s0 / 2**(d+1), s
 Radii never increase along the ordering, so the points of depths <= D are a prefix of it, of
 length ``n_D``, which covers the scan within ``rho_D = radius[n_D]`` (<= s0 / 2**(D+1)): every
 depth prefix is a level with a known covering radius. The file says so in an EVLR of ours (user
-id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and rho); with
-``rank_radius`` it also keeps each point's ``rank`` (extra bytes) and the insertion radius by
-rank (record 2, :func:`read_radius_table`), so the exact ordering and every level can be rebuilt.
+id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and rho).
 
-What that costs (bytes a point over the file without; autzen / the 4x4 survey / the synthetic
-1M sheet of tools/bench_export.py): the rank as uint32 extra bytes 2.1 / 2.6 / 2.6 (relative to
-its depth's first rank: the same; the ranks of a depth are a random permutation of it in any
-order LAZ compresses well, log2(m!) / m bits at least: 2.4 bytes for the survey's 1.6M-point
-deepest depth), the radius table 1.0 / 0.3 / 1.3; radius as float64 extra bytes instead 6.9, as
-float32 3.2; a one-byte radius quantised to 1/16 octave (16 levels a depth, no rank) 0.7. Not
-cheap next to the 5.5 bytes a point of the source LAZ: off by default.
+``rank_radius="level"`` (``--rank-radius``) refines each depth into up to SUBLEVELS (256)
+levels: depth d's band of the ordering is cut into runs of equal count, each point stores the
+index of its run in a uint8 extra byte ``sublevel``, and record 3 (:func:`read_sublevels`)
+holds per (depth, sublevel) the prefix that ends there, the points a reader keeps and their
+covering radius (the archive's radius at that prefix, exactly). Keeping the points of depths
+< D and those of depth D with sublevel <= s gives that prefix: a level of any of up to
+256 x depths sizes with its covering radius. ``rank_radius="exact"`` (``--rank-radius exact``)
+keeps each point's ``rank`` (uint32 extra bytes) and the insertion radius by rank (record 2,
+:func:`read_radius_table`): the exact ordering, so every level can be rebuilt.
+
+What that costs (bytes a point over the file without; autzen / the 4x4 survey, whose source
+LAZ holds 5.5 bytes a point; tools/bench_export.py): the sublevel byte about 1.0 (a uniform
+byte in scanner order), its table 5.6 / 11 kB: 1.31 / 1.28 x the source LAZ. The exact rank
+2.1 / 2.6 and its radius table 1.0 / 0.3: 1.69 / 1.63 x. The rank cannot be much cheaper: in
+any order LAZ compresses well the ranks of a depth are a random permutation of it, log2(m!)
+/ m bits a point at least (2.4 bytes for the survey's 1.6M-point deepest depth: 1.53 x with
+a perfect coder). Radius as float64 extra bytes instead would cost 6.9, as float32 3.2.
 
 Inside a node the order is free (the depths carry the levels): points go by GPS time where they
 have one (the scanner's order, which LAZ's delta coding compresses best), else by Morton code.
@@ -321,7 +329,7 @@ def write_copc(
     (a uint8 extra byte) and, per depth and sub-level, the prefix and its covering radius (an
     EVLR, :func:`read_sublevels`): up to SUBLEVELS levels a depth, about 1 byte a point.
     ``rank_radius="exact"``: each point's ``rank`` (extra bytes) and the insertion radius by
-    rank (an EVLR, :func:`read_radius_table`): the exact ordering, 2.6-3.8 bytes a point.
+    rank (an EVLR, :func:`read_radius_table`): the exact ordering, 2.9-3.8 bytes a point.
 
     ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: what
     filter removed points from the level (they are a subsequence of it), with ``bounds`` the

@@ -34,8 +34,9 @@ whole scan for exact distances.
    (reached from the points next to the seeds within the grid's reach, over links to each
    point's 8 nearest points within 1.5 rho: :func:`~lodbuilder.fill.local.on_sheet`), in a
    cone twice as steep (45 degrees). Another sheet is not on it, so the steep rim can stay;
-   a region enclosed there that is a fillable gap (steps 4-5) is kept. Anything else stays
-   *open* and is not filled: a border never bounds a region over its own sheet all round.
+   a region enclosed there that is a fillable gap (steps 4-5) is kept; a rough one is counted
+   apart (``n_bent``: enclosed along the surface, which bends too much across it to fill).
+   Anything else stays *open* and is not filled.
 4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
    squares; the grid is laid again if it moved) and a height field over it
    (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
@@ -187,6 +188,8 @@ class Search:
     regions: list[Region] = field(default_factory=list)
     n_open: int = 0
     n_seeds: int = 0
+    #: groups open over the plane whose gap is enclosed along the surface but rough there
+    n_bent: int = 0
 
 
 def _level_vertices(level: np.ndarray, tree_l: Any, rho: float) -> tuple[np.ndarray, np.ndarray]:
@@ -346,15 +349,20 @@ def find_regions(
             # sheet only (along the surface); a fillable gap found there is kept, anything
             # else stays open
             again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
-            n_open -= min(n_open, _add(out, again, tree_s, rho, fillable_only=True))
+            added, refused = _add(out, again, tree_s, rho, fillable_only=True)
+            out.n_bent += min(n_open, refused)
+            n_open -= min(n_open, added + refused)
         out.n_open += n_open
     return out
 
 
-def _add(out: Search, regions: list, tree_s: Any, rho: float, fillable_only: bool) -> int:
+def _add(
+    out: Search, regions: list, tree_s: Any, rho: float, fillable_only: bool
+) -> tuple[int, int]:
     """Finish the enclosed ``regions`` not found already and add them to ``out`` (with
-    ``fillable_only``, only the fillable gaps): how many were added."""
-    added = 0
+    ``fillable_only``, only the fillable gaps): (how many were added, how many gaps were left
+    out as rough)."""
+    added = refused = 0
     for reg in regions:
         if reg is None or _inside(out.regions, reg.candidates.mean(axis=0, keepdims=True), rho)[0]:
             continue  # open, or found already
@@ -362,11 +370,12 @@ def _add(out: Search, regions: list, tree_s: Any, rho: float, fillable_only: boo
         if not reg.candidates.shape[0]:
             continue
         if fillable_only and not (reg.is_gap and reg.status == STATUS_FILLABLE):
+            refused += reg.is_gap
             continue
         reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
         out.regions.append(reg)
         added += 1
-    return added
+    return added, refused
 
 
 def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 
 from ...errors import FormatError, LodbuilderError, ScanFileError
 from .._files import exc_line, library_panic
-from ..base import Rows, Scan, whole
+from ..base import Rows, Scan, file_stem, whole
 from ..crs import normalise_wkt, pyproj_wkt, set_crs
 from .common import EXACT_PREFIX, check_laz_backend, laspy_module, quiet_laspy
 
@@ -154,8 +154,7 @@ def read(path: Path) -> list[Scan]:
     laspy = laspy_module(path)
     header = las_header(laspy, path)
     pts, attrs = whole(las_rows(laspy, path, header, max(header.n_points, 1)))
-    name = path.stem.split(".")[0] if path.name.lower().endswith(".copc.laz") else path.stem
-    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=header.metadata)]
+    return [Scan(points=pts, attributes=attrs, name=file_stem(path), source=str(path), reader="las", metadata=header.metadata)]
 
 
 @dataclass
