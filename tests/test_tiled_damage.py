@@ -45,8 +45,8 @@ def _same(a, b):
 
 
 # the moment of the stop: the module and function that raises (what is done by then: everything before)
-MOMENTS = {"split": ("driver", "distribute_phase"), "tiles": ("driver", "write_json"), "merge": ("merge", "merge_tiles"),
-           "radii": ("radii", "radii_phase"), "write": ("write", "write_scan")}
+MOMENTS = {"split": ("driver", "distribute_phase"), "tiles": ("driver", "write_json"), "merge": ("driver", "_merge"),
+           "radii": ("radii", "radii_phase"), "write": ("driver", "_timings")}
 
 
 @pytest.fixture(scope="module")
@@ -214,7 +214,7 @@ def test_a_forged_las_work_file_names_no_internal_option(tmp_path, monkeypatch):
         raise KeyboardInterrupt
 
     with monkeypatch.context() as mp:
-        mp.setattr("lodbuilder.build.tiled.write.write_scan", stop)
+        mp.setattr("lodbuilder.build.tiled.driver._timings", stop)  # (just before the write)
         with pytest.raises(KeyboardInterrupt):
             lodbuilder.build_archive(src, archive, _tile_points=400)
     (w,) = (tmp_path / ".a.h5.parts").glob("*.work")

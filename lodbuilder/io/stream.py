@@ -184,10 +184,7 @@ def _las_stream(p: Path) -> PointStream:
     n = header.n_points
     if n == 0:
         raise FormatError(f"{p}: holds no points; a scan needs at least one point")
-    first = las_rows(laspy, p, header, 1)
-    _, _, probe = next(first)  # the first point: the attributes' dtypes and shapes
-    first.close()
-    fields = {k: (a.dtype, tuple(a.shape[1:])) for k, a in probe.items()}
+    fields = header.fields
     name = file_stem(p)
 
     def it(size: int, first: int, stop: int) -> Iterator[Chunk]:

@@ -18,7 +18,7 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    every block into the tiles' core and halo pieces;
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
    tile and its halo (tasks);
-5. **merge** (parent): the tile orders are merged by descending insertion radius (an external
+5. **merge** (one task): the tile orders are merged by descending insertion radius (an external
    k-way merge), with the seam repair of :mod:`lodbuilder.build.tiled.merge`, and inverted into
    every point's rank;
 6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
@@ -26,10 +26,12 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    by destination into the write's buckets; the stored radius of a prefix is the largest over the
    tiles, capped by the coarse bound, never increasing: assembled in bands of positions by tasks
    (:mod:`.radii`; the parent carries two numbers from band to band);
-7. **write** (parent): the buckets in stored order, streamed into the archive part.
+7. **write** (one task): the buckets in stored order, streamed into the archive part; the parent
+   registers the part.
 
-What still passes over every point in the parent (issue 19, item 2): the merge (and the ranks) and
-the write. The route chosen for them keeps every archive reader unchanged: the stored order stays
+What still passes over every point in one process (issue 19, item 2): the merge (and the ranks)
+and the write, each one task on a worker (the parent loads no kernel and runs no filter, but the
+build's serial share is theirs). The route chosen for them keeps every archive reader unchanged: the stored order stays
 one sequence, cut into *bands of global rank* aligned to the archive's row groups. The parent finds
 each band's boundary key by a selection over the tiles' streams (each sorted by key: O(tiles x
 bands x log N) small reads); a band task merges its segment of every tile stream, ranks its points,

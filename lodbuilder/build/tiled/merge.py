@@ -31,6 +31,7 @@ from . import layout as WL
 from . import workdir as W
 from .sums import SumFile, sum_file
 from .tasks import HEAD, STREAM
+from .timing import timed_task
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +136,17 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     publish(work / WL.writing(WL.KEY), work / WL.KEY)
     return {"deferred": deferred, "seam_points": n_seam, "head": h,
             "files": {WL.ORDER: fo.sum, WL.KEY: fk.sum}}
+
+
+@timed_task
+def merge_task(work: str, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
+               min_cell: float) -> dict[str, Any]:
+    """The merge as one task (on a worker, so that the parent loads no kernel and passes over no
+    point): :func:`merge_tiles`, then :func:`write_ranks`; returns the merge's marker."""
+    w = Path(work)
+    merged = merge_tiles(w, n, n_tiles, seam_counts, alpha, lo, min_cell)
+    merged["files"][WL.RANK] = write_ranks(w, n)
+    return merged
 
 
 def write_ranks(work: Path, n: int) -> list[int]:

@@ -149,6 +149,16 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
                          "the build again with --force") from None
 
 
+@timed_task
+def write_task(work: str, part: str, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+               metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
+               provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
+    """:func:`write_scan` as one task (on a worker: the parent runs no filter and passes over no
+    point; the part is still written by one process); returns ``{"info": PartInfo}``."""
+    return {"info": write_scan(Path(work), Path(part), name, n, fields, metadata, encoding, seeds, build, provenance,
+                               None, buckets, radii)}
+
+
 def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                    metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
                    provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any],
