@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ._validate import strict_methods
+from .errors import InputError
 from .levels import Level, LevelQuery
 
 
@@ -29,9 +30,12 @@ class LevelAnswer:
     filled: Any = None
 
 
-def read_level(view: Any, query: LevelQuery) -> LevelAnswer:
+def read_level(view: Any, query: LevelQuery, *, attributes: Any = True) -> LevelAnswer:
     """The level of the stored scan ``view`` (a :class:`~lodbuilder.archive.scanview.ScanView`)
-    that ``query`` asks for, reading only what it needs."""
+    that ``query`` asks for, reading only what it needs. ``attributes`` (a prefix only): which
+    attributes to read, as for ``ScanView.level`` (True: all, False: none, or names)."""
+    if attributes is not True and query.kind != "prefix":
+        raise InputError(f"attributes= applies to a prefix level, not to a {query.kind} level")
     filled = None
     if query.kind == "fill":
         from .fill import fill_level
@@ -45,7 +49,8 @@ def read_level(view: Any, query: LevelQuery) -> LevelAnswer:
     elif query.kind == "floor":
         level = floor_level(view, query.floor_rho, query.size, query.ordering)  # type: ignore[arg-type]
     else:
-        level = view.level(query.rho, size=query.size, fraction=query.fraction, ordering=query.ordering)
+        level = view.level(query.rho, size=query.size, fraction=query.fraction, ordering=query.ordering,
+                           attributes=attributes)
     return LevelAnswer(level=level, guarantee=guarantee(view, level), filled=filled)
 
 

@@ -21,3 +21,16 @@ def one_line_error(capsys, cmd, *argv):
     prefix = f"lodbuilder {cmd}: error: "
     assert out == "" and len(lines) == 1 and lines[0].startswith(prefix), err
     return lines[0][len(prefix):]
+
+
+def in_child(*argv, cwd=None, timeout=600):
+    """``python -m lodbuilder.cli.main ARGV`` in a child process with this repository first on
+    its path: the CompletedProcess (text output captured)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    return subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", *map(str, argv)],
+                          capture_output=True, text=True, timeout=timeout, env=env, cwd=cwd)

@@ -70,3 +70,36 @@ def autzen_archive_full(shared_data: Path, tmp_path_factory: pytest.TempPathFact
     out = tmp_path_factory.mktemp("autzen") / "autzen.h5"
     lodbuilder.build_archive(shared_data / "autzen_trim.laz", out, name="autzen")
     return out
+
+
+@pytest.fixture(scope="session")
+def small_archive(tmp_path_factory: pytest.TempPathFactory):
+    """``small_archive(n, seed=7, scan="demo", filename="demo.h5", **options) -> Path``: an archive
+    of the generated scan ``lodbuilder.datasets.demo_scan(n, seed=seed, name=scan)`` built with
+    ``lodbuilder.build_archive(..., **options)``, once per session for each set of arguments.
+    Shared: copy it before changing it."""
+    import lodbuilder
+    from lodbuilder.datasets import demo_scan
+
+    made: dict[tuple, Path] = {}
+
+    def make(n: int, *, seed: int = 7, scan: str = "demo", filename: str = "demo.h5", **options) -> Path:
+        key = (n, seed, scan, filename, tuple(sorted(options.items())))
+        if key not in made:
+            path = tmp_path_factory.mktemp("small") / filename
+            lodbuilder.build_archive(demo_scan(n, seed=seed, name=scan), path, **options)
+            made[key] = path
+        return made[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def res3_cli_archive(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """bun_zipper_res3.ply (1,889 points, confidence + intensity) built through the command line
+    with its defaults (scan 'bun_zipper_res3'). Shared: copy it before changing it."""
+    from lodbuilder.cli.main import main
+
+    arc = tmp_path_factory.mktemp("res3") / "bunny.h5"
+    assert main(["build", str(shared_data / "bun_zipper_res3.ply"), "-o", str(arc), "--no-progress"]) == 0
+    return arc

@@ -15,11 +15,8 @@ def jittered_plane(n: int, rng: np.random.Generator, jitter: float = 0.3) -> np.
 
 
 def sphere(n: int, rng: np.random.Generator, radius: float = 1.0) -> np.ndarray:
-    """n points spread evenly on a sphere (Fibonacci lattice, small jitter)."""
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5**0.5) * i
-    p = np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
+    """n points spread evenly on a sphere (:func:`fibonacci_sphere`, small jitter)."""
+    p = fibonacci_sphere(n)
     p += rng.normal(0, 0.05 / np.sqrt(n), p.shape)
     return radius * p / np.linalg.norm(p, axis=1, keepdims=True)
 

@@ -9,10 +9,9 @@ import errno
 import hashlib
 import os
 import re
-import subprocess
-import sys
 
 import pytest
+from clirun import in_child
 from conftest import mounted_tmpfs
 
 import lodbuilder
@@ -44,8 +43,7 @@ def tiny_disk(tmp_path):
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", *args],
-                          capture_output=True, text=True, timeout=600)
+    return in_child(*args)
 
 
 NO_SPACE = re.compile(

@@ -23,13 +23,9 @@ def files_in(d):
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory, shared_data):
+def built(res3_cli_archive):
     """bun_zipper_res3 (1889 points, confidence + intensity) built through the CLI."""
-    d = tmp_path_factory.mktemp("cli")
-    arc = d / "bunny.h5"
-    rc = main(["build", str(shared_data / "bun_zipper_res3.ply"), "-o", str(arc), "--no-progress"])
-    assert rc == 0
-    return arc
+    return res3_cli_archive
 
 
 def test_build_info_validate(built, capsys, shared_data):

@@ -11,23 +11,18 @@ from __future__ import annotations
 import errno
 import os
 import re
-import subprocess
-import sys
 
 import pytest
+from clirun import in_child
 from conftest import mounted_tmpfs
 
-import lodbuilder
-from lodbuilder.datasets import demo_scan
 from lodbuilder.errors import ScanFileError
 from lodbuilder.io import _files
 
 
 @pytest.fixture(scope="module")
-def archive(tmp_path_factory):
-    path = tmp_path_factory.mktemp("arc") / "demo.h5"
-    lodbuilder.build_archive(demo_scan(20_000, seed=3), path)
-    return path
+def archive(small_archive):
+    return small_archive(20_000, seed=3)
 
 
 @pytest.fixture
@@ -40,8 +35,7 @@ def full_disk(tmp_path):
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", *map(str, args)],
-                          capture_output=True, text=True, timeout=600)
+    return in_child(*args)
 
 
 def no_space(command, path):

@@ -9,6 +9,7 @@ import logging
 
 import numpy as np
 import pytest
+from clirun import run
 
 from lodbuilder.cli.main import main
 
@@ -71,11 +72,6 @@ def test_colour_depth_help_says_cloudcompare(capsys):
     assert ("--colour-depth {8,16} PLY colour: 8 (uchar, the default: every viewer reads it) or "
             "16 (ushort; CloudCompare 2.11 shows 16-bit PLY colour as black)") in text
 
-
-def run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_a_rerun_demo_says_it_reused_the_archive(tmp_path, capsys):

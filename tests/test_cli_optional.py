@@ -52,13 +52,8 @@ def one_error_line(proc, command):
 
 
 @pytest.fixture(scope="module")
-def archive(tmp_path_factory):
-    import lodbuilder
-    from lodbuilder.datasets import demo_scan
-
-    path = tmp_path_factory.mktemp("opt") / "a.h5"
-    lodbuilder.build_archive(demo_scan(600, seed=3), path)
-    return path
+def archive(small_archive):
+    return small_archive(600, seed=3, filename="a.h5")
 
 
 VIZ = ("pyvista", "vtk", "vtkmodules")

@@ -32,10 +32,8 @@ def one_line_error(capsys, argv, cmd):
 
 
 @pytest.fixture(scope="module")
-def arc(tmp_path_factory):
-    path = tmp_path_factory.mktemp("rep") / "a.h5"
-    lodbuilder.build_archive(demo_scan(800, seed=5, name="sheet"), path)
-    return path
+def arc(small_archive):
+    return small_archive(800, seed=5, scan="sheet", filename="a.h5")
 
 
 @pytest.fixture(scope="module")

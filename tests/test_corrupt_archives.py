@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
-from clirun import one_line_error, run
+from clirun import in_child, one_line_error, run
 from hostile import SCAN, N, copy, edit, make_archive, rewrite, small_ply, vlen_strings
 
 import lodbuilder
@@ -70,15 +68,7 @@ def heap_objects(data: bytes) -> tuple[int, list[tuple[int, int, int]]]:
 
 
 def cli(*argv, timeout=120):
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run(
-        [sys.executable, "-m", "lodbuilder.cli.main", *map(str, argv)],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=env,
-        cwd=REPO,
-    )
+    return in_child(*argv, cwd=REPO, timeout=timeout)
 
 
 HANG_COMMANDS = {

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from clirun import run as run_cli
 
 import lodbuilder
-from lodbuilder.cli.main import main
 from lodbuilder.errors import InputError
 from lodbuilder.io import read_scan, write_points
 
@@ -16,11 +16,6 @@ pyproj = pytest.importorskip("pyproj")
 
 UTM10 = pyproj.CRS.from_epsg(32610)
 
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")

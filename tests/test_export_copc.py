@@ -1,7 +1,7 @@
 """``lodbuilder export ARCHIVE -o OUT.copc.laz``: a COPC 1.0 file (read back with laspy's
 CopcReader, copclib's reader and the npm ``copc`` reader) whose octree depths are farthest-point
-levels, with every attribute, the CRS, scale and offset, and with --rank-radius the rank and
-the insertion radius."""
+levels, with every attribute, the CRS, scale and offset, and with --rank-radius exact the rank
+and the insertion radius (--rank-radius level: tests/test_export_copc_sublevels.py)."""
 
 from __future__ import annotations
 
@@ -44,9 +44,9 @@ def autzen_copc(autzen, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def autzen_copc_rr(autzen, tmp_path_factory):
-    """With --rank-radius: every point says where it is in the ordering."""
+    """With --rank-radius exact: every point says where it is in the ordering."""
     out = tmp_path_factory.mktemp("copc") / "autzen_rr.copc.laz"
-    assert main(["export", str(autzen), "-o", str(out), "-q", "--rank-radius"]) == 0
+    assert main(["export", str(autzen), "-o", str(out), "-q", "--rank-radius", "exact"]) == 0
     return out
 
 
@@ -338,7 +338,7 @@ def test_export_of_a_level_and_a_coloured_scan(tmp_path, capsys):
     arc = tmp_path / "demo.h5"
     lodbuilder.build_archive(demo_scan(30000, seed=2), arc, name="demo", importance="curvature")
     out = tmp_path / "demo.copc.laz"
-    assert main(["export", str(arc), "--size", "20000", "-o", str(out), "--rank-radius"]) == 0
+    assert main(["export", str(arc), "--size", "20000", "-o", str(out), "--rank-radius", "exact"]) == 0
     text = capsys.readouterr().out
     assert text.startswith(f"wrote 20,000 of 30,000 points of scan 'demo' to {out} (")
     # 20,000 points: the root's band (10,000) reaches past K / 8, so one depth holds them all
@@ -431,7 +431,7 @@ def test_promoted_points_end_to_end(tmp_path, monkeypatch):
     pts[1:300, :2] *= 0.2  # the coarse points in one corner, the fine ones everywhere
     radius = 50 / np.sqrt(np.arange(1, 3001))  # radii unrelated to where the points are
     radius[0] = np.inf
-    out = write_copc(tmp_path / "p.copc.laz", pts, {}, radius, 0.0, rank_radius=True)
+    out = write_copc(tmp_path / "p.copc.laz", pts, {}, radius, 0.0, rank_radius="exact")
     assert out.promoted > 0 and out.depths >= 4
     with laspy.CopcReader.open(str(tmp_path / "p.copc.laz")) as reader:
         for lv in out.levels:
@@ -467,7 +467,7 @@ def test_radius_table_round_trips(tmp_path):
     rank = np.sort(rng.choice(5000, 3000, replace=False))  # a filtered level: ranks with gaps
     full = np.concatenate([[np.inf], 30.0 / np.sqrt(np.arange(2, 5001))]) * (1 + 1e-9)
     pts = rng.random((3000, 3)) * 100
-    out = write_copc(tmp_path / "f.copc.laz", pts, {}, full[rank], 0.0, rank_radius=True,
+    out = write_copc(tmp_path / "f.copc.laz", pts, {}, full[rank], 0.0, rank_radius="exact",
                      rank=rank)
     table = read_radius_table(out.path)
     assert table.dtype == np.float32 and table.size == rank[-1] + 1
@@ -479,7 +479,7 @@ def test_radius_table_round_trips(tmp_path):
     assert our_vlr(out.path)["radius_by_rank"]["record_id"] == 2
     plain = write_copc(tmp_path / "p.copc.laz", pts, {}, full[rank], 0.0)
     with pytest.raises(InputError, match=f"^{re.escape(str(plain.path))} has no radius table; "
-                       "export it with --rank-radius$"):
+                       "export it with --rank-radius exact$"):
         read_radius_table(plain.path)
 
 
@@ -519,7 +519,7 @@ def test_copc_errors(autzen, tmp_path, capsys, monkeypatch):
     )
     with pytest.raises(InputError, match=r"^attribute 'rank' would clash with the rank the COPC"):
         write_copc(tmp_path / "y.copc.laz", np.zeros((2, 3)), {"rank": np.zeros(2)}, np.ones(2), 0,
-                   rank_radius=True)
+                   rank_radius="exact")
     # copclib is not needed to write (laspy and lazrs write COPC here); lazrs is
     monkeypatch.setitem(sys.modules, "copclib", None)
     monkeypatch.setitem(sys.modules, "lazrs", None)

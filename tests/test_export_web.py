@@ -34,14 +34,9 @@ CHROMIUM_ARGS = [
 
 
 @pytest.fixture(scope="module")
-def demo_archive(tmp_path_factory):
+def demo_archive(small_archive):
     """A 3,000-point coloured sheet with a curvature importance map."""
-    import lodbuilder
-    from lodbuilder.datasets import demo_scan
-
-    out = tmp_path_factory.mktemp("arc") / "demo.h5"
-    lodbuilder.build_archive(demo_scan(3000, seed=3), out, name="demo", importance="curvature")
-    return out
+    return small_archive(3000, seed=3, importance="curvature")
 
 
 @pytest.fixture(scope="module")

@@ -7,11 +7,11 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from clirun import in_child
 from plyfile import PlyData, PlyElement
 
 from lodbuilder.errors import FormatError, ScanFileError
@@ -21,9 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _cli(*args: str, cwd: Path, timeout: float = 60) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    return in_child(*args, cwd=cwd, timeout=timeout)
 
 
 def _cloud(n: int = 60, seed: int = 3) -> np.ndarray:

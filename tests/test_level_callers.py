@@ -186,6 +186,11 @@ def test_the_level_query_gives_the_same_levels_as_the_scan_view(archive):
         weighted = read_level(view, LevelQuery(size=100, ordering="weighted"))
         assert weighted.guarantee.endswith("not a Euclidean covering radius")
         assert LevelQuery().prefix_size(view.n_ordered, view.size_for_rho) == view.n_ordered
+        bare = read_level(view, LevelQuery(size=50), attributes=False).level  # (as evaluate reads)
+        assert bare.attributes == {} and bare.size == 50
+        with pytest.raises(InputError) as exc:
+            read_level(view, LevelQuery(rho=0.01, box=box, box_rho=0.004), attributes=False)
+        assert str(exc.value) == "attributes= applies to a prefix level, not to a box level"
 
 
 @pytest.mark.parametrize(("kw", "message"), [

@@ -9,17 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from clirun import run as run_cli
 
 import lodbuilder
 from lodbuilder.cli.main import main
 
 REPO = Path(__file__).resolve().parents[1]
 
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import json
 import h5py
 import numpy as np
 import pytest
+from clirun import run as run_cli
 from scipy.spatial import cKDTree
 
 import lodbuilder
@@ -16,12 +17,6 @@ from lodbuilder.cli.main import main
 from lodbuilder.errors import LevelBeyondOrderingError
 from lodbuilder.io import read_scan
 from lodbuilder.sampling.fastfps import euclidean_fps, fastfps
-
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def cover(all_pts, kept):

@@ -7,6 +7,7 @@ import h5py
 import numpy as np
 import plyfile
 import pytest
+from clirun import run as run_cli
 from scipy.spatial import cKDTree
 
 from lodbuilder.archive import layout as L
@@ -33,11 +34,6 @@ def unit_cloud(n=3000, seed=0):
     pts[:, 2] *= 0.01
     return pts
 
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def worst_shortfall(pts, o, sizes):
@@ -106,10 +102,8 @@ def test_outlier_advice_leads_to_a_clear_refusal():
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory, shared_data):
-    arc = tmp_path_factory.mktemp("prec") / "b.h5"
-    assert main(["build", str(shared_data / "bun_zipper_res3.ply"), "-o", str(arc), "--no-progress"]) == 0
-    return arc
+def built(res3_cli_archive):
+    return res3_cli_archive
 
 
 def test_validate_checks_the_covering_guarantee(built, tmp_path):

@@ -254,7 +254,7 @@ def test_the_cli_prints_task_lines_of_a_joint_build_without_a_terminal(tmp_path,
         lines = [x for x in err if x.startswith(f"{stage}: ")]
         assert re.fullmatch(rf"{stage}: 0 of (\d+) tiles, 0 of 4,400 points(, \d+ queued or running)?", lines[0]), lines
         n = int(re.match(rf"{stage}: 0 of (\d+)", lines[0]).group(1))
-        assert re.fullmatch(rf"{stage}: {n} of {n} tiles, 4,400 of 4,400 points in \d+ s \([\d,]+ points/s\)",
+        assert re.fullmatch(rf"{stage}: {n} of {n} tiles, 4,400 of 4,400 points in \d+ s \(([\d,]+|\d+\.\d\d M) points/s\)",
                             lines[-1]), lines
     rc = main(["build", str(files[0].parent), "--joint", "s2", "-o", str(tmp_path / "s.h5"), "--workers", "1",
                "--max-memory", "2GB", "--json"])

@@ -6,12 +6,12 @@ Real HTTP on 127.0.0.1 (tests/rangeserver.py)."""
 
 from __future__ import annotations
 
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from clirun import in_child
 
 import lodbuilder
 from lodbuilder.archive import remote
@@ -33,8 +33,7 @@ def root(tmp_path_factory):
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "lodbuilder.cli.main", *map(str, args)],
-                          capture_output=True, text=True, timeout=120)
+    return in_child(*args, timeout=120)
 
 
 def test_the_default_timeout_is_30_s():

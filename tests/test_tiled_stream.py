@@ -88,3 +88,39 @@ def test_stream_refuses_what_read_scan_refuses(tmp_path):
         with pytest.raises(FormatError) as chunked:
             list(open_stream(f).chunks(7))
         assert str(chunked.value) == str(whole.value)
+
+
+def test_a_copc_file_is_named_alike_by_every_path(tmp_path):
+    """``a.b.copc.laz``: the whole read named the scan 'a', the stream and the build 'a.b'."""
+    import shutil
+
+    from lodbuilder.build.inputs import scan_name
+
+    pts = np.random.default_rng(0).random((50, 3))
+    p = tmp_path / "a.b.copc.laz"
+    shutil.copy(write_points(tmp_path / "plain.laz", pts), p)
+    assert read_scan(p).name == open_stream(p).name == scan_name(p) == "a.b"
+
+
+@pytest.mark.parametrize("fmt", [0, 1, 3, 6, 8, 10])
+def test_las_fields_come_from_the_header_as_the_read_gives_them(tmp_path, fmt):
+    """The stream learns every attribute's dtype and shape from the header (a one-point record made
+    for it) instead of decompressing the first chunk: they equal what the read returns, extra bytes
+    (scaled, unscaled, arrays) included."""
+    laspy = pytest.importorskip("laspy")
+    header = laspy.LasHeader(point_format=fmt, version="1.4")
+    header.add_extra_dims([laspy.ExtraBytesParams("height", "int32", scales=np.array([0.01]), offsets=np.array([0.0])),
+                           laspy.ExtraBytesParams("flags", "uint8"),
+                           laspy.ExtraBytesParams("normal", "3f4")])
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(fmt)
+    las.x, las.y, las.z = rng.random(20), rng.random(20), rng.random(20)
+    las.height = rng.random(20)
+    p = tmp_path / f"f{fmt}.laz"
+    las.write(str(p))
+    stream = open_stream(p)
+    whole = read_scan(p)
+    got = {k: (np.asarray(v).dtype, np.asarray(v).shape[1:]) for k, v in whole.attributes.items()}
+    assert stream.fields == got
+    chunk = next(stream.chunks(7))
+    assert {k: (v.dtype, v.shape[1:]) for k, v in chunk.attributes.items()} == got

@@ -140,3 +140,21 @@ def test_a_damaged_tile_file_fails_the_build_by_its_name(survey, tmp_path, damag
     assert keep.read_bytes() == before
     with lodbuilder.open_archive(keep) as arc:
         assert arc.scans == ["other"]
+
+
+def test_the_parent_reads_no_point_of_a_file(survey, tmp_path, monkeypatch):
+    """Issue 19.1: the parent plans from the files' headers; the points are read by the workers'
+    tasks only (a chunk read in the parent fails the build)."""
+    from lodbuilder.io.stream import PointStream
+
+    files, scans = survey
+
+    def no_chunks(self, *args, **kwargs):
+        raise AssertionError(f"the parent read points of {self.path}")
+
+    monkeypatch.setattr(PointStream, "chunks", no_chunks)
+    out = tmp_path / "p.h5"
+    res = lodbuilder.build_archive(files[:3], out, joint="site", workers=2, _tile_points=400)
+    assert [s.status for s in res.scans] == ["built"]
+    with lodbuilder.open_archive(out) as arc:
+        assert arc.scan().n_points == sum(len(s) for s in scans[:3])

@@ -23,13 +23,8 @@ def bunny_archive(shared_data, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def colour_archive(tmp_path_factory):
-    import lodbuilder
-    from lodbuilder.datasets import demo_scan
-
-    out = tmp_path_factory.mktemp("arc") / "demo.h5"
-    lodbuilder.build_archive(demo_scan(3000), out, name="demo")
-    return out
+def colour_archive(small_archive):
+    return small_archive(3000)
 
 
 @pytest.mark.viewer

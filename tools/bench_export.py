@@ -3,12 +3,16 @@
 Input: a synthetic scan (lodbuilder's demo surface: a wavy sheet with RGB, ``--points`` points,
 default 1,000,000), built once into an archive (or ``--archive A.h5`` to reuse one). Measured:
 
-* ``copc``: ``export -o OUT.copc.laz`` (target <= 10 s for 1M points) without and with
-  ``--rank-radius``: seconds, bytes, depths, nodes, and a check that every depth query of laspy's
-  CopcReader returns its prefix;
+* ``copc``: ``export -o OUT.copc.laz`` (target <= 10 s for 1M points) without rank/radius
+  (``default``), with ``--rank-radius`` (``level``: a sublevel byte a point and the sub-level
+  table) and with ``--rank-radius exact`` (the uint32 rank and the radius by rank): seconds,
+  bytes, bytes a point, depths, nodes; for ``level`` a check that sampled sub-level bounds of
+  laspy's CopcReader return the archive's levels with the archive's rho, for ``exact`` that
+  every depth query returns its prefix of ranks;
 * ``copc_vs_source`` (``--source LAZ``, repeatable: each built into an archive first): the COPC
-  size against the source LAZ's, without and with rank/radius (targets <= 1.15 x and <= 1.5 x),
-  the bytes a point of each depth, and the bytes of the radius-by-rank table;
+  size against the source LAZ's, without rank/radius (target <= 1.15 x) and in both
+  ``--rank-radius`` modes (target <= 1.5 x), the bytes a point of each depth, and the bytes of
+  our tables;
 * ``web``: ``export -o OUT.html`` (target <= 30 MB for 1M points): seconds, bytes, and the time
   headless Chromium (Debian's, through playwright) takes from navigation to the last frame drawn
   (target <= 15 s), with the requests the page made;
@@ -99,46 +103,88 @@ def bytes_by_depth(path: Path) -> list[float]:
     return [round(size[d][0] / size[d][1], 2) for d in sorted(size)]
 
 
-def radius_table_bytes(path: Path) -> int:
+def record_bytes(path: Path, record_id: int) -> int:
+    """Bytes of our EVLR ``record_id`` (2: the radius by rank, 3: the sub-level table)."""
     import laspy
 
-    from lodbuilder.export.copc import RADIUS_RECORD_ID, VLR_USER_ID
+    from lodbuilder.export.copc import VLR_USER_ID
 
     with laspy.open(str(path)) as r:
         return sum(len(v.record_data) for v in r.header.evlrs
-                   if v.user_id == VLR_USER_ID and v.record_id == RADIUS_RECORD_ID)
+                   if v.user_id == VLR_USER_ID and v.record_id == record_id)
 
 
-def bench_copc(view, out: Path) -> dict:
+def depth_queries_ok(out: Path, levels: list) -> bool:
+    """Every depth query of laspy's CopcReader returns the prefix of ranks the EVLR names."""
     import laspy
     import numpy as np
 
-    from lodbuilder.export.copc import export_copc
+    ok = True
+    with laspy.CopcReader.open(str(out)) as reader:
+        for lv in levels:
+            rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
+            ok &= bool(rank.size == lv["points"])
+            ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
+    return ok
+
+
+def sublevel_queries_ok(view, out: Path, rows: int = 9) -> bool:
+    """For ``rows`` rows of the sub-level table (spread over it): the points of depths < D and
+    of depth D with sublevel <= s (laspy's CopcReader) are the archive's level of the row's
+    prefix (integer coordinates as multisets), and the row's rho is the archive's."""
+    import laspy
+    import numpy as np
+
+    from lodbuilder.export.copc import read_sublevels
+
+    table = read_sublevels(out)
+    with laspy.CopcReader.open(str(out)) as reader:
+        scales, offsets = reader.header.scales, reader.header.offsets
+        depths = [reader.query(level=d) for d in range(int(table["depth"].max()) + 1)]
+    xyz = [np.column_stack([np.asarray(g.X), np.asarray(g.Y), np.asarray(g.Z)]).astype(np.int64)
+           for g in depths]
+    every = np.rint((view.points(view.n_ordered) - offsets) / scales).astype(np.int64)
+    ok = True
+    for i in np.unique(np.linspace(0, table.size - 1, rows).astype(int)):
+        d, s, p = int(table["depth"][i]), int(table["sublevel"][i]), int(table["prefix"][i])
+        sub = np.asarray(depths[d]["sublevel"])
+        got = np.concatenate(xyz[:d] + [xyz[d][sub <= s]])
+        want = every[:p]
+        ok &= bool(got.shape == want.shape and np.array_equal(
+            got[np.lexsort(got.T[::-1])], want[np.lexsort(want.T[::-1])]))
+        ok &= bool(table["rho"][i] == view.level(size=p).rho)
+    return ok
+
+
+#: the COPC variants measured: no rank/radius, --rank-radius (level), --rank-radius exact
+MODES = {"default": None, "level": "level", "exact": "exact"}
+
+
+def bench_copc(view, out: Path) -> dict:
+    from lodbuilder.export.copc import RADIUS_RECORD_ID, SUBLEVEL_RECORD_ID, export_copc
 
     res = {}
-    for rr in (False, True):
+    for key, mode in MODES.items():
         t0 = time.perf_counter()
-        got = export_copc(view, out, view.n_ordered, rank_radius=rr)
+        got = export_copc(view, out, view.n_ordered, rank_radius=mode)
         secs = time.perf_counter() - t0
         one = {
             "seconds": round(secs, 2),
             "bytes": got.n_bytes,
+            "bytes_per_point": round(got.n_bytes / got.n_points, 3),
             "depths": got.depths,
             "nodes": got.nodes,
             "promoted": got.promoted,
             "points_by_depth": [lv["points"] for lv in got.levels],
             "bytes_per_point_by_depth": bytes_by_depth(out),
         }
-        if rr:
-            one["radius_table_bytes"] = radius_table_bytes(out)
-            ok = True
-            with laspy.CopcReader.open(str(out)) as reader:
-                for lv in got.levels:
-                    rank = np.sort(np.asarray(reader.query(level=range(lv["depth"] + 1))["rank"]))
-                    ok &= bool(rank.size == lv["points"])
-                    ok &= bool(np.array_equal(rank[: lv["fps_prefix"]], np.arange(lv["fps_prefix"])))
-            one["depth_queries_return_their_prefix"] = ok
-        res["rank_radius" if rr else "default"] = one
+        if mode == "exact":
+            one["radius_table_bytes"] = record_bytes(out, RADIUS_RECORD_ID)
+            one["depth_queries_return_their_prefix"] = depth_queries_ok(out, got.levels)
+        if mode == "level":
+            one["sublevel_table_bytes"] = record_bytes(out, SUBLEVEL_RECORD_ID)
+            one["sublevel_queries_return_the_archive_levels"] = sublevel_queries_ok(view, out)
+        res[key] = one
     return res
 
 
@@ -232,8 +278,10 @@ def bench_source(source: Path, tmp: Path) -> dict:
         "points": view.n_ordered,
         "build_s": round(build_s, 2),
         "copc": res,
+        "source_bytes_per_point": round(size / view.n_ordered, 3),
         "ratio": round(res["default"]["bytes"] / size, 3),
-        "ratio_rank_radius": round(res["rank_radius"]["bytes"] / size, 3),
+        "ratio_level": round(res["level"]["bytes"] / size, 3),
+        "ratio_exact": round(res["exact"]["bytes"] / size, 3),
     }
 
 
@@ -287,8 +335,12 @@ def markdown(r: dict) -> str:
         f"| COPC | {c['default']['seconds']} | {c['default']['bytes'] / 1e6:.1f} MB | "
         f"{c['default']['depths']} depths, {c['default']['nodes']} nodes, points by depth "
         f"{', '.join(f'{x:,}' for x in c['default']['points_by_depth'])} |",
-        f"| COPC --rank-radius | {c['rank_radius']['seconds']} | {c['rank_radius']['bytes'] / 1e6:.1f} MB | "
-        f"every depth query returns its prefix: {c['rank_radius']['depth_queries_return_their_prefix']} |",
+        f"| COPC --rank-radius (level) | {c['level']['seconds']} | {c['level']['bytes'] / 1e6:.1f} MB | "
+        f"{c['level']['bytes_per_point']} bytes a point; sampled sub-level queries return the archive's "
+        f"levels: {c['level']['sublevel_queries_return_the_archive_levels']} |",
+        f"| COPC --rank-radius exact | {c['exact']['seconds']} | {c['exact']['bytes'] / 1e6:.1f} MB | "
+        f"{c['exact']['bytes_per_point']} bytes a point; every depth query returns its prefix: "
+        f"{c['exact']['depth_queries_return_their_prefix']} |",
     ]
     if w:
         ch = w["chromium"]
@@ -312,8 +364,11 @@ def markdown(r: dict) -> str:
         lines.append(
             f"| COPC of {src['source']} ({src['points']:,} points) | "
             f"{src['copc']['default']['seconds']} | {src['copc']['default']['bytes'] / 1e6:.2f} MB | "
-            f"{src['ratio']} x the source LAZ ({src['source_bytes'] / 1e6:.2f} MB); with "
-            f"--rank-radius {src['ratio_rank_radius']} x; {src['copc']['default']['depths']} depths, "
+            f"{src['ratio']} x the source LAZ ({src['source_bytes'] / 1e6:.2f} MB); "
+            f"--rank-radius (level) {src['ratio_level']} x, --rank-radius exact {src['ratio_exact']} x "
+            f"({src['source_bytes_per_point']} / {src['copc']['default']['bytes_per_point']} / "
+            f"{src['copc']['level']['bytes_per_point']} / {src['copc']['exact']['bytes_per_point']} "
+            f"bytes a point: source / COPC / level / exact); {src['copc']['default']['depths']} depths, "
             f"points by depth {', '.join(f'{x:,}' for x in src['copc']['default']['points_by_depth'])} |"
         )
     pv = r.get("pyvista_export_html", {})

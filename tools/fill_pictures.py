@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     from lodbuilder.io import read_scan
 
     scan = read_scan(args.scan)
-    keep, centres, _ = punch(scan.points, args.rho, args.holes, args.seed)
+    keep, centres, _ = punch(scan.points, args.rho, args.holes, args.seed, radii=(3.0, 5.0))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:

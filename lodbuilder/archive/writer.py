@@ -126,18 +126,31 @@ def _inverse(perm: np.ndarray) -> np.ndarray:
     return inv
 
 
+def _write_rows_of(w: ScanWriter, rec: ScanRecord, perm: np.ndarray, lo: int, hi: int) -> None:
+    """Hand ``w`` the stored rows ``lo:hi`` of ``rec`` (``perm``: the input index of each row)."""
+    ordg, idx, k = rec.ordering, perm[lo:hi], len(rec.ordering)
+    radius = np.zeros(hi - lo, dtype=np.float64)
+    parent = np.full(hi - lo, -1, dtype=np.int64)
+    if lo < k:
+        radius[: min(hi, k) - lo] = ordg.radius[lo:hi]
+        parent[: min(hi, k) - lo] = ordg.parent[lo:hi]
+    w.write(
+        np.asarray(rec.scan.points, dtype=np.float64)[idx],
+        idx,
+        radius,
+        parent,
+        attributes={key: np.asarray(arr)[idx] for key, arr in rec.scan.attributes.items()},
+        importance={key: np.asarray(v)[idx].astype(np.float32) for key, (v, _) in rec.importance.items()},
+    )
+
+
 def write_record(path: str | os.PathLike[str], rec: ScanRecord) -> PartInfo:
     """Write ``rec`` as a self-contained single-scan archive file at ``path`` (atomically)."""
     _validate_record(rec)
     scan, ordg = rec.scan, rec.ordering
     n, k = len(scan), len(ordg)
     perm = _stored_permutation(ordg)
-    radius = np.zeros(n, dtype=np.float64)
-    radius[:k] = ordg.radius
-    parent = np.full(n, -1, dtype=np.int64)
-    parent[:k] = ordg.parent
-    pts = np.asarray(scan.points, dtype=np.float64)[perm]
-    _, enc, _, _ = L.encode_points(pts, scan.metadata)
+    _, enc, _, _ = L.encode_points(scan.points, scan.metadata)  # (elementwise: the input order will do)
     build = {
         "voxel_size": ordg.voxel_size,
         "band_radius": ordg.band_radius,
@@ -154,14 +167,8 @@ def write_record(path: str | os.PathLike[str], rec: ScanRecord) -> PartInfo:
         positions = inv[np.asarray(extra.order, dtype=np.int64)]
         orderings[key] = (positions, extra.radius, extra.parent, meta)
     with ScanWriter(path, scan.name, n, metadata=scan.metadata, encoding=enc) as w:
-        w.write(
-            pts,
-            perm,
-            radius,
-            parent,
-            attributes={key: np.asarray(arr)[perm] for key, arr in scan.attributes.items()},
-            importance={key: np.asarray(v).astype(np.float32)[perm] for key, (v, _) in rec.importance.items()},
-        )
+        for lo in range(0, n, w.rows):  # a row group at a time: no reordered copy of the whole scan
+            _write_rows_of(w, rec, perm, lo, min(lo + w.rows, n))
         return w.finish(
             n_ordered=k,
             seeds=ordg.seeds,

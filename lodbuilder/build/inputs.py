@@ -122,8 +122,9 @@ def safe_name(text: str) -> str:
 def scan_name(path: Path) -> str:
     """The one naming rule: a scan is named after its file, without the suffix (``.copc.laz``
     counts as one suffix), made safe (:func:`safe_name`)."""
-    stem = path.name[: -len(".copc.laz")] if path.name.lower().endswith(".copc.laz") else path.stem
-    return safe_name(stem)
+    from ..io.base import file_stem
+
+    return safe_name(file_stem(path))
 
 
 def unique_names(names: list[str]) -> list[str]:

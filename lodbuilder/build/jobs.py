@@ -9,10 +9,12 @@ file system they share with the parent (always true for a local pool or LocalClu
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import logging
+import mmap
 import os
 import time
 from dataclasses import dataclass, field
@@ -130,7 +132,10 @@ def provenance(job: ScanJob, reader: str) -> dict[str, Any]:
 
 
 def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[Any, dict[str, float]]:
-    """Read and order the job's scan in memory; returns ``(ScanRecord, phase seconds)``."""
+    """Read and order the job's scan in memory; returns ``(ScanRecord, phase seconds)``.
+
+    A scan read from a file of at least ASIDE_MIN_POINTS points waits in the job's work directory
+    while it is ordered (see :func:`set_aside`); :func:`build_one` removes that directory."""
     from ..progress import report
     from .record import build_record
 
@@ -139,13 +144,67 @@ def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[An
     scan = read_job_scan(job)
     report(progress, "read", 1, 1)
     t_read = time.perf_counter() - t0
+    if job.scan is None and not job.options.features and len(scan) >= ASIDE_MIN_POINTS:
+        progress = set_aside(scan, job.work, progress)
     rec = build_record(scan, job.options, progress=progress)
     t_order = time.perf_counter() - t0 - t_read
     return rec, {"read": t_read, "order": t_order}
 
 
+ASIDE_MIN_POINTS = 200_000  # below this a scan's arrays are a few MB: not worth two files
+
+
+def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> ProgressCallback:
+    """Move ``scan``'s points and attributes into files of the work directory ``work`` and map
+    them back read-only (the same values, dtypes and shapes), so that they take no memory of their
+    own while the engine orders the points: the attributes are not read until the archive is
+    written, the points only until the band is built. Returns ``progress`` wrapped to give the
+    points' pages back to the file once the band stage reports it is done (a page read after that
+    comes back from the file). Arrays numpy cannot store without pickling stay in memory."""
+    from ..archive.files import make_own_dir
+    from ..progress import report
+
+    try:
+        make_own_dir(work, work.name)
+        pts = _map_aside(scan.points, work / "points.bin")
+        maps = {key: _map_aside(arr, work / f"a{i}.bin")
+                for i, (key, arr) in enumerate(scan.attributes.items()) if not arr.dtype.hasobject}
+    except OSError as exc:  # a full disk, a work directory that is not ours, ...: order it in memory
+        log.info("scan %r stays in memory while it is ordered: %s", scan.name, exc)
+        return progress
+    scan.points = np.ndarray(scan.points.shape, scan.points.dtype, buffer=pts)
+    for key, mm in maps.items():
+        arr = scan.attributes[key]
+        scan.attributes[key] = np.ndarray(arr.shape, arr.dtype, buffer=mm)
+
+    def aside_progress(stage: str, done: int, total: int) -> None:
+        if stage == "band" and done == total:
+            with contextlib.suppress(AttributeError, OSError, ValueError):  # not Linux, or closed
+                pts.madvise(mmap.MADV_DONTNEED)
+        report(progress, stage, done, total)
+
+    return aside_progress
+
+
+def _map_aside(arr: np.ndarray, path: Path) -> mmap.mmap:
+    """Write ``arr``'s bytes (C order) to ``path`` and map the file read-only."""
+    np.ascontiguousarray(arr).tofile(path)
+    with open(path, "rb") as f:
+        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if arr.nbytes else mmap.mmap(-1, 1)
+
+
 def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]:
     """Build ``job`` into its part archive; return a summary (runs on a worker)."""
+    from ..archive.files import remove_own_dir
+
+    try:
+        return _build_one(job, progress)
+    finally:
+        with contextlib.suppress(OSError):  # (a directory that is not lodbuilder's is left alone)
+            remove_own_dir(job.work, job.work.name)  # what set_aside left (the maps stay valid)
+
+
+def _build_one(job: ScanJob, progress: ProgressCallback) -> dict[str, Any]:
     from ..archive.reader import open_archive
     from ..archive.writer import write_archive
     from ..progress import report
@@ -207,7 +266,7 @@ def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None, Any]]:
     out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
             m.get("pose"), i if job.members else None) for i, m in enumerate(members)]
     names = [Path(m["path"]).name for m in members]
-    target = one_crs(out, names, job.options.to_crs)  # type: ignore[arg-type]
+    target = one_crs(out, names, job.options.to_crs)
     return [(*to_target(s, pose, member, target),
              TiledInput(str(m["path"]), m.get("scan_index"), crs, override, target, pose) if s.streams else None)
             for (s, pose, member), m in zip(out, members, strict=True)]

@@ -19,8 +19,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "Write a level of a scan for other tools. OUT.copc.laz: a Cloud Optimized Point Cloud "
             "(QGIS, Potree, viewer.copc.io, CloudCompare, PDAL, laspy) whose octree depths are the "
             "farthest-point levels (the points of depths 0..D cover the scan within the rho "
-            "written in the file), with every attribute and the CRS; --rank-radius adds the rank "
-            "and the insertion radius of every point. OUT.html: one self-contained page (no network) that draws the level with "
+            "written in the file), with every attribute and the CRS; --rank-radius adds 256 "
+            "sub-levels a depth with their covering radius (--rank-radius exact: the rank and "
+            "the insertion radius of every point). OUT.html: one self-contained page (no network) that draws the level with "
             "WebGL, coarse points first, with a slider over its coarser levels and colours by "
             "RGB, radius, importance or rank. Without --rho/--size/--fraction: the whole scan (a "
             "web page is capped at --max-points)."
@@ -42,10 +43,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument(
         "--rank-radius",
-        action="store_true",
-        help="COPC: also store each point's farthest-point rank (extra bytes) and the insertion "
-        "radius by rank (an EVLR): the exact ordering, 2.6-3.8 bytes a point (about 1.5 x the "
-        "file size on airborne data)",
+        nargs="?",
+        const="level",
+        default=None,
+        metavar="MODE",
+        help="COPC: also store where each point is in the farthest-point order. level (the "
+        "default): a one-byte extra dimension 'sublevel' (up to 256 equal-count sub-levels a "
+        "depth) and, per depth and sub-level, the prefix and its exact covering radius (an "
+        "EVLR): the points of depths < D and those of depth D with sublevel <= s are that "
+        "prefix; about 1 byte a point (1.28-1.31 x the source LAZ on airborne data). exact: each "
+        "point's rank (uint32 extra bytes) and the insertion radius by rank (an EVLR), 2.9-3.8 "
+        "bytes a point (1.6-1.7 x)",
     )
     add_up_option(
         p,
@@ -118,6 +126,9 @@ def _check_format_options(args: argparse.Namespace, fmt: str) -> None:
         for opt, value in (("--max-points", args.max_points), ("--up", args.up)):
             if value is not None:
                 raise InputError(f"{opt} applies to a web page (-o OUT.html) only")
+    if args.rank_radius is not None and args.rank_radius not in ("level", "exact"):
+        raise InputError(f"--rank-radius takes level (the default: 256 sub-levels a depth, one byte "
+                         f"a point) or exact (each point's rank), got {args.rank_radius!r}")
     if args.rank_radius and fmt != "COPC":
         raise InputError("--rank-radius applies to a COPC file (-o OUT.copc.laz) only")
 

@@ -9,6 +9,8 @@ from typing import Any
 import numpy as np
 
 from .._validate import check_positive, quoted_names, strict_keywords, strict_methods
+from ..levels import LevelQuery
+from ..query import read_level
 
 
 @strict_methods
@@ -80,7 +82,7 @@ def collection_level(archive: str | os.PathLike[str], rho: float, *, scans: Any 
     with open_archive(archive) as arc:
         members = {n: joint_members(arc.scan(n)) for n in arc.scans}
         for n, member in _wanted(arc, archive, members, scans):
-            lv = arc.scan(n).level(rho=rho_v, attributes=True if members[n] else attributes)
+            lv = read_level(arc.scan(n), LevelQuery(rho=rho_v), attributes=True if members[n] else attributes).level
             ms = members[n]
             if ms is None:
                 parts.append((lv, None, [n]))
@@ -156,4 +158,5 @@ def scan_level(archive: str | os.PathLike[str], scan: str | None = None, *, rho:
     from ..archive.reader import open_archive
 
     with open_archive(archive) as arc:
-        return arc.scan(scan).level(rho, size=size, fraction=fraction, attributes=attributes)
+        query = LevelQuery(rho=rho, size=size, fraction=fraction)
+        return read_level(arc.scan(scan), query, attributes=attributes).level

@@ -8,17 +8,25 @@ see :func:`octree_spacing`), i.e. depth d holds the radii in ``(s0 / 2**(d+1), s
 Radii never increase along the ordering, so the points of depths <= D are a prefix of it, of
 length ``n_D``, which covers the scan within ``rho_D = radius[n_D]`` (<= s0 / 2**(D+1)): every
 depth prefix is a level with a known covering radius. The file says so in an EVLR of ours (user
-id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and rho); with
-``rank_radius`` it also keeps each point's ``rank`` (extra bytes) and the insertion radius by
-rank (record 2, :func:`read_radius_table`), so the exact ordering and every level can be rebuilt.
+id ``lodbuilder``, record 1, JSON: per depth the prefix length, the points and rho).
 
-What that costs (bytes a point over the file without, tools/bench_export.py; autzen / the 4x4
-survey): the rank as uint32 extra bytes 2.1 / 2.6 (relative to its depth's first rank: the same;
-the ranks of a depth are a random permutation of it in any order LAZ compresses, log2(m!) / m
-bits at least: 2.4 bytes for the survey's 1.6M-point deepest depth), the radius table 1.0 / 0.3;
-radius as float64 extra bytes instead 6.9, as float32 3.2; a one-byte radius quantised to 1/16
-octave (16 levels a depth, no rank) 0.7. Not cheap next to the 5.5 bytes a point of the source
-LAZ: off by default.
+``rank_radius="level"`` (``--rank-radius``) refines each depth into up to SUBLEVELS (256)
+levels: depth d's band of the ordering is cut into runs of equal count, each point stores the
+index of its run in a uint8 extra byte ``sublevel``, and record 3 (:func:`read_sublevels`)
+holds per (depth, sublevel) the prefix that ends there, the points a reader keeps and their
+covering radius (the archive's radius at that prefix, exactly). Keeping the points of depths
+< D and those of depth D with sublevel <= s gives that prefix: a level of any of up to
+256 x depths sizes with its covering radius. ``rank_radius="exact"`` (``--rank-radius exact``)
+keeps each point's ``rank`` (uint32 extra bytes) and the insertion radius by rank (record 2,
+:func:`read_radius_table`): the exact ordering, so every level can be rebuilt.
+
+What that costs (bytes a point over the file without; autzen / the 4x4 survey, whose source
+LAZ holds 5.5 bytes a point; tools/bench_export.py): the sublevel byte about 1.0 (a uniform
+byte in scanner order), its table 5.6 / 11 kB: 1.31 / 1.28 x the source LAZ. The exact rank
+2.1 / 2.6 and its radius table 1.0 / 0.3: 1.69 / 1.63 x. The rank cannot be much cheaper: in
+any order LAZ compresses well the ranks of a depth are a random permutation of it, log2(m!)
+/ m bits a point at least (2.4 bytes for the survey's 1.6M-point deepest depth: 1.53 x with
+a perfect coder). Radius as float64 extra bytes instead would cost 6.9, as float32 3.2.
 
 Inside a node the order is free (the depths carry the levels): points go by GPS time where they
 have one (the scanner's order, which LAZ's delta coding compresses best), else by Morton code.
@@ -49,6 +57,22 @@ import numpy as np
 
 from ..errors import InputError
 from . import check_level_output
+from ._copc_tables import (
+    RADIUS_DESCRIPTION,
+    RADIUS_RECORD_ID,
+    SUBLEVEL_DESCRIPTION,
+    SUBLEVEL_RECORD_ID,
+    SUBLEVELS,
+    VLR_DESCRIPTION,
+    VLR_RECORD_ID,
+    VLR_USER_ID,
+    check_rank_radius,
+    radius_table,
+    read_radius_table,
+    read_sublevels,
+    sublevel_payload,
+    sublevels,
+)
 
 #: about this many points in the root node: the spacing s0 is twice the insertion radius there
 ROOT_POINTS = 10_000
@@ -57,13 +81,9 @@ ROOT_POINTS = 10_000
 ROOT_CELLS = 128
 #: deepest octree level (voxel keys of 21 bits a coordinate)
 MAX_DEPTH = 21
-#: our EVLR
-VLR_USER_ID = "lodbuilder"
-VLR_RECORD_ID = 1
-VLR_DESCRIPTION = "farthest-point levels per depth"
-#: our EVLR of the insertion radius by rank (with rank_radius)
-RADIUS_RECORD_ID = 2
-RADIUS_DESCRIPTION = "insertion radius by rank"
+
+__all__ = ["RADIUS_RECORD_ID", "SUBLEVEL_RECORD_ID", "SUBLEVELS", "VLR_USER_ID", "read_radius_table",
+           "read_sublevels", "radius_table", "sublevels", "write_copc", "export_copc"]
 
 
 @dataclass(frozen=True)
@@ -262,59 +282,26 @@ def build_tree(stored: np.ndarray, scales: np.ndarray, radius: np.ndarray,
     return _Tree(lo, width, margin, spacing, band, depth, order, starts, ends, keys)
 
 
-def radius_table(rank: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, bytes]:
-    """(table, payload): the insertion radius by rank (ranks 0..max(rank); NaN for a rank not
-    in the file), as float32 rounded up (an upper bound stays one), and the payload of our
-    EVLR record RADIUS_RECORD_ID: zlib of the little-endian int32 differences of the table's
-    float32 bit patterns (radii never increase along the ranks, so the differences are small:
-    0.3-1.0 bytes a point; per-point float64 extra bytes cost 6.9, float32 3.2)."""
-    import zlib
-
-    r32 = radius.astype(np.float32)
-    low = r32.astype(np.float64) < radius
-    r32[low] = np.nextafter(r32[low], np.float32(np.inf))
-    table = np.full(int(rank.max()) + 1, np.nan, dtype=np.float32)
-    table[rank] = r32
-    bits = table.view(np.uint32).astype(np.int64)
-    diff = np.diff(bits, prepend=np.int64(0)).astype("<i4")
-    return table, zlib.compress(diff.tobytes(), 6)  # (level 9: 10x the time for 6 % less)
-
-
-def read_radius_table(path: str | os.PathLike) -> np.ndarray:
-    """The insertion radius by rank that ``write_copc(..., rank_radius=True)`` stored (float32,
-    rounded up; NaN for ranks not in the file): ``read_radius_table(f)[las["rank"]]`` is each
-    point's radius. Needs laspy; raises InputError when the file has no such table."""
-    import zlib
-
-    import laspy
-
-    with laspy.open(str(path)) as reader:
-        found = [v for v in reader.header.evlrs
-                 if v.user_id == VLR_USER_ID and v.record_id == RADIUS_RECORD_ID]
-    if not found:
-        raise InputError(f"{path} has no radius table; export it with --rank-radius")
-    diff = np.frombuffer(zlib.decompress(found[0].record_data), dtype="<i4")
-    return np.cumsum(diff, dtype=np.int64).astype(np.uint32).view(np.float32)
-
-
 def _layout(pts: np.ndarray, attributes: dict[str, np.ndarray], meta: dict[str, Any],
-            rank: np.ndarray | None, scans: list[str] | None) -> Any:
-    """The LAS layout of the points and attributes (with ``rank`` as extra bytes when given)."""
+            ours: dict[str, np.ndarray], scans: list[str] | None) -> Any:
+    """The LAS layout of the points and attributes, with ``ours`` (``rank`` or ``sublevel``)
+    as extra bytes."""
     from ..io.las import las_layout
 
     attrs = dict(attributes)
-    if rank is not None:
-        if "rank" in attributes:
-            raise InputError("attribute 'rank' would clash with the rank the COPC file records; "
+    for key, values in ours.items():
+        if key in attributes:
+            raise InputError(f"attribute {key!r} would clash with the {key} the COPC file records; "
                              "rename it")
-        attrs["rank"] = rank.astype(np.uint32 if rank.max() < 2**32 else np.uint64)
+        attrs[key] = values
     layout = las_layout(pts, attrs, meta, point_format=copc_point_format(meta, set(attributes)),
                         version="1.4")
+    described = {"scan_id": "scan index: names in EVLR" if scans else None,
+                 "rank": "lodbuilder farthest-point rank",
+                 "sublevel": "lodbuilder sub-level of depth"}
     for ed in layout.extra_dims:
-        if scans and ed.name == "scan_id":
-            ed.description = "scan index: names in EVLR"
-        if rank is not None and ed.name == "rank":
-            ed.description = "lodbuilder farthest-point rank"
+        if described.get(ed.name) and (ed.name in ours or ed.name == "scan_id"):
+            ed.description = str(described[ed.name])
     return layout
 
 
@@ -328,7 +315,7 @@ def write_copc(
     metadata: dict[str, Any] | None = None,
     n_total: int | None = None,
     name: str = "scan",
-    rank_radius: bool = False,
+    rank_radius: str | None = None,
     rank: np.ndarray | None = None,
     filtered: str | None = None,
     bounds: np.ndarray | None = None,
@@ -338,9 +325,11 @@ def write_copc(
     bound ``rho``) as a COPC 1.0 file whose octree depths are its levels (module docstring),
     atomically. ``attributes``: LAS fields or extra bytes (:func:`lodbuilder.io.las.las_layout`
     with ``metadata``, the scan's format metadata; what the mapping changed is in ``notes`` and
-    logged as lodbuilder.io warnings). With ``rank_radius``, also each point's ``rank`` (extra
-    bytes) and the insertion radius by rank (an EVLR, :func:`read_radius_table`): the exact
-    ordering, at 2.6-3.1 bytes a point.
+    logged as lodbuilder.io warnings). ``rank_radius="level"``: also each point's ``sublevel``
+    (a uint8 extra byte) and, per depth and sub-level, the prefix and its covering radius (an
+    EVLR, :func:`read_sublevels`): up to SUBLEVELS levels a depth, about 1 byte a point.
+    ``rank_radius="exact"``: each point's ``rank`` (extra bytes) and the insertion radius by
+    rank (an EVLR, :func:`read_radius_table`): the exact ordering, 2.9-3.8 bytes a point.
 
     ``rank``: each point's rank in the scan's ordering (default 0..K-1). ``filtered``: what
     filter removed points from the level (they are a subsequence of it), with ``bounds`` the
@@ -351,22 +340,21 @@ def write_copc(
     from ..io.api import log_notes
     from ._copc_file import write_copc_file
 
+    mode = check_rank_radius(rank_radius)
     out, pts, radius = check_level_output(out, "COPC output", (".copc.laz",), points, radius)
     k = pts.shape[0]
     meta = dict(metadata or {})
-    order_rank = (np.arange(k) if rank is None else np.asarray(rank)) if rank_radius else None
-    layout = _layout(pts, attributes, meta, order_rank, scans)
+    bounds = radius if bounds is None else np.asarray(bounds)
+    order_rank, ours = _our_dims(mode, rank, k)
+    layout = _layout(pts, attributes, meta, ours, scans)
     las = layout.las_data(pts)
-    stored = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-    gps = (np.asarray(las.gps_time, dtype=np.float64)
-           if "gps_time" in las.point_format.dimension_names else None)
+    stored, gps = _stored(las)
     tree = build_tree(stored, layout.scales, radius, gps)
     octree = _header(las, stored, tree)
-    levels = _levels(radius if bounds is None else np.asarray(bounds), tree.band, tree.depth, rho,
-                     tree.spacing)
-    doc = _doc(name, k, int(n_total or k), tree.spacing, levels, order_rank is not None,
-               filtered, scans)
-    evlrs = _evlrs(doc, order_rank, radius)
+    levels = _levels(bounds, tree.band, tree.depth, rho, tree.spacing)
+    table = _fill_sublevels(las, tree, bounds, rho) if mode == "level" else None
+    doc = _doc(name, k, int(n_total or k), tree.spacing, levels, mode, filtered, scans)
+    evlrs = _evlrs(doc, order_rank, radius, table)
     gps_range = (float(gps.min()), float(gps.max())) if gps is not None else (0.0, 0.0)
     with atomic_output(out) as tmp:
         with open(tmp, "wb") as f:
@@ -377,6 +365,33 @@ def write_copc(
     return CopcFile(path=out, n_points=k, n_total=int(n_total or k), rho=float(rho),
                     n_bytes=n_bytes, depths=int(tree.depth.max()) + 1, nodes=len(tree.starts),
                     spacing=tree.spacing, levels=levels, notes=list(layout.notes))
+
+
+def _our_dims(mode: str | None, rank: np.ndarray | None,
+              k: int) -> tuple[np.ndarray | None, dict[str, np.ndarray]]:
+    """(rank of each point or None, our extra dimensions): ``rank`` for the exact mode,
+    ``sublevel`` (zeros until the depths are known) for the level mode."""
+    if mode == "level":
+        return None, {"sublevel": np.zeros(k, dtype=np.uint8)}
+    if mode != "exact":
+        return None, {}
+    order_rank = np.arange(k) if rank is None else np.asarray(rank)
+    return order_rank, {"rank": order_rank.astype(np.uint32 if order_rank.max() < 2**32 else np.uint64)}
+
+
+def _fill_sublevels(las: Any, tree: _Tree, bounds: np.ndarray, rho: float) -> np.ndarray:
+    """Set each point's ``sublevel``; return the sub-level table (:func:`sublevels`)."""
+    sub, table = sublevels(tree.band, tree.depth, bounds, rho)
+    las["sublevel"] = sub
+    return table
+
+
+def _stored(las: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the quantised coordinates, the GPS times or None) of a LasData."""
+    stored = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    gps = (np.asarray(las.gps_time, dtype=np.float64)
+           if "gps_time" in las.point_format.dimension_names else None)
+    return stored, gps
 
 
 def _header(las: Any, stored: np.ndarray, tree: _Tree) -> Any:
@@ -395,8 +410,10 @@ def _header(las: Any, stored: np.ndarray, tree: _Tree) -> Any:
                   tree.spacing)
 
 
-def _evlrs(doc: dict[str, Any], rank: np.ndarray | None, radius: np.ndarray) -> list[Any]:
-    """Our EVLRs: the levels (JSON) and, with ``rank``, the radius by rank."""
+def _evlrs(doc: dict[str, Any], rank: np.ndarray | None, radius: np.ndarray,
+           table: np.ndarray | None) -> list[Any]:
+    """Our EVLRs: the levels (JSON), with ``rank`` the radius by rank, with ``table`` the
+    sub-levels."""
     import laspy
 
     evlrs = [laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, VLR_DESCRIPTION,
@@ -404,12 +421,16 @@ def _evlrs(doc: dict[str, Any], rank: np.ndarray | None, radius: np.ndarray) -> 
     if rank is not None:
         evlrs.append(laspy.VLR(VLR_USER_ID, RADIUS_RECORD_ID, RADIUS_DESCRIPTION,
                                radius_table(rank, radius)[1]))
+    if table is not None:
+        evlrs.append(laspy.VLR(VLR_USER_ID, SUBLEVEL_RECORD_ID, SUBLEVEL_DESCRIPTION,
+                               sublevel_payload(table)))
     return evlrs
 
 
 def _doc(name: str, k: int, n_total: int, spacing: float, levels: list[dict[str, Any]],
-         ranked: bool, filtered: str | None, scans: list[str] | None) -> dict[str, Any]:
+         mode: str | None, filtered: str | None, scans: list[str] | None) -> dict[str, Any]:
     """The JSON of our EVLR (record VLR_RECORD_ID)."""
+    ranked = mode == "exact"
     doc: dict[str, Any] = {
         "format": "lodbuilder farthest-point levels",
         "version": 2,
@@ -420,9 +441,19 @@ def _doc(name: str, k: int, n_total: int, spacing: float, levels: list[dict[str,
         "rule": "depth d holds the points of insertion radius in (spacing/2^(d+1), spacing/2^d]; "
         "depths <= d hold the prefix of fps_prefix points of the farthest-point order (plus "
         "'promoted' points that keep the octree connected) and cover the scan within rho",
-        "extra_bytes": {"rank": "position in the farthest-point order"} if ranked else {},
+        "extra_bytes": ({"rank": "position in the farthest-point order"} if ranked else
+                        {"sublevel": "sub-level of the point's depth"} if mode == "level" else {}),
         "levels": levels,
     }
+    if mode == "level":
+        doc["sublevels"] = {
+            "user_id": VLR_USER_ID, "record_id": SUBLEVEL_RECORD_ID,
+            "rule": "the points of depths < D and those of depth D with sublevel <= s are the "
+            "prefix of 'prefix' points of the farthest-point order (plus the promoted points of "
+            "depths <= D: 'points' in all) and cover the scan within 'rho'",
+            "encoding": "zlib of little-endian columns, one row per (depth, sublevel) in order: "
+            "depth uint8, sublevel uint8, prefix uint64, points uint64, rho float64",
+        }
     if ranked:
         doc["radius_by_rank"] = {
             "user_id": VLR_USER_ID, "record_id": RADIUS_RECORD_ID,
@@ -464,7 +495,7 @@ def _levels(
     return out
 
 
-def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: bool = False,
+def export_copc(scan: Any, out: str | os.PathLike, size: int, *, rank_radius: str | None = None,
                 flt: Any = None) -> CopcFile:
     """Write the level of ``size`` points of an archive scan (a ScanView) as COPC, with every
     attribute, its importance maps (extra bytes ``importance_<name>``), and with

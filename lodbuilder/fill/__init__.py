@@ -9,8 +9,9 @@ The flow is level -> gaps -> fill, through the public archive API only (two pref
 ordering: the level at rho and a sample at rho/4), computed on the fly: nothing is stored.
 
 What is filled: regions farther than rho/2 from every input point, bounded by input points all
-round (in the plane of the surrounding surface), at most ``max_hole * rho`` wide, whose
-surroundings are one smooth height field. What is not: open borders (the scan's edge, a hole
+round (over the plane of the surrounding surface, or, where the surface curves away from that
+plane, by the points of their own sheet, reached along the surface), at most ``max_hole * rho``
+wide, whose surroundings are one smooth height field. What is not: open borders (the scan's edge, a hole
 reaching it), holes wider than ``max_hole * rho``, and *rough* holes (surroundings tilted or not
 one smooth surface, e.g. occlusion shadows whose rim lies at two depths): these are reported, not
 filled. See :mod:`lodbuilder.fill.gaps` for the method.
@@ -69,6 +70,8 @@ class GapReport:
             *gap* when part of it is farther than rho: ``region.is_gap``).
         n_open: groups of far surface that reach into empty space (open borders, or holes wider
             than ``max_hole * rho``): not filled.
+        n_bent: groups open over the hole's plane whose gap is enclosed along the surface, but
+            rough there (the surface bends too much across it to fill): not filled.
         sample_size: input points the search used (a prefix covering the scan within
             ``sample_rho``; the whole scan when ``sample_rho`` is 0).
         sample_rho: covering radius of that sample over the scan.
@@ -81,6 +84,7 @@ class GapReport:
     max_hole: float
     regions: list[Region] = field(default_factory=list)
     n_open: int = 0
+    n_bent: int = 0
     sample_size: int = 0
     sample_rho: float = 0.0
     level_size: int = 0
@@ -105,6 +109,7 @@ class GapReport:
             "n_fillable": sum(r.status == STATUS_FILLABLE for r in self.gaps),
             "n_rough": sum(r.status == STATUS_ROUGH for r in self.gaps),
             "n_open": self.n_open,
+            "n_bent": self.n_bent,
             "n_regions": len(self.regions),
             "sample_size": self.sample_size,
             "sample_rho": self.sample_rho,
@@ -141,6 +146,11 @@ class GapReport:
             lines.append(
                 f"  {self.n_open} open region(s) not examined: they reach into empty space (the "
                 f"scan's border, or a hole wider than {self.max_hole:g} rho)"
+            )
+        if self.n_bent:
+            lines.append(
+                f"  {self.n_bent} region(s) enclosed only along the surface not filled: the surface "
+                "bends too much across them for one smooth height field"
             )
         return "\n".join(lines)
 
@@ -221,6 +231,7 @@ def gaps_of_points(
         max_hole=max_hole,
         regions=search.regions,
         n_open=search.n_open,
+        n_bent=search.n_bent,
         sample_size=int(sample.shape[0]),
         sample_rho=float(sample_rho),
         level_size=int(level.shape[0]),
@@ -292,7 +303,9 @@ def near_gaps(
     return out
 
 
-def _insert(gaps: list[Region], tree_l: Any, stop: float) -> list[tuple[Region, np.ndarray, np.ndarray]]:
+def _insert(
+    gaps: list[Region], tree_l: Any, stop: float
+) -> list[tuple[Region, np.ndarray, np.ndarray]]:
     """Farthest-point insertion in every fillable gap, each starting from the level and the points
     inserted in the gaps before it: ``(region, candidate indices, radii)`` of the gaps that got points."""
     from scipy.spatial import cKDTree
@@ -313,8 +326,14 @@ def _insert(gaps: list[Region], tree_l: Any, stop: float) -> list[tuple[Region, 
     return picks
 
 
-def _filled_attributes(scan: Any, level: Any, k_sample: int, sample: np.ndarray,
-                       picks: list[tuple[Region, np.ndarray, np.ndarray]], m: int) -> dict[str, np.ndarray]:
+def _filled_attributes(
+    scan: Any,
+    level: Any,
+    k_sample: int,
+    sample: np.ndarray,
+    picks: list[tuple[Region, np.ndarray, np.ndarray]],
+    m: int,
+) -> dict[str, np.ndarray]:
     """The level's attributes followed by the synthetic points' (interpolated around each hole),
     with the ``synthetic`` flag."""
     attrs = dict(level.attributes)

@@ -28,13 +28,23 @@ whole scan for exact distances.
    rho/2 (in the plane) from every projected sample point form regions (4-connected). A region
    that contains a seed and stays inside the grid is **enclosed**: input points bound it all
    round. A region that reaches the grid's edge leaks into empty space (the scan's border, or a
-   hole wider than ``max_hole * rho``): it is *open* and not filled.
+   hole wider than ``max_hole * rho``), or through a part of its rim that the cone dropped (the
+   rim of a hole on a strongly curved place is steep over any one plane). Such a group is
+   searched again **along the surface**: only the sample points on the seeds' own sheet
+   (reached from the points next to the seeds within the grid's reach, over links to each
+   point's 8 nearest points within 1.5 rho: :func:`~lodbuilder.fill.local.on_sheet`), in a
+   cone twice as steep (45 degrees). Another sheet is not on it, so the steep rim can stay;
+   a region enclosed there that is a fillable gap (steps 4-5) is kept; a rough one is counted
+   apart (``n_bent``: enclosed along the surface, which bends too much across it to fill).
+   Anything else stays *open* and is not filled.
 4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
    squares; the grid is laid again if it moved) and a height field over it
    (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
    cross-validates best on the ring). The region is *rough* (reported, not
-   filled) when the ring is not a height field (more than 25 % of its normals tilted over 60
-   degrees from the plane's normal) or not one smooth piece: fitted to five sixths of the ring
+   filled) when the ring is not a height field (more than 25 % of the normals of its inner part,
+   the points within rho of the region, tilted over 60 degrees from the plane's normal: the
+   outer ring of a hole on a tube or a small sphere turns farther, and is not what the fill
+   bridges) or not one smooth piece: fitted to five sixths of the ring
    (angular sectors around the hole), the surface misses the inner ring points (within rho of
    the region) of the sixth left out by more than rho/2 RMS (e.g. an occlusion shadow, whose rim
    lies on two surfaces at different depths).
@@ -56,14 +66,13 @@ import numpy as np
 
 from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
+from .local import K_SAMPLE, NEAR_FRACTION, Grid, flood, near_plane, normals_at, on_sheet
 from .surface import Frame, HeightField, plane_normal, tangents
 
 #: the sample is the prefix at SAMPLE_FRACTION * rho
 SAMPLE_FRACTION = 0.25
 #: candidate grid spacing, in units of rho
 GRID_FRACTION = 0.25
-#: grid nodes within NEAR_FRACTION * rho of a measured point are not in a region
-NEAR_FRACTION = 0.5
 #: default widest hole filled, in units of rho
 MAX_HOLE = 12.0
 #: ring width around a region (for the surface fit), in units of rho
@@ -72,8 +81,8 @@ RING = 2.0
 INNER = 1.0
 #: neighbours of a level point in the seed search
 K_LEVEL = 10
-#: neighbours per sample point for normals and the seeds' plane
-K_SAMPLE = 8
+#: the cone around the hole's plane that keeps input points, over the plane and over the sheet
+SLOPE, SHEET_SLOPE = 0.5, 1.0
 #: a group of fewer seeds is a small hole: its first grid (the seeds' spread + 1.5 rho) is final
 MIN_SEEDS_WIDE = 4
 #: largest share of ring normals tilted more than MAX_TILT from the hole's normal
@@ -106,7 +115,7 @@ class Region:
         node_area: surface area each candidate stands for.
         residual: RMS error of the fitted surface predicting the inner ring points of each sixth
             of the ring from the rest (NaN for a region that is no gap: not assessed).
-        tilted: share of the ring's normals tilted more than 60 degrees from the plane's.
+        tilted: share of the inner ring's normals tilted more than 60 degrees from the plane's.
         frame: the hole's plane; ``uv`` (M, 2) the candidates' coordinates in it.
         surface: the height field over the plane.
         ring: indices (into the sample) of the input points around the region.
@@ -179,6 +188,8 @@ class Search:
     regions: list[Region] = field(default_factory=list)
     n_open: int = 0
     n_seeds: int = 0
+    #: groups open over the plane whose gap is enclosed along the surface but rough there
+    n_bent: int = 0
 
 
 def _level_vertices(level: np.ndarray, tree_l: Any, rho: float) -> tuple[np.ndarray, np.ndarray]:
@@ -285,75 +296,6 @@ def _groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
     return np.split(order, splits)
 
 
-def _slab(local: np.ndarray, frame: Frame, rho: float) -> np.ndarray:
-    """Mask of the local points near the hole's plane: |h| <= rho + 0.5 |uv| (a cone of about
-    27 degrees), which keeps curved surroundings and drops far sheets across the plane."""
-    h = np.abs(frame.height(local))
-    r = np.linalg.norm(frame.uv(local), axis=1)
-    return h <= rho + 0.5 * r
-
-
-def _normals_at(points: np.ndarray, cloud: np.ndarray) -> np.ndarray:
-    """PCA normals of ``points`` from their nearest points of ``cloud``."""
-    from scipy.spatial import cKDTree
-
-    k = min(K_SAMPLE + 1, cloud.shape[0])
-    _, nb = cKDTree(cloud).query(points, k=k)
-    nbhd = cloud[np.asarray(nb).reshape(points.shape[0], k)]
-    c = nbhd - nbhd.mean(axis=1, keepdims=True)
-    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
-    return vec[:, :, 0]
-
-
-class _Grid:
-    """Square grid of nodes at spacing ``g`` and half width ``half`` (in nodes) in a frame."""
-
-    def __init__(self, frame: Frame, g: float, half: int) -> None:
-        self.frame, self.g, self.half = frame, g, half
-        side = 2 * half + 1
-        ij = np.indices((side, side)).reshape(2, -1).T
-        self.uv = (ij - half) * g
-        self.shape = (side, side)
-
-    def area_factor(self, nodes: np.ndarray, h: np.ndarray) -> np.ndarray:
-        """Surface area per unit of plane area, sqrt(1 + |grad h|^2), at the grid ``nodes`` of
-        heights ``h``: finite differences with the neighbouring nodes of the same set (forward,
-        else backward; 0 slope along an axis where a node has no neighbour)."""
-        full = np.full(self.shape[0] * self.shape[1], np.nan)
-        full[nodes] = h
-        full = full.reshape(self.shape)
-        grads = []
-        for axis in (0, 1):
-            fwd = np.diff(full, axis=axis, append=np.nan)
-            bwd = np.diff(full, axis=axis, prepend=np.nan)
-            d = np.where(np.isnan(fwd), bwd, fwd)
-            grads.append(np.nan_to_num(d.ravel()[nodes]) / self.g)
-        return np.sqrt(1.0 + grads[0] ** 2 + grads[1] ** 2)
-
-    def node_of(self, uv: np.ndarray) -> np.ndarray:
-        ij = np.rint(uv / self.g).astype(np.int64) + self.half
-        inside = ((ij >= 0) & (ij < self.shape[0])).all(axis=1)
-        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
-        return np.where(inside, flat, -1)
-
-
-def _flood(grid: _Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
-    """Labels of the empty nodes (farther than rho/2 from the projected sample points indexed by
-    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge)."""
-    from scipy import ndimage
-
-    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=NEAR_FRACTION * rho)
-    empty = ~np.isfinite(d)
-    labels, _ = ndimage.label(empty.reshape(grid.shape))
-    labels = labels.ravel()
-    nodes = grid.node_of(seed_uv)
-    hit = np.unique(labels[nodes[nodes >= 0]])
-    hit = hit[hit > 0]
-    lab2 = labels.reshape(grid.shape)
-    edge = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
-    return [(np.flatnonzero(labels == lab), bool(np.isin(lab, edge))) for lab in hit]
-
-
 def find_regions(
     level: np.ndarray,
     sample: np.ndarray,
@@ -396,16 +338,44 @@ def find_regions(
             continue
         nrm = seed_normals[grp]
         nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
-        regions = _regions_of_group(sample, tree_s, sp, nrm.sum(axis=0), rho, width)
-        for reg in regions:
-            if reg is None:
-                out.n_open += 1
-                continue
-            _finish_region(reg, tree_s, rho)
-            if reg.candidates.shape[0]:
-                reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
-                out.regions.append(reg)
+        normal = nrm.sum(axis=0)
+        regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False)
+        n_open = sum(r is None for r in regions)
+        enclosed = [r for r in regions if r is not None]
+        _add(out, enclosed, tree_s, rho, fillable_only=False)
+        rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
+        if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
+            # open over the plane, and its seeds fit in one hole: look again over the seeds'
+            # sheet only (along the surface); a fillable gap found there is kept, anything
+            # else stays open
+            again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
+            added, refused = _add(out, again, tree_s, rho, fillable_only=True)
+            out.n_bent += min(n_open, refused)
+            n_open -= min(n_open, added + refused)
+        out.n_open += n_open
     return out
+
+
+def _add(
+    out: Search, regions: list, tree_s: Any, rho: float, fillable_only: bool
+) -> tuple[int, int]:
+    """Finish the enclosed ``regions`` not found already and add them to ``out`` (with
+    ``fillable_only``, only the fillable gaps): (how many were added, how many gaps were left
+    out as rough)."""
+    added = refused = 0
+    for reg in regions:
+        if reg is None or _inside(out.regions, reg.candidates.mean(axis=0, keepdims=True), rho)[0]:
+            continue  # open, or found already
+        _finish_region(reg, tree_s, rho)
+        if not reg.candidates.shape[0]:
+            continue
+        if fillable_only and not (reg.is_gap and reg.status == STATUS_FILLABLE):
+            refused += reg.is_gap
+            continue
+        reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
+        out.regions.append(reg)
+        added += 1
+    return added, refused
 
 
 def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
@@ -434,12 +404,13 @@ def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray
     return hit
 
 
-def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
+def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False) -> list:
     """Regions around one group of seeds (``None`` for each open one): a grid a little wider
     than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
     once more centred on the region that reached the edge (the seeds' mean can sit off a
     hole's centre). An enclosed region found on one grid is kept; the next grid looks only for
-    the regions of the seeds outside it (a group can hold a hole and a border next to it)."""
+    the regions of the seeds outside it (a group can hold a hole and a border next to it).
+    ``along``: only the points on the seeds' sheet, in the steeper cone (step 3)."""
     from scipy.spatial import cKDTree
 
     g = GRID_FRACTION * rho
@@ -456,7 +427,10 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
         half = int(math.ceil(half_width / g))
         idx = tree_s.query_ball_point(frame.origin, math.sqrt(2.0) * half * g + RING * rho)
         idx = np.asarray(idx, dtype=np.int64)
-        idx = idx[_slab(sample[idx], frame, rho)]
+        if along and idx.size >= 8:
+            idx = idx[on_sheet(sample[idx], seeds, rho, math.sqrt(2.0) * half * g + RING * rho)]
+        slope = SHEET_SLOPE if along else SLOPE
+        idx = idx[near_plane(sample[idx], frame, rho, slope)]
         if idx.size < 8:
             return found
         tree2 = cKDTree(frame.uv(sample[idx]))
@@ -464,7 +438,7 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width) -> list:
             d, _ = tree2.query(frame.uv(seeds), k=1, distance_upper_bound=NEAR_FRACTION * rho)
             if np.isfinite(d).all():
                 return []
-        local = _Local(sample, idx, tree2)
+        local = _Local(sample, idx, tree2, slope)
         regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
         enclosed = [r for r in regions if r is not None]
         found += enclosed
@@ -486,6 +460,7 @@ class _Local:
     sample: np.ndarray
     idx: np.ndarray
     tree2: Any
+    slope: float
 
     @property
     def points(self) -> np.ndarray:
@@ -497,8 +472,8 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
     reaching the grid's edge), and the centre of the nodes of those that did (None if none)."""
     from scipy.spatial import cKDTree
 
-    grid = _Grid(frame, g, half)
-    found = _flood(grid, local.tree2, frame.uv(seeds), rho)
+    grid = Grid(frame, g, half)
+    found = flood(grid, local.tree2, frame.uv(seeds), rho)
     regions: list = []
     leaked: list[np.ndarray] = []
     pts = local.points
@@ -516,10 +491,10 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
         if refit and float(n_new @ frame.normal) < math.cos(math.radians(5.0)):
             # the hole's plane moved: lay the grid again in the plane of this ring
             frame2 = Frame.of(pts[ring].mean(axis=0), n_new)
-            idx = local.idx[_slab(pts, frame2, rho)]
-            local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])))
+            idx = local.idx[near_plane(pts, frame2, rho, local.slope)]
+            local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])), local.slope)
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
-        normals = _normals_at(pts[ring], pts)
+        normals = normals_at(pts[ring], pts)
         inner = d[ring] <= INNER * rho
         regions.append(
             _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
@@ -549,7 +524,7 @@ def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) ->
         uv=uv,
         surface=surface,
         ring=ring_idx,
-        tilted=float((np.abs(ring_normals @ frame.normal) < math.cos(MAX_TILT)).mean()),
+        tilted=float((np.abs(ring_normals[inner] @ frame.normal) < math.cos(MAX_TILT)).mean()),
     )
 
 
@@ -560,8 +535,9 @@ def _assess(reg: Region) -> None:
     if reg.tilted > MAX_TILTED:
         reg.status = STATUS_ROUGH
         reg.reason = (
-            f"{100 * reg.tilted:.0f} % of the surrounding normals are tilted more than "
-            f"{math.degrees(MAX_TILT):.0f} degrees from the hole's plane"
+            f"{100 * reg.tilted:.0f} % of the input points next to the hole have normals tilted "
+            f"more than {math.degrees(MAX_TILT):.0f} degrees from the hole's plane (more than "
+            f"{100 * MAX_TILTED:.0f} %)"
         )
     elif reg.residual > MAX_RESIDUAL * rho:
         reg.status = STATUS_ROUGH

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -52,3 +53,10 @@ def whole(rows: Iterable[Rows]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         return np.empty((0, 3), dtype=np.float64), {}
     pts = np.concatenate([c[1] for c in chunks])
     return pts, {k: np.concatenate([c[2][k] for c in chunks]) for k in chunks[0][2]}
+
+
+def file_stem(path: Path) -> str:
+    """A scan file's name without its suffix (``.copc.laz`` counts as one suffix): the one rule
+    by which the readers, the stream and the build name a scan after its file."""
+    name = Path(path).name
+    return name[: -len(".copc.laz")] if name.lower().endswith(".copc.laz") else Path(path).stem

@@ -22,6 +22,7 @@ be resolved and :func:`linear_units` reports None (unknown) rather than guessing
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
@@ -138,11 +139,14 @@ def pyproj_wkt(crs: Any) -> str:
 
 
 def _crs(wkt: str | None) -> Any | None:
-    if not wkt:
-        return None
-    pyproj = _pyproj()
-    if pyproj is None:
-        return None
+    pyproj = _pyproj() if wkt else None
+    return None if pyproj is None else _parsed(pyproj, wkt)
+
+
+@functools.lru_cache(maxsize=64)
+def _parsed(pyproj: Any, wkt: str) -> Any | None:
+    """pyproj's CRS of a WKT text, parsed once per process (a survey's files share one CRS, and
+    parsing costs about 30 ms)."""
     try:
         return pyproj.CRS.from_wkt(wkt)
     except Exception:

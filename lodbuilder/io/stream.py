@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError, LodbuilderError
-from .base import Scan
+from .base import Scan, file_stem
 
 log = logging.getLogger(__name__)
 
@@ -184,11 +184,8 @@ def _las_stream(p: Path) -> PointStream:
     n = header.n_points
     if n == 0:
         raise FormatError(f"{p}: holds no points; a scan needs at least one point")
-    first = las_rows(laspy, p, header, 1)
-    _, _, probe = next(first)  # the first point: the attributes' dtypes and shapes
-    first.close()
-    fields = {k: (a.dtype, tuple(a.shape[1:])) for k, a in probe.items()}
-    name = p.name[: -len(".copc.laz")] if p.name.lower().endswith(".copc.laz") else p.stem
+    fields = header.fields
+    name = file_stem(p)
 
     def it(size: int, first: int, stop: int) -> Iterator[Chunk]:
         for start, pts, attrs in las_rows(laspy, p, header, size, first, stop):

@@ -11,7 +11,9 @@ from scipy.spatial import cKDTree
 
 from .._validate import check_fraction, check_positive, check_size, strict_keywords, strict_methods
 from ..errors import InputError
+from ..levels import LevelQuery
 from ..progress import ProgressCallback, report
+from ..query import read_level
 from .report import LevelReport, default_sizes, evaluate_level
 
 
@@ -41,19 +43,20 @@ class ScanEvaluation:
 
 
 def _level_queries(n_ordered: int, sizes: Any, rhos: Any, fractions: Any,
-                   extra: str | None) -> list[tuple[str, Any]]:
-    """``(kind, value)`` of every level to evaluate, checked (default: ten log-spaced sizes); an
+                   extra: str | None) -> list[tuple[str, LevelQuery]]:
+    """``(label, query)`` of every level to evaluate, checked (default: ten log-spaced sizes); an
     ``extra`` ordering's levels are asked by size or fraction only."""
     if extra and rhos:
         raise InputError(
             f"levels of ordering {extra!r} are asked by --sizes or --fractions: its radii are not "
             "Euclidean, so a rho does not name a level of it"
         )
-    queries: list[tuple[str, Any]] = []
+    queries: list[tuple[str, Any]] = []  # (kind, value)
     queries += [("size", check_size(s, n_ordered)) for s in sizes or ()]
     queries += [("fraction", check_fraction(f)) for f in fractions or ()]
     queries += [("rho", check_positive(r, "rho", allow_none=False)) for r in rhos or ()]
-    return queries or [("size", s) for s in default_sizes(n_ordered)]
+    queries = queries or [("size", s) for s in default_sizes(n_ordered)]
+    return [(f"{kind}={value:g}", LevelQuery(**{kind: value}, ordering=extra)) for kind, value in queries]
 
 
 @strict_keywords
@@ -82,10 +85,8 @@ def evaluate_scan(
     queries = _level_queries(scan.n_ordered, sizes, rhos, fractions, ordering if extra else None)
     tree = cKDTree(pts)
     reports = []
-    for i, (kind, value) in enumerate(queries):
-        level = scan.level(
-            **{kind: value}, ordering=None if not extra else ordering, attributes=False
-        )
+    for i, (label, query) in enumerate(queries):
+        level = read_level(scan, query, attributes=False).level
         claim = None if extra else float(level.rho)
         reports.append(
             evaluate_level(
@@ -94,7 +95,7 @@ def evaluate_scan(
                 rho=claim,
                 surface=surface,
                 k=k,
-                label=f"{kind}={value:g}",
+                label=label,
                 input_tree=tree,
             )
         )

@@ -207,14 +207,16 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | 
     """
     n = pts.shape[0]
     # a quick check first: if the points' hashes are all different, so are the points (most scans)
-    bits = (pts + 0.0).view(np.uint64)  # + 0.0: -0.0 and 0.0 are the same point
-    hsh = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
-    hsh ^= bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
-    hsh ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    hsh = np.zeros(n, dtype=np.uint64)
+    for axis, mult in enumerate((0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9)):
+        bits = (pts[:, axis] + 0.0).view(np.uint64)  # + 0.0: -0.0 and 0.0 are the same point
+        bits *= np.uint64(mult)  # (one coordinate at a time: no (N, 3) copy)
+        hsh ^= bits
+    del bits
     hsh.sort()
     if not (hsh[1:] == hsh[:-1]).any():
         return None, None
-    del bits, hsh
+    del hsh
     srt = np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
     sp = pts[srt]
     new = np.ones(n, dtype=bool)

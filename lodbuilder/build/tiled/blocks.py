@@ -119,7 +119,7 @@ def survey_block(work: str, b: int, g0: int, m: int, rows: int, grid: dict[str, 
     ``d_cell`` (from the grid's corner) its first point (cell key, input index, coordinates)."""
     t0 = time.perf_counter()
     w = Path(work)
-    gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))  # type: ignore[arg-type]
+    gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
     hist = np.zeros(int(np.prod(gr.shape)) if histogram else 0, np.int64)
     keys, gs, xyz = [], [], []
     for r0, pts in _xyz_blocks(w, b, m, rows):
@@ -168,7 +168,7 @@ def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[
     t0 = time.perf_counter()
     w = Path(work)
     tl = [Tile.from_json(t) for t in tiles]
-    gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))  # type: ignore[arg-type]
+    gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
     lookup = tile_lookup(tl, gr)
     t_lo = np.array([t.lo for t in tl], float).reshape(-1, 3)
     t_hi = np.array([t.hi for t in tl], float).reshape(-1, 3)

@@ -127,16 +127,16 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     return found
 
 
-def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: str, work: Path, executor: cf.Executor,
+def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Path, executor: cf.Executor,
                 *, parallel: int = 1, max_memory: int | None = None, voxel_size: float | None = None,
                 band_radius: float | None = None, seam_spacing: float = SEAM_SPACING, tile_points: int | None = None,
                 passes: int = TILE_PASSES, build: dict[str, Any] | None = None,
                 provenance: dict[str, Any] | None = None, progress: ProgressCallback = None) -> dict[str, Any]:
-    """Order one scan (``sources``: one stream, or several posed streams for a joint build) tile by
-    tile and write it to the part file ``part``; returns what was built and how long each phase
+    """Order one scan (``sources``: ``(stream, pose, member id, reopen)`` of one input, or of each
+    input of a joint build; ``reopen`` opens the stream again on a worker, None: the parent reads
+    it) tile by tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
     from ...archive.files import make_own_dir, remove_own_dir
-    from .write import write_scan
 
     budget = P.default_budget() if max_memory is None else int(max_memory)
     make_own_dir(work, work.name)  # or check that the one a killed build left is lodbuilder's
@@ -155,7 +155,7 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     clock.lap("plan")
     log.info("scan %r: %d points in %d tile(s) of at most %d points", name, n, n_tiles, pl["tile_cap"])
 
-    # 3. the coarse level (on a worker) while the parent writes the tiles' core and halo files
+    # 3. the coarse level (on a worker) while the other workers write the tiles' core and halo pieces
     worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
     coarse, dist = _coarse_and_tiles(executor, work, name, sp, pl, delta, worker_budget, progress)
     halo = float(dist["halo"])
@@ -167,17 +167,17 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
-    # 5. merge the tile orders (in the parent, streaming)
-    merged = _merge(work, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
+    # 5. merge the tile orders (one task, streaming)
+    merged = _merge(executor, work, name, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
-    # 6. exact covering radii of every tile (on the workers), combined; meanwhile the parent puts
-    #    the points in stored order (the first pass of the write)
+    # 6. exact covering radii of every tile (on the workers), combined in bands; meanwhile tasks
+    #    put the points in stored order (the first pass of the write)
     buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
                                                              float(pl["spacing"]), delta, progress)
     clock.lap("cover")
 
-    # 7. write the part file in stored order
+    # 7. write the part file in stored order (one task)
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
               **_timings(clock, work),
@@ -185,13 +185,26 @@ def build_tiled(sources: list[tuple[Any, Any, int | None]], part: Path, name: st
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
-    info = write_scan(work, part, name, n, sp.fields, sp.metadata, sp.encoding, head["g"][:1], record,
-                      {"reader": sp.reader, **(provenance or {})}, progress, buckets)
+    info = _write(executor, work, part, name, sp, head["g"][:1], record, {"reader": sp.reader, **(provenance or {})},
+                  buckets, radii, progress)
     clock.lap("write")
     remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
             "part": str(info.path), "worker_pid": os.getpid()}
+
+
+def _write(executor: cf.Executor, work: Path, part: Path, name: str, sp: Spill, seeds: np.ndarray,
+           record: dict[str, Any], provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any],
+           progress: ProgressCallback) -> Any:
+    """Phase 7: the part written by one task; returns its PartInfo."""
+    from .write import write_task
+
+    args = (str(work), str(part), name, sp.n, sp.fields, sp.metadata, sp.encoding, seeds, record, provenance,
+            buckets, radii)
+    (res,) = collect(submit(executor, [(0, write_task, args)]), lambda _: "writing the part", name, 1, progress,
+                     "write")
+    return res["info"]
 
 
 def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
@@ -208,17 +221,16 @@ def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], di
     return by_size, colour, ordered, stats
 
 
-def _merge(work: Path, n: int, stats: list[dict[str, Any]], seam_spacing: float, lo: np.ndarray, span: float,
-           progress: ProgressCallback) -> dict[str, Any]:
+def _merge(executor: cf.Executor, work: Path, name: str, n: int, stats: list[dict[str, Any]], seam_spacing: float,
+           lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
     """Phase 5: the tile orders merged by descending key with the seam repair, and the ranks (or
-    what a finished merge recorded)."""
-    from .merge import merge_tiles, write_ranks
+    what a finished merge recorded): one task, on a worker (still one pass over every point)."""
+    from .merge import merge_task
 
     merged = _done(work, "merge")
     if merged is None:
-        merged = merge_tiles(work, n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo,
-                             span / (1 << 20), progress)
-        merged["files"][WL.RANK] = write_ranks(work, n)
+        args = (str(work), n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
+        (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
         _mark(work, "merge", merged)
     return merged
 
@@ -228,7 +240,8 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
     tasks put the points in stored order (the first pass of the write). Returns the buckets' and
     the radii's markers and how many tiles a resume found covered."""
-    from .merge import assemble_radii
+    from . import workdir as W
+    from .radii import radii_phase
     from .write import buckets_phase
 
     n, n_tiles = sp.n, len(by_size)
@@ -241,9 +254,7 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
                 lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
                 points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    radii = _done(work, "radii")
-    if radii is None:
-        radii = _mark(work, "radii", assemble_radii(work, n, n_tiles, delta, progress))
+    radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
     return buckets, radii, n_tiles - len(todo)
 
 

@@ -17,7 +17,10 @@ Files (little-endian raw arrays unless said otherwise), by the phase that writes
     merge       order.i8, key.f8    the merged order (input index at each position) and its keys
                 rank.i8             the position of every input point (the inverse of order.i8)
     cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass
-    radii       radius.f8, parent.i8  the stored radius and parent of each position
+    radii       radloc.<b>.f8       band b's radii, non-increasing within the band (round 1)
+                space.<b>.f8        band b's running minimum of the spacing (round 1)
+                parent.<b>.i8       the stored parent of each position of band b
+                radius.<b>.f8       the stored radius of each position of band b (round 2)
     buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
@@ -56,8 +59,6 @@ HEAD_FILE = "head.bin"
 ORDER = "order.i8"
 KEY = "key.f8"
 RANK = "rank.i8"
-RADIUS = "radius.f8"
-PARENT = "parent.i8"
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
 PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "buckets", "radii")
@@ -130,6 +131,27 @@ def order_piece(t: int, p: int) -> str:
     return f"order.{t}.{p}"
 
 
+def radius_local(b: int) -> str:
+    return f"radloc.{b}.f8"
+
+
+def space(b: int) -> str:
+    return f"space.{b}.f8"
+
+
+def parent(b: int) -> str:
+    return f"parent.{b}.i8"
+
+
+def radius(b: int) -> str:
+    return f"radius.{b}.f8"
+
+
+def band_piece(b: int) -> str:
+    """The piece name of round 1 of band ``b`` of the radii (a task)."""
+    return f"band.{b}"
+
+
 def cover_piece(t: int) -> str:
     return f"cover.{t}"
 
@@ -154,8 +176,8 @@ def writing(name: str) -> str:
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
 #: the named moments: after each phase's marker, after the first tile ordering's marker, and after
-#: the first read, split and permute task's markers
-MOMENTS = (*PHASES, "tile", "read", "split", "permute")
+#: the first read, split, permute and band task's markers
+MOMENTS = (*PHASES, "tile", "read", "split", "permute", "band")
 
 
 def moment(name: str) -> None:

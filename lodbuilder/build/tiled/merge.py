@@ -13,7 +13,8 @@ point of another tile; inside a tile the tile's own farthest point order keeps i
 exact covering radius of its core by every prefix of the final order (computed from the core and
 its halo, exact while below the halo width, an upper bound above it: :func:`cover_tile`), combined
 by a k-way merge over tiles (the maximum), capped by the certified bound of the coarse level
-(its radius on the decimated copy plus the decimation cell's diagonal) and made non-increasing.
+(its radius on the decimated copy plus the decimation cell's diagonal) and made non-increasing:
+in bands of positions, by tasks (:mod:`.radii`).
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ from ..._atomic import publish
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from . import workdir as W
-from .sums import SumFile, read_json, sum_file
-from .tasks import EVENT, HEAD, POINT, STREAM
+from .sums import SumFile, sum_file
+from .tasks import HEAD, STREAM
+from .timing import timed_task
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +138,17 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
             "files": {WL.ORDER: fo.sum, WL.KEY: fk.sum}}
 
 
+@timed_task
+def merge_task(work: str, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
+               min_cell: float) -> dict[str, Any]:
+    """The merge as one task (on a worker, so that the parent loads no kernel and passes over no
+    point): :func:`merge_tiles`, then :func:`write_ranks`; returns the merge's marker."""
+    w = Path(work)
+    merged = merge_tiles(w, n, n_tiles, seam_counts, alpha, lo, min_cell)
+    merged["files"][WL.RANK] = write_ranks(w, n)
+    return merged
+
+
 def write_ranks(work: Path, n: int) -> list[int]:
     """``rank.i8``: the position of every input point (the inverse of ``order.i8``); returns its
     size and CRC-32."""
@@ -153,112 +166,3 @@ def write_ranks(work: Path, n: int) -> list[int]:
         del rank
     publish(tmp, work / WL.RANK)
     return sum_file(work / WL.RANK)  # written in random order: summed once, from the page cache
-
-
-class _Records:
-    """Sequential reader of a tile's records (events or points) in rank order."""
-
-    def __init__(self, path: Path, dtype: np.dtype) -> None:
-        self.f = open(path, "rb")
-        self.dtype = dtype
-        self.left = path.stat().st_size // dtype.itemsize
-        self.buf = np.zeros(0, dtype)
-        self.pos = 0
-
-    def upto(self, k: int) -> np.ndarray:
-        """Records with rank < k not returned before."""
-        parts = []
-        while True:
-            if self.pos >= self.buf.shape[0]:
-                if self.left == 0:
-                    break
-                m = min(BUF, self.left)
-                self.buf = np.fromfile(self.f, dtype=self.dtype, count=m)
-                self.left -= m
-                self.pos = 0
-            end = self.pos + int(np.searchsorted(self.buf["rank"][self.pos:], k, side="left"))
-            parts.append(self.buf[self.pos:end])
-            self.pos = end
-            if end < self.buf.shape[0]:
-                break
-        return np.concatenate(parts) if parts else np.zeros(0, self.dtype)
-
-    def close(self) -> None:
-        self.f.close()
-
-
-def assemble_radii(work: Path, n: int, n_tiles: int, delta: float, progress: ProgressCallback = None,
-                   block: int | None = None) -> dict[str, Any]:
-    """Write ``radius.f8`` and ``parent.i8`` (per stored position) from the tiles' covering
-    records; returns the verification figures (worst spacing / radius of any level)."""
-    from ..._kernels.tiled import merge_events
-
-    block = block or W.BLOCK
-    head = np.fromfile(work / WL.HEAD_FILE, dtype=HEAD)
-    h = head.shape[0]
-    r_head = head["r"]
-    meta = read_json(work / WL.marker("coarse")) or {}
-    r_cut = float(meta["r_cut"])
-    ev = [_Records(work / WL.cover_events(t), EVENT) for t in range(n_tiles)]
-    pt = [_Records(work / WL.cover_points(t), POINT) for t in range(n_tiles)]
-    cur = np.full(n_tiles, np.inf)
-    run_min = np.inf
-    run_space = np.inf
-    worst = np.inf
-    worst_at = -1
-    try:
-        with SumFile(work / WL.writing(WL.RADIUS)) as fr, SumFile(work / WL.writing(WL.PARENT)) as fp:
-            for k0 in range(0, n, block):
-                k1 = min(n, k0 + block)
-                # events with rank <= k-1 ... merge_events consumes them per position
-                rad = np.empty(k1 - k0)
-                bound = np.full(k1 - k0, r_cut + delta)
-                ks = np.arange(k0, k1)
-                inh = ks < h
-                # the coarse level's certified bound (radius on the decimated copy + its cell diagonal)
-                bound[inh] = np.where(ks[inh] == 0, np.inf, r_head[np.minimum(ks[inh], h - 1)] + delta)
-                evs = [e.upto(k1) for e in ev]
-                m = max([e.shape[0] for e in evs] + [1])
-                ev_rank = np.full((n_tiles, m), np.iinfo(np.int64).max, np.int64)
-                ev_val = np.zeros((n_tiles, m))
-                ev_len = np.zeros(n_tiles, np.int64)
-                for t, e in enumerate(evs):
-                    ev_rank[t, : e.shape[0]] = e["rank"]
-                    ev_val[t, : e.shape[0]] = e["value"]
-                    ev_len[t] = e.shape[0]
-                ev_pos = np.zeros(n_tiles, np.int64)
-                done = np.ones(n_tiles, bool)
-                merge_events(ev_rank, ev_val, ev_pos, ev_len, done, cur, k0, k1, np.inf, rad)
-                rad = np.minimum(rad, bound)
-                rad = np.minimum.accumulate(np.concatenate([[run_min], rad]))[1:]
-                run_min = float(rad[-1])
-                par = np.full(k1 - k0, -1, np.int64)
-                space = np.full(k1 - k0, np.inf)
-                for p in pt:
-                    recs = p.upto(k1)
-                    par[recs["rank"] - k0] = recs["parent"]
-                    space[recs["rank"] - k0] = recs["space"]
-                # a head point with no earlier point in its tile's halo: its parent on the coarse copy
-                hk = (ks < h) & (par < 0) & (ks > 0)
-                par[hk] = head["parent"][ks[hk]]
-                # spacing of level k (its first k points) over its radius
-                sp = np.minimum.accumulate(np.concatenate([[run_space], space]))
-                run_space = float(sp[-1])
-                lvl_space = sp[:-1]  # min distance among points 0..k-1 ... (k = k0 + i)
-                ok = (rad > 0) & np.isfinite(rad) & np.isfinite(lvl_space)
-                if ok.any():
-                    ratio = lvl_space[ok] / rad[ok]
-                    i = int(np.argmin(ratio))
-                    if ratio[i] < worst:
-                        worst = float(ratio[i])
-                        worst_at = int(ks[ok][i])
-                fr.write(rad.astype("<f8"))
-                fp.write(par.astype("<i8"))
-                report(progress, "radii", k1, n)
-    finally:
-        for r in ev + pt:
-            r.close()
-    publish(work / WL.writing(WL.RADIUS), work / WL.RADIUS)
-    publish(work / WL.writing(WL.PARENT), work / WL.PARENT)
-    return {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": worst_at,
-            "files": {WL.RADIUS: fr.sum, WL.PARENT: fp.sum}}

@@ -20,6 +20,8 @@ def result(fut: cf.Future, name: str, where: str) -> Any:
     """A finished task's result; its failure fails the scan, naming the task."""
     try:
         return fut.result()
+    except BuildError:
+        raise  # a task's own failure of the scan (it names the scan and the fix)
     except LodbuilderError as exc:
         raise BuildError(f"scan {name!r}: {where} failed: {exc}") from exc  # (names the input and its fix)
     except BrokenProcessPool:

@@ -102,7 +102,8 @@ def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, 
     inp = done(work, "inputs") or _mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
     spec = {k: inp[k] for k in ("fields", "joint", "metadata", "step", "rows")}
     results = {}
-    calls, inline = [], []
+    calls: list[tuple[int, Any, tuple]] = []
+    inline: list[tuple[int, Any, tuple]] = []
     for b, (i, a, z, g0) in enumerate(inp["blocks"]):
         prev = done(work, WL.read_piece(b))
         if prev is not None:
@@ -137,7 +138,7 @@ def _spill(work: Path, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill:
         raise RuntimeError(f"the read blocks hold {n} points, the inputs' headers {inp['n']}")
     sample = np.concatenate([np.fromfile(work / WL.sample(b), "<f8").reshape(-1, 3) for b in range(len(res))])
     with SumFile(work / WL.SAMPLE) as f:
-        np.save(f, sample)  # type: ignore[arg-type]
+        np.save(f, sample)
     files = {k: v for r in res for k, v in r["files"].items()}
     enc = choose_encoding({e for r in res for e in r["encodings"]} or {"float64"})
     sp = Spill(n, np.min([r["lo"] for r in res], axis=0), np.max([r["hi"] for r in res], axis=0),
@@ -213,8 +214,8 @@ def distribute_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, pl: dict
     n_tiles = len(pl["tiles"])
     core = np.array([r["n_core"] for r in res], np.int64).reshape(len(res), n_tiles)
     hal = np.array([r["n_halo"] for r in res], np.int64).reshape(len(res), n_tiles)
-    pieces = {"core": [[WL.core(t, b) for b in np.flatnonzero(core[:, t])] for t in range(n_tiles)],
-              "halo": [[WL.halo(t, b) for b in np.flatnonzero(hal[:, t])] for t in range(n_tiles)]}
+    pieces = {"core": [[WL.core(t, int(b)) for b in np.flatnonzero(core[:, t])] for t in range(n_tiles)],
+              "halo": [[WL.halo(t, int(b)) for b in np.flatnonzero(hal[:, t])] for t in range(n_tiles)]}
     files = {k: v for r in res for k, v in r["files"].items()}
     return _mark(work, "distribute", {"halo": halo, "n_core": core.sum(axis=0).tolist(),
                                       "n_halo": hal.sum(axis=0).tolist(), "pieces": pieces, "files": files})

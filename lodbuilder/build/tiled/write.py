@@ -104,7 +104,7 @@ def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tupl
 def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
     """The buckets phase's marker from every block's result: each bucket's pieces in block order."""
     counts = np.array([r["counts"] for r in results], np.int64).reshape(len(results), -1)
-    pieces = [[WL.bucket(k, b) for b in np.flatnonzero(counts[:, k])] for k in range(counts.shape[1])]
+    pieces = [[WL.bucket(k, int(b)) for b in np.flatnonzero(counts[:, k])] for k in range(counts.shape[1])]
     return {"block": block, "buckets": counts.shape[1], "pieces": pieces,
             "files": {k: v for r in results for k, v in r["files"].items()}}
 
@@ -118,7 +118,7 @@ def _raw_records(work: Path, fields: dict[str, tuple[str, tuple[int, ...]]], raw
     attr = WL.attr_record(fields)
     for b, (_, a, z, g0) in enumerate(raw, start=first):
         m_b = int(z) - int(a)
-        ats = blocks(work / WL.raw_attr(b), attr, m_b, rows) if attr.itemsize else None
+        ats: Any = blocks(work / WL.raw_attr(b), attr, m_b, rows) if attr.itemsize else None
         try:
             for r0, xyz in blocks(work / WL.raw_xyz(b), "<f8", 3 * m_b, 3 * rows):
                 pts = xyz.reshape(-1, 3)
@@ -136,28 +136,41 @@ def _raw_records(work: Path, fields: dict[str, tuple[str, tuple[int, ...]]], raw
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-               provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any]) -> Any:
-    """Write the bucketed points (``buckets``: what :func:`bucket_points` recorded) in stored
-    order as the part ``part``, with their radii and parents."""
+               provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any],
+               radii: dict[str, Any]) -> Any:
+    """Write the bucketed points (``buckets``: what :func:`buckets_phase` recorded) in stored
+    order as the part ``part``, with their radii and parents (``radii``: the radii's bands)."""
     try:
         return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
-                              buckets)
+                              buckets, radii)
     except InputError as exc:  # the scan writer's own check: the work files disagree with each other
         what = str(exc).split(";")[0]
         raise BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
                          "the build again with --force") from None
 
 
+@timed_task
+def write_task(work: str, part: str, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+               metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
+               provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
+    """:func:`write_scan` as one task (on a worker: the parent runs no filter and passes over no
+    point; the part is still written by one process); returns ``{"info": PartInfo}``."""
+    return {"info": write_scan(Path(work), Path(part), name, n, fields, metadata, encoding, seeds, build, provenance,
+                               None, buckets, radii)}
+
+
 def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                    metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-                   provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any]) -> Any:
+                   provenance: dict[str, Any], progress: ProgressCallback, buckets: dict[str, Any],
+                   radii: dict[str, Any]) -> Any:
     from ...archive.scanwriter import ScanWriter
 
     block = int(buckets["block"])
     rec = record_dtype(fields)
     names = list(fields)
-    with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, \
-            open(work / WL.RADIUS, "rb") as frad, open(work / WL.PARENT, "rb") as fpar:
+    bands = range(len(radii["bands"]))
+    frad, fpar = _Joined([work / WL.radius(b) for b in bands], "<f8"), _Joined([work / WL.parent(b) for b in bands], "<i8")
+    with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, frad, fpar:
         for b in range(int(buckets["buckets"])):
             k0 = b * block
             k1 = min(n, k0 + block)
@@ -168,11 +181,38 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
             opaque_rows(srt)[r["pos"] - k0] = opaque_rows(r)
             del r
             g = _order_block(work, k0, k1)
-            rad = np.fromfile(frad, dtype="<f8", count=k1 - k0)
-            par = np.fromfile(fpar, dtype="<i8", count=k1 - k0)
+            rad, par = frad.read(k1 - k0), fpar.read(k1 - k0)
             w.write(srt["xyz"], g, rad, par, attributes={k: srt[f"a{i}"] for i, k in enumerate(names)})
             report(progress, "write", k1, n)
         return w.finish(n_ordered=n, seeds=seeds, build=build, provenance=provenance)
+
+
+class _Joined:
+    """Sequential reads of records from files one after another (the radii's bands)."""
+
+    def __init__(self, paths: list[Path], dtype: str) -> None:
+        self.paths, self.dtype = list(paths), np.dtype(dtype)
+        self.f: Any = None
+
+    def read(self, m: int) -> np.ndarray:
+        parts = []
+        while m > 0 and (self.f is not None or self.paths):
+            if self.f is None:
+                self.f = open(self.paths.pop(0), "rb")  # noqa: SIM115 - closed at its end or by __exit__
+            a = np.fromfile(self.f, dtype=self.dtype, count=m)
+            parts.append(a)
+            m -= a.shape[0]
+            if m > 0:
+                self.f.close()
+                self.f = None
+        return np.concatenate(parts) if parts else np.zeros(0, self.dtype)
+
+    def __enter__(self) -> _Joined:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.f is not None:
+            self.f.close()
 
 
 def _order_block(work: Path, k0: int, k1: int) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 
 from ...errors import FormatError, LodbuilderError, ScanFileError
 from .._files import exc_line, library_panic
-from ..base import Rows, Scan, whole
+from ..base import Rows, Scan, file_stem, whole
 from ..crs import normalise_wkt, pyproj_wkt, set_crs
 from .common import EXACT_PREFIX, check_laz_backend, laspy_module, quiet_laspy
 
@@ -154,8 +154,7 @@ def read(path: Path) -> list[Scan]:
     laspy = laspy_module(path)
     header = las_header(laspy, path)
     pts, attrs = whole(las_rows(laspy, path, header, max(header.n_points, 1)))
-    name = path.stem.split(".")[0] if path.name.lower().endswith(".copc.laz") else path.stem
-    return [Scan(points=pts, attributes=attrs, name=name, source=str(path), reader="las", metadata=header.metadata)]
+    return [Scan(points=pts, attributes=attrs, name=file_stem(path), source=str(path), reader="las", metadata=header.metadata)]
 
 
 @dataclass
@@ -168,6 +167,9 @@ class LasHeader:
     metadata: dict[str, Any]
     order: list[str]
     names: dict[str, str]
+    #: every attribute's (dtype, per-point shape) as the read gives it (from a one-point record
+    #: made for the header, so that no point is decompressed to learn them)
+    fields: dict[str, tuple[np.dtype, tuple[int, ...]]]
 
 
 def las_header(laspy: Any, p: Path) -> LasHeader:
@@ -183,10 +185,13 @@ def las_header(laspy: Any, p: Path) -> LasHeader:
             n = int(hdr.point_count)
             meta, rename = las_metadata(hdr, hdr.point_format, p)
             dims = [d for d in hdr.point_format.dimension_names if d not in ("X", "Y", "Z")]
+            probe = laspy.ScaleAwarePointRecord.zeros(1, header=hdr)
+            kinds = {d: np.asarray(probe[d]) for d in dims}
     except BaseException as exc:
         raise _las_failure(laspy, p, exc) from None
     order = [d for d in dims if d not in rename] + [d for d in dims if d in rename]
-    return LasHeader(n, meta, order, {d: rename.get(d, d) for d in dims})
+    names = {d: rename.get(d, d) for d in dims}
+    return LasHeader(n, meta, order, names, {names[d]: (kinds[d].dtype, tuple(kinds[d].shape[1:])) for d in order})
 
 
 def las_rows(laspy: Any, p: Path, header: LasHeader, size: int, first: int = 0,

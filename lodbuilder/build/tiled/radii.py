@@ -1,0 +1,165 @@
+"""The stored radius and parent of every position of a tiled build, assembled in bands of stored
+positions by tasks (the parent only carries two numbers from band to band).
+
+A band ``[k0, k1)`` of positions needs, from every tile, its covering events with rank in the band
+and the last one before it (the tile's covering radius at ``k0``), and its points' records with
+rank in the band: both files are sorted by rank, so a task reads them with two binary searches and
+one slice (:func:`_slice`), never whole. Two rounds:
+
+1. :func:`radii_band`: the largest covering radius over the tiles at each position, capped by the
+   coarse level's certified bound, made non-increasing *within* the band (``radloc.<b>.f8``); the
+   parents (``parent.<b>.i8``, final) and the running minimum of the spacing (``space.<b>.f8``);
+   returns the band's last radius and spacing;
+2. :func:`finish_band`: with the minimum of the earlier bands' last values (the parent's prefix
+   minimum over bands: O(bands)), the final radii (``radius.<b>.f8``: min(local, incoming), i.e.
+   the running minimum over the whole order) and the band's worst spacing over radius.
+
+The arithmetic is that of one sequential pass (a running minimum is the minimum of the band's own
+running minimum and the incoming value), so the radii are the same bytes whatever the bands.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...progress import ProgressCallback
+from . import layout as WL
+from .pool import collect, submit
+from .sums import done, publish, read_json, write_json
+from .timing import timed_task
+
+EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
+
+
+def _slice(path: Path, dtype: np.dtype, k0: int, k1: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The records of a rank-sorted file with rank in ``[k0, k1)``, and the last record before them
+    (None when there is none): two binary searches and two reads."""
+    size = path.stat().st_size // dtype.itemsize
+    if size == 0:
+        return np.zeros(0, dtype), None
+    mm = np.memmap(path, dtype=dtype, mode="r", shape=(size,))
+    try:
+        ranks = mm["rank"]
+        a, z = int(np.searchsorted(ranks, k0, "left")), int(np.searchsorted(ranks, k1, "left"))
+        return np.array(mm[a:z]), (np.array(mm[a - 1]) if a > 0 else None)
+    finally:
+        del mm
+
+
+def _events(work: Path, n_tiles: int, k0: int, k1: int) -> tuple[np.ndarray, ...]:
+    """Every tile's events in the band as merge_events wants them, and each tile's value at k0."""
+    evs, cur = [], np.full(n_tiles, np.inf)
+    for t in range(n_tiles):
+        recs, before = _slice(work / WL.cover_events(t), EVENT, k0, k1)
+        evs.append(recs)
+        if before is not None:
+            cur[t] = float(before["value"])
+    m = max([e.shape[0] for e in evs] + [1])
+    ev_rank = np.full((n_tiles, m), np.iinfo(np.int64).max, np.int64)
+    ev_val = np.zeros((n_tiles, m))
+    ev_len = np.zeros(n_tiles, np.int64)
+    for t, e in enumerate(evs):
+        ev_rank[t, : e.shape[0]], ev_val[t, : e.shape[0]], ev_len[t] = e["rank"], e["value"], e.shape[0]
+    return ev_rank, ev_val, ev_len, cur
+
+
+@timed_task
+def radii_band(work: str, band: int, k0: int, k1: int, n_tiles: int, delta: float, r_cut: float) -> dict[str, Any]:
+    """Round 1 of band ``band`` (positions ``k0 .. k1``): see the module."""
+    from ..._kernels.tiled import merge_events
+
+    w = Path(work)
+    head = np.fromfile(w / WL.HEAD_FILE, dtype=HEAD)
+    h = head.shape[0]
+    ev_rank, ev_val, ev_len, cur = _events(w, n_tiles, k0, k1)
+    rad = np.empty(k1 - k0)
+    merge_events(ev_rank, ev_val, np.zeros(n_tiles, np.int64), ev_len, np.ones(n_tiles, bool), cur, k0, k1,
+                 np.inf, rad)
+    ks = np.arange(k0, k1)
+    inh = ks < h
+    # the coarse level's certified bound (radius on the decimated copy + its cell diagonal)
+    bound = np.full(k1 - k0, r_cut + delta)
+    bound[inh] = np.where(ks[inh] == 0, np.inf, head["r"][np.minimum(ks[inh], h - 1)] + delta)
+    rad = np.minimum.accumulate(np.minimum(rad, bound))
+    par = np.full(k1 - k0, -1, np.int64)
+    space = np.full(k1 - k0, np.inf)
+    for t in range(n_tiles):
+        recs, _ = _slice(w / WL.cover_points(t), POINT, k0, k1)
+        par[recs["rank"] - k0] = recs["parent"]
+        space[recs["rank"] - k0] = recs["space"]
+    # a head point with no earlier point in its tile's halo: its parent on the coarse copy
+    hk = inh & (par < 0) & (ks > 0)
+    par[hk] = head["parent"][ks[hk]]
+    space = np.minimum.accumulate(space)
+    b = band
+    files = {WL.radius_local(b): publish(rad, w / WL.radius_local(b)),
+             WL.space(b): publish(space, w / WL.space(b)), WL.parent(b): publish(par, w / WL.parent(b))}
+    return {"band": b, "last_radius": float(rad[-1]), "last_space": float(space[-1]), "files": files}
+
+
+@timed_task
+def finish_band(work: str, band: int, k0: int, k1: int, run_min: float, run_space: float) -> dict[str, Any]:
+    """Round 2 of band ``band``: the final radii with the earlier bands' minima (``run_min``,
+    ``run_space``), and the band's worst spacing over radius (ratio, position)."""
+    w, b = Path(work), band
+    rad = np.minimum(np.fromfile(w / WL.radius_local(b), "<f8"), run_min)
+    space = np.fromfile(w / WL.space(b), "<f8")
+    # spacing of level k (its first k points): every position before k
+    lvl_space = np.minimum(np.concatenate([[np.inf], space[:-1]]), run_space)
+    ok = (rad > 0) & np.isfinite(rad) & np.isfinite(lvl_space)
+    worst, at = math.inf, -1
+    if ok.any():
+        ratio = lvl_space[ok] / rad[ok]
+        i = int(np.argmin(ratio))
+        worst, at = float(ratio[i]), int(np.arange(k0, k1)[ok][i])
+    return {"band": b, "worst": worst, "at": at, "files": {WL.radius(b): publish(rad, w / WL.radius(b))}}
+
+
+def radii_phase(ex: Any, work: Path, name: str, n: int, n_tiles: int, delta: float, band: int,
+                progress: ProgressCallback = None) -> dict[str, Any]:
+    """The radii and parents of every position, in bands of ``band`` positions (tasks); returns the
+    radii marker: the bands, their files and the worst spacing over radius of any level."""
+    doc = done(work, "radii")
+    if doc is not None:
+        return doc
+    r_cut = float((read_json(work / WL.marker("coarse")) or {})["r_cut"])
+    bands = [(k0, min(n, k0 + band)) for k0 in range(0, n, band)]
+    first: dict[int, dict[str, Any]] = {}
+    calls: list[tuple[int, Any, tuple]] = []
+    for b, (k0, k1) in enumerate(bands):
+        prev = done(work, WL.band_piece(b))
+        if prev is not None:
+            first[b] = prev
+        else:
+            calls.append((b, radii_band, (str(work), b, k0, k1, n_tiles, delta, r_cut)))
+
+    def record(res: dict[str, Any]) -> None:
+        write_json(work / WL.marker(WL.band_piece(res["band"])), res)
+        WL.moment("band")
+        first[res["band"]] = res
+
+    where = "the radii of positions {} to {}".format
+    size = {b: k1 - k0 for b, (k0, k1) in enumerate(bands)}
+    collect(submit(ex, calls), lambda b: where(*bands[b]), name, n, progress, "radii", record,
+            lambda r: size[r["band"]], sum(size[b] for b in first))
+    run_min, run_space = math.inf, math.inf
+    second: list[tuple[int, Any, tuple]] = []
+    for b, (k0, k1) in enumerate(bands):
+        second.append((b, finish_band, (str(work), b, k0, k1, run_min, run_space)))
+        run_min, run_space = min(run_min, first[b]["last_radius"]), min(run_space, first[b]["last_space"])
+    fin = {r["band"]: r for r in collect(submit(ex, second), lambda b: where(*bands[b]), name, len(bands), None,
+                                         "radii")}
+    worst, at = math.inf, -1
+    for b in range(len(bands)):  # the first position of the smallest ratio, as one pass finds it
+        if fin[b]["worst"] < worst:
+            worst, at = fin[b]["worst"], fin[b]["at"]
+    files = {k: v for b in range(len(bands)) for r in (fin[b], first[b]) for k, v in r["files"].items()
+             if not k.startswith(("radloc.", "space."))}
+    doc = {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": at, "bands": bands, "files": files}
+    write_json(work / WL.marker("radii"), doc)
+    WL.moment("radii")
+    return doc

@@ -1,0 +1,112 @@
+"""The input around a group of seeds, over a plane: which points are on the seeds' sheet, the
+grid of candidate nodes, and the flood of the nodes far from every point (see
+:mod:`lodbuilder.fill.gaps`, steps 3 and 4)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .surface import Frame
+
+#: neighbours per sample point for normals and the seeds' plane (and links along the surface)
+K_SAMPLE = 8
+#: longest link between neighbouring sample points along the surface, in units of rho
+LINK = 1.5
+#: grid nodes within NEAR_FRACTION * rho of a measured point are not in a region
+NEAR_FRACTION = 0.5
+
+
+def on_sheet(local: np.ndarray, seeds: np.ndarray, rho: float, limit: float) -> np.ndarray:
+    """Mask of the ``local`` points on the seeds' sheet: within ``limit`` of the points next to
+    the seeds along the surface (shortest paths over links to each point's :data:`K_SAMPLE`
+    nearest points within :data:`LINK` rho). Steep and curved parts of that sheet are kept
+    whatever their angle to the hole's plane; another sheet is dropped unless the surface
+    joins them within ``limit`` (a fold, the edge of a thin part)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    n = local.shape[0]
+    tree = cKDTree(local)
+    k = min(K_SAMPLE + 1, n)
+    d, nb = tree.query(local, k=k, distance_upper_bound=LINK * rho)
+    d, nb = np.asarray(d).reshape(n, k)[:, 1:].ravel(), np.asarray(nb).reshape(n, k)[:, 1:].ravel()
+    ok = np.isfinite(d)
+    rows = np.repeat(np.arange(n), k - 1)[ok]
+    # (a zero weight is no edge to csgraph: duplicates get a tiny length)
+    g = coo_matrix((d[ok] + 1e-9 * rho, (rows, nb[ok])), shape=(n, n)).tocsr()
+    _, src = tree.query(seeds, k=min(3, n))
+    dist = dijkstra(g, directed=False, indices=np.unique(src), min_only=True, limit=limit)
+    return np.isfinite(dist)
+
+
+def near_plane(local: np.ndarray, frame: Frame, rho: float, slope: float) -> np.ndarray:
+    """Mask of the local points near the hole's plane: |h| <= rho + slope |uv| (a cone), which
+    drops far sheets across the plane (at ``SLOPE``, 27 degrees, also a steep part of the
+    hole's own sheet)."""
+    h = np.abs(frame.height(local))
+    r = np.linalg.norm(frame.uv(local), axis=1)
+    return h <= rho + slope * r
+
+
+def normals_at(points: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+    """PCA normals of ``points`` from their nearest points of ``cloud``."""
+    from scipy.spatial import cKDTree
+
+    k = min(K_SAMPLE + 1, cloud.shape[0])
+    _, nb = cKDTree(cloud).query(points, k=k)
+    nbhd = cloud[np.asarray(nb).reshape(points.shape[0], k)]
+    c = nbhd - nbhd.mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    return vec[:, :, 0]
+
+
+class Grid:
+    """Square grid of nodes at spacing ``g`` and half width ``half`` (in nodes) in a frame."""
+
+    def __init__(self, frame: Frame, g: float, half: int) -> None:
+        self.frame, self.g, self.half = frame, g, half
+        side = 2 * half + 1
+        ij = np.indices((side, side)).reshape(2, -1).T
+        self.uv = (ij - half) * g
+        self.shape = (side, side)
+
+    def area_factor(self, nodes: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Surface area per unit of plane area, sqrt(1 + |grad h|^2), at the grid ``nodes`` of
+        heights ``h``: finite differences with the neighbouring nodes of the same set (forward,
+        else backward; 0 slope along an axis where a node has no neighbour)."""
+        full = np.full(self.shape[0] * self.shape[1], np.nan)
+        full[nodes] = h
+        full = full.reshape(self.shape)
+        grads = []
+        for axis in (0, 1):
+            fwd = np.diff(full, axis=axis, append=np.nan)
+            bwd = np.diff(full, axis=axis, prepend=np.nan)
+            d = np.where(np.isnan(fwd), bwd, fwd)
+            grads.append(np.nan_to_num(d.ravel()[nodes]) / self.g)
+        return np.sqrt(1.0 + grads[0] ** 2 + grads[1] ** 2)
+
+    def node_of(self, uv: np.ndarray) -> np.ndarray:
+        ij = np.rint(uv / self.g).astype(np.int64) + self.half
+        inside = ((ij >= 0) & (ij < self.shape[0])).all(axis=1)
+        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
+        return np.where(inside, flat, -1)
+
+
+def flood(grid: Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
+    """Labels of the empty nodes (farther than rho/2 from the projected sample points indexed by
+    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge)."""
+    from scipy import ndimage
+
+    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=NEAR_FRACTION * rho)
+    empty = ~np.isfinite(d)
+    labels, _ = ndimage.label(empty.reshape(grid.shape))
+    labels = labels.ravel()
+    nodes = grid.node_of(seed_uv)
+    hit = np.unique(labels[nodes[nodes >= 0]])
+    hit = hit[hit > 0]
+    lab2 = labels.reshape(grid.shape)
+    edge = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
+    return [(np.flatnonzero(labels == lab), bool(np.isin(lab, edge))) for lab in hit]

@@ -1,0 +1,119 @@
+"""What the in-memory build does to keep its peak memory down must not change what it stores:
+the scan set aside in its work directory while it is ordered, and the archive written a row group
+at a time from the ordering."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+import lodbuilder
+from lodbuilder.archive import layout as L
+from lodbuilder.archive.reader import open_archive
+from lodbuilder.archive.writer import ScanRecord, write_archive
+from lodbuilder.build import jobs
+from lodbuilder.io import Scan, write_points
+from lodbuilder.sampling.ordering import Ordering
+
+
+def _datasets(path) -> dict[str, bytes]:
+    out: dict[str, bytes] = {}
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            out[name] = obj[()].tobytes() if obj.shape != () else bytes(str(obj[()]), "utf8")
+
+    with h5py.File(path) as f:
+        f.visititems(visit)
+    return out
+
+
+def test_set_aside_keeps_values_dtypes_and_shapes(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = rng.random((500, 3))
+    attrs = {"intensity": rng.integers(0, 60000, 500).astype(np.uint16),
+             "normals": rng.random((500, 3)).astype(np.float32)[:, ::-1],  # not C-contiguous
+             "label": np.array(["a"] * 500, dtype=object)}
+    scan = Scan(pts.copy(), {k: v.copy() for k, v in attrs.items()})
+    seen = []
+    progress = jobs.set_aside(scan, tmp_path / "x.work", lambda *a: seen.append(a))
+    assert np.array_equal(scan.points, pts) and scan.points.dtype == np.float64
+    assert not scan.points.flags.writeable  # mapped read-only
+    for k, v in attrs.items():
+        assert scan.attributes[k].dtype == v.dtype and scan.attributes[k].shape == v.shape
+        assert np.array_equal(scan.attributes[k], v)
+    assert scan.attributes["label"].flags.writeable  # objects stay in memory
+    progress("band", 1, 1)  # gives the points' pages back: the values read again from the file
+    assert np.array_equal(scan.points, pts)
+    assert seen == [("band", 1, 1)]
+
+
+def test_build_with_scan_set_aside_is_identical(tmp_path, monkeypatch):
+    rng = np.random.default_rng(1)
+    src = tmp_path / "s.ply"
+    g = np.stack(np.meshgrid(np.arange(60), np.arange(60)), -1).reshape(-1, 2) / 60.0
+    pts = np.c_[g + rng.uniform(-0.003, 0.003, g.shape), 0.05 * np.sin(5 * g[:, 0])]
+    write_points(src, pts.astype(np.float32).astype(np.float64),
+                 attributes={"red": rng.integers(0, 255, len(pts)).astype(np.uint8)})
+    monkeypatch.setattr(jobs, "ASIDE_MIN_POINTS", 10**12)
+    lodbuilder.build_archive(src, tmp_path / "plain.h5")
+    made = []
+    real = jobs.set_aside
+    monkeypatch.setattr(jobs, "set_aside", lambda *a: made.append(a[1]) or real(*a))
+    monkeypatch.setattr(jobs, "ASIDE_MIN_POINTS", 0)
+    lodbuilder.build_archive(src, tmp_path / "aside.h5")
+    assert made and not made[0].exists()  # set aside, and its work directory removed after the write
+    a, b = _datasets(tmp_path / "plain.h5"), _datasets(tmp_path / "aside.h5")
+    assert a.keys() == b.keys()
+    assert [k for k in a if a[k] != b[k]] == []
+
+
+@pytest.mark.parametrize("k", [20_000, 11_111, 6_667])
+def test_archive_written_by_row_groups(tmp_path, k):
+    n = 20_000  # 3 row groups of 6,667 rows
+    assert L.row_group_rows(n) < n
+    rng = np.random.default_rng(2)
+    pts = rng.random((n, 3)) * 1e3
+    attrs = {"intensity": rng.integers(0, 60000, n).astype(np.uint16), "rgb": rng.integers(0, 255, (n, 3)).astype(np.uint8)}
+    imp = rng.random(n)
+    order = rng.permutation(n)[:k]
+    radius = np.r_[np.inf, np.sort(rng.random(k - 1))[::-1]]
+    parent = np.r_[-1, rng.integers(0, np.arange(1, k))]
+    ordg = Ordering(order, radius, parent, 0.1, 0.3, np.array([order[0]]), n, {}, 0.0 if k == n else 0.01)
+    rec = ScanRecord(Scan(pts, attrs, name="s"), ordg, importance={"w": (imp, {"kind": "test"})})
+    write_archive(tmp_path / "a.h5", [rec])
+    seen = np.zeros(n, bool)
+    seen[order] = True
+    perm = np.r_[order, np.flatnonzero(~seen)]
+    with open_archive(tmp_path / "a.h5") as arc:
+        v = arc.scan("s")
+        assert np.array_equal(v.points(), pts[perm])
+        assert np.array_equal(v.source_index, perm)
+        assert np.array_equal(v.radius, np.r_[radius, np.zeros(n - k)])
+        assert np.array_equal(v.parent, np.r_[parent, np.full(n - k, -1)])
+        got = v.attributes()
+        for key, a in attrs.items():
+            assert got[key].dtype == a.dtype and np.array_equal(got[key], a[perm])
+    with h5py.File(tmp_path / "a.h5") as f:
+        assert np.array_equal(f[f"{L.G_SCANS}/s/{L.G_IMPORTANCE}/w"][()], imp[perm].astype(np.float32))
+
+
+def test_build_orders_in_memory_when_the_scan_cannot_be_set_aside(tmp_path, monkeypatch):
+    """A full disk (or any failure to write the work files) is no reason to fail the build."""
+    import errno
+
+    src = tmp_path / "s.ply"
+    rng = np.random.default_rng(3)
+    write_points(src, rng.random((3000, 3)).astype(np.float32).astype(np.float64))
+    monkeypatch.setattr(jobs, "ASIDE_MIN_POINTS", 10**12)
+    lodbuilder.build_archive(src, tmp_path / "plain.h5")
+
+    def full(arr, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(jobs, "_map_aside", full)
+    monkeypatch.setattr(jobs, "ASIDE_MIN_POINTS", 0)
+    lodbuilder.build_archive(src, tmp_path / "full.h5")
+    a, b = _datasets(tmp_path / "plain.h5"), _datasets(tmp_path / "full.h5")
+    assert a.keys() == b.keys() and [k for k in a if a[k] != b[k]] == []
