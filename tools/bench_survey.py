@@ -357,7 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     if not executors or not set(executors) <= {"pool", "dask"}:
         p.error(f"--executor takes pool, dask or pool,dask, got {args.executor!r}")
     doc: dict[str, Any] = {"benchmark": "bench_survey", "date": _dt.datetime.now().isoformat(timespec="seconds"),
-                           "commit": _commit(), "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+                           "commit": _commit(), "command": " ".join(["python", "tools/bench_survey.py",
+                                                                *(argv if argv is not None else sys.argv[1:])]),
                            "machine": platform.machine(), "cpus": os.cpu_count(),
                            "note": "the machine may be shared: see each run's load average before/after",
                            "surveys": []}
