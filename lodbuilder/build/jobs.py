@@ -156,7 +156,7 @@ ASIDE_MIN_POINTS = 200_000  # below this a scan's arrays are a few MB: not worth
 
 def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> ProgressCallback:
     """Move ``scan``'s points and attributes into files of the work directory ``work`` and map
-    them back read-only (the same values, dtypes and shapes), so that they take no memory of their
+    them back (copy-on-write: the same values, dtypes and shapes), so that they take no memory of their
     own while the engine orders the points: the attributes are not read until the archive is
     written, the points only until the band is built. Returns ``progress`` wrapped to give the
     points' pages back to the file once the band stage reports it is done (a page read after that
@@ -187,10 +187,12 @@ def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> Progr
 
 
 def _map_aside(arr: np.ndarray, path: Path) -> mmap.mmap:
-    """Write ``arr``'s bytes (C order) to ``path`` and map the file read-only."""
+    """Write ``arr``'s bytes (C order) to ``path`` and map the file copy-on-write: never written
+    back, and writeable like the array it replaces (a read-only array is another type to numba,
+    and every kernel it reached would be compiled a second time)."""
     np.ascontiguousarray(arr).tofile(path)
     with open(path, "rb") as f:
-        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if arr.nbytes else mmap.mmap(-1, 1)
+        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY) if arr.nbytes else mmap.mmap(-1, 1)
 
 
 def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]:
