@@ -44,11 +44,12 @@ def test_joint_build_keeps_the_shared_crs(halves, tmp_path, capsys):
     assert "crs        none" not in out and "units foot" in out
 
 
-def test_joint_build_of_different_crss_is_refused(halves, tmp_path, capsys):
+@pytest.mark.parametrize("joint", [["--joint"], []], ids=["joint", "collection"])
+def test_scans_in_different_crss_are_refused_before_any_work(halves, tmp_path, capsys, joint):
     a, _, _, right, _ = halves
     utm = write_points(tmp_path / "u.laz", right, crs=UTM10.to_wkt("WKT1_GDAL"))
-    rc, out, err = run_cli(capsys, "build", a, utm, "--joint", "-o", tmp_path / "j.h5", "--no-progress")
-    assert rc == 2 and not (tmp_path / "j.h5").exists()
+    rc, out, err = run_cli(capsys, "build", a, utm, *joint, "-o", tmp_path / "j.h5", "--no-progress")
+    assert rc == 2 and not (tmp_path / "j.h5").exists() and not (tmp_path / "j.h5.scans").exists()
     assert err == (
         "lodbuilder build: error: scans 'a.laz' and 'u.laz' are in different CRSs "
         "(NAD_1983_HARN_Lambert_Conformal_Conic and WGS 84 / UTM zone 10N (EPSG:32610)); reproject them "
@@ -118,18 +119,6 @@ def test_to_crs_for_a_collection_of_scans(halves, tmp_path):
 
 
 # ------------------------------------------------------------------ collections (issue 20, item 4)
-
-def test_a_collection_of_different_crss_is_refused_before_any_work(halves, tmp_path, capsys):
-    a, _, _, right, _ = halves
-    utm = write_points(tmp_path / "u.laz", right, crs=UTM10.to_wkt("WKT1_GDAL"))
-    rc, out, err = run_cli(capsys, "build", a, utm, "-o", tmp_path / "c.h5", "--no-progress")
-    assert rc == 2 and not (tmp_path / "c.h5").exists() and not (tmp_path / "c.h5.scans").exists()
-    assert err == (
-        "lodbuilder build: error: scans 'a.laz' and 'u.laz' are in different CRSs "
-        "(NAD_1983_HARN_Lambert_Conformal_Conic and WGS 84 / UTM zone 10N (EPSG:32610)); reproject them "
-        "to one with --to-crs EPSG:XXXX (needs pyproj), or build them separately\n"
-    )
-
 
 def test_a_collection_scan_without_crs_needs_crs(halves, tmp_path, capsys):
     a, _, _, right, wkt = halves
