@@ -18,8 +18,6 @@ task's result lists its files with their sums, and the parent records it as the 
 
 from __future__ import annotations
 
-import os
-import time
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +67,6 @@ def read_block(work: str, b: int, source: Any, member: int | None, start: int, s
     from ...archive.layout import encode_points
     from ...io.pose import apply_pose
 
-    t0 = time.perf_counter()
     stream, pose = source() if callable(source) else source
     fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
     rec_dt = WL.attr_record(fields)
@@ -102,8 +99,7 @@ def read_block(work: str, b: int, source: Any, member: int | None, start: int, s
                           f"{stop - start}; re-export the file")
     smp = np.concatenate(samples) if samples else np.zeros((0, 3))
     out.write(WL.sample(b), np.ascontiguousarray(smp, dtype="<f8"))
-    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings),
-            "seconds": time.perf_counter() - t0, "worker_pid": os.getpid(), "files": out.publish()}
+    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings), "files": out.publish()}
 
 
 def _xyz_blocks(work: Path, b: int, m: int, rows: int) -> Any:
@@ -117,7 +113,6 @@ def survey_block(work: str, b: int, g0: int, m: int, rows: int, grid: dict[str, 
     """Block ``b``'s count histogram on ``grid`` (sparse: occupied cells and counts, when
     ``histogram``) and its representatives of the decimated copy: for each cubic cell of size
     ``d_cell`` (from the grid's corner) its first point (cell key, input index, coordinates)."""
-    t0 = time.perf_counter()
     w = Path(work)
     gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
     hist = np.zeros(int(np.prod(gr.shape)) if histogram else 0, np.int64)
@@ -138,7 +133,7 @@ def survey_block(work: str, b: int, g0: int, m: int, rows: int, grid: dict[str, 
     keep[1:] = key_a[1:] != key_a[:-1]
     cells = np.flatnonzero(hist)
     return {"block": b, "n": m, "cells": cells, "counts": hist[cells], "keys": key_a[keep], "g": g_a[keep],
-            "xyz": p_a[keep], "seconds": time.perf_counter() - t0, "worker_pid": os.getpid()}
+            "xyz": p_a[keep]}
 
 
 def decimated_copy(parts: list[dict[str, Any]]) -> np.ndarray:
@@ -165,7 +160,6 @@ def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[
     """Write block ``b``'s points into the pieces of the tiles (``core.<t>.<b>.bin``: the tile's
     own points; ``halo.<t>.<b>.bin``: points of other tiles within ``halo`` of its box); returns
     the rows of each tile's pieces."""
-    t0 = time.perf_counter()
     w = Path(work)
     tl = [Tile.from_json(t) for t in tiles]
     gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
@@ -180,8 +174,7 @@ def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[
             _split(out, b, g0 + r0, pts, lookup[gr.index(pts)], t_lo, t_hi, halo, n_core, n_halo)
     finally:
         out.close()
-    return {"block": b, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(), "seconds": time.perf_counter() - t0,
-            "worker_pid": os.getpid(), "files": out.publish()}
+    return {"block": b, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(), "files": out.publish()}
 
 
 def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: np.ndarray, t_hi: np.ndarray,

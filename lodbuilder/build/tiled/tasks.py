@@ -10,8 +10,6 @@ shared file system (NFS, Lustre, a mounted object store) under the archive's dir
 from __future__ import annotations
 
 import math
-import os
-import time
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +31,6 @@ def parameters_task(work: str, n: int, voxel_size: float | None, band_radius: fl
     voxel size and band radius every tile shares."""
     from ...sampling.band import VOXEL_PER_SPACING, choose_parameters, median_spacing
 
-    t0 = time.perf_counter()
     sample = np.load(Path(work) / WL.SAMPLE)
     if sample.shape[0] < 2:
         s = 1.0
@@ -41,8 +38,7 @@ def parameters_task(work: str, n: int, voxel_size: float | None, band_radius: fl
         s = median_spacing(sample) * math.sqrt(sample.shape[0] / max(n, 1))
         s = s if s > 0 else float(np.ptp(sample, axis=0).max() or 1.0) / math.sqrt(max(n, 1))
     h, r = choose_parameters(sample, voxel_size if voxel_size is not None else VOXEL_PER_SPACING * s, band_radius)
-    return {"spacing": s, "voxel_size": h, "band_radius": r, "seconds": time.perf_counter() - t0,
-            "worker_pid": os.getpid()}
+    return {"spacing": s, "voxel_size": h, "band_radius": r}
 
 
 @timed_task
@@ -50,7 +46,6 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
     from ...sampling.fastfps import fastfps
 
-    t0 = time.perf_counter()
     w = Path(work)
     rec = np.fromfile(w / WL.DECIMATED, dtype=REC)
     dec = rec["g"]
@@ -67,7 +62,7 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     r_next = float(o.radius[h]) if len(o) > h else 0.0
     files = {WL.HEAD_FILE: _publish(head, w / WL.HEAD_FILE)}
     return {"n_decimated": int(dec.shape[0]), "head": h, "r_cut": r_next, "voxel_size": o.voxel_size,
-            "band_radius": o.band_radius, "seconds": time.perf_counter() - t0, "files": files}
+            "band_radius": o.band_radius, "files": files}
 
 
 def _margins(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, interior: np.ndarray) -> np.ndarray:
@@ -113,7 +108,6 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
 
     from ...sampling.fastfps import fastfps
 
-    t0 = time.perf_counter()
     w = Path(work)
     out = w / WL.stream(t)
     core = tile_records(w, tile["core"])
@@ -170,8 +164,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     n_seam = int((stream["m"] < stream["key"]).sum())
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
-            "band_voxels": int(o.stats.get("band_voxels", 0)), "seconds": time.perf_counter() - t0,
-            "worker_pid": os.getpid(), "files": files}
+            "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
 
 
 @timed_task
@@ -186,7 +179,6 @@ def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_p
     is below the halo width and upper bounds beyond it."""
     from ..._kernels.tiled import cover_pass
 
-    t0 = time.perf_counter()
     w = Path(work)
     core = tile_records(w, core_pieces)
     halo = tile_records(w, halo_pieces)
@@ -213,5 +205,4 @@ def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_p
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
     files = {WL.cover_events(t): _publish(ev, w / WL.cover_events(t)), WL.cover_points(t): _publish(pt, w / WL.cover_points(t))}
-    return {"tile": t, "n_ext": int(n), "n_events": int(ne), "seconds": time.perf_counter() - t0,
-            "worker_pid": os.getpid(), "files": files}
+    return {"tile": t, "n_ext": int(n), "n_events": int(ne), "files": files}

@@ -9,8 +9,6 @@ task per raw block, :func:`bucket_block`), then each bucket's pieces are read, p
 
 from __future__ import annotations
 
-import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -41,7 +39,6 @@ def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str
     """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
     positions (``rank.i8`` rows ``g0 .. g0 + m``), split by destination block (``block`` rows of
     the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
-    t0 = time.perf_counter()
     w = Path(work)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
@@ -66,7 +63,7 @@ def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str
             f.close()
     for name in out:
         publish(w / WL.writing(name), w / name)
-    return {"block": b, "counts": counts.tolist(), "seconds": time.perf_counter() - t0, "worker_pid": os.getpid(),
+    return {"block": b, "counts": counts.tolist(),
             "files": {name: f.sum for name, f in out.items()}}
 
 
