@@ -46,6 +46,12 @@ def _archive(path, points, name):
     return path
 
 
+def _gaps(tmp_path, points, name, rho):
+    """The exact gap report of ``points`` (a scan named ``name``, archived in ``tmp_path``)."""
+    with lodbuilder.open_archive(_archive(tmp_path / f"{name}.h5", points, name)) as arc:
+        return find_gaps(arc.scan(), rho, exact=True)
+
+
 def _punched(tmp_path_factory, name, full, centres, radii, rho):
     keep = np.ones(full.shape[0], dtype=bool)
     for c, r in zip(centres, radii, strict=True):
@@ -158,13 +164,11 @@ def test_a_tube_has_no_gap_at_its_ends(tmp_path, rng):
     t = rng.uniform(0, 2 * np.pi, n)
     z = rng.uniform(-0.6, 0.6, n)
     tube = np.c_[0.3 * np.cos(t), 0.3 * np.sin(t), z]
-    with lodbuilder.open_archive(_archive(tmp_path / "tube.h5", tube, "tube")) as arc:
-        rep = find_gaps(arc.scan(), rho, exact=True)
+    rep = _gaps(tmp_path, tube, "tube", rho)
     assert rep.gaps == [] and rep.n_open >= 2
     centre = np.array([0.3, 0.0, 0.1])
     holed = tube[np.linalg.norm(tube - centre, axis=1) > 3.0 * rho]
-    with lodbuilder.open_archive(_archive(tmp_path / "holed.h5", holed, "holed")) as arc:
-        rep = find_gaps(arc.scan(), rho, exact=True)
+    rep = _gaps(tmp_path, holed, "holed", rho)
     (gap,) = rep.gaps
     assert np.linalg.norm(gap.candidates.mean(axis=0) - centre) < 0.5 * rho
     assert gap.status == "fillable"
@@ -176,12 +180,10 @@ def test_a_hemisphere_border_is_never_a_gap(tmp_path, rng):
     rho = 0.05
     full = sphere(20_000, rng, 0.5)
     cap = full[full[:, 2] > 0.0]
-    with lodbuilder.open_archive(_archive(tmp_path / "cap.h5", cap, "cap")) as arc:
-        assert find_gaps(arc.scan(), rho, exact=True).gaps == []
+    assert _gaps(tmp_path, cap, "cap", rho).gaps == []
     centre = np.array([0.0, 0.3, 0.4])
     holed = cap[np.linalg.norm(cap - centre, axis=1) > 3.5 * rho]
-    with lodbuilder.open_archive(_archive(tmp_path / "holed.h5", holed, "holed")) as arc:
-        rep = find_gaps(arc.scan(), rho, exact=True)
+    rep = _gaps(tmp_path, holed, "holed", rho)
     (gap,) = rep.gaps
     assert np.linalg.norm(gap.candidates.mean(axis=0) - centre) < 0.5 * rho
 
@@ -193,8 +195,7 @@ def test_a_small_patch_is_not_a_hole(tmp_path, rng):
     pts = rng.uniform(-1, 1, (6000, 2)) * 5 * rho
     pts = pts[np.hypot(*pts.T) < 5 * rho]
     disc = np.c_[pts, 0.3 * (pts**2).sum(axis=1)]
-    with lodbuilder.open_archive(_archive(tmp_path / "disc.h5", disc, "disc")) as arc:
-        rep = find_gaps(arc.scan(), rho, exact=True)
+    rep = _gaps(tmp_path, disc, "disc", rho)
     assert rep.gaps == []
 
 
@@ -351,8 +352,7 @@ def test_open_regions_line_word_for_word(tmp_path, rng):
     rho = 0.04
     t = rng.uniform(0, 2 * np.pi, 20_000)
     tube = np.c_[0.3 * np.cos(t), 0.3 * np.sin(t), rng.uniform(-0.6, 0.6, t.size)]
-    with lodbuilder.open_archive(_archive(tmp_path / "tube.h5", tube, "tube")) as arc:
-        rep = find_gaps(arc.scan(), rho, exact=True)
+    rep = _gaps(tmp_path, tube, "tube", rho)
     assert rep.gaps == [] and rep.n_open >= 2
     assert rep.table().splitlines() == [
         "scan 'tube': 0 gap(s) at rho 0.04 (surface farther than rho from every input point, "
