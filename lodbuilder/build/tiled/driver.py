@@ -22,7 +22,7 @@ from . import layout as WL
 from . import plan as P
 from .pool import collect, result, submit
 from .sums import done as piece_done
-from .sums import read_json, write_json
+from .sums import mark, read_json, write_json
 from .survey import distribute_phase, plan_phase, read_phase
 from .tasks import coarse_task, cover_tile, order_tile, parameters_task
 from .timing import task_table
@@ -63,12 +63,6 @@ HALO_FACTOR = 0.3
 def _done(work: Path, phase: str) -> dict[str, Any] | None:
     """The marker of a finished phase whose files all check out (see :mod:`.sums`), else None."""
     return piece_done(work, phase)
-
-
-def _mark(work: Path, phase: str, doc: dict[str, Any]) -> dict[str, Any]:
-    write_json(work / WL.marker(phase), doc)
-    WL.moment(phase)
-    return doc
 
 
 def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
@@ -231,7 +225,7 @@ def _merge(executor: cf.Executor, work: Path, name: str, n: int, stats: list[dic
     if merged is None:
         args = (str(work), n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
         (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
-        _mark(work, "merge", merged)
+        mark(work, "merge", merged)
     return merged
 
 
@@ -340,7 +334,7 @@ def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, sp: Spill, p
     finally:
         if coarse is None:
             (coarse,) = collect(pending, lambda _: "the coarse level", name, 1, progress, "coarse")
-            _mark(work, "coarse", coarse)
+            mark(work, "coarse", coarse)
     return coarse, dist
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from ...progress import ProgressCallback
 from . import layout as WL
 from .pool import collect, submit
-from .sums import done, publish, read_json, write_json
+from .sums import done, mark, publish, read_json
 from .timing import timed_task
 
 EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
@@ -138,9 +138,7 @@ def radii_phase(ex: Any, work: Path, name: str, n: int, n_tiles: int, delta: flo
             calls.append((b, radii_band, (str(work), b, k0, k1, n_tiles, delta, r_cut)))
 
     def record(res: dict[str, Any]) -> None:
-        write_json(work / WL.marker(WL.band_piece(res["band"])), res)
-        WL.moment("band")
-        first[res["band"]] = res
+        first[res["band"]] = mark(work, WL.band_piece(res["band"]), res)
 
     where = "the radii of positions {} to {}".format
     size = {b: k1 - k0 for b, (k0, k1) in enumerate(bands)}
@@ -160,6 +158,4 @@ def radii_phase(ex: Any, work: Path, name: str, n: int, n_tiles: int, delta: flo
     files = {k: v for b in range(len(bands)) for r in (fin[b], first[b]) for k, v in r["files"].items()
              if not k.startswith(("radloc.", "space."))}
     doc = {"spacing_over_radius_min": worst, "spacing_over_radius_min_at": at, "bands": bands, "files": files}
-    write_json(work / WL.marker("radii"), doc)
-    WL.moment("radii")
-    return doc
+    return mark(work, "radii", doc)

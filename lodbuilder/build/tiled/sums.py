@@ -154,6 +154,15 @@ def read_json(path: Path) -> dict[str, Any] | None:
     return doc if isinstance(doc, dict) else None
 
 
+def mark(work: Path, piece: str, doc: dict[str, Any]) -> dict[str, Any]:
+    """Write the marker of a finished phase or task ``piece`` (its files listed in ``doc``), then
+    pass the named moment of its kind (the piece's name up to the first dot: :func:`layout.moment`);
+    returns ``doc``."""
+    write_json(work / WL.marker(piece), doc)
+    WL.moment(piece.split(".")[0])
+    return doc
+
+
 def done(work: Path, name: str, skip: tuple[str, ...] = ()) -> dict[str, Any] | None:
     """The marker ``<name>.json`` of a finished phase or task when it and every file it lists
     check out; else None, and a marker that is there but fails is deleted (the piece is redone)."""

@@ -33,18 +33,12 @@ from . import plan as P
 from . import workdir as W
 from .blocks import decimated_copy, distribute_block, read_block, survey_block
 from .pool import collect, submit
-from .sums import SumFile, done, write_json
+from .sums import SumFile, done, mark
 from .sums import publish as publish_array
 from .workdir import SAMPLE, Spill
 
 #: read tasks per worker (a big input is cut into about this many blocks per worker)
 READ_TASKS_PER_WORKER = 2
-
-
-def _mark(work: Path, piece: str, doc: dict[str, Any]) -> dict[str, Any]:
-    write_json(work / WL.marker(piece), doc)
-    WL.moment(piece.split(".")[0])
-    return doc
 
 
 def plan_inputs(sources: list[tuple[Any, ...]], parallel: int, rows: int) -> dict[str, Any]:
@@ -99,7 +93,7 @@ def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, 
     doc = done(work, "spill")
     if doc is not None:
         return Spill.from_json(doc, np.load(work / WL.SAMPLE))
-    inp = done(work, "inputs") or _mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
+    inp = done(work, "inputs") or mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
     spec = {k: inp[k] for k in ("fields", "joint", "metadata", "step", "rows")}
     results = {}
     calls: list[tuple[int, Any, tuple]] = []
@@ -115,7 +109,7 @@ def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, 
     futs = submit(ex, calls)
 
     def record(res: dict[str, Any]) -> None:
-        results[res["block"]] = _mark(work, WL.read_piece(res["block"]), res)
+        results[res["block"]] = mark(work, WL.read_piece(res["block"]), res)
 
     def where(b: int) -> str:
         return f"reading {sources[inp['blocks'][b][0]][0].path}"
@@ -144,7 +138,7 @@ def _spill(work: Path, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill:
     sp = Spill(n, np.min([r["lo"] for r in res], axis=0), np.max([r["hi"] for r in res], axis=0),
                {k: (v[0], tuple(v[1])) for k, v in inp["fields"].items()}, sample, inp["metadata"], inp["reader"],
                inp["members"], enc, {**files, WL.SAMPLE: f.sum}, inp["blocks"], int(inp["rows"]))
-    _mark(work, "spill", sp.to_json())
+    mark(work, "spill", sp.to_json())
     return sp
 
 
@@ -183,7 +177,7 @@ def plan_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, params: dict[s
         dec = decimated_copy(_survey(ex, work, name, sp, grid, d_cell, False, progress))
     sums = publish_array(dec, work / WL.DECIMATED)
     tiles = P.split_tiles(hist, grid, cap)
-    return _mark(work, "plan", {**params, "tile_cap": cap, "tiles": [t.to_json() for t in tiles],
+    return mark(work, "plan", {**params, "tile_cap": cap, "tiles": [t.to_json() for t in tiles],
                                 "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
                                 "d_cell": d_cell, "span": span, "n_decimated": int(dec.shape[0]),
                                 "files": {WL.DECIMATED: sums}})
@@ -206,7 +200,7 @@ def distribute_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, pl: dict
             calls.append((b, distribute_block, (str(work), b, g0, m, sp.rows, pl["tiles"], pl["grid"], halo)))
 
     def record(res: dict[str, Any]) -> None:
-        results[res["block"]] = _mark(work, WL.split_piece(res["block"]), res)
+        results[res["block"]] = mark(work, WL.split_piece(res["block"]), res)
 
     collect(submit(ex, calls), lambda b: f"the split of block {b + 1}", name, sp.n, progress, "split", record,
             lambda r: int(np.sum(r["n_core"])), sum(int(np.sum(r["n_core"])) for r in results.values()))
@@ -217,6 +211,6 @@ def distribute_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, pl: dict
     pieces = {"core": [[WL.core(t, int(b)) for b in np.flatnonzero(core[:, t])] for t in range(n_tiles)],
               "halo": [[WL.halo(t, int(b)) for b in np.flatnonzero(hal[:, t])] for t in range(n_tiles)]}
     files = {k: v for r in res for k, v in r["files"].items()}
-    return _mark(work, "distribute", {"halo": halo, "n_core": core.sum(axis=0).tolist(),
+    return mark(work, "distribute", {"halo": halo, "n_core": core.sum(axis=0).tolist(),
                                       "n_halo": hal.sum(axis=0).tolist(), "pieces": pieces, "files": files})
 

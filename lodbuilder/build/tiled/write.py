@@ -71,7 +71,7 @@ def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tupl
                   raw: list[list[int]], rows: int, progress: ProgressCallback = None) -> dict[str, Any]:
     """The first pass of the write as tasks, one per raw block (or what a finished one recorded)."""
     from .pool import collect, submit
-    from .sums import done, write_json
+    from .sums import done, mark
 
     doc = done(work, "buckets")
     if doc is not None:
@@ -86,16 +86,12 @@ def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tupl
             calls.append((b, bucket_block, (str(work), b, int(g0), int(z) - int(a), fields, n, BLOCK, rows)))
 
     def record(res: dict[str, Any]) -> None:
-        write_json(work / WL.marker(WL.bucket_piece(res["block"])), res)
-        WL.moment("permute")
-        results[res["block"]] = res
+        results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
 
     collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
             lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
     doc = bucket_pieces([results[b] for b in range(len(raw))], BLOCK)
-    write_json(work / WL.marker("buckets"), doc)
-    WL.moment("buckets")
-    return doc
+    return mark(work, "buckets", doc)
 
 
 def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
