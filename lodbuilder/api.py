@@ -58,7 +58,7 @@ def build_archive(
     size: int | None = None, rho: float | None = None, force: bool = False, overwrite: bool = False,
     max_memory: Any = None, joint: bool | str = False, seam_spacing: float | None = None,
     crs: str | None = None, crs_override: bool = False, to_crs: str | None = None,
-    wait: float | None = None, options: BuildOptions | None = None,
+    wait: float | None = None, work_dir: str | os.PathLike[str] | None = None, options: BuildOptions | None = None,
     raise_on_failure: bool | None = None, progress: ProgressCallback = None, on_status: Any = None,
     _tile_points: int | None = None, _tile_passes: int | None = None,
     **features: Any,
@@ -70,7 +70,10 @@ def build_archive(
     and Scans; ``manifest`` adds one more manifest. A single scan is a collection of one: every
     input takes the same path. Scans run in this process when there is one (or they are
     in-memory Scans), else on a process pool of ``workers`` (default: one per core), or on Dask
-    (``scheduler`` address, or ``dask_local=N`` workers of a LocalCluster).
+    (``scheduler`` address, or ``dask_local=N`` workers of a LocalCluster). ``work_dir``: where a tiled
+    build keeps its work files, a directory or an object store's fsspec URL (``s3://BUCKET/PREFIX``:
+    workers need no file system shared with this process; :mod:`lodbuilder.build.tiled.store`);
+    default: a hidden directory beside the archive.
 
     Names: the file stem made safe and unique (``name`` names a single scan). A scan already in the
     archive with the same source, pose and parameters is skipped (``force`` rebuilds it); a scan of
@@ -102,7 +105,7 @@ def build_archive(
              **{k: v for k, v in features.items() if v is not None}}
     options = _one_options(options, given, crs_override)
     return build(inputs, archive, options, name=name, manifest=manifest, workers=workers, scheduler=scheduler,
-                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint, wait=wait,
+                 dask_local=dask_local, force=force, overwrite=overwrite, joint=joint, wait=wait, work_dir=work_dir,
                  raise_on_failure=raise_on_failure, progress=progress, on_status=on_status)
 
 

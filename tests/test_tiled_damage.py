@@ -45,7 +45,7 @@ def _same(a, b):
 
 
 # the moment of the stop: the module and function that raises (what is done by then: everything before)
-MOMENTS = {"split": ("driver", "distribute_phase"), "tiles": ("driver", "write_json"), "merge": ("driver", "_merge"),
+MOMENTS = {"split": ("driver", "distribute_phase"), "tiles": ("driver", "put_json"), "merge": ("driver", "_merge"),
            "radii": ("radii", "radii_phase"), "write": ("driver", "_timings")}
 
 
@@ -70,8 +70,8 @@ def stopped(tmp_path_factory):
             def stop(*a, **k):
                 raise KeyboardInterrupt
 
-            if fn == "write_json":  # stopped once two tiles are ordered (their markers written)
-                stop = _after_two_orderings(D.write_json)
+            if fn == "put_json":  # stopped once two tiles are ordered (their markers written)
+                stop = _after_two_orderings(D.put_json)
             mp.setattr(f"lodbuilder.build.tiled.{module}.{fn}", stop)
             with pytest.raises(KeyboardInterrupt):
                 _build(archive)
@@ -84,13 +84,13 @@ def stopped(tmp_path_factory):
     return out
 
 
-def _after_two_orderings(write_json):
+def _after_two_orderings(put_json):
     written = []
 
-    def write(path, doc):
-        write_json(path, doc)
-        if Path(path).name.startswith("order."):
-            written.append(path)
+    def write(store, name, doc):
+        put_json(store, name, doc)
+        if name.startswith("order."):
+            written.append(name)
             if len(written) == 2:
                 raise KeyboardInterrupt
 
@@ -244,17 +244,17 @@ import lodbuilder
 from lodbuilder.build.tiled import driver as D
 
 if __name__ == "__main__":
-    write_json = D.write_json
+    put_json = D.put_json
     written = []
 
-    def write(path, doc):  # kill -9 once two tiles are ordered (their markers written)
-        write_json(path, doc)
-        if Path(path).name.startswith("order."):
-            written.append(path)
+    def write(store, name, doc):  # kill -9 once two tiles are ordered (their markers written)
+        put_json(store, name, doc)
+        if name.startswith("order."):
+            written.append(name)
             if len(written) == 2:
                 os.kill(os.getpid(), signal.SIGKILL)
 
-    D.write_json = write
+    D.put_json = write
     lodbuilder.build_archive(sys.argv[1], sys.argv[2], workers=2, _tile_points=5000)
 """
 

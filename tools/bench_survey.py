@@ -19,10 +19,17 @@ them ordered as one surface: ``--joint``) once per executor and worker count. Fo
 * the speed-up of each worker count over 1 worker (target: 2 workers >= 1.9 x), and Dask
   LocalCluster over the process pool at equal workers (target <= 1.2).
 
+Executors: ``pool`` (``--workers N``), ``dask`` (``--dask-local N``, work files beside the archive)
+and ``dask-s3`` (``--dask-local N --work-dir s3://...``: the work files on moto's S3 server, started
+by this program on 127.0.0.1 and found by the build through fsspec's ``FSSPEC_S3_*`` variables; the
+server's own CPU is this program's, outside the measured tree, and ``peak_work_dir_bytes`` counts
+the local disk only). ``s3_requests`` of such a run: the server's requests by method.
+
     python tools/make_survey.py --nx 4 --ny 4 -o /work/bench_data/survey_4x4.laz
     python tools/make_survey.py --nx 4 --ny 4 --files /work/bench_data/survey_4x4
     python tools/bench_survey.py /work/bench_data/survey_4x4.laz /work/bench_data/survey_4x4 \\
         --workers 1,2 --executor pool,dask --max-memory 1.5GB
+    python tools/bench_survey.py /tmp/sstore/survey_4x4.laz --workers 2 --executor pool,dask-s3
 
 Timings depend on the machine and its load (the load average before and after each run is in the
 JSON): on a shared machine, compare runs of one invocation only.
@@ -51,6 +58,8 @@ OUT = ROOT / "docs" / "bench" / "bench_survey.json"
 #: the targets of issue 19 that one machine can check
 TARGETS = {"parent_cpu_share_max": 0.03, "speedup_2_over_1_min": 1.9, "work_over_archive_max": 2.0,
            "dask_over_pool_max": 1.2}
+EXECUTORS = ("pool", "dask", "dask-s3")
+BUCKET = "lodbuilder-bench"
 
 #: the child: ``lodbuilder build`` in this process, its own CPU (getrusage) written at exit.
 #: ``BENCH_SURVEY_TILE_POINTS`` (a test knob) orders a small survey tiled in tiles of that many points.
@@ -195,16 +204,73 @@ def task_summary(tasks: dict[str, Any] | None) -> dict[str, Any]:
             "task_cpu_seconds": round(sum(r["cpu_seconds"] for r in rows), 3)}
 
 
+class S3:
+    """moto's S3 server on 127.0.0.1 with one bucket: the work store of the ``dask-s3`` runs."""
+
+    def __init__(self) -> None:
+        import boto3
+        from moto.server import ThreadedMotoServer
+
+        self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+        self.server.start()
+        host, port = self.server.get_host_and_port()
+        self.endpoint = f"http://{host}:{port}"
+        boto3.client("s3", endpoint_url=self.endpoint, aws_access_key_id="test", aws_secret_access_key="test",
+                     region_name="us-east-1").create_bucket(Bucket=BUCKET)
+        self.env = {"FSSPEC_S3_ENDPOINT_URL": self.endpoint, "FSSPEC_S3_KEY": "test", "FSSPEC_S3_SECRET": "test"}
+
+    def requests(self) -> dict[str, int]:
+        """The requests since the last call, by method (moto's recorder)."""
+        import requests
+
+        requests.post(self.endpoint + "/moto-api/recorder/stop-recording")
+        text = requests.get(self.endpoint + "/moto-api/recorder/download-recording").text
+        requests.post(self.endpoint + "/moto-api/recorder/reset-recording")
+        requests.post(self.endpoint + "/moto-api/recorder/start-recording")
+        out: dict[str, int] = {}
+        for line in text.splitlines():
+            if line.strip():
+                m = json.loads(line).get("method", "?")
+                out[m] = out.get(m, 0) + 1
+        return out
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
+_S3: list[S3] = []
+
+
+def _s3() -> S3:
+    if not _S3:
+        os.environ.setdefault("MOTO_RECORDER_FILEPATH", os.path.join(tempfile.gettempdir(), f"moto_bench_{os.getpid()}"))
+        _S3.append(S3())
+        _S3[0].requests()  # (starts the recorder)
+    return _S3[0]
+
+
+def _executor_args(executor: str, workers: int, where: Path) -> tuple[list[str], dict[str, str]]:
+    """The command line options and environment of a run on ``executor``."""
+    if executor == "pool":
+        return ["--workers", str(workers)], {}
+    if executor == "dask":
+        return ["--dask-local", str(workers)], {}
+    s3 = _s3()
+    return ["--dask-local", str(workers), "--work-dir", f"s3://{BUCKET}/{where.name}"], s3.env
+
+
 def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
               interval: float, tile_points: int | None = None) -> dict[str, Any]:
     """One measured ``lodbuilder build`` of ``inputs`` (see the module)."""
     where = Path(tempfile.mkdtemp(prefix=f"{executor}{workers}_", dir=base))
     archive = where / "survey.h5"
-    ex = ["--workers", str(workers)] if executor == "pool" else ["--dask-local", str(workers)]
+    ex, ex_env = _executor_args(executor, workers, where)
     args = ["build", *map(str, inputs), "-o", str(archive), "--max-memory", max_memory, "--no-progress", "--json", *ex]
     if joint:
         args += ["--joint", joint]
-    env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"))
+    env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"), **ex_env)
+    if executor == "dask-s3":
+        _s3().requests()  # (forget what came before)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
     if tile_points:
         env["BENCH_SURVEY_TILE_POINTS"] = str(tile_points)
@@ -247,6 +313,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "tiles": rec.get("tiled", {}).get("tiles"),
         "tasks": task_summary(rec.get("tasks")),
     })
+    if executor == "dask-s3":
+        res["s3_requests"] = _s3().requests()
     res["simulation"] = _simulate(rec, wall, workers)
     res["simulation_cpu"] = _simulate(rec, wall, workers, rus["self_cpu"])
     shutil.rmtree(where, ignore_errors=True)
@@ -265,8 +333,8 @@ def warm_up(base: Path, executor: str) -> float:
     rng = np.random.default_rng(0)
     xy = rng.random((30_000, 2))
     sheet = write_points(where / "sheet.npy", np.c_[xy, 0.05 * np.sin(6 * xy[:, 0])])
-    ex = ["--workers", "1"] if executor == "pool" else ["--dask-local", "1"]
-    env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"), BENCH_SURVEY_TILE_POINTS="6000")
+    ex, ex_env = _executor_args(executor, 1, where)
+    env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"), BENCH_SURVEY_TILE_POINTS="6000", **ex_env)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-c", CHILD, "build", str(sheet), "-o", str(where / "warm.h5"), "--max-memory",
@@ -301,8 +369,8 @@ def ratios(runs: list[dict[str, Any]]) -> dict[str, Any]:
     for (ex, w), s in sorted(wall.items()):
         if (ex, 1) in wall and w != 1:
             out["speedup_over_1_worker"][f"{ex} {w}"] = round(wall[(ex, 1)] / s, 3)
-        if ex == "dask" and ("pool", w) in wall:
-            out["dask_over_pool"][str(w)] = round(s / wall[("pool", w)], 3)
+        if ex.startswith("dask") and ("pool", w) in wall:
+            out["dask_over_pool"][f"{ex} {w}"] = round(s / wall[("pool", w)], 3)
     checks = {}
     if ok:
         checks["parent_cpu_share"] = {"worst": max(r["parent_cpu_share"] for r in ok),
@@ -343,7 +411,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="surveys to measure, each a LAS/LAZ file or a directory of them (ordered as one surface)")
     p.add_argument("--joint", default="survey", help="the scan name of a directory's joint build (default survey)")
     p.add_argument("--workers", type=_ints, default=[1, 2], help="worker counts, comma-separated (default 1,2)")
-    p.add_argument("--executor", default="pool", help="pool, dask or pool,dask (Dask LocalCluster)")
+    p.add_argument("--executor", default="pool",
+                   help="comma-separated: pool, dask (Dask LocalCluster), dask-s3 (the same with its work files on "
+                        "a local S3 server)")
     p.add_argument("--max-memory", default="3GB")
     p.add_argument("--interval", type=float, default=0.2, help="seconds between samples of /proc and the disk")
     p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()), help="where the runs write")
@@ -354,8 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
-    if not executors or not set(executors) <= {"pool", "dask"}:
-        p.error(f"--executor takes pool, dask or pool,dask, got {args.executor!r}")
+    if not executors or not set(executors) <= set(EXECUTORS):
+        p.error(f"--executor takes {', '.join(EXECUTORS)} (comma-separated), got {args.executor!r}")
     doc: dict[str, Any] = {"benchmark": "bench_survey", "date": _dt.datetime.now().isoformat(timespec="seconds"),
                            "commit": _commit(), "command": " ".join(["python", "tools/bench_survey.py",
                                                                 *(argv if argv is not None else sys.argv[1:])]),
@@ -380,6 +450,8 @@ def main(argv: list[str] | None = None) -> int:
         old = json.loads(args.out.read_text())
         doc["earlier"] = [*old.pop("earlier", []), {k: old[k] for k in ("date", "commit", "command") if k in old}]
         doc["surveys"] = old.get("surveys", []) + doc["surveys"]
+    for s3 in _S3:
+        s3.stop()
     text = json.dumps(doc, indent=1)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

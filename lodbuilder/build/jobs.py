@@ -49,6 +49,7 @@ class ScanJob:
     tiled: bool = False
     members: list[dict[str, Any]] = field(default_factory=list)
     given: str | None = None  # the path as the caller wrote it (for messages)
+    work_url: str | None = None  # where the tiled build's work files go (None: beside the part)
 
     @property
     def source(self) -> str:
@@ -63,6 +64,18 @@ class ScanJob:
         """The tiled build's work directory (beside its part file: a resumed build finds it)."""
         part = Path(self.part)
         return part.with_name(part.name[: -len(".h5")] + ".work")
+
+    @property
+    def work_store(self) -> Any:
+        """Where the tiled build keeps its work files (:mod:`lodbuilder.build.tiled.store`): the
+        work directory, or ``<work_url>/<archive>/<part>.work`` (a resumed build finds it too)."""
+        from .tiled.store import as_store
+
+        if self.work_url is None:
+            return as_store(self.work)
+        part = Path(self.part)
+        archive = part.parent.name.strip(".")[: -len(".parts")]
+        return as_store(f"{self.work_url.rstrip('/')}/{archive}/{self.work.name}")
 
 
 def job_key(sha256: str | None, params: dict[str, Any], pose: Any, scan_index: int | None, name: str) -> str:
@@ -353,7 +366,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     if reps:
         prov[KEY_REPROJECTION] = reps if job.members else reps[0]
     res = build_tiled(
-        sources, Path(job.part), job.name, job.work, executor, parallel=parallel,
+        sources, Path(job.part), job.name, job.work_store, executor, parallel=parallel,
         max_memory=o.max_memory, voxel_size=o.voxel_size, band_radius=o.band_radius,
         seam_spacing=o.seam_spacing if o.seam_spacing is not None else SEAM_SPACING,
         tile_points=o.tile_points, passes=o.tile_passes or TILE_PASSES, build=build,
@@ -362,3 +375,39 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     )
     res.update({"name": job.name, "method": "tiled"})
     return res
+
+
+def decide_tiling(jobs: list[ScanJob], options: BuildOptions, work_url: str | None = None, force: bool = False
+                  ) -> None:
+    """Mark the jobs that take the tiled path: joint builds, and scans whose in-memory build would
+    not fit the memory budget (``max_memory``, default 60 % of this machine's memory).
+    Partial orderings (size/rho), seeds and feature options are in-memory builds only. ``work_url``:
+    where their work files go (None: beside their parts); ``force``: what an earlier build left
+    there is deleted (as the runner deletes a work directory beside the archive)."""
+    for job in jobs:
+        job.work_url = work_url
+        if not options.in_memory_only:
+            job.tiled = bool(job.members or options.tile_points) or _too_big(job, options)
+        if force and work_url is not None and job.tiled:
+            job.work_store.clear()
+
+
+def _too_big(job: ScanJob, options: BuildOptions) -> bool:
+    """True when the in-memory build of ``job``'s scan would not fit ``max_memory``."""
+    from ..io.stream import peek_stream
+    from .tiled.plan import needs_tiling
+
+    if job.scan is not None:
+        n = len(job.scan)
+        row = 24 + sum(a.dtype.itemsize * int(a.size // max(n, 1)) for a in job.scan.attributes.values())
+    else:
+        try:
+            st = peek_stream(job.path) if job.scan_index is None else None  # type: ignore[arg-type]
+        except Exception:  # noqa: BLE001 - the build reads the file again and reports its error
+            st = None
+        if st is not None:
+            n = st.n_points
+            row = 24 + sum(int(np.dtype(d).itemsize * max(1, int(np.prod(sh)))) for d, sh in st.fields.values())
+        else:  # a format that does not stream: about 30 bytes of file per point
+            n, row = (job.size_bytes or 0) // 30, 24
+    return needs_tiling(n, row, options.max_memory)

@@ -31,16 +31,15 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
 from ..io.pose import pose_kind
 from ..progress import ProgressCallback, report
 from .executors import DASK_CONNECT_TIMEOUT, check_scheduler, make_executor, one_line
 from .inputs import ScanSource, expand_inputs
-from .jobs import ScanJob, build_one, job_key, scan_digest
+from .jobs import ScanJob, build_one, decide_tiling, job_key, scan_digest
 from .options import BuildOptions
 from .result import BuildResult, CollectionResult, ScanStatus, StatusCallback
+from .tiled.store import check_work_url
 
 log = logging.getLogger(__name__)
 
@@ -241,35 +240,6 @@ def plan_joint(sources: list[ScanSource], archive: Path, options: BuildOptions, 
     return out
 
 
-def decide_tiling(jobs: list[ScanJob], options: BuildOptions) -> None:
-    """Mark the jobs that take the tiled path: joint builds, and scans whose in-memory build would
-    not fit the memory budget (``max_memory``, default 60 % of this machine's memory).
-    Partial orderings (size/rho), seeds and feature options are in-memory builds only."""
-    from ..io.stream import peek_stream
-    from .tiled.plan import needs_tiling
-
-    if options.in_memory_only:
-        return
-    for job in jobs:
-        if job.members or options.tile_points:
-            job.tiled = True
-            continue
-        if job.scan is not None:
-            n = len(job.scan)
-            row = 24 + sum(a.dtype.itemsize * int(a.size // max(n, 1)) for a in job.scan.attributes.values())
-        else:
-            try:
-                st = peek_stream(job.path) if job.scan_index is None else None  # type: ignore[arg-type]
-            except Exception:  # noqa: BLE001 - the build reads the file again and reports its error
-                st = None
-            if st is not None:
-                n = st.n_points
-                row = 24 + sum(int(np.dtype(d).itemsize * max(1, int(np.prod(sh)))) for d, sh in st.fields.values())
-            else:  # a format that does not stream: about 30 bytes of file per point
-                n, row = (job.size_bytes or 0) // 30, 24
-        job.tiled = needs_tiling(n, row, options.max_memory)
-
-
 def _sources(inputs: Any, manifest: Any, name: str | None) -> list[ScanSource]:
     from ..io import Scan
 
@@ -315,6 +285,7 @@ def build(
     overwrite: bool = False,
     joint: bool | str = False,
     wait: float | None = None,
+    work_dir: str | os.PathLike[str] | None = None,
     raise_on_failure: bool | None = None,
     progress: ProgressCallback = None,
     on_status: StatusCallback = None,
@@ -326,6 +297,7 @@ def build(
     t0 = time.perf_counter()
     archive = Path(os.path.abspath(archive))  # absolute paths in jobs: workers may run elsewhere
     check_scheduler(scheduler)
+    work_url = check_work_url(work_dir)  # (a directory made absolute: workers may run elsewhere)
     check_writable_dir(archive, "archive")
     if archive.exists():
         check_archive_file(archive)  # fail before any expensive work
@@ -353,7 +325,7 @@ def build(
             total = _build_locked(sources, archive, options, result, joint_name, in_memory, force=force,
                                   overwrite=overwrite, workers=workers, scheduler=scheduler,
                                   dask_local=dask_local, progress=progress, on_status=on_status,
-                                  raise_on_failure=raise_on_failure)
+                                  raise_on_failure=raise_on_failure, work_url=work_url)
         finally:
             _tidy_parts(archive)
     result.seconds = time.perf_counter() - t0
@@ -392,7 +364,7 @@ def _check_wait(wait: Any) -> float:
 def _build_locked(sources: list[ScanSource], archive: Path, options: BuildOptions, result: BuildResult,
                   joint_name: str | None, in_memory: bool, *, force: bool, overwrite: bool, workers: int | None,
                   scheduler: str | None, dask_local: int | None, progress: ProgressCallback,
-                  on_status: StatusCallback, raise_on_failure: bool | None) -> int:
+                  on_status: StatusCallback, raise_on_failure: bool | None, work_url: str | None = None) -> int:
     """Plan, run and merge the build (the caller holds the archive's lock); returns the number of
     scans it was given (a joint build: 1)."""
     _check_parts_dir(archive)  # before a part in it is read
@@ -403,7 +375,7 @@ def _build_locked(sources: list[ScanSource], archive: Path, options: BuildOption
     else:
         jobs, recovered, skipped, failed = plan_jobs(sources, archive, options, force=force, overwrite=overwrite)
         total = len(sources)
-    decide_tiling(jobs, options)
+    decide_tiling(jobs, options, work_url, force)
     names_in_archive = set(_existing_scans(archive))
     emit = _Statuses(result, total, progress, on_status,
                      quiet_failure=on_status is not None or (raise_on_failure is None and total == 1))

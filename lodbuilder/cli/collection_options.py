@@ -38,6 +38,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     t.add_argument("--joint", nargs="?", const=True, default=False, metavar="NAME",
                    help="order every input scan (posed, e.g. by a manifest) as one surface: one scan NAME "
                         "(default: the manifest's name) whose points keep scan_id and scan_point attributes")
+    t.add_argument("--work-dir", metavar="DIR|URL",
+                   help="where a tiled build keeps its work files: a directory, or an object store's fsspec URL "
+                        "(s3://BUCKET/PREFIX; credentials and endpoint from fsspec's usual configuration, e.g. "
+                        "AWS_ACCESS_KEY_ID and AWS_ENDPOINT_URL) for Dask workers that share no file system with "
+                        "this process (default: a hidden directory beside the archive)")
     t.add_argument("--seam-spacing", type=float, metavar="A",
                    help="seam repair of the tiled merge, 0..1 (default 0.25): a point merged from one tile keeps "
                         "at least A times its merge radius from earlier points of other tiles, so points of "
@@ -49,7 +54,8 @@ def collection_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """How :func:`lodbuilder.build_archive` runs, from the collection options (what it stores is
     in the build's :class:`~lodbuilder.build.options.BuildOptions`: :func:`option_kwargs`)."""
     return {"manifest": args.manifest, "workers": args.workers, "scheduler": args.scheduler,
-            "dask_local": args.dask_local, "force": args.force, "wait": args.wait, "joint": args.joint}
+            "dask_local": args.dask_local, "force": args.force, "wait": args.wait, "joint": args.joint,
+            "work_dir": args.work_dir}
 
 
 def option_kwargs(args: argparse.Namespace) -> dict[str, Any]:

@@ -12,8 +12,8 @@ PLY or NPY file that the reader seeks to). Its points have the consecutive input
   its cell representatives of the decimated copy (the first point of each cell in input order);
 * :func:`distribute_block`: the block's points written into per-tile pieces (core and halo).
 
-Every file is written to a temporary and published when complete (:mod:`lodbuilder._atomic`); a
-task's result lists its files with their sums, and the parent records it as the task's marker.
+Every file is written whole to the work store and appears when complete (:mod:`.store`); a task's
+result lists its files with their sums, and the parent records it as the task's marker.
 """
 
 from __future__ import annotations
@@ -23,11 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from ..._atomic import publish
 from ...errors import FormatError
 from . import layout as WL
 from .plan import Grid, Tile, tile_lookup
-from .sums import SumFile
+from .store import Store, Writer, as_store
 from .timing import timed_task
 from .workdir import REC, blocks, opaque_rows
 
@@ -35,30 +34,28 @@ JOINT_FIELDS = ("scan_id", "scan_point")
 
 
 class _Out:
-    """Work files written through temporaries, published together by :meth:`publish`."""
+    """Work objects written whole, committed together by :meth:`publish` (a task's outputs)."""
 
-    def __init__(self, work: Path) -> None:
-        self.work = work
-        self.files: dict[str, SumFile] = {}
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self.files: dict[str, Writer] = {}
 
     def write(self, name: str, data: np.ndarray) -> None:
         if name not in self.files:
-            self.files[name] = SumFile(self.work / WL.writing(name))
+            self.files[name] = self.store.writer(name)
         self.files[name].write(data)
 
     def close(self) -> None:
+        """Discard what was not published (a failed task leaves no object)."""
         for f in self.files.values():
             f.close()
 
     def publish(self) -> dict[str, list[int]]:
-        self.close()
-        for name in self.files:
-            publish(self.work / WL.writing(name), self.work / name)
-        return {name: f.sum for name, f in self.files.items()}
+        return {name: f.commit() for name, f in self.files.items()}
 
 
 @timed_task
-def read_block(work: str, b: int, source: Any, member: int | None, start: int, stop: int, g0: int,
+def read_block(work: Store | str, b: int, source: Any, member: int | None, start: int, stop: int, g0: int,
                spec: dict[str, Any]) -> dict[str, Any]:
     """Read rows ``start .. stop`` of one input (``source``: a picklable opener returning
     ``(stream, pose)``, or that pair) as block ``b`` (input indices from ``g0``). ``spec``: the
@@ -74,7 +71,7 @@ def read_block(work: str, b: int, source: Any, member: int | None, start: int, s
     step, meta = int(spec["step"]), spec["metadata"]
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     samples, encodings = [], set()
-    out = _Out(Path(work))
+    out = _Out(as_store(work))
     g = g0
     try:
         for chunk in stream.chunks(int(spec["rows"]), start, stop):
@@ -92,28 +89,29 @@ def read_block(work: str, b: int, source: Any, member: int | None, start: int, s
                         np.full(m, member or 0) if k == "scan_id" else np.arange(chunk.start, chunk.start + m))
                 out.write(WL.raw_attr(b), rec)
             g += m
+        if g - g0 != stop - start:
+            raise FormatError(f"{stream.path}: rows {start}..{stop} hold {g - g0} points, the header declares "
+                              f"{stop - start}; re-export the file")
+        smp = np.concatenate(samples) if samples else np.zeros((0, 3))
+        out.write(WL.sample(b), np.ascontiguousarray(smp, dtype="<f8"))
+        files = out.publish()
     finally:
         out.close()
-    if g - g0 != stop - start:
-        raise FormatError(f"{stream.path}: rows {start}..{stop} hold {g - g0} points, the header declares "
-                          f"{stop - start}; re-export the file")
-    smp = np.concatenate(samples) if samples else np.zeros((0, 3))
-    out.write(WL.sample(b), np.ascontiguousarray(smp, dtype="<f8"))
-    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings), "files": out.publish()}
+    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings), "files": files}
 
 
-def _xyz_blocks(work: Path, b: int, m: int, rows: int) -> Any:
-    for lo, a in blocks(work / WL.raw_xyz(b), "<f8", 3 * m, 3 * rows):
+def _xyz_blocks(work: Store, b: int, m: int, rows: int) -> Any:
+    for lo, a in blocks((work, WL.raw_xyz(b)), "<f8", 3 * m, 3 * rows):
         yield lo // 3, a.reshape(-1, 3)
 
 
 @timed_task
-def survey_block(work: str, b: int, g0: int, m: int, rows: int, grid: dict[str, Any], d_cell: float,
+def survey_block(work: Store | str, b: int, g0: int, m: int, rows: int, grid: dict[str, Any], d_cell: float,
                  histogram: bool = True) -> dict[str, Any]:
     """Block ``b``'s count histogram on ``grid`` (sparse: occupied cells and counts, when
     ``histogram``) and its representatives of the decimated copy: for each cubic cell of size
     ``d_cell`` (from the grid's corner) its first point (cell key, input index, coordinates)."""
-    w = Path(work)
+    w = as_store(work)
     gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
     hist = np.zeros(int(np.prod(gr.shape)) if histogram else 0, np.int64)
     keys, gs, xyz = [], [], []
@@ -155,12 +153,12 @@ def decimated_copy(parts: list[dict[str, Any]]) -> np.ndarray:
 
 
 @timed_task
-def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[dict[str, Any]],
+def distribute_block(work: Store | str, b: int, g0: int, m: int, rows: int, tiles: list[dict[str, Any]],
                      grid: dict[str, Any], halo: float) -> dict[str, Any]:
     """Write block ``b``'s points into the pieces of the tiles (``core.<t>.<b>.bin``: the tile's
     own points; ``halo.<t>.<b>.bin``: points of other tiles within ``halo`` of its box); returns
     the rows of each tile's pieces."""
-    w = Path(work)
+    w = as_store(work)
     tl = [Tile.from_json(t) for t in tiles]
     gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
     lookup = tile_lookup(tl, gr)
@@ -172,9 +170,10 @@ def distribute_block(work: str, b: int, g0: int, m: int, rows: int, tiles: list[
     try:
         for r0, pts in _xyz_blocks(w, b, m, rows):
             _split(out, b, g0 + r0, pts, lookup[gr.index(pts)], t_lo, t_hi, halo, n_core, n_halo)
+        files = out.publish()
     finally:
         out.close()
-    return {"block": b, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(), "files": out.publish()}
+    return {"block": b, "n_core": n_core.tolist(), "n_halo": n_halo.tolist(), "files": files}
 
 
 def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: np.ndarray, t_hi: np.ndarray,
@@ -210,7 +209,8 @@ def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: n
             n_halo[t] += int(inside.sum())
 
 
-def tile_records(work: Path, names: list[str]) -> np.ndarray:
+def tile_records(work: Store | Path, names: list[str]) -> np.ndarray:
     """A tile's core or halo: its pieces (``names``, in block order) one after the other."""
-    parts = [np.fromfile(work / n, dtype=REC) for n in names]
+    store = as_store(work)
+    parts = [store.read_array(n, REC) for n in names]
     return np.concatenate(parts) if parts else np.zeros(0, REC)

@@ -21,8 +21,10 @@ from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
 from .pool import collect, result, submit
+from .staging import Staging, fetch_part
+from .store import LocalStore, Store, as_store
 from .sums import done as piece_done
-from .sums import mark, read_json, write_json
+from .sums import get_json, mark, put_json
 from .survey import distribute_phase, plan_phase, read_phase
 from .tasks import coarse_task, cover_tile, order_tile, parameters_task
 from .timing import task_table
@@ -60,12 +62,12 @@ HEAD_MIN = 256
 HALO_FACTOR = 0.3
 
 
-def _done(work: Path, phase: str) -> dict[str, Any] | None:
+def _done(work: Store, phase: str) -> dict[str, Any] | None:
     """The marker of a finished phase whose files all check out (see :mod:`.sums`), else None."""
     return piece_done(work, phase)
 
 
-def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
+def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
                   colour: list[int], passes: int, args: tuple, pieces: dict[str, Any], progress: ProgressCallback
                   ) -> int:
     """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
@@ -87,9 +89,9 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
 
     def call(p: int, tile: P.Tile) -> tuple:
         t = tile.index
-        faces = tuple(str(work / WL.face(u, q)) for q, u in deps(p, t) if u != t)
+        faces = tuple(WL.face(u, q) for q, u in deps(p, t) if u != t)
         doc = {**tile.to_json(), "core": pieces["core"][t], "halo": pieces["halo"][t]}
-        return (str(work), t, doc, *args, faces, str(work / WL.face(t, p)))
+        return (work, t, doc, *args, faces, WL.face(t, p))
 
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
@@ -110,7 +112,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
             for fut in fin:
                 p, t = running.pop(fut)
                 res = result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
-                write_json(work / WL.marker(WL.order_piece(t, p)), res)
+                put_json(work, WL.marker(WL.order_piece(t, p)), res)
                 WL.moment("tile")
                 done.add((p, t))
                 tell()
@@ -121,7 +123,7 @@ def _order_passes(ex: cf.Executor, work: Path, name: str, by_size: list[P.Tile],
     return found
 
 
-def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Path, executor: cf.Executor,
+def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Path | Store, executor: cf.Executor,
                 *, parallel: int = 1, max_memory: int | None = None, voxel_size: float | None = None,
                 band_radius: float | None = None, seam_spacing: float = SEAM_SPACING, tile_points: int | None = None,
                 passes: int = TILE_PASSES, build: dict[str, Any] | None = None,
@@ -129,11 +131,10 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     """Order one scan (``sources``: ``(stream, pose, member id, reopen)`` of one input, or of each
     input of a joint build; ``reopen`` opens the stream again on a worker, None: the parent reads
     it) tile by tile and write it to the part file ``part``; returns what was built and how long each phase
-    took. ``work`` is the work directory (kept on failure for a resume, removed on success)."""
-    from ...archive.files import make_own_dir, remove_own_dir
-
+    took. ``work`` is the work directory or store (:mod:`.store`; kept on failure for a resume,
+    emptied on success)."""
     budget = P.default_budget() if max_memory is None else int(max_memory)
-    make_own_dir(work, work.name)  # or check that the one a killed build left is lodbuilder's
+    work = store = _make_store(as_store(work))  # (the phases below take the store)
     clock = _Clock()
 
     # 1. read: the scan into raw files, with bounds, a sample and the coordinate encoding
@@ -172,7 +173,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     clock.lap("cover")
 
     # 7. write the part file in stored order (one task)
-    head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
+    head = store.read_array(WL.HEAD_FILE, WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
               **_timings(clock, work),
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
@@ -182,26 +183,46 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     info = _write(executor, work, part, name, sp, head["g"][:1], record, {"reader": sp.reader, **(provenance or {})},
                   buckets, radii, progress)
     clock.lap("write")
-    remove_own_dir(work, work.name)
+    _remove_store(store)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
             "part": str(info.path), "worker_pid": os.getpid()}
 
 
-def _write(executor: cf.Executor, work: Path, part: Path, name: str, sp: Spill, seeds: np.ndarray,
+def _make_store(store: Store) -> Store:
+    """Create the work directory (or check that the one a killed build left is lodbuilder's)."""
+    if isinstance(store, LocalStore):
+        from ...archive.files import make_own_dir
+
+        store.root.parent.mkdir(parents=True, exist_ok=True)  # (a --work-dir DIR: DIR/ARCHIVE/)
+        make_own_dir(store.root, store.root.name)
+    return store
+
+
+def _remove_store(store: Store) -> None:
+    """The work files of a finished build, deleted."""
+    if isinstance(store, LocalStore):
+        from ...archive.files import remove_own_dir
+
+        remove_own_dir(store.root, store.root.name)
+    else:
+        store.clear()
+
+
+def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill, seeds: np.ndarray,
            record: dict[str, Any], provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any],
            progress: ProgressCallback) -> Any:
     """Phase 7: the part written by one task; returns its PartInfo."""
     from .write import write_task
 
-    args = (str(work), str(part), name, sp.n, sp.fields, sp.metadata, sp.encoding, seeds, record, provenance,
+    args = (work, str(part), name, sp.n, sp.fields, sp.metadata, sp.encoding, seeds, record, provenance,
             buckets, radii)
-    (res,) = collect(submit(executor, [(0, write_task, args)]), lambda _: "writing the part", name, 1, progress,
-                     "write")
-    return res["info"]
+    (res,) = collect(submit(Staging(executor, work), [(0, write_task, args)]), lambda _: "writing the part", name, 1,
+                     progress, "write")
+    return res["info"] if isinstance(work, LocalStore) else fetch_part(work, res["info"], part)
 
 
-def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
+def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
            args: tuple, progress: ProgressCallback) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
     """Phase 4: every tile ordered on the workers, in colour classes and passes. Returns the tiles
     largest first, their colours, how many orderings a resume found done, and each tile's marker."""
@@ -211,11 +232,11 @@ def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], di
     nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
     colour = P.colour_tiles(nbrs)
     ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress)
-    stats = [read_json(work / WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
+    stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     return by_size, colour, ordered, stats
 
 
-def _merge(executor: cf.Executor, work: Path, name: str, n: int, stats: list[dict[str, Any]], seam_spacing: float,
+def _merge(executor: cf.Executor, work: Store, name: str, n: int, stats: list[dict[str, Any]], seam_spacing: float,
            lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
     """Phase 5: the tile orders merged by descending key with the seam repair, and the ranks (or
     what a finished merge recorded): one task, on a worker (still one pass over every point)."""
@@ -223,13 +244,13 @@ def _merge(executor: cf.Executor, work: Path, name: str, n: int, stats: list[dic
 
     merged = _done(work, "merge")
     if merged is None:
-        args = (str(work), n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
-        (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
+        args = (work, n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
+        (merged,) = collect(submit(Staging(executor, work), [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
         mark(work, "merge", merged)
     return merged
 
 
-def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
+def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
            spacing: float, delta: float, progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any], int]:
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
     tasks put the points in stored order (the first pass of the write). Returns the buckets' and
@@ -240,15 +261,15 @@ def _cover(executor: cf.Executor, work: Path, name: str, sp: Spill, by_size: lis
 
     n, n_tiles = sp.n, len(by_size)
     todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
-    futs = submit(executor, [(t.index, cover_tile, (str(work), t.index, spacing, pieces["core"][t.index],
+    futs = submit(executor, [(t.index, cover_tile, (work, t.index, spacing, pieces["core"][t.index],
                                                     pieces["halo"][t.index])) for t in todo])
     try:
-        buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
+        buckets = buckets_phase(Staging(executor, work), work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
-                lambda res: write_json(work / WL.marker(WL.cover_piece(res["tile"])), res),
+                lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
                 points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
+    radii = radii_phase(Staging(executor, work), work, name, n, n_tiles, delta, W.BLOCK, progress)
     return buckets, radii, n_tiles - len(todo)
 
 
@@ -281,7 +302,7 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
-def _timings(clock: _Clock, work: Path) -> dict[str, Any]:
+def _timings(clock: _Clock, work: Store) -> dict[str, Any]:
     """The build record's phase seconds (and their order: the record's keys are sorted), the
     parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`)."""
     return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
@@ -296,7 +317,7 @@ def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict
             "head_radius": float(coarse["r_cut"])}
 
 
-def _plan(executor: cf.Executor, work: Path, name: str, sp: Spill, voxel_size: float | None,
+def _plan(executor: cf.Executor, work: Store, name: str, sp: Spill, voxel_size: float | None,
           band_radius: float | None, budget: int, parallel: int, tile_points: int | None,
           progress: ProgressCallback) -> dict[str, Any]:
     """Phase 2: the shared parameters, the tiles (a k-d split of a point-count histogram) and the
@@ -306,7 +327,7 @@ def _plan(executor: cf.Executor, work: Path, name: str, sp: Spill, voxel_size: f
         return pl
     n = sp.n
     # the spacing and the band's parameters from the sample, on a worker (the parent loads no kernel)
-    pending = submit(executor, [(0, parameters_task, (str(work), n, voxel_size, band_radius))])
+    pending = submit(executor, [(0, parameters_task, (work, n, voxel_size, band_radius))])
     (params,) = collect(pending, lambda _: "the plan's parameters", name, 1, None, "plan")
     fits = P.tile_capacity(budget, parallel)
     # the decimated copy is ordered by one worker: no larger than the worker's budget allows
@@ -315,7 +336,7 @@ def _plan(executor: cf.Executor, work: Path, name: str, sp: Spill, voxel_size: f
                       max(fits, COARSE_MIN), tile_points or fits, m_target, progress)
 
 
-def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, sp: Spill, pl: dict[str, Any],
+def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, pl: dict[str, Any],
                       delta: float, worker_budget: int, progress: ProgressCallback
                       ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Phase 3: the coarse level ordered on a worker while the other workers write every tile's
@@ -324,7 +345,7 @@ def _coarse_and_tiles(executor: cf.Executor, work: Path, name: str, sp: Spill, p
     pending: dict[cf.Future, int] = {}
     if coarse is None:
         head_size = max(HEAD_MIN, int(pl["n_decimated"]) // HEAD_DECIMATION)
-        pending = submit(executor, [(0, coarse_task, (str(work), head_size, worker_budget))])
+        pending = submit(executor, [(0, coarse_task, (work, head_size, worker_budget))])
     try:
         # the halo: a fraction of the coarse level's covering radius, estimated from its size
         m_est = max(1, int(pl["n_decimated"]))

@@ -29,7 +29,7 @@ import numpy as np
 from ...progress import ProgressCallback
 from . import layout as WL
 from .pool import collect, submit
-from .sums import done, mark, publish, read_json
+from .sums import done, get_json, mark, publish
 from .timing import timed_task
 
 EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
@@ -119,14 +119,14 @@ def finish_band(work: str, band: int, k0: int, k1: int, run_min: float, run_spac
     return {"band": b, "worst": worst, "at": at, "files": {WL.radius(b): publish(rad, w / WL.radius(b))}}
 
 
-def radii_phase(ex: Any, work: Path, name: str, n: int, n_tiles: int, delta: float, band: int,
+def radii_phase(ex: Any, work: Any, name: str, n: int, n_tiles: int, delta: float, band: int,
                 progress: ProgressCallback = None) -> dict[str, Any]:
     """The radii and parents of every position, in bands of ``band`` positions (tasks); returns the
     radii marker: the bands, their files and the worst spacing over radius of any level."""
     doc = done(work, "radii")
     if doc is not None:
         return doc
-    r_cut = float((read_json(work / WL.marker("coarse")) or {})["r_cut"])
+    r_cut = float((get_json(work, WL.marker("coarse")) or {})["r_cut"])
     bands = [(k0, min(n, k0 + band)) for k0 in range(0, n, band)]
     first: dict[int, dict[str, Any]] = {}
     calls: list[tuple[int, Any, tuple]] = []
@@ -135,7 +135,7 @@ def radii_phase(ex: Any, work: Path, name: str, n: int, n_tiles: int, delta: flo
         if prev is not None:
             first[b] = prev
         else:
-            calls.append((b, radii_band, (str(work), b, k0, k1, n_tiles, delta, r_cut)))
+            calls.append((b, radii_band, (work, b, k0, k1, n_tiles, delta, r_cut)))
 
     def record(res: dict[str, Any]) -> None:
         first[res["band"]] = mark(work, WL.band_piece(res["band"]), res)
@@ -147,7 +147,7 @@ def radii_phase(ex: Any, work: Path, name: str, n: int, n_tiles: int, delta: flo
     run_min, run_space = math.inf, math.inf
     second: list[tuple[int, Any, tuple]] = []
     for b, (k0, k1) in enumerate(bands):
-        second.append((b, finish_band, (str(work), b, k0, k1, run_min, run_space)))
+        second.append((b, finish_band, (work, b, k0, k1, run_min, run_space)))
         run_min, run_space = min(run_min, first[b]["last_radius"]), min(run_space, first[b]["last_space"])
     fin = {r["band"]: r for r in collect(submit(ex, second), lambda b: where(*bands[b]), name, len(bands), None,
                                          "radii")}

@@ -1,7 +1,8 @@
 """Checksums of a tiled build's work files, so that a resumed build never trusts a damaged one.
 
 Every raw work file is written with its size and CRC-32, computed from the bytes as they are
-written (:class:`SumFile`, :func:`publish`); the marker (a small JSON file) that records a finished
+written (:meth:`.store.Store.writer`, :meth:`.store.Store.put`; :class:`SumFile` and :func:`publish`
+for a local path); the marker (a small JSON file) that records a finished
 phase or tile task lists them under ``"files"``, and carries a CRC-32 of its own text on its last
 line. On a resume, :func:`done` trusts a marker only when its text and every file it lists check
 out; otherwise the marker is deleted and that phase or task is done again (each one is
@@ -18,7 +19,6 @@ import json
 import logging
 import os
 import re
-import stat
 import zlib
 from pathlib import Path
 from typing import Any, cast
@@ -26,6 +26,7 @@ from typing import Any, cast
 import numpy as np
 
 from . import layout as WL
+from .store import LocalStore, Store, as_store
 
 log = logging.getLogger(__name__)
 
@@ -74,49 +75,33 @@ def sum_array(arr: np.ndarray) -> list[int]:
 
 def sum_file(path: Path) -> list[int]:
     """Size and CRC-32 of the file at ``path`` (read in chunks)."""
-    crc = size = 0
-    with open(path, "rb") as f:
-        while chunk := f.read(CHUNK):
-            crc = zlib.crc32(chunk, crc)
-            size += len(chunk)
-    return [size, crc]
+    return LocalStore(Path(path).parent).sum(Path(path).name, CHUNK)
 
 
 def publish(arr: np.ndarray, path: Path) -> list[int]:
     """Replace the file at ``path`` by the raw bytes of ``arr``, atomically
     (:func:`lodbuilder._atomic.publish`); returns their size and CRC-32."""
-    from ..._atomic import replace_with
-
-    sums: list[list[int]] = []
-
-    def write(tmp: Path) -> None:
-        with SumFile(tmp) as f:
-            f.write(arr)
-        sums.append(f.sum)
-
-    replace_with(path, write)
-    return sums[0]
+    return LocalStore(Path(path).parent).put(Path(path).name, arr)
 
 
-def check_sums(work: Path, files: dict[str, Any], skip: tuple[str, ...] = ()) -> str | None:
-    """What is wrong with the first file of ``files`` (name -> [size, crc]) in ``work`` that does
-    not match, or None when all do (names in ``skip`` are not checked)."""
+def check_sums(work: Store | Path | str, files: dict[str, Any], skip: tuple[str, ...] = ()) -> str | None:
+    """What is wrong with the first file of ``files`` (name -> [size, crc]) in the store ``work``
+    that does not match, or None when all do (names in ``skip`` are not checked)."""
+    store = as_store(work)
     for name, want in files.items():
         if name in skip:
             continue
-        path = work / name
         if "/" in name or name.startswith("."):
             return f"it lists a file {name!r} outside the work directory"
-        try:
-            st = os.lstat(path)
-        except FileNotFoundError:
+        have = store.size(name)
+        if have is None:
+            if isinstance(store, LocalStore) and os.path.lexists(store.path(name)):
+                return f"{name} is not a regular file"
             return f"{name} is missing"
-        if not stat.S_ISREG(st.st_mode):
-            return f"{name} is not a regular file"
         size, crc = int(want[0]), int(want[1])
-        if st.st_size != size:
-            return f"{name} has {st.st_size} bytes, {size} were written"
-        if sum_file(path)[1] != crc:
+        if have != size:
+            return f"{name} has {have} bytes, {size} were written"
+        if store.sum(name, CHUNK)[1] != crc:
             return f"{name} does not match its checksum"
     return None
 
@@ -124,23 +109,18 @@ def check_sums(work: Path, files: dict[str, Any], skip: tuple[str, ...] = ()) ->
 _SEALED = re.compile(r'(\{.*?)(, )?"_crc32": "([0-9a-f]{8})"\}', re.S)
 
 
-def write_json(path: Path, doc: dict[str, Any]) -> None:
-    """Write a marker atomically: a JSON object (the one convention of :mod:`lodbuilder._json`)
-    whose last member ``_crc32`` is the CRC-32 of the object's text without it."""
-    from ..._atomic import write_bytes
+def sealed(doc: dict[str, Any]) -> bytes:
+    """A marker's text: a JSON object (the one convention of :mod:`lodbuilder._json`) whose last
+    member ``_crc32`` is the CRC-32 of the object's text without it."""
     from ..._json import dumps
 
     body = dumps(doc)
     tail = f'"_crc32": "{zlib.crc32(body.encode()):08x}"}}'
-    write_bytes(path, (body[:-1] + (", " if doc else "") + tail).encode())
+    return (body[:-1] + (", " if doc else "") + tail).encode()
 
 
-def read_json(path: Path) -> dict[str, Any] | None:
-    """The marker at ``path`` (without its ``_crc32``), or None when it is missing or damaged."""
-    try:
-        text = path.read_text("utf-8")
-    except (OSError, UnicodeDecodeError):
-        return None
+def unseal(text: str) -> dict[str, Any] | None:
+    """The marker whose text is ``text`` (without its ``_crc32``), None when it is damaged."""
     m = _SEALED.fullmatch(text)
     if m is None:
         return None
@@ -154,27 +134,52 @@ def read_json(path: Path) -> dict[str, Any] | None:
     return doc if isinstance(doc, dict) else None
 
 
-def mark(work: Path, piece: str, doc: dict[str, Any]) -> dict[str, Any]:
+def put_json(work: Store | Path | str, name: str, doc: dict[str, Any]) -> None:
+    """Write the marker object ``name`` of the store ``work`` whole (see :func:`sealed`)."""
+    as_store(work).put(name, sealed(doc))
+
+
+def get_json(work: Store | Path | str, name: str) -> dict[str, Any] | None:
+    """The marker object ``name`` (without its ``_crc32``), None when it is missing or damaged."""
+    try:
+        text = as_store(work).get(name).decode("utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
+    return unseal(text)
+
+
+def write_json(path: Path, doc: dict[str, Any]) -> None:
+    """Write the marker file ``path`` atomically (see :func:`sealed`)."""
+    put_json(LocalStore(Path(path).parent), Path(path).name, doc)
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    """The marker file at ``path`` (without its ``_crc32``), or None when it is missing or damaged."""
+    return get_json(LocalStore(Path(path).parent), Path(path).name)
+
+
+def mark(work: Store | Path | str, piece: str, doc: dict[str, Any]) -> dict[str, Any]:
     """Write the marker of a finished phase or task ``piece`` (its files listed in ``doc``), then
     pass the named moment of its kind (the piece's name up to the first dot: :func:`layout.moment`);
     returns ``doc``."""
-    write_json(work / WL.marker(piece), doc)
+    put_json(work, WL.marker(piece), doc)
     WL.moment(piece.split(".")[0])
     return doc
 
 
-def done(work: Path, name: str, skip: tuple[str, ...] = ()) -> dict[str, Any] | None:
+def done(work: Store | Path | str, name: str, skip: tuple[str, ...] = ()) -> dict[str, Any] | None:
     """The marker ``<name>.json`` of a finished phase or task when it and every file it lists
     check out; else None, and a marker that is there but fails is deleted (the piece is redone)."""
-    path = work / WL.marker(name)
-    if not path.exists():
+    store = as_store(work)
+    marker = WL.marker(name)
+    if store.size(marker) is None:
         return None
-    doc = read_json(path)
-    problem = "its record is damaged" if doc is None else check_sums(work, doc.get("files") or {}, skip)
+    doc = get_json(store, marker)
+    problem = "its record is damaged" if doc is None else check_sums(store, doc.get("files") or {}, skip)
     if problem is None:
         return doc
-    log.warning("tiled build in %s: %s (%s); doing it again", work, _piece(name), problem)
-    path.unlink(missing_ok=True)
+    log.warning("tiled build in %s: %s (%s); doing it again", store.url, _piece(name), problem)
+    store.delete(marker)
     return None
 
 

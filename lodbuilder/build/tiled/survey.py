@@ -33,8 +33,8 @@ from . import plan as P
 from . import workdir as W
 from .blocks import decimated_copy, distribute_block, read_block, survey_block
 from .pool import collect, submit
-from .sums import SumFile, done, mark
-from .sums import publish as publish_array
+from .store import Store
+from .sums import done, mark
 from .workdir import SAMPLE, Spill
 
 #: read tasks per worker (a big input is cut into about this many blocks per worker)
@@ -86,13 +86,13 @@ def joint_crs(sources: list[tuple[Any, ...]]) -> dict[str, Any]:
     return out
 
 
-def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, ...]], parallel: int,
+def read_phase(ex: cf.Executor, work: Store, name: str, sources: list[tuple[Any, ...]], parallel: int,
                progress: ProgressCallback) -> Spill:
     """Phases inputs and read: every block read by a task (an input the parent holds in memory by
     the parent), summed into the ``spill`` marker (or what a finished read recorded)."""
     doc = done(work, "spill")
     if doc is not None:
-        return Spill.from_json(doc, np.load(work / WL.SAMPLE))
+        return Spill.from_json(doc, work.load_npy(WL.SAMPLE))
     inp = done(work, "inputs") or mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
     spec = {k: inp[k] for k in ("fields", "joint", "metadata", "step", "rows")}
     results = {}
@@ -104,7 +104,7 @@ def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, 
             results[b] = prev
             continue
         stream, pose, member, reopen = sources[i]
-        args = (str(work), b, reopen if reopen is not None else (stream, pose), member, a, z, g0, spec)
+        args = (work, b, reopen if reopen is not None else (stream, pose), member, a, z, g0, spec)
         (calls if reopen is not None else inline).append((b, read_block, args))
     futs = submit(ex, calls)
 
@@ -123,15 +123,15 @@ def read_phase(ex: cf.Executor, work: Path, name: str, sources: list[tuple[Any, 
     return _spill(work, inp, [results[b] for b in range(len(inp["blocks"]))])
 
 
-def _spill(work: Path, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill:
+def _spill(work: Store, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill:
     """The read blocks summed: the ``spill`` marker (and the whole sample, ``sample.npy``)."""
     from ...archive.layout import choose_encoding
 
     n = sum(int(r["n"]) for r in res)
     if n != int(inp["n"]):
         raise RuntimeError(f"the read blocks hold {n} points, the inputs' headers {inp['n']}")
-    sample = np.concatenate([np.fromfile(work / WL.sample(b), "<f8").reshape(-1, 3) for b in range(len(res))])
-    with SumFile(work / WL.SAMPLE) as f:
+    sample = np.concatenate([work.read_array(WL.sample(b), "<f8").reshape(-1, 3) for b in range(len(res))])
+    with work.writer(WL.SAMPLE) as f:
         np.save(f, sample)
     files = {k: v for r in res for k, v in r["files"].items()}
     enc = choose_encoding({e for r in res for e in r["encodings"]} or {"float64"})
@@ -147,15 +147,15 @@ def _blocks(sp: Spill) -> list[tuple[int, int, int]]:
     return [(b, int(g0), int(z) - int(a)) for b, (_, a, z, g0) in enumerate(sp.blocks or [])]
 
 
-def _survey(ex: cf.Executor, work: Path, name: str, sp: Spill, grid: P.Grid, d_cell: float, histogram: bool,
+def _survey(ex: cf.Executor, work: Store, name: str, sp: Spill, grid: P.Grid, d_cell: float, histogram: bool,
             progress: ProgressCallback) -> list[dict[str, Any]]:
     g = {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)}
-    calls = [(b, survey_block, (str(work), b, g0, m, sp.rows, g, d_cell, histogram)) for b, g0, m in _blocks(sp)]
+    calls = [(b, survey_block, (work, b, g0, m, sp.rows, g, d_cell, histogram)) for b, g0, m in _blocks(sp)]
     return collect(submit(ex, calls), lambda b: f"the plan of block {b + 1}", name, sp.n, progress, "plan",
                    count=lambda r: int(r["n"]), start=0)
 
 
-def plan_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, params: dict[str, Any], limit: int, cap: int,
+def plan_phase(ex: cf.Executor, work: Store, name: str, sp: Spill, params: dict[str, Any], limit: int, cap: int,
                m_target: int, progress: ProgressCallback) -> dict[str, Any]:
     """Phase plan: the count histogram and the decimated copy from the blocks (tasks), the tiles
     (a k-d split of the histogram); ``params``: the spacing, voxel size and band radius. Returns
@@ -175,7 +175,7 @@ def plan_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, params: dict[s
     while dec.shape[0] > limit:  # the cell count overshot the target: coarser cells, one more pass
         d_cell *= 1.1 * math.sqrt(dec.shape[0] / limit)
         dec = decimated_copy(_survey(ex, work, name, sp, grid, d_cell, False, progress))
-    sums = publish_array(dec, work / WL.DECIMATED)
+    sums = work.put(WL.DECIMATED, dec)
     tiles = P.split_tiles(hist, grid, cap)
     return mark(work, "plan", {**params, "tile_cap": cap, "tiles": [t.to_json() for t in tiles],
                                 "grid": {"lo": grid.lo.tolist(), "cell": grid.cell, "shape": list(grid.shape)},
@@ -183,7 +183,7 @@ def plan_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, params: dict[s
                                 "files": {WL.DECIMATED: sums}})
 
 
-def distribute_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, pl: dict[str, Any], halo: float,
+def distribute_phase(ex: cf.Executor, work: Store, name: str, sp: Spill, pl: dict[str, Any], halo: float,
                      progress: ProgressCallback) -> dict[str, Any]:
     """Phase distribute: every block cut into the tiles' pieces by a task; the marker holds the
     halo width, each tile's core and halo sizes and the names of its pieces in block order."""
@@ -197,7 +197,7 @@ def distribute_phase(ex: cf.Executor, work: Path, name: str, sp: Spill, pl: dict
         if prev is not None:
             results[b] = prev
         else:
-            calls.append((b, distribute_block, (str(work), b, g0, m, sp.rows, pl["tiles"], pl["grid"], halo)))
+            calls.append((b, distribute_block, (work, b, g0, m, sp.rows, pl["tiles"], pl["grid"], halo)))
 
     def record(res: dict[str, Any]) -> None:
         results[res["block"]] = mark(work, WL.split_piece(res["block"]), res)

@@ -1,10 +1,10 @@
 """The tasks of a tiled build that run on workers (a local process, a pool worker or a Dask worker).
 
-Each task reads its inputs from the work directory and writes its output there (through a
-temporary renamed into place, so a killed task leaves nothing half-written and a finished one is
-reused when the build is resumed). Workers therefore need the work directory on a file system
-they share with the parent: always true for a local pool or a LocalCluster; a real cluster needs a
-shared file system (NFS, Lustre, a mounted object store) under the archive's directory.
+Each task reads its inputs from the work store and writes its outputs there as whole objects (each
+appears only when complete, so a killed task leaves nothing half-written and a finished one is
+reused when the build is resumed). The store is a directory the workers share with the parent
+(always true for a local pool or a LocalCluster) or an object store (:mod:`.store`), which a
+cluster with no shared file system uses.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 from . import layout as WL
 from .blocks import tile_records
-from .sums import publish as _publish
+from .store import Store, as_store
 from .timing import timed_task
 from .workdir import REC, gather
 
@@ -26,12 +26,12 @@ MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
 
 
 @timed_task
-def parameters_task(work: str, n: int, voxel_size: float | None, band_radius: float | None) -> dict[str, Any]:
+def parameters_task(work: Store | str, n: int, voxel_size: float | None, band_radius: float | None) -> dict[str, Any]:
     """The point spacing of the scan (from the sample of the read phase, ``sample.npy``) and the
     voxel size and band radius every tile shares."""
     from ...sampling.band import VOXEL_PER_SPACING, choose_parameters, median_spacing
 
-    sample = np.load(Path(work) / WL.SAMPLE)
+    sample = as_store(work).load_npy(WL.SAMPLE)
     if sample.shape[0] < 2:
         s = 1.0
     else:
@@ -42,12 +42,12 @@ def parameters_task(work: str, n: int, voxel_size: float | None, band_radius: fl
 
 
 @timed_task
-def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
+def coarse_task(work: Store | str, size: int, max_memory: int | None) -> dict[str, Any]:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
     from ...sampling.fastfps import fastfps
 
-    w = Path(work)
-    rec = np.fromfile(w / WL.DECIMATED, dtype=REC)
+    w = as_store(work)
+    rec = w.read_array(WL.DECIMATED, REC)
     dec = rec["g"]
     pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
     k = min(size + 1, dec.shape[0])
@@ -60,7 +60,7 @@ def coarse_task(work: str, size: int, max_memory: int | None) -> dict[str, Any]:
     head["r"] = o.radius[:h]
     head["parent"] = o.parent[:h]
     r_next = float(o.radius[h]) if len(o) > h else 0.0
-    files = {WL.HEAD_FILE: _publish(head, w / WL.HEAD_FILE)}
+    files = {WL.HEAD_FILE: w.put(WL.HEAD_FILE, head)}
     return {"n_decimated": int(dec.shape[0]), "head": h, "r_cut": r_next, "voxel_size": o.voxel_size,
             "band_radius": o.band_radius, "files": files}
 
@@ -76,11 +76,11 @@ def _margins(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, interior: np.ndarr
     return np.maximum(m, 0.0)
 
 
-def _timed(halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _timed(store: Store, halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """The halo points that neighbouring tiles have ordered: (row in ``halo_rec``, key)."""
     if not faces or halo_rec.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0)
-    known = np.concatenate([np.fromfile(f, dtype=FACE) for f in faces])
+    known = np.concatenate([store.read_array(Path(f).name, FACE) for f in faces])
     if known.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0)
     known = known[np.argsort(known["g"], kind="stable")]
@@ -90,13 +90,14 @@ def _timed(halo_rec: np.ndarray, faces: list[str]) -> tuple[np.ndarray, np.ndarr
 
 
 @timed_task
-def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
+def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
                halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
                ) -> dict[str, Any]:
     """FastFPS of tile ``t``: its own points, seeded with the head points in its core and halo, and
     with the halo points its neighbours have ordered (``faces``: their face files) as timed seeds:
     each enters the tile's ordering when the ordering's radius falls to its key, as it entered the
-    neighbour's. So the tile's points keep their distance from the neighbours' points of larger
+    neighbour's (``faces`` and ``face_out``: names in the store, or paths in the work directory
+    whose names are taken). So the tile's points keep their distance from the neighbours' points of larger
     keys, as in one ordering of the whole scan (see :mod:`.driver`, the passes).
 
     Writes ``stream.<t>.bin``: the tile's points that are not head points, in its order (keys
@@ -108,10 +109,9 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
 
     from ...sampling.fastfps import fastfps
 
-    w = Path(work)
-    out = w / WL.stream(t)
+    w = as_store(work)
     core = tile_records(w, tile["core"])
-    head = np.fromfile(w / WL.HEAD_FILE, dtype=HEAD)
+    head = w.read_array(WL.HEAD_FILE, HEAD)
     lo, hi = np.asarray(tile["lo"]), np.asarray(tile["hi"])
     interior = np.asarray(tile["interior"], bool)
     cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
@@ -125,7 +125,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
     timed = None
     if faces:
         hrec = tile_records(w, tile["halo"])
-        rows, keys = _timed(hrec, list(faces))
+        rows, keys = _timed(w, hrec, list(faces))
         if rows.size:
             first = cpts.shape[0] + int(extra.sum())
             parts.append(np.stack([hrec["x"][rows], hrec["y"][rows], hrec["z"][rows]], axis=1))
@@ -159,8 +159,8 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
         near = stream[stream["m"] < halo]
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
-        files[Path(face_out).name] = _publish(face[np.argsort(face["g"], kind="stable")], Path(face_out))
-    files[out.name] = _publish(stream, out)
+        files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
+    files[WL.stream(t)] = w.put(WL.stream(t), stream)
     n_seam = int((stream["m"] < stream["key"]).sum())
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
@@ -168,7 +168,7 @@ def order_tile(work: str, t: int, tile: dict[str, Any], voxel_size: float, band_
 
 
 @timed_task
-def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
+def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
                ) -> dict[str, Any]:
     """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their
     pieces, in block order).
@@ -179,13 +179,13 @@ def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_p
     is below the halo width and upper bounds beyond it."""
     from ..._kernels.tiled import cover_pass
 
-    w = Path(work)
+    w = as_store(work)
     core = tile_records(w, core_pieces)
     halo = tile_records(w, halo_pieces)
     ext = np.concatenate([core, halo])
     is_core = np.zeros(ext.shape[0], bool)
     is_core[: core.shape[0]] = True
-    ranks = gather(w / WL.RANK, "<i8", (), ext["g"])
+    ranks = gather(w, WL.RANK, "<i8", (), ext["g"])
     srt = np.argsort(ranks, kind="stable")
     ranks = np.ascontiguousarray(ranks[srt])
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])
@@ -204,5 +204,5 @@ def cover_tile(work: str, t: int, spacing: float, core_pieces: list[str], halo_p
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
-    files = {WL.cover_events(t): _publish(ev, w / WL.cover_events(t)), WL.cover_points(t): _publish(pt, w / WL.cover_points(t))}
+    files = {WL.cover_events(t): w.put(WL.cover_events(t), ev), WL.cover_points(t): w.put(WL.cover_points(t), pt)}
     return {"tile": t, "n_ext": int(n), "n_events": int(ne), "files": files}

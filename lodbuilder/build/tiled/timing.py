@@ -6,7 +6,8 @@ A task function decorated with :func:`timed_task` (its first parameter the work 
 ``t`` a tile or ``b`` a read block if it works on one) adds ``timing`` to the dict it returns (its
 kind, the function's name; when it started, seconds since the epoch; its wall and CPU seconds, CPU
 of the worker process while it ran, every thread counted; the worker's pid) and appends the same
-as one line to the worker's log in the work directory (``tasks.<pid>.jsonl``:
+as one line to the worker's log in the work store (``tasks.<pid>.jsonl``; one object per line on
+an object store:
 :func:`lodbuilder.build.tiled.layout.task_log`), so :func:`task_table` finds every task, whatever
 its kind and whether or not its result is kept as a marker. tools/simulate_schedule.py replays the
 table on any number of workers; tools/bench_survey.py reports it.
@@ -25,7 +26,6 @@ import json
 import os
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, TypeVar
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -50,9 +50,9 @@ def timed_task(fn: F) -> F:
             info: dict[str, Any] = {"kind": fn.__name__, "pid": os.getpid(), "seconds": time.perf_counter() - t0}
             t, b = ids.get("t"), ids.get("b")
             if args and isinstance(t, int):
-                info.update(tile=t, files=tile_files(Path(args[0]), t))
+                info.update(tile=t, files=tile_files(args[0], t))
             elif args and isinstance(b, int):
-                info.update(block=b, files=block_files(Path(args[0]), b))
+                info.update(block=b, files=block_files(args[0], b))
             with contextlib.suppress(Exception):  # (an exception that takes no attributes)
                 exc.lodbuilder_task = info  # type: ignore[attr-defined]
             raise
@@ -61,34 +61,34 @@ def timed_task(fn: F) -> F:
         if isinstance(res, dict):
             res["timing"] = timing
         if args:
-            _log(Path(args[0]), {**timing, "tile": ids.get("t"), "block": ids.get("b")})
+            _log(args[0], {**timing, "tile": ids.get("t"), "block": ids.get("b")})
         return res
 
     return run  # type: ignore[return-value]
 
 
-def _log(work: Path, row: dict[str, Any]) -> None:
+def _log(work: Any, row: dict[str, Any]) -> None:
     from . import layout as WL
+    from .store import as_store
 
-    with contextlib.suppress(OSError), open(work / WL.task_log(os.getpid()), "a") as f:
-        f.write(json.dumps(row) + "\n")  # one short line: one write, whole or absent
+    with contextlib.suppress(OSError):
+        as_store(work).log(WL.task_log(os.getpid()), json.dumps(row))
 
 
-def task_table(work: Path, started: float) -> dict[str, Any]:
+def task_table(work: Any, started: float) -> dict[str, Any]:
     """The build record's table of every task the workers' logs in ``work`` hold, in order of
     start (``started``: the build's start, seconds since the epoch). A row's piece names the task
     (``<kind>.<tile or block>``; a task run again gets ``#2``, ...); a tile's orderings are its passes
     in order of start (``order.<t>.<p>``, as the driver names them)."""
     from . import layout as WL
+    from .store import as_store
 
     rows = []
-    for f in sorted(work.glob(WL.task_log("*"))):
-        with contextlib.suppress(OSError):
-            for line in f.read_text().splitlines():
-                with contextlib.suppress(ValueError, KeyError, TypeError):
-                    r = json.loads(line)
-                    rows.append([r["kind"], None, r.get("tile"), r.get("block"), round(float(r["start"]) - started, 3),
-                                 round(float(r["seconds"]), 4), round(float(r["cpu_seconds"]), 4), int(r["pid"])])
+    for line in as_store(work).log_lines(WL.task_log("")[: -len(".jsonl")]):
+        with contextlib.suppress(ValueError, KeyError, TypeError):
+            r = json.loads(line)
+            rows.append([r["kind"], None, r.get("tile"), r.get("block"), round(float(r["start"]) - started, 3),
+                         round(float(r["seconds"]), 4), round(float(r["cpu_seconds"]), 4), int(r["pid"])])
     rows.sort(key=lambda r: (r[4], r[0], r[2] if r[2] is not None else -1, r[3] if r[3] is not None else -1))
     passes: dict[int, int] = {}
     seen: dict[str, int] = {}
@@ -104,14 +104,22 @@ def task_table(work: Path, started: float) -> dict[str, Any]:
     return {"columns": list(TASK_COLUMNS), "rows": rows}
 
 
-def _spill_members(work: Path) -> list[dict[str, Any]] | None:
+def _marker(work: Any, piece: str) -> dict[str, Any]:
     from . import layout as WL
+    from .sums import get_json
 
-    members = json.loads((work / WL.marker("spill")).read_text()).get("members") or []
+    doc = get_json(work, WL.marker(piece))
+    if doc is None:
+        raise FileNotFoundError(piece)
+    return doc
+
+
+def _spill_members(work: Any) -> list[dict[str, Any]] | None:
+    members = _marker(work, "spill").get("members") or []
     return None if not members or any(not m.get("source") for m in members) else members
 
 
-def tile_files(work: Path, t: int) -> list[str] | None:
+def tile_files(work: Any, t: int) -> list[str] | None:
     """The names of the source files that tile ``t``'s points came from (the read blocks of its
     core pieces); None where that is not known."""
     from . import layout as WL
@@ -120,22 +128,20 @@ def tile_files(work: Path, t: int) -> list[str] | None:
         members = _spill_members(work)
         if members is None:
             return None
-        blocks = json.loads((work / WL.marker("spill")).read_text())["blocks"]
-        mine = set(json.loads((work / WL.marker("distribute")).read_text())["pieces"]["core"][t])
+        blocks = _marker(work, "spill")["blocks"]
+        mine = set(_marker(work, "distribute")["pieces"]["core"][t])
         inputs = sorted({int(blocks[b][0]) for b in range(len(blocks)) if WL.core(t, b) in mine})
         return [members[i]["source"] for i in inputs]
     return None
 
 
-def block_files(work: Path, b: int) -> list[str] | None:
+def block_files(work: Any, b: int) -> list[str] | None:
     """The name of the source file read block ``b`` came from; None where that is not known."""
-    from . import layout as WL
-
     with contextlib.suppress(Exception):
         members = _spill_members(work)
         if members is None:
             return None
-        doc = json.loads((work / WL.marker("spill")).read_text())
+        doc = _marker(work, "spill")
         return [members[int(doc["blocks"][b][0])]["source"]]
     return None
 

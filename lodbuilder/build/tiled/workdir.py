@@ -1,25 +1,29 @@
 """The work directory of a tiled build: what the read phase learnt (:class:`Spill`) and the raw
-files read back in chunks (the files and their records are listed in :mod:`.layout`).
+files read back in chunks (the files and their records are listed in :mod:`.layout`; where they
+are kept, a directory or an object store, in :mod:`.store`).
 
-Every pass reads these with explicit reads of bounded blocks (no memory maps left open), so the
-resident memory of the process that runs it stays at one block.
+Every pass reads these with explicit reads of bounded blocks (no memory maps), so the resident
+memory of the process that runs it stays at one block.
 """
 
 from __future__ import annotations
 
+import io
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from . import layout as WL
+from .store import LocalStore, Store
 from .sums import SumFile, read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
 
 REC = WL.REC
 BLOCK = 1 << 20  # rows per read/write block
 SAMPLE = 400_000  # points kept for the spacing estimate
+RUN_BYTES = 1 << 26  # at most this many bytes in one read of gather()
 
 
 @dataclass
@@ -53,48 +57,73 @@ class Spill:
                    int(d.get("rows", BLOCK)))
 
 
-def blocks(path: Path, dtype: Any, count: int | None = None, rows: int | None = None,
+def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None, rows: int | None = None,
            start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
-    """``(first row, rows)`` blocks of a raw file of records ``dtype``, read with plain reads."""
+    """``(first row, rows)`` blocks of a raw file of records ``dtype`` (a path, or a store and an
+    object's name), read with plain reads (an object store: ranged reads of a sequential file)."""
+    store, name = path if isinstance(path, tuple) else (LocalStore(Path(path).parent), Path(path).name)
     rows = rows or BLOCK
     dt = np.dtype(dtype)
     if count is None:
-        count = path.stat().st_size // dt.itemsize
-    with open(path, "rb") as f:
+        size = store.size(name)
+        if size is None:
+            raise FileNotFoundError(f"{store.url}: {name} is missing")
+        count = size // dt.itemsize
+    with store.open(name) as f:
         f.seek(start * dt.itemsize)
         lo = start
         while lo < count:
             m = min(rows, count - lo)
-            a = np.fromfile(f, dtype=dt, count=m)
+            a = _fromfile(f, dt, m)
             if a.shape[0] != m:
-                raise OSError(f"{path}: truncated ({lo + a.shape[0]} of {count} rows)")
+                raise OSError(f"{store.url}/{name}: truncated ({lo + a.shape[0]} of {count} rows)")
             yield lo, a
             lo += m
 
 
-def gather(path: Path, dtype: Any, shape: tuple[int, ...], idx: np.ndarray) -> np.ndarray:
-    """Rows ``idx`` of a raw file (any order), read in sorted runs without a memory map."""
+def _fromfile(f: Any, dt: np.dtype, count: int) -> np.ndarray:
+    """Up to ``count`` records from the file object ``f`` (a local file: np.fromfile)."""
+    if isinstance(f, io.BufferedReader):
+        return np.fromfile(f, dtype=dt, count=count)
+    out = np.empty(count, dt)
+    raw = memoryview(cast(Any, out)).cast("B")
+    got = 0
+    while got < raw.nbytes:
+        k = f.readinto(raw[got:])
+        if not k:
+            break
+        got += k
+    return out[: got // dt.itemsize]
+
+
+def gather(store: Store, name: str, dtype: Any, shape: tuple[int, ...], idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` of a raw object (any order), read in sorted runs (ranged reads; no memory map)."""
     dt = np.dtype(dtype)
     width = dt.itemsize * int(np.prod(shape)) if shape else dt.itemsize
     order = np.argsort(idx, kind="stable")
     srt = idx[order]
     out = np.empty((idx.shape[0], *shape), dtype=dt)
     flat = out.reshape(idx.shape[0], -1) if shape else out
-    with open(path, "rb", buffering=0) as f:
-        # contiguous runs of sorted indices are read in one call each; gaps are seeked over
-        i = 0
-        m = srt.shape[0]
-        while i < m:
-            j = i + 1
-            while j < m and srt[j] - srt[j - 1] <= 64 and j - i < 65536:
-                j += 1
-            first, last = int(srt[i]), int(srt[j - 1])
-            f.seek(first * width)
-            raw = f.read((last - first + 1) * width)
-            run = np.frombuffer(raw, dtype=dt).reshape(last - first + 1, -1) if shape else np.frombuffer(raw, dtype=dt)
-            rows = srt[i:j] - first
-            flat[order[i:j]] = run[rows] if shape else run[rows]
-            i = j
+    # contiguous runs of sorted indices are read in one range each; gaps of up to store.gap(width)
+    # rows are read over (a seek locally, the cost of a request on an object store)
+    gap = store.gap(width)
+    m = srt.shape[0]
+    runs = []
+    i = 0
+    while i < m:
+        j = i + 1
+        while j < m and srt[j] - srt[j - 1] <= gap and j - i < 65536 and (srt[j] - srt[i]) * width < RUN_BYTES:
+            j += 1
+        runs.append((i, j))
+        i = j
+    raws = store.read_ranges(name, [int(srt[i]) * width for i, _ in runs],
+                             [(int(srt[j - 1]) + 1) * width for i, j in runs])
+    for (i, j), raw in zip(runs, raws, strict=True):
+        first, last = int(srt[i]), int(srt[j - 1])
+        if len(raw) != (last - first + 1) * width:
+            raise OSError(f"{store.url}/{name}: truncated (rows {first}..{last} wanted)")
+        run = np.frombuffer(raw, dtype=dt).reshape(last - first + 1, -1) if shape else np.frombuffer(raw, dtype=dt)
+        flat[order[i:j]] = run[srt[i:j] - first]
     return out
 
 

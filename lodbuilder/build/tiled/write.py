@@ -67,7 +67,7 @@ def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str
             "files": {name: f.sum for name, f in out.items()}}
 
 
-def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
+def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
                   raw: list[list[int]], rows: int, progress: ProgressCallback = None) -> dict[str, Any]:
     """The first pass of the write as tasks, one per raw block (or what a finished one recorded)."""
     from .pool import collect, submit
@@ -83,7 +83,7 @@ def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tupl
         if prev is not None:
             results[b] = prev
         else:
-            calls.append((b, bucket_block, (str(work), b, int(g0), int(z) - int(a), fields, n, BLOCK, rows)))
+            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, BLOCK, rows)))
 
     def record(res: dict[str, Any]) -> None:
         results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)

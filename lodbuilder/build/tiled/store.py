@@ -1,0 +1,493 @@
+"""Where a tiled build keeps its work files: a local directory (beside the archive, the default)
+or an object store reached through fsspec (``s3://bucket/prefix``, ``gs://...``, ``memory://...``),
+so that the parent and the workers of a cluster need no shared file system.
+
+The one interface, :class:`Store`, is what the tasks and the parent use: a file (an *object*) is
+written whole (:meth:`Store.writer`, :meth:`Store.put`: it appears under its name only when it is
+complete, with the size and CRC-32 of its bytes, :mod:`.sums`), read whole or by byte ranges
+(:meth:`Store.read_array`, :meth:`Store.read_ranges`), listed and deleted. There are no memory maps
+and no writes into the middle of an object: a task writes whole objects (several per task), and
+the marker of a finished piece is the last object its task (or the parent) writes, so the resume
+rules of :mod:`.sums` hold on both stores alike.
+
+* :class:`LocalStore`: a directory; objects are written to a temporary and renamed into place
+  (:mod:`lodbuilder._atomic`). The bytes are those the tiled build always wrote.
+* :class:`FsspecStore`: a prefix of an fsspec file system. An object is written to a temporary
+  file of the worker (``$TMPDIR``) and uploaded on commit (``put_file``: an S3 object appears only
+  when its upload completes); byte ranges are ranged GETs, several at once where the file system
+  is asynchronous (``cat_ranges``). Credentials and endpoints come from fsspec's usual
+  configuration (environment variables such as ``AWS_ACCESS_KEY_ID`` / ``AWS_ENDPOINT_URL``, or
+  ``FSSPEC_S3_ENDPOINT_URL``, or ``~/.config/fsspec``), read by the parent: the store carries the
+  resolved options to the workers when it is pickled.
+
+A task's first argument is its store (or a local directory's path, which :func:`as_store` turns
+into a :class:`LocalStore`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import tempfile
+import zlib
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+
+from ...errors import InputError
+
+#: URL schemes that name a local directory (a LocalStore), not an object store
+LOCAL_SCHEMES = ("", "file", "local")
+#: bytes of the gap between two wanted ranges below which one ranged read takes both (object store)
+REMOTE_GAP = 1 << 20
+#: rows of the gap below which a local read takes both ranges (a seek costs little)
+LOCAL_GAP_ROWS = 64
+
+
+def _bytes(data: Any) -> Any:
+    return np.ascontiguousarray(data) if isinstance(data, np.ndarray) else data
+
+
+def _nbytes(data: Any) -> int:
+    return int(data.nbytes) if isinstance(data, np.ndarray) else memoryview(data).nbytes
+
+
+class Writer:
+    """An object being written: :meth:`write` appends (keeping its size and CRC-32),
+    :meth:`commit` makes it appear under its name, whole; closing without a commit discards it."""
+
+    def __init__(self, f: Any) -> None:
+        self._f = f
+        self.size = 0
+        self.crc = 0
+        self.done = False
+
+    def write(self, data: Any) -> None:
+        data = _bytes(data)
+        self.crc = zlib.crc32(cast(Any, data), self.crc)
+        self.size += _nbytes(data)
+        self._f.write(data)
+
+    @property
+    def sum(self) -> list[int]:
+        return [self.size, self.crc]
+
+    def commit(self) -> list[int]:
+        if not self.done:
+            self._f.close()
+            self._publish()
+            self.done = True
+        return self.sum
+
+    def close(self) -> None:
+        """Discard the object unless it was committed."""
+        if not self.done:
+            self.done = True
+            with contextlib.suppress(OSError):
+                self._f.close()
+            self._discard()
+
+    def _publish(self) -> None:  # pragma: no cover - implemented by the stores' writers
+        raise NotImplementedError
+
+    def _discard(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def __enter__(self) -> Writer:
+        return self
+
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.close()
+
+
+class Store:
+    """The work files of one tiled build (see the module)."""
+
+    url: str  # what messages show
+    local = False
+
+    def writer(self, name: str) -> Writer:
+        raise NotImplementedError
+
+    def put(self, name: str, data: Any) -> list[int]:
+        """Write the object ``name`` whole (an array's raw bytes, or bytes); returns [size, crc]."""
+        with self.writer(name) as w:
+            w.write(data)
+        return w.sum
+
+    def get(self, name: str) -> bytes:
+        """The whole object (FileNotFoundError when missing)."""
+        raise NotImplementedError
+
+    def read_ranges(self, name: str, starts: list[int], ends: list[int]) -> list[bytes]:
+        """The byte ranges ``[start, end)`` of the object, in the order given."""
+        raise NotImplementedError
+
+    def size(self, name: str) -> int | None:
+        """The object's size in bytes, None when it is missing (or is not a plain object)."""
+        raise NotImplementedError
+
+    def names(self, prefix: str = "") -> list[str]:
+        """The names of the objects whose names start with ``prefix``, sorted."""
+        raise NotImplementedError
+
+    def delete(self, name: str) -> None:
+        """Delete the object (nothing to do when it is missing)."""
+        raise NotImplementedError
+
+    def open(self, name: str) -> Any:
+        """A binary file object reading the object sequentially."""
+        raise NotImplementedError
+
+    def log(self, name: str, line: str) -> None:
+        """Add ``line`` to the task log ``name`` (a local file appended to; on an object store one
+        small object per line, ``name.<n>``; :meth:`log_lines` reads them back)."""
+        raise NotImplementedError
+
+    def log_lines(self, prefix: str) -> list[str]:
+        raise NotImplementedError
+
+    gap_rows = LOCAL_GAP_ROWS
+
+    def gap(self, width: int) -> int:
+        """Rows of a gap that one read takes rather than two (see :func:`.workdir.gather`)."""
+        return self.gap_rows
+
+    # ------------------------------------------------------------------ derived reads
+
+    def read_array(self, name: str, dtype: Any, start: int = 0, count: int | None = None) -> np.ndarray:
+        """Rows ``start .. start + count`` (default: to the end) of the object as records ``dtype``
+        (a writable array); OSError when the object holds fewer rows."""
+        dt = np.dtype(dtype)
+        if count is None:
+            size = self.size(name)
+            if size is None:
+                raise FileNotFoundError(f"{self.url}: {name} is missing")
+            count = max(0, size // dt.itemsize - start)
+        if count == 0:
+            return np.zeros(0, dt)
+        (raw,) = self.read_ranges(name, [start * dt.itemsize], [(start + count) * dt.itemsize])
+        if len(raw) != count * dt.itemsize:
+            raise OSError(f"{self.url}: {name} is truncated ({len(raw) // dt.itemsize} of {count} rows)")
+        return np.frombuffer(bytearray(raw), dtype=dt)
+
+    def load_npy(self, name: str) -> np.ndarray:
+        return np.load(io.BytesIO(self.get(name)))
+
+    def sum(self, name: str, chunk: int = 1 << 23) -> list[int]:
+        """Size and CRC-32 of the object, read in chunks."""
+        crc = size = 0
+        with self.open(name) as f:
+            while data := f.read(chunk):
+                crc = zlib.crc32(data, crc)
+                size += len(data)
+        return [size, crc]
+
+    def clear(self) -> None:
+        """Delete every object of the store."""
+        for n in self.names():
+            self.delete(n)
+
+
+# ------------------------------------------------------------------------------ local directory
+
+
+class _LocalWriter(Writer):
+    def __init__(self, tmp: Path, path: Path) -> None:
+        super().__init__(open(tmp, "wb"))  # noqa: SIM115 - closed by commit()/close()
+        self.tmp, self.path = tmp, path
+
+    def _publish(self) -> None:
+        from ..._atomic import publish
+
+        publish(self.tmp, self.path)
+
+    def _discard(self) -> None:
+        with contextlib.suppress(OSError):
+            self.tmp.unlink()
+
+
+class LocalStore(Store):
+    """A work directory on a local (or shared) file system: today's files and bytes."""
+
+    local = True
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root)
+        self.url = str(self.root)
+
+    def __repr__(self) -> str:
+        return f"LocalStore({self.url!r})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, LocalStore) and other.root == self.root
+
+    def __hash__(self) -> int:
+        return hash(self.root)
+
+    def path(self, name: str) -> Path:
+        return self.root / name
+
+    def writer(self, name: str) -> Writer:
+        from . import layout as WL
+
+        return _LocalWriter(self.root / WL.writing(name), self.root / name)
+
+    def put(self, name: str, data: Any) -> list[int]:
+        from ..._atomic import replace_with
+
+        data = _bytes(data)
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                f.write(data)
+
+        replace_with(self.root / name, write)
+        return [_nbytes(data), zlib.crc32(cast(Any, data))]
+
+    def get(self, name: str) -> bytes:
+        return (self.root / name).read_bytes()
+
+    def read_ranges(self, name: str, starts: list[int], ends: list[int]) -> list[bytes]:
+        out = []
+        with open(self.root / name, "rb", buffering=0) as f:
+            for a, z in zip(starts, ends, strict=True):
+                f.seek(a)
+                out.append(f.read(z - a))
+        return out
+
+    def read_array(self, name: str, dtype: Any, start: int = 0, count: int | None = None) -> np.ndarray:
+        dt = np.dtype(dtype)
+        path = self.root / name
+        if count is None:
+            count = max(0, path.stat().st_size // dt.itemsize - start)
+        with open(path, "rb") as f:
+            f.seek(start * dt.itemsize)
+            a = np.fromfile(f, dtype=dt, count=count)
+        if a.shape[0] != count:
+            raise OSError(f"{path}: truncated ({start + a.shape[0]} of {start + count} rows)")
+        return a
+
+    def load_npy(self, name: str) -> np.ndarray:
+        return np.load(self.root / name)
+
+    def size(self, name: str) -> int | None:
+        import stat
+
+        try:
+            st = os.lstat(self.root / name)
+        except FileNotFoundError:
+            return None
+        return int(st.st_size) if stat.S_ISREG(st.st_mode) else None
+
+    def names(self, prefix: str = "") -> list[str]:
+        try:
+            return sorted(e.name for e in os.scandir(self.root) if e.name.startswith(prefix) and e.is_file())
+        except FileNotFoundError:
+            return []
+
+    def delete(self, name: str) -> None:
+        (self.root / name).unlink(missing_ok=True)
+
+    def open(self, name: str) -> Any:
+        return open(self.root / name, "rb")  # noqa: SIM115 - the caller closes it
+
+    def log(self, name: str, line: str) -> None:
+        with contextlib.suppress(OSError), open(self.root / name, "a") as f:
+            f.write(line + "\n")  # one short line: one write, whole or absent
+
+    def log_lines(self, prefix: str) -> list[str]:
+        out = []
+        for n in self.names(prefix):
+            with contextlib.suppress(OSError):
+                out += (self.root / n).read_text().splitlines()
+        return out
+
+
+# ------------------------------------------------------------------------------ object store
+
+
+class _RemoteWriter(Writer):
+    def __init__(self, store: FsspecStore, name: str) -> None:
+        fd, tmp = tempfile.mkstemp(prefix="lodbuilder-", suffix=".part")
+        super().__init__(os.fdopen(fd, "wb"))
+        self.tmp, self.store, self.name = tmp, store, name
+
+    def _publish(self) -> None:
+        try:
+            self.store.fs.put_file(self.tmp, self.store.key(self.name))
+        finally:
+            self._discard()
+
+    def _discard(self) -> None:
+        with contextlib.suppress(OSError):
+            os.unlink(self.tmp)
+
+
+class FsspecStore(Store):
+    """A prefix of an fsspec file system (an object store). Picklable: the file system's options
+    travel with it to the workers."""
+
+    gap_rows = 0  # (see gap())
+
+    def __init__(self, url: str, fs: Any = None, **storage_options: Any) -> None:
+        self.url = url.rstrip("/")
+        if fs is None:
+            fs, _ = url_to_fs(self.url, **storage_options)
+        self.fs = fs
+        self.root = fs._strip_protocol(self.url).rstrip("/")
+
+    def __repr__(self) -> str:
+        return f"FsspecStore({self.url!r})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, FsspecStore) and other.url == self.url
+
+    def __hash__(self) -> int:
+        return hash(self.url)
+
+    def key(self, name: str) -> str:
+        return f"{self.root}/{name}"
+
+    def gap(self, width: int) -> int:
+        return max(LOCAL_GAP_ROWS, REMOTE_GAP // max(width, 1))
+
+    def writer(self, name: str) -> Writer:
+        return _RemoteWriter(self, name)
+
+    def put(self, name: str, data: Any) -> list[int]:
+        data = _bytes(data)
+        raw = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
+        self.fs.pipe_file(self.key(name), raw)
+        return [len(raw), zlib.crc32(raw)]
+
+    def get(self, name: str) -> bytes:
+        return cast(bytes, self.fs.cat_file(self.key(name)))
+
+    def read_ranges(self, name: str, starts: list[int], ends: list[int]) -> list[bytes]:
+        if not starts:
+            return []
+        key = self.key(name)
+        if len(starts) == 1:
+            return [self.fs.cat_file(key, start=starts[0], end=ends[0])]
+        return cast(list[bytes], self.fs.cat_ranges([key] * len(starts), list(starts), list(ends)))
+
+    def _fresh(self) -> None:
+        """Forget fsspec's listings of the store (other processes write into it)."""
+        self.fs.invalidate_cache(self.root)
+
+    def size(self, name: str) -> int | None:
+        self._fresh()
+        try:
+            info = self.fs.info(self.key(name))
+        except (FileNotFoundError, OSError):
+            return None
+        return int(info["size"]) if info.get("type") == "file" else None
+
+    def names(self, prefix: str = "") -> list[str]:
+        self._fresh()
+        try:
+            found = self.fs.ls(self.root, detail=False)
+        except FileNotFoundError:
+            return []
+        finally:
+            self._fresh()
+        names = (str(p).rstrip("/").rsplit("/", 1)[-1] for p in found)
+        return sorted(n for n in names if n.startswith(prefix))
+
+    def delete(self, name: str) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            self.fs.rm_file(self.key(name))
+
+    def clear(self) -> None:
+        keys = [self.key(n) for n in self.names()]
+        if keys:
+            with contextlib.suppress(FileNotFoundError):
+                self.fs.rm(keys)
+
+    def open(self, name: str) -> Any:
+        self._fresh()
+        return self.fs.open(self.key(name), "rb", block_size=1 << 23, cache_type="readahead")
+
+    def log(self, name: str, line: str) -> None:
+        import uuid
+
+        with contextlib.suppress(OSError):
+            self.put(f"{name}.{uuid.uuid4().hex[:12]}", (line + "\n").encode())
+
+    def log_lines(self, prefix: str) -> list[str]:
+        names = self.names(prefix)
+        if not names:
+            return []
+        keys = [self.key(n) for n in names]
+        got = self.fs.cat(keys, on_error="omit")
+        return [ln for k in keys if isinstance(got.get(k), bytes) for ln in got[k].decode().splitlines()]
+
+
+def url_to_fs(url: str, **storage_options: Any) -> tuple[Any, str]:
+    """``(fsspec file system, path)`` for a work directory's URL; a one-line error naming the
+    extra to install when fsspec or the scheme's package is missing."""
+    scheme = url.split("://", 1)[0].lower()
+    try:
+        import fsspec.core
+    except ImportError:
+        raise _missing("fsspec", "remote") from None
+    try:
+        return cast(tuple[Any, str], fsspec.core.url_to_fs(url, **storage_options))
+    except ImportError:
+        need, extra = ("s3fs", "s3") if scheme in ("s3", "s3a") else (scheme, "remote")
+        raise _missing(need, extra) from None
+
+
+def _missing(package: str, extra: str) -> Exception:
+    from ...errors import MissingDependencyError
+
+    return MissingDependencyError(f"work files on an object store need {package}, which is not installed; install "
+                                  f"it with: pip install 'lodbuilder[{extra}]'")
+
+
+def is_remote(url: str | os.PathLike[str]) -> bool:
+    """True when ``url`` names an object store (a URL whose scheme is not file://)."""
+    text = os.fspath(url)
+    return "://" in text and text.split("://", 1)[0].lower() not in LOCAL_SCHEMES
+
+
+def as_store(work: Store | str | os.PathLike[str]) -> Store:
+    """``work`` as a store: a Store as it is, a URL as an :class:`FsspecStore`, a path as a
+    :class:`LocalStore`."""
+    if isinstance(work, Store):
+        return work
+    text = os.fspath(work)
+    if is_remote(text):
+        return FsspecStore(text)
+    if text.startswith("file://"):
+        text = text[len("file://"):]
+    return LocalStore(Path(text))
+
+
+def check_work_url(url: Any) -> str | None:
+    """``url`` (where tiled builds keep their work files; None: beside the archive) checked: a
+    non-empty path (returned absolute: workers may run elsewhere) or URL whose scheme fsspec knows."""
+    if url is None:
+        return None
+    if not isinstance(url, (str, os.PathLike)) or not os.fspath(url).strip():
+        raise InputError(f"work_dir must be a directory or an fsspec URL like s3://BUCKET/PREFIX, got {url!r}")
+    text = os.fspath(url)
+    if is_remote(text):
+        scheme = text.split("://", 1)[0].lower()
+        try:
+            from fsspec.registry import known_implementations
+        except ImportError:
+            raise _missing("fsspec", "remote") from None
+        from fsspec.registry import registry
+
+        if scheme not in known_implementations and scheme not in registry:
+            raise InputError(f"work_dir {text!r}: fsspec knows no file system {scheme!r}; give a directory or a URL "
+                             "like s3://BUCKET/PREFIX")
+        return text
+    return os.path.abspath(text[len("file://"):] if text.startswith("file://") else text)

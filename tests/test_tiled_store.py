@@ -1,0 +1,137 @@
+"""The work store of a tiled build (lodbuilder.build.tiled.store): a local directory and an fsspec
+object store behave alike (whole objects, ranged reads, listing, deletion), and the resume rules of
+lodbuilder.build.tiled.sums (a marker trusted only when it and every object it lists check out)
+hold on both."""
+
+from __future__ import annotations
+
+import logging
+import pickle
+import uuid
+
+import numpy as np
+import pytest
+
+from lodbuilder.build.tiled import sums
+from lodbuilder.build.tiled.store import FsspecStore, LocalStore, as_store, check_work_url
+from lodbuilder.build.tiled.workdir import blocks, gather
+from lodbuilder.errors import InputError
+
+pytest.importorskip("fsspec")
+
+
+@pytest.fixture(params=["local", "memory"])
+def store(request, tmp_path):
+    if request.param == "local":
+        return LocalStore(tmp_path)
+    return FsspecStore(f"memory://lodbuilder-test-{uuid.uuid4().hex}/work")
+
+
+def test_an_object_is_written_whole_with_its_size_and_checksum(store):
+    a = np.arange(1000, dtype="<i8")
+    with store.writer("a.i8") as w:
+        w.write(a[:400])
+        assert store.size("a.i8") is None  # not there until committed
+        w.write(a[400:])
+    assert w.sum == sums.sum_array(a) == store.sum("a.i8")
+    assert store.size("a.i8") == 8000
+    np.testing.assert_array_equal(store.read_array("a.i8", "<i8"), a)
+    np.testing.assert_array_equal(store.read_array("a.i8", "<i8", 10, 5), a[10:15])
+    assert store.get("a.i8") == a.tobytes()
+    assert store.read_ranges("a.i8", [8, 80], [16, 96]) == [a[1:2].tobytes(), a[10:12].tobytes()]
+    out = store.read_array("a.i8", "<i8")
+    out[0] = 5  # a writable array
+
+
+def test_a_failed_writer_leaves_no_object(store):
+    with pytest.raises(RuntimeError), store.writer("b.bin") as w:
+        w.write(b"half")
+        raise RuntimeError("task died")
+    assert store.size("b.bin") is None
+    assert store.names() == []
+
+
+def test_put_list_delete_and_read_past_the_end(store):
+    assert store.put("x.bin", b"12345678") == [8, sums.sum_array(np.frombuffer(b"12345678", np.uint8))[1]]
+    store.put("y.bin", np.zeros(3))
+    assert store.names() == ["x.bin", "y.bin"]
+    assert store.names("y") == ["y.bin"]
+    with pytest.raises(OSError, match="truncated"):
+        store.read_array("x.bin", "<i8", 0, 2)
+    store.delete("x.bin")
+    store.delete("x.bin")  # (nothing to do)
+    assert store.names() == ["y.bin"]
+    store.clear()
+    assert store.names() == []
+
+
+def test_gather_and_blocks_read_rows_of_an_object(store):
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 1 << 40, 50_000).astype("<i8")
+    store.put("r.i8", a)
+    idx = rng.choice(a.shape[0], 3000, replace=False)
+    np.testing.assert_array_equal(gather(store, "r.i8", "<i8", (), idx), a[idx])
+    xyz = rng.random((700, 3))
+    store.put("p.f8", xyz)
+    got = np.concatenate([b.reshape(-1, 3) for _, b in blocks((store, "p.f8"), "<f8", None, 3 * 128)])
+    np.testing.assert_array_equal(got, xyz)
+
+
+def test_the_task_log_collects_lines_from_every_worker(store):
+    store.log("tasks.1.jsonl", '{"a": 1}')
+    store.log("tasks.2.jsonl", '{"a": 2}')
+    store.log("tasks.1.jsonl", '{"a": 3}')
+    assert sorted(store.log_lines("tasks.")) == ['{"a": 1}', '{"a": 2}', '{"a": 3}']
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "missing", "marker"])
+def test_a_damaged_object_makes_its_piece_be_done_again(store, how, caplog):
+    a = np.arange(5000, dtype="<f8")
+    files = {"raw.0.xyz": store.put("raw.0.xyz", a)}
+    sums.mark(store, "read.0", {"n": 5000, "files": files})
+    assert sums.done(store, "read.0") == {"n": 5000, "files": files}
+    if how == "flip":
+        raw = bytearray(store.get("raw.0.xyz"))
+        raw[1234] ^= 0x5A
+        store.put("raw.0.xyz", bytes(raw))
+        problem = "raw.0.xyz does not match its checksum"
+    elif how == "truncate":
+        store.put("raw.0.xyz", store.get("raw.0.xyz")[:400])
+        problem = "raw.0.xyz has 400 bytes, 40000 were written"
+    elif how == "missing":
+        store.delete("raw.0.xyz")
+        problem = "raw.0.xyz is missing"
+    else:
+        text = store.get("read.0.json").replace(b"5000", b"5001")
+        store.put("read.0.json", text)
+        problem = "its record is damaged"
+    with caplog.at_level(logging.WARNING, logger="lodbuilder.build.tiled.sums"):
+        assert sums.done(store, "read.0") is None
+    assert [r.getMessage() for r in caplog.records] == [
+        f"tiled build in {store.url}: the read.0 phase ({problem}); doing it again"]
+    assert store.size("read.0.json") is None  # the marker is gone: the piece is done again
+
+
+def test_a_store_travels_to_workers_by_pickle(tmp_path):
+    local = LocalStore(tmp_path)
+    assert pickle.loads(pickle.dumps(local)) == local
+    remote = FsspecStore("memory://lodbuilder-pickle/work")
+    remote.put("a", b"1")
+    back = pickle.loads(pickle.dumps(remote))
+    assert back == remote and back.get("a") == b"1"  # (the memory file system is this process's)
+
+
+def test_as_store_and_the_work_url_check(tmp_path):
+    assert as_store(tmp_path) == LocalStore(tmp_path)
+    assert as_store(str(tmp_path)) == LocalStore(tmp_path)
+    assert as_store(f"file://{tmp_path}") == LocalStore(tmp_path)
+    assert isinstance(as_store("memory://bucket/x"), FsspecStore)
+    assert check_work_url(None) is None
+    assert check_work_url("s3://bucket/prefix") == "s3://bucket/prefix"
+    with pytest.raises(InputError) as e:
+        check_work_url("nosuchfs://bucket/prefix")
+    assert str(e.value) == ("work_dir 'nosuchfs://bucket/prefix': fsspec knows no file system 'nosuchfs'; give a "
+                            "directory or a URL like s3://BUCKET/PREFIX")
+    with pytest.raises(InputError) as e:
+        check_work_url("  ")
+    assert str(e.value) == "work_dir must be a directory or an fsspec URL like s3://BUCKET/PREFIX, got '  '"
