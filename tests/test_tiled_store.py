@@ -135,3 +135,40 @@ def test_as_store_and_the_work_url_check(tmp_path):
     with pytest.raises(InputError) as e:
         check_work_url("  ")
     assert str(e.value) == "work_dir must be a directory or an fsspec URL like s3://BUCKET/PREFIX, got '  '"
+
+
+def test_the_cli_refuses_a_work_dir_fsspec_does_not_know(tmp_path, capsys):
+    from lodbuilder.cli.main import main
+
+    src = tmp_path / "p.xyz"
+    src.write_text("0 0 0\n1 0 0\n0 1 0\n")
+    rc = main(["build", str(src), "-o", str(tmp_path / "a.h5"), "--work-dir", "nosuchfs://b/p"])
+    assert rc != 0
+    assert capsys.readouterr().err.strip().endswith(
+        "work_dir 'nosuchfs://b/p': fsspec knows no file system 'nosuchfs'; give a directory or a URL like "
+        "s3://BUCKET/PREFIX")
+    assert not (tmp_path / "a.h5").exists()
+
+
+def test_a_local_work_dir_holds_the_work_files_of_a_stopped_build(tmp_path, monkeypatch):
+    """--work-dir DIR: the work files go to DIR/ARCHIVE/PART.work (not beside the archive), a
+    stopped build resumes from them, and they are gone once the scan is in."""
+    import lodbuilder
+    from lodbuilder.build.tiled import driver as D
+
+    rng = np.random.default_rng(3)
+    xy = rng.random((6000, 2))
+    scan = lodbuilder.Scan(points=np.c_[xy, 0.05 * np.sin(6 * xy[:, 0])], name="s")
+    with monkeypatch.context() as mp:
+        mp.setattr(D, "_merge", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+        with pytest.raises(KeyboardInterrupt):
+            lodbuilder.build_archive(scan, tmp_path / "a.h5", work_dir=tmp_path / "w", _tile_points=2000)
+    (work,) = (tmp_path / "w" / "a.h5").glob("s.*.work")
+    assert (work / "distribute.json").is_file()
+    assert not list((tmp_path / ".a.h5.parts").glob("*.work"))
+    res = lodbuilder.build_archive(scan, tmp_path / "a.h5", work_dir=tmp_path / "w", _tile_points=2000)
+    assert res.scans[0].status == "built"
+    assert not work.exists()
+    with lodbuilder.open_archive(tmp_path / "a.h5") as arc:
+        tiled = arc.scan("s").build["tiled"]
+        assert tiled["resumed"]["tiles_ordered_before"] == tiled["tiles"] > 1  # every tile taken from DIR
