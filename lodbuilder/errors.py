@@ -45,6 +45,10 @@ class ArchiveError(LodbuilderError, OSError):
     """An archive cannot be opened, read or written."""
 
 
+class WorkStoreError(LodbuilderError, OSError):
+    """The work store of a tiled build (``--work-dir URL``) cannot be written or read."""
+
+
 class NotAnArchiveError(ArchiveError):
     """The file exists but is not an lodbuilder archive."""
 

@@ -222,3 +222,16 @@ def test_kill_9_then_resume_from_the_store(s3, source, pooled, tmp_path, moment)
     assert _datasets(out) == _datasets(pooled)
     assert build["tiled"]["resumed"]["tiles_ordered_before"] >= 1
     assert _keys(s3, url[len(f"s3://{BUCKET}/"):]) == []
+
+
+def test_a_work_store_that_cannot_be_written_fails_before_any_work(s3, source, tmp_path):
+    from lodbuilder.errors import WorkStoreError
+
+    url = "s3://no-such-bucket-here/w"
+    with pytest.raises(WorkStoreError) as e:
+        lodbuilder.build_archive(source, tmp_path / "n.h5", workers=1, work_dir=url, _tile_points=TILE_POINTS)
+    msg = str(e.value)
+    assert msg.startswith("work store s3://no-such-bucket-here/w/n.h5/sheet.") and "does not exist" in msg
+    assert msg.endswith("; check the URL, and the credentials and endpoint in fsspec's configuration (AWS_* or "
+                        "FSSPEC_S3_* variables, ~/.config/fsspec)")
+    assert "\n" not in msg and not (tmp_path / "n.h5").exists()

@@ -23,7 +23,7 @@ Executors: ``pool`` (``--workers N``), ``dask`` (``--dask-local N``, work files 
 and ``dask-s3`` (``--dask-local N --work-dir s3://...``: the work files on moto's S3 server, started
 by this program on 127.0.0.1 and found by the build through fsspec's ``FSSPEC_S3_*`` variables; the
 server's own CPU is this program's, outside the measured tree, and ``peak_work_dir_bytes`` counts
-the local disk only). ``s3_requests`` of such a run: the server's requests by method.
+the local disk only).
 
     python tools/make_survey.py --nx 4 --ny 4 -o /work/bench_data/survey_4x4.laz
     python tools/make_survey.py --nx 4 --ny 4 --files /work/bench_data/survey_4x4
@@ -208,31 +208,19 @@ class S3:
     """moto's S3 server on 127.0.0.1 with one bucket: the work store of the ``dask-s3`` runs."""
 
     def __init__(self) -> None:
+        import logging
+
         import boto3
         from moto.server import ThreadedMotoServer
 
+        logging.getLogger("werkzeug").setLevel(logging.WARNING)  # (the server's line per request)
         self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
         self.server.start()
         host, port = self.server.get_host_and_port()
-        self.endpoint = f"http://{host}:{port}"
-        boto3.client("s3", endpoint_url=self.endpoint, aws_access_key_id="test", aws_secret_access_key="test",
+        endpoint = f"http://{host}:{port}"
+        boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="test", aws_secret_access_key="test",
                      region_name="us-east-1").create_bucket(Bucket=BUCKET)
-        self.env = {"FSSPEC_S3_ENDPOINT_URL": self.endpoint, "FSSPEC_S3_KEY": "test", "FSSPEC_S3_SECRET": "test"}
-
-    def requests(self) -> dict[str, int]:
-        """The requests since the last call, by method (moto's recorder)."""
-        import requests
-
-        requests.post(self.endpoint + "/moto-api/recorder/stop-recording")
-        text = requests.get(self.endpoint + "/moto-api/recorder/download-recording").text
-        requests.post(self.endpoint + "/moto-api/recorder/reset-recording")
-        requests.post(self.endpoint + "/moto-api/recorder/start-recording")
-        out: dict[str, int] = {}
-        for line in text.splitlines():
-            if line.strip():
-                m = json.loads(line).get("method", "?")
-                out[m] = out.get(m, 0) + 1
-        return out
+        self.env = {"FSSPEC_S3_ENDPOINT_URL": endpoint, "FSSPEC_S3_KEY": "test", "FSSPEC_S3_SECRET": "test"}
 
     def stop(self) -> None:
         self.server.stop()
@@ -243,9 +231,7 @@ _S3: list[S3] = []
 
 def _s3() -> S3:
     if not _S3:
-        os.environ.setdefault("MOTO_RECORDER_FILEPATH", os.path.join(tempfile.gettempdir(), f"moto_bench_{os.getpid()}"))
         _S3.append(S3())
-        _S3[0].requests()  # (starts the recorder)
     return _S3[0]
 
 
@@ -269,8 +255,6 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     if joint:
         args += ["--joint", joint]
     env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"), **ex_env)
-    if executor == "dask-s3":
-        _s3().requests()  # (forget what came before)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
     if tile_points:
         env["BENCH_SURVEY_TILE_POINTS"] = str(tile_points)
@@ -313,8 +297,6 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "tiles": rec.get("tiled", {}).get("tiles"),
         "tasks": task_summary(rec.get("tasks")),
     })
-    if executor == "dask-s3":
-        res["s3_requests"] = _s3().requests()
     res["simulation"] = _simulate(rec, wall, workers)
     res["simulation_cpu"] = _simulate(rec, wall, workers, rus["self_cpu"])
     shutil.rmtree(where, ignore_errors=True)

@@ -134,7 +134,8 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     took. ``work`` is the work directory or store (:mod:`.store`; kept on failure for a resume,
     emptied on success)."""
     budget = P.default_budget() if max_memory is None else int(max_memory)
-    work = store = _make_store(as_store(work))  # (the phases below take the store)
+    work = store = as_store(work)  # (the phases below take the store)
+    store.claim()  # the directory made (or checked to be lodbuilder's), the object store's access checked
     clock = _Clock()
 
     # 1. read: the scan into raw files, with bounds, a sample and the coordinate encoding
@@ -183,30 +184,10 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     info = _write(executor, work, part, name, sp, head["g"][:1], record, {"reader": sp.reader, **(provenance or {})},
                   buckets, radii, progress)
     clock.lap("write")
-    _remove_store(store)
+    store.remove()
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
             "part": str(info.path), "worker_pid": os.getpid()}
-
-
-def _make_store(store: Store) -> Store:
-    """Create the work directory (or check that the one a killed build left is lodbuilder's)."""
-    if isinstance(store, LocalStore):
-        from ...archive.files import make_own_dir
-
-        store.root.parent.mkdir(parents=True, exist_ok=True)  # (a --work-dir DIR: DIR/ARCHIVE/)
-        make_own_dir(store.root, store.root.name)
-    return store
-
-
-def _remove_store(store: Store) -> None:
-    """The work files of a finished build, deleted."""
-    if isinstance(store, LocalStore):
-        from ...archive.files import remove_own_dir
-
-        remove_own_dir(store.root, store.root.name)
-    else:
-        store.clear()
 
 
 def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill, seeds: np.ndarray,

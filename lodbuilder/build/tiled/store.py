@@ -44,6 +44,8 @@ LOCAL_SCHEMES = ("", "file", "local")
 REMOTE_GAP = 1 << 20
 #: rows of the gap below which a local read takes both ranges (a seek costs little)
 LOCAL_GAP_ROWS = 64
+#: the object that marks a prefix of an object store as a tiled build's work files
+OWNER = ".lodbuilder-work"
 
 
 def _bytes(data: Any) -> Any:
@@ -193,6 +195,13 @@ class Store:
         for n in self.names():
             self.delete(n)
 
+    def claim(self) -> None:
+        """Make the store ready for a build (or check that what a stopped build left is lodbuilder's)."""
+
+    def remove(self) -> None:
+        """Delete the store and what it holds (a finished build)."""
+        self.clear()
+
 
 # ------------------------------------------------------------------------------ local directory
 
@@ -232,6 +241,18 @@ class LocalStore(Store):
 
     def path(self, name: str) -> Path:
         return self.root / name
+
+    def claim(self) -> None:
+        """Create the work directory with lodbuilder's marker, or check the one that is there."""
+        from ...archive.files import make_own_dir
+
+        self.root.parent.mkdir(parents=True, exist_ok=True)  # (a --work-dir DIR: DIR/ARCHIVE/)
+        make_own_dir(self.root, self.root.name)
+
+    def remove(self) -> None:
+        from ...archive.files import remove_own_dir
+
+        remove_own_dir(self.root, self.root.name)
 
     def writer(self, name: str) -> Writer:
         from . import layout as WL
@@ -356,6 +377,19 @@ class FsspecStore(Store):
 
     def gap(self, width: int) -> int:
         return max(LOCAL_GAP_ROWS, REMOTE_GAP // max(width, 1))
+
+    def claim(self) -> None:
+        """Write the store's owner object (:data:`OWNER`), or fail in one line before any work
+        when the store cannot be written (a missing bucket, wrong credentials, no endpoint)."""
+        from ...errors import WorkStoreError
+
+        try:
+            self.put(OWNER, b"lodbuilder tiled build work files\n")
+        except Exception as exc:  # noqa: BLE001 - any failure of the file system, said in one line
+            text = " ".join(str(exc).split()) or type(exc).__name__
+            raise WorkStoreError(f"work store {self.url}: cannot write there ({text}); check the URL, and the "
+                                 "credentials and endpoint in fsspec's configuration (AWS_* or FSSPEC_S3_* "
+                                 "variables, ~/.config/fsspec)") from None
 
     def writer(self, name: str) -> Writer:
         return _RemoteWriter(self, name)
