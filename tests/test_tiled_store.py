@@ -70,7 +70,7 @@ def test_gather_and_blocks_read_rows_of_an_object(store):
     a = rng.integers(0, 1 << 40, 50_000).astype("<i8")
     store.put("r.i8", a)
     idx = rng.choice(a.shape[0], 3000, replace=False)
-    np.testing.assert_array_equal(gather(store, "r.i8", "<i8", (), idx), a[idx])
+    np.testing.assert_array_equal(gather((store, "r.i8"), "<i8", (), idx), a[idx])
     xyz = rng.random((700, 3))
     store.put("p.f8", xyz)
     got = np.concatenate([b.reshape(-1, 3) for _, b in blocks((store, "p.f8"), "<f8", None, 3 * 128)])

@@ -23,7 +23,8 @@ Executors: ``pool`` (``--workers N``), ``dask`` (``--dask-local N``, work files 
 and ``dask-s3`` (``--dask-local N --work-dir s3://...``: the work files on moto's S3 server, started
 by this program on 127.0.0.1 and found by the build through fsspec's ``FSSPEC_S3_*`` variables; the
 server's own CPU is this program's, outside the measured tree, and ``peak_work_dir_bytes`` counts
-the local disk only).
+the local disk only; ``bench_process_cpu_seconds``: this program's CPU during the run, the sampler's
+and, for ``dask-s3``, the S3 server's, which competes with the build for the machine's cores).
 
     python tools/make_survey.py --nx 4 --ny 4 -o /work/bench_data/survey_4x4.laz
     python tools/make_survey.py --nx 4 --ny 4 --files /work/bench_data/survey_4x4
@@ -259,7 +260,7 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     if tile_points:
         env["BENCH_SURVEY_TILE_POINTS"] = str(tile_points)
     load_before = os.getloadavg()[0]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     proc = subprocess.Popen([sys.executable, "-c", CHILD, *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=where)
     sampler = Sampler(proc.pid, where, interval)
@@ -270,6 +271,7 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     res: dict[str, Any] = {"executor": executor, "workers": workers, "max_memory": max_memory,
                            "command": "lodbuilder " + " ".join(args), "rc": proc.returncode,
                            "wall_seconds": round(wall, 2), "load_before": load_before,
+                           "bench_process_cpu_seconds": round(time.process_time() - c0, 2),
                            "load_after": os.getloadavg()[0], "samples": sampler.samples}
     if proc.returncode != 0:
         res["stderr"] = err[-2000:]

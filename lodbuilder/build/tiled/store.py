@@ -126,6 +126,13 @@ class Store:
         """The whole object (FileNotFoundError when missing)."""
         raise NotImplementedError
 
+    def marker(self, name: str) -> bytes | None:
+        """The bytes of a marker object, None when there is none (one request on an object store)."""
+        try:
+            return self.get(name)
+        except FileNotFoundError:
+            return None
+
     def read_ranges(self, name: str, starts: list[int], ends: list[int]) -> list[bytes]:
         """The byte ranges ``[start, end)`` of the object, in the order given."""
         raise NotImplementedError
@@ -273,6 +280,15 @@ class LocalStore(Store):
 
     def get(self, name: str) -> bytes:
         return (self.root / name).read_bytes()
+
+    def marker(self, name: str) -> bytes | None:
+        path = self.root / name
+        if not path.exists():
+            return None
+        try:
+            return path.read_bytes()
+        except OSError:
+            return b""  # (there but unreadable: a damaged record)
 
     def read_ranges(self, name: str, starts: list[int], ends: list[int]) -> list[bytes]:
         out = []

@@ -172,9 +172,13 @@ def done(work: Store | Path | str, name: str, skip: tuple[str, ...] = ()) -> dic
     check out; else None, and a marker that is there but fails is deleted (the piece is redone)."""
     store = as_store(work)
     marker = WL.marker(name)
-    if store.size(marker) is None:
+    raw = store.marker(marker)
+    if raw is None:
         return None
-    doc = get_json(store, marker)
+    try:
+        doc = unseal(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        doc = None
     problem = "its record is damaged" if doc is None else check_sums(store, doc.get("files") or {}, skip)
     if problem is None:
         return doc

@@ -185,7 +185,7 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     ext = np.concatenate([core, halo])
     is_core = np.zeros(ext.shape[0], bool)
     is_core[: core.shape[0]] = True
-    ranks = gather(w, WL.RANK, "<i8", (), ext["g"])
+    ranks = gather((w, WL.RANK), "<i8", (), ext["g"])
     srt = np.argsort(ranks, kind="stable")
     ranks = np.ascontiguousarray(ranks[srt])
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])

@@ -61,7 +61,7 @@ def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None,
            start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
     """``(first row, rows)`` blocks of a raw file of records ``dtype`` (a path, or a store and an
     object's name), read with plain reads (an object store: ranged reads of a sequential file)."""
-    store, name = path if isinstance(path, tuple) else (LocalStore(Path(path).parent), Path(path).name)
+    store, name = _source(path)
     rows = rows or BLOCK
     dt = np.dtype(dtype)
     if count is None:
@@ -81,6 +81,10 @@ def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None,
             lo += m
 
 
+def _source(path: Path | tuple[Store, str]) -> tuple[Store, str]:
+    return path if isinstance(path, tuple) else (LocalStore(Path(path).parent), Path(path).name)
+
+
 def _fromfile(f: Any, dt: np.dtype, count: int) -> np.ndarray:
     """Up to ``count`` records from the file object ``f`` (a local file: np.fromfile)."""
     if isinstance(f, io.BufferedReader):
@@ -96,8 +100,10 @@ def _fromfile(f: Any, dt: np.dtype, count: int) -> np.ndarray:
     return out[: got // dt.itemsize]
 
 
-def gather(store: Store, name: str, dtype: Any, shape: tuple[int, ...], idx: np.ndarray) -> np.ndarray:
-    """Rows ``idx`` of a raw object (any order), read in sorted runs (ranged reads; no memory map)."""
+def gather(path: Path | tuple[Store, str], dtype: Any, shape: tuple[int, ...], idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` of a raw file (a path, or a store and an object's name; any order), read in
+    sorted runs (ranged reads; no memory map)."""
+    store, name = _source(path)
     dt = np.dtype(dtype)
     width = dt.itemsize * int(np.prod(shape)) if shape else dt.itemsize
     order = np.argsort(idx, kind="stable")
