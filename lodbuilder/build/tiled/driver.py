@@ -250,7 +250,7 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
                 lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
                 points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    radii = radii_phase(Staging(executor, work), work, name, n, n_tiles, delta, W.BLOCK, progress)
+    radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
     return buckets, radii, n_tiles - len(todo)
 
 

@@ -29,7 +29,8 @@ from ..._atomic import publish
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from . import workdir as W
-from .sums import SumFile, sum_file
+from .store import LocalStore, Store
+from .sums import sum_file
 from .tasks import HEAD, STREAM
 from .timing import timed_task
 
@@ -39,13 +40,13 @@ BUF = 1 << 16  # rows per tile buffer in the merge
 
 
 class _StreamReader:
-    def __init__(self, path: Path) -> None:
-        self.f = open(path, "rb")
-        self.left = path.stat().st_size // STREAM.itemsize
+    def __init__(self, store: Store, name: str) -> None:
+        self.f = store.open(name)
+        self.left = (store.size(name) or 0) // STREAM.itemsize
 
     def read(self, rows: int) -> np.ndarray:
         m = min(rows, self.left)
-        a = np.fromfile(self.f, dtype="<f8", count=6 * m).reshape(m, 6)
+        a = W.read_rows(self.f, np.dtype("<f8"), 6 * m).reshape(m, 6)
         self.left -= m
         return a
 
@@ -53,12 +54,12 @@ class _StreamReader:
         self.f.close()
 
 
-def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
+def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
                 min_cell: float, progress: ProgressCallback = None) -> dict[str, Any]:
     """Write ``order.i8`` (input index at each position) and ``key.f8`` (acceptance keys)."""
     from ..._kernels.tiled import seam_merge, table_size, tile_heap_refresh, tile_pop
 
-    head = np.fromfile(work / WL.HEAD_FILE, dtype=HEAD)
+    head = work.read_array(WL.HEAD_FILE, HEAD)
     h = head.shape[0]
     n_seam = int(sum(seam_counts))
     cap_acc = h + n_seam + 1
@@ -75,7 +76,7 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     dpool = np.empty((max(4 * n_seam, 1024), 6))
     dtile = np.empty(dpool.shape[0], np.int64)
     state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
-    readers = [_StreamReader(work / WL.stream(t)) for t in range(n_tiles)]
+    readers = [_StreamReader(work, WL.stream(t)) for t in range(n_tiles)]
     bufs = np.zeros((n_tiles, BUF, 6))
     bpos = np.zeros(n_tiles, np.int64)
     blen = np.zeros(n_tiles, np.int64)
@@ -93,49 +94,49 @@ def merge_tiles(work: Path, n: int, n_tiles: int, seam_counts: list[int], alpha:
     out_key = np.empty(W.BLOCK)
     written = 0
     deferred = 0
+    fo, fk = work.writer(WL.ORDER), work.writer(WL.KEY)  # (committed once the count checks out)
     try:
-        with SumFile(work / WL.writing(WL.ORDER)) as fo, SumFile(work / WL.writing(WL.KEY)) as fk:
-            fo.write(head["g"].astype("<i8"))
-            fk.write(np.full(h, np.inf))
-            written = h
-            report(progress, "merge", written, n)
-            while True:
-                if state[4] + 2 * n_seam + 16 > dpool.shape[0]:  # room for the next deferrals
-                    grow = dpool.shape[0] * 2
-                    dpool = np.concatenate([dpool, np.empty((grow - dpool.shape[0], 6))])
-                    dtile = np.concatenate([dtile, np.empty(grow - dtile.shape[0], np.int64)])
-                    dheap_key = np.concatenate([dheap_key, np.empty(grow - dheap_key.shape[0])])
-                    dheap_item = np.concatenate([dheap_item, np.empty(grow - dheap_item.shape[0], np.int64)])
-                code, t = seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
-                                     dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
-                k = int(state[0])
-                if code == 2 or code == 0:
-                    fo.write(out_g[:k].astype("<i8"))
-                    fk.write(out_key[:k].astype("<f8"))
-                    written += k
-                    state[0] = 0.0
-                    report(progress, "merge", written, n)
-                    if code == 0:
-                        break
-                    continue
-                a = readers[t].read(BUF)  # code 1: refill tile t (at the top of the tile heap)
-                bufs[t, : a.shape[0]] = a
-                bpos[t] = 0
-                blen[t] = a.shape[0]
-                if a.shape[0]:
-                    tn = tile_heap_refresh(theap, tn, t, float(a[0, 1]))
-                else:
-                    tn = tile_pop(theap, tn)
-            deferred = int(state[4])
+        fo.write(head["g"].astype("<i8"))
+        fk.write(np.full(h, np.inf))
+        written = h
+        report(progress, "merge", written, n)
+        while True:
+            if state[4] + 2 * n_seam + 16 > dpool.shape[0]:  # room for the next deferrals
+                grow = dpool.shape[0] * 2
+                dpool = np.concatenate([dpool, np.empty((grow - dpool.shape[0], 6))])
+                dtile = np.concatenate([dtile, np.empty(grow - dtile.shape[0], np.int64)])
+                dheap_key = np.concatenate([dheap_key, np.empty(grow - dheap_key.shape[0])])
+                dheap_item = np.concatenate([dheap_item, np.empty(grow - dheap_item.shape[0], np.int64)])
+            code, t = seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+                                 dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
+            k = int(state[0])
+            if code == 2 or code == 0:
+                fo.write(out_g[:k].astype("<i8"))
+                fk.write(out_key[:k].astype("<f8"))
+                written += k
+                state[0] = 0.0
+                report(progress, "merge", written, n)
+                if code == 0:
+                    break
+                continue
+            a = readers[t].read(BUF)  # code 1: refill tile t (at the top of the tile heap)
+            bufs[t, : a.shape[0]] = a
+            bpos[t] = 0
+            blen[t] = a.shape[0]
+            if a.shape[0]:
+                tn = tile_heap_refresh(theap, tn, t, float(a[0, 1]))
+            else:
+                tn = tile_pop(theap, tn)
+        deferred = int(state[4])
+        if written != n:
+            raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
+        files = {WL.ORDER: fo.commit(), WL.KEY: fk.commit()}
     finally:
         for r in readers:
             r.close()
-    if written != n:
-        raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
-    publish(work / WL.writing(WL.ORDER), work / WL.ORDER)
-    publish(work / WL.writing(WL.KEY), work / WL.KEY)
-    return {"deferred": deferred, "seam_points": n_seam, "head": h,
-            "files": {WL.ORDER: fo.sum, WL.KEY: fk.sum}}
+        fo.close()
+        fk.close()
+    return {"deferred": deferred, "seam_points": n_seam, "head": h, "files": files}
 
 
 @timed_task
@@ -144,7 +145,7 @@ def merge_task(work: str, n: int, n_tiles: int, seam_counts: list[int], alpha: f
     """The merge as one task (on a worker, so that the parent loads no kernel and passes over no
     point): :func:`merge_tiles`, then :func:`write_ranks`; returns the merge's marker."""
     w = Path(work)
-    merged = merge_tiles(w, n, n_tiles, seam_counts, alpha, lo, min_cell)
+    merged = merge_tiles(LocalStore(w), n, n_tiles, seam_counts, alpha, lo, min_cell)
     merged["files"][WL.RANK] = write_ranks(w, n)
     return merged
 

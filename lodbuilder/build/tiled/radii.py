@@ -21,7 +21,6 @@ running minimum and the incoming value), so the radii are the same bytes whateve
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,32 +28,19 @@ import numpy as np
 from ...progress import ProgressCallback
 from . import layout as WL
 from .pool import collect, submit
-from .sums import done, get_json, mark, publish
+from .store import Store, as_store
+from .sums import done, get_json, mark
 from .timing import timed_task
+from .workdir import sorted_slice
 
 EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
 
 
-def _slice(path: Path, dtype: np.dtype, k0: int, k1: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """The records of a rank-sorted file with rank in ``[k0, k1)``, and the last record before them
-    (None when there is none): two binary searches and two reads."""
-    size = path.stat().st_size // dtype.itemsize
-    if size == 0:
-        return np.zeros(0, dtype), None
-    mm = np.memmap(path, dtype=dtype, mode="r", shape=(size,))
-    try:
-        ranks = mm["rank"]
-        a, z = int(np.searchsorted(ranks, k0, "left")), int(np.searchsorted(ranks, k1, "left"))
-        return np.array(mm[a:z]), (np.array(mm[a - 1]) if a > 0 else None)
-    finally:
-        del mm
-
-
-def _events(work: Path, n_tiles: int, k0: int, k1: int) -> tuple[np.ndarray, ...]:
+def _events(work: Store, n_tiles: int, k0: int, k1: int) -> tuple[np.ndarray, ...]:
     """Every tile's events in the band as merge_events wants them, and each tile's value at k0."""
     evs, cur = [], np.full(n_tiles, np.inf)
     for t in range(n_tiles):
-        recs, before = _slice(work / WL.cover_events(t), EVENT, k0, k1)
+        recs, before = sorted_slice(work, WL.cover_events(t), EVENT, k0, k1)
         evs.append(recs)
         if before is not None:
             cur[t] = float(before["value"])
@@ -68,12 +54,12 @@ def _events(work: Path, n_tiles: int, k0: int, k1: int) -> tuple[np.ndarray, ...
 
 
 @timed_task
-def radii_band(work: str, band: int, k0: int, k1: int, n_tiles: int, delta: float, r_cut: float) -> dict[str, Any]:
+def radii_band(work: Store | str, band: int, k0: int, k1: int, n_tiles: int, delta: float, r_cut: float) -> dict[str, Any]:
     """Round 1 of band ``band`` (positions ``k0 .. k1``): see the module."""
     from ..._kernels.tiled import merge_events
 
-    w = Path(work)
-    head = np.fromfile(w / WL.HEAD_FILE, dtype=HEAD)
+    w = as_store(work)
+    head = w.read_array(WL.HEAD_FILE, HEAD)
     h = head.shape[0]
     ev_rank, ev_val, ev_len, cur = _events(w, n_tiles, k0, k1)
     rad = np.empty(k1 - k0)
@@ -88,7 +74,7 @@ def radii_band(work: str, band: int, k0: int, k1: int, n_tiles: int, delta: floa
     par = np.full(k1 - k0, -1, np.int64)
     space = np.full(k1 - k0, np.inf)
     for t in range(n_tiles):
-        recs, _ = _slice(w / WL.cover_points(t), POINT, k0, k1)
+        recs, _ = sorted_slice(w, WL.cover_points(t), POINT, k0, k1)
         par[recs["rank"] - k0] = recs["parent"]
         space[recs["rank"] - k0] = recs["space"]
     # a head point with no earlier point in its tile's halo: its parent on the coarse copy
@@ -96,18 +82,18 @@ def radii_band(work: str, band: int, k0: int, k1: int, n_tiles: int, delta: floa
     par[hk] = head["parent"][ks[hk]]
     space = np.minimum.accumulate(space)
     b = band
-    files = {WL.radius_local(b): publish(rad, w / WL.radius_local(b)),
-             WL.space(b): publish(space, w / WL.space(b)), WL.parent(b): publish(par, w / WL.parent(b))}
+    files = {WL.radius_local(b): w.put(WL.radius_local(b), rad), WL.space(b): w.put(WL.space(b), space),
+             WL.parent(b): w.put(WL.parent(b), par)}
     return {"band": b, "last_radius": float(rad[-1]), "last_space": float(space[-1]), "files": files}
 
 
 @timed_task
-def finish_band(work: str, band: int, k0: int, k1: int, run_min: float, run_space: float) -> dict[str, Any]:
+def finish_band(work: Store | str, band: int, k0: int, k1: int, run_min: float, run_space: float) -> dict[str, Any]:
     """Round 2 of band ``band``: the final radii with the earlier bands' minima (``run_min``,
     ``run_space``), and the band's worst spacing over radius (ratio, position)."""
-    w, b = Path(work), band
-    rad = np.minimum(np.fromfile(w / WL.radius_local(b), "<f8"), run_min)
-    space = np.fromfile(w / WL.space(b), "<f8")
+    w, b = as_store(work), band
+    rad = np.minimum(w.read_array(WL.radius_local(b), "<f8"), run_min)
+    space = w.read_array(WL.space(b), "<f8")
     # spacing of level k (its first k points): every position before k
     lvl_space = np.minimum(np.concatenate([[np.inf], space[:-1]]), run_space)
     ok = (rad > 0) & np.isfinite(rad) & np.isfinite(lvl_space)
@@ -116,7 +102,7 @@ def finish_band(work: str, band: int, k0: int, k1: int, run_min: float, run_spac
         ratio = lvl_space[ok] / rad[ok]
         i = int(np.argmin(ratio))
         worst, at = float(ratio[i]), int(np.arange(k0, k1)[ok][i])
-    return {"band": b, "worst": worst, "at": at, "files": {WL.radius(b): publish(rad, w / WL.radius(b))}}
+    return {"band": b, "worst": worst, "at": at, "files": {WL.radius(b): w.put(WL.radius(b), rad)}}
 
 
 def radii_phase(ex: Any, work: Any, name: str, n: int, n_tiles: int, delta: float, band: int,

@@ -1,4 +1,4 @@
-"""The merge, bucket, radii and write tasks on an object store, through a local copy (a stopgap).
+"""The merge, bucket and write tasks on an object store, through a local copy (a stopgap).
 
 Those tasks still read and write a local work directory (memory maps, a part file written in
 place; they are being rewritten as banded write tasks). With a work store that is not a local
@@ -7,9 +7,8 @@ directory (``$TMPDIR``) that first receives the objects it reads (:data:`INPUTS`
 it lists in its result (``"files"``) are uploaded whole to the store when it returns; the write
 task's part file is uploaded as the object ``part.h5`` and the parent downloads it beside the
 archive (:func:`fetch_part`). Other tasks (and everything on a local store) are submitted as they
-are. What it costs: each task downloads its inputs whole (a radii band every tile's covering
-files, a bucket task the whole ``rank.i8``): fine for tests and small clusters, O(tasks x inputs)
-at survey scale.
+are. What it costs: each task downloads its inputs whole (a bucket task the whole ``rank.i8``):
+fine for tests and small clusters, O(tasks x inputs) at survey scale.
 """
 
 from __future__ import annotations
@@ -38,14 +37,6 @@ def _bucket_inputs(b: int, *_: Any) -> list[str]:
     return [WL.raw_xyz(b), WL.raw_attr(b), WL.RANK]
 
 
-def _band_inputs(band: int, k0: int, k1: int, n_tiles: int, *_: Any) -> list[str]:
-    return [WL.HEAD_FILE, *(f(t) for t in range(n_tiles) for f in (WL.cover_events, WL.cover_points))]
-
-
-def _finish_inputs(band: int, *_: Any) -> list[str]:
-    return [WL.radius_local(band), WL.space(band)]
-
-
 def _write_inputs(part: str, name: str, n: int, fields: Any, metadata: Any, encoding: str, seeds: Any, build: Any,
                   provenance: Any, buckets: dict[str, Any], radii: dict[str, Any]) -> list[str]:
     pieces = [p for ps in buckets["pieces"] for p in ps]
@@ -55,8 +46,7 @@ def _write_inputs(part: str, name: str, n: int, fields: Any, metadata: Any, enco
 
 #: the tasks that need a local copy, by name: the objects each reads (from its arguments after the work)
 INPUTS: dict[str, Callable[..., list[str]]] = {
-    "merge_task": _merge_inputs, "bucket_block": _bucket_inputs, "radii_band": _band_inputs,
-    "finish_band": _finish_inputs, "write_task": _write_inputs,
+    "merge_task": _merge_inputs, "bucket_block": _bucket_inputs, "write_task": _write_inputs,
 }
 
 

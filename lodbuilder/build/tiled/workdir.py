@@ -24,6 +24,7 @@ REC = WL.REC
 BLOCK = 1 << 20  # rows per read/write block
 SAMPLE = 400_000  # points kept for the spacing estimate
 RUN_BYTES = 1 << 26  # at most this many bytes in one read of gather()
+WHOLE_BYTES = 1 << 22  # an object store's sorted object up to this size is read whole by sorted_slice()
 
 
 @dataclass
@@ -74,7 +75,7 @@ def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None,
         lo = start
         while lo < count:
             m = min(rows, count - lo)
-            a = _fromfile(f, dt, m)
+            a = read_rows(f, dt, m)
             if a.shape[0] != m:
                 raise OSError(f"{store.url}/{name}: truncated ({lo + a.shape[0]} of {count} rows)")
             yield lo, a
@@ -85,7 +86,7 @@ def _source(path: Path | tuple[Store, str]) -> tuple[Store, str]:
     return path if isinstance(path, tuple) else (LocalStore(Path(path).parent), Path(path).name)
 
 
-def _fromfile(f: Any, dt: np.dtype, count: int) -> np.ndarray:
+def read_rows(f: Any, dt: np.dtype, count: int) -> np.ndarray:
     """Up to ``count`` records from the file object ``f`` (a local file: np.fromfile)."""
     if isinstance(f, io.BufferedReader):
         return np.fromfile(f, dtype=dt, count=count)
@@ -131,6 +132,43 @@ def gather(path: Path | tuple[Store, str], dtype: Any, shape: tuple[int, ...], i
         run = np.frombuffer(raw, dtype=dt).reshape(last - first + 1, -1) if shape else np.frombuffer(raw, dtype=dt)
         flat[order[i:j]] = run[srt[i:j] - first]
     return out
+
+
+def sorted_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The records of an object sorted by field ``key`` with key in ``[k0, k1)``, and the last
+    record before them (None when there is none): two binary searches and one read (a local file
+    through a read-only memory map; an object store reads a small object whole, a large one by
+    ranged reads of single records for the searches)."""
+    size = (store.size(name) or 0) // dtype.itemsize
+    if size == 0:
+        return np.zeros(0, dtype), None
+    if isinstance(store, LocalStore):
+        mm = np.memmap(store.path(name), dtype=dtype, mode="r", shape=(size,))
+        try:
+            ranks = mm[key]
+            a, z = int(np.searchsorted(ranks, k0, "left")), int(np.searchsorted(ranks, k1, "left"))
+            return np.array(mm[a:z]), (np.array(mm[a - 1]) if a > 0 else None)
+        finally:
+            del mm
+    if size * dtype.itemsize <= WHOLE_BYTES:
+        recs = store.read_array(name, dtype)
+        a, z = int(np.searchsorted(recs[key], k0, "left")), int(np.searchsorted(recs[key], k1, "left"))
+        return recs[a:z].copy(), (recs[a - 1].copy() if a > 0 else None)
+
+    def first_at_least(k: int) -> int:
+        lo, hi = 0, size
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if store.read_array(name, dtype, mid, 1)[key][0] < k:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo
+
+    a, z = first_at_least(k0), first_at_least(k1)
+    recs = store.read_array(name, dtype, max(a - 1, 0), z - max(a - 1, 0))
+    return (recs[1:], recs[0]) if a > 0 else (recs, None)
 
 
 def opaque_rows(a: np.ndarray) -> np.ndarray:
