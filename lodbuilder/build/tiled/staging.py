@@ -7,8 +7,10 @@ directory (``$TMPDIR``) that first receives the objects it reads (:data:`INPUTS`
 it lists in its result (``"files"``) are uploaded whole to the store when it returns; the write
 task's part file is uploaded as the object ``part.h5`` and the parent downloads it beside the
 archive (:func:`fetch_part`). Other tasks (and everything on a local store) are submitted as they
-are. What it costs: each task downloads its inputs whole (a bucket task the whole ``rank.i8``):
-fine for tests and small clusters, O(tasks x inputs) at survey scale.
+are. What it costs: each task downloads its inputs (a bucket task its raw block and its range of
+``rank.i8``; the merge every tile stream; the write every bucket and band), uploads its outputs
+whole, and the parent downloads the part: each byte crosses the network about twice more than a
+task that reads the store directly.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ def _merge_inputs(n: int, n_tiles: int, *_: Any) -> list[str]:
     return [WL.HEAD_FILE, *(WL.stream(t) for t in range(n_tiles))]
 
 
-def _bucket_inputs(b: int, *_: Any) -> list[str]:
-    return [WL.raw_xyz(b), WL.raw_attr(b), WL.RANK]
+def _bucket_inputs(b: int, g0: int, m: int, *_: Any) -> list[Any]:
+    return [WL.raw_xyz(b), WL.raw_attr(b), (WL.RANK, 8 * g0, 8 * (g0 + m))]  # (the block's ranks only)
 
 
 def _write_inputs(part: str, name: str, n: int, fields: Any, metadata: Any, encoding: str, seeds: Any, build: Any,
@@ -44,8 +46,9 @@ def _write_inputs(part: str, name: str, n: int, fields: Any, metadata: Any, enco
     return [*pieces, *(WL.radius(b) for b in bands), *(WL.parent(b) for b in bands), WL.ORDER]
 
 
-#: the tasks that need a local copy, by name: the objects each reads (from its arguments after the work)
-INPUTS: dict[str, Callable[..., list[str]]] = {
+#: the tasks that need a local copy, by name: the objects each reads (from its arguments after the
+#: work), each a name or (name, first byte, end byte) of which the task reads that range only
+INPUTS: dict[str, Callable[..., list[Any]]] = {
     "merge_task": _merge_inputs, "bucket_block": _bucket_inputs, "write_task": _write_inputs,
 }
 
@@ -55,11 +58,8 @@ def run_staged(fn: Callable[..., Any], store: Store, *args: Any) -> Any:
     ``store``; upload the files its result lists (and a write task's part, as :data:`PART`)."""
     with tempfile.TemporaryDirectory(prefix="lodbuilder-work-") as tmp:
         d = Path(tmp)
-        for name in INPUTS[fn.__name__](*args):
-            if store.size(name) is not None:  # (a scan without attributes has no raw.<b>.attr)
-                with store.open(name) as src, open(d / name, "wb") as dst:
-                    while chunk := src.read(1 << 23):
-                        dst.write(chunk)
+        for item in INPUTS[fn.__name__](*args):
+            _download(store, item, d)
         if fn.__name__ == "write_task":
             args = (str(d / PART), *args[1:])
         res = fn(str(d), *args)
@@ -71,6 +71,21 @@ def run_staged(fn: Callable[..., Any], store: Store, *args: Any) -> Any:
             for line in log.read_text().splitlines():
                 store.log(log.name, line)
     return res
+
+
+def _download(store: Store, item: Any, d: Path) -> None:
+    """An input of a staged task into the directory ``d`` (a range: at its offset, the rest a hole)."""
+    name, start, end = (item, None, None) if isinstance(item, str) else item
+    if store.size(name) is None:  # (a scan without attributes has no raw.<b>.attr)
+        return
+    with open(d / name, "wb") as dst:
+        if start is not None:
+            dst.seek(start)
+            dst.write(store.read_ranges(name, [int(start)], [int(end)])[0])
+            return
+        with store.open(name) as src:
+            while chunk := src.read(1 << 23):
+                dst.write(chunk)
 
 
 def _upload(store: Store, path: Path, name: str) -> None:
