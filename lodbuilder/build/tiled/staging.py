@@ -75,13 +75,13 @@ def run_staged(fn: Callable[..., Any], store: Store, *args: Any) -> Any:
 
 def _download(store: Store, item: Any, d: Path) -> None:
     """An input of a staged task into the directory ``d`` (a range: at its offset, the rest a hole)."""
-    name, start, end = (item, None, None) if isinstance(item, str) else item
+    name, start, end = (item, -1, -1) if isinstance(item, str) else item
     if store.size(name) is None:  # (a scan without attributes has no raw.<b>.attr)
         return
     with open(d / name, "wb") as dst:
-        if start is not None:
+        if start >= 0:
             dst.seek(start)
-            dst.write(store.read_ranges(name, [int(start)], [int(end)])[0])
+            dst.write(store.read_ranges(name, [start], [end])[0])
             return
         with store.open(name) as src:
             while chunk := src.read(1 << 23):
