@@ -5,6 +5,7 @@ at a time from the ordering."""
 from __future__ import annotations
 
 import mmap
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -121,3 +122,69 @@ def test_build_orders_in_memory_when_the_scan_cannot_be_set_aside(tmp_path, monk
     lodbuilder.build_archive(src, tmp_path / "full.h5")
     a, b = _datasets(tmp_path / "plain.h5"), _datasets(tmp_path / "full.h5")
     assert a.keys() == b.keys() and [k for k in a if a[k] != b[k]] == []
+
+
+SMAPS = """\
+7f0000000000-7f0000001000 r--p 00000000 08:01 11 /venv/llvmlite/binding/libllvmlite.so
+Rss:                   4 kB
+Anonymous:             0 kB
+VmFlags: rd mr mw me
+7f0000001000-7f0000005000 r-xp 00001000 08:01 11 /venv/llvmlite/binding/libllvmlite.so
+Rss:                  16 kB
+Anonymous:             0 kB
+VmFlags: rd ex mr mw me
+7f0000005000-7f0000006000 r--p 00005000 08:01 11 /venv/llvmlite/binding/libllvmlite.so
+Rss:                   4 kB
+Anonymous:             4 kB
+VmFlags: rd mr mw me ac
+7f0000006000-7f0000007000 rw-p 00006000 08:01 11 /venv/llvmlite/binding/libllvmlite.so
+Rss:                   4 kB
+Anonymous:             0 kB
+7f0000007000-7f0000008000 r-xp 00000000 08:01 12 /usr/lib/libc.so.6
+Rss:                   4 kB
+Anonymous:             0 kB
+7f0000008000-7f0000009000 rw-p 00000000 00:00 0
+Rss:                   4 kB
+Anonymous:             4 kB
+"""
+
+
+def test_compiler_pages_dropped_are_clean_copies_of_the_library_only():
+    # the relocated (copied-on-write) and the writable mappings would lose their contents; another
+    # library's code is not the compiler's
+    from lodbuilder._resources import clean_mappings
+
+    assert clean_mappings(SMAPS, "libllvmlite") == [(0x7F0000000000, 0x7F0000001000),
+                                                     (0x7F0000001000, 0x7F0000005000)]
+
+
+def _library_rss_kib(name: str) -> int:
+    cur, tot = "", 0
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            p = line.split()
+            if len(p) >= 5 and "-" in p[0] and not p[0].endswith(":"):
+                cur = p[5] if len(p) >= 6 else ""
+            elif p[0] == "Rss:" and name in cur:
+                tot += int(p[1])
+    return tot
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux only")
+def test_large_builds_give_the_compilers_pages_back_and_the_kernels_still_run(tmp_path):
+    # loading the kernels leaves ~69 MiB of LLVM's code resident that no kernel uses
+    import numba
+
+    from lodbuilder._resources import TRIM_MIN_POINTS, release_freed_memory
+
+    lodbuilder.fastfps(np.random.default_rng(0).random((300, 3)))  # every kernel loaded
+    release_freed_memory(TRIM_MIN_POINTS)
+    assert _library_rss_kib("libllvmlite") < 8 << 10
+    o = lodbuilder.fastfps(np.random.default_rng(1).random((300, 3)))
+    assert sorted(o.order.tolist()) == list(range(300))
+
+    @numba.njit
+    def twice(x):  # LLVM still compiles (its pages come back from the file)
+        return 2 * x
+
+    assert twice(21) == 42
