@@ -5,6 +5,7 @@ pipeline and the CLI ask one place."""
 from __future__ import annotations
 
 import math
+import mmap
 import os
 from typing import Any
 
@@ -134,3 +135,21 @@ def clean_mappings(smaps: str, name: str) -> list[tuple[int, int]]:
                 out.append(cur)
             cur = None
     return out
+
+
+class PassMap(mmap.mmap):
+    """A private (copy-on-write) map of a file written only to hold an array while the engine
+    orders a scan (:func:`lodbuilder.build.jobs.set_aside`): nobody writes to it, so the pages an
+    engine pass read can be given back as soon as the pass ends (:func:`release_pages`) and are
+    read from the file again by the next one."""
+
+
+def release_pages(arr: Any) -> None:
+    """Give back the resident pages of ``arr`` when it is an array over a :class:`PassMap` (a scan
+    set aside); nothing for any other array."""
+    base = getattr(arr, "base", None)
+    if isinstance(base, PassMap) and len(base) > 1:
+        try:
+            base.madvise(mmap.MADV_DONTNEED)
+        except (AttributeError, OSError, ValueError):  # not Linux, or closed
+            pass

@@ -188,3 +188,43 @@ def test_large_builds_give_the_compilers_pages_back_and_the_kernels_still_run(tm
         return 2 * x
 
     assert twice(21) == 42
+
+
+def _mapping_rss_kib(path) -> int:
+    cur, tot = "", 0
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            p = line.split()
+            if len(p) >= 5 and "-" in p[0] and not p[0].endswith(":"):
+                cur = p[5] if len(p) >= 6 else ""
+            elif p[0] == "Rss:" and cur == str(path):
+                tot += int(p[1])
+    return tot
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux only")
+def test_band_gives_the_pages_of_points_set_aside_back_after_its_passes(tmp_path):
+    # a scan set aside is read by the band a pass at a time: its pages are not resident meanwhile
+    from lodbuilder._resources import PassMap, release_pages
+    from lodbuilder.sampling.band import build_band, plan_and_build_band
+
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(150), np.arange(150)), -1).reshape(-1, 2) / 150.0
+    pts = np.c_[g + rng.uniform(-0.002, 0.002, g.shape), 0.05 * np.sin(5 * g[:, 0])]
+    path = tmp_path / "points.bin"
+    pts.tofile(path)
+    with open(path, "rb") as f:
+        mm = PassMap(f.fileno(), 0, access=mmap.ACCESS_COPY)
+    aside = np.ndarray(pts.shape, pts.dtype, buffer=mm)
+    assert aside.sum() > 0 and _mapping_rss_kib(path) > 0  # read: resident
+    release_pages(aside)
+    assert _mapping_rss_kib(path) == 0 and np.array_equal(aside, pts)  # read again from the file
+    band, plan, _ = plan_and_build_band(aside, None, None)
+    assert _mapping_rss_kib(path) == 0
+    ref = build_band(pts, plan.h, plan.r)
+    again = build_band(aside, plan.h, plan.r)
+    assert _mapping_rss_kib(path) == 0
+    for k in ("u", "perm", "keys", "nbr", "cs", "vcost", "foot", "near"):
+        assert np.array_equal(getattr(ref, k), getattr(again, k)), k
+    release_pages(pts)  # any other array: nothing happens
+    assert np.array_equal(aside, pts)

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from .._resources import PassMap, release_pages
 from ..io.crs import KEY_REPROJECTION
 from ..progress import ProgressCallback
 from .options import BuildOptions
@@ -158,9 +159,11 @@ def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> Progr
     """Move ``scan``'s points and attributes into files of the work directory ``work`` and map
     them back (copy-on-write: the same values, dtypes and shapes), so that they take no memory of their
     own while the engine orders the points: the attributes are not read until the archive is
-    written, the points only until the band is built. Returns ``progress`` wrapped to give the
-    points' pages back to the file once the band stage reports it is done (a page read after that
-    comes back from the file). Arrays numpy cannot store without pickling stay in memory."""
+    written, the points only while the band is built, a pass at a time (the points are a
+    :class:`~lodbuilder._resources.PassMap`: the band gives their pages back after each pass over
+    them). Returns ``progress`` wrapped to give the points' pages back to the file once the band
+    stage reports it is done (a page read after that comes back from the file). Arrays numpy
+    cannot store without pickling stay in memory."""
     from ..archive.files import make_own_dir
     from ..progress import report
 
@@ -172,15 +175,14 @@ def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> Progr
     except OSError as exc:  # a full disk, a work directory that is not ours, ...: order it in memory
         log.info("scan %r stays in memory while it is ordered: %s", scan.name, exc)
         return progress
-    scan.points = np.ndarray(scan.points.shape, scan.points.dtype, buffer=pts)
+    scan.points = points = np.ndarray(scan.points.shape, scan.points.dtype, buffer=pts)
     for key, mm in maps.items():
         arr = scan.attributes[key]
         scan.attributes[key] = np.ndarray(arr.shape, arr.dtype, buffer=mm)
 
     def aside_progress(stage: str, done: int, total: int) -> None:
         if stage == "band" and done == total:
-            with contextlib.suppress(AttributeError, OSError, ValueError):  # not Linux, or closed
-                pts.madvise(mmap.MADV_DONTNEED)
+            release_pages(points)
         report(progress, stage, done, total)
 
     return aside_progress
@@ -192,7 +194,7 @@ def _map_aside(arr: np.ndarray, path: Path) -> mmap.mmap:
     and every kernel it reached would be compiled a second time)."""
     np.ascontiguousarray(arr).tofile(path)
     with open(path, "rb") as f:
-        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY) if arr.nbytes else mmap.mmap(-1, 1)
+        return PassMap(f.fileno(), 0, access=mmap.ACCESS_COPY) if arr.nbytes else mmap.mmap(-1, 1)
 
 
 def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]:
