@@ -228,3 +228,63 @@ def test_band_gives_the_pages_of_points_set_aside_back_after_its_passes(tmp_path
         assert np.array_equal(getattr(ref, k), getattr(again, k)), k
     release_pages(pts)  # any other array: nothing happens
     assert np.array_equal(aside, pts)
+
+
+_FREED_BACK = r"""
+import os, sys
+import numpy as np
+from lodbuilder._resources import map_large_blocks
+def rss():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+big = np.ones(20 << 17)  # 20 MiB, mapped; freed, it raises glibc's threshold to 20 MiB
+del big
+if sys.argv[1] == "1":
+    map_large_blocks()
+before = rss()
+tmp = np.ones(6 << 17)  # 6 MiB
+keep = np.ones(1000)  # (a block after it: freeing tmp cannot shrink the top of the heap)
+del tmp
+print((rss() - before) >> 20)
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux (glibc) only")
+def test_large_temporaries_go_back_to_the_system_when_freed():
+    import subprocess
+    import sys
+
+    def kept(flag: str) -> int:
+        out = subprocess.run([sys.executable, "-c", _FREED_BACK, flag], capture_output=True, text=True, check=True)
+        return int(out.stdout.strip())
+
+    assert kept("0") >= 5  # glibc's own threshold: the freed 6 MiB stay in the heap
+    assert kept("1") <= 1
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux only")
+def test_load_kernels_loads_every_engine_kernel_and_gives_the_compilers_pages_back():
+    from lodbuilder._kernels.warm import _dispatcher, signatures
+
+    jobs.load_kernels()
+    for group in ("band", "thin", "ordering"):
+        for name, sig in signatures(group).items():
+            assert sig in _dispatcher(name).overloads, name
+    assert _library_rss_kib("libllvmlite") < 8 << 10
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux only")
+def test_writing_a_scan_set_aside_gives_its_pages_back(tmp_path):
+    rng = np.random.default_rng(4)
+    pts = rng.random((30_000, 3)) * 1e3
+    scan = Scan(pts.copy(), {"intensity": rng.integers(0, 60000, pts.shape[0]).astype(np.uint16)}, name="s")
+    jobs.set_aside(scan, tmp_path / "s.work", None)
+    order = np.arange(pts.shape[0])
+    radius = np.r_[np.inf, np.linspace(1.0, 0.0, pts.shape[0] - 1)]
+    ordg = Ordering(order, radius, np.r_[-1, np.zeros(pts.shape[0] - 1, np.int64)], 0.1, 0.3, order[:1],
+                    pts.shape[0], {}, 0.0)
+    write_archive(tmp_path / "a.h5", [ScanRecord(scan, ordg)])
+    assert _mapping_rss_kib(tmp_path / "s.work" / "points.bin") == 0
+    assert _mapping_rss_kib(tmp_path / "s.work" / "a0.bin") == 0
+    with open_archive(tmp_path / "a.h5") as arc:
+        assert np.array_equal(arc.scan("s").points(), pts)

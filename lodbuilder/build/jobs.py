@@ -23,7 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from .._resources import PassMap, release_pages
+from .._resources import (
+    TRIM_MIN_POINTS,
+    PassMap,
+    drop_compiler_pages,
+    map_large_blocks,
+    release_pages,
+)
 from ..io.crs import KEY_REPROJECTION
 from ..progress import ProgressCallback
 from .options import BuildOptions
@@ -147,12 +153,28 @@ def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[An
     t_read = time.perf_counter() - t0
     if job.scan is None and not job.options.features and len(scan) >= ASIDE_MIN_POINTS:
         progress = set_aside(scan, job.work, progress)
+    if len(scan) >= TRIM_MIN_POINTS:
+        map_large_blocks()  # (freed temporaries go back to the system at once)
+        load_kernels(progress)
     rec = build_record(scan, job.options, progress=progress)
     t_order = time.perf_counter() - t0 - t_read
     return rec, {"read": t_read, "order": t_order}
 
 
 ASIDE_MIN_POINTS = 200_000  # below this a scan's arrays are a few MB: not worth two files
+
+
+def load_kernels(progress: ProgressCallback = None) -> None:
+    """Load every kernel of the engine now (compiling them first when numba's cache is cold), then
+    give the compiler's pages back (:func:`lodbuilder._resources.drop_compiler_pages`). Loaded on
+    first call instead, each kernel brings some of LLVM's code back into the process in the middle
+    of its phase (about 10 MiB of it at the ordering's peak)."""
+    from .._kernels.warm import compile_group, ensure_compiled
+
+    ensure_compiled(progress)
+    for group in ("band", "thin", "ordering"):
+        compile_group(group)
+    drop_compiler_pages()
 
 
 def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> ProgressCallback:
