@@ -288,3 +288,26 @@ def test_writing_a_scan_set_aside_gives_its_pages_back(tmp_path):
     assert _mapping_rss_kib(tmp_path / "s.work" / "a0.bin") == 0
     with open_archive(tmp_path / "a.h5") as arc:
         assert np.array_equal(arc.scan("s").points(), pts)
+
+
+_NO_SCIPY = r"""
+import sys
+import numba
+import numpy as np
+from lodbuilder.build import jobs
+jobs.load_kernels()
+print("scipy.linalg" in sys.modules)
+@numba.njit
+def dot(a, b):  # compiled after: numba takes its own loop for two vectors
+    return np.dot(a, b)
+print(dot(np.arange(3.0), np.arange(3.0)))
+"""
+
+
+def test_loading_the_kernels_does_not_import_scipy_linalg_for_numba():
+    # numba's set-up imports scipy.linalg (14 MiB) only to check for a BLAS no kernel uses
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _NO_SCIPY], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "5.0"]

@@ -171,10 +171,32 @@ def load_kernels(progress: ProgressCallback = None) -> None:
     of its phase (about 10 MiB of it at the ordering's peak)."""
     from .._kernels.warm import compile_group, ensure_compiled
 
-    ensure_compiled(progress)
-    for group in ("band", "thin", "ordering"):
-        compile_group(group)
+    with _numba_without_scipy():
+        ensure_compiled(progress)
+        for group in ("band", "thin", "ordering"):
+            compile_group(group)
     drop_compiler_pages()
+
+
+@contextlib.contextmanager
+def _numba_without_scipy() -> Any:
+    """numba's first kernel load sets up its compiler's implementations, and one of them checks
+    whether scipy's BLAS is there (for np.dot of two vectors in compiled code: BLAS, else a loop)
+    by importing scipy.linalg: 14 MiB of the build process for code no kernel here uses. While
+    numba sets up, ``scipy.linalg`` cannot be imported (numba then takes the loop; a compiled
+    np.dot of matrices imports scipy itself later); nothing changes when scipy.linalg is already
+    imported (by the caller) or numba already set up."""
+    import sys
+
+    if "scipy.linalg" in sys.modules:
+        yield
+        return
+    sys.modules["scipy.linalg"] = None  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        if "scipy.linalg" in sys.modules and sys.modules["scipy.linalg"] is None:
+            del sys.modules["scipy.linalg"]
 
 
 def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> ProgressCallback:
