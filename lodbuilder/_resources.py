@@ -106,6 +106,7 @@ def map_large_blocks() -> None:
 
 
 _MALLOPT: Any = None
+_CLEAN: Any = None  # (the compiler's clean mappings, madvise) once found
 COMPILER_LIBRARY = "libllvmlite"  # numba's compiler: LLVM, one shared library of about 180 MB
 MADV_DONTNEED = 4  # (Linux)
 
@@ -122,20 +123,27 @@ def drop_compiler_pages() -> int:
     MADV_DONTNEED and maps them again from the page cache when LLVM runs again (a kernel loaded
     later, a compile: minor page faults, about 10 MiB for the rest of the engine's kernels). Only
     mappings that cannot hold data of their own are advised: not writable and with no anonymous
-    (copied-on-write) page; a writable or relocated mapping would lose its contents."""
+    (copied-on-write) page; a writable or relocated mapping would lose its contents. They are
+    found once (reading smaps costs about 20 ms; a loaded library's mappings do not change)."""
+    global _CLEAN
     import sys
 
     if "llvmlite" not in sys.modules:  # never loaded: nothing resident
         return 0
     try:
-        with open("/proc/self/smaps") as f:
-            ranges = clean_mappings(f.read(), COMPILER_LIBRARY)
-        import ctypes
+        if _CLEAN is None:
+            import ctypes
 
-        madvise = ctypes.CDLL("libc.so.6").madvise
-        madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+            with open("/proc/self/smaps") as f:
+                ranges = clean_mappings(f.read(), COMPILER_LIBRARY)
+            madvise = ctypes.CDLL("libc.so.6").madvise
+            madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+            if not ranges:  # (the library is not mapped yet: look again next time)
+                return 0
+            _CLEAN = (ranges, madvise)
     except (OSError, AttributeError):  # not Linux, or no glibc
-        return 0
+        _CLEAN = ([], None)
+    ranges, madvise = _CLEAN
     done = 0
     for start, end in ranges:
         if madvise(start, end - start, MADV_DONTNEED) == 0:
