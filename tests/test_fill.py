@@ -458,3 +458,18 @@ def test_a_rim_at_two_depths_is_rough(tmp_path, rng):
     assert gap.residual > 0.5 * rho
     assert filled.n_synthetic == 0
     assert filled.summary(1).endswith("in 0 filled gap(s), 1 rough gap(s) left open")
+
+
+def test_least_tilted_finds_the_plane_between_two():
+    """Half the normals along z, half along y: from z, 50 % are tilted more than 60 degrees; the
+    least tilted direction is between them (none tilted), the one closest to z of those."""
+    from lodbuilder.fill.surface import least_tilted
+
+    normals = np.r_[np.tile([0.0, 0.0, 1.0], (10, 1)), np.tile([0.0, 1.0, 0.0], (10, 1))]
+    best, share = least_tilted(normals, np.array([0.0, 0.0, 1.0]), np.radians(60.0))
+    assert share == 0.0
+    assert np.isclose(np.linalg.norm(best), 1.0)
+    angle = np.degrees(np.arccos(best[2]))
+    assert 30.0 < angle < 38.0  # just beyond 30 degrees from z (the spiral's step: about 7)
+    same, none = least_tilted(normals[:10], np.array([0.0, 0.0, 1.0]), np.radians(60.0))
+    assert none == 0.0 and np.allclose(same, [0.0, 0.0, 1.0])

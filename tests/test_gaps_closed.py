@@ -321,6 +321,45 @@ def test_curved_holes_over_several_draws():
     assert "".join(tube).count("f") >= 15, tube
 
 
+@pytest.fixture(scope="module")
+def punched_lopsided(tmp_path_factory):
+    """A ball of radius 3.5 rho on the floor, its centre 3 rho from the wall (2 rho beyond the
+    fillet of 1 rho): its rim lies mostly on the floor, partly on the wall."""
+    rng = np.random.default_rng(0)
+    rho = CORNER_RHO
+    full = _corner(rho, 10 * rho, 0.2 * rho, rng)
+    c = np.array([0.0, 3.0 * rho, 0.0])
+    yield from _punched(tmp_path_factory, "lopsided", full, [c], [3.5 * rho], rho)
+
+
+def test_a_lopsided_rim_is_filled_over_its_least_tilted_plane(punched_lopsided):
+    """Over the least-squares plane of that rim (about 20 degrees off the floor) the wall's
+    normals, 31 % of the rim next to the hole, are tilted more than 60 degrees: the hole was
+    rough. Over the plane from which the fewest are (about 35 degrees off the floor) the rim is
+    a height field, and the hole is filled on the corner."""
+    s = punched_lopsided
+    (gap,) = s.filled.report.gaps
+    assert gap.status == "fillable", gap.reason
+    assert gap.tilted <= 0.25
+    _covered(s)
+    lev = s.filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert syn.shape[0] >= 10
+    assert _corner_distance(syn, s.rho).max() < 0.75 * s.rho
+
+
+def test_lopsided_rims_over_several_draws():
+    """Holes on the floor 2 and 3 rho from the wall, four draws each: all fillable (6 of the 8
+    were rough, their rims too tilted over their least-squares plane)."""
+    found = []
+    for seed in range(4):
+        full = _corner(CORNER_RHO, 10 * CORNER_RHO, 0.2 * CORNER_RHO, np.random.default_rng(seed))
+        for y in (2.0, 3.0):
+            c = np.array([0.0, y * CORNER_RHO, 0.0])
+            found.append(_statuses(full, [c], 3.5 * CORNER_RHO, CORNER_RHO))
+    assert found == ["f"] * 8, found
+
+
 # --- refusals, word for word -----------------------------------------------------------------------
 
 

@@ -38,7 +38,11 @@ whole scan for exact distances.
    apart (``n_bent``: enclosed along the surface, which bends too much across it to fill).
    Anything else stays *open* and is not filled.
 4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
-   squares; the grid is laid again if it moved) and a height field over it
+   squares; the grid is laid again if it moved, unless more of the ring's normals are tilted
+   over 60 degrees from the new plane than from the old; where more than 25 % of the inner
+   ring's normals are, the grid is laid again over the plane, within 60 degrees, from which
+   the fewest are: the lopsided rim of a hole beside a corner, a nose or a chin is a height
+   field over that plane and not over its least-squares one) and a height field over it
    (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
    cross-validates best on the ring). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of the normals of its inner part,
@@ -67,7 +71,7 @@ import numpy as np
 from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
 from .local import K_SAMPLE, NEAR_FRACTION, Grid, flood, near_plane, normals_at, on_sheet
-from .surface import Frame, HeightField, plane_normal, tangents
+from .surface import Frame, HeightField, least_tilted, plane_normal, tangents
 
 #: the sample is the prefix at SAMPLE_FRACTION * rho
 SAMPLE_FRACTION = 0.25
@@ -88,6 +92,8 @@ MIN_SEEDS_WIDE = 4
 #: largest share of ring normals tilted more than MAX_TILT from the hole's normal
 MAX_TILTED = 0.25
 MAX_TILT = math.radians(60.0)
+#: a rim too tilted over its least-squares plane is laid over the least tilted plane this close
+TILT_SEARCH = math.radians(60.0)
 #: largest RMS error predicting a sixth of the ring from the rest, in units of rho
 MAX_RESIDUAL = 0.5
 
@@ -439,7 +445,7 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False) ->
             if np.isfinite(d).all():
                 return []
         local = _Local(sample, idx, tree2, slope)
-        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
+        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=2)
         enclosed = [r for r in regions if r is not None]
         found += enclosed
         if leak_at is None:
@@ -467,9 +473,11 @@ class _Local:
         return self.sample[self.idx]
 
 
-def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
+def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
-    reaching the grid's edge), and the centre of the nodes of those that did (None if none)."""
+    reaching the grid's edge), and the centre of the nodes of those that did (None if none).
+    The grid is laid again, at most ``refit`` times, where a region's ring asks for another
+    plane (:func:`_height_field_normal`)."""
     from scipy.spatial import cKDTree
 
     grid = Grid(frame, g, half)
@@ -487,15 +495,17 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
         ring = np.isfinite(d)
         if ring.sum() < 12:
             continue
-        n_new = plane_normal(pts[ring], frame.normal)
-        if refit and float(n_new @ frame.normal) < math.cos(math.radians(5.0)):
+        normals = normals_at(pts[ring], pts)
+        inner = d[ring] <= INNER * rho
+        n_new, again = _height_field_normal(
+            normals[inner], plane_normal(pts[ring], frame.normal), frame.normal
+        )
+        if refit > 0 and again:
             # the hole's plane moved: lay the grid again in the plane of this ring
             frame2 = Frame.of(pts[ring].mean(axis=0), n_new)
             idx = local.idx[near_plane(pts, frame2, rho, local.slope)]
             local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])), local.slope)
-            return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
-        normals = normals_at(pts[ring], pts)
-        inner = d[ring] <= INNER * rho
+            return _regions_on_grid(frame2, local2, seeds, rho, g, half, refit - 1)
         regions.append(
             _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
         )
@@ -503,6 +513,29 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
         return regions, None
     uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
     return regions, frame.lift(uv, np.zeros(1))[0]
+
+
+def _tilted(normals: np.ndarray, normal: np.ndarray) -> float:
+    """Share of unit ``normals`` tilted more than :data:`MAX_TILT` from ``normal``."""
+    return float((np.abs(normals @ normal) < math.cos(MAX_TILT)).mean())
+
+
+def _height_field_normal(
+    inner_normals: np.ndarray, normal: np.ndarray, current: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """The hole's normal and whether to lay the grid again over it. When at most
+    :data:`MAX_TILTED` of the inner ring's normals are tilted over :data:`MAX_TILT` from the
+    grid's ``current`` normal: the ring's least-squares ``normal``, laid again when it is more
+    than 5 degrees away and no more of the rim is tilted over it. Otherwise the direction within :data:`TILT_SEARCH` of ``normal`` from
+    which the fewest are tilted (the closest to ``normal`` of those), over whose plane the rim
+    is most nearly a height field (the lopsided rim of a hole beside a nose, a chin or a
+    corner), laid again."""
+    now = _tilted(inner_normals, current)
+    if now <= MAX_TILTED:  # (never to a plane over which more of the rim is tilted)
+        moved = float(normal @ current) < math.cos(math.radians(5.0))
+        return normal, moved and _tilted(inner_normals, normal) <= now
+    best, share = least_tilted(inner_normals, normal, MAX_TILT, TILT_SEARCH)
+    return (best if share < _tilted(inner_normals, normal) else normal), True
 
 
 def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) -> Region:
@@ -524,7 +557,7 @@ def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) ->
         uv=uv,
         surface=surface,
         ring=ring_idx,
-        tilted=float((np.abs(ring_normals[inner] @ frame.normal) < math.cos(MAX_TILT)).mean()),
+        tilted=_tilted(ring_normals[inner], frame.normal),
     )
 
 

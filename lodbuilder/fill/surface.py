@@ -27,6 +27,7 @@ own detail inside the holes, not the choice of fit.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,6 +82,29 @@ class Frame:
             + uv[:, 1:2] * self.t2
             + np.asarray(h)[:, None] * self.normal
         )
+
+
+def least_tilted(
+    normals: np.ndarray, near: np.ndarray, max_tilt: float, cone: float = math.radians(60.0)
+) -> tuple[np.ndarray, float]:
+    """The unit direction within ``cone`` of the unit vector ``near`` along which the smallest
+    share of the unit ``normals`` (M, 3) is tilted more than ``max_tilt`` (radians), and that
+    share: ``near`` itself unless another direction does better (directions on a spiral of about
+    400 over the hemisphere; the one closest to ``near`` on a tie). The frame in which a hole's
+    rim is most nearly a height field."""
+    n = np.asarray(near, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    k = np.arange(400) + 0.5
+    z = 1.0 - k / 400.0  # the upper hemisphere, about evenly
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    z = np.r_[1.0, z[z >= math.cos(cone)]]
+    phi = np.r_[0.0, phi[: z.size - 1]]
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    t1, t2 = tangents(n[None, :])
+    dirs = (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2 + z[:, None] * n
+    share = (np.abs(normals @ dirs.T) < math.cos(max_tilt)).mean(axis=0)
+    best = int(np.argmin(share))  # (z decreases along the spiral: the first minimum is closest)
+    return dirs[best], float(share[best])
 
 
 def plane_normal(points: np.ndarray, near: np.ndarray) -> np.ndarray:
