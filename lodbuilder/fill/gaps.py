@@ -71,7 +71,16 @@ import numpy as np
 from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
 from .local import K_SAMPLE, NEAR_FRACTION, Grid, flood, near_plane, normals_at, on_sheet
-from .surface import Frame, HeightField, least_tilted, plane_normal, tangents
+from .surface import (
+    MAX_TILT,
+    MAX_TILTED,
+    Frame,
+    HeightField,
+    height_field_normal,
+    plane_normal,
+    tangents,
+    tilted_share,
+)
 
 #: the sample is the prefix at SAMPLE_FRACTION * rho
 SAMPLE_FRACTION = 0.25
@@ -89,11 +98,6 @@ K_LEVEL = 10
 SLOPE, SHEET_SLOPE = 0.5, 1.0
 #: a group of fewer seeds is a small hole: its first grid (the seeds' spread + 1.5 rho) is final
 MIN_SEEDS_WIDE = 4
-#: largest share of ring normals tilted more than MAX_TILT from the hole's normal
-MAX_TILTED = 0.25
-MAX_TILT = math.radians(60.0)
-#: a rim too tilted over its least-squares plane is laid over the least tilted plane this close
-TILT_SEARCH = math.radians(60.0)
 #: largest RMS error predicting a sixth of the ring from the rest, in units of rho
 MAX_RESIDUAL = 0.5
 
@@ -477,7 +481,7 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
     reaching the grid's edge), and the centre of the nodes of those that did (None if none).
     The grid is laid again, at most ``refit`` times, where a region's ring asks for another
-    plane (:func:`_height_field_normal`)."""
+    plane (:func:`~lodbuilder.fill.surface.height_field_normal`)."""
     from scipy.spatial import cKDTree
 
     grid = Grid(frame, g, half)
@@ -497,7 +501,7 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
             continue
         normals = normals_at(pts[ring], pts)
         inner = d[ring] <= INNER * rho
-        n_new, again = _height_field_normal(
+        n_new, again = height_field_normal(
             normals[inner], plane_normal(pts[ring], frame.normal), frame.normal
         )
         if refit > 0 and again:
@@ -513,29 +517,6 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
         return regions, None
     uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
     return regions, frame.lift(uv, np.zeros(1))[0]
-
-
-def _tilted(normals: np.ndarray, normal: np.ndarray) -> float:
-    """Share of unit ``normals`` tilted more than :data:`MAX_TILT` from ``normal``."""
-    return float((np.abs(normals @ normal) < math.cos(MAX_TILT)).mean())
-
-
-def _height_field_normal(
-    inner_normals: np.ndarray, normal: np.ndarray, current: np.ndarray
-) -> tuple[np.ndarray, bool]:
-    """The hole's normal and whether to lay the grid again over it. When at most
-    :data:`MAX_TILTED` of the inner ring's normals are tilted over :data:`MAX_TILT` from the
-    grid's ``current`` normal: the ring's least-squares ``normal``, laid again when it is more
-    than 5 degrees away and no more of the rim is tilted over it. Otherwise the direction within :data:`TILT_SEARCH` of ``normal`` from
-    which the fewest are tilted (the closest to ``normal`` of those), over whose plane the rim
-    is most nearly a height field (the lopsided rim of a hole beside a nose, a chin or a
-    corner), laid again."""
-    now = _tilted(inner_normals, current)
-    if now <= MAX_TILTED:  # (never to a plane over which more of the rim is tilted)
-        moved = float(normal @ current) < math.cos(math.radians(5.0))
-        return normal, moved and _tilted(inner_normals, normal) <= now
-    best, share = least_tilted(inner_normals, normal, MAX_TILT, TILT_SEARCH)
-    return (best if share < _tilted(inner_normals, normal) else normal), True
 
 
 def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) -> Region:
@@ -557,7 +538,7 @@ def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) ->
         uv=uv,
         surface=surface,
         ring=ring_idx,
-        tilted=_tilted(ring_normals[inner], frame.normal),
+        tilted=tilted_share(ring_normals[inner], frame.normal),
     )
 
 

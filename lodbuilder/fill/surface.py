@@ -38,6 +38,11 @@ MAX_FIT_POINTS = 250
 SMOOTHING = 1e-3
 #: the splines a hole chooses from (the first is the default before :meth:`HeightField.select`)
 KERNELS = ("thin_plate_spline", "cubic")
+#: largest share of ring normals tilted more than MAX_TILT from the hole's normal
+MAX_TILTED = 0.25
+MAX_TILT = math.radians(60.0)
+#: a rim too tilted over its least-squares plane is laid over the least tilted plane this close
+TILT_SEARCH = math.radians(60.0)
 
 
 def tangents(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,6 +110,29 @@ def least_tilted(
     share = (np.abs(normals @ dirs.T) < math.cos(max_tilt)).mean(axis=0)
     best = int(np.argmin(share))  # (z decreases along the spiral: the first minimum is closest)
     return dirs[best], float(share[best])
+
+
+def tilted_share(normals: np.ndarray, normal: np.ndarray) -> float:
+    """Share of unit ``normals`` tilted more than :data:`MAX_TILT` from ``normal``."""
+    return float((np.abs(normals @ normal) < math.cos(MAX_TILT)).mean())
+
+
+def height_field_normal(
+    inner_normals: np.ndarray, normal: np.ndarray, current: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """The hole's normal and whether to lay the grid again over it. When at most
+    :data:`MAX_TILTED` of the inner ring's normals are tilted over :data:`MAX_TILT` from the
+    grid's ``current`` normal: the ring's least-squares ``normal``, laid again when it is more
+    than 5 degrees away and no more of the rim is tilted over it. Otherwise the direction
+    within :data:`TILT_SEARCH` of ``normal`` from which the fewest are tilted (the closest to
+    ``normal`` of those), over whose plane the rim is most nearly a height field (the lopsided
+    rim of a hole beside a nose, a chin or a corner), laid again."""
+    now = tilted_share(inner_normals, current)
+    if now <= MAX_TILTED:  # (never to a plane over which more of the rim is tilted)
+        moved = float(normal @ current) < math.cos(math.radians(5.0))
+        return normal, moved and tilted_share(inner_normals, normal) <= now
+    best, share = least_tilted(inner_normals, normal, MAX_TILT, TILT_SEARCH)
+    return (best if share < tilted_share(inner_normals, normal) else normal), True
 
 
 def plane_normal(points: np.ndarray, near: np.ndarray) -> np.ndarray:
