@@ -27,8 +27,11 @@ whole scan for exact distances.
    several seeds whose region reached its edge) ``max_hole * rho`` wide. The nodes farther than
    rho/2 (in the plane) from every projected sample point form regions (4-connected). A region
    that contains a seed and stays inside the grid is **enclosed**: input points bound it all
-   round. A region that reaches the grid's edge leaks into empty space (the scan's border, or a
-   hole wider than ``max_hole * rho``), or through a part of its rim that the cone dropped (the
+   round (a region that reaches the edge only through a channel in which no node is farther
+   than rho from the input, a seam of sparser points, is cut there; enclosed only so, it is
+   kept when it is a fillable gap). A region that reaches the grid's edge leaks into empty
+   space (the scan's border, or a hole wider than ``max_hole * rho``), or through a part of its
+   rim that the cone dropped (the
    rim of a hole on a strongly curved place is steep over any one plane). Such a group is
    searched again **along the surface**: only the sample points on the seeds' own sheet
    (reached from the points next to the seeds within the grid's reach, over links to each
@@ -70,7 +73,16 @@ import numpy as np
 
 from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
-from .local import K_SAMPLE, NEAR_FRACTION, Grid, flood, near_plane, normals_at, on_sheet
+from .local import (
+    K_SAMPLE,
+    NEAR_FRACTION,
+    Grid,
+    flood,
+    groups,
+    near_plane,
+    normals_at,
+    on_sheet,
+)
 from .surface import (
     MAX_TILT,
     MAX_TILTED,
@@ -147,6 +159,9 @@ class Region:
     tilted: float = 0.0
     reason: str = ""
     n_synthetic: int = 0
+    #: enclosed only once cut from a channel of surface within rho of the input (kept only when
+    #: a fillable gap)
+    opened: bool = False
 
     @property
     def normal(self) -> np.ndarray:
@@ -289,23 +304,6 @@ def _seeds(
     return cand[far], nrm[far]
 
 
-def _groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
-    """Seed index arrays of the groups linked within 2 rho."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    m = seeds.shape[0]
-    if m == 0:
-        return []
-    pairs = cKDTree(seeds).query_pairs(2.0 * rho, output_type="ndarray")
-    g = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
-    n_comp, labels = connected_components(g, directed=False)
-    order = np.argsort(labels, kind="stable")
-    splits = np.cumsum(np.bincount(labels, minlength=n_comp))[:-1]
-    return np.split(order, splits)
-
-
 def find_regions(
     level: np.ndarray,
     sample: np.ndarray,
@@ -337,7 +335,7 @@ def find_regions(
     seeds, seed_normals = _seeds(level, tree_l, tree_s, rho)
     out.n_seeds = int(seeds.shape[0])
     width = max_hole * rho
-    for grp in _groups(seeds, rho):
+    for grp in groups(seeds, rho):
         sp = seeds[grp]
         if float(np.linalg.norm(np.ptp(sp, axis=0))) > 2.0 * width:  # a long border
             out.n_open += 1
@@ -352,14 +350,15 @@ def find_regions(
         regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False)
         n_open = sum(r is None for r in regions)
         enclosed = [r for r in regions if r is not None]
-        _add(out, enclosed, tree_s, rho, fillable_only=False)
+        n_open += _add(out, enclosed, tree_s, rho, fillable_only=False)[2]
+        enclosed = [r for r in enclosed if not r.opened or any(r is x for x in out.regions)]
         rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
         if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
             # open over the plane, and its seeds fit in one hole: look again over the seeds'
             # sheet only (along the surface); a fillable gap found there is kept, anything
             # else stays open
             again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
-            added, refused = _add(out, again, tree_s, rho, fillable_only=True)
+            added, refused, _ = _add(out, again, tree_s, rho, fillable_only=True)
             out.n_bent += min(n_open, refused)
             n_open -= min(n_open, added + refused)
         out.n_open += n_open
@@ -368,24 +367,25 @@ def find_regions(
 
 def _add(
     out: Search, regions: list, tree_s: Any, rho: float, fillable_only: bool
-) -> tuple[int, int]:
+) -> tuple[int, int, int]:
     """Finish the enclosed ``regions`` not found already and add them to ``out`` (with
-    ``fillable_only``, only the fillable gaps): (how many were added, how many gaps were left
-    out as rough)."""
-    added = refused = 0
+    ``fillable_only``, and for an opened region, only the fillable gaps): (how many were added,
+    how many gaps were left out as rough, how many opened regions were left out)."""
+    added = refused = dropped = 0
     for reg in regions:
         if reg is None or _inside(out.regions, reg.candidates.mean(axis=0, keepdims=True), rho)[0]:
             continue  # open, or found already
         _finish_region(reg, tree_s, rho)
         if not reg.candidates.shape[0]:
             continue
-        if fillable_only and not (reg.is_gap and reg.status == STATUS_FILLABLE):
-            refused += reg.is_gap
+        if (fillable_only or reg.opened) and not (reg.is_gap and reg.status == STATUS_FILLABLE):
+            refused += reg.is_gap if fillable_only else 0
+            dropped += reg.opened and not fillable_only
             continue
         reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
         out.regions.append(reg)
         added += 1
-    return added, refused
+    return added, refused, dropped
 
 
 def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
@@ -489,7 +489,7 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     regions: list = []
     leaked: list[np.ndarray] = []
     pts = local.points
-    for nodes, leak in found:
+    for nodes, leak, opened in found:
         if leak:
             leaked.append(grid.uv[nodes])
             regions.append(None)
@@ -510,9 +510,9 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
             idx = local.idx[near_plane(pts, frame2, rho, local.slope)]
             local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])), local.slope)
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, refit - 1)
-        regions.append(
-            _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
-        )
+        reg = _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
+        reg.opened = opened
+        regions.append(reg)
     if not leaked:
         return regions, None
     uv = np.concatenate(leaked).mean(axis=0, keepdims=True)

@@ -97,16 +97,71 @@ class Grid:
 
 def flood(grid: Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
     """Labels of the empty nodes (farther than rho/2 from the projected sample points indexed by
-    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge)."""
+    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge, opened).
+
+    A region that touches the edge only through a channel in which no node is farther than rho
+    from the points (a seam of sparser points: the surface there is within rho of the input) is
+    cut at that channel (*opened*): its core (nodes farther than rho from every point) widened
+    again by rho/2 within it (a morphological opening); a part of it with a seed that stays
+    off the edge is enclosed."""
     from scipy import ndimage
 
-    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=NEAR_FRACTION * rho)
-    empty = ~np.isfinite(d)
+    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=1.01 * rho)
+    empty = ~(d <= NEAR_FRACTION * rho)
     labels, _ = ndimage.label(empty.reshape(grid.shape))
     labels = labels.ravel()
     nodes = grid.node_of(seed_uv)
-    hit = np.unique(labels[nodes[nodes >= 0]])
-    hit = hit[hit > 0]
-    lab2 = labels.reshape(grid.shape)
-    edge = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
-    return [(np.flatnonzero(labels == lab), bool(np.isin(lab, edge))) for lab in hit]
+    nodes = nodes[nodes >= 0]
+    hit = np.unique(labels[nodes])
+    edge = _edge_labels(labels.reshape(grid.shape))
+    out = []
+    for lab in hit[hit > 0]:
+        mask = labels == lab
+        if lab in edge:
+            out += _opened(grid, mask, ~(d <= rho), nodes, rho)
+        else:
+            out.append((np.flatnonzero(mask), False, False))
+    return out
+
+
+def _edge_labels(labels: np.ndarray) -> np.ndarray:
+    return np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+
+
+def _opened(grid: Grid, mask: np.ndarray, far: np.ndarray, seed_nodes: np.ndarray, rho: float):
+    """The enclosed parts of the region ``mask`` that touches the grid's edge: its core (``far``:
+    nodes farther than rho from every point) widened by rho/2 within it, the parts with a seed
+    within rho/2 that stay off the edge (opened); the rest of the region as leaking."""
+    from scipy import ndimage
+
+    k = max(1, int(round(NEAR_FRACTION * rho / grid.g)))
+    ij = np.indices((2 * k + 1, 2 * k + 1)) - k
+    disk = (ij[0] ** 2 + ij[1] ** 2) <= k * k
+    box = mask.reshape(grid.shape)
+    opened = ndimage.binary_dilation(box & far.reshape(grid.shape), structure=disk) & box
+    labels, _ = ndimage.label(opened)
+    seeds = np.zeros(mask.size, dtype=bool)
+    seeds[seed_nodes] = True
+    near = ndimage.binary_dilation(seeds.reshape(grid.shape), structure=disk) & opened
+    edge = _edge_labels(labels)
+    inner = [lab for lab in np.unique(labels[near]) if lab not in edge]
+    flat = labels.ravel()
+    out = [(np.flatnonzero(flat == lab), False, True) for lab in inner]
+    return out + [(np.flatnonzero(mask & ~np.isin(flat, inner)), True, False)]
+
+
+def groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
+    """Seed index arrays of the groups linked within 2 rho."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    m = seeds.shape[0]
+    if m == 0:
+        return []
+    pairs = cKDTree(seeds).query_pairs(2.0 * rho, output_type="ndarray")
+    g = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+    n_comp, labels = connected_components(g, directed=False)
+    order = np.argsort(labels, kind="stable")
+    splits = np.cumsum(np.bincount(labels, minlength=n_comp))[:-1]
+    return np.split(order, splits)
