@@ -29,7 +29,10 @@ whole scan for exact distances.
    that contains a seed and stays inside the grid is **enclosed**: input points bound it all
    round (a region that reaches the edge only through a channel in which no node is farther
    than rho from the input, a seam of sparser points, is cut there; enclosed only so, it is
-   kept when it is a fillable gap). A region that reaches the grid's edge leaks into empty
+   kept when it is a fillable gap; and where some of the points face away from the seeds'
+   side, normals oriented along the surface: the other face of a thin part, reached round its
+   edge, the group is searched first with those set aside, keeping only fillable gaps, then
+   as it is). A region that reaches the grid's edge leaks into empty
    space (the scan's border, or a hole wider than ``max_hole * rho``), or through a part of its
    rim that the cone dropped (the
    rim of a hole on a strongly curved place is steep over any one plane). Such a group is
@@ -74,11 +77,14 @@ import numpy as np
 from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
 from .local import (
+    FACING,
     K_SAMPLE,
     NEAR_FRACTION,
     Grid,
+    facing,
     flood,
     groups,
+    inside,
     near_plane,
     normals_at,
     on_sheet,
@@ -346,23 +352,32 @@ def find_regions(
             continue
         nrm = seed_normals[grp]
         nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
-        normal = nrm.sum(axis=0)
-        regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False)
-        n_open = sum(r is None for r in regions)
-        enclosed = [r for r in regions if r is not None]
-        n_open += _add(out, enclosed, tree_s, rho, fillable_only=False)[2]
-        enclosed = [r for r in enclosed if not r.opened or any(r is x for x in out.regions)]
-        rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
-        if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
-            # open over the plane, and its seeds fit in one hole: look again over the seeds'
-            # sheet only (along the surface); a fillable gap found there is kept, anything
-            # else stays open
-            again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
-            added, refused, _ = _add(out, again, tree_s, rho, fillable_only=True)
-            out.n_bent += min(n_open, refused)
-            n_open -= min(n_open, added + refused)
-        out.n_open += n_open
+        _search_group(out, sample, tree_s, sp, nrm.sum(axis=0), width)
     return out
+
+
+def _search_group(out: Search, sample, tree_s, sp, normal, width) -> None:
+    """Find the regions of one group of seeds ``sp`` (step 3) and add them to ``out``."""
+    rho = out.rho
+    away: list = []
+    regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False, away)
+    kept = 0
+    if away:  # with the other faces of thin parts set aside: only fillable gaps, then without
+        kept = _add(out, regions, tree_s, rho, fillable_only=True)[0]
+        regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False)
+    n_open = max(0, sum(r is None for r in regions) - kept)
+    enclosed = [r for r in regions if r is not None]
+    n_open += _add(out, enclosed, tree_s, rho, fillable_only=False)[2]
+    enclosed = [r for r in enclosed if not r.opened or any(r is x for x in out.regions)]
+    rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
+    if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
+        # open over the plane, and its seeds fit in one hole: look again over the seeds' sheet
+        # only (along the surface); a fillable gap found there is kept, anything else stays open
+        again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
+        added, refused, _ = _add(out, again, tree_s, rho, fillable_only=True)
+        out.n_bent += min(n_open, refused)
+        n_open -= min(n_open, added + refused)
+    out.n_open += n_open
 
 
 def _add(
@@ -389,38 +404,18 @@ def _add(
 
 
 def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
-    """Mask of ``points`` inside a region found already: over one of its nodes (within a grid
-    step, in its plane) and within 2 rho of its surface. Another group of seeds of the same hole
-    (seeds on a sheet above part of it, say) then finds nothing new."""
-    from scipy.spatial import cKDTree
-
-    hit = np.zeros(points.shape[0], dtype=bool)
-    for reg in regions:
-        if not reg.candidates.shape[0]:
-            continue
-        # (a point over a node and within 2 rho of the surface is within 4 rho of a candidate,
-        # unless the surface rose by 1.7 rho over a grid step: most regions are far away)
-        lo = reg.candidates.min(axis=0) - 4.0 * rho
-        hi = reg.candidates.max(axis=0) + 4.0 * rho
-        box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
-        if not box.size:
-            continue
-        uv = reg.frame.uv(points[box])
-        d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
-        over = np.isfinite(d)
-        if over.any():
-            h = reg.frame.height(points[box[over]])
-            hit[box[over]] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
-    return hit
+    return inside(regions, points, rho, GRID_FRACTION * rho)
 
 
-def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False) -> list:
+def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False, away=None) -> list:
     """Regions around one group of seeds (``None`` for each open one): a grid a little wider
     than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
     once more centred on the region that reached the edge (the seeds' mean can sit off a
     hole's centre). An enclosed region found on one grid is kept; the next grid looks only for
     the regions of the seeds outside it (a group can hold a hole and a border next to it).
-    ``along``: only the points on the seeds' sheet, in the steeper cone (step 3)."""
+    ``along``: only the points on the seeds' sheet, in the steeper cone (step 3). ``away``: a
+    list; the points facing away from the hole's side are set aside on every grid (the other
+    face of a thin part), and True appended to it where some were."""
     from scipy.spatial import cKDTree
 
     g = GRID_FRACTION * rho
@@ -448,7 +443,7 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False) ->
             d, _ = tree2.query(frame.uv(seeds), k=1, distance_upper_bound=NEAR_FRACTION * rho)
             if np.isfinite(d).all():
                 return []
-        local = _Local(sample, idx, tree2, slope)
+        local = _Local(sample, idx, tree2, slope, away)
         regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=2)
         enclosed = [r for r in regions if r is not None]
         found += enclosed
@@ -471,10 +466,22 @@ class _Local:
     idx: np.ndarray
     tree2: Any
     slope: float
+    away: list | None = None
 
     @property
     def points(self) -> np.ndarray:
         return self.sample[self.idx]
+
+
+def _stacked(local: _Local, frame: Frame, rho: float) -> bool:
+    """Some of the points lie over one another (within rho/2 in the plane, 1.5 rho apart in
+    height): two faces, or a fold, over the grid."""
+    n = local.idx.size
+    d, nb = local.tree2.query(local.tree2.data, k=min(5, n), distance_upper_bound=0.5 * rho)
+    h = frame.height(local.points)
+    near = np.isfinite(d)
+    nb = np.where(near, nb, np.arange(n)[:, None])
+    return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
 
 
 def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
@@ -484,6 +491,12 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     plane (:func:`~lodbuilder.fill.surface.height_field_normal`)."""
     from scipy.spatial import cKDTree
 
+    if local.away is not None and local.idx.size > K_SAMPLE and _stacked(local, frame, rho):
+        off = facing(local.points, frame.normal, seeds, rho, local.points) <= FACING
+        if off.any():
+            local.away.append(True)
+            idx = local.idx[~off]
+            local = _Local(local.sample, idx, cKDTree(frame.uv(local.sample[idx])), local.slope)
     grid = Grid(frame, g, half)
     found = flood(grid, local.tree2, frame.uv(seeds), rho)
     regions: list = []
@@ -508,7 +521,8 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
             # the hole's plane moved: lay the grid again in the plane of this ring
             frame2 = Frame.of(pts[ring].mean(axis=0), n_new)
             idx = local.idx[near_plane(pts, frame2, rho, local.slope)]
-            local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])), local.slope)
+            tree2 = cKDTree(frame2.uv(local.sample[idx]))
+            local2 = _Local(local.sample, idx, tree2, local.slope, local.away)
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, refit - 1)
         reg = _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
         reg.opened = opened
