@@ -391,10 +391,10 @@ def _pieces(band, stats):
 
 def _tail_runs(keys, cs, reach):
     """The coarse runs of the voxel keys that the Euclidean tail searches, for balls of up to
-    ``reach`` voxels: (rkey, ridx, rstart, rend, levels)."""
+    ``reach`` voxels (cells of side 2^j >= the reach): (rkey, ridx, rstart, rend, levels)."""
     from .._kernels.grid import coarse_runs
 
-    levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
+    levels = max(0, min(int(np.ceil(np.log2(max(reach, 1.0)))), 9))
     return (*coarse_runs(keys, cs, levels), levels)
 
 
