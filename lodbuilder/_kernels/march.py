@@ -79,7 +79,7 @@ def corner_voxels(nbr, v):  # pragma: no cover - compiled
     return (np.int64(v), w1, w2, w3, w4, w5, w6, w7)
 
 
-@nb.njit(**JIT)
+@nb.njit(**INLINE)  # (its one call site is the march's hottest loop: 15 % of the grid phase as a call)
 def _update(a1, a2, b1, b2, c1, c2, f):  # pragma: no cover - compiled
     """Upwind solution of |grad T| = f from the three axes' (first, second) upwind values.
 
