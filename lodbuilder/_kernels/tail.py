@@ -21,12 +21,12 @@ BOX_SLACK = 1e-6  # grid units: a cell is skipped when its box lies farther than
 
 
 @nb.njit(**INLINE)
-def _key(c, cstart, d):  # pragma: no cover - compiled
+def _key(c, cstart, ud):  # pragma: no cover - compiled
     """The largest value of an unordered point of cell c (ordered points hold -1), -1 if none."""
     best = -1.0
     for p in range(cstart[c], cstart[c + 1]):
-        if d[p] > best:
-            best = d[p]
+        if ud[p, 3] > best:
+            best = ud[p, 3]
     return best
 
 
@@ -54,7 +54,7 @@ def _sift_down(hkey, heap, i, n):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
-def _cell_heap(cs, d):  # pragma: no cover - compiled
+def _cell_heap(cs, ud):  # pragma: no cover - compiled
     """The cells' point ranges (cell c holds points cstart[c]:cstart[c + 1]: cells are the voxels
     that hold points, in voxel order), their voxels and their max-heap by key (keys in heap order)."""
     cellv, _ = cell_tables(cs)
@@ -66,7 +66,7 @@ def _cell_heap(cs, d):  # pragma: no cover - compiled
     ckey = np.empty(ncell)
     heap = np.arange(ncell).astype(np.int32)
     for c in range(ncell):
-        ckey[c] = _key(c, cstart, d)
+        ckey[c] = _key(c, cstart, ud)
     for i in range((ncell - 2) // 4, -1, -1):
         _sift_down(ckey, heap, np.int64(i), ncell)
     return cstart, cellv, ckey, heap
@@ -74,49 +74,50 @@ def _cell_heap(cs, d):  # pragma: no cover - compiled
 
 @nb.njit(**JIT)
 def euclid_tail(
-    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
+    ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, lab,
     rank, order, radius, parent, k0, k_max, rho_stop, tseed, tkey, tpos,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones, first
+    ``ud`` holds every point's grid coordinates and, in its last column, its value d: an upper
+    bound of the unordered point's distance to the ordered ones, first
     tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
-    point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
+    point q only lowers points within its value (/ cmin when weighted). Candidates are kept per cell in a
     max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
     top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
     ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
     if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
     chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. The ball query
-    is :func:`_lower_around`; ordered points hold -1 in ``d`` meanwhile. Timed seeds (``tseed`` by
+    is :func:`_lower_around`; ordered points hold -1 in d meanwhile. Timed seeds (``tseed`` by
     non-increasing ``tkey``, from ``tpos[0]`` on; see :func:`.march.grid_phase`) join as soon as
     the largest distance is at most their key, and the ones left when every point is ordered come
     last. Returns the new count.
     """
-    m = u.shape[0]
+    m = ud.shape[0]
     thin = psep.shape[0] == m
     for p in range(m):
         if rank[p] >= 0:
-            d[p] = -1.0  # ordered: never a candidate, never lowered (no rank lookups below)
+            ud[p, 3] = -1.0  # ordered: never a candidate, never lowered (no rank lookups below)
         elif lab[p] >= 0:
             # tighten to the exact distance to the labelled sample (still an upper bound)
             s = order[lab[p]]
-            e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+            e = _norm(ud[p, 0] - ud[s, 0], ud[p, 1] - ud[s, 1], ud[p, 2] - ud[s, 2])
             if thin and not _chord_ok(
-                u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2], e, psep[p], psep[s],
+                ud[p, 0] - ud[s, 0], ud[p, 1] - ud[s, 1], ud[p, 2] - ud[s, 2], e, psep[p], psep[s],
                 pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[s, 0], pnrm[s, 1], pnrm[s, 2], slope,
             ):
                 continue  # the band's value may go around a fold the straight line crosses
             if weighted:
                 e *= 0.5 * (pcost[p] + pcost[s])
-            if e < d[p]:
-                d[p] = e
-    cstart, cellv, ckey, heap = _cell_heap(cs, d)
+            if e < ud[p, 3]:
+                ud[p, 3] = e
+    cstart, cellv, ckey, heap = _cell_heap(cs, ud)
     hn = ckey.shape[0]
     k = k0
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = _key(top, cstart, d)
+        kk = _key(top, cstart, ud)
         if kk != ckey[0]:
             if kk < 0.0:
                 hn = _pop(ckey, heap, hn)
@@ -139,17 +140,17 @@ def euclid_tail(
             w0 = cellv[top]
             i = -1
             for p in range(cstart[top], cstart[top + 1]):
-                if d[p] == kk:
+                if ud[p, 3] == kk:
                     i = p
                     break
             radius[k] = kk
             parent[k] = lab[i]
         rank[i] = k
         order[k] = i
-        d[i] = -1.0
+        ud[i, 3] = -1.0
         reach = kk / cmin if weighted else kk
-        _lower_around(i, w0, k, reach, u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep,
-                      pnrm, slope, thin, d, lab)
+        _lower_around(i, w0, k, reach, ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep,
+                      pnrm, slope, thin, lab)
         k += 1
     if hn == 0:  # every candidate is ordered: the timed seeds not taken yet come last
         while k < k_max and tpos[0] < tseed.shape[0]:
@@ -185,8 +186,8 @@ def _box_gap(c, lo, side):  # pragma: no cover - compiled
 
 
 @nb.njit(**INLINE)
-def _lower_around(i, w0, k, reach, u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep, pnrm,
-                  slope, thin, d, lab):  # pragma: no cover - compiled
+def _lower_around(i, w0, k, reach, ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep, pnrm,
+                  slope, thin, lab):  # pragma: no cover - compiled
     """Lower the values of the points within ``reach`` of the new sample i (rank k, in the cell of
     voxel w0). The cells
     searched: the voxel cells around i's when the reach is under a voxel (walked through the
@@ -197,7 +198,7 @@ def _lower_around(i, w0, k, reach, u, nbr, cs, rkey, ridx, rstart, rend, levels,
     while j < levels and side < reach:
         j += 1
         side *= 2.0
-    ux, uy, uz = u[i, 0], u[i, 1], u[i, 2]
+    ux, uy, uz = ud[i, 0], ud[i, 1], ud[i, 2]
     x0 = int(np.floor((ux - reach) / side))
     x1 = int(np.floor((ux + reach) / side))
     y0 = int(np.floor((uy - reach) / side))
@@ -247,12 +248,12 @@ def _lower_around(i, w0, k, reach, u, nbr, cs, rkey, ridx, rstart, rend, levels,
                     p0 = rstart[run]
                     p1 = rend[run]
                 for p in range(p0, p1):
-                    dp = d[p]
+                    dp = ud[p, 3]
                     if dp < 0.0:
                         continue  # ordered, or a timed seed
-                    ex = u[p, 0] - ux
-                    ey = u[p, 1] - uy
-                    ez = u[p, 2] - uz
+                    ex = ud[p, 0] - ux
+                    ey = ud[p, 1] - uy
+                    ez = ud[p, 2] - uz
                     d2 = ex * ex + ey * ey + ez * ez
                     if not weighted and d2 > dp * dp * FAR_MARGIN:
                         continue  # surely no nearer (most points of the coarse cells)
@@ -265,5 +266,5 @@ def _lower_around(i, w0, k, reach, u, nbr, cs, rkey, ridx, rstart, rend, levels,
                     if weighted:
                         dd *= 0.5 * (pcost[p] + pcost[i])
                     if dd < dp:
-                        d[p] = dd
+                        ud[p, 3] = dd
                         lab[p] = k
