@@ -172,7 +172,7 @@ def seed_scratch():  # pragma: no cover - compiled
 @nb.njit(**JIT)
 def _seed_sample(
     i, lb, mark, rnd, acc, u, keys, nbr, cs, cellof, vcost, pcost, weighted, foot, pnrm, slope, thin,
-    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, n, scratch,
+    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, n, scratch,
 ):  # pragma: no cover - compiled
     """Seed the front of sample ``i`` (label ``lb``): exact distances in the ball of SEED_RADIUS
     around it (see the module docstring); returns the front heap's new size and the dirty count."""
@@ -280,7 +280,7 @@ def _seed_sample(
             T[v] = t_
             vlab[v] = lb
             stamp[v] = acc  # exact: frozen (the march never lowers it), but still popped
-            n = iheap_push(hk, hv, hpos, n, t_, v)
+            n = iheap_push(hkv, hpos, n, t_, v)
         # the points of the 8 cells that have v as a corner get their exact distance (each
         # cell once per sample)
         corners = corner_voxels(nbr, v)
@@ -320,7 +320,7 @@ def _seed_sample(
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hk, hv, hpos, scratch, debug,
+    T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
 
@@ -338,13 +338,13 @@ def march_round(
         n, nd = _seed_sample(
             np.int64(src[s]), np.int32(lab + s), np.int32(rnd * src.shape[0] + s), rnd, acc, u, keys, nbr, cs,
             cellof, vcost, pcost, weighted, foot, pnrm, slope, thin, T, vlab, stamp, dq, lq, rank, dstamp,
-            cmark, dirty, nd, hk, hv, hpos, n, scratch,
+            cmark, dirty, nd, hkv, hpos, n, scratch,
         )
     pops = 0
     while n > 0:
-        if debug and not check_minheap(hk, hv, hpos, n):
+        if debug and not check_minheap(hkv, hpos, n):
             return nd, -1  # the front heap is broken (no raise: it would compile exception code)
-        t, v, n = iheap_pop(hk, hv, hpos, n)
+        t, v, n = iheap_pop(hkv, hpos, n)
         stamp[v] = acc
         pops += 1
         tv = np.float64(T[v])
@@ -474,7 +474,7 @@ def march_round(
                 T[m] = tn
                 vlab[m] = lv
                 stamp[m] = trial
-                n = iheap_push(hk, hv, hpos, n, tn, m)
+                n = iheap_push(hkv, hpos, n, tn, m)
     return nd, pops
 
 
@@ -523,8 +523,7 @@ def grid_phase(
     hpos = np.empty(ncell, np.int32)
     hn = ncell
     maxheap_build(ckey, heap, hpos, hn)
-    hk = np.empty(nv, np.float32)
-    hv = np.empty(nv, np.int32)
+    hkv = np.empty(nv, np.int64)
     hpos_v = np.full(nv, -1, np.int32)
     order = np.empty(k_max, np.int32)
     radius = np.empty(k_max, np.float64)
@@ -603,7 +602,7 @@ def grid_phase(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd0, hk, hv, hpos_v, scratch, debug,
+            T, vlab, stamp, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug,
         )
         if pp < 0:
             return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
@@ -661,7 +660,7 @@ def multi_source_distance(
         sources, lab0, rnd1, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         np.full(nv, np.inf, np.float32), np.full(nv, -1, np.int32), np.zeros(nv, np.int32),
         dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
-        np.empty(ncell, np.int32), nd0, np.empty(nv, np.float32), np.empty(nv, np.int32),
+        np.empty(ncell, np.int32), nd0, np.empty(nv, np.int64),
         np.full(nv, -1, np.int32), seed_scratch(), False,
     )
     for s in range(sources.shape[0]):
