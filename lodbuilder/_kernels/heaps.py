@@ -80,7 +80,7 @@ def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
 
 
 @intrinsic
-def _f32_bits(typingctx, x):  # pragma: no cover - compiled
+def f32_bits(typingctx, x):  # pragma: no cover - compiled
     """The bits of a float32 as a (non-negative) int64."""
     if x != types.float32:
         return None
@@ -92,7 +92,7 @@ def _f32_bits(typingctx, x):  # pragma: no cover - compiled
 
 
 @intrinsic
-def _bits_f32(typingctx, x):  # pragma: no cover - compiled
+def bits_f32(typingctx, x):  # pragma: no cover - compiled
     """The float32 whose bits are the low 32 bits of an int64."""
     if x != types.int64:
         return None
@@ -103,7 +103,7 @@ def _bits_f32(typingctx, x):  # pragma: no cover - compiled
     return types.float32(types.int64), codegen
 
 
-_ITEM = np.int64(0xFFFFFFFF)
+ITEM_MASK = np.int64(0xFFFFFFFF)
 
 
 @nb.njit(**INLINE)
@@ -120,14 +120,14 @@ def iheap_push(hkv, hpos, n, key, item):  # pragma: no cover - compiled
     if i < 0:
         i = n
         n += 1
-    e = (_f32_bits(key) << 32) | np.int64(item)
+    e = (f32_bits(key) << 32) | np.int64(item)
     while i > 0:
         p = (i - 1) >> 1
         ep = hkv[p]
         if ep < e:
             break
         hkv[i] = ep
-        hpos[ep & _ITEM] = i
+        hpos[ep & ITEM_MASK] = i
         i = p
     hkv[i] = e
     hpos[item] = i
@@ -138,7 +138,7 @@ def iheap_push(hkv, hpos, n, key, item):  # pragma: no cover - compiled
 def iheap_pop(hkv, hpos, n):  # pragma: no cover - compiled
     """Pop the smallest entry of an indexed min-heap; returns (key, item, n - 1)."""
     e0 = hkv[0]
-    item = np.int32(e0 & _ITEM)
+    item = np.int32(e0 & ITEM_MASK)
     hpos[item] = -1
     n -= 1
     if n > 0:
@@ -155,18 +155,18 @@ def iheap_pop(hkv, hpos, n):  # pragma: no cover - compiled
             if ec > last:
                 break
             hkv[i] = ec
-            hpos[ec & _ITEM] = i
+            hpos[ec & ITEM_MASK] = i
             i = c
         hkv[i] = last
-        hpos[last & _ITEM] = i
-    return _bits_f32(e0 >> 32), item, n
+        hpos[last & ITEM_MASK] = i
+    return bits_f32(e0 >> 32), item, n
 
 
 @nb.njit(**JIT)
 def check_minheap(hkv, hpos, n):  # pragma: no cover - compiled
     """True when the first n entries form a binary min-heap whose positions ``hpos`` agree."""
     for i in range(n):
-        if hpos[hkv[i] & _ITEM] != i:
+        if hpos[hkv[i] & ITEM_MASK] != i:
             return False
         if i > 0 and hkv[(i - 1) >> 1] > hkv[i]:
             return False
