@@ -391,7 +391,6 @@ def march_round(
         pops += 1
         tv = np.float64(_tval(ev))
         lv = vlab[v]
-        cx, cy, cz = unmorton(keys[v])
         gn = -1.0  # the front's direction at v: computed when a point first needs it
         gx = 0.0
         gy = 0.0
@@ -410,7 +409,13 @@ def march_round(
             if cell < 0:
                 continue
             corner = CORNER_OF[k]  # v is this corner of the cell
-            for p in range(cs[w], cs[w + 1]):
+            p0 = cs[w]
+            # v's coordinates: the cell's anchor (the floor of any of its points' coordinates)
+            # plus the corner (reading v's key instead was a cache miss per pop)
+            cx = np.floor(u[p0, 0]) + (corner & 1)
+            cy = np.floor(u[p0, 1]) + ((corner >> 1) & 1)
+            cz = np.floor(u[p0, 2]) + (corner >> 2)
+            for p in range(p0, cs[w + 1]):
                 if rank[p] >= 0:
                     continue
                 ex = u[p, 0] - cx
