@@ -12,6 +12,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -171,17 +172,20 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
                                                              float(pl["spacing"]), delta, progress)
     clock.lap("cover")
 
-    # 7. write the part file in stored order (one task)
+    # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
-    record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              **_timings(clock, work),
-              "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
-                        "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
-                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
-                        "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
+
+    def record() -> dict[str, Any]:  # once every band is written (its tasks are in the record's table)
+        clock.lap("write")
+        return {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
+                **_timings(clock, work),
+                "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
+                          "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii),
+                          "max_memory": budget, "parallel": parallel, "guarantees": GUARANTEES, "resumed": resumed,
+                          "tile_colours": colour, "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
+
     info = _write(executor, work, part, name, sp, head["g"][:1], record, {"reader": sp.reader, **(provenance or {})},
                   buckets, radii, progress)
-    clock.lap("write")
     remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
@@ -189,16 +193,15 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
 
 def _write(executor: cf.Executor, work: Path, part: Path, name: str, sp: Spill, seeds: np.ndarray,
-           record: dict[str, Any], provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any],
-           progress: ProgressCallback) -> Any:
-    """Phase 7: the part written by one task; returns its PartInfo."""
-    from .write import write_task
+           record: Callable[[], dict[str, Any]], provenance: dict[str, Any], buckets: dict[str, Any],
+           radii: dict[str, Any], progress: ProgressCallback) -> Any:
+    """Phase 7: the part written in bands of stored positions by tasks, assembled by the parent
+    from their finished chunks (see :mod:`.bands`); ``record()`` the build record, asked for when
+    every band is written. Returns the PartInfo."""
+    from .bands import write_phase
 
-    args = (str(work), str(part), name, sp.n, sp.fields, sp.metadata, sp.encoding, seeds, record, provenance,
-            buckets, radii)
-    (res,) = collect(submit(executor, [(0, write_task, args)]), lambda _: "writing the part", name, 1, progress,
-                     "write")
-    return res["info"]
+    return write_phase(executor, work, part, name, sp, lambda: {"seeds": seeds, "build": record(),
+                                                                 "provenance": provenance}, buckets, radii, progress)
 
 
 def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,

@@ -22,6 +22,7 @@ Files (little-endian raw arrays unless said otherwise), by the phase that writes
                 parent.<b>.i8       the stored parent of each position of band b
                 radius.<b>.f8       the stored radius of each position of band b (round 2)
     buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py)
+    write       chunks.<k>.bin      band k's rows as finished HDF5 chunks, one after another (see bands.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
 it wrote with their size and CRC-32 (:mod:`.sums`); a resumed build trusts a piece only when its
@@ -126,6 +127,16 @@ def bucket_piece(b: int) -> str:
     return f"permute.{b}"
 
 
+def chunks(k: int) -> str:
+    """Band ``k`` of the write: its rows' filtered HDF5 chunks (see :mod:`.bands`)."""
+    return f"chunks.{k}.bin"
+
+
+def chunks_piece(k: int) -> str:
+    """The piece name of band ``k`` of the write (a task)."""
+    return f"chunks.{k}"
+
+
 def order_piece(t: int, p: int) -> str:
     """The piece name of tile ``t``'s ordering in pass ``p`` (its marker is :func:`marker` of it)."""
     return f"order.{t}.{p}"
@@ -176,8 +187,8 @@ def writing(name: str) -> str:
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
 #: the named moments: after each phase's marker, after the first tile ordering's marker, and after
-#: the first read, split, permute and band task's markers
-MOMENTS = (*PHASES, "tile", "read", "split", "permute", "band")
+#: the first read, split, permute, band (of the radii) and chunks (band of the write) task's markers
+MOMENTS = (*PHASES, "tile", "read", "split", "permute", "band", "chunks")
 
 
 def moment(name: str) -> None:
