@@ -125,7 +125,7 @@ def _cases():
         "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "raw.0.xyz"],
-        "radii": ["order.i8", "rank.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
+        "radii": ["order.i8", "rank.0.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
         "write": ["key.f8", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "stream.0.bin",
                   "raw.0.attr"],
         "bands": ["chunks.0.bin", "chunks.0.json", "order.i8", "bucket.0.0.bin"],

@@ -162,8 +162,8 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
-    # 5. merge the tile orders (one task, streaming)
-    merged = _merge(executor, work, name, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
+    # 5. merge the tile orders (one task, streaming), then invert the order (tasks)
+    merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
     # 6. exact covering radii of every tile (on the workers), combined in bands; meanwhile tasks
@@ -218,17 +218,21 @@ def _order(executor: cf.Executor, work: Path, name: str, tiles: list[P.Tile], di
     return by_size, colour, ordered, stats
 
 
-def _merge(executor: cf.Executor, work: Path, name: str, n: int, stats: list[dict[str, Any]], seam_spacing: float,
+def _merge(executor: cf.Executor, work: Path, name: str, sp: Spill, stats: list[dict[str, Any]], seam_spacing: float,
            lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
-    """Phase 5: the tile orders merged by descending key with the seam repair, and the ranks (or
-    what a finished merge recorded): one task, on a worker (still one pass over every point)."""
+    """Phase 5: the tile orders merged by descending key with the seam repair (or what a finished
+    merge recorded): one task, on a worker (the one pass over every point left, see
+    :mod:`.merge`); then the ranks, by tasks (:mod:`.ranks`)."""
     from .merge import merge_task
+    from .ranks import ranks_phase
 
     merged = _done(work, "merge")
     if merged is None:
-        args = (str(work), n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
+        args = (str(work), sp.n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo,
+                span / (1 << 20))
         (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
         mark(work, "merge", merged)
+    ranks_phase(executor, work, name, sp.n, sp.blocks or [], progress)
     return merged
 
 

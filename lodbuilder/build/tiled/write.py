@@ -1,7 +1,7 @@
 """Writing a tiled scan into its part file, in stored (prefix) order, without holding it.
 
 The points and attributes sit in input order in the raw blocks of the work directory, the ranks in
-``rank.i8``; the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
+``rank.<b>.i8`` (one file per raw block: :mod:`.ranks`); the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
 destination block into bucket pieces (one record per point: position, coordinates, attributes; a
 task per raw block, :func:`bucket_block`), then each bucket (a band of whole row groups of the
 archive: :func:`band_rows`) is read, put in order and written as finished HDF5 chunks by a task of
@@ -43,15 +43,14 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
 def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
                  block: int, rows: int) -> dict[str, Any]:
     """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
-    positions (``rank.i8`` rows ``g0 .. g0 + m``), split by destination block (``block`` rows of
+    positions (``rank.<b>.i8``, input indices ``g0 .. g0 + m``), split by destination block (``block`` rows of
     the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
     w = Path(work)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
     out: dict[str, SumFile] = {}
     try:
-        with open(w / WL.RANK, "rb") as fr:
-            fr.seek(8 * g0)
+        with open(w / WL.rank_file(b), "rb") as fr:
             for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
                 r["pos"] = np.fromfile(fr, dtype="<i8", count=r.shape[0])
                 dest = r["pos"] // block
