@@ -83,12 +83,14 @@ def test_bench_survey_document(bench_doc, capsys):
             assert r["peak_rss_tree_bytes"] > 0 and r["peak_rss_parent_bytes"] > 0
             assert 0 < r["peak_work_dir_bytes"] <= r["peak_written_bytes"]
             assert r["work_over_archive"] == pytest.approx(r["peak_work_dir_bytes"] / r["archive_bytes"], abs=1e-3)
-            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover"]
+            # (the write is the record's last phase: its bands are tasks in the table)
+            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover", "write"]
             assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1
             assert kinds["order_tile"]["tasks"] == kinds["cover_tile"]["tasks"] == r["tiles"] >= 4
-            for kind in ("read_block", "survey_block", "distribute_block", "bucket_block"):
+            for kind in ("read_block", "survey_block", "distribute_block", "bucket_block", "rank_band", "rank_block",
+                         "write_band"):
                 assert kinds[kind]["tasks"] >= 1, kind
             assert 1 <= r["tasks"]["workers_seen"] <= r["workers"]
             sim = r["simulation"]

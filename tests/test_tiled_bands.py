@@ -148,7 +148,7 @@ def test_the_banded_write_gives_the_one_process_write(tmp_path, monkeypatch):
     out = tmp_path / "t.h5"
     res = lodbuilder.build_archive(scan, out, _tile_points=300)
     assert res.scans[0].method == "tiled"
-    assert seen["bands"] == 12  # 2400 points in row groups of 200, one a band
+    assert seen["bands"] == 12  # 2304 points (a 48 x 48 grid) in row groups of 192, one a band
     _same(_datasets(ref, "t"), _datasets(out, "t"))
     with lodbuilder.open_archive(out) as arc:
         v = arc.scan("t")
@@ -213,3 +213,29 @@ def test_a_kill_in_the_band_phase_resumes_to_the_same_archive(tmp_path, monkeypa
     with lodbuilder.open_archive(again) as arc:  # this run's band tasks: the unfinished and the damaged
         rows = arc.scan("sheet").build["tasks"]["rows"]
     assert sum(1 for r in rows if r[0] == "write_band" and r[4] >= 0) == 12 - len(done) + 1
+
+
+def test_a_failed_band_names_itself_and_leaves_the_archive(tmp_path, monkeypatch):
+    """A band task that fails fails the build naming the band and its positions; the archive is
+    as it was."""
+    from lodbuilder.build.tiled import bands
+    from lodbuilder.errors import BuildError
+
+    _small_bands(monkeypatch)
+    out = tmp_path / "t.h5"
+    lodbuilder.build_archive(Scan(points=np.random.default_rng(1).random((300, 3)), name="other"), out)
+    before = out.read_bytes()
+    real = bands.write_band
+
+    def broken(work, band, *args):
+        if band == 2:
+            raise MemoryError("no room for this band")
+        return real(work, band, *args)
+
+    monkeypatch.setattr(bands, "write_band", broken)
+    scan = Scan(points=wavy(2400, np.random.default_rng(5)), name="t")
+    with pytest.raises(BuildError) as exc:
+        lodbuilder.build_archive(scan, out, _tile_points=300)
+    assert str(exc.value) == ("scan 't': the write of band 3 of 12 (positions 384 to 576) failed: MemoryError: "
+                              "no room for this band")
+    assert out.read_bytes() == before

@@ -24,6 +24,7 @@ the input indices and of their squares (mod 2^64) are those of 0 .. n - 1.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -33,9 +34,9 @@ import numpy as np
 
 from ...archive import layout as L
 from ...errors import BuildError, InputError
-from ...progress import ProgressCallback
+from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
-from .pool import collect, submit
+from .pool import result, submit
 from .sums import done, mark, publish
 from .timing import timed_task
 from .workdir import opaque_rows
@@ -153,29 +154,52 @@ def write_phase(ex: Any, work: Path, part: Path, name: str, sp: Any, finish: Cal
     def call(b: int, spec: Any) -> tuple[int, Any, tuple]:
         return (b, write_band, (str(work), b, *bands[b], rows, spec, {**args, "pieces": buckets["pieces"][b]}))
 
-    where = "the write of positions {} to {}".format
-    sizes = [k1 - k0 for k0, k1 in bands]
     if 0 not in got:  # the first band alone: it decides the datasets' creation properties
-        (got[0],) = collect(submit(ex, [call(0, None)]), lambda b: where(*bands[b]), name, n, progress, "write",
-                            lambda r: mark(work, WL.chunks_piece(0), r), lambda r: sizes[0], 0)
+        _run(ex, work, name, {0: call(0, None)}, bands, got, progress)
     with ChunkWriter(part, name, n, got[0]["spec"], metadata=sp.metadata, encoding=sp.encoding) as w:
         placed = [0]
 
-        def place(res: dict[str, Any] | None = None) -> None:
-            if res is not None:
-                got[res["band"]] = mark(work, WL.chunks_piece(res["band"]), res)
+        def place() -> None:  # every band in stored order as soon as the ones before it are placed
             while placed[0] < len(bands) and placed[0] in got:
                 _place(w, work, got[placed[0]])
                 placed[0] += 1
 
         place()
-        calls = [call(b, got[0]["spec"]) for b in range(len(bands)) if b not in got]
-        collect(submit(ex, calls), lambda b: where(*bands[b]), name, n, progress, "write", place,
-                lambda r: sizes[r["band"]], sum(sizes[b] for b in got))
+        _run(ex, work, name, {b: call(b, got[0]["spec"]) for b in range(len(bands)) if b not in got}, bands, got,
+             progress, place)
         sums = [sum(int(got[b]["sums"][i]) for b in got) & MASK for i in range(2)]
         if sums != index_sums(n):
             raise damaged(name, InputError(f"source_index of scan {name!r} repeats an input index"))
         return w.finish(n_ordered=n, **finish())
+
+
+def _run(ex: Any, work: Path, name: str, calls: dict[int, tuple[int, Any, tuple]], bands: list[tuple[int, int]],
+         got: dict[int, dict[str, Any]], progress: ProgressCallback, then: Callable[[], None] | None = None) -> None:
+    """Run band tasks ``calls``; mark each one as it finishes (into ``got``), then call ``then``.
+    Progress: the phase's tasks and points (a failure names the band and its positions)."""
+    n_all = bands[-1][1]
+    running = submit(ex, list(calls.values()))
+
+    def tell() -> None:
+        pts = sum(bands[b][1] - bands[b][0] for b in got)
+        report_tasks(progress, "write", TaskCounts(len(got), len(bands), pts, n_all, len(running)))
+
+    tell()
+    try:
+        while running:
+            fin, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            for fut in fin:
+                b = running.pop(fut)
+                k0, k1 = bands[b]
+                res = result(fut, name, f"the write of band {b + 1} of {len(bands)} (positions {k0} to {k1})")
+                got[b] = mark(work, WL.chunks_piece(b), res)
+                tell()
+                if then is not None:
+                    then()
+    except BaseException:
+        for f in running:
+            f.cancel()
+        raise
 
 
 def _place(w: Any, work: Path, doc: dict[str, Any]) -> None:
