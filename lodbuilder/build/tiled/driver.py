@@ -175,17 +175,13 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
 
-    def record() -> dict[str, Any]:  # once every band is written (its tasks are in the record's table)
-        clock.lap("write")
-        return {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-                **_timings(clock, work),
-                "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
-                          "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii),
-                          "max_memory": budget, "parallel": parallel, "guarantees": GUARANTEES, "resumed": resumed,
-                          "tile_colours": colour, "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
-
-    info = _write(executor, work, part, name, sp, head["g"][:1], record, {"reader": sp.reader, **(provenance or {})},
-                  buckets, radii, progress)
+    record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
+              "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
+                        "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
+                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
+                        "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
+    info = _write(executor, work, part, name, sp, head["g"][:1], lambda: {**record, **_timings(clock, work, "write")},
+                  {"reader": sp.reader, **(provenance or {})}, buckets, radii, progress)
     remove_own_dir(work, work.name)
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
@@ -288,9 +284,12 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
-def _timings(clock: _Clock, work: Path) -> dict[str, Any]:
+def _timings(clock: _Clock, work: Path, last: str) -> dict[str, Any]:
     """The build record's phase seconds (and their order: the record's keys are sorted), the
-    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`)."""
+    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`), once
+    the ``last`` phase ends (the write: asked for when its bands are written, their tasks in the
+    table)."""
+    clock.lap(last)
     return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
             "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
             "build_started": clock.epoch, "tasks": task_table(work, clock.epoch)}
