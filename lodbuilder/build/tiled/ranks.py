@@ -30,7 +30,7 @@ from .timing import timed_task
 from .workdir import gather
 
 #: positions of ``order.i8`` per task of the first round
-BAND = 1 << 21
+BAND = 1 << 19
 #: a pair of the transpose: input index, position
 PAIR = np.dtype([("g", "<i8"), ("k", "<i8")])
 
