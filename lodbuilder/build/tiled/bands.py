@@ -122,9 +122,12 @@ def write_band(work: str, band: int, k0: int, k1: int, rows: int, spec: Any, arg
     w = Path(work)
     try:
         arrays, info = _arrays(w, band, k0, k1, rows, args)
-        if spec is None:
-            for key in args["fields"]:
+        if spec is None:  # (the scan writer's checks of the attributes' names and dtypes, once)
+            for key, (dt, _) in args["fields"].items():
                 L.check_name(key, "attribute name")
+                if np.dtype(dt).kind not in "biuf":
+                    raise InputError(f"attribute {key!r} of scan {args['name']!r} has dtype {np.dtype(dt)}; store "
+                                     "numbers (bool, int, float)")
             spec = spec_of({k: a[:rows] for k, a in arrays.items()})
         table, blob = filter_rows(spec, rows, arrays)
     except InputError as exc:
