@@ -185,7 +185,7 @@ def _run(ex: Any, work: Path, name: str, calls: dict[int, tuple[int, Any, tuple]
 
     def tell() -> None:
         pts = sum(bands[b][1] - bands[b][0] for b in got)
-        report_tasks(progress, "write", TaskCounts(len(got), len(bands), pts, n_all, len(running)))
+        report_tasks(progress, "write", TaskCounts(len(got), len(bands), pts, n_all, len(running), "band"))
 
     tell()
     try:
