@@ -411,6 +411,20 @@ def test_band_is_every_voxel_within_r_with_a_true_neighbour_table(n, seed, rad):
     assert band.cs[-1] == n
 
 
+@settings(max_examples=40, deadline=None)
+@given(keys=st.lists(st.integers(0, 300), max_size=60, unique=True), i=st.integers(0, 59), key=st.integers(0, 301))
+def test_find_after_is_a_search_of_the_sorted_keys_after_a_position(keys, i, key):
+    # the neighbour table's lookup (no hash table): any key after position i, found or -1
+    from lodbuilder._kernels.grid import find_after
+
+    arr = np.array(sorted(keys), dtype=np.int64)
+    i = min(i, arr.size - 1) if arr.size else -1
+    if i >= 0 and arr[i] >= key:
+        return  # (only keys larger than the one at i are asked for)
+    want = int(np.flatnonzero(arr == key)[0]) if key in keys else -1
+    assert find_after(arr, np.int64(i), np.int64(key)) == want
+
+
 @settings(max_examples=30, deadline=None)
 @given(ops=st.lists(st.tuples(st.integers(0, 30), st.floats(0, 100)), min_size=1, max_size=200))
 def test_indexed_min_heap_pops_in_key_order(ops):
