@@ -1,10 +1,15 @@
 """Writing a tiled scan into its part file, in stored (prefix) order, without holding it.
 
 The points and attributes sit in input order in the raw blocks of the work directory, the ranks in
-``rank.i8``; the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
+``rank.<b>.i8`` (one file per raw block: :mod:`.ranks`); the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
 destination block into bucket pieces (one record per point: position, coordinates, attributes; a
-task per raw block, :func:`bucket_block`), then each bucket's pieces are read, put in order and handed to the archive's
-:class:`~lodbuilder.archive.scanwriter.ScanWriter` with its radii and parents. Memory: one block.
+task per raw block, :func:`bucket_block`), then each bucket (a band of whole row groups of the
+archive: :func:`band_rows`) is read, put in order and written as finished HDF5 chunks by a task of
+its own (:mod:`.bands`). Memory: one bucket per task.
+
+:func:`write_scan` is the same write by one process through the archive's
+:class:`~lodbuilder.archive.scanwriter.ScanWriter` (the buckets in order): the reference the banded
+write equals (tests compare the two).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..._atomic import publish
+from ...archive import layout as L
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
 from . import layout as WL
@@ -37,15 +43,14 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
 def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
                  block: int, rows: int) -> dict[str, Any]:
     """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
-    positions (``rank.i8`` rows ``g0 .. g0 + m``), split by destination block (``block`` rows of
+    positions (``rank.<b>.i8``, input indices ``g0 .. g0 + m``), split by destination block (``block`` rows of
     the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
     w = Path(work)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
     out: dict[str, SumFile] = {}
     try:
-        with open(w / WL.RANK, "rb") as fr:
-            fr.seek(8 * g0)
+        with open(w / WL.rank_file(b), "rb") as fr:
             for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
                 r["pos"] = np.fromfile(fr, dtype="<i8", count=r.shape[0])
                 dest = r["pos"] // block
@@ -76,6 +81,7 @@ def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tupl
     doc = done(work, "buckets")
     if doc is not None:
         return doc
+    block = band_rows(n, BLOCK)  # the write's bands: whole row groups of the archive
     results: dict[int, dict[str, Any]] = {}
     calls = []
     for b, (_, a, z, g0) in enumerate(raw):
@@ -83,15 +89,28 @@ def buckets_phase(ex: Any, work: Path, name: str, n: int, fields: dict[str, tupl
         if prev is not None:
             results[b] = prev
         else:
-            calls.append((b, bucket_block, (str(work), b, int(g0), int(z) - int(a), fields, n, BLOCK, rows)))
+            calls.append((b, bucket_block, (str(work), b, int(g0), int(z) - int(a), fields, n, block, rows)))
 
     def record(res: dict[str, Any]) -> None:
         results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
 
     collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
             lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
-    doc = bucket_pieces([results[b] for b in range(len(raw))], BLOCK)
+    doc = bucket_pieces([results[b] for b in range(len(raw))], block)
     return mark(work, "buckets", doc)
+
+
+def band_rows(n: int, block: int) -> int:
+    """Rows per band of a scan of ``n`` points: the whole row groups nearest ``block`` rows."""
+    rows = L.row_group_rows(n)
+    return rows * max(1, round(block / rows))
+
+
+def damaged(name: str, exc: InputError) -> BuildError:
+    """The archive's own check failed on rows of the work files: they disagree with each other."""
+    what = str(exc).split(";")[0]
+    return BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
+                      "the build again with --force")
 
 
 def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
@@ -137,19 +156,7 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
         return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
                               buckets, radii)
     except InputError as exc:  # the scan writer's own check: the work files disagree with each other
-        what = str(exc).split(";")[0]
-        raise BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
-                         "the build again with --force") from None
-
-
-@timed_task
-def write_task(work: str, part: str, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
-               metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-               provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
-    """:func:`write_scan` as one task (on a worker: the parent runs no filter and passes over no
-    point; the part is still written by one process); returns ``{"info": PartInfo}``."""
-    return {"info": write_scan(Path(work), Path(part), name, n, fields, metadata, encoding, seeds, build, provenance,
-                               None, buckets, radii)}
+        raise damaged(name, exc) from None
 
 
 def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
