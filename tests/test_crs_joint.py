@@ -242,3 +242,22 @@ def test_a_utm_archive_takes_autzen_reprojected_to_its_zone(halves, tmp_path, ca
         pts = s.points()[np.argsort(s.source_index[:])]
     ex, ey, ez = to_utm.transform(left[:, 0], left[:, 1], left[:, 2])
     np.testing.assert_allclose(pts, np.c_[ex, ey, ez], rtol=0, atol=1e-6)
+
+
+def test_a_tiled_joint_build_keeps_and_reprojects_the_crs(halves, tmp_path):
+    """The out-of-core path (tiny tiles) of a joint build: the shared CRS kept, and --to-crs
+    reprojecting both files like pyproj."""
+    a, b, left, right, wkt = halves
+    lodbuilder.build_archive([a, b], tmp_path / "k.h5", joint="k", _tile_points=3000)
+    lodbuilder.build_archive([a, b], tmp_path / "u.h5", joint="u", _tile_points=3000, to_crs="EPSG:32610")
+    t = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(wkt), UTM10, always_xy=True)
+    with lodbuilder.open_archive(tmp_path / "k.h5") as k, lodbuilder.open_archive(tmp_path / "u.h5") as u:
+        assert k.scan().build["method"] == u.scan().build["method"] == "tiled"
+        assert k.scan().build["tiled"]["tiles"] > 1
+        assert k.scan().crs == wkt and "UTM zone 10N" in u.scan().crs and u.scan().units == "metre"
+        s = u.scan()
+        pts, sid, spt = s.points(), s.attributes(None)["scan_id"], s.attributes(None)["scan_point"]
+    for i, half in enumerate((left, right)):
+        x, y, z = t.transform(half[:, 0], half[:, 1], half[:, 2])
+        got = pts[sid == i][np.argsort(spt[sid == i])]
+        np.testing.assert_allclose(got, np.c_[x, y, z], rtol=0, atol=1e-6)
