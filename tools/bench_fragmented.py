@@ -1,9 +1,9 @@
 """Coarse levels of fragmented scans: the Euclidean covering radius of lodbuilder's prefixes
 against exact Euclidean farthest point sampling (fpsample) of the same size.
 
-    python tools/bench_fragmented.py -o docs/bench/bench_fragmented.json
+    python tools/bench_fragmented.py -o run.json        # then: python tools/benchdoc.py store
+    python tools/bench_fragmented.py --surface -o s.json  #   docs/bench/bench_fragmented.json run|surface F
     python tools/bench_fragmented.py --quick            # one small generated scene, no real scans
-    python tools/bench_fragmented.py --surface          # the bunny meshes: along the surface too
 
 Scenes: synthetic fragmented scenes of tools/make_fragmented.py (several seeds and piece counts)
 and the real scans autzen_trim.laz and the bunny scans of ../shared/data. For each scene: the
