@@ -74,6 +74,8 @@ def _band_pieces(xyz: np.ndarray, h: float, r: float, lattice: np.ndarray, max_m
     from ..._kernels.topology import point_pieces
     from ...sampling.band import build_band
 
+    if xyz.shape[0] == 0:
+        return np.zeros(0, np.int64), 0
     low = lattice + h * (np.floor((xyz.min(axis=0) - lattice) / h) - np.ceil(reach(h, r) / h) - 1)
     band = build_band(np.vstack([xyz, low]), h, r, max_memory)
     bpiece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
