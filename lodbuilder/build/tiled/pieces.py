@@ -141,11 +141,15 @@ def join_task(work: str, n_tiles: int) -> dict[str, Any]:
 
 
 def pieces_phase(ex: cf.Executor, work: Path, name: str, tiles: list[Any], cores: list[list[str]],
-                 voxel_size: float, band_radius: float, lattice: np.ndarray, max_memory: int | None,
+                 plan: dict[str, Any], lattice: np.ndarray, max_memory: int | None,
                  progress: ProgressCallback) -> dict[str, Any]:
-    """The band pieces of every tile (tasks), joined (one task); returns ``{"pieces",
-    "piece_entries"}`` for the build record's ``engine_stats`` (or what a finished phase recorded)."""
+    """The band pieces of every tile (tasks; ``cores``: each tile's core pieces, ``plan``: the
+    plan's marker, for the voxel size and band radius; ``lattice``: the scan's lowest point),
+    joined (one task); returns ``{"pieces", "piece_entries"}`` for the build record's
+    ``engine_stats`` (or what a finished phase recorded)."""
     from .plan import tile_neighbours
+
+    voxel_size, band_radius = float(plan["voxel_size"]), float(plan["band_radius"])
 
     joined = done(work, "pieces")
     if joined is not None:
