@@ -5,6 +5,7 @@ pipeline and the CLI ask one place."""
 from __future__ import annotations
 
 import math
+import mmap
 import os
 from typing import Any
 
@@ -78,3 +79,109 @@ def release_freed_memory(n_points: int | None = None) -> None:
             _LIBC = False
     if _LIBC:
         _LIBC(0)
+    drop_compiler_pages()
+
+
+MMAP_THRESHOLD = 4 << 20  # bytes: blocks at least this large are mapped on their own (glibc)
+M_MMAP_THRESHOLD = -3  # (glibc's mallopt parameter)
+
+
+def map_large_blocks() -> None:
+    """Have glibc's malloc map every block of at least MMAP_THRESHOLD bytes on its own (a no-op
+    elsewhere). Its default threshold starts at 128 KiB and rises with every large block freed, up
+    to 32 MiB: the engine's temporaries of a few MB to 32 MB then come from the heap, and once freed
+    stay in the process (another phase's arrays are larger and mapped anew) until the next trim.
+    Mapped on their own, they go back to the system when freed: 8-15 MiB less at the band's and
+    the ordering's peak of a 1M-point scan (a fixed threshold stops the rise)."""
+    global _MALLOPT
+    if _MALLOPT is None:
+        try:
+            import ctypes
+
+            _MALLOPT = ctypes.CDLL("libc.so.6").mallopt
+        except (OSError, AttributeError):  # not glibc
+            _MALLOPT = False
+    if _MALLOPT:
+        _MALLOPT(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+
+
+_MALLOPT: Any = None
+_CLEAN: Any = None  # (the compiler's clean mappings, madvise) once found
+COMPILER_LIBRARY = "libllvmlite"  # numba's compiler: LLVM, one shared library of about 180 MB
+MADV_DONTNEED = 4  # (Linux)
+
+
+def drop_compiler_pages() -> int:
+    """Drop the resident pages of the JIT compiler's code (llvmlite's LLVM library) from this
+    process; returns the bytes of the mappings advised (0 where there is nothing to drop or this is
+    not Linux).
+
+    Loading the kernels from numba's cache runs LLVM (its start-up and its object loader), and the
+    pages of LLVM's code it touched stay in the process's resident size: about 69 MiB, more than
+    the rest of numba, numpy and h5py together, and none of it is used while the kernels run.
+    These pages are clean copies of the library file, so the kernel drops them from the process on
+    MADV_DONTNEED and maps them again from the page cache when LLVM runs again (a kernel loaded
+    later, a compile: minor page faults, about 10 MiB for the rest of the engine's kernels). Only
+    mappings that cannot hold data of their own are advised: not writable and with no anonymous
+    (copied-on-write) page; a writable or relocated mapping would lose its contents. They are
+    found once (reading smaps costs about 20 ms; a loaded library's mappings do not change)."""
+    global _CLEAN
+    import sys
+
+    if "llvmlite" not in sys.modules:  # never loaded: nothing resident
+        return 0
+    try:
+        if _CLEAN is None:
+            import ctypes
+
+            with open("/proc/self/smaps") as f:
+                ranges = clean_mappings(f.read(), COMPILER_LIBRARY)
+            madvise = ctypes.CDLL("libc.so.6").madvise
+            madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+            if not ranges:  # (the library is not mapped yet: look again next time)
+                return 0
+            _CLEAN = (ranges, madvise)
+    except (OSError, AttributeError):  # not Linux, or no glibc
+        _CLEAN = ([], None)
+    ranges, madvise = _CLEAN
+    done = 0
+    for start, end in ranges:
+        if madvise(start, end - start, MADV_DONTNEED) == 0:
+            done += end - start
+    return done
+
+
+def clean_mappings(smaps: str, name: str) -> list[tuple[int, int]]:
+    """The address ranges, in the text of ``/proc/<pid>/smaps``, of the mappings of a file whose
+    path contains ``name`` that are not writable and hold no anonymous page (clean copies of the
+    file only: dropping their pages loses nothing)."""
+    out = []
+    cur: tuple[int, int] | None = None
+    for line in smaps.splitlines():
+        f = line.split()
+        if len(f) >= 5 and "-" in f[0] and not f[0].endswith(":"):  # a mapping's header line
+            start, end = (int(x, 16) for x in f[0].split("-"))
+            cur = (start, end) if len(f) >= 6 and name in f[5] and "w" not in f[1] else None
+        elif cur is not None and f[:1] == ["Anonymous:"]:
+            if f[1] == "0":
+                out.append(cur)
+            cur = None
+    return out
+
+
+class PassMap(mmap.mmap):
+    """A private (copy-on-write) map of a file written only to hold an array while the engine
+    orders a scan (:func:`lodbuilder.build.jobs.set_aside`): nobody writes to it, so the pages an
+    engine pass read can be given back as soon as the pass ends (:func:`release_pages`) and are
+    read from the file again by the next one."""
+
+
+def release_pages(arr: Any) -> None:
+    """Give back the resident pages of ``arr`` when it is an array over a :class:`PassMap` (a scan
+    set aside); nothing for any other array."""
+    base = getattr(arr, "base", None)
+    if isinstance(base, PassMap) and len(base) > 1:
+        try:
+            base.madvise(mmap.MADV_DONTNEED)
+        except (AttributeError, OSError, ValueError):  # not Linux, or closed
+            pass

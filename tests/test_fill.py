@@ -15,7 +15,7 @@ from surfaces import jittered_plane, sphere
 import lodbuilder
 from lodbuilder.archive.writer import ScanRecord, update_archive
 from lodbuilder.errors import InputError
-from lodbuilder.fill import SYNTHETIC, fill_level, find_gaps
+from lodbuilder.fill import SYNTHETIC, fill_level, find_gaps, gaps_of_points
 from lodbuilder.fill.gaps import GRID_FRACTION, SAMPLE_FRACTION
 from lodbuilder.fill.insert import farthest_insert, region_attributes, stop_distance
 from lodbuilder.io.base import Scan
@@ -458,3 +458,53 @@ def test_a_rim_at_two_depths_is_rough(tmp_path, rng):
     assert gap.residual > 0.5 * rho
     assert filled.n_synthetic == 0
     assert filled.summary(1).endswith("in 0 filled gap(s), 1 rough gap(s) left open")
+
+
+def test_least_tilted_finds_the_plane_between_two():
+    """Half the normals along z, half along y: from z, 50 % are tilted more than 60 degrees; the
+    least tilted direction is between them (none tilted), the one closest to z of those."""
+    from lodbuilder.fill.surface import least_tilted
+
+    normals = np.r_[np.tile([0.0, 0.0, 1.0], (10, 1)), np.tile([0.0, 1.0, 0.0], (10, 1))]
+    best, share = least_tilted(normals, np.array([0.0, 0.0, 1.0]), np.radians(60.0))
+    assert share == 0.0
+    assert np.isclose(np.linalg.norm(best), 1.0)
+    angle = np.degrees(np.arccos(best[2]))
+    assert 30.0 < angle < 38.0  # just beyond 30 degrees from z (the spiral's step: about 7)
+    same, none = least_tilted(normals[:10], np.array([0.0, 0.0, 1.0]), np.radians(60.0))
+    assert none == 0.0 and np.allclose(same, [0.0, 0.0, 1.0])
+
+
+def _cracked(seed: int, rho: float = 0.04) -> tuple[np.ndarray, np.ndarray]:
+    """A plane with a hole of radius 3 rho at its centre and a crack 1.4 rho wide (no point
+    farther than 0.7 rho from the input: a seam of sparser points) from the hole to its border;
+    (the points, the removed points of the hole)."""
+    pts = jittered_plane(20_000, np.random.default_rng(seed))
+    hole = np.hypot(pts[:, 0] - 0.5, pts[:, 1] - 0.5) <= 3 * rho
+    crack = (pts[:, 0] > 0.5) & (np.abs(pts[:, 1] - 0.5) < 0.7 * rho)
+    return pts[~hole & ~crack], pts[hole]
+
+
+def test_a_hole_joined_to_the_border_by_a_seam_is_filled(tmp_path):
+    """The hole's region of nodes farther than rho/2 from the input ran along the crack to the
+    grid's edge: the hole was taken for an open border and not found (3 draws of 3). Cut at the
+    crack, where no node is farther than rho from the input, it is enclosed and filled; the
+    crack, within rho of the input, gets no point."""
+    rho = 0.04
+    for seed in range(3):
+        pts, _ = _cracked(seed, rho)
+        order = lodbuilder.fastfps(pts)
+        ordered = pts[np.asarray(order.order)]
+        rep = gaps_of_points(
+            ordered[: order.size_for_rho(rho)], ordered[: order.size_for_rho(0.25 * rho)], rho
+        )
+        (gap,) = rep.gaps
+        assert gap.status == "fillable" and gap.opened
+        assert np.linalg.norm(gap.candidates.mean(axis=0)[:2] - 0.5) < 0.2 * rho
+    pts, removed = _cracked(0, rho)
+    with lodbuilder.open_archive(_archive(tmp_path / "crack.h5", pts, {}, "crack")) as arc:
+        filled = fill_level(arc.scan(), rho)
+    lev = filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert np.hypot(syn[:, 0] - 0.5, syn[:, 1] - 0.5).max() < 3.5 * rho  # none in the crack
+    assert cKDTree(lev.points).query(removed)[0].max() <= 1.5 * rho

@@ -321,6 +321,45 @@ def test_curved_holes_over_several_draws():
     assert "".join(tube).count("f") >= 15, tube
 
 
+@pytest.fixture(scope="module")
+def punched_lopsided(tmp_path_factory):
+    """A ball of radius 3.5 rho on the floor, its centre 3 rho from the wall (2 rho beyond the
+    fillet of 1 rho): its rim lies mostly on the floor, partly on the wall."""
+    rng = np.random.default_rng(0)
+    rho = CORNER_RHO
+    full = _corner(rho, 10 * rho, 0.2 * rho, rng)
+    c = np.array([0.0, 3.0 * rho, 0.0])
+    yield from _punched(tmp_path_factory, "lopsided", full, [c], [3.5 * rho], rho)
+
+
+def test_a_lopsided_rim_is_filled_over_its_least_tilted_plane(punched_lopsided):
+    """Over the least-squares plane of that rim (about 20 degrees off the floor) the wall's
+    normals, 31 % of the rim next to the hole, are tilted more than 60 degrees: the hole was
+    rough. Over the plane from which the fewest are (about 35 degrees off the floor) the rim is
+    a height field, and the hole is filled on the corner."""
+    s = punched_lopsided
+    (gap,) = s.filled.report.gaps
+    assert gap.status == "fillable", gap.reason
+    assert gap.tilted <= 0.25
+    _covered(s)
+    lev = s.filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert syn.shape[0] >= 10
+    assert _corner_distance(syn, s.rho).max() < 0.75 * s.rho
+
+
+def test_lopsided_rims_over_several_draws():
+    """Holes on the floor 2 and 3 rho from the wall, four draws each: all fillable (6 of the 8
+    were rough, their rims too tilted over their least-squares plane)."""
+    found = []
+    for seed in range(4):
+        full = _corner(CORNER_RHO, 10 * CORNER_RHO, 0.2 * CORNER_RHO, np.random.default_rng(seed))
+        for y in (2.0, 3.0):
+            c = np.array([0.0, y * CORNER_RHO, 0.0])
+            found.append(_statuses(full, [c], 3.5 * CORNER_RHO, CORNER_RHO))
+    assert found == ["f"] * 8, found
+
+
 # --- refusals, word for word -----------------------------------------------------------------------
 
 
@@ -401,3 +440,63 @@ def test_a_hole_the_surface_bends_across_is_reported_as_such():
         "  1 region(s) enclosed only along the surface not filled: the surface bends too much "
         "across them for one smooth height field"
     )
+
+
+# --- a thin part: the hole's rim and the other face behind it --------------------------------------
+
+
+def _thin_plate(seed: int, rho: float) -> np.ndarray:
+    """Two faces 2.5 rho apart (z = 0 and z = -2.5 rho, y >= 0, |x| < 12 rho) joined along y = 0
+    by a half cylinder: a thin part like an ear or a leaf, sampled at 0.2 rho."""
+    sp, half, t = 0.2 * rho, 12 * rho, 2.5 * rho
+    xs = np.arange(-half, half, sp)
+    x, y = (m.ravel() for m in np.meshgrid(xs, np.arange(0.0, half, sp)))
+    n_arc = int(0.5 * np.pi * t / sp)
+    xa, a = (m.ravel() for m in np.meshgrid(xs, (np.arange(n_arc) + 0.5) / n_arc * np.pi))
+    pts = np.r_[
+        np.c_[x, y, np.zeros_like(x)],
+        np.c_[x, y, np.full_like(x, -t)],
+        np.c_[xa, -0.5 * t * np.sin(a), -0.5 * t + 0.5 * t * np.cos(a)],
+    ]
+    return pts + np.random.default_rng(seed).normal(0.0, 0.02 * sp, pts.shape)
+
+
+def test_a_hole_on_one_face_of_a_thin_part_is_filled_on_that_face():
+    """A hole of radius 2.5 rho on the top face, 3.5 rho from the edge: within the cone around
+    the hole's plane the ring took in the other face 2.5 rho behind it, a rim at two depths, and
+    the hole was rough (3 draws of 3). Normals oriented along the surface from the hole's side
+    tell the other face (reached round the edge, it faces the other way): set aside, the hole is
+    fillable and filled on its own face."""
+    rho = CORNER_RHO
+    c = np.array([0.0, 3.5 * rho, 0.0])
+    for seed in range(3):
+        full = _thin_plate(seed, rho)
+        pts = full[np.linalg.norm(full - c, axis=1) > 2.5 * rho]
+        order = lodbuilder.fastfps(pts)
+        ordered = pts[np.asarray(order.order)]
+        rep = gaps_of_points(
+            ordered[: order.size_for_rho(rho)], ordered[: order.size_for_rho(0.25 * rho)], rho
+        )
+        (gap,) = rep.gaps
+        assert gap.status == "fillable", gap.reason
+        assert np.linalg.norm(gap.candidates.mean(axis=0) - c) < rho
+        assert np.abs(gap.candidates[:, 2]).max() < 0.1 * rho  # on the top face
+
+
+def test_normals_oriented_along_a_thin_part():
+    """From the top face's side, the top face faces along the normal, the bottom face (reached
+    round the edge, 180 degrees of turn along the way) against it; a piece not linked to the
+    rest is oriented on its own."""
+    from lodbuilder.fill.local import facing
+
+    rho = CORNER_RHO
+    pts = _thin_plate(0, rho)
+    pts = pts[np.abs(pts[:, 0]) < 2 * rho]
+    apart = pts[pts[:, 2] > -0.1 * rho][:50] + np.array([0.0, 0.0, 10 * rho])  # far above
+    both = np.r_[pts, apart]
+    seeds = np.array([[0.0, 6 * rho, 0.0]])
+    dots = facing(both, np.array([0.0, 0.0, 1.0]), seeds, rho, both)
+    top = np.r_[pts[:, 2] > -0.01 * rho, np.zeros(50, bool)]
+    bottom = np.r_[pts[:, 2] < -2.49 * rho, np.zeros(50, bool)]
+    assert (dots[top] > 0.9).all() and (dots[bottom] < -0.9).all()
+    assert (dots[-50:] > 0.9).all()

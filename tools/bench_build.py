@@ -374,6 +374,37 @@ def input_set(n: int, data: Path, survey: Path | None, repeat: int, only: list[s
     return out
 
 
+def set_rss(n: int, survey: Path | None, only: list[str] | None) -> list[dict]:
+    """``--set --rss-only``: the peak RSS of ``lodbuilder build`` of each synthetic input of the set
+    (and the survey LAZ), one fresh process each, without timing the orderings."""
+    import tempfile
+
+    from bench_inputs import SYNTHETIC, synthetic
+
+    from lodbuilder.io import read_scan, write_points
+
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        specs = [(f"{k} {n} (synthetic)", k) for k in SYNTHETIC]
+        specs += [] if survey is None else [(f"survey {survey.name} (autzen tiled, tools/make_survey.py)", None)]
+        for label, kind in specs:
+            if only and not any(o in label for o in only):
+                continue
+            if kind is None:
+                path, npts = survey, len(read_scan(survey))
+            else:
+                pts = synthetic(kind, n).astype(np.float32).astype(np.float64)
+                path, npts = Path(tmp) / f"{kind}.ply", len(pts)
+                write_points(path, pts)
+            m = build_rss(path, str(ROOT))
+            row = {"input": label, "n": npts, "build_s": m["build_s"],
+                   "build_peak_rss_bytes_per_point": m["process_peak"] / npts,
+                   "engine_share_bytes_per_point": (m["engine_peak"] - m["before_engine"]) / npts}
+            out.append(row)
+            print(json.dumps(row), file=sys.stderr)
+    return out
+
+
 def set_summary(rows: list[dict], n: int) -> dict:
     """The targets of issue 21 over the set: wall and CPU ratios to fpsample at >= 0.5 n points
     (where fpsample finished), peak RSS per point of every input of that size."""
@@ -456,6 +487,8 @@ def main() -> None:
     ap.add_argument("--set-n", type=int, default=1_000_000, help="points of the synthetic inputs of --set")
     ap.add_argument("--set-only", help="with --set: only inputs whose label contains one of these (comma-separated)")
     ap.add_argument("--survey", help="with --set: a survey LAZ (tools/make_survey.py); made (3 x 3) when absent")
+    ap.add_argument("--rss-only", action="store_true",
+                    help="with --set: only the peak RSS of lodbuilder build of the synthetic inputs and the survey")
     ap.add_argument("--data", default=str(SHARED), help="the real scans (default ../shared/data)")
     ap.add_argument("--set-one", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -507,8 +540,11 @@ def main() -> None:
             subprocess.run([sys.executable, str(ROOT / "tools" / "make_survey.py"), "--nx", "3", "--ny", "3",
                             "-o", str(survey)], check=True, capture_output=True)
         only = args.set_only.split(",") if args.set_only else None
-        report["set"] = input_set(args.set_n, SHARED, survey, args.repeat, only)
-        report["set_summary"] = set_summary(report["set"], args.set_n)
+        if args.rss_only:
+            report["set_rss"] = set_rss(args.set_n, survey, only)
+        else:
+            report["set"] = input_set(args.set_n, SHARED, survey, args.repeat, only)
+            report["set_summary"] = set_summary(report["set"], args.set_n)
     trees = {"new": str(ROOT)} | ({"baseline": args.baseline} if args.baseline else {})
     if args.cli_rss:
         report["cli_build_rss"] = {name: cli_rss(1_000_000, tree) for name, tree in trees.items()}

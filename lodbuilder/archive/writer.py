@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from .._resources import release_pages
 from ..errors import ArchiveError, CorruptArchiveError, InputError, ScanNotFoundError
 from ..io.base import Scan
 from ..sampling.ordering import Ordering
@@ -142,6 +143,8 @@ def _write_rows_of(w: ScanWriter, rec: ScanRecord, perm: np.ndarray, lo: int, hi
         attributes={key: np.asarray(arr)[idx] for key, arr in rec.scan.attributes.items()},
         importance={key: np.asarray(v)[idx].astype(np.float32) for key, (v, _) in rec.importance.items()},
     )
+    for arr in (rec.scan.points, *rec.scan.attributes.values()):
+        release_pages(arr)  # (a scan set aside: its pages are read from the file again by the next group)
 
 
 def write_record(path: str | os.PathLike[str], rec: ScanRecord) -> PartInfo:

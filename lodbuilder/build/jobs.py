@@ -23,6 +23,13 @@ from typing import Any
 
 import numpy as np
 
+from .._resources import (
+    TRIM_MIN_POINTS,
+    PassMap,
+    drop_compiler_pages,
+    map_large_blocks,
+    release_pages,
+)
 from ..io.crs import KEY_REPROJECTION
 from ..progress import ProgressCallback
 from .options import BuildOptions
@@ -146,6 +153,9 @@ def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[An
     t_read = time.perf_counter() - t0
     if job.scan is None and not job.options.features and len(scan) >= ASIDE_MIN_POINTS:
         progress = set_aside(scan, job.work, progress)
+    if len(scan) >= TRIM_MIN_POINTS:
+        map_large_blocks()  # (freed temporaries go back to the system at once)
+        load_kernels(progress)
     rec = build_record(scan, job.options, progress=progress)
     t_order = time.perf_counter() - t0 - t_read
     return rec, {"read": t_read, "order": t_order}
@@ -154,13 +164,50 @@ def build_record_of(job: ScanJob, progress: ProgressCallback = None) -> tuple[An
 ASIDE_MIN_POINTS = 200_000  # below this a scan's arrays are a few MB: not worth two files
 
 
+def load_kernels(progress: ProgressCallback = None) -> None:
+    """Load every kernel of the engine now (compiling them first when numba's cache is cold), then
+    give the compiler's pages back (:func:`lodbuilder._resources.drop_compiler_pages`). Loaded on
+    first call instead, each kernel brings some of LLVM's code back into the process in the middle
+    of its phase (about 10 MiB of it at the ordering's peak)."""
+    from .._kernels.warm import compile_group, ensure_compiled
+
+    with _numba_without_scipy():
+        ensure_compiled(progress)
+        for group in ("band", "thin", "ordering"):
+            compile_group(group)
+    drop_compiler_pages()
+
+
+@contextlib.contextmanager
+def _numba_without_scipy() -> Any:
+    """numba's first kernel load sets up its compiler's implementations, and one of them checks
+    whether scipy's BLAS is there (for np.dot of two vectors in compiled code: BLAS, else a loop)
+    by importing scipy.linalg: 14 MiB of the build process for code no kernel here uses. While
+    numba sets up, ``scipy.linalg`` cannot be imported (numba then takes the loop; a compiled
+    np.dot of matrices imports scipy itself later); nothing changes when scipy.linalg is already
+    imported (by the caller) or numba already set up."""
+    import sys
+
+    if "scipy.linalg" in sys.modules:
+        yield
+        return
+    sys.modules["scipy.linalg"] = None  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        if "scipy.linalg" in sys.modules and sys.modules["scipy.linalg"] is None:
+            del sys.modules["scipy.linalg"]
+
+
 def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> ProgressCallback:
     """Move ``scan``'s points and attributes into files of the work directory ``work`` and map
     them back (copy-on-write: the same values, dtypes and shapes), so that they take no memory of their
     own while the engine orders the points: the attributes are not read until the archive is
-    written, the points only until the band is built. Returns ``progress`` wrapped to give the
-    points' pages back to the file once the band stage reports it is done (a page read after that
-    comes back from the file). Arrays numpy cannot store without pickling stay in memory."""
+    written, the points only while the band is built, a pass at a time (the points are a
+    :class:`~lodbuilder._resources.PassMap`: the band gives their pages back after each pass over
+    them). Returns ``progress`` wrapped to give the points' pages back to the file once the band
+    stage reports it is done (a page read after that comes back from the file). Arrays numpy
+    cannot store without pickling stay in memory."""
     from ..archive.files import make_own_dir
     from ..progress import report
 
@@ -172,15 +219,14 @@ def set_aside(scan: Any, work: Path, progress: ProgressCallback = None) -> Progr
     except OSError as exc:  # a full disk, a work directory that is not ours, ...: order it in memory
         log.info("scan %r stays in memory while it is ordered: %s", scan.name, exc)
         return progress
-    scan.points = np.ndarray(scan.points.shape, scan.points.dtype, buffer=pts)
+    scan.points = points = np.ndarray(scan.points.shape, scan.points.dtype, buffer=pts)
     for key, mm in maps.items():
         arr = scan.attributes[key]
         scan.attributes[key] = np.ndarray(arr.shape, arr.dtype, buffer=mm)
 
     def aside_progress(stage: str, done: int, total: int) -> None:
         if stage == "band" and done == total:
-            with contextlib.suppress(AttributeError, OSError, ValueError):  # not Linux, or closed
-                pts.madvise(mmap.MADV_DONTNEED)
+            release_pages(points)
         report(progress, stage, done, total)
 
     return aside_progress
@@ -192,7 +238,7 @@ def _map_aside(arr: np.ndarray, path: Path) -> mmap.mmap:
     and every kernel it reached would be compiled a second time)."""
     np.ascontiguousarray(arr).tofile(path)
     with open(path, "rb") as f:
-        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY) if arr.nbytes else mmap.mmap(-1, 1)
+        return PassMap(f.fileno(), 0, access=mmap.ACCESS_COPY) if arr.nbytes else mmap.mmap(-1, 1)
 
 
 def build_one(job: ScanJob, progress: ProgressCallback = None) -> dict[str, Any]:

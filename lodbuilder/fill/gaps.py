@@ -27,8 +27,14 @@ whole scan for exact distances.
    several seeds whose region reached its edge) ``max_hole * rho`` wide. The nodes farther than
    rho/2 (in the plane) from every projected sample point form regions (4-connected). A region
    that contains a seed and stays inside the grid is **enclosed**: input points bound it all
-   round. A region that reaches the grid's edge leaks into empty space (the scan's border, or a
-   hole wider than ``max_hole * rho``), or through a part of its rim that the cone dropped (the
+   round (a region that reaches the edge only through a channel in which no node is farther
+   than rho from the input, a seam of sparser points, is cut there; enclosed only so, it is
+   kept when it is a fillable gap; and where some of the points face away from the seeds'
+   side, normals oriented along the surface: the other face of a thin part, reached round its
+   edge, the group is searched first with those set aside, keeping only fillable gaps, then
+   as it is). A region that reaches the grid's edge leaks into empty
+   space (the scan's border, or a hole wider than ``max_hole * rho``), or through a part of its
+   rim that the cone dropped (the
    rim of a hole on a strongly curved place is steep over any one plane). Such a group is
    searched again **along the surface**: only the sample points on the seeds' own sheet
    (reached from the points next to the seeds within the grid's reach, over links to each
@@ -38,7 +44,11 @@ whole scan for exact distances.
    apart (``n_bent``: enclosed along the surface, which bends too much across it to fill).
    Anything else stays *open* and is not filled.
 4. **Surface.** The ring of sample points within 2 rho of the region fixes the hole's plane (least
-   squares; the grid is laid again if it moved) and a height field over it
+   squares; the grid is laid again if it moved, unless more of the ring's normals are tilted
+   over 60 degrees from the new plane than from the old; where more than 25 % of the inner
+   ring's normals are, the grid is laid again over the plane, within 60 degrees, from which
+   the fewest are: the lopsided rim of a hole beside a corner, a nose or a chin is a height
+   field over that plane and not over its least-squares one) and a height field over it
    (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
    cross-validates best on the ring). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of the normals of its inner part,
@@ -66,8 +76,29 @@ import numpy as np
 
 from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
-from .local import K_SAMPLE, NEAR_FRACTION, Grid, flood, near_plane, normals_at, on_sheet
-from .surface import Frame, HeightField, plane_normal, tangents
+from .local import (
+    FACING,
+    K_SAMPLE,
+    NEAR_FRACTION,
+    Grid,
+    facing,
+    flood,
+    groups,
+    inside,
+    near_plane,
+    normals_at,
+    on_sheet,
+)
+from .surface import (
+    MAX_TILT,
+    MAX_TILTED,
+    Frame,
+    HeightField,
+    height_field_normal,
+    plane_normal,
+    tangents,
+    tilted_share,
+)
 
 #: the sample is the prefix at SAMPLE_FRACTION * rho
 SAMPLE_FRACTION = 0.25
@@ -85,9 +116,6 @@ K_LEVEL = 10
 SLOPE, SHEET_SLOPE = 0.5, 1.0
 #: a group of fewer seeds is a small hole: its first grid (the seeds' spread + 1.5 rho) is final
 MIN_SEEDS_WIDE = 4
-#: largest share of ring normals tilted more than MAX_TILT from the hole's normal
-MAX_TILTED = 0.25
-MAX_TILT = math.radians(60.0)
 #: largest RMS error predicting a sixth of the ring from the rest, in units of rho
 MAX_RESIDUAL = 0.5
 
@@ -137,6 +165,9 @@ class Region:
     tilted: float = 0.0
     reason: str = ""
     n_synthetic: int = 0
+    #: enclosed only once cut from a channel of surface within rho of the input (kept only when
+    #: a fillable gap)
+    opened: bool = False
 
     @property
     def normal(self) -> np.ndarray:
@@ -279,23 +310,6 @@ def _seeds(
     return cand[far], nrm[far]
 
 
-def _groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
-    """Seed index arrays of the groups linked within 2 rho."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    m = seeds.shape[0]
-    if m == 0:
-        return []
-    pairs = cKDTree(seeds).query_pairs(2.0 * rho, output_type="ndarray")
-    g = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
-    n_comp, labels = connected_components(g, directed=False)
-    order = np.argsort(labels, kind="stable")
-    splits = np.cumsum(np.bincount(labels, minlength=n_comp))[:-1]
-    return np.split(order, splits)
-
-
 def find_regions(
     level: np.ndarray,
     sample: np.ndarray,
@@ -327,7 +341,7 @@ def find_regions(
     seeds, seed_normals = _seeds(level, tree_l, tree_s, rho)
     out.n_seeds = int(seeds.shape[0])
     width = max_hole * rho
-    for grp in _groups(seeds, rho):
+    for grp in groups(seeds, rho):
         sp = seeds[grp]
         if float(np.linalg.norm(np.ptp(sp, axis=0))) > 2.0 * width:  # a long border
             out.n_open += 1
@@ -338,79 +352,70 @@ def find_regions(
             continue
         nrm = seed_normals[grp]
         nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
-        normal = nrm.sum(axis=0)
-        regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False)
-        n_open = sum(r is None for r in regions)
-        enclosed = [r for r in regions if r is not None]
-        _add(out, enclosed, tree_s, rho, fillable_only=False)
-        rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
-        if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
-            # open over the plane, and its seeds fit in one hole: look again over the seeds'
-            # sheet only (along the surface); a fillable gap found there is kept, anything
-            # else stays open
-            again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
-            added, refused = _add(out, again, tree_s, rho, fillable_only=True)
-            out.n_bent += min(n_open, refused)
-            n_open -= min(n_open, added + refused)
-        out.n_open += n_open
+        _search_group(out, sample, tree_s, sp, nrm.sum(axis=0), width)
     return out
+
+
+def _search_group(out: Search, sample, tree_s, sp, normal, width) -> None:
+    """Find the regions of one group of seeds ``sp`` (step 3) and add them to ``out``."""
+    rho = out.rho
+    away: list = []
+    regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False, away)
+    kept = 0
+    if away:  # with the other faces of thin parts set aside: only fillable gaps, then without
+        kept = _add(out, regions, tree_s, rho, fillable_only=True)[0]
+        regions = _regions_of_group(sample, tree_s, sp, normal, rho, width, False)
+    n_open = max(0, sum(r is None for r in regions) - kept)
+    enclosed = [r for r in regions if r is not None]
+    n_open += _add(out, enclosed, tree_s, rho, fillable_only=False)[2]
+    enclosed = [r for r in enclosed if not r.opened or any(r is x for x in out.regions)]
+    rest = sp[~_inside(enclosed, sp, rho)] if enclosed and n_open else sp
+    if n_open and float(np.linalg.norm(np.ptp(rest, axis=0))) <= width:
+        # open over the plane, and its seeds fit in one hole: look again over the seeds' sheet
+        # only (along the surface); a fillable gap found there is kept, anything else stays open
+        again = _regions_of_group(sample, tree_s, rest, normal, rho, width, True)
+        added, refused, _ = _add(out, again, tree_s, rho, fillable_only=True)
+        out.n_bent += min(n_open, refused)
+        n_open -= min(n_open, added + refused)
+    out.n_open += n_open
 
 
 def _add(
     out: Search, regions: list, tree_s: Any, rho: float, fillable_only: bool
-) -> tuple[int, int]:
+) -> tuple[int, int, int]:
     """Finish the enclosed ``regions`` not found already and add them to ``out`` (with
-    ``fillable_only``, only the fillable gaps): (how many were added, how many gaps were left
-    out as rough)."""
-    added = refused = 0
+    ``fillable_only``, and for an opened region, only the fillable gaps): (how many were added,
+    how many gaps were left out as rough, how many opened regions were left out)."""
+    added = refused = dropped = 0
     for reg in regions:
         if reg is None or _inside(out.regions, reg.candidates.mean(axis=0, keepdims=True), rho)[0]:
             continue  # open, or found already
         _finish_region(reg, tree_s, rho)
         if not reg.candidates.shape[0]:
             continue
-        if fillable_only and not (reg.is_gap and reg.status == STATUS_FILLABLE):
-            refused += reg.is_gap
+        if (fillable_only or reg.opened) and not (reg.is_gap and reg.status == STATUS_FILLABLE):
+            refused += reg.is_gap if fillable_only else 0
+            dropped += reg.opened and not fillable_only
             continue
         reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1
         out.regions.append(reg)
         added += 1
-    return added, refused
+    return added, refused, dropped
 
 
 def _inside(regions: list[Region], points: np.ndarray, rho: float) -> np.ndarray:
-    """Mask of ``points`` inside a region found already: over one of its nodes (within a grid
-    step, in its plane) and within 2 rho of its surface. Another group of seeds of the same hole
-    (seeds on a sheet above part of it, say) then finds nothing new."""
-    from scipy.spatial import cKDTree
-
-    hit = np.zeros(points.shape[0], dtype=bool)
-    for reg in regions:
-        if not reg.candidates.shape[0]:
-            continue
-        # (a point over a node and within 2 rho of the surface is within 4 rho of a candidate,
-        # unless the surface rose by 1.7 rho over a grid step: most regions are far away)
-        lo = reg.candidates.min(axis=0) - 4.0 * rho
-        hi = reg.candidates.max(axis=0) + 4.0 * rho
-        box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
-        if not box.size:
-            continue
-        uv = reg.frame.uv(points[box])
-        d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=GRID_FRACTION * rho * 1.01)
-        over = np.isfinite(d)
-        if over.any():
-            h = reg.frame.height(points[box[over]])
-            hit[box[over]] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
-    return hit
+    return inside(regions, points, rho, GRID_FRACTION * rho)
 
 
-def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False) -> list:
+def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False, away=None) -> list:
     """Regions around one group of seeds (``None`` for each open one): a grid a little wider
     than the seeds' spread first, then (when a region reaches its edge) ``width`` across, then
     once more centred on the region that reached the edge (the seeds' mean can sit off a
     hole's centre). An enclosed region found on one grid is kept; the next grid looks only for
     the regions of the seeds outside it (a group can hold a hole and a border next to it).
-    ``along``: only the points on the seeds' sheet, in the steeper cone (step 3)."""
+    ``along``: only the points on the seeds' sheet, in the steeper cone (step 3). ``away``: a
+    list; the points facing away from the hole's side are set aside on every grid (the other
+    face of a thin part), and True appended to it where some were."""
     from scipy.spatial import cKDTree
 
     g = GRID_FRACTION * rho
@@ -438,8 +443,8 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False) ->
             d, _ = tree2.query(frame.uv(seeds), k=1, distance_upper_bound=NEAR_FRACTION * rho)
             if np.isfinite(d).all():
                 return []
-        local = _Local(sample, idx, tree2, slope)
-        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=True)
+        local = _Local(sample, idx, tree2, slope, away)
+        regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=2)
         enclosed = [r for r in regions if r is not None]
         found += enclosed
         if leak_at is None:
@@ -461,23 +466,43 @@ class _Local:
     idx: np.ndarray
     tree2: Any
     slope: float
+    away: list | None = None
 
     @property
     def points(self) -> np.ndarray:
         return self.sample[self.idx]
 
 
-def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
+def _stacked(local: _Local, frame: Frame, rho: float) -> bool:
+    """Some of the points lie over one another (within rho/2 in the plane, 1.5 rho apart in
+    height): two faces, or a fold, over the grid."""
+    n = local.idx.size
+    d, nb = local.tree2.query(local.tree2.data, k=min(5, n), distance_upper_bound=0.5 * rho)
+    h = frame.height(local.points)
+    near = np.isfinite(d)
+    nb = np.where(near, nb, np.arange(n)[:, None])
+    return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
+
+
+def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
-    reaching the grid's edge), and the centre of the nodes of those that did (None if none)."""
+    reaching the grid's edge), and the centre of the nodes of those that did (None if none).
+    The grid is laid again, at most ``refit`` times, where a region's ring asks for another
+    plane (:func:`~lodbuilder.fill.surface.height_field_normal`)."""
     from scipy.spatial import cKDTree
 
+    if local.away is not None and local.idx.size > K_SAMPLE and _stacked(local, frame, rho):
+        off = facing(local.points, frame.normal, seeds, rho, local.points) <= FACING
+        if off.any():
+            local.away.append(True)
+            idx = local.idx[~off]
+            local = _Local(local.sample, idx, cKDTree(frame.uv(local.sample[idx])), local.slope)
     grid = Grid(frame, g, half)
     found = flood(grid, local.tree2, frame.uv(seeds), rho)
     regions: list = []
     leaked: list[np.ndarray] = []
     pts = local.points
-    for nodes, leak in found:
+    for nodes, leak, opened in found:
         if leak:
             leaked.append(grid.uv[nodes])
             regions.append(None)
@@ -487,18 +512,21 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit):
         ring = np.isfinite(d)
         if ring.sum() < 12:
             continue
-        n_new = plane_normal(pts[ring], frame.normal)
-        if refit and float(n_new @ frame.normal) < math.cos(math.radians(5.0)):
+        normals = normals_at(pts[ring], pts)
+        inner = d[ring] <= INNER * rho
+        n_new, again = height_field_normal(
+            normals[inner], plane_normal(pts[ring], frame.normal), frame.normal
+        )
+        if refit > 0 and again:
             # the hole's plane moved: lay the grid again in the plane of this ring
             frame2 = Frame.of(pts[ring].mean(axis=0), n_new)
             idx = local.idx[near_plane(pts, frame2, rho, local.slope)]
-            local2 = _Local(local.sample, idx, cKDTree(frame2.uv(local.sample[idx])), local.slope)
-            return _regions_on_grid(frame2, local2, seeds, rho, g, half, False)
-        normals = normals_at(pts[ring], pts)
-        inner = d[ring] <= INNER * rho
-        regions.append(
-            _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
-        )
+            tree2 = cKDTree(frame2.uv(local.sample[idx]))
+            local2 = _Local(local.sample, idx, tree2, local.slope, local.away)
+            return _regions_on_grid(frame2, local2, seeds, rho, g, half, refit - 1)
+        reg = _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
+        reg.opened = opened
+        regions.append(reg)
     if not leaked:
         return regions, None
     uv = np.concatenate(leaked).mean(axis=0, keepdims=True)
@@ -524,7 +552,7 @@ def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) ->
         uv=uv,
         surface=surface,
         ring=ring_idx,
-        tilted=float((np.abs(ring_normals[inner] @ frame.normal) < math.cos(MAX_TILT)).mean()),
+        tilted=tilted_share(ring_normals[inner], frame.normal),
     )
 
 

@@ -42,6 +42,56 @@ def on_sheet(local: np.ndarray, seeds: np.ndarray, rho: float, limit: float) -> 
     return np.isfinite(dist)
 
 
+#: a point whose normal, oriented along the surface from the seeds' side, has this dot product
+#: with the hole's normal or less faces away: the other face of a thin part
+FACING = -0.3
+
+
+def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float, cloud):
+    """(N,) dot product of each point's normal with ``normal``, the normals (PCA, from the
+    nearest points of ``cloud``) oriented consistently along the surface: over a minimum
+    spanning tree of links to the :data:`K_SAMPLE` nearest points within :data:`LINK` rho,
+    weighted by how much the normals differ (Hoppe et al. 1992), from the point of each
+    connected piece nearest the seeds, itself oriented along ``normal``. The other face of a
+    thin part (an ear, a leaf), reached round its edge, faces the other way."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+    from scipy.spatial import cKDTree
+
+    n = points.shape[0]
+    nrm = normals_at(points, cloud)
+    k = min(K_SAMPLE + 1, n)
+    d, nb = cKDTree(points).query(points, k=k, distance_upper_bound=LINK * rho)
+    d, nb = np.asarray(d).reshape(n, k)[:, 1:].ravel(), np.asarray(nb).reshape(n, k)[:, 1:].ravel()
+    ok = np.isfinite(d)
+    rows, cols = np.repeat(np.arange(n), k - 1)[ok], nb[ok]
+    w = 1.0 - np.abs(np.einsum("ij,ij->i", nrm[rows], nrm[cols])) + 1e-6
+    g = coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()
+    tree = minimum_spanning_tree(g.maximum(g.T))
+    tree = tree + tree.T
+    # each piece's root (its point nearest the seeds) points at itself; the others at the parent
+    up = np.full(n, -1, dtype=np.int64)
+    sign = np.ones(n)
+    for root in np.argsort(np.linalg.norm(points - seeds.mean(axis=0), axis=1)):
+        if up[root] >= 0:
+            continue  # in a piece already walked
+        order, pred = breadth_first_order(tree, root, directed=False)
+        up[order] = pred[order]
+        up[root] = root
+        sign[root] = 1.0 if nrm[root] @ normal >= 0 else -1.0
+    child = np.flatnonzero(up != np.arange(n))
+    sign[child] = np.where(np.einsum("ij,ij->i", nrm[child], nrm[up[child]]) >= 0, 1.0, -1.0)
+    # the product of the flips along the path to the root (pointer jumping)
+    while True:
+        go = up != up[up]
+        if not go.any():
+            break
+        sign[go] *= sign[up[go]]
+        up[go] = up[up[go]]
+    sign[child] *= sign[up[child]]
+    return (nrm * sign[:, None]) @ normal
+
+
 def near_plane(local: np.ndarray, frame: Frame, rho: float, slope: float) -> np.ndarray:
     """Mask of the local points near the hole's plane: |h| <= rho + slope |uv| (a cone), which
     drops far sheets across the plane (at ``SLOPE``, 27 degrees, also a steep part of the
@@ -97,16 +147,98 @@ class Grid:
 
 def flood(grid: Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
     """Labels of the empty nodes (farther than rho/2 from the projected sample points indexed by
-    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge)."""
+    ``tree2``) reachable from seeds: a list of (node indices, touches the grid's edge, opened).
+
+    A region that touches the edge only through a channel in which no node is farther than rho
+    from the points (a seam of sparser points: the surface there is within rho of the input) is
+    cut at that channel (*opened*): its core (nodes farther than rho from every point) widened
+    again by rho/2 within it (a morphological opening); a part of it with a seed that stays
+    off the edge is enclosed."""
     from scipy import ndimage
 
-    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=NEAR_FRACTION * rho)
-    empty = ~np.isfinite(d)
+    d, _ = tree2.query(grid.uv, k=1, distance_upper_bound=1.01 * rho)
+    empty = ~(d <= NEAR_FRACTION * rho)
     labels, _ = ndimage.label(empty.reshape(grid.shape))
     labels = labels.ravel()
     nodes = grid.node_of(seed_uv)
-    hit = np.unique(labels[nodes[nodes >= 0]])
-    hit = hit[hit > 0]
-    lab2 = labels.reshape(grid.shape)
-    edge = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
-    return [(np.flatnonzero(labels == lab), bool(np.isin(lab, edge))) for lab in hit]
+    nodes = nodes[nodes >= 0]
+    hit = np.unique(labels[nodes])
+    edge = _edge_labels(labels.reshape(grid.shape))
+    out = []
+    for lab in hit[hit > 0]:
+        mask = labels == lab
+        if lab in edge:
+            out += _opened(grid, mask, ~(d <= rho), nodes, rho)
+        else:
+            out.append((np.flatnonzero(mask), False, False))
+    return out
+
+
+def _edge_labels(labels: np.ndarray) -> np.ndarray:
+    return np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+
+
+def _opened(grid: Grid, mask: np.ndarray, far: np.ndarray, seed_nodes: np.ndarray, rho: float):
+    """The enclosed parts of the region ``mask`` that touches the grid's edge: its core (``far``:
+    nodes farther than rho from every point) widened by rho/2 within it, the parts with a seed
+    within rho/2 that stay off the edge (opened); the rest of the region as leaking."""
+    from scipy import ndimage
+
+    k = max(1, int(round(NEAR_FRACTION * rho / grid.g)))
+    ij = np.indices((2 * k + 1, 2 * k + 1)) - k
+    disk = (ij[0] ** 2 + ij[1] ** 2) <= k * k
+    box = mask.reshape(grid.shape)
+    opened = ndimage.binary_dilation(box & far.reshape(grid.shape), structure=disk) & box
+    labels, _ = ndimage.label(opened)
+    seeds = np.zeros(mask.size, dtype=bool)
+    seeds[seed_nodes] = True
+    near = ndimage.binary_dilation(seeds.reshape(grid.shape), structure=disk) & opened
+    edge = _edge_labels(labels)
+    inner = [lab for lab in np.unique(labels[near]) if lab not in edge]
+    flat = labels.ravel()
+    out = [(np.flatnonzero(flat == lab), False, True) for lab in inner]
+    return out + [(np.flatnonzero(mask & ~np.isin(flat, inner)), True, False)]
+
+
+def groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
+    """Seed index arrays of the groups linked within 2 rho."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    m = seeds.shape[0]
+    if m == 0:
+        return []
+    pairs = cKDTree(seeds).query_pairs(2.0 * rho, output_type="ndarray")
+    g = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+    n_comp, labels = connected_components(g, directed=False)
+    order = np.argsort(labels, kind="stable")
+    splits = np.cumsum(np.bincount(labels, minlength=n_comp))[:-1]
+    return np.split(order, splits)
+
+
+def inside(regions: list, points: np.ndarray, rho: float, step: float) -> np.ndarray:
+    """Mask of ``points`` inside a region (:class:`~lodbuilder.fill.gaps.Region`) found
+    already: over one of its nodes (within a grid ``step``, in its plane) and within 2 rho of
+    its surface. Another group of seeds of the same hole (seeds on a sheet above part of it,
+    say) then finds nothing new."""
+    from scipy.spatial import cKDTree
+
+    hit = np.zeros(points.shape[0], dtype=bool)
+    for reg in regions:
+        if not reg.candidates.shape[0]:
+            continue
+        # (a point over a node and within 2 rho of the surface is within 4 rho of a candidate,
+        # unless the surface rose by 1.7 rho over a grid step: most regions are far away)
+        lo = reg.candidates.min(axis=0) - 4.0 * rho
+        hi = reg.candidates.max(axis=0) + 4.0 * rho
+        box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
+        if not box.size:
+            continue
+        uv = reg.frame.uv(points[box])
+        d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=step * 1.01)
+        over = np.isfinite(d)
+        if over.any():
+            h = reg.frame.height(points[box[over]])
+            hit[box[over]] = np.abs(h - reg.surface(uv[over])) <= 2.0 * rho
+    return hit

@@ -22,11 +22,15 @@ the ring does not show. On issue 21's holes (3-10 rho wide at random enclosed po
 the best of 28 fits per hole, chosen knowing the true surface (thin-plate or cubic spline at three
 smoothings, quadratic and cubic polynomials, moving least squares, rings 2-4 rho wide), still
 misses by up to 0.56 rho on the bunny and 0.74 rho on Igea: the errors left are the surface's
-own detail inside the holes, not the choice of fit.
+own detail inside the holes, not the choice of fit. Nor is it the height field: a 3D implicit
+radial-basis surface through the ring and its normals (biharmonic or triharmonic, rings 2 and 3
+rho wide), each candidate projected onto it, missed the worst holes by as much or more (Igea 0.66
+-> 0.68-0.73 rho, bunny 0.54 -> 0.59-0.64).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +41,11 @@ MAX_FIT_POINTS = 250
 SMOOTHING = 1e-3
 #: the splines a hole chooses from (the first is the default before :meth:`HeightField.select`)
 KERNELS = ("thin_plate_spline", "cubic")
+#: largest share of ring normals tilted more than MAX_TILT from the hole's normal
+MAX_TILTED = 0.25
+MAX_TILT = math.radians(60.0)
+#: a rim too tilted over its least-squares plane is laid over the least tilted plane this close
+TILT_SEARCH = math.radians(60.0)
 
 
 def tangents(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -81,6 +90,52 @@ class Frame:
             + uv[:, 1:2] * self.t2
             + np.asarray(h)[:, None] * self.normal
         )
+
+
+def least_tilted(
+    normals: np.ndarray, near: np.ndarray, max_tilt: float, cone: float = math.radians(60.0)
+) -> tuple[np.ndarray, float]:
+    """The unit direction within ``cone`` of the unit vector ``near`` along which the smallest
+    share of the unit ``normals`` (M, 3) is tilted more than ``max_tilt`` (radians), and that
+    share: ``near`` itself unless another direction does better (directions on a spiral of about
+    400 over the hemisphere; the one closest to ``near`` on a tie). The frame in which a hole's
+    rim is most nearly a height field."""
+    n = np.asarray(near, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    k = np.arange(400) + 0.5
+    z = 1.0 - k / 400.0  # the upper hemisphere, about evenly
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    z = np.r_[1.0, z[z >= math.cos(cone)]]
+    phi = np.r_[0.0, phi[: z.size - 1]]
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    t1, t2 = tangents(n[None, :])
+    dirs = (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2 + z[:, None] * n
+    share = (np.abs(normals @ dirs.T) < math.cos(max_tilt)).mean(axis=0)
+    best = int(np.argmin(share))  # (z decreases along the spiral: the first minimum is closest)
+    return dirs[best], float(share[best])
+
+
+def tilted_share(normals: np.ndarray, normal: np.ndarray) -> float:
+    """Share of unit ``normals`` tilted more than :data:`MAX_TILT` from ``normal``."""
+    return float((np.abs(normals @ normal) < math.cos(MAX_TILT)).mean())
+
+
+def height_field_normal(
+    inner_normals: np.ndarray, normal: np.ndarray, current: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """The hole's normal and whether to lay the grid again over it. When at most
+    :data:`MAX_TILTED` of the inner ring's normals are tilted over :data:`MAX_TILT` from the
+    grid's ``current`` normal: the ring's least-squares ``normal``, laid again when it is more
+    than 5 degrees away and no more of the rim is tilted over it. Otherwise the direction
+    within :data:`TILT_SEARCH` of ``normal`` from which the fewest are tilted (the closest to
+    ``normal`` of those), over whose plane the rim is most nearly a height field (the lopsided
+    rim of a hole beside a nose, a chin or a corner), laid again."""
+    now = tilted_share(inner_normals, current)
+    if now <= MAX_TILTED:  # (never to a plane over which more of the rim is tilted)
+        moved = float(normal @ current) < math.cos(math.radians(5.0))
+        return normal, moved and tilted_share(inner_normals, normal) <= now
+    best, share = least_tilted(inner_normals, normal, MAX_TILT, TILT_SEARCH)
+    return (best if share < tilted_share(inner_normals, normal) else normal), True
 
 
 def plane_normal(points: np.ndarray, near: np.ndarray) -> np.ndarray:

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._resources import cores as _cores
-from .._resources import default_max_memory, release_freed_memory
+from .._resources import default_max_memory, release_freed_memory, release_pages
 from ..errors import InputError, MemoryBudgetError
 from .morton import morton_np, unmorton_np
 
@@ -77,8 +77,8 @@ MAX_POINTS = (1 << 31) - 1  # point and voxel indices are int32
 
 
 def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The points sorted into cubic cells of ``size`` from ``origin``: the cells' Morton keys in
-    that order (one per point), the permutation (input index of each sorted point), the points'
+    """The points sorted into cubic cells of ``size`` from ``origin``: the occupied cells' Morton
+    keys (sorted, one per cell), the permutation (input index of each sorted point), the points'
     grid coordinates in that order and the start of every cell's run (with N at the end)."""
     from .._kernels.grid import cell_order, grid_coords
 
@@ -91,7 +91,7 @@ def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarr
     first[0] = True
     np.not_equal(keys[1:], keys[:-1], out=first[1:])
     ostart = np.append(np.flatnonzero(first), n).astype(np.int32)
-    return keys, perm, u, ostart
+    return keys[ostart[:-1]], perm, u, ostart
 
 
 THREAD_MIN_QUERIES = 4096  # fewer queries are answered in this thread alone
@@ -148,7 +148,7 @@ def median_spacing(
     while True:
         origin = lo - c
         keys, _, u, ostart = cells(points, origin, c)
-        dk, sure = _in_two_threads(kth_neighbour, u, ostart, keys[ostart[:-1]], (q - origin) / c, k + 1)
+        dk, sure = _in_two_threads(kth_neighbour, u, ostart, keys, (q - origin) / c, k + 1)
         if sure.mean() >= 0.9 or c >= 4 * ext:
             break
         c *= 2.0
@@ -217,6 +217,7 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     origin = points.min(axis=0) - 2 * h
     ckeys, perm, u, ostart = cells(points, origin, h)
     del ckeys
+    release_pages(points)  # (a scan set aside: read again from its file by the next pass)
     sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
     counts = np.diff(ostart)
     sep_in = np.empty(n)
@@ -437,20 +438,19 @@ def build_band(
         max_memory = default_max_memory()
     origin = _grid_origin(points, h, r, radius)
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
-    ckeys, perm, u, ostart = cells(points, origin, h)
+    cell_keys, perm, u, ostart = cells(points, origin, h)
+    release_pages(points)  # (a scan set aside: the band reads only u from here on)
     if budget_voxels < ostart.shape[0] - 1:
         raise _too_big(h, r, max_memory, budget_voxels, ostart.shape[0] - 1)
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
-    bkey, bstart, cand = block_plan(ckeys[ostart[:-1]], float(rad.max()))
+    bkey, bstart, cand = block_plan(cell_keys, float(rad.max()))
     keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
-    del bkey, bstart, cand, rad, ostart
+    del bkey, bstart, cand, rad
     if count < 0:
         raise _too_big(h, r, max_memory, budget_voxels, None)
+    cs = ostart[np.append(np.searchsorted(cell_keys, keys), cell_keys.shape[0])]  # (ostart[-1] = n)
+    del cell_keys, ostart
     nbr = neighbour_table(keys)
-    cs = np.empty(keys.shape[0] + 1, dtype=np.int32)
-    cs[:-1] = np.searchsorted(ckeys, keys)
-    cs[-1] = n
-    del ckeys
     beta = DEPTH_COST if depth_cost is None else depth_cost
     vcost = np.where(q2 <= 1.0, 1.0 + beta * q2, np.inf).astype(np.float32)
     del q2
