@@ -21,6 +21,7 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
+from .pieces import pieces_phase
 from .pool import collect, result, submit
 from .sums import done as piece_done
 from .sums import mark, read_json, write_json
@@ -171,11 +172,14 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
                                                              float(pl["spacing"]), delta, progress)
     clock.lap("cover")
+    band_pieces = pieces_phase(executor, work, name, tiles, dist["pieces"]["core"], pl, sp.lo, worker_budget, progress)
+    clock.lap("pieces")
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = np.fromfile(work / WL.HEAD_FILE, dtype=WL.HEAD)
 
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
+              "engine_stats": band_pieces,
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
