@@ -83,12 +83,14 @@ def test_bench_survey_document(bench_doc, capsys):
             assert r["peak_rss_tree_bytes"] > 0 and r["peak_rss_parent_bytes"] > 0
             assert 0 < r["peak_work_dir_bytes"] <= r["peak_written_bytes"]
             assert r["work_over_archive"] == pytest.approx(r["peak_work_dir_bytes"] / r["archive_bytes"], abs=1e-3)
-            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover"]
+            # (the write is the record's last phase: its bands are tasks in the table)
+            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover", "write"]
             assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1
             assert kinds["order_tile"]["tasks"] == kinds["cover_tile"]["tasks"] == r["tiles"] >= 4
-            for kind in ("read_block", "survey_block", "distribute_block", "bucket_block"):
+            for kind in ("read_block", "survey_block", "distribute_block", "bucket_block", "rank_band", "rank_block",
+                         "write_band"):
                 assert kinds[kind]["tasks"] >= 1, kind
             assert 1 <= r["tasks"]["workers_seen"] <= r["workers"]
             sim = r["simulation"]
@@ -105,3 +107,26 @@ def test_bench_survey_document(bench_doc, capsys):
         assert t["parent_cpu_share"]["met"] == (t["parent_cpu_share"]["worst"] <= 0.03)
         assert t["speedup_2_over_1"]["met"] == (t["speedup_2_over_1"]["value"] >= 1.9)
         assert t["work_over_archive"]["target_max"] == 2.0
+
+
+def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypatch):
+    """--append keeps the other surveys of the document and replaces those of the same files (by
+    name and size, wherever they lie) with the new runs."""
+    import bench_survey
+
+    run = {"rc": 0, "executor": "pool", "workers": 1, "wall_seconds": 1.0, "parent_cpu_share": 0.01,
+           "work_over_archive": 1.0}
+    monkeypatch.setattr(bench_survey, "run_build", lambda *a, **k: dict(run))
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    for d, size in (("a", 10), ("b", 10)):
+        (tmp_path / d / "s.laz").write_bytes(bytes(size))
+    (tmp_path / "other.laz").write_bytes(bytes(7))
+    out = tmp_path / "doc.json"
+    args = ["--workers", "1", "--no-warm-up", "--out", str(out), "--append"]
+    assert bench_survey.main([str(tmp_path / "a" / "s.laz"), str(tmp_path / "other.laz"), *args]) == 0
+    assert bench_survey.main([str(tmp_path / "b" / "s.laz"), *args]) == 0
+    doc = json.loads(out.read_text())
+    assert [sv["input"]["paths"] for sv in doc["surveys"]] == [[str(tmp_path / "other.laz")],
+                                                               [str(tmp_path / "b" / "s.laz")]]
+    assert len(doc["earlier"]) == 1

@@ -157,3 +157,107 @@ def test_the_crs_a_file_declares_is_read_from_its_header(halves, tmp_path):
     for name in ("x.ply", "x.npz", "x.npy", "x.csv"):
         assert declared_crs(write_points(tmp_path / name, left[:50], crs=wkt)) == wkt, name
         assert declared_crs(write_points(tmp_path / ("bare_" + name), left[:50])) is None, name
+
+
+# ------------------------------------------------------- scans added to an archive (issue 20, item 4)
+
+def test_a_scan_added_in_another_crs_is_refused_naming_both(halves, tmp_path, capsys):
+    a, _, _, right, wkt = halves
+    arc = tmp_path / "c.h5"
+    assert run_cli(capsys, "build", a, "-o", arc, "--no-progress")[0] == 0
+    before = arc.read_bytes()
+    utm = write_points(tmp_path / "u.laz", right, crs=UTM10.to_wkt("WKT1_GDAL"))
+    rc, out, err = run_cli(capsys, "build", utm, "-o", arc, "--no-progress")
+    assert rc == 2 and arc.read_bytes() == before
+    assert err == (
+        "lodbuilder build: error: scan 'u.laz' is in WGS 84 / UTM zone 10N (EPSG:32610) while the scans of "
+        "archive 'c.h5' are in NAD_1983_HARN_Lambert_Conformal_Conic (scan 'a'); reproject it to theirs with "
+        "--to-crs EPSG:XXXX or a WKT file of that CRS (needs pyproj), or build it into another archive\n"
+    )
+    bare = write_points(tmp_path / "bare.npy", right)
+    rc, out, err = run_cli(capsys, "build", bare, "-o", arc, "--no-progress")
+    assert rc == 2 and arc.read_bytes() == before
+    assert err == (
+        "lodbuilder build: error: scan 'bare.npy' has no CRS while the scans of archive 'c.h5' are in "
+        "NAD_1983_HARN_Lambert_Conformal_Conic (scan 'a'); give it a CRS with --crs EPSG:XXXX (or WKT), or "
+        "build it into another archive\n"
+    )
+    rc, out, err = run_cli(capsys, "build", utm, "-o", arc, "--to-crs", "EPSG:32611", "--no-progress")
+    assert rc == 2 and arc.read_bytes() == before
+    assert err == (
+        "lodbuilder build: error: --to-crs would put the new scans in WGS 84 / UTM zone 11N (EPSG:32611), but "
+        "the scans of archive 'c.h5' are in NAD_1983_HARN_Lambert_Conformal_Conic (scan 'a'); ask --to-crs for "
+        "their CRS, or build the new scans into another archive\n"
+    )
+    # scan 'a' rebuilt (--overwrite) from a file in another CRS replaces the one that held the CRS
+    (tmp_path / "sub").mkdir()
+    same = write_points(tmp_path / "sub" / "a.laz", right, crs=UTM10.to_wkt("WKT1_GDAL"))
+    rc, out, err = run_cli(capsys, "build", same, "-o", arc, "--overwrite", "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(arc) as c:
+        assert c.scans == ["a"] and "UTM zone 10N" in c.scan("a").crs
+
+
+def test_a_scan_added_with_to_crs_or_crs_is_accepted(halves, tmp_path, capsys):
+    a, b, _, right, wkt = halves
+    arc = tmp_path / "c.h5"
+    assert run_cli(capsys, "build", a, "-o", arc, "--no-progress")[0] == 0
+    prj = tmp_path / "autzen.prj"
+    prj.write_text(wkt)
+    # the right half in UTM metres, reprojected back to the archive's CRS: pyproj's coordinates
+    to_utm = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(wkt), UTM10, always_xy=True)
+    x, y, z = to_utm.transform(right[:, 0], right[:, 1], right[:, 2])
+    utm = write_points(tmp_path / "u.npy", np.c_[x, y, z], crs=UTM10.to_wkt("WKT1_GDAL"))
+    rc, out, err = run_cli(capsys, "build", utm, "-o", arc, "--to-crs", prj, "--no-progress")
+    assert rc == 0, err
+    bare = write_points(tmp_path / "bare.npy", right)
+    rc, out, err = run_cli(capsys, "build", bare, "-o", arc, "--crs", prj, "--no-progress")
+    assert rc == 0, err
+    rc, out, err = run_cli(capsys, "build", b, "-o", arc, "--no-progress")  # the same CRS: as before
+    assert rc == 0, err
+    back = pyproj.Transformer.from_crs(UTM10, pyproj.CRS.from_wkt(wkt), always_xy=True)
+    with lodbuilder.open_archive(arc) as c:
+        assert c.scans == ["a", "b", "bare", "u"]
+        assert all(c.scan(n).crs == wkt for n in c.scans)
+        u = c.scan("u")
+        pts = u.points()[np.argsort(u.source_index[:])]
+    wx, wy, wz = back.transform(np.asarray(x), np.asarray(y), np.asarray(z))
+    np.testing.assert_allclose(pts, np.c_[wx, wy, wz], rtol=0, atol=1e-9)
+
+
+def test_a_utm_archive_takes_autzen_reprojected_to_its_zone(halves, tmp_path, capsys):
+    a, _, left, right, wkt = halves
+    to_utm = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(wkt), UTM10, always_xy=True)
+    x, y, z = to_utm.transform(right[:, 0], right[:, 1], right[:, 2])
+    arc = tmp_path / "u.h5"
+    utm = write_points(tmp_path / "u.npy", np.c_[x, y, z], crs=UTM10.to_wkt("WKT1_GDAL"))
+    assert run_cli(capsys, "build", utm, "-o", arc, "--no-progress")[0] == 0
+    rc, out, err = run_cli(capsys, "build", a, "-o", arc, "--no-progress")
+    assert rc == 2 and "reproject it to theirs with --to-crs" in err
+    rc, out, err = run_cli(capsys, "build", a, "-o", arc, "--to-crs", "EPSG:32610", "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(arc) as c:
+        s = c.scan("a")
+        assert s.units == "metre" and "UTM zone 10N" in s.crs
+        pts = s.points()[np.argsort(s.source_index[:])]
+    ex, ey, ez = to_utm.transform(left[:, 0], left[:, 1], left[:, 2])
+    np.testing.assert_allclose(pts, np.c_[ex, ey, ez], rtol=0, atol=1e-6)
+
+
+def test_a_tiled_joint_build_keeps_and_reprojects_the_crs(halves, tmp_path):
+    """The out-of-core path (tiny tiles) of a joint build: the shared CRS kept, and --to-crs
+    reprojecting both files like pyproj."""
+    a, b, left, right, wkt = halves
+    lodbuilder.build_archive([a, b], tmp_path / "k.h5", joint="k", _tile_points=3000)
+    lodbuilder.build_archive([a, b], tmp_path / "u.h5", joint="u", _tile_points=3000, to_crs="EPSG:32610")
+    t = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(wkt), UTM10, always_xy=True)
+    with lodbuilder.open_archive(tmp_path / "k.h5") as k, lodbuilder.open_archive(tmp_path / "u.h5") as u:
+        assert k.scan().build["method"] == u.scan().build["method"] == "tiled"
+        assert k.scan().build["tiled"]["tiles"] > 1
+        assert k.scan().crs == wkt and "UTM zone 10N" in u.scan().crs and u.scan().units == "metre"
+        s = u.scan()
+        pts, sid, spt = s.points(), s.attributes(None)["scan_id"], s.attributes(None)["scan_point"]
+    for i, half in enumerate((left, right)):
+        x, y, z = t.transform(half[:, 0], half[:, 1], half[:, 2])
+        got = pts[sid == i][np.argsort(spt[sid == i])]
+        np.testing.assert_allclose(got, np.c_[x, y, z], rtol=0, atol=1e-6)

@@ -430,8 +430,7 @@ def test_find_after_is_a_search_of_the_sorted_keys_after_a_position(keys, i, key
 def test_indexed_min_heap_pops_in_key_order(ops):
     from lodbuilder._kernels.heaps import iheap_pop, iheap_push
 
-    hk = np.empty(31, np.float32)  # one slot per possible item
-    hv = np.empty(31, np.int32)
+    hkv = np.empty(31, np.int64)  # one slot per possible item
     hpos = np.full(31, -1, np.int32)
     n = 0
     best: dict[int, float] = {}  # the naive reference: each item's smallest key
@@ -439,10 +438,10 @@ def test_indexed_min_heap_pops_in_key_order(ops):
         key = float(np.float32(key))
         if key < best.get(item, np.inf):  # keys only ever decrease, as in the marcher
             best[item] = key
-            n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
+            n = iheap_push(hkv, hpos, n, np.float32(key), item)
     out = []
     while n > 0:
-        k, item, n = iheap_pop(hk, hv, hpos, n)
+        k, item, n = iheap_pop(hkv, hpos, n)
         out.append((float(k), int(item)))
     assert out == sorted(out)  # by key, equal keys by item
     assert {i: k for k, i in out} == best
@@ -454,18 +453,17 @@ def test_indexed_min_heap_pops_equal_keys_in_item_order():
     # the voxel order, not the heap's layout (which depends on the order of the pushes)
     from lodbuilder._kernels.heaps import check_minheap, iheap_pop, iheap_push
 
-    hk = np.empty(8, np.float32)
-    hv = np.empty(8, np.int32)
+    hkv = np.empty(8, np.int64)
     hpos = np.full(8, -1, np.int32)
     n = 0
     for item in [5, 7, 2, 6, 0, 3]:
-        n = iheap_push(hk, hv, hpos, n, np.float32(1.5), item)
-    n = iheap_push(hk, hv, hpos, n, np.float32(0.5), 4)
-    n = iheap_push(hk, hv, hpos, n, np.float32(1.5), 1)
-    assert check_minheap(hk, hv, hpos, n)
+        n = iheap_push(hkv, hpos, n, np.float32(1.5), item)
+    n = iheap_push(hkv, hpos, n, np.float32(0.5), 4)
+    n = iheap_push(hkv, hpos, n, np.float32(1.5), 1)
+    assert check_minheap(hkv, hpos, n)
     out = []
     while n > 0:
-        _, item, n = iheap_pop(hk, hv, hpos, n)
+        _, item, n = iheap_pop(hkv, hpos, n)
         out.append(int(item))
     assert out == [4, 0, 1, 2, 3, 5, 6, 7]
 
@@ -544,18 +542,21 @@ def test_heap_checks_notice_a_broken_heap():
         maxheap_build,
     )
 
-    hk = np.empty(10, np.float32)
-    hv = np.empty(10, np.int32)
+    hkv = np.empty(10, np.int64)
     hpos = np.full(10, -1, np.int32)
     n = 0
     for item, key in enumerate([5.0, 3.0, 8.0, 1.0, 9.0, 2.0]):
-        n = iheap_push(hk, hv, hpos, n, np.float32(key), item)
-    assert check_minheap(hk, hv, hpos, n)
-    hk[0], hk[n - 1] = hk[n - 1], hk[0]  # keys out of order
-    assert not check_minheap(hk, hv, hpos, n)
-    hk[0], hk[n - 1] = hk[n - 1], hk[0]
-    hpos[hv[1]] = 0  # a stale position
-    assert not check_minheap(hk, hv, hpos, n)
+        n = iheap_push(hkv, hpos, n, np.float32(key), item)
+    assert check_minheap(hkv, hpos, n)
+    swap = [0, n - 1]
+    hkv[swap] = hkv[swap[::-1]]  # keys out of order (positions updated: only the order is wrong)
+    hpos[hkv[swap] & 0xFFFFFFFF] = swap
+    assert not check_minheap(hkv, hpos, n)
+    hkv[swap] = hkv[swap[::-1]]
+    hpos[hkv[swap] & 0xFFFFFFFF] = swap
+    assert check_minheap(hkv, hpos, n)
+    hpos[hkv[1] & 0xFFFFFFFF] = 0  # a stale position
+    assert not check_minheap(hkv, hpos, n)
 
     keys = np.array([4.0, 7.0, 1.0, 9.0, 3.0, 6.0, 2.0])
     heap = np.arange(7, dtype=np.int32)

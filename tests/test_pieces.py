@@ -107,3 +107,29 @@ def test_tiled_and_joint_builds_of_a_fragmented_scene(tmp_path, joint):
     cover = prefix_covering(stored, np.arange(stored.shape[0]))
     k = np.arange(1, stored.shape[0])
     assert (cover[k] <= radius[k] * (1 + 1e-12)).all(), int(k[np.argmax(cover[k] - radius[k])])
+
+
+@pytest.mark.parametrize("how", [{"size": 120}, {"rho": 6.0}], ids=["size", "rho"])
+def test_partial_builds_of_a_fragmented_scene_never_understate(tmp_path, how):
+    """A partial build (by size, by rho) of a fragmented scene: every stored radius of the ordered
+    prefix and the stop radius of the whole prefix bound its true covering radius (brute force),
+    and a level by rho at the stop radius is the whole ordered prefix (finding 3 of reliability-3:
+    the stop was 0)."""
+    from lodbuilder.io import write_points
+
+    pts = fragmented_scene(13, 150, 5000)
+    f = write_points(tmp_path / "s.npy", pts)
+    lodbuilder.build_archive(f, tmp_path / "p.h5", workers=1, **how)
+    with lodbuilder.open_archive(tmp_path / "p.h5") as arc:
+        scan = arc.scan()
+        m, stop = scan.n_ordered, scan.stop_radius
+        radius = np.asarray(scan.radius)[:m]
+        order = np.asarray(scan.source_index[:m])
+        at_stop = scan.level(rho=stop).size
+    assert 1 < m < len(pts) and stop > 0 and at_stop == m
+    if "rho" in how:
+        assert stop <= how["rho"] < radius[-1]
+    cover = prefix_covering(pts, order)
+    k = np.arange(1, m)
+    assert (cover[k] <= radius[k]).all(), int(k[np.argmax(cover[k] - radius[k])])
+    assert cover[m] <= stop

@@ -142,7 +142,9 @@ def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypa
 
 
 def test_small_blocks_everywhere_give_the_same_archive(tmp_path, monkeypatch):
-    """Chunked reads, bucketed writes and block merges agree with one block (many of each)."""
+    """Chunked reads, bucketed writes, block merges and the ranks' transpose agree with one block
+    (many of each)."""
+    import lodbuilder.build.tiled.ranks as ranks
     import lodbuilder.build.tiled.workdir as workdir
     import lodbuilder.build.tiled.write as write
 
@@ -151,6 +153,7 @@ def test_small_blocks_everywhere_give_the_same_archive(tmp_path, monkeypatch):
     big, _ = _build(tmp_path, pts, tile_points=400, name="big")
     monkeypatch.setattr(workdir, "BLOCK", 333)
     monkeypatch.setattr(write, "BLOCK", 250)
+    monkeypatch.setattr(ranks, "BAND", 300)  # the ranks' transpose in 8 bands
     small, _ = _build(tmp_path, pts, tile_points=400, name="small")
     for key in ("order", "radius", "parent", "points", "i"):
         np.testing.assert_array_equal(small[key], big[key])
@@ -256,7 +259,8 @@ def test_progress_moves_through_the_phases(tmp_path):
 
     scan = Scan(points=wavy(3000, rng), name="p")
     lodbuilder.build_archive(scan, tmp_path / "p.h5", _tile_points=500, progress=progress)
-    assert list(seen) == ["read", "plan", "split", "coarse", "tiles", "merge", "permute", "covering", "radii", "write"]
+    assert list(seen) == ["read", "plan", "split", "coarse", "tiles", "merge", "ranks", "permute", "covering", "radii",
+                          "pieces", "write"]
     for stage, calls in seen.items():
         done = [d for d, _ in calls]
         assert done == sorted(done) and done[-1] == calls[-1][1], stage  # counts up to the total

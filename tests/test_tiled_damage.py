@@ -46,7 +46,8 @@ def _same(a, b):
 
 # the moment of the stop: the module and function that raises (what is done by then: everything before)
 MOMENTS = {"split": ("driver", "distribute_phase"), "tiles": ("driver", "put_json"), "merge": ("driver", "_merge"),
-           "radii": ("radii", "radii_phase"), "write": ("driver", "_timings")}
+           "radii": ("radii", "radii_phase"), "write": ("bands", "write_phase"),
+           "bands": ("driver", "_timings")}  # (bands: every band of the write done, the part not yet finished)
 
 
 @pytest.fixture(scope="module")
@@ -124,9 +125,10 @@ def _cases():
         "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "raw.0.xyz"],
-        "radii": ["order.i8", "rank.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
+        "radii": ["order.i8", "rank.0.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
         "write": ["key.f8", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "stream.0.bin",
                   "raw.0.attr"],
+        "bands": ["chunks.0.bin", "chunks.0.json", "order.i8", "bucket.0.0.bin"],
     }
     how = ["flip", "truncate", "zero"]
     out = []
@@ -160,7 +162,7 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
     """Every file in the work directory is listed, with its size and CRC-32, by a marker."""
     from lodbuilder.build.tiled.sums import read_json, sum_file
 
-    _, _, pristine = stopped["write"]
+    _, _, pristine = stopped["bands"]
     (w,) = pristine.glob("*.work")
     listed: dict[str, list[int]] = {}
     for m in w.glob("*.json"):
@@ -214,7 +216,7 @@ def test_a_forged_las_work_file_names_no_internal_option(tmp_path, monkeypatch):
         raise KeyboardInterrupt
 
     with monkeypatch.context() as mp:
-        mp.setattr("lodbuilder.build.tiled.driver._timings", stop)  # (just before the write)
+        mp.setattr("lodbuilder.build.tiled.bands.write_phase", stop)  # (just before the write)
         with pytest.raises(KeyboardInterrupt):
             lodbuilder.build_archive(src, archive, _tile_points=400)
     (w,) = (tmp_path / ".a.h5.parts").glob("*.work")

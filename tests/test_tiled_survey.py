@@ -89,13 +89,15 @@ def test_a_survey_of_files_against_brute_force(survey, tmp_path):
 @pytest.mark.slow
 def test_blocks_do_not_change_the_archive(survey, tmp_path, monkeypatch):
     """A big file read in ranges (its reader seeks, LAZ through its chunk table), in small chunks,
-    gives the archive of one block per file."""
+    gives the archive of one block per file (and the ranks' transpose in many bands)."""
+    import lodbuilder.build.tiled.ranks as ranks
     import lodbuilder.build.tiled.workdir as workdir
 
     files, scans = survey
     one = _las(tmp_path / "one.laz", np.vstack([s.points for s in scans]), 3)
     ref = _read(_build(one, tmp_path / "ref.h5"))
     monkeypatch.setattr(workdir, "BLOCK", 200)
+    monkeypatch.setattr(ranks, "BAND", 500)  # the ranks' transpose: many bands to many read blocks
     small = _read(_build(one, tmp_path / "small.h5"))
     assert small["build"]["tiled"]["read_blocks"] >= 4 and ref["build"]["tiled"]["read_blocks"] == 1
     for key in ("order", "radius", "points"):

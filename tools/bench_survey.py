@@ -380,6 +380,11 @@ def describe_inputs(inputs: list[Path]) -> dict[str, Any]:
             "kind": "synthetic survey: the real autzen_trim.laz copied side by side (tools/make_survey.py)"}
 
 
+def _same_input(desc: dict[str, Any]) -> tuple:
+    """What makes two surveys' inputs the same (file names, count and bytes; not their directory)."""
+    return (tuple(Path(p).name for p in desc.get("paths", [])), desc.get("files"), desc.get("bytes"))
+
+
 def _commit() -> str:
     return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                           text=True).stdout.strip()
@@ -404,7 +409,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=OUT, help="the JSON file to write (default docs/bench/bench_survey.json)")
     p.add_argument("--no-warm-up", action="store_true", help="skip the unmeasured small build that fills numba's cache")
     p.add_argument("--append", action="store_true",
-                   help="add the surveys to those of --out (one JSON for runs that need different executors)")
+                   help="add the surveys to those of --out (one JSON for runs that need different executors); a "
+                        "survey of the same files replaces its earlier runs")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
@@ -433,7 +439,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.append and args.out.exists():
         old = json.loads(args.out.read_text())
         doc["earlier"] = [*old.pop("earlier", []), {k: old[k] for k in ("date", "commit", "command") if k in old}]
-        doc["surveys"] = old.get("surveys", []) + doc["surveys"]
+        again = {_same_input(sv["input"]) for sv in doc["surveys"]}  # a survey measured again: the new runs
+        doc["surveys"] = [sv for sv in old.get("surveys", []) if _same_input(sv["input"]) not in again] + doc["surveys"]
     for s3 in _S3:
         s3.stop()
     text = json.dumps(doc, indent=1)

@@ -12,6 +12,10 @@ priority order (list scheduling, largest first as the driver submits them). From
   parent's share is its CPU seconds in that phase (its waits for the tasks are not work);
 * tile orderings depend on their neighbours of a smaller colour (the order phase's colour classes;
   on the previous pass's orderings too when there are several passes);
+* rounds inside a phase (:data:`AFTER`): the ranks' first round (``rank_band``) waits for the merge
+  task, their second round (``rank_block``) for the whole first, the radii's second round
+  (``finish_band``) for the whole first (``radii_band``); the write's bands wait for its first band
+  (run alone: it decides the datasets' creation properties);
 * ``rest``: seconds of the wall time the record does not cover (start-up, the write phase, the
   archive's commit), serial in the parent.
 
@@ -127,6 +131,10 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
 # ------------------------------------------------------------------------------------ build records
 
 _ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
+#: task kinds that start only when every task of the listed kinds in their phase is done
+AFTER = {"rank_band": ("merge_task",), "rank_block": ("rank_band",), "finish_band": ("radii_band",)}
+#: the write's first band (its task table piece: the first write_band to start) before the others
+FIRST_BAND = "write_band"
 
 
 def _neighbours(boxes: list[list[float]], halo: float) -> list[list[int]]:
@@ -146,6 +154,15 @@ def _order_deps(piece: str, colour: list[int], nbrs: list[list[int]]) -> list[st
     t, p = int(m.group(1)), int(m.group(2))
     deps = [(p, u) if colour[u] < colour[t] else (p - 1, u) for u in nbrs[t]] + [(p - 1, t)]
     return [f"order.{u}.{q}" for q, u in deps if q >= 1]
+
+
+def _round_deps(row: dict[str, Any], phase: list[dict[str, Any]]) -> list[str]:
+    """A task's dependencies on the earlier rounds of its phase (see :data:`AFTER`)."""
+    before = AFTER.get(row["kind"], ())
+    deps = [r["piece"] for r in phase if r["kind"] in before]
+    if row["kind"] == "write_band" and row["piece"] != FIRST_BAND:
+        deps.append(FIRST_BAND)
+    return deps
 
 
 def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str, Any] | None = None,
@@ -177,7 +194,8 @@ def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str
     for name, secs in phases.items():
         t1 = t0 + float(secs)
         mine = [r for r in rows if t0 <= r["start"] < t1 or (name == list(phases)[-1] and r["start"] >= t1)]
-        tasks = [Task(r["piece"], float(r[key]), _order_deps(r["piece"], colour, nbrs)) for r in mine]
+        tasks = [Task(r["piece"], float(r[key]), _order_deps(r["piece"], colour, nbrs) + _round_deps(r, mine))
+                 for r in mine]
         parent = float(secs) if not tasks and durations == "wall" else float(cpu.get(name, 0.0))
         stages.append(Stage(name, parent, tasks))
         t0 = t1

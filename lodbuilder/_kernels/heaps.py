@@ -1,5 +1,6 @@
 """Binary heaps on plain arrays: an indexed min-heap of (float32 key, int32 item) for the marching
-fronts (equal keys pop the smaller item first: the order is (key, item), not the heap's layout),
+fronts, each entry one int64 (equal keys pop the smaller item first: the order is (key, item),
+not the heap's layout),
 and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for candidates.
 Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap).
 ``check_minheap``/``check_maxheap`` verify the invariants in O(n); the engine calls them after every
@@ -9,6 +10,9 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 from . import INLINE, JIT
 
@@ -75,70 +79,96 @@ def maxheap_pop(hkey, heap, pos, n):  # pragma: no cover - compiled
     return n
 
 
+@intrinsic
+def f32_bits(typingctx, x):  # pragma: no cover - compiled
+    """The bits of a float32 as a (non-negative) int64."""
+    if x != types.float32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.zext(builder.bitcast(args[0], ir.IntType(32)), ir.IntType(64))
+
+    return types.int64(types.float32), codegen
+
+
+@intrinsic
+def bits_f32(typingctx, x):  # pragma: no cover - compiled
+    """The float32 whose bits are the low 32 bits of an int64."""
+    if x != types.int64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(builder.trunc(args[0], ir.IntType(32)), ir.FloatType())
+
+    return types.float32(types.int64), codegen
+
+
+ITEM_MASK = np.int64(0xFFFFFFFF)
+
+
 @nb.njit(**INLINE)
-def iheap_push(hk, hv, hpos, n, key, item):  # pragma: no cover - compiled
+def iheap_push(hkv, hpos, n, key, item):  # pragma: no cover - compiled
     """Insert ``item`` into an indexed min-heap, or lower its key if it is already there.
 
-    ``hpos[item]`` is the item's position in the heap or -1. Keys only ever decrease, so the entry
-    only moves up. The arrays hold one entry per possible item (no growth, so callers never rebind
-    them: rebinding arrays in a hot loop costs atomic reference counting). Returns the new size.
+    An entry is one int64: the bits of its float32 key (>= 0) above the item (< 2^31), so that
+    integer order is the order (key, item) and a sift reads one array. ``hpos[item]`` is the
+    item's position in the heap or -1. Keys only ever decrease, so the entry only moves up. The
+    arrays hold one entry per possible item (no growth, so callers never rebind them: rebinding
+    arrays in a hot loop costs atomic reference counting). Returns the new size.
     """
-    i = hpos[item]
+    i = np.int64(hpos[item])
     if i < 0:
         i = n
         n += 1
+    e = (f32_bits(key) << 32) | np.int64(item)
     while i > 0:
         p = (i - 1) >> 1
-        if hk[p] < key or (hk[p] == key and hv[p] < item):
+        ep = hkv[p]
+        if ep < e:
             break
-        hk[i] = hk[p]
-        hv[i] = hv[p]
-        hpos[hv[i]] = i
+        hkv[i] = ep
+        hpos[ep & ITEM_MASK] = i
         i = p
-    hk[i] = key
-    hv[i] = item
+    hkv[i] = e
     hpos[item] = i
     return n
 
 
 @nb.njit(**INLINE)
-def iheap_pop(hk, hv, hpos, n):  # pragma: no cover - compiled
+def iheap_pop(hkv, hpos, n):  # pragma: no cover - compiled
     """Pop the smallest entry of an indexed min-heap; returns (key, item, n - 1)."""
-    key = hk[0]
-    item = hv[0]
+    e0 = hkv[0]
+    item = np.int32(e0 & ITEM_MASK)
     hpos[item] = -1
     n -= 1
     if n > 0:
-        lk = hk[n]
-        lv = hv[n]
-        i = 0
+        last = hkv[n]
+        i = np.int64(0)
         while True:
             c = 2 * i + 1
             if c >= n:
                 break
-            if c + 1 < n and (hk[c + 1] < hk[c] or (hk[c + 1] == hk[c] and hv[c + 1] < hv[c])):
+            ec = hkv[c]
+            if c + 1 < n and hkv[c + 1] < ec:
                 c += 1
-            if hk[c] > lk or (hk[c] == lk and hv[c] > lv):
+                ec = hkv[c]
+            if ec > last:
                 break
-            hk[i] = hk[c]
-            hv[i] = hv[c]
-            hpos[hv[i]] = i
+            hkv[i] = ec
+            hpos[ec & ITEM_MASK] = i
             i = c
-        hk[i] = lk
-        hv[i] = lv
-        hpos[lv] = i
-    return key, item, n
+        hkv[i] = last
+        hpos[last & ITEM_MASK] = i
+    return bits_f32(e0 >> 32), item, n
 
 
 @nb.njit(**JIT)
-def check_minheap(hk, hv, hpos, n):  # pragma: no cover - compiled
-    """True when the first n entries form a binary min-heap of (key, item) whose positions ``hpos``
-    agree."""
+def check_minheap(hkv, hpos, n):  # pragma: no cover - compiled
+    """True when the first n entries form a binary min-heap whose positions ``hpos`` agree."""
     for i in range(n):
-        if hpos[hv[i]] != i:
+        if hpos[hkv[i] & ITEM_MASK] != i:
             return False
-        p = (i - 1) >> 1
-        if i > 0 and (hk[p] > hk[i] or (hk[p] == hk[i] and hv[p] > hv[i])):
+        if i > 0 and hkv[(i - 1) >> 1] > hkv[i]:
             return False
     return True
 

@@ -10,77 +10,123 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from . import JIT
+from . import INLINE, JIT
 from .grid import hash_find, morton
-from .heaps import maxheap_build, maxheap_pop, maxheap_sift_down
 from .march import _chord_ok, _norm
-from .topology import _cell_key, anchor_of, cell_tables
+from .topology import anchor_of, cell_tables
 
 FAR_MARGIN = 1.0 + 1e-12  # a point is skipped before the square root only when surely not nearer
+BOX_SLACK = 1e-6  # grid units: a cell is skipped when its box lies farther than the reach + this
+# (far above the rounding of coordinates below 2^21, so no point it holds could have been lowered)
+
+
+@nb.njit(**INLINE)
+def _key(c, cstart, ud):  # pragma: no cover - compiled
+    """The largest value of an unordered point of cell c (ordered points hold -1), -1 if none."""
+    best = -1.0
+    for p in range(cstart[c], cstart[c + 1]):
+        if ud[p, 3] > best:
+            best = ud[p, 3]
+    return best
+
+
+@nb.njit(**INLINE)
+def _sift_down(hkey, heap, i, n):  # pragma: no cover - compiled
+    """Restore the 4-ary max-heap of (key, smaller item first on ties) below position i, after
+    its key decreased. No item -> position index: the tail only ever touches the top."""
+    kv = hkey[i]
+    it = heap[i]
+    while True:
+        c = 4 * i + 1
+        if c >= n:
+            break
+        best = c
+        for cc in range(c + 1, min(c + 4, n)):
+            if hkey[cc] > hkey[best] or (hkey[cc] == hkey[best] and heap[cc] < heap[best]):
+                best = cc
+        if hkey[best] < kv or (hkey[best] == kv and heap[best] > it):
+            break
+        hkey[i] = hkey[best]
+        heap[i] = heap[best]
+        i = best
+    hkey[i] = kv
+    heap[i] = it
+
+
+@nb.njit(**JIT)
+def _cell_heap(cs, ud):  # pragma: no cover - compiled
+    """The cells' point ranges (cell c holds points cstart[c]:cstart[c + 1]: cells are the voxels
+    that hold points, in voxel order), their voxels and their max-heap by key (keys in heap order)."""
+    cellv, _ = cell_tables(cs)
+    ncell = cellv.shape[0]
+    cstart = np.empty(ncell + 1, np.int32)
+    for c in range(ncell):
+        cstart[c] = cs[cellv[c]]
+    cstart[ncell] = cs[cs.shape[0] - 1]
+    ckey = np.empty(ncell)
+    heap = np.arange(ncell).astype(np.int32)
+    for c in range(ncell):
+        ckey[c] = _key(c, cstart, ud)
+    for i in range((ncell - 2) // 4, -1, -1):
+        _sift_down(ckey, heap, np.int64(i), ncell)
+    return cstart, cellv, ckey, heap
 
 
 @nb.njit(**JIT)
 def euclid_tail(
-    u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, d, lab,
+    ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, lab,
     rank, order, radius, parent, k0, k_max, rho_stop, tseed, tkey, tpos,
 ):  # pragma: no cover - compiled
     """Finish a farthest point ordering with exact Euclidean distances among near neighbours.
 
-    ``d`` holds upper bounds of every unordered point's distance to the ordered ones, first
+    ``ud`` holds every point's grid coordinates and, in its last column, its value d: an upper
+    bound of the unordered point's distance to the ordered ones, first
     tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
-    point q only lowers points within d[q] (/ cmin when weighted). Candidates are kept per cell in a
+    point q only lowers points within its value (/ cmin when weighted). Candidates are kept per cell in a
     max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
     top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
     ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
     if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
-    chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. A ball
-    query walks the
-    neighbour table to the at most 8 cells around the point when the ball is smaller than a voxel,
-    and otherwise scans the coarse cells of :func:`coarse_runs` (side 2^j >= the ball's diameter),
-    at most 27 of them while the radius is within the coarse levels. Timed seeds (``tseed`` by
+    chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. The ball query
+    is :func:`_lower_around`; ordered points hold -1 in d meanwhile. Timed seeds (``tseed`` by
     non-increasing ``tkey``, from ``tpos[0]`` on; see :func:`.march.grid_phase`) join as soon as
     the largest distance is at most their key, and the ones left when every point is ordered come
     last. Returns the new count.
     """
-    cellv, cellof = cell_tables(cs)
-    ncell = cellv.shape[0]
-    m = u.shape[0]
+    m = ud.shape[0]
     thin = psep.shape[0] == m
     for p in range(m):
-        if rank[p] < 0 and lab[p] >= 0:
+        if rank[p] >= 0:
+            ud[p, 3] = -1.0  # ordered: never a candidate, never lowered (no rank lookups below)
+        elif lab[p] >= 0:
             # tighten to the exact distance to the labelled sample (still an upper bound)
             s = order[lab[p]]
-            e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+            e = _norm(ud[p, 0] - ud[s, 0], ud[p, 1] - ud[s, 1], ud[p, 2] - ud[s, 2])
             if thin and not _chord_ok(
-                u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2], e, psep[p], psep[s],
+                ud[p, 0] - ud[s, 0], ud[p, 1] - ud[s, 1], ud[p, 2] - ud[s, 2], e, psep[p], psep[s],
                 pnrm[p, 0], pnrm[p, 1], pnrm[p, 2], pnrm[s, 0], pnrm[s, 1], pnrm[s, 2], slope,
             ):
                 continue  # the band's value may go around a fold the straight line crosses
             if weighted:
                 e *= 0.5 * (pcost[p] + pcost[s])
-            if e < d[p]:
-                d[p] = e
-    ckey = np.empty(ncell)
-    for c in range(ncell):
-        ckey[c] = _cell_key(np.int64(c), cellv, cs, rank, d)
-    heap = np.arange(ncell).astype(np.int32)
-    hpos = np.empty(ncell, np.int32)
-    hn = ncell
-    maxheap_build(ckey, heap, hpos, hn)
+            if e < ud[p, 3]:
+                ud[p, 3] = e
+    cstart, cellv, ckey, heap = _cell_heap(cs, ud)
+    hn = ckey.shape[0]
     k = k0
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = _cell_key(np.int64(top), cellv, cs, rank, d)
+        kk = _key(top, cstart, ud)
         if kk != ckey[0]:
-            ckey[0] = kk
             if kk < 0.0:
-                hn = maxheap_pop(ckey, heap, hpos, hn)
+                hn = _pop(ckey, heap, hn)
             else:
-                maxheap_sift_down(ckey, heap, hpos, np.int64(0), hn)
+                ckey[0] = kk
+                _sift_down(ckey, heap, np.int64(0), hn)
             continue
         if kk < 0.0:  # no candidate left in the cell (only timed seeds)
-            hn = maxheap_pop(ckey, heap, hpos, hn)
+            hn = _pop(ckey, heap, hn)
             continue
         if kk <= rho_stop:
             break
@@ -88,86 +134,23 @@ def euclid_tail(
             i = tseed[tpos[0]]
             radius[k] = tkey[tpos[0]]
             tpos[0] += 1
-            w0 = anchor_of(cs, np.int64(i))
             parent[k] = -1
+            w0 = anchor_of(cs, np.int64(i))
         else:
             w0 = cellv[top]
             i = -1
-            for p in range(cs[w0], cs[w0 + 1]):
-                if rank[p] < 0 and d[p] == kk:
+            for p in range(cstart[top], cstart[top + 1]):
+                if ud[p, 3] == kk:
                     i = p
                     break
             radius[k] = kk
             parent[k] = lab[i]
         rank[i] = k
         order[k] = i
+        ud[i, 3] = -1.0
         reach = kk / cmin if weighted else kk
-        j = 0
-        side = 1.0
-        while j < levels and side < 2.0 * reach:
-            j += 1
-            side *= 2.0
-        x0 = int(np.floor((u[i, 0] - reach) / side))
-        x1 = int(np.floor((u[i, 0] + reach) / side))
-        y0 = int(np.floor((u[i, 1] - reach) / side))
-        y1 = int(np.floor((u[i, 1] + reach) / side))
-        z0 = int(np.floor((u[i, 2] - reach) / side))
-        z1 = int(np.floor((u[i, 2] + reach) / side))
-        fx = int(np.floor(u[i, 0]))
-        fy = int(np.floor(u[i, 1]))
-        fz = int(np.floor(u[i, 2]))
-        for x in range(x0, x1 + 1):
-            for y in range(y0, y1 + 1):
-                for z in range(z0, z1 + 1):
-                    if j == 0:
-                        # walk from i's cell: steps up first, then down, so that every voxel on
-                        # the way is a corner of one of the two cells (and so exists)
-                        w = w0
-                        dx, dy, dz = x - fx, y - fy, z - fz
-                        if dx > 0 and w >= 0:
-                            w = nbr[w, 1]
-                        if dy > 0 and w >= 0:
-                            w = nbr[w, 3]
-                        if dz > 0 and w >= 0:
-                            w = nbr[w, 5]
-                        if dx < 0 and w >= 0:
-                            w = nbr[w, 0]
-                        if dy < 0 and w >= 0:
-                            w = nbr[w, 2]
-                        if dz < 0 and w >= 0:
-                            w = nbr[w, 4]
-                        if w < 0:
-                            continue
-                        p0 = cs[w]
-                        p1 = cs[w + 1]
-                    else:
-                        if x < 0 or y < 0 or z < 0:
-                            continue
-                        run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
-                        if run < 0:
-                            continue
-                        p0 = rstart[run]
-                        p1 = rend[run]
-                    for p in range(p0, p1):
-                        if rank[p] >= 0:
-                            continue
-                        ex = u[p, 0] - u[i, 0]
-                        ey = u[p, 1] - u[i, 1]
-                        ez = u[p, 2] - u[i, 2]
-                        d2 = ex * ex + ey * ey + ez * ez
-                        if not weighted and d2 > d[p] * d[p] * FAR_MARGIN:
-                            continue  # surely no nearer (most points of the coarse cells)
-                        dd = np.sqrt(d2)
-                        if thin and not _chord_ok(
-                            ex, ey, ez, dd, psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
-                            pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
-                        ):
-                            continue  # across a gap or a tight fold: not a surface distance
-                        if weighted:
-                            dd *= 0.5 * (pcost[p] + pcost[i])
-                        if dd < d[p]:
-                            d[p] = dd
-                            lab[p] = k
+        _lower_around(i, w0, k, reach, ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep,
+                      pnrm, slope, thin, lab)
         k += 1
     if hn == 0:  # every candidate is ordered: the timed seeds not taken yet come last
         while k < k_max and tpos[0] < tseed.shape[0]:
@@ -179,3 +162,109 @@ def euclid_tail(
             tpos[0] += 1
             k += 1
     return k
+
+
+@nb.njit(**INLINE)
+def _pop(hkey, heap, n):  # pragma: no cover - compiled
+    """Remove the top of the heap; returns the new size."""
+    n -= 1
+    if n > 0:
+        hkey[0] = hkey[n]
+        heap[0] = heap[n]
+        _sift_down(hkey, heap, np.int64(0), n)
+    return n
+
+
+@nb.njit(**INLINE)
+def _box_gap(c, lo, side):  # pragma: no cover - compiled
+    """How far the coordinate c lies outside [lo, lo + side] (0 inside)."""
+    if c < lo:
+        return lo - c
+    if c > lo + side:
+        return c - lo - side
+    return 0.0
+
+
+@nb.njit(**INLINE)
+def _lower_around(i, w0, k, reach, ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep, pnrm,
+                  slope, thin, lab):  # pragma: no cover - compiled
+    """Lower the values of the points within ``reach`` of the new sample i (rank k, in the cell of
+    voxel w0). The cells
+    searched: the voxel cells around i's when the reach is under a voxel (walked through the
+    neighbour table), else the coarse cells of side 2^j >= the reach (at most 3 a side while the
+    reach is within the coarse levels); a cell whose box lies beyond the reach is skipped."""
+    j = 0
+    side = 1.0
+    while j < levels and side < reach:
+        j += 1
+        side *= 2.0
+    ux, uy, uz = ud[i, 0], ud[i, 1], ud[i, 2]
+    x0 = int(np.floor((ux - reach) / side))
+    x1 = int(np.floor((ux + reach) / side))
+    y0 = int(np.floor((uy - reach) / side))
+    y1 = int(np.floor((uy + reach) / side))
+    z0 = int(np.floor((uz - reach) / side))
+    z1 = int(np.floor((uz + reach) / side))
+    fx = int(np.floor(ux))
+    fy = int(np.floor(uy))
+    fz = int(np.floor(uz))
+    lim = reach + BOX_SLACK
+    lim2 = lim * lim
+    for x in range(x0, x1 + 1):
+        gx = _box_gap(ux, x * side, side)
+        for y in range(y0, y1 + 1):
+            gy = _box_gap(uy, y * side, side)
+            for z in range(z0, z1 + 1):
+                gz = _box_gap(uz, z * side, side)
+                if gx * gx + gy * gy + gz * gz > lim2:
+                    continue
+                if j == 0:
+                    # walk from i's cell: steps up first, then down, so that every voxel on
+                    # the way is a corner of one of the two cells (and so exists)
+                    w = w0
+                    dx, dy, dz = x - fx, y - fy, z - fz
+                    if dx > 0 and w >= 0:
+                        w = nbr[w, 1]
+                    if dy > 0 and w >= 0:
+                        w = nbr[w, 3]
+                    if dz > 0 and w >= 0:
+                        w = nbr[w, 5]
+                    if dx < 0 and w >= 0:
+                        w = nbr[w, 0]
+                    if dy < 0 and w >= 0:
+                        w = nbr[w, 2]
+                    if dz < 0 and w >= 0:
+                        w = nbr[w, 4]
+                    if w < 0:
+                        continue
+                    p0 = cs[w]
+                    p1 = cs[w + 1]
+                else:
+                    if x < 0 or y < 0 or z < 0:
+                        continue
+                    run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
+                    if run < 0:
+                        continue
+                    p0 = rstart[run]
+                    p1 = rend[run]
+                for p in range(p0, p1):
+                    dp = ud[p, 3]
+                    if dp < 0.0:
+                        continue  # ordered, or a timed seed
+                    ex = ud[p, 0] - ux
+                    ey = ud[p, 1] - uy
+                    ez = ud[p, 2] - uz
+                    d2 = ex * ex + ey * ey + ez * ez
+                    if not weighted and d2 > dp * dp * FAR_MARGIN:
+                        continue  # surely no nearer (most points of the coarse cells)
+                    dd = np.sqrt(d2)
+                    if thin and not _chord_ok(
+                        ex, ey, ez, dd, psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
+                        pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+                    ):
+                        continue  # across a gap or a tight fold: not a surface distance
+                    if weighted:
+                        dd *= 0.5 * (pcost[p] + pcost[i])
+                    if dd < dp:
+                        ud[p, 3] = dd
+                        lab[p] = k

@@ -30,6 +30,15 @@ from .. import __version__
 from ..errors import ArchiveError, InputError
 from . import files as F
 from . import layout as L
+from .chunks import (
+    Spec,
+    check_points,
+    check_rows,
+    create_datasets,
+    encode_exactly,
+    spec_bytes,
+    spec_of,
+)
 from .index import write_index
 from .layout import IndexRow
 
@@ -247,9 +256,7 @@ class ScanWriter:
                     f"shape ({m},), got {a.dtype} {a.shape}"
                 )
             arrays[key] = a.astype(np.int64 if kind == "i" else np.float64, copy=False)
-        if not np.isfinite(pts).all():
-            bad = lo + int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
-            raise InputError(f"points of {where} hold NaN or inf at stored row {bad}")
+        check_points(pts, where, lo)
         src, rad, par = arrays[L.D_SOURCE_INDEX], arrays[L.D_RADIUS], arrays[L.D_PARENT]
         self._check_order(src, rad, par, lo, where)
         self._seen[src] = True
@@ -266,35 +273,9 @@ class ScanWriter:
     def _check_order(self, src: np.ndarray, rad: np.ndarray, par: np.ndarray, lo: int, where: str) -> None:
         """A block's source indices (in range, each input point once), radii (non-increasing, >= 0)
         and parents (earlier rows or -1), from stored row ``lo`` on."""
-        m = src.size
-        if src.size and (src.min() < 0 or src.max() >= self.n):
-            raise InputError(f"source_index of {where} must be in [0, {self.n}); got values outside")
+        check_rows(src, rad, par, self.n, lo, self._last_radius, where)
         if src.size and self._seen[src].any():
             raise InputError(f"source_index of {where} repeats an input index; each point goes once")
-        if np.isnan(rad).any() or (rad < 0).any():
-            raise InputError(f"radius of {where} holds NaN or negative values")
-        prev = np.concatenate([[self._last_radius], rad[:-1]])
-        inc = np.flatnonzero(rad > prev)
-        if inc.size:
-            i = lo + int(inc[0])
-            raise InputError(
-                f"radius of {where} increases at stored row {i}; rows must be in farthest-point "
-                "order (non-increasing radii)"
-            )
-        pos = lo + np.arange(m, dtype=np.int64)
-        badp = np.flatnonzero((par >= pos) | (par < -1))
-        if badp.size:
-            i = int(badp[0])
-            raise InputError(
-                f"parent of {where} at stored row {lo + i} is {int(par[i])}; parents must be "
-                "earlier rows or -1"
-            )
-        if src.size > 1:
-            ordered = np.sort(src)
-            if (ordered[1:] == ordered[:-1]).any():  # a repeat inside this block
-                raise InputError(
-                    f"source_index of {where} repeats an input index; each point goes once"
-                )
 
     def _check_extras(self, arrays, extras, m, where, what, lo) -> None:
         extras = dict(extras or {})
@@ -366,9 +347,12 @@ class ScanWriter:
             _, self._enc, off, sc = L.encode_points(pts, self.metadata)
             if off is not None:
                 self._offset, self._scale = off, sc
-        expected = self.n * self._row_bytes(block)
-        enc = np.dtype(self._enc).itemsize * 3
-        chunk = self.rows * max([enc] + [a[:1].nbytes for k, a in block.items() if k != L.D_POINTS])
+        self._create(spec_of({k: self._encode(a, 0) if k == L.D_POINTS else a for k, a in block.items()}))
+
+    def _create(self, spec: Spec) -> None:
+        """Create the file and the scan's datasets (``spec``: see :mod:`.chunks`), no rows yet."""
+        row_bytes, chunk = spec_bytes(spec, self.rows)
+        expected = self.n * row_bytes
         page = L.page_size(expected, chunk)
         self._margin = 16 * page + (64 << 10)  # metadata, partial pages
         self._tmp = F.tmp_name(self.path)
@@ -381,28 +365,14 @@ class ScanWriter:
         g.create_group(L.G_ATTRIBUTES)
         g.create_group(L.G_IMPORTANCE)
         g.create_group(L.G_ORDERINGS)
-        for key, a in block.items():
-            sample = a if key != L.D_POINTS else self._encode(a, 0)
-            shape = (self.n, *sample.shape[1:])
-            kw: dict[str, Any] = {"chunks": (self.rows, *sample.shape[1:]), "fletcher32": True}
-            if L.compression_pays(sample):
-                kw.update(compression="gzip", compression_opts=L.GZIP_LEVEL, shuffle=True)
-            ds = g.create_dataset(key, shape=shape, dtype=sample.dtype, **kw)
-            if key == L.D_POINTS and self._offset is not None and self._enc in ("int32", "int64"):
-                ds.attrs[L.P_OFFSET] = self._offset
-                ds.attrs[L.P_SCALE] = self._scale
-            self._ds[key] = ds
+        self._ds = create_datasets(g, self.n, self.rows, spec)
+        if self._offset is not None and self._enc in ("int32", "int64"):
+            self._ds[L.D_POINTS].attrs[L.P_OFFSET] = self._offset
+            self._ds[L.D_POINTS].attrs[L.P_SCALE] = self._scale
 
     def _encode(self, pts: np.ndarray, lo: int) -> np.ndarray:
         assert self._enc is not None
-        stored = L.encode_as(pts, self._enc, self._offset, self._scale)
-        if stored is None:
-            raise InputError(
-                f"points of scan {self.name!r} at stored rows {lo}..{lo + pts.shape[0] - 1} cannot "
-                f"be stored exactly as {self._enc} (chosen from the first row group); pass "
-                "encoding='float64' to ScanWriter"
-            )
-        return stored
+        return encode_exactly(pts, self._enc, self._offset, self._scale, f"scan {self.name!r}", lo)
 
     def _flush_group(self, k: int) -> None:
         block = self._take(k)

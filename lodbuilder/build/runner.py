@@ -34,6 +34,7 @@ from typing import Any
 from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
 from ..io.pose import pose_kind
 from ..progress import ProgressCallback, report
+from .archive_crs import check_build_crs
 from .executors import DASK_CONNECT_TIMEOUT, check_scheduler, make_executor, one_line
 from .inputs import ScanSource, expand_inputs
 from .jobs import ScanJob, build_one, decide_tiling, job_key, scan_digest
@@ -303,8 +304,7 @@ def build(
         check_archive_file(archive)  # fail before any expensive work
     joint_name = _joint_name(joint, name, manifest, inputs) if joint else None
     sources = _sources(inputs, manifest, None if joint else name)
-    if not joint and len(sources) > 1:
-        _check_collection_crs(sources, options)
+    check_build_crs(sources, archive, options, joint_name)
     if options.seeds is not None and (len(sources) != 1 or joint):
         raise InputError("seeds are input indices of one scan; give a single scan with seeds")
     if joint and (options.partial or options.features):
@@ -331,24 +331,6 @@ def build(
     result.seconds = time.perf_counter() - t0
     _raise_failures(result, total, raise_on_failure)
     return result
-
-
-def _check_collection_crs(sources: list[ScanSource], options: BuildOptions) -> None:
-    """Scans built into one collection share one CRS (or none): refused before any work when they
-    disagree, unless ``to_crs`` reprojects them (:func:`lodbuilder.io.crs.common_crs`). The CRS is
-    read from each file's header (no points); a file that cannot be read is left to its own job."""
-    from ..io.crs import KEY_WKT, common_crs
-    from ..io.stream import declared_crs
-
-    named = []
-    for src in sources:
-        try:
-            own = src.scan.metadata.get(KEY_WKT) if src.scan is not None else declared_crs(src.path)  # type: ignore[arg-type]
-        except (LodbuilderError, OSError):
-            continue
-        given = options.crs if options.crs and (options.crs_override or not own) else None
-        named.append((src.path.name if src.path is not None else src.name, given or own))
-    common_crs(named, options.to_crs)
 
 
 def _check_wait(wait: Any) -> float:

@@ -8,8 +8,8 @@ from typing import Any
 
 def piece_counts(build: dict[str, Any], size: int) -> tuple[int, int, bool] | None:
     """``(pieces reached, pieces in the scan, exact)`` for the prefix of ``size`` points of an
-    ordering whose build record lists its pieces' entry ranks; None when it does not (tiled builds,
-    older archives). ``exact`` is False where the record keeps only the first entries."""
+    ordering whose build record lists its pieces' entry ranks (in-memory and tiled builds); None when
+    it does not (archives built before it did). ``exact`` is False where the record keeps only the first entries."""
     from ..levels import pieces_reached
 
     stats = (build or {}).get("engine_stats") or {}

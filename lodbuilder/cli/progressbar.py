@@ -23,7 +23,7 @@ from ..progress import Rate, TaskCounts, task_line
 NOTES = ("compiling kernels, first run only",)  # stages worth a line even without a terminal
 #: stages whose bar stays while the per-scan phases come and go
 PERSISTENT = ("scans", "points")
-UNITS = {"scans": "scan", "tiles": "tile", "covering": "tile", "coarse": "task"}
+UNITS = {"scans": "scan", "tiles": "tile", "covering": "tile", "pieces": "tile", "coarse": "task"}
 #: seconds between two lines of a phase of tasks without a terminal
 LINE_SECONDS = 30.0
 

@@ -153,6 +153,15 @@ def _parsed(pyproj: Any, wkt: str) -> Any | None:
         return None
 
 
+def same_crs(a: str, b: str) -> bool:
+    """Whether two WKTs name one CRS: the same text, or the same CRS to pyproj (when installed;
+    axis order aside)."""
+    if a == b:
+        return True
+    ca, cb = _crs(a), _crs(b)
+    return bool(ca is not None and cb is not None and ca.equals(cb, ignore_axis_order=True))
+
+
 def linear_units(wkt: str | None) -> str | None:
     """Unit name of the CRS's first axis (``metre``, ``US survey foot``, ``foot``, ``degree``...),
     or None when the CRS is unknown or pyproj is not installed."""

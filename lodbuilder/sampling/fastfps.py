@@ -276,14 +276,16 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     del band, foot
     runs = _tail_runs(keys, cs, plan.handover / h * cscale / cmin) if k < k_max else None
     del keys  # (before the tail: it holds the coarse runs instead)
+    ud = _points_and_values(u, val)
+    del u, val
     if runs is not None:
         k = _euclid_tail(
-            u, nbr, cs, runs, pcost, cost is not None, cmin, psep, pnrm, val, lq, rank,
+            ud, nbr, cs, runs, pcost, cost is not None, cmin, psep, pnrm, lq, rank,
             order, radius, parent, k, k_max, rho_g, tseed_c, tkey_g, tpos,
         )
     del runs
-    stop = _stop_radius(val, rank, tseed_c) * h
-    del psep, pnrm, val, lq, rank, u, nbr, cs
+    stop = _stop_radius(ud[:, 3], rank, tseed_c) * h
+    del psep, pnrm, ud, lq, rank, nbr, cs
     release_freed_memory(n)
     stats.update(time_tail=time.perf_counter() - t2, cpu_tail=time.process_time() - c2)
     report(progress, "ordering", int(k), k_max)
@@ -391,14 +393,23 @@ def _pieces(band, stats):
 
 def _tail_runs(keys, cs, reach):
     """The coarse runs of the voxel keys that the Euclidean tail searches, for balls of up to
-    ``reach`` voxels: (rkey, ridx, rstart, rend, levels)."""
+    ``reach`` voxels (cells of side 2^j >= the reach): (rkey, ridx, rstart, rend, levels)."""
     from .._kernels.grid import coarse_runs
 
-    levels = max(0, min(int(np.ceil(np.log2(max(2.0 * reach, 1.0)))), 9))
+    levels = max(0, min(int(np.ceil(np.log2(max(reach, 1.0)))), 9))
     return (*coarse_runs(keys, cs, levels), levels)
 
 
-def _euclid_tail(u, nbr, cs, runs, pcost, weighted, cmin, psep, pnrm, val, lq, rank,
+def _points_and_values(u: np.ndarray, val: np.ndarray) -> np.ndarray:
+    """(M, 4): every point's grid coordinates and its value side by side, so that the tail reads
+    both from one cache line (it replaces u and val: no more memory than the two)."""
+    ud = np.empty((u.shape[0], 4))
+    ud[:, :3] = u
+    ud[:, 3] = val
+    return ud
+
+
+def _euclid_tail(ud, nbr, cs, runs, pcost, weighted, cmin, psep, pnrm, lq, rank,
                  order, radius, parent, k, k_max, rho_g, tseed_c, tkey_g, tpos):
     """The ordering below the hand-over radius with exact distances among neighbours (in place);
     returns the new count."""
@@ -407,8 +418,8 @@ def _euclid_tail(u, nbr, cs, runs, pcost, weighted, cmin, psep, pnrm, val, lq, r
 
     rkey, ridx, rstart, rend, levels = runs
     return euclid_tail(
-        u, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
-        weighted, cmin, psep, pnrm, TAIL_SLOPE, val, lq, rank, order, radius, parent, k, k_max, rho_g,
+        ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost,
+        weighted, cmin, psep, pnrm, TAIL_SLOPE, lq, rank, order, radius, parent, k, k_max, rho_g,
         tseed_c, tkey_g, tpos,
     )
 

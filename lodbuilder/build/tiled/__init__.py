@@ -19,28 +19,29 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
    tile and its halo (tasks);
 5. **merge** (one task): the tile orders are merged by descending insertion radius (an external
-   k-way merge), with the seam repair of :mod:`lodbuilder.build.tiled.merge`, and inverted into
-   every point's rank;
+   k-way merge), with the seam repair of :mod:`lodbuilder.build.tiled.merge`; then tasks invert the
+   merged order into every point's rank (an external transpose in two rounds: :mod:`.ranks`);
 6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
    prefix of the merged order (from the tile and its halo); meanwhile tasks split every raw block
    by destination into the write's buckets; the stored radius of a prefix is the largest over the
    tiles, capped by the coarse bound, never increasing: assembled in bands of positions by tasks
    (:mod:`.radii`; the parent carries two numbers from band to band);
-7. **write** (one task): the buckets in stored order, streamed into the archive part; the parent
-   registers the part.
+7. **write** (tasks): the stored order cut into *bands* of whole row groups of the archive (one
+   bucket each); a band task puts its bucket in order, checks its rows as the archive's scan writer
+   does, and filters its rows' datasets into finished HDF5 chunks (an in-memory file with the
+   archive's dataset creation properties, read back with ``read_direct_chunk``); the parent places
+   the chunks in stored order with ``write_direct_chunk`` (bytes copied, no filter work) as the
+   bands arrive, and writes the small metadata (:mod:`.bands`). The first band runs alone: its
+   first row group decides which datasets are compressed, as a scan writer decides. The part file
+   is the one a single scan writer fed every row in order gives; every archive reader is unchanged.
 
-What still passes over every point in one process (issue 19, item 2): the merge (and the ranks)
-and the write, each one task on a worker (the parent loads no kernel and runs no filter, but the
-build's serial share is theirs). The route chosen for them keeps every archive reader unchanged: the stored order stays
-one sequence, cut into *bands of global rank* aligned to the archive's row groups. The parent finds
-each band's boundary key by a selection over the tiles' streams (each sorted by key: O(tiles x
-bands x log N) small reads); a band task merges its segment of every tile stream, ranks its points,
-and writes its rows' datasets as HDF5 chunks filtered by HDF5 itself (an in-memory file with the
-archive's dataset creation properties, read back with ``read_direct_chunk``); the parent places
-the finished chunks with ``write_direct_chunk`` (bytes copied, no filter work) and writes the small
-metadata. The seam repair, today a lazy greedy over the merged order, would become per tile
-against the neighbours' face points before the banded merge. Not built yet: the write needs a
-row-group entry point in :class:`lodbuilder.archive.scanwriter.ScanWriter` (outside this package).
+What still passes over every point in one process (issue 19, item 2): the merge with its seam
+repair, one task on a worker (a lazy greedy over the merged order: each seam point's acceptance
+depends on every earlier acceptance, so it is ordered by nature; measured in docs/bench/bench_survey.json,
+``merge_task``). Its redesign (per tile against the neighbours' face points, before a merge
+partitioned into key bands whose boundaries the parent selects over the tiles' sorted streams:
+O(tiles x bands x log N) small reads) is not built. The parent's own pass over the write is a copy
+of the archive's bytes (the chunks), no filter and no point.
 
 Guarantees (checked by tests, stated in each tiled scan's build record): every prefix's stored
 radius is a true Euclidean covering radius of the whole scan; radii never increase; every input

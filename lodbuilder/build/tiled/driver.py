@@ -12,6 +12,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +21,9 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
+from .pieces import pieces_phase
 from .pool import collect, result, submit
-from .staging import Staging, fetch_part
-from .store import LocalStore, Store, as_store
+from .store import Store, as_store
 from .sums import done as piece_done
 from .sums import get_json, mark, put_json
 from .survey import distribute_phase, plan_phase, read_phase
@@ -163,8 +164,8 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
-    # 5. merge the tile orders (one task, streaming)
-    merged = _merge(executor, work, name, n, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
+    # 5. merge the tile orders (one task, streaming), then invert the order (tasks)
+    merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
     # 6. exact covering radii of every tile (on the workers), combined in bands; meanwhile tasks
@@ -172,18 +173,19 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
                                                              float(pl["spacing"]), delta, progress)
     clock.lap("cover")
+    band_pieces = pieces_phase(executor, work, name, tiles, dist["pieces"]["core"], pl, sp.lo, worker_budget, progress)
+    clock.lap("pieces")
 
-    # 7. write the part file in stored order (one task)
+    # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = store.read_array(WL.HEAD_FILE, WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
-              **_timings(clock, work),
+              "engine_stats": band_pieces,
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
-    info = _write(executor, work, part, name, sp, head["g"][:1], record, {"reader": sp.reader, **(provenance or {})},
-                  buckets, radii, progress)
-    clock.lap("write")
+    info = _write(executor, work, part, name, sp, head["g"][:1], lambda: {**record, **_timings(clock, work, "write")},
+                  {"reader": sp.reader, **(provenance or {})}, buckets, radii, progress)
     store.remove()
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
@@ -191,16 +193,15 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
 
 def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill, seeds: np.ndarray,
-           record: dict[str, Any], provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any],
-           progress: ProgressCallback) -> Any:
-    """Phase 7: the part written by one task; returns its PartInfo."""
-    from .write import write_task
+           record: Callable[[], dict[str, Any]], provenance: dict[str, Any], buckets: dict[str, Any],
+           radii: dict[str, Any], progress: ProgressCallback) -> Any:
+    """Phase 7: the part written in bands of stored positions by tasks, assembled by the parent
+    from their finished chunks (see :mod:`.bands`); ``record()`` the build record, asked for when
+    every band is written. Returns the PartInfo."""
+    from .bands import write_phase
 
-    args = (work, str(part), name, sp.n, sp.fields, sp.metadata, sp.encoding, seeds, record, provenance,
-            buckets, radii)
-    (res,) = collect(submit(Staging(executor, work), [(0, write_task, args)]), lambda _: "writing the part", name, 1,
-                     progress, "write")
-    return res["info"] if isinstance(work, LocalStore) else fetch_part(work, res["info"], part)
+    return write_phase(executor, work, part, name, sp, lambda: {"seeds": seeds, "build": record(),
+                                                                 "provenance": provenance}, buckets, radii, progress)
 
 
 def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
@@ -217,17 +218,21 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     return by_size, colour, ordered, stats
 
 
-def _merge(executor: cf.Executor, work: Store, name: str, n: int, stats: list[dict[str, Any]], seam_spacing: float,
+def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list[dict[str, Any]], seam_spacing: float,
            lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
-    """Phase 5: the tile orders merged by descending key with the seam repair, and the ranks (or
-    what a finished merge recorded): one task, on a worker (still one pass over every point)."""
+    """Phase 5: the tile orders merged by descending key with the seam repair (or what a finished
+    merge recorded): one task, on a worker (the one pass over every point left, see
+    :mod:`.merge`); then the ranks, by tasks (:mod:`.ranks`)."""
     from .merge import merge_task
+    from .ranks import ranks_phase
 
     merged = _done(work, "merge")
     if merged is None:
-        args = (work, n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo, span / (1 << 20))
-        (merged,) = collect(submit(Staging(executor, work), [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
+        args = (work, sp.n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo,
+                span / (1 << 20))
+        (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
         mark(work, "merge", merged)
+    ranks_phase(executor, work, name, sp.n, sp.blocks or [], progress)
     return merged
 
 
@@ -245,7 +250,7 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
     futs = submit(executor, [(t.index, cover_tile, (work, t.index, spacing, pieces["core"][t.index],
                                                     pieces["halo"][t.index])) for t in todo])
     try:
-        buckets = buckets_phase(Staging(executor, work), work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
+        buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
                 lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
@@ -283,9 +288,12 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
-def _timings(clock: _Clock, work: Store) -> dict[str, Any]:
+def _timings(clock: _Clock, work: Store, last: str) -> dict[str, Any]:
     """The build record's phase seconds (and their order: the record's keys are sorted), the
-    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`)."""
+    parent's own CPU seconds per phase and the table of every task (see :mod:`.timing`), once
+    the ``last`` phase ends (the write: asked for when its bands are written, their tasks in the
+    table)."""
+    clock.lap(last)
     return {"phase_seconds": clock.rounded(3), "phase_order": list(clock.times),
             "parent_cpu_seconds": {k: round(v, 3) for k, v in clock.cpu.items()},
             "build_started": clock.epoch, "tasks": task_table(work, clock.epoch)}

@@ -15,13 +15,16 @@ Files (little-endian raw arrays unless said otherwise), by the phase that writes
     order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin)
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
     merge       order.i8, key.f8    the merged order (input index at each position) and its keys
-                rank.i8             the position of every input point (the inverse of order.i8)
+    ranks       rankp.<k>.bin       band k of order.i8 as (input index, position) pairs by read block
+                                    (PAIR records; removed when the phase is complete)
+                rank.<b>.i8         the position of every input point of read block b (see ranks.py)
     cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass
     radii       radloc.<b>.f8       band b's radii, non-increasing within the band (round 1)
                 space.<b>.f8        band b's running minimum of the spacing (round 1)
                 parent.<b>.i8       the stored parent of each position of band b
                 radius.<b>.f8       the stored radius of each position of band b (round 2)
     buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py)
+    write       chunks.<k>.bin      band k's rows as finished HDF5 chunks, one after another (see bands.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
 it wrote with their size and CRC-32 (:mod:`.sums`); a resumed build trusts a piece only when its
@@ -58,10 +61,9 @@ SAMPLE = "sample.npy"
 HEAD_FILE = "head.bin"
 ORDER = "order.i8"
 KEY = "key.f8"
-RANK = "rank.i8"
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
-PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "buckets", "radii")
+PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "ranks", "buckets", "radii")
 
 
 def attr_record(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
@@ -126,6 +128,34 @@ def bucket_piece(b: int) -> str:
     return f"permute.{b}"
 
 
+def rank_pairs(k: int) -> str:
+    """Band ``k`` of the merged order as (input index, position) pairs sorted by read block."""
+    return f"rankp.{k}.bin"
+
+
+def rank_pairs_piece(k: int) -> str:
+    return f"rankp.{k}"
+
+
+def rank_file(b: int) -> str:
+    """The position of every input point of read block ``b``, in input order."""
+    return f"rank.{b}.i8"
+
+
+def rank_piece(b: int) -> str:
+    return f"rank.{b}"
+
+
+def chunks(k: int) -> str:
+    """Band ``k`` of the write: its rows' filtered HDF5 chunks (see :mod:`.bands`)."""
+    return f"chunks.{k}.bin"
+
+
+def chunks_piece(k: int) -> str:
+    """The piece name of band ``k`` of the write (a task)."""
+    return f"chunks.{k}"
+
+
 def order_piece(t: int, p: int) -> str:
     """The piece name of tile ``t``'s ordering in pass ``p`` (its marker is :func:`marker` of it)."""
     return f"order.{t}.{p}"
@@ -176,8 +206,9 @@ def writing(name: str) -> str:
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
 #: the named moments: after each phase's marker, after the first tile ordering's marker, and after
-#: the first read, split, permute and band task's markers
-MOMENTS = (*PHASES, "tile", "read", "split", "permute", "band")
+#: the first read, split, rank (a read block's ranks), permute, band (of the radii) and chunks (band
+#: of the write) task's markers
+MOMENTS = (*PHASES, "tile", "read", "split", "rank", "permute", "band", "chunks")
 
 
 def moment(name: str) -> None:

@@ -20,17 +20,14 @@ in bands of positions, by tasks (:mod:`.radii`).
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..._atomic import publish
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from . import workdir as W
-from .store import LocalStore, Store
-from .sums import sum_file
+from .store import Store, as_store
 from .tasks import HEAD, STREAM
 from .timing import timed_task
 
@@ -143,27 +140,5 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
 def merge_task(work: str, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
                min_cell: float) -> dict[str, Any]:
     """The merge as one task (on a worker, so that the parent loads no kernel and passes over no
-    point): :func:`merge_tiles`, then :func:`write_ranks`; returns the merge's marker."""
-    w = Path(work)
-    merged = merge_tiles(LocalStore(w), n, n_tiles, seam_counts, alpha, lo, min_cell)
-    merged["files"][WL.RANK] = write_ranks(w, n)
-    return merged
-
-
-def write_ranks(work: Path, n: int) -> list[int]:
-    """``rank.i8``: the position of every input point (the inverse of ``order.i8``); returns its
-    size and CRC-32."""
-    tmp = work / WL.writing(WL.RANK)
-    rank = np.memmap(tmp, mode="w+", dtype="<i8", shape=(n,))
-    try:
-        with open(work / WL.ORDER, "rb") as f:
-            k = 0
-            while k < n:
-                g = np.fromfile(f, dtype="<i8", count=min(W.BLOCK, n - k))
-                rank[g] = np.arange(k, k + g.shape[0])
-                k += g.shape[0]
-        rank.flush()
-    finally:
-        del rank
-    publish(tmp, work / WL.RANK)
-    return sum_file(work / WL.RANK)  # written in random order: summed once, from the page cache
+    point): :func:`merge_tiles`; returns the merge's marker. (The ranks: :mod:`.ranks`, tasks.)"""
+    return merge_tiles(as_store(work), n, n_tiles, seam_counts, alpha, lo, min_cell)

@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import REC, gather
+from .workdir import REC
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -178,6 +178,7 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     rank of its nearest earlier point and the distance to it). Both are exact while the distance
     is below the halo width and upper bounds beyond it."""
     from ..._kernels.tiled import cover_pass
+    from .ranks import gather_ranks
 
     w = as_store(work)
     core = tile_records(w, core_pieces)
@@ -185,7 +186,7 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     ext = np.concatenate([core, halo])
     is_core = np.zeros(ext.shape[0], bool)
     is_core[: core.shape[0]] = True
-    ranks = gather((w, WL.RANK), "<i8", (), ext["g"])
+    ranks = gather_ranks(w, ext["g"])
     srt = np.argsort(ranks, kind="stable")
     ranks = np.ascontiguousarray(ranks[srt])
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])

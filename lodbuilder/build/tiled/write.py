@@ -1,10 +1,15 @@
 """Writing a tiled scan into its part file, in stored (prefix) order, without holding it.
 
 The points and attributes sit in input order in the raw blocks of the work directory, the ranks in
-``rank.i8``; the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
+``rank.<b>.i8`` (one file per raw block: :mod:`.ranks`); the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
 destination block into bucket pieces (one record per point: position, coordinates, attributes; a
-task per raw block, :func:`bucket_block`), then each bucket's pieces are read, put in order and handed to the archive's
-:class:`~lodbuilder.archive.scanwriter.ScanWriter` with its radii and parents. Memory: one block.
+task per raw block, :func:`bucket_block`), then each bucket (a band of whole row groups of the
+archive: :func:`band_rows`) is read, put in order and written as finished HDF5 chunks by a task of
+its own (:mod:`.bands`). Memory: one bucket per task.
+
+:func:`write_scan` is the same write by one process through the archive's
+:class:`~lodbuilder.archive.scanwriter.ScanWriter` (the buckets in order): the reference the banded
+write equals (tests compare the two).
 """
 
 from __future__ import annotations
@@ -15,13 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from ..._atomic import publish
+from ...archive import layout as L
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
 from . import layout as WL
-from .sums import SumFile
+from .store import Store, Writer, as_store
 from .timing import timed_task
-from .workdir import blocks, opaque_rows
+from .workdir import blocks, opaque_rows, read_rows
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -34,20 +39,19 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
 
 
 @timed_task
-def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
+def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
                  block: int, rows: int) -> dict[str, Any]:
     """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
-    positions (``rank.i8`` rows ``g0 .. g0 + m``), split by destination block (``block`` rows of
+    positions (``rank.<b>.i8``, input indices ``g0 .. g0 + m``), split by destination block (``block`` rows of
     the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
-    w = Path(work)
+    w = as_store(work)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
-    out: dict[str, SumFile] = {}
+    out: dict[str, Writer] = {}
     try:
-        with open(w / WL.RANK, "rb") as fr:
-            fr.seek(8 * g0)
+        with w.open(WL.rank_file(b)) as fr:
             for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
-                r["pos"] = np.fromfile(fr, dtype="<i8", count=r.shape[0])
+                r["pos"] = read_rows(fr, np.dtype("<i8"), r.shape[0])
                 dest = r["pos"] // block
                 order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
                 cuts = np.searchsorted(dest[order], np.arange(n_buckets + 1))
@@ -55,16 +59,14 @@ def bucket_block(work: str, b: int, g0: int, m: int, fields: dict[str, tuple[str
                 for k in np.flatnonzero(np.diff(cuts)):
                     name = WL.bucket(int(k), b)
                     if name not in out:
-                        out[name] = SumFile(w / WL.writing(name))
+                        out[name] = w.writer(name)
                     out[name].write(srt[cuts[k]:cuts[k + 1]])
                     counts[k] += cuts[k + 1] - cuts[k]
+        files = {name: f.commit() for name, f in out.items()}
     finally:
         for f in out.values():
             f.close()
-    for name in out:
-        publish(w / WL.writing(name), w / name)
-    return {"block": b, "counts": counts.tolist(),
-            "files": {name: f.sum for name, f in out.items()}}
+    return {"block": b, "counts": counts.tolist(), "files": files}
 
 
 def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
@@ -76,6 +78,7 @@ def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple
     doc = done(work, "buckets")
     if doc is not None:
         return doc
+    block = band_rows(n, BLOCK)  # the write's bands: whole row groups of the archive
     results: dict[int, dict[str, Any]] = {}
     calls = []
     for b, (_, a, z, g0) in enumerate(raw):
@@ -83,15 +86,28 @@ def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple
         if prev is not None:
             results[b] = prev
         else:
-            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, BLOCK, rows)))
+            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, block, rows)))
 
     def record(res: dict[str, Any]) -> None:
         results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
 
     collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
             lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
-    doc = bucket_pieces([results[b] for b in range(len(raw))], BLOCK)
+    doc = bucket_pieces([results[b] for b in range(len(raw))], block)
     return mark(work, "buckets", doc)
+
+
+def band_rows(n: int, block: int) -> int:
+    """Rows per band of a scan of ``n`` points: the whole row groups nearest ``block`` rows."""
+    rows = L.row_group_rows(n)
+    return rows * max(1, round(block / rows))
+
+
+def damaged(name: str, exc: InputError) -> BuildError:
+    """The archive's own check failed on rows of the work files: they disagree with each other."""
+    what = str(exc).split(";")[0]
+    return BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
+                      "the build again with --force")
 
 
 def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
@@ -102,18 +118,19 @@ def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
             "files": {k: v for r in results for k, v in r["files"].items()}}
 
 
-def _raw_records(work: Path, fields: dict[str, tuple[str, tuple[int, ...]]], raw: list[list[int]],
+def _raw_records(work: Any, fields: dict[str, tuple[str, tuple[int, ...]]], raw: list[list[int]],
                  rows: int, first: int = 0) -> Iterator[tuple[int, np.ndarray]]:
     """``(first input index, records)``: the raw blocks ``raw`` (numbered from ``first``)'s
     coordinates and attributes as bucket records (``pos`` left to fill), ``rows`` at a time, in
     input order."""
+    store = as_store(work)
     rec = record_dtype(fields)
     attr = WL.attr_record(fields)
     for b, (_, a, z, g0) in enumerate(raw, start=first):
         m_b = int(z) - int(a)
-        ats: Any = blocks(work / WL.raw_attr(b), attr, m_b, rows) if attr.itemsize else None
+        ats: Any = blocks((store, WL.raw_attr(b)), attr, m_b, rows) if attr.itemsize else None
         try:
-            for r0, xyz in blocks(work / WL.raw_xyz(b), "<f8", 3 * m_b, 3 * rows):
+            for r0, xyz in blocks((store, WL.raw_xyz(b)), "<f8", 3 * m_b, 3 * rows):
                 pts = xyz.reshape(-1, 3)
                 r = np.empty(pts.shape[0], rec)
                 r["xyz"] = pts
@@ -137,19 +154,7 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
         return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
                               buckets, radii)
     except InputError as exc:  # the scan writer's own check: the work files disagree with each other
-        what = str(exc).split(";")[0]
-        raise BuildError(f"scan {name!r}: the tiled build's work files disagree ({what}); they are damaged: run "
-                         "the build again with --force") from None
-
-
-@timed_task
-def write_task(work: str, part: str, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
-               metadata: dict[str, Any], encoding: str, seeds: np.ndarray, build: dict[str, Any],
-               provenance: dict[str, Any], buckets: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
-    """:func:`write_scan` as one task (on a worker: the parent runs no filter and passes over no
-    point; the part is still written by one process); returns ``{"info": PartInfo}``."""
-    return {"info": write_scan(Path(work), Path(part), name, n, fields, metadata, encoding, seeds, build, provenance,
-                               None, buckets, radii)}
+        raise damaged(name, exc) from None
 
 
 def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],

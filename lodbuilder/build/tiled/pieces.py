@@ -1,0 +1,162 @@
+"""The pieces of a tiled build's band, joined across tiles: how many connected pieces the scan's
+band has and the rank at which each entered the merged order, stored as an in-memory build stores
+them (``engine_stats``: ``pieces`` and ``piece_entries``) so that ``slice`` and ``evaluate`` say
+how many pieces a level reaches (issue 20, item 5).
+
+A piece of the band is a connected set of its marchable voxels (6-neighbours, see
+:func:`lodbuilder._kernels.topology.point_pieces`). Two points whose marchable voxels touch are at
+most ``2 r + h`` apart (``REACH``), so every step of a path through the band from one point to another
+passes between points within that distance. Each tile labels the band of its core and of every
+point of another tile within ``REACH`` of its box (on the whole scan's grid: the in-memory build's
+voxels): every step that starts at one of its core points is in that band, so two of its local pieces
+that the scan's band joins are joined through points of other tiles. The join (:func:`join_task`)
+is a union over (tile, local piece), joined where a point that a tile borrowed from another tile
+lies in the other tile's local piece: the global pieces are exactly the in-memory build's (on
+the same grid, voxel size and band radius; an in-memory build that chooses its parameters itself
+may also thin its band near close sheets, which a tiled build does not). The first rank of a
+global piece is the least rank of any point of its local pieces.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+from typing import Any
+
+import numpy as np
+
+from ...progress import ProgressCallback
+from .blocks import tile_records
+from .pool import collect, submit
+from .ranks import gather_ranks
+from .store import as_store
+from .sums import done, mark
+from .timing import timed_task
+
+#: a point a tile shares with another tile (borrowed, or its own near its box), with its local piece
+LINK = np.dtype([("g", "<i8"), ("piece", "<i8")])
+#: points whose marchable voxels touch are at most 2 r + h apart; one more voxel for rounding
+REACH_R, REACH_H = 2.0, 2.0
+#: the first ranks kept in the record (as :data:`lodbuilder.sampling.fastfps.PIECE_ENTRIES_MAX`)
+ENTRIES_MAX = 10_000
+
+
+def reach(voxel_size: float, band_radius: float) -> float:
+    """The largest distance between two points whose band voxels can touch (with a voxel to spare)."""
+    return REACH_R * band_radius + REACH_H * voxel_size
+
+
+def _links(name: str) -> str:
+    return f"{name}.links.bin"
+
+
+def _firsts(name: str) -> str:
+    return f"{name}.first.i8"
+
+
+def _near_box(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, d: float) -> np.ndarray:
+    """Which points lie within ``d`` of the box ``[lo, hi]`` (as a box grown by d)."""
+    return np.all((xyz >= lo - d) & (xyz <= hi + d), axis=1)
+
+
+def _xyz(rec: np.ndarray) -> np.ndarray:
+    return np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+
+
+def _band_pieces(xyz: np.ndarray, h: float, r: float, lattice: np.ndarray, max_memory: int | None
+                 ) -> tuple[np.ndarray, int]:
+    """The band piece of every point (and their count) on the grid of the whole scan's band. A
+    band's grid starts a whole number of voxels below its lowest point, and the whole scan's
+    lowest point is ``lattice``: so the band is built with one more point, lowest, a whole number
+    of voxels from ``lattice`` and farther than :func:`reach` from every point (a piece of its
+    own, dropped from the answer)."""
+    from ..._kernels.topology import point_pieces
+    from ...sampling.band import build_band
+
+    if xyz.shape[0] == 0:
+        return np.zeros(0, np.int64), 0
+    low = lattice + h * (np.floor((xyz.min(axis=0) - lattice) / h) - np.ceil(reach(h, r) / h) - 1)
+    band = build_band(np.vstack([xyz, low]), h, r, max_memory)
+    bpiece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    piece = np.empty(xyz.shape[0] + 1, np.int64)
+    piece[band.perm] = bpiece  # (band order -> point order)
+    lone = piece[-1]
+    piece = piece[:-1]
+    piece[piece > lone] -= 1
+    return piece, int(npiece) - 1
+
+
+@timed_task
+def pieces_tile(work: str, t: int, tile: dict[str, Any], core: list[str], others: list[list[str]],
+                voxel_size: float, band_radius: float, lattice: list[float], max_memory: int | None
+                ) -> dict[str, Any]:
+    """Label the band pieces of tile ``t``'s core (its pieces ``core``) and of the points of the
+    neighbouring tiles (their core pieces, ``others``) within :func:`reach` of its box, on the
+    grid whose voxel corners fall on ``lattice`` (the scan's lowest point). Writes
+    ``pieces.<t>.links.bin`` (LINK records, by input index: the borrowed points, and its own points
+    within the reach of its box's faces, which other tiles borrow) and ``pieces.<t>.first.i8`` (the
+    least rank in the merged order of each local piece)."""
+    w = as_store(work)
+    lo, hi = np.asarray(tile["lo"], float), np.asarray(tile["hi"], float)
+    d = reach(voxel_size, band_radius)
+    own = tile_records(w, core)
+    borrowed = [r[_near_box(_xyz(r), lo, hi, d)] for r in (tile_records(w, names) for names in others)]
+    ext = np.concatenate([own, *borrowed]) if borrowed else own
+    xyz = _xyz(ext)
+    piece, npiece = _band_pieces(xyz, voxel_size, band_radius, np.asarray(lattice, float), max_memory)
+    first = np.full(int(npiece), np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(first, piece, gather_ranks(w, ext["g"]))
+    shared = np.ones(ext.shape[0], bool)  # borrowed points, and own points other tiles may borrow
+    shared[: own.shape[0]] = ~_near_box(xyz[: own.shape[0]], lo + d, hi - d, 0.0)  # (not deep inside)
+    links = np.empty(int(shared.sum()), LINK)
+    links["g"], links["piece"] = ext["g"][shared], piece[shared]
+    name = f"pieces.{t}"
+    files = {_links(name): as_store(w).put(_links(name), links), _firsts(name): as_store(w).put(_firsts(name), first)}
+    return {"tile": t, "pieces": int(npiece), "points": int(ext.shape[0]), "files": files}
+
+
+@timed_task
+def join_task(work: str, n_tiles: int) -> dict[str, Any]:
+    """Join the tiles' local pieces (see the module): ``pieces`` (the count of the scan's band
+    pieces) and ``piece_entries`` (the first rank of each, ascending, the first ENTRIES_MAX)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    firsts = [as_store(work).read_array(_firsts(f"pieces.{t}"), "<i8") for t in range(n_tiles)]
+    offset = np.cumsum([0, *(f.shape[0] for f in firsts)])
+    links = [as_store(work).read_array(_links(f"pieces.{t}"), LINK) for t in range(n_tiles)]
+    g = np.concatenate([x["g"] for x in links])
+    node = np.concatenate([x["piece"] + offset[t] for t, x in enumerate(links)])
+    srt = np.argsort(g, kind="stable")
+    g, node = g[srt], node[srt]
+    same = np.flatnonzero(g[1:] == g[:-1])  # the same point seen by two tiles: one piece
+    m = int(offset[-1])
+    graph = coo_matrix((np.ones(same.size, np.int8), (node[same], node[same + 1])), shape=(m, m))
+    count, label = connected_components(graph, directed=False)
+    first = np.full(count, np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(first, label, np.concatenate(firsts))
+    return {"pieces": int(count), "piece_entries": np.sort(first)[:ENTRIES_MAX].tolist()}
+
+
+def pieces_phase(ex: cf.Executor, work: Any, name: str, tiles: list[Any], cores: list[list[str]],
+                 plan: dict[str, Any], lattice: np.ndarray, max_memory: int | None,
+                 progress: ProgressCallback) -> dict[str, Any]:
+    """The band pieces of every tile (tasks; ``cores``: each tile's core pieces, ``plan``: the
+    plan's marker, for the voxel size and band radius; ``lattice``: the scan's lowest point),
+    joined (one task); returns ``{"pieces", "piece_entries"}`` for the build record's
+    ``engine_stats`` (or what a finished phase recorded)."""
+    from .plan import tile_neighbours
+
+    voxel_size, band_radius = float(plan["voxel_size"]), float(plan["band_radius"])
+
+    joined = done(work, "pieces")
+    if joined is not None:
+        return {k: joined[k] for k in ("pieces", "piece_entries")}
+    nbrs = tile_neighbours(tiles, reach(voxel_size, band_radius))
+    todo = [t for t in tiles if done(work, f"pieces.{t.index}") is None]
+    calls = [(t.index, pieces_tile, (work, t.index, t.to_json(), cores[t.index], [cores[u] for u in nbrs[t.index]],
+                                     voxel_size, band_radius, [float(x) for x in lattice], max_memory)) for t in todo]
+    collect(submit(ex, calls), lambda t: f"the band pieces of tile {t + 1} of {len(tiles)}", name, len(tiles),
+            progress, "pieces", lambda res: mark(work, f"pieces.{res['tile']}", res))
+    (joined,) = collect(submit(ex, [(0, join_task, (work, len(tiles)))]), lambda _: "the join of the pieces",
+                        name, 1, None, "pieces")
+    return mark(work, "pieces", joined)

@@ -1,0 +1,110 @@
+"""A tiled build knows the pieces of its band as an in-memory build does (issue 20, item 5): the
+tiles' local pieces joined across tiles give the same pieces as the band of the whole scan, and
+the rank at which each entered the merged order, so that slice and evaluate say how many pieces a
+level of a tiled archive reaches."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from clirun import run as run_cli
+
+import lodbuilder
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _fragmented(seed: int, pieces: int, points: int) -> np.ndarray:
+    spec = importlib.util.spec_from_file_location("make_fragmented", REPO / "tools" / "make_fragmented.py")
+    mod = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(mod)
+    return mod.fragmented_scene(seed, pieces, points)
+
+
+def _band_labels(pts: np.ndarray, h: float, r: float) -> np.ndarray:
+    """The piece of every point in the band of the whole scan (the in-memory build's band)."""
+    from lodbuilder._kernels.topology import point_pieces
+    from lodbuilder.sampling.band import build_band
+
+    band = build_band(pts, h, r)
+    piece, _ = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    out = np.empty(pts.shape[0], np.int64)
+    out[band.perm] = piece
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tiled_pieces")
+    pts = _fragmented(2, 100, 20_000)
+    np.save(d / "fr.npy", pts)
+    out = {}
+    for tiles in (3000, 600):  # 8 and 57 tiles
+        arc = d / f"t{tiles}.h5"
+        res = lodbuilder.build_archive(d / "fr.npy", arc, _tile_points=tiles)
+        assert res.scans[0].method == "tiled"
+        with lodbuilder.open_archive(arc) as a:
+            s = a.scan()
+            out[tiles] = (arc, s.build, np.asarray(s.source_index[:]))
+    return d, pts, out
+
+
+@pytest.mark.parametrize("tiles", [3000, 600])
+def test_tiled_pieces_are_the_whole_band_s(scene, tiles):
+    d, pts, built = scene
+    _, build, order = built[tiles]
+    assert build["tiled"]["tiles"] >= (8 if tiles == 3000 else 40)
+    h, r = build["voxel_size"], build["band_radius"]
+    labels = _band_labels(pts, h, r)
+    stats = build["engine_stats"]
+    assert stats["pieces"] == int(np.unique(labels).size) > 50
+    # the first rank of every piece in the tiled order, by brute force
+    _, first = np.unique(labels[order], return_index=True)
+    assert stats["piece_entries"] == sorted(first.tolist())
+
+
+def test_pieces_joined_across_a_gap_between_tiles(tmp_path):
+    """Columns of points in pairs 3.5 apart (one piece each: the band of radius 2.5 spans the gap)
+    and 8 apart between pairs, each column a tile of its own: the tiles' boundaries fall in the
+    gaps, so only the points a tile borrows from beyond its box join a pair."""
+    y = np.arange(0, 50, 0.5)
+    x = np.cumsum([0.0] + [3.5 if i % 2 == 0 else 8.0 for i in range(19)])
+    pts = np.vstack([np.c_[np.full(y.size, xi), y, np.zeros(y.size)] for xi in x])
+    np.save(tmp_path / "c.npy", pts)
+    lodbuilder.build_archive(tmp_path / "c.npy", tmp_path / "c.h5", _tile_points=100, voxel_size=1.0, band_radius=2.5)
+    with lodbuilder.open_archive(tmp_path / "c.h5") as a:
+        build = a.scan().build
+    assert build["tiled"]["tiles"] >= 20
+    assert np.unique(_band_labels(pts, 1.0, 2.5)).size == build["engine_stats"]["pieces"] == 10
+
+
+def test_tiled_and_in_memory_builds_count_the_same_pieces(scene, tmp_path):
+    d, pts, built = scene
+    _, build, _ = built[600]
+    ref = tmp_path / "m.h5"
+    lodbuilder.build_archive(d / "fr.npy", ref, voxel_size=build["voxel_size"], band_radius=build["band_radius"])
+    with lodbuilder.open_archive(ref) as a:
+        mem = a.scan().build["engine_stats"]
+    tiled = build["engine_stats"]
+    assert mem["pieces"] == tiled["pieces"]
+    # every piece entered by the same level in both (orders differ in between)
+    assert max(mem["piece_entries"]) < 500 and max(tiled["piece_entries"]) < 500
+
+
+def test_slice_and_evaluate_say_the_pieces_of_a_tiled_level(scene, capsys, tmp_path):
+    d, pts, built = scene
+    arc, build, order = built[3000]
+    entries, total = build["engine_stats"]["piece_entries"], build["engine_stats"]["pieces"]
+    reached = sum(e < 40 for e in entries)
+    rc, out, err = run_cli(capsys, "slice", arc, "--size", 40, "-o", tmp_path / "x.ply")
+    assert rc == 0, err
+    assert out.strip().endswith(f"; reaches {reached} of the scan's {total} pieces)")
+    rc, out, err = run_cli(capsys, "evaluate", arc, "--sizes", "1", "40")
+    assert rc == 0, err
+    lines = out.splitlines()
+    assert lines[1].rstrip().endswith("pieces")
+    assert lines[2].rstrip().endswith(f"1/{total}") and lines[3].rstrip().endswith(f"{reached}/{total}")
