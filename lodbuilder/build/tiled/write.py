@@ -24,7 +24,7 @@ from ...archive import layout as L
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
 from . import layout as WL
-from .store import Store, Writer, as_store
+from .store import LocalStore, Store, Writer, as_store
 from .timing import timed_task
 from .workdir import blocks, opaque_rows, read_rows
 
@@ -150,6 +150,8 @@ def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tupl
                radii: dict[str, Any]) -> Any:
     """Write the bucketed points (``buckets``: what :func:`buckets_phase` recorded) in stored
     order as the part ``part``, with their radii and parents (``radii``: the radii's bands)."""
+    if isinstance(work, LocalStore):  # (the one-process reference write reads a local directory)
+        work = work.root
     try:
         return _write_buckets(work, part, name, n, fields, metadata, encoding, seeds, build, provenance, progress,
                               buckets, radii)
