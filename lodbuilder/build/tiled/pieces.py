@@ -26,13 +26,12 @@ from typing import Any
 import numpy as np
 
 from ...progress import ProgressCallback
-from . import layout as WL
 from .blocks import tile_records
 from .pool import collect, submit
+from .ranks import gather_ranks
 from .sums import done, mark
 from .sums import publish as _publish
 from .timing import timed_task
-from .workdir import gather
 
 #: a point a tile shares with another tile (borrowed, or its own near its box), with its local piece
 LINK = np.dtype([("g", "<i8"), ("piece", "<i8")])
@@ -106,7 +105,7 @@ def pieces_tile(work: str, t: int, tile: dict[str, Any], core: list[str], others
     xyz = _xyz(ext)
     piece, npiece = _band_pieces(xyz, voxel_size, band_radius, np.asarray(lattice, float), max_memory)
     first = np.full(int(npiece), np.iinfo(np.int64).max, np.int64)
-    np.minimum.at(first, piece, gather(w / WL.RANK, "<i8", (), ext["g"]))
+    np.minimum.at(first, piece, gather_ranks(w, ext["g"]))
     shared = np.ones(ext.shape[0], bool)  # borrowed points, and own points other tiles may borrow
     shared[: own.shape[0]] = ~_near_box(xyz[: own.shape[0]], lo + d, hi - d, 0.0)  # (not deep inside)
     links = np.empty(int(shared.sum()), LINK)
