@@ -158,16 +158,21 @@ def test_compiler_pages_dropped_are_clean_copies_of_the_library_only():
                                                      (0x7F0000001000, 0x7F0000005000)]
 
 
-def _library_rss_kib(name: str) -> int:
+def _rss_kib(matches) -> int:
+    """Resident KiB of this process's mappings whose path ``matches`` (from /proc/self/smaps)."""
     cur, tot = "", 0
     with open("/proc/self/smaps") as f:
         for line in f:
             p = line.split()
             if len(p) >= 5 and "-" in p[0] and not p[0].endswith(":"):
                 cur = p[5] if len(p) >= 6 else ""
-            elif p[0] == "Rss:" and name in cur:
+            elif p[0] == "Rss:" and matches(cur):
                 tot += int(p[1])
     return tot
+
+
+def _library_rss_kib(name: str) -> int:
+    return _rss_kib(lambda path: name in path)
 
 
 @pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux only")
@@ -191,15 +196,7 @@ def test_large_builds_give_the_compilers_pages_back_and_the_kernels_still_run(tm
 
 
 def _mapping_rss_kib(path) -> int:
-    cur, tot = "", 0
-    with open("/proc/self/smaps") as f:
-        for line in f:
-            p = line.split()
-            if len(p) >= 5 and "-" in p[0] and not p[0].endswith(":"):
-                cur = p[5] if len(p) >= 6 else ""
-            elif p[0] == "Rss:" and cur == str(path):
-                tot += int(p[1])
-    return tot
+    return _rss_kib(lambda cur: cur == str(path))
 
 
 @pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux only")

@@ -297,13 +297,7 @@ def find_after(keys, i, key):  # pragma: no cover - compiled
         lo = hi + 1
         hi = lo + step
         step *= 2
-    hi = min(hi, n)
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
+    lo += lower_bound(keys[lo:min(hi, n)], key)
     return lo if lo < n and keys[lo] == key else -1
 
 
