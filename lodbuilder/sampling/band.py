@@ -414,20 +414,14 @@ class Band:
         return sum(a.nbytes for a in arrays)
 
 
-def build_band(
-    points: np.ndarray,
-    h: float,
-    r: float,
-    max_memory: int | None = None,
-    *,
-    radius: np.ndarray | None = None,
-    normal: np.ndarray | None = None,
-    separation: np.ndarray | None = None,
-    depth_cost: float | None = None,
-) -> Band:
+def build_band(points: np.ndarray, h: float, r: float, max_memory: int | None = None, *,
+               radius: np.ndarray | None = None, normal: np.ndarray | None = None,
+               separation: np.ndarray | None = None, depth_cost: float | None = None,
+               lattice: np.ndarray | None = None) -> Band:
     """Build the band of radius ``r`` (or per-point ``radius``, input order) on a grid of spacing
     ``h`` around ``points``; where ``normal`` (input order, toward the other sheet at distance
-    ``separation``) is not zero, only on the side away from it."""
+    ``separation``) is not zero, only on the side away from it. ``lattice``: a point the grid's
+    voxel corners fall on (a part of a larger scan on that scan's grid)."""
     from .._kernels.grid import band_voxels, neighbour_table
     from .._kernels.topology import nearest_corners
 
@@ -436,7 +430,7 @@ def build_band(
         raise InputError(f"points has {n:,} points; at most {MAX_POINTS:,} can be ordered in one run")
     if max_memory is None:
         max_memory = default_max_memory()
-    origin = _grid_origin(points, h, r, radius)
+    origin = _grid_origin(points, h, r, radius, lattice)
     budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
     cell_keys, perm, u, ostart = cells(points, origin, h)
     release_pages(points)  # (a scan set aside: the band reads only u from here on)
@@ -461,12 +455,15 @@ def build_band(
     return band
 
 
-def _grid_origin(points: np.ndarray, h: float, r: float, radius: np.ndarray | None) -> np.ndarray:
-    """The grid's origin, a margin of the largest band radius (+ 3 voxels) below the points;
-    refuses a grid too large to index."""
+def _grid_origin(points: np.ndarray, h: float, r: float, radius: np.ndarray | None,
+                 lattice: np.ndarray | None = None) -> np.ndarray:
+    """The grid's origin, a margin of the largest band radius (+ 3 voxels) below the points (on
+    ``lattice`` when given: a whole number of voxels from it); refuses a grid too large to index."""
     rmax = r if radius is None else max(r, float(radius.max()))
     margin = math.ceil(rmax / h) + 3
     origin = points.min(axis=0) - margin * h
+    if lattice is not None:
+        origin = lattice + h * np.floor((origin - lattice) / h)
     extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
     if extent > MAX_COORD:
         need = h * extent / MAX_COORD

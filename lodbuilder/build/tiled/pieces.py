@@ -64,25 +64,18 @@ def _xyz(rec: np.ndarray) -> np.ndarray:
 
 def _band_pieces(xyz: np.ndarray, h: float, r: float, lattice: np.ndarray, max_memory: int | None
                  ) -> tuple[np.ndarray, int]:
-    """The band piece of every point (and their count) on the grid of the whole scan's band. A
-    band's grid starts a whole number of voxels below its lowest point, and the whole scan's
-    lowest point is ``lattice``: so the band is built with one more point, lowest, a whole number
-    of voxels from ``lattice`` and farther than :func:`reach` from every point (a piece of its
-    own, dropped from the answer)."""
+    """The band piece of every point (and their count) on the grid of the whole scan's band (its
+    voxel corners a whole number of voxels from ``lattice``, the whole scan's lowest point)."""
     from ..._kernels.topology import point_pieces
     from ...sampling.band import build_band
 
     if xyz.shape[0] == 0:
         return np.zeros(0, np.int64), 0
-    low = lattice + h * (np.floor((xyz.min(axis=0) - lattice) / h) - np.ceil(reach(h, r) / h) - 1)
-    band = build_band(np.vstack([xyz, low]), h, r, max_memory)
+    band = build_band(xyz, h, r, max_memory, lattice=lattice)
     bpiece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
-    piece = np.empty(xyz.shape[0] + 1, np.int64)
+    piece = np.empty(xyz.shape[0], np.int64)
     piece[band.perm] = bpiece  # (band order -> point order)
-    lone = piece[-1]
-    piece = piece[:-1]
-    piece[piece > lone] -= 1
-    return piece, int(npiece) - 1
+    return piece, int(npiece)
 
 
 @timed_task
