@@ -1,7 +1,7 @@
 """Checksums of a tiled build's work files, so that a resumed build never trusts a damaged one.
 
 Every raw work file is written with its size and CRC-32, computed from the bytes as they are
-written (:meth:`.store.Store.writer`, :meth:`.store.Store.put`; :class:`SumFile` and :func:`publish`
+written (:meth:`.store.Store.writer`, :meth:`.store.Store.put`; :func:`publish`
 for a local path); the marker (a small JSON file) that records a finished
 phase or tile task lists them under ``"files"``, and carries a CRC-32 of its own text on its last
 line. On a resume, :func:`done` trusts a marker only when its text and every file it lists check
@@ -31,40 +31,6 @@ from .store import LocalStore, Store, as_store
 log = logging.getLogger(__name__)
 
 CHUNK = 1 << 23  # bytes per read when a file is checked
-
-
-def _nbytes(data: Any) -> int:
-    return int(data.nbytes) if isinstance(data, np.ndarray) else memoryview(data).nbytes
-
-
-class SumFile:
-    """A work file opened for writing that keeps the size and CRC-32 of what is written."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._f = open(path, "wb")  # noqa: SIM115 - closed by close() / the context manager
-        self.size = 0
-        self.crc = 0
-
-    def write(self, data: Any) -> None:
-        if isinstance(data, np.ndarray):
-            data = np.ascontiguousarray(data)
-        self.crc = zlib.crc32(cast(Any, data), self.crc)
-        self.size += _nbytes(data)
-        self._f.write(data)
-
-    def close(self) -> None:
-        self._f.close()
-
-    @property
-    def sum(self) -> list[int]:
-        return [self.size, self.crc]
-
-    def __enter__(self) -> SumFile:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
 
 
 def sum_array(arr: np.ndarray) -> list[int]:

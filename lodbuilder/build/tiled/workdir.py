@@ -18,7 +18,7 @@ import numpy as np
 
 from . import layout as WL
 from .store import LocalStore, Store
-from .sums import SumFile, read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
+from .sums import read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
 
 REC = WL.REC
 BLOCK = 1 << 20  # rows per read/write block
