@@ -44,6 +44,7 @@ from benchdoc import load_run, write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
+TREE = os.environ.get("LODBUILDER_BENCH_TREE", str(ROOT))  # the source tree --set times (--tree)
 
 
 def bunny_points() -> np.ndarray:
@@ -199,6 +200,8 @@ main(["build", sys.argv[1], "-o", sys.argv[2], "--no-progress"])
 marks["build_s"] = time.perf_counter() - t0
 import resource
 marks["process_peak"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+use = resource.getrusage(resource.RUSAGE_SELF)  # the whole process: start-up and imports included
+marks["process_cpu_s"] = use.ru_utime + use.ru_stime
 print(json.dumps(marks))
 """
 
@@ -322,14 +325,18 @@ def load_set_input(spec: str, n: int) -> np.ndarray:
 
 
 def build_rss(path: Path, tree: str) -> dict:
-    """``lodbuilder build`` of ``path`` in a fresh process: its wall time and peak RSS."""
+    """``lodbuilder build`` of ``path`` in a fresh process: its wall time and peak RSS, and the
+    whole process's wall time (measured here: interpreter start-up, imports, read, ordering and
+    write) and CPU time (user + system)."""
     import tempfile
 
     env = dict(os.environ, PYTHONPATH=tree)
     with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
         res = subprocess.run([sys.executable, "-c", _RSS_CODE, str(path), str(Path(tmp) / "a.h5")],
                              env=env, cwd=tree, capture_output=True, text=True, check=True)
-    return json.loads(res.stdout.strip().splitlines()[-1])
+        wall = time.perf_counter() - t0
+    return json.loads(res.stdout.strip().splitlines()[-1]) | {"process_s": wall}
 
 
 def input_set(n: int, data: Path, survey: Path | None, repeat: int, only: list[str] | None) -> list[dict]:
@@ -352,7 +359,7 @@ def input_set(n: int, data: Path, survey: Path | None, repeat: int, only: list[s
                 continue
             load = os.getloadavg()
             cmd = [sys.executable, __file__, "--set-one", spec, "--set-n", str(n), "--repeat", str(repeat)]
-            res = subprocess.run(cmd, capture_output=True, text=True)
+            res = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=TREE))
             if res.returncode:
                 row = {"input": label, "failed": res.stderr.strip().splitlines()[-1][:300]}
                 out.append(row)
@@ -362,10 +369,13 @@ def input_set(n: int, data: Path, survey: Path | None, repeat: int, only: list[s
             if path is None:
                 path = Path(tmp) / f"{spec}.ply"
                 write_points(path, synthetic(spec, n).astype(np.float32).astype(np.float64))
-            m = build_rss(path, str(ROOT))
-            row["build_s"] = m["build_s"]
+            m = build_rss(path, TREE)
+            row["build_s"], row["build_process_s"] = m["build_s"], m["process_s"]
+            row["build_process_cpu_s"] = m["process_cpu_s"]
             if isinstance(row["fpsample_time_s"], float):
                 row["build_ratio_to_fpsample"] = m["build_s"] / row["fpsample_time_s"]
+                row["build_process_ratio_to_fpsample"] = m["process_s"] / row["fpsample_time_s"]
+                row["build_process_cpu_ratio_to_fpsample"] = m["process_cpu_s"] / row["fpsample_cpu_s"]
             row["build_peak_rss_bytes_per_point"] = m["process_peak"] / row["n"]
             row["engine_share_bytes_per_point"] = (m["engine_peak"] - m["before_engine"]) / row["n"]
             row["load_avg"] = [load, os.getloadavg()]
@@ -396,7 +406,7 @@ def set_rss(n: int, survey: Path | None, only: list[str] | None) -> list[dict]:
                 pts = synthetic(kind, n).astype(np.float32).astype(np.float64)
                 path, npts = Path(tmp) / f"{kind}.ply", len(pts)
                 write_points(path, pts)
-            m = build_rss(path, str(ROOT))
+            m = build_rss(path, TREE)
             row = {"input": label, "n": npts, "build_s": m["build_s"],
                    "build_peak_rss_bytes_per_point": m["process_peak"] / npts,
                    "engine_share_bytes_per_point": (m["engine_peak"] - m["before_engine"]) / npts}
@@ -418,10 +428,15 @@ def set_summary(rows: list[dict], n: int) -> dict:
         return (max(v), statistics.median(v)) if v else (None, None)
 
     wall, cpu = worst_median("ratio_to_fpsample"), worst_median("cpu_ratio_to_fpsample")
+    pwall = worst_median("build_process_ratio_to_fpsample")
+    pcpu = worst_median("build_process_cpu_ratio_to_fpsample")
     return {
         "inputs_at_full_size": [r["input"] for r in full],
         "worst_ratio_full_size": wall[0], "median_ratio_full_size": wall[1],
         "worst_cpu_ratio_full_size": cpu[0], "median_cpu_ratio_full_size": cpu[1],
+        "worst_build_process_ratio_full_size": pwall[0], "median_build_process_ratio_full_size": pwall[1],
+        "worst_build_process_cpu_ratio_full_size": pcpu[0],
+        "median_build_process_cpu_ratio_full_size": pcpu[1],
         "worst_build_rss_bytes_per_point_full_size": max(
             (r["build_peak_rss_bytes_per_point"] for r in full), default=None),
         "fpsample_stopped": [r["input"] for r in rows if isinstance(r.get("fpsample_time_s"), str)],
@@ -461,7 +476,7 @@ def cold_start(trees: dict[str, str], repeat: int) -> dict:
 
 
 def main() -> None:
-    global SHARED
+    global SHARED, TREE
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 4_000_000])  # none: skip
     ap.add_argument("--no-bunny", action="store_true")
@@ -490,8 +505,12 @@ def main() -> None:
     ap.add_argument("--rss-only", action="store_true",
                     help="with --set: only the peak RSS of lodbuilder build of the synthetic inputs and the survey")
     ap.add_argument("--data", default=str(SHARED), help="the real scans (default ../shared/data)")
+    ap.add_argument("--tree", help="with --set: the source tree to time (default: this one), e.g. a "
+                    "checkout of main for a before/after comparison with this benchmark program")
     ap.add_argument("--set-one", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.tree:
+        TREE = os.environ["LODBUILDER_BENCH_TREE"] = str(Path(args.tree).resolve())
     if args.set_one:
         print(json.dumps(set_one(args.set_one, args.set_n, args.repeat)))
         return
@@ -518,6 +537,8 @@ def main() -> None:
         "command": " ".join(["python", "tools/bench_build.py", *sys.argv[1:]]),
         "git_commit": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
                                      capture_output=True, text=True).stdout.strip(),
+        "timed_tree_commit": subprocess.run(["git", "-C", TREE, "rev-parse", "--short", "HEAD"],
+                                            capture_output=True, text=True).stdout.strip(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "load_avg_at_start": os.getloadavg(),
         "machine": {
