@@ -4,6 +4,7 @@ pipeline and the CLI ask one place."""
 
 from __future__ import annotations
 
+import functools
 import math
 import mmap
 import os
@@ -149,6 +150,45 @@ def drop_compiler_pages() -> int:
         if madvise(start, end - start, MADV_DONTNEED) == 0:
             done += end - start
     return done
+
+
+def drop_library_pages() -> int:
+    """Drop the resident pages of every loaded file's clean mappings from this process (read-only,
+    no anonymous page: see :func:`clean_mappings`); returns the bytes of the mappings advised (0
+    where this is not Linux).
+
+    Besides the compiler (:func:`drop_compiler_pages`), start-up and reading leave code pages of
+    libraries the ordering never calls in the resident size: the readers' (lazrs, pyproj's
+    libproj and its SQLite, OpenSSL for laspy's HTTP client), Python's and numpy's start-up code:
+    about 29 MiB after reading a LAZ file, 12 MiB after a PLY file. They are clean copies of their
+    files: the kernel maps a page again from the page cache when it is used again (a minor fault;
+    the interpreter's and numpy's hot pages come back within milliseconds). smaps is read on every
+    call: a mapping found earlier could have been replaced by a writable one since."""
+    if _madvise() is None:
+        return 0
+    try:
+        with open("/proc/self/smaps") as f:
+            ranges = clean_mappings(f.read(), "/")  # every mapping of a file (not [vdso], [heap], ...)
+    except OSError:
+        return 0
+    done = 0
+    for start, end in ranges:
+        if _madvise()(start, end - start, MADV_DONTNEED) == 0:
+            done += end - start
+    return done
+
+
+@functools.lru_cache(maxsize=1)
+def _madvise() -> Any:
+    """libc's madvise (None where there is no glibc)."""
+    try:
+        import ctypes
+
+        madvise = ctypes.CDLL("libc.so.6").madvise
+    except (OSError, AttributeError):
+        return None
+    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    return madvise
 
 
 def clean_mappings(smaps: str, name: str) -> list[tuple[int, int]]:

@@ -26,7 +26,7 @@ import numpy as np
 from .._resources import (
     TRIM_MIN_POINTS,
     PassMap,
-    drop_compiler_pages,
+    drop_library_pages,
     map_large_blocks,
     release_pages,
 )
@@ -179,16 +179,17 @@ ASIDE_MIN_POINTS = 200_000  # below this a scan's arrays are a few MB: not worth
 
 def load_kernels(progress: ProgressCallback = None) -> None:
     """Load every kernel of the engine now (compiling them first when numba's cache is cold), then
-    give the compiler's pages back (:func:`lodbuilder._resources.drop_compiler_pages`). Loaded on
-    first call instead, each kernel brings some of LLVM's code back into the process in the middle
-    of its phase (about 10 MiB of it at the ordering's peak)."""
+    give the pages of the compiler's code and of every other library's back
+    (:func:`lodbuilder._resources.drop_library_pages`). Loaded on first call instead, each kernel
+    brings some of LLVM's code back into the process in the middle of its phase (about 10 MiB of
+    it at the ordering's peak)."""
     from .._kernels.warm import compile_group, ensure_compiled
 
     with _numba_without_scipy():
         ensure_compiled(progress)
         for group in ("band", "thin", "ordering"):
             compile_group(group)
-    drop_compiler_pages()
+    drop_library_pages()
 
 
 @contextlib.contextmanager
