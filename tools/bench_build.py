@@ -182,9 +182,10 @@ def rss():
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 marks = {}
 peak = [0]
+sampler_cpu = [0.0]
 def sample():
     while True:
-        peak[0] = max(peak[0], rss()); time.sleep(0.002)
+        peak[0] = max(peak[0], rss()); sampler_cpu[0] = time.thread_time(); time.sleep(0.002)
 threading.Thread(target=sample, daemon=True).start()
 import lodbuilder.sampling.fastfps as F
 run = F._run_engine
@@ -202,6 +203,7 @@ import resource
 marks["process_peak"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 use = resource.getrusage(resource.RUSAGE_SELF)  # the whole process: start-up and imports included
 marks["process_cpu_s"] = use.ru_utime + use.ru_stime
+marks["sampler_cpu_s"] = sampler_cpu[0]  # (this RSS sampler's own share of it)
 print(json.dumps(marks))
 """
 
@@ -372,6 +374,7 @@ def input_set(n: int, data: Path, survey: Path | None, repeat: int, only: list[s
             m = build_rss(path, TREE)
             row["build_s"], row["build_process_s"] = m["build_s"], m["process_s"]
             row["build_process_cpu_s"] = m["process_cpu_s"]
+            row["build_rss_sampler_cpu_s"] = m.get("sampler_cpu_s")
             if isinstance(row["fpsample_time_s"], float):
                 row["build_ratio_to_fpsample"] = m["build_s"] / row["fpsample_time_s"]
                 row["build_process_ratio_to_fpsample"] = m["process_s"] / row["fpsample_time_s"]
