@@ -328,11 +328,10 @@ _libc = None
 
 def _fallocate(fd: int, mode: int, offset: int, length: int) -> None:
     import ctypes
-    import ctypes.util
 
     global _libc
-    if _libc is None:
-        _libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+    if _libc is None:  # the process's own symbols, libc's among them (find_library("c") would run
+        _libc = ctypes.CDLL(None, use_errno=True)  # ldconfig and uname: two forks of this process)
     fn = getattr(_libc, "fallocate", None)
     if fn is None:
         raise OSError(errno.EOPNOTSUPP, "fallocate is not available")
