@@ -88,6 +88,7 @@ from .local import (
     near_plane,
     normals_at,
     on_sheet,
+    same_face,
 )
 from .surface import (
     MAX_TILT,
@@ -509,7 +510,7 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
             continue
         uv = grid.uv[nodes]
         d, _ = cKDTree(uv).query(local.tree2.data, k=1, distance_upper_bound=RING * rho)
-        ring = np.isfinite(d)
+        ring = same_face(np.isfinite(d), pts, frame.normal, seeds, rho)
         if ring.sum() < 12:
             continue
         normals = normals_at(pts[ring], pts)

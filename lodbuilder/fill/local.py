@@ -92,6 +92,22 @@ def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float
     return (nrm * sign[:, None]) @ normal
 
 
+def same_face(ring: np.ndarray, points: np.ndarray, normal: np.ndarray, seeds, rho: float):
+    """The mask ``ring`` (over ``points``) less the points facing away from the hole's side
+    (:func:`facing` <= :data:`FACING`, normals oriented along the surface from the ``seeds``
+    over all ``points``): the other face of a thin part, reached round a fold within the grid,
+    a rho or so behind the hole's face (an ear's tip) is not the hole's surface. Unchanged
+    when none face away, or half of the ring or more (then the seeds' side is not known)."""
+    if int(ring.sum()) < 12:
+        return ring
+    away = (facing(points, normal, seeds, rho, points) <= FACING)[ring]
+    if not away.any() or 2 * int(away.sum()) >= away.size:
+        return ring
+    out = ring.copy()
+    out[np.flatnonzero(ring)[away]] = False
+    return out
+
+
 def near_plane(local: np.ndarray, frame: Frame, rho: float, slope: float) -> np.ndarray:
     """Mask of the local points near the hole's plane: |h| <= rho + slope |uv| (a cone), which
     drops far sheets across the plane (at ``SLOPE``, 27 degrees, also a steep part of the
