@@ -365,3 +365,66 @@ def naive_sheet_cut(band, vcost: np.ndarray, normal: np.ndarray, sep: np.ndarray
                         if apart(f, p):
                             out[v] = np.inf
     return out
+
+
+def naive_seam_merge(streams: list[np.ndarray], head: np.ndarray, zone: float, cap: float = 1.0
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The tiled build's merge with its greedy seam zone, one candidate at a time in O(N^2).
+
+    ``streams``: per tile, rows (g, key, x, y, z, margin) by non-increasing key; ``head``: (h, 3)
+    points accepted first. A row with margin < ``zone`` x key is a zone row; the others come by
+    their tile's key (the largest first, ties: the lower tile). A zone point's distance to the
+    accepted points it measures against (the head, the zone points, the other rows with margin <
+    (``zone`` + 1) x key) is multiplied by its stretch: its key over its distance to the nearest
+    head point or row of its tile with margin < (``zone`` + 1) x key and a larger key, if that is
+    within its key, clipped to [1, ``cap``] (else 1). The zone point with the largest such value
+    comes as soon as it exceeds the next tile key, with that value as its key. Returns the input
+    index and key of every row in merged order (assumes no ties)."""
+    rows = [np.asarray(s, dtype=np.float64) for s in streams]
+    head = np.asarray(head, dtype=np.float64).reshape(-1, 3)
+    is_zone = [(r[:, 5] < zone * r[:, 1]) if zone > 0 else np.zeros(len(r), bool) for r in rows]
+    zrows, stretch = [], []
+    for t, r in enumerate(rows):
+        reach = r[r[:, 5] < (zone + 1.0) * r[:, 1]]
+        for x in r[is_zone[t]]:
+            cand = np.concatenate([head, reach[reach[:, 1] > x[1], 2:5]])
+            e = np.sqrt(((cand - x[2:5]) ** 2).sum(-1)).min() if len(cand) else np.inf
+            ok = np.isfinite(x[1]) and x[1] > 0 and 0 < e <= x[1]
+            zrows.append(x)
+            stretch.append(min(max(x[1] / e, 1.0), cap) if ok else 1.0)
+    zrows = np.asarray(zrows).reshape(-1, 6)
+    st = np.asarray(stretch)
+    alive = np.ones(len(zrows), bool)
+    pos = [0] * len(rows)
+    acc = [head]
+    g_out, k_out = [], []
+    while True:
+        for t, r in enumerate(rows):  # skip the zone rows at the head of each stream
+            while pos[t] < len(r) and is_zone[t][pos[t]]:
+                pos[t] += 1
+        ks, best = -1.0, -1
+        for t, r in enumerate(rows):
+            if pos[t] < len(r) and r[pos[t], 1] > ks:
+                ks, best = r[pos[t], 1], t
+        dz, iz = -1.0, -1
+        if alive.any():
+            a = np.concatenate(acc)
+            idx = np.flatnonzero(alive)
+            d = np.sqrt(((zrows[idx, None, 2:5] - a[None, :, :]) ** 2).sum(-1)).min(axis=1) * st[idx]
+            iz = int(idx[np.argmax(d)])
+            dz = float(d.max())
+        if best < 0 and iz < 0:
+            break
+        if iz >= 0 and dz > ks:
+            alive[iz] = False
+            g_out.append(int(zrows[iz, 0]))
+            k_out.append(dz)
+            acc.append(zrows[iz, 2:5][None])
+            continue
+        row = rows[best][pos[best]]
+        pos[best] += 1
+        g_out.append(int(row[0]))
+        k_out.append(float(row[1]))
+        if zone > 0 and row[5] < (zone + 1.0) * row[1]:
+            acc.append(row[2:5][None])
+    return np.asarray(g_out, dtype=np.int64), np.asarray(k_out)

@@ -1,4 +1,4 @@
-"""Kernels of the tiled (out-of-core) build: the seam-repairing k-way merge of tile orderings, the
+"""Kernels of the tiled (out-of-core) build: the k-way merge of tile orderings with its greedy seam zone, the
 exact covering pass over a tile and its halo, and the merge of per-tile covering events.
 
 Spatial lookups use a hash grid of cubic cells (open addressing on the cell key, one linked list
@@ -70,22 +70,6 @@ def table_size(n: int) -> int:
 # ------------------------------------------------------------------------------------ heaps
 
 @nb.njit(**JIT)
-def _up(hkey, hitem, i):  # pragma: no cover - compiled
-    """Max-heap sift up (ties: smaller item first)."""
-    k = hkey[i]
-    it = hitem[i]
-    while i > 0:
-        p = (i - 1) >> 1
-        if hkey[p] > k or (hkey[p] == k and hitem[p] < it):
-            break
-        hkey[i] = hkey[p]
-        hitem[i] = hitem[p]
-        i = p
-    hkey[i] = k
-    hitem[i] = it
-
-
-@nb.njit(**JIT)
 def _down(hkey, hitem, i, n):  # pragma: no cover - compiled
     k = hkey[i]
     it = hitem[i]
@@ -107,10 +91,9 @@ def _down(hkey, hitem, i, n):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------ seam merge
 
 @nb.njit(**JIT)
-def _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius):  # pragma: no cover
-    """Distance from p to the nearest indexed point of another tile (or the head) within ``radius``
-    (inf if none)."""
-    best = np.inf
+def _nearest(ax, tkeys, thead, nxt, mask, lo, cell, px, py, pz, radius):  # pragma: no cover - compiled
+    """Distance from p to the nearest indexed point within ``radius`` (``radius`` if none is nearer)."""
+    best = radius
     cx0 = cell_of(px - radius, lo[0], cell)
     cx1 = cell_of(px + radius, lo[0], cell)
     cy0 = cell_of(py - radius, lo[1], cell)
@@ -125,29 +108,60 @@ def _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, pti
                     continue
                 j = thead[s]
                 while j >= 0:
-                    if atile[j] != ptile:
-                        dx = ax[j, 0] - px
-                        dy = ax[j, 1] - py
-                        dz = ax[j, 2] - pz
-                        d = np.sqrt(dx * dx + dy * dy + dz * dz)
-                        if d < best:
-                            best = d
+                    dx = ax[j, 0] - px
+                    dy = ax[j, 1] - py
+                    dz = ax[j, 2] - pz
+                    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    if d < best:
+                        best = d
                     j = nxt[j]
     return best
 
 
 @nb.njit(**JIT)
-def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
-               dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key):  # pragma: no cover
-    """Merge tile streams by descending key, repairing seams (see lodbuilder.build.tiled.merge).
+def _index(ax, tkeys, thead, nxt, lo, cell, mask, n_acc, px, py, pz):  # pragma: no cover - compiled
+    """Append p to the accepted points and to the grid (once it has a finite cell); returns the count."""
+    ax[n_acc, 0] = px
+    ax[n_acc, 1] = py
+    ax[n_acc, 2] = pz
+    if cell < np.inf:
+        grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
+    return n_acc + 1
+
+
+@nb.njit(**JIT)
+def _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc):  # pragma: no cover - compiled
+    for s in range(tkeys.shape[0]):
+        tkeys[s] = -1
+    for j in range(n_acc):
+        grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, j)
+
+
+@nb.njit(**JIT)
+def _save(state, n_out, n_acc, cell, nz):  # pragma: no cover - compiled
+    state[0] = n_out
+    state[1] = n_acc
+    state[2] = cell
+    state[3] = nz
+
+
+@nb.njit(**JIT)
+def seam_merge(bufs, bpos, blen, theap, tn, state, ax, tkeys, thead, nxt, zub, zitem, zrows, lo, zone,
+               out_g, out_key):  # pragma: no cover - compiled
+    """Merge tile streams by descending key, re-ordering the seam zone greedily (see
+    lodbuilder.build.tiled.merge; tests/naive.py: ``seam_merge``).
 
     ``bufs`` (T, B, 6): per tile, rows (g, key, x, y, z, margin) of its stream; ``bpos``/``blen``
     the read position and length of each buffer. ``theap``/``tn``: max-heap (T, 2) of the tiles
     with rows left, by their next key (ties: lower tile); the caller refills the buffer of the top
-    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`). ``state`` (float64):
-    [n_out, n_acc, cell, n_dem, n_demoted_total, min_cell]. ``ax``/``atile``: accepted seam
-    points (and the head, tile -1), indexed in the hash grid (``tkeys``/``thead``/``nxt``).
-    ``dheap_*``: max-heap of demoted points (slots into ``dpool`` (D, 6) rows and ``dtile``).
+    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`).
+    A row with margin < ``zone`` x key is a *zone* row: it is skipped here, its copy in ``zrows``
+    (Z, 6: g, key, x, y, z, stretch) is merged from the zone heap (``zub``/``zitem``: upper bounds
+    of the zone points' distances to the accepted points times their stretch, a max-heap, ties:
+    smaller item first). ``ax``: the accepted
+    points that zone points measure against (the head, the zone points, the other rows with margin
+    < (``zone`` + 1) x key), in the hash grid ``tkeys``/``thead``/``nxt`` of cell ``state[2]``.
+    ``state`` (float64): [n_out, n_acc, cell, n_zone_left, evaluations, min_cell, promoted, demoted].
 
     Returns (code, t): 0 = all merged; 1 = the buffer of tile t (at the top of the tile heap) needs
     a refill; 2 = the output buffer is full.
@@ -155,101 +169,74 @@ def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
     n_out = np.int64(state[0])
     n_acc = np.int64(state[1])
     cell = state[2]
-    n_dem = np.int64(state[3])
+    nz = np.int64(state[3])
     min_cell = state[5]
     mask = tkeys.shape[0] - 1
     cap = out_g.shape[0]
+    reach = zone + 1.0 if zone > 0.0 else 0.0  # no zone: nothing to measure against
     while True:
         if n_out >= cap:
-            state[0] = n_out
-            state[1] = n_acc
-            state[2] = cell
-            state[3] = n_dem
+            _save(state, n_out, n_acc, cell, nz)
             return 2, -1
-        # next candidate: the top tile stream or the top demoted point
         ks = -1.0
         t = -1
         if tn > 0:
             t = np.int64(theap[0, 1])
             if bpos[t] >= blen[t]:  # exhausted buffer: a refill (the caller pops a finished tile)
-                state[0] = n_out
-                state[1] = n_acc
-                state[2] = cell
-                state[3] = n_dem
+                _save(state, n_out, n_acc, cell, nz)
                 return 1, t
             ks = bufs[t, bpos[t], 1]
-        kd = dheap_key[0] if n_dem > 0 else -1.0
-        if ks < 0.0 and kd < 0.0:
+            if bufs[t, bpos[t], 5] < zone * ks:  # a zone row: merged from the zone heap
+                bpos[t] += 1
+                if bpos[t] < blen[t]:
+                    theap[0, 0] = bufs[t, bpos[t], 1]
+                    _tile_sift(theap, tn)
+                continue
+        kz = zub[0] if nz > 0 else -1.0
+        if ks < 0.0 and kz < 0.0:
             break
-        if ks >= kd:
+        if ks >= kz:  # the tile row: its tile's key
             row = bufs[t, bpos[t]]
-            g = np.int64(row[0])
-            key = row[1]
-            px = row[2]
-            py = row[3]
-            pz = row[4]
-            margin = row[5]
-            ptile = t
+            out_g[n_out] = np.int64(row[0])
+            out_key[n_out] = ks
+            n_out += 1
+            if row[5] < reach * ks:
+                n_acc = _index(ax, tkeys, thead, nxt, lo, cell, mask, n_acc, row[2], row[3], row[4])
             bpos[t] += 1
             if bpos[t] < blen[t]:
                 theap[0, 0] = bufs[t, bpos[t], 1]
                 _tile_sift(theap, tn)
-            # else: the stale key keeps tile t on top; the next turn asks for its refill
+            continue
+        # the zone point with the largest bound: its distance to the accepted points
+        i = zitem[0]
+        if kz < 0.5 * cell and kz > 0.0:
+            cell = max(kz, min_cell)
+            _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc)
+        st = zrows[i, 5]  # its stretch: Euclidean distances to the tiles' metric
+        d = st * _nearest(ax, tkeys, thead, nxt, mask, lo, cell, zrows[i, 2], zrows[i, 3], zrows[i, 4], kz / st)
+        state[4] += 1
+        second = ks
+        for c in (1, 2):
+            if c < nz and zub[c] > second:
+                second = zub[c]
+        if d >= second:  # still the largest: accepted at that distance
+            nz -= 1
+            if nz > 0:
+                zub[0] = zub[nz]
+                zitem[0] = zitem[nz]
+                _down(zub, zitem, 0, nz)
+            out_g[n_out] = np.int64(zrows[i, 0])
+            out_key[n_out] = d
+            n_out += 1
+            if d > zrows[i, 1]:
+                state[6] += 1
+            elif d < zrows[i, 1]:
+                state[7] += 1
+            n_acc = _index(ax, tkeys, thead, nxt, lo, cell, mask, n_acc, zrows[i, 2], zrows[i, 3], zrows[i, 4])
         else:
-            slot = dheap_item[0]
-            key = dheap_key[0]
-            n_dem -= 1
-            if n_dem > 0:
-                dheap_key[0] = dheap_key[n_dem]
-                dheap_item[0] = dheap_item[n_dem]
-                _down(dheap_key, dheap_item, 0, n_dem)
-            g = np.int64(dpool[slot, 0])
-            px = dpool[slot, 2]
-            py = dpool[slot, 3]
-            pz = dpool[slot, 4]
-            margin = dpool[slot, 5]
-            ptile = dtile[slot]
-        seam = margin < key
-        if seam and alpha > 0.0 and np.isfinite(key):
-            radius = alpha * key
-            if key < 0.5 * cell and key > 0.0:
-                cell = max(key, min_cell)
-                for s in range(tkeys.shape[0]):
-                    tkeys[s] = -1
-                for j in range(n_acc):
-                    grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, j)
-            d = _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius)
-            if d < radius:
-                # too close to an accepted point of another tile: wait until the radius allows it
-                slot = np.int64(state[4])
-                state[4] += 1
-                dpool[slot, 0] = g
-                dpool[slot, 1] = d / alpha
-                dpool[slot, 2] = px
-                dpool[slot, 3] = py
-                dpool[slot, 4] = pz
-                dpool[slot, 5] = margin
-                dtile[slot] = ptile
-                dheap_key[n_dem] = d / alpha
-                dheap_item[n_dem] = slot
-                _up(dheap_key, dheap_item, n_dem)
-                n_dem += 1
-                continue
-        out_g[n_out] = g
-        out_key[n_out] = key
-        n_out += 1
-        if seam:
-            ax[n_acc, 0] = px
-            ax[n_acc, 1] = py
-            ax[n_acc, 2] = pz
-            atile[n_acc] = ptile
-            if cell < np.inf:
-                grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
-            n_acc += 1
-    state[0] = n_out
-    state[1] = n_acc
-    state[2] = cell
-    state[3] = n_dem
+            zub[0] = d
+            _down(zub, zitem, 0, nz)
+    _save(state, n_out, n_acc, cell, nz)
     return 0, -1
 
 
