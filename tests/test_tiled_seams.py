@@ -51,36 +51,32 @@ def _store(tmp_path, pts, head, streams):
     return w
 
 
-@pytest.mark.parametrize(("seed", "alpha", "band"), [(0, 1.0, 1.0), (1, 1.0, 1.3), (2, 0.25, 1.3), (3, 0.25, 4.0)])
-def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, band):
+@pytest.mark.parametrize(("seed", "alpha"), [(0, 0.25), (1, 0.5), (2, 0.75), (3, 0.5)])
+def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha):
     """The merge kernel (tile buffers of 7 rows and an output buffer of 5: every refill and flush
-    path) gives the naive merge's order and keys: zone points by their distance to the accepted
-    points times their stretch (keys ``band`` x the Euclidean ones, as band distances longer than
-    the Euclidean: a stretch up to (1 + alpha) / (2 alpha)), the others by their tile's key."""
+    path) gives the naive merge's order and keys: tiles ordered without seeing each other, their
+    seam rows demoted and replaced; without the repair, the tiles' keys merged as they are."""
     from lodbuilder.build.tiled import merge as M
 
     rng = np.random.default_rng(seed)
     pts, head, streams = _streams(rng)
-    for s in streams:
-        s[:, 1] *= band
     w = _store(tmp_path, pts, head, streams)
     monkeypatch.setattr(M, "BUF", 7)
     monkeypatch.setattr(M.W, "BLOCK", 5)
-    res = M.merge_tiles(w, len(pts), len(streams), [0] * len(streams), alpha, np.zeros(3), 1e-6)
-    order = w.read_array(WL.ORDER, "<i8")
-    key = w.read_array(WL.KEY, "<f8")
-    g, k = naive_seam_merge(streams, pts[head], M.ZONE, (1 + alpha) / (2 * alpha))
-    np.testing.assert_array_equal(order[: len(head)], head)
-    np.testing.assert_array_equal(order[len(head):], g)
-    np.testing.assert_allclose(key[len(head):], k, rtol=1e-12)
-    assert np.array_equal(np.sort(order), np.arange(len(pts)))
-    assert np.all(np.diff(key[len(head):]) <= 0)
-    assert res["zone_points"] == sum(int((s[:, 5] < M.ZONE * s[:, 1]).sum()) for s in streams) > 0
-    # without the zone: the tiles' keys merged as they are
-    M.merge_tiles(w, len(pts), len(streams), [0] * len(streams), 0.0, np.zeros(3), 1e-6)
-    g0, k0 = naive_seam_merge(streams, pts[head], 0.0)
-    np.testing.assert_array_equal(w.read_array(WL.ORDER, "<i8")[len(head):], g0)
-    np.testing.assert_array_equal(w.read_array(WL.KEY, "<f8")[len(head):], k0)
+    seams = [int((s[:, 5] < s[:, 1]).sum()) for s in streams]
+    for a in (alpha, 0.0):
+        res = M.merge_tiles(w, len(pts), len(streams), seams, a, np.zeros(3), 1e-6)
+        order = w.read_array(WL.ORDER, "<i8")
+        key = w.read_array(WL.KEY, "<f8")
+        g, k = naive_seam_merge(streams, pts[head], a, M.ZONE, M.REACH, M.GAP, max(M.KEY_FLOOR, a))
+        np.testing.assert_array_equal(order[: len(head)], head)
+        np.testing.assert_array_equal(order[len(head):], g)
+        np.testing.assert_array_equal(key[len(head):], k)
+        assert np.array_equal(np.sort(order), np.arange(len(pts)))
+        if a > 0:  # the case demotes and replaces (the test sees both paths)
+            assert res["deferred"] > 0 and res["replaced"] > 0, res
+        else:
+            assert res["deferred"] == res["replaced"] == 0
 
 
 def _cross_spacing(p, tile, radius, start):
@@ -98,17 +94,17 @@ def _cross_spacing(p, tile, radius, start):
     return worst
 
 
-@pytest.mark.parametrize("surface", ["wavy", "patchy"])
-def test_seams_keep_half_the_radius_between_tiles(tmp_path, surface):
-    """Many tiny tiles, the default seam spacing: every stored radius is a true covering radius of
-    its prefix (brute force), every point is stored once, and points of different tiles (the head
-    counting as one more) are at least half the level's radius apart at every level."""
+@pytest.mark.parametrize(("surface", "alpha"), [("wavy", None), ("patchy", 0.5)])
+def test_seams_keep_points_of_different_tiles_apart(tmp_path, surface, alpha):
+    """Many tiny tiles: every stored radius is a true covering radius of its prefix (brute force),
+    every point is stored once, and points of different tiles (the head counting as one more) are
+    at least alpha / (1 + alpha) x the level's radius apart at every level (0.2 at the default)."""
     rng = np.random.default_rng(11)
     pts = wavy(6000, rng)
-    if surface == "patchy":  # uneven density: a dense patch and a sparse corner
+    if surface == "patchy":  # uneven density: a sparse strip and a dense patch
         pts = np.concatenate([pts[pts[:, 0] > 0.3], pts[(pts[:, 0] <= 0.3) & (rng.random(len(pts)) < 0.15)]])
         pts = np.concatenate([pts, wavy(3000, rng) * [0.2, 0.2, 1.0] + [0.5, 0.5, 0.0]])
-    d, _ = _build(tmp_path, pts, tile_points=400)
+    d, _ = _build(tmp_path, pts, tile_points=400, **({} if alpha is None else {"seam_spacing": alpha}))
     tiled = d["build"]["tiled"]
     n = len(pts)
     assert tiled["tiles"] >= 16
@@ -118,7 +114,8 @@ def test_seams_keep_half_the_radius_between_tiles(tmp_path, surface):
     p = pts[d["order"]]
     tile = _tile_of(p, tiled["tile_boxes"])
     tile[: tiled["head_points"]] = -1
-    assert _cross_spacing(p, tile, d["radius"], tiled["head_points"]) >= 0.5
+    a = tiled["seam_alpha"]
+    assert _cross_spacing(p, tile, d["radius"], tiled["head_points"]) >= a / (1 + a)
 
 
 def test_seams_cover_like_the_in_memory_build(tmp_path):

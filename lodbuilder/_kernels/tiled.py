@@ -1,4 +1,4 @@
-"""Kernels of the tiled (out-of-core) build: the k-way merge of tile orderings with its greedy seam zone, the
+"""Kernels of the tiled (out-of-core) build: the seam-repairing k-way merge of tile orderings, the
 exact covering pass over a tile and its halo, and the merge of per-tile covering events.
 
 Spatial lookups use a hash grid of cubic cells (open addressing on the cell key, one linked list
@@ -70,6 +70,22 @@ def table_size(n: int) -> int:
 # ------------------------------------------------------------------------------------ heaps
 
 @nb.njit(**JIT)
+def _up(hkey, hitem, i):  # pragma: no cover - compiled
+    """Max-heap sift up (ties: smaller item first)."""
+    k = hkey[i]
+    it = hitem[i]
+    while i > 0:
+        p = (i - 1) >> 1
+        if hkey[p] > k or (hkey[p] == k and hitem[p] < it):
+            break
+        hkey[i] = hkey[p]
+        hitem[i] = hitem[p]
+        i = p
+    hkey[i] = k
+    hitem[i] = it
+
+
+@nb.njit(**JIT)
 def _down(hkey, hitem, i, n):  # pragma: no cover - compiled
     k = hkey[i]
     it = hitem[i]
@@ -91,9 +107,11 @@ def _down(hkey, hitem, i, n):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------ seam merge
 
 @nb.njit(**JIT)
-def _nearest(ax, tkeys, thead, nxt, mask, lo, cell, px, py, pz, radius):  # pragma: no cover - compiled
-    """Distance from p to the nearest indexed point within ``radius`` (``radius`` if none is nearer)."""
-    best = radius
+def _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius):  # pragma: no cover
+    """Distances from p to the nearest indexed point of another tile (or the head) and to the nearest
+    indexed point of any tile, within ``radius`` (``radius`` where none is nearer)."""
+    other = radius
+    anyd = radius
     cx0 = cell_of(px - radius, lo[0], cell)
     cx1 = cell_of(px + radius, lo[0], cell)
     cy0 = cell_of(py - radius, lo[1], cell)
@@ -112,21 +130,186 @@ def _nearest(ax, tkeys, thead, nxt, mask, lo, cell, px, py, pz, radius):  # prag
                     dy = ax[j, 1] - py
                     dz = ax[j, 2] - pz
                     d = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    if d < best:
-                        best = d
+                    if d < anyd:
+                        anyd = d
+                    if atile[j] != ptile and d < other:
+                        other = d
                     j = nxt[j]
+    return other, anyd
+
+
+@nb.njit(**JIT)
+def _zone_index(zg, zperm, g):  # pragma: no cover - compiled
+    """Index of the zone row of input index g (-1 if none): binary search of the sorted ``zg``."""
+    lo_ = 0
+    hi_ = zg.shape[0]
+    while lo_ < hi_:
+        mid = (lo_ + hi_) >> 1
+        if zg[mid] < g:
+            lo_ = mid + 1
+        else:
+            hi_ = mid
+    if lo_ < zg.shape[0] and zg[lo_] == g:
+        return zperm[lo_]
+    return -1
+
+
+@nb.njit(**JIT)
+def _accept(ax, atile, tkeys, thead, nxt, lo, cell, mask, n_acc, px, py, pz, t):  # pragma: no cover
+    ax[n_acc, 0] = px
+    ax[n_acc, 1] = py
+    ax[n_acc, 2] = pz
+    atile[n_acc] = t
+    if cell < np.inf:
+        grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
+    return n_acc + 1
+
+
+@nb.njit(**JIT)
+def _replacement(zi, level, zone, ztile, zstate, cstart, cidx, ax, atile, tkeys, thead, nxt, mask, lo, cell,
+                 alpha, beta):  # pragma: no cover - compiled
+    """The candidate of zone row ``zi`` (its tile's later rows near it, :func:`seam_candidates`)
+    that is still in its stream, at least ``alpha`` x ``level`` from every indexed point of another
+    tile and farthest from every indexed point, if at least ``beta`` x ``level`` (else -1)."""
+    best = -1
+    bestd = beta * level
+    for c in range(cstart[zi], cstart[zi + 1]):
+        r = cidx[c]
+        if zstate[r] != 0:
+            continue
+        other, anyd = _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, zone[r, 2], zone[r, 3], zone[r, 4],
+                                ztile[r], level)
+        if other >= alpha * level and anyd >= bestd:
+            best = r
+            bestd = anyd
     return best
 
 
 @nb.njit(**JIT)
-def _index(ax, tkeys, thead, nxt, lo, cell, mask, n_acc, px, py, pz):  # pragma: no cover - compiled
-    """Append p to the accepted points and to the grid (once it has a finite cell); returns the count."""
-    ax[n_acc, 0] = px
-    ax[n_acc, 1] = py
-    ax[n_acc, 2] = pz
-    if cell < np.inf:
-        grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
-    return n_acc + 1
+def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+               dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key,
+               zone, ztile, zg, zperm, zstate, cstart, cidx, params):  # pragma: no cover
+    """Merge tile streams by descending key, repairing seams (see lodbuilder.build.tiled.merge;
+    tests/naive.py: ``naive_seam_merge``).
+
+    ``bufs`` (T, B, 6): per tile, rows (g, key, x, y, z, margin) of its stream; ``bpos``/``blen``
+    the read position and length of each buffer. ``theap``/``tn``: max-heap (T, 2) of the tiles
+    with rows left, by their next key (ties: lower tile); the caller refills the buffer of the top
+    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`).
+    ``state`` (float64): [n_out, n_acc, cell, n_dem, n_demoted_total, min_cell, replacements].
+    ``ax``/``atile``: accepted points (the head, tile -1, and the rows with margin < ``params[1]``
+    x key), indexed in the hash grid (``tkeys``/``thead``/``nxt``). ``dheap_*``: max-heap of
+    demoted points (slots into ``dpool`` (D, 7) rows: g, key, x, y, z, margin, zone row; ``dtile``).
+    ``zone`` (Z, 6): the rows with margin < ``params[0]`` x key (sorted input indices ``zg`` and
+    their rows ``zperm``; tiles ``ztile``; ``zstate``: 0 in its stream, 1 merged, 2 demoted), with
+    the candidates ``cidx[cstart[i]:cstart[i + 1]]`` that replace row i when it is demoted;
+    ``params[2]``: the smallest gap a replacement fills (x key).
+
+    Returns (code, t): 0 = all merged; 1 = the buffer of tile t (at the top of the tile heap) needs
+    a refill; 2 = the output buffer is full.
+    """
+    n_out = np.int64(state[0])
+    n_acc = np.int64(state[1])
+    cell = state[2]
+    n_dem = np.int64(state[3])
+    min_cell = state[5]
+    zfac = params[0]
+    reach = params[1]
+    beta = params[2]
+    mask = tkeys.shape[0] - 1
+    cap = out_g.shape[0] - 1  # room for a replacement
+    while True:
+        if n_out >= cap:
+            _save(state, n_out, n_acc, cell, n_dem)
+            return 2, -1
+        ks = -1.0
+        t = -1
+        if tn > 0:
+            t = np.int64(theap[0, 1])
+            if bpos[t] >= blen[t]:  # exhausted buffer: a refill (the caller pops a finished tile)
+                _save(state, n_out, n_acc, cell, n_dem)
+                return 1, t
+            ks = bufs[t, bpos[t], 1]
+        kd = dheap_key[0] if n_dem > 0 else -1.0
+        if ks < 0.0 and kd < 0.0:
+            break
+        fresh = ks >= kd
+        if fresh:
+            row = bufs[t, bpos[t]]
+            g = np.int64(row[0])
+            key = row[1]
+            px = row[2]
+            py = row[3]
+            pz = row[4]
+            margin = row[5]
+            ptile = t
+            bpos[t] += 1
+            if bpos[t] < blen[t]:
+                theap[0, 0] = bufs[t, bpos[t], 1]
+                _tile_sift(theap, tn)
+            # else: the stale key keeps tile t on top; the next turn asks for its refill
+            zi = _zone_index(zg, zperm, g) if margin < zfac * key else -1
+            if zi >= 0 and zstate[zi] == 1:
+                continue  # merged earlier, in place of a demoted point
+        else:
+            slot = dheap_item[0]
+            key = dheap_key[0]
+            n_dem -= 1
+            if n_dem > 0:
+                dheap_key[0] = dheap_key[n_dem]
+                dheap_item[0] = dheap_item[n_dem]
+                _down(dheap_key, dheap_item, 0, n_dem)
+            g = np.int64(dpool[slot, 0])
+            px = dpool[slot, 2]
+            py = dpool[slot, 3]
+            pz = dpool[slot, 4]
+            margin = dpool[slot, 5]
+            zi = np.int64(dpool[slot, 6])
+            ptile = dtile[slot]
+        seam = margin < key
+        if seam and alpha > 0.0 and np.isfinite(key):
+            if key < 0.5 * cell and key > 0.0:
+                cell = max(key, min_cell)
+                _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc)
+            d, _ = _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, alpha * key)
+            if d < alpha * key:
+                # too close to an accepted point of another tile: wait until the radius allows it
+                slot = np.int64(state[4])
+                state[4] += 1
+                dpool[slot, 0] = g
+                dpool[slot, 1] = d / alpha
+                dpool[slot, 2] = px
+                dpool[slot, 3] = py
+                dpool[slot, 4] = pz
+                dpool[slot, 5] = margin
+                dpool[slot, 6] = zi
+                dtile[slot] = ptile
+                dheap_key[n_dem] = d / alpha
+                dheap_item[n_dem] = slot
+                _up(dheap_key, dheap_item, n_dem)
+                n_dem += 1
+                if zi >= 0 and fresh:  # its first demotion: a later row of its tile may fill the gap
+                    zstate[zi] = 2
+                    r = _replacement(zi, key, zone, ztile, zstate, cstart, cidx, ax, atile, tkeys, thead, nxt,
+                                     mask, lo, cell, alpha, beta)
+                    if r >= 0:
+                        zstate[r] = 1
+                        out_g[n_out] = np.int64(zone[r, 0])
+                        out_key[n_out] = key
+                        n_out += 1
+                        state[6] += 1
+                        n_acc = _accept(ax, atile, tkeys, thead, nxt, lo, cell, mask, n_acc, zone[r, 2],
+                                        zone[r, 3], zone[r, 4], ztile[r])
+                continue
+        out_g[n_out] = g
+        out_key[n_out] = key
+        n_out += 1
+        if zi >= 0:
+            zstate[zi] = 1
+        if margin < reach * key:
+            n_acc = _accept(ax, atile, tkeys, thead, nxt, lo, cell, mask, n_acc, px, py, pz, ptile)
+    _save(state, n_out, n_acc, cell, n_dem)
+    return 0, -1
 
 
 @nb.njit(**JIT)
@@ -138,106 +321,11 @@ def _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc):  # pragma: no cover -
 
 
 @nb.njit(**JIT)
-def _save(state, n_out, n_acc, cell, nz):  # pragma: no cover - compiled
+def _save(state, n_out, n_acc, cell, n_dem):  # pragma: no cover - compiled
     state[0] = n_out
     state[1] = n_acc
     state[2] = cell
-    state[3] = nz
-
-
-@nb.njit(**JIT)
-def seam_merge(bufs, bpos, blen, theap, tn, state, ax, tkeys, thead, nxt, zub, zitem, zrows, lo, zone,
-               out_g, out_key):  # pragma: no cover - compiled
-    """Merge tile streams by descending key, re-ordering the seam zone greedily (see
-    lodbuilder.build.tiled.merge; tests/naive.py: ``seam_merge``).
-
-    ``bufs`` (T, B, 6): per tile, rows (g, key, x, y, z, margin) of its stream; ``bpos``/``blen``
-    the read position and length of each buffer. ``theap``/``tn``: max-heap (T, 2) of the tiles
-    with rows left, by their next key (ties: lower tile); the caller refills the buffer of the top
-    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`).
-    A row with margin < ``zone`` x key is a *zone* row: it is skipped here, its copy in ``zrows``
-    (Z, 6: g, key, x, y, z, stretch) is merged from the zone heap (``zub``/``zitem``: upper bounds
-    of the zone points' distances to the accepted points times their stretch, a max-heap, ties:
-    smaller item first). ``ax``: the accepted
-    points that zone points measure against (the head, the zone points, the other rows with margin
-    < (``zone`` + 1) x key), in the hash grid ``tkeys``/``thead``/``nxt`` of cell ``state[2]``.
-    ``state`` (float64): [n_out, n_acc, cell, n_zone_left, evaluations, min_cell, promoted, demoted].
-
-    Returns (code, t): 0 = all merged; 1 = the buffer of tile t (at the top of the tile heap) needs
-    a refill; 2 = the output buffer is full.
-    """
-    n_out = np.int64(state[0])
-    n_acc = np.int64(state[1])
-    cell = state[2]
-    nz = np.int64(state[3])
-    min_cell = state[5]
-    mask = tkeys.shape[0] - 1
-    cap = out_g.shape[0]
-    reach = zone + 1.0 if zone > 0.0 else 0.0  # no zone: nothing to measure against
-    while True:
-        if n_out >= cap:
-            _save(state, n_out, n_acc, cell, nz)
-            return 2, -1
-        ks = -1.0
-        t = -1
-        if tn > 0:
-            t = np.int64(theap[0, 1])
-            if bpos[t] >= blen[t]:  # exhausted buffer: a refill (the caller pops a finished tile)
-                _save(state, n_out, n_acc, cell, nz)
-                return 1, t
-            ks = bufs[t, bpos[t], 1]
-            if bufs[t, bpos[t], 5] < zone * ks:  # a zone row: merged from the zone heap
-                bpos[t] += 1
-                if bpos[t] < blen[t]:
-                    theap[0, 0] = bufs[t, bpos[t], 1]
-                    _tile_sift(theap, tn)
-                continue
-        kz = zub[0] if nz > 0 else -1.0
-        if ks < 0.0 and kz < 0.0:
-            break
-        if ks >= kz:  # the tile row: its tile's key
-            row = bufs[t, bpos[t]]
-            out_g[n_out] = np.int64(row[0])
-            out_key[n_out] = ks
-            n_out += 1
-            if row[5] < reach * ks:
-                n_acc = _index(ax, tkeys, thead, nxt, lo, cell, mask, n_acc, row[2], row[3], row[4])
-            bpos[t] += 1
-            if bpos[t] < blen[t]:
-                theap[0, 0] = bufs[t, bpos[t], 1]
-                _tile_sift(theap, tn)
-            continue
-        # the zone point with the largest bound: its distance to the accepted points
-        i = zitem[0]
-        if kz < 0.5 * cell and kz > 0.0:
-            cell = max(kz, min_cell)
-            _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc)
-        st = zrows[i, 5]  # its stretch: Euclidean distances to the tiles' metric
-        d = st * _nearest(ax, tkeys, thead, nxt, mask, lo, cell, zrows[i, 2], zrows[i, 3], zrows[i, 4], kz / st)
-        state[4] += 1
-        second = ks
-        for c in (1, 2):
-            if c < nz and zub[c] > second:
-                second = zub[c]
-        if d >= second:  # still the largest: accepted at that distance
-            nz -= 1
-            if nz > 0:
-                zub[0] = zub[nz]
-                zitem[0] = zitem[nz]
-                _down(zub, zitem, 0, nz)
-            out_g[n_out] = np.int64(zrows[i, 0])
-            out_key[n_out] = d
-            n_out += 1
-            if d > zrows[i, 1]:
-                state[6] += 1
-            elif d < zrows[i, 1]:
-                state[7] += 1
-            n_acc = _index(ax, tkeys, thead, nxt, lo, cell, mask, n_acc, zrows[i, 2], zrows[i, 3], zrows[i, 4])
-        else:
-            zub[0] = d
-            _down(zub, zitem, 0, nz)
-    _save(state, n_out, n_acc, cell, nz)
-    return 0, -1
+    state[3] = n_dem
 
 
 @nb.njit(**JIT)

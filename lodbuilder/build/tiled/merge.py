@@ -2,31 +2,27 @@
 
 **Merge.** The head (the coarse global level) comes first, in its own order. Then the tile streams
 are merged by descending key (an external k-way merge: each tile's stream is read block by block,
-never whole), except the *seam zone*: the rows closer to a face their tile shares with another
-than ``ZONE`` times their key. Two tiles that ordered their sides of a face without seeing each
-other's points there (a tile sees only the points its neighbours ordered before it) may both put a
-point at the same spot; merged by their keys both would come, near-duplicates. The zone is merged
-instead as a farthest point ordering in one Euclidean metric across the face (a lazy greedy): a
-zone point comes when its distance to the points accepted so far (the head, the zone, and the rows
-within (``ZONE`` + 1) x their key of a shared face, kept in a hash grid) times its *stretch* is the
-largest of all candidates, that product being its key. The stretch (:func:`stretch`, from 1 up to
-(1 + alpha) / (2 alpha)) is its tile's key over its Euclidean distance to the point its tile ordered
-before it nearest to it: the tiles' keys are band distances, longer than Euclidean ones on a slope,
-and a zone measured in plain Euclidean distances came late beside the other rows of its tile (on a
-wavy sheet in 16 tiles: covering at equal size 1.22 x the in-memory build's, against 1.08 with
-the stretch). A wide zone matters too: the zone's points are the only candidates the greedy can
-bring early in place of a near-duplicate left for later, so a thin zone (2 x key) left holes beside
-it (1.16 x on that sheet, 1.08 at 8 x key). The zone is read once before the merge (a surface's
-worth of rows: a few times the points along the tiles' faces at the finest spacing).
+never whole). Seam repair: a point closer to a tile boundary than its key (a *seam point*) is
+checked, when its turn comes, against the points of other tiles (and the head) accepted so far;
+if one lies within ``alpha`` times its key it waits: its key becomes (distance / ``alpha``) and it
+is merged again at that key, when the check is repeated (a lazy greedy over the seam points only).
+Every accepted point is therefore at least ``alpha`` times its acceptance key from every earlier
+point of another tile; inside a tile the tile's own farthest point order keeps its points apart.
 
-Guarantees. A zone point is at least its key over its stretch, so at least 2 alpha / (1 + alpha)
-times its key, from every earlier point of another tile (every such point within its key lies within
-that distance of the shared face, so in the grid); a row outside the zone is at least ``ZONE`` times
-its key from any point of another tile. Every level's covering radius is at most twice the key of
-its last point: a point lies within that key of a point of its tile's order (or a seed) of a larger
-key, which is accepted, or is a zone point within the key of an accepted point. So points of
-different tiles are at least alpha / (1 + alpha) times the level's radius apart (0.5 at alpha 1,
-where the stretch is 1; 0.2 at 0.25). ``alpha`` 0: no zone, the tiles' keys merged as they are.
+**Replacement.** A seam point that waits leaves a gap on its side of the face: its tile ordered its
+later points as if it were there, and the other tile's point that stopped it lies across the face
+(the covering at equal size grew up to 1.14 x the in-memory build's at ``alpha`` 0.5 on a wavy sheet
+in 16 tiles). So the first time a point of the seam zone (rows within ``ZONE`` x their key of a
+shared face, read once before the merge: a few times the points along the faces at the finest
+spacing) waits, one of its tile's later points near it takes its place at once, at its key: among
+the rows of its tile within its key of it whose key is at least ``KEY_FLOOR`` and ``alpha`` times its key (rows
+its tile ordered soon after it, :func:`seam_candidates`), still in their stream, the one farthest
+from the accepted points (at least ``GAP`` x key, or none: no gap worth filling), if at least
+``alpha`` x key from every accepted point of another tile. Its row is skipped when its stream
+reaches it. It keeps ``alpha`` x its key from the other tiles like every merged point, and from
+the rows its tile ordered between the two (they are at least its own key from it). So at ``alpha``
+1 nothing replaces (the candidates' keys would have to equal the demoted row's). The accepted points a replacement measures against: the head, and the merged rows
+within ``REACH`` x their key of a shared face (kept in a hash grid with the replacements).
 
 **Radii.** The keys decide the order; the radii stored with it are proven: for each tile, the
 exact covering radius of its core by every prefix of the final order (computed from the core and
@@ -53,8 +49,14 @@ from .timing import timed_task
 log = logging.getLogger(__name__)
 
 BUF = 1 << 16  # rows per tile buffer in the merge
-#: the seam zone: the rows within ZONE x their key of a face their tile shares (see the module)
-ZONE = 8.0
+#: the seam zone: the rows within ZONE x their key of a face their tile shares (the replacements'
+#: candidates are among them), the accepted rows within REACH x their key of one (the replacements
+#: measure gaps against them) and the smallest gap a replacement fills (x key): see the module
+ZONE = 4.0
+REACH = 3.0
+GAP = 0.5
+#: a replacement's key is at least KEY_FLOOR x the demoted row's (see seam_candidates)
+KEY_FLOOR = 0.5
 
 
 class _StreamReader:
@@ -72,97 +74,79 @@ class _StreamReader:
         self.f.close()
 
 
-def _zone_rows(work: Store, n_tiles: int, zone: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The zone rows of every tile's stream (margin < ``zone`` x key), in tile and stream order,
-    their tiles, and the rows the zone measures against (key, x, y, z, tile: margin < (``zone`` +
-    1) x key, the zone rows among them): one read of the streams, block by block, keeping only
-    those rows."""
-    zparts, tparts, rparts = [], [], []
+def _zone_rows(work: Store, n_tiles: int) -> tuple[np.ndarray, np.ndarray]:
+    """The zone rows of every tile's stream (margin < ``ZONE`` x key) and their tiles: one read of
+    the streams, block by block, keeping only those rows."""
+    parts, tiles = [], []
     for t in range(n_tiles):
         r = _StreamReader(work, WL.stream(t))
         try:
             while r.left:
                 a = r.read(16 * BUF)
-                zparts.append(a[a[:, 5] < zone * a[:, 1]])
-                tparts.append(np.full(zparts[-1].shape[0], t))
-                b = a[a[:, 5] < (zone + 1.0) * a[:, 1]]
-                rparts.append(np.c_[b[:, 1:5], np.full(b.shape[0], t)])
+                parts.append(a[a[:, 5] < ZONE * a[:, 1]])
+                tiles.append(np.full(parts[-1].shape[0], t, np.int64))
         finally:
             r.close()
-    zrows = np.concatenate(zparts) if zparts else np.empty((0, 6))
-    ztile = np.concatenate(tparts) if tparts else np.empty(0, np.int64)
-    reach = np.concatenate(rparts) if rparts else np.empty((0, 5))
-    return np.ascontiguousarray(zrows), ztile, reach
+    if not parts:
+        return np.empty((0, 6)), np.empty(0, np.int64)
+    return np.ascontiguousarray(np.concatenate(parts)), np.concatenate(tiles)
 
 
-def stretch(zrows: np.ndarray, ztile: np.ndarray, reach: np.ndarray, head_xyz: np.ndarray, cap: float) -> np.ndarray:
-    """Each zone point's key over its Euclidean distance to the nearest point ordered before it by
-    its tile (a head point or a row of ``reach`` (key, x, y, z, tile) of its tile with a larger
-    key, within its key): how much longer the tiles' band distances are than Euclidean ones there (>= 1; 1 when no such
-    point is within its key). The zone's Euclidean distances are multiplied by it, so that zone
-    points and the other rows of a tile come at the same level in one metric."""
+def seam_candidates(rows: np.ndarray, tile: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each zone row that is a seam row (margin < key), the rows that may replace it when it is
+    demoted: rows of its tile within its key of it, with a key from ``floor`` x its key to below it
+    (rows its tile ordered soon after it, so that one merged at its key keeps ``floor`` x its key
+    from the rows its tile ordered between them). CSR: ``cidx[cstart[i]:cstart[i + 1]]``."""
     from scipy.spatial import cKDTree
 
-    out = np.ones(zrows.shape[0])
-    if not zrows.shape[0]:
-        return out
-    xyz = np.concatenate([head_xyz, reach[:, 1:4]])
-    key = np.concatenate([np.full(head_xyz.shape[0], np.inf), reach[:, 0]])
-    tile = np.concatenate([np.full(head_xyz.shape[0], -1.0), reach[:, 4]])
-    k = zrows[:, 1]
-    ok = np.flatnonzero(np.isfinite(k) & (k > 0))
-    near = cKDTree(xyz).query_ball_point(zrows[ok, 2:5], k[ok])
-    lens = np.fromiter((len(x) for x in near), np.int64, ok.size)
-    if not lens.sum():
-        return out
-    who = np.repeat(ok, lens)
-    j = np.concatenate([np.asarray(x, np.int64) for x in near if len(x)])
-    before = (key[j] > k[who]) & ((tile[j] == ztile[who]) | (tile[j] < 0))
-    who, j = who[before], j[before]
-    e = np.linalg.norm(xyz[j] - zrows[who, 2:5], axis=1)
-    emin = np.full(zrows.shape[0], np.inf)
-    np.minimum.at(emin, who, e)
-    has = np.isfinite(emin) & (emin > 0)
-    out[has] = np.clip(k[has] / emin[has], 1.0, cap)
-    return out
+    n = rows.shape[0]
+    key = rows[:, 1]
+    lists: list[np.ndarray] = [np.empty(0, np.int64)] * n
+    for t in np.unique(tile):
+        mine = np.flatnonzero(tile == t)
+        seam = mine[(rows[mine, 5] < key[mine]) & np.isfinite(key[mine]) & (key[mine] > 0)]
+        if not seam.size:
+            continue
+        near = cKDTree(rows[mine, 2:5]).query_ball_point(rows[seam, 2:5], key[seam])
+        for i, js in zip(seam, near, strict=True):
+            j = mine[np.asarray(js, np.int64)]
+            lists[i] = np.sort(j[(key[j] < key[i]) & (key[j] >= floor * key[i])])
+    cstart = np.zeros(n + 1, np.int64)
+    cstart[1:] = np.cumsum([len(x) for x in lists])
+    cidx = np.concatenate(lists) if n else np.empty(0, np.int64)
+    return cstart, cidx.astype(np.int64)
 
 
-def _zone_heap(rows: np.ndarray, head_xyz: np.ndarray, span: float) -> tuple[np.ndarray, np.ndarray]:
-    """The zone heap's first bounds: each zone point's distance to the nearest head point times its
-    stretch (every later distance to the accepted points is at most that), in heap order
-    (descending, ties: the smaller item first, a valid max-heap)."""
-    from scipy.spatial import cKDTree
-
-    if head_xyz.shape[0] and rows.shape[0]:
-        ub = cKDTree(head_xyz).query(rows[:, 2:5])[0] * rows[:, 5]
-    else:
-        ub = np.full(rows.shape[0], span)
-    items = np.lexsort((np.arange(rows.shape[0]), -ub)).astype(np.int64)
-    return np.ascontiguousarray(ub[items]), items
+def _zone(work: Store, n_tiles: int, alpha: float) -> dict[str, np.ndarray]:
+    """The zone (rows, tiles, sorted input indices and their rows, states, candidates: of a key at
+    least ``KEY_FLOOR`` and ``alpha`` x the demoted row's, so that the rows of its tile keep alpha x
+    their key from it as from the other tiles)."""
+    rows, tile = _zone_rows(work, n_tiles)
+    g = rows[:, 0].astype(np.int64)
+    perm = np.argsort(g, kind="stable").astype(np.int64)
+    cstart, cidx = seam_candidates(rows, tile, max(KEY_FLOOR, alpha))
+    return {"rows": rows, "tile": tile, "g": np.ascontiguousarray(g[perm]), "perm": perm,
+            "state": np.zeros(rows.shape[0], np.int64), "cstart": cstart, "cidx": cidx}
 
 
-def _zone(work: Store, n_tiles: int, zone: float, alpha: float, head: np.ndarray, min_cell: float
-          ) -> dict[str, np.ndarray]:
-    """The seam zone's rows (their margin column replaced by their stretch) and heap, and the
-    accepted points' array and hash grid (the head in it), sized for every row the zone measures
-    against."""
+def _no_zone() -> dict[str, np.ndarray]:
+    e = np.empty(0, np.int64)
+    return {"rows": np.empty((0, 6)), "tile": e, "g": e, "perm": e, "state": e, "cstart": np.zeros(1, np.int64),
+            "cidx": e}
+
+
+def _accepted(head: np.ndarray, n_zone: int) -> tuple[np.ndarray, ...]:
+    """The accepted points' coordinates and tiles (the head first, tile -1) and their hash grid,
+    with room for every zone row."""
     from ..._kernels.tiled import table_size
 
     h = head.shape[0]
-    if zone > 0:
-        zrows, ztile, reach = _zone_rows(work, n_tiles, zone)
-    else:
-        zrows, ztile, reach = np.empty((0, 6)), np.empty(0, np.int64), np.empty((0, 5))
-    hxyz = np.stack([head["x"], head["y"], head["z"]], axis=1).astype(np.float64)
-    # (the cap keeps the spacing bound: see the module)
-    zrows[:, 5] = stretch(zrows, ztile, reach, hxyz, (1 + alpha) / (2 * alpha) if alpha > 0 else 1.0)
-    zub, zitem = _zone_heap(zrows, hxyz, min_cell * (1 << 20))
-    cap_acc = h + reach.shape[0] + 1
-    ax = np.empty((cap_acc, 3))
-    ax[:h] = hxyz
-    size = table_size(cap_acc)
-    return {"rows": zrows, "ub": zub, "item": zitem, "ax": ax, "tkeys": np.full(size, -1, np.int64),
-            "thead": np.full(size, -1, np.int64), "nxt": np.full(cap_acc, -1, np.int64)}
+    cap = h + n_zone + 1
+    ax = np.empty((cap, 3))
+    ax[:h, 0], ax[:h, 1], ax[:h, 2] = head["x"], head["y"], head["z"]
+    size = table_size(cap)
+    return (ax, np.full(cap, -1, np.int64), np.full(size, -1, np.int64), np.full(size, -1, np.int64),
+            np.full(cap, -1, np.int64))
 
 
 def _first_blocks(readers: list[_StreamReader]) -> tuple[np.ndarray, ...]:
@@ -184,25 +168,50 @@ def _first_blocks(readers: list[_StreamReader]) -> tuple[np.ndarray, ...]:
     return bufs, bpos, blen, theap
 
 
+def _doubled(*arrays: np.ndarray) -> list[np.ndarray]:
+    """The arrays of the demoted points, twice as long (the pool's length)."""
+    grow = arrays[0].shape[0]
+    return [np.concatenate([a, np.empty((grow + arrays[0].shape[0] - a.shape[0], *a.shape[1:]), a.dtype)])
+            for a in arrays]
+
+
+def _refill(reader: _StreamReader, t: int, bufs: np.ndarray, bpos: np.ndarray, blen: np.ndarray,
+            theap: np.ndarray, tn: int) -> int:
+    """Tile t's next block in its buffer (t at the top of the tile heap: re-sifted, or popped when
+    its stream is done); returns the heap's size."""
+    from ..._kernels.tiled import tile_heap_refresh, tile_pop
+
+    a = reader.read(BUF)
+    bufs[t, : a.shape[0]] = a
+    bpos[t] = 0
+    blen[t] = a.shape[0]
+    return tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn)
+
+
 def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
                 min_cell: float, progress: ProgressCallback = None) -> dict[str, Any]:
-    """Write ``order.i8`` (input index at each position) and ``key.f8`` (acceptance keys).
-    ``seam_counts``: each tile's rows with margin < key (reported); ``alpha`` 0: no seam zone (a
-    plain merge by the tiles' keys)."""
-    from ..._kernels.tiled import seam_merge, tile_heap_refresh, tile_pop
+    """Write ``order.i8`` (input index at each position) and ``key.f8`` (acceptance keys)."""
+    from ..._kernels.tiled import seam_merge
 
     head = work.read_array(WL.HEAD_FILE, HEAD)
     h = head.shape[0]
-    zone = ZONE if alpha > 0 else 0.0
-    z = _zone(work, n_tiles, zone, alpha, head, min_cell)
-    zrows, zub, zitem, ax, tkeys, thead, nxt = (z[k] for k in ("rows", "ub", "item", "ax", "tkeys", "thead", "nxt"))
-    state = np.array([0.0, float(h), np.inf, float(zrows.shape[0]), 0.0, float(min_cell), 0.0, 0.0])
+    n_seam = int(sum(seam_counts))
+    z = _zone(work, n_tiles, alpha) if alpha > 0 else _no_zone()
+    ax, atile, tkeys, thead, nxt = _accepted(head, z["rows"].shape[0])
+    dheap_key = np.empty(n_seam + 1)
+    dheap_item = np.empty(n_seam + 1, np.int64)
+    # a point may be deferred several times: the pool grows only by the deferrals
+    dpool = np.empty((max(4 * n_seam, 1024), 7))
+    dtile = np.empty(dpool.shape[0], np.int64)
+    state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell), 0.0])
+    params = np.array([ZONE, REACH if alpha > 0 else 0.0, GAP])  # (no repair: nothing indexed)
     readers = [_StreamReader(work, WL.stream(t)) for t in range(n_tiles)]
     bufs, bpos, blen, theap = _first_blocks(readers)
     tn = theap.shape[0]
     out_g = np.empty(W.BLOCK, np.int64)
     out_key = np.empty(W.BLOCK)
     written = 0
+    deferred = 0
     fo, fk = work.writer(WL.ORDER), work.writer(WL.KEY)  # (committed once the count checks out)
     try:
         fo.write(head["g"].astype("<i8"))
@@ -210,8 +219,11 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
         written = h
         report(progress, "merge", written, n)
         while True:
-            code, t = seam_merge(bufs, bpos, blen, theap, tn, state, ax, tkeys, thead, nxt, zub, zitem, zrows,
-                                 lo, zone, out_g, out_key)
+            if state[4] + 2 * n_seam + 16 > dpool.shape[0]:  # room for the next deferrals
+                dpool, dtile, dheap_key, dheap_item = _doubled(dpool, dtile, dheap_key, dheap_item)
+            code, t = seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+                                 dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key, z["rows"], z["tile"],
+                                 z["g"], z["perm"], z["state"], z["cstart"], z["cidx"], params)
             k = int(state[0])
             if code == 2 or code == 0:
                 fo.write(out_g[:k].astype("<i8"))
@@ -222,14 +234,8 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
                 if code == 0:
                     break
                 continue
-            a = readers[t].read(BUF)  # code 1: refill tile t (at the top of the tile heap)
-            bufs[t, : a.shape[0]] = a
-            bpos[t] = 0
-            blen[t] = a.shape[0]
-            if a.shape[0]:
-                tn = tile_heap_refresh(theap, tn, t, float(a[0, 1]))
-            else:
-                tn = tile_pop(theap, tn)
+            tn = _refill(readers[t], t, bufs, bpos, blen, theap, tn)  # code 1: tile t, at the top of the heap
+        deferred = int(state[4])
         if written != n:
             raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
         files = {WL.ORDER: fo.commit(), WL.KEY: fk.commit()}
@@ -238,8 +244,8 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
             r.close()
         fo.close()
         fk.close()
-    return {"deferred": int(state[7]), "promoted": int(state[6]), "zone_points": int(zrows.shape[0]),
-            "zone_evaluations": int(state[4]), "seam_points": int(sum(seam_counts)), "head": h, "files": files}
+    return {"deferred": deferred, "replaced": int(state[6]), "zone_points": int(z["rows"].shape[0]),
+            "seam_points": n_seam, "head": h, "files": files}
 
 
 @timed_task
