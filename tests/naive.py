@@ -367,54 +367,21 @@ def naive_sheet_cut(band, vcost: np.ndarray, normal: np.ndarray, sep: np.ndarray
     return out
 
 
-def naive_seam_merge(streams: list[np.ndarray], head: np.ndarray, alpha: float, zone: float = 4.0,
-                     reach: float = 3.0, gap: float = 0.5, floor: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def naive_seam_merge(streams: list[np.ndarray], head: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
     """The tiled build's merge with its seam repair, one candidate at a time with brute-force
     distances.
 
     ``streams``: per tile, rows (g, key, x, y, z, margin) by non-increasing key; ``head``: (h, 3)
     points accepted first (tile -1). Candidates come by the largest key (a tile row before a demoted
-    one at equal keys; tiles by index, demoted rows by order of demotion). A row with margin < key
-    (a seam row) within ``alpha`` x key of an accepted point of another tile is demoted to that
-    distance / ``alpha``. The first time a zone row (margin < ``zone`` x key) is demoted, a row of
-    its tile still in its stream, within its key of it, with a key from ``floor`` x its key to
-    below it, at least ``alpha`` x key from the accepted points of other tiles and farthest from all
-    accepted points (at least ``gap`` x key; the last of equals) is merged at once at its key.
-    Accepted points: the head, the rows merged with margin < ``reach`` x their merge key and the
-    replacements. Returns the input index and key of every row in merged order."""
+    one at equal keys; tiles by index, demoted rows by order of demotion). A candidate with margin
+    < key (a seam point) that lies within ``alpha`` x key of an accepted seam point of another tile
+    or of the head is demoted to that distance / ``alpha`` (and checked again then); the others are
+    merged at their key. Returns the input index and key of every row in merged order."""
     rows = [np.asarray(s, dtype=np.float64) for s in streams]
-    head = np.asarray(head, dtype=np.float64).reshape(-1, 3)
-    zid = {}  # (tile, row) -> zone id
-    zlist = []
-    for t, r in enumerate(rows):
-        for i in range(len(r)):
-            if alpha > 0 and r[i, 5] < zone * r[i, 1]:
-                zid[(t, i)] = len(zlist)
-                zlist.append((t, i))
-    state = [0] * len(zlist)
-    cands: list[list[int]] = [[] for _ in zlist]
-    for z, (t, i) in enumerate(zlist):
-        x = rows[t][i]
-        if not (x[5] < x[1] and np.isfinite(x[1]) and x[1] > 0):
-            continue
-        for z2, (t2, j) in enumerate(zlist):
-            y = rows[t2][j]
-            if t2 == t and floor * x[1] <= y[1] < x[1] and np.linalg.norm(y[2:5] - x[2:5]) <= x[1]:
-                cands[z].append(z2)
-    acc_xyz = [p for p in head]
-    acc_tile = [-1] * len(head)
-
-    def dist(p, tile, radius):
-        other, anyd = radius, radius
-        for q, u in zip(acc_xyz, acc_tile, strict=True):
-            d = float(np.sqrt(((q - p) ** 2).sum()))
-            anyd = min(anyd, d)
-            if u != tile:
-                other = min(other, d)
-        return other, anyd
-
+    acc_xyz = [p for p in np.asarray(head, dtype=np.float64).reshape(-1, 3)]
+    acc_tile = [-1] * len(acc_xyz)
     pos = [0] * len(rows)
-    deferred: list[tuple[float, int, np.ndarray, int, int]] = []
+    deferred: list[tuple[float, int, np.ndarray, int]] = []
     n_def = 0
     g_out, k_out = [], []
     while True:
@@ -425,45 +392,23 @@ def naive_seam_merge(streams: list[np.ndarray], head: np.ndarray, alpha: float, 
         kd = max((d[0] for d in deferred), default=-1.0)
         if ks < 0 and kd < 0:
             break
-        fresh = ks >= kd
-        if fresh:
-            x = rows[t][pos[t]]
-            zi = zid.get((t, pos[t]), -1)
+        if ks >= kd:
+            x, key, tile = rows[t][pos[t]], rows[t][pos[t], 1], t
             pos[t] += 1
-            key, tile = x[1], t
-            if zi >= 0 and state[zi] == 1:
-                continue
         else:
-            best = max(range(len(deferred)), key=lambda j: (deferred[j][0], -deferred[j][1]))
-            key, _, x, tile, zi = deferred.pop(best)
-        if x[5] < key and alpha > 0 and np.isfinite(key):
-            d, _ = dist(x[2:5], tile, alpha * key)
+            j = max(range(len(deferred)), key=lambda i: (deferred[i][0], -deferred[i][1]))
+            key, _, x, tile = deferred.pop(j)
+        seam = x[5] < key
+        if seam and alpha > 0 and np.isfinite(key):
+            d = min((float(np.sqrt(((q - x[2:5]) ** 2).sum())) for q, u in zip(acc_xyz, acc_tile, strict=True)
+                     if u != tile), default=np.inf)
             if d < alpha * key:
-                deferred.append((d / alpha, n_def, x, tile, zi))
+                deferred.append((d / alpha, n_def, x, tile))
                 n_def += 1
-                if zi >= 0 and fresh:
-                    state[zi] = 2
-                    best_r, bestd = -1, gap * key
-                    for c in cands[zi]:
-                        if state[c] != 0:
-                            continue
-                        ct, ci = zlist[c]
-                        other, anyd = dist(rows[ct][ci, 2:5], ct, key)
-                        if other >= alpha * key and anyd >= bestd:
-                            best_r, bestd = c, anyd
-                    if best_r >= 0:
-                        state[best_r] = 1
-                        ct, ci = zlist[best_r]
-                        g_out.append(int(rows[ct][ci, 0]))
-                        k_out.append(key)
-                        acc_xyz.append(rows[ct][ci, 2:5])
-                        acc_tile.append(ct)
                 continue
         g_out.append(int(x[0]))
         k_out.append(float(key))
-        if zi >= 0:
-            state[zi] = 1
-        if alpha > 0 and x[5] < reach * key:
+        if seam:
             acc_xyz.append(x[2:5])
             acc_tile.append(tile)
     return np.asarray(g_out, dtype=np.int64), np.asarray(k_out)

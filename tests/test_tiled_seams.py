@@ -1,4 +1,4 @@
-"""The seams of the tiled build (issue 19, item 4): the merge's greedy seam zone against its naive
+"""The seams of the tiled build (issue 19, item 4): the merge's seam repair against its naive
 reference, and the guarantees across tiles against brute force on inputs cut into many tiny tiles."""
 
 from __future__ import annotations
@@ -51,11 +51,11 @@ def _store(tmp_path, pts, head, streams):
     return w
 
 
-@pytest.mark.parametrize(("seed", "alpha"), [(0, 0.25), (1, 0.5), (2, 0.75), (3, 0.5)])
+@pytest.mark.parametrize(("seed", "alpha"), [(0, 0.25), (1, 0.5), (2, 1.0)])
 def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha):
     """The merge kernel (tile buffers of 7 rows and an output buffer of 5: every refill and flush
     path) gives the naive merge's order and keys: tiles ordered without seeing each other, their
-    seam rows demoted and replaced; without the repair, the tiles' keys merged as they are."""
+    seam points demoted; without the repair, the tiles' keys merged as they are."""
     from lodbuilder.build.tiled import merge as M
 
     rng = np.random.default_rng(seed)
@@ -68,15 +68,12 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha):
         res = M.merge_tiles(w, len(pts), len(streams), seams, a, np.zeros(3), 1e-6)
         order = w.read_array(WL.ORDER, "<i8")
         key = w.read_array(WL.KEY, "<f8")
-        g, k = naive_seam_merge(streams, pts[head], a, M.ZONE, M.REACH, M.GAP, max(M.KEY_FLOOR, a))
+        g, k = naive_seam_merge(streams, pts[head], a)
         np.testing.assert_array_equal(order[: len(head)], head)
         np.testing.assert_array_equal(order[len(head):], g)
         np.testing.assert_array_equal(key[len(head):], k)
         assert np.array_equal(np.sort(order), np.arange(len(pts)))
-        if a > 0:  # the case demotes and replaces (the test sees both paths)
-            assert res["deferred"] > 0 and res["replaced"] > 0, res
-        else:
-            assert res["deferred"] == res["replaced"] == 0
+        assert (res["deferred"] > 0) == (a > 0), res  # the case demotes (the test sees that path)
 
 
 def _cross_spacing(p, tile, radius, start):
@@ -120,7 +117,8 @@ def test_seams_keep_points_of_different_tiles_apart(tmp_path, surface, alpha):
 
 def test_seams_cover_like_the_in_memory_build(tmp_path):
     """At equal sizes from the head to 3 % of the points, the tiled order covers within 1.1 x of
-    the in-memory order on a sheet cut into 16 tiles (the seam repair moves no covering hole)."""
+    the in-memory order on a sheet cut into 16 tiles (1.05 today; a seam zone merged as one
+    Euclidean greedy ordering, tried and dropped, gave 1.19)."""
     rng = np.random.default_rng(5)
     pts = wavy(40_000, rng)
     d, _ = _build(tmp_path, pts, tile_points=2600)

@@ -107,11 +107,10 @@ def _down(hkey, hitem, i, n):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------ seam merge
 
 @nb.njit(**JIT)
-def _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius):  # pragma: no cover
-    """Distances from p to the nearest indexed point of another tile (or the head) and to the nearest
-    indexed point of any tile, within ``radius`` (``radius`` where none is nearer)."""
-    other = radius
-    anyd = radius
+def _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius):  # pragma: no cover
+    """Distance from p to the nearest indexed point of another tile (or the head) within ``radius``
+    (inf if none)."""
+    best = np.inf
     cx0 = cell_of(px - radius, lo[0], cell)
     cx1 = cell_of(px + radius, lo[0], cell)
     cy0 = cell_of(py - radius, lo[1], cell)
@@ -126,84 +125,29 @@ def _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, r
                     continue
                 j = thead[s]
                 while j >= 0:
-                    dx = ax[j, 0] - px
-                    dy = ax[j, 1] - py
-                    dz = ax[j, 2] - pz
-                    d = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    if d < anyd:
-                        anyd = d
-                    if atile[j] != ptile and d < other:
-                        other = d
+                    if atile[j] != ptile:
+                        dx = ax[j, 0] - px
+                        dy = ax[j, 1] - py
+                        dz = ax[j, 2] - pz
+                        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                        if d < best:
+                            best = d
                     j = nxt[j]
-    return other, anyd
-
-
-@nb.njit(**JIT)
-def _zone_index(zg, zperm, g):  # pragma: no cover - compiled
-    """Index of the zone row of input index g (-1 if none): binary search of the sorted ``zg``."""
-    lo_ = 0
-    hi_ = zg.shape[0]
-    while lo_ < hi_:
-        mid = (lo_ + hi_) >> 1
-        if zg[mid] < g:
-            lo_ = mid + 1
-        else:
-            hi_ = mid
-    if lo_ < zg.shape[0] and zg[lo_] == g:
-        return zperm[lo_]
-    return -1
-
-
-@nb.njit(**JIT)
-def _accept(ax, atile, tkeys, thead, nxt, lo, cell, mask, n_acc, px, py, pz, t):  # pragma: no cover
-    ax[n_acc, 0] = px
-    ax[n_acc, 1] = py
-    ax[n_acc, 2] = pz
-    atile[n_acc] = t
-    if cell < np.inf:
-        grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
-    return n_acc + 1
-
-
-@nb.njit(**JIT)
-def _replacement(zi, level, zone, ztile, zstate, cstart, cidx, ax, atile, tkeys, thead, nxt, mask, lo, cell,
-                 alpha, beta):  # pragma: no cover - compiled
-    """The candidate of zone row ``zi`` (its tile's later rows near it, :func:`seam_candidates`)
-    that is still in its stream, at least ``alpha`` x ``level`` from every indexed point of another
-    tile and farthest from every indexed point, if at least ``beta`` x ``level`` (else -1)."""
-    best = -1
-    bestd = beta * level
-    for c in range(cstart[zi], cstart[zi + 1]):
-        r = cidx[c]
-        if zstate[r] != 0:
-            continue
-        other, anyd = _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, zone[r, 2], zone[r, 3], zone[r, 4],
-                                ztile[r], level)
-        if other >= alpha * level and anyd >= bestd:
-            best = r
-            bestd = anyd
     return best
 
 
 @nb.njit(**JIT)
 def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
-               dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key,
-               zone, ztile, zg, zperm, zstate, cstart, cidx, params):  # pragma: no cover
-    """Merge tile streams by descending key, repairing seams (see lodbuilder.build.tiled.merge;
-    tests/naive.py: ``naive_seam_merge``).
+               dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key):  # pragma: no cover
+    """Merge tile streams by descending key, repairing seams (see lodbuilder.build.tiled.merge).
 
     ``bufs`` (T, B, 6): per tile, rows (g, key, x, y, z, margin) of its stream; ``bpos``/``blen``
     the read position and length of each buffer. ``theap``/``tn``: max-heap (T, 2) of the tiles
     with rows left, by their next key (ties: lower tile); the caller refills the buffer of the top
-    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`).
-    ``state`` (float64): [n_out, n_acc, cell, n_dem, n_demoted_total, min_cell, replacements].
-    ``ax``/``atile``: accepted points (the head, tile -1, and the rows with margin < ``params[1]``
-    x key), indexed in the hash grid (``tkeys``/``thead``/``nxt``). ``dheap_*``: max-heap of
-    demoted points (slots into ``dpool`` (D, 7) rows: g, key, x, y, z, margin, zone row; ``dtile``).
-    ``zone`` (Z, 6): the rows with margin < ``params[0]`` x key (sorted input indices ``zg`` and
-    their rows ``zperm``; tiles ``ztile``; ``zstate``: 0 in its stream, 1 merged, 2 demoted), with
-    the candidates ``cidx[cstart[i]:cstart[i + 1]]`` that replace row i when it is demoted;
-    ``params[2]``: the smallest gap a replacement fills (x key).
+    tile when asked (and pops the tile from the heap when its file is done, :func:`tile_pop`). ``state`` (float64):
+    [n_out, n_acc, cell, n_dem, n_demoted_total, min_cell]. ``ax``/``atile``: accepted seam
+    points (and the head, tile -1), indexed in the hash grid (``tkeys``/``thead``/``nxt``).
+    ``dheap_*``: max-heap of demoted points (slots into ``dpool`` (D, 6) rows and ``dtile``).
 
     Returns (code, t): 0 = all merged; 1 = the buffer of tile t (at the top of the tile heap) needs
     a refill; 2 = the output buffer is full.
@@ -213,28 +157,31 @@ def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
     cell = state[2]
     n_dem = np.int64(state[3])
     min_cell = state[5]
-    zfac = params[0]
-    reach = params[1]
-    beta = params[2]
     mask = tkeys.shape[0] - 1
-    cap = out_g.shape[0] - 1  # room for a replacement
+    cap = out_g.shape[0]
     while True:
         if n_out >= cap:
-            _save(state, n_out, n_acc, cell, n_dem)
+            state[0] = n_out
+            state[1] = n_acc
+            state[2] = cell
+            state[3] = n_dem
             return 2, -1
+        # next candidate: the top tile stream or the top demoted point
         ks = -1.0
         t = -1
         if tn > 0:
             t = np.int64(theap[0, 1])
             if bpos[t] >= blen[t]:  # exhausted buffer: a refill (the caller pops a finished tile)
-                _save(state, n_out, n_acc, cell, n_dem)
+                state[0] = n_out
+                state[1] = n_acc
+                state[2] = cell
+                state[3] = n_dem
                 return 1, t
             ks = bufs[t, bpos[t], 1]
         kd = dheap_key[0] if n_dem > 0 else -1.0
         if ks < 0.0 and kd < 0.0:
             break
-        fresh = ks >= kd
-        if fresh:
+        if ks >= kd:
             row = bufs[t, bpos[t]]
             g = np.int64(row[0])
             key = row[1]
@@ -248,9 +195,6 @@ def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
                 theap[0, 0] = bufs[t, bpos[t], 1]
                 _tile_sift(theap, tn)
             # else: the stale key keeps tile t on top; the next turn asks for its refill
-            zi = _zone_index(zg, zperm, g) if margin < zfac * key else -1
-            if zi >= 0 and zstate[zi] == 1:
-                continue  # merged earlier, in place of a demoted point
         else:
             slot = dheap_item[0]
             key = dheap_key[0]
@@ -264,15 +208,18 @@ def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
             py = dpool[slot, 3]
             pz = dpool[slot, 4]
             margin = dpool[slot, 5]
-            zi = np.int64(dpool[slot, 6])
             ptile = dtile[slot]
         seam = margin < key
         if seam and alpha > 0.0 and np.isfinite(key):
+            radius = alpha * key
             if key < 0.5 * cell and key > 0.0:
                 cell = max(key, min_cell)
-                _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc)
-            d, _ = _nearest2(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, alpha * key)
-            if d < alpha * key:
+                for s in range(tkeys.shape[0]):
+                    tkeys[s] = -1
+                for j in range(n_acc):
+                    grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, j)
+            d = _nearest_other(ax, atile, tkeys, thead, nxt, mask, lo, cell, px, py, pz, ptile, radius)
+            if d < radius:
                 # too close to an accepted point of another tile: wait until the radius allows it
                 slot = np.int64(state[4])
                 state[4] += 1
@@ -282,50 +229,28 @@ def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
                 dpool[slot, 3] = py
                 dpool[slot, 4] = pz
                 dpool[slot, 5] = margin
-                dpool[slot, 6] = zi
                 dtile[slot] = ptile
                 dheap_key[n_dem] = d / alpha
                 dheap_item[n_dem] = slot
                 _up(dheap_key, dheap_item, n_dem)
                 n_dem += 1
-                if zi >= 0 and fresh:  # its first demotion: a later row of its tile may fill the gap
-                    zstate[zi] = 2
-                    r = _replacement(zi, key, zone, ztile, zstate, cstart, cidx, ax, atile, tkeys, thead, nxt,
-                                     mask, lo, cell, alpha, beta)
-                    if r >= 0:
-                        zstate[r] = 1
-                        out_g[n_out] = np.int64(zone[r, 0])
-                        out_key[n_out] = key
-                        n_out += 1
-                        state[6] += 1
-                        n_acc = _accept(ax, atile, tkeys, thead, nxt, lo, cell, mask, n_acc, zone[r, 2],
-                                        zone[r, 3], zone[r, 4], ztile[r])
                 continue
         out_g[n_out] = g
         out_key[n_out] = key
         n_out += 1
-        if zi >= 0:
-            zstate[zi] = 1
-        if margin < reach * key:
-            n_acc = _accept(ax, atile, tkeys, thead, nxt, lo, cell, mask, n_acc, px, py, pz, ptile)
-    _save(state, n_out, n_acc, cell, n_dem)
-    return 0, -1
-
-
-@nb.njit(**JIT)
-def _regrid(ax, tkeys, thead, nxt, lo, cell, mask, n_acc):  # pragma: no cover - compiled
-    for s in range(tkeys.shape[0]):
-        tkeys[s] = -1
-    for j in range(n_acc):
-        grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, j)
-
-
-@nb.njit(**JIT)
-def _save(state, n_out, n_acc, cell, n_dem):  # pragma: no cover - compiled
+        if seam:
+            ax[n_acc, 0] = px
+            ax[n_acc, 1] = py
+            ax[n_acc, 2] = pz
+            atile[n_acc] = ptile
+            if cell < np.inf:
+                grid_insert(tkeys, thead, nxt, ax, lo, cell, mask, n_acc)
+            n_acc += 1
     state[0] = n_out
     state[1] = n_acc
     state[2] = cell
     state[3] = n_dem
+    return 0, -1
 
 
 @nb.njit(**JIT)

@@ -19,7 +19,7 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
    tile and its halo (tasks);
 5. **merge** (one task): the tile orders are merged by descending insertion radius (an external
-   k-way merge), the seam zone merged greedily (:mod:`lodbuilder.build.tiled.merge`); then tasks invert the
+   k-way merge), with the seam repair of :mod:`lodbuilder.build.tiled.merge`; then tasks invert the
    merged order into every point's rank (an external transpose in two rounds: :mod:`.ranks`);
 6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
    prefix of the merged order (from the tile and its halo); meanwhile tasks split every raw block
@@ -36,7 +36,7 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    is the one a single scan writer fed every row in order gives; every archive reader is unchanged.
 
 What still passes over every point in one process (issue 19, item 2): the merge with its seam
-zone, one task on a worker (a lazy greedy over the merged order: each zone point's acceptance
+repair, one task on a worker (a lazy greedy over the merged order: each seam point's acceptance
 depends on every earlier acceptance, so it is ordered by nature; measured in docs/bench/bench_survey.json,
 ``merge_task``). Its redesign (per tile against the neighbours' face points, before a merge
 partitioned into key bands whose boundaries the parent selects over the tiles' sorted streams:
@@ -46,13 +46,11 @@ of the archive's bytes (the chunks), no filter and no point.
 Guarantees (checked by tests, stated in each tiled scan's build record): every prefix's stored
 radius is a true Euclidean covering radius of the whole scan; radii never increase; every input
 point is stored exactly once; the order is nested like any farthest point order (levels are
-prefixes). Spacing: the rows near the faces tiles share (the seam zone) are merged as one Euclidean
-farthest point ordering across the faces (:mod:`lodbuilder.build.tiled.merge`): a point merged
-from one tile is at least ``seam_alpha`` times its merge key from every earlier point of another
-tile, so between points of different tiles every level's spacing is at least ``seam_alpha / (1 +
-seam_alpha)`` times its radius (0.2 at the default 0.25, 0.5 at 1; measured about 0.5 at 0.25 too:
-tools/bench_seams.py); inside a tile the tile's FastFPS order keeps its spacing (at least the
-insertion radius, in the band metric) away from the zone.
+prefixes). Spacing: a point merged from one tile is at least ``seam_alpha`` times its merge key from
+every earlier point of another tile, so between points of different tiles every level's spacing is
+at least ``seam_alpha / (1 + seam_alpha)`` times its radius (0.2 at the default 0.25, 0.5 at 1);
+inside a tile the tile's FastFPS order keeps its spacing (at least the insertion radius, in the band
+metric). A larger ``seam_alpha`` costs covering at equal size (see ``SEAM_SPACING``).
 """
 
 from __future__ import annotations
