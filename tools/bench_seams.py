@@ -18,7 +18,7 @@ Inputs (``--inputs``): ``autzen`` (the real autzen_trim.laz tiled 2 x 2 by tools
 every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of tools/bench_inputs.py),
 ``fragmented`` (the synthetic scene of tools/make_fragmented.py).
 
-    python tools/bench_seams.py --n 200000 --tiles 4 16 --inputs autzen uniform uneven fragmented
+    python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5
 """
 
 from __future__ import annotations
@@ -168,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--thin", type=int, default=2, help="autzen: keep every THIN-th point (2: 220,000 points)")
     p.add_argument("--tiles", type=int, nargs="+", default=[4, 16], help="about this many tiles (sets _tile_points)")
     p.add_argument("--inputs", nargs="+", default=list(INPUTS), choices=INPUTS)
-    p.add_argument("--seam-spacing", type=float)
+    p.add_argument("--seam-spacing", type=float, nargs="+", default=[None],
+                   help="seam spacings to build with (default: the library's)")
     args = p.parse_args(argv)
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
     doc["cases"] = []
@@ -179,11 +180,12 @@ def main(argv: list[str] | None = None) -> int:
             ref: dict = {}
             for tiles in args.tiles:
                 n_est = 440_000 // args.thin if name == "autzen" else args.n
-                case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), args.seam_spacing, ref)
-                case = {"input": name, "synthetic": name != "autzen", **case,
-                        "seconds_in_memory": round(ref["seconds"], 2)}
-                doc["cases"].append(case)
-                print(json.dumps({k: v for k, v in case.items() if k != "sweep"}), file=sys.stderr)
+                for seam in args.seam_spacing:
+                    case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref)
+                    case = {"input": name, "synthetic": name != "autzen", **case,
+                            "seconds_in_memory": round(ref["seconds"], 2)}
+                    doc["cases"].append(case)
+                    print(json.dumps({k: v for k, v in case.items() if k != "sweep"}), file=sys.stderr)
     print(json.dumps(finish(doc), indent=1))
     return 0
 
