@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from surfaces import accordion
 
 from lodbuilder import fastfps
-from lodbuilder.datasets import folded_sheet
+from lodbuilder.datasets import folded_sheet, torus
 from lodbuilder.sampling.band import (
     NORMAL_RADIUS,
     SEP_CONE,
@@ -27,16 +27,10 @@ from lodbuilder.sampling.band import (
 )
 
 
-def torus(n: int, tube_spacings: float, seed: int = 0) -> np.ndarray:
+def coarse_torus(n: int, tube_spacings: float, seed: int = 0) -> np.ndarray:
     """n random points on a torus of ring radius 1 whose tube is ``tube_spacings`` point spacings
     across (area 4 pi^2 r, spacing sqrt(area / n))."""
-    r = (tube_spacings / 2) ** 2 * 4 * np.pi**2 / n
-    rng = np.random.default_rng(seed)
-    u = rng.random(8 * n) * 2 * np.pi
-    v = rng.random(8 * n) * 2 * np.pi
-    keep = rng.random(8 * n) < (1 + r * np.cos(v)) / (1 + r)  # uniform over the area
-    u, v = u[keep][:n], v[keep][:n]
-    return np.column_stack([(1 + r * np.cos(v)) * np.cos(u), (1 + r * np.cos(v)) * np.sin(u), r * np.sin(v)])
+    return torus(n, seed=seed, major=1.0, minor=(tube_spacings / 2) ** 2 * 4 * np.pi**2 / n)[0]
 
 
 def ellipsoid(n: int, axes: tuple[float, float, float], seed: int = 0) -> np.ndarray:
@@ -92,8 +86,8 @@ def test_coarse_bunny_levels_cover_like_euclidean_fps(shared_data, name):
 
 @pytest.mark.parametrize(("n", "tube"), [(2000, 5.0), (8000, 6.0)])
 def test_coarse_torus_levels_cover_like_euclidean_fps(n, tube):
-    # a torus whose tube is 5-6 spacings across: before, 1.69 / 1.79 at worst, 1.68 / 1.41 from 1 %
-    worst, late = worst_ratios(torus(n, tube))
+    # a torus whose tube is 5-6 spacings across: before, 2.66 / 1.80 at worst, 1.65 / 1.43 from 1 %
+    worst, late = worst_ratios(coarse_torus(n, tube))
     assert worst <= 1.25 and late <= 1.05, (worst, late)
 
 
@@ -103,7 +97,7 @@ def _plan(points):
 
 
 def test_a_coarse_closed_surface_takes_the_plain_band():
-    for pts in (torus(2000, 5.0), ellipsoid(2000, (1.0, 0.1, 0.1))):  # a tube, a cigar
+    for pts in (coarse_torus(2000, 5.0), ellipsoid(2000, (1.0, 0.1, 0.1))):  # a tube, a cigar
         h, r = choose_parameters(pts, None, None)
         sep_in, _, _, flat = _sheets(pts, h, r, judge=True)
         assert np.isfinite(sep_in).mean() > 0.9  # nearly every point has another side within reach
@@ -125,7 +119,7 @@ def test_flat_sheets_keep_the_thin_sheet_plan(what):
     assert _plan(pts).normal is not None
 
 
-@pytest.mark.parametrize(("pts", "stride"), [(torus(1500, 5.0), 1), (ellipsoid(3000, (1.0, 0.6, 0.08)), 2)])
+@pytest.mark.parametrize(("pts", "stride"), [(coarse_torus(1500, 5.0), 1), (ellipsoid(3000, (1.0, 0.6, 0.08)), 2)])
 def test_normal_agreement_matches_the_naive_rule(pts, stride):
     from lodbuilder._kernels.sheets import cell_separation, normal_agreement
 
