@@ -105,17 +105,20 @@ def test_a_coarse_closed_surface_takes_the_plain_band():
         assert _plan(pts).normal is None
 
 
-@pytest.mark.parametrize("what", ["stack", "folded", "plate"])
+@pytest.mark.parametrize("what", ["stack", "noisy stack", "folded", "plate"])
 def test_flat_sheets_keep_the_thin_sheet_plan(what):
-    if what == "stack":
-        pts, _ = accordion(30_000, 3, 4.0 * np.sqrt(3 / 30_000))
+    if what.endswith("stack"):
+        spacing = np.sqrt(3 / 30_000)
+        pts, _ = accordion(30_000, 3, 4.0 * spacing)
+        if what == "noisy stack":  # noise of 0.3 spacings turns the normals by up to ~20 degrees
+            pts = pts + np.random.default_rng(1).normal(scale=0.3 * spacing, size=pts.shape)
     elif what == "folded":
         pts, _ = folded_sheet(20_000, seed=1, gap=0.05)
     else:  # a thin closed shell: a flat ellipsoid about 4 spacings thick in the middle
         pts = ellipsoid(2000, (1.0, 0.6, 0.08))
     h, r = choose_parameters(pts, None, None)
     _, _, _, flat = _sheets(pts, h, r, judge=True)
-    assert flat is not None and flat > 0.85
+    assert flat is not None and flat > (0.75 if what == "noisy stack" else 0.85), flat
     assert _plan(pts).normal is not None
 
 
