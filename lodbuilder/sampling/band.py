@@ -131,6 +131,7 @@ class BandPlan:
     normal: np.ndarray | None
     handover: float
     outer: np.ndarray | None = None  # the separation on the other side (inf: none)
+    found: int = 0  # the thin points measured (a plain plan may have set them aside)
 
     @property
     def thin_points(self) -> int:
@@ -237,7 +238,7 @@ def plan_and_build_band(
         release_freed_memory(n)
         band = build_band(points, h, r, max_memory)
         release_freed_memory(n)  # (the band's temporaries: the planned band is decided on top of it)
-    found = plan.thin_points
+    found = plan.found
     thin = plan
     band, plan = build_planned_band(points, plan, max_memory, band=band)
     if plan.normal is None and thin.outer is not None:  # (kept only where a finer grid may be needed)
@@ -298,12 +299,13 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     sep_in, sep_out, normal, flat = _sheets(points, h, r, judge=True)
     if not np.isfinite(sep_in).any():
         return plain
+    found = int(np.isfinite(sep_in).sum())
     if flat is not None and flat < SHEET_SHARE:
         log.info(
             "%.0f %% of the scan is thin, but only %.0f %% of it lies on flat sheets (a closed surface "
-            "coarse for its shape); using the plain band", 100 * np.isfinite(sep_in).mean(), 100 * flat,
+            "coarse for its shape); using the plain band", 100 * found / sep_in.size, 100 * flat,
         )
-        return plain
+        return BandPlan(h, r, None, None, None, plain.handover, found=found)
     radius = _thin_radius(sep_out, h, r)
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
     typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
@@ -311,7 +313,7 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     thin = sep_in[np.isfinite(sep_in)]
     # the other side's separation is kept only where a finer grid may be needed (see _refined)
     finer = thin.size >= REFINE_SHARE * sep_in.size and float(np.median(thin)) < REFINE_SEP * h
-    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out if finer else None)
+    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out if finer else None, found)
 
 
 def block_plan(cell_keys: np.ndarray, reach_voxels: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
