@@ -47,7 +47,9 @@ within SHEET_BALL x the separation of a thin cell are compared with its own
 SHEET_SHARE of the cells tested agree (mean |cos| >= 1 - SHEET_BEND), the plain band is used for the
 whole scan (measured: stacks of 3-5 sheets 0.93-0.97, with noise of 0.3 spacings 0.83-0.86, a
 folded sheet 0.95-0.99, a flat closed shell 4 spacings thick 0.87-0.97; the bunny's decimations
-0.01-0.28, a torus or a cigar 4-8 spacings across 0-0.07).
+0.01-0.28, a torus or a cigar 4-8 spacings across 0-0.07). The choice is the whole scan's: a few
+flat sheets among many more curved thin parts take the plain band with them; scans under THIN_SHARE %
+thin are not judged (bunnyDouble.e57, 14 % thin, 37 % of it flat, keeps its one-sided band).
 
 Depth cost: the front moves through a voxel at cost 1 + DEPTH_COST * q^2, where q is the voxel's
 depth ratio (distance to the nearest point over that point's band radius, 0 on the points, 1 at the
