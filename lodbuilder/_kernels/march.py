@@ -283,7 +283,7 @@ def _seed_sample(
             bz = int(np.floor(z - z / d + 0.5))
             pq = cube[(bx + HALF) + CUBE * ((by + HALF) + CUBE * (bz + HALF))]
             ok = pq >= 0 and pq != q and vis[pq]
-        if ok and thin:
+        if ok and thin and q != 0:  # (v0: the sample reads it as its own, so it is seeded as such)
             f = foot[v]
             ok = _chord_ok(
                 u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
