@@ -283,7 +283,7 @@ def _seed_sample(
             bz = int(np.floor(z - z / d + 0.5))
             pq = cube[(bx + HALF) + CUBE * ((by + HALF) + CUBE * (bz + HALF))]
             ok = pq >= 0 and pq != q and vis[pq]
-        if ok and thin and q != 0:  # (v0: the sample reads it as its own, so it is seeded as such)
+        if ok and thin:
             f = foot[v]
             ok = _chord_ok(
                 u[f, 0] - u[i, 0], u[f, 1] - u[i, 1], u[f, 2] - u[i, 2],
@@ -292,8 +292,8 @@ def _seed_sample(
                 pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
             )
         vis[q] = ok
-        if not ok:
-            continue
+        if not ok and q != 0:  # (v0 is seeded whatever the chord rule says: the sample reads its
+            continue  # own distance from it; it lends its line of sight only where the rule holds)
         t_ = np.float32(_norm(sx - x, sy - y, sz - z) * 0.5 * (ci + vcost[v]))
         if t_ < _tval(ts[v]):
             ts[v] = _packed(t_, acc)  # exact: frozen (the march never lowers it), but still popped
