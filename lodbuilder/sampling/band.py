@@ -51,7 +51,7 @@ folded sheet 0.95-0.99, a flat closed shell 4 spacings thick 0.87-0.97; the bunn
 flat sheets among many more curved thin parts take the plain band with them; scans under THIN_SHARE %
 thin are not judged (bunnyDouble.e57, 14 % thin, 37 % of it flat, keeps its one-sided band: its
 thin parts are the two faces of the ears, 3-11 spacings apart, one surface with no misregistration;
-its levels cover within 1.05-1.09 x Euclidean farthest point sampling from 1 % of N on, as exact
+its levels cover within 1.06-1.09 x Euclidean farthest point sampling from 1 % of N on, as exact
 farthest point sampling along its mesh does, 1.09-1.10; the plain band would give 1.01 but measure
 the ears across, not along the surface).
 
