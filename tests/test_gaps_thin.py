@@ -37,16 +37,24 @@ def folded_sheet(rng: np.random.Generator, thickness: float, flap: float) -> np.
     return np.r_[top, fold, under]
 
 
-@pytest.mark.parametrize(("thickness", "flap"), [(0.8, 2.0), (1.2, 1.5)])
-def test_a_fold_behind_the_ring_is_not_the_holes_surface(tmp_path, rng, thickness, flap):
+@pytest.mark.parametrize("seed", [12345, 7])
+@pytest.mark.parametrize(("thickness", "flap"), [
+    pytest.param(0.8, 2.0, marks=pytest.mark.xfail(strict=True, reason=(
+        "known defect: since the march seeds a thin part's own voxel (3abcee4) this level holds three "
+        "points at the flap's open edge whose normals are oriented from the top face across the 0.8 rho "
+        "gap (facing +0.5..+0.8), so same_face keeps them and the fit puts points 1.04 rho above the face"))),
+    (1.2, 1.5),
+])
+def test_a_fold_behind_the_ring_is_not_the_holes_surface(tmp_path, seed, thickness, flap):
     """A hole of radius 2 rho on the top face, 2 rho from a fold 0.8-1.2 rho thick whose flap
     reaches 1.5-2 rho back under the ring (not under the hole). The flap's points (facing away,
     normals oriented along the surface round the fold) are set aside from the ring: one
     fillable gap, its synthetic points on the top face. Before, the ring held the flap too
     (the two faces closer than the 1.5 rho at which a group is searched with them set aside):
     the gap was rough (0.8 rho thick: the fit missed the inner ring by 0.5 rho) or its points
-    up to 0.1 rho below the face (1.2 rho)."""
-    pts = folded_sheet(rng, thickness, flap)
+    up to 0.1 rho below the face (1.2 rho). Two seeds: at 0.8 rho both fail today (synthetic
+    points 1.04 and 0.03 rho above the face; see the xfail)."""
+    pts = folded_sheet(np.random.default_rng(seed), thickness, flap)
     hole = np.hypot(pts[:, 0] - 0.5, pts[:, 1] - 0.5) < 2 * RHO
     hole &= pts[:, 2] == 0.0
     path = tmp_path / "fold.h5"
