@@ -15,6 +15,10 @@ an object store:
 its kind and whether or not its result is kept as a marker. tools/simulate_schedule.py replays the
 table on any number of workers; tools/bench_survey.py reports it.
 
+When a task ends, the worker gives the heap memory it freed back to the system (glibc keeps it
+otherwise: a worker that ran a large task would hold that task's peak while it runs small ones, or
+waits, beside the other workers' tasks).
+
 A decorated task that fails leaves ``lodbuilder_task`` on its exception (kind, worker pid, seconds,
 its tile or block, and the names of the source files its points came from);
 :func:`failure_note` ends the build's error message with them.
@@ -30,6 +34,8 @@ import os
 import time
 from collections.abc import Callable
 from typing import Any, TypeVar
+
+from ..._resources import release_freed_memory
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -70,6 +76,7 @@ def timed_task(fn: F) -> F:
         try:
             res = fn(*args, **kwargs)
         except Exception as exc:
+            release_freed_memory()
             info: dict[str, Any] = {"kind": fn.__name__, "pid": os.getpid(), "seconds": time.perf_counter() - t0}
             t, b = ids.get("t"), ids.get("b")
             if args and isinstance(t, int):
@@ -81,6 +88,7 @@ def timed_task(fn: F) -> F:
             raise
         timing = {"kind": fn.__name__, "start": start, "seconds": time.perf_counter() - t0,
                   "cpu_seconds": time.process_time() - c0, "pid": os.getpid(), "peak_rss": peak_rss()}
+        release_freed_memory()  # (the worker waits for its next task at its own size)
         if isinstance(res, dict):
             res["timing"] = timing
         if args:
