@@ -82,6 +82,7 @@ def test_bench_survey_document(bench_doc, capsys):
             assert r["processes_seen"] >= 1 + r["workers"]  # the parent and its workers, at least
             assert r["peak_rss_tree_bytes"] > 0 and r["peak_rss_parent_bytes"] > 0
             assert r["rss_over_max_memory"] == pytest.approx(r["peak_rss_tree_bytes"] / 2e9, abs=1e-3)
+            assert r["worker_share_bytes"] == int((2e9 - 600 * 2**20) / r["workers"])
             assert 0 < r["peak_work_dir_bytes"] <= r["peak_written_bytes"]
             assert r["work_over_archive"] == pytest.approx(r["peak_work_dir_bytes"] / r["archive_bytes"], abs=1e-3)
             # (the write is the record's last phase: its bands are tasks in the table)

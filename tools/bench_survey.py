@@ -259,6 +259,14 @@ def parse_bytes(text: str) -> int:
     return parse(text)
 
 
+def worker_share(max_memory: str, workers: int) -> int:
+    """The bytes of ``--max-memory`` the planner gives each worker (a task's peak, the worker's own
+    footprint included, should stay below it: compare ``tasks.peak_rss_by_kind``)."""
+    from lodbuilder.build.tiled.plan import worker_budget
+
+    return worker_budget(parse_bytes(max_memory), workers)
+
+
 def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
               interval: float, tile_points: int | None = None) -> dict[str, Any]:
     """One measured ``lodbuilder build`` of ``inputs`` (see the module)."""
@@ -306,6 +314,7 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "processes_seen": len(sampler.cpu), "peak_rss_tree_bytes": sampler.peak_rss,
         "peak_rss_parent_bytes": rus["self_maxrss"],
         "rss_over_max_memory": round(sampler.peak_rss / parse_bytes(max_memory), 3),
+        "worker_share_bytes": worker_share(max_memory, workers),
         "peak_work_dir_bytes": sampler.peak_work, "peak_written_bytes": sampler.peak_all,
         "archive_bytes": archive_bytes,
         "work_over_archive": round(sampler.peak_work / archive_bytes, 3) if archive_bytes else None,

@@ -38,7 +38,7 @@ from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from .pool import result, submit
 from .store import as_store
-from .sums import done, mark
+from .sums import done, mark, prune
 from .timing import timed_task
 from .workdir import opaque_rows
 from .write import damaged, record_dtype
@@ -195,6 +195,7 @@ def _run(ex: Any, work: Any, name: str, calls: dict[int, tuple[int, Any, tuple]]
                 k0, k1 = bands[b]
                 res = result(fut, name, f"the write of band {b + 1} of {len(bands)} (positions {k0} to {k1})")
                 got[b] = mark(work, WL.chunks_piece(b), res)
+                prune(work, calls[b][2][-1]["pieces"])  # (its bucket: read by no one now)
                 tell()
                 if then is not None:
                     then()
