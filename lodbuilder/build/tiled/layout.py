@@ -210,19 +210,22 @@ def writing(name: str) -> str:
 # ------------------------------------------------------------------------------------ pruning
 
 #: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
-#: after the merge, the tiles' streams; after the write's permutation, the raw blocks; after the
-#: pieces (the last phase to read a tile's points), the tiles' core and halo; after the radii, the
-#: covering passes' files and the radii's first round
-PRUNE_AFTER = {"merge": ("stream.",), "buckets": ("raw.",), "pieces": ("core.", "halo."),
-               "radii": ("cover.", "radloc.", "space.")}
+#: after the merge, the tiles' streams and the merge's keys (no phase reads them); after the
+#: write's permutation, the raw
+#: blocks; after the pieces (the last phase to read a tile's points), the tiles' core and halo;
+#: after the radii, the covering passes' files and the radii's first round
+PRUNE_AFTER = {"merge": ("stream.", "key."), "buckets": ("raw.",),
+               "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
 def consumers(name: str) -> list[str] | None:
     """The pieces that read the work file ``name`` once its producer is done (``order.<t>.*``: every
-    ordering of tile t), None for a file that is never deleted before the build ends: while they
-    are all done the file is not needed."""
+    ordering of tile t; none: no piece reads it), None for a file that is never deleted before the
+    build ends: while they are all done the file is not needed."""
     parts = name.split(".")
     kind, ext = parts[0], parts[-1]
+    if name == KEY:
+        return []
     if kind == "raw" and ext in ("xyz", "attr"):
         return ["plan", "distribute", "buckets"]
     if kind == "stream" and ext == "bin":

@@ -150,7 +150,7 @@ def consumed(store: Store, name: str) -> bool:
     """True when the work file ``name`` may be missing: every piece that reads it is done
     (:func:`lodbuilder.build.tiled.layout.consumers`; each checked once per build)."""
     pieces = WL.consumers(name)
-    if not pieces:
+    if pieces is None:
         return False
     for piece in pieces:
         if piece.endswith(".*"):  # (every ordering pass of a tile: an earlier pass's stream was replaced)

@@ -9,6 +9,7 @@ memory of the process that runs it stays at one block.
 from __future__ import annotations
 
 import io
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,6 +80,68 @@ def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None,
             if a.shape[0] != m:
                 raise OSError(f"{store.url}/{name}: truncated ({lo + a.shape[0]} of {count} rows)")
             yield lo, a
+            lo += m
+
+
+#: zlib level of the work files that are only ever read whole or from their start (the raw blocks'
+#: attributes, the write's bucket pieces; 0: raw records). Level 1 halves them (records of an
+#: airborne LAZ survey: 2.2 x smaller, at about 100 MB/s of one core to compress and 300 MB/s to
+#: decompress): the largest work files, alive beside the tiles' points and covering files
+ZIP_LEVEL = 1
+ZIP_READ = 1 << 22  # compressed bytes per read of zipped_blocks()
+
+
+class Zipped:
+    """A work file being written compressed (see ZIP_LEVEL): :meth:`write` records as they come."""
+
+    def __init__(self, out: Any) -> None:
+        self.out = out
+        self.z = zlib.compressobj(ZIP_LEVEL) if ZIP_LEVEL else None
+
+    def write(self, rows: np.ndarray) -> None:
+        data = np.ascontiguousarray(rows)
+        self.out.write(self.z.compress(cast(Any, data)) if self.z is not None else data)
+
+    def commit(self) -> list[int]:
+        if self.z is not None:
+            self.out.write(self.z.flush())
+            self.z = None
+        return cast(list[int], self.out.commit())
+
+    def close(self) -> None:
+        self.out.close()
+
+
+def unzipped(data: bytes, dtype: Any, name: str) -> np.ndarray:
+    """The records of a whole work file written by :class:`Zipped`."""
+    try:
+        return np.frombuffer(zlib.decompress(data) if ZIP_LEVEL else data, dtype)
+    except (zlib.error, ValueError) as exc:  # (a damage its checksum did not find: a forged marker)
+        from ...errors import InputError
+
+        raise InputError(f"{name} is not a file of records ({exc})") from None
+
+
+def zipped_blocks(path: tuple[Store, str], dtype: Any, count: int, rows: int) -> Iterator[tuple[int, np.ndarray]]:
+    """``(first row, rows)`` blocks of a work file written by :class:`Zipped` (``count`` records)."""
+    if not ZIP_LEVEL:
+        yield from blocks(path, dtype, count, rows)
+        return
+    store, name = path
+    dt = np.dtype(dtype)
+    z, pending, lo = zlib.decompressobj(), b"", 0
+    with store.open(name) as f:
+        while lo < count:
+            while len(pending) < min(rows, count - lo) * dt.itemsize and not z.eof:
+                raw = f.read(ZIP_READ)
+                pending += z.decompress(raw) if raw else z.flush()
+                if not raw:
+                    break
+            m = min(rows, count - lo, len(pending) // dt.itemsize)
+            if m == 0:
+                raise OSError(f"{store.url}/{name}: truncated ({lo} of {count} rows)")
+            yield lo, np.frombuffer(pending[: m * dt.itemsize], dt).copy()
+            pending = pending[m * dt.itemsize:]
             lo += m
 
 
