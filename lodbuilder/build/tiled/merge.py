@@ -38,6 +38,12 @@ BUF = 1 << 16  # rows per tile buffer in the merge, at most
 BUF_BYTES = 64 << 20
 
 
+def buffer_rows(n_tiles: int) -> int:
+    """Rows of each tile's buffer in the merge: all of them within BUF_BYTES (at least 1,024 rows
+    each, at most BUF)."""
+    return min(BUF, max(1024, BUF_BYTES // (STREAM.itemsize * max(n_tiles, 1))))
+
+
 class _StreamReader:
     def __init__(self, store: Store, name: str) -> None:
         self.f = store.open(name)
@@ -76,7 +82,7 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
     dtile = np.empty(dpool.shape[0], np.int64)
     state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
     readers = [_StreamReader(work, WL.stream(t)) for t in range(n_tiles)]
-    buf = max(1024, min(BUF, BUF_BYTES // (STREAM.itemsize * max(n_tiles, 1))))
+    buf = buffer_rows(n_tiles)
     bufs = np.zeros((n_tiles, buf, 6))
     bpos = np.zeros(n_tiles, np.int64)
     blen = np.zeros(n_tiles, np.int64)
