@@ -226,4 +226,4 @@ def test_zipped_work_files_read_back_in_blocks(tmp_path):
     with pytest.raises(OSError, match="x.attr: truncated"):
         list(zipped_blocks((store, "x.attr"), dt, 10_000, 4_000))
     with pytest.raises(InputError, match=r"^x.attr is not a file of records \("):
-        unzipped(b"not zlib", dt, "x.attr")
+        unzipped(b"not zstandard", dt, "x.attr")
