@@ -81,6 +81,8 @@ def test_bench_survey_document(bench_doc, capsys):
             assert r["parent_cpu_share"] == pytest.approx(r["cpu_parent_seconds"] / r["cpu_tree_seconds"], abs=0.01)
             assert r["processes_seen"] >= 1 + r["workers"]  # the parent and its workers, at least
             assert r["peak_rss_tree_bytes"] > 0 and r["peak_rss_parent_bytes"] > 0
+            assert r["rss_over_max_memory"] == pytest.approx(r["peak_rss_tree_bytes"] / 2e9, abs=1e-3)
+            assert r["worker_share_bytes"] == int((2e9 - 600 * 2**20) / r["workers"])
             assert 0 < r["peak_work_dir_bytes"] <= r["peak_written_bytes"]
             assert r["work_over_archive"] == pytest.approx(r["peak_work_dir_bytes"] / r["archive_bytes"], abs=1e-3)
             # (the write is the record's last phase: its bands are tasks in the table)
@@ -93,6 +95,10 @@ def test_bench_survey_document(bench_doc, capsys):
                          "write_band"):
                 assert kinds[kind]["tasks"] >= 1, kind
             assert 1 <= r["tasks"]["workers_seen"] <= r["workers"]
+            # every task's worker peak, the largest per kind (a worker holds Python and NumPy at least)
+            peaks = r["tasks"]["peak_rss_by_kind"]
+            assert set(peaks) == set(kinds) and all(v == kinds[k]["peak_rss_max"] > 20e6 for k, v in peaks.items())
+            assert list(peaks.values()) == sorted(peaks.values(), reverse=True)
             sim = r["simulation"]
             assert [p["workers"] for p in sim["predicted"]] == [1, 2, 4, 8, 16]
             assert sim["predicted"][0]["speedup_over_1"] == 1.0
@@ -107,6 +113,8 @@ def test_bench_survey_document(bench_doc, capsys):
         assert t["parent_cpu_share"]["met"] == (t["parent_cpu_share"]["worst"] <= 0.03)
         assert t["speedup_2_over_1"]["met"] == (t["speedup_2_over_1"]["value"] >= 1.9)
         assert t["work_over_archive"]["target_max"] == 2.0
+        assert t["rss_over_max_memory"]["worst"] == max(r["rss_over_max_memory"] for r in sv["runs"])
+        assert t["rss_over_max_memory"]["target_max"] == 1.1
 
 
 def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypatch):

@@ -222,7 +222,7 @@ def test_timed_tasks_log_their_timing_and_the_table_names_them(tmp_path):
 
     started = __import__("time").time()
     res = order_tile(str(tmp_path), 3)
-    assert res["tile"] == 3 and set(res["timing"]) == {"kind", "start", "seconds", "cpu_seconds", "pid"}
+    assert res["tile"] == 3 and set(res["timing"]) == {"kind", "start", "seconds", "cpu_seconds", "pid", "peak_rss"}
     assert res["timing"]["kind"] == "order_tile" and res["timing"]["pid"] == os.getpid()
     order_tile(str(tmp_path), 3)  # its second pass
     survey_block(str(tmp_path), 0)
@@ -237,6 +237,71 @@ def test_timed_tasks_log_their_timing_and_the_table_names_them(tmp_path):
     assert sorted(r["piece"] for r in rows) == ["order.3.1", "order.3.2", "survey_block.0", "survey_block.0#2"]
     assert all(r["pid"] == os.getpid() and r["start"] >= 0 and r["cpu_seconds"] >= 0 for r in rows)
     assert [r["tile"] for r in rows if r["kind"] == "order_tile"] == [3, 3]
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/clear_refs"), reason="Linux's per-process peak reset")
+def test_timed_tasks_record_their_own_peak_resident_memory(tmp_path):
+    import numpy as np
+
+    from lodbuilder.build.tiled.timing import TASK_COLUMNS, peak_rss, task_table, timed_task
+
+    block = 200 << 20
+
+    @timed_task
+    def big_task(work, t):
+        a = np.ones(block // 8)  # touched: resident
+        return {"sum": float(a[::4096].sum())}
+
+    @timed_task
+    def small_task(work, t):
+        return {}
+
+    started = __import__("time").time()
+    big = big_task(str(tmp_path), 0)["timing"]["peak_rss"]
+    small = small_task(str(tmp_path), 1)["timing"]["peak_rss"]
+    now = peak_rss()
+    assert big >= block  # the task's block, at least
+    # the peak was reset when the next task started: it holds the process's own footprint, not the block
+    assert small < big - block // 2 and now is not None
+    rows = [dict(zip(TASK_COLUMNS, r, strict=True)) for r in task_table(tmp_path, started)["rows"]]
+    assert {r["kind"]: r["peak_rss"] for r in rows} == {"big_task": big, "small_task": small}
+
+
+#: a task that frees 190 MB of small arrays (glibc's heap) between 2 MB it keeps
+HEAP_TASK = """
+import sys
+import numpy as np
+from lodbuilder.build.tiled.timing import timed_task
+
+def rss():
+    with open("/proc/self/status") as f:
+        return next(int(x.split()[1]) * 1024 for x in f if x.startswith("VmRSS:"))
+
+pinned = []
+
+@timed_task
+def many_small(work, t):
+    parts = [np.ones(8_000) for _ in range(3_000)]
+    pinned.extend(parts[99::100])  # every 100th kept: the freed ones lie between kept blocks
+    del parts
+    return {}
+
+before = rss()
+many_small(sys.argv[1], 0)
+print(rss() - before)
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="Linux's /proc")
+def test_a_worker_gives_back_what_its_task_freed(tmp_path):
+    """Small arrays come from glibc's heap, which keeps them once freed while blocks after them
+    are in use: a worker would hold a task's peak through its next tasks (a fresh process: the
+    heap's layout is this script's own)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", HEAP_TASK, str(tmp_path)], capture_output=True, text=True, check=True)
+    assert int(out.stdout) < 64 << 20
 
 
 def test_the_cli_prints_task_lines_of_a_joint_build_without_a_terminal(tmp_path, monkeypatch, capsys):

@@ -108,3 +108,31 @@ def test_slice_and_evaluate_say_the_pieces_of_a_tiled_level(scene, capsys, tmp_p
     lines = out.splitlines()
     assert lines[1].rstrip().endswith("pieces")
     assert lines[2].rstrip().endswith(f"1/{total}") and lines[3].rstrip().endswith(f"{reached}/{total}")
+
+
+def test_a_tile_shares_only_its_points_near_faces_other_tiles_touch(tmp_path, monkeypatch):
+    """The join holds the points near the tiles' shared faces, not every point: a sheet's tiles
+    are thin in z, and all their points lie near the box's top and bottom (the 100M-point survey's
+    join held every point: 5 GB on one worker)."""
+    rng = np.random.default_rng(3)
+    xy = rng.random((160_000, 2))
+    pts = np.c_[xy, 0.01 * np.sin(6 * xy[:, 0])]
+    np.save(tmp_path / "s.npy", pts)
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("lodbuilder.build.tiled.bands.write_phase", stop)  # (the pieces phase is done)
+    with pytest.raises(KeyboardInterrupt):
+        lodbuilder.build_archive(tmp_path / "s.npy", tmp_path / "s.h5", _tile_points=40_000)
+    (work,) = (tmp_path / ".s.h5.parts").glob("*.work")
+    links = sum(f.stat().st_size for f in work.glob("pieces.*.links.bin")) // 16
+    n_tiles = len(list(work.glob("pieces.*.links.bin")))
+    assert n_tiles >= 4
+    # each tile's points near its shared faces, and those it borrows: a seam band, not the sheet
+    assert 0 < links < 0.6 * pts.shape[0]
+    monkeypatch.undo()
+    lodbuilder.build_archive(tmp_path / "s.npy", tmp_path / "s.h5", _tile_points=40_000)  # resumed
+    with lodbuilder.open_archive(tmp_path / "s.h5") as a:
+        build = a.scan().build
+    assert build["engine_stats"]["pieces"] == np.unique(_band_labels(pts, build["voxel_size"], build["band_radius"])).size

@@ -196,3 +196,34 @@ def test_sorted_slice_finds_a_band_of_ranks(store, whole, monkeypatch):
     store.put("empty.ev", np.zeros(0, EVENT))
     recs, before = W.sorted_slice(store, "empty.ev", EVENT, 0, 10)
     assert recs.shape == (0,) and before is None
+
+
+def test_zipped_work_files_read_back_in_blocks(tmp_path):
+    """The raw blocks' attributes and the buckets are written compressed (workdir.Zipped) and read
+    back whole or block by block, whatever the blocks they were written in."""
+    import numpy as np
+
+    from lodbuilder.build.tiled.store import LocalStore
+    from lodbuilder.build.tiled.workdir import Zipped, unzipped, zipped_blocks
+    from lodbuilder.errors import InputError
+
+    store = LocalStore(tmp_path)
+    dt = np.dtype([("a", "<u2"), ("b", "<f8")])
+    rec = np.zeros(10_000, dt)
+    rec["a"], rec["b"] = np.arange(10_000) % 7, np.arange(10_000) // 16
+    z = Zipped(store.writer("x.attr"))
+    for a in range(0, 10_000, 3_000):
+        z.write(rec[a:a + 3_000])
+    size, _ = z.commit()
+    assert size < rec.nbytes / 2
+    np.testing.assert_array_equal(unzipped(store.get("x.attr"), dt, "x.attr"), rec)
+    for rows in (1, 777, 10_000, 20_000):
+        got = list(zipped_blocks((store, "x.attr"), dt, 10_000, rows))
+        assert [lo for lo, _ in got] == list(range(0, 10_000, rows))
+        np.testing.assert_array_equal(np.concatenate([r for _, r in got]), rec)
+    raw = store.get("x.attr")
+    store.put("x.attr", raw[: len(raw) // 2])
+    with pytest.raises(OSError, match="x.attr: truncated"):
+        list(zipped_blocks((store, "x.attr"), dt, 10_000, 4_000))
+    with pytest.raises(InputError, match=r"^x.attr is not a file of records \("):
+        unzipped(b"not zstandard", dt, "x.attr")

@@ -8,11 +8,13 @@ them ordered as one surface: ``--joint``) once per executor and worker count. Fo
 * CPU seconds of the whole process tree (every descendant's user + system time, sampled from /proc
   every ``--interval`` seconds: a process's last interval is missed) and of the parent alone (its
   exact getrusage at exit), the parent's share (target <= 3 %) and its CPU per phase (build record);
-* peak RSS of the process tree (the sum over the tree at each sample);
+* peak RSS of the process tree (the sum over the tree at each sample) and its ratio to
+  ``--max-memory`` (target <= 1.1: 3.3 GB at 3GB);
 * the largest size on disk of the work directory over the run (sampled likewise) beside the
   archive's size (target <= 2 x), and the largest size of everything the build wrote;
 * the build record's phase seconds, tile count and per-task table summed by kind (tasks, seconds,
-  CPU seconds, workers seen), and the scheduler simulation's prediction for 1-16 workers
+  CPU seconds, workers seen, the largest peak resident size of a task's worker while it ran:
+  ``peak_rss_by_kind``, largest first), and the scheduler simulation's prediction for 1-16 workers
   (tools/simulate_schedule.py) from that record: from the tasks' wall seconds (``simulation``,
   calibrated against the run) and from their CPU seconds (``simulation_cpu``: a free core for every
   process, the figure to read on a loaded machine);
@@ -58,7 +60,7 @@ OUT = ROOT / "docs" / "bench" / "bench_survey.json"
 
 #: the targets of issue 19 that one machine can check
 TARGETS = {"parent_cpu_share_max": 0.03, "speedup_2_over_1_min": 1.9, "work_over_archive_max": 2.0,
-           "dask_over_pool_max": 1.2}
+           "dask_over_pool_max": 1.2, "rss_over_max_memory_max": 1.1}
 EXECUTORS = ("pool", "dask", "dask-s3")
 BUCKET = "lodbuilder-bench"
 
@@ -193,14 +195,19 @@ def task_summary(tasks: dict[str, Any] | None) -> dict[str, Any]:
     rows = [dict(zip(cols, r, strict=True)) for r in tasks["rows"]]
     out: dict[str, Any] = {}
     for r in rows:
-        k = out.setdefault(r["kind"], {"tasks": 0, "seconds": 0.0, "cpu_seconds": 0.0, "largest_seconds": 0.0})
+        k = out.setdefault(r["kind"], {"tasks": 0, "seconds": 0.0, "cpu_seconds": 0.0, "largest_seconds": 0.0,
+                                       "peak_rss_max": None})
         k["tasks"] += 1
         k["seconds"] += r["seconds"]
         k["cpu_seconds"] += r["cpu_seconds"]
         k["largest_seconds"] = max(k["largest_seconds"], r["seconds"])
+        if r.get("peak_rss") is not None:
+            k["peak_rss_max"] = max(k["peak_rss_max"] or 0, int(r["peak_rss"]))
     for k in out.values():
         k.update({x: round(k[x], 3) for x in ("seconds", "cpu_seconds", "largest_seconds")})
-    return {"by_kind": out, "workers_seen": len({r["pid"] for r in rows}),
+    peaks = {kind: k["peak_rss_max"] for kind, k in out.items() if k["peak_rss_max"] is not None}
+    return {"by_kind": out, "peak_rss_by_kind": dict(sorted(peaks.items(), key=lambda x: -x[1])),
+            "workers_seen": len({r["pid"] for r in rows}),
             "task_seconds": round(sum(r["seconds"] for r in rows), 3),
             "task_cpu_seconds": round(sum(r["cpu_seconds"] for r in rows), 3)}
 
@@ -244,6 +251,20 @@ def _executor_args(executor: str, workers: int, where: Path) -> tuple[list[str],
         return ["--dask-local", str(workers)], {}
     s3 = _s3()
     return ["--dask-local", str(workers), "--work-dir", f"s3://{BUCKET}/{where.name}"], s3.env
+
+
+def parse_bytes(text: str) -> int:
+    from lodbuilder._resources import parse_bytes as parse
+
+    return parse(text)
+
+
+def worker_share(max_memory: str, workers: int) -> int:
+    """The bytes of ``--max-memory`` the planner gives each worker (a task's peak, the worker's own
+    footprint included, should stay below it: compare ``tasks.peak_rss_by_kind``)."""
+    from lodbuilder.build.tiled.plan import worker_budget
+
+    return worker_budget(parse_bytes(max_memory), workers)
 
 
 def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
@@ -292,6 +313,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "cpu_parent_by_phase": rec.get("parent_cpu_seconds", {}),
         "processes_seen": len(sampler.cpu), "peak_rss_tree_bytes": sampler.peak_rss,
         "peak_rss_parent_bytes": rus["self_maxrss"],
+        "rss_over_max_memory": round(sampler.peak_rss / parse_bytes(max_memory), 3),
+        "worker_share_bytes": worker_share(max_memory, workers),
         "peak_work_dir_bytes": sampler.peak_work, "peak_written_bytes": sampler.peak_all,
         "archive_bytes": archive_bytes,
         "work_over_archive": round(sampler.peak_work / archive_bytes, 3) if archive_bytes else None,
@@ -361,6 +384,8 @@ def ratios(runs: list[dict[str, Any]]) -> dict[str, Any]:
                                       "target_max": TARGETS["parent_cpu_share_max"]}
         checks["work_over_archive"] = {"worst": max(r["work_over_archive"] for r in ok),
                                        "target_max": TARGETS["work_over_archive_max"]}
+        checks["rss_over_max_memory"] = {"worst": max(r["rss_over_max_memory"] for r in ok),
+                                         "target_max": TARGETS["rss_over_max_memory_max"]}
     if "pool 2" in out["speedup_over_1_worker"]:
         checks["speedup_2_over_1"] = {"value": out["speedup_over_1_worker"]["pool 2"],
                                       "target_min": TARGETS["speedup_2_over_1_min"]}

@@ -38,10 +38,10 @@ from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from .pool import result, submit
 from .store import as_store
-from .sums import done, mark
+from .sums import done, mark, prune
 from .timing import timed_task
 from .workdir import opaque_rows
-from .write import damaged, record_dtype
+from .write import bucket_records, damaged, record_dtype
 
 MASK = (1 << 64) - 1
 
@@ -68,7 +68,7 @@ def _segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, 
 def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[str]) -> np.ndarray:
     """The band's bucket: its points' records in stored order, each position filled once."""
     rec = record_dtype(fields)
-    r = np.concatenate([as_store(work).read_array(p, rec) for p in pieces] or [np.zeros(0, rec)])
+    r = np.concatenate([bucket_records(as_store(work), p, rec) for p in pieces] or [np.zeros(0, rec)])
     pos = r["pos"] - k0
     if r.shape[0] != k1 - k0 or (pos.size and (pos.min() < 0 or pos.max() >= k1 - k0)) \
             or np.bincount(pos, minlength=k1 - k0).max(initial=1) != 1:
@@ -195,6 +195,7 @@ def _run(ex: Any, work: Any, name: str, calls: dict[int, tuple[int, Any, tuple]]
                 k0, k1 = bands[b]
                 res = result(fut, name, f"the write of band {b + 1} of {len(bands)} (positions {k0} to {k1})")
                 got[b] = mark(work, WL.chunks_piece(b), res)
+                prune(work, calls[b][2][-1]["pieces"])  # (its bucket: read by no one now)
                 tell()
                 if then is not None:
                     then()

@@ -28,7 +28,7 @@ from . import layout as WL
 from .plan import Grid, Tile, tile_lookup
 from .store import Store, Writer, as_store
 from .timing import timed_task
-from .workdir import REC, blocks, opaque_rows
+from .workdir import REC, Zipped, blocks, opaque_rows
 
 JOINT_FIELDS = ("scan_id", "scan_point")
 
@@ -36,13 +36,15 @@ JOINT_FIELDS = ("scan_id", "scan_point")
 class _Out:
     """Work objects written whole, committed together by :meth:`publish` (a task's outputs)."""
 
-    def __init__(self, store: Store) -> None:
+    def __init__(self, store: Store, zipped: tuple[str, ...] = ()) -> None:
         self.store = store
-        self.files: dict[str, Writer] = {}
+        self.zipped = zipped  # (the objects written compressed: see .workdir.Zipped)
+        self.files: dict[str, Writer | Zipped] = {}
 
     def write(self, name: str, data: np.ndarray) -> None:
         if name not in self.files:
-            self.files[name] = self.store.writer(name)
+            w = self.store.writer(name)
+            self.files[name] = Zipped(w) if name in self.zipped else w
         self.files[name].write(data)
 
     def close(self) -> None:
@@ -71,7 +73,7 @@ def read_block(work: Store | str, b: int, source: Any, member: int | None, start
     step, meta = int(spec["step"]), spec["metadata"]
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     samples, encodings = [], set()
-    out = _Out(as_store(work))
+    out = _Out(as_store(work), (WL.raw_attr(b),))
     g = g0
     try:
         for chunk in stream.chunks(int(spec["rows"]), start, stop):

@@ -30,6 +30,12 @@ A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) 
 it wrote with their size and CRC-32 (:mod:`.sums`); a resumed build trusts a piece only when its
 marker and files check out. Every file is written to a temporary and published
 (:mod:`lodbuilder._atomic`).
+
+A large file is deleted once every piece that reads it is done (:data:`PRUNE_AFTER`: when the
+marker of the last one is written; a bucket once its band of the write is), so that the work
+directory holds only what later phases still read. Its producer's marker still lists it: a missing
+file checks out while every piece that reads it (:func:`consumers`) checks out, so a resume that
+finds one of those damaged or gone does its producer again too (the same bytes).
 """
 
 from __future__ import annotations
@@ -199,6 +205,38 @@ def marker(piece: str) -> str:
 def writing(name: str) -> str:
     """The name a file has while a phase writes it (published onto ``name`` when complete)."""
     return f"{name}.tmp"
+
+
+# ------------------------------------------------------------------------------------ pruning
+
+#: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
+#: after the merge, the tiles' streams and the merge's keys (no phase reads them); after the
+#: write's permutation, the raw
+#: blocks; after the pieces (the last phase to read a tile's points), the tiles' core and halo;
+#: after the radii, the covering passes' files and the radii's first round
+PRUNE_AFTER = {"merge": ("stream.", "key."), "buckets": ("raw.",),
+               "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
+
+
+def consumers(name: str) -> list[str] | None:
+    """The pieces that read the work file ``name`` once its producer is done (``order.<t>.*``: every
+    ordering of tile t; none: no piece reads it), None for a file that is never deleted before the
+    build ends: while they are all done the file is not needed."""
+    parts = name.split(".")
+    kind, ext = parts[0], parts[-1]
+    if name == KEY:
+        return []
+    if kind == "raw" and ext in ("xyz", "attr"):
+        return ["plan", "distribute", "buckets"]
+    if kind == "stream" and ext == "bin":
+        return ["merge"]
+    if kind in ("core", "halo") and ext == "bin":
+        return ["pieces", f"cover.{parts[1]}", f"order.{parts[1]}.*"]
+    if (kind == "cover" and ext in ("ev", "pt")) or kind in ("radloc", "space"):
+        return ["radii"]
+    if kind == "bucket" and ext == "bin":
+        return [chunks_piece(int(parts[1]))]
+    return None
 
 
 # ------------------------------------------------------------------------------------ moments

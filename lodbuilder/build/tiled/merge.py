@@ -33,7 +33,15 @@ from .timing import timed_task
 
 log = logging.getLogger(__name__)
 
-BUF = 1 << 16  # rows per tile buffer in the merge
+BUF = 1 << 16  # rows per tile buffer in the merge, at most
+#: bytes of all the tiles' buffers together (the buffers of 256 tiles at BUF rows were 805 MB)
+BUF_BYTES = 64 << 20
+
+
+def buffer_rows(n_tiles: int) -> int:
+    """Rows of each tile's buffer in the merge: all of them within BUF_BYTES (at least 1,024 rows
+    each, at most BUF)."""
+    return min(BUF, max(1024, BUF_BYTES // (STREAM.itemsize * max(n_tiles, 1))))
 
 
 class _StreamReader:
@@ -74,12 +82,13 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
     dtile = np.empty(dpool.shape[0], np.int64)
     state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
     readers = [_StreamReader(work, WL.stream(t)) for t in range(n_tiles)]
-    bufs = np.zeros((n_tiles, BUF, 6))
+    buf = buffer_rows(n_tiles)
+    bufs = np.zeros((n_tiles, buf, 6))
     bpos = np.zeros(n_tiles, np.int64)
     blen = np.zeros(n_tiles, np.int64)
     heap_rows = []
     for t, r in enumerate(readers):
-        a = r.read(BUF)
+        a = r.read(buf)
         bufs[t, : a.shape[0]] = a
         blen[t] = a.shape[0]
         if a.shape[0]:
@@ -116,7 +125,7 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
                 if code == 0:
                     break
                 continue
-            a = readers[t].read(BUF)  # code 1: refill tile t (at the top of the tile heap)
+            a = readers[t].read(buf)  # code 1: refill tile t (at the top of the tile heap)
             bufs[t, : a.shape[0]] = a
             bpos[t] = 0
             blen[t] = a.shape[0]

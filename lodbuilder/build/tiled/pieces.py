@@ -58,6 +58,21 @@ def _near_box(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, d: float) -> np.n
     return np.all((xyz >= lo - d) & (xyz <= hi + d), axis=1)
 
 
+def _near_faces(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, interior: np.ndarray, d: float) -> np.ndarray:
+    """Which points lie within ``d`` of a face of the box that it shares with other tiles
+    (``interior``: lo/hi per axis), the only points of a tile that another tile borrows: a point
+    within ``d`` of tile u's box is within ``d`` of the face of its own box on a side where the
+    boxes separate, and that face is shared (u lies beyond it). The scan's outer faces do not
+    count: an airborne tile's box is thin in z, and every point is near its top or bottom."""
+    near = np.zeros(xyz.shape[0], bool)
+    for a in range(3):
+        if interior[0, a]:
+            near |= xyz[:, a] <= lo[a] + d
+        if interior[1, a]:
+            near |= xyz[:, a] >= hi[a] - d
+    return near
+
+
 def _xyz(rec: np.ndarray) -> np.ndarray:
     return np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
 
@@ -86,7 +101,7 @@ def pieces_tile(work: str, t: int, tile: dict[str, Any], core: list[str], others
     neighbouring tiles (their core pieces, ``others``) within :func:`reach` of its box, on the
     grid whose voxel corners fall on ``lattice`` (the scan's lowest point). Writes
     ``pieces.<t>.links.bin`` (LINK records, by input index: the borrowed points, and its own points
-    within the reach of its box's faces, which other tiles borrow) and ``pieces.<t>.first.i8`` (the
+    within the reach of its box's shared faces, which other tiles borrow) and ``pieces.<t>.first.i8`` (the
     least rank in the merged order of each local piece)."""
     w = as_store(work)
     lo, hi = np.asarray(tile["lo"], float), np.asarray(tile["hi"], float)
@@ -99,7 +114,7 @@ def pieces_tile(work: str, t: int, tile: dict[str, Any], core: list[str], others
     first = np.full(int(npiece), np.iinfo(np.int64).max, np.int64)
     np.minimum.at(first, piece, gather_ranks(w, ext["g"]))
     shared = np.ones(ext.shape[0], bool)  # borrowed points, and own points other tiles may borrow
-    shared[: own.shape[0]] = ~_near_box(xyz[: own.shape[0]], lo + d, hi - d, 0.0)  # (not deep inside)
+    shared[: own.shape[0]] = _near_faces(xyz[: own.shape[0]], lo, hi, np.asarray(tile["interior"], bool), d)
     links = np.empty(int(shared.sum()), LINK)
     links["g"], links["piece"] = ext["g"][shared], piece[shared]
     name = f"pieces.{t}"

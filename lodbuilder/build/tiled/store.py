@@ -163,6 +163,13 @@ class Store:
 
     gap_rows = LOCAL_GAP_ROWS
 
+    @property
+    def verified(self) -> set[str]:
+        """The markers found done (with their files) since :meth:`claim` (see :mod:`.sums`)."""
+        if "_verified" not in self.__dict__:
+            self._verified: set[str] = set()
+        return self._verified
+
     def gap(self, width: int) -> int:
         """Rows of a gap that one read takes rather than two (see :func:`.workdir.gather`)."""
         return self.gap_rows
@@ -204,6 +211,7 @@ class Store:
 
     def claim(self) -> None:
         """Make the store ready for a build (or check that what a stopped build left is lodbuilder's)."""
+        self.verified.clear()
 
     def remove(self) -> None:
         """Delete the store and what it holds (a finished build)."""
@@ -253,6 +261,7 @@ class LocalStore(Store):
         """Create the work directory with lodbuilder's marker, or check the one that is there."""
         from ...archive.files import make_own_dir
 
+        self.verified.clear()
         self.root.parent.mkdir(parents=True, exist_ok=True)  # (a --work-dir DIR: DIR/ARCHIVE/)
         make_own_dir(self.root, self.root.name)
 
@@ -399,6 +408,7 @@ class FsspecStore(Store):
         when the store cannot be written (a missing bucket, wrong credentials, no endpoint)."""
         from ...errors import WorkStoreError
 
+        self.verified.clear()
         try:
             self.put(OWNER, b"lodbuilder tiled build work files\n")
         except Exception as exc:  # noqa: BLE001 - any failure of the file system, said in one line

@@ -63,6 +63,8 @@ def check_sums(work: Store | Path | str, files: dict[str, Any], skip: tuple[str,
         if have is None:
             if isinstance(store, LocalStore) and os.path.lexists(store.path(name)):
                 return f"{name} is not a regular file"
+            if consumed(store, name):  # (deleted once read: see layout.PRUNE_AFTER)
+                continue
             return f"{name} is missing"
         size, crc = int(want[0]), int(want[1])
         if have != size:
@@ -102,7 +104,9 @@ def unseal(text: str) -> dict[str, Any] | None:
 
 def put_json(work: Store | Path | str, name: str, doc: dict[str, Any]) -> None:
     """Write the marker object ``name`` of the store ``work`` whole (see :func:`sealed`)."""
-    as_store(work).put(name, sealed(doc))
+    store = as_store(work)
+    store.verified.discard(name)
+    store.put(name, sealed(doc))
 
 
 def get_json(work: Store | Path | str, name: str) -> dict[str, Any] | None:
@@ -129,8 +133,45 @@ def mark(work: Store | Path | str, piece: str, doc: dict[str, Any]) -> dict[str,
     pass the named moment of its kind (the piece's name up to the first dot: :func:`layout.moment`);
     returns ``doc``."""
     put_json(work, WL.marker(piece), doc)
+    for prefix in WL.PRUNE_AFTER.get(piece, ()):
+        prune(work, [n for n in as_store(work).names(prefix) if WL.consumers(n) is not None])
     WL.moment(piece.split(".")[0])
     return doc
+
+
+def prune(work: Store | Path | str, names: list[str]) -> None:
+    """Delete work files that every piece reading them has read (see :mod:`.layout`)."""
+    store = as_store(work)
+    for name in names:
+        store.delete(name)
+
+
+def consumed(store: Store, name: str) -> bool:
+    """True when the work file ``name`` may be missing: every piece that reads it is done
+    (:func:`lodbuilder.build.tiled.layout.consumers`; each checked once per build)."""
+    pieces = WL.consumers(name)
+    if pieces is None:
+        return False
+    for piece in pieces:
+        if piece.endswith(".*"):  # (every ordering pass of a tile: an earlier pass's stream was replaced)
+            found = sorted((n[: -len(".json")] for n in store.names(piece[:-1]) if n.endswith(".json")),
+                           key=lambda x: int(x.split(".")[-1]))
+            stream = (WL.stream(int(piece.split(".")[1])),)
+            if not found or not all(_verified(store, p, stream if p != found[-1] else ()) for p in found):
+                return False
+        elif not _verified(store, piece):
+            return False
+    return True
+
+
+def _verified(store: Store, piece: str, skip: tuple[str, ...] = ()) -> bool:
+    """:func:`done` of ``piece``, remembered by the store for the rest of the build."""
+    if WL.marker(piece) in store.verified:
+        return True
+    ok = done(store, piece, skip) is not None
+    if ok:
+        store.verified.add(WL.marker(piece))
+    return ok
 
 
 def done(work: Store | Path | str, name: str, skip: tuple[str, ...] = ()) -> dict[str, Any] | None:
@@ -149,6 +190,7 @@ def done(work: Store | Path | str, name: str, skip: tuple[str, ...] = ()) -> dic
     if problem is None:
         return doc
     log.warning("tiled build in %s: %s (%s); doing it again", store.url, _piece(name), problem)
+    store.verified.discard(marker)
     store.delete(marker)
     return None
 

@@ -5,12 +5,19 @@ phase), and which worker failed on which tile or block of which source files.
 A task function decorated with :func:`timed_task` (its first parameter the work directory, and
 ``t`` a tile or ``b`` a read block if it works on one) adds ``timing`` to the dict it returns (its
 kind, the function's name; when it started, seconds since the epoch; its wall and CPU seconds, CPU
-of the worker process while it ran, every thread counted; the worker's pid) and appends the same
+of the worker process while it ran, every thread counted; the worker's pid; ``peak_rss``, the
+worker process's peak resident bytes while the task ran, its own footprint included: on Linux the
+peak is reset when the task starts, /proc/self/clear_refs, and read from VmHWM when it ends; None
+elsewhere; a Dask worker running tasks in threads counts its other tasks too) and appends the same
 as one line to the worker's log in the work store (``tasks.<pid>.jsonl``; one object per line on
 an object store:
 :func:`lodbuilder.build.tiled.layout.task_log`), so :func:`task_table` finds every task, whatever
 its kind and whether or not its result is kept as a marker. tools/simulate_schedule.py replays the
 table on any number of workers; tools/bench_survey.py reports it.
+
+When a task ends, the worker gives the heap memory it freed back to the system (glibc keeps it
+otherwise: a worker that ran a large task would hold that task's peak while it runs small ones, or
+waits, beside the other workers' tasks).
 
 A decorated task that fails leaves ``lodbuilder_task`` on its exception (kind, worker pid, seconds,
 its tile or block, and the names of the source files its points came from);
@@ -28,11 +35,32 @@ import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from ..._resources import release_freed_memory
+
 F = TypeVar("F", bound=Callable[..., Any])
 
 #: the columns of the build record's task table (``start``: seconds after the build started,
 #: negative for a task of an earlier, interrupted run; ``tile``/``block``: the task's, or None)
-TASK_COLUMNS = ("kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid")
+TASK_COLUMNS = ("kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid", "peak_rss")
+#: Linux: writing this to /proc/self/clear_refs resets the process's peak resident size (VmHWM)
+RESET_PEAK = "5"
+
+
+def reset_peak_rss() -> None:
+    """Reset this process's peak resident size to its current size (Linux; nothing elsewhere)."""
+    with contextlib.suppress(OSError):
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write(RESET_PEAK)
+
+
+def peak_rss() -> int | None:
+    """This process's peak resident size in bytes since the last :func:`reset_peak_rss` (VmHWM
+    of /proc/self/status), None where that is not known."""
+    with contextlib.suppress(OSError, ValueError, IndexError), open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    return None
 
 
 def timed_task(fn: F) -> F:
@@ -42,11 +70,13 @@ def timed_task(fn: F) -> F:
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Any:
+        reset_peak_rss()
         start, t0, c0 = time.time(), time.perf_counter(), time.process_time()
         ids = {k: kwargs.get(k, args[i] if i < len(args) else None) for k, i in at.items()}
         try:
             res = fn(*args, **kwargs)
         except Exception as exc:
+            release_freed_memory()
             info: dict[str, Any] = {"kind": fn.__name__, "pid": os.getpid(), "seconds": time.perf_counter() - t0}
             t, b = ids.get("t"), ids.get("b")
             if args and isinstance(t, int):
@@ -57,7 +87,8 @@ def timed_task(fn: F) -> F:
                 exc.lodbuilder_task = info  # type: ignore[attr-defined]
             raise
         timing = {"kind": fn.__name__, "start": start, "seconds": time.perf_counter() - t0,
-                  "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
+                  "cpu_seconds": time.process_time() - c0, "pid": os.getpid(), "peak_rss": peak_rss()}
+        release_freed_memory()  # (the worker waits for its next task at its own size)
         if isinstance(res, dict):
             res["timing"] = timing
         if args:
@@ -88,7 +119,8 @@ def task_table(work: Any, started: float) -> dict[str, Any]:
         with contextlib.suppress(ValueError, KeyError, TypeError):
             r = json.loads(line)
             rows.append([r["kind"], None, r.get("tile"), r.get("block"), round(float(r["start"]) - started, 3),
-                         round(float(r["seconds"]), 4), round(float(r["cpu_seconds"]), 4), int(r["pid"])])
+                         round(float(r["seconds"]), 4), round(float(r["cpu_seconds"]), 4), int(r["pid"]),
+                         None if r.get("peak_rss") is None else int(r["peak_rss"])])
     rows.sort(key=lambda r: (r[4], r[0], r[2] if r[2] is not None else -1, r[3] if r[3] is not None else -1))
     passes: dict[int, int] = {}
     seen: dict[str, int] = {}

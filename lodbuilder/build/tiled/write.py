@@ -24,9 +24,9 @@ from ...archive import layout as L
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, report
 from . import layout as WL
-from .store import LocalStore, Store, Writer, as_store
+from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import blocks, opaque_rows, read_rows
+from .workdir import Zipped, blocks, opaque_rows, read_rows, unzipped, zipped_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -38,6 +38,11 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
     return np.dtype(spec)
 
 
+def bucket_records(store: Store, name: str, rec: np.dtype) -> np.ndarray:
+    """The records of a bucket piece (compressed: :class:`.workdir.Zipped`)."""
+    return unzipped(store.get(name), rec, name)
+
+
 @timed_task
 def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
                  block: int, rows: int) -> dict[str, Any]:
@@ -47,7 +52,7 @@ def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, t
     w = as_store(work)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
-    out: dict[str, Writer] = {}
+    out: dict[str, Zipped] = {}
     try:
         with w.open(WL.rank_file(b)) as fr:
             for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
@@ -59,7 +64,7 @@ def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, t
                 for k in np.flatnonzero(np.diff(cuts)):
                     name = WL.bucket(int(k), b)
                     if name not in out:
-                        out[name] = w.writer(name)
+                        out[name] = Zipped(w.writer(name))
                     out[name].write(srt[cuts[k]:cuts[k + 1]])
                     counts[k] += cuts[k + 1] - cuts[k]
         files = {name: f.commit() for name, f in out.items()}
@@ -128,7 +133,7 @@ def _raw_records(work: Any, fields: dict[str, tuple[str, tuple[int, ...]]], raw:
     attr = WL.attr_record(fields)
     for b, (_, a, z, g0) in enumerate(raw, start=first):
         m_b = int(z) - int(a)
-        ats: Any = blocks((store, WL.raw_attr(b)), attr, m_b, rows) if attr.itemsize else None
+        ats: Any = zipped_blocks((store, WL.raw_attr(b)), attr, m_b, rows) if attr.itemsize else None
         try:
             for r0, xyz in blocks((store, WL.raw_xyz(b)), "<f8", 3 * m_b, 3 * rows):
                 pts = xyz.reshape(-1, 3)
@@ -174,7 +179,8 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
         for b in range(int(buckets["buckets"])):
             k0 = b * block
             k1 = min(n, k0 + block)
-            r = np.concatenate([np.fromfile(work / p, dtype=rec) for p in buckets["pieces"][b]] or [np.zeros(0, rec)])
+            local = LocalStore(work)
+            r = np.concatenate([bucket_records(local, p, rec) for p in buckets["pieces"][b]] or [np.zeros(0, rec)])
             if r.shape[0] != k1 - k0:
                 raise RuntimeError(f"bucket {b} holds {r.shape[0]} rows, expected {k1 - k0}")
             srt = np.empty(k1 - k0, rec)
