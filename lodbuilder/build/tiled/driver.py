@@ -21,7 +21,7 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
-from .pieces import pieces_phase
+from .pieces import join_phase, reach
 from .pool import collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
@@ -170,10 +170,13 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
     # 6. exact covering radii of every tile (on the workers), combined in bands; meanwhile tasks
     #    put the points in stored order (the first pass of the write)
+    #    and the band pieces of every tile, from the covering's points and ranks (see :mod:`.pieces`)
+    spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
+            "max_memory": worker_budget, "halo": halo}
     buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
-                                                             float(pl["spacing"]), delta, progress)
+                                                             float(pl["spacing"]), delta, spec, progress)
     clock.lap("cover")
-    band_pieces = pieces_phase(executor, work, name, tiles, dist["pieces"]["core"], pl, sp.lo, worker_budget, progress)
+    band_pieces = join_phase(executor, work, name, n_tiles)
     clock.lap("pieces")
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
@@ -237,18 +240,28 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
 
 
 def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
-           spacing: float, delta: float, progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any], int]:
+           spacing: float, delta: float, spec: dict[str, Any], progress: ProgressCallback
+           ) -> tuple[dict[str, Any], dict[str, Any], int]:
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
-    tasks put the points in stored order (the first pass of the write). Returns the buckets' and
-    the radii's markers and how many tiles a resume found covered."""
+    tasks put the points in stored order (the first pass of the write); each covering task also
+    labels its tile's band pieces (``spec``: what :func:`.pieces.tile_pieces` needs beside the
+    tile's box; the neighbours' cores are read only when the halo is narrower than the pieces'
+    reach). Returns the buckets' and the radii's markers and how many tiles a resume found covered."""
     from . import workdir as W
     from .radii import radii_phase
     from .write import buckets_phase
 
     n, n_tiles = sp.n, len(by_size)
     todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
+    d = reach(spec["voxel_size"], spec["band_radius"])
+    nbrs = P.tile_neighbours(sorted(by_size, key=lambda t: t.index), d) if spec["halo"] < d else None
+
+    def band(t: P.Tile) -> dict[str, Any]:
+        near = [] if nbrs is None else [pieces["core"][u] for u in nbrs[t.index]]
+        return {**spec, "lo": t.lo.tolist(), "hi": t.hi.tolist(), "neighbours": near}
+
     futs = submit(executor, [(t.index, cover_tile, (work, t.index, spacing, pieces["core"][t.index],
-                                                    pieces["halo"][t.index])) for t in todo])
+                                                    pieces["halo"][t.index], band(t))) for t in todo])
     try:
         buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
