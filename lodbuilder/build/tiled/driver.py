@@ -335,7 +335,8 @@ def _plan(executor: cf.Executor, work: Store, name: str, sp: Spill, voxel_size: 
     # the decimated copy is ordered by one worker: no larger than the worker's budget allows
     m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
     return plan_phase(executor, work, name, sp, {k: params[k] for k in ("spacing", "voxel_size", "band_radius")},
-                      max(fits, COARSE_MIN), tile_points or fits, m_target, progress)
+                      max(fits, COARSE_MIN), tile_points or P.balanced_tile_points(n, parallel, fits), m_target,
+                      progress)
 
 
 def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, pl: dict[str, Any],
