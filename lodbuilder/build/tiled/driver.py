@@ -21,7 +21,7 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
-from .pieces import join_phase, reach
+from .pieces import finish_join, reach, start_join
 from .pool import collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
@@ -173,10 +173,10 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     #    and the band pieces of every tile, from the covering's points and ranks (see :mod:`.pieces`)
     spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
             "max_memory": worker_budget, "halo": halo}
-    buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
-                                                             float(pl["spacing"]), delta, spec, progress)
+    buckets, radii, resumed["tiles_covered_before"], joining = _cover(
+        executor, work, name, sp, by_size, dist["pieces"], float(pl["spacing"]), delta, spec, progress)
     clock.lap("cover")
-    band_pieces = join_phase(executor, work, name, n_tiles)
+    band_pieces = finish_join(executor, work, name, n_tiles, joining)  # (the join ran beside the radii)
     clock.lap("pieces")
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
@@ -241,12 +241,13 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
 
 def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
            spacing: float, delta: float, spec: dict[str, Any], progress: ProgressCallback
-           ) -> tuple[dict[str, Any], dict[str, Any], int]:
+           ) -> tuple[dict[str, Any], dict[str, Any], int, dict[cf.Future, int]]:
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
     tasks put the points in stored order (the first pass of the write); each covering task also
     labels its tile's band pieces (``spec``: what :func:`.pieces.tile_pieces` needs beside the
     tile's box; the neighbours' cores are read only when the halo is narrower than the pieces'
-    reach). Returns the buckets' and the radii's markers and how many tiles a resume found covered."""
+    reach); their join starts once they are done and runs beside the radii. Returns the buckets'
+    and the radii's markers, how many tiles a resume found covered and the join's pending task."""
     from . import workdir as W
     from .radii import radii_phase
     from .write import buckets_phase
@@ -268,8 +269,14 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
                 lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
                 points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
-    return buckets, radii, n_tiles - len(todo)
+    joining = start_join(executor, work, n_tiles)
+    try:
+        radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
+    except BaseException:
+        for f in joining:
+            f.cancel()
+        raise
+    return buckets, radii, n_tiles - len(todo), joining
 
 
 def _merge_record(merged: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:

@@ -140,13 +140,21 @@ def join_task(work: str, n_tiles: int) -> dict[str, Any]:
     return {"pieces": int(count), "piece_entries": np.sort(first)[:ENTRIES_MAX].tolist()}
 
 
-def join_phase(ex: cf.Executor, work: Any, name: str, n_tiles: int) -> dict[str, Any]:
-    """The tiles' band pieces (written by their covering tasks, see :func:`tile_pieces`) joined by
-    one task; returns ``{"pieces", "piece_entries"}`` for the build record's ``engine_stats`` (or
-    what a finished join recorded)."""
-    joined = done(work, "pieces")
+def start_join(ex: cf.Executor, work: Any, n_tiles: int) -> dict[cf.Future, int]:
+    """Submit the join of the tiles' band pieces (written by their covering tasks, see
+    :func:`tile_pieces`), to run beside the phases after the covering; none when a finished
+    join recorded it."""
+    return {} if done(work, "pieces") is not None else submit(ex, [(0, join_task, (work, n_tiles))])
+
+
+def finish_join(ex: cf.Executor, work: Any, name: str, n_tiles: int, pending: dict[cf.Future, int]
+                ) -> dict[str, Any]:
+    """Wait for the join :func:`start_join` submitted (or submit it, when nothing was pending and
+    no finished join is recorded); returns ``{"pieces", "piece_entries"}`` for the build record's
+    ``engine_stats``."""
+    joined = None if pending else done(work, "pieces")
     if joined is None:
-        (joined,) = collect(submit(ex, [(0, join_task, (work, n_tiles))]), lambda _: "the join of the pieces",
-                            name, 1, None, "pieces")
-        joined = mark(work, "pieces", joined)
+        pending = pending or start_join(ex, work, n_tiles)
+        (joined,) = collect(pending, lambda _: "the join of the pieces", name, 1, None, "pieces")
+        mark(work, "pieces", joined)
     return {k: joined[k] for k in ("pieces", "piece_entries")}
