@@ -365,3 +365,20 @@ def naive_sheet_cut(band, vcost: np.ndarray, normal: np.ndarray, sep: np.ndarray
                         if apart(f, p):
                             out[v] = np.inf
     return out
+
+
+def naive_normal_agreement(u: np.ndarray, ostart: np.ndarray, sep: np.ndarray, nrm: np.ndarray, ball: float,
+                           stride: int) -> np.ndarray:
+    """The rule of ``lodbuilder._kernels.sheets.normal_agreement`` written plainly: per cell, the
+    mean |cos| between its normal and those of every other thin cell whose centroid lies within
+    ``ball`` x its separation (brute force over all cells), for every ``stride``-th thin cell."""
+    from lodbuilder._kernels.sheets import AGREE_MIN
+
+    cen = np.array([u[ostart[c]:ostart[c + 1]].mean(axis=0) for c in range(ostart.shape[0] - 1)])
+    thin = np.flatnonzero(np.isfinite(sep))
+    out = np.full(sep.shape[0], np.nan)
+    for c in thin[::stride]:
+        near = thin[(np.linalg.norm(cen[thin] - cen[c], axis=1) <= ball * sep[c]) & (thin != c)]
+        if near.size >= AGREE_MIN:
+            out[c] = np.abs(nrm[near] @ nrm[c]).mean()
+    return out

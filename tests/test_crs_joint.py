@@ -198,6 +198,32 @@ def test_a_scan_added_in_another_crs_is_refused_naming_both(halves, tmp_path, ca
         assert c.scans == ["a"] and "UTM zone 10N" in c.scan("a").crs
 
 
+def test_a_scan_in_a_crs_added_to_an_archive_without_one_is_refused(halves, tmp_path, capsys):
+    a, _, left, right, wkt = halves
+    arc = tmp_path / "d.h5"
+    bare = write_points(tmp_path / "p.npy", left)
+    assert run_cli(capsys, "build", bare, "-o", arc, "--no-progress")[0] == 0
+    before = arc.read_bytes()
+    for extra in ([], ["--to-crs", "EPSG:32610"]):
+        rc, out, err = run_cli(capsys, "build", a, "-o", arc, *extra, "--no-progress")
+        assert rc == 2 and arc.read_bytes() == before, err
+    assert err == (
+        "lodbuilder build: error: scan 'a.laz' is in WGS 84 / UTM zone 10N (EPSG:32610) while the scans of "
+        "archive 'd.h5' have no CRS (scan 'p'); build it into another archive, or rebuild those scans with "
+        "their CRS (--crs EPSG:XXXX --overwrite) first\n"
+    )
+    bare_too = write_points(tmp_path / "q.npy", right)  # another scan without a CRS: as before
+    assert run_cli(capsys, "build", bare_too, "-o", arc, "--no-progress")[0] == 0
+    # the archive's only scan rebuilt (--overwrite) in a CRS leaves no scan without one
+    (tmp_path / "sub").mkdir()
+    rc, out, err = run_cli(capsys, "build", write_points(tmp_path / "sub" / "p.laz", left, crs=wkt),
+                           write_points(tmp_path / "sub" / "q.laz", right, crs=wkt), "-o", arc, "--overwrite",
+                           "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(arc) as d:
+        assert d.scans == ["p", "q"] and d.scan("p").crs == d.scan("q").crs == wkt
+
+
 def test_a_scan_added_with_to_crs_or_crs_is_accepted(halves, tmp_path, capsys):
     a, b, _, right, wkt = halves
     arc = tmp_path / "c.h5"

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from surfaces import folded_sheet, jittered_plane
 
 from lodbuilder.errors import MemoryBudgetError
-from lodbuilder.sampling import band
+from lodbuilder.sampling import band, spacing
 from lodbuilder.sampling.band import cells, median_spacing, plan_and_build_band
 
 
@@ -65,9 +65,9 @@ def test_median_spacing_is_the_kd_tree_figure():
 def test_two_threads_answer_like_one(monkeypatch):
     """The spacing's neighbour queries split over two threads give the same figure as one."""
     pts = jittered_plane(30_000, np.random.default_rng(5))
-    monkeypatch.setattr(band, "_cores", lambda: 2)
+    monkeypatch.setattr(spacing, "_cores", lambda: 2)
     two = median_spacing(pts)
-    monkeypatch.setattr(band, "_cores", lambda: 1)
+    monkeypatch.setattr(spacing, "_cores", lambda: 1)
     assert median_spacing(pts) == two
 
 

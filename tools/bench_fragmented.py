@@ -5,8 +5,10 @@ against exact Euclidean farthest point sampling (fpsample) of the same size.
     python tools/bench_fragmented.py --surface -o s.json  #   docs/bench/bench_fragmented.json run|surface F
     python tools/bench_fragmented.py --quick            # one small generated scene, no real scans
 
-Scenes: synthetic fragmented scenes of tools/make_fragmented.py (several seeds and piece counts)
-and the real scans autzen_trim.laz and the bunny scans of ../shared/data. For each scene: the
+Scenes: synthetic fragmented scenes of tools/make_fragmented.py (several seeds and piece counts),
+synthetic coarse closed surfaces (tori whose tube is 5-6 point spacings across: every point's other
+side lies within the band's reach, as on the bunny's decimations) and the real scans autzen_trim.laz
+and the bunny scans of ../shared/data. For each scene: the
 ordering's time, its band pieces, and at sizes log-spaced from 1 point to 5 % of N the covering
 radius (largest distance from any input point to the prefix, by k-d tree) of lodbuilder's prefix
 and of fpsample's (``fps_sampling``, exact Euclidean FPS from the same first point),
@@ -43,6 +45,7 @@ REAL = ("autzen_trim.laz", "bun000.ply", "bun045.ply", "bun_zipper.ply", "bun_zi
         "bun_zipper_res3.ply")
 MESHES = ("bun_zipper.ply", "bun_zipper_res2.ply", "bun_zipper_res3.ply")
 GENERATED = ((0, 50, 100_000), (1, 300, 200_000), (2, 1000, 200_000), (3, 2000, 300_000))
+COARSE = ((2000, 5.0), (8000, 6.0))  # coarse closed surfaces: tori whose tube is this many spacings across
 
 
 def _commit() -> str:
@@ -93,6 +96,14 @@ def scene(name: str, pts: np.ndarray) -> dict:
         "max_ratio": max(lv["ratio"] for lv in levels), "max_ratio_from_1pct": max(late) if late else None,
         "bound_holds": all(lv["bound_holds"] for lv in levels), "levels": levels,
     }
+
+
+def coarse_torus(n: int, tube_spacings: float, seed: int = 0) -> np.ndarray:
+    """n random points on a torus of ring radius 1 whose tube is ``tube_spacings`` point spacings
+    across: a closed surface sampled coarsely for its shape, like the bunny's decimations."""
+    from lodbuilder.datasets import torus
+
+    return torus(n, seed=seed, major=1.0, minor=(tube_spacings / 2) ** 2 * 4 * np.pi**2 / n)[0]
 
 
 def _mesh(path: Path) -> tuple[np.ndarray, object]:
@@ -175,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     gen = () if a.surface else GENERATED[:1] if a.quick else GENERATED
     for seed, pieces, points in gen:
         out.append(scene(f"synthetic fragmented seed={seed} objects={pieces}", fragmented_scene(seed, pieces, points)))
+        print(json.dumps({k: v for k, v in out[-1].items() if k != "levels"}), file=sys.stderr)
+    for n, tube in () if a.surface or a.quick else COARSE:
+        out.append(scene(f"synthetic coarse torus n={n} tube={tube:g} spacings", coarse_torus(n, tube)))
         print(json.dumps({k: v for k, v in out[-1].items() if k != "levels"}), file=sys.stderr)
     for f in MESHES if a.surface else ():
         out.append(surface(f))

@@ -11,6 +11,10 @@ belongs to another sheet, and that offset is the cell's separation; the normal i
 the normal or outside the cone; holes in the sampling are sideways and never in the cone. The
 result is spread to the 26 neighbour cells on the same side of the gap (min), so that every point
 near a thin part gets it.
+
+:func:`normal_agreement` tells flat sheets from a surface curving round within its separation (a
+closed part only a few spacings across): how well a thin cell's normal agrees with those of the thin
+cells near it.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ PLANAR = 0.25  # a normal counts only where the smallest spread is under this x 
 CUT_SHARE = 0.5  # two points lie on different sheets when one is this share of the separation ...
 CUT_CONE = 0.7  # ... or more along the other's normal, and that offset is this share of their distance,
 CUT_PARALLEL = 0.7  # ... and, nearer than the separation, their normals (where both have one) agree within 46 deg
+AGREE_MIN = 3  # normal_agreement: a cell is judged by at least this many thin cells near it
 
 
 @nb.njit(**JIT)
@@ -250,6 +255,59 @@ def cell_separation(u, ostart, reach, gap_min, cone, normal_radius):  # pragma: 
                     for a in range(3):
                         out_n[j, a] = nrm[c, a]
     return out_in, out_out, out_n
+
+
+@nb.njit(**JIT)
+def normal_agreement(u, ostart, sep, nrm, ball, stride):  # pragma: no cover - compiled
+    """Per occupied cell (grid units, points sorted by cell), for every ``stride``-th cell with a
+    separation (``sep`` < inf, counted in cell order): the mean |cos| of the angle between its
+    normal and the normal of every other cell with a separation whose centroid lies within
+    ``ball`` x its separation of its centroid; nan for the other cells and where fewer than
+    AGREE_MIN such cells are near. On two parallel sheets the normals within less than the
+    separation agree (mean |cos| ~ 1); where the other side found is the same surface curving
+    around (a tube or a blob a few spacings across) they turn by tens of degrees within it."""
+    ncell = ostart.shape[0] - 1
+    ckey = np.empty(ncell, np.int64)
+    cen = np.empty((ncell, 3), np.float64)
+    for c in range(ncell):
+        p0, p1 = ostart[c], ostart[c + 1]
+        ckey[c] = morton(int(np.floor(u[p0, 0])), int(np.floor(u[p0, 1])), int(np.floor(u[p0, 2])))
+        for a in range(3):
+            t = 0.0
+            for i in range(p0, p1):
+                t += u[i, a]
+            cen[c, a] = t / (p1 - p0)
+    hidx = index_hash(ckey)
+    out = np.full(ncell, np.nan)
+    seen = 0
+    for c in range(ncell):
+        if sep[c] == np.inf:
+            continue
+        seen += 1
+        if (seen - 1) % stride:
+            continue
+        rad = ball * sep[c]
+        lo = np.empty(3, np.int64)
+        hi = np.empty(3, np.int64)
+        for a in range(3):
+            lo[a] = max(int(np.floor(cen[c, a] - rad)), 0)
+            hi[a] = int(np.floor(cen[c, a] + rad))
+        total = 0.0
+        count = 0
+        for x in range(lo[0], hi[0] + 1):
+            for y in range(lo[1], hi[1] + 1):
+                for z in range(lo[2], hi[2] + 1):
+                    j = hash_find(hidx, ckey, morton(x, y, z))
+                    if j < 0 or j == c or sep[j] == np.inf:
+                        continue
+                    d2 = (cen[j, 0] - cen[c, 0]) ** 2 + (cen[j, 1] - cen[c, 1]) ** 2 + (cen[j, 2] - cen[c, 2]) ** 2
+                    if d2 > rad * rad:
+                        continue
+                    total += abs(nrm[c, 0] * nrm[j, 0] + nrm[c, 1] * nrm[j, 1] + nrm[c, 2] * nrm[j, 2])
+                    count += 1
+        if count >= AGREE_MIN:
+            out[c] = total / count
+    return out
 
 
 @nb.njit(**INLINE)

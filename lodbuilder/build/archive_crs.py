@@ -43,31 +43,28 @@ def check_build_crs(sources: list[Any], archive: Path, options: Any, joint_name:
         check_append_crs(named, archive_crss(archive, built), archive, options.to_crs)
 
 
-def archive_crss(archive: Path, leave_out: set[str]) -> list[tuple[str, str]]:
-    """(name, WKT) of the scans of ``archive`` that have a CRS, but those named in ``leave_out``;
-    none when it cannot be read (the build's own checks say why)."""
+def archive_crss(archive: Path, leave_out: set[str]) -> list[tuple[str, str | None]]:
+    """(name, WKT or None) of the scans of ``archive`` but those named in ``leave_out``; none when it
+    cannot be read (the build's own checks say why)."""
     from ..archive.reader import open_archive
 
-    out = []
     try:
         with open_archive(archive) as arc:
-            for n in arc.scans:
-                wkt = arc.scan(n).crs if n not in leave_out else None
-                if wkt:
-                    out.append((n, wkt))
+            return [(n, arc.scan(n).crs or None) for n in arc.scans if n not in leave_out]
     except (LodbuilderError, OSError):
         return []
-    return out
 
 
-def check_append_crs(new: list[tuple[str, str | None]], have: list[tuple[str, str]], archive: Path,
+def check_append_crs(new: list[tuple[str, str | None]], scans: list[tuple[str, str | None]], archive: Path,
                      to_crs: str | None) -> None:
-    """Refuse scans added to an archive whose scans have a CRS (``have``: (name, WKT) each) when a
-    new scan (``new``: (name, WKT or None), before any ``to_crs``) would be in another CRS or in
-    none; nothing to check when the archive's scans have none."""
+    """Refuse scans added to an archive (``scans``: (name, WKT or None) of those it keeps) when a new
+    scan (``new``: (name, WKT or None), before any ``to_crs``) would be in another CRS than the
+    archive's scans, in none while they have one, or in one while they have none."""
     from ..io.crs import describe_crs, same_crs
 
+    have = [(n, w) for n, w in scans if w]
     if not have:
+        _check_crs_free(new, scans, archive, to_crs)
         return
     theirs, first = have[0][1], have[0][0]
     where = f"the scans of archive {archive.name!r} are in {describe_crs(theirs)} (scan {first!r})"
@@ -95,3 +92,21 @@ def check_append_crs(new: list[tuple[str, str | None]], have: list[tuple[str, st
                 f"scan {n!r} is in {describe_crs(w)} while {where}; reproject it to theirs with --to-crs "
                 "EPSG:XXXX or a WKT file of that CRS (needs pyproj), or build it into another archive"
             )
+
+
+def _check_crs_free(new: list[tuple[str, str | None]], scans: list[tuple[str, str | None]], archive: Path,
+                    to_crs: str | None) -> None:
+    """Refuse a scan in a CRS (its own, ``--crs`` or ``--to-crs``) added to an archive whose scans
+    have none: the archive would mix coordinates that cannot be told apart (issue 20, item 4)."""
+    from ..io.crs import describe_crs
+
+    if not scans:
+        return
+    named = [(n, to_crs or w) for n, w in new if to_crs or w]
+    if named:
+        n, w = named[0]
+        raise InputError(
+            f"scan {n!r} is in {describe_crs(w)} while the scans of archive {archive.name!r} have no CRS "
+            f"(scan {scans[0][0]!r}); build it into another archive, or rebuild those scans with their "
+            "CRS (--crs EPSG:XXXX --overwrite) first"
+        )

@@ -36,6 +36,21 @@ chord steeper than 24 degrees (sin 0.4) to either end's sheet (around a tight fo
 than the surface); when at least THIN_SHARE % of the scan is thin, the band ordering goes on down
 to 0.9 x the typical separation instead of 2 r, so that the tail's limits hardly ever bind.
 
+Coarse closed scans: a closed surface sampled coarsely for its shape (a decimated bunny: head, ears
+and paws only a few spacings across) is 'thin' too, its sides 3-10 spacings apart, but there the
+other side is the same surface curving round, and the one-sided band measures such parts along
+their outside, far longer than they are (levels 1.2-1.8 x Euclidean farthest point sampling's
+covering at equal size). Two sheets are flat over less than their separation; a part a few spacings
+across is not. So when at least THIN_SHARE % of the scan is thin, the normals of the thin cells
+within SHEET_BALL x the separation of a thin cell are compared with its own
+(:func:`lodbuilder._kernels.sheets.normal_agreement`, on up to SHEET_SAMPLE cells); unless at least
+SHEET_SHARE of the cells tested agree (mean |cos| >= 1 - SHEET_BEND), the plain band is used for the
+whole scan (measured: stacks of 3-5 sheets 0.93-0.97, with noise of 0.3 spacings 0.83-0.86, a
+folded sheet 0.95-0.99, a flat closed shell 4 spacings thick 0.87-0.97; the bunny's decimations
+0.01-0.28, a torus or a cigar 4-8 spacings across 0-0.07). The choice is the whole scan's: a few
+flat sheets among many more curved thin parts take the plain band with them; scans under THIN_SHARE %
+thin are not judged (bunnyDouble.e57, 14 % thin, 37 % of it flat, keeps its one-sided band).
+
 Depth cost: the front moves through a voxel at cost 1 + DEPTH_COST * q^2, where q is the voxel's
 depth ratio (distance to the nearest point over that point's band radius, 0 on the points, 1 at the
 band's edge). Without it, paths on a curved surface cut through the inner side of the band, which
@@ -54,6 +69,7 @@ from .._resources import cores as _cores
 from .._resources import default_max_memory, release_freed_memory, release_pages
 from ..errors import InputError, MemoryBudgetError
 from .morton import morton_np, unmorton_np
+from .spacing import cells, median_spacing
 
 log = logging.getLogger(__name__)
 
@@ -70,93 +86,14 @@ SIDE_TOLERANCE = 0.15  # voxels: how far on the gap side of its nearest point a 
 TAIL_PER_SEP = 0.9  # the tail lowers a point only from samples closer than this x its separation
 TAIL_SLOPE = 0.4  # ... and along chords with |sin| <= this to both ends' sheets (arc/chord <= 1.03)
 THIN_SHARE = 25.0  # percent: when this much of the scan is thin, hand over below 0.9 x separation
+SHEET_BALL = 0.7  # x the separation: the thin cells whose normals a thin cell's is compared with
+SHEET_BEND = 0.06  # a thin cell lies on a flat sheet when their mean |cos| is at least 1 - this (~20 deg)
+SHEET_SHARE = 0.6  # a scan THIN_SHARE % thin is a stack of sheets only when this share of it does
+SHEET_SAMPLE = 4096  # thin cells tested (every k-th in cell order)
 BYTES_PER_VOXEL = 96  # while ordering: keys 8, nbr 24, cs 4, T/vlab/stamp/seen/heap/vcost/cellof 36 + slack
 BYTES_PER_POINT = 120
 MAX_COORD = (1 << 21) - 1
 MAX_POINTS = (1 << 31) - 1  # point and voxel indices are int32
-
-
-def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The points sorted into cubic cells of ``size`` from ``origin``: the occupied cells' Morton
-    keys (sorted, one per cell), the permutation (input index of each sorted point), the points'
-    grid coordinates in that order and the start of every cell's run (with N at the end)."""
-    from .._kernels.grid import cell_order, grid_coords
-
-    n = points.shape[0]
-    keys = cell_order(points, origin, size)
-    perm = np.argsort(keys, kind="stable").astype(np.int32)
-    keys = keys[perm]
-    u = grid_coords(points, perm, origin, size)
-    first = np.empty(n, dtype=bool)
-    first[0] = True
-    np.not_equal(keys[1:], keys[:-1], out=first[1:])
-    ostart = np.append(np.flatnonzero(first), n).astype(np.int32)
-    return keys[ostart[:-1]], perm, u, ostart
-
-
-THREAD_MIN_QUERIES = 4096  # fewer queries are answered in this thread alone
-
-
-def _in_two_threads(kernel, u, ostart, cell_keys, queries, k):  # noqa: ANN001 - a numba kernel and its arrays
-    """``kernel(u, ostart, cell_keys, queries, k)`` -> per-query arrays, with the second half of
-    the queries answered on a second thread when there are two cores and enough queries (the
-    kernels release the GIL; the result is the same)."""
-    nq = queries.shape[0]
-    if nq < THREAD_MIN_QUERIES or _cores() < 2:
-        return kernel(u, ostart, cell_keys, queries, k)
-    from concurrent.futures import ThreadPoolExecutor
-
-    half = nq // 2
-    with ThreadPoolExecutor(1) as pool:
-        second = pool.submit(kernel, u, ostart, cell_keys, queries[half:], k)
-        first = kernel(u, ostart, cell_keys, queries[:half], k)
-        rest = second.result()
-    return tuple(np.concatenate((a, b)) for a, b in zip(first, rest, strict=True))
-
-
-def median_spacing(
-    points: np.ndarray, sample: int = 20_000, k: int = 6, subset: int = 500_000
-) -> float:
-    """Typical point spacing: the median distance to the k-th neighbour times sqrt(pi / k).
-
-    On a surface sampled at density 1/s^2 this is about s whether the samples are a jittered grid
-    (like a range scan) or random; the plain nearest-neighbour distance would be half of s for random
-    samples. Measured on a deterministic sample of the points; above ``subset`` points the
-    neighbours are searched in a random subset of that size and the spacing scaled by
-    sqrt(subset / n) (a surface's spacing grows as the square root of the thinning). The search is
-    exact: points hashed into cells, the cell size doubled until the k-th neighbour of most queries
-    lies within one cell (no k-d tree: scipy.spatial would cost the build process 26 MB).
-    """
-    from .._kernels.grid import kth_neighbour
-
-    n = points.shape[0]
-    if n < 2:
-        return 0.0
-    rng = np.random.default_rng(0)
-    scale = 1.0
-    if n > subset:
-        points = points[np.sort(rng.choice(n, subset, replace=False))]
-        scale = math.sqrt(subset / n)
-        n = subset
-    q = points[rng.choice(n, sample, replace=False)] if n > sample else points
-    k = min(k, n - 1)
-    lo = points.min(axis=0)
-    ext = float(np.ptp(points, axis=0).max())
-    if ext <= 0.0:
-        return 0.0
-    c = max(2.5 * ext / math.sqrt(n), ext * 2.0**-20)  # 2.5 x the spacing of n points on a square
-    while True:
-        origin = lo - c
-        keys, _, u, ostart = cells(points, origin, c)
-        dk, sure = _in_two_threads(kth_neighbour, u, ostart, keys, (q - origin) / c, k + 1)
-        if sure.mean() >= 0.9 or c >= 4 * ext:
-            break
-        c *= 2.0
-    dk = dk[np.isfinite(dk)] * c
-    s = float(np.median(dk)) * math.sqrt(math.pi / k) * scale if dk.size else 0.0
-    if s <= 0.0:
-        s = float(dk[dk > 0].min()) if (dk > 0).any() else 0.0
-    return s
 
 
 def choose_parameters(
@@ -196,6 +133,7 @@ class BandPlan:
     normal: np.ndarray | None
     handover: float
     outer: np.ndarray | None = None  # the separation on the other side (inf: none)
+    found: int = 0  # the thin points measured (a plain plan may have set them aside)
 
     @property
     def thin_points(self) -> int:
@@ -211,6 +149,17 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
     the gap to the nearer other sheet within reach (inf where there is none), the same on the
     opposite side, and the unit normal toward the nearer one (float32; zero where there is none)."""
+    sep_in, sep_out, normal, _ = _sheets(points, h, r, judge=False)
+    return sep_in, sep_out, normal
+
+
+def _sheets(
+    points: np.ndarray, h: float, r: float, judge: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
+    """:func:`sheet_separation` and, when ``judge`` and at least THIN_SHARE % of the points are
+    thin, the share of the thin cells tested (up to SHEET_SAMPLE) whose normals agree within
+    SHEET_BALL x their separation (:func:`lodbuilder._kernels.sheets.normal_agreement`; None when
+    not judged)."""
     from .._kernels.sheets import cell_separation
 
     n = points.shape[0]
@@ -220,13 +169,28 @@ def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray
     release_pages(points)  # (a scan set aside: read again from its file by the next pass)
     sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
     counts = np.diff(ostart)
+    flat = None
+    if judge and int(counts[np.isfinite(sin)].sum()) >= THIN_SHARE / 100 * n:
+        flat = _flat_share(u, ostart, sin, nrm)
+    del u
     sep_in = np.empty(n)
     sep_in[perm] = np.repeat(sin * h, counts)
     sep_out = np.empty(n)
     sep_out[perm] = np.repeat(sout * h, counts)
     normal = np.empty((n, 3), dtype=np.float32)
     normal[perm] = np.repeat(nrm.astype(np.float32), counts, axis=0)
-    return sep_in, sep_out, normal
+    return sep_in, sep_out, normal, flat
+
+
+def _flat_share(u: np.ndarray, ostart: np.ndarray, sin: np.ndarray, nrm: np.ndarray) -> float | None:
+    """The share of the thin cells tested whose normals agree (mean |cos| >= 1 - SHEET_BEND) with
+    those of the thin cells within SHEET_BALL x their separation (None when none could be tested)."""
+    from .._kernels.sheets import normal_agreement
+
+    stride = max(1, int(np.isfinite(sin).sum()) // SHEET_SAMPLE)
+    agree = normal_agreement(u, ostart, sin, nrm, SHEET_BALL, stride)
+    agree = agree[np.isfinite(agree)]
+    return float((agree >= 1.0 - SHEET_BEND).mean()) if agree.size else None
 
 
 def _automatic(points: np.ndarray, voxel_size: float | None, band_radius: float | None) -> bool:
@@ -276,7 +240,7 @@ def plan_and_build_band(
         release_freed_memory(n)
         band = build_band(points, h, r, max_memory)
         release_freed_memory(n)  # (the band's temporaries: the planned band is decided on top of it)
-    found = plan.thin_points
+    found = plan.found
     thin = plan
     band, plan = build_planned_band(points, plan, max_memory, band=band)
     if plan.normal is None and thin.outer is not None:  # (kept only where a finer grid may be needed)
@@ -334,9 +298,16 @@ def _thin_radius(sep_out: np.ndarray, h: float, r: float) -> np.ndarray:
 def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     """The plan for grid spacing h and band radius r with the thin parts measured."""
     plain = BandPlan.plain(h, r)
-    sep_in, sep_out, normal = sheet_separation(points, h, r)
+    sep_in, sep_out, normal, flat = _sheets(points, h, r, judge=True)
     if not np.isfinite(sep_in).any():
         return plain
+    found = int(np.isfinite(sep_in).sum())
+    if flat is not None and flat < SHEET_SHARE:
+        log.info(
+            "%.0f %% of the scan is thin, but only %.0f %% of it lies on flat sheets (a closed surface "
+            "coarse for its shape); using the plain band", 100 * found / sep_in.size, 100 * flat,
+        )
+        return BandPlan(h, r, None, None, None, plain.handover, found=found)
     radius = _thin_radius(sep_out, h, r)
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
     typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
@@ -344,7 +315,7 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     thin = sep_in[np.isfinite(sep_in)]
     # the other side's separation is kept only where a finer grid may be needed (see _refined)
     finer = thin.size >= REFINE_SHARE * sep_in.size and float(np.median(thin)) < REFINE_SEP * h
-    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out if finer else None)
+    return BandPlan(h, r, radius, sep_in, normal, handover, sep_out if finer else None, found)
 
 
 def block_plan(cell_keys: np.ndarray, reach_voxels: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
