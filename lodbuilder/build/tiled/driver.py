@@ -168,13 +168,10 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
-    # 6. exact covering radii of every tile (on the workers), combined in bands; meanwhile tasks
-    #    put the points in stored order (the first pass of the write)
-    #    and the band pieces of every tile, from the covering's points and ranks (see :mod:`.pieces`)
-    spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
-            "max_memory": worker_budget, "halo": halo}
-    buckets, radii, resumed["tiles_covered_before"], joining = _cover(
-        executor, work, name, sp, by_size, dist["pieces"], float(pl["spacing"]), delta, spec, progress)
+    # 6. exact covering radii and band pieces of every tile (on the workers), the radii combined in bands
+    #    (the pieces joined meanwhile); meanwhile tasks put the points in stored order (the write's first pass)
+    buckets, radii, resumed["tiles_covered_before"], joining = _cover(executor, work, name, sp, by_size, dist, pl,
+                                                                      delta, worker_budget, progress)
     clock.lap("cover")
     band_pieces = finish_join(executor, work, name, n_tiles, joining)  # (the join ran beside the radii)
     clock.lap("pieces")
@@ -239,20 +236,23 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
     return merged
 
 
-def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
-           spacing: float, delta: float, spec: dict[str, Any], progress: ProgressCallback
+def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], dist: dict[str, Any],
+           pl: dict[str, Any], delta: float, worker_budget: int, progress: ProgressCallback
            ) -> tuple[dict[str, Any], dict[str, Any], int, dict[cf.Future, int]]:
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
     tasks put the points in stored order (the first pass of the write); each covering task also
-    labels its tile's band pieces (``spec``: what :func:`.pieces.tile_pieces` needs beside the
-    tile's box; the neighbours' cores are read only when the halo is narrower than the pieces'
-    reach); their join starts once they are done and runs beside the radii. Returns the buckets'
-    and the radii's markers, how many tiles a resume found covered and the join's pending task."""
+    labels its tile's band pieces (on the scan's grid: its voxel corners a whole number of voxels
+    from the scan's lowest point; the neighbours' cores are read only when the halo is narrower
+    than the pieces' reach); their join starts once they are done and runs beside the radii.
+    Returns the buckets' and the radii's markers, how many tiles a resume found covered and the
+    join's pending task."""
     from . import workdir as W
     from .radii import radii_phase
     from .write import buckets_phase
 
-    n, n_tiles = sp.n, len(by_size)
+    n, n_tiles, pieces, spacing = sp.n, len(by_size), dist["pieces"], float(pl["spacing"])
+    spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
+            "max_memory": worker_budget, "halo": float(dist["halo"])}
     todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
     d = reach(spec["voxel_size"], spec["band_radius"])
     nbrs = P.tile_neighbours(sorted(by_size, key=lambda t: t.index), d) if spec["halo"] < d else None
