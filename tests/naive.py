@@ -367,6 +367,53 @@ def naive_sheet_cut(band, vcost: np.ndarray, normal: np.ndarray, sep: np.ndarray
     return out
 
 
+def naive_seam_merge(streams: list[np.ndarray], head: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tiled build's merge with its seam repair, one candidate at a time with brute-force
+    distances.
+
+    ``streams``: per tile, rows (g, key, x, y, z, margin) by non-increasing key; ``head``: (h, 3)
+    points accepted first (tile -1). Candidates come by the largest key (a tile row before a demoted
+    one at equal keys; tiles by index, demoted rows by order of demotion). A candidate with margin
+    < key (a seam point) that lies within ``alpha`` x key of an accepted seam point of another tile
+    or of the head is demoted to that distance / ``alpha`` (and checked again then); the others are
+    merged at their key. Returns the input index and key of every row in merged order."""
+    rows = [np.asarray(s, dtype=np.float64) for s in streams]
+    acc_xyz = [p for p in np.asarray(head, dtype=np.float64).reshape(-1, 3)]
+    acc_tile = [-1] * len(acc_xyz)
+    pos = [0] * len(rows)
+    deferred: list[tuple[float, int, np.ndarray, int]] = []
+    n_def = 0
+    g_out, k_out = [], []
+    while True:
+        ks, t = -1.0, -1
+        for u, r in enumerate(rows):
+            if pos[u] < len(r) and r[pos[u], 1] > ks:
+                ks, t = r[pos[u], 1], u
+        kd = max((d[0] for d in deferred), default=-1.0)
+        if ks < 0 and kd < 0:
+            break
+        if ks >= kd:
+            x, key, tile = rows[t][pos[t]], rows[t][pos[t], 1], t
+            pos[t] += 1
+        else:
+            j = max(range(len(deferred)), key=lambda i: (deferred[i][0], -deferred[i][1]))
+            key, _, x, tile = deferred.pop(j)
+        seam = x[5] < key
+        if seam and alpha > 0 and np.isfinite(key):
+            d = min((float(np.sqrt(((q - x[2:5]) ** 2).sum())) for q, u in zip(acc_xyz, acc_tile, strict=True)
+                     if u != tile), default=np.inf)
+            if d < alpha * key:
+                deferred.append((d / alpha, n_def, x, tile))
+                n_def += 1
+                continue
+        g_out.append(int(x[0]))
+        k_out.append(float(key))
+        if seam:
+            acc_xyz.append(x[2:5])
+            acc_tile.append(tile)
+    return np.asarray(g_out, dtype=np.int64), np.asarray(k_out)
+
+
 def naive_normal_agreement(u: np.ndarray, ostart: np.ndarray, sep: np.ndarray, nrm: np.ndarray, ball: float,
                            stride: int) -> np.ndarray:
     """The rule of ``lodbuilder._kernels.sheets.normal_agreement`` written plainly: per cell, the

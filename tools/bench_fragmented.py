@@ -7,8 +7,9 @@ against exact Euclidean farthest point sampling (fpsample) of the same size.
 
 Scenes: synthetic fragmented scenes of tools/make_fragmented.py (several seeds and piece counts),
 synthetic coarse closed surfaces (tori whose tube is 5-6 point spacings across: every point's other
-side lies within the band's reach, as on the bunny's decimations) and the real scans autzen_trim.laz
-and the bunny scans of ../shared/data. For each scene: the
+side lies within the band's reach, as on the bunny's decimations) and every real scan of
+../shared/data (autzen, simple.las, the ten bunny range scans, the bunny's reconstruction and its
+decimations, bunnyDouble.e57, Igea, frag_115, the pump). For each scene: the
 ordering's time, its band pieces, and at sizes log-spaced from 1 point to 5 % of N the covering
 radius (largest distance from any input point to the prefix, by k-d tree) of lodbuilder's prefix
 and of fpsample's (``fps_sampling``, exact Euclidean FPS from the same first point),
@@ -41,8 +42,10 @@ DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
-REAL = ("autzen_trim.laz", "bun000.ply", "bun045.ply", "bun_zipper.ply", "bun_zipper_res2.ply",
-        "bun_zipper_res3.ply")
+REAL = ("autzen_trim.laz", "simple.las", "bun000.ply", "bun045.ply", "bun090.ply", "bun180.ply", "bun270.ply",
+        "bun315.ply", "chin.ply", "ear_back.ply", "top2.ply", "top3.ply", "bun_zipper.ply", "bun_zipper_res2.ply",
+        "bun_zipper_res3.ply", "bun_zipper_res4.ply", "bunnyDouble.e57", "igea.ply", "frag_115.ply",
+        "pumpAVisualReferenceImage.e57")  # every real scan of ../shared/data
 MESHES = ("bun_zipper.ply", "bun_zipper_res2.ply", "bun_zipper_res3.ply")
 GENERATED = ((0, 50, 100_000), (1, 300, 200_000), (2, 1000, 200_000), (3, 2000, 300_000))
 COARSE = ((2000, 5.0), (8000, 6.0))  # coarse closed surfaces: tori whose tube is this many spacings across

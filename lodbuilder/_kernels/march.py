@@ -292,8 +292,8 @@ def _seed_sample(
                 pnrm[f, 0], pnrm[f, 1], pnrm[f, 2], pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
             )
         vis[q] = ok
-        if not ok:
-            continue
+        if not ok and q != 0:  # (v0 is seeded whatever the chord rule says: the sample reads its
+            continue  # own distance from it; it lends its line of sight only where the rule holds)
         t_ = np.float32(_norm(sx - x, sy - y, sz - z) * 0.5 * (ci + vcost[v]))
         if t_ < _tval(ts[v]):
             ts[v] = _packed(t_, acc)  # exact: frozen (the march never lowers it), but still popped

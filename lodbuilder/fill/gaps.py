@@ -49,8 +49,9 @@ whole scan for exact distances.
    ring's normals are, the grid is laid again over the plane, within 60 degrees, from which
    the fewest are: the lopsided rim of a hole beside a corner, a nose or a chin is a height
    field over that plane and not over its least-squares one) and a height field over it
-   (:class:`~lodbuilder.fill.surface.HeightField`; for a gap, the spline that
-   cross-validates best on the ring). The region is *rough* (reported, not
+   (:class:`~lodbuilder.fill.surface.HeightField`, fitted without the ring points facing away:
+   :func:`~lodbuilder.fill.local.same_face`; for a gap, the spline that cross-validates best
+   on the ring). The region is *rough* (reported, not
    filled) when the ring is not a height field (more than 25 % of the normals of its inner part,
    the points within rho of the region, tilted over 60 degrees from the plane's normal: the
    outer ring of a hole on a tube or a small sphere turns farther, and is not what the fill
@@ -88,6 +89,7 @@ from .local import (
     near_plane,
     normals_at,
     on_sheet,
+    same_face,
 )
 from .surface import (
     MAX_TILT,
@@ -524,7 +526,10 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
             tree2 = cKDTree(frame2.uv(local.sample[idx]))
             local2 = _Local(local.sample, idx, tree2, local.slope, local.away)
             return _regions_on_grid(frame2, local2, seeds, rho, g, half, refit - 1)
-        reg = _fit_region(frame, grid, nodes, local.idx[ring], pts[ring], normals, inner, rho)
+        ring[ring] = face = same_face(ring, pts, frame, seeds, rho)[ring]
+        reg = _fit_region(
+            frame, grid, nodes, local.idx[ring], pts[ring], normals[face], inner[face], rho
+        )
         reg.opened = opened
         regions.append(reg)
     if not leaked:

@@ -45,6 +45,8 @@ def on_sheet(local: np.ndarray, seeds: np.ndarray, rho: float, limit: float) -> 
 #: a point whose normal, oriented along the surface from the seeds' side, has this dot product
 #: with the hole's normal or less faces away: the other face of a thin part
 FACING = -0.3
+#: ring points within rho/2 over the plane and this many rho apart in height: maybe two faces
+STACKED = 0.6
 
 
 def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float, cloud):
@@ -90,6 +92,37 @@ def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float
         up[go] = up[up[go]]
     sign[child] *= sign[up[child]]
     return (nrm * sign[:, None]) @ normal
+
+
+def same_face(ring: np.ndarray, points: np.ndarray, frame: Frame, seeds, rho: float):
+    """The mask ``ring`` (over ``points``) less the points facing away from the hole's side
+    (:func:`facing` <= :data:`FACING`, normals oriented along the surface from the ``seeds``
+    over the points within 2 rho of the ring): the other face of a thin part, reached round a fold within the grid,
+    a rho or so behind the hole's face (an ear's tip) is not the hole's surface. Unchanged
+    when none face away, or half of the ring or more (then the seeds' side is not known), and
+    (without orienting anything) when no two ring points within rho/2 of each other over the
+    plane lie :data:`STACKED` rho apart in height: one face."""
+    from scipy.spatial import cKDTree
+
+    r = np.flatnonzero(ring)
+    if r.size < 12:
+        return ring
+    uv, h = frame.uv(points[r]), frame.height(points[r])
+    tree = cKDTree(uv)
+    d, nb = tree.query(uv, k=min(5, r.size), distance_upper_bound=0.5 * rho)
+    nb = np.where(np.isfinite(d), nb, np.arange(r.size)[:, None])
+    if not (np.abs(h[nb] - h[:, None]) > STACKED * rho).any():
+        return ring
+    # oriented over the points within 2 rho of the ring over the plane (a fold next to it)
+    near = np.isfinite(tree.query(frame.uv(points), k=1, distance_upper_bound=2.0 * rho)[0])
+    dots = np.zeros(points.shape[0])
+    dots[near] = facing(points[near], frame.normal, seeds, rho, points[near])
+    away = dots[r] <= FACING
+    if not away.any() or 2 * int(away.sum()) >= away.size:
+        return ring
+    out = ring.copy()
+    out[r[away]] = False
+    return out
 
 
 def near_plane(local: np.ndarray, frame: Frame, rho: float, slope: float) -> np.ndarray:

@@ -49,7 +49,11 @@ whole scan (measured: stacks of 3-5 sheets 0.93-0.97, with noise of 0.3 spacings
 folded sheet 0.95-0.99, a flat closed shell 4 spacings thick 0.87-0.97; the bunny's decimations
 0.01-0.28, a torus or a cigar 4-8 spacings across 0-0.07). The choice is the whole scan's: a few
 flat sheets among many more curved thin parts take the plain band with them; scans under THIN_SHARE %
-thin are not judged (bunnyDouble.e57, 14 % thin, 37 % of it flat, keeps its one-sided band).
+thin are not judged (bunnyDouble.e57, 14 % thin, 37 % of it flat, keeps its one-sided band: its
+thin parts are the two faces of the ears, 3-11 spacings apart, one surface with no misregistration;
+its levels cover within 1.06-1.09 x Euclidean farthest point sampling from 1 % of N on, as exact
+farthest point sampling along its mesh does, 1.09-1.10; the plain band would give 1.01 but measure
+the ears across, not along the surface).
 
 Depth cost: the front moves through a voxel at cost 1 + DEPTH_COST * q^2, where q is the voxel's
 depth ratio (distance to the nearest point over that point's band radius, 0 on the points, 1 at the

@@ -1,0 +1,53 @@
+"""tools/bench_fill.py's oracle (issue 21): the least-squares surface of each class fitted to the
+removed points themselves, checked on surfaces whose answer is known."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+import bench_fill  # noqa: E402
+
+
+def _grid(height) -> np.ndarray:
+    g = np.arange(-8.0, 8.0001, 0.1)
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    return np.c_[u, v, height(u, v)]
+
+
+def _oracle(points: np.ndarray, radius: float) -> dict:
+    removed = np.flatnonzero(np.hypot(points[:, 0], points[:, 1]) < radius)
+    normals = bench_fill.pca_normals(points)
+    return bench_fill.oracle_errors(points, None, normals, removed, np.array([0, 0, 1.0]), 1.0)
+
+
+def test_the_oracle_of_a_paraboloid():
+    """h = 0.02 (u^2 + v^2) over a hole of radius 4 (rho 1): h runs 0..0.32 over the hole, its
+    least-squares plane is h = 0.16, missed by 0.16 at the centre and the rim; the quadric and
+    the cubic fit it exactly."""
+    out = _oracle(_grid(lambda u, v: 0.02 * (u * u + v * v)), 4.0)
+    assert abs(out["oracle_plane_max_rho"] - 0.16) < 0.01
+    assert out["oracle_quadric_max_rho"] < 0.005
+    assert out["oracle_cubic_max_rho"] < 0.005
+
+
+def test_the_oracle_of_a_cubic():
+    """h = 0.005 u^3: the plane and the quadric miss it (odd: the quadric is no better than the
+    plane's slope), the cubic does not."""
+    out = _oracle(_grid(lambda u, v: 0.005 * u**3), 4.0)
+    assert out["oracle_quadric_max_rho"] > 0.05
+    assert out["oracle_cubic_max_rho"] < 0.005
+
+
+def test_oracle_summary_counts_holes_within_a_quarter_rho():
+    holes = [
+        {"oracle_plane_max_rho": 0.3, "synthetic_error_max_rho": 0.2},
+        {"oracle_plane_max_rho": 0.1, "synthetic_error_max_rho": None},
+    ]
+    out = bench_fill.oracle_summary(holes)
+    assert out["plane"] == {"holes": 2, "share_within_0.25": 0.5, "max": 0.3}
+    assert out["fill"] == {"holes": 1, "share_within_0.25": 1.0, "max": 0.2}

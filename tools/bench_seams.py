@@ -1,0 +1,194 @@
+"""Benchmark the seams of the tiled build (issue 19, item 4): JSON on stdout.
+
+For each input and tile count, the tiled build (``_tile_points`` forces the tile count, one worker)
+against the in-memory build of the same points (``lodbuilder.fastfps``):
+
+* ``cover_ratio_worst``: the largest ratio of the tiled order's true covering radius to the
+  in-memory order's, at equal sizes, over the levels from the head's size to 3 % of the points among
+  24 from half the head's size (brute force: a k-d tree over each prefix, every point queried; the
+  levels below the head, the coarse level's order: ``cover_ratio_below_head``). Target <= 1.05.
+* ``cross_spacing_min``: the smallest distance between two points of different tiles (the coarse
+  head counts as one more tile) in a level, over the level's stored radius, the worst level from
+  the head to 3 % (``..._all``: over every level). Target >= 0.35 (goal 0.5). The in-memory order
+  measured with the same tiles: ``cross_spacing_in_memory``.
+* ``merge_seconds``: the merge task's duration from the build record (``task_seconds``), per
+  million points.
+
+Inputs (``--inputs``): ``autzen`` (the real autzen_trim.laz tiled 2 x 2 by tools/make_survey.py,
+every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of tools/bench_inputs.py),
+``fragmented`` (the synthetic scene of tools/make_fragmented.py).
+
+    python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+
+INPUTS = ("autzen", "uniform", "uneven", "fragmented")
+
+
+def make_input(name: str, n: int, d: Path, thin: int) -> Path:
+    """The input file of ``name`` (about ``n`` points; autzen: 2 x 2 copies of every ``thin``-th point)."""
+    from lodbuilder.io import write_points
+
+    if name == "autzen":
+        from make_survey import make
+
+        out = d / "autzen_2x2.laz"
+        make(out, 2, 2, thin=thin)
+        return out
+    if name == "fragmented":
+        from make_fragmented import fragmented_scene
+
+        pts = fragmented_scene(seed=0, pieces=max(20, n // 2000), points=n)
+    else:
+        from bench_inputs import range_scan_sheet, uneven_sheet
+
+        pts = range_scan_sheet(n) if name == "uniform" else uneven_sheet(n)
+    return write_points(d / f"{name}.npy", pts)
+
+
+def tile_of(p: np.ndarray, boxes: list) -> np.ndarray:
+    """The first tile box holding each point (-1: none)."""
+    out = np.full(len(p), -1)
+    for t, b in enumerate(np.asarray(boxes)):
+        inside = np.all((p >= b[:3]) & (p <= b[3:]), axis=1) & (out < 0)
+        out[inside] = t
+    return out
+
+
+def cross_spacing(p: np.ndarray, group: np.ndarray, radius: np.ndarray, upto: int) -> np.ndarray:
+    """For each level size k (1 .. upto): the smallest distance between two of its first k points
+    of different groups over the level's radius ``radius[k]`` (values above 1 are capped at 1)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(p)
+    j = np.arange(1, upto)
+    near = tree.query_ball_point(p[j], radius[j + 1], workers=-1)
+    e = np.full(upto, np.inf)
+    for k, idx in zip(j, near, strict=True):
+        idx = np.asarray(idx, dtype=np.int64)
+        idx = idx[(idx < k) & (group[idx] != group[k])]
+        if idx.size:
+            e[k] = float(np.linalg.norm(p[idx] - p[k], axis=1).min())
+    run = np.minimum.accumulate(e)  # run[k - 1]: smallest distance among the first k points
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.minimum(run[: upto] / radius[1: upto + 1], 1.0)
+
+
+def covering(pts: np.ndarray, order: np.ndarray, k: int) -> float:
+    from scipy.spatial import cKDTree
+
+    return float(cKDTree(pts[order[:k]]).query(pts, workers=-1)[0].max())
+
+
+def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: dict) -> dict[str, Any]:
+    import lodbuilder
+
+    kw: dict[str, Any] = {"_tile_points": tile_points, "workers": 1}
+    if seam is not None:
+        kw["seam_spacing"] = seam
+    out = d / f"t{tile_points}.h5"
+    t0 = time.perf_counter()
+    lodbuilder.build_archive(f, out, **kw)
+    seconds = time.perf_counter() - t0
+    with lodbuilder.open_archive(out) as arc:
+        v = arc.scan()
+        src, radius, p_stored = v.source_index[:], v.radius[:], v.points()
+        build = dict(v.build)
+    out.unlink()
+    n = len(src)
+    pts = np.empty_like(p_stored)
+    pts[src] = p_stored
+    if "order" not in ref_cache:
+        t1 = time.perf_counter()
+        ref_cache["order"] = lodbuilder.fastfps(pts).order
+        ref_cache["seconds"] = time.perf_counter() - t1
+    tiled = build.get("tiled", {})
+    h = int(tiled.get("head_points", 1))
+    top = max(int(0.03 * n), h + 2)
+    boxes = tiled.get("tile_boxes", [])
+    group = tile_of(p_stored, boxes)
+    group[:h] = -1  # the coarse head: a tile of its own
+    ref_p = pts[ref_cache["order"]]
+    ref_group = tile_of(ref_p, boxes)
+    sweep = []
+    for k in sorted({int(k) for k in np.geomspace(max(h // 2, 2), top, 24)}):
+        ct, cm = covering(pts, src, k), covering(pts, ref_cache["order"], k)
+        sweep.append([k, round(ct / cm, 4), round(cross_min(ref_p[:k], ref_group[:k]) / cm, 4)])
+    worst = max((r for r in sweep if r[0] >= h), key=lambda r: r[1])
+    cs = cross_spacing(p_stored, group, radius, n - 1)  # cs[k - 1]: level of size k
+    lv = np.arange(max(h, 1), top + 1)
+    at = int(lv[np.argmin(cs[lv - 1])])
+    merge = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] == "merge_task"]
+    return {"n": n, "tile_points": tile_points, "tiles": tiled.get("tiles"), "head_points": h,
+            "seam_alpha": tiled.get("seam_alpha"), "seam_points": tiled.get("seam_points"),
+            "seam_deferrals": tiled.get("seam_deferrals"), "seconds_tiled": round(seconds, 2),
+            "cover_ratio_worst": worst[1], "cover_ratio_worst_at": worst[0],
+            "cover_ratio_below_head": max([r[1] for r in sweep if r[0] < h], default=None),
+            "cross_spacing_min": round(float(cs[lv - 1].min()), 4), "cross_spacing_min_at": at,
+            "cross_spacing_min_all": round(float(np.nanmin(cs[h:])), 4),
+            "cross_spacing_in_memory": min(r[2] for r in sweep),
+            "spacing_over_radius_min": tiled.get("spacing_over_radius_min"),
+            "merge_seconds": merge[0][5] if merge else None, "merge_cpu_seconds": merge[0][6] if merge else None,
+            "sweep": sweep}
+
+
+def cross_min(p: np.ndarray, group: np.ndarray) -> float:
+    """The smallest distance between two points of different groups."""
+    from scipy.spatial import cKDTree
+
+    best = np.inf
+    for g in np.unique(group):
+        a, b = p[group == g], p[group != g]
+        if len(a) and len(b):
+            best = min(best, float(cKDTree(b).query(a)[0].min()))
+    return best
+
+
+def main(argv: list[str] | None = None) -> int:
+    from benchdoc import finish, stamp
+
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    p.add_argument("--n", type=int, default=200_000, help="points of each synthetic input")
+    p.add_argument("--thin", type=int, default=2, help="autzen: keep every THIN-th point (2: 220,000 points)")
+    p.add_argument("--tiles", type=int, nargs="+", default=[4, 16], help="about this many tiles (sets _tile_points)")
+    p.add_argument("--inputs", nargs="+", default=list(INPUTS), choices=INPUTS)
+    p.add_argument("--seam-spacing", type=float, nargs="+", default=[None],
+                   help="seam spacings to build with (default: the library's)")
+    args = p.parse_args(argv)
+    doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
+    doc["cases"] = []
+    with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
+        d = Path(tmp)
+        for name in args.inputs:
+            f = make_input(name, args.n, d, args.thin)
+            ref: dict = {}
+            for tiles in args.tiles:
+                n_est = 440_000 // args.thin if name == "autzen" else args.n
+                for seam in args.seam_spacing:
+                    case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref)
+                    case = {"input": name, "synthetic": name != "autzen", **case,
+                            "seconds_in_memory": round(ref["seconds"], 2)}
+                    doc["cases"].append(case)
+                    print(json.dumps({k: v for k, v in case.items() if k != "sweep"}), file=sys.stderr)
+    print(json.dumps(finish(doc), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
