@@ -138,3 +138,18 @@ def test_rounds_inside_a_phase_wait_for_the_earlier_round():
            "parent_cpu_seconds": {"merge": 0.0, "write": 0.1}, "tasks": {"columns": cols, "rows": rows}}
     walls = predict(model_from_record(rec), [16])["predicted"][0]["stages"]
     assert walls == {"merge": 4.5, "write": 4.0}  # 3 + 1 + 0.5 and 2 + 2, not 3 and 2
+
+
+def test_the_radii_and_the_join_wait_for_the_covering():
+    """The radii's first round starts when every tile is covered and every bucket written; the
+    join of the band pieces when every tile's pieces are written (by its covering task)."""
+    cols = ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"]
+    rows = [["cover_tile", "cover_tile.0", 0, None, 0.0, 4.0, 4.0, 1],
+            ["bucket_block", "bucket_block.0", None, 0, 0.0, 1.0, 1.0, 2],
+            ["join_task", "join_task", None, None, 4.0, 2.0, 2.0, 2],
+            ["radii_band", "radii_band", None, None, 4.0, 1.0, 1.0, 1],
+            ["finish_band", "finish_band", None, None, 5.0, 0.5, 0.5, 1]]
+    rec = {"phase_seconds": {"cover": 6.0}, "phase_order": ["cover"], "parent_cpu_seconds": {"cover": 0.0},
+           "tasks": {"columns": cols, "rows": rows}}
+    walls = predict(model_from_record(rec), [16])["predicted"][0]["stages"]
+    assert walls == {"cover": 6.0}  # 4 + max(2, 1 + 0.5), not max(4, 2, 1 + 0.5)

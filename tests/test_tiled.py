@@ -3,6 +3,8 @@ a tiny tile size forcing many tiles (issue 10.2)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from naive import nearest_earlier, prefix_covering_radii, prefix_spacings
@@ -260,7 +262,7 @@ def test_progress_moves_through_the_phases(tmp_path):
     scan = Scan(points=wavy(3000, rng), name="p")
     lodbuilder.build_archive(scan, tmp_path / "p.h5", _tile_points=500, progress=progress)
     assert list(seen) == ["read", "plan", "split", "coarse", "tiles", "merge", "ranks", "permute", "covering", "radii",
-                          "pieces", "write"]
+                          "write"]  # (the band pieces are labelled by the covering tasks; their join says nothing)
     for stage, calls in seen.items():
         done = [d for d, _ in calls]
         assert done == sorted(done) and done[-1] == calls[-1][1], stage  # counts up to the total
@@ -337,3 +339,32 @@ def test_the_coarse_copy_fits_one_worker(tmp_path):
     pts = wavy(32_000, np.random.default_rng(5))
     d, _ = _build(tmp_path, pts, tile_points=8000, max_memory=budget)
     assert d["build"]["tiled"]["coarse_points"] <= fits < len(pts) // 8
+
+
+def test_balanced_tile_points():
+    from lodbuilder.build.tiled import plan as P
+
+    assert P.balanced_tile_points(21_560_000, 1, 3_000_000) == 3_000_000  # one worker: what fits
+    # 16 workers: about 4 tiles each (the k-d split halves: 64 tiles), below what fits
+    assert P.balanced_tile_points(21_560_000, 16, 600_000) == 387_407 == math.ceil(1.15 * 21_560_000 / 64)
+    assert P.balanced_tile_points(21_560_000, 16, 300_000) == 300_000  # the memory budget decides
+    assert P.balanced_tile_points(1_000_000, 16, 600_000) == P.BALANCED_MIN_POINTS  # not below the floor
+    assert P.balanced_tile_points(1_000_000, 16, 50_000) == 50_000
+
+
+@pytest.mark.parametrize("workers", [2, 4])
+def test_tiles_are_sized_for_the_workers_the_build_runs_with(tmp_path, monkeypatch, workers):
+    """A build on a pool of N workers plans about TILES_PER_WORKER tiles per worker, whatever
+    memory would allow (before: tiles sized for the budget alone, one tile here)."""
+    from lodbuilder.build.tiled import plan as P
+
+    monkeypatch.setattr(P, "needs_tiling", lambda *a, **k: True)
+    monkeypatch.setattr(P, "BALANCED_MIN_POINTS", 1_000)
+    pts = wavy(24_000, np.random.default_rng(3))
+    np.save(tmp_path / "w.npy", pts)
+    lodbuilder.build_archive(tmp_path / "w.npy", tmp_path / "w.h5", workers=workers, max_memory="4GB")
+    with lodbuilder.open_archive(tmp_path / "w.h5") as a:
+        tiled = a.scan().build["tiled"]
+    assert tiled["parallel"] == workers
+    assert tiled["tile_points_max"] == math.ceil(P.BALANCE_SLACK * len(pts) / (P.TILES_PER_WORKER * workers))
+    assert P.TILES_PER_WORKER * workers <= tiled["tiles"] <= 2 * P.TILES_PER_WORKER * workers

@@ -71,9 +71,7 @@ def test_pieces_joined_across_a_gap_between_tiles(tmp_path):
     """Columns of points in pairs 3.5 apart (one piece each: the band of radius 2.5 spans the gap)
     and 8 apart between pairs, each column a tile of its own: the tiles' boundaries fall in the
     gaps, so only the points a tile borrows from beyond its box join a pair."""
-    y = np.arange(0, 50, 0.5)
-    x = np.cumsum([0.0] + [3.5 if i % 2 == 0 else 8.0 for i in range(19)])
-    pts = np.vstack([np.c_[np.full(y.size, xi), y, np.zeros(y.size)] for xi in x])
+    pts = _columns()
     np.save(tmp_path / "c.npy", pts)
     lodbuilder.build_archive(tmp_path / "c.npy", tmp_path / "c.h5", _tile_points=100, voxel_size=1.0, band_radius=2.5)
     with lodbuilder.open_archive(tmp_path / "c.h5") as a:
@@ -136,3 +134,67 @@ def test_a_tile_shares_only_its_points_near_faces_other_tiles_touch(tmp_path, mo
     with lodbuilder.open_archive(tmp_path / "s.h5") as a:
         build = a.scan().build
     assert build["engine_stats"]["pieces"] == np.unique(_band_labels(pts, build["voxel_size"], build["band_radius"])).size
+
+
+def _columns() -> np.ndarray:
+    """Columns of points in pairs 3.5 apart and 8 apart between pairs (10 band pieces at h 1, r 2.5)."""
+    y = np.arange(0, 50, 0.5)
+    x = np.cumsum([0.0] + [3.5 if i % 2 == 0 else 8.0 for i in range(19)])
+    return np.vstack([np.c_[np.full(y.size, xi), y, np.zeros(y.size)] for xi in x])
+
+
+def _local_pieces(work, pts, h, r, edges, halo, rank):
+    """Every tile's local pieces (tiles: the cells of ``edges`` in x and y), from its own points
+    and the other tiles' points within ``halo`` of its box, written to ``work``; the tile count."""
+    from lodbuilder.build.tiled.pieces import borrowed_points, tile_pieces
+    from lodbuilder.build.tiled.workdir import REC
+
+    rec = np.empty(pts.shape[0], REC)
+    rec["g"] = np.arange(pts.shape[0])
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    ij = [np.clip(np.searchsorted(edges[a], pts[:, a], "right") - 1, 0, len(edges[a]) - 2) for a in range(2)]
+    t = 0
+    for i in range(len(edges[0]) - 1):
+        for j in range(len(edges[1]) - 1):
+            box_lo = np.array([edges[0][i], edges[1][j], lo[2]])
+            box_hi = np.array([edges[0][i + 1], edges[1][j + 1], hi[2]])
+            own = (ij[0] == i) & (ij[1] == j)
+            near = ~own & np.all((pts >= box_lo - halo) & (pts <= box_hi + halo), axis=1)
+            interior = [[i > 0, j > 0, False], [i < len(edges[0]) - 2, j < len(edges[1]) - 2, False]]
+            spec = {"lo": box_lo.tolist(), "hi": box_hi.tolist(), "interior": interior, "voxel_size": h, "band_radius": r,
+                    "lattice": lo.tolist(), "max_memory": None, "halo": halo, "neighbours": []}
+            borrowed, b_rank = borrowed_points(work, rec[near], rank[near], spec)
+            tile_pieces(work, t, rec[own], rank[own], borrowed, b_rank, spec)
+            t += 1
+    return t
+
+
+@pytest.mark.parametrize("scene_name", ["fragmented 2x2", "fragmented 4x4", "columns"])
+def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, scene_name):
+    """The covering tasks take the points of other tiles from their halo when it is at least the
+    pieces' reach wide (a survey's halo is: 41 vs 29.5 on the 4 x 4 survey): each tile's local
+    pieces from its own points and its halo, joined, are the whole scan's band pieces, and each
+    piece's first rank is the least rank of its points (ranks: a random permutation). The
+    columns' tiles are cut in the middle of every gap: only the halo joins a pair."""
+    from lodbuilder.build.tiled.pieces import join_task, reach
+    from lodbuilder.sampling.band import choose_parameters
+
+    if scene_name == "columns":
+        pts = _columns()
+        h, r = 1.0, 2.5
+        xs = np.unique(pts[:, 0])
+        edges = [np.r_[xs[0], (xs[1:] + xs[:-1]) / 2, xs[-1]], np.array([pts[:, 1].min(), pts[:, 1].max()])]
+    else:
+        pts = _fragmented(3, 60, 12_000)
+        h, r = choose_parameters(pts, None, None)
+        cuts = int(scene_name[-1])
+        edges = [np.linspace(pts[:, a].min(), pts[:, a].max(), cuts + 1) for a in range(2)]
+    labels = _band_labels(pts, h, r)
+    rank = np.random.default_rng(0).permutation(pts.shape[0])
+    n_tiles = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank)
+    joined = join_task(str(tmp_path), n_tiles)
+    assert joined["pieces"] == np.unique(labels).size >= 10
+    first = np.full(labels.max() + 1, pts.shape[0])
+    np.minimum.at(first, labels, rank)
+    assert joined["piece_entries"] == sorted(first.tolist())

@@ -13,9 +13,11 @@ priority order (list scheduling, largest first as the driver submits them). From
 * tile orderings depend on their neighbours of a smaller colour (the order phase's colour classes;
   on the previous pass's orderings too when there are several passes);
 * rounds inside a phase (:data:`AFTER`): the ranks' first round (``rank_band``) waits for the merge
-  task, their second round (``rank_block``) for the whole first, the radii's second round
-  (``finish_band``) for the whole first (``radii_band``); the write's bands wait for its first band
-  (run alone: it decides the datasets' creation properties);
+  task, their second round (``rank_block``) for the whole first, the radii's first round
+  (``radii_band``) for the covering (``cover_tile``) and the buckets (``bucket_block``), their
+  second round (``finish_band``) for the whole first, the join of the band pieces (``join_task``)
+  for the tiles' pieces (``cover_tile``; ``pieces_tile`` in older records); the write's bands wait
+  for its first band (run alone: it decides the datasets' creation properties);
 * ``rest``: seconds of the wall time the record does not cover (start-up, the write phase, the
   archive's commit), serial in the parent.
 
@@ -132,7 +134,8 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
 
 _ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
 #: task kinds that start only when every task of the listed kinds in their phase is done
-AFTER = {"rank_band": ("merge_task",), "rank_block": ("rank_band",), "finish_band": ("radii_band",)}
+AFTER = {"rank_band": ("merge_task",), "rank_block": ("rank_band",), "finish_band": ("radii_band",),
+         "radii_band": ("cover_tile", "bucket_block"), "join_task": ("cover_tile", "pieces_tile")}
 #: the write's first band (its task table piece: the first write_band to start) before the others
 FIRST_BAND = "write_band"
 

@@ -21,7 +21,7 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
-from .pieces import pieces_phase
+from .pieces import finish_join, reach, start_join
 from .pool import collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
@@ -168,12 +168,12 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
-    # 6. exact covering radii of every tile (on the workers), combined in bands; meanwhile tasks
-    #    put the points in stored order (the first pass of the write)
-    buckets, radii, resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist["pieces"],
-                                                             float(pl["spacing"]), delta, progress)
+    # 6. exact covering radii and band pieces of every tile (on the workers), the radii combined in bands
+    #    (the pieces joined meanwhile); meanwhile tasks put the points in stored order (the write's first pass)
+    buckets, radii, resumed["tiles_covered_before"], joining = _cover(executor, work, name, sp, by_size, dist, pl,
+                                                                      delta, worker_budget, progress)
     clock.lap("cover")
-    band_pieces = pieces_phase(executor, work, name, tiles, dist["pieces"]["core"], pl, sp.lo, worker_budget, progress)
+    band_pieces = finish_join(executor, work, name, n_tiles, joining)  # (the join ran beside the radii)
     clock.lap("pieces")
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
@@ -236,27 +236,47 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
     return merged
 
 
-def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], pieces: dict[str, Any],
-           spacing: float, delta: float, progress: ProgressCallback) -> tuple[dict[str, Any], dict[str, Any], int]:
+def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], dist: dict[str, Any],
+           pl: dict[str, Any], delta: float, worker_budget: int, progress: ProgressCallback
+           ) -> tuple[dict[str, Any], dict[str, Any], int, dict[cf.Future, int]]:
     """Phase 6: the exact covering radii of every tile on the workers, combined, while other
-    tasks put the points in stored order (the first pass of the write). Returns the buckets' and
-    the radii's markers and how many tiles a resume found covered."""
+    tasks put the points in stored order (the first pass of the write); each covering task also
+    labels its tile's band pieces (on the scan's grid: its voxel corners a whole number of voxels
+    from the scan's lowest point; the neighbours' cores are read only when the halo is narrower
+    than the pieces' reach); their join starts once they are done and runs beside the radii.
+    Returns the buckets' and the radii's markers, how many tiles a resume found covered and the
+    join's pending task."""
     from . import workdir as W
     from .radii import radii_phase
     from .write import buckets_phase
 
-    n, n_tiles = sp.n, len(by_size)
+    n, n_tiles, pieces, spacing = sp.n, len(by_size), dist["pieces"], float(pl["spacing"])
+    spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
+            "max_memory": worker_budget, "halo": float(dist["halo"])}
     todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
+    d = reach(spec["voxel_size"], spec["band_radius"])
+    nbrs = P.tile_neighbours(sorted(by_size, key=lambda t: t.index), d) if spec["halo"] < d else None
+
+    def band(t: P.Tile) -> dict[str, Any]:
+        near = [] if nbrs is None else [pieces["core"][u] for u in nbrs[t.index]]
+        return {**spec, "lo": t.lo.tolist(), "hi": t.hi.tolist(), "interior": t.interior.tolist(), "neighbours": near}
+
     futs = submit(executor, [(t.index, cover_tile, (work, t.index, spacing, pieces["core"][t.index],
-                                                    pieces["halo"][t.index])) for t in todo])
+                                                    pieces["halo"][t.index], band(t))) for t in todo])
     try:
         buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
     finally:
         collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
                 lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
                 points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
-    return buckets, radii, n_tiles - len(todo)
+    joining = start_join(executor, work, n_tiles)
+    try:
+        radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
+    except BaseException:
+        for f in joining:
+            f.cancel()
+        raise
+    return buckets, radii, n_tiles - len(todo), joining
 
 
 def _merge_record(merged: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
@@ -322,7 +342,8 @@ def _plan(executor: cf.Executor, work: Store, name: str, sp: Spill, voxel_size: 
     # the decimated copy is ordered by one worker: no larger than the worker's budget allows
     m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
     return plan_phase(executor, work, name, sp, {k: params[k] for k in ("spacing", "voxel_size", "band_radius")},
-                      max(fits, COARSE_MIN), tile_points or fits, m_target, progress)
+                      max(fits, COARSE_MIN), tile_points or P.balanced_tile_points(n, parallel, fits), m_target,
+                      progress)
 
 
 def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, pl: dict[str, Any],

@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from ...progress import ProgressCallback
 from .blocks import tile_records
 from .pool import collect, submit
 from .ranks import gather_ranks
@@ -93,33 +92,44 @@ def _band_pieces(xyz: np.ndarray, h: float, r: float, lattice: np.ndarray, max_m
     return piece, int(npiece)
 
 
-@timed_task
-def pieces_tile(work: str, t: int, tile: dict[str, Any], core: list[str], others: list[list[str]],
-                voxel_size: float, band_radius: float, lattice: list[float], max_memory: int | None
-                ) -> dict[str, Any]:
-    """Label the band pieces of tile ``t``'s core (its pieces ``core``) and of the points of the
-    neighbouring tiles (their core pieces, ``others``) within :func:`reach` of its box, on the
-    grid whose voxel corners fall on ``lattice`` (the scan's lowest point). Writes
-    ``pieces.<t>.links.bin`` (LINK records, by input index: the borrowed points, and its own points
-    within the reach of its box's shared faces, which other tiles borrow) and ``pieces.<t>.first.i8`` (the
-    least rank in the merged order of each local piece)."""
+def tile_pieces(work: Any, t: int, own: np.ndarray, own_rank: np.ndarray, borrowed: np.ndarray,
+                borrowed_rank: np.ndarray, spec: dict[str, Any]) -> dict[str, list[int]]:
+    """Label the band pieces of tile ``t``'s own points ``own`` and of the points of other tiles
+    ``borrowed`` (records, with their ranks in the merged order): those of them within
+    :func:`reach` of its box are kept. ``spec``: the tile's box (``lo``, ``hi``), ``voxel_size``,
+    ``band_radius``, ``lattice`` (the scan's lowest point: the grid's voxel corners fall a whole
+    number of voxels from it) and ``max_memory``. Writes ``pieces.<t>.links.bin`` (LINK records,
+    by input index: the borrowed points, and its own points within the reach of its box's faces,
+    which other tiles borrow) and ``pieces.<t>.first.i8`` (the least rank in the merged order of
+    each local piece); returns their entries for the task's marker."""
     w = as_store(work)
-    lo, hi = np.asarray(tile["lo"], float), np.asarray(tile["hi"], float)
-    d = reach(voxel_size, band_radius)
-    own = tile_records(w, core)
-    borrowed = [r[_near_box(_xyz(r), lo, hi, d)] for r in (tile_records(w, names) for names in others)]
-    ext = np.concatenate([own, *borrowed]) if borrowed else own
+    lo, hi = np.asarray(spec["lo"], float), np.asarray(spec["hi"], float)
+    h, r = float(spec["voxel_size"]), float(spec["band_radius"])
+    d = reach(h, r)
+    near = _near_box(_xyz(borrowed), lo, hi, d)
+    ext = np.concatenate([own, borrowed[near]])
+    rank = np.concatenate([own_rank, borrowed_rank[near]])
     xyz = _xyz(ext)
-    piece, npiece = _band_pieces(xyz, voxel_size, band_radius, np.asarray(lattice, float), max_memory)
+    piece, npiece = _band_pieces(xyz, h, r, np.asarray(spec["lattice"], float), spec.get("max_memory"))
     first = np.full(int(npiece), np.iinfo(np.int64).max, np.int64)
-    np.minimum.at(first, piece, gather_ranks(w, ext["g"]))
+    np.minimum.at(first, piece, rank)
     shared = np.ones(ext.shape[0], bool)  # borrowed points, and own points other tiles may borrow
-    shared[: own.shape[0]] = _near_faces(xyz[: own.shape[0]], lo, hi, np.asarray(tile["interior"], bool), d)
+    shared[: own.shape[0]] = _near_faces(xyz[: own.shape[0]], lo, hi, np.asarray(spec["interior"], bool), d)
     links = np.empty(int(shared.sum()), LINK)
     links["g"], links["piece"] = ext["g"][shared], piece[shared]
     name = f"pieces.{t}"
-    files = {_links(name): as_store(w).put(_links(name), links), _firsts(name): as_store(w).put(_firsts(name), first)}
-    return {"tile": t, "pieces": int(npiece), "points": int(ext.shape[0]), "files": files}
+    return {_links(name): w.put(_links(name), links), _firsts(name): w.put(_firsts(name), first)}
+
+
+def borrowed_points(work: Any, halo: np.ndarray, halo_rank: np.ndarray, spec: dict[str, Any]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The points of other tiles :func:`tile_pieces` needs, with their ranks: the tile's halo when
+    it is at least :func:`reach` wide (``spec["halo"]``), else its neighbours' cores
+    (``spec["neighbours"]``: their pieces' names)."""
+    if float(spec["halo"]) >= reach(float(spec["voxel_size"]), float(spec["band_radius"])):
+        return halo, halo_rank
+    others = tile_records(work, [n for names in spec["neighbours"] for n in names])
+    return others, gather_ranks(work, others["g"])
 
 
 @timed_task
@@ -145,26 +155,21 @@ def join_task(work: str, n_tiles: int) -> dict[str, Any]:
     return {"pieces": int(count), "piece_entries": np.sort(first)[:ENTRIES_MAX].tolist()}
 
 
-def pieces_phase(ex: cf.Executor, work: Any, name: str, tiles: list[Any], cores: list[list[str]],
-                 plan: dict[str, Any], lattice: np.ndarray, max_memory: int | None,
-                 progress: ProgressCallback) -> dict[str, Any]:
-    """The band pieces of every tile (tasks; ``cores``: each tile's core pieces, ``plan``: the
-    plan's marker, for the voxel size and band radius; ``lattice``: the scan's lowest point),
-    joined (one task); returns ``{"pieces", "piece_entries"}`` for the build record's
-    ``engine_stats`` (or what a finished phase recorded)."""
-    from .plan import tile_neighbours
+def start_join(ex: cf.Executor, work: Any, n_tiles: int) -> dict[cf.Future, int]:
+    """Submit the join of the tiles' band pieces (written by their covering tasks, see
+    :func:`tile_pieces`), to run beside the phases after the covering; none when a finished
+    join recorded it."""
+    return {} if done(work, "pieces") is not None else submit(ex, [(0, join_task, (work, n_tiles))])
 
-    voxel_size, band_radius = float(plan["voxel_size"]), float(plan["band_radius"])
 
-    joined = done(work, "pieces")
-    if joined is not None:
-        return {k: joined[k] for k in ("pieces", "piece_entries")}
-    nbrs = tile_neighbours(tiles, reach(voxel_size, band_radius))
-    todo = [t for t in tiles if done(work, f"pieces.{t.index}") is None]
-    calls = [(t.index, pieces_tile, (work, t.index, t.to_json(), cores[t.index], [cores[u] for u in nbrs[t.index]],
-                                     voxel_size, band_radius, [float(x) for x in lattice], max_memory)) for t in todo]
-    collect(submit(ex, calls), lambda t: f"the band pieces of tile {t + 1} of {len(tiles)}", name, len(tiles),
-            progress, "pieces", lambda res: mark(work, f"pieces.{res['tile']}", res))
-    (joined,) = collect(submit(ex, [(0, join_task, (work, len(tiles)))]), lambda _: "the join of the pieces",
-                        name, 1, None, "pieces")
-    return mark(work, "pieces", joined)
+def finish_join(ex: cf.Executor, work: Any, name: str, n_tiles: int, pending: dict[cf.Future, int]
+                ) -> dict[str, Any]:
+    """Wait for the join :func:`start_join` submitted (or submit it, when nothing was pending and
+    no finished join is recorded); returns ``{"pieces", "piece_entries"}`` for the build record's
+    ``engine_stats``."""
+    joined = None if pending else done(work, "pieces")
+    if joined is None:
+        pending = pending or start_join(ex, work, n_tiles)
+        (joined,) = collect(pending, lambda _: "the join of the pieces", name, 1, None, "pieces")
+        mark(work, "pieces", joined)
+    return {k: joined[k] for k in ("pieces", "piece_entries")}

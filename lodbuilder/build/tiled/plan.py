@@ -25,6 +25,16 @@ PROCESS_BYTES = 320 << 20  # a worker's own footprint: Python, NumPy, SciPy, h5p
 PARENT_FRACTION = 0.2  # share of the budget the parent keeps (merge buffers, write blocks)
 PARENT_MIN = 600 << 20
 MIN_TILE_POINTS = 2_000
+#: tiles per worker the plan aims for (when the memory budget allows larger tiles): a tile waits
+#: for its neighbours of smaller colours (4-5 colours on a survey), so with about one tile per
+#: worker most workers wait; with several the last tiles of a phase are small beside the phase
+TILES_PER_WORKER = 4
+#: tiles sized for the workers are at least this large: a smaller tile costs more halo (read,
+#: ordered as timed seeds, covered) and more seams per point (its side shrinks as the square root)
+BALANCED_MIN_POINTS = 100_000
+#: the k-d split halves tiles until they hold at most the capacity: a capacity this much above the
+#: mean aimed for keeps a median split's unevenness from doubling the count
+BALANCE_SLACK = 1.15
 HIST_CELLS = 1 << 22  # cells of the count histogram (int32: 16 MiB)
 
 
@@ -48,6 +58,16 @@ def tile_capacity(max_memory: int, parallel: int) -> int:
                          f"{(PROCESS_BYTES + MIN_TILE_POINTS * TILE_BYTES_PER_POINT) / 2**20:.0f} MiB at least); give "
                          "more memory or fewer workers")
     return cap
+
+
+def balanced_tile_points(n_points: int, parallel: int, fits: int) -> int:
+    """Points per tile for ``parallel`` workers: what fits the memory budget (``fits``: see
+    :func:`tile_capacity`), or less so that there are about TILES_PER_WORKER tiles per worker,
+    but not below BALANCED_MIN_POINTS (one worker: what fits, the fewest tiles)."""
+    if parallel <= 1:
+        return fits
+    aim = math.ceil(BALANCE_SLACK * n_points / (TILES_PER_WORKER * parallel))
+    return min(fits, max(aim, BALANCED_MIN_POINTS))
 
 
 def worker_budget(max_memory: int, parallel: int) -> int:

@@ -168,25 +168,41 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
 
 
 @timed_task
-def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str]
-               ) -> dict[str, Any]:
+def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str],
+               pieces: dict[str, Any] | None = None) -> dict[str, Any]:
     """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their
-    pieces, in block order).
+    pieces, in block order); with ``pieces`` (see :func:`.pieces.tile_pieces`), the band pieces of
+    the tile too, from the same points and ranks.
 
     Writes ``cover.<t>.ev`` (rank, covering radius of the core by every point of smaller rank,
     whenever it changes) and ``cover.<t>.pt`` (for each core point in rank order: its rank, the
     rank of its nearest earlier point and the distance to it). Both are exact while the distance
     is below the halo width and upper bounds beyond it."""
-    from ..._kernels.tiled import cover_pass
+    from .pieces import borrowed_points, tile_pieces
     from .ranks import gather_ranks
 
     w = as_store(work)
     core = tile_records(w, core_pieces)
     halo = tile_records(w, halo_pieces)
     ext = np.concatenate([core, halo])
-    is_core = np.zeros(ext.shape[0], bool)
-    is_core[: core.shape[0]] = True
     ranks = gather_ranks(w, ext["g"])
+    files, n_events = _cover(w, t, spacing, ext, ranks, core.shape[0])
+    if pieces is not None:
+        c = core.shape[0]
+        borrowed, b_ranks = borrowed_points(w, halo, ranks[c:], pieces)
+        del ext, halo
+        files.update(tile_pieces(w, t, core, ranks[:c], borrowed, b_ranks, pieces))
+    return {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files}
+
+
+def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray, n_core: int
+           ) -> tuple[dict[str, Any], int]:
+    """The covering pass of :func:`cover_tile` over ``ext`` (its first ``n_core`` records the
+    core) with their ``ranks``: the files written and how many events."""
+    from ..._kernels.tiled import cover_pass
+
+    is_core = np.zeros(ext.shape[0], bool)
+    is_core[:n_core] = True
     srt = np.argsort(ranks, kind="stable")
     ranks = np.ascontiguousarray(ranks[srt])
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])
@@ -194,9 +210,9 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     n = ext.shape[0]
     ev_rank = np.empty(n + 1, np.int64)
     ev_val = np.empty(n + 1)
-    pt_rank = np.empty(core.shape[0], np.int64)
-    pt_parent = np.empty(core.shape[0], np.int64)
-    pt_space = np.empty(core.shape[0])
+    pt_rank = np.empty(n_core, np.int64)
+    pt_parent = np.empty(n_core, np.int64)
+    pt_space = np.empty(n_core)
     # cells of about four point spacings (some 16 points of a surface), at most MAX_CELLS of them
     ext_size = np.ptp(xyz, axis=0) if n else np.ones(3)
     cell = max(4.0 * spacing, float(np.prod(ext_size + 8 * spacing) / MAX_CELLS) ** (1 / 3), 1e-300)
@@ -205,5 +221,4 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
-    files = {WL.cover_events(t): w.put(WL.cover_events(t), ev), WL.cover_points(t): w.put(WL.cover_points(t), pt)}
-    return {"tile": t, "n_ext": int(n), "n_events": int(ne), "files": files}
+    return {WL.cover_events(t): w.put(WL.cover_events(t), ev), WL.cover_points(t): w.put(WL.cover_points(t), pt)}, int(ne)
