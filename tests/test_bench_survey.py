@@ -123,7 +123,7 @@ def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypat
     import bench_survey
 
     run = {"rc": 0, "executor": "pool", "workers": 1, "wall_seconds": 1.0, "parent_cpu_share": 0.01,
-           "work_over_archive": 1.0}
+           "work_over_archive": 1.0, "rss_over_max_memory": 0.5}
     monkeypatch.setattr(bench_survey, "run_build", lambda *a, **k: dict(run))
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
