@@ -110,8 +110,17 @@ class Writer:
 class Store:
     """The work files of one tiled build (see the module)."""
 
-    url: str  # what messages show
+    url: str  # what messages show, and what tells two stores apart
     local = False
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.url!r})"
+
+    def __eq__(self, other: object) -> bool:
+        return type(other) is type(self) and other.url == self.url
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, self.url))
 
     def writer(self, name: str) -> Writer:
         raise NotImplementedError
@@ -244,15 +253,6 @@ class LocalStore(Store):
     def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root)
         self.url = str(self.root)
-
-    def __repr__(self) -> str:
-        return f"LocalStore({self.url!r})"
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, LocalStore) and other.root == self.root
-
-    def __hash__(self) -> int:
-        return hash(self.root)
 
     def path(self, name: str) -> Path:
         return self.root / name
@@ -387,15 +387,6 @@ class FsspecStore(Store):
             fs, _ = url_to_fs(self.url, **storage_options)
         self.fs = fs
         self.root = fs._strip_protocol(self.url).rstrip("/")
-
-    def __repr__(self) -> str:
-        return f"FsspecStore({self.url!r})"
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, FsspecStore) and other.url == self.url
-
-    def __hash__(self) -> int:
-        return hash(self.url)
 
     def key(self, name: str) -> str:
         return f"{self.root}/{name}"
