@@ -83,11 +83,11 @@ def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None,
 
 
 #: zstandard level of the work files that are only ever read whole or from their start (the raw
-#: blocks' attributes, the write's bucket pieces; None: raw records). Level 1 halves them (records
+#: blocks' attributes, the write's bucket pieces). Level 1 halves them (records
 #: of an airborne LAZ survey: 2.2 x smaller, at about 285 MB/s of one core to compress and 525 MB/s
 #: to decompress; zlib's level 1 made them as small at 80 and 220 MB/s): the largest work files,
 #: alive beside the tiles' points and covering files
-ZIP_LEVEL: int | None = 1
+ZIP_LEVEL = 1
 ZIP_READ = 1 << 22  # compressed bytes per read of zipped_blocks()
 
 
@@ -95,16 +95,13 @@ class Zipped:
     """A work file being written compressed (see ZIP_LEVEL): :meth:`write` records as they come."""
 
     def __init__(self, out: Any) -> None:
-        self.out = out
-        self.z: Any = None
-        if ZIP_LEVEL is not None:
-            import zstandard
+        import zstandard
 
-            self.z = zstandard.ZstdCompressor(level=ZIP_LEVEL).compressobj()
+        self.out = out
+        self.z: Any = zstandard.ZstdCompressor(level=ZIP_LEVEL).compressobj()
 
     def write(self, rows: np.ndarray) -> None:
-        data = np.ascontiguousarray(rows)
-        self.out.write(self.z.compress(cast(Any, data)) if self.z is not None else data)
+        self.out.write(self.z.compress(cast(Any, np.ascontiguousarray(rows))))
 
     def commit(self) -> list[int]:
         if self.z is not None:
@@ -127,7 +124,7 @@ def unzipped(data: bytes, dtype: Any, name: str) -> np.ndarray:
     import zstandard
 
     try:
-        return np.frombuffer(_unzipper().decompress(data) if ZIP_LEVEL is not None else data, dtype)
+        return np.frombuffer(_unzipper().decompress(data), dtype)
     except (zstandard.ZstdError, ValueError) as exc:  # (a damage its checksum did not find: a forged marker)
         from ...errors import InputError
 
@@ -136,9 +133,6 @@ def unzipped(data: bytes, dtype: Any, name: str) -> np.ndarray:
 
 def zipped_blocks(path: tuple[Store, str], dtype: Any, count: int, rows: int) -> Iterator[tuple[int, np.ndarray]]:
     """``(first row, rows)`` blocks of a work file written by :class:`Zipped` (``count`` records)."""
-    if ZIP_LEVEL is None:
-        yield from blocks(path, dtype, count, rows)
-        return
     store, name = path
     dt = np.dtype(dtype)
     z, pending, lo = _unzipper(), b"", 0
