@@ -14,7 +14,7 @@ import pytest
 
 from lodbuilder.build.tiled import sums
 from lodbuilder.build.tiled.store import FsspecStore, LocalStore, as_store, check_work_url
-from lodbuilder.build.tiled.workdir import blocks, gather
+from lodbuilder.build.tiled.workdir import MAX_RUN_ROWS, RUN_BYTES, blocks, gather, read_runs
 from lodbuilder.errors import InputError
 
 pytest.importorskip("fsspec")
@@ -75,6 +75,31 @@ def test_gather_and_blocks_read_rows_of_an_object(store):
     store.put("p.f8", xyz)
     got = np.concatenate([b.reshape(-1, 3) for _, b in blocks((store, "p.f8"), "<f8", None, 3 * 128)])
     np.testing.assert_array_equal(got, xyz)
+
+
+def _runs_row_by_row(srt, gap, width):
+    """The reference of read_runs: the row-by-row loop it replaced."""
+    runs, i, m = [], 0, srt.shape[0]
+    while i < m:
+        j = i + 1
+        while (j < m and srt[j] - srt[j - 1] <= gap and j - i < MAX_RUN_ROWS
+               and (srt[j] - srt[i]) * width < RUN_BYTES):
+            j += 1
+        runs.append((i, j))
+        i = j
+    return runs
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_read_runs_split_sorted_rows_as_the_row_by_row_loop(seed):
+    rng = np.random.default_rng(seed)
+    for n, top, gap, width in [(0, 10, 4, 8), (1, 10, 0, 8), (5000, 6000, 0, 8), (5000, 10**6, 300, 24),
+                               (200_000, 250_000, 3, 8), (200_000, 10**7, 5000, 1 << 12), (3000, 3000, 10**9, 8)]:
+        srt = np.sort(rng.integers(0, top, n))
+        got = read_runs(srt, gap, width)
+        assert got == _runs_row_by_row(srt, gap, width)
+        if n:
+            assert got[0][0] == 0 and got[-1][1] == n and all(a[1] == b[0] for a, b in zip(got, got[1:]))
 
 
 def test_the_task_log_collects_lines_from_every_worker(store):
