@@ -130,17 +130,23 @@ def tree(root: int) -> tuple[dict[tuple[int, int], float], int]:
     return cpu, rss
 
 
-def disk_bytes(path: Path, only_work: bool) -> int:
-    """Bytes allocated on disk under ``path`` (``only_work``: in ``*.work`` directories only)."""
+def disk_bytes(path: Path, only_work: bool, by_kind: dict[str, int] | None = None) -> int:
+    """Bytes allocated on disk under ``path`` (``only_work``: in ``*.work`` directories only);
+    ``by_kind`` (when given) receives the bytes per kind of work file (a name's first part:
+    ``raw``, ``cover``, ``bucket``, ...)."""
     total = 0
     for dirpath, _, files in os.walk(path):
         if only_work and ".work" not in Path(dirpath).relative_to(path).as_posix():
             continue
         for name in files:
             try:
-                total += os.lstat(os.path.join(dirpath, name)).st_blocks * 512
+                size = os.lstat(os.path.join(dirpath, name)).st_blocks * 512
             except OSError:
-                pass
+                continue
+            total += size
+            if by_kind is not None:
+                kind = name.split(".")[0] + (".tmp" if name.endswith(".tmp") else "")
+                by_kind[kind] = by_kind.get(kind, 0) + size
     return total
 
 
@@ -153,6 +159,9 @@ class Sampler(threading.Thread):
         self.cpu: dict[tuple[int, int], float] = {}
         self.peak_rss = self.peak_work = self.peak_all = self.samples = 0
         self.processes_max = 0
+        self.peak_work_by_kind: dict[str, int] = {}  # the work directory's bytes per kind at its peak
+        self.peak_work_at = 0.0  # seconds after the start
+        self.t0 = time.perf_counter()
         self._halt = threading.Event()
 
     def sample(self) -> None:
@@ -161,7 +170,11 @@ class Sampler(threading.Thread):
             self.cpu[k] = max(self.cpu.get(k, 0.0), v)
         self.peak_rss = max(self.peak_rss, rss)
         self.processes_max = max(self.processes_max, len(cpu))
-        self.peak_work = max(self.peak_work, disk_bytes(self.where, True))
+        kinds: dict[str, int] = {}
+        work = disk_bytes(self.where, True, kinds)
+        if work > self.peak_work:
+            self.peak_work, self.peak_work_by_kind = work, kinds
+            self.peak_work_at = time.perf_counter() - self.t0
         self.peak_all = max(self.peak_all, disk_bytes(self.where, False))
         self.samples += 1
 
@@ -318,6 +331,9 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "peak_work_dir_bytes": sampler.peak_work, "peak_written_bytes": sampler.peak_all,
         "archive_bytes": archive_bytes,
         "work_over_archive": round(sampler.peak_work / archive_bytes, 3) if archive_bytes else None,
+        "peak_work_seconds": round(sampler.peak_work_at, 2),
+        "peak_work_over_archive_by_kind": {k: round(v / archive_bytes, 3) for k, v in sorted(
+            sampler.peak_work_by_kind.items(), key=lambda x: -x[1])} if archive_bytes else None,
         "phase_seconds": {k: rec["phase_seconds"][k] for k in rec.get("phase_order") or rec.get("phase_seconds", {})},
         "tiles": rec.get("tiled", {}).get("tiles"),
         "tasks": task_summary(rec.get("tasks")),

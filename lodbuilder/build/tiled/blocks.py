@@ -28,23 +28,25 @@ from . import layout as WL
 from .plan import Grid, Tile, tile_lookup
 from .store import Store, Writer, as_store
 from .timing import timed_task
-from .workdir import REC, Zipped, blocks, opaque_rows
+from .workdir import REC, Zipped, opaque_rows, unzipped, zipped_blocks
 
 JOINT_FIELDS = ("scan_id", "scan_point")
 
 
 class _Out:
-    """Work objects written whole, committed together by :meth:`publish` (a task's outputs)."""
+    """Work objects written whole, committed together by :meth:`publish` (a task's outputs);
+    those named in ``zipped`` (every one: True) are written compressed (see .workdir.Zipped)."""
 
-    def __init__(self, store: Store, zipped: tuple[str, ...] = ()) -> None:
+    def __init__(self, store: Store, zipped: tuple[str, ...] | bool = ()) -> None:
         self.store = store
-        self.zipped = zipped  # (the objects written compressed: see .workdir.Zipped)
+        self.zipped = zipped
         self.files: dict[str, Writer | Zipped] = {}
 
     def write(self, name: str, data: np.ndarray) -> None:
         if name not in self.files:
             w = self.store.writer(name)
-            self.files[name] = Zipped(w) if name in self.zipped else w
+            zip_it = self.zipped if isinstance(self.zipped, bool) else name in self.zipped
+            self.files[name] = Zipped(w) if zip_it else w
         self.files[name].write(data)
 
     def close(self) -> None:
@@ -73,7 +75,7 @@ def read_block(work: Store | str, b: int, source: Any, member: int | None, start
     step, meta = int(spec["step"]), spec["metadata"]
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     samples, encodings = [], set()
-    out = _Out(as_store(work), (WL.raw_attr(b),))
+    out = _Out(as_store(work), (WL.raw_attr(b), WL.raw_xyz(b)))
     g = g0
     try:
         for chunk in stream.chunks(int(spec["rows"]), start, stop):
@@ -103,7 +105,7 @@ def read_block(work: Store | str, b: int, source: Any, member: int | None, start
 
 
 def _xyz_blocks(work: Store, b: int, m: int, rows: int) -> Any:
-    for lo, a in blocks((work, WL.raw_xyz(b)), "<f8", 3 * m, 3 * rows):
+    for lo, a in zipped_blocks((work, WL.raw_xyz(b)), "<f8", 3 * m, 3 * rows):
         yield lo // 3, a.reshape(-1, 3)
 
 
@@ -168,7 +170,7 @@ def distribute_block(work: Store | str, b: int, g0: int, m: int, rows: int, tile
     t_hi = np.array([t.hi for t in tl], float).reshape(-1, 3)
     n_core = np.zeros(len(tl), np.int64)
     n_halo = np.zeros(len(tl), np.int64)
-    out = _Out(w)
+    out = _Out(w, True)
     try:
         for r0, pts in _xyz_blocks(w, b, m, rows):
             _split(out, b, g0 + r0, pts, lookup[gr.index(pts)], t_lo, t_hi, halo, n_core, n_halo)
@@ -212,7 +214,7 @@ def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: n
 
 
 def tile_records(work: Store | Path, names: list[str]) -> np.ndarray:
-    """A tile's core or halo: its pieces (``names``, in block order) one after the other."""
+    """A tile's core or halo: its pieces (``names``, in block order; compressed) one after the other."""
     store = as_store(work)
-    parts = [store.read_array(n, REC) for n in names]
+    parts = [unzipped(store.get(n), REC, n) for n in names]
     return np.concatenate(parts) if parts else np.zeros(0, REC)

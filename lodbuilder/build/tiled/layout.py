@@ -1,16 +1,17 @@
 """The work directory of a tiled build, in one place: every file's name and record layout, the
 markers of finished pieces, and the named moments at which tests stop a build.
 
-Files (little-endian raw arrays unless said otherwise), by the phase that writes them::
+Files (little-endian raw arrays unless said otherwise; *zipped*: compressed with zstandard, read
+whole or from the start only, see :class:`.workdir.Zipped`), by the phase that writes them::
 
     inputs      (a marker only)     the read blocks: input, row range, first input index of each
-    read        raw.<b>.xyz         block b's (m, 3) float64 coordinates in input order (poses applied)
-                raw.<b>.attr        block b's attributes, one record per point (attr_record)
+    read        raw.<b>.xyz         block b's (m, 3) float64 coordinates in input order (poses applied; zipped)
+                raw.<b>.attr        block b's attributes, one record per point (attr_record; zipped)
                 sample.<b>.f64      block b's points whose input index is a multiple of the sample step
     spill       sample.npy          the sample of the whole scan (for the spacing), in input order
     plan        decimated.bin       the decimated copy (one point per grid cell): REC records
-    distribute  core.<t>.<b>.bin    the points of tile t from block b: REC records (g, x, y, z), g the input index
-                halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others
+    distribute  core.<t>.<b>.bin    the points of tile t from block b: REC records (g, x, y, z), g the input index (zipped)
+                halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others (zipped)
     coarse      head.bin            HEAD records: the coarse global level (the head)
     order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin)
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
@@ -210,11 +211,12 @@ def writing(name: str) -> str:
 # ------------------------------------------------------------------------------------ pruning
 
 #: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
-#: after the merge, the tiles' streams and the merge's keys (no phase reads them); after the
+#: after the spill, the read blocks' samples (summed into sample.npy, which is kept); after the
+#: merge, the tiles' streams and face files and the merge's keys (no phase reads them); after the
 #: write's permutation, the raw
 #: blocks; after the pieces (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"merge": ("stream.", "key."), "buckets": ("raw.",),
+PRUNE_AFTER = {"spill": ("sample.",), "merge": ("stream.", "key.", "face."), "buckets": ("raw.",),
                "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
@@ -228,8 +230,10 @@ def consumers(name: str) -> list[str] | None:
         return []
     if kind == "raw" and ext in ("xyz", "attr"):
         return ["plan", "distribute", "buckets"]
-    if kind == "stream" and ext == "bin":
+    if (kind == "stream" and ext == "bin") or (kind == "face" and ext == "bin"):
         return ["merge"]
+    if kind == "sample" and ext == "f64":  # (the spill's marker does not list them)
+        return ["spill"]
     if kind in ("core", "halo") and ext == "bin":
         return ["pieces", f"cover.{parts[1]}", f"order.{parts[1]}.*"]
     if (kind == "cover" and ext in ("ev", "pt")) or kind in ("radloc", "space"):

@@ -133,7 +133,8 @@ def _spill(work: Store, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill
     sample = np.concatenate([work.read_array(WL.sample(b), "<f8").reshape(-1, 3) for b in range(len(res))])
     with work.writer(WL.SAMPLE) as f:
         np.save(f, sample)
-    files = {k: v for r in res for k, v in r["files"].items()}
+    # (the blocks' samples are not listed: deleted once summed, they are the read tasks' own)
+    files = {k: v for r in res for k, v in r["files"].items() if WL.consumers(k) != ["spill"]}
     enc = choose_encoding({e for r in res for e in r["encodings"]} or {"float64"})
     sp = Spill(n, np.min([r["lo"] for r in res], axis=0), np.max([r["hi"] for r in res], axis=0),
                {k: (v[0], tuple(v[1])) for k, v in inp["fields"].items()}, sample, inp["metadata"], inp["reader"],

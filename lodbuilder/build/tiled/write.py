@@ -26,7 +26,7 @@ from ...progress import ProgressCallback, report
 from . import layout as WL
 from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import Zipped, blocks, opaque_rows, read_rows, unzipped, zipped_blocks
+from .workdir import Zipped, opaque_rows, read_rows, unzipped, zipped_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -135,7 +135,7 @@ def _raw_records(work: Any, fields: dict[str, tuple[str, tuple[int, ...]]], raw:
         m_b = int(z) - int(a)
         ats: Any = zipped_blocks((store, WL.raw_attr(b)), attr, m_b, rows) if attr.itemsize else None
         try:
-            for r0, xyz in blocks((store, WL.raw_xyz(b)), "<f8", 3 * m_b, 3 * rows):
+            for r0, xyz in zipped_blocks((store, WL.raw_xyz(b)), "<f8", 3 * m_b, 3 * rows):
                 pts = xyz.reshape(-1, 3)
                 r = np.empty(pts.shape[0], rec)
                 r["xyz"] = pts
