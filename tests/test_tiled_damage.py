@@ -120,15 +120,16 @@ def _cases():
     """(moment, file, damage): every kind of work file the moment has, each damage in turn."""
     kinds = {
         # (a read or split task's marker is not read again once its phase's marker is written)
-        "split": ["raw.0.xyz", "raw.0.attr", "sample.npy", "decimated.bin", "spill.json", "plan.json", "sample.0.f64"],
+        # (the read blocks' samples are deleted once summed into sample.npy)
+        "split": ["raw.0.xyz", "raw.0.attr", "sample.npy", "decimated.bin", "spill.json", "plan.json"],
         # {t}: a tile whose ordering was done when the build stopped
         "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "raw.0.xyz"],
-        "radii": ["order.i8", "rank.0.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
-        # (by the write the streams, raw blocks, tiles' points and covering files are deleted: a damaged
+        "radii": ["order.i8", "rank.0.i8", "raw.0.xyz", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
+        # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
-        "write": ["ranks.json", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "face.0.1.bin",
+        "write": ["ranks.json", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "head.bin",
                   "rank.0.i8", "pieces.json"],
         # (each band's bucket is deleted once the band is written: its chunks.json damaged, the buckets again)
         "bands": ["chunks.0.bin", "chunks.0.json", "order.i8", "buckets.json"],
@@ -184,7 +185,7 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
     # every band is written, so are their buckets)
     gone = set(listed) - files
     assert {n.split(".")[0] for n in gone} == {"raw", "stream", "key", "core", "halo", "cover", "radloc", "space",
-                                               "bucket"}
+                                               "bucket", "face", "sample"}
     assert all(WL.consumers(n) is not None for n in gone)
 
 

@@ -169,12 +169,16 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     clock.lap("merge")
 
     # 6. exact covering radii and band pieces of every tile (on the workers), the radii combined in bands
-    #    (the pieces joined meanwhile); meanwhile tasks put the points in stored order (the write's first pass)
-    buckets, radii, resumed["tiles_covered_before"], joining = _cover(executor, work, name, sp, by_size, dist, pl,
-                                                                      delta, worker_budget, progress)
+    #    (the pieces joined meanwhile); then tasks put the points in stored order (the write's first pass:
+    #    after the covering files and the tiles' points are deleted, so that the buckets are never on
+    #    disk beside them)
+    radii, resumed["tiles_covered_before"], joining = _cover(executor, work, name, sp, by_size, dist, pl, delta,
+                                                             worker_budget, progress)
     clock.lap("cover")
     band_pieces = finish_join(executor, work, name, n_tiles, joining)  # (the join ran beside the radii)
     clock.lap("pieces")
+    buckets = _buckets(executor, work, name, sp, progress)
+    clock.lap("permute")
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = store.read_array(WL.HEAD_FILE, WL.HEAD)
@@ -238,17 +242,15 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
 
 def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], dist: dict[str, Any],
            pl: dict[str, Any], delta: float, worker_budget: int, progress: ProgressCallback
-           ) -> tuple[dict[str, Any], dict[str, Any], int, dict[cf.Future, int]]:
-    """Phase 6: the exact covering radii of every tile on the workers, combined, while other
-    tasks put the points in stored order (the first pass of the write); each covering task also
-    labels its tile's band pieces (on the scan's grid: its voxel corners a whole number of voxels
-    from the scan's lowest point; the neighbours' cores are read only when the halo is narrower
-    than the pieces' reach); their join starts once they are done and runs beside the radii.
-    Returns the buckets' and the radii's markers, how many tiles a resume found covered and the
-    join's pending task."""
+           ) -> tuple[dict[str, Any], int, dict[cf.Future, int]]:
+    """Phase 6: the exact covering radii of every tile on the workers, combined; each covering
+    task also labels its tile's band pieces (on the scan's grid: its voxel corners a whole number
+    of voxels from the scan's lowest point; the neighbours' cores are read only when the halo is
+    narrower than the pieces' reach); their join starts once they are done and runs beside the
+    radii. Returns the radii's marker, how many tiles a resume found covered and the join's
+    pending task."""
     from . import workdir as W
     from .radii import radii_phase
-    from .write import buckets_phase
 
     n, n_tiles, pieces, spacing = sp.n, len(by_size), dist["pieces"], float(pl["spacing"])
     spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
@@ -263,12 +265,9 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
 
     futs = submit(executor, [(t.index, cover_tile, (work, t.index, spacing, pieces["core"][t.index],
                                                     pieces["halo"][t.index], band(t))) for t in todo])
-    try:
-        buckets = buckets_phase(executor, work, name, n, sp.fields, sp.blocks or [], sp.rows, progress)
-    finally:
-        collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
-                lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
-                points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
+    collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
+            lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
+            points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
     joining = start_join(executor, work, n_tiles)
     try:
         radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
@@ -276,7 +275,15 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
         for f in joining:
             f.cancel()
         raise
-    return buckets, radii, n_tiles - len(todo), joining
+    return radii, n_tiles - len(todo), joining
+
+
+def _buckets(executor: cf.Executor, work: Store, name: str, sp: Spill, progress: ProgressCallback) -> dict[str, Any]:
+    """The write's first pass: every raw block split by destination into the write's buckets
+    (tasks; each block's raw files deleted once its bucket pieces are written)."""
+    from .write import buckets_phase
+
+    return buckets_phase(executor, work, name, sp.n, sp.fields, sp.blocks or [], sp.rows, progress)
 
 
 def _merge_record(merged: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:

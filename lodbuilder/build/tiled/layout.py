@@ -20,11 +20,13 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                                     (PAIR records; removed when the phase is complete)
                 rank.<b>.i8         the position of every input point of read block b (see ranks.py)
     cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass
-    radii       radloc.<b>.f8       band b's radii, non-increasing within the band (round 1)
-                space.<b>.f8        band b's running minimum of the spacing (round 1)
+    radii       radloc.<b>.f8       band b's radii, non-increasing within the band (round 1; zipped)
+                space.<b>.f8        band b's running minimum of the spacing (round 1; zipped)
                 parent.<b>.i8       the stored parent of each position of band b
                 radius.<b>.f8       the stored radius of each position of band b (round 2)
-    buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py)
+    buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py;
+                                    after the radii and the pieces, once the covering files and the
+                                    tiles' points are deleted)
     write       chunks.<k>.bin      band k's rows as finished HDF5 chunks, one after another (see bands.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
@@ -33,7 +35,8 @@ marker and files check out. Every file is written to a temporary and published
 (:mod:`lodbuilder._atomic`).
 
 A large file is deleted once every piece that reads it is done (:data:`PRUNE_AFTER`: when the
-marker of the last one is written; a bucket once its band of the write is), so that the work
+marker of the last one is written; a raw block once its permutation task is, a bucket once its
+band of the write is), so that the work
 directory holds only what later phases still read. Its producer's marker still lists it: a missing
 file checks out while every piece that reads it (:func:`consumers`) checks out, so a resume that
 finds one of those damaged or gone does its producer again too (the same bytes).
@@ -70,7 +73,7 @@ ORDER = "order.i8"
 KEY = "key.f8"
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
-PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "ranks", "buckets", "radii")
+PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "ranks", "radii", "buckets")
 
 
 def attr_record(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
@@ -229,7 +232,7 @@ def consumers(name: str) -> list[str] | None:
     if name == KEY:
         return []
     if kind == "raw" and ext in ("xyz", "attr"):
-        return ["plan", "distribute", "buckets"]
+        return ["plan", "distribute", bucket_piece(int(parts[1]))]
     if (kind == "stream" and ext == "bin") or (kind == "face" and ext == "bin"):
         return ["merge"]
     if kind == "sample" and ext == "f64":  # (the spill's marker does not list them)

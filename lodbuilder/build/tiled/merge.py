@@ -45,15 +45,14 @@ def buffer_rows(n_tiles: int) -> int:
 
 
 class _StreamReader:
+    """A tile's stream (compressed: :func:`.workdir.put_zipped`) read ``rows`` records at a time."""
+
     def __init__(self, store: Store, name: str) -> None:
         self.f = store.open(name)
-        self.left = (store.size(name) or 0) // STREAM.itemsize
+        self.rows = W.unzip_reader(self.f, f"{store.url}/{name}")
 
     def read(self, rows: int) -> np.ndarray:
-        m = min(rows, self.left)
-        a = W.read_rows(self.f, np.dtype("<f8"), 6 * m).reshape(m, 6)
-        self.left -= m
-        return a
+        return self.rows(rows * STREAM.itemsize).view("<f8").reshape(-1, 6)
 
     def close(self) -> None:
         self.f.close()

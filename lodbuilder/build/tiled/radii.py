@@ -31,7 +31,7 @@ from .pool import collect, submit
 from .store import Store, as_store
 from .sums import done, get_json, mark
 from .timing import timed_task
-from .workdir import sorted_slice
+from .workdir import get_zipped, put_zipped, sorted_slice
 
 EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
 
@@ -82,7 +82,7 @@ def radii_band(work: Store | str, band: int, k0: int, k1: int, n_tiles: int, del
     par[hk] = head["parent"][ks[hk]]
     space = np.minimum.accumulate(space)
     b = band
-    files = {WL.radius_local(b): w.put(WL.radius_local(b), rad), WL.space(b): w.put(WL.space(b), space),
+    files = {WL.radius_local(b): put_zipped(w, WL.radius_local(b), rad), WL.space(b): put_zipped(w, WL.space(b), space),
              WL.parent(b): w.put(WL.parent(b), par)}
     return {"band": b, "last_radius": float(rad[-1]), "last_space": float(space[-1]), "files": files}
 
@@ -92,8 +92,8 @@ def finish_band(work: Store | str, band: int, k0: int, k1: int, run_min: float, 
     """Round 2 of band ``band``: the final radii with the earlier bands' minima (``run_min``,
     ``run_space``), and the band's worst spacing over radius (ratio, position)."""
     w, b = as_store(work), band
-    rad = np.minimum(w.read_array(WL.radius_local(b), "<f8"), run_min)
-    space = w.read_array(WL.space(b), "<f8")
+    rad = np.minimum(get_zipped(w, WL.radius_local(b), "<f8"), run_min)
+    space = get_zipped(w, WL.space(b), "<f8")
     # spacing of level k (its first k points): every position before k
     lvl_space = np.minimum(np.concatenate([[np.inf], space[:-1]]), run_space)
     ok = (rad > 0) & np.isfinite(rad) & np.isfinite(lvl_space)

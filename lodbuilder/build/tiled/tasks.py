@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import REC
+from .workdir import REC, put_zipped
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -160,7 +160,7 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
         files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
-    files[WL.stream(t)] = w.put(WL.stream(t), stream)
+    files[WL.stream(t)] = put_zipped(w, WL.stream(t), stream)  # (read once, from its start: by the merge)
     n_seam = int((stream["m"] < stream["key"]).sum())
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,

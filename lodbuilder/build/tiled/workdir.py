@@ -9,7 +9,7 @@ memory of the process that runs it stays at one block.
 from __future__ import annotations
 
 import io
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -114,6 +114,21 @@ class Zipped:
         self.out.close()
 
 
+def put_zipped(store: Store, name: str, rows: np.ndarray) -> list[int]:
+    """Write the work file ``name`` whole, compressed (:class:`Zipped`); returns its size and CRC-32."""
+    z = Zipped(store.writer(name))
+    try:
+        z.write(rows)
+        return z.commit()
+    finally:
+        z.close()
+
+
+def get_zipped(store: Store, name: str, dtype: Any) -> np.ndarray:
+    """The records of a whole work file written by :func:`put_zipped` (or :class:`Zipped`)."""
+    return unzipped(store.get(name), dtype, name)
+
+
 def _unzipper() -> Any:
     import zstandard
 
@@ -130,6 +145,30 @@ def unzipped(data: bytes, dtype: Any, name: str) -> np.ndarray:
         from ...errors import InputError
 
         raise InputError(f"{name} is not a file of records ({exc})") from None
+
+
+def unzip_reader(f: Any, where: str) -> Callable[[int], np.ndarray]:
+    """``read(nbytes)``: the next ``nbytes`` bytes (fewer at the end) of the file object ``f``
+    written by :class:`Zipped`, decompressed as they are asked for, as a uint8 array."""
+    import zstandard
+
+    z, pending = _unzipper(), bytearray()
+
+    def read(nbytes: int) -> np.ndarray:
+        nonlocal pending
+        while len(pending) < nbytes:
+            raw = f.read(ZIP_READ)
+            if not raw:
+                break
+            try:
+                pending += z.decompress(raw)
+            except zstandard.ZstdError as exc:
+                raise OSError(f"{where}: not a compressed work file ({exc})") from None
+        out = np.frombuffer(bytes(pending[:nbytes]), np.uint8)
+        del pending[:nbytes]
+        return out
+
+    return read
 
 
 def zipped_blocks(path: tuple[Store, str], dtype: Any, count: int, rows: int) -> Iterator[tuple[int, np.ndarray]]:

@@ -78,7 +78,7 @@ def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple
                   raw: list[list[int]], rows: int, progress: ProgressCallback = None) -> dict[str, Any]:
     """The first pass of the write as tasks, one per raw block (or what a finished one recorded)."""
     from .pool import collect, submit
-    from .sums import done, mark
+    from .sums import done, mark, prune
 
     doc = done(work, "buckets")
     if doc is not None:
@@ -94,7 +94,9 @@ def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple
             calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, block, rows)))
 
     def record(res: dict[str, Any]) -> None:
-        results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
+        b = res["block"]
+        results[b] = mark(work, WL.bucket_piece(b), res)
+        prune(work, [WL.raw_xyz(b), WL.raw_attr(b)])  # (read by no other piece: see layout.consumers)
 
     collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
             lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
