@@ -126,7 +126,7 @@ def _cases():
         "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "raw.0.xyz"],
-        "radii": ["order.i8", "rank.0.i8", "raw.0.xyz", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
+        "radii": ["order.i8", "rank.0.i8", "raw.0.xyz", "cover.0.ev", "cover.1.pt", "cover.2.json", "pieces.1.links.bin"],
         # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
         "write": ["ranks.json", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "head.bin",

@@ -21,7 +21,7 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
-from .pieces import finish_join, reach, start_join
+from .pieces import finish_join, reach
 from .pool import collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
@@ -172,11 +172,12 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     #    (the pieces joined meanwhile); then tasks put the points in stored order (the write's first pass:
     #    after the covering files and the tiles' points are deleted, so that the buckets are never on
     #    disk beside them)
-    radii, resumed["tiles_covered_before"], joining = _cover(executor, work, name, sp, by_size, dist, pl, delta,
-                                                             worker_budget, progress)
+    resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist, pl, worker_budget, progress)
     clock.lap("cover")
-    band_pieces = finish_join(executor, work, name, n_tiles, joining)  # (the join ran beside the radii)
+    band_pieces = finish_join(executor, work, name, n_tiles, {})  # (then the tiles' points are deleted)
     clock.lap("pieces")
+    radii = _radii(executor, work, name, n, n_tiles, delta, progress)
+    clock.lap("radii")
     buckets = _buckets(executor, work, name, sp, progress)
     clock.lap("permute")
 
@@ -241,18 +242,13 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
 
 
 def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], dist: dict[str, Any],
-           pl: dict[str, Any], delta: float, worker_budget: int, progress: ProgressCallback
-           ) -> tuple[dict[str, Any], int, dict[cf.Future, int]]:
-    """Phase 6: the exact covering radii of every tile on the workers, combined; each covering
-    task also labels its tile's band pieces (on the scan's grid: its voxel corners a whole number
-    of voxels from the scan's lowest point; the neighbours' cores are read only when the halo is
-    narrower than the pieces' reach); their join starts once they are done and runs beside the
-    radii. Returns the radii's marker, how many tiles a resume found covered and the join's
-    pending task."""
-    from . import workdir as W
-    from .radii import radii_phase
-
-    n, n_tiles, pieces, spacing = sp.n, len(by_size), dist["pieces"], float(pl["spacing"])
+           pl: dict[str, Any], worker_budget: int, progress: ProgressCallback) -> int:
+    """Phase 6: the exact covering radii of every tile on the workers; each covering task also
+    labels its tile's band pieces (on the scan's grid: its voxel corners a whole number of voxels
+    from the scan's lowest point; the neighbours' cores are read only when the halo is narrower
+    than the pieces' reach), which the join (one short task) joins next. Returns how many tiles a
+    resume found covered."""
+    n_tiles, pieces, spacing = len(by_size), dist["pieces"], float(pl["spacing"])
     spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
             "max_memory": worker_budget, "halo": float(dist["halo"])}
     todo = [t for t in by_size if piece_done(work, WL.cover_piece(t.index)) is None]
@@ -268,14 +264,17 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
     collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
             lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
             points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
-    joining = start_join(executor, work, n_tiles)
-    try:
-        radii = radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
-    except BaseException:
-        for f in joining:
-            f.cancel()
-        raise
-    return radii, n_tiles - len(todo), joining
+    return n_tiles - len(todo)
+
+
+def _radii(executor: cf.Executor, work: Store, name: str, n: int, n_tiles: int, delta: float,
+           progress: ProgressCallback) -> dict[str, Any]:
+    """The stored radii and parents, combined from the covering files in bands of positions
+    (tasks, :mod:`.radii`); returns the radii's marker."""
+    from . import workdir as W
+    from .radii import radii_phase
+
+    return radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
 
 
 def _buckets(executor: cf.Executor, work: Store, name: str, sp: Spill, progress: ProgressCallback) -> dict[str, Any]:

@@ -19,7 +19,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
     ranks       rankp.<k>.bin       band k of order.i8 as (input index, position) pairs by read block
                                     (PAIR records; removed when the phase is complete)
                 rank.<b>.i8         the position of every input point of read block b (see ranks.py)
-    cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass
+    cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass (banded: zipped in
+                                    frames of the radii's bands of ranks, see workdir.put_banded)
     radii       radloc.<b>.f8       band b's radii, non-increasing within the band (round 1; zipped)
                 space.<b>.f8        band b's running minimum of the spacing (round 1; zipped)
                 parent.<b>.i8       the stored parent of each position of band b

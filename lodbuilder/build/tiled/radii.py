@@ -31,7 +31,7 @@ from .pool import collect, submit
 from .store import Store, as_store
 from .sums import done, get_json, mark
 from .timing import timed_task
-from .workdir import get_zipped, put_zipped, sorted_slice
+from .workdir import banded_slice, get_zipped, put_zipped
 
 EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
 
@@ -40,7 +40,7 @@ def _events(work: Store, n_tiles: int, k0: int, k1: int) -> tuple[np.ndarray, ..
     """Every tile's events in the band as merge_events wants them, and each tile's value at k0."""
     evs, cur = [], np.full(n_tiles, np.inf)
     for t in range(n_tiles):
-        recs, before = sorted_slice(work, WL.cover_events(t), EVENT, k0, k1)
+        recs, before = banded_slice(work, WL.cover_events(t), EVENT, k0, k1)
         evs.append(recs)
         if before is not None:
             cur[t] = float(before["value"])
@@ -74,7 +74,7 @@ def radii_band(work: Store | str, band: int, k0: int, k1: int, n_tiles: int, del
     par = np.full(k1 - k0, -1, np.int64)
     space = np.full(k1 - k0, np.inf)
     for t in range(n_tiles):
-        recs, _ = sorted_slice(w, WL.cover_points(t), POINT, k0, k1)
+        recs, _ = banded_slice(w, WL.cover_points(t), POINT, k0, k1)
         par[recs["rank"] - k0] = recs["parent"]
         space[recs["rank"] - k0] = recs["space"]
     # a head point with no earlier point in its tile's halo: its parent on the coarse copy

@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import REC, put_zipped
+from .workdir import BLOCK, REC, put_banded, put_zipped
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -221,4 +221,6 @@ def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray,
     ev["rank"], ev["value"] = ev_rank[:ne], ev_val[:ne]
     pt = np.empty(npt, POINT)
     pt["rank"], pt["parent"], pt["space"] = pt_rank[:npt], pt_parent[:npt], pt_space[:npt]
-    return {WL.cover_events(t): w.put(WL.cover_events(t), ev), WL.cover_points(t): w.put(WL.cover_points(t), pt)}, int(ne)
+    # (compressed in frames of the radii's bands of positions: see .radii)
+    return {WL.cover_events(t): put_banded(w, WL.cover_events(t), ev, BLOCK),
+            WL.cover_points(t): put_banded(w, WL.cover_points(t), pt, BLOCK)}, int(ne)

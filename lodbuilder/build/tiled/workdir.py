@@ -291,6 +291,76 @@ def sorted_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key
     return (recs[1:], recs[0]) if a > 0 else (recs, None)
 
 
+#: a frame of a banded file: first and last key, byte offset and length, records
+FRAME = np.dtype([("first", "<i8"), ("last", "<i8"), ("offset", "<i8"), ("nbytes", "<i8"), ("count", "<i8")])
+
+
+def put_banded(store: Store, name: str, recs: np.ndarray, band: int, key: str = "rank") -> list[int]:
+    """Write records sorted by the integer field ``key`` as a *banded* file: one zstandard frame
+    (:data:`ZIP_LEVEL`) per band of ``band`` key values that holds records, then the frames'
+    index (FRAME records) and its length (one int64), so that :func:`banded_slice` reads a band of
+    keys with two small reads and one read of its frames. Returns the file's size and CRC-32."""
+    import zstandard
+
+    z = zstandard.ZstdCompressor(level=ZIP_LEVEL, write_checksum=True)  # (a damaged frame is found)
+    keys = recs[key]
+    cuts = np.flatnonzero(np.diff(keys // band)) + 1 if keys.shape[0] else np.zeros(0, np.int64)
+    bounds = [0, *cuts.tolist(), keys.shape[0]] if keys.shape[0] else [0]
+    index = np.zeros(len(bounds) - 1, FRAME)
+    out = store.writer(name)
+    try:
+        offset = 0
+        for i, (a, e) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+            data = z.compress(cast(Any, np.ascontiguousarray(recs[a:e])))
+            index[i] = (keys[a], keys[e - 1], offset, len(data), e - a)
+            out.write(data)
+            offset += len(data)
+        out.write(index)
+        out.write(np.array([index.shape[0]], "<i8"))
+        return cast(list[int], out.commit())
+    finally:
+        out.close()
+
+
+def banded_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The records of a banded file (:func:`put_banded`) with key in ``[k0, k1)``, and the last
+    record before them (None when there is none): the index read, then the frames that hold them
+    (and the one before, for the record before) in one ranged read."""
+    import zstandard
+
+    size = store.size(name)
+    if size is None:
+        raise FileNotFoundError(f"{store.url}: {name} is missing")
+    (tail,) = store.read_ranges(name, [size - 8], [size])
+    count = int(np.frombuffer(tail, "<i8")[0]) if len(tail) == 8 else -1
+    start = size - 8 - count * FRAME.itemsize
+    if count < 0 or start < 0:
+        raise OSError(f"{store.url}/{name}: not a banded work file")
+    (raw,) = store.read_ranges(name, [start], [size - 8])
+    index = np.frombuffer(raw, FRAME)
+    i0 = max(0, int(np.searchsorted(index["first"], k0, "left")) - 1)
+    i1 = int(np.searchsorted(index["first"], k1, "left"))
+    if i1 <= i0:
+        return np.zeros(0, dtype), None
+    lo, hi = int(index["offset"][i0]), int(index["offset"][i1 - 1] + index["nbytes"][i1 - 1])
+    (data,) = store.read_ranges(name, [lo], [hi])
+    d = zstandard.ZstdDecompressor()
+    parts = []
+    for f in index[i0:i1]:
+        a = int(f["offset"]) - lo
+        try:
+            part = np.frombuffer(d.decompress(data[a:a + int(f["nbytes"])]), dtype)
+        except zstandard.ZstdError as exc:
+            raise OSError(f"{store.url}/{name}: a damaged frame ({exc})") from None
+        if part.shape[0] != int(f["count"]):
+            raise OSError(f"{store.url}/{name}: a frame holds {part.shape[0]} records, its index {int(f['count'])}")
+        parts.append(part)
+    recs = np.concatenate(parts)
+    a, z = int(np.searchsorted(recs[key], k0, "left")), int(np.searchsorted(recs[key], k1, "left"))
+    return recs[a:z].copy(), (recs[a - 1].copy() if a > 0 else None)
+
+
 def opaque_rows(a: np.ndarray) -> np.ndarray:
     """A structured array seen as opaque fixed-size rows: NumPy gathers and scatters those about
     ten times faster than structured records (field by field)."""

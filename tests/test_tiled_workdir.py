@@ -1,0 +1,112 @@
+"""The tiled build's work files on disk (issue 19: work files <= 2 x the archive): the compressed
+files read back exactly, and the phases never keep the largest files beside each other."""
+
+from __future__ import annotations
+
+import uuid
+
+import numpy as np
+import pytest
+
+from lodbuilder.build.tiled import layout as WL
+from lodbuilder.build.tiled import workdir as W
+from lodbuilder.build.tiled.store import FsspecStore, LocalStore
+
+
+@pytest.fixture(params=["local", "memory"])
+def store(request, tmp_path):
+    if request.param == "local":
+        return LocalStore(tmp_path)
+    return FsspecStore(f"memory://lodbuilder-test-{uuid.uuid4().hex}/work")
+
+
+@pytest.mark.parametrize("band", [1, 7, 64, 10_000])
+def test_a_banded_file_gives_every_band_of_ranks(store, band):
+    """The records of a rank-sorted banded file (workdir.put_banded) in [k0, k1) and the one
+    before, as a search of the whole array finds them, whatever the frames' band."""
+    rng = np.random.default_rng(band)
+    pt = np.zeros(900, WL.POINT)
+    pt["rank"] = np.sort(rng.choice(5000, 900, replace=False))
+    pt["parent"] = rng.integers(-1, 5000, 900)
+    pt["space"] = rng.random(900)
+    sums = W.put_banded(store, "cover.0.pt", pt, band)
+    assert sums[0] == store.size("cover.0.pt")
+    assert band < 64 or sums[0] < pt.nbytes  # (compressed: random records, large frames)
+    cuts = [0, 1, 63, 64, 65, int(pt["rank"][7]), int(pt["rank"][9]), 2500, 4999, 5000, 6000, 7000]
+    for k0 in cuts:
+        for k1 in cuts:
+            if k1 < k0:
+                continue
+            recs, before = W.banded_slice(store, "cover.0.pt", WL.POINT, k0, k1)
+            a, z = np.searchsorted(pt["rank"], k0), np.searchsorted(pt["rank"], k1)
+            np.testing.assert_array_equal(recs, pt[a:z])
+            assert (before is None) if a == 0 else (before == pt[a - 1])
+
+
+def test_an_empty_banded_file(store):
+    W.put_banded(store, "cover.0.ev", np.zeros(0, WL.EVENT), 64)
+    recs, before = W.banded_slice(store, "cover.0.ev", WL.EVENT, 0, 10)
+    assert recs.shape == (0,) and recs.dtype == WL.EVENT and before is None
+
+
+def test_a_damaged_banded_file_is_an_os_error(tmp_path):
+    store = LocalStore(tmp_path)
+    ev = np.zeros(100, WL.EVENT)
+    ev["rank"] = np.arange(0, 1000, 10)
+    W.put_banded(store, "cover.0.ev", ev, 64)
+    raw = bytearray(store.get("cover.0.ev"))
+    store.put("cover.0.ev", bytes(raw[:-3]))
+    with pytest.raises(OSError, match="cover.0.ev: not a banded work file"):
+        W.banded_slice(store, "cover.0.ev", WL.EVENT, 0, 100)
+    raw[10] ^= 0xFF
+    store.put("cover.0.ev", bytes(raw))
+    with pytest.raises(OSError, match="cover.0.ev: a damaged frame"):
+        W.banded_slice(store, "cover.0.ev", WL.EVENT, 0, 100)
+
+
+def test_a_zipped_stream_reads_back_in_any_rows(store):
+    """A tile's stream (workdir.put_zipped) read by the merge's reader a few rows at a time."""
+    from lodbuilder.build.tiled.merge import _StreamReader
+
+    rng = np.random.default_rng(3)
+    s = np.zeros(5000, WL.STREAM)
+    for name in WL.STREAM.names:
+        s[name] = rng.random(5000)
+    W.put_zipped(store, "stream.0.bin", s)
+    r = _StreamReader(store, "stream.0.bin")
+    got = [r.read(k) for k in (1, 999, 3000, 2000, 10)]
+    r.close()
+    assert [g.shape[0] for g in got] == [1, 999, 3000, 1000, 0]
+    flat = s.view("<f8").reshape(-1, 6)
+    np.testing.assert_array_equal(np.concatenate(got), flat)
+
+
+def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch):
+    """Whenever a piece's marker is written, the work directory holds no write bucket beside a
+    covering file or a tile's points (the buckets come after the radii and the join), no tile
+    stream beside a rank file, no block sample after the spill and no raw block whose bucket
+    pieces are written (the marker being written aside: its own files are pruned after it)."""
+    from test_tiled import _build, wavy
+
+    from lodbuilder.build.tiled import sums
+
+    seen: list[tuple[str, set[str]]] = []
+    put_json = sums.put_json
+
+    def snapshot(work, name, doc):
+        put_json(work, name, doc)
+        (w,) = [p for p in (tmp_path / ".t.h5.parts").glob("*.work")]
+        seen.append((name, {p.name for p in w.iterdir()}))
+
+    monkeypatch.setattr(sums, "put_json", snapshot)
+    _build(tmp_path, wavy(20_000, np.random.default_rng(1)), 6_000)
+    assert any(n.startswith("permute.") for n, _ in seen) and any(n.startswith("band.") for n, _ in seen)
+    for name, files in seen:
+        files = files - {name}  # (what its own marker prunes goes once the marker is written)
+        kinds = {f.split(".")[0] for f in files if not f.endswith((".json", ".jsonl"))}
+        assert not ("bucket" in kinds and kinds & {"cover", "core", "halo", "radloc", "space"}), (name, kinds)
+        assert not ("stream" in kinds and "rank" in kinds), (name, kinds)
+        if "spill.json" in files:
+            assert not [f for f in files if f.startswith("sample.") and f.endswith(".f64")], name
+        done = {f.split(".")[1] for f in files if f.startswith("permute.") and f.endswith(".json")}
+        assert not [f for f in files if f.startswith("raw.") and f.split(".")[1] in done], name
