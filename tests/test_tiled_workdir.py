@@ -64,23 +64,6 @@ def test_a_damaged_banded_file_is_an_os_error(tmp_path):
         W.banded_slice(store, "cover.0.ev", WL.EVENT, 0, 100)
 
 
-def test_a_zipped_stream_reads_back_in_any_rows(store):
-    """A tile's stream (workdir.put_zipped) read by the merge's reader a few rows at a time."""
-    from lodbuilder.build.tiled.merge import _StreamReader
-
-    rng = np.random.default_rng(3)
-    s = np.zeros(5000, WL.STREAM)
-    for name in WL.STREAM.names:
-        s[name] = rng.random(5000)
-    W.put_zipped(store, "stream.0.bin", s)
-    r = _StreamReader(store, "stream.0.bin")
-    got = [r.read(k) for k in (1, 999, 3000, 2000, 10)]
-    r.close()
-    assert [g.shape[0] for g in got] == [1, 999, 3000, 1000, 0]
-    flat = s.view("<f8").reshape(-1, 6)
-    np.testing.assert_array_equal(np.concatenate(got), flat)
-
-
 def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch):
     """Whenever a piece's marker is written, the work directory holds no write bucket beside a
     covering file or a tile's points (the buckets come after the radii and the join), no tile

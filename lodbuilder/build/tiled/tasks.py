@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import BLOCK, REC, put_banded, put_zipped
+from .workdir import BLOCK, REC, put_banded
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -160,10 +160,13 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
         files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
-    files[WL.stream(t)] = put_zipped(w, WL.stream(t), stream)  # (read once, from its start: by the merge)
-    n_seam = int((stream["m"] < stream["key"]).sum())
+    files[WL.stream(t)] = w.put(WL.stream(t), stream)
+    seam = stream["m"] < stream["key"]
+    files[WL.seam(t)] = w.put(WL.seam(t), stream[seam])
+    bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
-            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
+            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": int(seam.sum()),
+            "hist": [bins.tolist(), counts.tolist()],
             "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
 
 

@@ -9,7 +9,7 @@ memory of the process that runs it stays at one block.
 from __future__ import annotations
 
 import io
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -17,7 +17,7 @@ from typing import Any, cast
 import numpy as np
 
 from . import layout as WL
-from .store import LocalStore, Store
+from .store import LocalStore, Store, as_store
 from .sums import read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
 
 REC = WL.REC
@@ -147,30 +147,6 @@ def unzipped(data: bytes, dtype: Any, name: str) -> np.ndarray:
         raise InputError(f"{name} is not a file of records ({exc})") from None
 
 
-def unzip_reader(f: Any, where: str) -> Callable[[int], np.ndarray]:
-    """``read(nbytes)``: the next ``nbytes`` bytes (fewer at the end) of the file object ``f``
-    written by :class:`Zipped`, decompressed as they are asked for, as a uint8 array."""
-    import zstandard
-
-    z, pending = _unzipper(), bytearray()
-
-    def read(nbytes: int) -> np.ndarray:
-        nonlocal pending
-        while len(pending) < nbytes:
-            raw = f.read(ZIP_READ)
-            if not raw:
-                break
-            try:
-                pending += z.decompress(raw)
-            except zstandard.ZstdError as exc:
-                raise OSError(f"{where}: not a compressed work file ({exc})") from None
-        out = np.frombuffer(bytes(pending[:nbytes]), np.uint8)
-        del pending[:nbytes]
-        return out
-
-    return read
-
-
 def zipped_blocks(path: tuple[Store, str], dtype: Any, count: int, rows: int) -> Iterator[tuple[int, np.ndarray]]:
     """``(first row, rows)`` blocks of a work file written by :class:`Zipped` (``count`` records)."""
     store, name = path
@@ -252,6 +228,20 @@ def gather(path: Path | tuple[Store, str], dtype: Any, shape: tuple[int, ...], i
         run = np.frombuffer(raw, dtype=dt).reshape(last - first + 1, -1) if shape else np.frombuffer(raw, dtype=dt)
         flat[order[i:j]] = run[srt[i:j] - first]
     return out
+
+
+def segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, k1: int) -> np.ndarray:
+    """Positions ``k0 .. k1`` of the stored order from ``files`` (name, first and end position of
+    each, in order)."""
+    dt = np.dtype(dtype)
+    out = []
+    for fname, a, z in files:
+        if a < k1 and z > k0:
+            out.append(as_store(work).read_array(fname, dt, max(k0, a) - a, min(k1, z) - max(k0, a)))
+    got = np.concatenate(out) if out else np.zeros(0, dt)
+    if got.shape[0] != k1 - k0:
+        raise RuntimeError(f"{files[0][0]} and the files after it hold {got.shape[0]} of positions {k0} to {k1}")
+    return got
 
 
 def sorted_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"
