@@ -38,6 +38,7 @@ def _streams(rng, n_tiles=3, per_tile=120):
 
 def _store(tmp_path, pts, head, streams):
     from lodbuilder.build.tiled.store import as_store
+    from lodbuilder.build.tiled.workdir import put_framed
 
     w = as_store(tmp_path)
     h = np.empty(len(head), WL.HEAD)
@@ -47,7 +48,7 @@ def _store(tmp_path, pts, head, streams):
         s = np.empty(len(rows), WL.STREAM)
         for c, name in enumerate(WL.STREAM.names):
             s[name] = rows[:, c]
-        w.put(WL.stream(t), s)
+        put_framed(w, WL.stream(t), s, 7)  # (frames of 7 rows: the bands' runs cut them)
         w.put(WL.seam(t), s[s["m"] < s["key"]])
     return w
 

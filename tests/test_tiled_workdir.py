@@ -56,12 +56,27 @@ def test_a_damaged_banded_file_is_an_os_error(tmp_path):
     W.put_banded(store, "cover.0.ev", ev, 64)
     raw = bytearray(store.get("cover.0.ev"))
     store.put("cover.0.ev", bytes(raw[:-3]))
-    with pytest.raises(OSError, match="cover.0.ev: not a banded work file"):
+    with pytest.raises(OSError, match="cover.0.ev: not a framed work file"):
         W.banded_slice(store, "cover.0.ev", WL.EVENT, 0, 100)
     raw[10] ^= 0xFF
     store.put("cover.0.ev", bytes(raw))
     with pytest.raises(OSError, match="cover.0.ev: a damaged frame"):
         W.banded_slice(store, "cover.0.ev", WL.EVENT, 0, 100)
+
+
+@pytest.mark.parametrize("rows", [1, 7, 65536])
+def test_a_framed_file_gives_every_run_of_rows(store, rows):
+    """A tile's stream (workdir.put_framed: frames of ``rows`` records) read back by any run of
+    rows, as the merge's bands read it."""
+    rng = np.random.default_rng(rows)
+    s = np.zeros(300, WL.STREAM)
+    for name in WL.STREAM.names:
+        s[name] = rng.random(300)
+    W.put_framed(store, "stream.0.bin", s, rows)
+    for a, z in [(0, 0), (0, 1), (0, 300), (6, 8), (7, 14), (13, 200), (299, 300), (250, 400), (300, 300)]:
+        np.testing.assert_array_equal(W.read_framed(store, "stream.0.bin", WL.STREAM, a, z - a), s[a:z])
+    W.put_framed(store, "stream.1.bin", s[:0], rows)
+    assert W.read_framed(store, "stream.1.bin", WL.STREAM, 0, 5).shape == (0,)
 
 
 def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch):

@@ -13,7 +13,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
     distribute  core.<t>.<b>.bin    the points of tile t from block b: REC records (g, x, y, z), g the input index (zipped)
                 halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others (zipped)
     coarse      head.bin            HEAD records: the coarse global level (the head)
-    order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin)
+    order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin;
+                                    zipped in frames of rows, see workdir.put_framed)
                 seam.<t>.bin        STREAM records: the rows of stream.<t>.bin nearer a shared face than their key
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
     merge       deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)

@@ -176,7 +176,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
     w = as_store(work)
     g, key = [], []
     for t, a, z in rows:
-        s = w.read_array(WL.stream(t), STREAM, a, z - a)
+        s = W.read_framed(w, WL.stream(t), STREAM, a, z - a)
         b = WL.key_bins(s["key"])
         if s.shape[0] != z - a or (b.size and (b.min() < bins[0] or b.max() > bins[1])):
             raise RuntimeError(f"{WL.stream(t)}: rows {a}..{z} are not the rows its histogram says")

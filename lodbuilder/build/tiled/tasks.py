@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import BLOCK, REC, put_banded
+from .workdir import BLOCK, REC, put_banded, put_framed
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -160,7 +160,7 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
         files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
-    files[WL.stream(t)] = w.put(WL.stream(t), stream)
+    files[WL.stream(t)] = put_framed(w, WL.stream(t), stream)  # (compressed: read by runs of rows)
     seam = stream["m"] < stream["key"]
     files[WL.seam(t)] = w.put(WL.seam(t), stream[seam])
     bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)

@@ -281,22 +281,20 @@ def sorted_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key
     return (recs[1:], recs[0]) if a > 0 else (recs, None)
 
 
-#: a frame of a banded file: first and last key, byte offset and length, records
+#: a frame of a framed file: its first and last key (a banded file) or row (a file framed by rows),
+#: byte offset and length, records
 FRAME = np.dtype([("first", "<i8"), ("last", "<i8"), ("offset", "<i8"), ("nbytes", "<i8"), ("count", "<i8")])
+FRAME_ROWS = 1 << 16  # records per frame of put_framed()
 
 
-def put_banded(store: Store, name: str, recs: np.ndarray, band: int, key: str = "rank") -> list[int]:
-    """Write records sorted by the integer field ``key`` as a *banded* file: one zstandard frame
-    (:data:`ZIP_LEVEL`) per band of ``band`` key values that holds records, then the frames'
-    index (FRAME records) and its length (one int64), so that :func:`banded_slice` reads a band of
-    keys with two small reads and one read of its frames. Returns the file's size and CRC-32."""
+def _put_frames(store: Store, name: str, recs: np.ndarray, bounds: list[int], keys: np.ndarray) -> list[int]:
+    """Write ``recs[bounds[i]:bounds[i + 1]]`` as one zstandard frame each (:data:`ZIP_LEVEL`, with
+    a checksum), then the frames' index (FRAME records, ``keys`` giving each frame's first and
+    last) and its length (one int64). Returns the file's size and CRC-32."""
     import zstandard
 
     z = zstandard.ZstdCompressor(level=ZIP_LEVEL, write_checksum=True)  # (a damaged frame is found)
-    keys = recs[key]
-    cuts = np.flatnonzero(np.diff(keys // band)) + 1 if keys.shape[0] else np.zeros(0, np.int64)
-    bounds = [0, *cuts.tolist(), keys.shape[0]] if keys.shape[0] else [0]
-    index = np.zeros(len(bounds) - 1, FRAME)
+    index = np.zeros(max(len(bounds) - 1, 0), FRAME)
     out = store.writer(name)
     try:
         offset = 0
@@ -312,32 +310,30 @@ def put_banded(store: Store, name: str, recs: np.ndarray, band: int, key: str = 
         out.close()
 
 
-def banded_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The records of a banded file (:func:`put_banded`) with key in ``[k0, k1)``, and the last
-    record before them (None when there is none): the index read, then the frames that hold them
-    (and the one before, for the record before) in one ranged read."""
-    import zstandard
-
+def _frames_index(store: Store, name: str) -> np.ndarray:
     size = store.size(name)
     if size is None:
         raise FileNotFoundError(f"{store.url}: {name} is missing")
-    (tail,) = store.read_ranges(name, [size - 8], [size])
+    (tail,) = store.read_ranges(name, [max(size - 8, 0)], [size])
     count = int(np.frombuffer(tail, "<i8")[0]) if len(tail) == 8 else -1
     start = size - 8 - count * FRAME.itemsize
     if count < 0 or start < 0:
-        raise OSError(f"{store.url}/{name}: not a banded work file")
+        raise OSError(f"{store.url}/{name}: not a framed work file")
     (raw,) = store.read_ranges(name, [start], [size - 8])
-    index = np.frombuffer(raw, FRAME)
-    i0 = max(0, int(np.searchsorted(index["first"], k0, "left")) - 1)
-    i1 = int(np.searchsorted(index["first"], k1, "left"))
-    if i1 <= i0:
-        return np.zeros(0, dtype), None
-    lo, hi = int(index["offset"][i0]), int(index["offset"][i1 - 1] + index["nbytes"][i1 - 1])
+    return np.frombuffer(raw, FRAME)
+
+
+def _read_frames(store: Store, name: str, index: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """The records of the consecutive frames ``index`` (rows of the file's index), in one read."""
+    import zstandard
+
+    if index.shape[0] == 0:
+        return np.zeros(0, dtype)
+    lo, hi = int(index["offset"][0]), int(index["offset"][-1] + index["nbytes"][-1])
     (data,) = store.read_ranges(name, [lo], [hi])
     d = zstandard.ZstdDecompressor()
     parts = []
-    for f in index[i0:i1]:
+    for f in index:
         a = int(f["offset"]) - lo
         try:
             part = np.frombuffer(d.decompress(data[a:a + int(f["nbytes"])]), dtype)
@@ -346,9 +342,51 @@ def banded_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key
         if part.shape[0] != int(f["count"]):
             raise OSError(f"{store.url}/{name}: a frame holds {part.shape[0]} records, its index {int(f['count'])}")
         parts.append(part)
-    recs = np.concatenate(parts)
+    return np.concatenate(parts)
+
+
+def put_banded(store: Store, name: str, recs: np.ndarray, band: int, key: str = "rank") -> list[int]:
+    """Write records sorted by the integer field ``key`` as a *banded* file: one compressed frame
+    per band of ``band`` key values that holds records, and the frames' index, so that
+    :func:`banded_slice` reads a band of keys with two small reads and one read of its frames.
+    Returns the file's size and CRC-32."""
+    keys = recs[key]
+    cuts = np.flatnonzero(np.diff(keys // band)) + 1 if keys.shape[0] else np.zeros(0, np.int64)
+    bounds = [0, *cuts.tolist(), keys.shape[0]] if keys.shape[0] else [0]
+    return _put_frames(store, name, recs, bounds, keys)
+
+
+def banded_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The records of a banded file (:func:`put_banded`) with key in ``[k0, k1)``, and the last
+    record before them (None when there is none): the index read, then the frames that hold them
+    (and the one before, for the record before) in one ranged read."""
+    index = _frames_index(store, name)
+    i0 = max(0, int(np.searchsorted(index["first"], k0, "left")) - 1)
+    i1 = int(np.searchsorted(index["first"], k1, "left"))
+    if i1 <= i0:
+        return np.zeros(0, dtype), None
+    recs = _read_frames(store, name, index[i0:i1], dtype)
     a, z = int(np.searchsorted(recs[key], k0, "left")), int(np.searchsorted(recs[key], k1, "left"))
     return recs[a:z].copy(), (recs[a - 1].copy() if a > 0 else None)
+
+
+def put_framed(store: Store, name: str, recs: np.ndarray, rows: int = FRAME_ROWS) -> list[int]:
+    """Write records as a file compressed in frames of ``rows`` records (see :func:`_put_frames`),
+    so that :func:`read_framed` reads any run of rows with two small reads and one read of the
+    frames that hold it. Returns the file's size and CRC-32."""
+    m = recs.shape[0]
+    return _put_frames(store, name, recs, list(range(0, m, rows)) + [m] if m else [0], np.arange(m))
+
+
+def read_framed(store: Store, name: str, dtype: np.dtype, start: int, count: int) -> np.ndarray:
+    """Rows ``start .. start + count`` of a file written by :func:`put_framed` (fewer where it ends)."""
+    index = _frames_index(store, name)
+    i0 = int(np.searchsorted(index["last"], start, "left"))
+    i1 = int(np.searchsorted(index["first"], start + count, "left"))
+    recs = _read_frames(store, name, index[i0:i1], dtype)
+    first = int(index["first"][i0]) if i1 > i0 else start
+    return recs[start - first:start - first + count].copy()
 
 
 def opaque_rows(a: np.ndarray) -> np.ndarray:
