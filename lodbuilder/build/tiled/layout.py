@@ -18,7 +18,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                 seam.<t>.bin        STREAM records: the rows of stream.<t>.bin nearer a shared face than their key
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
     merge       deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
-                merged.<j>.i8       piece j of the merged order (input indices): the head, then band j's
+                merged.<j>.i8       piece j of the merged order (input indices; zipped in frames of rows,
+                                    see workdir.put_framed): the head, then band j's
     ranks       rankp.<k>.bin       band k of the merged order as (input index, position) pairs by read block
                                     (PAIR records; removed when the phase is complete)
                 rank.<b>.i8         the position of every input point of read block b (see ranks.py)
@@ -26,8 +27,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                                     frames of the radii's bands of ranks, see workdir.put_banded)
     radii       radloc.<b>.f8       band b's radii, non-increasing within the band (round 1; zipped)
                 space.<b>.f8        band b's running minimum of the spacing (round 1; zipped)
-                parent.<b>.i8       the stored parent of each position of band b
-                radius.<b>.f8       the stored radius of each position of band b (round 2)
+                parent.<b>.i8       the stored parent of each position of band b (framed, as merged.<j>)
+                radius.<b>.f8       the stored radius of each position of band b (round 2; framed)
     buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py;
                                     after the radii and the pieces, once the covering files and the
                                     tiles' points are deleted)

@@ -163,7 +163,7 @@ def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell:
     d = np.empty(int(late.sum()), WL.DEFER)
     d["g"], d["key"] = g[late], key[late]
     bins, counts = np.unique(WL.key_bins(d["key"]), return_counts=True)
-    files = {WL.merged(0): w.put(WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d)}
+    files = {WL.merged(0): W.put_framed(w, WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d)}
     return {"head": int(head.shape[0]), "seam_points": int(g.shape[0]), "deferred": int(d.shape[0]),
             "hist": [bins.tolist(), counts.tolist()], "files": files}
 
@@ -192,7 +192,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
             mine = d[(b >= bins[0]) & (b <= bins[1])]
             gg, kk = np.concatenate([gg, mine["g"]]), np.concatenate([kk, mine["key"]])
     out = gg[np.argsort(-kk, kind="stable")]
-    return {"band": j, "count": int(out.shape[0]), "files": {WL.merged(j): w.put(WL.merged(j), out)}}
+    return {"band": j, "count": int(out.shape[0]), "files": {WL.merged(j): W.put_framed(w, WL.merged(j), out)}}
 
 
 def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_rows: int

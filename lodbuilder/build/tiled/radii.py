@@ -31,7 +31,7 @@ from .pool import collect, submit
 from .store import Store, as_store
 from .sums import done, get_json, mark
 from .timing import timed_task
-from .workdir import banded_slice, get_zipped, put_zipped
+from .workdir import banded_slice, get_zipped, put_framed, put_zipped
 
 EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
 
@@ -83,7 +83,7 @@ def radii_band(work: Store | str, band: int, k0: int, k1: int, n_tiles: int, del
     space = np.minimum.accumulate(space)
     b = band
     files = {WL.radius_local(b): put_zipped(w, WL.radius_local(b), rad), WL.space(b): put_zipped(w, WL.space(b), space),
-             WL.parent(b): w.put(WL.parent(b), par)}
+             WL.parent(b): put_framed(w, WL.parent(b), par)}
     return {"band": b, "last_radius": float(rad[-1]), "last_space": float(space[-1]), "files": files}
 
 
@@ -102,7 +102,7 @@ def finish_band(work: Store | str, band: int, k0: int, k1: int, run_min: float, 
         ratio = lvl_space[ok] / rad[ok]
         i = int(np.argmin(ratio))
         worst, at = float(ratio[i]), int(np.arange(k0, k1)[ok][i])
-    return {"band": b, "worst": worst, "at": at, "files": {WL.radius(b): w.put(WL.radius(b), rad)}}
+    return {"band": b, "worst": worst, "at": at, "files": {WL.radius(b): put_framed(w, WL.radius(b), rad)}}
 
 
 def radii_phase(ex: Any, work: Any, name: str, n: int, n_tiles: int, delta: float, band: int,

@@ -232,12 +232,12 @@ def gather(path: Path | tuple[Store, str], dtype: Any, shape: tuple[int, ...], i
 
 def segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, k1: int) -> np.ndarray:
     """Positions ``k0 .. k1`` of the stored order from ``files`` (name, first and end position of
-    each, in order)."""
+    each, in order; each written by :func:`put_framed`)."""
     dt = np.dtype(dtype)
     out = []
     for fname, a, z in files:
         if a < k1 and z > k0:
-            out.append(as_store(work).read_array(fname, dt, max(k0, a) - a, min(k1, z) - max(k0, a)))
+            out.append(read_framed(as_store(work), fname, dt, max(k0, a) - a, min(k1, z) - max(k0, a)))
     got = np.concatenate(out) if out else np.zeros(0, dt)
     if got.shape[0] != k1 - k0:
         raise RuntimeError(f"{files[0][0]} and the files after it hold {got.shape[0]} of positions {k0} to {k1}")

@@ -26,7 +26,7 @@ from ...progress import ProgressCallback, report
 from . import layout as WL
 from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import Zipped, opaque_rows, read_rows, unzipped, zipped_blocks
+from .workdir import Zipped, opaque_rows, read_rows, segment, unzipped, zipped_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -176,8 +176,9 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
     rec = record_dtype(fields)
     names = list(fields)
     bands = range(len(radii["bands"]))
-    frad, fpar = _Joined([work / WL.radius(b) for b in bands], "<f8"), _Joined([work / WL.parent(b) for b in bands], "<i8")
-    with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w, frad, fpar:
+    frad = [(WL.radius(b), a, z) for b, (a, z) in zip(bands, radii["bands"], strict=True)]
+    fpar = [(WL.parent(b), a, z) for b, (a, z) in zip(bands, radii["bands"], strict=True)]
+    with ScanWriter(part, name, n, metadata=metadata, encoding=encoding) as w:
         for b in range(int(buckets["buckets"])):
             k0 = b * block
             k1 = min(n, k0 + block)
@@ -189,42 +190,13 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
             opaque_rows(srt)[r["pos"] - k0] = opaque_rows(r)
             del r
             g = _order_block(work, k0, k1)
-            rad, par = frad.read(k1 - k0), fpar.read(k1 - k0)
+            rad, par = segment(local, frad, "<f8", k0, k1), segment(local, fpar, "<i8", k0, k1)
             w.write(srt["xyz"], g, rad, par, attributes={k: srt[f"a{i}"] for i, k in enumerate(names)})
             report(progress, "write", k1, n)
         return w.finish(n_ordered=n, seeds=seeds, build=build, provenance=provenance)
 
 
-class _Joined:
-    """Sequential reads of records from files one after another (the radii's bands)."""
-
-    def __init__(self, paths: list[Path], dtype: str) -> None:
-        self.paths, self.dtype = list(paths), np.dtype(dtype)
-        self.f: Any = None
-
-    def read(self, m: int) -> np.ndarray:
-        parts = []
-        while m > 0 and (self.f is not None or self.paths):
-            if self.f is None:
-                self.f = open(self.paths.pop(0), "rb")  # noqa: SIM115 - closed at its end or by __exit__
-            a = np.fromfile(self.f, dtype=self.dtype, count=m)
-            parts.append(a)
-            m -= a.shape[0]
-            if m > 0:
-                self.f.close()
-                self.f = None
-        return np.concatenate(parts) if parts else np.zeros(0, self.dtype)
-
-    def __enter__(self) -> _Joined:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.f is not None:
-            self.f.close()
-
-
 def _order_block(work: Path, k0: int, k1: int) -> np.ndarray:
     from .merge import order_files
-    from .workdir import segment
 
     return segment(LocalStore(work), order_files(LocalStore(work)), "<i8", k0, k1)
