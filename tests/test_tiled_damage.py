@@ -124,14 +124,15 @@ def _cases():
         "split": ["raw.0.xyz", "raw.0.attr", "sample.npy", "decimated.bin", "spill.json", "plan.json"],
         # {t}: a tile whose ordering was done when the build stopped
         "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
-        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
+        # (the faces are deleted once every tile is ordered: the order marker damaged, every ordering again)
+        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "order.json", "order.1.1.json",
                   "distribute.json", "raw.0.xyz"],
         "radii": ["merged.1.i8", "rank.0.i8", "raw.0.xyz", "cover.0.ev", "cover.1.pt", "cover.2.json",
                   "pieces.1.links.bin"],
         # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
         "write": ["ranks.json", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "head.bin",
-                  "rank.0.i8", "pieces.json"],
+                  "rank.0.i8", "pieces.json", "order.1.1.json"],
         # (each band's bucket is deleted once the band is written: its chunks.json damaged, the buckets again)
         "bands": ["chunks.0.bin", "chunks.0.json", "merged.0.i8", "buckets.json"],
     }

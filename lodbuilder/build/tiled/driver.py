@@ -220,6 +220,12 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     colour = P.colour_tiles(nbrs)
     ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress)
     stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
+    if _done(work, "order") is None:
+        # every ordering's marker and last files, checked as one: the tiles' face files (read by the
+        # orderings alone) are deleted now, and stay consumed only while every ordering checks out
+        pieces = [WL.marker(WL.order_piece(t.index, p)) for t in tiles for p in range(1, passes + 1)]
+        files = {k: v for st in stats for k, v in (st.get("files") or {}).items() if not k.startswith("face.")}
+        mark(work, "order", {"files": {**{m: work.sum(m) for m in pieces}, **files}})
     return by_size, colour, ordered, stats
 
 

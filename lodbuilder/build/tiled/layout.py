@@ -99,7 +99,7 @@ DEFERRED = "deferred.bin"
 DEFER = np.dtype([("g", "<i8"), ("key", "<f8")])
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
-PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "ranks", "radii", "buckets")
+PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "order", "merge", "ranks", "radii", "buckets")
 
 
 def attr_record(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
@@ -258,12 +258,13 @@ def writing(name: str) -> str:
 # ------------------------------------------------------------------------------------ pruning
 
 #: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
-#: after the spill, the read blocks' samples (summed into sample.npy, which is kept); after the
-#: merge, the tiles' streams, seam points and face files and the deferred points; after the
+#: after the spill, the read blocks' samples (summed into sample.npy, which is kept); after every
+#: tile's ordering (the ``order`` marker: every ordering's marker, stream and seam points), the
+#: face files; after the merge, the tiles' streams and seam points and the deferred points; after the
 #: write's permutation, the raw
 #: blocks; after the pieces (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"spill": ("sample.",), "merge": ("stream.", "seam.", "deferred.", "face."), "buckets": ("raw.",),
+PRUNE_AFTER = {"spill": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "deferred."), "buckets": ("raw.",),
                "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
@@ -277,8 +278,10 @@ def consumers(name: str) -> list[str] | None:
         return ["merge"]
     if kind == "raw" and ext in ("xyz", "attr"):
         return ["plan", "distribute", bucket_piece(int(parts[1]))]
-    if (kind == "stream" and ext == "bin") or (kind == "face" and ext == "bin"):
+    if kind == "stream" and ext == "bin":
         return ["merge"]
+    if kind == "face" and ext == "bin":
+        return ["order"]
     if kind == "sample" and ext == "f64":  # (the spill's marker does not list them)
         return ["spill"]
     if kind in ("core", "halo") and ext == "bin":
