@@ -297,10 +297,10 @@ def consumers(name: str) -> list[str] | None:
 
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
-#: the named moments: after each phase's marker, after the first tile ordering's marker, and after
-#: the first read, split, rank (a read block's ranks), permute, band (of the radii) and chunks (band
-#: of the write) task's markers
-MOMENTS = (*PHASES, "tile", "read", "split", "rank", "permute", "band", "chunks")
+#: the named moments: after each phase's marker, after the first tile ordering's marker, after the
+#: seam repair's, and after the first read, split, merged (band of the merge), rank (a read block's
+#: ranks), permute, band (of the radii) and chunks (band of the write) task's markers
+MOMENTS = (*PHASES, "tile", SEAMS_PIECE, "read", "split", "merged", "rank", "permute", "band", "chunks")
 
 
 def moment(name: str) -> None:
