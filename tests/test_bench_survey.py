@@ -86,7 +86,11 @@ def test_bench_survey_document(bench_doc, capsys):
             assert 0 < r["peak_work_dir_bytes"] <= r["peak_written_bytes"]
             assert r["work_over_archive"] == pytest.approx(r["peak_work_dir_bytes"] / r["archive_bytes"], abs=1e-3)
             # (the write is the record's last phase: its bands are tasks in the table)
-            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover", "pieces", "write"]
+            assert list(r["phase_seconds"]) == ["read", "plan", "tiles", "order", "merge", "cover", "pieces", "radii",
+                                                "permute", "write"]
+            # (the work directory's bytes per kind of file at its peak, over the archive's)
+            assert sum(r["peak_work_over_archive_by_kind"].values()) == pytest.approx(r["work_over_archive"], abs=0.05)
+            assert 0 < r["peak_work_seconds"] <= r["wall_seconds"]
             assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1
