@@ -23,11 +23,13 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    keys side by side (each band a run of every tile's stream); then tasks invert the merged order
    into every point's rank (an external transpose in two rounds: :mod:`.ranks`);
 6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
-   prefix of the merged order (from the tile and its halo); meanwhile tasks split every raw block
-   by destination into the write's buckets; the stored radius of a prefix is the largest over the
-   tiles, capped by the coarse bound, never increasing: assembled in bands of positions by tasks
-   (:mod:`.radii`; the parent carries two numbers from band to band);
-7. **write** (tasks): the stored order cut into *bands* of whole row groups of the archive (one
+   prefix of the merged order (from the tile and its halo); the stored radius of a prefix is the
+   largest over the tiles, capped by the coarse bound, never increasing: assembled in bands of
+   positions by tasks (:mod:`.radii`; the parent carries two numbers from band to band);
+7. **write** (tasks): first every raw block split by destination into the write's buckets (after
+   the radii, once the covering files and the tiles' points are deleted: the work directory never
+   holds the buckets beside them; see :mod:`.layout` for what is deleted when, and which work files
+   are compressed); then the stored order cut into *bands* of whole row groups of the archive (one
    bucket each); a band task puts its bucket in order, checks its rows as the archive's scan writer
    does, and filters its rows' datasets into finished HDF5 chunks (an in-memory file with the
    archive's dataset creation properties, read back with ``read_direct_chunk``); the parent places
