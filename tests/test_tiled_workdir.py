@@ -77,6 +77,16 @@ def test_a_framed_file_gives_every_run_of_rows(store, rows):
         np.testing.assert_array_equal(W.read_framed(store, "stream.0.bin", WL.STREAM, a, z - a), s[a:z])
     W.put_framed(store, "stream.1.bin", s[:0], rows)
     assert W.read_framed(store, "stream.1.bin", WL.STREAM, 0, 5).shape == (0,)
+    # written as it comes, in uneven pieces (a merge band's output): the same bytes
+    f = W.Framed(store.writer("stream.2.bin"), rows)
+    for a, z in [(0, 3), (3, 3), (3, 100), (100, 101), (101, 300)]:
+        f.write(s[a:z])
+    f.commit()
+    f.close()
+    assert store.get("stream.2.bin") == store.get("stream.0.bin")
+    # runs read one after another by one reader (each frame decompressed once)
+    r = W.FramedReader(store, "stream.2.bin", WL.STREAM)
+    np.testing.assert_array_equal(np.concatenate([r.read(a, 50) for a in range(0, 300, 50)]), s)
 
 
 def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch):

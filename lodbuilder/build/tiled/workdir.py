@@ -371,22 +371,83 @@ def banded_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key
     return recs[a:z].copy(), (recs[a - 1].copy() if a > 0 else None)
 
 
+class Framed:
+    """A file being written compressed in frames of ``rows`` records (see :func:`_put_frames`),
+    records as they come (``out``: a store's writer); :meth:`commit` writes the last frame and the
+    index, and returns the file's size and CRC-32."""
+
+    def __init__(self, out: Any, rows: int = FRAME_ROWS) -> None:
+        import zstandard
+
+        self.out, self.rows = out, rows
+        self.z = zstandard.ZstdCompressor(level=ZIP_LEVEL, write_checksum=True)
+        self.pending: list[np.ndarray] = []
+        self.held = self.written = self.offset = 0
+        self.index: list[tuple[int, int, int, int, int]] = []
+
+    def write(self, recs: np.ndarray) -> None:
+        self.pending.append(np.ascontiguousarray(recs))
+        self.held += recs.shape[0]
+        while self.held >= self.rows:
+            self._frame(self.rows)
+
+    def _frame(self, m: int) -> None:
+        allrec = np.concatenate(self.pending) if len(self.pending) > 1 else self.pending[0]
+        data = self.z.compress(cast(Any, np.ascontiguousarray(allrec[:m])))
+        self.index.append((self.written, self.written + m - 1, self.offset, len(data), m))
+        self.out.write(data)
+        self.offset += len(data)
+        self.written += m
+        self.pending = [allrec[m:]] if allrec.shape[0] > m else []
+        self.held -= m
+
+    def commit(self) -> list[int]:
+        if self.held:
+            self._frame(self.held)
+        self.out.write(np.array(self.index, np.int64).reshape(-1, 5).view(FRAME).reshape(-1))
+        self.out.write(np.array([len(self.index)], "<i8"))
+        return cast(list[int], self.out.commit())
+
+    def close(self) -> None:
+        self.out.close()
+
+
 def put_framed(store: Store, name: str, recs: np.ndarray, rows: int = FRAME_ROWS) -> list[int]:
-    """Write records as a file compressed in frames of ``rows`` records (see :func:`_put_frames`),
-    so that :func:`read_framed` reads any run of rows with two small reads and one read of the
-    frames that hold it. Returns the file's size and CRC-32."""
-    m = recs.shape[0]
-    return _put_frames(store, name, recs, list(range(0, m, rows)) + [m] if m else [0], np.arange(m))
+    """Write records as a file compressed in frames of ``rows`` records (:class:`Framed`), so
+    that :func:`read_framed` reads any run of rows with two small reads and one read of the frames
+    that hold it. Returns the file's size and CRC-32."""
+    f = Framed(store.writer(name), rows)
+    try:
+        f.write(recs)
+        return f.commit()
+    finally:
+        f.close()
 
 
 def read_framed(store: Store, name: str, dtype: np.dtype, start: int, count: int) -> np.ndarray:
-    """Rows ``start .. start + count`` of a file written by :func:`put_framed` (fewer where it ends)."""
-    index = _frames_index(store, name)
-    i0 = int(np.searchsorted(index["last"], start, "left"))
-    i1 = int(np.searchsorted(index["first"], start + count, "left"))
-    recs = _read_frames(store, name, index[i0:i1], dtype)
-    first = int(index["first"][i0]) if i1 > i0 else start
-    return recs[start - first:start - first + count].copy()
+    """Rows ``start .. start + count`` of a file written by :class:`Framed` (fewer where it ends)."""
+    return FramedReader(store, name, dtype).read(start, count)
+
+
+class FramedReader:
+    """Runs of rows of one file written by :class:`Framed`, its index read once and the last
+    frames read kept (runs read one after another decompress each frame once)."""
+
+    def __init__(self, store: Store, name: str, dtype: np.dtype) -> None:
+        self.store, self.name, self.dtype = store, name, np.dtype(dtype)
+        self.index: np.ndarray | None = None
+        self.first, self.recs = 0, np.zeros(0, self.dtype)  # (the rows last decompressed)
+
+    def read(self, start: int, count: int) -> np.ndarray:
+        if not (self.first <= start and start + count <= self.first + self.recs.shape[0]):
+            if self.index is None:
+                self.index = _frames_index(self.store, self.name)
+            index = self.index
+            i0 = int(np.searchsorted(index["last"], start, "left"))
+            i1 = int(np.searchsorted(index["first"], start + count, "left"))
+            self.recs = _read_frames(self.store, self.name, index[i0:i1], self.dtype)
+            self.first = int(index["first"][i0]) if i1 > i0 else start
+        return self.recs[start - self.first:start - self.first + count].copy()
 
 
 def opaque_rows(a: np.ndarray) -> np.ndarray:
