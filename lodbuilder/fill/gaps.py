@@ -352,10 +352,29 @@ def find_regions(
         grp, sp = grp[new], sp[new]
         if grp.size == 0:
             continue
-        nrm = seed_normals[grp]
-        nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
-        _search_group(out, sample, tree_s, sp, nrm.sum(axis=0), width)
+        _search_group(out, sample, tree_s, sp, _group_normal(sp, seed_normals[grp], rho), width)
     return out
+
+
+#: seeds spread over a plane (its smallest spread at most this share of the next) fix the
+#: hole's plane themselves
+FLAT_SEEDS = 0.25
+
+
+def _group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float) -> np.ndarray:
+    """The normal of a group's first plane: the plane of the ``seeds`` themselves where they
+    spread over one that most of their level ``normals`` face (within 60 degrees: round a hole
+    on a curved place, the level normals at its rim turn by as much as the surface does, and
+    their sum, oriented like any one of them, can be far off; the seeds along a border lie in
+    a plane across the surface), else the sum of the normals, oriented like the first."""
+    if seeds.shape[0] >= MIN_SEEDS_WIDE:
+        c = seeds - seeds.mean(axis=0)
+        w, vec = np.linalg.eigh(c.T @ c)
+        flat = w[1] >= (rho / 2) ** 2 * seeds.shape[0] and w[0] <= FLAT_SEEDS * w[1]
+        if flat and np.median(np.abs(normals @ vec[:, 0])) >= math.cos(MAX_TILT):
+            return vec[:, 0]
+    nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
+    return nrm.sum(axis=0)
 
 
 def _search_group(out: Search, sample, tree_s, sp, normal, width) -> None:

@@ -16,6 +16,10 @@ K_SAMPLE = 8
 LINK = 1.5
 #: grid nodes within NEAR_FRACTION * rho of a measured point are not in a region
 NEAR_FRACTION = 0.5
+#: a region that reaches the grid's edge only through a neck of far surface (farther than rho
+#: from every point) narrower than 2 NECK rho is cut there (a crack between scans, a strip of
+#: sparse rim between a hole and the scan's border): what stays off the edge is enclosed
+NECK = 0.75
 
 
 def on_sheet(local: np.ndarray, seeds: np.ndarray, rho: float, limit: float) -> np.ndarray:
@@ -233,7 +237,10 @@ def flood(grid: Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
     for lab in hit[hit > 0]:
         mask = labels == lab
         if lab in edge:
-            out += _opened(grid, mask, ~(d <= rho), nodes, rho)
+            parts = _opened(grid, mask, ~(d <= rho), nodes, rho, 0.0)
+            if len(parts) == 1:  # nothing enclosed: cut the necks of far surface too
+                parts = _opened(grid, mask, ~(d <= rho), nodes, rho, NECK)
+            out += parts
         else:
             out.append((np.flatnonzero(mask), False, False))
     return out
@@ -243,17 +250,26 @@ def _edge_labels(labels: np.ndarray) -> np.ndarray:
     return np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
 
 
-def _opened(grid: Grid, mask: np.ndarray, far: np.ndarray, seed_nodes: np.ndarray, rho: float):
+def _disk(k: int) -> np.ndarray:
+    ij = np.indices((2 * k + 1, 2 * k + 1)) - k
+    return (ij[0] ** 2 + ij[1] ** 2) <= k * k
+
+
+def _opened(grid: Grid, mask, far, seed_nodes, rho: float, neck: float):
     """The enclosed parts of the region ``mask`` that touches the grid's edge: its core (``far``:
-    nodes farther than rho from every point) widened by rho/2 within it, the parts with a seed
+    nodes farther than rho from every point; with ``neck`` > 0, less its parts narrower than
+    2 ``neck`` rho: a morphological opening) widened by rho/2 within it, the parts with a seed
     within rho/2 that stay off the edge (opened); the rest of the region as leaking."""
     from scipy import ndimage
 
     k = max(1, int(round(NEAR_FRACTION * rho / grid.g)))
-    ij = np.indices((2 * k + 1, 2 * k + 1)) - k
-    disk = (ij[0] ** 2 + ij[1] ** 2) <= k * k
+    kn = int(round(neck * rho / grid.g))
+    disk = _disk(k)
     box = mask.reshape(grid.shape)
-    opened = ndimage.binary_dilation(box & far.reshape(grid.shape), structure=disk) & box
+    core = box & far.reshape(grid.shape)
+    if kn:
+        core = ndimage.binary_erosion(core, structure=_disk(kn))
+    opened = ndimage.binary_dilation(core, structure=_disk(k + kn)) & box
     labels, _ = ndimage.label(opened)
     seeds = np.zeros(mask.size, dtype=bool)
     seeds[seed_nodes] = True
