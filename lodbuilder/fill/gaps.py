@@ -20,7 +20,9 @@ whole scan for exact distances.
    to the tangent-plane approximation).
 2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``2 * max_hole * rho`` (a
    long border) is open and left alone.
-3. **Regions** (per group, in the plane of the seeds' level normals). The sample points around the
+3. **Regions** (per group, in the seeds' own plane where they spread over one that most of
+   their level normals face within 60 degrees, else in the plane of their summed level
+   normals: the rim's normals turn with a curved surface). The sample points around the
    group, near that plane (``|height| <= rho + |distance in the plane| / 2``, which drops other
    sheets across the plane) are projected on it; a square grid of candidate nodes at spacing
    rho/4 is laid over them, first a little wider than the seeds' spread, then (for groups of
@@ -28,7 +30,8 @@ whole scan for exact distances.
    rho/2 (in the plane) from every projected sample point form regions (4-connected). A region
    that contains a seed and stays inside the grid is **enclosed**: input points bound it all
    round (a region that reaches the edge only through a channel in which no node is farther
-   than rho from the input, a seam of sparser points, is cut there; enclosed only so, it is
+   than rho from the input, a seam of sparser points, or, failing that, through a neck of such
+   nodes narrower than 1.5 rho, a crack, is cut there; enclosed only so, it is
    kept when it is a fillable gap; and where some of the points face away from the seeds'
    side, normals oriented along the surface: the other face of a thin part, reached round its
    edge, the group is searched first with those set aside, keeping only fillable gaps, then
