@@ -35,10 +35,9 @@ whole scan for exact distances.
    kept when it is a fillable gap; and where some of the points face away from the seeds'
    side, normals oriented along the surface: the other face of a thin part, reached round its
    edge, the group is searched first with those set aside, keeping only fillable gaps, then
-   as it is). A region that reaches the grid's edge leaks into empty
-   space (the scan's border, or a hole wider than ``max_hole * rho``), or through a part of its
-   rim that the cone dropped (the
-   rim of a hole on a strongly curved place is steep over any one plane). Such a group is
+   as it is). A region that reaches the grid's edge leaks into empty space (the scan's border,
+   or a hole wider than ``max_hole * rho``), or through a part of its rim that the cone dropped
+   (the rim of a hole on a strongly curved place is steep over any one plane). Such a group is
    searched again **along the surface**: only the sample points on the seeds' own sheet
    (reached from the points next to the seeds within the grid's reach, over links to each
    point's 8 nearest points within 1.5 rho: :func:`~lodbuilder.fill.local.on_sheet`), in a
@@ -54,14 +53,13 @@ whole scan for exact distances.
    field over that plane and not over its least-squares one) and a height field over it
    (:class:`~lodbuilder.fill.surface.HeightField`, fitted without the ring points facing away:
    :func:`~lodbuilder.fill.local.same_face`; for a gap, the spline that cross-validates best
-   on the ring). The region is *rough* (reported, not
-   filled) when the ring is not a height field (more than 25 % of the normals of its inner part,
-   the points within rho of the region, tilted over 60 degrees from the plane's normal: the
-   outer ring of a hole on a tube or a small sphere turns farther, and is not what the fill
-   bridges) or not one smooth piece: fitted to five sixths of the ring
-   (angular sectors around the hole), the surface misses the inner ring points (within rho of
-   the region) of the sixth left out by more than rho/2 RMS (e.g. an occlusion shadow, whose rim
-   lies on two surfaces at different depths).
+   on the ring). The region is *rough* (reported, not filled) when the ring is not a height
+   field (more than 25 % of the normals of its inner part, the points within rho of the region,
+   tilted over 60 degrees from the plane's normal: the outer ring of a hole on a tube or a
+   small sphere turns farther, and is not what the fill bridges) or not one smooth piece:
+   fitted to five sixths of the ring (angular sectors around the hole), the surface misses the
+   inner ring points (within rho of the region) of the sixth left out by more than rho/2 RMS
+   (e.g. an occlusion shadow, whose rim lies on two surfaces at different depths).
 5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
    sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
    than rho from every sample point: its area (node count x node area x the height field's
@@ -87,6 +85,7 @@ from .local import (
     Grid,
     facing,
     flood,
+    group_normal,
     groups,
     inside,
     near_plane,
@@ -291,8 +290,7 @@ def _seeds(
     d_l, _ = tree_l.query(cand, k=1, workers=-1)
     cand, nrm = cand[d_l > rho], nrm[d_l > rho]
     # a vertex within rho/2 of a sample point is no seed: that point, its nearest, is within
-    # rho/2 of it along its tangent plane too (the test below). Most vertices stop here, before
-    # the query of 16 neighbours.
+    # rho/2 of it along its tangent plane too (the test below). Most stop here, before 16-NN.
     d_0, _ = tree_s.query(cand, k=1, distance_upper_bound=rho, workers=-1)
     keep = ~(d_0 <= NEAR_FRACTION * rho)
     cand, nrm = cand[keep], nrm[keep]
@@ -355,29 +353,9 @@ def find_regions(
         grp, sp = grp[new], sp[new]
         if grp.size == 0:
             continue
-        _search_group(out, sample, tree_s, sp, _group_normal(sp, seed_normals[grp], rho), width)
+        normal = group_normal(sp, seed_normals[grp], rho, MIN_SEEDS_WIDE)
+        _search_group(out, sample, tree_s, sp, normal, width)
     return out
-
-
-#: seeds spread over a plane (its smallest spread at most this share of the next) fix the
-#: hole's plane themselves
-FLAT_SEEDS = 0.25
-
-
-def _group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float) -> np.ndarray:
-    """The normal of a group's first plane: the plane of the ``seeds`` themselves where they
-    spread over one that most of their level ``normals`` face (within 60 degrees: round a hole
-    on a curved place, the level normals at its rim turn by as much as the surface does, and
-    their sum, oriented like any one of them, can be far off; the seeds along a border lie in
-    a plane across the surface), else the sum of the normals, oriented like the first."""
-    if seeds.shape[0] >= MIN_SEEDS_WIDE:
-        c = seeds - seeds.mean(axis=0)
-        w, vec = np.linalg.eigh(c.T @ c)
-        flat = w[1] >= (rho / 2) ** 2 * seeds.shape[0] and w[0] <= FLAT_SEEDS * w[1]
-        if flat and np.median(np.abs(normals @ vec[:, 0])) >= math.cos(MAX_TILT):
-            return vec[:, 0]
-    nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
-    return nrm.sum(axis=0)
 
 
 def _search_group(out: Search, sample, tree_s, sp, normal, width) -> None:

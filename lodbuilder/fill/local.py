@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .surface import Frame
+from .surface import MAX_TILT, Frame
 
 #: neighbours per sample point for normals and the seeds' plane (and links along the surface)
 K_SAMPLE = 8
@@ -279,6 +279,28 @@ def _opened(grid: Grid, mask, far, seed_nodes, rho: float, neck: float):
     flat = labels.ravel()
     out = [(np.flatnonzero(flat == lab), False, True) for lab in inner]
     return out + [(np.flatnonzero(mask & ~np.isin(flat, inner)), True, False)]
+
+
+#: seeds spread over a plane (its smallest spread at most this share of the next) fix the
+#: hole's plane themselves
+FLAT_SEEDS = 0.25
+
+
+def group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float, min_seeds: int) -> np.ndarray:
+    """The normal of a group's first plane: the plane of the ``seeds`` themselves where they
+    spread over one that most of their level ``normals`` face (within 60 degrees: round a hole
+    on a curved place, the level normals at its rim turn by as much as the surface does, and
+    their sum, oriented like any one of them, can be far off; the seeds along a border lie in
+    a plane across the surface), else the sum of the normals, oriented like the first. Groups
+    of fewer than ``min_seeds`` seeds take the sum."""
+    if seeds.shape[0] >= min_seeds:
+        c = seeds - seeds.mean(axis=0)
+        w, vec = np.linalg.eigh(c.T @ c)
+        flat = w[1] >= (rho / 2) ** 2 * seeds.shape[0] and w[0] <= FLAT_SEEDS * w[1]
+        if flat and np.median(np.abs(normals @ vec[:, 0])) >= np.cos(MAX_TILT):
+            return vec[:, 0]
+    nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
+    return nrm.sum(axis=0)
 
 
 def groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
