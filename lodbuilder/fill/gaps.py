@@ -20,9 +20,9 @@ whole scan for exact distances.
    to the tangent-plane approximation).
 2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``2 * max_hole * rho`` (a
    long border) is open and left alone.
-3. **Regions** (per group, in the seeds' own plane where they spread over one that most of
-   their level normals face within 60 degrees, else in the plane of their summed level
-   normals: the rim's normals turn with a curved surface). The sample points around the
+3. **Regions** (per group, in the plane of the seeds' level normals; where that leaves it
+   open, again in the seeds' own plane when they spread over one that most of the normals
+   face within 60 degrees: the rim's normals turn with the surface). The sample points around the
    group, near that plane (``|height| <= rho + |distance in the plane| / 2``, which drops other
    sheets across the plane) are projected on it; a square grid of candidate nodes at spacing
    rho/4 is laid over them, first a little wider than the seeds' spread, then (for groups of
@@ -30,8 +30,7 @@ whole scan for exact distances.
    rho/2 (in the plane) from every projected sample point form regions (4-connected). A region
    that contains a seed and stays inside the grid is **enclosed**: input points bound it all
    round (a region that reaches the edge only through a channel in which no node is farther
-   than rho from the input, a seam of sparser points, or, failing that, through a neck of such
-   nodes narrower than 1.5 rho, a crack, is cut there; enclosed only so, it is
+   than rho from the input, a seam of sparser points, is cut there; enclosed only so, it is
    kept when it is a fillable gap; and where some of the points face away from the seeds'
    side, normals oriented along the surface: the other face of a thin part, reached round its
    edge, the group is searched first with those set aside, keeping only fillable gaps, then
@@ -92,6 +91,7 @@ from .local import (
     normals_at,
     on_sheet,
     same_face,
+    stacked,
 )
 from .surface import (
     MAX_TILT,
@@ -353,8 +353,14 @@ def find_regions(
         grp, sp = grp[new], sp[new]
         if grp.size == 0:
             continue
-        normal = group_normal(sp, seed_normals[grp], rho, MIN_SEEDS_WIDE)
-        _search_group(out, sample, tree_s, sp, normal, width)
+        summed, flat = group_normal(sp, seed_normals[grp], rho, MIN_SEEDS_WIDE)
+        before = (len(out.regions), out.n_open, out.n_bent)
+        _search_group(out, sample, tree_s, sp, summed, width)
+        now = (len(out.regions), out.n_open, out.n_bent)
+        if flat is not None and now[0] == before[0] and now != before:
+            # open or bent over the plane of the level normals: again over the seeds' plane
+            out.n_open, out.n_bent = before[1:]
+            _search_group(out, sample, tree_s, sp, flat, width)
     return out
 
 
@@ -475,17 +481,6 @@ class _Local:
         return self.sample[self.idx]
 
 
-def _stacked(local: _Local, frame: Frame, rho: float) -> bool:
-    """Some of the points lie over one another (within rho/2 in the plane, 1.5 rho apart in
-    height): two faces, or a fold, over the grid."""
-    n = local.idx.size
-    d, nb = local.tree2.query(local.tree2.data, k=min(5, n), distance_upper_bound=0.5 * rho)
-    h = frame.height(local.points)
-    near = np.isfinite(d)
-    nb = np.where(near, nb, np.arange(n)[:, None])
-    return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
-
-
 def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
     reaching the grid's edge), and the centre of the nodes of those that did (None if none).
@@ -493,7 +488,11 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     plane (:func:`~lodbuilder.fill.surface.height_field_normal`)."""
     from scipy.spatial import cKDTree
 
-    if local.away is not None and local.idx.size > K_SAMPLE and _stacked(local, frame, rho):
+    if (
+        local.away is not None
+        and local.idx.size > K_SAMPLE
+        and stacked(local.tree2, frame.height(local.points), rho)
+    ):
         off = facing(local.points, frame.normal, seeds, rho, local.points) <= FACING
         if off.any():
             local.away.append(True)

@@ -16,10 +16,6 @@ K_SAMPLE = 8
 LINK = 1.5
 #: grid nodes within NEAR_FRACTION * rho of a measured point are not in a region
 NEAR_FRACTION = 0.5
-#: a region that reaches the grid's edge only through a neck of far surface (farther than rho
-#: from every point) narrower than 2 NECK rho is cut there (a crack between scans, a strip of
-#: sparse rim between a hole and the scan's border): what stays off the edge is enclosed
-NECK = 0.75
 
 
 def on_sheet(local: np.ndarray, seeds: np.ndarray, rho: float, limit: float) -> np.ndarray:
@@ -237,10 +233,7 @@ def flood(grid: Grid, tree2: Any, seed_uv: np.ndarray, rho: float):
     for lab in hit[hit > 0]:
         mask = labels == lab
         if lab in edge:
-            parts = _opened(grid, mask, ~(d <= rho), nodes, rho, 0.0)
-            if len(parts) == 1:  # nothing enclosed: cut the necks of far surface too
-                parts = _opened(grid, mask, ~(d <= rho), nodes, rho, NECK)
-            out += parts
+            out += _opened(grid, mask, ~(d <= rho), nodes, rho)
         else:
             out.append((np.flatnonzero(mask), False, False))
     return out
@@ -250,26 +243,17 @@ def _edge_labels(labels: np.ndarray) -> np.ndarray:
     return np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
 
 
-def _disk(k: int) -> np.ndarray:
-    ij = np.indices((2 * k + 1, 2 * k + 1)) - k
-    return (ij[0] ** 2 + ij[1] ** 2) <= k * k
-
-
-def _opened(grid: Grid, mask, far, seed_nodes, rho: float, neck: float):
+def _opened(grid: Grid, mask: np.ndarray, far: np.ndarray, seed_nodes: np.ndarray, rho: float):
     """The enclosed parts of the region ``mask`` that touches the grid's edge: its core (``far``:
-    nodes farther than rho from every point; with ``neck`` > 0, less its parts narrower than
-    2 ``neck`` rho: a morphological opening) widened by rho/2 within it, the parts with a seed
+    nodes farther than rho from every point) widened by rho/2 within it, the parts with a seed
     within rho/2 that stay off the edge (opened); the rest of the region as leaking."""
     from scipy import ndimage
 
     k = max(1, int(round(NEAR_FRACTION * rho / grid.g)))
-    kn = int(round(neck * rho / grid.g))
-    disk = _disk(k)
+    ij = np.indices((2 * k + 1, 2 * k + 1)) - k
+    disk = (ij[0] ** 2 + ij[1] ** 2) <= k * k
     box = mask.reshape(grid.shape)
-    core = box & far.reshape(grid.shape)
-    if kn:
-        core = ndimage.binary_erosion(core, structure=_disk(kn))
-    opened = ndimage.binary_dilation(core, structure=_disk(k + kn)) & box
+    opened = ndimage.binary_dilation(box & far.reshape(grid.shape), structure=disk) & box
     labels, _ = ndimage.label(opened)
     seeds = np.zeros(mask.size, dtype=bool)
     seeds[seed_nodes] = True
@@ -286,21 +270,33 @@ def _opened(grid: Grid, mask, far, seed_nodes, rho: float, neck: float):
 FLAT_SEEDS = 0.25
 
 
-def group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float, min_seeds: int) -> np.ndarray:
-    """The normal of a group's first plane: the plane of the ``seeds`` themselves where they
-    spread over one that most of their level ``normals`` face (within 60 degrees: round a hole
-    on a curved place, the level normals at its rim turn by as much as the surface does, and
-    their sum, oriented like any one of them, can be far off; the seeds along a border lie in
-    a plane across the surface), else the sum of the normals, oriented like the first. Groups
-    of fewer than ``min_seeds`` seeds take the sum."""
+def group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float, min_seeds: int):
+    """The normals of a group's planes: the sum of the seeds' level ``normals`` (oriented like
+    the first), and the plane of the ``seeds`` themselves where they spread over one that most
+    of the normals face within 60 degrees and the sum is more than 20 degrees off it (else
+    None): round a hole on a curved place the level normals at its rim turn by as much as the
+    surface does, and their sum can be far off; the seeds along a border lie in a plane across
+    the surface. Groups of fewer than ``min_seeds`` seeds have no plane of their own."""
+    nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
+    summed = nrm.sum(axis=0)
     if seeds.shape[0] >= min_seeds:
         c = seeds - seeds.mean(axis=0)
         w, vec = np.linalg.eigh(c.T @ c)
         flat = w[1] >= (rho / 2) ** 2 * seeds.shape[0] and w[0] <= FLAT_SEEDS * w[1]
         if flat and np.median(np.abs(normals @ vec[:, 0])) >= np.cos(MAX_TILT):
-            return vec[:, 0]
-    nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
-    return nrm.sum(axis=0)
+            # (the same plane, within 20 degrees: no second search)
+            if abs(vec[:, 0] @ summed) < np.cos(np.radians(20.0)) * np.linalg.norm(summed):
+                return summed, vec[:, 0]
+    return summed, None
+
+
+def stacked(tree2: Any, h: np.ndarray, rho: float) -> bool:
+    """Some of the points (projected in ``tree2``, heights ``h``) lie over one another (within
+    rho/2 in the plane, 1.5 rho apart in height): two faces, or a fold, over the grid."""
+    n = h.shape[0]
+    d, nb = tree2.query(tree2.data, k=min(5, n), distance_upper_bound=0.5 * rho)
+    nb = np.where(np.isfinite(d), nb, np.arange(n)[:, None])
+    return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
 
 
 def groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
