@@ -273,8 +273,7 @@ FLAT_SEEDS = 0.25
 def group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float, min_seeds: int):
     """The normals of a group's planes: the sum of the seeds' level ``normals`` (oriented like
     the first), and the plane of the ``seeds`` themselves where they spread over one that most
-    of the normals face within 60 degrees and the sum is more than 20 degrees off it (else
-    None): round a hole on a curved place the level normals at its rim turn by as much as the
+    of the normals face within 60 degrees (else None): round a hole on a curved place the level normals at its rim turn by as much as the
     surface does, and their sum can be far off; the seeds along a border lie in a plane across
     the surface. Groups of fewer than ``min_seeds`` seeds have no plane of their own."""
     nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
@@ -284,9 +283,7 @@ def group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float, min_seeds: 
         w, vec = np.linalg.eigh(c.T @ c)
         flat = w[1] >= (rho / 2) ** 2 * seeds.shape[0] and w[0] <= FLAT_SEEDS * w[1]
         if flat and np.median(np.abs(normals @ vec[:, 0])) >= np.cos(MAX_TILT):
-            # (the same plane, within 20 degrees: no second search)
-            if abs(vec[:, 0] @ summed) < np.cos(np.radians(20.0)) * np.linalg.norm(summed):
-                return summed, vec[:, 0]
+            return summed, vec[:, 0]
     return summed, None
 
 
