@@ -52,13 +52,14 @@ def _store(tmp_path, pts, head, streams):
     return w
 
 
-@pytest.mark.parametrize(("seed", "alpha", "step"), [(0, 0.25, 0.0), (1, 0.5, 0.0), (2, 1.0, 0.0), (3, 0.5, 0.04)])
-def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, step):
+@pytest.mark.parametrize(("seed", "alpha", "step", "band_rows"),
+                         [(0, 0.25, 0.0, 40), (1, 0.5, 0.0, 8), (2, 1.0, 0.0, 40), (3, 0.5, 0.04, 40), (4, 0.25, 0.0, 8)])
+def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, step, band_rows):
     """The merge (the seam repair over the tiles' seam points, then bands of keys side by side; tile
-    buffers of 7 rows, an output buffer of 5 and bands of about 40 rows: every refill, flush and
-    cut path) gives the naive merge of the whole streams: tiles ordered without seeing each other,
-    their seam points demoted; without the repair, the tiles' keys merged as they are. With keys
-    rounded to steps of ``step``, ties across tiles and a bin of zero keys cut by tiles."""
+    buffers of 7 rows, an output buffer of 5 and bands of about ``band_rows`` rows: every refill and
+    flush path, bins larger than a band) gives the naive merge of the whole streams: tiles ordered
+    without seeing each other, their seam points demoted; without the repair, the tiles' keys merged
+    as they are. With keys rounded to steps of ``step``, ties across tiles and a bin of zero keys."""
     from concurrent.futures import ThreadPoolExecutor
 
     from lodbuilder.build.tiled import merge as M
@@ -77,7 +78,7 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
         (tmp_path / f"a{a}").mkdir()
         w = _store(tmp_path / f"a{a}", pts, head, streams)
         with ThreadPoolExecutor(2) as ex:
-            res = M.merge_phase(ex, w, "s", len(pts), stats, a, np.zeros(3), 1e-6, band_rows=40)
+            res = M.merge_phase(ex, w, "s", len(pts), stats, a, np.zeros(3), 1e-6, band_rows=band_rows)
         d = w.read_array(WL.DEFERRED, WL.DEFER)
         mark(w, "merge", res)  # (the order's pieces are listed there; the streams and deferred points pruned)
         order = segment(w, M.order_files(w), "<i8", 0, len(pts))
@@ -90,8 +91,12 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
         assert [(int(x), float(y)) for x, y in zip(d["g"], d["key"], strict=True)] == late
         assert (res["deferred"] > 0) == (a > 0), res  # the case demotes (the test sees that path)
         assert len(res["order"]) > 4  # (several bands)
+        if band_rows == 8:  # (bins of several keys larger than a band)
+            b = WL.key_bins(np.concatenate([s[:, 1] for s in streams]))
+            assert max(len(np.unique(np.concatenate([s[:, 1] for s in streams])[b == x])) for x in b
+                       if (b == x).sum() > band_rows) > 1
         if step:
-            assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin cut by tiles)
+            assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
 
 
 def test_the_merge_buffers_stay_within_their_bytes():

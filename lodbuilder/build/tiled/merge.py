@@ -16,11 +16,11 @@ are checked against, so the repair is decided by merging the tiles' seam points 
 order as in the whole merge. Its outcome is the list of deferred points with their acceptance keys,
 in merged order (``deferred.bin``). Every other row's place follows from its key alone: the merged
 order is cut into bands of keys (:data:`lodbuilder.build.tiled.layout.key_bins`; the tiles'
-histograms of their keys, in their order markers, size the bands: about BAND_ROWS rows each, a bin
-with more rows than that is cut by tiles), and one task per band (:func:`merge_band`) reads each
-tile's rows of the band (a contiguous run of its stream, located by the histograms), leaves out the
-deferred ones, adds the deferred points whose acceptance key falls in the band, and sorts them by
-descending key, stably: tiles in order, then the deferred points. The order is stored as pieces
+histograms of their keys, in their order markers, size the bands: whole bins, about BAND_ROWS rows
+each), and one task per band (:func:`merge_band`) reads each tile's rows of the band (a contiguous
+run of its stream, located by the histograms) in chunks, leaves out the deferred ones, adds the
+deferred points whose acceptance key falls in the band, and merges them by descending key (ties:
+the lower tile, then the deferred points) in buffers of a bounded size. The order is stored as pieces
 (``merged.<j>.i8``: the head, then each band's input indices) listed with their positions in the
 merge's marker (:func:`order_files`). The bands' tasks run side by side; the result is the order
 the one k-way merge of every tile stream gave (tests/test_tiled_seams.py checks both against the
@@ -52,7 +52,7 @@ from .timing import timed_task
 log = logging.getLogger(__name__)
 
 BUF = 1 << 16  # rows per tile buffer in the seam repair, at most
-#: rows of the merged order per band task (a bin holding more is cut by tiles)
+#: rows of the merged order per band task, about (whole key bins; a bin holding more is one band)
 BAND_ROWS = 1 << 20
 #: bytes of all the tiles' buffers together (the buffers of 256 tiles at BUF rows were 805 MB)
 BUF_BYTES = 64 << 20
@@ -168,38 +168,106 @@ def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell:
             "hist": [bins.tolist(), counts.tolist()], "files": files}
 
 
+class _RangeReader:
+    """Rows ``a .. z`` of a tile's stream (or rows given whole), in chunks, without the rows whose
+    input index is in ``drop`` (sorted), as (m, 6) float64 rows whose margins are infinite (no row
+    is a seam point: :func:`merge_band` merges by key alone)."""
+
+    def __init__(self, store: Store | None, name: str, a: int, z: int, drop: np.ndarray, bins: list[int],
+                 rows: np.ndarray | None = None) -> None:
+        self.store, self.name, self.pos, self.end, self.drop, self.rows = store, name, a, z, drop, rows
+        self.bins = bins
+
+    def read(self, m: int) -> np.ndarray:
+        while self.pos < self.end:
+            k = min(m, self.end - self.pos)
+            if self.rows is not None:
+                s = self.rows[self.pos:self.pos + k]
+            else:
+                assert self.store is not None
+                s = self.store.read_array(self.name, STREAM, self.pos, k)
+                b = WL.key_bins(s["key"][[0, -1]])
+                if s.shape[0] != k or b[0] > self.bins[1] or b[1] < self.bins[0]:
+                    raise RuntimeError(f"{self.name}: rows {self.pos}..{self.end} are not the rows its histogram says")
+            self.pos += k
+            if self.drop.size:
+                s = s[~np.isin(s["g"].astype(np.int64), self.drop)]
+            if s.shape[0]:
+                out = s.view("<f8").reshape(-1, 6).copy()
+                out[:, 5] = np.inf
+                return out
+        return np.zeros((0, 6))
+
+
 @timed_task
 def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferred: bool) -> dict[str, Any]:
     """Band ``j`` of the merge (see the module): ``rows`` ``[tile, first, end]`` of the tiles'
     streams whose keys fall in the bins ``bins`` (lowest, highest), tiles in order; with
-    ``deferred``, the deferred points accepted in those bins after them. Writes ``merged.<j>.i8``."""
+    ``deferred``, the deferred points accepted in those bins after them. A k-way merge by key
+    (ties: the lower tile, then the deferred points) with buffers of a bounded size, whatever the
+    band's rows. Writes ``merged.<j>.i8``."""
+    from ..._kernels.tiled import seam_merge as kernel
+    from ..._kernels.tiled import table_size, tile_heap_refresh, tile_pop
+
     w = as_store(work)
-    g, key = [], []
-    for t, a, z in rows:
-        s = w.read_array(WL.stream(t), STREAM, a, z - a)
-        b = WL.key_bins(s["key"])
-        if s.shape[0] != z - a or (b.size and (b.min() < bins[0] or b.max() > bins[1])):
-            raise RuntimeError(f"{WL.stream(t)}: rows {a}..{z} are not the rows its histogram says")
-        g.append(s["g"].astype(np.int64))
-        key.append(s["key"])
     d = w.read_array(WL.DEFERRED, WL.DEFER)
-    gg, kk = np.concatenate(g or [np.zeros(0, np.int64)]), np.concatenate(key or [np.zeros(0)])
-    if d.shape[0]:
-        keep = ~np.isin(gg, d["g"])  # (a deferred point enters at its acceptance key)
-        gg, kk = gg[keep], kk[keep]
-        if deferred:
-            b = WL.key_bins(d["key"])
-            mine = d[(b >= bins[0]) & (b <= bins[1])]
-            gg, kk = np.concatenate([gg, mine["g"]]), np.concatenate([kk, mine["key"]])
-    out = gg[np.argsort(-kk, kind="stable")]
-    return {"band": j, "count": int(out.shape[0]), "files": {WL.merged(j): w.put(WL.merged(j), out)}}
+    drop = np.sort(d["g"])
+    readers = [_RangeReader(w, WL.stream(t), a, z, drop, bins) for t, a, z in rows]
+    if deferred and d.shape[0]:
+        b = WL.key_bins(d["key"])
+        mine = d[(b >= bins[0]) & (b <= bins[1])]
+        extra = np.zeros(mine.shape[0], STREAM)
+        extra["g"], extra["key"] = mine["g"], mine["key"]
+        readers.append(_RangeReader(None, WL.DEFERRED, 0, mine.shape[0], np.zeros(0, np.int64), bins, extra))
+    buf = buffer_rows(len(readers))
+    bufs = np.zeros((len(readers), buf, 6))
+    bpos, blen = np.zeros(len(readers), np.int64), np.zeros(len(readers), np.int64)
+    heap_rows = []
+    for t, r in enumerate(readers):
+        a = r.read(buf)
+        bufs[t, : a.shape[0]] = a
+        blen[t] = a.shape[0]
+        if a.shape[0]:
+            heap_rows.append((-a[0, 1], t))
+    heap_rows.sort()
+    theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
+    tn = theap.shape[0]
+    one = np.zeros(1, np.int64)  # (no row is a seam point: the seam structures stay empty)
+    state = np.array([0.0, 0.0, np.inf, 0.0, 0.0, 1.0])
+    size = table_size(1)
+    out_g, out_key = np.empty(W.BLOCK, np.int64), np.empty(W.BLOCK)
+    f = w.writer(WL.merged(j))
+    count = 0
+    try:
+        while True:
+            code, t = kernel(bufs, bpos, blen, theap, tn, state, np.zeros((1, 3)), one - 1, np.full(size, -1, np.int64),
+                             np.full(size, -1, np.int64), one - 1, np.empty(1), one.copy(), np.empty((1, 6)), one.copy(),
+                             np.zeros(3), 0.0, out_g, out_key)
+            if code in (0, 2):
+                k = int(state[0])
+                f.write(out_g[:k].astype("<i8"))
+                count += k
+                state[0] = 0.0
+                if code == 0:
+                    break
+                continue
+            a = readers[t].read(buf)  # code 1: refill source t (at the top of the heap)
+            bufs[t, : a.shape[0]] = a
+            bpos[t] = 0
+            blen[t] = a.shape[0]
+            tn = tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn)
+        files = {WL.merged(j): f.commit()}
+    finally:
+        f.close()
+    return {"band": j, "count": count, "files": files}
 
 
 def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_rows: int
                ) -> list[tuple[list[list[int]], list[int], bool]]:
     """The merge's bands from the tiles' key histograms (``[bins, counts]`` each) and the deferred
     keys' histogram: ``(rows, bins, deferred)`` per band (the arguments of :func:`merge_band`), in
-    merged order; each about ``band_rows`` rows, a single bin holding more cut by tiles."""
+    merged order; each about ``band_rows`` rows of whole bins (a bin holding more is a band of its
+    own: its task merges in bounded memory, but takes longer)."""
     all_bins = np.unique(np.concatenate([np.asarray(h[0], np.int64) for h in [*hists, deferred]] or [np.zeros(0, np.int64)]))
     desc = all_bins[::-1]
     c = np.zeros((len(hists), desc.shape[0]), np.int64)
@@ -215,19 +283,9 @@ def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_row
         return [[t, int(above[t, i0]), int(above[t, i1] + c[t, i1])] for t in tiles if c[t, i0:i1 + 1].sum()]
 
     i = 0
-    while i < desc.shape[0]:
-        if total[i] > band_rows:  # one bin alone: cut by tiles
-            t0, acc = 0, 0
-            for t in range(len(hists)):
-                acc += int(c[t, i])
-                if acc > band_rows:
-                    bands.append((rows(i, i, range(t0, t + 1)), [int(desc[i])] * 2, False))
-                    t0, acc = t + 1, 0
-            bands.append((rows(i, i, range(t0, len(hists))), [int(desc[i])] * 2, True))
-            i += 1
-            continue
-        j, acc = i, 0
-        while j < desc.shape[0] and total[j] <= band_rows and acc + total[j] <= band_rows:
+    while i < desc.shape[0]:  # whole bins, about band_rows rows a band (a larger bin alone)
+        j, acc = i + 1, int(total[i])
+        while j < desc.shape[0] and acc + total[j] <= band_rows:
             acc += int(total[j])
             j += 1
         bands.append((rows(i, j - 1, range(len(hists))), [int(desc[j - 1]), int(desc[i])], True))
