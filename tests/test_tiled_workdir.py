@@ -94,9 +94,9 @@ def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch
     covering file or a tile's points (the buckets come after the radii and the join), no tile
     stream beside a rank file, no block sample after the spill and no raw block whose bucket
     pieces are written (the marker being written aside: its own files are pruned after it)."""
-    from test_tiled import _build, wavy
-
+    import lodbuilder
     from lodbuilder.build.tiled import sums
+    from lodbuilder.io import Scan
 
     seen: list[tuple[str, set[str]]] = []
     put_json = sums.put_json
@@ -107,7 +107,12 @@ def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch
         seen.append((name, {p.name for p in w.iterdir()}))
 
     monkeypatch.setattr(sums, "put_json", snapshot)
-    _build(tmp_path, wavy(20_000, np.random.default_rng(1)), 6_000)
+    rng = np.random.default_rng(1)
+    g = (np.stack(np.meshgrid(np.arange(140), np.arange(140)), -1).reshape(-1, 2) + rng.uniform(-0.3, 0.3, (19600, 2)))
+    pts = np.c_[g / 140, 0.08 * np.sin(4 * np.pi * g[:, 0] / 140)]
+    res = lodbuilder.build_archive(Scan(points=pts, attributes={"i": np.arange(19600, dtype=np.int32)}, name="t"),
+                                   tmp_path / "t.h5", _tile_points=6_000)
+    assert res.scans[0].method == "tiled"
     assert any(n.startswith("permute.") for n, _ in seen) and any(n.startswith("band.") for n, _ in seen)
     for name, files in seen:
         files = files - {name}  # (what its own marker prunes goes once the marker is written)
