@@ -2,7 +2,8 @@
 pool): forked warm from lodbuilder's forkserver, in the caller's environment, and the caller's
 environment is left as it was (distributed's nanny used to set MALLOC_TRIM_THRESHOLD_ and
 OMP_NUM_THREADS in it, for good, and every worker forked after that had glibc's allocator map and
-unmap every array over 128 KiB)."""
+unmap every array over 128 KiB), and without the Dask worker's profiler and its frequent health
+checks (lodbuilder.build.executors.DASK_LOCAL_CONFIG)."""
 
 from __future__ import annotations
 
@@ -19,11 +20,18 @@ pytest.importorskip("dask.distributed")
 SCRIPT = textwrap.dedent('''
     import json, os, sys
 
+    KEYS = ("distributed.worker.profile.enabled", "distributed.admin.tick.interval",
+            "distributed.admin.system-monitor.interval", "distributed.worker.memory.monitor-interval")
+
     def probe():
         import os, sys
         with open(f"/proc/{os.getppid()}/environ", "rb") as f:
             server_env = [e.decode() for e in f.read().split(b"\\0") if e]
-        return {"warm": "lodbuilder.build._warm" in sys.modules,
+        settings = {}
+        if "distributed" in sys.modules:  # (a Dask worker: the settings it runs with)
+            import dask
+            settings = {k: dask.config.get(k) for k in KEYS}
+        return {"warm": "lodbuilder.build._warm" in sys.modules, "settings": settings,
                 "trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
                 "server_trim": [e for e in server_env if e.startswith("MALLOC_TRIM_THRESHOLD_")]}
 
@@ -58,4 +66,10 @@ def test_dask_local_workers_start_warm_in_the_callers_environment(tmp_path):
     # the caller's environment as it was
     assert got["after"] == got["before"] == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": None}
     # and a process pool started after the cluster works, forked warm from the same server
-    assert got["pool"] == {"warm": True, "trim": None, "server_trim": []}
+    assert {k: got["pool"][k] for k in ("warm", "trim", "server_trim")} == {"warm": True, "trim": None,
+                                                                          "server_trim": []}
+    # the worker runs without the profiler and with slower health checks (see DASK_LOCAL_CONFIG)
+    assert got["dask"]["settings"] == {"distributed.worker.profile.enabled": False,
+                                       "distributed.admin.tick.interval": "1s",
+                                       "distributed.admin.system-monitor.interval": "2s",
+                                       "distributed.worker.memory.monitor-interval": "1s"}

@@ -76,16 +76,32 @@ def mp_context() -> Any:
     return ctx
 
 
-#: Dask settings of a LocalCluster. ``pre-spawn-environ``: distributed's nanny sets these variables
-#: in the *calling* process's environment before it starts a worker (by default
-#: ``MALLOC_TRIM_THRESHOLD_=65536`` and ``OMP/MKL/OPENBLAS_NUM_THREADS=1``), where they stay after
-#: the build, and the forkserver started then inherits them: every worker forked from it, Dask's
-#: and a later process pool's, then had glibc's allocator with a fixed 64 KiB trim threshold, which
-#: also turns off its adaptive mmap threshold: every array over 128 KiB mapped fresh from the
-#: kernel and unmapped when freed (page faults: +35 % CPU on a NumPy loop of 1.6 MB arrays). The
-#: workers give freed memory back after every task themselves (:mod:`.tiled.timing`), so none is
-#: set: Dask's workers run in the environment the pool's run in.
-DASK_LOCAL_CONFIG: dict[str, Any] = {"distributed.nanny.pre-spawn-environ": {}}
+#: Dask settings of a LocalCluster (its workers run nothing but the build's tasks; measured with a
+#: busy 8 s task in a worker on a loaded 2-core machine: the worker's other threads added 10 % to
+#: the task's CPU with distributed's defaults, 0.7 % with these):
+#:
+#: * ``pre-spawn-environ``: distributed's nanny sets these variables in the *calling* process's
+#:   environment before it starts a worker (by default ``MALLOC_TRIM_THRESHOLD_=65536`` and
+#:   ``OMP/MKL/OPENBLAS_NUM_THREADS=1``), where they stay after the build, and the forkserver
+#:   started then inherits them: every worker forked from it, Dask's and a later process pool's,
+#:   had glibc's allocator with a fixed 64 KiB trim threshold, which also turns off its adaptive
+#:   mmap threshold: every array over 128 KiB mapped fresh from the kernel and unmapped when freed
+#:   (page faults: +35 % CPU on a NumPy loop of 1.6 MB arrays). The workers give freed memory back
+#:   after every task themselves (:mod:`.tiled.timing`), so none is set: Dask's workers run in the
+#:   environment the pool's run in.
+#: * ``worker.profile.enabled``: the worker's statistical profiler sampled the task's stack every
+#:   10 ms (for the dashboard; the build records its own task timings): 4 of those 10 %.
+#: * ``admin.tick.interval`` (20 ms: an event-loop health check), ``admin.system-monitor.interval``
+#:   (500 ms) and ``worker.memory.monitor-interval`` (100 ms: the worker's and the nanny's memory
+#:   checks, psutil each time): the rest. A nanny still restarts a worker over 95 % of its memory
+#:   limit, within a second instead of a tenth.
+DASK_LOCAL_CONFIG: dict[str, Any] = {
+    "distributed.nanny.pre-spawn-environ": {},
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
 
 
 def dask_mp_context() -> Any:
