@@ -257,7 +257,7 @@ class RequestCounter:
                 row[2] += got
         return body
 
-    def summary(self, top: int = 12) -> dict[str, Any]:
+    def summary(self, top: int = 40) -> dict[str, Any]:
         with self.lock:
             kinds = {k: dict(zip(("requests", "bytes_in", "bytes_out"), v, strict=True)) for k, v in self.kinds.items()}
             objs = sorted(self.objects.items(), key=lambda kv: -kv[1][0])[:top]
