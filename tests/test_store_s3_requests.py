@@ -108,3 +108,15 @@ def test_task_logs_are_read_with_one_get_each(store):
     counter.take()
     assert sorted(st.log_lines("tasks.7")) == ['{"a": 1}', '{"a": 2}']
     assert sorted(counter.take()) == [("GET", False), ("GET", False), ("GET", False)]  # the listing, 2 objects
+
+
+def test_pruned_work_files_go_in_one_request(store):
+    from lodbuilder.build.tiled.sums import prune
+
+    st, counter = store
+    for n in ("bucket.0.1.bin", "bucket.0.2.bin", "bucket.0.3.bin"):
+        st.put(n, b"x")
+    counter.take()
+    prune(st, ["bucket.0.1.bin", "bucket.0.2.bin", "bucket.0.3.bin", "bucket.0.9.bin"])  # (one missing)
+    assert counter.take() == [("POST", False)]  # (was a DELETE each)
+    assert st.names("bucket.0.") == []
