@@ -125,13 +125,13 @@ def _cases():
         "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
         "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "face.0.1.bin", "order.1.1.json",
                   "distribute.json", "raw.0.xyz"],
-        "radii": ["order.i8", "rank.0.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
+        "radii": ["merged.1.i8", "rank.0.i8", "bucket.0.0.bin", "cover.0.ev", "cover.1.pt", "cover.2.json", "halo.0.0.bin"],
         # (by the write the streams, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
         "write": ["ranks.json", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "face.0.1.bin",
                   "rank.0.i8", "pieces.json"],
         # (each band's bucket is deleted once the band is written: its chunks.json damaged, the buckets again)
-        "bands": ["chunks.0.bin", "chunks.0.json", "order.i8", "buckets.json"],
+        "bands": ["chunks.0.bin", "chunks.0.json", "merged.0.i8", "buckets.json"],
     }
     how = ["flip", "truncate", "zero"]
     out = []
@@ -178,13 +178,13 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
     assert files <= set(listed)
     for name in files:
         assert sum_file(w / name) == listed[name]
-    order = (w / "order.i8").read_bytes()
-    assert listed["order.i8"] == [len(order), zlib.crc32(order)]
+    order = (w / "merged.1.i8").read_bytes()
+    assert listed["merged.1.i8"] == [len(order), zlib.crc32(order)]
     # what is listed but gone was deleted once every piece that reads it was done (layout.PRUNE_AFTER;
     # every band is written, so are their buckets)
     gone = set(listed) - files
-    assert {n.split(".")[0] for n in gone} == {"raw", "stream", "key", "core", "halo", "cover", "radloc", "space",
-                                               "bucket"}
+    assert {n.split(".")[0] for n in gone} == {"raw", "stream", "seam", "deferred", "core", "halo", "cover", "radloc",
+                                               "space", "bucket"}
     assert all(WL.consumers(n) is not None for n in gone)
 
 

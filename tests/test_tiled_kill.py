@@ -164,8 +164,8 @@ def test_named_moments_kill_the_build_and_the_resume_gives_the_same_order(tmp_pa
         want = arc.scan().source_index[:], arc.scan().radius[:], arc.scan().parent[:]
     script = tmp_path / "run.py"
     script.write_text(SCRIPT)
-    for moment in ("inputs", "read", "spill", "split", "coarse", "tile", "merge", "ranks", "rank", "permute", "band", "radii",
-                   "chunks"):
+    for moment in ("inputs", "read", "spill", "split", "coarse", "tile", "seams", "merged", "merge", "ranks", "rank",
+                   "permute", "band", "radii", "chunks"):
         archive = tmp_path / f"{moment}.h5"
         env = dict(os.environ, **{WL.FAULT_ENV: moment})
         proc = subprocess.run([sys.executable, str(script), str(src), str(archive), str(TILE_POINTS)], env=env,

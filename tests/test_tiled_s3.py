@@ -124,7 +124,8 @@ def test_dask_workers_without_a_shared_directory_build_the_same_archive(s3, sour
     build = _same_scan(out, pooled)
     assert _datasets(out) == _datasets(pooled)
     tasks = build["tasks"]["rows"]
-    assert {r[0] for r in tasks} >= {"read_block", "order_tile", "cover_tile", "merge_task", "radii_band"}
+    assert {r[0] for r in tasks} >= {"read_block", "order_tile", "cover_tile", "seam_repair", "merge_band",
+                                      "radii_band"}
     assert os.getpid() not in {r[-1] for r in tasks}  # every task ran on a worker
     assert _keys(s3, url[len(f"s3://{BUCKET}/"):]) == []  # the work objects are gone once the scan is in
     assert sorted(p.name for p in (tmp_path / "archive").iterdir()) == ["s3.h5"]

@@ -48,32 +48,55 @@ def _store(tmp_path, pts, head, streams):
         for c, name in enumerate(WL.STREAM.names):
             s[name] = rows[:, c]
         w.put(WL.stream(t), s)
+        w.put(WL.seam(t), s[s["m"] < s["key"]])
     return w
 
 
-@pytest.mark.parametrize(("seed", "alpha"), [(0, 0.25), (1, 0.5), (2, 1.0)])
-def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha):
-    """The merge kernel (tile buffers of 7 rows and an output buffer of 5: every refill and flush
-    path) gives the naive merge's order and keys: tiles ordered without seeing each other, their
-    seam points demoted; without the repair, the tiles' keys merged as they are."""
+@pytest.mark.parametrize(("seed", "alpha", "step", "band_rows"),
+                         [(0, 0.25, 0.0, 40), (1, 0.5, 0.0, 8), (2, 1.0, 0.0, 40), (3, 0.5, 0.04, 40), (4, 0.25, 0.0, 8)])
+def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, step, band_rows):
+    """The merge (the seam repair over the tiles' seam points, then bands of keys side by side; tile
+    buffers of 7 rows, an output buffer of 5 and bands of about ``band_rows`` rows: every refill and
+    flush path, bins larger than a band) gives the naive merge of the whole streams: tiles ordered
+    without seeing each other, their seam points demoted; without the repair, the tiles' keys merged
+    as they are. With keys rounded to steps of ``step``, ties across tiles and a bin of zero keys."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from lodbuilder.build.tiled import merge as M
+    from lodbuilder.build.tiled.sums import mark
+    from lodbuilder.build.tiled.workdir import segment
 
     rng = np.random.default_rng(seed)
     pts, head, streams = _streams(rng)
-    w = _store(tmp_path, pts, head, streams)
+    if step:
+        for s in streams:
+            s[:, 1] = np.where(np.isfinite(s[:, 1]), np.floor(s[:, 1] / step) * step, np.inf)
     monkeypatch.setattr(M, "BUF", 7)
     monkeypatch.setattr(M.W, "BLOCK", 5)
-    seams = [int((s[:, 5] < s[:, 1]).sum()) for s in streams]
+    stats = [{"hist": [b.tolist() for b in np.unique(WL.key_bins(s[:, 1]), return_counts=True)]} for s in streams]
     for a in (alpha, 0.0):
-        res = M.merge_tiles(w, len(pts), len(streams), seams, a, np.zeros(3), 1e-6)
-        order = w.read_array(WL.ORDER, "<i8")
-        key = w.read_array(WL.KEY, "<f8")
+        (tmp_path / f"a{a}").mkdir()
+        w = _store(tmp_path / f"a{a}", pts, head, streams)
+        with ThreadPoolExecutor(2) as ex:
+            res = M.merge_phase(ex, w, "s", len(pts), stats, a, np.zeros(3), 1e-6, band_rows=band_rows)
+        d = w.read_array(WL.DEFERRED, WL.DEFER)
+        mark(w, "merge", res)  # (the order's pieces are listed there; the streams and deferred points pruned)
+        order = segment(w, M.order_files(w), "<i8", 0, len(pts))
         g, k = naive_seam_merge(streams, pts[head], a)
         np.testing.assert_array_equal(order[: len(head)], head)
         np.testing.assert_array_equal(order[len(head):], g)
-        np.testing.assert_array_equal(key[len(head):], k)
         assert np.array_equal(np.sort(order), np.arange(len(pts)))
+        was = {int(r[0]): r[1] for s in streams for r in s}
+        late = [(gi, ki) for gi, ki in zip(g.tolist(), k.tolist(), strict=True) if ki < was[gi]]
+        assert [(int(x), float(y)) for x, y in zip(d["g"], d["key"], strict=True)] == late
         assert (res["deferred"] > 0) == (a > 0), res  # the case demotes (the test sees that path)
+        assert len(res["order"]) > 4  # (several bands)
+        if band_rows == 8:  # (bins of several keys larger than a band)
+            b = WL.key_bins(np.concatenate([s[:, 1] for s in streams]))
+            assert max(len(np.unique(np.concatenate([s[:, 1] for s in streams])[b == x])) for x in b
+                       if (b == x).sum() > band_rows) > 1
+        if step:
+            assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
 
 
 def test_the_merge_buffers_stay_within_their_bytes():

@@ -99,7 +99,7 @@ def test_read_runs_split_sorted_rows_as_the_row_by_row_loop(seed):
         got = read_runs(srt, gap, width)
         assert got == _runs_row_by_row(srt, gap, width)
         if n:
-            assert got[0][0] == 0 and got[-1][1] == n and all(a[1] == b[0] for a, b in zip(got, got[1:]))
+            assert got[0][0] == 0 and got[-1][1] == n and all(a[1] == b[0] for a, b in zip(got[:-1], got[1:], strict=True))
 
 
 def test_the_task_log_collects_lines_from_every_worker(store):

@@ -12,8 +12,8 @@ priority order (list scheduling, largest first as the driver submits them). From
   parent's share is its CPU seconds in that phase (its waits for the tasks are not work);
 * tile orderings depend on their neighbours of a smaller colour (the order phase's colour classes;
   on the previous pass's orderings too when there are several passes);
-* rounds inside a phase (:data:`AFTER`): the ranks' first round (``rank_band``) waits for the merge
-  task, their second round (``rank_block``) for the whole first, the radii's first round
+* rounds inside a phase (:data:`AFTER`): the merge's bands (``merge_band``) wait for the seam
+  repair (``seam_repair``), the ranks' first round (``rank_band``) for the bands, their second round (``rank_block``) for the whole first, the radii's first round
   (``radii_band``) for the covering (``cover_tile``) and the buckets (``bucket_block``), their
   second round (``finish_band``) for the whole first, the join of the band pieces (``join_task``)
   for the tiles' pieces (``cover_tile``; ``pieces_tile`` in older records); the write's bands wait
@@ -134,7 +134,7 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
 
 _ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
 #: task kinds that start only when every task of the listed kinds in their phase is done
-AFTER = {"rank_band": ("merge_task",), "rank_block": ("rank_band",), "finish_band": ("radii_band",),
+AFTER = {"merge_band": ("seam_repair",), "rank_band": ("merge_band",), "rank_block": ("rank_band",), "finish_band": ("radii_band",),
          "radii_band": ("cover_tile", "bucket_block"), "join_task": ("cover_tile", "pieces_tile")}
 #: the write's first band (its task table piece: the first write_band to start) before the others
 FIRST_BAND = "write_band"

@@ -18,9 +18,10 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    every block into the tiles' core and halo pieces;
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
    tile and its halo (tasks);
-5. **merge** (one task): the tile orders are merged by descending insertion radius (an external
-   k-way merge), with the seam repair of :mod:`lodbuilder.build.tiled.merge`; then tasks invert the
-   merged order into every point's rank (an external transpose in two rounds: :mod:`.ranks`);
+5. **merge** (tasks): the seam repair of :mod:`lodbuilder.build.tiled.merge` over the tiles' seam
+   points alone (one task), then the tile orders merged by descending insertion radius in bands of
+   keys side by side (each band a run of every tile's stream); then tasks invert the merged order
+   into every point's rank (an external transpose in two rounds: :mod:`.ranks`);
 6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
    prefix of the merged order (from the tile and its halo); meanwhile tasks split every raw block
    by destination into the write's buckets; the stored radius of a prefix is the largest over the
@@ -35,13 +36,13 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    first row group decides which datasets are compressed, as a scan writer decides. The part file
    is the one a single scan writer fed every row in order gives; every archive reader is unchanged.
 
-What still passes over every point in one process (issue 19, item 2): the merge with its seam
-repair, one task on a worker (a lazy greedy over the merged order: each seam point's acceptance
-depends on every earlier acceptance, so it is ordered by nature; measured in docs/bench/bench_survey.json,
-``merge_task``). Its redesign (per tile against the neighbours' face points, before a merge
-partitioned into key bands whose boundaries the parent selects over the tiles' sorted streams:
-O(tiles x bands x log N) small reads) is not built. The parent's own pass over the write is a copy
-of the archive's bytes (the chunks), no filter and no point.
+No process passes over every point (issue 19, item 2). The one task left that sees points of every
+tile is the seam repair (``seam_repair``): a lazy greedy in merged order, each seam point's
+acceptance depending on every earlier one, but over the seam points alone (those nearer a shared
+face than their key: a few per cent of the points, fewer with larger tiles). The merged order is
+stored as pieces, the head's and one per band of keys (``merge_band`` tasks), listed in the merge's
+marker. The parent's own pass over the write is a copy of the archive's bytes (the chunks), no
+filter and no point.
 
 Guarantees (checked by tests, stated in each tiled scan's build record): every prefix's stored
 radius is a true Euclidean covering radius of the whole scan; radii never increase; every input

@@ -36,11 +36,12 @@ from ...archive import layout as L
 from ...errors import BuildError, InputError
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
+from .merge import order_files
 from .pool import result, submit
 from .store import as_store
 from .sums import done, mark, prune
 from .timing import timed_task
-from .workdir import opaque_rows
+from .workdir import opaque_rows, segment
 from .write import bucket_records, damaged, record_dtype
 
 MASK = (1 << 64) - 1
@@ -49,20 +50,6 @@ MASK = (1 << 64) - 1
 def index_sums(n: int) -> list[int]:
     """The sums of 0 .. n - 1 and of their squares, mod 2^64 (what the bands' sums add up to)."""
     return [(n * (n - 1) // 2) & MASK, ((n - 1) * n * (2 * n - 1) // 6) & MASK]
-
-
-def _segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, k1: int) -> np.ndarray:
-    """Positions ``k0 .. k1`` of the stored order from ``files`` (name, first and end position of
-    each, in order)."""
-    dt = np.dtype(dtype)
-    out = []
-    for fname, a, z in files:
-        if a < k1 and z > k0:
-            out.append(as_store(work).read_array(fname, dt, max(k0, a) - a, min(k1, z) - max(k0, a)))
-    got = np.concatenate(out) if out else np.zeros(0, dt)
-    if got.shape[0] != k1 - k0:
-        raise RuntimeError(f"{files[0][0]} and the files after it hold {got.shape[0]} of positions {k0} to {k1}")
-    return got
 
 
 def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[str]) -> np.ndarray:
@@ -86,10 +73,10 @@ def _arrays(work: Any, band: int, k0: int, k1: int, rows: int, args: dict[str, A
     n, name, bands = int(args["n"]), args["name"], args["radii_bands"]
     srt = _ordered(work, band, k0, k1, args["fields"], args["pieces"])
     radius = [(WL.radius(b), a, z) for b, (a, z) in enumerate(bands)]
-    g = _segment(work, [(WL.ORDER, 0, n)], "<i8", k0, k1)
-    rad = _segment(work, radius, "<f8", k0, k1)
-    par = _segment(work, [(WL.parent(b), a, z) for b, (a, z) in enumerate(bands)], "<i8", k0, k1)
-    last = math.inf if k0 == 0 else float(_segment(work, radius, "<f8", k0 - 1, k0)[0])
+    g = segment(work, order_files(work), "<i8", k0, k1)
+    rad = segment(work, radius, "<f8", k0, k1)
+    par = segment(work, [(WL.parent(b), a, z) for b, (a, z) in enumerate(bands)], "<i8", k0, k1)
+    last = math.inf if k0 == 0 else float(segment(work, radius, "<f8", k0 - 1, k0)[0])
     where = f"scan {name!r}"
     pts = np.ascontiguousarray(srt["xyz"])
     check_points(pts, where, k0)

@@ -196,18 +196,21 @@ def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: n
         is_near |= pts[:, a] - lo_own[:, a] <= halo
         is_near |= hi_own[:, a] - pts[:, a] <= halo
     near = np.flatnonzero(is_near)
-    p_near, own_near = pts[near], own[near]
+    # the near points by x: each tile tests only those within its grown box's x range
+    by_x = near[np.argsort(pts[near, 0], kind="stable")]
+    x_near = pts[by_x, 0]
     los, his = t_lo - halo, t_hi + halo
     for t in range(n_tiles):
         sel = order[bounds[t]:bounds[t + 1]]
         if sel.size:
             out.write(WL.core(t, b), raw[sel])
             n_core[t] += sel.size
-        inside = own_near != t
-        for a in range(3):
-            inside &= (p_near[:, a] >= los[t, a]) & (p_near[:, a] <= his[t, a])
+        cand = by_x[np.searchsorted(x_near, los[t, 0], "left"):np.searchsorted(x_near, his[t, 0], "right")]
+        inside = own[cand] != t
+        for a in (1, 2):
+            inside &= (pts[cand, a] >= los[t, a]) & (pts[cand, a] <= his[t, a])
         if inside.any():
-            out.write(WL.halo(t, b), raw[near[inside]])
+            out.write(WL.halo(t, b), raw[np.sort(cand[inside])])
             n_halo[t] += int(inside.sum())
 
 

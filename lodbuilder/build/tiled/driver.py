@@ -80,7 +80,7 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
-            if piece_done(work, WL.order_piece(t.index, p), () if p == passes else (WL.stream(t.index),))
+            if piece_done(work, WL.order_piece(t.index, p), () if p == passes else (WL.stream(t.index), WL.seam(t.index)))
             is not None}
     found = len(done)
 
@@ -221,17 +221,15 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
 def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list[dict[str, Any]], seam_spacing: float,
            lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
     """Phase 5: the tile orders merged by descending key with the seam repair (or what a finished
-    merge recorded): one task, on a worker (the one pass over every point left, see
-    :mod:`.merge`); then the ranks, by tasks (:mod:`.ranks`)."""
-    from .merge import merge_task
+    merge recorded): the seam points' repair, then bands of keys side by side (see :mod:`.merge`);
+    then the ranks, by tasks (:mod:`.ranks`)."""
+    from .merge import merge_phase
     from .ranks import ranks_phase
 
     merged = _done(work, "merge")
     if merged is None:
-        args = (work, sp.n, len(stats), [int(s.get("n_seam", 0)) for s in stats], seam_spacing, lo,
-                span / (1 << 20))
-        (merged,) = collect(submit(executor, [(0, merge_task, args)]), lambda _: "the merge", name, 1, progress, "merge")
-        mark(work, "merge", merged)
+        merged = mark(work, "merge", merge_phase(executor, work, name, sp.n, stats, seam_spacing, lo,
+                                                 span / (1 << 20), progress))
     ranks_phase(executor, work, name, sp.n, sp.blocks or [], progress)
     return merged
 

@@ -13,9 +13,11 @@ Files (little-endian raw arrays unless said otherwise), by the phase that writes
                 halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others
     coarse      head.bin            HEAD records: the coarse global level (the head)
     order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin)
+                seam.<t>.bin        STREAM records: the rows of stream.<t>.bin nearer a shared face than their key
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
-    merge       order.i8, key.f8    the merged order (input index at each position) and its keys
-    ranks       rankp.<k>.bin       band k of order.i8 as (input index, position) pairs by read block
+    merge       deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
+                merged.<j>.i8       piece j of the merged order (input indices): the head, then band j's
+    ranks       rankp.<k>.bin       band k of the merged order as (input index, position) pairs by read block
                                     (PAIR records; removed when the phase is complete)
                 rank.<b>.i8         the position of every input point of read block b (see ranks.py)
     cover       cover.<t>.ev/.pt    EVENT / POINT records of tile t's covering pass
@@ -60,13 +62,34 @@ EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
 #: a point's rank, parent and spacing as the covering pass finds them
 POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
 
+#: the key bins of :func:`key_bins` for an infinite key and for a key of zero
+BIN_INF, BIN_ZERO = 1 << 40, -(1 << 40)
+
+
+def key_bins(key: np.ndarray) -> np.ndarray:
+    """The bin of each key (>= 0): eight bins per octave, a larger key never in a smaller bin.
+    Exact (binary exponent and the mantissa's top three bits), so every process bins a key alike:
+    a tile's histogram of its stream's keys tells which rows of the stream each band of the
+    merge reads (:mod:`.merge`)."""
+    k = np.asarray(key, np.float64)
+    if k.size and not (k >= 0).all():
+        raise RuntimeError("a merge key is negative or NaN")
+    inf = np.isinf(k)
+    m, e = np.frexp(np.where(inf, 1.0, k))  # k = m * 2**e, m in [0.5, 1)
+    b = e.astype(np.int64) * 8 + np.floor((m - 0.5) * 16).astype(np.int64)
+    b[inf] = BIN_INF
+    b[k == 0] = BIN_ZERO
+    return b
+
+
 # ------------------------------------------------------------------------------------ names
 
 DECIMATED = "decimated.bin"
 SAMPLE = "sample.npy"
 HEAD_FILE = "head.bin"
-ORDER = "order.i8"
-KEY = "key.f8"
+#: the merge's deferred seam points, in merged order: input index, acceptance key
+DEFERRED = "deferred.bin"
+DEFER = np.dtype([("g", "<i8"), ("key", "<f8")])
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
 PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "merge", "ranks", "buckets", "radii")
@@ -110,6 +133,24 @@ def split_piece(b: int) -> str:
 
 def stream(t: int) -> str:
     return f"stream.{t}.bin"
+
+
+def seam(t: int) -> str:
+    """Tile ``t``'s seam points (stream rows nearer a shared face than their key), in stream order."""
+    return f"seam.{t}.bin"
+
+
+def merged(j: int) -> str:
+    """Piece ``j`` of the merged order (input indices; piece 0 the head, then one per key band)."""
+    return f"merged.{j}.i8"
+
+
+def merged_piece(j: int) -> str:
+    """The piece name of band ``j`` of the merge (a task; ``seams``: the seam points' merge)."""
+    return f"merged.{j}"
+
+
+SEAMS_PIECE = "seams"
 
 
 def face(t: int, p: int) -> str:
@@ -210,11 +251,11 @@ def writing(name: str) -> str:
 # ------------------------------------------------------------------------------------ pruning
 
 #: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
-#: after the merge, the tiles' streams and the merge's keys (no phase reads them); after the
+#: after the merge, the tiles' streams and seam points and the deferred points; after the
 #: write's permutation, the raw
 #: blocks; after the pieces (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"merge": ("stream.", "key."), "buckets": ("raw.",),
+PRUNE_AFTER = {"merge": ("stream.", "seam.", "deferred."), "buckets": ("raw.",),
                "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
@@ -224,8 +265,8 @@ def consumers(name: str) -> list[str] | None:
     build ends: while they are all done the file is not needed."""
     parts = name.split(".")
     kind, ext = parts[0], parts[-1]
-    if name == KEY:
-        return []
+    if name == DEFERRED or (kind == "seam" and ext == "bin"):
+        return ["merge"]
     if kind == "raw" and ext in ("xyz", "attr"):
         return ["plan", "distribute", "buckets"]
     if kind == "stream" and ext == "bin":
@@ -243,10 +284,10 @@ def consumers(name: str) -> list[str] | None:
 
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
-#: the named moments: after each phase's marker, after the first tile ordering's marker, and after
-#: the first read, split, rank (a read block's ranks), permute, band (of the radii) and chunks (band
-#: of the write) task's markers
-MOMENTS = (*PHASES, "tile", "read", "split", "rank", "permute", "band", "chunks")
+#: the named moments: after each phase's marker, after the first tile ordering's marker, after the
+#: seam repair's, and after the first read, split, merged (band of the merge), rank (a read block's
+#: ranks), permute, band (of the radii) and chunks (band of the write) task's markers
+MOMENTS = (*PHASES, "tile", SEAMS_PIECE, "read", "split", "merged", "rank", "permute", "band", "chunks")
 
 
 def moment(name: str) -> None:

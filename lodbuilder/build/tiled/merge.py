@@ -1,13 +1,30 @@
 """Merging the tile orderings into one order, and the exact covering radii of that order.
 
 **Merge.** The head (the coarse global level) comes first, in its own order. Then the tile streams
-are merged by descending key (an external k-way merge: each tile's stream is read block by block,
-never whole). Seam repair: a point closer to a tile boundary than its key (a *seam point*) is
-checked, when its turn comes, against the points of other tiles (and the head) accepted so far;
-if one lies within ``alpha`` times its key it waits: its key becomes (distance / ``alpha``) and it
-is merged again at that key, when the check is repeated (a lazy greedy over the seam points only).
-Every accepted point is therefore at least ``alpha`` times its acceptance key from every earlier
-point of another tile; inside a tile the tile's own farthest point order keeps its points apart.
+merged by descending key (ties: the lower tile first, a tile's rows in its order). Seam repair: a
+point closer to a tile boundary than its key (a *seam point*) is checked, when its turn comes,
+against the seam points of other tiles (and the head) accepted so far; if one lies within ``alpha``
+times its key it waits: its key becomes (distance / ``alpha``) and it is merged again at that key,
+after every tile row of an equal key, when the check is repeated (a lazy greedy over the seam
+points only). Every accepted point is therefore at least ``alpha`` times its acceptance key from
+every earlier point of another tile; inside a tile the tile's own farthest point order keeps its
+points apart.
+
+No process passes over every point. Only seam points take part in the repair and only seam points
+are checked against, so the repair is decided by merging the tiles' seam points alone (one task,
+:func:`seam_repair`, over ``seam.<t>.bin``: a few per cent of the points), in the same relative
+order as in the whole merge. Its outcome is the list of deferred points with their acceptance keys,
+in merged order (``deferred.bin``). Every other row's place follows from its key alone: the merged
+order is cut into bands of keys (:data:`lodbuilder.build.tiled.layout.key_bins`; the tiles'
+histograms of their keys, in their order markers, size the bands: whole bins, about BAND_ROWS rows
+each), and one task per band (:func:`merge_band`) reads each tile's rows of the band (a contiguous
+run of its stream, located by the histograms) in chunks, leaves out the deferred ones, adds the
+deferred points whose acceptance key falls in the band, and merges them by descending key (ties:
+the lower tile, then the deferred points) in buffers of a bounded size. The order is stored as pieces
+(``merged.<j>.i8``: the head, then each band's input indices) listed with their positions in the
+merge's marker (:func:`order_files`). The bands' tasks run side by side; the result is the order
+the one k-way merge of every tile stream gave (tests/test_tiled_seams.py checks both against the
+naive merge).
 
 **Radii.** The keys decide the order; the radii stored with it are proven: for each tile, the
 exact covering radius of its core by every prefix of the final order (computed from the core and
@@ -24,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from ...progress import ProgressCallback, report
+from ...errors import BuildError
+from ...progress import ProgressCallback
 from . import layout as WL
 from . import workdir as W
 from .store import Store, as_store
@@ -33,7 +51,9 @@ from .timing import timed_task
 
 log = logging.getLogger(__name__)
 
-BUF = 1 << 16  # rows per tile buffer in the merge, at most
+BUF = 1 << 16  # rows per tile buffer in the seam repair, at most
+#: rows of the merged order per band task, about (whole key bins; a bin holding more is one band)
+BAND_ROWS = 1 << 20
 #: bytes of all the tiles' buffers together (the buffers of 256 tiles at BUF rows were 805 MB)
 BUF_BYTES = 64 << 20
 
@@ -59,33 +79,30 @@ class _StreamReader:
         self.f.close()
 
 
-def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
-                min_cell: float, progress: ProgressCallback = None) -> dict[str, Any]:
-    """Write ``order.i8`` (input index at each position) and ``key.f8`` (acceptance keys)."""
-    from ..._kernels.tiled import seam_merge, table_size, tile_heap_refresh, tile_pop
+def seam_merge(work: Store, names: list[str], head: np.ndarray, alpha: float, lo: np.ndarray,
+               min_cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """The k-way merge with the seam repair of the streams ``names`` (STREAM rows by descending
+    key; here the tiles' seam points), after the ``head`` (HEAD rows, accepted first): the input
+    index and acceptance key of every stream row, in merged order."""
+    from ..._kernels.tiled import seam_merge as kernel
+    from ..._kernels.tiled import table_size, tile_heap_refresh, tile_pop
 
-    head = work.read_array(WL.HEAD_FILE, HEAD)
+    readers = [_StreamReader(work, name) for name in names]
+    n_rows = sum(r.left for r in readers)
     h = head.shape[0]
-    n_seam = int(sum(seam_counts))
-    cap_acc = h + n_seam + 1
+    cap_acc = h + n_rows + 1
     ax = np.empty((cap_acc, 3))
     ax[:h, 0], ax[:h, 1], ax[:h, 2] = head["x"], head["y"], head["z"]
     atile = np.full(cap_acc, -1, np.int64)
     size = table_size(cap_acc)
-    tkeys = np.full(size, -1, np.int64)
-    thead = np.full(size, -1, np.int64)
-    nxt = np.full(cap_acc, -1, np.int64)
-    dheap_key = np.empty(n_seam + 1)
-    dheap_item = np.empty(n_seam + 1, np.int64)
+    tkeys, thead, nxt = np.full(size, -1, np.int64), np.full(size, -1, np.int64), np.full(cap_acc, -1, np.int64)
     # a point may be deferred several times: the pool grows only by the deferrals
-    dpool = np.empty((max(4 * n_seam, 1024), 6))
-    dtile = np.empty(dpool.shape[0], np.int64)
+    dheap_key, dheap_item = np.empty(n_rows + 1), np.empty(n_rows + 1, np.int64)
+    dpool, dtile = np.empty((max(4 * n_rows, 1024), 6)), np.empty(max(4 * n_rows, 1024), np.int64)
     state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
-    readers = [_StreamReader(work, WL.stream(t)) for t in range(n_tiles)]
-    buf = buffer_rows(n_tiles)
-    bufs = np.zeros((n_tiles, buf, 6))
-    bpos = np.zeros(n_tiles, np.int64)
-    blen = np.zeros(n_tiles, np.int64)
+    buf = buffer_rows(len(readers))
+    bufs = np.zeros((len(readers), buf, 6))
+    bpos, blen = np.zeros(len(readers), np.int64), np.zeros(len(readers), np.int64)
     heap_rows = []
     for t, r in enumerate(readers):
         a = r.read(buf)
@@ -96,32 +113,23 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
     heap_rows.sort()
     theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
     tn = theap.shape[0]
-    out_g = np.empty(W.BLOCK, np.int64)
-    out_key = np.empty(W.BLOCK)
-    written = 0
-    deferred = 0
-    fo, fk = work.writer(WL.ORDER), work.writer(WL.KEY)  # (committed once the count checks out)
+    out_g, out_key = np.empty(W.BLOCK, np.int64), np.empty(W.BLOCK)
+    got_g, got_key = [], []
     try:
-        fo.write(head["g"].astype("<i8"))
-        fk.write(np.full(h, np.inf))
-        written = h
-        report(progress, "merge", written, n)
         while True:
-            if state[4] + 2 * n_seam + 16 > dpool.shape[0]:  # room for the next deferrals
+            if state[4] + 2 * n_rows + 16 > dpool.shape[0]:  # room for the next deferrals
                 grow = dpool.shape[0] * 2
                 dpool = np.concatenate([dpool, np.empty((grow - dpool.shape[0], 6))])
                 dtile = np.concatenate([dtile, np.empty(grow - dtile.shape[0], np.int64)])
                 dheap_key = np.concatenate([dheap_key, np.empty(grow - dheap_key.shape[0])])
                 dheap_item = np.concatenate([dheap_item, np.empty(grow - dheap_item.shape[0], np.int64)])
-            code, t = seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
-                                 dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
-            k = int(state[0])
-            if code == 2 or code == 0:
-                fo.write(out_g[:k].astype("<i8"))
-                fk.write(out_key[:k].astype("<f8"))
-                written += k
+            code, t = kernel(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+                             dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
+            if code in (0, 2):
+                k = int(state[0])
+                got_g.append(out_g[:k].copy())
+                got_key.append(out_key[:k].copy())
                 state[0] = 0.0
-                report(progress, "merge", written, n)
                 if code == 0:
                     break
                 continue
@@ -129,25 +137,198 @@ def merge_tiles(work: Store, n: int, n_tiles: int, seam_counts: list[int], alpha
             bufs[t, : a.shape[0]] = a
             bpos[t] = 0
             blen[t] = a.shape[0]
-            if a.shape[0]:
-                tn = tile_heap_refresh(theap, tn, t, float(a[0, 1]))
-            else:
-                tn = tile_pop(theap, tn)
-        deferred = int(state[4])
-        if written != n:
-            raise RuntimeError(f"tiled merge wrote {written} of {n} points (tiles inconsistent with the input)")
-        files = {WL.ORDER: fo.commit(), WL.KEY: fk.commit()}
+            tn = tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn)
     finally:
         for r in readers:
             r.close()
-        fo.close()
-        fk.close()
-    return {"deferred": deferred, "seam_points": n_seam, "head": h, "files": files}
+    g, key = np.concatenate(got_g), np.concatenate(got_key)
+    if g.shape[0] != n_rows:
+        raise RuntimeError(f"the seam merge gave {g.shape[0]} of {n_rows} points (tiles inconsistent with the input)")
+    return g, key
 
 
 @timed_task
-def merge_task(work: str, n: int, n_tiles: int, seam_counts: list[int], alpha: float, lo: np.ndarray,
-               min_cell: float) -> dict[str, Any]:
-    """The merge as one task (on a worker, so that the parent loads no kernel and passes over no
-    point): :func:`merge_tiles`; returns the merge's marker. (The ranks: :mod:`.ranks`, tasks.)"""
-    return merge_tiles(as_store(work), n, n_tiles, seam_counts, alpha, lo, min_cell)
+def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell: float) -> dict[str, Any]:
+    """The seam repair (see the module): the tiles' seam points merged after the head; writes the
+    order's first piece (the head) and ``deferred.bin`` (the deferred points and their acceptance
+    keys, in merged order). Returns the piece's marker (with the deferred keys' histogram)."""
+    w = as_store(work)
+    head = w.read_array(WL.HEAD_FILE, HEAD)
+    names = [WL.seam(t) for t in range(n_tiles)]
+    g, key = seam_merge(w, names, head, alpha, lo, min_cell)
+    rows = np.concatenate([w.read_array(name, STREAM) for name in names] or [np.zeros(0, STREAM)])
+    srt = np.argsort(rows["g"], kind="stable")
+    was = rows["key"][srt][np.searchsorted(rows["g"][srt], g.astype(np.float64))]
+    late = key < was  # (an accepted point keeps its key; a deferred one is accepted below it)
+    d = np.empty(int(late.sum()), WL.DEFER)
+    d["g"], d["key"] = g[late], key[late]
+    bins, counts = np.unique(WL.key_bins(d["key"]), return_counts=True)
+    files = {WL.merged(0): w.put(WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d)}
+    return {"head": int(head.shape[0]), "seam_points": int(g.shape[0]), "deferred": int(d.shape[0]),
+            "hist": [bins.tolist(), counts.tolist()], "files": files}
+
+
+class _RangeReader:
+    """Rows ``a .. z`` of a tile's stream (or rows given whole), in chunks, without the rows whose
+    input index is in ``drop`` (sorted), as (m, 6) float64 rows whose margins are infinite (no row
+    is a seam point: :func:`merge_band` merges by key alone)."""
+
+    def __init__(self, store: Store | None, name: str, a: int, z: int, drop: np.ndarray, bins: list[int],
+                 rows: np.ndarray | None = None) -> None:
+        self.store, self.name, self.pos, self.end, self.drop, self.rows = store, name, a, z, drop, rows
+        self.bins = bins
+
+    def read(self, m: int) -> np.ndarray:
+        while self.pos < self.end:
+            k = min(m, self.end - self.pos)
+            if self.rows is not None:
+                s = self.rows[self.pos:self.pos + k]
+            else:
+                assert self.store is not None
+                s = self.store.read_array(self.name, STREAM, self.pos, k)
+                b = WL.key_bins(s["key"][[0, -1]])
+                if s.shape[0] != k or b[0] > self.bins[1] or b[1] < self.bins[0]:
+                    raise RuntimeError(f"{self.name}: rows {self.pos}..{self.end} are not the rows its histogram says")
+            self.pos += k
+            if self.drop.size:
+                s = s[~np.isin(s["g"].astype(np.int64), self.drop)]
+            if s.shape[0]:
+                out = s.view("<f8").reshape(-1, 6).copy()
+                out[:, 5] = np.inf
+                return out
+        return np.zeros((0, 6))
+
+
+@timed_task
+def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferred: bool) -> dict[str, Any]:
+    """Band ``j`` of the merge (see the module): ``rows`` ``[tile, first, end]`` of the tiles'
+    streams whose keys fall in the bins ``bins`` (lowest, highest), tiles in order; with
+    ``deferred``, the deferred points accepted in those bins after them. A k-way merge by key
+    (ties: the lower tile, then the deferred points) with buffers of a bounded size, whatever the
+    band's rows. Writes ``merged.<j>.i8``."""
+    from ..._kernels.tiled import seam_merge as kernel
+    from ..._kernels.tiled import table_size, tile_heap_refresh, tile_pop
+
+    w = as_store(work)
+    d = w.read_array(WL.DEFERRED, WL.DEFER)
+    drop = np.sort(d["g"])
+    readers = [_RangeReader(w, WL.stream(t), a, z, drop, bins) for t, a, z in rows]
+    if deferred and d.shape[0]:
+        b = WL.key_bins(d["key"])
+        mine = d[(b >= bins[0]) & (b <= bins[1])]
+        extra = np.zeros(mine.shape[0], STREAM)
+        extra["g"], extra["key"] = mine["g"], mine["key"]
+        readers.append(_RangeReader(None, WL.DEFERRED, 0, mine.shape[0], np.zeros(0, np.int64), bins, extra))
+    buf = buffer_rows(len(readers))
+    bufs = np.zeros((len(readers), buf, 6))
+    bpos, blen = np.zeros(len(readers), np.int64), np.zeros(len(readers), np.int64)
+    heap_rows = []
+    for t, r in enumerate(readers):
+        a = r.read(buf)
+        bufs[t, : a.shape[0]] = a
+        blen[t] = a.shape[0]
+        if a.shape[0]:
+            heap_rows.append((-a[0, 1], t))
+    heap_rows.sort()
+    theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
+    tn = theap.shape[0]
+    one = np.zeros(1, np.int64)  # (no row is a seam point: the seam structures stay empty)
+    state = np.array([0.0, 0.0, np.inf, 0.0, 0.0, 1.0])
+    size = table_size(1)
+    out_g, out_key = np.empty(W.BLOCK, np.int64), np.empty(W.BLOCK)
+    f = w.writer(WL.merged(j))
+    count = 0
+    try:
+        while True:
+            code, t = kernel(bufs, bpos, blen, theap, tn, state, np.zeros((1, 3)), one - 1, np.full(size, -1, np.int64),
+                             np.full(size, -1, np.int64), one - 1, np.empty(1), one.copy(), np.empty((1, 6)), one.copy(),
+                             np.zeros(3), 0.0, out_g, out_key)
+            if code in (0, 2):
+                k = int(state[0])
+                f.write(out_g[:k].astype("<i8"))
+                count += k
+                state[0] = 0.0
+                if code == 0:
+                    break
+                continue
+            a = readers[t].read(buf)  # code 1: refill source t (at the top of the heap)
+            bufs[t, : a.shape[0]] = a
+            bpos[t] = 0
+            blen[t] = a.shape[0]
+            tn = tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn)
+        files = {WL.merged(j): f.commit()}
+    finally:
+        f.close()
+    return {"band": j, "count": count, "files": files}
+
+
+def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_rows: int
+               ) -> list[tuple[list[list[int]], list[int], bool]]:
+    """The merge's bands from the tiles' key histograms (``[bins, counts]`` each) and the deferred
+    keys' histogram: ``(rows, bins, deferred)`` per band (the arguments of :func:`merge_band`), in
+    merged order; each about ``band_rows`` rows of whole bins (a bin holding more is a band of its
+    own: its task merges in bounded memory, but takes longer)."""
+    all_bins = np.unique(np.concatenate([np.asarray(h[0], np.int64) for h in [*hists, deferred]] or [np.zeros(0, np.int64)]))
+    desc = all_bins[::-1]
+    c = np.zeros((len(hists), desc.shape[0]), np.int64)
+    for t, (b, k) in enumerate(hists):
+        c[t, desc.shape[0] - 1 - np.searchsorted(all_bins, np.asarray(b, np.int64))] = k
+    dc = np.zeros(desc.shape[0], np.int64)
+    dc[desc.shape[0] - 1 - np.searchsorted(all_bins, np.asarray(deferred[0], np.int64))] = deferred[1]
+    above = np.cumsum(c, axis=1) - c  # rows of each tile in the bins before each bin (larger keys)
+    total = c.sum(axis=0) + dc
+    bands: list[tuple[list[list[int]], list[int], bool]] = []
+
+    def rows(i0: int, i1: int, tiles: range) -> list[list[int]]:  # bins desc[i0..i1] of these tiles
+        return [[t, int(above[t, i0]), int(above[t, i1] + c[t, i1])] for t in tiles if c[t, i0:i1 + 1].sum()]
+
+    i = 0
+    while i < desc.shape[0]:  # whole bins, about band_rows rows a band (a larger bin alone)
+        j, acc = i + 1, int(total[i])
+        while j < desc.shape[0] and acc + total[j] <= band_rows:
+            acc += int(total[j])
+            j += 1
+        bands.append((rows(i, j - 1, range(len(hists))), [int(desc[j - 1]), int(desc[i])], True))
+        i = j
+    return bands
+
+
+def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any]], alpha: float, lo: np.ndarray,
+                min_cell: float, progress: ProgressCallback = None, band_rows: int = BAND_ROWS) -> dict[str, Any]:
+    """The merge as tasks: the seam repair, then the bands side by side (finished pieces a resume
+    finds are not redone). Returns the merge's marker: ``order`` (the pieces of the merged order,
+    ``[name, first position, end]``), the counts of seam points and deferred points, and the files."""
+    from .pool import collect, submit
+    from .sums import done, mark
+
+    seams = done(work, WL.SEAMS_PIECE)
+    if seams is None:
+        args = (work, len(stats), alpha, lo, min_cell)
+        (seams,) = collect(submit(ex, [(0, seam_repair, args)]), lambda _: "the seam repair", name, 1, None, "merge")
+        mark(work, WL.SEAMS_PIECE, seams)
+    if any("hist" not in s for s in stats):
+        raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
+                         "again with --force")
+    bands = plan_bands([s["hist"] for s in stats], seams["hist"], band_rows)
+    got = {j: d for j in range(1, len(bands) + 1) if (d := done(work, WL.merged_piece(j))) is not None}
+    calls = [(j, merge_band, (work, j, *bands[j - 1])) for j in range(1, len(bands) + 1) if j not in got]
+    collect(submit(ex, calls), lambda j: f"band {j} of the merge", name, n, progress, "merge",
+            lambda r: got.__setitem__(r["band"], mark(work, WL.merged_piece(r["band"]), r)),
+            lambda r: r["count"], int(seams["head"]) + sum(d["count"] for d in got.values()))
+    order, k = [[WL.merged(0), 0, int(seams["head"])]], int(seams["head"])
+    for j in range(1, len(bands) + 1):
+        order.append([WL.merged(j), k, k + int(got[j]["count"])])
+        k += int(got[j]["count"])
+    if k != n:
+        raise RuntimeError(f"tiled merge placed {k} of {n} points (tiles inconsistent with the input)")
+    # (deferred.bin is listed by the seam repair's marker alone: it is deleted with this marker written)
+    files = {WL.merged(0): seams["files"][WL.merged(0)], **{f: v for d in got.values() for f, v in d["files"].items()}}
+    return {"deferred": seams["deferred"], "seam_points": seams["seam_points"], "head": seams["head"],
+            "order": order, "files": files}
+
+
+def order_files(work: Any) -> list[tuple[str, int, int]]:
+    """The pieces of the merged order (name, first position, end), from the merge's marker."""
+    from .sums import get_json
+
+    return [(f, int(a), int(z)) for f, a, z in (get_json(work, WL.marker("merge")) or {})["order"]]

@@ -1,10 +1,10 @@
-"""Every input point's position in the merged order (the inverse of ``order.i8``), by tasks.
+"""Every input point's position in the merged order (the inverse of the order's pieces), by tasks.
 
 The inverse is a scatter: position k goes to input index order[k], anywhere in the scan. One
 process doing it over every point is a random write per point (about 0.2 us a point, most of it
 waiting on memory and pages). Here it is an external transpose in two rounds of tasks:
 
-1. :func:`rank_band` (one task per band of ``BAND`` positions of ``order.i8``): the band's
+1. :func:`rank_band` (one task per band of ``BAND`` positions of the merged order): the band's
    ``(input index, position)`` pairs sorted by read block (the raw blocks of the read phase), one
    file per band (``rankp.<k>.bin``), and how many pairs go to each block;
 2. :func:`rank_block` (one task per read block): its pairs from every band (one slice of each
@@ -23,13 +23,14 @@ import numpy as np
 
 from ...progress import ProgressCallback
 from . import layout as WL
+from .merge import order_files
 from .pool import collect, submit
 from .store import as_store
 from .sums import done, get_json, mark
 from .timing import timed_task
-from .workdir import gather
+from .workdir import gather, segment
 
-#: positions of ``order.i8`` per task of the first round
+#: positions of the merged order per task of the first round
 BAND = 1 << 19
 #: a pair of the transpose: input index, position
 PAIR = np.dtype([("g", "<i8"), ("k", "<i8")])
@@ -39,9 +40,7 @@ PAIR = np.dtype([("g", "<i8"), ("k", "<i8")])
 def rank_band(work: str, band: int, k0: int, k1: int, starts: list[int]) -> dict[str, Any]:
     """Round 1 for positions ``k0 .. k1`` (``starts``: the first input index of every read block)."""
     w = as_store(work)
-    g = w.read_array(WL.ORDER, "<i8", k0, k1 - k0)
-    if g.shape[0] != k1 - k0:
-        raise RuntimeError(f"{WL.ORDER} holds {k0 + g.shape[0]} positions, not {k1}")
+    g = segment(w, order_files(w), "<i8", k0, k1)
     blk = np.searchsorted(np.asarray(starts, np.int64), g, "right") - 1
     srt = np.argsort(blk.astype(np.int32), kind="stable")  # radix sort
     pairs = np.empty(g.shape[0], PAIR)

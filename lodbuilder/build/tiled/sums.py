@@ -154,7 +154,7 @@ def consumed(store: Store, name: str) -> bool:
         if piece.endswith(".*"):  # (every ordering pass of a tile: an earlier pass's stream was replaced)
             found = sorted((n[: -len(".json")] for n in store.names(piece[:-1]) if n.endswith(".json")),
                            key=lambda x: int(x.split(".")[-1]))
-            stream = (WL.stream(int(piece.split(".")[1])),)
+            stream = (WL.stream(int(piece.split(".")[1])), WL.seam(int(piece.split(".")[1])))
             if not found or not all(_verified(store, p, stream if p != found[-1] else ()) for p in found):
                 return False
         elif not _verified(store, piece):

@@ -161,9 +161,12 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
         files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
     files[WL.stream(t)] = w.put(WL.stream(t), stream)
-    n_seam = int((stream["m"] < stream["key"]).sum())
+    seam = stream["m"] < stream["key"]
+    files[WL.seam(t)] = w.put(WL.seam(t), stream[seam])
+    bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
-            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
+            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": int(seam.sum()),
+            "hist": [bins.tolist(), counts.tolist()],
             "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
 
 

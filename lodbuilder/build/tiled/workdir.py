@@ -17,7 +17,7 @@ from typing import Any, cast
 import numpy as np
 
 from . import layout as WL
-from .store import LocalStore, Store
+from .store import LocalStore, Store, as_store
 from .sums import read_json, write_json  # noqa: F401 - the markers' helpers, re-exported
 
 REC = WL.REC
@@ -213,6 +213,20 @@ def gather(path: Path | tuple[Store, str], dtype: Any, shape: tuple[int, ...], i
         run = np.frombuffer(raw, dtype=dt).reshape(last - first + 1, -1) if shape else np.frombuffer(raw, dtype=dt)
         flat[order[i:j]] = run[srt[i:j] - first]
     return out
+
+
+def segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, k1: int) -> np.ndarray:
+    """Positions ``k0 .. k1`` of the stored order from ``files`` (name, first and end position of
+    each, in order)."""
+    dt = np.dtype(dtype)
+    out = []
+    for fname, a, z in files:
+        if a < k1 and z > k0:
+            out.append(as_store(work).read_array(fname, dt, max(k0, a) - a, min(k1, z) - max(k0, a)))
+    got = np.concatenate(out) if out else np.zeros(0, dt)
+    if got.shape[0] != k1 - k0:
+        raise RuntimeError(f"{files[0][0]} and the files after it hold {got.shape[0]} of positions {k0} to {k1}")
+    return got
 
 
 def sorted_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"

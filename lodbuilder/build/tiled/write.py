@@ -222,6 +222,7 @@ class _Joined:
 
 
 def _order_block(work: Path, k0: int, k1: int) -> np.ndarray:
-    with open(work / WL.ORDER, "rb") as f:
-        f.seek(k0 * 8)
-        return np.fromfile(f, dtype="<i8", count=k1 - k0)
+    from .merge import order_files
+    from .workdir import segment
+
+    return segment(LocalStore(work), order_files(LocalStore(work)), "<i8", k0, k1)
