@@ -229,7 +229,7 @@ def request_kind(environ: dict[str, Any]) -> tuple[str, str]:
         kind = f"{method} multipart"
     else:
         kind = method
-    return kind, re.sub(r"[0-9a-f]{12}$", "<id>", re.sub(r"\d+", "#", key)) if key else ""
+    return kind, re.sub(r"\d+", "#", re.sub(r"\.[0-9a-f]{12}$", ".<id>", key)) if key else ""
 
 
 class RequestCounter:
