@@ -73,3 +73,23 @@ def test_dask_local_workers_start_warm_in_the_callers_environment(tmp_path):
                                        "distributed.admin.tick.interval": "1s",
                                        "distributed.admin.system-monitor.interval": "2s",
                                        "distributed.worker.memory.monitor-interval": "1s"}
+
+
+def test_the_readme_gives_a_real_cluster_the_local_clusters_settings():
+    """The Dask configuration the README gives a real cluster's workers is the LocalCluster's."""
+    import re
+    from pathlib import Path
+
+    import dask
+    import yaml
+    from distributed.nanny import _get_env_variables
+
+    from lodbuilder.build.executors import DASK_LOCAL_CONFIG
+
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    (block,) = re.findall(r"^```yaml\n(.*?)^```", text, re.M | re.S)
+    with dask.config.set(yaml.safe_load(block)):
+        assert "MALLOC_TRIM_THRESHOLD_" not in _get_env_variables("distributed.nanny.pre-spawn-environ")
+        for key, value in DASK_LOCAL_CONFIG.items():
+            if key != "distributed.nanny.pre-spawn-environ":
+                assert dask.config.get(key) == value, key
