@@ -101,13 +101,20 @@ def test_a_missing_marker_is_one_request(store):
         st.get("missing.bin")
 
 
-def test_task_logs_are_read_with_one_get_each(store):
+def test_a_process_task_log_is_one_object(store, monkeypatch):
+    from lodbuilder.build.tiled import store as S
+
     st, counter = store
     st.log("tasks.7.jsonl", '{"a": 1}')
     st.log("tasks.7.jsonl", '{"a": 2}')
-    counter.take()
-    assert sorted(st.log_lines("tasks.7")) == ['{"a": 1}', '{"a": 2}']
-    assert sorted(counter.take()) == [("GET", False), ("GET", False), ("GET", False)]  # the listing, 2 objects
+    assert counter.take() == [("PUT", False), ("PUT", False)]  # (each line there when its task ends)
+    assert st.log_lines("tasks.7") == ['{"a": 1}', '{"a": 2}']
+    assert counter.take() == [("GET", False), ("GET", False)]  # the listing, one object (was one a line)
+    monkeypatch.setattr(S, "LOG_LINES", 3)  # a long-lived worker starts another object now and then
+    for i in range(3, 8):
+        st.log("tasks.7.jsonl", f'{{"a": {i}}}')
+    assert len(st.names("tasks.7.jsonl.")) == 3
+    assert sorted(st.log_lines("tasks.7")) == sorted(f'{{"a": {i}}}' for i in range(1, 8))
 
 
 def test_pruned_work_files_go_in_one_request(store):
@@ -120,3 +127,15 @@ def test_pruned_work_files_go_in_one_request(store):
     prune(st, ["bucket.0.1.bin", "bucket.0.2.bin", "bucket.0.3.bin", "bucket.0.9.bin"])  # (one missing)
     assert counter.take() == [("POST", False)]  # (was a DELETE each)
     assert st.names("bucket.0.") == []
+
+
+def test_a_later_build_logs_afresh(store):
+    """A worker process that logged in one build (the same store URL, claimed again) does not write
+    that build's lines into the next build's log."""
+    st, _ = store
+    st.claim()
+    st.log("tasks.8.jsonl", "first build")
+    st.clear()
+    st.claim()
+    st.log("tasks.8.jsonl", "second build")
+    assert st.log_lines("tasks.8") == ["second build"]

@@ -30,6 +30,7 @@ import contextlib
 import io
 import os
 import tempfile
+import threading
 import zlib
 from pathlib import Path
 from typing import Any, cast
@@ -46,6 +47,12 @@ REMOTE_GAP = 1 << 20
 LOCAL_GAP_ROWS = 64
 #: the object that marks a prefix of an object store as a tiled build's work files
 OWNER = ".lodbuilder-work"
+#: lines of a task log object on an object store (then the process starts another)
+LOG_LINES = 500
+
+#: (store URL, claim, log name, pid) -> (object, its lines): the task log objects of this process
+_LOGS: dict[tuple[str, str, str, int], tuple[str, list[str]]] = {}
+_LOGS_LOCK = threading.Lock()
 
 
 def _bytes(data: Any) -> Any:
@@ -402,9 +409,12 @@ class FsspecStore(Store):
     def claim(self) -> None:
         """Write the store's owner object (:data:`OWNER`), or fail in one line before any work
         when the store cannot be written (a missing bucket, wrong credentials, no endpoint)."""
+        import uuid
+
         from ...errors import WorkStoreError
 
         self.verified.clear()
+        self.claimed = uuid.uuid4().hex[:12]  # (travels to the workers: their task logs start afresh)
         try:
             self.put(OWNER, b"lodbuilder tiled build work files\n")
         except Exception as exc:  # noqa: BLE001 - any failure of the file system, said in one line
@@ -482,10 +492,18 @@ class FsspecStore(Store):
         return self.fs.open(self.key(name), "rb", block_size=1 << 23, cache_type="readahead")
 
     def log(self, name: str, line: str) -> None:
+        """The lines this process logged under ``name`` so far (up to :data:`LOG_LINES`) are one
+        object, written whole again with each line: a task's line is there when the task ends,
+        and reading the logs back takes a request per process rather than per task."""
         import uuid
 
-        with contextlib.suppress(OSError):
-            self.put(f"{name}.{uuid.uuid4().hex[:12]}", (line + "\n").encode())
+        with _LOGS_LOCK:  # (threads of one worker: one object, its lines in order)
+            key = (self.url, self.__dict__.get("claimed", ""), name, os.getpid())  # (a later build: new lines)
+            obj, lines = _LOGS.get(key) or (f"{name}.{uuid.uuid4().hex[:12]}", [])
+            lines.append(line)
+            _LOGS[key] = (obj, lines) if len(lines) < LOG_LINES else (f"{name}.{uuid.uuid4().hex[:12]}", [])
+            with contextlib.suppress(OSError):
+                self.put(obj, ("\n".join(lines) + "\n").encode())
 
     def log_lines(self, prefix: str) -> list[str]:
         names = self.names(prefix)
