@@ -20,7 +20,9 @@ whole scan for exact distances.
    to the tangent-plane approximation).
 2. **Groups.** Seeds closer than 2 rho are linked; a group wider than ``2 * max_hole * rho`` (a
    long border) is open and left alone.
-3. **Regions** (per group, in the plane of the seeds' level normals). The sample points around the
+3. **Regions** (per group, in the plane of the seeds' level normals; where that leaves it
+   open, again in the seeds' own plane when they spread over one that most of the normals
+   face within 60 degrees: the rim's normals turn with the surface). The sample points around the
    group, near that plane (``|height| <= rho + |distance in the plane| / 2``, which drops other
    sheets across the plane) are projected on it; a square grid of candidate nodes at spacing
    rho/4 is laid over them, first a little wider than the seeds' spread, then (for groups of
@@ -32,10 +34,9 @@ whole scan for exact distances.
    kept when it is a fillable gap; and where some of the points face away from the seeds'
    side, normals oriented along the surface: the other face of a thin part, reached round its
    edge, the group is searched first with those set aside, keeping only fillable gaps, then
-   as it is). A region that reaches the grid's edge leaks into empty
-   space (the scan's border, or a hole wider than ``max_hole * rho``), or through a part of its
-   rim that the cone dropped (the
-   rim of a hole on a strongly curved place is steep over any one plane). Such a group is
+   as it is). A region that reaches the grid's edge leaks into empty space (the scan's border,
+   or a hole wider than ``max_hole * rho``), or through a part of its rim that the cone dropped
+   (the rim of a hole on a strongly curved place is steep over any one plane). Such a group is
    searched again **along the surface**: only the sample points on the seeds' own sheet
    (reached from the points next to the seeds within the grid's reach, over links to each
    point's 8 nearest points within 1.5 rho: :func:`~lodbuilder.fill.local.on_sheet`), in a
@@ -51,14 +52,13 @@ whole scan for exact distances.
    field over that plane and not over its least-squares one) and a height field over it
    (:class:`~lodbuilder.fill.surface.HeightField`, fitted without the ring points facing away:
    :func:`~lodbuilder.fill.local.same_face`; for a gap, the spline that cross-validates best
-   on the ring). The region is *rough* (reported, not
-   filled) when the ring is not a height field (more than 25 % of the normals of its inner part,
-   the points within rho of the region, tilted over 60 degrees from the plane's normal: the
-   outer ring of a hole on a tube or a small sphere turns farther, and is not what the fill
-   bridges) or not one smooth piece: fitted to five sixths of the ring
-   (angular sectors around the hole), the surface misses the inner ring points (within rho of
-   the region) of the sixth left out by more than rho/2 RMS (e.g. an occlusion shadow, whose rim
-   lies on two surfaces at different depths).
+   on the ring). The region is *rough* (reported, not filled) when the ring is not a height
+   field (more than 25 % of the normals of its inner part, the points within rho of the region,
+   tilted over 60 degrees from the plane's normal: the outer ring of a hole on a tube or a
+   small sphere turns farther, and is not what the fill bridges) or not one smooth piece:
+   fitted to five sixths of the ring (angular sectors around the hole), the surface misses the
+   inner ring points (within rho of the region) of the sixth left out by more than rho/2 RMS
+   (e.g. an occlusion shadow, whose rim lies on two surfaces at different depths).
 5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
    sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
    than rho from every sample point: its area (node count x node area x the height field's
@@ -84,12 +84,14 @@ from .local import (
     Grid,
     facing,
     flood,
+    group_normal,
     groups,
     inside,
     near_plane,
     normals_at,
     on_sheet,
     same_face,
+    stacked,
 )
 from .surface import (
     MAX_TILT,
@@ -288,8 +290,7 @@ def _seeds(
     d_l, _ = tree_l.query(cand, k=1, workers=-1)
     cand, nrm = cand[d_l > rho], nrm[d_l > rho]
     # a vertex within rho/2 of a sample point is no seed: that point, its nearest, is within
-    # rho/2 of it along its tangent plane too (the test below). Most vertices stop here, before
-    # the query of 16 neighbours.
+    # rho/2 of it along its tangent plane too (the test below). Most stop here, before 16-NN.
     d_0, _ = tree_s.query(cand, k=1, distance_upper_bound=rho, workers=-1)
     keep = ~(d_0 <= NEAR_FRACTION * rho)
     cand, nrm = cand[keep], nrm[keep]
@@ -352,9 +353,14 @@ def find_regions(
         grp, sp = grp[new], sp[new]
         if grp.size == 0:
             continue
-        nrm = seed_normals[grp]
-        nrm = nrm * np.where(nrm @ nrm[0] < 0, -1.0, 1.0)[:, None]
-        _search_group(out, sample, tree_s, sp, nrm.sum(axis=0), width)
+        summed, flat = group_normal(sp, seed_normals[grp], rho, MIN_SEEDS_WIDE)
+        before = (len(out.regions), out.n_open, out.n_bent)
+        _search_group(out, sample, tree_s, sp, summed, width)
+        now = (len(out.regions), out.n_open, out.n_bent)
+        if flat is not None and now[0] == before[0] and now != before:
+            # open or bent over the plane of the level normals: again over the seeds' plane
+            out.n_open, out.n_bent = before[1:]
+            _search_group(out, sample, tree_s, sp, flat, width)
     return out
 
 
@@ -475,17 +481,6 @@ class _Local:
         return self.sample[self.idx]
 
 
-def _stacked(local: _Local, frame: Frame, rho: float) -> bool:
-    """Some of the points lie over one another (within rho/2 in the plane, 1.5 rho apart in
-    height): two faces, or a fold, over the grid."""
-    n = local.idx.size
-    d, nb = local.tree2.query(local.tree2.data, k=min(5, n), distance_upper_bound=0.5 * rho)
-    h = frame.height(local.points)
-    near = np.isfinite(d)
-    nb = np.where(near, nb, np.arange(n)[:, None])
-    return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
-
-
 def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     """(regions, where): the regions of the seeds on a grid laid in ``frame`` (``None`` for one
     reaching the grid's edge), and the centre of the nodes of those that did (None if none).
@@ -493,7 +488,11 @@ def _regions_on_grid(frame, local: _Local, seeds, rho, g, half, refit: int):
     plane (:func:`~lodbuilder.fill.surface.height_field_normal`)."""
     from scipy.spatial import cKDTree
 
-    if local.away is not None and local.idx.size > K_SAMPLE and _stacked(local, frame, rho):
+    if (
+        local.away is not None
+        and local.idx.size > K_SAMPLE
+        and stacked(local.tree2, frame.height(local.points), rho)
+    ):
         off = facing(local.points, frame.normal, seeds, rho, local.points) <= FACING
         if off.any():
             local.away.append(True)

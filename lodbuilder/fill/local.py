@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .surface import Frame
+from .surface import MAX_TILT, Frame
 
 #: neighbours per sample point for normals and the seeds' plane (and links along the surface)
 K_SAMPLE = 8
@@ -50,10 +50,11 @@ STACKED = 0.6
 
 
 def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float, cloud):
-    """(N,) dot product of each point's normal with ``normal``, the normals (PCA, from the
-    nearest points of ``cloud``) oriented consistently along the surface: over a minimum
-    spanning tree of links to the :data:`K_SAMPLE` nearest points within :data:`LINK` rho,
-    weighted by how much the normals differ (Hoppe et al. 1992), from the point of each
+    """(N,) dot product of each point's normal with ``normal``, the normals (from the nearest
+    points of ``cloud``: :func:`fitting_normals`) oriented consistently along the surface: over
+    a minimum spanning tree of links to the :data:`K_SAMPLE` nearest points within :data:`LINK`
+    rho, weighted by how much the normals differ (Hoppe et al. 1992) and by how steep the link
+    is to them (a link across a thin part's gap), from the point of each
     connected piece nearest the seeds, itself oriented along ``normal``. The other face of a
     thin part (an ear, a leaf), reached round its edge, faces the other way."""
     from scipy.sparse import coo_matrix
@@ -61,13 +62,22 @@ def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float
     from scipy.spatial import cKDTree
 
     n = points.shape[0]
-    nrm = normals_at(points, cloud)
+    nrm = fitting_normals(points, cloud)
     k = min(K_SAMPLE + 1, n)
     d, nb = cKDTree(points).query(points, k=k, distance_upper_bound=LINK * rho)
     d, nb = np.asarray(d).reshape(n, k)[:, 1:].ravel(), np.asarray(nb).reshape(n, k)[:, 1:].ravel()
     ok = np.isfinite(d)
     rows, cols = np.repeat(np.arange(n), k - 1)[ok], nb[ok]
-    w = 1.0 - np.abs(np.einsum("ij,ij->i", nrm[rows], nrm[cols])) + 1e-6
+    # a link across a thin gap (two faces of a thin part closer than LINK) runs along the
+    # normals, a link over the surface across them: steep links cost as much as a turn of 90
+    # degrees, so orientation goes round the fold, not across the gap (whose faces' normals
+    # are parallel and would orient both faces the same way)
+    e = points[cols] - points[rows]
+    e /= np.maximum(np.linalg.norm(e, axis=1), 1e-300)[:, None]
+    steep = np.maximum(
+        np.abs(np.einsum("ij,ij->i", e, nrm[rows])), np.abs(np.einsum("ij,ij->i", e, nrm[cols]))
+    )
+    w = 1.0 - np.abs(np.einsum("ij,ij->i", nrm[rows], nrm[cols])) + steep + 1e-6
     g = coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()
     tree = minimum_spanning_tree(g.maximum(g.T))
     tree = tree + tree.T
@@ -144,6 +154,28 @@ def normals_at(points: np.ndarray, cloud: np.ndarray) -> np.ndarray:
     c = nbhd - nbhd.mean(axis=1, keepdims=True)
     _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
     return vec[:, :, 0]
+
+
+def fitting_normals(points: np.ndarray, cloud: np.ndarray) -> np.ndarray:
+    """Normals of ``points`` that fit their own sheet: of each point's PCA normal (from its
+    nearest points of ``cloud``) and those of those nearest points, the one whose plane through
+    the point lies closest to most of them (least median distance). At the edge of one face
+    of a thin part, a point of the other face among the nearest tilts the PCA plane (up to
+    edge-on: its normal along the face), while the normal of a point inside the face fits the
+    edge point's own neighbours."""
+    from scipy.spatial import cKDTree
+
+    k = min(K_SAMPLE + 1, cloud.shape[0])
+    tree = cKDTree(cloud)
+    _, nb = tree.query(points, k=k)
+    nb = np.asarray(nb).reshape(points.shape[0], k)
+    cloud_nrm = normals_at(cloud, cloud)
+    own = normals_at(points, cloud)
+    cand = np.concatenate([own[:, None, :], cloud_nrm[nb]], axis=1)  # (N, k + 1, 3)
+    off = cloud[nb] - points[:, None, :]  # (N, k, 3)
+    miss = np.median(np.abs(np.einsum("nci,nki->nck", cand, off)), axis=2)
+    best = np.argmin(miss, axis=1)  # (the first, the own normal, wins ties)
+    return cand[np.arange(points.shape[0]), best]
 
 
 class Grid:
@@ -231,6 +263,37 @@ def _opened(grid: Grid, mask: np.ndarray, far: np.ndarray, seed_nodes: np.ndarra
     flat = labels.ravel()
     out = [(np.flatnonzero(flat == lab), False, True) for lab in inner]
     return out + [(np.flatnonzero(mask & ~np.isin(flat, inner)), True, False)]
+
+
+#: seeds spread over a plane (its smallest spread at most this share of the next) fix the
+#: hole's plane themselves
+FLAT_SEEDS = 0.25
+
+
+def group_normal(seeds: np.ndarray, normals: np.ndarray, rho: float, min_seeds: int):
+    """The normals of a group's planes: the sum of the seeds' level ``normals`` (oriented like
+    the first), and the plane of the ``seeds`` themselves where they spread over one that most
+    of the normals face within 60 degrees (else None): round a hole on a curved place the level normals at its rim turn by as much as the
+    surface does, and their sum can be far off; the seeds along a border lie in a plane across
+    the surface. Groups of fewer than ``min_seeds`` seeds have no plane of their own."""
+    nrm = normals * np.where(normals @ normals[0] < 0, -1.0, 1.0)[:, None]
+    summed = nrm.sum(axis=0)
+    if seeds.shape[0] >= min_seeds:
+        c = seeds - seeds.mean(axis=0)
+        w, vec = np.linalg.eigh(c.T @ c)
+        flat = w[1] >= (rho / 2) ** 2 * seeds.shape[0] and w[0] <= FLAT_SEEDS * w[1]
+        if flat and np.median(np.abs(normals @ vec[:, 0])) >= np.cos(MAX_TILT):
+            return summed, vec[:, 0]
+    return summed, None
+
+
+def stacked(tree2: Any, h: np.ndarray, rho: float) -> bool:
+    """Some of the points (projected in ``tree2``, heights ``h``) lie over one another (within
+    rho/2 in the plane, 1.5 rho apart in height): two faces, or a fold, over the grid."""
+    n = h.shape[0]
+    d, nb = tree2.query(tree2.data, k=min(5, n), distance_upper_bound=0.5 * rho)
+    nb = np.where(np.isfinite(d), nb, np.arange(n)[:, None])
+    return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
 
 
 def groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:

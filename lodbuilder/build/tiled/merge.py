@@ -45,8 +45,8 @@ from ...errors import BuildError
 from ...progress import ProgressCallback
 from . import layout as WL
 from . import workdir as W
+from .layout import HEAD, STREAM
 from .store import Store, as_store
-from .tasks import HEAD, STREAM
 from .timing import timed_task
 
 log = logging.getLogger(__name__)
