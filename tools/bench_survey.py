@@ -26,7 +26,8 @@ and ``dask-s3`` (``--dask-local N --work-dir s3://...``: the work files on moto'
 by this program on 127.0.0.1 and found by the build through fsspec's ``FSSPEC_S3_*`` variables; the
 server's own CPU is this program's, outside the measured tree, and ``peak_work_dir_bytes`` counts
 the local disk only; ``bench_process_cpu_seconds``: this program's CPU during the run, the sampler's
-and, for ``dask-s3``, the S3 server's, which competes with the build for the machine's cores).
+and, for ``dask-s3``, the S3 server's, which competes with the build for the machine's cores;
+``s3``: the server's requests by kind and by work-file family, with the bytes each way).
 
     python tools/make_survey.py --nx 4 --ny 4 -o /work/bench_data/survey_4x4.laz
     python tools/make_survey.py --nx 4 --ny 4 --files /work/bench_data/survey_4x4
@@ -225,18 +226,84 @@ def task_summary(tasks: dict[str, Any] | None) -> dict[str, Any]:
             "task_cpu_seconds": round(sum(r["cpu_seconds"] for r in rows), 3)}
 
 
+def request_kind(environ: dict[str, Any]) -> tuple[str, str]:
+    """(kind, object) of an S3 request: kind GET / GET range / PUT / HEAD / LIST / DELETE / POST ...;
+    object: the key below the run's prefix with digits as ``#`` (a work file's family)."""
+    import re
+
+    method, query = environ.get("REQUEST_METHOD", "?"), environ.get("QUERY_STRING", "")
+    parts = environ.get("PATH_INFO", "").lstrip("/").split("/", 2)  # bucket, run, key
+    key = parts[2] if len(parts) > 2 else ""
+    if method == "GET" and not key:
+        kind = "LIST"
+    elif method == "GET" and "HTTP_RANGE" in environ:
+        kind = "GET range"
+    elif "uploadId" in query or "uploads" in query:
+        kind = f"{method} multipart"
+    else:
+        kind = method
+    return kind, re.sub(r"\d+", "#", re.sub(r"\.[0-9a-f]{12}$", ".<id>", key)) if key else ""
+
+
+class RequestCounter:
+    """A WSGI wrapper that counts the S3 server's requests and bytes by :func:`request_kind`."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+        self.lock = threading.Lock()
+        self.reset()
+
+    def reset(self) -> None:
+        self.kinds: dict[str, list[int]] = {}  # kind -> [requests, bytes in, bytes out]
+        self.objects: dict[str, list[int]] = {}  # family -> [requests, bytes in, bytes out]
+
+    def __call__(self, environ: dict[str, Any], start_response: Any) -> Any:
+        kind, obj = request_kind(environ)
+        sent = int(environ.get("CONTENT_LENGTH") or 0)
+        body = list(self.app(environ, start_response))
+        got = sum(len(b) for b in body)
+        with self.lock:
+            for table, k in ((self.kinds, kind), (self.objects, f"{kind} {obj}")):
+                row = table.setdefault(k, [0, 0, 0])
+                row[0] += 1
+                row[1] += sent
+                row[2] += got
+        return body
+
+    def summary(self, top: int = 40) -> dict[str, Any]:
+        with self.lock:
+            kinds = {k: dict(zip(("requests", "bytes_in", "bytes_out"), v, strict=True)) for k, v in self.kinds.items()}
+            objs = sorted(self.objects.items(), key=lambda kv: -kv[1][0])[:top]
+        return {"requests": sum(k["requests"] for k in kinds.values()), "by_kind": kinds,
+                "top_objects": {k: dict(zip(("requests", "bytes_in", "bytes_out"), v, strict=True)) for k, v in objs}}
+
+
 class S3:
-    """moto's S3 server on 127.0.0.1 with one bucket: the work store of the ``dask-s3`` runs."""
+    """moto's S3 server on 127.0.0.1 with one bucket: the work store of the ``dask-s3`` runs. Its
+    requests are counted (:class:`RequestCounter`: a run's ``s3``)."""
 
     def __init__(self) -> None:
         import logging
 
         import boto3
+        from moto.moto_server import threaded_moto_server as tms
         from moto.server import ThreadedMotoServer
 
         logging.getLogger("werkzeug").setLevel(logging.WARNING)  # (the server's line per request)
+        dispatcher = tms.DomainDispatcherApplication
+        counters: list[RequestCounter] = []
+
+        def counted(*a: Any, **k: Any) -> RequestCounter:
+            counters.append(RequestCounter(dispatcher(*a, **k)))
+            return counters[-1]
+
+        tms.DomainDispatcherApplication = counted  # (the server's application, built in its thread)
         self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-        self.server.start()
+        try:
+            self.server.start()
+        finally:
+            tms.DomainDispatcherApplication = dispatcher
+        self.counter = counters[0]
         host, port = self.server.get_host_and_port()
         endpoint = f"http://{host}:{port}"
         boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="test", aws_secret_access_key="test",
@@ -294,6 +361,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     if tile_points:
         env["BENCH_SURVEY_TILE_POINTS"] = str(tile_points)
     load_before = os.getloadavg()[0]
+    for s3 in _S3:
+        s3.counter.reset()
     t0, c0 = time.perf_counter(), time.process_time()
     proc = subprocess.Popen([sys.executable, "-c", CHILD, *args], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=where)
@@ -307,6 +376,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
                            "wall_seconds": round(wall, 2), "load_before": load_before,
                            "bench_process_cpu_seconds": round(time.process_time() - c0, 2),
                            "load_after": os.getloadavg()[0], "samples": sampler.samples}
+    if executor == "dask-s3":
+        res["s3"] = _s3().counter.summary()
     if proc.returncode != 0:
         res["stderr"] = err[-2000:]
         shutil.rmtree(where, ignore_errors=True)

@@ -351,6 +351,7 @@ def march_round(
     trial = np.int32(2 * rnd)
     acc = np.int32(2 * rnd + 1)
     thin = pnrm.shape[0] == u.shape[0] and foot.shape[0] == keys.shape[0]
+    exact_seeds = not thin and not weighted  # a seeded voxel's points hold their exact distance
     n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     for s in range(src.shape[0]):
         n, nd = _seed_sample(
@@ -391,87 +392,91 @@ def march_round(
         pops += 1
         tv = np.float64(_tval(ev))
         lv = vlab[v]
-        gn = -1.0  # the front's direction at v: computed when a point first needs it
-        gx = 0.0
-        gy = 0.0
-        gz = 0.0
-        sv = src[lv - lab]  # the sample whose front this is (only this round's voxels pop)
-        csv = 1.0
-        if weighted:
-            csv = pcost[sv]
-        # points of the 8 cells that have v as a corner
-        corners = corner_voxels(nbr, v)
-        for k in range(8):
-            w = corners[k]
-            if w < 0:
-                continue
-            cell = cellof[w]
-            if cell < 0:
-                continue
-            corner = CORNER_OF[k]  # v is this corner of the cell
-            p0 = cs[w]
-            # v's coordinates: the cell's anchor (the floor of any of its points' coordinates)
-            # plus the corner (reading v's key instead was a cache miss per pop)
-            cx = np.floor(u[p0, 0]) + (corner & 1)
-            cy = np.floor(u[p0, 1]) + ((corner >> 1) & 1)
-            cz = np.floor(u[p0, 2]) + (corner >> 2)
-            for p in range(p0, cs[w + 1]):
-                if rank[p] >= 0:
+        # seeded this round (frozen at its exact distance): the seeding gave every point of its
+        # 8 cells its exact distance to the sample, which no estimate below undercuts (a quarter
+        # of the pops, nearly all of them late in the ordering): only its neighbours are left
+        if not (exact_seeds and (ev & _STAMP) == acc):
+            gn = -1.0  # the front's direction at v: computed when a point first needs it
+            gx = 0.0
+            gy = 0.0
+            gz = 0.0
+            sv = src[lv - lab]  # the sample whose front this is (only this round's voxels pop)
+            csv = 1.0
+            if weighted:
+                csv = pcost[sv]
+            # points of the 8 cells that have v as a corner
+            corners = corner_voxels(nbr, v)
+            for k in range(8):
+                w = corners[k]
+                if w < 0:
                     continue
-                ex = u[p, 0] - cx
-                ey = u[p, 1] - cy
-                ez = u[p, 2] - cz
-                if near[p] == corner and gn < 0.0:
-                    # the front's direction at v (upwind differences; upwind neighbours
-                    # are known)
-                    for ax in range(3):
-                        na = nbr[v, 2 * ax]
-                        nb_ = nbr[v, 2 * ax + 1]
-                        ta = np.float64(_tval(ts[na])) if na >= 0 else np.inf
-                        tb = np.float64(_tval(ts[nb_])) if nb_ >= 0 else np.inf
-                        g = 0.0
-                        if ta < tb and ta < tv:
-                            g = tv - ta
-                        elif tb < tv:
-                            g = tb - tv
-                        if ax == 0:
-                            gx = g
-                        elif ax == 1:
-                            gy = g
-                        else:
-                            gz = g
-                    gn = _norm(gx, gy, gz)
-                    if gn > 0.0:
-                        gx /= gn
-                        gy /= gn
-                        gz /= gn
-                if gn > 0.0 and near[p] == corner:
-                    # v is the point's nearest marchable voxel: first-order Taylor along
-                    # the front, never below the straight distance to the sample (a lower
-                    # bound)
-                    dd = gx * ex + gy * ey + gz * ez
-                    if weighted:
-                        dd *= pcost[p]
-                    dd += tv
-                    e = _norm(u[p, 0] - u[sv, 0], u[p, 1] - u[sv, 1], u[p, 2] - u[sv, 2])
-                    if weighted:
-                        e *= min(pcost[p], csv)
-                    if e > dd:
-                        dd = e
-                else:
-                    dd = _norm(ex, ey, ez)  # an upper bound
-                    if weighted:
-                        dd *= pcost[p]
-                    dd += tv
-                # written out as in _seed_sample: the same lines as an inlined helper that takes
-                # the arrays made the grid phase of 1M points 3.3 -> 5.1 s (reference counting)
-                if dd < dq[p]:
-                    dq[p] = dd
-                    lq[p] = lv
-                    if dstamp[cell] != rnd:
-                        dstamp[cell] = rnd
-                        dirty[nd] = cell
-                        nd += 1
+                cell = cellof[w]
+                if cell < 0:
+                    continue
+                corner = CORNER_OF[k]  # v is this corner of the cell
+                p0 = cs[w]
+                # v's coordinates: the cell's anchor (the floor of any of its points' coordinates)
+                # plus the corner (reading v's key instead was a cache miss per pop)
+                cx = np.floor(u[p0, 0]) + (corner & 1)
+                cy = np.floor(u[p0, 1]) + ((corner >> 1) & 1)
+                cz = np.floor(u[p0, 2]) + (corner >> 2)
+                for p in range(p0, cs[w + 1]):
+                    if rank[p] >= 0:
+                        continue
+                    ex = u[p, 0] - cx
+                    ey = u[p, 1] - cy
+                    ez = u[p, 2] - cz
+                    if near[p] == corner and gn < 0.0:
+                        # the front's direction at v (upwind differences; upwind neighbours
+                        # are known)
+                        for ax in range(3):
+                            na = nbr[v, 2 * ax]
+                            nb_ = nbr[v, 2 * ax + 1]
+                            ta = np.float64(_tval(ts[na])) if na >= 0 else np.inf
+                            tb = np.float64(_tval(ts[nb_])) if nb_ >= 0 else np.inf
+                            g = 0.0
+                            if ta < tb and ta < tv:
+                                g = tv - ta
+                            elif tb < tv:
+                                g = tb - tv
+                            if ax == 0:
+                                gx = g
+                            elif ax == 1:
+                                gy = g
+                            else:
+                                gz = g
+                        gn = _norm(gx, gy, gz)
+                        if gn > 0.0:
+                            gx /= gn
+                            gy /= gn
+                            gz /= gn
+                    if gn > 0.0 and near[p] == corner:
+                        # v is the point's nearest marchable voxel: first-order Taylor along
+                        # the front, never below the straight distance to the sample (a lower
+                        # bound)
+                        dd = gx * ex + gy * ey + gz * ez
+                        if weighted:
+                            dd *= pcost[p]
+                        dd += tv
+                        e = _norm(u[p, 0] - u[sv, 0], u[p, 1] - u[sv, 1], u[p, 2] - u[sv, 2])
+                        if weighted:
+                            e *= min(pcost[p], csv)
+                        if e > dd:
+                            dd = e
+                    else:
+                        dd = _norm(ex, ey, ez)  # an upper bound
+                        if weighted:
+                            dd *= pcost[p]
+                        dd += tv
+                    # written out as in _seed_sample: the same lines as an inlined helper that takes
+                    # the arrays made the grid phase of 1M points 3.3 -> 5.1 s (reference counting)
+                    if dd < dq[p]:
+                        dq[p] = dd
+                        lq[p] = lv
+                        if dstamp[cell] != rnd:
+                            dstamp[cell] = rnd
+                            dirty[nd] = cell
+                            nd += 1
         # march to the 6 neighbours
         for j in range(6):
             m = nbr[v, j]

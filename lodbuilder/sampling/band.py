@@ -81,7 +81,9 @@ VOXEL_PER_SPACING = 2.0
 BAND_PER_VOXEL = 2.5
 MIN_BAND_PER_VOXEL = 1.75  # the 8 corners of a point's cell lie in the band (sqrt(3) ~ 1.732)
 DEPTH_COST = 0.2
-TAIL_FACTOR = 2.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r
+TAIL_FACTOR = 3.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r (4 r: unsafe)
+TAIL_FACTOR_THIN = 2.0  # ... below this x r where sheets come close (at 3 r bunnyDouble's levels covered
+# 1.23 x Euclidean FPS from 1 % of N on, 1.09 at 2 r) and on coarse closed surfaces (bun_zipper_res3 1.054)
 SEP_GAP_MIN = 1.5  # in default voxels (3 point spacings): closer layers count as one sheet
 SEP_CONE = 0.8  # the other sheet's cell lies within acos(0.8) = 37 degrees of the normal
 NORMAL_RADIUS = 0.9  # default voxels (1.8 point spacings): the neighbours that give a cell's normal
@@ -290,7 +292,7 @@ def _with_grid(thin: BandPlan, h: float, r: float) -> BandPlan:
     """``thin``'s sheets on a grid of spacing h with band radius r."""
     assert thin.outer is not None
     radius = _thin_radius(thin.outer, h, r)
-    return BandPlan(h, r, radius, thin.separation, thin.normal, min(TAIL_FACTOR * r, thin.handover), thin.outer)
+    return BandPlan(h, r, radius, thin.separation, thin.normal, min(TAIL_FACTOR_THIN * r, thin.handover), thin.outer)
 
 
 def _thin_radius(sep_out: np.ndarray, h: float, r: float) -> np.ndarray:
@@ -311,11 +313,11 @@ def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
             "%.0f %% of the scan is thin, but only %.0f %% of it lies on flat sheets (a closed surface "
             "coarse for its shape); using the plain band", 100 * found / sep_in.size, 100 * flat,
         )
-        return BandPlan(h, r, None, None, None, plain.handover, found=found)
+        return BandPlan(h, r, None, None, None, TAIL_FACTOR_THIN * r, found=found)  # (3 r: res3 1.054 x FPS)
     radius = _thin_radius(sep_out, h, r)
     # the THIN_SHARE-th percentile of the separation over all points (inf: a smaller share is thin)
     typical = float(np.percentile(sep_in, THIN_SHARE, method="lower"))
-    handover = min(TAIL_FACTOR * r, TAIL_PER_SEP * typical)
+    handover = min(TAIL_FACTOR_THIN * r, TAIL_PER_SEP * typical)
     thin = sep_in[np.isfinite(sep_in)]
     # the other side's separation is kept only where a finer grid may be needed (see _refined)
     finer = thin.size >= REFINE_SHARE * sep_in.size and float(np.median(thin)) < REFINE_SEP * h

@@ -141,9 +141,7 @@ def mark(work: Store | Path | str, piece: str, doc: dict[str, Any]) -> dict[str,
 
 def prune(work: Store | Path | str, names: list[str]) -> None:
     """Delete work files that every piece reading them has read (see :mod:`.layout`)."""
-    store = as_store(work)
-    for name in names:
-        store.delete(name)
+    as_store(work).delete_many(names)  # (in bulk on an object store)
 
 
 def consumed(store: Store, name: str) -> bool:
