@@ -79,13 +79,43 @@ class _StreamReader:
         self.f.close()
 
 
+def _first_buffers(readers: list[Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The merge kernel's buffers filled with each source's first rows, and its heap of the sources
+    by their first key (ties: the lower source): bufs, bpos, blen, theap, tn."""
+    buf = buffer_rows(len(readers))
+    bufs = np.zeros((len(readers), buf, 6))
+    bpos, blen = np.zeros(len(readers), np.int64), np.zeros(len(readers), np.int64)
+    heap_rows = []
+    for t, r in enumerate(readers):
+        a = r.read(buf)
+        bufs[t, : a.shape[0]] = a
+        blen[t] = a.shape[0]
+        if a.shape[0]:
+            heap_rows.append((-a[0, 1], t))
+    heap_rows.sort()
+    theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
+    return bufs, bpos, blen, theap, int(theap.shape[0])
+
+
+def _refill(readers: list[Any], t: int, bufs: np.ndarray, bpos: np.ndarray, blen: np.ndarray, theap: np.ndarray,
+            tn: int) -> int:
+    """Source ``t``'s buffer (at the top of the heap) read again; returns the heap's new size."""
+    from ..._kernels.tiled import tile_heap_refresh, tile_pop
+
+    a = readers[t].read(bufs.shape[1])
+    bufs[t, : a.shape[0]] = a
+    bpos[t] = 0
+    blen[t] = a.shape[0]
+    return int(tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn))
+
+
 def seam_merge(work: Store, names: list[str], head: np.ndarray, alpha: float, lo: np.ndarray,
                min_cell: float) -> tuple[np.ndarray, np.ndarray]:
     """The k-way merge with the seam repair of the streams ``names`` (STREAM rows by descending
     key; here the tiles' seam points), after the ``head`` (HEAD rows, accepted first): the input
     index and acceptance key of every stream row, in merged order."""
     from ..._kernels.tiled import seam_merge as kernel
-    from ..._kernels.tiled import table_size, tile_heap_refresh, tile_pop
+    from ..._kernels.tiled import table_size
 
     readers = [_StreamReader(work, name) for name in names]
     n_rows = sum(r.left for r in readers)
@@ -100,19 +130,7 @@ def seam_merge(work: Store, names: list[str], head: np.ndarray, alpha: float, lo
     dheap_key, dheap_item = np.empty(n_rows + 1), np.empty(n_rows + 1, np.int64)
     dpool, dtile = np.empty((max(4 * n_rows, 1024), 6)), np.empty(max(4 * n_rows, 1024), np.int64)
     state = np.array([0.0, float(h), np.inf, 0.0, 0.0, float(min_cell)])
-    buf = buffer_rows(len(readers))
-    bufs = np.zeros((len(readers), buf, 6))
-    bpos, blen = np.zeros(len(readers), np.int64), np.zeros(len(readers), np.int64)
-    heap_rows = []
-    for t, r in enumerate(readers):
-        a = r.read(buf)
-        bufs[t, : a.shape[0]] = a
-        blen[t] = a.shape[0]
-        if a.shape[0]:
-            heap_rows.append((-a[0, 1], t))
-    heap_rows.sort()
-    theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
-    tn = theap.shape[0]
+    bufs, bpos, blen, theap, tn = _first_buffers(readers)
     out_g, out_key = np.empty(W.BLOCK, np.int64), np.empty(W.BLOCK)
     got_g, got_key = [], []
     try:
@@ -133,11 +151,7 @@ def seam_merge(work: Store, names: list[str], head: np.ndarray, alpha: float, lo
                 if code == 0:
                     break
                 continue
-            a = readers[t].read(buf)  # code 1: refill tile t (at the top of the tile heap)
-            bufs[t, : a.shape[0]] = a
-            bpos[t] = 0
-            blen[t] = a.shape[0]
-            tn = tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn)
+            tn = _refill(readers, t, bufs, bpos, blen, theap, tn)  # code 1: tile t (at the top) is empty
     finally:
         for r in readers:
             r.close()
@@ -208,7 +222,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
     (ties: the lower tile, then the deferred points) with buffers of a bounded size, whatever the
     band's rows. Writes ``merged.<j>.i8``."""
     from ..._kernels.tiled import seam_merge as kernel
-    from ..._kernels.tiled import table_size, tile_heap_refresh, tile_pop
+    from ..._kernels.tiled import table_size
 
     w = as_store(work)
     d = w.read_array(WL.DEFERRED, WL.DEFER)
@@ -220,19 +234,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
         extra = np.zeros(mine.shape[0], STREAM)
         extra["g"], extra["key"] = mine["g"], mine["key"]
         readers.append(_RangeReader(None, WL.DEFERRED, 0, mine.shape[0], np.zeros(0, np.int64), bins, extra))
-    buf = buffer_rows(len(readers))
-    bufs = np.zeros((len(readers), buf, 6))
-    bpos, blen = np.zeros(len(readers), np.int64), np.zeros(len(readers), np.int64)
-    heap_rows = []
-    for t, r in enumerate(readers):
-        a = r.read(buf)
-        bufs[t, : a.shape[0]] = a
-        blen[t] = a.shape[0]
-        if a.shape[0]:
-            heap_rows.append((-a[0, 1], t))
-    heap_rows.sort()
-    theap = np.array([[-k, t] for k, t in heap_rows], dtype=np.float64).reshape(-1, 2)
-    tn = theap.shape[0]
+    bufs, bpos, blen, theap, tn = _first_buffers(readers)
     one = np.zeros(1, np.int64)  # (no row is a seam point: the seam structures stay empty)
     state = np.array([0.0, 0.0, np.inf, 0.0, 0.0, 1.0])
     size = table_size(1)
@@ -252,11 +254,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
                 if code == 0:
                     break
                 continue
-            a = readers[t].read(buf)  # code 1: refill source t (at the top of the heap)
-            bufs[t, : a.shape[0]] = a
-            bpos[t] = 0
-            blen[t] = a.shape[0]
-            tn = tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn)
+            tn = _refill(readers, t, bufs, bpos, blen, theap, tn)  # code 1: source t (at the top) is empty
         files = {WL.merged(j): f.commit()}
     finally:
         f.close()
