@@ -199,30 +199,6 @@ def test_a_local_work_dir_holds_the_work_files_of_a_stopped_build(tmp_path, monk
         assert tiled["resumed"]["tiles_ordered_before"] == tiled["tiles"] > 1  # every tile taken from DIR
 
 
-@pytest.mark.parametrize("whole", [True, False])
-def test_sorted_slice_finds_a_band_of_ranks(store, whole, monkeypatch):
-    """The records of a rank-sorted object in [k0, k1) and the one before, as a search of the
-    whole array finds them (an object store: the object read whole, or searched by ranged reads)."""
-    import lodbuilder.build.tiled.workdir as W
-    from lodbuilder.build.tiled.layout import EVENT
-
-    if not whole:
-        monkeypatch.setattr(W, "WHOLE_BYTES", 64)
-    rng = np.random.default_rng(2)
-    ev = np.zeros(500, EVENT)
-    ev["rank"] = np.sort(rng.choice(5000, 500, replace=False))
-    ev["value"] = rng.random(500)
-    store.put("cover.0.ev", ev)
-    for k0, k1 in [(0, 10), (100, 2500), (ev["rank"][7], ev["rank"][9]), (4999, 6000), (6000, 7000)]:
-        recs, before = W.sorted_slice(store, "cover.0.ev", EVENT, int(k0), int(k1))
-        a, z = np.searchsorted(ev["rank"], k0), np.searchsorted(ev["rank"], k1)
-        np.testing.assert_array_equal(recs, ev[a:z])
-        assert (before is None) if a == 0 else (before == ev[a - 1])
-    store.put("empty.ev", np.zeros(0, EVENT))
-    recs, before = W.sorted_slice(store, "empty.ev", EVENT, 0, 10)
-    assert recs.shape == (0,) and before is None
-
-
 def test_zipped_work_files_read_back_in_blocks(tmp_path):
     """The raw blocks' attributes and the buckets are written compressed (workdir.Zipped) and read
     back whole or block by block, whatever the blocks they were written in."""

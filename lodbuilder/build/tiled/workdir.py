@@ -25,7 +25,6 @@ BLOCK = 1 << 20  # rows per read/write block
 SAMPLE = 400_000  # points kept for the spacing estimate
 RUN_BYTES = 1 << 26  # at most this many bytes in one read of gather()
 MAX_RUN_ROWS = 65536  # and at most this many rows
-WHOLE_BYTES = 1 << 22  # an object store's sorted object up to this size is read whole by sorted_slice()
 
 
 @dataclass
@@ -242,43 +241,6 @@ def segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, k
     if got.shape[0] != k1 - k0:
         raise RuntimeError(f"{files[0][0]} and the files after it hold {got.shape[0]} of positions {k0} to {k1}")
     return got
-
-
-def sorted_slice(store: Store, name: str, dtype: np.dtype, k0: int, k1: int, key: str = "rank"
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The records of an object sorted by field ``key`` with key in ``[k0, k1)``, and the last
-    record before them (None when there is none): two binary searches and one read (a local file
-    through a read-only memory map; an object store reads a small object whole, a large one by
-    ranged reads of single records for the searches)."""
-    size = (store.size(name) or 0) // dtype.itemsize
-    if size == 0:
-        return np.zeros(0, dtype), None
-    if isinstance(store, LocalStore):
-        mm = np.memmap(store.path(name), dtype=dtype, mode="r", shape=(size,))
-        try:
-            ranks = mm[key]
-            a, z = int(np.searchsorted(ranks, k0, "left")), int(np.searchsorted(ranks, k1, "left"))
-            return np.array(mm[a:z]), (np.array(mm[a - 1]) if a > 0 else None)
-        finally:
-            del mm
-    if size * dtype.itemsize <= WHOLE_BYTES:
-        recs = store.read_array(name, dtype)
-        a, z = int(np.searchsorted(recs[key], k0, "left")), int(np.searchsorted(recs[key], k1, "left"))
-        return recs[a:z].copy(), (recs[a - 1].copy() if a > 0 else None)
-
-    def first_at_least(k: int) -> int:
-        lo, hi = 0, size
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if store.read_array(name, dtype, mid, 1)[key][0] < k:
-                lo = mid + 1
-            else:
-                hi = mid
-        return lo
-
-    a, z = first_at_least(k0), first_at_least(k1)
-    recs = store.read_array(name, dtype, max(a - 1, 0), z - max(a - 1, 0))
-    return (recs[1:], recs[0]) if a > 0 else (recs, None)
 
 
 #: a frame of a framed file: its first and last key (a banded file) or row (a file framed by rows),
