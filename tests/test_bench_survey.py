@@ -142,3 +142,29 @@ def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypat
     assert [sv["input"]["paths"] for sv in doc["surveys"]] == [[str(tmp_path / "other.laz")],
                                                                [str(tmp_path / "b" / "s.laz")]]
     assert len(doc["earlier"]) == 1
+
+
+def test_the_sampler_walks_the_directory_once_a_second(tmp_path, monkeypatch):
+    """The walk of a survey's work directory (thousands of files) is the sampler's dearest part, and
+    its CPU competes with the build's workers: one walk gives both sizes, at most once per
+    DISK_EVERY seconds (the process tree every sample)."""
+    import os
+
+    import bench_survey
+
+    (tmp_path / "scan.work").mkdir()
+    (tmp_path / "scan.work" / "raw.0.bin").write_bytes(bytes(10_000))
+    (tmp_path / "out.h5").write_bytes(bytes(5_000))
+    walks = []
+    real = bench_survey.disk_bytes
+    monkeypatch.setattr(bench_survey, "disk_bytes", lambda *a, **k: walks.append(1) or real(*a, **k))
+    s = bench_survey.Sampler(os.getpid(), tmp_path, 0.01)
+    for _ in range(5):
+        s.sample()
+    assert s.samples == 5 and len(walks) == 1
+    work, total = real(tmp_path)
+    assert s.peak_work == work >= 10_000 and s.peak_all == total >= work + 5_000
+    assert set(s.peak_work_by_kind) == {"raw"}
+    s.disk_at -= s.DISK_EVERY  # a second later: walked again
+    s.sample()
+    assert len(walks) == 2

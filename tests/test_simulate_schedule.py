@@ -53,6 +53,18 @@ def test_priority_orders_the_ready_tasks():
     assert makespan(tasks, 2) == pytest.approx(6.0)
 
 
+def test_fifo_takes_the_ready_tasks_as_they_came():
+    # as in test_priority_orders_the_ready_tasks, but a queue that ignores the priority (the order
+    # phase before it followed the critical path): largest first among those ready at once
+    tasks = [Task("A", 3), Task("B", 3), Task("C", 1, priority=10), Task("D", 3, ["C"])]
+    assert makespan(tasks, 2, fifo=True) == pytest.approx(7.0)
+    # a task that becomes ready later waits behind every task queued before it, whatever its size
+    late = [Task("a", 1), Task("x", 1), Task("y", 1), Task("z", 1), Task("b", 9, ["a"])]
+    assert makespan(late, 1, fifo=True) == makespan(late, 1) == pytest.approx(13.0)
+    assert makespan(late, 2) == pytest.approx(10.0)  # a | x, then b (the largest ready) | y, z
+    assert makespan(late, 2, fifo=True) == pytest.approx(11.0)  # a | x, y | z (queued before b), b
+
+
 def test_refuses_cycles_duplicate_ids_and_no_workers():
     with pytest.raises(ValueError, match="cycle"):
         makespan([Task("a", 1, ["b"]), Task("b", 1, ["a"])], 2)
@@ -110,6 +122,14 @@ def test_model_of_a_build_record():
     assert "not measured" in out["notes"][0]
 
 
+def test_orderings_start_by_their_bottom_level():
+    """The driver starts the ready ordering with the longest chain of orderings waiting for it
+    first: the model gives each its bottom level as priority (from the recorded seconds)."""
+    st = {s.name: s for s in model_from_record(_record())["stages"]}
+    assert {t.id: t.priority for t in st["order"].tasks} == {"order.1.1": 6.0, "order.0.1": 2.0, "order.2.1": 2.0}
+    assert all(t.priority is None for t in st["cover"].tasks)
+
+
 def test_cpu_durations_replay_cpu_seconds():
     model = model_from_record(_record(), rest=0.5, durations="cpu")
     st = {s.name: s for s in model["stages"]}
@@ -144,8 +164,8 @@ def test_rounds_inside_a_phase_wait_for_the_earlier_round():
 
 
 def test_the_radii_and_the_join_wait_for_the_covering():
-    """The radii's first round starts when every tile is covered and every bucket written; the
-    join of the band pieces when every tile's pieces are written (by its covering task)."""
+    """The radii's first round starts when every tile is covered; the join of the band pieces when
+    every tile's pieces are written (by its covering task) (older records: one cover phase)."""
     cols = ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"]
     rows = [["cover_tile", "cover_tile.0", 0, None, 0.0, 4.0, 4.0, 1],
             ["bucket_block", "bucket_block.0", None, 0, 0.0, 1.0, 1.0, 2],
@@ -156,3 +176,15 @@ def test_the_radii_and_the_join_wait_for_the_covering():
            "tasks": {"columns": cols, "rows": rows}}
     walls = predict(model_from_record(rec), [16])["predicted"][0]["stages"]
     assert walls == {"cover": 6.0}  # 4 + max(2, 1 + 0.5), not max(4, 2, 1 + 0.5)
+
+
+def test_the_radii_do_not_wait_for_the_buckets():
+    """The buckets are written after the radii (phase permute): a radii task never waits for one
+    (a record with both in one phase: the radii's 1 s after the covering's 4, beside the bucket's 6)."""
+    cols = ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"]
+    rows = [["cover_tile", "cover_tile.0", 0, None, 0.0, 4.0, 4.0, 1],
+            ["bucket_block", "bucket_block.0", None, 0, 0.0, 6.0, 6.0, 2],
+            ["radii_band", "radii_band", None, None, 4.0, 1.0, 1.0, 1]]
+    rec = {"phase_seconds": {"cover": 7.0}, "phase_order": ["cover"], "parent_cpu_seconds": {"cover": 0.0},
+           "tasks": {"columns": cols, "rows": rows}}
+    assert predict(model_from_record(rec), [16])["predicted"][0]["stages"] == {"cover": 6.0}

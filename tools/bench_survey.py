@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
+import math
 import os
 import platform
 import shutil
@@ -131,28 +132,33 @@ def tree(root: int) -> tuple[dict[tuple[int, int], float], int]:
     return cpu, rss
 
 
-def disk_bytes(path: Path, only_work: bool, by_kind: dict[str, int] | None = None) -> int:
-    """Bytes allocated on disk under ``path`` (``only_work``: in ``*.work`` directories only);
-    ``by_kind`` (when given) receives the bytes per kind of work file (a name's first part:
-    ``raw``, ``cover``, ``bucket``, ...)."""
-    total = 0
+def disk_bytes(path: Path, by_kind: dict[str, int] | None = None) -> tuple[int, int]:
+    """Bytes allocated on disk under ``path`` in ``*.work`` directories, and in all (one walk);
+    ``by_kind`` (when given) receives the work directories' bytes per kind of work file (a name's
+    first part: ``raw``, ``cover``, ``bucket``, ...)."""
+    work = total = 0
     for dirpath, _, files in os.walk(path):
-        if only_work and ".work" not in Path(dirpath).relative_to(path).as_posix():
-            continue
+        in_work = ".work" in Path(dirpath).relative_to(path).as_posix()
         for name in files:
             try:
                 size = os.lstat(os.path.join(dirpath, name)).st_blocks * 512
             except OSError:
                 continue
             total += size
-            if by_kind is not None:
-                kind = name.split(".")[0] + (".tmp" if name.endswith(".tmp") else "")
-                by_kind[kind] = by_kind.get(kind, 0) + size
-    return total
+            if in_work:
+                work += size
+                if by_kind is not None:
+                    kind = name.split(".")[0] + (".tmp" if name.endswith(".tmp") else "")
+                    by_kind[kind] = by_kind.get(kind, 0) + size
+    return work, total
 
 
 class Sampler(threading.Thread):
-    """Samples a process tree and a directory every ``interval`` seconds until :meth:`stop`."""
+    """Samples a process tree every ``interval`` seconds, and a directory every DISK_EVERY seconds
+    (its walk costs more: a survey's work directory holds thousands of files, and this process's CPU
+    competes with the build's workers for the machine's cores), until :meth:`stop`."""
+
+    DISK_EVERY = 1.0
 
     def __init__(self, pid: int, where: Path, interval: float) -> None:
         super().__init__(daemon=True)
@@ -163,6 +169,7 @@ class Sampler(threading.Thread):
         self.peak_work_by_kind: dict[str, int] = {}  # the work directory's bytes per kind at its peak
         self.peak_work_at = 0.0  # seconds after the start
         self.t0 = time.perf_counter()
+        self.disk_at = -math.inf  # (the last walk of the directory)
         self._halt = threading.Event()
 
     def sample(self) -> None:
@@ -171,13 +178,17 @@ class Sampler(threading.Thread):
             self.cpu[k] = max(self.cpu.get(k, 0.0), v)
         self.peak_rss = max(self.peak_rss, rss)
         self.processes_max = max(self.processes_max, len(cpu))
+        self.samples += 1
+        now = time.perf_counter()
+        if now - self.disk_at < self.DISK_EVERY:
+            return
+        self.disk_at = now
         kinds: dict[str, int] = {}
-        work = disk_bytes(self.where, True, kinds)
+        work, total = disk_bytes(self.where, kinds)
         if work > self.peak_work:
             self.peak_work, self.peak_work_by_kind = work, kinds
-            self.peak_work_at = time.perf_counter() - self.t0
-        self.peak_all = max(self.peak_all, disk_bytes(self.where, False))
-        self.samples += 1
+            self.peak_work_at = now - self.t0
+        self.peak_all = max(self.peak_all, total)
 
     def run(self) -> None:
         while not self._halt.is_set():

@@ -11,13 +11,17 @@ priority order (list scheduling, largest first as the driver submits them). From
 * a phase with tasks: the tasks are those that started in it (the record's task table), and the
   parent's share is its CPU seconds in that phase (its waits for the tasks are not work);
 * tile orderings depend on their neighbours of a smaller colour (the order phase's colour classes;
-  on the previous pass's orderings too when there are several passes);
+  on the previous pass's orderings too when there are several passes), and the ready one with the
+  longest chain of orderings waiting for it (its bottom level, from the recorded seconds) starts
+  first, as the driver starts them (by the tiles' points);
 * rounds inside a phase (:data:`AFTER`): the merge's bands (``merge_band``) wait for the seam
-  repair (``seam_repair``), the ranks' first round (``rank_band``) for the bands, their second round (``rank_block``) for the whole first, the radii's first round
-  (``radii_band``) for the covering (``cover_tile``) and the buckets (``bucket_block``), their
-  second round (``finish_band``) for the whole first, the join of the band pieces (``join_task``)
-  for the tiles' pieces (``cover_tile``; ``pieces_tile`` in older records); the write's bands wait
-  for its first band (run alone: it decides the datasets' creation properties);
+  repair (``seam_repair``), the ranks' first round (``rank_band``) for the bands, their second
+  round (``rank_block``) for the whole first, the radii's second round (``finish_band``) for the
+  whole first (``radii_band``), the join of the band pieces (``join_task``) for the tiles' pieces
+  (``cover_tile``; ``pieces_tile`` in older records); the write's bands wait for its first band
+  (run alone: it decides the datasets' creation properties). The phases after the order are cover
+  -> pieces (the join) -> radii -> permute (the buckets) -> write, each a stage (older records:
+  the radii and the buckets inside the cover phase, the join beside them);
 * ``rest``: seconds of the wall time the record does not cover (start-up, the write phase, the
   archive's commit), serial in the parent.
 
@@ -27,7 +31,7 @@ durations measured on a loaded 2-core machine make every prediction an estimate,
 calibration (the prediction at the measured worker count over the measured wall time) says how far
 to trust it.
 
-    python tools/simulate_schedule.py ARCHIVE [--scan NAME] [--rest SECONDS] [--workers 1,2,4,8,16]
+    python tools/simulate_schedule.py ARCHIVE [--scan NAME] [--rest SECONDS] [--workers 1,2,4,8,16] [--fifo]
 """
 
 from __future__ import annotations
@@ -59,9 +63,12 @@ class Stage:
     tasks: list[Task] = field(default_factory=list)
 
 
-def makespan(tasks: list[Task], workers: int) -> float:
+def makespan(tasks: list[Task], workers: int, fifo: bool = False) -> float:
     """Wall time of ``tasks`` on ``workers`` workers by list scheduling: whenever a worker is free,
-    it takes the ready task (all dependencies finished) of the highest priority. Dependencies on
+    it takes the ready task (all dependencies finished) of the highest priority (``fifo``: the one
+    that became ready first, then the largest: a queue that takes every ready task as it comes,
+    largest first among those ready at once, as the order phase did before it kept its tasks to
+    the workers' count). Dependencies on
     tasks not in the list count as finished."""
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -74,15 +81,15 @@ def makespan(tasks: list[Task], workers: int) -> float:
         for d in waiting[t.id]:
             users.setdefault(d, []).append(t.id)
     by_id = {t.id: t for t in tasks}
-    rank = {t.id: i for i, t in enumerate(sorted(tasks, key=lambda t: (-(t.seconds if t.priority is None
+    rank = {t.id: i for i, t in enumerate(sorted(tasks, key=lambda t: (-(t.seconds if t.priority is None or fifo
                                                                             else t.priority), t.id)))}
-    ready = [(rank[i], i) for i, w in waiting.items() if not w]
+    ready = [(0.0 if fifo else 0, rank[i], i) for i, w in waiting.items() if not w]
     heapq.heapify(ready)
     running: list[tuple[float, str]] = []  # (end time, id)
     now, free, done = 0.0, workers, 0
     while done < len(tasks):
         while free and ready:
-            _, i = heapq.heappop(ready)
+            *_, i = heapq.heappop(ready)
             heapq.heappush(running, (now + by_id[i].seconds, i))
             free -= 1
         if not running:
@@ -97,22 +104,23 @@ def makespan(tasks: list[Task], workers: int) -> float:
             for u in users.get(i, []):
                 waiting[u].discard(i)
                 if not waiting[u]:
-                    heapq.heappush(ready, (rank[u], u))
+                    heapq.heappush(ready, (now if fifo else 0, rank[u], u))
     return now
 
 
-def simulate(stages: list[Stage], workers: int) -> dict[str, float]:
-    """Seconds of each stage and of the whole on ``workers`` workers."""
-    out = {s.name: max(s.parent_seconds, makespan(s.tasks, workers)) for s in stages}
+def simulate(stages: list[Stage], workers: int, fifo: bool = False) -> dict[str, float]:
+    """Seconds of each stage and of the whole on ``workers`` workers (``fifo``: see :func:`makespan`)."""
+    out = {s.name: max(s.parent_seconds, makespan(s.tasks, workers, fifo)) for s in stages}
     out["total"] = sum(out.values())
     return out
 
 
-def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKERS) -> dict[str, Any]:
+def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKERS, fifo: bool = False
+            ) -> dict[str, Any]:
     """Predicted wall seconds and speed-up over 1 worker for each worker count (``model`` from
-    :func:`model_from_record`), with the model's notes."""
+    :func:`model_from_record`), with the model's notes (``fifo``: see :func:`makespan`)."""
     stages = model["stages"]
-    walls = {w: simulate(stages, w) for w in sorted({1, *workers})}
+    walls = {w: simulate(stages, w, fifo) for w in sorted({1, *workers})}
     one = walls[1]["total"]
     rows = [{"workers": w, "wall_seconds": round(walls[w]["total"], 2),
              "speedup_over_1": round(one / walls[w]["total"], 3) if walls[w]["total"] else None,
@@ -123,7 +131,7 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
            "notes": model.get("notes", [])}
     if model.get("measured"):
         m = model["measured"]
-        sim = simulate(stages, m["workers"])["total"]
+        sim = simulate(stages, m["workers"], fifo)["total"]
         out["calibration"] = {"workers": m["workers"], "measured_wall_seconds": m["wall_seconds"],
                               "predicted_wall_seconds": round(sim, 2),
                               "predicted_over_measured": round(sim / m["wall_seconds"], 3)}
@@ -134,8 +142,8 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
 
 _ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
 #: task kinds that start only when every task of the listed kinds in their phase is done
-AFTER = {"merge_band": ("seam_repair",), "rank_band": ("merge_band",), "rank_block": ("rank_band",), "finish_band": ("radii_band",),
-         "radii_band": ("cover_tile", "bucket_block"), "join_task": ("cover_tile", "pieces_tile")}
+AFTER = {"merge_band": ("seam_repair",), "rank_band": ("merge_band",), "rank_block": ("rank_band",),
+         "finish_band": ("radii_band",), "radii_band": ("cover_tile",), "join_task": ("cover_tile", "pieces_tile")}
 #: the write's first band (its task table piece: the first write_band to start) before the others
 FIRST_BAND = "write_band"
 
@@ -166,6 +174,18 @@ def _round_deps(row: dict[str, Any], phase: list[dict[str, Any]]) -> list[str]:
     if row["kind"] == "write_band" and row["piece"] != FIRST_BAND:
         deps.append(FIRST_BAND)
     return deps
+
+
+def _critical_first(tasks: list[Task]) -> None:
+    """The tile orderings' priorities: their bottom levels (as the driver's order phase, see
+    :func:`lodbuilder.build.tiled.pool.bottom_levels`), from their seconds."""
+    from lodbuilder.build.tiled.pool import bottom_levels
+
+    order = {t.id: t for t in tasks if _ORDER.match(t.id)}
+    level = bottom_levels({i: [d for d in t.deps if d in order] for i, t in order.items()},
+                          {i: t.seconds for i, t in order.items()})
+    for i, t in order.items():
+        t.priority = level[i]
 
 
 def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str, Any] | None = None,
@@ -199,6 +219,7 @@ def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str
         mine = [r for r in rows if t0 <= r["start"] < t1 or (name == list(phases)[-1] and r["start"] >= t1)]
         tasks = [Task(r["piece"], float(r[key]), _order_deps(r["piece"], colour, nbrs) + _round_deps(r, mine))
                  for r in mine]
+        _critical_first(tasks)
         parent = float(secs) if not tasks and durations == "wall" else float(cpu.get(name, 0.0))
         stages.append(Stage(name, parent, tasks))
         t0 = t1
@@ -218,6 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", default=",".join(map(str, WORKERS)), help="worker counts (default 1,2,4,8,16)")
     p.add_argument("--durations", choices=("wall", "cpu"), default="wall",
                    help="replay the tasks' wall seconds, or their CPU seconds (a loaded machine's record)")
+    p.add_argument("--fifo", action="store_true",
+                   help="ready tasks in the order they became ready (the order phase before it started the "
+                        "critical path first)")
     args = p.parse_args(argv)
     import lodbuilder
 
@@ -225,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         name = args.scan or arc.scans[0]
         rec = dict(arc.scan(name).build)
     model = model_from_record(rec, args.rest, durations=args.durations)
-    print(json.dumps(predict(model, [int(w) for w in args.workers.split(",")]), indent=1))
+    print(json.dumps(predict(model, [int(w) for w in args.workers.split(",")], args.fifo), indent=1))
     return 0
 
 

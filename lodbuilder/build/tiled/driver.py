@@ -22,7 +22,7 @@ from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
 from .pieces import finish_join, reach
-from .pool import collect, result, submit
+from .pool import bottom_levels, collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
 from .sums import get_json, mark, put_json
@@ -69,14 +69,18 @@ def _done(work: Store, phase: str) -> dict[str, Any] | None:
 
 
 def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
-                  colour: list[int], passes: int, args: tuple, pieces: dict[str, Any], progress: ProgressCallback
-                  ) -> int:
+                  colour: list[int], passes: int, args: tuple, pieces: dict[str, Any], progress: ProgressCallback,
+                  slots: int | None = None) -> int:
     """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
     near-face points of its neighbours as they were last ordered (in pass p for the neighbours of a
-    smaller colour, else in pass p - 1). A task starts as soon as those are done, largest tiles
-    first. In the first pass the tiles of the first colour see no neighbour; each later ordering
-    sees its neighbours' latest, and the orderings agree more with each pass (see TILE_PASSES).
-    Returns the number of tile orderings a resume found done."""
+    smaller colour, else in pass p - 1). A task can start as soon as those are done; of the ready
+    ones, that of the longest chain of orderings waiting for it first (its bottom level, in points:
+    :func:`.pool.bottom_levels`; the largest tile first among equals), at most ``slots`` at a time
+    (the workers; None: every ready task is submitted at once, in that order): the executor's queue
+    is first in, first out, so a task submitted early would otherwise run before a task on the
+    critical path that became ready later. In the first pass the tiles of the first colour see no
+    neighbour; each later ordering sees its neighbours' latest, and the orderings agree more with
+    each pass (see TILE_PASSES). Returns the number of tile orderings a resume found done."""
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
@@ -98,6 +102,8 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     running: dict[cf.Future, tuple[int, int]] = {}
     total = n_tiles * passes
     size = {t.index: t.n_points for t in by_size}
+    level = bottom_levels({(p, t.index): deps(p, t.index) for p in range(1, passes + 1) for t in by_size},
+                          {(p, t.index): float(t.n_points) for p in range(1, passes + 1) for t in by_size})
 
     def tell() -> None:
         report_tasks(progress, "tiles", TaskCounts(len(done), total, sum(size[t] for _, t in done),
@@ -106,7 +112,9 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     tell()
     try:
         while todo or running:
-            for p, tile in [x for x in todo if all(d in done for d in deps(x[0], x[1].index))]:
+            ready = sorted((x for x in todo if all(d in done for d in deps(x[0], x[1].index))),
+                           key=lambda x: -level[(x[0], x[1].index)])  # (stable: the largest first among equals)
+            for p, tile in ready[: len(ready) if slots is None else max(slots - len(running), 0)]:
                 todo.remove((p, tile))
                 running[ex.submit(order_tile, *call(p, tile))] = (p, tile.index)
             fin, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
@@ -160,7 +168,8 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
     # 4. order every tile (on the workers), in passes
     args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
-    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress)
+    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress,
+                                             parallel if parallel > 1 else None)
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
@@ -210,15 +219,18 @@ def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill,
 
 
 def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
-           args: tuple, progress: ProgressCallback) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
-    """Phase 4: every tile ordered on the workers, in colour classes and passes. Returns the tiles
-    largest first, their colours, how many orderings a resume found done, and each tile's marker."""
+           args: tuple, progress: ProgressCallback, slots: int | None = None
+           ) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
+    """Phase 4: every tile ordered on the workers, in colour classes and passes, at most ``slots``
+    at a time (see :func:`_order_passes`). Returns the tiles largest first, their colours, how many
+    orderings a resume found done, and each tile's marker."""
     # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
     size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
     nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
     colour = P.colour_tiles(nbrs)
-    ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress)
+    ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
+                            slots)
     stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     if _done(work, "order") is None:
         # every ordering's marker and last files, checked as one: the tiles' face files (read by the

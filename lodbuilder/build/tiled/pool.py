@@ -65,3 +65,31 @@ def collect(futs: dict[cf.Future, int], where: Any, name: str, n_total: int, pro
             f.cancel()
         raise
     return out
+
+
+def bottom_levels(deps: dict[Any, list[Any]], cost: dict[Any, float]) -> dict[Any, float]:
+    """Each task's bottom level: its ``cost`` plus the largest bottom level of the tasks that wait
+    for it (``deps``: task -> the tasks it waits for; those not in ``deps`` count as done). On
+    enough workers a task cannot finish the phase sooner than its bottom level after it starts, so
+    a scheduler that starts the ready task of the largest one first follows the critical path
+    (list scheduling by bottom level, which is the largest first among independent tasks)."""
+    users: dict[Any, list[Any]] = {}
+    for t, ds in deps.items():
+        for d in ds:
+            if d in deps:
+                users.setdefault(d, []).append(t)
+    level: dict[Any, float] = {}
+    opened: set[Any] = set()
+    for t in deps:  # (depth first, iterative: every user's level before its task's)
+        stack = [(t, False)]
+        while stack:
+            x, expanded = stack.pop()
+            if expanded:
+                level[x] = cost[x] + max((level[u] for u in users.get(x, [])), default=0.0)
+            elif x not in level:
+                if x in opened:
+                    raise ValueError("the task dependencies have a cycle")
+                opened.add(x)
+                stack.append((x, True))
+                stack.extend((u, False) for u in users.get(x, []) if u not in level)
+    return level
