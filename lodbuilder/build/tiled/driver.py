@@ -73,14 +73,12 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
                   slots: int | None = None) -> int:
     """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
     near-face points of its neighbours as they were last ordered (in pass p for the neighbours of a
-    smaller colour, else in pass p - 1). A task can start as soon as those are done; of the ready
-    ones, that of the longest chain of orderings waiting for it first (its bottom level, in points:
-    :func:`.pool.bottom_levels`; the largest tile first among equals), at most ``slots`` at a time
-    (the workers; None: every ready task is submitted at once, in that order): the executor's queue
-    is first in, first out, so a task submitted early would otherwise run before a task on the
-    critical path that became ready later. In the first pass the tiles of the first colour see no
-    neighbour; each later ordering sees its neighbours' latest, and the orderings agree more with
-    each pass (see TILE_PASSES). Returns the number of tile orderings a resume found done."""
+    smaller colour, else in pass p - 1). Of the ready tasks, that of the longest chain of orderings
+    waiting for it starts first (its bottom level in points, :func:`.pool.bottom_levels`), at most
+    ``slots`` at a time (None: all at once): the executor's queue is first in, first out, and would
+    run a task on the critical path that became ready late after all those submitted before it.
+    The first colour's tiles see no neighbour in pass 1; each later ordering sees its neighbours'
+    latest (see TILE_PASSES). Returns the number of tile orderings a resume found done."""
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
