@@ -26,7 +26,11 @@ priority order (list scheduling, largest first as the driver submits them). From
   archive's commit), serial in the parent.
 
 The prediction assumes that a task takes as long on W workers as it took when measured (no
-contention for memory bandwidth, disk or cores) and that the parent's phases do not change:
+contention for memory bandwidth, disk or cores) and that the parent's phases do not change, and it
+replays the record's tiles: a build planned for W workers cuts about 4 W tiles
+(:data:`lodbuilder.build.tiled.plan.TILES_PER_WORKER`), so W workers are best predicted from a
+record whose tiles were planned for W (a build with fewer workers but that tile size), not from
+one with fewer, larger tiles (whose colour chain bounds the order phase);
 durations measured on a loaded 2-core machine make every prediction an estimate, and the
 calibration (the prediction at the measured worker count over the measured wall time) says how far
 to trust it.
