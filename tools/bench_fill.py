@@ -13,8 +13,8 @@ and at least 2 rho from another ball; nothing else is asked of the surface
 is *found and filled* when synthetic points lie in its ball and the filled level covers its
 removed points within 1.5 rho. Figures per scan: holes found and filled (%), the covering radius of
 the ORIGINAL scan (before punching) by the unfilled and the filled level, and the distance of every
-synthetic point over a ball's punched surface (within r + rho of its centre and within rho of a
-removed point: :func:`over_punched`) to the original surface (point to triangle, to the mesh when the PLY has
+synthetic point over a ball's punched surface (within r + rho of its centre, over the original
+surface: :func:`over_surface`) to the original surface (point to triangle, to the mesh when the PLY has
 faces or triangle strips, else to the local plane of the 8 nearest original points): max, p95,
 p99, mean, by depth in the hole. Synthetic points elsewhere (the scan's own holes, where the
 original has no surface) are counted apart. Beside the fill, per hole, an *oracle*: the plane,
@@ -196,14 +196,22 @@ def oracle_errors(original, faces, normals, removed, centre_normal, rho) -> dict
     return out
 
 
-def over_punched(syn: np.ndarray, removed: np.ndarray, rho: float) -> np.ndarray:
-    """Mask of the synthetic points ``syn`` within rho of a ``removed`` point: over the punched
-    surface. A fill that reaches from a ball into the scan's own hole beside it (where the
-    original has no surface to measure against) puts points within the ball's reach that are
-    not over it: their error is counted with the points elsewhere."""
-    if syn.shape[0] == 0 or removed.shape[0] == 0:
-        return np.zeros(syn.shape[0], dtype=bool)
-    return cKDTree(removed).query(syn, k=1, distance_upper_bound=rho)[0] <= rho
+def over_surface(syn: np.ndarray, original: np.ndarray, normals: np.ndarray, rho: float):
+    """Mask of the synthetic points ``syn`` over the original surface: within rho/2 of one of
+    their 8 nearest original points along its tangent plane (``normals``: the original's unit
+    normals), however far off that plane (the error is what is measured). A fill that reaches
+    from a ball into the scan's own hole beside it puts points over surface the original does
+    not have: their distance to the original (to the edge of its hole) is no error, and they
+    are counted elsewhere."""
+    if syn.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    k = min(8, original.shape[0])
+    _, nb = cKDTree(original).query(syn, k=k)
+    nb = np.asarray(nb).reshape(syn.shape[0], k)
+    off = syn[:, None, :] - original[nb]
+    n = normals[nb]
+    along = off - np.einsum("nki,nki->nk", off, n)[:, :, None] * n
+    return (np.einsum("nki,nki->nk", along, along) <= (0.5 * rho) ** 2).any(axis=1)
 
 
 def pca_normals(points: np.ndarray, k: int = 10) -> np.ndarray:
@@ -371,7 +379,7 @@ def real_part(
         for c, r in zip(centres, radii, strict=True):
             in_ball |= np.linalg.norm(syn - c, axis=1) < r + rho
             holes |= np.linalg.norm(original - c, axis=1) < r
-        punched = over_punched(syn, original[~keep], rho)
+        punched = over_surface(syn, original, normals, rho)
         n_beside = int((in_ball & ~punched).sum())
         in_ball &= punched
         err, how = surface_distance(syn, original, faces)
