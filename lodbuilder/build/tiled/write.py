@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -26,9 +26,10 @@ from ...progress import ProgressCallback, report
 from . import layout as WL
 from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import Zipped, opaque_rows, read_rows, segment, unzipped, zipped_blocks
+from .workdir import ZIP_LEVEL, opaque_rows, read_rows, segment, unzipped, zipped_blocks
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
+BUCKET_FILES = 16  # bucket files per raw block, at most (see bucket_run)
 
 
 def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
@@ -38,21 +39,44 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
     return np.dtype(spec)
 
 
-def bucket_records(store: Store, name: str, rec: np.dtype) -> np.ndarray:
-    """The records of a bucket piece (compressed: :class:`.workdir.Zipped`)."""
-    return unzipped(store.get(name), rec, name)
+def bucket_records(store: Store, pieces: list[list[Any]], rec: np.dtype) -> np.ndarray:
+    """The records of a bucket from its pieces (``[file, start, end]``: one compressed frame each,
+    in block order; a file's frames read in one request)."""
+    where: dict[str, list[int]] = {}
+    for i, p in enumerate(pieces):
+        where.setdefault(p[0], []).append(i)
+    blobs: list[bytes] = [b""] * len(pieces)
+    for name, idx in where.items():
+        got = store.read_ranges(name, [int(pieces[i][1]) for i in idx], [int(pieces[i][2]) for i in idx])
+        for i, data in zip(idx, got, strict=True):
+            blobs[i] = data
+    parts = [unzipped(data, rec, p[0]) for data, p in zip(blobs, pieces, strict=True)]
+    return np.concatenate(parts) if parts else np.zeros(0, rec)
+
+
+def bucket_run(n_buckets: int) -> int:
+    """Buckets per bucket file: a raw block writes at most :data:`BUCKET_FILES` files, whatever the
+    number of bands (blocks x bands files made a 10^8-point survey's permutation write 307,800)."""
+    return max(1, -(-n_buckets // BUCKET_FILES))
 
 
 @timed_task
 def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
-                 block: int, rows: int) -> dict[str, Any]:
+                 block: int, run: int, rows: int) -> dict[str, Any]:
     """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
     positions (``rank.<b>.i8``, input indices ``g0 .. g0 + m``), split by destination block (``block`` rows of
-    the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
+    the stored order) into pieces, in input order: one compressed frame per piece, in the bucket
+    files ``bucket.<k0>_<k1>.<b>.bin`` of ``run`` consecutive buckets. Returns each bucket's pieces
+    as ``[file, start, end]``."""
+    import zstandard
+
     w = as_store(work)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
-    out: dict[str, Zipped] = {}
+    pieces: list[list[list[Any]]] = [[] for _ in range(n_buckets)]
+    zc = zstandard.ZstdCompressor(level=ZIP_LEVEL)
+    out: dict[str, Any] = {}
+    ends: dict[str, int] = {}
     try:
         with w.open(WL.rank_file(b)) as fr:
             for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
@@ -62,16 +86,20 @@ def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, t
                 cuts = np.searchsorted(dest[order], np.arange(n_buckets + 1))
                 srt = opaque_rows(r)[order]
                 for k in np.flatnonzero(np.diff(cuts)):
-                    name = WL.bucket(int(k), b)
+                    k0 = int(k) // run * run
+                    name = WL.bucket(k0, min(n_buckets, k0 + run), b)
                     if name not in out:
-                        out[name] = Zipped(w.writer(name))
-                    out[name].write(srt[cuts[k]:cuts[k + 1]])
+                        out[name], ends[name] = w.writer(name), 0
+                    frame = zc.compress(cast(Any, np.ascontiguousarray(srt[cuts[k]:cuts[k + 1]])))
+                    out[name].write(frame)
+                    pieces[k].append([name, ends[name], ends[name] + len(frame)])
+                    ends[name] += len(frame)
                     counts[k] += cuts[k + 1] - cuts[k]
         files = {name: f.commit() for name, f in out.items()}
     finally:
         for f in out.values():
             f.close()
-    return {"block": b, "counts": counts.tolist(), "files": files}
+    return {"block": b, "counts": counts.tolist(), "pieces": pieces, "files": files}
 
 
 def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
@@ -84,14 +112,18 @@ def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple
     if doc is not None:
         return doc
     block = band_rows(n, BLOCK)  # the write's bands: whole row groups of the archive
+    run = bucket_run((n + block - 1) // block)
     results: dict[int, dict[str, Any]] = {}
     calls = []
     for b, (_, a, z, g0) in enumerate(raw):
         prev = done(work, WL.bucket_piece(b))
+        if prev is not None and "pieces" not in prev:
+            raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
+                             "again with --force")
         if prev is not None:
             results[b] = prev
         else:
-            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, block, rows)))
+            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, block, run, rows)))
 
     def record(res: dict[str, Any]) -> None:
         b = res["block"]
@@ -120,7 +152,7 @@ def damaged(name: str, exc: InputError) -> BuildError:
 def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
     """The buckets phase's marker from every block's result: each bucket's pieces in block order."""
     counts = np.array([r["counts"] for r in results], np.int64).reshape(len(results), -1)
-    pieces = [[WL.bucket(k, int(b)) for b in np.flatnonzero(counts[:, k])] for k in range(counts.shape[1])]
+    pieces = [[p for r in results for p in r["pieces"][k]] for k in range(counts.shape[1])]
     return {"block": block, "buckets": counts.shape[1], "pieces": pieces,
             "files": {k: v for r in results for k, v in r["files"].items()}}
 
@@ -183,7 +215,7 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
             k0 = b * block
             k1 = min(n, k0 + block)
             local = LocalStore(work)
-            r = np.concatenate([bucket_records(local, p, rec) for p in buckets["pieces"][b]] or [np.zeros(0, rec)])
+            r = bucket_records(local, buckets["pieces"][b], rec)
             if r.shape[0] != k1 - k0:
                 raise RuntimeError(f"bucket {b} holds {r.shape[0]} rows, expected {k1 - k0}")
             srt = np.empty(k1 - k0, rec)
