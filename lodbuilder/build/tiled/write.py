@@ -1,10 +1,13 @@
 """Writing a tiled scan into its part file, in stored (prefix) order, without holding it.
 
-The points and attributes sit in input order in the raw blocks of the work directory, the ranks in
-``rank.<b>.i8`` (one file per raw block: :mod:`.ranks`); the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
-destination block into bucket pieces (one record per point: position, coordinates, attributes; a
-task per raw block, :func:`bucket_block`), then each bucket (a band of whole row groups of the
-archive: :func:`band_rows`) is read, put in order and written as finished HDF5 chunks by a task of
+The points and attributes stay in the inputs (a copy in the work directory would be about the
+archive's size again), in input order, and their stored positions in
+``rank.<b>.i8`` (one file per read block: :mod:`.ranks`); the archive wants them in the merged order.
+An external permutation does it in two passes: every read block is read from its input again and
+split by destination block into bucket pieces (one record per point: position, coordinates,
+attributes; a task per read block, :func:`bucket_block`, which checks that it reads the rows the
+read phase read), then each bucket (a band of whole row groups of the archive: :func:`band_rows`)
+is read, put in order and written as finished HDF5 chunks by a task of
 its own (:mod:`.bands`). Memory: one bucket per task.
 
 :func:`write_scan` is the same write by one process through the archive's
@@ -14,19 +17,18 @@ write equals (tests compare the two).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ...archive import layout as L
-from ...errors import BuildError, InputError
+from ...errors import BuildError, InputError, ScanFileError
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import Zipped, opaque_rows, read_rows, segment, unzipped, zipped_blocks
+from .workdir import Spill, Zipped, opaque_rows, read_rows, segment, unzipped
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 
@@ -44,29 +46,37 @@ def bucket_records(store: Store, name: str, rec: np.dtype) -> np.ndarray:
 
 
 @timed_task
-def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
-                 block: int, rows: int) -> dict[str, Any]:
-    """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
-    positions (``rank.<b>.i8``, input indices ``g0 .. g0 + m``), split by destination block (``block`` rows of
-    the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
+def bucket_block(work: Store | str, b: int, source: Any, member: int | None, start: int, stop: int,
+                 spec: dict[str, Any], crc: list[int], n: int, block: int) -> dict[str, Any]:
+    """The first pass for read block ``b`` (a task): its points and attributes read from the input
+    again (``source`` as :func:`.blocks.read_block` takes it, rows ``start .. stop``; checked
+    against the read's sums ``crc``), with their stored positions (``rank.<b>.i8``), split by
+    destination block (``block`` rows of the stored order) into the bucket pieces
+    ``bucket.<k>.<b>.bin``, in input order."""
+    from .blocks import block_rows, rows_sum
+
     w = as_store(work)
+    stream, pose = source() if callable(source) else source
+    fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
+    rec = record_dtype(fields)
     n_buckets = (n + block - 1) // block
     counts = np.zeros(n_buckets, np.int64)
     out: dict[str, Zipped] = {}
+    sums = [0, 0]
     try:
         with w.open(WL.rank_file(b)) as fr:
-            for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
+            for pts, at in block_rows(stream, pose, member, start, stop, spec):
+                sums = rows_sum(sums, pts, at)
+                r = np.empty(pts.shape[0], rec)
+                r["xyz"] = pts
+                if at is not None:  # (None: no field kept)
+                    for i in range(len(fields)):
+                        r[f"a{i}"] = at[f"a{i}"]
                 r["pos"] = read_rows(fr, np.dtype("<i8"), r.shape[0])
-                dest = r["pos"] // block
-                order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
-                cuts = np.searchsorted(dest[order], np.arange(n_buckets + 1))
-                srt = opaque_rows(r)[order]
-                for k in np.flatnonzero(np.diff(cuts)):
-                    name = WL.bucket(int(k), b)
-                    if name not in out:
-                        out[name] = Zipped(w.writer(name))
-                    out[name].write(srt[cuts[k]:cuts[k + 1]])
-                    counts[k] += cuts[k + 1] - cuts[k]
+                _split(w, b, r, block, out, counts)
+        if sums != [int(x) for x in crc]:
+            raise ScanFileError(f"{stream.path}: rows {start} to {stop} are not the rows this build read from it "
+                                "(the file changed during the build); run the build again")
         files = {name: f.commit() for name, f in out.items()}
     finally:
         for f in out.values():
@@ -74,32 +84,61 @@ def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, t
     return {"block": b, "counts": counts.tolist(), "files": files}
 
 
-def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
-                  raw: list[list[int]], rows: int, progress: ProgressCallback = None) -> dict[str, Any]:
-    """The first pass of the write as tasks, one per raw block (or what a finished one recorded)."""
+def _split(w: Store, b: int, r: np.ndarray, block: int, out: dict[str, Zipped], counts: np.ndarray) -> None:
+    """Records ``r`` of read block ``b`` (positions filled) appended to their buckets' pieces."""
+    dest = r["pos"] // block
+    order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
+    cuts = np.searchsorted(dest[order], np.arange(counts.shape[0] + 1))
+    srt = opaque_rows(r)[order]
+    for k in np.flatnonzero(np.diff(cuts)):
+        name = WL.bucket(int(k), b)
+        if name not in out:
+            out[name] = Zipped(w.writer(name))
+        out[name].write(srt[cuts[k]:cuts[k + 1]])
+        counts[k] += cuts[k + 1] - cuts[k]
+
+
+def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[Any, ...]],
+                  progress: ProgressCallback = None) -> dict[str, Any]:
+    """The first pass of the write as tasks, one per read block (or what a finished one recorded):
+    each block read from its input again (``sources`` as the read phase took them; an input the
+    parent holds, by the parent)."""
     from .pool import collect, submit
-    from .sums import done, mark, prune
+    from .sums import done, mark
 
     doc = done(work, "buckets")
     if doc is not None:
         return doc
+    n, raw = sp.n, sp.blocks or []
+    if sp.crcs is None or any(c is None for c in sp.crcs):
+        raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
+                         "again with --force")
     block = band_rows(n, BLOCK)  # the write's bands: whole row groups of the archive
+    spec = {"fields": {k: [v[0], list(v[1])] for k, v in sp.fields.items()}, "rows": sp.rows,
+            "joint": len(sp.members) > 1 or sp.members[0].get("id") is not None}
     results: dict[int, dict[str, Any]] = {}
-    calls = []
-    for b, (_, a, z, g0) in enumerate(raw):
+    calls: list[tuple[int, Any, tuple]] = []
+    inline: list[tuple[int, Any, tuple]] = []
+    for b, (i, a, z, _) in enumerate(raw):
         prev = done(work, WL.bucket_piece(b))
         if prev is not None:
             results[b] = prev
-        else:
-            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, block, rows)))
+            continue
+        stream, pose, member, reopen = sources[int(i)]
+        args = (work, b, reopen if reopen is not None else (stream, pose), member, int(a), int(z), spec,
+                sp.crcs[b], n, block)
+        (calls if reopen is not None else inline).append((b, bucket_block, args))
 
     def record(res: dict[str, Any]) -> None:
-        b = res["block"]
-        results[b] = mark(work, WL.bucket_piece(b), res)
-        prune(work, [WL.raw_xyz(b), WL.raw_attr(b)])  # (read by no other piece: see layout.consumers)
+        results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
 
-    collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
-            lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
+    futs = submit(ex, calls)
+    try:
+        for _, fn, args in inline:
+            record(fn(*args))
+    finally:
+        collect(futs, lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
+                lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
     doc = bucket_pieces([results[b] for b in range(len(raw))], block)
     return mark(work, "buckets", doc)
 
@@ -123,32 +162,6 @@ def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
     pieces = [[WL.bucket(k, int(b)) for b in np.flatnonzero(counts[:, k])] for k in range(counts.shape[1])]
     return {"block": block, "buckets": counts.shape[1], "pieces": pieces,
             "files": {k: v for r in results for k, v in r["files"].items()}}
-
-
-def _raw_records(work: Any, fields: dict[str, tuple[str, tuple[int, ...]]], raw: list[list[int]],
-                 rows: int, first: int = 0) -> Iterator[tuple[int, np.ndarray]]:
-    """``(first input index, records)``: the raw blocks ``raw`` (numbered from ``first``)'s
-    coordinates and attributes as bucket records (``pos`` left to fill), ``rows`` at a time, in
-    input order."""
-    store = as_store(work)
-    rec = record_dtype(fields)
-    attr = WL.attr_record(fields)
-    for b, (_, a, z, g0) in enumerate(raw, start=first):
-        m_b = int(z) - int(a)
-        ats: Any = zipped_blocks((store, WL.raw_attr(b)), attr, m_b, rows) if attr.itemsize else None
-        try:
-            for r0, xyz in zipped_blocks((store, WL.raw_xyz(b)), "<f8", 3 * m_b, 3 * rows):
-                pts = xyz.reshape(-1, 3)
-                r = np.empty(pts.shape[0], rec)
-                r["xyz"] = pts
-                if ats is not None:
-                    _, at = next(ats)
-                    for i in range(len(fields)):
-                        r[f"a{i}"] = at[f"a{i}"]
-                yield int(g0) + r0 // 3, r
-        finally:
-            if ats is not None:
-                ats.close()
 
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
