@@ -121,14 +121,15 @@ def _cases():
     kinds = {
         # (a read or split task's marker is not read again once its phase's marker is written)
         # (the read blocks' samples are deleted once summed into sample.npy)
-        "split": ["raw.0.xyz", "sample.npy", "decimated.bin", "spill.json", "plan.json"],
+        # (the sample is deleted once the plan is done; the read blocks' coordinates once every split is)
+        "split": ["raw.0.xyz", "decimated.bin", "spill.json", "plan.json"],
         # {t}: a tile whose ordering was done when the build stopped
         "tiles": ["stream.{t}.keys", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
         # (the faces are deleted once every tile is ordered: the order marker damaged, every ordering again;
         # the read blocks' coordinates once the tiles' pieces are written: a damaged plan reads the blocks again)
         "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.keys", "order.json", "order.1.1.json",
                   "distribute.json", "decimated.bin"],
-        "radii": ["merged.1.i8", "rank.0.i8", "sample.npy", "cover.0.ev", "cover.1.pt", "cover.2.json",
+        "radii": ["merged.1.i8", "rank.0.i8", "spill.json", "cover.0.ev", "cover.1.pt", "cover.2.json",
                   "pieces.1.links.bin"],
         # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)

@@ -142,9 +142,9 @@ def test_a_tile_stream_is_framed_within_key_bins(store, monkeypatch, rows):
 def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch):
     """Whenever a piece's marker is written, the work directory holds no write bucket beside a
     covering file or a tile's points (the buckets come after the radii and the join), no tile
-    stream beside a rank file, no block sample after the spill, no read block's coordinates once
-    the tiles' pieces are written and never a copy of the attributes (the marker being written
-    aside: its own files are pruned after it)."""
+    stream beside a rank file, no block sample after the spill, no sample after the plan, no read
+    block's coordinates once the tiles' pieces are written and never a copy of the attributes (the
+    marker being written aside: its own files are pruned after it)."""
     import lodbuilder
     from lodbuilder.build.tiled import sums
     from lodbuilder.io import Scan
@@ -172,6 +172,8 @@ def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch
         assert not ("stream" in kinds and "rank" in kinds), (name, kinds)
         if "spill.json" in files:
             assert not [f for f in files if f.startswith("sample.") and f.endswith(".f64")], name
+        if "plan.json" in files:  # (the sample: read by the plan alone)
+            assert "sample.npy" not in files, name
         if "distribute.json" in files:  # (the read blocks' coordinates: read by the plan and the split alone)
             assert not [f for f in files if f.startswith("raw.")], name
         assert not [f for f in files if f.startswith("raw.") and not f.endswith(".xyz")], name  # (no attributes)

@@ -8,7 +8,7 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
     read        raw.<b>.xyz         block b's (m, 3) float64 coordinates in input order (poses applied; zipped;
                                     the attributes are not copied: the write reads the inputs again)
                 sample.<b>.f64      block b's points whose input index is a multiple of the sample step
-    spill       sample.npy          the sample of the whole scan (for the spacing), in input order
+    spill       sample.npy          the sample of the whole scan (for the plan's spacing), in input order
     plan        decimated.bin       the decimated copy (one point per grid cell): REC records
     distribute  core.<t>.<b>.bin    the points of tile t from block b: REC records (g, x, y, z), g the input index (zipped)
                 halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others (zipped)
@@ -261,13 +261,14 @@ def writing(name: str) -> str:
 # ------------------------------------------------------------------------------------ pruning
 
 #: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
-#: after the spill, the read blocks' samples (summed into sample.npy, which is kept); after every
+#: (those of the prefix whose consumers include the phase): after the spill, the read blocks'
+#: samples (summed into sample.npy); after the plan, sample.npy; after every
 #: tile's ordering (the ``order`` marker: every ordering's marker, stream and seam points), the
 #: face files; after the merge, the tiles' streams and seam points and the deferred points; after the
 #: split into tiles (the last phase to read them), the read blocks' coordinates; after the pieces
 #: (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"spill": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "deferred."),
+PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "deferred."),
                "distribute": ("raw.",), "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
@@ -287,6 +288,8 @@ def consumers(name: str) -> list[str] | None:
         return ["order"]
     if kind == "sample" and ext == "f64":  # (the spill's marker does not list them)
         return ["spill"]
+    if name == SAMPLE:
+        return ["plan"]
     if kind in ("core", "halo") and ext == "bin":
         return ["pieces", f"cover.{parts[1]}", f"order.{parts[1]}.*"]
     if (kind == "cover" and ext in ("ev", "pt")) or kind in ("radloc", "space"):

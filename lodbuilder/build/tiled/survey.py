@@ -92,8 +92,8 @@ def read_phase(ex: cf.Executor, work: Store, name: str, sources: list[tuple[Any,
     """Phases inputs and read: every block read by a task (an input the parent holds in memory by
     the parent), summed into the ``spill`` marker (or what a finished read recorded)."""
     doc = done(work, "spill")
-    if doc is not None:
-        return Spill.from_json(doc, work.load_npy(WL.SAMPLE))
+    if doc is not None:  # (the sample is read by the plan alone: deleted once it is done)
+        return Spill.from_json(doc, work.load_npy(WL.SAMPLE) if work.size(WL.SAMPLE) is not None else np.zeros((0, 3)))
     inp = done(work, "inputs") or mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
     spec = {k: inp[k] for k in ("fields", "joint", "metadata", "step", "rows")}
     results = {}
