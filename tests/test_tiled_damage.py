@@ -236,12 +236,21 @@ def test_a_forged_las_work_file_names_no_internal_option(tmp_path, monkeypatch):
         with pytest.raises(KeyboardInterrupt):
             lodbuilder.build_archive(src, archive, _tile_points=400)
     (w,) = (tmp_path / ".a.h5.parts").glob("*.work")
-    bucket = w / "bucket.0.0.bin"
-    data = bytearray(zstandard.ZstdDecompressor().decompressobj().decompress(bucket.read_bytes()))  # (compressed)
-    data[8] ^= 0x01  # the lowest bit of the first record's x (after its 8-byte position)
-    bucket.write_bytes(zstandard.ZstdCompressor(level=1).compress(bytes(data)))
     doc = read_json(w / "buckets.json")
-    doc["files"]["bucket.0.0.bin"] = sum_file(bucket)
+    fname, a, z = doc["pieces"][0][0]  # (bucket 0's first piece: one compressed frame of its file)
+    bucket = w / fname
+    raw = bucket.read_bytes()
+    data = bytearray(zstandard.ZstdDecompressor().decompress(raw[a:z]))
+    data[8] ^= 0x01  # the lowest bit of the first record's x (after its 8-byte position)
+    frame = zstandard.ZstdCompressor(level=1).compress(bytes(data))
+    bucket.write_bytes(raw[:a] + frame + raw[z:])
+    shift = len(frame) - (z - a)
+    for pieces in doc["pieces"]:  # (the frames after it in that file moved)
+        for p in pieces:
+            if p[0] == fname and p[1] >= z:
+                p[1], p[2] = p[1] + shift, p[2] + shift
+    doc["pieces"][0][0][2] = a + len(frame)
+    doc["files"][fname] = sum_file(bucket)
     write_json(w / "buckets.json", doc)
     with pytest.raises(BuildError) as e:
         lodbuilder.build_archive(src, archive, _tile_points=400)

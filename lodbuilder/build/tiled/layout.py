@@ -30,9 +30,10 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                 space.<b>.f8        band b's running minimum of the spacing (round 1; zipped)
                 parent.<b>.i8       the stored parent of each position of band b (framed, as merged.<j>)
                 radius.<b>.f8       the stored radius of each position of band b (round 2; framed)
-    buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from read block b (see write.py;
-                                    after the radii and the pieces, once the covering files and the
-                                    tiles' points are deleted)
+    buckets     bucket.<k0>_<k1>.<b>.bin  buckets k0 .. k1 of the external permutation from read block b,
+                                    one zstd frame per bucket's piece (see write.py; at most
+                                    BUCKET_FILES per block; after the radii and the pieces, once the
+                                    covering files and the tiles' points are deleted)
     write       chunks.<k>.bin      band k's rows as finished HDF5 chunks, one after another (see bands.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
@@ -42,7 +43,7 @@ marker and files check out. Every file is written to a temporary and published
 
 A large file is deleted once every piece that reads it is done (:data:`PRUNE_AFTER`: when the
 marker of the last one is written; a read block's coordinates once the tiles' pieces are written,
-a bucket once its band of the write is), so that the work
+a bucket file once the bands of the write it holds are), so that the work
 directory holds only what later phases still read. Its producer's marker still lists it: a missing
 file checks out while every piece that reads it (:func:`consumers`) checks out, so a resume that
 finds one of those damaged or gone does its producer again too (the same bytes).
@@ -175,9 +176,16 @@ def cover_points(t: int) -> str:
     return f"cover.{t}.pt"
 
 
-def bucket(k: int, b: int) -> str:
-    """The piece of destination bucket ``k`` from raw block ``b``."""
-    return f"bucket.{k}.{b}.bin"
+def bucket(k0: int, k1: int, b: int) -> str:
+    """The pieces of destination buckets ``k0 .. k1`` (a run of consecutive ones) from raw block
+    ``b``: one zstd frame per piece (see write.py)."""
+    return f"bucket.{k0}_{k1}.{b}.bin"
+
+
+def bucket_range(name: str) -> range:
+    """The destination buckets whose pieces the bucket file ``name`` holds."""
+    k0, k1 = name.split(".")[1].split("_")
+    return range(int(k0), int(k1))
 
 
 def bucket_piece(b: int) -> str:
@@ -295,7 +303,7 @@ def consumers(name: str) -> list[str] | None:
     if (kind == "cover" and ext in ("ev", "pt")) or kind in ("radloc", "space"):
         return ["radii"]
     if kind == "bucket" and ext == "bin":
-        return [chunks_piece(int(parts[1]))]
+        return [chunks_piece(k) for k in bucket_range(name)]
     return None
 
 
