@@ -91,6 +91,11 @@ def test_bench_survey_document(bench_doc, capsys):
             # (the work directory's bytes per kind of file at its peak, over the archive's)
             assert sum(r["peak_work_over_archive_by_kind"].values()) == pytest.approx(r["work_over_archive"], abs=0.05)
             assert 0 < r["peak_work_seconds"] <= r["wall_seconds"]
+            # (its largest size in each phase: the largest of them is the peak, bar the samples between phases)
+            by_phase = r["peak_work_by_phase"]
+            assert set(by_phase) <= set(r["phase_seconds"]) and len(by_phase) >= 5
+            assert max(p["over_archive"] for p in by_phase.values()) <= r["work_over_archive"]
+            assert all(sum(p["largest"].values()) <= p["over_archive"] + 1e-3 for p in by_phase.values())
             assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1
@@ -144,11 +149,12 @@ def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypat
     assert len(doc["earlier"]) == 1
 
 
-def test_the_sampler_walks_the_directory_once_a_second(tmp_path, monkeypatch):
+def test_the_sampler_walks_a_dear_directory_less_often(tmp_path, monkeypatch):
     """The walk of a survey's work directory (thousands of files) is the sampler's dearest part, and
-    its CPU competes with the build's workers: one walk gives both sizes, at most once per
-    DISK_EVERY seconds (the process tree every sample)."""
+    its CPU competes with the build's workers: one walk gives both sizes, and the next waits until
+    the walks have taken at most DISK_SHARE of the time (the process tree at every sample)."""
     import os
+    import time
 
     import bench_survey
 
@@ -157,14 +163,21 @@ def test_the_sampler_walks_the_directory_once_a_second(tmp_path, monkeypatch):
     (tmp_path / "out.h5").write_bytes(bytes(5_000))
     walks = []
     real = bench_survey.disk_bytes
-    monkeypatch.setattr(bench_survey, "disk_bytes", lambda *a, **k: walks.append(1) or real(*a, **k))
+
+    def dear(*a, **k):  # a walk of 20 ms: the next one 0.4 s later at the earliest
+        walks.append(1)
+        time.sleep(0.02)
+        return real(*a, **k)
+
+    monkeypatch.setattr(bench_survey, "disk_bytes", dear)
     s = bench_survey.Sampler(os.getpid(), tmp_path, 0.01)
     for _ in range(5):
         s.sample()
     assert s.samples == 5 and len(walks) == 1
+    assert s.disk_next - time.perf_counter() >= 0.3
     work, total = real(tmp_path)
     assert s.peak_work == work >= 10_000 and s.peak_all == total >= work + 5_000
-    assert set(s.peak_work_by_kind) == {"raw"}
-    s.disk_at -= s.DISK_EVERY  # a second later: walked again
+    assert set(s.peak_work_by_kind) == {"raw"} and len(s.timeline) == 1
+    s.disk_next = time.perf_counter()  # the time has come: walked again
     s.sample()
-    assert len(walks) == 2
+    assert len(walks) == 2 and len(s.timeline) == 2

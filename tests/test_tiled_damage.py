@@ -121,13 +121,15 @@ def _cases():
     kinds = {
         # (a read or split task's marker is not read again once its phase's marker is written)
         # (the read blocks' samples are deleted once summed into sample.npy)
-        "split": ["raw.0.xyz", "raw.0.attr", "sample.npy", "decimated.bin", "spill.json", "plan.json"],
+        # (the sample is deleted once the plan is done; the read blocks' coordinates once every split is)
+        "split": ["raw.0.xyz", "decimated.bin", "spill.json", "plan.json"],
         # {t}: a tile whose ordering was done when the build stopped
-        "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
-        # (the faces are deleted once every tile is ordered: the order marker damaged, every ordering again)
-        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "order.json", "order.1.1.json",
-                  "distribute.json", "raw.0.xyz"],
-        "radii": ["merged.1.i8", "rank.0.i8", "raw.0.xyz", "cover.0.ev", "cover.1.pt", "cover.2.json",
+        "tiles": ["stream.{t}.keys", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
+        # (the faces are deleted once every tile is ordered: the order marker damaged, every ordering again;
+        # the read blocks' coordinates once the tiles' pieces are written: a damaged plan reads the blocks again)
+        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.keys", "order.json", "order.1.1.json",
+                  "distribute.json", "decimated.bin"],
+        "radii": ["merged.1.i8", "rank.0.i8", "spill.json", "cover.0.ev", "cover.1.pt", "cover.2.json",
                   "pieces.1.links.bin"],
         # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
@@ -286,8 +288,9 @@ if __name__ == "__main__":
 
 def test_kill_9_then_damage_then_resume(tmp_path):
     """A real kill -9 (the pool's workers die with the build) in the tile phase, then a flipped
-    raw block and a truncated halo piece of an ordered tile: the resumed build redoes both pieces and
-    stores exactly what an uninterrupted build stores."""
+    decimated copy (the plan again, from read blocks read again) and a truncated halo piece of an
+    ordered tile: the resumed build redoes both pieces and stores exactly what an uninterrupted
+    build stores."""
     import subprocess
     import sys
 
@@ -303,7 +306,7 @@ def test_kill_9_then_damage_then_resume(tmp_path):
     assert r.returncode == -9, r.stderr
     w = _work(tmp_path / ".a.h5.parts")
     t = sorted(w.glob("order.*.1.json"))[0].name.split(".")[1]
-    _damage(w / "raw.0.xyz", "flip")
+    _damage(w / "decimated.bin", "flip")  # (the plan again: the read blocks' coordinates, deleted, read again)
     _damage(w / f"halo.{t}.0.bin", "truncate")
     res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=5000)
     assert res.scans[0].status == "built"
