@@ -166,8 +166,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
     # 4. order every tile (on the workers), in passes
     args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
-    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress,
-                                             parallel if parallel > 1 else None)
+    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress, parallel)
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
@@ -217,18 +216,19 @@ def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill,
 
 
 def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
-           args: tuple, progress: ProgressCallback, slots: int | None = None
+           args: tuple, progress: ProgressCallback, parallel: int = 1
            ) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
-    """Phase 4: every tile ordered on the workers, in colour classes and passes, at most ``slots``
-    at a time (see :func:`_order_passes`). Returns the tiles largest first, their colours, how many
-    orderings a resume found done, and each tile's marker."""
+    """Phase 4: every tile ordered on the workers, in colour classes and passes, at most
+    ``parallel`` at a time (see :func:`_order_passes`; 1: a scheduler whose workers are not
+    counted, every ready ordering submitted at once). Returns the tiles largest first, their
+    colours, how many orderings a resume found done, and each tile's marker."""
     # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
     size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
     nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
     colour = P.colour_tiles(nbrs)
     ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
-                            slots)
+                            parallel if parallel > 1 else None)
     stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     if _done(work, "order") is None:
         # every ordering's marker and last files, checked as one: the tiles' face files (read by the
