@@ -409,7 +409,8 @@ def _pieces(band, stats):
     """The connected piece of the band of each point, and their count (also in ``stats``)."""
     from .._kernels.topology import point_pieces
 
-    piece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    known, band.pieces = band.pieces, None  # (found while the band was planned: not again)
+    piece, npiece = known if known is not None else point_pieces(band.nbr, band.cs, band.near, band.vcost)
     stats["pieces"] = int(npiece)
     return piece, npiece
 
