@@ -91,6 +91,11 @@ def test_bench_survey_document(bench_doc, capsys):
             # (the work directory's bytes per kind of file at its peak, over the archive's)
             assert sum(r["peak_work_over_archive_by_kind"].values()) == pytest.approx(r["work_over_archive"], abs=0.05)
             assert 0 < r["peak_work_seconds"] <= r["wall_seconds"]
+            # (its largest size in each phase: the largest of them is the peak, bar the samples between phases)
+            by_phase = r["peak_work_by_phase"]
+            assert set(by_phase) <= set(r["phase_seconds"]) and len(by_phase) >= 5
+            assert max(p["over_archive"] for p in by_phase.values()) <= r["work_over_archive"]
+            assert all(sum(p["largest"].values()) <= p["over_archive"] + 1e-3 for p in by_phase.values())
             assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1

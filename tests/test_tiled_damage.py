@@ -121,13 +121,15 @@ def _cases():
     kinds = {
         # (a read or split task's marker is not read again once its phase's marker is written)
         # (the read blocks' samples are deleted once summed into sample.npy)
-        "split": ["raw.0.xyz", "raw.0.attr", "sample.npy", "decimated.bin", "spill.json", "plan.json"],
+        # (the sample is deleted once the plan is done; the read blocks' coordinates once every split is)
+        "split": ["raw.0.xyz", "decimated.bin", "spill.json", "plan.json"],
         # {t}: a tile whose ordering was done when the build stopped
-        "tiles": ["stream.{t}.bin", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
-        # (the faces are deleted once every tile is ordered: the order marker damaged, every ordering again)
-        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.bin", "order.json", "order.1.1.json",
-                  "distribute.json", "raw.0.xyz"],
-        "radii": ["merged.1.i8", "rank.0.i8", "raw.0.xyz", "cover.0.ev", "cover.1.pt", "cover.2.json",
+        "tiles": ["stream.{t}.keys", "face.{t}.1.bin", "order.{t}.1.json", "halo.{t}.0.bin", "head.bin", "coarse.json"],
+        # (the faces are deleted once every tile is ordered: the order marker damaged, every ordering again;
+        # the read blocks' coordinates once the tiles' pieces are written: a damaged plan reads the blocks again)
+        "merge": ["core.0.0.bin", "halo.1.0.bin", "head.bin", "stream.2.keys", "order.json", "order.1.1.json",
+                  "distribute.json", "decimated.bin"],
+        "radii": ["merged.1.i8", "rank.0.i8", "spill.json", "cover.0.ev", "cover.1.pt", "cover.2.json",
                   "pieces.1.links.bin"],
         # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
@@ -234,12 +236,21 @@ def test_a_forged_las_work_file_names_no_internal_option(tmp_path, monkeypatch):
         with pytest.raises(KeyboardInterrupt):
             lodbuilder.build_archive(src, archive, _tile_points=400)
     (w,) = (tmp_path / ".a.h5.parts").glob("*.work")
-    bucket = w / "bucket.0.0.bin"
-    data = bytearray(zstandard.ZstdDecompressor().decompressobj().decompress(bucket.read_bytes()))  # (compressed)
-    data[8] ^= 0x01  # the lowest bit of the first record's x (after its 8-byte position)
-    bucket.write_bytes(zstandard.ZstdCompressor(level=1).compress(bytes(data)))
     doc = read_json(w / "buckets.json")
-    doc["files"]["bucket.0.0.bin"] = sum_file(bucket)
+    fname, a, z = doc["pieces"][0][0]  # (bucket 0's first piece: one compressed frame of its file)
+    bucket = w / fname
+    raw = bucket.read_bytes()
+    data = bytearray(zstandard.ZstdDecompressor().decompress(raw[a:z]))
+    data[8] ^= 0x01  # the lowest bit of the first record's x (after its 8-byte position)
+    frame = zstandard.ZstdCompressor(level=1).compress(bytes(data))
+    bucket.write_bytes(raw[:a] + frame + raw[z:])
+    shift = len(frame) - (z - a)
+    for pieces in doc["pieces"]:  # (the frames after it in that file moved)
+        for p in pieces:
+            if p[0] == fname and p[1] >= z:
+                p[1], p[2] = p[1] + shift, p[2] + shift
+    doc["pieces"][0][0][2] = a + len(frame)
+    doc["files"][fname] = sum_file(bucket)
     write_json(w / "buckets.json", doc)
     with pytest.raises(BuildError) as e:
         lodbuilder.build_archive(src, archive, _tile_points=400)
@@ -277,8 +288,9 @@ if __name__ == "__main__":
 
 def test_kill_9_then_damage_then_resume(tmp_path):
     """A real kill -9 (the pool's workers die with the build) in the tile phase, then a flipped
-    raw block and a truncated halo piece of an ordered tile: the resumed build redoes both pieces and
-    stores exactly what an uninterrupted build stores."""
+    decimated copy (the plan again, from read blocks read again) and a truncated halo piece of an
+    ordered tile: the resumed build redoes both pieces and stores exactly what an uninterrupted
+    build stores."""
     import subprocess
     import sys
 
@@ -294,7 +306,7 @@ def test_kill_9_then_damage_then_resume(tmp_path):
     assert r.returncode == -9, r.stderr
     w = _work(tmp_path / ".a.h5.parts")
     t = sorted(w.glob("order.*.1.json"))[0].name.split(".")[1]
-    _damage(w / "raw.0.xyz", "flip")
+    _damage(w / "decimated.bin", "flip")  # (the plan again: the read blocks' coordinates, deleted, read again)
     _damage(w / f"halo.{t}.0.bin", "truncate")
     res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=5000)
     assert res.scans[0].status == "built"

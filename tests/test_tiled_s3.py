@@ -162,12 +162,13 @@ def test_a_stopped_build_resumes_from_the_store_and_redoes_a_damaged_object(s3, 
     keys = _keys(s3, prefix)
     (work,) = {k.rsplit("/", 1)[0] for k in keys}
     names = {k.rsplit("/", 1)[1] for k in keys}
-    assert {"spill.json", "plan.json", "distribute.json", "raw.0.xyz", "head.bin"} <= names
+    assert {"spill.json", "plan.json", "distribute.json", "decimated.bin", "head.bin"} <= names
+    assert not [n for n in names if n.startswith(("raw.", "sample."))]  # (read by the plan and the split alone)
     assert not any(n.endswith(".work") or ".tmp" in n for n in names)
     done_tiles = sorted(n.split(".")[1] for n in names if n.startswith("order.") and n.endswith(".1.json"))
     assert len(done_tiles) == 2
     fs = s3fs.S3FileSystem(**__import__("fsspec").config.conf["s3"])
-    for name in ("raw.0.xyz", f"stream.{done_tiles[0]}.bin"):  # flip bytes of two objects
+    for name in ("decimated.bin", f"stream.{done_tiles[0]}.keys"):  # flip bytes of two objects
         data = bytearray(fs.cat_file(f"{BUCKET}/{work}/{name}"))
         for i in np.linspace(0, len(data) - 1, 5).astype(int):
             data[i] ^= 0x5A
@@ -180,9 +181,9 @@ def test_a_stopped_build_resumes_from_the_store_and_redoes_a_damaged_object(s3, 
     assert build["tiled"]["resumed"]["tiles_ordered_before"] == 1  # the damaged tile was ordered again
     msgs = [r.getMessage() for r in caplog.records]
     store_url = f"s3://{BUCKET}/{work}"
-    assert f"tiled build in {store_url}: the spill phase (raw.0.xyz does not match its checksum); doing it again" in msgs
+    assert f"tiled build in {store_url}: the plan phase (decimated.bin does not match its checksum); doing it again" in msgs
     assert (f"tiled build in {store_url}: the ordering of tile {int(done_tiles[0]) + 1} (pass 1) "
-            f"(stream.{done_tiles[0]}.bin does not match its checksum); doing it again") in msgs
+            f"(stream.{done_tiles[0]}.keys does not match its checksum); doing it again") in msgs
     assert _keys(s3, prefix) == []
 
 

@@ -38,7 +38,7 @@ def _streams(rng, n_tiles=3, per_tile=120):
 
 def _store(tmp_path, pts, head, streams):
     from lodbuilder.build.tiled.store import as_store
-    from lodbuilder.build.tiled.workdir import put_framed
+    from lodbuilder.build.tiled.workdir import put_stream
 
     w = as_store(tmp_path)
     h = np.empty(len(head), WL.HEAD)
@@ -48,7 +48,7 @@ def _store(tmp_path, pts, head, streams):
         s = np.empty(len(rows), WL.STREAM)
         for c, name in enumerate(WL.STREAM.names):
             s[name] = rows[:, c]
-        put_framed(w, WL.stream(t), s, 7)  # (frames of 7 rows: the bands' runs cut them)
+        put_stream(w, WL.stream(t), s, 7)  # (frames of 7 rows at most: the bands' runs cut them)
         w.put(WL.seam(t), s[s["m"] < s["key"]])
     return w
 
@@ -74,7 +74,8 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             s[:, 1] = np.where(np.isfinite(s[:, 1]), np.floor(s[:, 1] / step) * step, np.inf)
     monkeypatch.setattr(M, "BUF", 7)
     monkeypatch.setattr(M.W, "BLOCK", 5)
-    stats = [{"hist": [b.tolist() for b in np.unique(WL.key_bins(s[:, 1]), return_counts=True)]} for s in streams]
+    stats = [{"hist": [b.tolist() for b in np.unique(WL.key_bins(s[:, 1]), return_counts=True)],
+              "files": {WL.stream(t): [0, 0]}} for t, s in enumerate(streams)]
     for a in (alpha, 0.0):
         (tmp_path / f"a{a}").mkdir()
         w = _store(tmp_path / f"a{a}", pts, head, streams)

@@ -160,3 +160,33 @@ def test_the_parent_reads_no_point_of_a_file(survey, tmp_path, monkeypatch):
     assert [s.status for s in res.scans] == ["built"]
     with lodbuilder.open_archive(out) as arc:
         assert arc.scan().n_points == sum(len(s) for s in scans[:3])
+
+
+def test_a_file_changed_during_the_build_fails_the_write_by_its_name(survey, tmp_path, monkeypatch):
+    """The write reads the inputs again (the work directory keeps no copy of the points' attributes):
+    a file rewritten during the build (one point's intensity changed) fails the build, naming the
+    file and its rows, before anything is written; the archive stays as it was."""
+    import shutil
+
+    from lodbuilder.build.tiled import write
+
+    files, scans = survey
+    a, b = shutil.copy(files[0], tmp_path / "a.las"), shutil.copy(files[2], tmp_path / "b.laz")
+    real = write.buckets_phase
+
+    def rewrite_then_permute(*args, **kwargs):
+        las = laspy.read(str(a))
+        las.intensity[7] += 1
+        las.write(str(a))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(write, "buckets_phase", rewrite_then_permute)
+    keep = tmp_path / "t.h5"
+    lodbuilder.build_archive(Scan(points=np.random.default_rng(1).random((300, 3)), name="other"), keep)
+    before = keep.read_bytes()
+    with pytest.raises(BuildError) as exc:
+        lodbuilder.build_archive([a, b], keep, joint="site", workers=2, _tile_points=250)
+    assert str(exc.value) == (f"scan 'site': the permutation of block 1 failed: {a}: rows 0 to {len(scans[0])} are "
+                              "not the rows this build read from it (the file changed during the build); run the "
+                              "build again")
+    assert keep.read_bytes() == before

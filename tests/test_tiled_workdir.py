@@ -89,11 +89,62 @@ def test_a_framed_file_gives_every_run_of_rows(store, rows):
     np.testing.assert_array_equal(np.concatenate([r.read(a, 50) for a in range(0, 300, 50)]), s)
 
 
+def _counting_frames(monkeypatch):
+    """The frames :func:`workdir._read_frames` decompresses, by their first row."""
+    seen: list[int] = []
+    real = W._read_frames
+
+    def count(store, name, index, dtype):
+        seen.extend(index["first"].tolist())
+        return real(store, name, index, dtype)
+
+    monkeypatch.setattr(W, "_read_frames", count)
+    return seen
+
+
+def test_runs_read_on_decompress_each_frame_once(store, monkeypatch):
+    """Runs of rows read one after another, across frames (frames of 7 rows, runs of 50): every
+    frame is decompressed once (a run that began in a frame read before decompressed it again)."""
+    s = np.arange(300, dtype="<i8")
+    W.put_framed(store, "merged.1.i8", s, 7)
+    seen = _counting_frames(monkeypatch)
+    r = W.FramedReader(store, "merged.1.i8", np.dtype("<i8"))
+    np.testing.assert_array_equal(np.concatenate([r.read(a, 50) for a in range(0, 300, 50)]), s)
+    assert sorted(seen) == list(range(0, 300, 7))
+
+
+@pytest.mark.parametrize("rows", [1, 3, 65536])
+def test_a_tile_stream_is_framed_within_key_bins(store, monkeypatch, rows):
+    """A tile's stream (workdir.put_stream) keeps input index and key, in frames of at most ``rows``
+    rows that never hold two key bins: the rows of any run of whole bins (a band of the merge) are
+    read by decompressing that run's frames alone, each once."""
+    rng = np.random.default_rng(rows)
+    s = np.zeros(400, WL.STREAM)
+    s["key"] = np.sort(np.r_[np.inf, rng.random(390) * 50, np.zeros(9)])[::-1]
+    s["g"], s["x"], s["m"] = rng.permutation(400), rng.random(400), rng.random(400)
+    W.put_stream(store, "stream.0.keys", s, rows)
+    index = W._frames_index(store, "stream.0.keys")
+    bins = WL.key_bins(s["key"])
+    assert (index["count"] <= rows).all() and index["count"].sum() == 400
+    assert all(bins[f] == bins[z] for f, z in zip(index["first"], index["last"], strict=True))
+    every = W.FramedReader(store, "stream.0.keys", WL.KEYS).read(0, 400)
+    np.testing.assert_array_equal(every["g"], s["g"])
+    np.testing.assert_array_equal(every["key"], s["key"])
+    cuts = np.flatnonzero(np.diff(bins)) + 1
+    a, z = int(cuts[3]), int(cuts[9])  # bins 4 to 9, read in runs of 5 rows
+    seen = _counting_frames(monkeypatch)
+    r = W.FramedReader(store, "stream.0.keys", WL.KEYS)
+    got = np.concatenate([r.read(k, min(5, z - k)) for k in range(a, z, 5)])
+    np.testing.assert_array_equal(got["g"], s["g"][a:z])
+    assert sorted(seen) == [int(f) for f in index["first"] if a <= f < z]
+
+
 def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch):
     """Whenever a piece's marker is written, the work directory holds no write bucket beside a
     covering file or a tile's points (the buckets come after the radii and the join), no tile
-    stream beside a rank file, no block sample after the spill and no raw block whose bucket
-    pieces are written (the marker being written aside: its own files are pruned after it)."""
+    stream beside a rank file, no block sample after the spill, no sample after the plan, no read
+    block's coordinates once the tiles' pieces are written and never a copy of the attributes (the
+    marker being written aside: its own files are pruned after it)."""
     import lodbuilder
     from lodbuilder.build.tiled import sums
     from lodbuilder.io import Scan
@@ -121,5 +172,8 @@ def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch
         assert not ("stream" in kinds and "rank" in kinds), (name, kinds)
         if "spill.json" in files:
             assert not [f for f in files if f.startswith("sample.") and f.endswith(".f64")], name
-        done = {f.split(".")[1] for f in files if f.startswith("permute.") and f.endswith(".json")}
-        assert not [f for f in files if f.startswith("raw.") and f.split(".")[1] in done], name
+        if "plan.json" in files:  # (the sample: read by the plan alone)
+            assert "sample.npy" not in files, name
+        if "distribute.json" in files:  # (the read blocks' coordinates: read by the plan and the split alone)
+            assert not [f for f in files if f.startswith("raw.")], name
+        assert not [f for f in files if f.startswith("raw.") and not f.endswith(".xyz")], name  # (no attributes)

@@ -11,7 +11,9 @@ them ordered as one surface: ``--joint``) once per executor and worker count. Fo
 * peak RSS of the process tree (the sum over the tree at each sample) and its ratio to
   ``--max-memory`` (target <= 1.1: 3.3 GB at 3GB);
 * the largest size on disk of the work directory over the run (sampled likewise) beside the
-  archive's size (target <= 2 x), and the largest size of everything the build wrote;
+  archive's size (target <= 2 x), its kinds of work file at that moment, its largest size in each
+  phase (``peak_work_by_phase``, with the three largest kinds), and the largest size of everything
+  the build wrote;
 * the build record's phase seconds, tile count and per-task table summed by kind (tasks, seconds,
   CPU seconds, workers seen, the largest peak resident size of a task's worker while it ran:
   ``peak_rss_by_kind``, largest first), and the scheduler simulation's prediction for 1-16 workers
@@ -162,6 +164,7 @@ class Sampler(threading.Thread):
         self.processes_max = 0
         self.peak_work_by_kind: dict[str, int] = {}  # the work directory's bytes per kind at its peak
         self.peak_work_at = 0.0  # seconds after the start
+        self.timeline: list[tuple[float, int, dict[str, int]]] = []  # (epoch seconds, work bytes, by kind)
         self.t0 = time.perf_counter()
         self._halt = threading.Event()
 
@@ -176,6 +179,7 @@ class Sampler(threading.Thread):
         if work > self.peak_work:
             self.peak_work, self.peak_work_by_kind = work, kinds
             self.peak_work_at = time.perf_counter() - self.t0
+        self.timeline.append((time.time(), work, kinds))
         self.peak_all = max(self.peak_all, disk_bytes(self.where, False))
         self.samples += 1
 
@@ -347,8 +351,28 @@ def worker_share(max_memory: str, workers: int) -> int:
     return worker_budget(parse_bytes(max_memory), workers)
 
 
+def peaks_by_phase(rec: dict[str, Any], timeline: list[tuple[float, int, dict[str, int]]], archive_bytes: int
+                   ) -> dict[str, Any]:
+    """The work directory's largest size within each phase of the build record (its phases' seconds
+    one after another from ``build_started``) over the archive's size, with its three largest kinds
+    of work file at that moment: where the peak is, and what makes it."""
+    t, out = rec.get("build_started"), {}
+    if t is None or not archive_bytes:
+        return {}
+    for phase in rec.get("phase_order") or []:
+        end = t + float(rec["phase_seconds"][phase])
+        inside = [x for x in timeline if t <= x[0] < end]
+        t = end
+        if inside:
+            _, work, kinds = max(inside, key=lambda x: x[1])
+            top = sorted(kinds.items(), key=lambda x: -x[1])[:3]
+            out[phase] = {"over_archive": round(work / archive_bytes, 3),
+                          "largest": {k: round(v / archive_bytes, 3) for k, v in top}}
+    return out
+
+
 def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
-              interval: float, tile_points: int | None = None) -> dict[str, Any]:
+              interval: float, tile_points: int | None = None, keep: Path | None = None) -> dict[str, Any]:
     """One measured ``lodbuilder build`` of ``inputs`` (see the module)."""
     where = Path(tempfile.mkdtemp(prefix=f"{executor}{workers}_", dir=base))
     archive = where / "survey.h5"
@@ -405,12 +429,16 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "peak_work_seconds": round(sampler.peak_work_at, 2),
         "peak_work_over_archive_by_kind": {k: round(v / archive_bytes, 3) for k, v in sorted(
             sampler.peak_work_by_kind.items(), key=lambda x: -x[1])} if archive_bytes else None,
+        "peak_work_by_phase": peaks_by_phase(rec, sampler.timeline, archive_bytes),
         "phase_seconds": {k: rec["phase_seconds"][k] for k in rec.get("phase_order") or rec.get("phase_seconds", {})},
         "tiles": rec.get("tiled", {}).get("tiles"),
         "tasks": task_summary(rec.get("tasks")),
     })
     res["simulation"] = _simulate(rec, wall, workers)
     res["simulation_cpu"] = _simulate(rec, wall, workers, rus["self_cpu"])
+    if keep is not None:  # (to compare archives of two trees: the same survey gives the same datasets)
+        keep.mkdir(parents=True, exist_ok=True)
+        res["kept"] = str(shutil.move(str(archive), keep / f"{inputs[0].name}_{executor}{workers}.h5"))
     shutil.rmtree(where, ignore_errors=True)
     return res
 
@@ -523,6 +551,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--append", action="store_true",
                    help="add the surveys to those of --out (one JSON for runs that need different executors); a "
                         "survey of the same files replaces its earlier runs")
+    p.add_argument("--keep", type=Path, metavar="DIR",
+                   help="keep each run's archive in DIR (as <survey name>_<executor><workers>.h5)")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
@@ -544,7 +574,7 @@ def main(argv: list[str] | None = None) -> int:
         for ex in executors:
             for w in args.workers:
                 sv["runs"].append(run_build([survey], joint, ex, w, args.max_memory, args.work, args.interval,
-                                            args.tile_points))
+                                            args.tile_points, args.keep))
                 print(json.dumps({k: v for k, v in sv["runs"][-1].items() if not k.startswith("simulation")}),
                       file=sys.stderr)
         sv.update(ratios(sv["runs"]))

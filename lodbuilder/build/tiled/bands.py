@@ -52,10 +52,10 @@ def index_sums(n: int) -> list[int]:
     return [(n * (n - 1) // 2) & MASK, ((n - 1) * n * (2 * n - 1) // 6) & MASK]
 
 
-def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[str]) -> np.ndarray:
+def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[list[Any]]) -> np.ndarray:
     """The band's bucket: its points' records in stored order, each position filled once."""
     rec = record_dtype(fields)
-    r = np.concatenate([bucket_records(as_store(work), p, rec) for p in pieces] or [np.zeros(0, rec)])
+    r = bucket_records(as_store(work), pieces, rec)
     pos = r["pos"] - k0
     if r.shape[0] != k1 - k0 or (pos.size and (pos.min() < 0 or pos.max() >= k1 - k0)) \
             or np.bincount(pos, minlength=k1 - k0).max(initial=1) != 1:
@@ -143,8 +143,15 @@ def write_phase(ex: Any, work: Any, part: Path, name: str, sp: Any, finish: Call
     def call(b: int, spec: Any) -> tuple[int, Any, tuple]:
         return (b, write_band, (work, b, *bands[b], rows, spec, {**args, "pieces": buckets["pieces"][b]}))
 
+    files = {p[0] for pieces in buckets["pieces"] for p in pieces}
+
+    def drop() -> None:  # the bucket files whose bands are all written: read by no one now
+        gone = [f for f in files if all(k in got for k in WL.bucket_range(f))]
+        prune(work, gone)
+        files.difference_update(gone)
+
     if 0 not in got:  # the first band alone: it decides the datasets' creation properties
-        _run(ex, work, name, {0: call(0, None)}, bands, got, progress)
+        _run(ex, work, name, {0: call(0, None)}, bands, got, progress, drop)
     with ChunkWriter(part, name, n, got[0]["spec"], metadata=sp.metadata, encoding=sp.encoding) as w:
         placed = [0]
 
@@ -154,8 +161,13 @@ def write_phase(ex: Any, work: Any, part: Path, name: str, sp: Any, finish: Call
                 placed[0] += 1
 
         place()
+
+        def then() -> None:
+            place()
+            drop()
+
         _run(ex, work, name, {b: call(b, got[0]["spec"]) for b in range(len(bands)) if b not in got}, bands, got,
-             progress, place)
+             progress, then)
         sums = [sum(int(got[b]["sums"][i]) for b in got) & MASK for i in range(2)]
         if sums != index_sums(n):
             raise damaged(name, InputError(f"source_index of scan {name!r} repeats an input index"))
@@ -182,7 +194,6 @@ def _run(ex: Any, work: Any, name: str, calls: dict[int, tuple[int, Any, tuple]]
                 k0, k1 = bands[b]
                 res = result(fut, name, f"the write of band {b + 1} of {len(bands)} (positions {k0} to {k1})")
                 got[b] = mark(work, WL.chunks_piece(b), res)
-                prune(work, calls[b][2][-1]["pieces"])  # (its bucket: read by no one now)
                 tell()
                 if then is not None:
                     then()

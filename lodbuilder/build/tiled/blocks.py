@@ -5,9 +5,10 @@ A *block* is a range of rows of one input file (a whole small file, or a range o
 PLY or NPY file that the reader seeks to). Its points have the consecutive input indices
 ``g0 .. g0 + m`` (the inputs one after the other, as listed). Three tasks per block:
 
-* :func:`read_block`: decode the rows, apply the pose, write the raw block (coordinates and
-  attributes) and return its count, exact bounds, the coordinate encodings it allows, and its
-  points of the scan's spacing sample (input index a multiple of the sample step);
+* :func:`read_block`: decode the rows, apply the pose, write the block's coordinates and return
+  its count, exact bounds, the coordinate encodings it allows, its points of the scan's spacing
+  sample (input index a multiple of the sample step) and the sums of its rows (the attributes are
+  not copied: the write reads the block from the input again, :func:`.write.bucket_block`);
 * :func:`survey_block`: the block's share of the plan: its count histogram on the plan's grid and
   its cell representatives of the decimated copy (the first point of each cell in input order);
 * :func:`distribute_block`: the block's points written into per-tile pieces (core and halo).
@@ -18,8 +19,10 @@ result lists its files with their sums, and the parent records it as the task's 
 
 from __future__ import annotations
 
+import zlib
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -58,50 +61,75 @@ class _Out:
         return {name: f.commit() for name, f in self.files.items()}
 
 
+def block_rows(stream: Any, pose: Any, member: int | None, start: int, stop: int, spec: dict[str, Any]
+               ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """Rows ``start .. stop`` of one input as the build keeps them, chunk by chunk: the posed
+    float64 coordinates and the attribute records (:func:`.layout.attr_record` of ``spec``'s
+    fields; None when it keeps no field: a joint build's ``scan_id`` is ``member``, its
+    ``scan_point`` the row). The read and the write's permutation (which reads the input again:
+    :func:`.write.bucket_block`) both read a block through this; FormatError when the input holds
+    fewer rows than its header declares."""
+    from ...io.pose import apply_pose
+
+    fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
+    rec_dt = WL.attr_record(fields)
+    own = [k for k in fields if not (spec["joint"] and k in JOINT_FIELDS)]
+    got = 0
+    for chunk in stream.chunks(int(spec["rows"]), start, stop):
+        pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
+        pts = np.ascontiguousarray(pts, dtype="<f8")
+        m = pts.shape[0]
+        rec = None
+        if rec_dt.itemsize:
+            rec = np.empty(m, rec_dt)
+            for i, k in enumerate(fields):
+                rec[f"a{i}"] = chunk.attributes[k] if k in own else (
+                    np.full(m, member or 0) if k == "scan_id" else np.arange(chunk.start, chunk.start + m))
+        got += m
+        yield pts, rec
+    if got != stop - start:
+        raise FormatError(f"{stream.path}: rows {start}..{stop} hold {got} points, the header declares "
+                          f"{stop - start}; re-export the file")
+
+
+def rows_sum(crc: list[int], pts: np.ndarray, rec: np.ndarray | None) -> list[int]:
+    """``crc`` (CRC-32 of a block's coordinates, of its attribute records) carried over one more
+    chunk of :func:`block_rows` (chunks of any size give the block's sums)."""
+    return [zlib.crc32(cast(Any, pts), crc[0]), crc[1] if rec is None else zlib.crc32(cast(Any, rec), crc[1])]
+
+
 @timed_task
 def read_block(work: Store | str, b: int, source: Any, member: int | None, start: int, stop: int, g0: int,
                spec: dict[str, Any]) -> dict[str, Any]:
     """Read rows ``start .. stop`` of one input (``source``: a picklable opener returning
     ``(stream, pose)``, or that pair) as block ``b`` (input indices from ``g0``). ``spec``: the
     fields kept, whether the build is joint, the metadata the encoding is chosen by, the sample
-    step and the rows per chunk."""
+    step and the rows per chunk. Writes the block's coordinates (``raw.<b>.xyz``, read by the
+    plan and the split) and its sample; its attributes are not kept (the write reads the input
+    again: the returned ``crc`` checks that it reads the same rows)."""
     from ...archive.layout import encode_points
-    from ...io.pose import apply_pose
 
     stream, pose = source() if callable(source) else source
-    fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
-    rec_dt = WL.attr_record(fields)
-    own = [k for k in fields if not (spec["joint"] and k in JOINT_FIELDS)]
     step, meta = int(spec["step"]), spec["metadata"]
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     samples, encodings = [], set()
-    out = _Out(as_store(work), (WL.raw_attr(b), WL.raw_xyz(b)))
-    g = g0
+    out = _Out(as_store(work), (WL.raw_xyz(b),))
+    g, crc = g0, [0, 0]
     try:
-        for chunk in stream.chunks(int(spec["rows"]), start, stop):
-            pts = chunk.points if pose is None else apply_pose(chunk.points, np.asarray(pose))
-            pts = np.ascontiguousarray(pts, dtype="<f8")
-            m = pts.shape[0]
+        for pts, rec in block_rows(stream, pose, member, start, stop, spec):
             out.write(WL.raw_xyz(b), pts)
+            crc = rows_sum(crc, pts, rec)
             encodings.add(encode_points(pts, meta)[1])
             lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
             samples.append(pts[(-g) % step::step])
-            if rec_dt.itemsize:
-                rec = np.empty(m, rec_dt)
-                for i, k in enumerate(fields):
-                    rec[f"a{i}"] = chunk.attributes[k] if k in own else (
-                        np.full(m, member or 0) if k == "scan_id" else np.arange(chunk.start, chunk.start + m))
-                out.write(WL.raw_attr(b), rec)
-            g += m
-        if g - g0 != stop - start:
-            raise FormatError(f"{stream.path}: rows {start}..{stop} hold {g - g0} points, the header declares "
-                              f"{stop - start}; re-export the file")
+            g += pts.shape[0]
         smp = np.concatenate(samples) if samples else np.zeros((0, 3))
         out.write(WL.sample(b), np.ascontiguousarray(smp, dtype="<f8"))
         files = out.publish()
     finally:
         out.close()
-    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings), "files": files}
+    return {"block": b, "n": g - g0, "lo": lo.tolist(), "hi": hi.tolist(), "encodings": sorted(encodings),
+            "crc": crc, "files": files}
 
 
 def _xyz_blocks(work: Store, b: int, m: int, rows: int) -> Any:

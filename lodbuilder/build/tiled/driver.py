@@ -178,7 +178,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     clock.lap("pieces")
     radii = _radii(executor, work, name, n, n_tiles, delta, progress)
     clock.lap("radii")
-    buckets = _buckets(executor, work, name, sp, progress)
+    buckets = _buckets(executor, work, name, sp, sources, progress)
     clock.lap("permute")
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
@@ -281,12 +281,13 @@ def _radii(executor: cf.Executor, work: Store, name: str, n: int, n_tiles: int, 
     return radii_phase(executor, work, name, n, n_tiles, delta, W.BLOCK, progress)
 
 
-def _buckets(executor: cf.Executor, work: Store, name: str, sp: Spill, progress: ProgressCallback) -> dict[str, Any]:
-    """The write's first pass: every raw block split by destination into the write's buckets
-    (tasks; each block's raw files deleted once its bucket pieces are written)."""
+def _buckets(executor: cf.Executor, work: Store, name: str, sp: Spill, sources: list[tuple[Any, ...]],
+             progress: ProgressCallback) -> dict[str, Any]:
+    """The write's first pass: every read block read from its input again and split by
+    destination into the write's buckets (tasks)."""
     from .write import buckets_phase
 
-    return buckets_phase(executor, work, name, sp.n, sp.fields, sp.blocks or [], sp.rows, progress)
+    return buckets_phase(executor, work, name, sp, sources, progress)
 
 
 def _merge_record(merged: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:

@@ -5,17 +5,18 @@ Files (little-endian raw arrays unless said otherwise; *zipped*: compressed with
 whole or from the start only, see :class:`.workdir.Zipped`), by the phase that writes them::
 
     inputs      (a marker only)     the read blocks: input, row range, first input index of each
-    read        raw.<b>.xyz         block b's (m, 3) float64 coordinates in input order (poses applied; zipped)
-                raw.<b>.attr        block b's attributes, one record per point (attr_record; zipped)
+    read        raw.<b>.xyz         block b's (m, 3) float64 coordinates in input order (poses applied; zipped;
+                                    the attributes are not copied: the write reads the inputs again)
                 sample.<b>.f64      block b's points whose input index is a multiple of the sample step
-    spill       sample.npy          the sample of the whole scan (for the spacing), in input order
+    spill       sample.npy          the sample of the whole scan (for the plan's spacing), in input order
     plan        decimated.bin       the decimated copy (one point per grid cell): REC records
     distribute  core.<t>.<b>.bin    the points of tile t from block b: REC records (g, x, y, z), g the input index (zipped)
                 halo.<t>.<b>.bin    block b's REC records within the halo width of tile t owned by others (zipped)
     coarse      head.bin            HEAD records: the coarse global level (the head)
-    order       stream.<t>.bin      STREAM records: tile t's ordering (input index, key, position, margin;
-                                    zipped in frames of rows, see workdir.put_framed)
-                seam.<t>.bin        STREAM records: the rows of stream.<t>.bin nearer a shared face than their key
+    order       stream.<t>.keys     KEYS records: tile t's ordering (input index, key; zipped in frames of
+                                    rows within one key bin each, see workdir.put_stream)
+                seam.<t>.bin        STREAM records (input index, key, position, margin): the rows of tile
+                                    t's ordering nearer a shared face than their key
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
     merge       deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
                 merged.<j>.i8       piece j of the merged order (input indices; zipped in frames of rows,
@@ -29,9 +30,10 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                 space.<b>.f8        band b's running minimum of the spacing (round 1; zipped)
                 parent.<b>.i8       the stored parent of each position of band b (framed, as merged.<j>)
                 radius.<b>.f8       the stored radius of each position of band b (round 2; framed)
-    buckets     bucket.<k>.<b>.bin  bucket k of the external permutation, from raw block b (see write.py;
-                                    after the radii and the pieces, once the covering files and the
-                                    tiles' points are deleted)
+    buckets     bucket.<k0>_<k1>.<b>.bin  buckets k0 .. k1 of the external permutation from read block b,
+                                    one zstd frame per bucket's piece (see write.py; at most
+                                    BUCKET_FILES per block; after the radii and the pieces, once the
+                                    covering files and the tiles' points are deleted)
     write       chunks.<k>.bin      band k's rows as finished HDF5 chunks, one after another (see bands.py)
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
@@ -40,8 +42,8 @@ marker and files check out. Every file is written to a temporary and published
 (:mod:`lodbuilder._atomic`).
 
 A large file is deleted once every piece that reads it is done (:data:`PRUNE_AFTER`: when the
-marker of the last one is written; a raw block once its permutation task is, a bucket once its
-band of the write is), so that the work
+marker of the last one is written; a read block's coordinates once the tiles' pieces are written,
+a bucket file once the bands of the write it holds are), so that the work
 directory holds only what later phases still read. Its producer's marker still lists it: a missing
 file checks out while every piece that reads it (:func:`consumers`) checks out, so a resume that
 finds one of those damaged or gone does its producer again too (the same bytes).
@@ -60,6 +62,8 @@ import numpy as np
 REC = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 #: one row of a tile's ordering stream: input index, key (insertion radius), position, margin
 STREAM = np.dtype([("g", "<f8"), ("key", "<f8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("m", "<f8")])
+#: a row of a tile's stream as the merge's bands read it (stream.<t>.keys): input index and key
+KEYS = np.dtype([("g", "<i8"), ("key", "<f8")])
 #: a point of the head: input index, position, radius on the decimated copy, parent
 HEAD = np.dtype([("g", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "<f8"), ("parent", "<i8")])
 #: a tile's point near its shared faces, by input index, with its key
@@ -139,7 +143,7 @@ def split_piece(b: int) -> str:
 
 
 def stream(t: int) -> str:
-    return f"stream.{t}.bin"
+    return f"stream.{t}.keys"
 
 
 def seam(t: int) -> str:
@@ -172,9 +176,16 @@ def cover_points(t: int) -> str:
     return f"cover.{t}.pt"
 
 
-def bucket(k: int, b: int) -> str:
-    """The piece of destination bucket ``k`` from raw block ``b``."""
-    return f"bucket.{k}.{b}.bin"
+def bucket(k0: int, k1: int, b: int) -> str:
+    """The pieces of destination buckets ``k0 .. k1`` (a run of consecutive ones) from raw block
+    ``b``: one zstd frame per piece (see write.py)."""
+    return f"bucket.{k0}_{k1}.{b}.bin"
+
+
+def bucket_range(name: str) -> range:
+    """The destination buckets whose pieces the bucket file ``name`` holds."""
+    k0, k1 = name.split(".")[1].split("_")
+    return range(int(k0), int(k1))
 
 
 def bucket_piece(b: int) -> str:
@@ -258,14 +269,15 @@ def writing(name: str) -> str:
 # ------------------------------------------------------------------------------------ pruning
 
 #: the files deleted when a phase's marker is written (name prefixes; markers are never deleted):
-#: after the spill, the read blocks' samples (summed into sample.npy, which is kept); after every
+#: (those of the prefix whose consumers include the phase): after the spill, the read blocks'
+#: samples (summed into sample.npy); after the plan, sample.npy; after every
 #: tile's ordering (the ``order`` marker: every ordering's marker, stream and seam points), the
 #: face files; after the merge, the tiles' streams and seam points and the deferred points; after the
-#: write's permutation, the raw
-#: blocks; after the pieces (the last phase to read a tile's points), the tiles' core and halo;
+#: split into tiles (the last phase to read them), the read blocks' coordinates; after the pieces
+#: (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"spill": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "deferred."), "buckets": ("raw.",),
-               "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
+PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "deferred."),
+               "distribute": ("raw.",), "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
 def consumers(name: str) -> list[str] | None:
@@ -276,20 +288,22 @@ def consumers(name: str) -> list[str] | None:
     kind, ext = parts[0], parts[-1]
     if name == DEFERRED or (kind == "seam" and ext == "bin"):
         return ["merge"]
-    if kind == "raw" and ext in ("xyz", "attr"):
-        return ["plan", "distribute", bucket_piece(int(parts[1]))]
-    if kind == "stream" and ext == "bin":
+    if kind == "raw" and ext == "xyz":
+        return ["plan", "distribute"]
+    if kind == "stream" and ext == "keys":
         return ["merge"]
     if kind == "face" and ext == "bin":
         return ["order"]
     if kind == "sample" and ext == "f64":  # (the spill's marker does not list them)
         return ["spill"]
+    if name == SAMPLE:
+        return ["plan"]
     if kind in ("core", "halo") and ext == "bin":
         return ["pieces", f"cover.{parts[1]}", f"order.{parts[1]}.*"]
     if (kind == "cover" and ext in ("ev", "pt")) or kind in ("radloc", "space"):
         return ["radii"]
     if kind == "bucket" and ext == "bin":
-        return [chunks_piece(int(parts[1]))]
+        return [chunks_piece(k) for k in bucket_range(name)]
     return None
 
 

@@ -18,7 +18,9 @@ in merged order (``deferred.bin``). Every other row's place follows from its key
 order is cut into bands of keys (:data:`lodbuilder.build.tiled.layout.key_bins`; the tiles'
 histograms of their keys, in their order markers, size the bands: whole bins, about BAND_ROWS rows
 each), and one task per band (:func:`merge_band`) reads each tile's rows of the band (a contiguous
-run of its stream, located by the histograms) in chunks, leaves out the deferred ones, adds the
+run of its stream, located by the histograms; the stream holds input indices and keys, in frames of
+one key bin each, so that a band decompresses its own frames alone: :func:`.workdir.put_stream`)
+in chunks, leaves out the deferred ones, adds the
 deferred points whose acceptance key falls in the band, and merges them by descending key (ties:
 the lower tile, then the deferred points) in buffers of a bounded size. The order is stored as pieces
 (``merged.<j>.i8``: the head, then each band's input indices) listed with their positions in the
@@ -183,15 +185,16 @@ def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell:
 
 
 class _RangeReader:
-    """Rows ``a .. z`` of a tile's stream (or rows given whole), in chunks, without the rows whose
-    input index is in ``drop`` (sorted), as (m, 6) float64 rows whose margins are infinite (no row
-    is a seam point: :func:`merge_band` merges by key alone)."""
+    """Rows ``a .. z`` of a tile's stream (KEYS records; or rows given whole), in chunks, without
+    the rows whose input index is in ``drop`` (sorted), as the merge kernel's (m, 6) float64 rows
+    (input index, key, no position, an infinite margin: no row is a seam point, :func:`merge_band`
+    merges by key alone)."""
 
     def __init__(self, store: Store | None, name: str, a: int, z: int, drop: np.ndarray, bins: list[int],
                  rows: np.ndarray | None = None) -> None:
         self.store, self.name, self.pos, self.end, self.drop, self.rows = store, name, a, z, drop, rows
         self.bins = bins
-        self.framed = W.FramedReader(store, name, STREAM) if store is not None else None  # (compressed)
+        self.framed = W.FramedReader(store, name, WL.KEYS) if store is not None else None  # (compressed)
 
     def read(self, m: int) -> np.ndarray:
         while self.pos < self.end:
@@ -201,15 +204,16 @@ class _RangeReader:
             else:
                 assert self.framed is not None
                 s = self.framed.read(self.pos, k)
-                b = WL.key_bins(s["key"][[0, -1]])
-                if s.shape[0] != k or b[0] > self.bins[1] or b[1] < self.bins[0]:
+                b = WL.key_bins(s["key"][[0, -1]]) if s.shape[0] else None
+                if s.shape[0] != k or b is None or b[0] > self.bins[1] or b[1] < self.bins[0]:
                     raise RuntimeError(f"{self.name}: rows {self.pos}..{self.end} are not the rows its histogram says")
             self.pos += k
             if self.drop.size:
-                s = s[~np.isin(s["g"].astype(np.int64), self.drop)]
+                at = np.minimum(np.searchsorted(self.drop, s["g"]), self.drop.shape[0] - 1)
+                s = s[self.drop[at] != s["g"]]
             if s.shape[0]:
-                out = s.view("<f8").reshape(-1, 6).copy()
-                out[:, 5] = np.inf
+                out = np.zeros((s.shape[0], 6))
+                out[:, 0], out[:, 1], out[:, 5] = s["g"], s["key"], np.inf
                 return out
         return np.zeros((0, 6))
 
@@ -231,7 +235,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
     if deferred and d.shape[0]:
         b = WL.key_bins(d["key"])
         mine = d[(b >= bins[0]) & (b <= bins[1])]
-        extra = np.zeros(mine.shape[0], STREAM)
+        extra = np.zeros(mine.shape[0], WL.KEYS)
         extra["g"], extra["key"] = mine["g"], mine["key"]
         readers.append(_RangeReader(None, WL.DEFERRED, 0, mine.shape[0], np.zeros(0, np.int64), bins, extra))
     bufs, bpos, blen, theap, tn = _first_buffers(readers)
@@ -305,7 +309,7 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         args = (work, len(stats), alpha, lo, min_cell)
         (seams,) = collect(submit(ex, [(0, seam_repair, args)]), lambda _: "the seam repair", name, 1, None, "merge")
         mark(work, WL.SEAMS_PIECE, seams)
-    if any("hist" not in s for s in stats):
+    if any("hist" not in s or WL.stream(t) not in s.get("files", {}) for t, s in enumerate(stats)):
         raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
                          "again with --force")
     bands = plan_bands([s["hist"] for s in stats], seams["hist"], band_rows)

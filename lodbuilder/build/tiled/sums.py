@@ -133,8 +133,8 @@ def mark(work: Store | Path | str, piece: str, doc: dict[str, Any]) -> dict[str,
     pass the named moment of its kind (the piece's name up to the first dot: :func:`layout.moment`);
     returns ``doc``."""
     put_json(work, WL.marker(piece), doc)
-    for prefix in WL.PRUNE_AFTER.get(piece, ()):
-        prune(work, [n for n in as_store(work).names(prefix) if WL.consumers(n) is not None])
+    for prefix in WL.PRUNE_AFTER.get(piece, ()):  # (the files of the prefix that this piece reads last)
+        prune(work, [n for n in as_store(work).names(prefix) if piece in (WL.consumers(n) or ())])
     WL.moment(piece.split(".")[0])
     return doc
 

@@ -5,8 +5,9 @@ them from the inputs' headers and sums what the tasks return; it reads no point)
   small input is one block, a big one ranges of rows (a multiple of the chunk size, so that the
   chunks are the ones a single reader would read); the input index ``g`` of a point is its row in
   the inputs read one after the other, as listed.
-* **read** (tasks, :func:`.blocks.read_block`): each block decoded, posed and written raw; the
-  parent sums counts, bounds, encodings and the spacing sample into the ``spill`` marker.
+* **read** (tasks, :func:`.blocks.read_block`): each block decoded and posed, its coordinates
+  written (until the tiles' pieces are: the write reads the inputs again); the parent sums counts,
+  bounds, encodings, the spacing sample and the blocks' sums into the ``spill`` marker.
 * **plan** (tasks, :func:`.blocks.survey_block`): the count histogram on a grid over the exact
   bounds, and the decimated copy (the first point of each cell in input order), summed by the
   parent, which cuts the tiles (a k-d split of the histogram).
@@ -34,7 +35,7 @@ from . import workdir as W
 from .blocks import decimated_copy, distribute_block, read_block, survey_block
 from .pool import collect, submit
 from .store import Store
-from .sums import done, mark
+from .sums import done, mark, prune
 from .workdir import SAMPLE, Spill
 
 #: read tasks per worker (a big input is cut into about this many blocks per worker)
@@ -91,8 +92,8 @@ def read_phase(ex: cf.Executor, work: Store, name: str, sources: list[tuple[Any,
     """Phases inputs and read: every block read by a task (an input the parent holds in memory by
     the parent), summed into the ``spill`` marker (or what a finished read recorded)."""
     doc = done(work, "spill")
-    if doc is not None:
-        return Spill.from_json(doc, work.load_npy(WL.SAMPLE))
+    if doc is not None:  # (the sample is read by the plan alone: deleted once it is done)
+        return Spill.from_json(doc, work.load_npy(WL.SAMPLE) if work.size(WL.SAMPLE) is not None else np.zeros((0, 3)))
     inp = done(work, "inputs") or mark(work, "inputs", plan_inputs(sources, parallel, W.BLOCK))
     spec = {k: inp[k] for k in ("fields", "joint", "metadata", "step", "rows")}
     results = {}
@@ -138,7 +139,8 @@ def _spill(work: Store, inp: dict[str, Any], res: list[dict[str, Any]]) -> Spill
     enc = choose_encoding({e for r in res for e in r["encodings"]} or {"float64"})
     sp = Spill(n, np.min([r["lo"] for r in res], axis=0), np.max([r["hi"] for r in res], axis=0),
                {k: (v[0], tuple(v[1])) for k, v in inp["fields"].items()}, sample, inp["metadata"], inp["reader"],
-               inp["members"], enc, {**files, WL.SAMPLE: f.sum}, inp["blocks"], int(inp["rows"]))
+               inp["members"], enc, {**files, WL.SAMPLE: f.sum}, inp["blocks"], int(inp["rows"]),
+               [r.get("crc") for r in res])
     mark(work, "spill", sp.to_json())
     return sp
 
@@ -189,7 +191,8 @@ def distribute_phase(ex: cf.Executor, work: Store, name: str, sp: Spill, pl: dic
     """Phase distribute: every block cut into the tiles' pieces by a task; the marker holds the
     halo width, each tile's core and halo sizes and the names of its pieces in block order."""
     dist = done(work, "distribute")
-    if dist is not None:
+    if dist is not None:  # (a resume that read blocks again, for a damaged plan: their coordinates go again)
+        prune(work, [n for n in work.names("raw.") if WL.consumers(n) is not None])
         return dist
     results = {}
     calls = []

@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import BLOCK, REC, put_banded, put_framed
+from .workdir import BLOCK, REC, put_banded, put_stream
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -100,10 +100,11 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     whose names are taken). So the tile's points keep their distance from the neighbours' points of larger
     keys, as in one ordering of the whole scan (see :mod:`.driver`, the passes).
 
-    Writes ``stream.<t>.bin``: the tile's points that are not head points, in its order (keys
+    Writes ``stream.<t>.keys``: the tile's points that are not head points, in its order (keys
     non-increasing), each with its key (its insertion radius in the tile, or its exact distance to
-    the head when the tile reaches it from no seed), position and margin to the tile's shared faces;
-    and ``face_out``: the (input index, key) of its points within the halo width of a shared face.
+    the head when the tile reaches it from no seed); ``seam.<t>.bin``: those nearer a shared face
+    than their key, with their position and margin to the tile's shared faces; and ``face_out``: the
+    (input index, key) of its points within the halo width of a shared face.
     """
     from scipy.spatial import cKDTree
 
@@ -160,7 +161,7 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
         face = np.empty(near.shape[0], FACE)
         face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
         files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
-    files[WL.stream(t)] = put_framed(w, WL.stream(t), stream)  # (compressed: read by runs of rows)
+    files[WL.stream(t)] = put_stream(w, WL.stream(t), stream)  # (what the merge reads: runs of rows by key)
     seam = stream["m"] < stream["key"]
     files[WL.seam(t)] = w.put(WL.seam(t), stream[seam])
     bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)

@@ -43,19 +43,21 @@ class Spill:
     files: dict[str, list[int]] | None = None  # size and CRC-32 of each file written
     blocks: list[list[int]] | None = None  # the read blocks: [input, first row, end row, first input index]
     rows: int = BLOCK  # rows per chunk of the raw blocks' readers and writers
+    crcs: list[Any] | None = None  # each read block's sums (blocks.rows_sum: the write's re-read checks them)
 
     def to_json(self) -> dict[str, Any]:
         return {"n": self.n, "lo": self.lo.tolist(), "hi": self.hi.tolist(),
                 "fields": {k: [d, list(s)] for k, (d, s) in self.fields.items()},
                 "metadata": self.metadata, "reader": self.reader, "members": self.members,
-                "encoding": self.encoding, "files": self.files or {}, "blocks": self.blocks or [], "rows": self.rows}
+                "encoding": self.encoding, "files": self.files or {}, "blocks": self.blocks or [], "rows": self.rows,
+                "crcs": self.crcs}
 
     @classmethod
     def from_json(cls, d: dict[str, Any], sample: np.ndarray) -> Spill:
         return cls(int(d["n"]), np.asarray(d["lo"]), np.asarray(d["hi"]),
                    {k: (v[0], tuple(v[1])) for k, v in d["fields"].items()}, sample, d["metadata"], d["reader"],
                    d.get("members") or [], d.get("encoding", "float64"), d.get("files"), d.get("blocks"),
-                   int(d.get("rows", BLOCK)))
+                   int(d.get("rows", BLOCK)), d.get("crcs"))
 
 
 def blocks(path: Path | tuple[Store, str], dtype: Any, count: int | None = None, rows: int | None = None,
@@ -386,6 +388,21 @@ def put_framed(store: Store, name: str, recs: np.ndarray, rows: int = FRAME_ROWS
         f.close()
 
 
+def put_stream(store: Store, name: str, stream: np.ndarray, rows: int = FRAME_ROWS) -> list[int]:
+    """A tile's ordering stream (STREAM rows by descending key) as the bands of the merge read it
+    (:func:`.merge.merge_band`): input index and key of each row (:data:`.layout.KEYS`; the seam
+    points' coordinates and margins are in ``seam.<t>.bin``), in frames of at most ``rows`` rows
+    as :func:`put_framed` writes them, but never across two key bins (:func:`.layout.key_bins`): a
+    band of the merge is whole bins, so it decompresses its own frames only, each once. Returns the
+    file's size and CRC-32."""
+    n = stream.shape[0]
+    keys = np.empty(n, WL.KEYS)
+    keys["g"], keys["key"] = stream["g"], stream["key"]
+    runs = [0, *(np.flatnonzero(np.diff(WL.key_bins(keys["key"]))) + 1).tolist(), n] if n else [0]
+    bounds = [a for s, e in zip(runs[:-1], runs[1:], strict=True) for a in range(s, e, rows)] + [n]
+    return _put_frames(store, name, keys, bounds, np.arange(n))
+
+
 def read_framed(store: Store, name: str, dtype: np.dtype, start: int, count: int) -> np.ndarray:
     """Rows ``start .. start + count`` of a file written by :class:`Framed` (fewer where it ends)."""
     return FramedReader(store, name, dtype).read(start, count)
@@ -401,14 +418,21 @@ class FramedReader:
         self.first, self.recs = 0, np.zeros(0, self.dtype)  # (the rows last decompressed)
 
     def read(self, start: int, count: int) -> np.ndarray:
-        if not (self.first <= start and start + count <= self.first + self.recs.shape[0]):
+        held = self.first + self.recs.shape[0]
+        if not (self.first <= start and start + count <= held):
             if self.index is None:
                 self.index = _frames_index(self.store, self.name)
             index = self.index
-            i0 = int(np.searchsorted(index["last"], start, "left"))
             i1 = int(np.searchsorted(index["first"], start + count, "left"))
-            self.recs = _read_frames(self.store, self.name, index[i0:i1], self.dtype)
-            self.first = int(index["first"][i0]) if i1 > i0 else start
+            if self.first <= start < held:  # (a run read on from the last: its held frames are not read again)
+                i0 = int(np.searchsorted(index["first"], held, "left"))
+                self.recs = np.concatenate([self.recs[start - self.first:],
+                                            _read_frames(self.store, self.name, index[i0:i1], self.dtype)])
+                self.first = start
+            else:
+                i0 = int(np.searchsorted(index["last"], start, "left"))
+                self.recs = _read_frames(self.store, self.name, index[i0:i1], self.dtype)
+                self.first = int(index["first"][i0]) if i1 > i0 else start
         return self.recs[start - self.first:start - self.first + count].copy()
 
 

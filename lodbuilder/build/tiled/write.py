@@ -1,10 +1,13 @@
 """Writing a tiled scan into its part file, in stored (prefix) order, without holding it.
 
-The points and attributes sit in input order in the raw blocks of the work directory, the ranks in
-``rank.<b>.i8`` (one file per raw block: :mod:`.ranks`); the archive wants them in the merged order. An external permutation does it in two passes: every raw block is split by
-destination block into bucket pieces (one record per point: position, coordinates, attributes; a
-task per raw block, :func:`bucket_block`), then each bucket (a band of whole row groups of the
-archive: :func:`band_rows`) is read, put in order and written as finished HDF5 chunks by a task of
+The points and attributes stay in the inputs (a copy in the work directory would be about the
+archive's size again), in input order, and their stored positions in ``rank.<b>.i8`` (one file per
+read block: :mod:`.ranks`); the archive wants them in the merged order. An external permutation
+does it in two passes: every read block is read from its input again and split by destination
+block into bucket pieces (one record per point: position, coordinates, attributes; a task per read
+block, :func:`bucket_block`, which checks that it reads the rows the read phase read), then each
+bucket (a band of whole row groups of the archive: :func:`band_rows`) is read, put in order and
+written as finished HDF5 chunks by a task of
 its own (:mod:`.bands`). Memory: one bucket per task.
 
 :func:`write_scan` is the same write by one process through the archive's
@@ -14,21 +17,21 @@ write equals (tests compare the two).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from ...archive import layout as L
-from ...errors import BuildError, InputError
+from ...errors import BuildError, InputError, ScanFileError
 from ...progress import ProgressCallback, report
 from . import layout as WL
 from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import Zipped, opaque_rows, read_rows, segment, unzipped, zipped_blocks
+from .workdir import ZIP_LEVEL, Spill, opaque_rows, read_rows, segment, unzipped
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
+BUCKET_FILES = 16  # bucket files per read block, at most (see bucket_run)
 
 
 def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
@@ -38,68 +41,143 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
     return np.dtype(spec)
 
 
-def bucket_records(store: Store, name: str, rec: np.dtype) -> np.ndarray:
-    """The records of a bucket piece (compressed: :class:`.workdir.Zipped`)."""
-    return unzipped(store.get(name), rec, name)
+def bucket_records(store: Store, pieces: list[list[Any]], rec: np.dtype) -> np.ndarray:
+    """The records of a bucket from its pieces (``[file, start, end]``: one compressed frame each,
+    in block order; a file's frames read in one request)."""
+    where: dict[str, list[int]] = {}
+    for i, p in enumerate(pieces):
+        where.setdefault(p[0], []).append(i)
+    blobs: list[bytes] = [b""] * len(pieces)
+    for name, idx in where.items():
+        got = store.read_ranges(name, [int(pieces[i][1]) for i in idx], [int(pieces[i][2]) for i in idx])
+        for i, data in zip(idx, got, strict=True):
+            blobs[i] = data
+    parts = [unzipped(data, rec, p[0]) for data, p in zip(blobs, pieces, strict=True)]
+    return np.concatenate(parts) if parts else np.zeros(0, rec)
+
+
+def bucket_run(n_buckets: int) -> int:
+    """Buckets per bucket file: a read block writes at most :data:`BUCKET_FILES` files, whatever the
+    number of bands (blocks x bands files made a 10^8-point survey's permutation write 307,800)."""
+    return max(1, -(-n_buckets // BUCKET_FILES))
 
 
 @timed_task
-def bucket_block(work: Store | str, b: int, g0: int, m: int, fields: dict[str, tuple[str, tuple[int, ...]]], n: int,
-                 block: int, rows: int) -> dict[str, Any]:
-    """The first pass for raw block ``b`` (a task): its points and attributes, with their stored
-    positions (``rank.<b>.i8``, input indices ``g0 .. g0 + m``), split by destination block (``block`` rows of
-    the stored order) into the bucket pieces ``bucket.<k>.<b>.bin``, in input order."""
+def bucket_block(work: Store | str, b: int, source: Any, member: int | None, start: int, stop: int,
+                 spec: dict[str, Any], crc: list[int], n: int, block: int, run: int) -> dict[str, Any]:
+    """The first pass for read block ``b`` (a task): its points and attributes read from the input
+    again (``source`` as :func:`.blocks.read_block` takes it, rows ``start .. stop``; checked
+    against the read's sums ``crc``), with their stored positions (``rank.<b>.i8``), split by
+    destination block (``block`` rows of the stored order) into pieces, in input order: one
+    compressed frame per piece, in the bucket files ``bucket.<k0>_<k1>.<b>.bin`` of ``run``
+    consecutive buckets. Returns each bucket's pieces as ``[file, start, end]``."""
+    from .blocks import block_rows, rows_sum
+
     w = as_store(work)
+    stream, pose = source() if callable(source) else source
+    fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
+    rec = record_dtype(fields)
     n_buckets = (n + block - 1) // block
-    counts = np.zeros(n_buckets, np.int64)
-    out: dict[str, Zipped] = {}
+    out = _Buckets(w, b, n_buckets, run)
+    sums = [0, 0]
     try:
         with w.open(WL.rank_file(b)) as fr:
-            for _, r in _raw_records(w, fields, [[0, 0, m, g0]], rows, first=b):
+            for pts, at in block_rows(stream, pose, member, start, stop, spec):
+                sums = rows_sum(sums, pts, at)
+                r = np.empty(pts.shape[0], rec)
+                r["xyz"] = pts
+                if at is not None:  # (None: no field kept)
+                    for i in range(len(fields)):
+                        r[f"a{i}"] = at[f"a{i}"]
                 r["pos"] = read_rows(fr, np.dtype("<i8"), r.shape[0])
-                dest = r["pos"] // block
-                order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
-                cuts = np.searchsorted(dest[order], np.arange(n_buckets + 1))
-                srt = opaque_rows(r)[order]
-                for k in np.flatnonzero(np.diff(cuts)):
-                    name = WL.bucket(int(k), b)
-                    if name not in out:
-                        out[name] = Zipped(w.writer(name))
-                    out[name].write(srt[cuts[k]:cuts[k + 1]])
-                    counts[k] += cuts[k + 1] - cuts[k]
-        files = {name: f.commit() for name, f in out.items()}
+                out.split(r, block)
+        if sums != [int(x) for x in crc]:
+            raise ScanFileError(f"{stream.path}: rows {start} to {stop} are not the rows this build read from it "
+                                "(the file changed during the build); run the build again")
+        files = {name: f.commit() for name, f in out.out.items()}
     finally:
-        for f in out.values():
+        for f in out.out.values():
             f.close()
-    return {"block": b, "counts": counts.tolist(), "files": files}
+    return {"block": b, "counts": out.counts.tolist(), "pieces": out.pieces, "files": files}
 
 
-def buckets_phase(ex: Any, work: Any, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
-                  raw: list[list[int]], rows: int, progress: ProgressCallback = None) -> dict[str, Any]:
-    """The first pass of the write as tasks, one per raw block (or what a finished one recorded)."""
+class _Buckets:
+    """The bucket files of read block ``b`` being written (``run`` consecutive buckets a file): each
+    bucket's pieces (``[file, start, end]``) and rows."""
+
+    def __init__(self, w: Store, b: int, n_buckets: int, run: int) -> None:
+        import zstandard
+
+        self.w, self.b, self.n_buckets, self.run = w, b, n_buckets, run
+        self.counts = np.zeros(n_buckets, np.int64)
+        self.pieces: list[list[list[Any]]] = [[] for _ in range(n_buckets)]
+        self.zc = zstandard.ZstdCompressor(level=ZIP_LEVEL)
+        self.out: dict[str, Any] = {}
+        self.ends: dict[str, int] = {}
+
+    def split(self, r: np.ndarray, block: int) -> None:
+        """Records ``r`` (positions filled) appended to their buckets, one frame per bucket."""
+        dest = r["pos"] // block
+        order = np.argsort(dest.astype(np.int32), kind="stable")  # radix sort
+        cuts = np.searchsorted(dest[order], np.arange(self.n_buckets + 1))
+        srt = opaque_rows(r)[order]
+        for k in np.flatnonzero(np.diff(cuts)):
+            k0 = int(k) // self.run * self.run
+            name = WL.bucket(k0, min(self.n_buckets, k0 + self.run), self.b)
+            if name not in self.out:
+                self.out[name], self.ends[name] = self.w.writer(name), 0
+            frame = self.zc.compress(cast(Any, np.ascontiguousarray(srt[cuts[k]:cuts[k + 1]])))
+            self.out[name].write(frame)
+            self.pieces[k].append([name, self.ends[name], self.ends[name] + len(frame)])
+            self.ends[name] += len(frame)
+            self.counts[k] += cuts[k + 1] - cuts[k]
+
+
+def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[Any, ...]],
+                  progress: ProgressCallback = None) -> dict[str, Any]:
+    """The first pass of the write as tasks, one per read block (or what a finished one recorded):
+    each block read from its input again (``sources`` as the read phase took them; an input the
+    parent holds, by the parent)."""
     from .pool import collect, submit
-    from .sums import done, mark, prune
+    from .sums import done, mark
 
     doc = done(work, "buckets")
     if doc is not None:
         return doc
+    n, raw = sp.n, sp.blocks or []
+    if sp.crcs is None or any(c is None for c in sp.crcs):
+        raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
+                         "again with --force")
     block = band_rows(n, BLOCK)  # the write's bands: whole row groups of the archive
+    run = bucket_run((n + block - 1) // block)
+    spec = {"fields": {k: [v[0], list(v[1])] for k, v in sp.fields.items()}, "rows": sp.rows,
+            "joint": len(sp.members) > 1 or sp.members[0].get("id") is not None}
     results: dict[int, dict[str, Any]] = {}
-    calls = []
-    for b, (_, a, z, g0) in enumerate(raw):
+    calls: list[tuple[int, Any, tuple]] = []
+    inline: list[tuple[int, Any, tuple]] = []
+    for b, (i, a, z, _) in enumerate(raw):
         prev = done(work, WL.bucket_piece(b))
+        if prev is not None and "pieces" not in prev:
+            raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
+                             "again with --force")
         if prev is not None:
             results[b] = prev
-        else:
-            calls.append((b, bucket_block, (work, b, int(g0), int(z) - int(a), fields, n, block, rows)))
+            continue
+        stream, pose, member, reopen = sources[int(i)]
+        args = (work, b, reopen if reopen is not None else (stream, pose), member, int(a), int(z), spec,
+                sp.crcs[b], n, block, run)
+        (calls if reopen is not None else inline).append((b, bucket_block, args))
 
     def record(res: dict[str, Any]) -> None:
-        b = res["block"]
-        results[b] = mark(work, WL.bucket_piece(b), res)
-        prune(work, [WL.raw_xyz(b), WL.raw_attr(b)])  # (read by no other piece: see layout.consumers)
+        results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
 
-    collect(submit(ex, calls), lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
-            lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
+    futs = submit(ex, calls)
+    try:
+        for _, fn, args in inline:
+            record(fn(*args))
+    finally:
+        collect(futs, lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
+                lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
     doc = bucket_pieces([results[b] for b in range(len(raw))], block)
     return mark(work, "buckets", doc)
 
@@ -120,35 +198,9 @@ def damaged(name: str, exc: InputError) -> BuildError:
 def bucket_pieces(results: list[dict[str, Any]], block: int) -> dict[str, Any]:
     """The buckets phase's marker from every block's result: each bucket's pieces in block order."""
     counts = np.array([r["counts"] for r in results], np.int64).reshape(len(results), -1)
-    pieces = [[WL.bucket(k, int(b)) for b in np.flatnonzero(counts[:, k])] for k in range(counts.shape[1])]
+    pieces = [[p for r in results for p in r["pieces"][k]] for k in range(counts.shape[1])]
     return {"block": block, "buckets": counts.shape[1], "pieces": pieces,
             "files": {k: v for r in results for k, v in r["files"].items()}}
-
-
-def _raw_records(work: Any, fields: dict[str, tuple[str, tuple[int, ...]]], raw: list[list[int]],
-                 rows: int, first: int = 0) -> Iterator[tuple[int, np.ndarray]]:
-    """``(first input index, records)``: the raw blocks ``raw`` (numbered from ``first``)'s
-    coordinates and attributes as bucket records (``pos`` left to fill), ``rows`` at a time, in
-    input order."""
-    store = as_store(work)
-    rec = record_dtype(fields)
-    attr = WL.attr_record(fields)
-    for b, (_, a, z, g0) in enumerate(raw, start=first):
-        m_b = int(z) - int(a)
-        ats: Any = zipped_blocks((store, WL.raw_attr(b)), attr, m_b, rows) if attr.itemsize else None
-        try:
-            for r0, xyz in zipped_blocks((store, WL.raw_xyz(b)), "<f8", 3 * m_b, 3 * rows):
-                pts = xyz.reshape(-1, 3)
-                r = np.empty(pts.shape[0], rec)
-                r["xyz"] = pts
-                if ats is not None:
-                    _, at = next(ats)
-                    for i in range(len(fields)):
-                        r[f"a{i}"] = at[f"a{i}"]
-                yield int(g0) + r0 // 3, r
-        finally:
-            if ats is not None:
-                ats.close()
 
 
 def write_scan(work: Path, part: Path, name: str, n: int, fields: dict[str, tuple[str, tuple[int, ...]]],
@@ -183,7 +235,7 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
             k0 = b * block
             k1 = min(n, k0 + block)
             local = LocalStore(work)
-            r = np.concatenate([bucket_records(local, p, rec) for p in buckets["pieces"][b]] or [np.zeros(0, rec)])
+            r = bucket_records(local, buckets["pieces"][b], rec)
             if r.shape[0] != k1 - k0:
                 raise RuntimeError(f"bucket {b} holds {r.shape[0]} rows, expected {k1 - k0}")
             srt = np.empty(k1 - k0, rec)
