@@ -429,3 +429,8 @@ def naive_normal_agreement(u: np.ndarray, ostart: np.ndarray, sep: np.ndarray, n
         if near.size >= AGREE_MIN:
             out[c] = np.abs(nrm[near] @ nrm[c]).mean()
     return out
+
+
+def naive_stable_argsort(keys: np.ndarray) -> np.ndarray:
+    """The permutation that sorts ``keys``, equal keys in index order (Python's sort, one by one)."""
+    return np.array(sorted(range(len(keys)), key=lambda i: (int(keys[i]), i)), dtype=np.int64)

@@ -307,3 +307,21 @@ def test_build_names_the_archive_as_the_user_gave_it(tmp_path, capsys, shared_da
                            "--no-progress")
     assert rc == 0, err
     assert out.startswith("2 built scan(s) into two.h5 on ")
+
+
+def test_the_command_leaves_its_objects_to_the_shutdown_unwalked(tmp_path):
+    """Run as the ``lodbuilder`` command (no argv: the process ends next), main() moves every
+    object to the garbage collector's permanent generation, so that the interpreter's shutdown
+    does not walk them all again; called from Python with an argv it leaves the collector alone."""
+    code = (
+        "import gc, sys\n"
+        "from lodbuilder.cli.main import main\n"
+        "sys.argv = ['lodbuilder', 'info', sys.argv[1]]\n"
+        "called = main([*sys.argv[1:]])\n"
+        "print(gc.get_freeze_count())\n"
+        "status = main()\n"
+        "print(gc.get_freeze_count() > 0, called, status)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "missing.h5")], capture_output=True,
+                         text=True, check=True)
+    assert res.stdout.split() == ["0", "True", "2", "2"]

@@ -728,3 +728,19 @@ def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):
     quiet = ProgressBars(enabled=False)  # --no-progress: nothing at all
     quiet("compiling kernels, first run only", 0, 1)
     assert capsys.readouterr().err == ""
+
+
+def test_default_seed_is_the_point_nearest_the_centroid_lowest_index_first():
+    """default_seed: the argmin of the squared distances to the centroid, summed over the axes
+    from the left as ((points - c) ** 2).sum(axis=1) does (the same floats, so the same seed on
+    near ties), the lowest index among exact ties."""
+    from lodbuilder.sampling.fastfps import default_seed
+
+    rng = np.random.default_rng(5)
+    for pts in (rng.normal(size=(5000, 3)), rng.normal(size=(5000, 3)) * 1e5 + 4e6,
+                np.round(rng.random((5000, 3)) * 8) / 8):
+        c = pts.mean(axis=0)
+        d2 = [float((p[0] - c[0]) ** 2 + (p[1] - c[1]) ** 2 + (p[2] - c[2]) ** 2) for p in pts]
+        assert default_seed(pts) == d2.index(min(d2))
+    sym = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
+    assert default_seed(sym) == 0

@@ -52,6 +52,41 @@ def test_kth_neighbour_matches_a_kd_tree(seed, n, k, cell, kind):
     assert np.array_equal(sure, np.isfinite(dk) & (dk <= 1.0))
 
 
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(0, 3000),
+    bits=st.sampled_from([0, 1, 5, 14, 15, 29, 40, 62]),
+    distinct=st.integers(1, 50),
+    order=st.sampled_from(["random", "sorted", "nearly sorted", "reversed"]),
+)
+def test_sorted_keys_sorts_as_a_stable_sort(seed, n, bits, distinct, order):
+    """The cells' sort (the radix sort, or NumPy's merge sort for nearly sorted keys) gives the
+    permutation of a stable sort (equal keys in index order) and the keys in that order: with
+    many ties, one key for all, keys of up to 62 bits, none or one key."""
+    from naive import naive_stable_argsort
+
+    from lodbuilder._kernels.grid import radix_argsort
+
+    rng = np.random.default_rng(seed)
+    pool = rng.integers(0, 2**bits, distinct, dtype=np.int64) if bits else np.zeros(distinct, np.int64)
+    keys = pool[rng.integers(0, distinct, n)]
+    if order == "sorted":
+        keys = np.sort(keys)
+    elif order == "nearly sorted":
+        keys = np.sort(keys)
+        swap = rng.integers(0, max(n - 1, 1), n // 200 + 1)
+        if n > 1:
+            keys[swap], keys[swap + 1] = keys[swap + 1].copy(), keys[swap].copy()
+    elif order == "reversed":
+        keys = np.sort(keys)[::-1].copy()
+    ref = naive_stable_argsort(keys)
+    for sk, perm in (radix_argsort(keys), spacing.sorted_keys(keys)):
+        assert perm.dtype == np.int32
+        assert np.array_equal(perm, ref)
+        assert np.array_equal(sk, keys[ref])
+
+
 def test_median_spacing_is_the_kd_tree_figure():
     """median_spacing equals the same statistic computed with a k-d tree on the same sample."""
     rng = np.random.default_rng(3)

@@ -90,3 +90,29 @@ def test_sheet_cut_matches_the_naive_rule(sheets, gap, one_side):
     want = naive_sheet_cut(band, vcost, nin, plan.separation[band.perm] / band.h)
     np.testing.assert_array_equal(got, want)
     assert np.isfinite(vcost).sum() > np.isfinite(got).sum()  # the rule did cut something
+
+
+@pytest.mark.parametrize("kind", ["stack", "two sheets", "two sheets split"])
+def test_the_planned_band_keeps_the_pieces_of_its_final_costs(kind):
+    """build_planned_band hands the ordering the pieces it found while deciding (Band.pieces):
+    exactly point_pieces of the band it returns, whichever band that is (the cut plain band of a
+    stack, the one-sided band of two sheets, the plain band when the cut splits two sheets that
+    the plain band joins)."""
+    from lodbuilder._kernels.topology import point_pieces
+    from lodbuilder.sampling.band import plan_and_build_band
+
+    if kind == "stack":
+        pts, _ = stack(4, 5.0, n=20_000)
+    elif kind == "two sheets":
+        pts, _ = stack(2, 6.0, n=20_000, seed=3)
+    else:  # two sheets 5 spacings apart with no fold: the cut splits them, the plain band is kept
+        rng = np.random.default_rng(2)
+        pts = np.vstack([np.c_[rng.random((8000, 2)), np.zeros(8000)],
+                         np.c_[rng.random((8000, 2)), np.full(8000, 5 / np.sqrt(8000))]])
+    band, plan, _ = plan_and_build_band(pts, None, None)
+    assert (plan.normal is None) == (kind == "two sheets split")
+    assert band.pieces is not None
+    piece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    assert band.pieces[1] == npiece
+    assert np.array_equal(band.pieces[0], piece)
+    assert fastfps(pts).stats["pieces"] == npiece

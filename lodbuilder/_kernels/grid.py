@@ -124,6 +124,55 @@ def cell_order(points, origin, h):  # pragma: no cover - compiled
     return out
 
 
+RADIX_BITS = 14  # at most this many key bits per pass of the radix sort (a 128 KB count table)
+
+
+@nb.njit(**JIT)
+def radix_argsort(keys):  # pragma: no cover - compiled
+    """Stable sort of non-negative int64 ``keys``: (the sorted keys, the int32 permutation with
+    keys[perm] sorted and equal keys in index order), exactly np.argsort(keys, kind="stable").
+    Least significant digit first, as few passes of up to RADIX_BITS bits as the largest key
+    needs (a pass whose digit is the same for every key is skipped)."""
+    n = keys.shape[0]
+    kmax = np.int64(0)
+    for i in range(n):
+        if keys[i] > kmax:
+            kmax = keys[i]
+    bits = 0
+    while bits < 63 and (kmax >> bits) > 0:
+        bits += 1
+    passes = max(1, (bits + RADIX_BITS - 1) // RADIX_BITS)
+    width = (bits + passes - 1) // passes
+    mask = np.int64((1 << width) - 1)
+    sk = keys.copy()
+    si = np.arange(n).astype(np.int32)
+    dk = np.empty(n, np.int64)
+    di = np.empty(n, np.int32)
+    cnt = np.empty(1 << width, np.int64)
+    for pas in range(passes):
+        shift = pas * width
+        for b in range(cnt.shape[0]):
+            cnt[b] = 0
+        for i in range(n):
+            cnt[(sk[i] >> shift) & mask] += 1
+        if n > 0 and cnt[(sk[0] >> shift) & mask] == n:
+            continue  # one digit for all: this pass keeps the order
+        acc = np.int64(0)
+        for b in range(cnt.shape[0]):
+            c = cnt[b]
+            cnt[b] = acc
+            acc += c
+        for i in range(n):
+            d = (sk[i] >> shift) & mask
+            j = cnt[d]
+            cnt[d] = j + 1
+            dk[j] = sk[i]
+            di[j] = si[i]
+        sk, dk = dk, sk
+        si, di = di, si
+    return sk, si
+
+
 @nb.njit(**JIT)
 def grid_coords(points, perm, origin, h):  # pragma: no cover - compiled
     """u[i] = (points[perm[i]] - origin) / h, without a permuted copy of the points."""

@@ -47,6 +47,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     return {
         "band": {  # this process, in this order
             "grid.cell_order": (_F64_2, _F64, f),
+            "grid.radix_argsort": (_I64,),
             "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
             "sheets.cell_separation": (_F64_2, _I32, f, f, f, f),
@@ -64,7 +65,6 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "grid.one_sided_cost": (_I64, _I32, _F64_2, _F32_2, _F64, _F64, f, f),
             "sheets.sheet_cut": (_I64, _I32_2, _I32, _I32, _F32, _F64_2, _F32_2, _F64),
             "sheets.normal_agreement": (_F64_2, _I32, _F64, _F64_2, f, i),
-            "topology.point_components": (_I32_2, _I32, _U8, _F32),
         },
         "ordering": {  # the child process
             "march.grid_phase": (

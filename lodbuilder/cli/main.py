@@ -48,6 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command of ``argv`` (default: the process's command line, as the ``lodbuilder``
+    command does; the process then ends, see :func:`_before_exit`); returns the exit status."""
+    command_line = argv is None
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     check_options(parser, argv)
@@ -91,6 +94,19 @@ def main(argv: list[str] | None = None) -> int:
         import logging
 
         logging.getLogger("lodbuilder").setLevel(log_level)
+        if command_line:
+            _before_exit()
+
+
+def _before_exit() -> None:
+    """The command is done and the process ends next: every object goes to the garbage
+    collector's permanent generation, so that the interpreter's shutdown does not walk them all
+    once more (numba's compiler objects and the like: about 0.3 s of CPU after a build, 3 % of a
+    million-point build). Nothing is left unfinished by it: files are closed and renamed by then,
+    and the shutdown still runs the exit handlers and closes the modules."""
+    import gc
+
+    gc.freeze()
 
 
 def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:

@@ -356,7 +356,9 @@ class Band:
     through each voxel (inf for corners outside the band, kept only to index cells); ``foot``: the
     nearest point of each voxel; ``near``: per point, which corner of its cell is its nearest
     marchable voxel (x + 2 y + 4 z; 255: none);
-    ``radius``: the band radius of every point in grid units (None when it is r / h everywhere).
+    ``radius``: the band radius of every point in grid units (None when it is r / h everywhere);
+    ``pieces``: the connected piece of every point and their count
+    (:func:`lodbuilder._kernels.topology.point_pieces` of this band), when already known.
     """
 
     origin: np.ndarray
@@ -371,6 +373,7 @@ class Band:
     foot: np.ndarray
     near: np.ndarray
     radius: np.ndarray | None = None
+    pieces: tuple[np.ndarray, int] | None = None
 
     @property
     def n_voxels(self) -> int:
@@ -506,8 +509,9 @@ def build_planned_band(
     band cut between sheets is tried (both sides of every sheet, each voxel on its nearest point's
     sheet); if that splits it too, the plain band is used for the whole scan and the plan returned
     says so. Every band here is a subset of the plain one's voxels, so all are decided on one band
-    (``band``: the plain band, when already built)."""
-    from .._kernels.topology import point_components
+    (``band``: the plain band, when already built). The band returned keeps the pieces of its
+    points (``Band.pieces``: the ordering needs them, and they are known here already)."""
+    from .._kernels.topology import point_pieces
 
     if band is None:
         band = build_band(points, plan.h, plan.r, max_memory)
@@ -515,28 +519,33 @@ def build_planned_band(
         return band, plan
     side, side_near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
     vcost, near = cut_between_sheets(band, side, plan)
-    pieces = point_components(band.nbr, band.cs, near, vcost)
-    plain = 0
+    found = point_pieces(band.nbr, band.cs, near, vcost)  # (the piece of every point, their count)
+    pieces, plain, plain_found = found[1], 0, None
     if pieces > 1:
-        plain = point_components(band.nbr, band.cs, band.near, band.vcost)
+        plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+        plain = plain_found[1]
     if pieces > 1 and plain < pieces:  # the one-sided band alone, when the cut is what splits it
-        alone = point_components(band.nbr, band.cs, side_near, side)
-        if alone <= plain:
-            vcost, near, pieces = side, side_near, alone
+        alone = point_pieces(band.nbr, band.cs, side_near, side)
+        if alone[1] <= plain:
+            vcost, near, pieces, found = side, side_near, alone[1], alone
+        del alone
     del side, side_near
     stack = plan.thin_points >= THIN_SHARE / 100 * band.u.shape[0]  # (a few thin parts: as before)
     if pieces > 1 and plain < pieces and not stack:
         log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
+        band.pieces = plain_found
         return band, BandPlan.plain(plan.h, plan.r)
     if pieces > 1 and plain < pieces:
         vcost, near = cut_between_sheets(band, band.vcost, plan)
-        pieces = point_components(band.nbr, band.cs, near, vcost)
+        found = point_pieces(band.nbr, band.cs, near, vcost)
+        pieces = found[1]
         if pieces > plain:
             log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", pieces)
+            band.pieces = plain_found
             return band, BandPlan.plain(plan.h, plan.r)
         log.info("one-sided band splits the surface; using the plain band cut between sheets")
         plan = BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover, plan.outer)
-    band.vcost, band.near = vcost, near
+    band.vcost, band.near, band.pieces = vcost, near, found
     return band, plan
 
 

@@ -27,7 +27,15 @@ log = logging.getLogger(__name__)
 def default_seed(points: np.ndarray) -> int:
     """The deterministic default seed: the point nearest the centroid (lowest index on ties)."""
     c = points.mean(axis=0)
-    return int(np.argmin(((points - c) ** 2).sum(axis=1)))
+    # one coordinate at a time: the same sums as ((points - c) ** 2).sum(axis=1) (three terms
+    # added from the left) without its (N, 3) temporary and strided reduction (5 x faster)
+    d2 = points[:, 0] - c[0]
+    d2 *= d2
+    for axis in (1, 2):
+        e = points[:, axis] - c[axis]
+        e *= e
+        d2 += e
+    return int(np.argmin(d2))
 
 
 def validate_cost(cost: Any, n: int, name: str = "cost") -> np.ndarray:
@@ -401,7 +409,8 @@ def _pieces(band, stats):
     """The connected piece of the band of each point, and their count (also in ``stats``)."""
     from .._kernels.topology import point_pieces
 
-    piece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    known, band.pieces = band.pieces, None  # (found while the band was planned: not again)
+    piece, npiece = known if known is not None else point_pieces(band.nbr, band.cs, band.near, band.vcost)
     stats["pieces"] = int(npiece)
     return piece, npiece
 

@@ -20,15 +20,30 @@ def cells(points: np.ndarray, origin: np.ndarray, size: float) -> tuple[np.ndarr
     from .._kernels.grid import cell_order, grid_coords
 
     n = points.shape[0]
-    keys = cell_order(points, origin, size)
-    perm = np.argsort(keys, kind="stable").astype(np.int32)
-    keys = keys[perm]
+    keys, perm = sorted_keys(cell_order(points, origin, size))
     u = grid_coords(points, perm, origin, size)
     first = np.empty(n, dtype=bool)
     first[0] = True
     np.not_equal(keys[1:], keys[:-1], out=first[1:])
     ostart = np.append(np.flatnonzero(first), n).astype(np.int32)
     return keys[ostart[:-1]], perm, u, ostart
+
+
+SORTED_SHARE = 1 / 64  # keys with fewer descents than this share of them are nearly sorted
+
+
+def sorted_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cell keys (non-negative int64) sorted, and the int32 permutation that sorts them
+    (stable: equal keys in input order), i.e. np.argsort(keys, kind="stable"): NumPy's merge sort
+    when the keys are nearly sorted already (a scan in scan-line order: it only merges runs), a
+    radix sort otherwise (a third of the time of the merge sort on a million keys in random order)."""
+    from .._kernels.grid import radix_argsort
+
+    n = keys.shape[0]
+    if n < 2 or np.count_nonzero(keys[1:] < keys[:-1]) < SORTED_SHARE * n:
+        perm = np.argsort(keys, kind="stable").astype(np.int32)
+        return keys[perm], perm
+    return radix_argsort(keys)
 
 
 THREAD_MIN_QUERIES = 4096  # fewer queries are answered in this thread alone
