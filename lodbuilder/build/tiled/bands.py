@@ -143,12 +143,13 @@ def write_phase(ex: Any, work: Any, part: Path, name: str, sp: Any, finish: Call
     def call(b: int, spec: Any) -> tuple[int, Any, tuple]:
         return (b, write_band, (work, b, *bands[b], rows, spec, {**args, "pieces": buckets["pieces"][b]}))
 
-    files = {p[0] for pieces in buckets["pieces"] for p in pieces}
+    runs: dict[range, list[str]] = {}  # the bucket files by the run of bands they hold
+    for f in {p[0] for pieces in buckets["pieces"] for p in pieces}:
+        runs.setdefault(WL.bucket_range(f), []).append(f)
 
-    def drop() -> None:  # the bucket files whose bands are all written: read by no one now
-        gone = [f for f in files if all(k in got for k in WL.bucket_range(f))]
-        prune(work, gone)
-        files.difference_update(gone)
+    def drop() -> None:  # the bucket files of runs whose bands are all written: read by no one now
+        for ks in [ks for ks in runs if all(k in got for k in ks)]:
+            prune(work, sorted(runs.pop(ks)))
 
     if 0 not in got:  # the first band alone: it decides the datasets' creation properties
         _run(ex, work, name, {0: call(0, None)}, bands, got, progress, drop)
