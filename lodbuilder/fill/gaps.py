@@ -75,8 +75,8 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import strict_methods
 from ..features.neighbours import Neighbourhoods, local_pca
+from .folded import implicit_regions
 from .local import (
     FACING,
     K_SAMPLE,
@@ -93,6 +93,7 @@ from .local import (
     same_face,
     stacked,
 )
+from .region import STATUS_FILLABLE, STATUS_ROUGH, Region
 from .surface import (
     MAX_TILT,
     MAX_TILTED,
@@ -123,96 +124,6 @@ MIN_SEEDS_WIDE = 4
 #: largest RMS error predicting a sixth of the ring from the rest, in units of rho
 MAX_RESIDUAL = 0.5
 
-STATUS_FILLABLE = "fillable"
-STATUS_ROUGH = "rough"
-
-
-@strict_methods
-@dataclass
-class Region:
-    """One enclosed region of the surface farther than rho/2 from every input point.
-
-    Attributes:
-        id: the gap's number in the report (0, 1, ... in the order found); -1 for a region that
-            is no gap.
-        status: ``"fillable"``, or ``"rough"`` when the surrounding input is not one smooth height
-            field (not filled; ``reason`` says why). Only gaps are assessed (a region that is no
-            gap is never filled).
-        candidates: (M, 3) grid nodes of the region lifted onto the fitted surface.
-        distance: (M,) distance of each candidate to the nearest sample point.
-        rho: the density asked for.
-        area: area of the part farther than rho from the input (0 when the region only lies
-            between rho/2 and rho from it: not a gap, but the level still misses rho there).
-        region_area: area of the whole region.
-        node_area: surface area each candidate stands for.
-        residual: RMS error of the fitted surface predicting the inner ring points of each sixth
-            of the ring from the rest (NaN for a region that is no gap: not assessed).
-        tilted: share of the inner ring's normals tilted more than 60 degrees from the plane's.
-        frame: the hole's plane; ``uv`` (M, 2) the candidates' coordinates in it.
-        surface: the height field over the plane.
-        ring: indices (into the sample) of the input points around the region.
-    """
-
-    id: int
-    status: str
-    candidates: np.ndarray
-    distance: np.ndarray
-    rho: float
-    area: float
-    region_area: float
-    node_area: np.ndarray
-    residual: float
-    frame: Frame
-    uv: np.ndarray
-    surface: HeightField
-    ring: np.ndarray
-    tilted: float = 0.0
-    reason: str = ""
-    n_synthetic: int = 0
-    #: enclosed only once cut from a channel of surface within rho of the input (kept only when
-    #: a fillable gap)
-    opened: bool = False
-
-    @property
-    def normal(self) -> np.ndarray:
-        return self.frame.normal
-
-    @property
-    def is_gap(self) -> bool:
-        """Some of it is farther than rho from every input point."""
-        return bool(self.area > 0)
-
-    @property
-    def max_distance(self) -> float:
-        return float(self.distance.max()) if self.distance.size else 0.0
-
-    def gap_points(self) -> np.ndarray:
-        """Candidates farther than rho from every input point."""
-        return self.candidates[self.distance > self.rho]
-
-    @property
-    def bounds(self) -> np.ndarray:
-        """(2, 3) bounding box of the gap (of the region when it is no gap)."""
-        pts = self.gap_points() if self.is_gap else self.candidates
-        return np.stack([pts.min(axis=0), pts.max(axis=0)])
-
-    def as_dict(self) -> dict[str, Any]:
-        lo, hi = self.bounds
-        return {
-            "id": self.id,
-            "status": self.status,
-            "reason": self.reason,
-            "area": self.area,
-            "region_area": self.region_area,
-            "max_distance": self.max_distance,
-            "bounds_min": lo.tolist(),
-            "bounds_max": hi.tolist(),
-            "centre": self.candidates.mean(axis=0).tolist(),
-            "normal": self.normal.tolist(),
-            "residual": self.residual if math.isfinite(self.residual) else None,
-            "n_synthetic": self.n_synthetic,
-        }
-
 
 @dataclass
 class Search:
@@ -225,6 +136,8 @@ class Search:
     n_seeds: int = 0
     #: groups open over the plane whose gap is enclosed along the surface but rough there
     n_bent: int = 0
+    #: the rough gaps searched for fillable ones only and left out (not in ``regions``)
+    refused: list[Region] = field(default_factory=list)
 
 
 def _level_vertices(level: np.ndarray, tree_l: Any, rho: float) -> tuple[np.ndarray, np.ndarray]:
@@ -361,7 +274,44 @@ def find_regions(
             # open or bent over the plane of the level normals: again over the seeds' plane
             out.n_open, out.n_bent = before[1:]
             _search_group(out, sample, tree_s, sp, flat, width)
+        _search_folded(out, sample, tree_s, sp, summed, width, before)
+    for i, reg in enumerate(r for r in out.regions if r.is_gap):
+        reg.id = i
     return out
+
+
+def _search_folded(out: Search, sample, tree_s, sp, normal, width, before) -> None:
+    """Where the search over a plane left the group ``sp`` without a fillable gap but open,
+    bent or rough (its surroundings no height field): search it again on an implicit surface
+    (:func:`~lodbuilder.fill.folded.implicit_regions`). A fillable gap found there replaces the
+    group's rough gaps it covers and counts off one open or bent group."""
+    new = out.regions[before[0] :]
+    rough = [r for r in new if r.is_gap and r.status == STATUS_ROUGH]
+    opened = out.n_open - before[1] + out.n_bent - before[2]
+    if not (rough or opened):
+        return
+    if any(r.is_gap and r.status == STATUS_FILLABLE for r in new):
+        if not opened:
+            return
+        sp = sp[~_inside(new, sp, out.rho)]  # the seeds left open beside a fillable gap
+        if sp.shape[0] == 0:
+            return
+    found, _ = implicit_regions(sample, tree_s, sp, normal, out.rho, width, GRID_FRACTION * out.rho)
+    found = [r for r in found if r.is_gap and r.status == STATUS_FILLABLE]
+    found = [
+        r for r in found if not _inside(out.regions[: before[0]], r.candidates[:1], out.rho)[0]
+    ]
+    for reg in found:
+        drop = [
+            r for r in rough if _inside([reg], r.candidates.mean(axis=0, keepdims=True), out.rho)[0]
+        ]
+        out.regions = [r for r in out.regions if not any(r is x for x in drop)]
+        rough = [r for r in rough if not any(r is x for x in drop)]
+        if not drop and out.n_bent > before[2]:
+            out.n_bent -= 1
+        elif not drop and out.n_open > before[1]:
+            out.n_open -= 1
+        out.regions.append(reg)
 
 
 def _search_group(out: Search, sample, tree_s, sp, normal, width) -> None:
@@ -403,6 +353,8 @@ def _add(
             continue
         if (fillable_only or reg.opened) and not (reg.is_gap and reg.status == STATUS_FILLABLE):
             refused += reg.is_gap if fillable_only else 0
+            if reg.is_gap and fillable_only:
+                out.refused.append(reg)
             dropped += reg.opened and not fillable_only
             continue
         reg.id = sum(r.is_gap for r in out.regions) if reg.is_gap else -1

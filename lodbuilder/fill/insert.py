@@ -80,8 +80,7 @@ def region_attributes(
     from .surface import _rbf
 
     ring = region.ring
-    frame, surface = region.frame, region.surface
-    uv, pts = region.uv[picked], region.candidates[picked]
+    pts = region.candidates[picked]
     m = pts.shape[0]
     ring_pts = sample[ring]
     tree = cKDTree(ring_pts)
@@ -90,7 +89,7 @@ def region_attributes(
     near = np.asarray(near, dtype=np.int64).reshape(m, k)
     out: dict[str, np.ndarray] = {}
     if all(c in attributes for c in NORMALS) and m:
-        nrm = surface.normals(uv, frame)
+        nrm = region.normals_at(picked)
         measured = np.stack([np.asarray(attributes[c])[ring] for c in NORMALS], axis=1)
         agree = np.einsum("mki,mi->m", measured[near].astype(np.float64), nrm)
         nrm[agree < 0] *= -1.0
@@ -103,11 +102,11 @@ def region_attributes(
         ]
         widths = [c.shape[1] for c in cols]
         vals = np.concatenate(cols, axis=1)
-        ring_uv = frame.uv(ring_pts) / surface.scale
+        ring_uv = region.coordinates(ring_pts)
         keep = np.arange(ring.size)
         if ring.size > MAX_FIT:
             keep = np.linspace(0, ring.size - 1, MAX_FIT).round().astype(np.int64)
-        fit = _rbf(ring_uv[keep], vals[keep], degree=1)(uv / surface.scale)
+        fit = _rbf(ring_uv[keep], vals[keep], degree=1)(region.coordinates(pts))
         fit = np.clip(fit, vals.min(axis=0), vals.max(axis=0))
         start = 0
         for name, w in zip(cont, widths, strict=True):

@@ -50,13 +50,19 @@ STACKED = 0.6
 
 
 def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float, cloud):
-    """(N,) dot product of each point's normal with ``normal``, the normals (from the nearest
-    points of ``cloud``: :func:`fitting_normals`) oriented consistently along the surface: over
+    """(N,) dot product with ``normal`` of each point's normal oriented along the surface
+    (:func:`oriented_normals`). The other face of a thin part (an ear, a leaf), reached round
+    its edge, faces the other way."""
+    return oriented_normals(points, normal, seeds, rho, cloud) @ normal
+
+
+def oriented_normals(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float, cloud):
+    """(N, 3) unit normals of ``points`` (from the nearest points of ``cloud``:
+    :func:`fitting_normals`) oriented consistently along the surface: over
     a minimum spanning tree of links to the :data:`K_SAMPLE` nearest points within :data:`LINK`
     rho, weighted by how much the normals differ (Hoppe et al. 1992) and by how steep the link
     is to them (a link across a thin part's gap), from the point of each
-    connected piece nearest the seeds, itself oriented along ``normal``. The other face of a
-    thin part (an ear, a leaf), reached round its edge, faces the other way."""
+    connected piece nearest the seeds, itself oriented along ``normal``."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
     from scipy.spatial import cKDTree
@@ -101,7 +107,7 @@ def facing(points: np.ndarray, normal: np.ndarray, seeds: np.ndarray, rho: float
         sign[go] *= sign[up[go]]
         up[go] = up[up[go]]
     sign[child] *= sign[up[child]]
-    return (nrm * sign[:, None]) @ normal
+    return nrm * sign[:, None]
 
 
 def same_face(ring: np.ndarray, points: np.ndarray, frame: Frame, seeds, rho: float):
@@ -330,6 +336,10 @@ def inside(regions: list, points: np.ndarray, rho: float, step: float) -> np.nda
         hi = reg.candidates.max(axis=0) + 4.0 * rho
         box = np.flatnonzero(((points >= lo) & (points <= hi)).all(axis=1) & ~hit)
         if not box.size:
+            continue
+        if reg.implicit:  # within 2 rho of its surface, next to a candidate
+            d, _ = cKDTree(reg.candidates).query(points[box], k=1, distance_upper_bound=2.0 * rho)
+            hit[box] = np.isfinite(d)
             continue
         uv = reg.frame.uv(points[box])
         d, _ = cKDTree(reg.uv).query(uv, k=1, distance_upper_bound=step * 1.01)

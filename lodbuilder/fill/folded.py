@@ -1,0 +1,118 @@
+"""Regions of a group of seeds on an implicit surface fitted round them (see
+:mod:`lodbuilder.fill.implicit`): the search for holes whose surroundings are no height field
+over any plane, which :mod:`lodbuilder.fill.gaps` runs where its search over a plane left a
+group open, bent or rough."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .implicit import ImplicitSurface, cell_area, sector_error, zero_set_cells
+from .local import NEAR_FRACTION, oriented_normals
+from .region import STATUS_FILLABLE, STATUS_ROUGH, Region
+from .surface import Frame, plane_normal
+
+#: the grid's ball reaches this far beyond the seeds' spread, and the fit this far beyond it (rho)
+BALL_MARGIN, FIT_MARGIN = 2.5, 1.0
+#: the ring (for the fit's check and the attributes) and its inner part, in rho
+RING, INNER = 2.0, 1.0
+#: largest RMS distance of the inner ring's points of each sixth of the ring to the surface
+#: fitted to the rest, in rho: the accuracy asked of synthetic points (a distance to the surface,
+#: not a height over a plane as :data:`~lodbuilder.fill.gaps.MAX_RESIDUAL`)
+MAX_RESIDUAL = 0.25
+#: input points of a fit (the first of the sample's farthest point order: evenly spread)
+FIT_POINTS = 300
+
+
+def implicit_regions(
+    sample: np.ndarray,
+    tree_s: Any,
+    seeds: np.ndarray,
+    normal: np.ndarray,
+    rho: float,
+    width: float,
+    grid: float,
+) -> tuple[list[Region], int]:
+    """(the enclosed regions of the ``seeds`` on an implicit surface fitted to the ``sample``
+    points round them, how many of the seeds' regions reach empty space). ``sample`` is a prefix
+    of a farthest point order (its first points spread evenly); ``normal`` orients the fit;
+    ``width`` is the widest hole; ``grid`` the spacing of the cells."""
+    from scipy import ndimage
+
+    centre = seeds.mean(axis=0)
+    spread = float(np.sqrt(((seeds - centre) ** 2).sum(axis=1).max()))
+    if spread > 0.5 * width:
+        return [], 1
+    ball = spread + BALL_MARGIN * rho
+    idx = np.sort(np.asarray(tree_s.query_ball_point(centre, ball + FIT_MARGIN * rho), np.int64))
+    if idx.size < 12:
+        return [], 1
+    near = sample[idx]
+    nrm = oriented_normals(near, normal, seeds, rho, near)
+    surface = ImplicitSurface(near[:FIT_POINTS], nrm[:FIT_POINTS], rho)
+    ijk, pts, shell, shape = zero_set_cells(surface, centre, ball, grid)
+    d, _ = tree_s.query(pts, k=1)
+    far = d > NEAR_FRACTION * rho
+    if not far.any():
+        return [], 0
+    box = np.zeros(shape, dtype=bool)
+    box[tuple(ijk[far].T)] = True
+    labels, _ = ndimage.label(box, structure=np.ones((3, 3, 3)))
+    lab = np.zeros(pts.shape[0], dtype=np.int64)
+    lab[far] = labels[tuple(ijk[far].T)]
+    on = surface.project(seeds)
+    from scipy.spatial import cKDTree
+
+    dd, nn = cKDTree(pts[far]).query(on, k=1, distance_upper_bound=rho)
+    hit = np.unique(lab[far][nn[np.isfinite(dd)]])
+    regions, n_open = [], 0
+    for label in hit:
+        cells = np.flatnonzero(lab == label)
+        if shell[cells].any() or np.linalg.norm(np.ptp(pts[cells], axis=0)) > width:
+            n_open += 1
+            continue
+        regions.append(_region(surface, pts[cells], d[cells], near, nrm, idx, normal, rho, grid))
+    return regions, n_open
+
+
+def _region(surface, cand, dist, near, near_nrm, near_idx, normal, rho, grid) -> Region:
+    """The region of the candidates ``cand`` (distances ``dist`` to the sample) on ``surface``,
+    fitted to the first points of ``near`` (sample indices ``near_idx``), assessed when it is a
+    gap: fitted without each sixth of the ring in turn, how far the surface misses every point
+    of that sixth next to the hole."""
+    from scipy.spatial import cKDTree
+
+    d_ring, _ = cKDTree(cand).query(near, k=1)
+    ring = d_ring <= RING * rho
+    area = cell_area(surface.normals(cand), grid)
+    frame = Frame.of(near[ring].mean(axis=0), plane_normal(near[ring], normal))
+    reg = Region(
+        id=-1,
+        status=STATUS_FILLABLE,
+        candidates=cand,
+        distance=dist,
+        rho=rho,
+        area=float(area[dist > rho].sum()),
+        region_area=float(area.sum()),
+        node_area=area,
+        residual=float("nan"),
+        frame=frame,
+        uv=frame.uv(cand),
+        surface=surface,
+        ring=near_idx[ring],
+    )
+    if reg.is_gap:
+        axes = np.stack([frame.t1, frame.t2])
+        fit, fit_nrm = near[:FIT_POINTS], near_nrm[:FIT_POINTS]
+        test = near[d_ring <= INNER * rho]
+        reg.residual = sector_error(fit, fit_nrm, test, axes, rho, cand.mean(axis=0))
+        if not reg.residual <= MAX_RESIDUAL * rho:
+            reg.status = STATUS_ROUGH
+            reg.reason = (
+                f"the implicit surface fitted to the surrounding points misses those next to the "
+                f"hole, when fitted without them, by {reg.residual / rho:.2f} rho (RMS; more than "
+                f"{MAX_RESIDUAL:g} rho)"
+            )
+    return reg
