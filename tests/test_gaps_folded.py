@@ -1,0 +1,117 @@
+"""Holes whose surroundings are no height field over any plane (issue 21 item 3): a hole through
+the rounded edge of a thin plate (an ear's rim) is found and filled on the plate, from an
+implicit surface; the plate's open borders are never filled; the implicit surface itself
+against analytic shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import lodbuilder
+from lodbuilder.archive.writer import ScanRecord, update_archive
+from lodbuilder.fill import SYNTHETIC, fill_level
+from lodbuilder.fill.implicit import ImplicitSurface, cell_area, zero_set_cells
+from lodbuilder.io.base import Scan
+
+RHO = 0.05
+#: the plate: x in [-LENGTH, 0], y in [-HALF, HALF] (in rho), its edge at x = 0 rounded
+LENGTH, HALF = 12.0, 10.0
+
+
+def plate(rng: np.random.Generator, a: float) -> np.ndarray:
+    """A thin plate of half thickness ``a`` rho: the sheets z = +-a (x <= 0) joined by a half
+    cylinder of radius a round the y axis (x > 0), about 16 random points per rho^2."""
+    density = 16.0 / RHO**2
+    area_sheet = LENGTH * 2 * HALF * RHO**2
+    n = rng.poisson(density * area_sheet, 2)
+    sheets = []
+    for side, k in zip((1.0, -1.0), n, strict=True):
+        xy = rng.uniform((-LENGTH * RHO, -HALF * RHO), (0.0, HALF * RHO), (k, 2))
+        sheets.append(np.c_[xy, np.full(k, side * a * RHO)])
+    k = rng.poisson(density * np.pi * a * RHO * 2 * HALF * RHO)
+    t = rng.uniform(-0.5 * np.pi, 0.5 * np.pi, k)
+    y = rng.uniform(-HALF * RHO, HALF * RHO, k)
+    sheets.append(np.c_[a * RHO * np.cos(t), y, a * RHO * np.sin(t)])
+    return np.concatenate(sheets)
+
+
+def plate_distance(p: np.ndarray, a: float) -> np.ndarray:
+    """Distance of points (N, 3) to the plate (its sheets and rounded edge, unbounded in y)."""
+    sheet = np.abs(np.abs(p[:, 2]) - a * RHO)
+    edge = np.abs(np.hypot(np.maximum(p[:, 0], 0.0), p[:, 2]) - a * RHO)
+    return np.where(p[:, 0] <= 0.0, np.minimum(sheet, edge), edge)
+
+
+def _filled(tmp_path, points: np.ndarray):
+    path = tmp_path / "plate.h5"
+    update_archive(path, [ScanRecord(Scan(points=points, attributes={}, name="plate"),
+                                     lodbuilder.fastfps(points))])
+    with lodbuilder.open_archive(path) as arc:
+        view = arc.scan()
+        return fill_level(view, RHO), view.level(rho=RHO).points
+
+
+@pytest.mark.parametrize(("a", "radius", "seed"), [(1.0, 3.0, 0), (1.5, 3.5, 1), (1.2, 4.0, 2)])
+def test_a_hole_through_a_thin_plates_rounded_edge_is_filled_on_the_plate(tmp_path, a, radius, seed):
+    """A ball of radius 3-4 rho centred on the edge of a plate 2-3 rho thick cuts one hole
+    through both faces and the edge: its rim folds over every plane (no height field fits it:
+    before the implicit surface, the group was left open or bent and nothing was filled). Now
+    one fillable gap, its synthetic points within 0.25 rho of the plate, the removed surface
+    covered within 1.5 rho; the plate's borders are not filled."""
+    rng = np.random.default_rng(seed)
+    full = plate(rng, a)
+    centre = np.array([a * RHO, 0.0, 0.0])
+    keep = np.linalg.norm(full - centre, axis=1) > radius * RHO
+    filled, level = _filled(tmp_path, full[keep])
+    gaps = filled.report.gaps
+    assert [g.status for g in gaps] == ["fillable"], [g.reason for g in gaps]
+    (gap,) = gaps
+    assert gap.implicit
+    assert np.linalg.norm(gap.candidates.mean(axis=0) - centre) < radius * RHO
+    lev = filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert syn.shape[0] > 10
+    # every synthetic point in the hole (none at the borders), on the plate
+    assert np.linalg.norm(syn - centre, axis=1).max() < (radius + 1.0) * RHO
+    assert plate_distance(syn, a).max() < 0.25 * RHO
+    removed = full[~keep]
+    assert cKDTree(level).query(removed)[0].max() > 2.5 * RHO
+    assert cKDTree(lev.points).query(removed)[0].max() <= 1.5 * RHO
+    assert filled.report.n_open >= 1  # the plate's borders: open, never filled
+
+
+def test_a_notch_in_a_plates_rounded_edge_reaching_its_border_is_not_filled(tmp_path):
+    """The same hole where the plate ends (its border at y = 10 rho runs through the ball): the
+    hole opens into empty space, on the implicit surface too. Not a gap."""
+    rng = np.random.default_rng(3)
+    a = 1.0
+    full = plate(rng, a)
+    centre = np.array([a * RHO, HALF * RHO - 1.0 * RHO, 0.0])
+    keep = np.linalg.norm(full - centre, axis=1) > 3.0 * RHO
+    filled, _ = _filled(tmp_path, full[keep])
+    assert filled.n_synthetic == 0
+    assert [g for g in filled.report.gaps if g.status == "fillable"] == []
+
+
+# --- the implicit surface ---------------------------------------------------------------------
+
+
+def test_an_implicit_surface_through_a_sphere_cap_bridges_its_hole(rng):
+    """Points of a unit sphere with normals, a cap of 20 degrees left out: the zero set over the
+    cap lies within 1 % of the radius of the sphere, and the area of the crossed cells adds up
+    to the cap's within 10 %."""
+    v = rng.normal(size=(4000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    ring = v[(v[:, 2] < np.cos(np.radians(20))) & (v[:, 2] > np.cos(np.radians(60)))]
+    surf = ImplicitSurface(ring, ring, 0.05)
+    ijk, pts, shell, _ = zero_set_cells(surf, np.array([0.0, 0.0, 1.0]), 0.3, 0.0125)
+    cap = pts[pts[:, 2] > np.cos(np.radians(17))]
+    assert cap.shape[0] > 100
+    assert np.abs(np.linalg.norm(cap, axis=1) - 1.0).max() < 0.01
+    inside = (pts[:, 2] > np.cos(np.radians(15))) & ~shell
+    area = cell_area(surf.normals(pts[inside]), 0.0125).sum()
+    exact = 2 * np.pi * (1 - np.cos(np.radians(15)))
+    assert area == pytest.approx(exact, rel=0.1)
+    assert ijk.shape == pts.shape
