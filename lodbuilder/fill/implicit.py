@@ -154,7 +154,8 @@ def zero_set_cells(
         axis=-1,
     )
     whole = np.isfinite(corners).all(axis=-1)
-    cross = whole & (np.nanmin(corners, axis=-1) < 0) & (np.nanmax(corners, axis=-1) > 0)
+    known = np.where(whole[..., None], corners, 0.0)
+    cross = whole & (known.min(axis=-1) < 0) & (known.max(axis=-1) > 0)
     ijk = np.argwhere(cross)
     if ijk.size == 0:
         empty = np.zeros((0, 3))
