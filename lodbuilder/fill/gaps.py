@@ -285,8 +285,7 @@ def _search_folded(out: Search, sample, tree_s, sp, normal, width, before) -> No
     bent or rough (its surroundings no height field), or left some of its seeds open beside a
     fillable gap: search them again on an implicit surface
     (:func:`~lodbuilder.fill.folded.implicit_regions`). A fillable gap found there replaces the
-    group's rough gaps it covers; a gap found there where the plane search found none (rough
-    or fillable) counts off one open or bent group."""
+    group's rough gaps it covers, or counts off one open or bent group."""
     new = out.regions[before[0] :]
     rough = [r for r in new if r.is_gap and r.status == STATUS_ROUGH]
     opened = out.n_open - before[1] + out.n_bent - before[2]
@@ -300,22 +299,20 @@ def _search_folded(out: Search, sample, tree_s, sp, normal, width, before) -> No
             return
     rho = out.rho
     found, _ = implicit_regions(sample, tree_s, sp, normal, rho, width, GRID_FRACTION * rho)
-    found = [r for r in found if r.is_gap]
+    # (a rough one is not reported: an open tube's end is a closed loop of border too, which
+    # the implicit surface caps, and the fit's checks refuse)
+    found = [r for r in found if r.is_gap and r.status == STATUS_FILLABLE]
     found = [r for r in found if not _inside(out.regions[: before[0]], r.candidates[:1], rho)[0]]
     for reg in found:
         drop = [
             r for r in rough if _inside([reg], r.candidates.mean(axis=0, keepdims=True), rho)[0]
         ]
-        if drop and reg.status != STATUS_FILLABLE:
-            continue  # rough either way: the plane's report stays
         out.regions = [r for r in out.regions if not any(r is x for x in drop)]
         rough = [r for r in rough if not any(r is x for x in drop)]
         if not drop and out.n_bent > before[2]:
             out.n_bent -= 1
         elif not drop and out.n_open > before[1]:
             out.n_open -= 1
-        elif not drop and reg.status != STATUS_FILLABLE:
-            continue  # nothing open or bent left to it
         out.regions.append(reg)
 
 
