@@ -11,7 +11,10 @@ ordering: the level at rho and a sample at rho/4), computed on the fly: nothing 
 What is filled: regions farther than rho/2 from every input point, bounded by input points all
 round (over the plane of the surrounding surface, or, where the surface curves away from that
 plane, by the points of their own sheet, reached along the surface), at most ``max_hole * rho``
-wide, whose surroundings are one smooth height field. What is not: open borders (the scan's edge, a hole
+wide, whose surroundings are one smooth height field; where no height field fits them (the rim of
+a thin part's edge, an ear, folds over every plane; a steep trough), holes enclosed on an implicit
+surface fitted round them that predicts its surroundings within rho/4
+(:mod:`lodbuilder.fill.implicit`). What is not: open borders (the scan's edge, a hole
 reaching it), holes wider than ``max_hole * rho``, and *rough* holes (surroundings tilted or not
 one smooth surface, e.g. occlusion shadows whose rim lies at two depths): these are reported, not
 filled. See :mod:`lodbuilder.fill.gaps` for the method.

@@ -65,6 +65,13 @@ whole scan for exact distances.
    slope factor), bounding box and largest distance are reported. Only regions with a gap are
    assessed (step 4) and filled; smaller ones (farther than rho/2 but not rho from the input:
    a real scan's sparse spots) are kept in the search's list, never filled.
+6. **No height field.** A group left without a fillable gap but open, bent or rough over every
+   plane (or with seeds left open beside a fillable gap) is searched once more on an implicit
+   surface fitted round its seeds (:mod:`lodbuilder.fill.implicit`, :mod:`~lodbuilder.fill.folded`):
+   a region enclosed on that surface whose fit predicts its surroundings (within rho/4 RMS, and
+   fixed by them: gradient at least 0.6 over it) is a fillable gap; it replaces the group's rough
+   gaps it covers. Nothing else is taken from it (a rough cap there is no gap: an open tube's
+   end is capped the same way).
 """
 
 from __future__ import annotations
@@ -517,6 +524,7 @@ def _fit_region(frame, grid, nodes, ring_idx, ring, ring_normals, inner, rho) ->
 def _assess(reg: Region) -> None:
     """Fillable or rough: is the ring one smooth height field over the hole's plane?"""
     rho = reg.rho
+    assert isinstance(reg.surface, HeightField)  # (implicit regions are assessed in folded.py)
     reg.residual = reg.surface.cv
     if reg.tilted > MAX_TILTED:
         reg.status = STATUS_ROUGH
@@ -538,6 +546,7 @@ def _finish_region(reg: Region, tree_s: Any, rho: float) -> None:
     """3D distances to the sample; drop candidates within rho/2 of it (another sheet). A gap's
     surface is the spline its ring chooses by cross-validation (``HeightField.select``); its
     candidates are lifted again onto it (their area weights stay those of the first fit)."""
+    assert isinstance(reg.surface, HeightField)
     d, _ = tree_s.query(reg.candidates, k=1)
     if (d > rho).any() and reg.surface.select():
         reg.candidates = reg.frame.lift(reg.uv, reg.surface(reg.uv))

@@ -141,9 +141,9 @@ def zero_set_cells(
     nodes = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
     r = np.linalg.norm(nodes, axis=1)
     live = r <= radius
-    v = np.full(nodes.shape[0], np.nan)
-    v[live] = surface(nodes[live] + centre)
-    v = v.reshape(side, side, side)
+    flat = np.full(nodes.shape[0], np.nan)
+    flat[live] = surface(nodes[live] + centre)
+    v = flat.reshape(side, side, side)
     corners = np.stack(
         [
             v[i : side - 1 + i, j : side - 1 + j, k : side - 1 + k]
