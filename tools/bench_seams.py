@@ -16,8 +16,9 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
   the halo width (``halo``; a tile sees its neighbours' points only within it) and over the others;
   ``levels_below_0_35``: the levels where that pair is closer than 0.35 x the radius, by which tile
   had not seen the other (``newest_of_lower_colour``: the newest point's tile ordered first).
-* ``decimation``: points per point of the decimated copy (the coarse level's input): n / 8 at these
-  sizes unless ``--decimation D`` asks for about n / D, as a survey's (21.56M -> 400,000: 54).
+* ``decimation``: points per point of the decimated copy (the coarse level's input; the library asks
+  for n / 8 at these sizes, its cell grid gives 1 in 4-6), or with ``--decimation D`` about n / D as
+  a survey's (21.56M -> 400,000: 54; the cell grid gives 1 in 25-40 at 200,000 points).
 * ``merge_seconds``: the merge's tasks' durations summed (the seam repair and the bands) from the
   build record (``task_seconds``), per million points.
 
@@ -234,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="seam spacings to build with (default: the library's)")
     p.add_argument("--decimation", type=int, nargs="+", default=[0],
                    help="build with a decimated copy (the coarse level's input) of about n / D points, as a "
-                        "survey's (21.56M points -> 400,000: 54); 0: the library's choice (n / 8 at these sizes)")
+                        "survey's (21.56M points -> 400,000: 54); 0: the library's choice (it asks for n / 8 at "
+                        "these sizes and its cell grid gives 1 point in 4-6)")
     args = p.parse_args(argv)
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
     doc["cases"] = []
