@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 
 from .implicit import ImplicitSurface, cell_area, sector_error, zero_set_cells
-from .local import NEAR_FRACTION, oriented_normals
+from .local import NEAR_FRACTION, normals_at, oriented_normals
 from .region import STATUS_FILLABLE, STATUS_ROUGH, Region
-from .surface import Frame, plane_normal
+from .surface import Frame, plane_normal, tilted_share
 
 #: the grid's ball reaches this far beyond the seeds' spread, and the fit this far beyond it (rho)
 BALL_MARGIN, FIT_MARGIN = 2.5, 1.0
@@ -28,6 +28,10 @@ MAX_RESIDUAL = 0.25
 #: the plate 0.4-1.2 rho off, at gradients 0.33-0.53; where it lay within 0.07 rho, and round
 #: the bunny's ears, 0.62-0.92)
 MIN_GRADIENT = 0.6
+#: the implicit surface is tried only where more than this share of the input round the seeds
+#: has normals tilted over 60 degrees from the seeds' (a fold, a steep or curled rim: no height
+#: field); a flat sheet's border is left to the plane search
+FOLDED = 0.1
 #: input points of a fit (the first of the sample's farthest point order: evenly spread)
 FIT_POINTS = 300
 
@@ -56,6 +60,8 @@ def implicit_regions(
     if idx.size < 12:
         return [], 1
     near = sample[idx]
+    if tilted_share(normals_at(near, near), normal / np.linalg.norm(normal)) <= FOLDED:
+        return [], 1  # one height field all round (a border of a flat sheet): seen right already
     nrm = oriented_normals(near, normal, seeds, rho, near)
     surface = ImplicitSurface(near[:FIT_POINTS], nrm[:FIT_POINTS], rho)
     ijk, pts, shell, shape = zero_set_cells(surface, centre, ball, grid)
