@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 import lodbuilder
 from lodbuilder.archive.writer import ScanRecord, update_archive
-from lodbuilder.fill import SYNTHETIC, fill_level, gaps_of_points
+from lodbuilder.fill import SYNTHETIC, fill_level, folded, gaps_of_points
 from lodbuilder.fill.folded import implicit_regions
 from lodbuilder.fill.implicit import ImplicitSurface, cell_area, zero_set_cells
 from lodbuilder.io.base import Scan
@@ -94,11 +94,13 @@ def _gaps(points: np.ndarray):
 
 
 @pytest.mark.parametrize(("a", "radius", "seed"), [(1.0, 3.0, 0), (2.0, 4.0, 4)])
-def test_a_hole_wider_than_a_thin_plates_edge_shows_is_not_filled(a, radius, seed):
+def test_a_hole_wider_than_a_thin_plates_edge_shows_is_not_filled(a, radius, seed, monkeypatch):
     """The same hole through a plate 2-4 rho thick, the ball 2-3 x the half thickness: the
     ring does not show the edge's tip, and the implicit surface cut across the plate 0.5-0.9
     rho off it while predicting the ring well. Its gradient falls there (to 0.4-0.5): rough, not
-    filled (nor reported: an open tube's end is capped the same way)."""
+    filled (nor reported: an open tube's end is capped the same way). (Round the thinnest
+    plate, few of the input's normals are tilted: the implicit surface is not even tried; the
+    check below tries it.)"""
     rng = np.random.default_rng(seed)
     full = plate(rng, a)
     centre = np.array([a * RHO, 0.0, 0.0])
@@ -109,6 +111,7 @@ def test_a_hole_wider_than_a_thin_plates_edge_shows_is_not_filled(a, radius, see
     sample = pts[np.asarray(order.order)][: order.size_for_rho(0.25 * RHO)]
     rim = sample[np.abs(np.linalg.norm(sample - centre, axis=1) - radius * RHO) < 0.5 * RHO]
     seeds = centre + (rim - centre) * (radius - 1.0) / radius  # inside the hole, round its rim
+    monkeypatch.setattr(folded, "FOLDED", -1.0)
     found, _ = implicit_regions(
         sample, cKDTree(sample), seeds, np.array([0.0, 0.0, 1.0]), RHO, 12 * RHO, 0.25 * RHO
     )
