@@ -182,3 +182,25 @@ def test_the_sampler_walks_a_dear_directory_less_often(tmp_path, monkeypatch):
     s.disk_next = time.perf_counter()  # the time has come: walked again
     s.sample()
     assert len(walks) == 2 and len(s.timeline) == 2
+
+
+def test_the_sampler_finds_the_process_tree_by_its_children(monkeypatch):
+    """The tree is walked from the root's children files (not every process of the machine); where
+    the kernel has none, every process's parent gives the same tree."""
+    import os
+    import subprocess
+
+    import bench_survey
+
+    kids = [subprocess.Popen(["sleep", "30"]) for _ in range(2)]
+    try:
+        cpu, rss = bench_survey.tree(os.getpid())
+        assert {p for p, _ in cpu} >= {os.getpid(), *(k.pid for k in kids)}
+        assert rss > 20e6 and all(v >= 0 for v in cpu.values())
+        monkeypatch.setattr(bench_survey, "_children", lambda pid: None)
+        again, _ = bench_survey.tree(os.getpid())
+        assert set(again) == set(cpu)
+    finally:
+        for k in kids:
+            k.kill()
+            k.wait()
