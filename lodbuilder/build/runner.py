@@ -312,6 +312,10 @@ def build(
     in_memory = any(s.scan is not None for s in sources)
     if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
         raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
+    if workers is not None and scheduler is None and dask_local is None:
+        from .executors import start_pool_server
+
+        start_pool_server()  # (its workers' imports meanwhile: the plan reads every input's header)
     if wait is not None:
         wait = _check_wait(wait)
     result = BuildResult(archive=archive)
