@@ -115,6 +115,9 @@ def test_bench_survey_document(bench_doc, capsys):
             assert sim["calibration"]["workers"] == r["workers"]
             assert "not measured" in sim["notes"][0]
             assert "task CPU seconds" in r["simulation_cpu"]["notes"][0]
+            idle = r["measured_idle"]  # (measured: where the workers waited, phase by phase)
+            assert list(idle["by_phase"]) == list(r["phase_seconds"])
+            assert idle["idle"] == pytest.approx(sum(p["idle"] for p in idle["by_phase"].values()), abs=0.05)
         one, two = sv["runs"]
         assert sv["speedup_over_1_worker"] == {"pool 2": round(one["wall_seconds"] / two["wall_seconds"], 3)}
         t = sv["targets"]

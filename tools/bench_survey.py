@@ -19,7 +19,9 @@ them ordered as one surface: ``--joint``) once per executor and worker count. Fo
   ``peak_rss_by_kind``, largest first), and the scheduler simulation's prediction for 1-16 workers
   (tools/simulate_schedule.py) from that record: from the tasks' wall seconds (``simulation``,
   calibrated against the run) and from their CPU seconds (``simulation_cpu``: a free core for every
-  process, the figure to read on a loaded machine);
+  process, the figure to read on a loaded machine) and, measured, where the workers waited
+  (``measured_idle``: each phase's idle worker-seconds, first task, tail and the tasks' wall
+  beyond their CPU);
 * the speed-up of each worker count over 1 worker (target: 2 workers >= 1.9 x), and Dask
   LocalCluster over the process pool at equal workers (target <= 1.2).
 
@@ -478,6 +480,10 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     })
     res["simulation"] = _simulate(rec, wall, workers)
     res["simulation_cpu"] = _simulate(rec, wall, workers, rus["self_cpu"])
+    if rec.get("tasks"):
+        from simulate_schedule import measured_idle
+
+        res["measured_idle"] = measured_idle(rec, workers)
     if keep is not None:  # (to compare archives of two trees: the same survey gives the same datasets)
         keep.mkdir(parents=True, exist_ok=True)
         res["kept"] = str(shutil.move(str(archive), keep / f"{inputs[0].name}_{executor}{workers}.h5"))
