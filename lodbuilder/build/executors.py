@@ -76,13 +76,14 @@ def mp_context() -> Any:
     return ctx
 
 
-def start_pool_server() -> None:
-    """Start the forkserver of the local process pool now, where it is the start method: it imports
-    the build's libraries and loads the compiled kernels (about 1.1 CPU-s) while this process plans
-    the build (the inputs' headers and checksums: 1.1 s for a survey of 196 LAZ files), instead of
-    when the first task is submitted. The pool of :func:`make_executor` then forks its workers
+def start_pool_server(workers: int | None, scheduler: str | None = None, dask_local: int | None = None) -> None:
+    """For a build on a local process pool of ``workers`` (given: a build without workers may run in
+    its own process; with a Dask scheduler or cluster: none), start the pool's forkserver now, where
+    it is the start method: it imports the build's libraries and loads the compiled kernels (about
+    1.1 CPU-s) while this process plans the build (the inputs' headers and checksums: 1.1 s for a
+    survey of 196 LAZ files), instead of when the first task is submitted. The pool of :func:`make_executor` then forks its workers
     from it. Its parent-death request (``_warm``) is tied to the calling thread."""
-    if start_method() != "forkserver":
+    if workers is None or scheduler is not None or dask_local is not None or start_method() != "forkserver":
         return
     from multiprocessing import forkserver
 
