@@ -11,6 +11,14 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
   head counts as one more tile) in a level, over the level's stored radius, the worst level from
   the head to 3 % (``..._all``: over every level). Target >= 0.35 (goal 0.5). The in-memory order
   measured with the same tiles: ``cross_spacing_in_memory``.
+* ``cross_new_min_above_halo`` / ``..._below_halo``: the smallest spacing of the pair each level's
+  newest point makes with an earlier point of another tile, over the levels whose radius is above
+  the halo width (``halo``; a tile sees its neighbours' points only within it) and over the others;
+  ``levels_below_0_35``: the levels where that pair is closer than 0.35 x the radius, by which tile
+  had not seen the other (``newest_of_lower_colour``: the newest point's tile ordered first).
+* ``decimation``: points per point of the decimated copy (the coarse level's input; the library asks
+  for n / 8 at these sizes, its cell grid gives 1 in 4-6), or with ``--decimation D`` about n / D as
+  a survey's (21.56M -> 400,000: 54; the cell grid gives 1 in 25-40 at 200,000 points).
 * ``merge_seconds``: the merge's tasks' durations summed (the seam repair and the bands) from the
   build record (``task_seconds``), per million points.
 
@@ -18,17 +26,20 @@ Inputs (``--inputs``): ``autzen`` (the real autzen_trim.laz tiled 2 x 2 by tools
 every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of tools/bench_inputs.py),
 ``fragmented`` (the synthetic scene of tools/make_fragmented.py).
 
-    python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5
+    python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5 --decimation 0 54
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import json
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -71,23 +82,55 @@ def tile_of(p: np.ndarray, boxes: list) -> np.ndarray:
     return out
 
 
-def cross_spacing(p: np.ndarray, group: np.ndarray, radius: np.ndarray, upto: int) -> np.ndarray:
-    """For each level size k (1 .. upto): the smallest distance between two of its first k points
-    of different groups over the level's radius ``radius[k]`` (values above 1 are capped at 1)."""
+def cross_pairs(p: np.ndarray, group: np.ndarray, radius: np.ndarray, upto: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each point k (1 .. upto - 1): the distance to its nearest earlier point of another group
+    within the radius of the level it completes (``radius[k + 1]``; inf: none) and that point (-1)."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(p)
     j = np.arange(1, upto)
     near = tree.query_ball_point(p[j], radius[j + 1], workers=-1)
     e = np.full(upto, np.inf)
+    partner = np.full(upto, -1)
     for k, idx in zip(j, near, strict=True):
         idx = np.asarray(idx, dtype=np.int64)
         idx = idx[(idx < k) & (group[idx] != group[k])]
         if idx.size:
-            e[k] = float(np.linalg.norm(p[idx] - p[k], axis=1).min())
-    run = np.minimum.accumulate(e)  # run[k - 1]: smallest distance among the first k points
+            d = np.linalg.norm(p[idx] - p[k], axis=1)
+            e[k], partner[k] = float(d.min()), int(idx[np.argmin(d)])
+    return e, partner
+
+
+def cross_spacing(e: np.ndarray, radius: np.ndarray, upto: int) -> np.ndarray:
+    """For each level size k (1 .. upto): the smallest distance between two of its first k points
+    of different groups (``e`` of :func:`cross_pairs`) over the level's radius ``radius[k]``
+    (values above 1 are capped at 1)."""
+    run = np.minimum.accumulate(e[:upto])  # run[k - 1]: smallest distance among the first k points
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.minimum(run[: upto] / radius[1: upto + 1], 1.0)
+        return np.minimum(run / radius[1: upto + 1], 1.0)
+
+
+def seam_profile(e: np.ndarray, partner: np.ndarray, group: np.ndarray, colour: list, radius: np.ndarray,
+                 halo: float, lv: np.ndarray) -> dict[str, Any]:
+    """Where the levels ``lv`` (sizes) lose their cross-tile spacing: the smallest spacing of the pair
+    each level's newest point makes (its distance to the nearest earlier point of another tile over
+    the level's radius), over the levels whose radius is above the halo width (the tiles see each
+    other's points only within the halo) and over those at or below it; and for the levels where it is
+    below 0.35, which of the two tiles had not seen the other: the newest point's tile of the lower
+    colour (ordered before the other, blind to it), of the higher colour (it had the other's
+    points as timed seeds), or the partner a head point."""
+    new = np.minimum(e[lv - 1] / radius[lv], 1.0)
+    above = radius[lv] > halo
+    blame = {"newest_of_lower_colour": 0, "newest_of_higher_colour": 0, "with_head": 0}
+    for k in lv[new < 0.35]:
+        a, b = group[k - 1], group[partner[k - 1]]
+        if a < 0 or b < 0:
+            blame["with_head"] += 1
+        else:
+            blame["newest_of_lower_colour" if colour[a] < colour[b] else "newest_of_higher_colour"] += 1
+    return {"cross_new_min_above_halo": round(float(new[above].min()), 4) if above.any() else None,
+            "cross_new_min_below_halo": round(float(new[~above].min()), 4) if (~above).any() else None,
+            "levels_above_halo": int(above.sum()), "levels_below_0_35": blame}
 
 
 def covering(pts: np.ndarray, order: np.ndarray, k: int) -> float:
@@ -131,11 +174,15 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
         ct, cm = covering(pts, src, k), covering(pts, ref_cache["order"], k)
         sweep.append([k, round(ct / cm, 4), round(cross_min(ref_p[:k], ref_group[:k]) / cm, 4)])
     worst = max((r for r in sweep if r[0] >= h), key=lambda r: r[1])
-    cs = cross_spacing(p_stored, group, radius, n - 1)  # cs[k - 1]: level of size k
+    e, partner = cross_pairs(p_stored, group, radius, n - 1)
+    cs = cross_spacing(e, radius, n - 1)  # cs[k - 1]: level of size k
     lv = np.arange(max(h, 1), top + 1)
     at = int(lv[np.argmin(cs[lv - 1])])
+    halo = float(tiled.get("halo", 0.0))
     merge = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ("seam_repair", "merge_band")]
     return {"n": n, "tile_points": tile_points, "tiles": tiled.get("tiles"), "head_points": h,
+            "coarse_points": tiled.get("coarse_points"), "decimation": round(n / max(int(tiled.get("coarse_points", 1)), 1), 1),
+            "halo": round(halo, 6), "head_radius": round(float(tiled.get("head_radius", 0.0)), 6),
             "seam_alpha": tiled.get("seam_alpha"), "seam_points": tiled.get("seam_points"),
             "seam_deferrals": tiled.get("seam_deferrals"), "seconds_tiled": round(seconds, 2),
             "cover_ratio_worst": worst[1], "cover_ratio_worst_at": worst[0],
@@ -143,6 +190,7 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "cross_spacing_min": round(float(cs[lv - 1].min()), 4), "cross_spacing_min_at": at,
             "cross_spacing_min_all": round(float(np.nanmin(cs[h:])), 4),
             "cross_spacing_in_memory": min(r[2] for r in sweep),
+            **seam_profile(e, partner, group, tiled.get("tile_colours", []), radius, halo, lv),
             "spacing_over_radius_min": tiled.get("spacing_over_radius_min"),
             "merge_seconds": round(sum(r[5] for r in merge), 3) if merge else None,
             "merge_cpu_seconds": round(sum(r[6] for r in merge), 3) if merge else None,
@@ -161,6 +209,20 @@ def cross_min(p: np.ndarray, group: np.ndarray) -> float:
     return best
 
 
+@contextlib.contextmanager
+def coarse_points(m: int | None) -> Iterator[None]:
+    """Builds in this block take a decimated copy of at most ``m`` points (None: the library's)."""
+    from lodbuilder.build.tiled import driver
+
+    old = driver.COARSE_POINTS
+    if m is not None:
+        driver.COARSE_POINTS = max(m, driver.COARSE_MIN)
+    try:
+        yield
+    finally:
+        driver.COARSE_POINTS = old
+
+
 def main(argv: list[str] | None = None) -> int:
     from benchdoc import finish, stamp
 
@@ -171,6 +233,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--inputs", nargs="+", default=list(INPUTS), choices=INPUTS)
     p.add_argument("--seam-spacing", type=float, nargs="+", default=[None],
                    help="seam spacings to build with (default: the library's)")
+    p.add_argument("--decimation", type=int, nargs="+", default=[0],
+                   help="build with a decimated copy (the coarse level's input) of about n / D points, as a "
+                        "survey's (21.56M points -> 400,000: 54); 0: the library's choice (it asks for n / 8 at "
+                        "these sizes and its cell grid gives 1 point in 4-6)")
     args = p.parse_args(argv)
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
     doc["cases"] = []
@@ -181,9 +247,10 @@ def main(argv: list[str] | None = None) -> int:
             ref: dict = {}
             for tiles in args.tiles:
                 n_est = 440_000 // args.thin if name == "autzen" else args.n
-                for seam in args.seam_spacing:
-                    case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref)
-                    case = {"input": name, "synthetic": name != "autzen", **case,
+                for seam, dec in itertools.product(args.seam_spacing, args.decimation):
+                    with coarse_points(n_est // dec if dec else None):
+                        case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref)
+                    case = {"input": name, "synthetic": name != "autzen", "decimation_asked": dec, **case,
                             "seconds_in_memory": round(ref["seconds"], 2)}
                     doc["cases"].append(case)
                     print(json.dumps({k: v for k, v in case.items() if k != "sweep"}), file=sys.stderr)
