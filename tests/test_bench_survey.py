@@ -115,6 +115,9 @@ def test_bench_survey_document(bench_doc, capsys):
             assert sim["calibration"]["workers"] == r["workers"]
             assert "not measured" in sim["notes"][0]
             assert "task CPU seconds" in r["simulation_cpu"]["notes"][0]
+            idle = r["measured_idle"]  # (measured: where the workers waited, phase by phase)
+            assert list(idle["by_phase"]) == list(r["phase_seconds"])
+            assert idle["idle"] == pytest.approx(sum(p["idle"] for p in idle["by_phase"].values()), abs=0.05)
         one, two = sv["runs"]
         assert sv["speedup_over_1_worker"] == {"pool 2": round(one["wall_seconds"] / two["wall_seconds"], 3)}
         t = sv["targets"]
@@ -182,3 +185,25 @@ def test_the_sampler_walks_a_dear_directory_less_often(tmp_path, monkeypatch):
     s.disk_next = time.perf_counter()  # the time has come: walked again
     s.sample()
     assert len(walks) == 2 and len(s.timeline) == 2
+
+
+def test_the_sampler_finds_the_process_tree_by_its_children(monkeypatch):
+    """The tree is walked from the root's children files (not every process of the machine); where
+    the kernel has none, every process's parent gives the same tree."""
+    import os
+    import subprocess
+
+    import bench_survey
+
+    kids = [subprocess.Popen(["sleep", "30"]) for _ in range(2)]
+    try:
+        cpu, rss = bench_survey.tree(os.getpid())
+        assert {p for p, _ in cpu} >= {os.getpid(), *(k.pid for k in kids)}
+        assert rss > 20e6 and all(v >= 0 for v in cpu.values())
+        monkeypatch.setattr(bench_survey, "_children", lambda pid: None)
+        again, _ = bench_survey.tree(os.getpid())
+        assert set(again) == set(cpu)
+    finally:
+        for k in kids:
+            k.kill()
+            k.wait()

@@ -309,6 +309,28 @@ def test_build_names_the_archive_as_the_user_gave_it(tmp_path, capsys, shared_da
     assert out.startswith("2 built scan(s) into two.h5 on ")
 
 
+def test_build_collects_garbage_less_often_while_building(capsys, tmp_path, shared_data, monkeypatch):
+    # numba's import and kernel loading make many objects: the collector runs every 10,000
+    # allocations during the build (0.15 -> 0.08 CPU-s of a small scan's build), as before after it
+    import gc
+
+    import lodbuilder.api as api
+
+    real, seen = api.build_archive, []
+
+    def spy(*a, **k):
+        seen.append((gc.get_threshold(), gc.get_freeze_count() > 0))
+        return real(*a, **k)
+
+    monkeypatch.setattr(api, "build_archive", spy)
+    before = gc.get_threshold(), gc.get_freeze_count()
+    rc, out, err = run_cli(capsys, "build", shared_data / "bun_zipper_res4.ply", "-o", tmp_path / "a.h5",
+                           "--no-progress")
+    assert rc == 0, err
+    assert seen == [((10_000, 10, 10), True)]
+    assert (gc.get_threshold(), gc.get_freeze_count()) == before
+
+
 def test_the_command_leaves_its_objects_to_the_shutdown_unwalked(tmp_path):
     """Run as the ``lodbuilder`` command (no argv: the process ends next), main() moves every
     object to the garbage collector's permanent generation, so that the interpreter's shutdown

@@ -717,6 +717,23 @@ def test_compiling_collects_garbage_less_often_and_restores_the_collector(monkey
     assert (gc.get_threshold(), gc.get_freeze_count()) == before
 
 
+def test_fewer_collections_nested_leaves_the_outer_freeze_in_place():
+    # the build command holds the collector's settings for the whole build, and compiling the
+    # kernels inside it holds them again: the inner one must not unfreeze what the outer froze
+    import gc
+
+    from lodbuilder._kernels.warm import fewer_collections
+
+    before = gc.get_threshold(), gc.get_freeze_count()
+    with fewer_collections():
+        frozen = gc.get_freeze_count()
+        assert frozen > 0 and gc.get_threshold() == (10_000, 10, 10)
+        with fewer_collections():
+            assert gc.get_freeze_count() >= frozen
+        assert gc.get_freeze_count() >= frozen and gc.get_threshold() == (10_000, 10, 10)
+    assert (gc.get_threshold(), gc.get_freeze_count()) == before
+
+
 def test_progress_bars_print_the_compile_note_without_a_terminal(capsys):
     from lodbuilder.cli.progressbar import ProgressBars
 

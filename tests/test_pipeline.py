@@ -177,6 +177,36 @@ def test_a_manifest_that_builds_nothing_says_so(tmp_path, capsys):
     assert not out.exists()
 
 
+SERVER_SCRIPT = textwrap.dedent("""
+    import sys
+    from multiprocessing import forkserver
+    from lodbuilder.build import runner
+    seen = []
+    plan = runner.plan_jobs
+    def spy(*a, **k):
+        seen.append(forkserver._forkserver._forkserver_pid is not None)
+        return plan(*a, **k)
+    runner.plan_jobs = spy
+    if __name__ == "__main__":
+        from lodbuilder.collection import build_collection
+        build_collection(sys.argv[2:], sys.argv[1], workers=1)
+        print(seen)
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the forkserver start method")
+def test_the_pool_server_starts_before_the_plan(tmp_path):
+    """The forkserver that forks the pool's workers (its imports and kernels: about 1 CPU-s) starts
+    when the build starts, while the parent reads the inputs' headers, not at the first task."""
+    files = _clouds(tmp_path, 2)
+    script = tmp_path / "run.py"
+    script.write_text(SERVER_SCRIPT)
+    out = subprocess.run([sys.executable, str(script), str(tmp_path / "s.h5"), *map(str, files)],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[-1] == "[True]"
+
+
 KILL_SCRIPT = textwrap.dedent("""
     import sys
     from lodbuilder.collection import build_collection

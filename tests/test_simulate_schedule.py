@@ -11,7 +11,15 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
-from simulate_schedule import Stage, Task, makespan, model_from_record, predict, simulate  # noqa: E402
+from simulate_schedule import (  # noqa: E402
+    Stage,
+    Task,
+    makespan,
+    measured_idle,
+    model_from_record,
+    predict,
+    simulate,
+)
 
 
 def _tasks(*seconds: float) -> list[Task]:
@@ -120,6 +128,24 @@ def test_model_of_a_build_record():
     assert out["calibration"] == {"workers": 2, "measured_wall_seconds": 17.0, "predicted_wall_seconds": 15.5,
                                   "predicted_over_measured": 0.912}
     assert "not measured" in out["notes"][0]
+
+
+def test_measured_idle_of_a_build_record():
+    """Where the measured run's 2 workers waited, phase by phase (the resumed task left out)."""
+    out = measured_idle(_record(), 2)
+    ph = out["by_phase"]
+    assert list(ph) == ["read", "plan", "tiles", "order", "cover"]
+    # no task in read and plan: both workers idle throughout
+    assert ph["read"] == {"wall": 1.0, "busy": 0.0, "idle": 2.0, "first_task_after": 1.0, "tail": 1.0, "waiting": 0.0}
+    # the coarse task alone (2.5 .. 5.5 of 2 .. 6): one worker never ran a task in the phase
+    assert ph["tiles"] == {"wall": 4.0, "busy": 3.0, "idle": 5.0, "first_task_after": 0.5, "tail": 4.0,
+                           "waiting": 0.1}
+    assert ph["order"] == {"wall": 6.0, "busy": 8.0, "idle": 4.0, "first_task_after": 0.0, "tail": 0.0,
+                           "waiting": 0.1}
+    # cover 12 .. 15: worker 12's last task ends at 13.5
+    assert ph["cover"] == {"wall": 3.0, "busy": 3.0, "idle": 3.0, "first_task_after": 0.5, "tail": 1.5,
+                           "waiting": 0.0}
+    assert out["idle"] == 16.0 and out["waiting"] == 0.2
 
 
 def test_orderings_start_by_their_bottom_level():

@@ -133,8 +133,10 @@ def _cases():
                   "pieces.1.links.bin"],
         # (by the write the streams, faces, raw blocks, tiles' points and covering files are deleted: a damaged
         # merge.json or radii.json makes the pieces that wrote them, and those before, again)
+        # (a read block's ranks are deleted once it is permuted: a damaged covering or permutation marker makes
+        # the ranks again)
         "write": ["ranks.json", "radius.0.f8", "parent.0.i8", "merge.json", "radii.json", "coarse.json", "head.bin",
-                  "rank.0.i8", "pieces.json", "order.1.1.json"],
+                  "permute.0.json", "pieces.json", "order.1.1.json", "cover.1.json"],
         # (each band's bucket is deleted once the band is written: its chunks.json damaged, the buckets again)
         "bands": ["chunks.0.bin", "chunks.0.json", "merged.0.i8", "buckets.json"],
     }
@@ -189,7 +191,7 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
     # every band is written, so are their buckets)
     gone = {n for n in set(listed) - files if not (w / n).exists()}  # (the order marker lists the orderings' markers)
     assert {n.split(".")[0] for n in gone} == {"raw", "stream", "seam", "deferred", "core", "halo", "cover", "radloc",
-                                               "space", "bucket", "face", "sample"}
+                                               "space", "bucket", "face", "sample", "rank"}
     assert all(WL.consumers(n) is not None for n in gone)
 
 

@@ -567,7 +567,6 @@ def main() -> None:
             "python": platform.python_version(),
             "numpy": np.__version__,
             "numba": numba.__version__,
-            "load_avg_at_end": os.getloadavg(),
         },
         "results": results,
     }
@@ -593,6 +592,7 @@ def main() -> None:
     if args.cold:
         report["cold_start_demo"] = cold_start(trees, args.repeat)
         print(json.dumps(report["cold_start_demo"]), file=sys.stderr)
+    report["machine"]["load_avg_at_end"] = os.getloadavg()  # (after every section: not at the start)
     by_n = {r["n"]: r for r in results if r["input"].startswith("range")}
     for n in by_n:
         for m in by_n:
@@ -607,7 +607,8 @@ def markdown(report: dict) -> str:
     m = report["machine"]
     lines = [
         f"{m['cpus']} cores, Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}; "
-        f"load average at the end {', '.join(f'{x:.2f}' for x in m['load_avg_at_end'])}.",
+        f"load average at the start {', '.join(f'{x:.2f}' for x in report['load_avg_at_start'])}, "
+        f"at the end {', '.join(f'{x:.2f}' for x in m['load_avg_at_end'])}.",
     ]
     if report.get("results"):
         lines += ["", "| input | N | h | band voxels / point | pops / voxel | band s | grid s | tail s | total s "

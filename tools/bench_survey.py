@@ -19,7 +19,9 @@ them ordered as one surface: ``--joint``) once per executor and worker count. Fo
   ``peak_rss_by_kind``, largest first), and the scheduler simulation's prediction for 1-16 workers
   (tools/simulate_schedule.py) from that record: from the tasks' wall seconds (``simulation``,
   calibrated against the run) and from their CPU seconds (``simulation_cpu``: a free core for every
-  process, the figure to read on a loaded machine);
+  process, the figure to read on a loaded machine) and, measured, where the workers waited
+  (``measured_idle``: each phase's idle worker-seconds, first task, tail and the tasks' wall
+  beyond their CPU);
 * the speed-up of each worker count over 1 worker (target: 2 workers >= 1.9 x), and Dask
   LocalCluster over the process pool at equal workers (target <= 1.2).
 
@@ -90,47 +92,73 @@ sys.exit(main(sys.argv[1:]))
 
 # ------------------------------------------------------------------------------------ sampling
 
-def _proc_table() -> dict[int, tuple[int, int, float]]:
-    """pid -> (parent pid, start time in ticks, CPU seconds) of every process."""
-    tick = os.sysconf("SC_CLK_TCK")
-    out = {}
-    for e in os.listdir("/proc"):
-        if not e.isdigit():
-            continue
+def _stat(pid: int) -> tuple[int, float, int] | None:
+    """(start time in ticks, CPU seconds, resident bytes) of process ``pid`` from /proc/<pid>/stat
+    (its resident size is VmRSS of /proc/<pid>/status), None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return int(fields[19]), (int(fields[11]) + int(fields[12])) / TICK, int(fields[21]) * PAGE
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _children(pid: int) -> list[int] | None:
+    """The child processes of ``pid`` (/proc/<pid>/task/*/children), None where the kernel has no
+    such file."""
+    out: list[int] = []
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    for t in tasks:
         try:
-            with open(f"/proc/{e}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            out[int(e)] = (int(fields[1]), int(fields[19]), (int(fields[11]) + int(fields[12])) / tick)
-        except (OSError, IndexError, ValueError):
-            pass
+            with open(f"/proc/{pid}/task/{t}/children") as f:
+                out += [int(x) for x in f.read().split()]
+        except FileNotFoundError:
+            if not os.path.exists(f"/proc/{pid}/task/{t}"):
+                continue  # (the thread ended)
+            return None
+        except OSError:
+            continue
     return out
 
 
-def _rss(pid: int) -> int:
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
+def _all_children() -> dict[int, list[int]]:
+    """Every process's children, from the parent pid of every process (one read per process)."""
+    kids: dict[int, list[int]] = {}
+    for e in os.listdir("/proc"):
+        if e.isdigit():
+            try:
+                with open(f"/proc/{e}/stat") as f:
+                    kids.setdefault(int(f.read().rsplit(")", 1)[1].split()[1]), []).append(int(e))
+            except (OSError, IndexError, ValueError):
+                pass
+    return kids
+
+
+TICK = os.sysconf("SC_CLK_TCK")
+PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 def tree(root: int) -> tuple[dict[tuple[int, int], float], int]:
-    """The descendants of ``root`` (``root`` included): {(pid, start): CPU seconds}, summed RSS."""
-    table = _proc_table()
-    kids: dict[int, list[int]] = {}
-    for pid, (ppid, _, _) in table.items():
-        kids.setdefault(ppid, []).append(pid)
+    """The descendants of ``root`` (``root`` included): {(pid, start): CPU seconds}, summed RSS.
+    Walks the tree's own children files (a few processes; reading every process of a shared
+    machine took 2.5 ms a sample, 2.5 CPU-s in a 200 s run competing with the build)."""
+    table: dict[int, list[int]] | None = None
     todo, cpu, rss = [root], {}, 0
     while todo:
         p = todo.pop()
-        if p not in table:
+        st = _stat(p)
+        if st is None:
             continue
-        todo += kids.get(p, [])
-        cpu[(p, table[p][1])] = table[p][2]
-        rss += _rss(p)
+        kids = _children(p)
+        if kids is None:  # (no children files: every process's parent instead)
+            table = _all_children() if table is None else table
+            kids = table.get(p, [])
+        todo += kids
+        cpu[(p, st[0])] = st[1]
+        rss += st[2]
     return cpu, rss
 
 
@@ -160,10 +188,12 @@ class Sampler(threading.Thread):
     directory less often where its walk is dear (a survey's work directory holds thousands of
     files, and this process's CPU competes with the build's workers for the machine's cores): one
     walk gives both its sizes, and the next waits until the walks have taken at most DISK_SHARE of
-    the time (9,684 files: 36 ms a walk, one every 0.7 s, where two walks every 0.2 s took 37 % of a
-    core; a small directory is walked at every sample)."""
+    the time (9,684 files: 36 ms a walk, one every 1.8 s, where two walks every 0.2 s took 37 % of a
+    core; a small directory is walked at every sample). At 5 % the walks took about 4 CPU-s of a
+    200 s 2-worker build of the 21.56M survey, half a per cent of its wall time on 2 cores; the work
+    directory's peak lasts tens of seconds (the write's buckets and chunks)."""
 
-    DISK_SHARE = 0.05
+    DISK_SHARE = 0.02
 
     def __init__(self, pid: int, where: Path, interval: float) -> None:
         super().__init__(daemon=True)
@@ -450,6 +480,10 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     })
     res["simulation"] = _simulate(rec, wall, workers)
     res["simulation_cpu"] = _simulate(rec, wall, workers, rus["self_cpu"])
+    if rec.get("tasks"):
+        from simulate_schedule import measured_idle
+
+        res["measured_idle"] = measured_idle(rec, workers)
     if keep is not None:  # (to compare archives of two trees: the same survey gives the same datasets)
         keep.mkdir(parents=True, exist_ok=True)
         res["kept"] = str(shutil.move(str(archive), keep / f"{inputs[0].name}_{executor}{workers}.h5"))

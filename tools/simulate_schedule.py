@@ -234,6 +234,36 @@ def model_from_record(rec: dict[str, Any], rest: float = 0.0, measured: dict[str
     return {"stages": stages, "notes": notes, "measured": measured}
 
 
+def measured_idle(rec: dict[str, Any], workers: int) -> dict[str, Any]:
+    """Where the measured run's workers waited, from its task table (not a prediction): for each
+    phase its wall seconds, the worker-seconds its tasks ran (wall and CPU; a task counts in the
+    phases its run overlaps) and the worker-seconds no task ran (``idle``: ``workers`` x wall
+    minus the tasks'), the seconds until its first task started and from the first worker to
+    finish its last task of the phase to the phase's end (``tail``); and the tasks' wall seconds
+    beyond their CPU seconds (``waiting``: for cores, disk or memory). The phases' idle time is
+    what a speed-up short of the worker count is made of, with the waiting."""
+    secs = rec.get("phase_seconds") or {}
+    table = rec.get("tasks") or {"columns": [], "rows": []}
+    rows = [dict(zip(table["columns"], r, strict=True)) for r in table["rows"] if r]
+    rows = [r for r in rows if r["start"] >= 0]  # (a resumed build's earlier tasks: not in this run)
+    out: dict[str, Any] = {}
+    t0 = 0.0
+    for name in rec.get("phase_order") or secs:
+        t1 = t0 + float(secs[name])
+        busy = sum(max(0.0, min(r["start"] + r["seconds"], t1) - max(r["start"], t0)) for r in rows)
+        mine = [r for r in rows if t0 <= r["start"] < t1]
+        ends: dict[Any, float] = {}
+        for r in mine:
+            ends[r["pid"]] = max(ends.get(r["pid"], 0.0), r["start"] + r["seconds"])
+        out[name] = {"wall": round(t1 - t0, 2), "busy": round(busy, 2), "idle": round(workers * (t1 - t0) - busy, 2),
+                     "first_task_after": round(min((r["start"] for r in mine), default=t1) - t0, 2),
+                     "tail": round(t1 - min(ends.values()), 2) if len(ends) == workers else round(t1 - t0, 2),
+                     "waiting": round(sum(r["seconds"] - r["cpu_seconds"] for r in mine), 2)}
+        t0 = t1
+    return {"by_phase": out, "idle": round(sum(p["idle"] for p in out.values()), 2),
+            "waiting": round(sum(p["waiting"] for p in out.values()), 2)}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("archive", type=Path, help="an archive with a tiled scan (its build record)")

@@ -21,6 +21,9 @@ def warm() -> None:
     with contextlib.suppress(Exception):  # warming is an optimisation only
         import h5py  # noqa: F401
         import scipy.spatial  # noqa: F401
+        with contextlib.suppress(ImportError):  # (the LAS/LAZ reader: an optional dependency)
+            import laspy  # noqa: F401
+            import lazrs  # noqa: F401
 
         from ..archive import writer  # noqa: F401
         from ..sampling.fastfps import fastfps

@@ -35,7 +35,13 @@ from ..errors import ArchiveError, BuildError, InputError, LodbuilderError
 from ..io.pose import pose_kind
 from ..progress import ProgressCallback, report
 from .archive_crs import check_build_crs
-from .executors import DASK_CONNECT_TIMEOUT, check_scheduler, make_executor, one_line
+from .executors import (
+    DASK_CONNECT_TIMEOUT,
+    check_scheduler,
+    make_executor,
+    one_line,
+    start_pool_server,
+)
 from .inputs import ScanSource, expand_inputs
 from .jobs import ScanJob, build_one, decide_tiling, job_key, scan_digest
 from .options import BuildOptions
@@ -312,6 +318,7 @@ def build(
     in_memory = any(s.scan is not None for s in sources)
     if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
         raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
+    start_pool_server(workers, scheduler, dask_local)  # (its imports meanwhile: the plan reads the headers)
     if wait is not None:
         wait = _check_wait(wait)
     result = BuildResult(archive=archive)

@@ -117,6 +117,7 @@ def _single_line(res: Any, shown: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._kernels.warm import fewer_collections
     from .._validate import check_positive
     from ..api import build_archive
     from ..build.options import BuildOptions
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
             line = one_line(_status_line(st, counter["done"], max(counter["total"], 1)))
             bars.write(line) if bars.active else print(line, file=sys.stderr)
 
-    with bars:
+    with bars, fewer_collections():  # (numba's import and kernel loading make many objects)
         res = build_archive(list(args.input or []), out, options=options, name=args.name,
                             overwrite=args.overwrite, progress=progress, on_status=on_status, **how)
     single = len(res.scans) == 1

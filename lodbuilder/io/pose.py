@@ -64,7 +64,22 @@ def check_pose(m: np.ndarray, where: str) -> np.ndarray:
 
 
 def apply_pose(points: np.ndarray, pose: np.ndarray | None) -> np.ndarray:
-    """world = pose[:3, :3] @ p + pose[:3, 3] for each row p."""
+    """world = pose[:3, :3] @ p + pose[:3, 3] for each row p (float64), element by element in one
+    fixed order, ``((r0 * x + r1 * y) + r2 * z) + t`` with every product and sum rounded once: the
+    same rows give the same bits on any machine and in any chunking. A BLAS product's rounding
+    depends on its kernel (fused multiply-adds, blocking: the CPU and the library pick it), so a
+    tiled build's worker that reads a block of the input again (to check it, then to write it)
+    could get other bits than the worker that read it first."""
     if pose is None:
         return points
-    return points @ pose[:3, :3].T + pose[:3, 3]
+    m = np.asarray(pose, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    out = np.empty(p.shape, dtype=np.float64)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    for i in range(3):
+        col = x * m[i, 0]
+        col += y * m[i, 1]
+        col += z * m[i, 2]
+        col += m[i, 3]
+        out[:, i] = col
+    return out

@@ -152,35 +152,40 @@ def write_phase(ex: Any, work: Any, part: Path, name: str, sp: Any, finish: Call
             prune(work, sorted(runs.pop(ks)))
 
     if 0 not in got:  # the first band alone: it decides the datasets' creation properties
-        _run(ex, work, name, {0: call(0, None)}, bands, got, progress, drop)
-    with ChunkWriter(part, name, n, got[0]["spec"], metadata=sp.metadata, encoding=sp.encoding) as w:
-        placed = [0]
+        _run(work, name, submit(ex, [call(0, None)]), bands, got, progress, drop)
+    # the other bands run while the part file is made and the first band placed
+    running = submit(ex, [call(b, got[0]["spec"]) for b in range(len(bands)) if b not in got])
+    try:
+        with ChunkWriter(part, name, n, got[0]["spec"], metadata=sp.metadata, encoding=sp.encoding) as w:
+            placed = [0]
 
-        def place() -> None:  # every band in stored order as soon as the ones before it are placed
-            while placed[0] < len(bands) and placed[0] in got:
-                _place(w, work, got[placed[0]])
-                placed[0] += 1
+            def place() -> None:  # every band in stored order as soon as the ones before it are placed
+                while placed[0] < len(bands) and placed[0] in got:
+                    _place(w, work, got[placed[0]])
+                    placed[0] += 1
 
-        place()
+            def then() -> None:
+                place()
+                drop()
 
-        def then() -> None:
             place()
-            drop()
+            _run(work, name, running, bands, got, progress, then)
+            sums = [sum(int(got[b]["sums"][i]) for b in got) & MASK for i in range(2)]
+            if sums != index_sums(n):
+                raise damaged(name, InputError(f"source_index of scan {name!r} repeats an input index"))
+            return w.finish(n_ordered=n, **finish())
+    except BaseException:
+        for f in running:
+            f.cancel()
+        raise
 
-        _run(ex, work, name, {b: call(b, got[0]["spec"]) for b in range(len(bands)) if b not in got}, bands, got,
-             progress, then)
-        sums = [sum(int(got[b]["sums"][i]) for b in got) & MASK for i in range(2)]
-        if sums != index_sums(n):
-            raise damaged(name, InputError(f"source_index of scan {name!r} repeats an input index"))
-        return w.finish(n_ordered=n, **finish())
 
-
-def _run(ex: Any, work: Any, name: str, calls: dict[int, tuple[int, Any, tuple]], bands: list[tuple[int, int]],
+def _run(work: Any, name: str, running: dict[cf.Future, int], bands: list[tuple[int, int]],
          got: dict[int, dict[str, Any]], progress: ProgressCallback, then: Callable[[], None] | None = None) -> None:
-    """Run band tasks ``calls``; mark each one as it finishes (into ``got``), then call ``then``.
-    Progress: the phase's tasks and points (a failure names the band and its positions)."""
+    """Wait for the submitted band tasks ``running`` (future -> band); mark each one as it finishes
+    (into ``got``), then call ``then``. Progress: the phase's tasks and points (a failure names the
+    band and its positions)."""
     n_all = bands[-1][1]
-    running = submit(ex, list(calls.values()))
 
     def tell() -> None:
         pts = sum(bands[b][1] - bands[b][0] for b in got)

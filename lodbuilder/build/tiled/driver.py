@@ -145,18 +145,11 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     store.claim()  # the directory made (or checked to be lodbuilder's), the object store's access checked
     clock = _Clock()
 
-    # 1. read: the scan into raw files, with bounds, a sample and the coordinate encoding
-    sp = read_phase(executor, work, name, sources, parallel, progress)
-    n = sp.n
-    clock.lap("read")
-
-    # 2. plan: parameters, histogram, tiles, the decimated copy
-    pl = _plan(executor, work, name, sp, voxel_size, band_radius, budget, parallel, tile_points, progress)
-    tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
-    n_tiles = len(tiles)
+    # 1. read the scan into raw files, 2. plan its tiles and the decimated copy
+    sp, pl, tiles = _read_and_plan(executor, work, name, sources, parallel, voxel_size, band_radius, budget,
+                                   tile_points, clock, progress)
+    n, n_tiles = sp.n, len(tiles)
     delta = float(pl["d_cell"]) * math.sqrt(3.0)  # every point is within a cell diagonal of the copy
-    clock.lap("plan")
-    log.info("scan %r: %d points in %d tile(s) of at most %d points", name, n, n_tiles, pl["tile_cap"])
 
     # 3. the coarse level (on a worker) while the other workers write the tiles' core and halo pieces
     worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
@@ -174,18 +167,9 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
     clock.lap("merge")
 
-    # 6. exact covering radii and band pieces of every tile (on the workers), the radii combined in bands
-    #    (the pieces joined meanwhile); then tasks put the points in stored order (the write's first pass:
-    #    after the covering files and the tiles' points are deleted, so that the buckets are never on
-    #    disk beside them)
-    resumed["tiles_covered_before"] = _cover(executor, work, name, sp, by_size, dist, pl, worker_budget, progress)
-    clock.lap("cover")
-    band_pieces = finish_join(executor, work, name, n_tiles, {})  # (then the tiles' points are deleted)
-    clock.lap("pieces")
-    radii = _radii(executor, work, name, n, n_tiles, delta, progress)
-    clock.lap("radii")
-    buckets = _buckets(executor, work, name, sp, sources, progress)
-    clock.lap("permute")
+    # 6. exact covering radii and band pieces of every tile, the radii combined, the points bucketed
+    resumed["tiles_covered_before"], band_pieces, radii, buckets = _covering(
+        executor, work, name, sp, sources, by_size, dist, pl, delta, worker_budget, clock, progress)
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = store.read_array(WL.HEAD_FILE, WL.HEAD)
@@ -201,6 +185,42 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     return {"n_points": n, "n_ordered": n, "encoding": sp.encoding, "tiles": n_tiles, "resumed": resumed,
             "phases": clock.rounded(4), "seconds": clock.total(),
             "part": str(info.path), "worker_pid": os.getpid()}
+
+
+def _read_and_plan(executor: cf.Executor, work: Store, name: str, sources: list[tuple[Any, ...]], parallel: int,
+                   voxel_size: float | None, band_radius: float | None, budget: int, tile_points: int | None,
+                   clock: _Clock, progress: ProgressCallback) -> tuple[Spill, dict[str, Any], list[P.Tile]]:
+    """Phases 1 and 2: the scan read into raw files, then planned; returns the spill, the plan and its tiles."""
+    # 1. read: the scan into raw files, with bounds, a sample and the coordinate encoding
+    sp = read_phase(executor, work, name, sources, parallel, progress)
+    clock.lap("read")
+
+    # 2. plan: parameters, histogram, tiles, the decimated copy
+    pl = _plan(executor, work, name, sp, voxel_size, band_radius, budget, parallel, tile_points, progress)
+    tiles = [P.Tile.from_json(t) for t in pl["tiles"]]
+    clock.lap("plan")
+    log.info("scan %r: %d points in %d tile(s) of at most %d points", name, sp.n, len(tiles), pl["tile_cap"])
+    return sp, pl, tiles
+
+
+def _covering(executor: cf.Executor, work: Store, name: str, sp: Spill, sources: list[tuple[Any, ...]],
+              by_size: list[P.Tile], dist: dict[str, Any], pl: dict[str, Any], delta: float, worker_budget: int,
+              clock: _Clock, progress: ProgressCallback) -> tuple[int, dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """Phase 6 and the write's first pass; returns (tiles covered before, band pieces, radii, buckets)."""
+    # exact covering radii and band pieces of every tile (on the workers), the radii combined in bands
+    # (the pieces joined meanwhile); then tasks put the points in stored order (the write's first pass:
+    # after the covering files and the tiles' points are deleted, so that the buckets are never on
+    # disk beside them)
+    n_tiles = len(by_size)
+    covered = _cover(executor, work, name, sp, by_size, dist, pl, worker_budget, progress)
+    clock.lap("cover")
+    band_pieces = finish_join(executor, work, name, n_tiles, {})  # (then the tiles' points are deleted)
+    clock.lap("pieces")
+    radii = _radii(executor, work, name, sp.n, n_tiles, delta, progress)
+    clock.lap("radii")
+    buckets = _buckets(executor, work, name, sp, sources, progress)
+    clock.lap("permute")
+    return covered, band_pieces, radii, buckets
 
 
 def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill, seeds: np.ndarray,

@@ -43,7 +43,8 @@ marker and files check out. Every file is written to a temporary and published
 
 A large file is deleted once every piece that reads it is done (:data:`PRUNE_AFTER`: when the
 marker of the last one is written; a read block's coordinates once the tiles' pieces are written,
-a bucket file once the bands of the write it holds are), so that the work
+a bucket file once the bands of the write it holds are, a read block's ranks once its permutation
+is), so that the work
 directory holds only what later phases still read. Its producer's marker still lists it: a missing
 file checks out while every piece that reads it (:func:`consumers`) checks out, so a resume that
 finds one of those damaged or gone does its producer again too (the same bytes).
@@ -280,6 +281,10 @@ PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",),
                "distribute": ("raw.",), "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
+#: a consumer that stands for the covering pass of every tile of the plan (see :func:`consumers`)
+EVERY_COVER = "cover.*"
+
+
 def consumers(name: str) -> list[str] | None:
     """The pieces that read the work file ``name`` once its producer is done (``order.<t>.*``: every
     ordering of tile t; none: no piece reads it), None for a file that is never deleted before the
@@ -304,6 +309,8 @@ def consumers(name: str) -> list[str] | None:
         return ["radii"]
     if kind == "bucket" and ext == "bin":
         return [chunks_piece(k) for k in bucket_range(name)]
+    if kind == "rank" and ext == "i8":  # (read by every tile's covering pass and by its block's permutation)
+        return [EVERY_COVER, bucket_piece(int(parts[1]))]
     return None
 
 

@@ -151,7 +151,11 @@ def consumed(store: Store, name: str) -> bool:
     if pieces is None:
         return False
     for piece in pieces:
-        if piece.endswith(".*"):  # (every ordering pass of a tile: an earlier pass's stream was replaced)
+        if piece == WL.EVERY_COVER:
+            plan = get_json(store, WL.marker("plan"))
+            if plan is None or not all(_verified(store, WL.cover_piece(t)) for t in range(len(plan["tiles"]))):
+                return False
+        elif piece.endswith(".*"):  # (every ordering pass of a tile: an earlier pass's stream was replaced)
             found = sorted((n[: -len(".json")] for n in store.names(piece[:-1]) if n.endswith(".json")),
                            key=lambda x: int(x.split(".")[-1]))
             stream = (WL.stream(int(piece.split(".")[1])), WL.seam(int(piece.split(".")[1])))

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -20,6 +20,9 @@ from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
 from .workdir import BLOCK, REC, put_banded, put_stream
+
+if TYPE_CHECKING:
+    from ...sampling.ordering import Ordering
 
 STREAM, HEAD, FACE, EVENT, POINT = WL.STREAM, WL.HEAD, WL.FACE, WL.EVENT, WL.POINT
 MAX_CELLS = 1 << 24  # cells (blocks x 8) of the covering pass's grid
@@ -89,6 +92,54 @@ def _timed(store: Store, halo_rec: np.ndarray, faces: list[str]) -> tuple[np.nda
     return rows, known["key"][pos[rows]]
 
 
+def _seeded(w: Store, tile: dict[str, Any], core: np.ndarray, cpts: np.ndarray, head: np.ndarray,
+            hpts: np.ndarray, in_ext: np.ndarray, faces: tuple[str, ...]
+            ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """The points a tile orders, its seeds (rows) and its timed seeds (rows, keys; None: none)."""
+    head_in_core = np.isin(head["g"], core["g"])
+    pos_in_core = np.searchsorted(core["g"], head["g"][head_in_core])  # core is in input order
+    extra = in_ext & ~head_in_core
+    parts = [cpts, hpts[extra]] if extra.any() else [cpts]
+    seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
+    timed = None
+    if faces:
+        hrec = tile_records(w, tile["halo"])
+        rows, keys = _timed(w, hrec, list(faces))
+        if rows.size:
+            first = cpts.shape[0] + int(extra.sum())
+            parts.append(np.stack([hrec["x"][rows], hrec["y"][rows], hrec["z"][rows]], axis=1))
+            timed = (first + np.arange(rows.size), keys)
+    pts = np.concatenate(parts) if len(parts) > 1 else cpts
+    return pts, seeds, timed
+
+
+def _keys(o: Ordering, sel: np.ndarray, n: int, p: np.ndarray, hpts: np.ndarray) -> np.ndarray:
+    """The keys of the ordered points ``sel`` (at ``p``): insertion radius, else distance to the head."""
+    from scipy.spatial import cKDTree
+
+    rank_in_tile = np.empty(n, np.int64)
+    rank_in_tile[o.order] = np.arange(len(o))
+    key = o.radius[rank_in_tile[sel]].copy()
+    unreached = ~np.isfinite(key)
+    if unreached.any():  # the first point of a band component no seed reaches
+        key[unreached] = cKDTree(hpts).query(p[unreached])[0] if hpts.shape[0] else 0.0
+    return key
+
+
+def _put_tile(w: Store, t: int, stream: np.ndarray, halo: float, face_out: str | None) -> tuple[dict[str, Any], int]:
+    """Write a tile's face file, stream and seam points; returns the files and the seam's size."""
+    files = {}
+    if face_out is not None:
+        near = stream[stream["m"] < halo]
+        face = np.empty(near.shape[0], FACE)
+        face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
+        files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
+    files[WL.stream(t)] = put_stream(w, WL.stream(t), stream)  # (what the merge reads: runs of rows by key)
+    seam = stream["m"] < stream["key"]
+    files[WL.seam(t)] = w.put(WL.seam(t), stream[seam])
+    return files, int(seam.sum())
+
+
 @timed_task
 def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
                halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
@@ -106,8 +157,6 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     than their key, with their position and margin to the tile's shared faces; and ``face_out``: the
     (input index, key) of its points within the halo width of a shared face.
     """
-    from scipy.spatial import cKDTree
-
     from ...sampling.fastfps import fastfps
 
     w = as_store(work)
@@ -118,32 +167,14 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
     hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
     in_ext = np.all((hpts >= lo - halo) & (hpts <= hi + halo), axis=1)
-    head_in_core = np.isin(head["g"], core["g"])
-    pos_in_core = np.searchsorted(core["g"], head["g"][head_in_core])  # core is in input order
-    extra = in_ext & ~head_in_core
-    parts = [cpts, hpts[extra]] if extra.any() else [cpts]
-    seeds = np.concatenate([pos_in_core, cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
-    timed = None
-    if faces:
-        hrec = tile_records(w, tile["halo"])
-        rows, keys = _timed(w, hrec, list(faces))
-        if rows.size:
-            first = cpts.shape[0] + int(extra.sum())
-            parts.append(np.stack([hrec["x"][rows], hrec["y"][rows], hrec["z"][rows]], axis=1))
-            timed = (first + np.arange(rows.size), keys)
-    pts = np.concatenate(parts) if len(parts) > 1 else cpts
+    pts, seeds, timed = _seeded(w, tile, core, cpts, head, hpts, in_ext, faces)
     is_seed = np.zeros(pts.shape[0], bool)
     is_seed[seeds] = True
     o = fastfps(pts, seeds=seeds if seeds.size else None, voxel_size=voxel_size, band_radius=band_radius,
                 max_memory=max_memory, timed_seeds=timed)
     sel = o.order[(o.order < cpts.shape[0]) & ~is_seed[o.order]]
-    rank_in_tile = np.empty(pts.shape[0], np.int64)
-    rank_in_tile[o.order] = np.arange(len(o))
-    key = o.radius[rank_in_tile[sel]].copy()
     p = cpts[sel]
-    unreached = ~np.isfinite(key)
-    if unreached.any():  # the first point of a band component no seed reaches
-        key[unreached] = cKDTree(hpts).query(p[unreached])[0] if hpts.shape[0] else 0.0
+    key = _keys(o, sel, pts.shape[0], p, hpts)
     # the keys stay the tile's insertion radii even where a seed is nearer in Euclidean distance
     # (a head point in the halo that the tile's band does not reach, across a shared face): a key
     # lowered to that distance would merge the point late while the tile's later points, ordered
@@ -155,18 +186,10 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     stream["key"] = key[srt]
     stream["x"], stream["y"], stream["z"] = p[srt, 0], p[srt, 1], p[srt, 2]
     stream["m"] = _margins(p[srt], lo, hi, interior)
-    files = {}
-    if face_out is not None:
-        near = stream[stream["m"] < halo]
-        face = np.empty(near.shape[0], FACE)
-        face["g"], face["key"] = near["g"].astype("<i8"), near["key"]
-        files[Path(face_out).name] = w.put(Path(face_out).name, face[np.argsort(face["g"], kind="stable")])
-    files[WL.stream(t)] = put_stream(w, WL.stream(t), stream)  # (what the merge reads: runs of rows by key)
-    seam = stream["m"] < stream["key"]
-    files[WL.seam(t)] = w.put(WL.seam(t), stream[seam])
+    files, n_seam = _put_tile(w, t, stream, halo, face_out)
     bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
-            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": int(seam.sum()),
+            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
             "hist": [bins.tolist(), counts.tolist()],
             "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
 

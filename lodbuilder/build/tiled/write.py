@@ -139,7 +139,7 @@ def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[
     each block read from its input again (``sources`` as the read phase took them; an input the
     parent holds, by the parent)."""
     from .pool import collect, submit
-    from .sums import done, mark
+    from .sums import done, mark, prune
 
     doc = done(work, "buckets")
     if doc is not None:
@@ -162,6 +162,7 @@ def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[
                              "again with --force")
         if prev is not None:
             results[b] = prev
+            prune(work, [WL.rank_file(b)])  # (a build stopped between the marker and the deletion)
             continue
         stream, pose, member, reopen = sources[int(i)]
         args = (work, b, reopen if reopen is not None else (stream, pose), member, int(a), int(z), spec,
@@ -170,6 +171,7 @@ def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[
 
     def record(res: dict[str, Any]) -> None:
         results[res["block"]] = mark(work, WL.bucket_piece(res["block"]), res)
+        prune(work, [WL.rank_file(res["block"])])  # (its last reader: see layout.consumers)
 
     futs = submit(ex, calls)
     try:
