@@ -160,11 +160,11 @@ def test_one_sided_band_leaves_the_gap_empty():
     # the two sheets are not joined anywhere, so the one-sided band cuts them into two pieces where
     # the plain band has one; separate sheets look like two registrations of one surface in a
     # merged scan, so fastfps keeps the plain band (as before) for them
-    from lodbuilder._kernels.topology import point_components
+    from lodbuilder._kernels.topology import point_pieces
 
-    assert point_components(band.nbr, band.cs, band.near, band.vcost) == 2
+    assert point_pieces(band.nbr, band.cs, band.near, band.vcost)[1] == 2
     plain = build_band(pts, plan.h, plan.r)
-    assert point_components(plain.nbr, plain.cs, plain.near, plain.vcost) == 1
+    assert point_pieces(plain.nbr, plain.cs, plain.near, plain.vcost)[1] == 1
     assert fastfps(pts, size=10).stats["thin_points"] == 0
 
 

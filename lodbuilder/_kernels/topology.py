@@ -43,13 +43,6 @@ def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
 
 
 @nb.njit(**JIT)
-def point_components(nbr, cs, near, vcost):  # pragma: no cover - compiled
-    """How many connected pieces of the band (marchable voxels, 6-neighbours) hold points; a point
-    without a marchable corner counts as a piece of its own."""
-    return point_pieces(nbr, cs, near, vcost)[1]
-
-
-@nb.njit(**JIT)
 def point_pieces(nbr, cs, near, vcost):  # pragma: no cover - compiled
     """The piece of every point (point order) and the number of pieces: the connected piece of the
     band (marchable voxels, 6-neighbours) that holds the point's nearest marchable corner, which a
