@@ -212,11 +212,14 @@ def zero_set_cells(
     radius: float,
     g: float,
     coarse: tuple[int, ...] = COARSE,
+    project: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int]]:
     """The cells of a cubic grid (spacing ``g``, centred on ``centre``) inside the ball of
     ``radius`` that the zero set crosses: (cell index (C, 3), surface point in each (C, 3), on
     the ball's shell (C,), the grid's shape in cells). ``f`` is evaluated coarse to fine
-    (:func:`node_values`; ``coarse`` empty: at every node)."""
+    (:func:`node_values`; ``coarse`` empty: at every node). The point of a cell is the mean of
+    its edges' crossings, moved onto the zero set (``project``; else left in the cell, within
+    its diagonal of the zero set)."""
     half = int(math.ceil(radius / g))
     side = 2 * half + 1
     v = node_values(surface, centre, radius, g, coarse)
@@ -252,7 +255,8 @@ def zero_set_cells(
             total += hit[:, None] * (off[a] + t[:, None] * (off[b] - off[a]))
             count += hit
     pts = base + g * total / np.maximum(count, 1)[:, None] + centre
-    pts = surface.project(pts)
+    if project:
+        pts = surface.project(pts)
     # a cell with a corner on the ball's last layer: the region reaches the ball's shell
     shell = np.linalg.norm(base + 0.5 * g, axis=1) > radius - 2.0 * g
     return ijk, pts, shell, (side - 1,) * 3
