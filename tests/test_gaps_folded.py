@@ -217,7 +217,8 @@ class _Counted:
 def test_the_zero_set_is_found_coarse_to_fine_as_on_the_whole_grid(rng, shape):
     """The crossed cells (and their points) of the coarse-to-fine evaluation are those of the
     evaluation at every node of the ball, on a sphere cap and a torus, with the function
-    evaluated at under half of the ball's nodes."""
+    evaluated at under half of the ball's nodes; unprojected, the cells' points lie within a
+    cell's diagonal of the zero set's."""
     if shape == "sphere":
         v = rng.normal(size=(3000, 3))
         pts = v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -236,3 +237,7 @@ def test_the_zero_set_is_found_coarse_to_fine_as_on_the_whole_grid(rng, shape):
     assert np.array_equal(ijk1, ijk2) and np.array_equal(s1, s2)
     assert np.allclose(p1, p2, rtol=0, atol=1e-9)
     assert fast.calls < full.calls / 2
+    # unprojected, each cell's point lies within its diagonal of the projected one (folded.py
+    # projects only those that may end farther than rho/2 from the input, by this margin x 2)
+    _, p3, _, _ = zero_set_cells(surf, centre, 0.3, 0.0125, project=False)
+    assert np.linalg.norm(p3 - p2, axis=1).max() < np.sqrt(3.0) * 0.0125
