@@ -238,6 +238,6 @@ def test_the_zero_set_is_found_coarse_to_fine_as_on_the_whole_grid(rng, shape):
     assert np.allclose(p1, p2, rtol=0, atol=1e-9)
     assert fast.calls < full.calls / 2
     # unprojected, each cell's point lies within its diagonal of the projected one (folded.py
-    # projects only those that may end farther than rho/2 from the input, by this margin x 2)
+    # projects only those that may end farther than rho/2 from the input, by this margin)
     _, p3, _, _ = zero_set_cells(surf, centre, 0.3, 0.0125, project=False)
     assert np.linalg.norm(p3 - p2, axis=1).max() < np.sqrt(3.0) * 0.0125

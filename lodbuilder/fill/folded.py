@@ -69,7 +69,7 @@ def implicit_regions(
     # a cell's point moves less than the cell's diagonal onto the zero set: only the points
     # that may then lie farther than rho/2 from the sample are moved (the others are never used)
     d, _ = tree_s.query(pts, k=1)
-    move = d > NEAR_FRACTION * rho - 2.0 * math.sqrt(3.0) * grid
+    move = d > NEAR_FRACTION * rho - math.sqrt(3.0) * grid
     pts[move] = surface.project(pts[move])
     d[move] = tree_s.query(pts[move], k=1)[0]
     far = move & (d > NEAR_FRACTION * rho)

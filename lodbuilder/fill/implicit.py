@@ -13,7 +13,11 @@ whatever its shape.
 The region is found on that surface itself: a cubic grid (spacing rho/4) in a ball round the
 seeds; each grid cell the zero set crosses holds a surface point (the cell's crossings on its
 edges, averaged, moved onto ``f = 0``); those farther than rho/2 from every input point form
-regions (cells linked through faces, edges or corners). A region with a seed that stays inside
+regions (cells linked through faces, edges or corners). The grid is evaluated coarse to fine
+(every 4 nodes, then every 2 nodes of the boxes the zero set may cross by a slope bound, then
+every node of those: :func:`node_values`), which finds the same cells as evaluating every node at
+under half the cost; only the cells' points that may lie farther than rho/2 from the input are
+moved onto ``f = 0``. A region with a seed that stays inside
 the ball is **enclosed**: the input bounds it all round on the surface (the hole's rim is a
 closed loop round it). One that reaches the ball's shell runs into empty space (a border: the
 surface is extrapolated beyond it) and is left open.
