@@ -92,12 +92,16 @@ class ImplicitSurface:
         return np.abs(self(x)) / np.maximum(g, 1e-12)
 
     def project(self, x: np.ndarray, steps: int = 2) -> np.ndarray:
-        """``x`` moved onto the zero set (Newton steps along the gradient)."""
+        """``x`` moved onto the zero set (Newton steps along the gradient, by forward
+        differences of a twentieth of rho: four evaluations of ``f`` per point and step)."""
         x = np.array(x, dtype=np.float64)
+        e, m = 0.05 * self.scale, x.shape[0]
         for _ in range(steps):
-            g = self.gradient(x)
+            v = self(np.concatenate([x] + [x + e * u for u in np.eye(3)]))
+            f = v[:m]
+            g = np.stack([v[(i + 1) * m : (i + 2) * m] - f for i in range(3)], 1) / e
             g2 = np.maximum(np.einsum("ij,ij->i", g, g), 1e-12)
-            x -= (self(x) / g2)[:, None] * g
+            x -= (f / g2)[:, None] * g
         return x
 
 
