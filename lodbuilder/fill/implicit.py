@@ -141,7 +141,10 @@ def sector_error(
 #: of the boxes the zero set may cross, ..., then at every node of those (:func:`node_values`)
 COARSE = (4, 2)
 #: the slope bound that decides which boxes the zero set can cross: this many times the
-#: steepest slope seen along the first coarse grid's edges (at least 1: ``f`` is about a distance)
+#: steepest slope seen along the edges of the coarse grids so far (at least 1: ``f`` is about a
+#: distance). On 153 grids of bunny and Igea levels, the steepest slope along the fine edges
+#: within rho of the zero set was at most 1.75 times that estimate, and every grid's crossed
+#: cells were those of the full evaluation: an empirical bound, not a proven one
 LIPSCHITZ_SAFETY = 2.0
 
 
@@ -157,7 +160,7 @@ def node_values(
     nodes no crossed cell needs. Coarse to fine: ``f`` is first evaluated every ``coarse[0]``
     nodes; a box (``d`` its diagonal) whose corners all have one sign and ``|f| > L d / 2``
     holds no zero of ``f`` (every point of it is within ``d / 2`` of a corner; ``L``:
-    :data:`LIPSCHITZ_SAFETY` times the steepest slope along the first grid's edges). Only the
+    :data:`LIPSCHITZ_SAFETY` times the steepest slope along the grids' edges so far). Only the
     other boxes are evaluated at the next step, and so on down to every node. Every fine cell
     that the zero set crosses lies in such a box, all its corners evaluated: the crossed cells
     are those of the full evaluation (``coarse`` empty), at a fraction of its cost."""
@@ -174,7 +177,7 @@ def node_values(
         at = ci[np.argwhere(lattice)]
         val[tuple(at.T)] = surface(ax[at] + centre)
         f = val[np.ix_(ci, ci, ci)]
-        lip = lip or LIPSCHITZ_SAFETY * max(_slope(f, np.diff(ax[ci])), 1.0)
+        lip = max(lip, LIPSCHITZ_SAFETY * max(_slope(f, np.diff(ax[ci])), 1.0))
         need = _boxes_near_zero(f, ci, np.diff(ax[ci]), lip, side)
     need &= live
     at = np.argwhere(need & np.isnan(val))
