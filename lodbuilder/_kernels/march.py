@@ -13,7 +13,8 @@ sample: a new sample marches only where it lowers ``T``. The front pops the smal
 among equal T (float32 ties happen), the smaller voxel index first: which of two tied voxels in line
 is accepted first decides whether a neighbour's update is second order.
 
-Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
+Seeding: the voxels within SEED_RADIUS of a new sample (less late in the ordering: see
+:func:`seed_reach`), connected to its nearest voxel inside that
 ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
 voxel sees the sample when the voxel one step back toward the sample's nearest voxel does (taken in
 order of distance from it): the straight segment then stays in the band, so no exact distance is given across a gap
@@ -57,6 +58,7 @@ from .pieces import piece_tables, refresh_piece
 from .topology import _cell_key, anchor_of, cell_tables
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
+SEED_SLACK = 1.75  # > sqrt(3): every corner of a cell holding a point within r of a sample is within r + this
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
 HALF = 8  # the ball's voxels lie within HALF of the sample's nearest voxel along each axis
 CUBE = 2 * HALF + 1
@@ -188,13 +190,28 @@ def seed_scratch():  # pragma: no cover - compiled
     )
 
 
+@nb.njit(**INLINE)
+def seed_reach(rad, cmin, weighted):  # pragma: no cover - compiled
+    """The radius of the exact seeding of a sample entering at radius ``rad`` (grid units; least
+    point cost ``cmin`` when ``weighted``): SEED_RADIUS, or less once every unordered point's value
+    is at most ``rad``. A sample only lowers a point whose value dq (<= its candidate value <=
+    ``rad``, the largest one) is above the point's distance to it (its weighted distance: at least
+    cmin x the distance), so the points it can lower lie within rad (/ cmin); the corners of their
+    cells lie within SEED_SLACK more, and they all get their exact distance from a ball of that
+    radius as from the full one. Only voxels farther out, which give such points no value, are
+    left to the march."""
+    reach = rad / cmin if weighted else rad
+    return min(np.float64(SEED_RADIUS), reach + SEED_SLACK)
+
+
 @nb.njit(**JIT)
 def _seed_sample(
     i, lb, mark, rnd, acc, u, keys, nbr, cs, cellof, vcost, pcost, weighted, foot, pnrm, slope, thin,
-    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, n, scratch,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, n, scratch, reach,
 ):  # pragma: no cover - compiled
-    """Seed the front of sample ``i`` (label ``lb``): exact distances in the ball of SEED_RADIUS
-    around it (see the module docstring); returns the front heap's new size and the dirty count."""
+    """Seed the front of sample ``i`` (label ``lb``): exact distances in the ball of radius
+    ``reach`` (at most SEED_RADIUS) around it (see the module docstring); returns the front heap's
+    new size and the dirty count."""
     qv, qx, qy, qz, qd, cube, vis, srt, nbk = scratch
     ci = 1.0
     if weighted:
@@ -222,7 +239,7 @@ def _seed_sample(
     sx = u[i, 0] - x0
     sy = u[i, 1] - y0
     sz = u[i, 2] - z0
-    # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
+    # the marchable voxels within the reach connected to v0 inside the ball (breadth first;
     # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken; a
     # neighbour's coordinates are its voxel's plus one step, no decoding)
     cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
@@ -247,7 +264,7 @@ def _seed_sample(
             cw = (x + HALF) + CUBE * ((y + HALF) + CUBE * (z + HALF))
             if cube[cw] >= 0:
                 continue
-            if _norm(sx - x, sy - y, sz - z) <= SEED_RADIUS:
+            if _norm(sx - x, sy - y, sz - z) <= reach:
                 cube[cw] = qn
                 qv[qn] = w
                 qx[qn] = x
@@ -338,9 +355,10 @@ def _seed_sample(
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug, reach,
 ):  # pragma: no cover - compiled
-    """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
+    """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T
+    (exact distances within ``reach`` of each source: see :func:`seed_reach`).
 
     Updates dq/lq of points near lowered voxels and appends their cells to ``dirty``; returns the
     new count of dirty cells and the number of pops. Where sheets come close (``pnrm``: per point
@@ -357,7 +375,7 @@ def march_round(
         n, nd = _seed_sample(
             np.int64(src[s]), np.int32(lab + s), np.int32(rnd * src.shape[0] + s), rnd, acc, u, keys, nbr, cs,
             cellof, vcost, pcost, weighted, foot, pnrm, slope, thin, ts, vlab, dq, lq, rank, dstamp,
-            cmark, dirty, nd, hkv, hpos, n, scratch,
+            cmark, dirty, nd, hkv, hpos, n, scratch, reach,
         )
     pops = 0
     while n > 0:
@@ -662,6 +680,7 @@ def grid_phase(
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
             ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug,
+            seed_reach(rad, cmin, weighted),
         )
         if pp < 0:
             return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
@@ -720,7 +739,7 @@ def multi_source_distance(
         np.full(nv, T_INF, np.int64), np.full(nv, -1, np.int32),
         dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.int64),
-        np.full(nv, -1, np.int32), seed_scratch(), False,
+        np.full(nv, -1, np.int32), seed_scratch(), False, np.float64(SEED_RADIUS),
     )
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0

@@ -505,10 +505,13 @@ def build_planned_band(
     between two others is bridged to neither). A one-sided band must not split the surface into
     more pieces than the plain band does: in a stack of sheets joined by folds no choice of sides
     is consistent around every fold, and two registrations of one surface a few spacings apart, in
-    a merged scan, are found as two sheets and may be cut apart that way. If it does, the plain
+    a merged scan, are found as two sheets and may be cut apart that way. If the one-sided band
+    alone splits it, cutting it between sheets (a subset of its voxels) is not tried; if only the
+    cut splits it, the one-sided band alone is used. If the one-sided band splits it, the plain
     band cut between sheets is tried (both sides of every sheet, each voxel on its nearest point's
-    sheet); if that splits it too, the plain band is used for the whole scan and the plan returned
-    says so. Every band here is a subset of the plain one's voxels, so all are decided on one band
+    sheet) when the scan is a stack (at least THIN_SHARE % thin); if that splits it too, or the
+    scan is not a stack, the plain band is used for the whole scan and the plan returned says so.
+    Every band here is a subset of the plain one's voxels, so all are decided on one band
     (``band``: the plain band, when already built). The band returned keeps the pieces of its
     points (``Band.pieces``: the ordering needs them, and they are known here already)."""
     from .._kernels.topology import point_pieces
@@ -518,35 +521,44 @@ def build_planned_band(
     if plan.normal is None:
         return band, plan
     side, side_near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
-    vcost, near = cut_between_sheets(band, side, plan)
-    found = point_pieces(band.nbr, band.cs, near, vcost)  # (the piece of every point, their count)
-    pieces, plain, plain_found = found[1], 0, None
-    if pieces > 1:
-        plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
-        plain = plain_found[1]
-    if pieces > 1 and plain < pieces:  # the one-sided band alone, when the cut is what splits it
-        alone = point_pieces(band.nbr, band.cs, side_near, side)
-        if alone[1] <= plain:
-            vcost, near, pieces, found = side, side_near, alone[1], alone
-        del alone
+    found = point_pieces(band.nbr, band.cs, side_near, side)  # (the piece of every point, their count)
+    plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost) if found[1] > 1 else None
+    if plain_found is None or found[1] <= plain_found[1]:  # the one-sided band holds together: cut it
+        vcost, near = cut_between_sheets(band, side, plan)
+        cut = point_pieces(band.nbr, band.cs, near, vcost)
+        if cut[1] > 1 and plain_found is None:
+            plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+        if plain_found is None or cut[1] <= plain_found[1]:
+            found = cut
+        else:  # the cut is what splits it: the one-sided band alone
+            vcost, near = side, side_near
+        band.vcost, band.near, band.pieces = vcost, near, found
+        return band, plan
     del side, side_near
+    return _split_fallback(band, plan, found[1], plain_found)
+
+
+def _split_fallback(band: Band, plan: BandPlan, pieces: int, plain_found: tuple[np.ndarray, int]
+                    ) -> tuple[Band, BandPlan]:
+    """:func:`build_planned_band` where the one-sided band splits the surface into ``pieces``,
+    more than the plain band's (``plain_found``: its pieces): the plain band cut between sheets
+    for a stack (at least THIN_SHARE % thin) when that holds together, else the plain band."""
+    from .._kernels.topology import point_pieces
+
     stack = plan.thin_points >= THIN_SHARE / 100 * band.u.shape[0]  # (a few thin parts: as before)
-    if pieces > 1 and plain < pieces and not stack:
+    if not stack:
         log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
         band.pieces = plain_found
         return band, BandPlan.plain(plan.h, plan.r)
-    if pieces > 1 and plain < pieces:
-        vcost, near = cut_between_sheets(band, band.vcost, plan)
-        found = point_pieces(band.nbr, band.cs, near, vcost)
-        pieces = found[1]
-        if pieces > plain:
-            log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", pieces)
-            band.pieces = plain_found
-            return band, BandPlan.plain(plan.h, plan.r)
-        log.info("one-sided band splits the surface; using the plain band cut between sheets")
-        plan = BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover, plan.outer)
+    vcost, near = cut_between_sheets(band, band.vcost, plan)
+    found = point_pieces(band.nbr, band.cs, near, vcost)
+    if found[1] > plain_found[1]:
+        log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", found[1])
+        band.pieces = plain_found
+        return band, BandPlan.plain(plan.h, plan.r)
+    log.info("one-sided band splits the surface; using the plain band cut between sheets")
     band.vcost, band.near, band.pieces = vcost, near, found
-    return band, plan
+    return band, BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover, plan.outer)
 
 
 def band_distance(
