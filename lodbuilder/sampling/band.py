@@ -179,6 +179,8 @@ def _sheets(
     if judge and int(counts[np.isfinite(sin)].sum()) >= THIN_SHARE / 100 * n:
         flat = _flat_share(u, ostart, sin, nrm)
     del u
+    if not np.isfinite(sin).any():  # nothing thin (most scans): no scatter into point order
+        return np.full(n, np.inf), np.full(n, np.inf), np.zeros((n, 3), dtype=np.float32), flat
     sep_in = np.empty(n)
     sep_in[perm] = np.repeat(sin * h, counts)
     sep_out = np.empty(n)
