@@ -473,7 +473,7 @@ def one_sided(
     """The voxel costs and nearest marchable corners of ``band`` with its thin parts one-sided (``normal``,
     ``separation``, ``radius``: per point, input order; see the module docstring): a voxel subset."""
     from .._kernels.grid import one_sided_cost
-    from .._kernels.topology import nearest_corners
+    from .._kernels.topology import nearest_corners_since
 
     perm = band.perm
     nin = np.ascontiguousarray(normal[perm], dtype=np.float32)  # (float32 products are exact in float64)
@@ -481,23 +481,27 @@ def one_sided(
     rad = np.full(perm.shape[0], band.r / band.h) if radius is None else radius[perm] / band.h
     inv_r2 = np.divide(1.0, rad * rad, out=rad)  # (in place: one array of N less at the peak of thin scans)
     vcost = one_sided_cost(band.keys, band.foot, band.u, nin, psep, inv_r2, SIDE_TOLERANCE, beta)
-    return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
+    return vcost, nearest_corners_since(band.u, band.nbr, band.cs, vcost, band.vcost, band.near)
 
 
-def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan) -> tuple[np.ndarray, np.ndarray]:
+def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan,
+                       near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The voxel costs ``vcost`` of ``band`` cut between the sheets of ``plan`` (see
     :func:`lodbuilder._kernels.sheets.sheet_cut`: no two neighbouring marchable voxels, and no
     point and the voxels it reads, stand on different sheets) and the points' nearest marchable
-    corners in the result."""
+    corners in the result (``near``: those of ``vcost``, when known: then only the cells whose
+    corners the cut changed are looked at again)."""
     from .._kernels.sheets import sheet_cut
-    from .._kernels.topology import nearest_corners
+    from .._kernels.topology import nearest_corners, nearest_corners_since
 
     assert plan.normal is not None and plan.separation is not None
     perm = band.perm
     nin = np.ascontiguousarray(plan.normal[perm], dtype=np.float32)
     psep = np.ascontiguousarray(plan.separation[perm] / band.h)
     cut = sheet_cut(band.keys, band.nbr, band.cs, band.foot, vcost, band.u, nin, psep)
-    return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
+    if near is None:
+        return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
+    return cut, nearest_corners_since(band.u, band.nbr, band.cs, cut, vcost, near)
 
 
 def build_planned_band(
@@ -526,7 +530,7 @@ def build_planned_band(
     found = point_pieces(band.nbr, band.cs, side_near, side)  # (the piece of every point, their count)
     plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost) if found[1] > 1 else None
     if plain_found is None or found[1] <= plain_found[1]:  # the one-sided band holds together: cut it
-        vcost, near = cut_between_sheets(band, side, plan)
+        vcost, near = cut_between_sheets(band, side, plan, side_near)
         cut = point_pieces(band.nbr, band.cs, near, vcost)
         if cut[1] > 1 and plain_found is None:
             plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
@@ -552,7 +556,7 @@ def _split_fallback(band: Band, plan: BandPlan, pieces: int, plain_found: tuple[
         log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
         band.pieces = plain_found
         return band, BandPlan.plain(plan.h, plan.r)
-    vcost, near = cut_between_sheets(band, band.vcost, plan)
+    vcost, near = cut_between_sheets(band, band.vcost, plan, band.near)
     found = point_pieces(band.nbr, band.cs, near, vcost)
     if found[1] > plain_found[1]:
         log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", found[1])
