@@ -512,11 +512,11 @@ def build_planned_band(
     more pieces than the plain band does: in a stack of sheets joined by folds no choice of sides
     is consistent around every fold, and two registrations of one surface a few spacings apart, in
     a merged scan, are found as two sheets and may be cut apart that way. If the one-sided band
-    alone splits it, cutting it between sheets (a subset of its voxels) is not tried; if only the
-    cut splits it, the one-sided band alone is used. If the one-sided band splits it, the plain
-    band cut between sheets is tried (both sides of every sheet, each voxel on its nearest point's
-    sheet) when the scan is a stack (at least THIN_SHARE % thin); if that splits it too, or the
-    scan is not a stack, the plain band is used for the whole scan and the plan returned says so.
+    alone splits it, cutting it between sheets (a subset of its voxels) is not tried, and for a
+    stack (at least THIN_SHARE % thin) the plain band cut between sheets is (both sides of every
+    sheet, each voxel on its nearest point's sheet); if that splits it too, or the scan is not a
+    stack, the plain band is used and the plan returned says so. If only the cut splits it, the
+    one-sided band alone is used.
     Every band here is a subset of the plain one's voxels, so all are decided on one band
     (``band``: the plain band, when already built). The band returned keeps the pieces of its
     points (``Band.pieces``: the ordering needs them, and they are known here already)."""
@@ -529,26 +529,25 @@ def build_planned_band(
     side, side_near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
     found = point_pieces(band.nbr, band.cs, side_near, side)  # (the piece of every point, their count)
     plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost) if found[1] > 1 else None
-    if plain_found is None or found[1] <= plain_found[1]:  # the one-sided band holds together: cut it
-        vcost, near = cut_between_sheets(band, side, plan, side_near)
-        cut = point_pieces(band.nbr, band.cs, near, vcost)
-        if cut[1] > 1 and plain_found is None:
-            plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
-        if plain_found is None or cut[1] <= plain_found[1]:
-            found = cut
-        else:  # the cut is what splits it: the one-sided band alone
-            vcost, near = side, side_near
-        band.vcost, band.near, band.pieces = vcost, near, found
-        return band, plan
-    del side, side_near
-    return _split_fallback(band, plan, found[1], plain_found)
+    if plain_found is not None and found[1] > plain_found[1]:
+        del side, side_near
+        return _split_fallback(band, plan, found[1], plain_found)
+    vcost, near = cut_between_sheets(band, side, plan, side_near)  # the one-sided band holds: cut it
+    cut = point_pieces(band.nbr, band.cs, near, vcost)
+    if cut[1] > 1 and plain_found is None:
+        plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
+    if plain_found is None or cut[1] <= plain_found[1]:
+        found = cut
+    else:  # the cut is what splits it: the one-sided band alone
+        vcost, near = side, side_near
+    band.vcost, band.near, band.pieces = vcost, near, found
+    return band, plan
 
 
 def _split_fallback(band: Band, plan: BandPlan, pieces: int, plain_found: tuple[np.ndarray, int]
                     ) -> tuple[Band, BandPlan]:
-    """:func:`build_planned_band` where the one-sided band splits the surface into ``pieces``,
-    more than the plain band's (``plain_found``: its pieces): the plain band cut between sheets
-    for a stack (at least THIN_SHARE % thin) when that holds together, else the plain band."""
+    """:func:`build_planned_band` where the one-sided band splits the surface into more ``pieces``
+    than the plain band's (``plain_found``): for a stack, its cut between sheets if that holds."""
     from .._kernels.topology import point_pieces
 
     stack = plan.thin_points >= THIN_SHARE / 100 * band.u.shape[0]  # (a few thin parts: as before)
