@@ -539,6 +539,40 @@ def march_round(
 
 
 @nb.njit(**JIT)
+def grid_state(u, keys, cs, k_max, tseed, piece, npiece):  # pragma: no cover - compiled
+    """The state of a grid-phase ordering before its first point (:func:`grid_loop` goes on from
+    it): a tuple of arrays, the last one the counters (points ordered, candidate heap size,
+    piece refreshes, pops)."""
+    m = u.shape[0]
+    nv = keys.shape[0]
+    cellv, cellof = cell_tables(cs)
+    ncell = cellv.shape[0]
+    val = np.full(m, np.inf)
+    ckey = np.full(ncell, np.inf)  # heap order
+    heap = np.arange(ncell).astype(np.int32)
+    hpos = np.empty(ncell, np.int32)
+    maxheap_build(ckey, heap, hpos, ncell)
+    for j in range(tseed.shape[0]):
+        val[tseed[j]] = -1.0  # never a candidate
+    pstart, pidx, pbox = piece_tables(piece, npiece, u)
+    ctr = np.zeros(4, np.int64)  # k, hn, nref, pops
+    ctr[1] = ncell
+    return (
+        np.full(nv, T_INF, np.int64),  # 0 ts: packed voxel state, arrival time T and round stamp
+        np.full(nv, -1, np.int32),  # 1 vlab
+        cellv, cellof,  # 2, 3
+        np.full(m, np.inf), val, np.full(m, -1, np.int32), np.full(m, -1, np.int32),  # 4 dq, 5 val, 6 lq, 7 rank
+        np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32), np.empty(ncell, np.int32),  # 8 dstamp, 9 cmark, 10 dirty
+        ckey, heap, hpos,  # 11, 12, 13
+        np.empty(nv, np.int64), np.full(nv, -1, np.int32),  # 14 hkv, 15 hpos_v: the front heap
+        np.empty(k_max, np.int32), np.empty(k_max, np.float64), np.empty(k_max, np.int32),  # 16 order, radius, parent
+        np.zeros(npiece, np.bool_), np.zeros(npiece, np.int64), np.full(npiece, np.inf),  # 19 awake, psync, pmax
+        pstart, pidx, pbox, np.full(ncell, -1, np.int64),  # 22, 23, 24, 25 pmark
+        ctr,  # 26
+    )
+
+
+@nb.njit(**JIT)
 def grid_phase(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
     r_stop, debug, tseed, tkey, tpos, piece, npiece,
@@ -564,47 +598,66 @@ def grid_phase(
     Before returning, every dormant piece is refreshed (the tail and the stop radius see exact
     values).
     """
-    m = u.shape[0]
-    nv = keys.shape[0]
-    ts = np.full(nv, T_INF, np.int64)  # packed voxel state: arrival time T and round stamp
-    vlab = np.full(nv, -1, np.int32)
-    cellv, cellof = cell_tables(cs)
-    ncell = cellv.shape[0]
-    dq = np.full(m, np.inf)
-    val = np.full(m, np.inf)
-    lq = np.full(m, -1, np.int32)
-    rank = np.full(m, -1, np.int32)
-    dstamp = np.full(ncell, -1, np.int32)
-    cmark = np.full(ncell, -1, np.int32)
-    dirty = np.empty(ncell, np.int32)
-    ckey = np.full(ncell, np.inf)  # heap order
-    heap = np.arange(ncell).astype(np.int32)
-    hpos = np.empty(ncell, np.int32)
-    hn = ncell
-    maxheap_build(ckey, heap, hpos, hn)
-    hkv = np.empty(nv, np.int64)
-    hpos_v = np.full(nv, -1, np.int32)
-    order = np.empty(k_max, np.int32)
-    radius = np.empty(k_max, np.float64)
-    parent = np.empty(k_max, np.int32)
-    src = np.empty(1, np.int32)
-    scratch = seed_scratch()
-    nd0 = np.int64(0)
-    pops = 0
-    k = 0
-    nseed = seeds.shape[0]
-    nt = tseed.shape[0]
-    for j in range(nt):
-        val[tseed[j]] = -1.0  # never a candidate
-    awake = np.zeros(npiece, np.bool_)
-    psync = np.zeros(npiece, np.int64)
-    pmax = np.full(npiece, np.inf)
-    pstart, pidx, pbox = piece_tables(piece, npiece, u)
-    pmark = np.full(ncell, -1, np.int64)
+    st = grid_state(u, keys, cs, k_max, tseed, piece, npiece)
+    bad = grid_loop(
+        u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
+        r_stop, debug, tseed, tkey, tpos, piece, npiece, st,
+    )
+    ctr = st[26]
+    if bad < 0:
+        return st[16], st[17], st[18], ctr[0], st[5], st[6], st[7], bad  # debug: a broken heap
+    grid_wake_all(u, cs, pcost, weighted, npiece, st)
+    return st[16], st[17], st[18], ctr[0], st[5], st[6], st[7], ctr[3]
+
+
+@nb.njit(**JIT)
+def grid_wake_all(u, cs, pcost, weighted, npiece, st):  # pragma: no cover - compiled
+    """Refresh every dormant piece of state ``st``: exact values for the tail and the stop radius."""
+    cellv, cellof, val, lq, rank = st[2], st[3], st[5], st[6], st[7]
+    ckey, heap, hpos, order = st[11], st[12], st[13], st[16]
+    awake, psync, pmax, pstart, pidx, pbox, pmark, ctr = st[19], st[20], st[21], st[22], st[23], st[24], st[25], st[26]
     cmin = 1.0
     if weighted:
         cmin = pcost.min()
-    nref = 0
+    k = np.int64(ctr[0])
+    hn = np.int64(ctr[1])
+    nref = ctr[2]
+    for c in range(npiece):
+        if not awake[c] and psync[c] < k:
+            refresh_piece(
+                c, k, order, u, val, lq, rank, pstart, pidx, pbox, psync, pmax, weighted, pcost,
+                cmin, cs, cellv, cellof, ckey, heap, hpos, hn, pmark, np.int64(nref),
+            )
+            nref += 1
+    ctr[2] = nref
+
+
+@nb.njit(**JIT)
+def grid_loop(
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
+    r_stop, debug, tseed, tkey, tpos, piece, npiece, st,
+):  # pragma: no cover - compiled
+    """The loop of :func:`grid_phase` on state ``st`` (:func:`grid_state`), from where it stopped
+    until ``k_max`` points, ``rho_stop`` or ``r_stop``: stopping and going on with the same
+    arguments orders as one call does. Returns 0, or -1 / -2 when a debug check found the front /
+    candidate heap broken."""
+    ts, vlab, cellv, cellof, dq, val, lq, rank = st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7]
+    dstamp, cmark, dirty, ckey, heap, hpos, hkv, hpos_v = st[8], st[9], st[10], st[11], st[12], st[13], st[14], st[15]
+    order, radius, parent, awake, psync, pmax = st[16], st[17], st[18], st[19], st[20], st[21]
+    pstart, pidx, pbox, pmark, ctr = st[22], st[23], st[24], st[25], st[26]
+    src = np.empty(1, np.int32)
+    scratch = seed_scratch()
+    nd0 = np.int64(0)
+    k = np.int64(ctr[0])
+    hn = np.int64(ctr[1])
+    nref = ctr[2]
+    pops = ctr[3]
+    nseed = seeds.shape[0]
+    nt = tseed.shape[0]
+    cmin = 1.0
+    if weighted:
+        cmin = pcost.min()
+    bad = 0
     while k < k_max:
         if k < nseed:
             i = seeds[k]
@@ -664,7 +717,8 @@ def grid_phase(
             ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug,
         )
         if pp < 0:
-            return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
+            bad = -1  # debug: a broken heap
+            break
         pops += pp
         for j in range(nd):
             cc = dirty[j]
@@ -688,16 +742,14 @@ def grid_phase(
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
         if debug and not check_maxheap(ckey, heap, hpos, hn):
-            return order, radius, parent, k, val, lq, rank, np.int64(-2)  # debug: a broken heap
+            bad = -2  # debug: a broken heap
+            break
         k += 1
-    for c in range(npiece):  # exact values for the tail and the stop radius
-        if not awake[c] and psync[c] < k:
-            refresh_piece(
-                c, k, order, u, val, lq, rank, pstart, pidx, pbox, psync, pmax, weighted, pcost,
-                cmin, cs, cellv, cellof, ckey, heap, hpos, hn, pmark, np.int64(nref),
-            )
-            nref += 1
-    return order, radius, parent, k, val, lq, rank, pops
+    ctr[0] = k
+    ctr[1] = hn
+    ctr[2] = nref
+    ctr[3] = pops
+    return bad
 
 
 @nb.njit(**JIT)
