@@ -83,20 +83,26 @@ def test_sources_in_the_tail_match_the_naive_reference(n, seed):
     assert np.array_equal(out.parent, parent)
 
 
-def test_sources_brought_in_at_once_keep_every_radius_a_covering_radius(rng):
-    # sources without keys join at once (radius: the largest remaining distance); every stored
-    # radius still bounds the true Euclidean covering radius of the prefix (brute force)
+@pytest.mark.parametrize(("bulk", "voxel_size"), [(False, None), (False, 0.01), (True, 0.01)])
+def test_sources_brought_in_at_once_keep_every_radius_a_covering_radius(rng, bulk, voxel_size):
+    # sources without keys join at once (radius: the largest remaining distance), marched one by
+    # one or together (bulk); every stored radius still bounds the true Euclidean covering radius
+    # of the prefix (brute force). Voxel size 0.01: the hand-over at 0.075, the sources join in
+    # the grid phase; the library's: in the tail
     pts = jittered_plane(1500, rng)
     left = np.flatnonzero(pts[:, 0] < 0.35)
-    state = start_fastfps(pts, timed_seeds=(left, np.zeros(left.size)))
+    state = start_fastfps(pts, timed_seeds=(left, np.zeros(left.size)), voxel_size=voxel_size)
     joined = []
-    for rho, part in ((0.2, left[::7]), (0.08, left[3::5]), (0.03, left[1::4])):
+    for rho, part in ((0.3, left[::7]), (0.15, left[3::5]), (0.1, left[1::4])):
         before = resume_fastfps(state, rho=rho)
-        out = resume_fastfps(state, sources=part, rho=rho * 0.7)
+        assert state.phase == ("grid" if voxel_size else "tail")
+        out = resume_fastfps(state, sources=part, rho=rho * 0.85, bulk=bulk)
         new = out.order[len(before): len(before) + np.isin(part, before.order, invert=True).sum()]
         assert set(new) <= set(part)  # they come first, at the stop radius
         assert (out.radius[len(before): len(before) + new.size] <= before.stop_radius).all()
         joined.append(new)
+    if voxel_size:
+        assert (state.grid[26][4] > 0) == bulk  # (the sources marched in bulk)
     out = resume_fastfps(state)
     assert np.array_equal(np.sort(out.order), np.arange(len(pts)))
     # the points to cover: all but the timed seeds (those stand for another ordering's points);

@@ -338,9 +338,11 @@ def _seed_sample(
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug, mark0,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
+    ``mark0 + s`` marks the cells seeded from source s (unique over the ordering: ``rnd * len(src)``
+    for one source a round, negative for the bulk rounds of :func:`grid_loop`).
 
     Updates dq/lq of points near lowered voxels and appends their cells to ``dirty``; returns the
     new count of dirty cells and the number of pops. Where sheets come close (``pnrm``: per point
@@ -355,7 +357,7 @@ def march_round(
     n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     for s in range(src.shape[0]):
         n, nd = _seed_sample(
-            np.int64(src[s]), np.int32(lab + s), np.int32(rnd * src.shape[0] + s), rnd, acc, u, keys, nbr, cs,
+            np.int64(src[s]), np.int32(lab + s), np.int32(mark0 + s), rnd, acc, u, keys, nbr, cs,
             cellof, vcost, pcost, weighted, foot, pnrm, slope, thin, ts, vlab, dq, lq, rank, dstamp,
             cmark, dirty, nd, hkv, hpos, n, scratch,
         )
@@ -555,7 +557,7 @@ def grid_state(u, keys, cs, k_max, tseed, piece, npiece):  # pragma: no cover - 
     for j in range(tseed.shape[0]):
         val[tseed[j]] = -1.0  # never a candidate
     pstart, pidx, pbox = piece_tables(piece, npiece, u)
-    ctr = np.zeros(4, np.int64)  # k, hn, nref, pops
+    ctr = np.zeros(5, np.int64)  # k, hn, nref, pops, sources marched in bulk
     ctr[1] = ncell
     return (
         np.full(nv, T_INF, np.int64),  # 0 ts: packed voxel state, arrival time T and round stamp
@@ -601,7 +603,7 @@ def grid_phase(
     st = grid_state(u, keys, cs, k_max, tseed, piece, npiece)
     bad = grid_loop(
         u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
-        r_stop, debug, tseed, tkey, tpos, piece, npiece, st,
+        r_stop, debug, tseed, tkey, tpos, piece, npiece, st, False,
     )
     ctr = st[26]
     if bad < 0:
@@ -635,12 +637,14 @@ def grid_wake_all(u, cs, pcost, weighted, npiece, st):  # pragma: no cover - com
 @nb.njit(**JIT)
 def grid_loop(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
-    r_stop, debug, tseed, tkey, tpos, piece, npiece, st,
+    r_stop, debug, tseed, tkey, tpos, piece, npiece, st, bulk,
 ):  # pragma: no cover - compiled
     """The loop of :func:`grid_phase` on state ``st`` (:func:`grid_state`), from where it stopped
     until ``k_max`` points, ``rho_stop`` or ``r_stop``: stopping and going on with the same
-    arguments orders as one call does. Returns 0, or -1 / -2 when a debug check found the front /
-    candidate heap broken."""
+    arguments orders as one call does. With ``bulk``, the timed seeds due at once (key at least the
+    largest candidate distance) join together and their fronts are marched as one (one march over
+    the band instead of one each; the values are the same kind of upper bounds, not the same
+    numbers). Returns 0, or -1 / -2 when a debug check found the front / candidate heap broken."""
     ts, vlab, cellv, cellof, dq, val, lq, rank = st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7]
     dstamp, cmark, dirty, ckey, heap, hpos, hkv, hpos_v = st[8], st[9], st[10], st[11], st[12], st[13], st[14], st[15]
     order, radius, parent, awake, psync, pmax = st[16], st[17], st[18], st[19], st[20], st[21]
@@ -672,6 +676,16 @@ def grid_loop(
             timed = tpos[0] < nt and tkey[tpos[0]] >= kk and tkey[tpos[0]] >= r_stop and tkey[tpos[0]] > rho_stop
             if not timed and (kk < 0.0 or kk <= rho_stop or kk < r_stop):
                 break
+            if timed and bulk:
+                k, nd = _bulk_timed(
+                    k, k_max, max(kk, r_stop), rho_stop, tseed, tkey, tpos, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot,
+                    pnrm, slope, ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius,
+                    parent, awake, piece, ctr,
+                )
+                _lower_dirty(nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn)
+                while hn > 0 and ckey[0] < 0.0:
+                    hn = maxheap_pop(ckey, heap, hpos, hn)
+                continue
             if timed:
                 i = tseed[tpos[0]]
                 rad = tkey[tpos[0]]
@@ -714,7 +728,7 @@ def grid_loop(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug,
+            ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug, np.int64(k + 1),
         )
         if pp < 0:
             bad = -1  # debug: a broken heap
@@ -753,6 +767,66 @@ def grid_loop(
 
 
 @nb.njit(**JIT)
+def _lower_dirty(
+    nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn,
+):  # pragma: no cover - compiled
+    """The candidate values of the unordered points of the ``nd`` dirty cells after a march, and
+    their cells' keys (as the loop of :func:`grid_loop` does after each sample)."""
+    for j in range(nd):
+        cc = dirty[j]
+        w = cellv[cc]
+        best = -1.0
+        for p in range(cs[w], cs[w + 1]):
+            if rank[p] >= 0:
+                continue
+            if dq[p] < val[p]:
+                s = order[lq[p]]
+                e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                if weighted:
+                    e *= 0.5 * (pcost[p] + pcost[s])
+                cand = dq[p] if dq[p] > e else e
+                if cand < val[p]:
+                    val[p] = cand
+            if val[p] > best:
+                best = val[p]
+        maxheap_decrease(ckey, heap, hpos, cc, best, hn)
+
+
+@nb.njit(**JIT)
+def _bulk_timed(
+    k, k_max, kk, rho_stop, tseed, tkey, tpos, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake, piece, ctr,
+):  # pragma: no cover - compiled
+    """Order the timed seeds due at once (key >= ``kk``) from position ``k`` on and march their
+    fronts together (see :func:`grid_loop`); returns the new count and the dirty cells' count."""
+    j0 = tpos[0]
+    j1 = j0
+    while j1 < tseed.shape[0] and tkey[j1] >= kk and tkey[j1] > rho_stop and k + (j1 - j0) < k_max:
+        j1 += 1
+    ns = j1 - j0
+    src = np.empty(ns, np.int32)
+    for s in range(ns):
+        i = tseed[j0 + s]
+        src[s] = i
+        rank[i] = k + s
+        order[k + s] = i
+        radius[k + s] = tkey[j0 + s]
+        parent[k + s] = -1
+        awake[piece[i]] = True
+    tpos[0] = j1
+    # the seeded cells' marks: from -(1 + c + ns) to -(2 + c) (c: sources marched in bulk before,
+    # ctr[4]), below every single round's mark (>= 1) and the cells' initial -1
+    mark0 = -(np.int64(1) + ctr[4] + ns)
+    ctr[4] += ns
+    nd, pp = march_round(
+        src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+        ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
+    )
+    ctr[3] += pp
+    return k + ns, nd
+
+
+@nb.njit(**JIT)
 def multi_source_distance(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, sources,
 ):  # pragma: no cover - compiled
@@ -772,7 +846,7 @@ def multi_source_distance(
         np.full(nv, T_INF, np.int64), np.full(nv, -1, np.int32),
         dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.int64),
-        np.full(nv, -1, np.int32), seed_scratch(), False,
+        np.full(nv, -1, np.int32), seed_scratch(), False, rnd1 * sources.shape[0],
     )
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0

@@ -109,7 +109,7 @@ def order_rounds(work: Store | str, docs: dict[int, dict[str, Any]], nbrs: list[
             # ordered in this round too: this tile keeps away from them); in the last, the
             # neighbours' points below the last round's radius join at their keys
             src = None if rows.size == 0 else rows if rho is not None else (rows, keys)
-            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=src)
+            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=src, bulk=True)
         if rho is None:
             break
     out = [_finish(w, tiles[t], hpts, halo) for t in sorted(tiles)]
