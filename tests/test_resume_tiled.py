@@ -30,13 +30,13 @@ def test_rounds_keep_the_guarantees_and_the_tiles_apart(tmp_path, monkeypatch):
     from lodbuilder.build.tiled import rounds
 
     rng = np.random.default_rng(7)
-    pts = wavy(4000, rng)
+    pts = wavy(10_000, rng)
     n = len(pts)
-    one, _ = _build(tmp_path, pts, tile_points=600, name="one", seam_spacing=0)
+    one, _ = _build(tmp_path, pts, tile_points=1200, name="one", seam_spacing=0)
     monkeypatch.setattr(rounds, "TILE_ROUNDS", (8, 1.25))
-    d, _ = _build(tmp_path, pts, tile_points=600, name="rounds", seam_spacing=0)
+    d, _ = _build(tmp_path, pts, tile_points=1200, name="rounds", seam_spacing=0)
     tiled = d["build"]["tiled"]
-    assert tiled["tiles"] >= 6
+    assert tiled["tiles"] >= 12
     rows = [r for r in d["build"]["tasks"]["rows"] if r[0].startswith("order_")]
     assert [r[0] for r in rows] == ["order_rounds"]
     # every input point exactly once; every stored radius a true covering radius (brute force)
@@ -47,5 +47,5 @@ def test_rounds_keep_the_guarantees_and_the_tiles_apart(tmp_path, monkeypatch):
     r_last = tiled["head_radius"] / 1.25**8
     upto = int(np.searchsorted(-d["radius"], -r_last))
     assert upto > tiled["head_points"] + 50
-    assert _cross_spacing(one, upto).min() < 0.15
-    assert _cross_spacing(d, upto).min() >= 0.35
+    assert _cross_spacing(one, upto).min() < 0.3  # (0.21)
+    assert _cross_spacing(d, upto).min() >= 0.5  # (0.80)
