@@ -21,12 +21,21 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
   a survey's (21.56M -> 400,000: 54; the cell grid gives 1 in 25-40 at 200,000 points).
 * ``merge_seconds``: the merge's tasks' durations summed (the seam repair and the bands) from the
   build record (``task_seconds``), per million points.
+* ``order_cpu_seconds``: the CPU seconds of the order phase's tasks (every ``order_tile``, or the one
+  ``order_rounds``), from the same table.
+* With ``--rounds R --q Q``: the tiles ordered in R radius rounds of ratio Q
+  (:mod:`lodbuilder.build.tiled.rounds`, private), and ``round_costs``: one tile (the first box and
+  its halo) ordered alone by :mod:`lodbuilder.sampling.resumable` in those rounds without sources:
+  the largest bytes of its state in the grid phase and in the tail, and the CPU seconds of one
+  ordering (``cpu_one``), of the rounds with the state kept (``cpu_rounds_kept``) and of the rounds
+  by restarts (``cpu_restarts``: one ordering down to each round's radius, then one to the end).
 
 Inputs (``--inputs``): ``autzen`` (the real autzen_trim.laz tiled 2 x 2 by tools/make_survey.py,
 every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of tools/bench_inputs.py),
 ``fragmented`` (the synthetic scene of tools/make_fragmented.py).
 
     python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5 --decimation 0 54
+    python tools/bench_seams.py --n 200000 --tiles 16 --inputs uniform --seam-spacing 0 --rounds 21 --q 1.1
 """
 
 from __future__ import annotations
