@@ -120,5 +120,10 @@ def test_a_source_must_be_declared_at_the_start(rng):
     with pytest.raises(InputError, match=r"^sources\[1\] was not a timed seed at the start; pass every point "
                        r"that may become a source in timed_seeds \(key 0: not yet\)$"):
         resume_fastfps(state, sources=[5, 7])
+    with pytest.raises(InputError, match=r"^sources needs one non-negative key per index \(2 indices, 1 keys\); "
+                       r"pass \(indices, keys\) of equal length$"):
+        resume_fastfps(state, sources=([5, 6], [0.1]))
     out = resume_fastfps(state, sources=[0, 6])  # the seed 0 has joined: skipped
     assert out.order[0] == 0 and 6 in out.order
+    pos = int(np.flatnonzero(out.order == 6)[0])
+    assert out.radius[pos] <= out.radius[pos - 1] and out.parent[pos] == -1  # joined at once, no parent

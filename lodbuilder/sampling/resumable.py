@@ -170,7 +170,10 @@ def _bring_in(state: FastFPSState, sources: Any) -> None:
         idx = validate_indices(sources[0], state.pts.shape[0], "sources")
         keys = np.asarray(sources[1], dtype=np.float64).reshape(-1)
         if keys.shape != idx.shape or np.isnan(keys).any() or (keys < 0).any():
-            raise InputError(f"sources needs one non-negative key per index ({idx.size} indices, {keys.size} keys)")
+            raise InputError(
+                f"sources needs one non-negative key per index ({idx.size} indices, {keys.size} keys); "
+                "pass (indices, keys) of equal length"
+            )
         keys = keys / state.h
     else:
         idx = validate_indices(sources, state.pts.shape[0], "sources")
