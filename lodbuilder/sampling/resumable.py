@@ -29,7 +29,6 @@ from .fastfps import (
     _band,
     _distinct_points,
     _engine_seeds,
-    _euclid_tail,
     _pieces,
     _points_and_values,
     _prepare,
@@ -86,7 +85,7 @@ class FastFPSState:
         arrays: list[Any] = [self.pts, self.gid, self.rep, self.inv, self.perm, self.tseed_c, self.tkey_g,
                              self.piece, self.psep, self.pnrm, self.foot]
         arrays += list(self.grid or ()) + [v for v in self.tail.values() if isinstance(v, np.ndarray)]
-        arrays += list(self.tail.get("runs", ()))[:4]
+        arrays += list(self.tail.get("runs") or ())[:4] + list(self.tail.get("heap", ()))
         total = sum(a.nbytes for a in arrays if isinstance(a, np.ndarray))
         return total + (self.band.nbytes if self.band is not None else 0)
 
@@ -147,13 +146,27 @@ def resume_fastfps(state: FastFPSState, *, rho: float | None = None, sources: An
     if state.phase == "grid":
         _grid(state, rho_g, bulk)
     if state.phase == "tail" and state.tail["k"] < state.inv.shape[0]:
-        t = state.tail
-        t["k"] = _euclid_tail(
-            t["ud"], t["nbr"], t["cs"], t["runs"], np.ones(1), False, 1.0, state.psep, state.pnrm, t["lq"],
-            t["rank"], t["order"], t["radius"], t["parent"], t["k"], state.inv.shape[0], rho_g,
-            state.tseed_c, state.tkey_g, state.tpos,
-        )
+        _tail(state, rho_g)
     return _result(state, rho)
+
+
+def _tail(state: FastFPSState, rho_g: float) -> None:
+    """The Euclidean tail from where it stopped (its values and cell heap kept)."""
+    from .._kernels.tail import tail_loop, tail_start
+    from .band import TAIL_SLOPE
+
+    t = state.tail
+    one = np.ones(1)
+    if "heap" not in t:  # (first time: the values tightened, the heap built, as euclid_tail does)
+        t["heap"] = tail_start(t["ud"], t["cs"], one, False, state.psep, state.pnrm, TAIL_SLOPE, t["lq"], t["rank"],
+                               t["order"])
+        t["hn"] = np.full(1, t["heap"][2].shape[0], np.int64)
+    rkey, ridx, rstart, rend, levels = t["runs"]
+    t["k"] = tail_loop(
+        t["ud"], t["nbr"], t["cs"], rkey, ridx, rstart, rend, levels, one, False, 1.0, state.psep, state.pnrm,
+        TAIL_SLOPE, t["lq"], t["rank"], t["order"], t["radius"], t["parent"], t["k"], state.inv.shape[0], rho_g,
+        state.tseed_c, state.tkey_g, state.tpos, *t["heap"], t["hn"],
+    )
 
 
 def _now(state: FastFPSState) -> float:
