@@ -127,3 +127,14 @@ def test_a_source_must_be_declared_at_the_start(rng):
     assert out.order[0] == 0 and 6 in out.order
     pos = int(np.flatnonzero(out.order == 6)[0])
     assert out.radius[pos] <= out.radius[pos - 1] and out.parent[pos] == -1  # joined at once, no parent
+
+
+def test_timed_seeds_that_never_join_do_not_trip_the_precision_check(rng):
+    # most points are declared "not yet" (key 0) and never brought in: they come last with radius
+    # 0, and the precision check (radii rounding could take away) looks at the measured radii only
+    pts = rng.random((200, 3))
+    later = np.arange(50, 200)
+    state = start_fastfps(pts, seeds=[0], voxel_size=4.0, timed_seeds=(later, np.zeros(later.size)))
+    out = resume_fastfps(state)
+    assert np.array_equal(np.sort(out.order), np.arange(200))
+    assert (out.radius[50:] == 0).all() and set(out.order[50:]) == set(later)

@@ -32,7 +32,6 @@ from .fastfps import (
     _pieces,
     _points_and_values,
     _prepare,
-    _promised,
     _stop_radius,
     _tail_fields,
     _tail_runs,
@@ -255,9 +254,17 @@ def _result(state: FastFPSState, rho: float | None) -> Ordering:
     else:
         t = state.tail
         order, radius, parent, k = t["order"], t["radius"], t["parent"], t["k"]
+    from .precision import check_precision, promise, promise_one, rounding_bound, span
+
     stop = _now(state) * state.h
     uorder = state.perm[order[:k]].astype(np.int64)
-    rad, stop, delta = _promised(radius[:k] * state.h, stop, state.extent, state.h, state.r, state.user_grid)
+    rad = radius[:k] * state.h
+    delta = rounding_bound(span(state.extent, state.h, state.r))
+    # the precision check on the radii this ordering measured: not the timed seeds' keys (no
+    # parent, finite; "not yet" ones that never joined come last with key 0)
+    chosen = (parent[:k] >= 0) | ~np.isfinite(rad)
+    check_precision(rad[chosen], delta, extent=state.extent, h=state.h, r=state.r, user_grid=state.user_grid)
+    rad, stop = promise(rad, delta), promise_one(stop, delta)
     stats = dict(state.stats, rounding_bound=delta)
     o = _assemble(state.pts, state.gid, state.rep, state.seed_arr, uorder, rad, parent[:k].astype(np.int64),
                   state.h, state.r, rho, None, stats, stop)
