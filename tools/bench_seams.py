@@ -62,15 +62,16 @@ sys.path.insert(0, str(ROOT / "tools"))
 INPUTS = ("autzen", "uniform", "uneven", "fragmented")
 
 
-def make_input(name: str, n: int, d: Path, thin: int) -> Path:
-    """The input file of ``name`` (about ``n`` points; autzen: 2 x 2 copies of every ``thin``-th point)."""
+def make_input(name: str, n: int, d: Path, thin: int, survey: tuple[int, int] = (2, 2)) -> Path:
+    """The input file of ``name`` (about ``n`` points; autzen: ``survey`` = NX x NY copies of every
+    ``thin``-th point)."""
     from lodbuilder.io import write_points
 
     if name == "autzen":
         from make_survey import make
 
-        out = d / "autzen_2x2.laz"
-        make(out, 2, 2, thin=thin)
+        out = d / f"autzen_{survey[0]}x{survey[1]}.laz"
+        make(out, survey[0], survey[1], thin=thin)
         return out
     if name == "fragmented":
         from make_fragmented import fragmented_scene
@@ -143,10 +144,16 @@ def seam_profile(e: np.ndarray, partner: np.ndarray, group: np.ndarray, colour: 
             "levels_above_halo": int(above.sum()), "levels_below_0_35": blame}
 
 
+#: None, or the rows of the points the covering is measured at (``--sample``: a random subset, so
+#: the covering radii are lower bounds, the same subset for the tiled and the in-memory order)
+COVER_AT: np.ndarray | None = None
+
+
 def covering(pts: np.ndarray, order: np.ndarray, k: int) -> float:
     from scipy.spatial import cKDTree
 
-    return float(cKDTree(pts[order[:k]]).query(pts, workers=-1)[0].max())
+    at = pts if COVER_AT is None else pts[COVER_AT]
+    return float(cKDTree(pts[order[:k]]).query(at, workers=-1)[0].max())
 
 
 def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: dict,
@@ -158,7 +165,7 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
         kw["seam_spacing"] = seam
     out = d / f"t{tile_points}.h5"
     t0 = time.perf_counter()
-    with tile_rounds(rounds):
+    with tile_rounds(rounds), state_sizes() as sizes:
         lodbuilder.build_archive(f, out, **kw)
     seconds = time.perf_counter() - t0
     with lodbuilder.open_archive(out) as arc:
@@ -186,8 +193,9 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
         ct, cm = covering(pts, src, k), covering(pts, ref_cache["order"], k)
         sweep.append([k, round(ct / cm, 4), round(cross_min(ref_p[:k], ref_group[:k]) / cm, 4)])
     worst = max((r for r in sweep if r[0] >= h), key=lambda r: r[1])
-    e, partner = cross_pairs(p_stored, group, radius, n - 1)
-    cs = cross_spacing(e, radius, n - 1)  # cs[k - 1]: level of size k
+    upto = n - 1 if COVER_AT is None else top + 1  # (--sample: the levels up to 3 % only)
+    e, partner = cross_pairs(p_stored, group, radius, upto)
+    cs = cross_spacing(e, radius, upto)  # cs[k - 1]: level of size k
     lv = np.arange(max(h, 1), top + 1)
     at = int(lv[np.argmin(cs[lv - 1])])
     halo = float(tiled.get("halo", 0.0))
@@ -201,13 +209,13 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "cover_ratio_worst": worst[1], "cover_ratio_worst_at": worst[0],
             "cover_ratio_below_head": max([r[1] for r in sweep if r[0] < h], default=None),
             "cross_spacing_min": round(float(cs[lv - 1].min()), 4), "cross_spacing_min_at": at,
-            "cross_spacing_min_all": round(float(np.nanmin(cs[h:])), 4),
+            "cross_spacing_min_all": round(float(np.nanmin(cs[h:])), 4) if COVER_AT is None else None,
             "cross_spacing_in_memory": min(r[2] for r in sweep),
             **seam_profile(e, partner, group, tiled.get("tile_colours", []), radius, halo, lv),
             "spacing_over_radius_min": tiled.get("spacing_over_radius_min"),
             "merge_seconds": round(sum(r[5] for r in merge), 3) if merge else None,
             "merge_cpu_seconds": round(sum(r[6] for r in merge), 3) if merge else None,
-            "order_cpu_seconds": round(sum(r[6] for r in order), 3), "rounds": rounds,
+            "order_cpu_seconds": round(sum(r[6] for r in order), 3), "rounds": rounds, **sizes,
             "sweep": sweep}
 
 
@@ -248,6 +256,51 @@ def tile_rounds(rounds: tuple[int, float] | None) -> Iterator[None]:
         yield
     finally:
         R.TILE_ROUNDS = old
+
+
+@contextlib.contextmanager
+def state_sizes() -> Iterator[dict[str, Any]]:
+    """The bytes of every tile's resumable state together (``FastFPSState.nbytes`` summed over the
+    states alive, after each start and each round of a tile): the largest sum, the points of those
+    states (halos included), and the sum once every tile is in the Euclidean tail. The build's
+    tasks run in this process (the executor made inline) so that the states can be seen."""
+    from lodbuilder.build import runner
+    from lodbuilder.sampling import resumable
+
+    out: dict[str, Any] = {}
+    live: dict[int, tuple[int, int, str]] = {}
+    old_start, old_resume, old_ex = resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor
+
+    def note(state: Any) -> None:
+        live[id(state)] = (state.nbytes, state.pts.shape[0], state.phase)
+        total = sum(v[0] for v in live.values())
+        if total > out.get("states_bytes_peak", -1):
+            out["states_bytes_peak"], out["states_points"] = total, sum(v[1] for v in live.values())
+        if all(v[2] == "tail" for v in live.values()):
+            out["states_bytes_tail_peak"] = max(out.get("states_bytes_tail_peak", 0), total)
+
+    def start(*a: Any, **k: Any) -> Any:
+        state = old_start(*a, **k)
+        note(state)
+        return state
+
+    def resume(state: Any, *a: Any, **k: Any) -> Any:
+        o = old_resume(state, *a, **k)
+        note(state)
+        return o
+
+    def inline(*a: Any, **k: Any) -> Any:
+        return old_ex(*a, **{**k, "inline": True})
+
+    resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor = start, resume, inline
+    try:
+        yield out
+    finally:
+        resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor = old_start, old_resume, old_ex
+        if out.get("states_points"):
+            out["states_bytes_per_point"] = round(out["states_bytes_peak"] / out["states_points"], 1)
+            if "states_bytes_tail_peak" in out:
+                out["states_bytes_tail_per_point"] = round(out["states_bytes_tail_peak"] / out["states_points"], 1)
 
 
 def round_costs(f: Path, case: dict[str, Any], rounds: tuple[int, float]) -> dict[str, Any]:
@@ -295,6 +348,8 @@ def round_costs(f: Path, case: dict[str, Any], rounds: tuple[int, float]) -> dic
 def main(argv: list[str] | None = None) -> int:
     from benchdoc import finish, stamp
 
+    from lodbuilder.io.api import read_scan
+
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--n", type=int, default=200_000, help="points of each synthetic input")
     p.add_argument("--thin", type=int, default=2, help="autzen: keep every THIN-th point (2: 220,000 points)")
@@ -309,6 +364,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=0,
                    help="order the tiles in this many radius rounds (lodbuilder.build.tiled.rounds; 0: one pass)")
     p.add_argument("--q", type=float, default=1.1, help="the rounds' radius ratio")
+    p.add_argument("--survey", type=int, nargs=2, default=[2, 2], metavar=("NX", "NY"),
+                   help="autzen: NX x NY copies (3 3 with --thin 1: about 1M points)")
+    p.add_argument("--sample", type=int, default=0,
+                   help="measure the covering at this many random points (a lower bound; 0: every point) "
+                        "and the cross-tile spacing up to the 3 %% level only (for 1M points and more)")
+    p.add_argument("--no-round-costs", action="store_true", help="skip round_costs (the one tile alone)")
     args = p.parse_args(argv)
     rounds = (args.rounds, args.q) if args.rounds else None
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
@@ -316,14 +377,17 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
         d = Path(tmp)
         for name in args.inputs:
-            f = make_input(name, args.n, d, args.thin)
+            f = make_input(name, args.n, d, args.thin, tuple(args.survey))
             ref: dict = {}
+            n_all = len(read_scan(f).points)
+            global COVER_AT
+            COVER_AT = np.sort(np.random.default_rng(0).choice(n_all, args.sample, replace=False)) if args.sample else None
             for tiles in args.tiles:
-                n_est = 440_000 // args.thin if name == "autzen" else args.n
+                n_est = n_all
                 for seam, dec in itertools.product(args.seam_spacing, args.decimation):
                     with coarse_points(n_est // dec if dec else None):
                         case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref, rounds)
-                    if rounds:
+                    if rounds and not args.no_round_costs:
                         case["round_costs"] = round_costs(f, case, rounds)
                     case = {"input": name, "synthetic": name != "autzen", "decimation_asked": dec, **case,
                             "seconds_in_memory": round(ref["seconds"], 2)}
