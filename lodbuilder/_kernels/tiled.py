@@ -574,7 +574,7 @@ TAIL = 0.5
 #: the cells of the tail's grid, in cells of the first phase
 TAIL_GRID = 1.0
 #: most cells of the tail's grid (its cells grow beyond ``cell`` to keep under it)
-TAIL_CELLS = 1 << 24
+TAIL_CELLS = 1 << 22
 
 
 @nb.njit(**JIT)
@@ -718,7 +718,7 @@ def cover_tail(xyz, rank, core, cell, i0, d0, p0, last, ne, npt, ev_rank, ev_val
     res_s = np.empty(m)
     res_p = np.empty(m, np.int64)
     buf_i, buf_d, buf_r = np.empty(256, np.int64), np.empty(256), np.empty(256, np.int64)
-    st_e, st_v = np.empty(4 * m + 16, np.int64), np.empty(4 * m + 16)
+    st_e, st_v = np.empty(m // 2 + 1024, np.int64), np.empty(m // 2 + 1024)  # (grown when full)
     ns = 0
     for q in range(m):
         iq = idx[q]
