@@ -283,15 +283,16 @@ def naive_band_march(band, source: int) -> np.ndarray:
     return dq
 
 
-def prefix_covering_radii(points: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """cr[k] = largest Euclidean distance from any point to the first k points of ``order``
-    (cr[0] = inf), for every k, by inserting the points one at a time (O(N^2))."""
+def prefix_covering_radii(points: np.ndarray, order: np.ndarray, targets: np.ndarray | None = None) -> np.ndarray:
+    """cr[k] = largest Euclidean distance from any point (of ``targets`` when given) to the first k
+    points of ``order`` (cr[0] = inf), for every k, by inserting the points one at a time (O(N^2))."""
     pts = np.asarray(points, dtype=np.float64)
-    best = np.full(pts.shape[0], np.inf)
+    tgt = pts if targets is None else pts[targets]
+    best = np.full(tgt.shape[0], np.inf)
     cr = np.empty(len(order) + 1)
     cr[0] = np.inf
     for k, q in enumerate(order):
-        best = np.minimum(best, np.linalg.norm(pts - pts[q], axis=1))
+        best = np.minimum(best, np.linalg.norm(tgt - pts[q], axis=1))
         cr[k + 1] = best.max()
     return cr
 

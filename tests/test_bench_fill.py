@@ -69,3 +69,39 @@ def test_only_points_over_the_original_surface_are_measured():
     assert bench_fill.over_surface(syn, original, normals, 1.0).tolist() == [1, 1, 1, 1, 0]
     assert bench_fill.over_surface(syn, original, normals, 0.4).tolist() == [1, 1, 1, 0, 0]
     assert bench_fill.over_surface(syn[:0], original, normals, 1.0).shape == (0,)
+
+
+def test_refusing_by_fit_residual_counts_every_hole():
+    """The share is of every hole (unfilled ones and those without a fit count as refused), the
+    error of the filled holes kept."""
+    holes = [
+        {"filled": True, "fit_residual_rho": 0.05, "synthetic_error_max_rho": 0.1},
+        {"filled": True, "fit_residual_rho": 0.18, "synthetic_error_max_rho": 0.6},
+        {"filled": False, "fit_residual_rho": 0.05, "synthetic_error_max_rho": None},
+        {"filled": False, "synthetic_error_max_rho": None},
+    ]
+    out = bench_fill.refusal_tradeoff(holes)
+    assert out["0.1"] == {"holes_filled_percent": 25.0, "synthetic_error_max_rho": 0.1}
+    assert out["0.2"] == {"holes_filled_percent": 50.0, "synthetic_error_max_rho": 0.6}
+    assert bench_fill.refusal_tradeoff([])["0.1"]["synthetic_error_max_rho"] is None
+
+
+def test_a_holes_fit_is_that_of_the_gap_with_most_candidates_in_it():
+    """The gap with synthetic points and the most candidates within r + rho of the hole's
+    centre names the fit; none: no entry."""
+    from types import SimpleNamespace
+
+    from lodbuilder.fill.surface import HeightField
+
+    flat = HeightField(np.random.default_rng(0).uniform(-5, 5, (50, 2)), np.zeros(50), 1.0)
+
+    def gap(x, n_syn, residual):
+        cand = np.c_[np.full(10, x), np.zeros((10, 2))]
+        return SimpleNamespace(
+            candidates=cand, n_synthetic=n_syn, implicit=False, surface=flat, residual=residual
+        )
+
+    report = SimpleNamespace(gaps=[gap(0.0, 3, 0.2), gap(0.5, 0, 0.3), gap(9.0, 5, 0.4)])
+    out = bench_fill.hole_fit(report, np.zeros(3), 1.0, 1.0)
+    assert out == {"fit": "thin_plate_spline", "fit_residual_rho": 0.2}
+    assert bench_fill.hole_fit(report, np.array([50.0, 0, 0]), 1.0, 1.0) == {}

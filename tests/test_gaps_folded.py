@@ -197,3 +197,63 @@ def test_a_hole_at_the_bottom_of_a_steep_trough_is_filled_on_it(seed):
     assert gap.status == "fillable" and gap.implicit, gap.reason
     assert np.linalg.norm(gap.candidates.mean(axis=0)) < RHO
     assert trough_distance(gap.candidates).max() < 0.25 * RHO
+
+
+class _Counted:
+    """An implicit surface that counts the points it is evaluated at."""
+
+    def __init__(self, surface: ImplicitSurface) -> None:
+        self.surface, self.calls, self.scale = surface, 0, surface.scale
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self.calls += x.shape[0]
+        return self.surface(x)
+
+    def project(self, x: np.ndarray) -> np.ndarray:
+        return self.surface.project(x)
+
+
+@pytest.mark.parametrize("shape", ["sphere", "torus"])
+def test_the_zero_set_is_found_coarse_to_fine_as_on_the_whole_grid(rng, shape):
+    """The crossed cells (and their points) of the coarse-to-fine evaluation are those of the
+    evaluation at every node of the ball, on a sphere cap and a torus, with the function
+    evaluated at under half of the ball's nodes; unprojected, the cells' points lie within a
+    cell's diagonal of the zero set's."""
+    if shape == "sphere":
+        v = rng.normal(size=(3000, 3))
+        pts = v / np.linalg.norm(v, axis=1, keepdims=True)
+        nrm, centre = pts, np.array([0.0, 0.0, 1.0])
+    else:  # a torus of radii 1 and 0.3 round z, the ball over its outer equator
+        u, w = rng.uniform(0, 2 * np.pi, (2, 4000))
+        ring = np.c_[np.cos(u), np.sin(u), np.zeros_like(u)]
+        nrm = np.cos(w)[:, None] * ring + np.sin(w)[:, None] * np.array([0.0, 0.0, 1.0])
+        pts, centre = ring + 0.3 * nrm, np.array([1.3, 0.0, 0.0])
+    keep = np.linalg.norm(pts - centre, axis=1) < 0.6
+    surf = ImplicitSurface(pts[keep][:300], nrm[keep][:300], 0.05)
+    full, fast = _Counted(surf), _Counted(surf)
+    ijk1, p1, s1, shape1 = zero_set_cells(full, centre, 0.3, 0.0125, coarse=())
+    ijk2, p2, s2, shape2 = zero_set_cells(fast, centre, 0.3, 0.0125)
+    assert ijk1.shape[0] > 500 and shape1 == shape2
+    assert np.array_equal(ijk1, ijk2) and np.array_equal(s1, s2)
+    assert np.allclose(p1, p2, rtol=0, atol=1e-9)
+    assert fast.calls < full.calls / 2
+    # unprojected, each cell's point lies within its diagonal of the projected one (folded.py
+    # projects only those that may end farther than rho/2 from the input, by this margin)
+    _, p3, _, _ = zero_set_cells(surf, centre, 0.3, 0.0125, project=False)
+    assert np.linalg.norm(p3 - p2, axis=1).max() < np.sqrt(3.0) * 0.0125
+
+
+def test_projecting_onto_an_implicit_sphere_takes_eight_evaluations_per_point(rng):
+    """Points up to rho/2 off a unit sphere (fitted with rho 0.05) land within rho/1000 of its
+    zero set, in two Newton steps of four evaluations of f per point (central differences
+    took seven per step)."""
+    v = rng.normal(size=(2000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    surf = ImplicitSurface(v, v, 0.05)
+    q = rng.normal(size=(100, 3))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= 1.0 + rng.uniform(-0.025, 0.025, (100, 1))
+    counted = _Counted(surf)
+    moved = ImplicitSurface.project(counted, q)  # (its own project, through the counter)
+    assert counted.calls == 8 * 100
+    assert np.abs(surf(moved)).max() < 0.05e-3

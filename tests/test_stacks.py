@@ -116,3 +116,29 @@ def test_the_planned_band_keeps_the_pieces_of_its_final_costs(kind):
     assert band.pieces[1] == npiece
     assert np.array_equal(band.pieces[0], piece)
     assert fastfps(pts).stats["pieces"] == npiece
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nearest_corners_since_agrees_with_a_full_recompute(seed):
+    """nearest_corners_since (only the cells whose corners changed are looked at again) gives
+    exactly nearest_corners of the new costs: for the one-sided band and the cut of a stack, and
+    for random voxels dropped from (and some put back into) the band."""
+    from lodbuilder._kernels.topology import nearest_corners, nearest_corners_since
+
+    pts, _ = stack(3, 4.0, n=8000, seed=seed)
+    h, r = choose_parameters(pts, None, None)
+    plan = _thin_plan(pts, h, r)
+    band = build_band(pts, h, r)
+    side, side_near = one_sided(band, plan.normal, plan.separation, plan.radius, 0.2)
+    np.testing.assert_array_equal(side_near, nearest_corners(band.u, band.nbr, band.cs, side))
+    cut, cut_near = cut_between_sheets(band, side, plan, side_near)
+    np.testing.assert_array_equal(cut_near, nearest_corners(band.u, band.nbr, band.cs, cut))
+    rng = np.random.default_rng(seed)
+    new = band.vcost.copy()
+    new[rng.random(new.shape[0]) < 0.6] = np.inf
+    back = rng.random(new.shape[0]) < 0.05
+    new[back] = 1.0  # (corners outside the band made marchable: the rule does not care why)
+    got = nearest_corners_since(band.u, band.nbr, band.cs, new, band.vcost, band.near)
+    want = nearest_corners(band.u, band.nbr, band.cs, new)
+    assert (want == 255).any() and (want != band.near).any()
+    np.testing.assert_array_equal(got, want)

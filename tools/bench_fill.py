@@ -405,6 +405,7 @@ def real_part(
                     # found and filled: synthetic points in it, its surface covered within 1.5 rho
                     "filled": bool(s.any() and cover <= FOUND_COVER),
                     **oracle_errors(original, faces, normals, np.flatnonzero(m), nc, rho),
+                    **hole_fit(filled.report, c, r, rho),
                 }
             )
         runs.append(
@@ -472,8 +473,47 @@ def real_part(
         ),
         "synthetic_error_in_balls_every_seed_rho": every,
         "oracle": oracle_summary(holes),
+        "refusing_by_fit_residual": refusal_tradeoff(holes),
         "runs": runs,
     }
+
+
+def hole_fit(report, centre: np.ndarray, radius: float, rho: float) -> dict:
+    """How the hole was filled: the surface of the filled gap with the most synthetic points
+    within ``radius + rho`` of its ``centre`` (a height field's spline, or ``implicit``) and
+    its cross-validated residual (the fit predicting the inner ring of each sixth of the ring
+    from the other five, RMS, in rho)."""
+    best, most = None, 0
+    for g in report.gaps:
+        n = int((np.linalg.norm(g.candidates - centre, axis=1) < radius + rho).sum())
+        if g.n_synthetic and n > most:
+            best, most = g, n
+    if best is None:
+        return {}
+    fit = "implicit" if best.implicit else best.surface.kernel
+    return {"fit": fit, "fit_residual_rho": round(float(best.residual / rho), 3)}
+
+
+#: residual thresholds (rho) of :func:`refusal_tradeoff`
+REFUSE_AT = (0.1, 0.15, 0.2, 0.25)
+
+
+def refusal_tradeoff(holes: list[dict]) -> dict:
+    """What refusing every hole whose fit residual exceeds a threshold would give: the share
+    of all holes still filled and the largest synthetic error of those (in rho)."""
+    out = {}
+    for t in REFUSE_AT:
+        kept = [
+            h
+            for h in holes
+            if h["filled"] and h.get("fit_residual_rho") is not None and h["fit_residual_rho"] <= t
+        ]
+        errs = [h["synthetic_error_max_rho"] for h in kept]
+        out[f"{t:g}"] = {
+            "holes_filled_percent": round(100.0 * len(kept) / max(len(holes), 1), 1),
+            "synthetic_error_max_rho": max(errs) if errs else None,
+        }
+    return out
 
 
 def oracle_summary(holes: list[dict]) -> dict:
@@ -593,6 +633,18 @@ def markdown(result: dict) -> str:
                 + ", ".join(
                     f"{k} {100 * v['share_within_0.25']:.0f} % / {v['max']}"
                     for k, v in oracle.items()
+                )
+                + ".",
+            ]
+        trade = real.get("refusing_by_fit_residual")
+        if trade:
+            lines += [
+                "",
+                "Refusing the holes whose fit residual (cross-validated on the ring, RMS) exceeds "
+                "t rho would leave, t: holes filled / largest synthetic error: "
+                + ", ".join(
+                    f"{k}: {v['holes_filled_percent']} % / {v['synthetic_error_max_rho']}"
+                    for k, v in trade.items()
                 )
                 + ".",
             ]

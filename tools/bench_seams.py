@@ -21,12 +21,22 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
   a survey's (21.56M -> 400,000: 54; the cell grid gives 1 in 25-40 at 200,000 points).
 * ``merge_seconds``: the merge's tasks' durations summed (the seam repair and the bands) from the
   build record (``task_seconds``), per million points.
+* ``order_cpu_seconds``: the CPU seconds of the order phase's tasks (every ``order_tile``, or the one
+  ``order_rounds``), from the same table.
+* With ``--rounds R --q Q``: the tiles ordered in R radius rounds of ratio Q
+  (:mod:`lodbuilder.build.tiled.rounds`, private), and ``round_costs``: one tile (the first box and
+  its halo) ordered alone by :mod:`lodbuilder.sampling.resumable` in those rounds without sources:
+  the largest bytes of its state in the grid phase and in the tail, and the CPU seconds (least of
+  3) of one ordering (``cpu_one``), of the rounds with the state kept (``cpu_rounds_kept``) and of
+  the rounds by restarts (``cpu_restarts``: one ordering down to each round's radius, then one to
+  the end).
 
 Inputs (``--inputs``): ``autzen`` (the real autzen_trim.laz tiled 2 x 2 by tools/make_survey.py,
 every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of tools/bench_inputs.py),
 ``fragmented`` (the synthetic scene of tools/make_fragmented.py).
 
     python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5 --decimation 0 54
+    python tools/bench_seams.py --n 200000 --tiles 16 --inputs uniform --seam-spacing 0 --rounds 21 --q 1.1
 """
 
 from __future__ import annotations
@@ -139,7 +149,8 @@ def covering(pts: np.ndarray, order: np.ndarray, k: int) -> float:
     return float(cKDTree(pts[order[:k]]).query(pts, workers=-1)[0].max())
 
 
-def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: dict) -> dict[str, Any]:
+def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: dict,
+             rounds: tuple[int, float] | None = None) -> dict[str, Any]:
     import lodbuilder
 
     kw: dict[str, Any] = {"_tile_points": tile_points, "workers": 1}
@@ -147,7 +158,8 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
         kw["seam_spacing"] = seam
     out = d / f"t{tile_points}.h5"
     t0 = time.perf_counter()
-    lodbuilder.build_archive(f, out, **kw)
+    with tile_rounds(rounds):
+        lodbuilder.build_archive(f, out, **kw)
     seconds = time.perf_counter() - t0
     with lodbuilder.open_archive(out) as arc:
         v = arc.scan()
@@ -180,9 +192,10 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
     at = int(lv[np.argmin(cs[lv - 1])])
     halo = float(tiled.get("halo", 0.0))
     merge = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ("seam_repair", "merge_band")]
+    order = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ("order_tile", "order_rounds")]
     return {"n": n, "tile_points": tile_points, "tiles": tiled.get("tiles"), "head_points": h,
             "coarse_points": tiled.get("coarse_points"), "decimation": round(n / max(int(tiled.get("coarse_points", 1)), 1), 1),
-            "halo": round(halo, 6), "head_radius": round(float(tiled.get("head_radius", 0.0)), 6),
+            "halo": round(halo, 6), "tile_boxes": boxes, "head_radius": round(float(tiled.get("head_radius", 0.0)), 6),
             "seam_alpha": tiled.get("seam_alpha"), "seam_points": tiled.get("seam_points"),
             "seam_deferrals": tiled.get("seam_deferrals"), "seconds_tiled": round(seconds, 2),
             "cover_ratio_worst": worst[1], "cover_ratio_worst_at": worst[0],
@@ -194,6 +207,7 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "spacing_over_radius_min": tiled.get("spacing_over_radius_min"),
             "merge_seconds": round(sum(r[5] for r in merge), 3) if merge else None,
             "merge_cpu_seconds": round(sum(r[6] for r in merge), 3) if merge else None,
+            "order_cpu_seconds": round(sum(r[6] for r in order), 3), "rounds": rounds,
             "sweep": sweep}
 
 
@@ -223,6 +237,61 @@ def coarse_points(m: int | None) -> Iterator[None]:
         driver.COARSE_POINTS = old
 
 
+@contextlib.contextmanager
+def tile_rounds(rounds: tuple[int, float] | None) -> Iterator[None]:
+    """Builds in this block order their tiles in radius rounds (R, q) (None: in one pass)."""
+    from lodbuilder.build.tiled import rounds as R
+
+    old = R.TILE_ROUNDS
+    R.TILE_ROUNDS = rounds
+    try:
+        yield
+    finally:
+        R.TILE_ROUNDS = old
+
+
+def round_costs(f: Path, case: dict[str, Any], rounds: tuple[int, float]) -> dict[str, Any]:
+    """One tile of ``case`` (its first box and the halo around it) ordered alone, in rounds: the
+    bytes of its state (largest over the rounds; in the grid phase and in the tail) and the CPU
+    seconds of its rounds against one ordering of it (no sources: the engine's cost of stopping
+    and going on) and against restarting the ordering at every round (what the rounds cost
+    without a kept state: an ordering down to each round's radius)."""
+    from lodbuilder.io.api import read_scan
+    from lodbuilder.sampling.fastfps import fastfps
+    from lodbuilder.sampling.resumable import resume_fastfps, start_fastfps
+
+    pts = np.asarray(read_scan(f).points, dtype=np.float64)
+    box = np.asarray(case["tile_boxes"][0])
+    halo = case["halo"]
+    pts = pts[np.all((pts >= box[:3] - halo) & (pts <= box[3:] + halo), axis=1)]
+    radii = [case["head_radius"] / rounds[1] ** p for p in range(1, rounds[0] + 1)] + [None]
+    size = {"grid": 0, "tail": 0}
+
+    def kept() -> None:
+        state = start_fastfps(pts)
+        for rho in radii:
+            resume_fastfps(state, rho=rho)
+            size[state.phase] = max(size[state.phase], state.nbytes)
+
+    kept()  # (warm: the resumable kernels loaded from numba's cache in this process)
+    cpu = {"one": np.inf, "kept": np.inf, "restarts": np.inf}
+    for _ in range(3):  # (the least of 3, alternated)
+        c0 = time.process_time()
+        one = fastfps(pts)
+        c1 = time.process_time()
+        kept()
+        c2 = time.process_time()
+        for rho in radii[:-1]:
+            fastfps(pts, rho=rho)
+        c3 = time.process_time()
+        for k, v in (("one", c1 - c0), ("kept", c2 - c1), ("restarts", c3 - c2 + c1 - c0)):
+            cpu[k] = min(cpu[k], v)
+    return {"points": int(len(pts)), "state_bytes_grid": size["grid"], "state_bytes_tail": size["tail"],
+            "bytes_per_point": round(max(size.values()) / len(pts), 1), "cpu_one": round(cpu["one"], 3),
+            "cpu_rounds_kept": round(cpu["kept"], 3), "cpu_restarts": round(cpu["restarts"], 3),
+            "grid_points_of_one": one.stats["grid_points"]}
+
+
 def main(argv: list[str] | None = None) -> int:
     from benchdoc import finish, stamp
 
@@ -237,7 +306,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="build with a decimated copy (the coarse level's input) of about n / D points, as a "
                         "survey's (21.56M points -> 400,000: 54); 0: the library's choice (it asks for n / 8 at "
                         "these sizes and its cell grid gives 1 point in 4-6)")
+    p.add_argument("--rounds", type=int, default=0,
+                   help="order the tiles in this many radius rounds (lodbuilder.build.tiled.rounds; 0: one pass)")
+    p.add_argument("--q", type=float, default=1.1, help="the rounds' radius ratio")
     args = p.parse_args(argv)
+    rounds = (args.rounds, args.q) if args.rounds else None
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
     doc["cases"] = []
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
@@ -249,11 +322,13 @@ def main(argv: list[str] | None = None) -> int:
                 n_est = 440_000 // args.thin if name == "autzen" else args.n
                 for seam, dec in itertools.product(args.seam_spacing, args.decimation):
                     with coarse_points(n_est // dec if dec else None):
-                        case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref)
+                        case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref, rounds)
+                    if rounds:
+                        case["round_costs"] = round_costs(f, case, rounds)
                     case = {"input": name, "synthetic": name != "autzen", "decimation_asked": dec, **case,
                             "seconds_in_memory": round(ref["seconds"], 2)}
                     doc["cases"].append(case)
-                    print(json.dumps({k: v for k, v in case.items() if k != "sweep"}), file=sys.stderr)
+                    print(json.dumps({k: v for k, v in case.items() if k not in ("sweep", "tile_boxes")}), file=sys.stderr)
     print(json.dumps(finish(doc), indent=1))
     return 0
 

@@ -11,6 +11,7 @@ compile too: run it twice).
 
     python tools/profile_kernels.py ../shared/data/igea.ply
     python tools/profile_kernels.py stack.ply --top 20 --frequency 999
+    python tools/profile_kernels.py stack.ply --build     # the whole ``lodbuilder build`` process
 """
 
 from __future__ import annotations
@@ -104,6 +105,22 @@ def child(path: str) -> None:
     print(json.dumps({"mapped_symbols": mapped, "cpu_s": time.process_time() - c0, "stats": stats}))
 
 
+def build_child(path: str) -> None:
+    """``--build``: in the profiled process, ``lodbuilder build`` of the file as the command runs it
+    (start-up, imports, kernel loading, read, ordering, write); the perf map is written at the end
+    (perf reads it when it reports)."""
+    objects: dict[str, bytes] = {}
+    c0 = time.process_time()
+    _capture_objects(objects)
+    from lodbuilder.cli.main import main as cli
+
+    with tempfile.TemporaryDirectory() as tmp:
+        sys.argv = ["lodbuilder", "build", path, "-o", str(Path(tmp) / "a.h5"), "--no-progress", "-q"]
+        cli()
+    mapped = _write_map(objects)
+    print(json.dumps({"mapped_symbols": mapped, "cpu_s": time.process_time() - c0}))
+
+
 def shares(data: Path, top: int) -> list[dict[str, Any]]:
     """The ``top`` symbols by share of the samples (perf report, self time)."""
     rep = subprocess.run(
@@ -124,16 +141,18 @@ def main() -> None:
     ap.add_argument("points", help="a points file lodbuilder reads (PLY, LAS/LAZ, E57, ...)")
     ap.add_argument("--top", type=int, default=25, help="symbols listed")
     ap.add_argument("--frequency", type=int, default=499, help="perf samples per second")
+    ap.add_argument("--build", action="store_true",
+                    help="profile the whole `lodbuilder build` process of the file instead of the ordering")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        child(args.points)
+        (build_child if args.build else child)(args.points)
         return
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "perf.data"
         res = subprocess.run(
             ["perf", "record", "-F", str(args.frequency), "-o", str(data), "--",
-             sys.executable, __file__, "--child", args.points],
+             sys.executable, __file__, "--child", args.points, *(["--build"] if args.build else [])],
             capture_output=True, text=True,
         )
         if res.returncode:

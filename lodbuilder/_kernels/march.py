@@ -13,7 +13,8 @@ sample: a new sample marches only where it lowers ``T``. The front pops the smal
 among equal T (float32 ties happen), the smaller voxel index first: which of two tied voxels in line
 is accepted first decides whether a neighbour's update is second order.
 
-Seeding: the voxels within SEED_RADIUS of a new sample, connected to its nearest voxel inside that
+Seeding: the voxels within SEED_RADIUS of a new sample (less late in the ordering: see
+:func:`seed_reach`), connected to its nearest voxel inside that
 ball, that also *see* the sample get their exact distance, and so do the points of their cells. A
 voxel sees the sample when the voxel one step back toward the sample's nearest voxel does (taken in
 order of distance from it): the straight segment then stays in the band, so no exact distance is given across a gap
@@ -57,6 +58,7 @@ from .pieces import piece_tables, refresh_piece
 from .topology import _cell_key, anchor_of, cell_tables
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
+SEED_SLACK = 1.75  # > sqrt(3): every corner of a cell holding a point within r of a sample is within r + this
 SEED_QUEUE = 4096  # > the 905 voxel centres of a ball of radius 6
 HALF = 8  # the ball's voxels lie within HALF of the sample's nearest voxel along each axis
 CUBE = 2 * HALF + 1
@@ -188,13 +190,28 @@ def seed_scratch():  # pragma: no cover - compiled
     )
 
 
+@nb.njit(**INLINE)
+def seed_reach(rad, cmin, weighted):  # pragma: no cover - compiled
+    """The radius of the exact seeding of a sample entering at radius ``rad`` (grid units; least
+    point cost ``cmin`` when ``weighted``): SEED_RADIUS, or less once every unordered point's value
+    is at most ``rad``. A sample only lowers a point whose value dq (<= its candidate value <=
+    ``rad``, the largest one) is above the point's distance to it (its weighted distance: at least
+    cmin x the distance), so the points it can lower lie within rad (/ cmin); the corners of their
+    cells lie within SEED_SLACK more, and they all get their exact distance from a ball of that
+    radius as from the full one. Only voxels farther out, which give such points no value, are
+    left to the march."""
+    reach = rad / cmin if weighted else rad
+    return min(np.float64(SEED_RADIUS), reach + SEED_SLACK)
+
+
 @nb.njit(**JIT)
 def _seed_sample(
     i, lb, mark, rnd, acc, u, keys, nbr, cs, cellof, vcost, pcost, weighted, foot, pnrm, slope, thin,
-    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, n, scratch,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, n, scratch, reach,
 ):  # pragma: no cover - compiled
-    """Seed the front of sample ``i`` (label ``lb``): exact distances in the ball of SEED_RADIUS
-    around it (see the module docstring); returns the front heap's new size and the dirty count."""
+    """Seed the front of sample ``i`` (label ``lb``): exact distances in the ball of radius
+    ``reach`` (at most SEED_RADIUS) around it (see the module docstring); returns the front heap's
+    new size and the dirty count."""
     qv, qx, qy, qz, qd, cube, vis, srt, nbk = scratch
     ci = 1.0
     if weighted:
@@ -222,7 +239,7 @@ def _seed_sample(
     sx = u[i, 0] - x0
     sy = u[i, 1] - y0
     sz = u[i, 2] - z0
-    # the marchable voxels within SEED_RADIUS connected to v0 inside the ball (breadth first;
+    # the marchable voxels within the reach connected to v0 inside the ball (breadth first;
     # ``cube`` maps the voxels near v0 to their place in the queue, -1 when not taken; a
     # neighbour's coordinates are its voxel's plus one step, no decoding)
     cube[HALF + CUBE * (HALF + CUBE * HALF)] = 0
@@ -247,7 +264,7 @@ def _seed_sample(
             cw = (x + HALF) + CUBE * ((y + HALF) + CUBE * (z + HALF))
             if cube[cw] >= 0:
                 continue
-            if _norm(sx - x, sy - y, sz - z) <= SEED_RADIUS:
+            if _norm(sx - x, sy - y, sz - z) <= reach:
                 cube[cw] = qn
                 qv[qn] = w
                 qx[qn] = x
@@ -338,9 +355,12 @@ def _seed_sample(
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug, mark0, reach,
 ):  # pragma: no cover - compiled
-    """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T.
+    """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T
+    (exact distances within ``reach`` of each source: see :func:`seed_reach`).
+    ``mark0 + s`` marks the cells seeded from source s (unique over the ordering: ``rnd * len(src)``
+    for one source a round, negative for the bulk rounds of :func:`grid_loop`).
 
     Updates dq/lq of points near lowered voxels and appends their cells to ``dirty``; returns the
     new count of dirty cells and the number of pops. Where sheets come close (``pnrm``: per point
@@ -355,9 +375,9 @@ def march_round(
     n = np.int64(0)  # not a literal: a literal argument compiles another version of a helper
     for s in range(src.shape[0]):
         n, nd = _seed_sample(
-            np.int64(src[s]), np.int32(lab + s), np.int32(rnd * src.shape[0] + s), rnd, acc, u, keys, nbr, cs,
+            np.int64(src[s]), np.int32(lab + s), np.int32(mark0 + s), rnd, acc, u, keys, nbr, cs,
             cellof, vcost, pcost, weighted, foot, pnrm, slope, thin, ts, vlab, dq, lq, rank, dstamp,
-            cmark, dirty, nd, hkv, hpos, n, scratch,
+            cmark, dirty, nd, hkv, hpos, n, scratch, reach,
         )
     pops = 0
     while n > 0:
@@ -539,6 +559,40 @@ def march_round(
 
 
 @nb.njit(**JIT)
+def grid_state(u, keys, cs, k_max, tseed, piece, npiece):  # pragma: no cover - compiled
+    """The state of a grid-phase ordering before its first point (:func:`grid_loop` goes on from
+    it): a tuple of arrays, the last one the counters (points ordered, candidate heap size,
+    piece refreshes, pops)."""
+    m = u.shape[0]
+    nv = keys.shape[0]
+    cellv, cellof = cell_tables(cs)
+    ncell = cellv.shape[0]
+    val = np.full(m, np.inf)
+    ckey = np.full(ncell, np.inf)  # heap order
+    heap = np.arange(ncell).astype(np.int32)
+    hpos = np.empty(ncell, np.int32)
+    maxheap_build(ckey, heap, hpos, ncell)
+    for j in range(tseed.shape[0]):
+        val[tseed[j]] = -1.0  # never a candidate
+    pstart, pidx, pbox = piece_tables(piece, npiece, u)
+    ctr = np.zeros(5, np.int64)  # k, hn, nref, pops, sources marched in bulk
+    ctr[1] = ncell
+    return (
+        np.full(nv, T_INF, np.int64),  # 0 ts: packed voxel state, arrival time T and round stamp
+        np.full(nv, -1, np.int32),  # 1 vlab
+        cellv, cellof,  # 2, 3
+        np.full(m, np.inf), val, np.full(m, -1, np.int32), np.full(m, -1, np.int32),  # 4 dq, 5 val, 6 lq, 7 rank
+        np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32), np.empty(ncell, np.int32),  # 8 dstamp, 9 cmark, 10 dirty
+        ckey, heap, hpos,  # 11, 12, 13
+        np.empty(nv, np.int64), np.full(nv, -1, np.int32),  # 14 hkv, 15 hpos_v: the front heap
+        np.empty(k_max, np.int32), np.empty(k_max, np.float64), np.empty(k_max, np.int32),  # 16 order, radius, parent
+        np.zeros(npiece, np.bool_), np.zeros(npiece, np.int64), np.full(npiece, np.inf),  # 19 awake, psync, pmax
+        pstart, pidx, pbox, np.full(ncell, -1, np.int64),  # 22, 23, 24, 25 pmark
+        ctr,  # 26
+    )
+
+
+@nb.njit(**JIT)
 def grid_phase(
     u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
     r_stop, debug, tseed, tkey, tpos, piece, npiece,
@@ -564,47 +618,68 @@ def grid_phase(
     Before returning, every dormant piece is refreshed (the tail and the stop radius see exact
     values).
     """
-    m = u.shape[0]
-    nv = keys.shape[0]
-    ts = np.full(nv, T_INF, np.int64)  # packed voxel state: arrival time T and round stamp
-    vlab = np.full(nv, -1, np.int32)
-    cellv, cellof = cell_tables(cs)
-    ncell = cellv.shape[0]
-    dq = np.full(m, np.inf)
-    val = np.full(m, np.inf)
-    lq = np.full(m, -1, np.int32)
-    rank = np.full(m, -1, np.int32)
-    dstamp = np.full(ncell, -1, np.int32)
-    cmark = np.full(ncell, -1, np.int32)
-    dirty = np.empty(ncell, np.int32)
-    ckey = np.full(ncell, np.inf)  # heap order
-    heap = np.arange(ncell).astype(np.int32)
-    hpos = np.empty(ncell, np.int32)
-    hn = ncell
-    maxheap_build(ckey, heap, hpos, hn)
-    hkv = np.empty(nv, np.int64)
-    hpos_v = np.full(nv, -1, np.int32)
-    order = np.empty(k_max, np.int32)
-    radius = np.empty(k_max, np.float64)
-    parent = np.empty(k_max, np.int32)
-    src = np.empty(1, np.int32)
-    scratch = seed_scratch()
-    nd0 = np.int64(0)
-    pops = 0
-    k = 0
-    nseed = seeds.shape[0]
-    nt = tseed.shape[0]
-    for j in range(nt):
-        val[tseed[j]] = -1.0  # never a candidate
-    awake = np.zeros(npiece, np.bool_)
-    psync = np.zeros(npiece, np.int64)
-    pmax = np.full(npiece, np.inf)
-    pstart, pidx, pbox = piece_tables(piece, npiece, u)
-    pmark = np.full(ncell, -1, np.int64)
+    st = grid_state(u, keys, cs, k_max, tseed, piece, npiece)
+    bad = grid_loop(
+        u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
+        r_stop, debug, tseed, tkey, tpos, piece, npiece, st, False,
+    )
+    ctr = st[26]
+    if bad < 0:
+        return st[16], st[17], st[18], ctr[0], st[5], st[6], st[7], bad  # debug: a broken heap
+    grid_wake_all(u, cs, pcost, weighted, npiece, st)
+    return st[16], st[17], st[18], ctr[0], st[5], st[6], st[7], ctr[3]
+
+
+@nb.njit(**JIT)
+def grid_wake_all(u, cs, pcost, weighted, npiece, st):  # pragma: no cover - compiled
+    """Refresh every dormant piece of state ``st``: exact values for the tail and the stop radius."""
+    cellv, cellof, val, lq, rank = st[2], st[3], st[5], st[6], st[7]
+    ckey, heap, hpos, order = st[11], st[12], st[13], st[16]
+    awake, psync, pmax, pstart, pidx, pbox, pmark, ctr = st[19], st[20], st[21], st[22], st[23], st[24], st[25], st[26]
     cmin = 1.0
     if weighted:
         cmin = pcost.min()
-    nref = 0
+    k = np.int64(ctr[0])
+    hn = np.int64(ctr[1])
+    nref = ctr[2]
+    for c in range(npiece):
+        if not awake[c] and psync[c] < k:
+            refresh_piece(
+                c, k, order, u, val, lq, rank, pstart, pidx, pbox, psync, pmax, weighted, pcost,
+                cmin, cs, cellv, cellof, ckey, heap, hpos, hn, pmark, np.int64(nref),
+            )
+            nref += 1
+    ctr[2] = nref
+
+
+@nb.njit(**JIT)
+def grid_loop(
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, seeds, k_max, rho_stop,
+    r_stop, debug, tseed, tkey, tpos, piece, npiece, st, bulk,
+):  # pragma: no cover - compiled
+    """The loop of :func:`grid_phase` on state ``st`` (:func:`grid_state`), from where it stopped
+    until ``k_max`` points, ``rho_stop`` or ``r_stop``: stopping and going on with the same
+    arguments orders as one call does. With ``bulk``, the timed seeds due at once (key at least the
+    largest candidate distance) join together and their fronts are marched as one (one march over
+    the band instead of one each; the values are the same kind of upper bounds, not the same
+    numbers). Returns 0, or -1 / -2 when a debug check found the front / candidate heap broken."""
+    ts, vlab, cellv, cellof, dq, val, lq, rank = st[0], st[1], st[2], st[3], st[4], st[5], st[6], st[7]
+    dstamp, cmark, dirty, ckey, heap, hpos, hkv, hpos_v = st[8], st[9], st[10], st[11], st[12], st[13], st[14], st[15]
+    order, radius, parent, awake, psync, pmax = st[16], st[17], st[18], st[19], st[20], st[21]
+    pstart, pidx, pbox, pmark, ctr = st[22], st[23], st[24], st[25], st[26]
+    src = np.empty(1, np.int32)
+    scratch = seed_scratch()
+    nd0 = np.int64(0)
+    k = np.int64(ctr[0])
+    hn = np.int64(ctr[1])
+    nref = ctr[2]
+    pops = ctr[3]
+    nseed = seeds.shape[0]
+    nt = tseed.shape[0]
+    cmin = 1.0
+    if weighted:
+        cmin = pcost.min()
+    bad = 0
     while k < k_max:
         if k < nseed:
             i = seeds[k]
@@ -619,6 +694,16 @@ def grid_phase(
             timed = tpos[0] < nt and tkey[tpos[0]] >= kk and tkey[tpos[0]] >= r_stop and tkey[tpos[0]] > rho_stop
             if not timed and (kk < 0.0 or kk <= rho_stop or kk < r_stop):
                 break
+            if timed and bulk:
+                k, nd = _bulk_timed(
+                    k, k_max, max(kk, r_stop), rho_stop, tseed, tkey, tpos, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot,
+                    pnrm, slope, ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius,
+                    parent, awake, piece, ctr,
+                )
+                _lower_dirty(nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn)
+                while hn > 0 and ckey[0] < 0.0:
+                    hn = maxheap_pop(ckey, heap, hpos, hn)
+                continue
             if timed:
                 i = tseed[tpos[0]]
                 rad = tkey[tpos[0]]
@@ -661,10 +746,12 @@ def grid_phase(
         src[0] = i
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-            ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug,
+            ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug, np.int64(k + 1),
+            seed_reach(rad, cmin, weighted),
         )
         if pp < 0:
-            return order, radius, parent, k, val, lq, rank, np.int64(-1)  # debug: a broken heap
+            bad = -1  # debug: a broken heap
+            break
         pops += pp
         for j in range(nd):
             cc = dirty[j]
@@ -688,16 +775,75 @@ def grid_phase(
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
         if debug and not check_maxheap(ckey, heap, hpos, hn):
-            return order, radius, parent, k, val, lq, rank, np.int64(-2)  # debug: a broken heap
+            bad = -2  # debug: a broken heap
+            break
         k += 1
-    for c in range(npiece):  # exact values for the tail and the stop radius
-        if not awake[c] and psync[c] < k:
-            refresh_piece(
-                c, k, order, u, val, lq, rank, pstart, pidx, pbox, psync, pmax, weighted, pcost,
-                cmin, cs, cellv, cellof, ckey, heap, hpos, hn, pmark, np.int64(nref),
-            )
-            nref += 1
-    return order, radius, parent, k, val, lq, rank, pops
+    ctr[0] = k
+    ctr[1] = hn
+    ctr[2] = nref
+    ctr[3] = pops
+    return bad
+
+
+@nb.njit(**JIT)
+def _lower_dirty(
+    nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn,
+):  # pragma: no cover - compiled
+    """The candidate values of the unordered points of the ``nd`` dirty cells after a march, and
+    their cells' keys (as the loop of :func:`grid_loop` does after each sample)."""
+    for j in range(nd):
+        cc = dirty[j]
+        w = cellv[cc]
+        best = -1.0
+        for p in range(cs[w], cs[w + 1]):
+            if rank[p] >= 0:
+                continue
+            if dq[p] < val[p]:
+                s = order[lq[p]]
+                e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
+                if weighted:
+                    e *= 0.5 * (pcost[p] + pcost[s])
+                cand = dq[p] if dq[p] > e else e
+                if cand < val[p]:
+                    val[p] = cand
+            if val[p] > best:
+                best = val[p]
+        maxheap_decrease(ckey, heap, hpos, cc, best, hn)
+
+
+@nb.njit(**JIT)
+def _bulk_timed(
+    k, k_max, kk, rho_stop, tseed, tkey, tpos, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake, piece, ctr,
+):  # pragma: no cover - compiled
+    """Order the timed seeds due at once (key >= ``kk``) from position ``k`` on and march their
+    fronts together (see :func:`grid_loop`); returns the new count and the dirty cells' count."""
+    j0 = tpos[0]
+    j1 = j0
+    while j1 < tseed.shape[0] and tkey[j1] >= kk and tkey[j1] > rho_stop and k + (j1 - j0) < k_max:
+        j1 += 1
+    ns = j1 - j0
+    src = np.empty(ns, np.int32)
+    for s in range(ns):
+        i = tseed[j0 + s]
+        src[s] = i
+        rank[i] = k + s
+        order[k + s] = i
+        radius[k + s] = tkey[j0 + s]
+        parent[k + s] = -1
+        awake[piece[i]] = True
+    tpos[0] = j1
+    # the seeded cells' marks: from -(1 + c + ns) to -(2 + c) (c: sources marched in bulk before,
+    # ctr[4]), below every single round's mark (>= 1) and the cells' initial -1
+    mark0 = -(np.int64(1) + ctr[4] + ns)
+    ctr[4] += ns
+    nd, pp = march_round(
+        src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+        ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
+        np.float64(SEED_RADIUS),  # the full seeding ball for sources joining in bulk
+    )
+    ctr[3] += pp
+    return k + ns, nd
 
 
 @nb.njit(**JIT)
@@ -720,7 +866,7 @@ def multi_source_distance(
         np.full(nv, T_INF, np.int64), np.full(nv, -1, np.int32),
         dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.int64),
-        np.full(nv, -1, np.int32), seed_scratch(), False,
+        np.full(nv, -1, np.int32), seed_scratch(), False, rnd1 * sources.shape[0], np.float64(SEED_RADIUS),
     )
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0

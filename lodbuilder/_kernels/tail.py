@@ -93,6 +93,18 @@ def euclid_tail(
     the largest distance is at most their key, and the ones left when every point is ordered come
     last. Returns the new count.
     """
+    cstart, cellv, ckey, heap = tail_start(ud, cs, pcost, weighted, psep, pnrm, slope, lab, rank, order)
+    hn = np.full(1, ckey.shape[0], np.int64)
+    return tail_loop(
+        ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, lab,
+        rank, order, radius, parent, k0, k_max, rho_stop, tseed, tkey, tpos, cstart, cellv, ckey, heap, hn,
+    )
+
+
+@nb.njit(**JIT)
+def tail_start(ud, cs, pcost, weighted, psep, pnrm, slope, lab, rank, order):  # pragma: no cover - compiled
+    """The start of :func:`euclid_tail`: the values tightened, the cells' heap built; returns
+    (cstart, cellv, ckey, heap) for :func:`tail_loop`."""
     m = ud.shape[0]
     thin = psep.shape[0] == m
     for p in range(m):
@@ -111,8 +123,20 @@ def euclid_tail(
                 e *= 0.5 * (pcost[p] + pcost[s])
             if e < ud[p, 3]:
                 ud[p, 3] = e
-    cstart, cellv, ckey, heap = _cell_heap(cs, ud)
-    hn = ckey.shape[0]
+    return _cell_heap(cs, ud)
+
+
+@nb.njit(**JIT)
+def tail_loop(
+    ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, cmin, psep, pnrm, slope, lab,
+    rank, order, radius, parent, k0, k_max, rho_stop, tseed, tkey, tpos, cstart, cellv, ckey, heap, hn_out,
+):  # pragma: no cover - compiled
+    """The loop of :func:`euclid_tail` from the heap of :func:`tail_start` (``hn_out[0]`` cells in
+    it; the new count is written back): stopping at ``rho_stop`` and going on with the same heap
+    orders as one call does. Returns the new count of ordered points."""
+    m = ud.shape[0]
+    thin = psep.shape[0] == m
+    hn = hn_out[0]
     k = k0
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
@@ -161,6 +185,7 @@ def euclid_tail(
             parent[k] = -1
             tpos[0] += 1
             k += 1
+    hn_out[0] = hn
     return k
 
 

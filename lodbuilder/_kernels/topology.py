@@ -10,35 +10,76 @@ import numpy as np
 from . import INLINE, JIT
 
 
+@nb.njit(**INLINE)
+def _cell_corners(nbr, a, corner):  # pragma: no cover - compiled
+    """The 8 corner voxels (x + 2 y + 4 z offsets) of the cell anchored at voxel a, into ``corner``
+    (-1 where the band has none)."""
+    for c in range(8):
+        w = a
+        for ax in range(3):
+            if (c >> ax) & 1 and w >= 0:
+                w = nbr[w, 2 * ax + 1]
+        corner[c] = w
+
+
+@nb.njit(**INLINE)
+def _nearest_of_cell(u, cs, vcost, a, corner, out):  # pragma: no cover - compiled
+    """:func:`nearest_corners` of the points of the cell anchored at a (its corners: ``corner``)."""
+    for p in range(cs[a], cs[a + 1]):
+        fx = np.floor(u[p, 0])
+        fy = np.floor(u[p, 1])
+        fz = np.floor(u[p, 2])
+        best = np.inf
+        out[p] = 255
+        for c in range(8):
+            w = corner[c]
+            if w < 0 or vcost[w] == np.inf:
+                continue
+            dx = u[p, 0] - fx - (c & 1)
+            dy = u[p, 1] - fy - ((c >> 1) & 1)
+            dz = u[p, 2] - fz - (c >> 2)
+            d = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if d < best:
+                best = d
+                out[p] = c
+
+
 @nb.njit(**JIT)
 def nearest_corners(u, nbr, cs, vcost):  # pragma: no cover - compiled
     """Per point: which corner (x + 2 y + 4 z offsets) of its cell is the nearest marchable voxel
     (255: none)."""
     m = u.shape[0]
     out = np.full(m, 255, np.uint8)
+    corner = np.empty(8, np.int64)
     nv = cs.shape[0] - 1
     for a in range(nv):
         if cs[a + 1] == cs[a]:
             continue
-        for p in range(cs[a], cs[a + 1]):
-            fx = np.floor(u[p, 0])
-            fy = np.floor(u[p, 1])
-            fz = np.floor(u[p, 2])
-            best = np.inf
-            for c in range(8):
-                w = a
-                for ax in range(3):
-                    if (c >> ax) & 1 and w >= 0:
-                        w = nbr[w, 2 * ax + 1]
-                if w < 0 or vcost[w] == np.inf:
-                    continue
-                dx = u[p, 0] - fx - (c & 1)
-                dy = u[p, 1] - fy - ((c >> 1) & 1)
-                dz = u[p, 2] - fz - (c >> 2)
-                d = np.sqrt(dx * dx + dy * dy + dz * dz)
-                if d < best:
-                    best = d
-                    out[p] = c
+        _cell_corners(nbr, a, corner)
+        _nearest_of_cell(u, cs, vcost, a, corner, out)
+    return out
+
+
+@nb.njit(**JIT)
+def nearest_corners_since(u, nbr, cs, vcost, old_vcost, old_near):  # pragma: no cover - compiled
+    """:func:`nearest_corners` for the voxel costs ``vcost``, knowing them for ``old_vcost``
+    (``old_near``): a cell none of whose corners became marchable or not since keeps its points'
+    corners (a band cut down near a few thin points recomputes only there)."""
+    out = old_near.copy()
+    corner = np.empty(8, np.int64)
+    nv = cs.shape[0] - 1
+    for a in range(nv):
+        if cs[a + 1] == cs[a]:
+            continue
+        _cell_corners(nbr, a, corner)
+        changed = False
+        for c in range(8):
+            w = corner[c]
+            if w >= 0 and (vcost[w] == np.inf) != (old_vcost[w] == np.inf):
+                changed = True
+                break
+        if changed:
+            _nearest_of_cell(u, cs, vcost, a, corner, out)
     return out
 
 

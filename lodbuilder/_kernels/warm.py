@@ -65,6 +65,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "grid.one_sided_cost": (_I64, _I32, _F64_2, _F32_2, _F64, _F64, f, f),
             "sheets.sheet_cut": (_I64, _I32_2, _I32, _I32, _F32, _F64_2, _F32_2, _F64),
             "sheets.normal_agreement": (_F64_2, _I32, _F64, _F64_2, f, i),
+            "topology.nearest_corners_since": (_F64_2, _I32_2, _I32, _F32, _F32, _U8),
         },
         "ordering": {  # the child process
             "march.grid_phase": (

@@ -5,6 +5,7 @@ group open, bent or rough."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -64,9 +65,14 @@ def implicit_regions(
         return [], 1  # one height field all round (a border of a flat sheet): seen right already
     nrm = oriented_normals(near, normal, seeds, rho, near)
     surface = ImplicitSurface(near[:FIT_POINTS], nrm[:FIT_POINTS], rho)
-    ijk, pts, shell, shape = zero_set_cells(surface, centre, ball, grid)
+    ijk, pts, shell, shape = zero_set_cells(surface, centre, ball, grid, project=False)
+    # a cell's point moves less than the cell's diagonal onto the zero set: only the points
+    # that may then lie farther than rho/2 from the sample are moved (the others are never used)
     d, _ = tree_s.query(pts, k=1)
-    far = d > NEAR_FRACTION * rho
+    move = d > NEAR_FRACTION * rho - math.sqrt(3.0) * grid
+    pts[move] = surface.project(pts[move])
+    d[move] = tree_s.query(pts[move], k=1)[0]
+    far = move & (d > NEAR_FRACTION * rho)
     if not far.any():
         return [], 0
     box = np.zeros(shape, dtype=bool)

@@ -13,7 +13,11 @@ whatever its shape.
 The region is found on that surface itself: a cubic grid (spacing rho/4) in a ball round the
 seeds; each grid cell the zero set crosses holds a surface point (the cell's crossings on its
 edges, averaged, moved onto ``f = 0``); those farther than rho/2 from every input point form
-regions (cells linked through faces, edges or corners). A region with a seed that stays inside
+regions (cells linked through faces, edges or corners). The grid is evaluated coarse to fine
+(every 4 nodes, then every 2 nodes of the boxes the zero set may cross by a slope bound, then
+every node of those: :func:`node_values`), which finds the same cells as evaluating every node at
+under half the cost; only the cells' points that may lie farther than rho/2 from the input are
+moved onto ``f = 0``. A region with a seed that stays inside
 the ball is **enclosed**: the input bounds it all round on the surface (the hole's rim is a
 closed loop round it). One that reaches the ball's shell runs into empty space (a border: the
 surface is extrapolated beyond it) and is left open.
@@ -88,12 +92,16 @@ class ImplicitSurface:
         return np.abs(self(x)) / np.maximum(g, 1e-12)
 
     def project(self, x: np.ndarray, steps: int = 2) -> np.ndarray:
-        """``x`` moved onto the zero set (Newton steps along the gradient)."""
+        """``x`` moved onto the zero set (Newton steps along the gradient, by forward
+        differences of a twentieth of rho: four evaluations of ``f`` per point and step)."""
         x = np.array(x, dtype=np.float64)
+        e, m = 0.05 * self.scale, x.shape[0]
         for _ in range(steps):
-            g = self.gradient(x)
+            v = self(np.concatenate([x] + [x + e * u for u in np.eye(3)]))
+            f = v[:m]
+            g = np.stack([v[(i + 1) * m : (i + 2) * m] - f for i in range(3)], 1) / e
             g2 = np.maximum(np.einsum("ij,ij->i", g, g), 1e-12)
-            x -= (self(x) / g2)[:, None] * g
+            x -= (f / g2)[:, None] * g
         return x
 
 
@@ -129,21 +137,100 @@ def sector_error(
     return float(np.sqrt(np.mean(e * e)))
 
 
-def zero_set_cells(
-    surface: ImplicitSurface, centre: np.ndarray, radius: float, g: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int]]:
-    """The cells of a cubic grid (spacing ``g``, centred on ``centre``) inside the ball of
-    ``radius`` that the zero set crosses: (cell index (C, 3), surface point in each (C, 3), on
-    the ball's shell (C,), the grid's shape in cells)."""
+#: the grid is evaluated coarse to fine: first every COARSE[0] nodes, then every COARSE[1] nodes
+#: of the boxes the zero set may cross, ..., then at every node of those (:func:`node_values`)
+COARSE = (4, 2)
+#: the slope bound that decides which boxes the zero set can cross: this many times the
+#: steepest slope seen along the first coarse grid's edges (at least 1: ``f`` is about a distance)
+LIPSCHITZ_SAFETY = 2.0
+
+
+def node_values(
+    surface: ImplicitSurface,
+    centre: np.ndarray,
+    radius: float,
+    g: float,
+    coarse: tuple[int, ...] = COARSE,
+) -> np.ndarray:
+    """``f`` at the nodes of a cubic grid (spacing ``g``, ``2 half + 1`` nodes a side, centred
+    on ``centre``, ``half = ceil(radius / g)``), NaN outside the ball of ``radius`` and at the
+    nodes no crossed cell needs. Coarse to fine: ``f`` is first evaluated every ``coarse[0]``
+    nodes; a box (``d`` its diagonal) whose corners all have one sign and ``|f| > L d / 2``
+    holds no zero of ``f`` (every point of it is within ``d / 2`` of a corner; ``L``:
+    :data:`LIPSCHITZ_SAFETY` times the steepest slope along the first grid's edges). Only the
+    other boxes are evaluated at the next step, and so on down to every node. Every fine cell
+    that the zero set crosses lies in such a box, all its corners evaluated: the crossed cells
+    are those of the full evaluation (``coarse`` empty), at a fraction of its cost."""
     half = int(math.ceil(radius / g))
     side = 2 * half + 1
     ax = (np.arange(side) - half) * g
-    nodes = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    r = np.linalg.norm(nodes, axis=1)
-    live = r <= radius
-    flat = np.full(nodes.shape[0], np.nan)
-    flat[live] = surface(nodes[live] + centre)
-    v = flat.reshape(side, side, side)
+    live = (ax[:, None, None] ** 2 + ax[None, :, None] ** 2 + ax[None, None, :] ** 2) <= radius**2
+    val = np.full((side,) * 3, np.nan)
+    need = np.ones((side,) * 3, dtype=bool)
+    lip = 0.0
+    for step in coarse:
+        ci = np.unique(np.r_[np.arange(0, side, step), side - 1])
+        lattice = need[np.ix_(ci, ci, ci)] & np.isnan(val[np.ix_(ci, ci, ci)])
+        at = ci[np.argwhere(lattice)]
+        val[tuple(at.T)] = surface(ax[at] + centre)
+        f = val[np.ix_(ci, ci, ci)]
+        lip = lip or LIPSCHITZ_SAFETY * max(_slope(f, np.diff(ax[ci])), 1.0)
+        need = _boxes_near_zero(f, ci, np.diff(ax[ci]), lip, side)
+    need &= live
+    at = np.argwhere(need & np.isnan(val))
+    val[tuple(at.T)] = surface(ax[at] + centre)
+    return np.where(need, val, np.nan)
+
+
+def _slope(f: np.ndarray, width: np.ndarray) -> float:
+    """The steepest slope of ``f`` along the edges of its (lattice) grid of box ``width``s."""
+    w = (width[:, None, None], width[None, :, None], width[None, None, :])
+    return max(float(np.nanmax(np.abs(np.diff(f, axis=a)) / w[a])) for a in range(3))
+
+
+def _boxes_near_zero(f: np.ndarray, ci: np.ndarray, width: np.ndarray, lip: float, side: int):
+    """Mask of the fine nodes (``side`` a side) of the boxes of the lattice ``ci`` (values
+    ``f``, NaN where not evaluated: inside a box known to hold no zero) that the zero set may
+    cross (:func:`node_values`)."""
+    n = ci.size - 1
+    corners = np.stack(
+        [f[i : n + i, j : n + j, k : n + k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], -1
+    )
+    wx, wy, wz = width[:, None, None], width[None, :, None], width[None, None, :]
+    diag = np.sqrt(wx**2 + wy**2 + wz**2)
+    known = np.isfinite(corners).all(axis=-1)
+    c = np.where(known[..., None], corners, 1.0)
+    one_sign = (c.min(axis=-1) > 0) | (c.max(axis=-1) < 0)
+    maybe = known & ~(one_sign & (np.abs(c).min(axis=-1) > 0.5 * lip * diag))
+    # each fine node: the boxes holding it (two along an axis where it is on a boundary)
+    nodes = np.arange(side)
+    box = np.minimum(np.searchsorted(ci, nodes, side="right") - 1, n - 1)
+    lower = np.maximum(np.searchsorted(ci, nodes, side="left") - 1, 0)
+    need = np.zeros((side,) * 3, dtype=bool)
+    for a in (box, lower):
+        for b in (box, lower):
+            for d in (box, lower):
+                need |= maybe[np.ix_(a, b, d)]
+    return need
+
+
+def zero_set_cells(
+    surface: ImplicitSurface,
+    centre: np.ndarray,
+    radius: float,
+    g: float,
+    coarse: tuple[int, ...] = COARSE,
+    project: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """The cells of a cubic grid (spacing ``g``, centred on ``centre``) inside the ball of
+    ``radius`` that the zero set crosses: (cell index (C, 3), surface point in each (C, 3), on
+    the ball's shell (C,), the grid's shape in cells). ``f`` is evaluated coarse to fine
+    (:func:`node_values`; ``coarse`` empty: at every node). The point of a cell is the mean of
+    its edges' crossings, moved onto the zero set (``project``; else left in the cell, within
+    its diagonal of the zero set)."""
+    half = int(math.ceil(radius / g))
+    side = 2 * half + 1
+    v = node_values(surface, centre, radius, g, coarse)
     corners = np.stack(
         [
             v[i : side - 1 + i, j : side - 1 + j, k : side - 1 + k]
@@ -176,7 +263,8 @@ def zero_set_cells(
             total += hit[:, None] * (off[a] + t[:, None] * (off[b] - off[a]))
             count += hit
     pts = base + g * total / np.maximum(count, 1)[:, None] + centre
-    pts = surface.project(pts)
+    if project:
+        pts = surface.project(pts)
     # a cell with a corner on the ball's last layer: the region reaches the ball's shell
     shell = np.linalg.norm(base + 0.5 * g, axis=1) > radius - 2.0 * g
     return ijk, pts, shell, (side - 1,) * 3

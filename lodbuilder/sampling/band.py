@@ -179,6 +179,8 @@ def _sheets(
     if judge and int(counts[np.isfinite(sin)].sum()) >= THIN_SHARE / 100 * n:
         flat = _flat_share(u, ostart, sin, nrm)
     del u
+    if not np.isfinite(sin).any():  # nothing thin (most scans): no scatter into point order
+        return np.full(n, np.inf), np.full(n, np.inf), np.zeros((n, 3), dtype=np.float32), flat
     sep_in = np.empty(n)
     sep_in[perm] = np.repeat(sin * h, counts)
     sep_out = np.empty(n)
@@ -471,7 +473,7 @@ def one_sided(
     """The voxel costs and nearest marchable corners of ``band`` with its thin parts one-sided (``normal``,
     ``separation``, ``radius``: per point, input order; see the module docstring): a voxel subset."""
     from .._kernels.grid import one_sided_cost
-    from .._kernels.topology import nearest_corners
+    from .._kernels.topology import nearest_corners_since
 
     perm = band.perm
     nin = np.ascontiguousarray(normal[perm], dtype=np.float32)  # (float32 products are exact in float64)
@@ -479,23 +481,27 @@ def one_sided(
     rad = np.full(perm.shape[0], band.r / band.h) if radius is None else radius[perm] / band.h
     inv_r2 = np.divide(1.0, rad * rad, out=rad)  # (in place: one array of N less at the peak of thin scans)
     vcost = one_sided_cost(band.keys, band.foot, band.u, nin, psep, inv_r2, SIDE_TOLERANCE, beta)
-    return vcost, nearest_corners(band.u, band.nbr, band.cs, vcost)
+    return vcost, nearest_corners_since(band.u, band.nbr, band.cs, vcost, band.vcost, band.near)
 
 
-def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan) -> tuple[np.ndarray, np.ndarray]:
+def cut_between_sheets(band: Band, vcost: np.ndarray, plan: BandPlan,
+                       near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The voxel costs ``vcost`` of ``band`` cut between the sheets of ``plan`` (see
     :func:`lodbuilder._kernels.sheets.sheet_cut`: no two neighbouring marchable voxels, and no
     point and the voxels it reads, stand on different sheets) and the points' nearest marchable
-    corners in the result."""
+    corners in the result (``near``: those of ``vcost``, when known: then only the cells whose
+    corners the cut changed are looked at again)."""
     from .._kernels.sheets import sheet_cut
-    from .._kernels.topology import nearest_corners
+    from .._kernels.topology import nearest_corners, nearest_corners_since
 
     assert plan.normal is not None and plan.separation is not None
     perm = band.perm
     nin = np.ascontiguousarray(plan.normal[perm], dtype=np.float32)
     psep = np.ascontiguousarray(plan.separation[perm] / band.h)
     cut = sheet_cut(band.keys, band.nbr, band.cs, band.foot, vcost, band.u, nin, psep)
-    return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
+    if near is None:
+        return cut, nearest_corners(band.u, band.nbr, band.cs, cut)
+    return cut, nearest_corners_since(band.u, band.nbr, band.cs, cut, vcost, near)
 
 
 def build_planned_band(
@@ -505,10 +511,13 @@ def build_planned_band(
     between two others is bridged to neither). A one-sided band must not split the surface into
     more pieces than the plain band does: in a stack of sheets joined by folds no choice of sides
     is consistent around every fold, and two registrations of one surface a few spacings apart, in
-    a merged scan, are found as two sheets and may be cut apart that way. If it does, the plain
-    band cut between sheets is tried (both sides of every sheet, each voxel on its nearest point's
-    sheet); if that splits it too, the plain band is used for the whole scan and the plan returned
-    says so. Every band here is a subset of the plain one's voxels, so all are decided on one band
+    a merged scan, are found as two sheets and may be cut apart that way. If the one-sided band
+    alone splits it, cutting it between sheets (a subset of its voxels) is not tried, and for a
+    stack (at least THIN_SHARE % thin) the plain band cut between sheets is (both sides of every
+    sheet, each voxel on its nearest point's sheet); if that splits it too, or the scan is not a
+    stack, the plain band is used and the plan returned says so. If only the cut splits it, the
+    one-sided band alone is used.
+    Every band here is a subset of the plain one's voxels, so all are decided on one band
     (``band``: the plain band, when already built). The band returned keeps the pieces of its
     points (``Band.pieces``: the ordering needs them, and they are known here already)."""
     from .._kernels.topology import point_pieces
@@ -518,35 +527,43 @@ def build_planned_band(
     if plan.normal is None:
         return band, plan
     side, side_near = one_sided(band, plan.normal, plan.separation, plan.radius, DEPTH_COST)
-    vcost, near = cut_between_sheets(band, side, plan)
-    found = point_pieces(band.nbr, band.cs, near, vcost)  # (the piece of every point, their count)
-    pieces, plain, plain_found = found[1], 0, None
-    if pieces > 1:
+    found = point_pieces(band.nbr, band.cs, side_near, side)  # (the piece of every point, their count)
+    plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost) if found[1] > 1 else None
+    if plain_found is not None and found[1] > plain_found[1]:
+        del side, side_near
+        return _split_fallback(band, plan, found[1], plain_found)
+    vcost, near = cut_between_sheets(band, side, plan, side_near)  # the one-sided band holds: cut it
+    cut = point_pieces(band.nbr, band.cs, near, vcost)
+    if cut[1] > 1 and plain_found is None:
         plain_found = point_pieces(band.nbr, band.cs, band.near, band.vcost)
-        plain = plain_found[1]
-    if pieces > 1 and plain < pieces:  # the one-sided band alone, when the cut is what splits it
-        alone = point_pieces(band.nbr, band.cs, side_near, side)
-        if alone[1] <= plain:
-            vcost, near, pieces, found = side, side_near, alone[1], alone
-        del alone
-    del side, side_near
+    if plain_found is None or cut[1] <= plain_found[1]:
+        found = cut
+    else:  # the cut is what splits it: the one-sided band alone
+        vcost, near = side, side_near
+    band.vcost, band.near, band.pieces = vcost, near, found
+    return band, plan
+
+
+def _split_fallback(band: Band, plan: BandPlan, pieces: int, plain_found: tuple[np.ndarray, int]
+                    ) -> tuple[Band, BandPlan]:
+    """:func:`build_planned_band` where the one-sided band splits the surface into more ``pieces``
+    than the plain band's (``plain_found``): for a stack, its cut between sheets if that holds."""
+    from .._kernels.topology import point_pieces
+
     stack = plan.thin_points >= THIN_SHARE / 100 * band.u.shape[0]  # (a few thin parts: as before)
-    if pieces > 1 and plain < pieces and not stack:
+    if not stack:
         log.info("one-sided band split the surface into %d pieces; using the plain band", pieces)
         band.pieces = plain_found
         return band, BandPlan.plain(plan.h, plan.r)
-    if pieces > 1 and plain < pieces:
-        vcost, near = cut_between_sheets(band, band.vcost, plan)
-        found = point_pieces(band.nbr, band.cs, near, vcost)
-        pieces = found[1]
-        if pieces > plain:
-            log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", pieces)
-            band.pieces = plain_found
-            return band, BandPlan.plain(plan.h, plan.r)
-        log.info("one-sided band splits the surface; using the plain band cut between sheets")
-        plan = BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover, plan.outer)
+    vcost, near = cut_between_sheets(band, band.vcost, plan, band.near)
+    found = point_pieces(band.nbr, band.cs, near, vcost)
+    if found[1] > plain_found[1]:
+        log.info("the band cut between sheets splits the surface into %d pieces; using the plain band", found[1])
+        band.pieces = plain_found
+        return band, BandPlan.plain(plan.h, plan.r)
+    log.info("one-sided band splits the surface; using the plain band cut between sheets")
     band.vcost, band.near, band.pieces = vcost, near, found
-    return band, plan
+    return band, BandPlan(plan.h, plan.r, None, plan.separation, plan.normal, plan.handover, plan.outer)
 
 
 def band_distance(

@@ -21,6 +21,7 @@ import numpy as np
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
+from . import rounds as R
 from .pieces import finish_join, reach
 from .pool import bottom_levels, collect, result, submit
 from .store import Store, as_store
@@ -128,6 +129,19 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
             f.cancel()
         raise
     return found
+
+
+def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], nbrs: list[list[int]],
+                  colour: list[int], args: tuple, pieces: dict[str, Any]) -> int:
+    """Every tile ordered in radius rounds by one task (:mod:`.rounds`); its markers as the passes'."""
+    assert R.TILE_ROUNDS is not None
+    docs = {t.index: {**t.to_json(), "core": pieces["core"][t.index], "halo": pieces["halo"][t.index]} for t in tiles}
+    call: tuple = (work, docs, nbrs, colour, *args, *R.TILE_ROUNDS)
+    res = result(ex.submit(R.order_rounds, *call), name, "ordering in rounds")
+    for r in res["tiles"]:
+        put_json(work, WL.marker(WL.order_piece(r["tile"], 1)), {**r, "rounds": res["rounds"], "q": res["q"],
+                                                                  "state_bytes": res["state_bytes"]})
+    return 0
 
 
 def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Path | Store, executor: cf.Executor,
@@ -247,8 +261,11 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
     nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
     colour = P.colour_tiles(nbrs)
-    ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
-                            parallel if parallel > 1 else None)
+    if R.TILE_ROUNDS is not None and passes == 1:  # (private: radius rounds, see .rounds)
+        ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"])
+    else:
+        ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
+                                parallel if parallel > 1 else None)
     stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     if _done(work, "order") is None:
         # every ordering's marker and last files, checked as one: the tiles' face files (read by the

@@ -172,9 +172,22 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     is_seed[seeds] = True
     o = fastfps(pts, seeds=seeds if seeds.size else None, voxel_size=voxel_size, band_radius=band_radius,
                 max_memory=max_memory, timed_seeds=timed)
+    stream = _stream(o, is_seed, core, cpts, hpts, lo, hi, interior)
+    files, n_seam = _put_tile(w, t, stream, halo, face_out)
+    bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
+    return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(stream.shape[0]), "n_seeds": int(seeds.size),
+            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
+            "hist": [bins.tolist(), counts.tolist()],
+            "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
+
+
+def _stream(o: Ordering, is_seed: np.ndarray, core: np.ndarray, cpts: np.ndarray, hpts: np.ndarray,
+            lo: np.ndarray, hi: np.ndarray, interior: np.ndarray) -> np.ndarray:
+    """A tile's stream: its core points that are not seeds, in its order ``o``, with their keys
+    and margins."""
     sel = o.order[(o.order < cpts.shape[0]) & ~is_seed[o.order]]
     p = cpts[sel]
-    key = _keys(o, sel, pts.shape[0], p, hpts)
+    key = _keys(o, sel, is_seed.shape[0], p, hpts)
     # the keys stay the tile's insertion radii even where a seed is nearer in Euclidean distance
     # (a head point in the halo that the tile's band does not reach, across a shared face): a key
     # lowered to that distance would merge the point late while the tile's later points, ordered
@@ -186,12 +199,7 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     stream["key"] = key[srt]
     stream["x"], stream["y"], stream["z"] = p[srt, 0], p[srt, 1], p[srt, 2]
     stream["m"] = _margins(p[srt], lo, hi, interior)
-    files, n_seam = _put_tile(w, t, stream, halo, face_out)
-    bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
-    return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(sel.shape[0]), "n_seeds": int(seeds.size),
-            "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
-            "hist": [bins.tolist(), counts.tolist()],
-            "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
+    return stream
 
 
 @timed_task

@@ -1,0 +1,129 @@
+"""Radius rounds (issue 19, seams; private, off by default): every tile ordered in rounds.
+
+Round p (1 .. R) takes every tile, colour by colour, from radius r_head / q^(p - 1) down to
+r_head / q^p (r_head: the head's last radius); round R + 1 to the end. Each tile goes on from where
+its last round stopped (:mod:`lodbuilder.sampling.resumable`: its band, distance field and heaps are
+kept), and before each round its neighbours' points in its halo that they have ordered since its
+last round join its ordering at once as sources (those of the neighbours of a lower colour ordered
+in this round included; in the last round, the points below the last round's radius at their
+keys, as timed seeds). A tile of a lower colour is then blind to its neighbours for one round
+only, not for the whole ordering, and the points of different tiles keep their distance (see
+docs/benchmarks.md, "Seams"); the covering pays for the sources that join early (ratio q).
+
+First step: one task orders every tile and keeps every tile's state in memory (about the memory
+of every tile's ordering at once); an out-of-core build would spill each state between rounds
+(``FastFPSState.nbytes``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from . import layout as WL
+from .blocks import tile_records
+from .store import Store, as_store
+from .tasks import HEAD, _put_tile, _stream
+from .timing import timed_task
+
+#: None, or (rounds R, ratio q): order the tiles in radius rounds (set by tools/bench_seams.py)
+TILE_ROUNDS: tuple[int, float] | None = None
+
+
+def _start(w: Store, t: int, doc: dict[str, Any], head: np.ndarray, hpts: np.ndarray, voxel_size: float,
+           band_radius: float, halo: float, max_memory: int | None) -> dict[str, Any]:
+    """Tile ``t``'s ordering state: its core, the head points in its core and halo as seeds, and
+    every halo point not in the head as a timed seed that has not joined yet (key 0)."""
+    from ...sampling.resumable import start_fastfps
+
+    core = tile_records(w, doc["core"])
+    lo, hi = np.asarray(doc["lo"]), np.asarray(doc["hi"])
+    cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
+    in_ext = np.all((hpts >= lo - halo) & (hpts <= hi + halo), axis=1)
+    head_in_core = np.isin(head["g"], core["g"])
+    extra = in_ext & ~head_in_core
+    seeds = np.concatenate([np.searchsorted(core["g"], head["g"][head_in_core]),
+                            cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
+    hrec = tile_records(w, doc["halo"])
+    hrec = hrec[~np.isin(hrec["g"], head["g"])]
+    first = cpts.shape[0] + int(extra.sum())
+    pts = np.concatenate([cpts, hpts[extra], np.stack([hrec["x"], hrec["y"], hrec["z"]], axis=1)])
+    rows = first + np.arange(hrec.shape[0])
+    state = start_fastfps(pts, seeds=seeds if seeds.size else None, voxel_size=voxel_size,
+                          band_radius=band_radius, max_memory=max_memory, timed_seeds=(rows, np.zeros(rows.size)))
+    is_seed = np.zeros(pts.shape[0], bool)
+    is_seed[seeds] = True
+    srt = np.argsort(hrec["g"], kind="stable")
+    return {"t": t, "core": core, "cpts": cpts, "lo": lo, "hi": hi, "interior": np.asarray(doc["interior"], bool),
+            "is_seed": is_seed, "halo_g": hrec["g"][srt], "halo_rows": rows[srt], "state": state, "o": None,
+            "seen": {}, "n_seeds": int(seeds.size)}
+
+
+def _sources(tiles: dict[int, dict[str, Any]], t: int, nbrs: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """The points in tile ``t``'s halo that its neighbours ordered since ``t``'s last round:
+    (rows of ``t``'s points, keys)."""
+    me = tiles[t]
+    rows, keys = [], []
+    for u in nbrs:
+        o = tiles[u]["o"]
+        if o is None or me["halo_g"].size == 0:
+            continue
+        start = me["seen"].get(u, 0)
+        new = o.order[start:]
+        rad = o.radius[start:]
+        me["seen"][u] = len(o)
+        own = (new < tiles[u]["cpts"].shape[0]) & np.isfinite(rad)
+        g = tiles[u]["core"]["g"][new[own]]
+        pos = np.minimum(np.searchsorted(me["halo_g"], g), me["halo_g"].size - 1)
+        hit = me["halo_g"][pos] == g
+        rows.append(me["halo_rows"][pos[hit]])
+        keys.append(rad[own][hit])
+    if not rows:
+        return np.empty(0, np.int64), np.empty(0)
+    return np.concatenate(rows), np.concatenate(keys)
+
+
+@timed_task
+def order_rounds(work: Store | str, docs: dict[int, dict[str, Any]], nbrs: list[list[int]], colour: list[int],
+                 voxel_size: float, band_radius: float, halo: float, max_memory: int | None, rounds: int,
+                 q: float) -> dict[str, Any]:
+    """Order every tile in ``rounds`` radius rounds of ratio ``q`` and one last round to the end
+    (see the module); writes each tile's stream and seam points as :func:`.tasks.order_tile` does
+    and returns their results (``tiles``) and the largest state of a tile in bytes."""
+    from ...sampling.resumable import resume_fastfps
+
+    w = as_store(work)
+    head = w.read_array(WL.HEAD_FILE, HEAD)
+    hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
+    tiles = {t: _start(w, t, doc, head, hpts, voxel_size, band_radius, halo, max_memory) for t, doc in docs.items()}
+    r0 = float(head["r"][-1]) if head.shape[0] and np.isfinite(head["r"][-1]) else None
+    seq = sorted(tiles, key=lambda t: colour[t])
+    state_bytes = 0
+    for p in range(1, rounds + 2):
+        rho = None if (p > rounds or r0 is None) else r0 / q**p
+        for t in seq:
+            rows, keys = _sources(tiles, t, nbrs[t])
+            state_bytes = max(state_bytes, tiles[t]["state"].nbytes)
+            # in a round every source joins at once (the points the neighbours of a lower colour
+            # ordered in this round too: this tile keeps away from them); in the last, the
+            # neighbours' points below the last round's radius join at their keys
+            src = None if rows.size == 0 else rows if rho is not None else (rows, keys)
+            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=src, bulk=True)
+        if rho is None:
+            break
+    out = [_finish(w, tiles[t], hpts, halo) for t in sorted(tiles)]
+    return {"tiles": out, "state_bytes": state_bytes, "rounds": rounds, "q": q}
+
+
+def _finish(w: Store, tile: dict[str, Any], hpts: np.ndarray, halo: float) -> dict[str, Any]:
+    """Write a tile's stream and seam points; its result as :func:`.tasks.order_tile` returns it."""
+    t, o = tile["t"], tile["o"]
+    stream = _stream(o, tile["is_seed"], tile["core"], tile["cpts"], hpts, tile["lo"], tile["hi"], tile["interior"])
+    files, n_seam = _put_tile(w, t, stream, halo, None)
+    bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
+    tile["state"] = None
+    return {"tile": t, "n_points": int(tile["core"].shape[0]), "n_stream": int(stream.shape[0]),
+            "n_seeds": tile["n_seeds"], "n_timed": int(tile["halo_rows"].size), "n_seam": n_seam,
+            "hist": [bins.tolist(), counts.tolist()], "band_voxels": int(o.stats.get("band_voxels", 0)),
+            "files": files}
