@@ -435,3 +435,38 @@ def naive_normal_agreement(u: np.ndarray, ostart: np.ndarray, sep: np.ndarray, n
 def naive_stable_argsort(keys: np.ndarray) -> np.ndarray:
     """The permutation that sorts ``keys``, equal keys in index order (Python's sort, one by one)."""
     return np.array(sorted(range(len(keys)), key=lambda i: (int(keys[i]), i)), dtype=np.int64)
+
+
+def naive_cover_pass(xyz: np.ndarray, rank: np.ndarray, core: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The covering pass of a tiled build's tile (``lodbuilder._kernels.tiled.cover_pass``) by brute
+    force: points inserted in index order (``rank`` ascending); before point i, the covering radius
+    of the core points not yet inserted by points 0..i-1 (inf before the first, 0 once none is left).
+
+    Returns (ev_rank, ev_val): rank[i - 1] + 1 (0 for i = 0) and the radius, for every i in 0..n where
+    the radius differs from the one before; and, for each core point in index order, its rank, the
+    rank of its earliest nearest earlier point (-1: none) and the distance to it (inf: none)."""
+    xyz = np.asarray(xyz, np.float64)
+    n = xyz.shape[0]
+    d = np.full(n, np.inf)  # distance of each point to points 0..i-1
+    par = np.full(n, -1, np.int64)
+    ev_rank, ev_val, last = [], [], -1.0
+    pt = []
+    for i in range(n + 1):
+        pending = core.copy()
+        pending[:i] = False
+        cr = float(d[pending].max()) if pending.any() else 0.0
+        if cr != last:
+            ev_rank.append(int(rank[i - 1]) + 1 if i > 0 else 0)
+            ev_val.append(cr)
+            last = cr
+        if i == n:
+            break
+        if core[i]:
+            pt.append((int(rank[i]), int(par[i]), float(d[i])))
+        diff = xyz - xyz[i]
+        dist = np.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2])
+        better = dist < d
+        d[better], par[better] = dist[better], rank[i]
+    p = np.array(pt, dtype=[("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")]).reshape(-1)
+    return np.array(ev_rank, np.int64), np.array(ev_val), p["rank"], p["parent"], p["space"]

@@ -308,16 +308,61 @@ def cover_pass(xyz, rank, core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_sp
     """Exact covering radii of a tile's core while the points of its core and halo are inserted in
     rank order (``rank`` ascending; ``xyz`` in that order).
 
+    Writes an event (rank + 1, covering radius) whenever the radius changes and, for each inserted
+    core point in rank order, its rank, the rank of its nearest earlier point and the distance to
+    it. Two phases: :func:`cover_head` while the radius is above ``TAIL * cell`` (each insertion
+    updates the pending points it comes closer to), then :func:`cover_tail` (each pending point's
+    nearer and nearer earlier points found from a grid, the radius a suffix maximum).
+    Returns (number of events, number of core points)."""
+    ne, npt, i0, last, d0, p0 = cover_head(xyz, rank, core, cell, TAIL * cell, ev_rank, ev_val, pt_rank,
+                                           pt_parent, pt_space)
+    if i0 < xyz.shape[0]:
+        ne, npt = cover_tail(xyz, rank, core, cell, i0, d0, p0, last, ne, npt, ev_rank, ev_val, pt_rank,
+                             pt_parent, pt_space)
+    return ne, npt
+
+
+@nb.njit(**JIT)
+def stable_argsort(key):  # pragma: no cover - compiled
+    """The permutation that sorts non-negative ``key`` stably (as ``np.argsort(kind="stable")``):
+    a least-significant-digit radix sort, 11 bits a pass (numba's merge sort is 3 x slower)."""
+    n = key.shape[0]
+    o = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    top = 0
+    for i in range(n):
+        top = max(top, key[i])
+    shift = 0
+    count = np.empty(2049, np.int64)
+    while shift < 63 and (shift == 0 or (top >> shift) > 0):
+        count[:] = 0
+        for i in range(n):
+            count[((key[o[i]] >> shift) & 2047) + 1] += 1
+        for d in range(2048):
+            count[d + 1] += count[d]
+        for i in range(n):
+            d = (key[o[i]] >> shift) & 2047
+            tmp[count[d]] = o[i]
+            count[d] += 1
+        o, tmp = tmp, o
+        shift += 11
+    return o
+
+
+@nb.njit(**JIT)
+def cover_head(xyz, rank, core, cell, stop, ev_rank, ev_val, pt_rank, pt_parent, pt_space):  # pragma: no cover
+    """The first phase of :func:`cover_pass`: points inserted one by one until the covering radius
+    is at most ``stop`` (before the insertion of point ``i0``).
+
     Keeps, for every pending core point, its distance to (and the rank of) the nearest inserted
     point. After each insertion the core's covering radius is the largest pending distance (the root
     of a max segment tree over the blocks). An insertion updates only the pending points it comes closer to: they sit in cubic
     cells of size ``cell`` (the non-empty ones, numbered compactly, their points stored together)
     grouped in blocks of 2^3 cells; each cell and block keeps an upper bound of its points'
-    distances, and a cell or block no nearer to the new point than that bound is skipped. Writes an
-    event (rank + 1, covering radius) whenever the radius changes and, for each inserted core
-    point, its rank, the rank of its nearest earlier point and the distance to it.
-    Returns (number of events, number of core points).
-    """
+    distances, and a cell or block no nearer to the new point than that bound is skipped.
+    Returns (events, core points written, i0, the last event's radius, d0, p0): ``d0[i - i0]`` and
+    ``p0[i - i0]`` the distance and the rank of the nearest of points 0..i0-1 to each pending core
+    point i (inf and -1 at the others)."""
     n = xyz.shape[0]
     lo = np.empty(3)
     hi = np.empty(3)
@@ -350,7 +395,7 @@ def cover_pass(xyz, rank, core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_sp
             key[m] = (b * 8 + (cx % 2) * 4 + (cy % 2) * 2 + (cz % 2))
             pid[m] = i
             m += 1
-    o = np.argsort(key, kind="mergesort")
+    o = stable_argsort(key)
     key = key[o]
     pid = pid[o]
     nc = 0
@@ -428,7 +473,7 @@ def cover_pass(xyz, rank, core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_sp
             ev_val[ne] = cr
             ne += 1
             last = cr
-        if i == n:
+        if i == n or cr <= stop:
             break
         j = spos[i]
         if j >= 0:
@@ -514,7 +559,220 @@ def cover_pass(xyz, rank, core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_sp
                     if newb != bm:
                         bmax[b] = newb
                         _tree_set(tree, size, b, newb)
-    return ne, npt
+    i0 = min(i, n)
+    d0 = np.full(n - i0, np.inf)
+    p0 = np.full(n - i0, -1, np.int64)
+    for c in range(nc):
+        for j in range(cstart[c], cstart[c] + npend[c]):
+            d0[sid[j] - i0] = sd[j]
+            p0[sid[j] - i0] = slab[j]
+    return ne, npt, i0, last, d0, p0
+
+
+#: :func:`cover_pass` changes phase when the covering radius falls to TAIL cells
+TAIL = 0.5
+#: the cells of the tail's grid, in cells of the first phase
+TAIL_GRID = 1.0
+#: most cells of the tail's grid (its cells grow beyond ``cell`` to keep under it)
+TAIL_CELLS = 1 << 22
+
+
+@nb.njit(**JIT)
+def _tail_grid(xyz, i0, cell):  # pragma: no cover - compiled
+    """Points i0..n-1 by cubic cells of a dense grid (x-major): (lo, cell size, dims, start of each
+    cell's points, their indices ascending within a cell, their coordinates in that order, and the
+    slot of each point i at ``[i - i0]``)."""
+    n = xyz.shape[0]
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = np.inf
+        hi[a] = -np.inf
+    for i in range(i0, n):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    g = cell
+    dims = np.empty(3, np.int64)
+    while True:
+        for a in range(3):
+            dims[a] = np.int64((hi[a] - lo[a]) / g) + 1
+        if dims[0] * dims[1] * dims[2] <= TAIL_CELLS:
+            break
+        g *= 1.25
+    m = n - i0
+    key = np.empty(m, np.int64)
+    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for i in range(i0, n):
+        cx = min(np.int64((xyz[i, 0] - lo[0]) / g), dims[0] - 1)
+        cy = min(np.int64((xyz[i, 1] - lo[1]) / g), dims[1] - 1)
+        cz = min(np.int64((xyz[i, 2] - lo[2]) / g), dims[2] - 1)
+        k = (cx * dims[1] + cy) * dims[2] + cz
+        key[i - i0] = k
+        start[k + 1] += 1
+    for k in range(start.shape[0] - 1):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    idx = np.empty(m, np.int64)
+    pxyz = np.empty((m, 3))
+    for i in range(i0, n):  # (in index order: each cell's points ascending)
+        k = key[i - i0]
+        idx[fill[k]] = i
+        pxyz[fill[k]] = xyz[i]
+        key[i - i0] = fill[k]  # (now the point's slot)
+        fill[k] += 1
+    return lo, g, dims, start, idx, pxyz, key
+
+
+@nb.njit(**JIT)
+def _tail_range(x, d, lo, g, dim):  # pragma: no cover - compiled
+    """The cells along one axis of the grid that hold every point nearer than ``d`` to ``x`` (a
+    margin of 1e-6 cell and of the coordinates' rounding on either side)."""
+    eps = 1e-6 * g + 1e-12 * (abs(x) + abs(lo))
+    a = max(np.int64(np.floor((x - d - eps - lo) / g)), 0)
+    b = min(np.int64(np.floor((x + d + eps - lo) / g)), dim - 1)
+    return a, b
+
+
+@nb.njit(**JIT)
+def _tail_point(iq, s, par, prank, lo, g, dims, start, idx, pxyz, q, buf_i, buf_d, buf_r, st_e, st_v, ns
+                ):  # pragma: no cover - compiled
+    """Pending core point ``iq`` in slot ``q`` (distance ``s`` to, and ``par`` the rank of, its
+    nearest point before the tail): its nearer and nearer points of the tail inserted before it,
+    each a step (index of the nearer point, distance before it) appended to ``st_e``, ``st_v`` at
+    ``ns``, the last one (``iq``, distance). Returns the distance to and the rank of its nearest
+    earlier point and the new ``ns``, or (s, par, -k) with nothing done when a buffer needs k slots."""
+    x, y, z = pxyz[q, 0], pxyz[q, 1], pxyz[q, 2]
+    x0, x1 = _tail_range(x, s, lo[0], g, dims[0])
+    y0, y1 = _tail_range(y, s, lo[1], g, dims[1])
+    z0, z1 = _tail_range(z, s, lo[2], g, dims[2])
+    need = 0
+    for cx in range(x0, x1 + 1):
+        for cy in range(y0, y1 + 1):
+            base = (cx * dims[1] + cy) * dims[2]
+            need += start[base + z1 + 1] - start[base + z0]
+    if need > buf_i.shape[0] or ns + need + 1 > st_e.shape[0]:
+        return s, par, -need - 1
+    k = 0
+    for cx in range(x0, x1 + 1):
+        for cy in range(y0, y1 + 1):
+            base = (cx * dims[1] + cy) * dims[2]
+            for jj in range(start[base + z0], start[base + z1 + 1]):
+                ip = idx[jj]
+                if ip >= iq:
+                    continue
+                dx = x - pxyz[jj, 0]
+                dy = y - pxyz[jj, 1]
+                dz = z - pxyz[jj, 2]
+                dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if dd < s:
+                    buf_i[k] = ip
+                    buf_d[k] = dd
+                    buf_r[k] = prank[jj]
+                    k += 1
+    _sort_steps(buf_i, buf_d, buf_r, k)
+    for t in range(k):
+        if buf_d[t] < s:
+            st_e[ns] = buf_i[t]
+            st_v[ns] = s
+            ns += 1
+            s = buf_d[t]
+            par = buf_r[t]
+    st_e[ns] = iq
+    st_v[ns] = s
+    return s, par, ns + 1
+
+
+@nb.njit(**JIT)
+def _sort_steps(key, val, aux, k):  # pragma: no cover - compiled
+    """Sort key[:k] ascending (distinct keys), val[:k] and aux[:k] with it."""
+    if k > 32:
+        o = np.argsort(key[:k])
+        key[:k], val[:k], aux[:k] = key[:k][o], val[:k][o], aux[:k][o]
+        return
+    for t in range(1, k):
+        a, v, w = key[t], val[t], aux[t]
+        u = t - 1
+        while u >= 0 and key[u] > a:
+            key[u + 1], val[u + 1], aux[u + 1] = key[u], val[u], aux[u]
+            u -= 1
+        key[u + 1], val[u + 1], aux[u + 1] = a, v, w
+
+
+@nb.njit(**JIT)
+def cover_tail(xyz, rank, core, cell, i0, d0, p0, last, ne, npt, ev_rank, ev_val, pt_rank, pt_parent,
+               pt_space):  # pragma: no cover - compiled
+    """The second phase of :func:`cover_pass`, from point ``i0`` on (``d0``, ``p0``: see
+    :func:`cover_head`; ``last``: the radius of the last event written). Every pending core point
+    is independent of the others: its distance to the points before it falls in steps (each
+    nearer earlier point one), all below ``cell``, so the points of the tail within that distance
+    are all it needs (from a grid, point by point in the grid's order). The covering radius before
+    point i is the largest distance held by a pending point then: the largest value of any step
+    that ends (its nearer point, or the point itself, inserted) at i or later, a suffix maximum."""
+    n = xyz.shape[0]
+    m = n - i0
+    lo, g, dims, start, idx, pxyz, slot = _tail_grid(xyz, i0, TAIL_GRID * cell)
+    prank = np.empty(m, np.int64)
+    for q in range(m):
+        prank[q] = rank[idx[q]]
+    res_s = np.empty(m)
+    res_p = np.empty(m, np.int64)
+    buf_i, buf_d, buf_r = np.empty(256, np.int64), np.empty(256), np.empty(256, np.int64)
+    st_e, st_v = np.empty(m // 2 + 1024, np.int64), np.empty(m // 2 + 1024)  # (grown when full)
+    ns = 0
+    for q in range(m):
+        iq = idx[q]
+        if not core[iq]:
+            continue
+        while True:
+            s, par, r = _tail_point(iq, d0[iq - i0], p0[iq - i0], prank, lo, g, dims, start, idx, pxyz, q,
+                                    buf_i, buf_d, buf_r, st_e, st_v, ns)
+            if r >= 0:
+                break
+            buf_i, buf_d, buf_r = _grown(buf_i, -r), _grown(buf_d, -r), _grown(buf_r, -r)
+            st_e, st_v = _grown(st_e, ns - r), _grown(st_v, ns - r)
+        ns = r
+        res_s[q] = s
+        res_p[q] = par
+    for i in range(i0, n):
+        if core[i]:
+            q = slot[i - i0]
+            pt_rank[npt], pt_parent[npt], pt_space[npt] = rank[i], res_p[q], res_s[q]
+            npt += 1
+    return _tail_events(rank, i0, st_e, st_v, ns, last, ne, ev_rank, ev_val), npt
+
+
+@nb.njit(**JIT)
+def _grown(a, k):  # pragma: no cover - compiled
+    """``a`` (1-d) with at least ``k`` slots: itself, or a copy twice that long."""
+    if a.shape[0] >= k:
+        return a
+    b = np.empty(2 * k, a.dtype)
+    b[: a.shape[0]] = a
+    return b
+
+
+@nb.njit(**JIT)
+def _tail_events(rank, i0, st_e, st_v, ns, last, ne, ev_rank, ev_val):  # pragma: no cover - compiled
+    """Events of the tail from its steps (see :func:`cover_tail`); returns the number of events."""
+    n = rank.shape[0]
+    m = n - i0
+    top = np.full(m + 1, -1.0)
+    for t in range(ns):
+        e = st_e[t] - i0
+        if st_v[t] > top[e]:
+            top[e] = st_v[t]
+    for e in range(m - 1, -1, -1):  # suffix maxima
+        if top[e + 1] > top[e]:
+            top[e] = top[e + 1]
+    for i in range(i0 + 1, n + 1):
+        cr = max(top[i - i0], 0.0)
+        if cr != last:
+            ev_rank[ne] = rank[i - 1] + 1
+            ev_val[ne] = cr
+            ne += 1
+            last = cr
+    return ne
 
 
 @nb.njit(**JIT)

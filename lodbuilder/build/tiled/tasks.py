@@ -234,11 +234,11 @@ def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray,
            ) -> tuple[dict[str, Any], int]:
     """The covering pass of :func:`cover_tile` over ``ext`` (its first ``n_core`` records the
     core) with their ``ranks``: the files written and how many events."""
-    from ..._kernels.tiled import cover_pass
+    from ..._kernels.tiled import cover_pass, stable_argsort
 
     is_core = np.zeros(ext.shape[0], bool)
     is_core[:n_core] = True
-    srt = np.argsort(ranks, kind="stable")
+    srt = stable_argsort(np.ascontiguousarray(ranks, np.int64))
     ranks = np.ascontiguousarray(ranks[srt])
     xyz = np.ascontiguousarray(np.stack([ext["x"], ext["y"], ext["z"]], axis=1)[srt])
     is_core = np.ascontiguousarray(is_core[srt])
