@@ -753,24 +753,7 @@ def grid_loop(
             bad = -1  # debug: a broken heap
             break
         pops += pp
-        for j in range(nd):
-            cc = dirty[j]
-            w = cellv[cc]
-            best = -1.0
-            for p in range(cs[w], cs[w + 1]):
-                if rank[p] >= 0:
-                    continue
-                if dq[p] < val[p]:  # (else max(dq, e) cannot lower val)
-                    s = order[lq[p]]
-                    e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
-                    if weighted:
-                        e *= 0.5 * (pcost[p] + pcost[s])
-                    cand = dq[p] if dq[p] > e else e
-                    if cand < val[p]:
-                        val[p] = cand
-                if val[p] > best:
-                    best = val[p]
-            maxheap_decrease(ckey, heap, hpos, cc, best, hn)
+        _lower_dirty(nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn)
         # drop exhausted cells from the top
         while hn > 0 and ckey[0] < 0.0:
             hn = maxheap_pop(ckey, heap, hpos, hn)
@@ -790,7 +773,7 @@ def _lower_dirty(
     nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn,
 ):  # pragma: no cover - compiled
     """The candidate values of the unordered points of the ``nd`` dirty cells after a march, and
-    their cells' keys (as the loop of :func:`grid_loop` does after each sample)."""
+    their cells' keys (after each sample of :func:`grid_loop` and each bulk march)."""
     for j in range(nd):
         cc = dirty[j]
         w = cellv[cc]
@@ -798,7 +781,7 @@ def _lower_dirty(
         for p in range(cs[w], cs[w + 1]):
             if rank[p] >= 0:
                 continue
-            if dq[p] < val[p]:
+            if dq[p] < val[p]:  # (else max(dq, e) cannot lower val)
                 s = order[lq[p]]
                 e = _norm(u[p, 0] - u[s, 0], u[p, 1] - u[s, 1], u[p, 2] - u[s, 2])
                 if weighted:
