@@ -265,12 +265,8 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
     t0, c0 = time.perf_counter(), time.process_time()
     n = pts.shape[0]
-    gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
-    m = upts.shape[0]
-    extent = float(np.ptp(upts, axis=0).max())
-    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
-    band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
-    del upts
+    gid, rep, useeds, m, extent, band, plan, stats = _engine_band(
+        pts, seed_arr, voxel_size, band_radius, max_memory, progress, compiled)
     h, r = plan.h, plan.r
     k_max = m if size is None else min(m, size)
     t1, c1 = time.perf_counter(), time.process_time()
@@ -320,6 +316,17 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     radius, stop, stats["rounding_bound"] = _promised(radius[:k] * h, stop, extent, h, r, user_grid)
     parent = parent[:k].astype(np.int64)  # (the kernels' int32 positions)
     return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
+
+
+def _engine_band(pts, seed_arr, voxel_size, band_radius, max_memory, progress, compiled):
+    """The band over the distinct points: (group ids, representatives, engine seeds, number of
+    distinct points, their extent, the band, its plan, the engine's stats so far)."""
+    gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
+    m = upts.shape[0]
+    extent = float(np.ptp(upts, axis=0).max())
+    stats: dict[str, Any] = {"engine": "band", "n_points": pts.shape[0], "n_distinct": m}
+    band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
+    return gid, rep, useeds, m, extent, band, plan, stats
 
 
 def _distinct_points(pts, seed_arr):

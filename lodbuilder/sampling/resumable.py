@@ -26,8 +26,7 @@ from ..errors import InputError
 from .fastfps import (
     DEBUG,
     _assemble,
-    _band,
-    _distinct_points,
+    _engine_band,
     _engine_seeds,
     _pieces,
     _points_and_values,
@@ -107,10 +106,8 @@ def start_fastfps(
     pts, n, _, _, seed_arr = _prepare(points, None, None, seeds)
     timed = _timed_seeds(timed_seeds, n, False)
     compiled = ensure_compiled(None)
-    gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
-    m = upts.shape[0]
-    stats: dict[str, Any] = {"engine": "band", "n_points": n, "n_distinct": m}
-    band, plan = _band(upts, voxel_size, band_radius, max_memory, None, compiled, stats)
+    gid, rep, useeds, m, extent, band, plan, stats = _engine_band(
+        pts, seed_arr, voxel_size, band_radius, max_memory, None, compiled)
     h = plan.h
     seeds_c, tseed_c, tkey_g = _engine_seeds(band.perm, m, useeds, gid, timed, h)
     inv = np.empty(m, dtype=np.int32)
@@ -119,7 +116,7 @@ def start_fastfps(
     psep, pnrm, foot = _tail_fields(band, plan)
     stats["n_timed_seeds"] = int(tseed_c.size)
     state = FastFPSState(
-        pts, gid, rep, seed_arr, h, plan.r, plan.handover / h, float(np.ptp(upts, axis=0).max()),
+        pts, gid, rep, seed_arr, h, plan.r, plan.handover / h, extent,
         voxel_size is not None or band_radius is not None, inv, band.perm, seeds_c, tseed_c, tkey_g,
         np.zeros(1, np.int64), piece, int(npiece), psep, pnrm, stats, band, foot,
     )
