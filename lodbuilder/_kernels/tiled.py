@@ -364,15 +364,7 @@ def cover_head(xyz, rank, core, cell, stop, ev_rank, ev_val, pt_rank, pt_parent,
     ``p0[i - i0]`` the distance and the rank of the nearest of points 0..i0-1 to each pending core
     point i (inf and -1 at the others)."""
     n = xyz.shape[0]
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for a in range(3):
-        lo[a] = np.inf
-        hi[a] = -np.inf
-    for i in range(n):
-        for a in range(3):
-            lo[a] = min(lo[a], xyz[i, a])
-            hi[a] = max(hi[a], xyz[i, a])
+    lo, hi = _box(xyz, 0)
     g = np.empty(3, np.int64)
     for a in range(3):
         g[a] = max(1, np.int64((hi[a] - lo[a]) / cell) + 1)
@@ -578,20 +570,24 @@ TAIL_CELLS = 1 << 22
 
 
 @nb.njit(**JIT)
+def _box(xyz, i0):  # pragma: no cover - compiled
+    """The bounding box (lo, hi) of points i0..n-1."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(i0, xyz.shape[0]):
+        for a in range(3):
+            lo[a] = min(lo[a], xyz[i, a])
+            hi[a] = max(hi[a], xyz[i, a])
+    return lo, hi
+
+
+@nb.njit(**JIT)
 def _tail_grid(xyz, i0, cell):  # pragma: no cover - compiled
     """Points i0..n-1 by cubic cells of a dense grid (x-major): (lo, cell size, dims, start of each
     cell's points, their indices ascending within a cell, their coordinates in that order, and the
     slot of each point i at ``[i - i0]``)."""
     n = xyz.shape[0]
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for a in range(3):
-        lo[a] = np.inf
-        hi[a] = -np.inf
-    for i in range(i0, n):
-        for a in range(3):
-            lo[a] = min(lo[a], xyz[i, a])
-            hi[a] = max(hi[a], xyz[i, a])
+    lo, hi = _box(xyz, i0)
     g = cell
     dims = np.empty(3, np.int64)
     while True:
