@@ -115,7 +115,39 @@ def compile_group(group: str) -> None:
     """Compile (or load from the cache) every kernel of ``group`` for its signature."""
     with fewer_collections():
         for name, sig in signatures(group).items():
-            _dispatcher(name).compile(sig)
+            dispatcher = _dispatcher(name)
+            with _light_refresh(dispatcher):
+                dispatcher.compile(sig)
+
+
+@contextlib.contextmanager
+def _light_refresh(dispatcher: Any) -> Iterator[None]:
+    """numba refreshes its target context before it loads a kernel from the cache: the first
+    refresh of a process imports and installs every implementation numba has (arrays, unicode,
+    random generators, typed containers, ...: about 0.3 CPU-s, 4 % of ``lodbuilder build`` of 1M
+    points), which only compiling needs; running compiled code needs numba's runtime only. Within
+    the block, ``dispatcher``'s cache loads after starting the runtime alone; compiling (when the
+    cache misses) still refreshes in full."""
+    cache: Any = getattr(dispatcher, "_cache", None)
+    load = getattr(cache, "_load_overload", None)
+    guard = getattr(cache, "_guard_against_spurious_io_errors", None)
+    if load is None or guard is None:  # (no cache, or another numba's internals)
+        yield
+        return
+
+    def light_load(sig: Any, target_context: Any) -> Any:
+        from numba.core.runtime import rtsys
+
+        rtsys.initialize(target_context)
+        with guard():
+            return load(sig, target_context)
+        return None  # (the guard swallowed an I/O error: compile instead)
+
+    cache.load_overload = light_load
+    try:
+        yield
+    finally:
+        vars(cache).pop("load_overload", None)
 
 
 def is_cold() -> bool:
@@ -180,6 +212,8 @@ def ensure_compiled(progress: Any = None) -> bool:
     if _WARM:
         return False
     if not is_cold():
+        for group in ("band", "ordering"):  # loaded now, without numba's full refresh (_light_refresh)
+            compile_group(group)
         _WARM = True  # checked once per process: the check reads every kernel's cache index
         return False
     report(progress, MESSAGE, 0, 1)
