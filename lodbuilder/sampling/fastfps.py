@@ -20,6 +20,7 @@ from .._validate import (
 from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
+from .spacing import bounds
 
 log = logging.getLogger(__name__)
 
@@ -323,7 +324,8 @@ def _engine_band(pts, seed_arr, voxel_size, band_radius, max_memory, progress, c
     distinct points, their extent, the band, its plan, the engine's stats so far)."""
     gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
     m = upts.shape[0]
-    extent = float(np.ptp(upts, axis=0).max())
+    lo, hi = bounds(upts)
+    extent = float((hi - lo).max())
     stats: dict[str, Any] = {"engine": "band", "n_points": pts.shape[0], "n_distinct": m}
     band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
     return gid, rep, useeds, m, extent, band, plan, stats
