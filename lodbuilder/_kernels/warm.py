@@ -47,6 +47,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     return {
         "band": {  # this process, in this order
             "grid.cell_order": (_F64_2, _F64, f),
+            "grid.hash_collisions": (_F64_2,),
             "grid.radix_argsort": (_I64,),
             "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
