@@ -20,7 +20,7 @@ from .._validate import (
 from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
-from .spacing import bounds
+from .spacing import axis_max, axis_min
 
 log = logging.getLogger(__name__)
 
@@ -311,8 +311,7 @@ def _engine_band(pts, seed_arr, voxel_size, band_radius, max_memory, progress, c
     distinct points, their extent, the band, its plan, the engine's stats so far)."""
     gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
     m = upts.shape[0]
-    lo, hi = bounds(upts)
-    extent = float((hi - lo).max())
+    extent = float((axis_max(upts) - axis_min(upts)).max())
     stats: dict[str, Any] = {"engine": "band", "n_points": pts.shape[0], "n_distinct": m}
     band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
     return gid, rep, useeds, m, extent, band, plan, stats
