@@ -508,3 +508,71 @@ def test_a_hole_joined_to_the_border_by_a_seam_is_filled(tmp_path):
     syn = lev.points[lev.attributes[SYNTHETIC] == 1]
     assert np.hypot(syn[:, 0] - 0.5, syn[:, 1] - 0.5).max() < 3.5 * rho  # none in the crack
     assert cKDTree(lev.points).query(removed)[0].max() <= 1.5 * rho
+
+
+# --- rough rings: bridged where the fill interpolates the ring, refused where it extrapolates ---
+
+ROUGH_RHO = 0.02
+
+
+def _corrugated(p, bump=0.0):
+    """z = 0.8 rho sin(2 pi x / 3 rho) sin(2 pi y / 3 rho + 0.7): detail 3 rho long, 1.6 rho from
+    trough to crest (no smooth surface predicts it across a hole), plus a bump ``bump`` rho high
+    (sigma 1.5 rho) 3.5 rho from the origin along x (its flank in the hole's ring)."""
+    r = ROUGH_RHO
+    x, y = p[:, 0] / r, p[:, 1] / r
+    z = 0.8 * np.sin(2 * np.pi * x / 3) * np.sin(2 * np.pi * y / 3 + 0.7)
+    return r * (z + bump * np.exp(-((x - 3.5) ** 2 + y**2) / (2 * 1.5**2)))
+
+
+def _rough_hole(tmp_path, seed, bump=0.0):
+    """A hole of radius 4 rho at the origin of a corrugated patch 28 rho wide, filled."""
+    rng = np.random.default_rng(seed)
+    p = (jittered_plane(20_000, rng)[:, :2] - 0.5) * 28 * ROUGH_RHO
+    full = np.c_[p, _corrugated(p, bump)]
+    keep = np.hypot(full[:, 0], full[:, 1]) > 4 * ROUGH_RHO
+    path = _archive(tmp_path / "rough.h5", full[keep], {}, "rough")
+    with lodbuilder.open_archive(path) as arc:
+        filled = fill_level(arc.scan(), ROUGH_RHO)
+    (gap,) = [g for g in filled.report.gaps if np.hypot(*g.candidates.mean(axis=0)[:2]) < ROUGH_RHO]
+    return full, keep, filled, gap
+
+
+def test_a_rough_ring_is_bridged_where_the_fill_stays_within_its_heights(tmp_path):
+    """The corrugation's ring misses itself by more than rho/2 (cross-validated), so the hole
+    was refused as rough (like Igea's carved places: the fill 0.44-0.74 rho off there). The fill
+    stays within the heights of the points next to the hole: it interpolates them, and the hole
+    is filled, within the corrugation's own range, its removed points covered within 1.5 rho."""
+    full, keep, filled, gap = _rough_hole(tmp_path, seed=1)
+    assert 0.5 * ROUGH_RHO < gap.residual <= 0.8 * ROUGH_RHO
+    assert gap.status == "fillable" and gap.n_synthetic > 20
+    lev = filled.level
+    syn = lev.points[lev.attributes[SYNTHETIC] == 1]
+    assert np.abs(syn[:, 2]).max() <= 0.8 * ROUGH_RHO
+    assert cKDTree(lev.points).query(full[~keep])[0].max() <= 1.5 * ROUGH_RHO
+
+
+def test_a_rough_ring_is_not_bridged_where_the_fill_leaves_its_heights(tmp_path):
+    """The same hole with a bump 4 rho high whose flank lies in the ring: the surface fitted to
+    the ring climbs the flank into the hole, above every point next to it (by 0.8 rho): it
+    extrapolates a peak the ring does not show. Rough, not filled."""
+    _, _, filled, gap = _rough_hole(tmp_path, seed=0, bump=4.0)
+    assert gap.status == "rough" and gap.n_synthetic == 0
+    assert gap.residual > 0.5 * ROUGH_RHO
+    assert gap.surface.overshoot(gap.frame.height(gap.candidates)) > 0.1 * ROUGH_RHO
+
+
+def test_overshoot_is_how_far_heights_leave_the_inner_rings_range():
+    from lodbuilder.fill.surface import HeightField
+
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(-5, 5, (300, 2))
+    h = 0.1 * uv[:, 0]
+    inner = np.abs(uv[:, 0]) < 2  # heights -0.2 .. 0.2
+    f = HeightField(uv, h, 1.0, inner)
+    lo, hi = f.inner_heights
+    assert -0.2 <= lo < -0.19 and 0.19 < hi <= 0.2
+    assert f.overshoot(np.array([0.0, 0.1])) == 0.0
+    assert f.overshoot(np.array([0.0, hi + 0.3])) == pytest.approx(0.3)
+    assert f.overshoot(np.array([lo - 0.5, hi + 0.3])) == pytest.approx(0.5)
+    assert f.overshoot(np.zeros(0)) == 0.0

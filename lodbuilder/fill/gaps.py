@@ -58,7 +58,10 @@ whole scan for exact distances.
    small sphere turns farther, and is not what the fill bridges) or not one smooth piece:
    fitted to five sixths of the ring (angular sectors around the hole), the surface misses the
    inner ring points (within rho of the region) of the sixth left out by more than rho/2 RMS
-   (e.g. an occlusion shadow, whose rim lies on two surfaces at different depths).
+   (e.g. an occlusion shadow, whose rim lies on two surfaces at different depths). A ring
+   missed by rho/2 to 0.8 rho (carved detail, as on Igea) is still filled where the surface
+   stays within the inner ring's heights (it interpolates them, never climbing a bump's flank
+   beyond them) and the ring is one layer (not a plate over a sheet: :func:`_interpolates`).
 5. **Candidates** are the region's nodes lifted onto the height field; those within rho/2 of a
    sample point in 3D (another sheet) are dropped. The region's *gap* is the part of it farther
    than rho from every sample point: its area (node count x node area x the height field's
@@ -99,6 +102,7 @@ from .local import (
     on_sheet,
     same_face,
     stacked,
+    two_layers,
 )
 from .region import STATUS_FILLABLE, STATUS_ROUGH, Region
 from .surface import (
@@ -130,6 +134,9 @@ SLOPE, SHEET_SLOPE = 0.5, 1.0
 MIN_SEEDS_WIDE = 4
 #: largest RMS error predicting a sixth of the ring from the rest, in units of rho
 MAX_RESIDUAL = 0.5
+#: a rougher ring (up to MAX_ROUGH rho) is bridged where the surface leaves the inner ring's
+#: heights by at most MAX_OVERSHOOT rho
+MAX_ROUGH, MAX_OVERSHOOT = 0.8, 0.1
 
 
 @dataclass
@@ -415,6 +422,8 @@ def _regions_of_group(sample, tree_s, seeds, normal, rho, width, along=False, aw
         local = _Local(sample, idx, tree2, slope, away)
         regions, leak_at = _regions_on_grid(frame, local, seeds, rho, g, half, refit=2)
         enclosed = [r for r in regions if r is not None]
+        for r in enclosed:
+            r.along = along
         found += enclosed
         if leak_at is None:
             return found
@@ -533,13 +542,31 @@ def _assess(reg: Region) -> None:
             f"more than {math.degrees(MAX_TILT):.0f} degrees from the hole's plane (more than "
             f"{100 * MAX_TILTED:.0f} %)"
         )
-    elif reg.residual > MAX_RESIDUAL * rho:
+    elif reg.residual > MAX_RESIDUAL * rho and not _interpolates(reg):
         reg.status = STATUS_ROUGH
         reg.reason = (
             f"the surface fitted to the surrounding points misses those next to the hole, when "
             f"fitted without them, by {reg.residual / rho:.2f} rho (RMS; more than "
             f"{MAX_RESIDUAL:g} rho)"
         )
+
+
+def _interpolates(reg: Region) -> bool:
+    """A ring rough at its own scale (residual up to :data:`MAX_ROUGH` rho: carved detail)
+    is still bridged where the surface stays within the heights of the points next to the
+    hole: the fill interpolates them. A surface that rises above or dips below all of them
+    extrapolates a peak or a dip the ring does not show (a bump's flank in the ring). Not
+    where the ring lies in two layers over the plane (a plate over the sheet: its heights span
+    both depths, and a fill between them is no surface), nor along the surface (the ring's
+    heights over the plane bound nothing there)."""
+    surface = reg.surface
+    assert isinstance(surface, HeightField)
+    if reg.along or reg.residual > MAX_ROUGH * reg.rho:
+        return False
+    if surface.overshoot(reg.frame.height(reg.candidates)) > MAX_OVERSHOOT * reg.rho:
+        return False
+    ring = reg.frame.lift(surface.ring_uv, surface.ring_h)
+    return not two_layers(ring, reg.frame.normal, reg.rho)
 
 
 def _finish_region(reg: Region, tree_s: Any, rho: float) -> None:

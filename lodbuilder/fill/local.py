@@ -302,6 +302,18 @@ def stacked(tree2: Any, h: np.ndarray, rho: float) -> bool:
     return bool((np.abs(h[nb] - h[:, None]) > 1.5 * rho).any())
 
 
+def two_layers(points: np.ndarray, normal: np.ndarray, rho: float) -> bool:
+    """Some of ``points`` lie over others (:func:`~lodbuilder.fill.local.stacked`: within rho/2
+    across, 1.5 rho apart) over the plane of their mean normal (oriented like ``normal``): two
+    layers, a plate over a sheet, whose least-squares plane tilts to run through both."""
+    from scipy.spatial import cKDTree
+
+    nrm = normals_at(points, points)
+    mean = (nrm * np.where(nrm @ normal < 0, -1.0, 1.0)[:, None]).sum(axis=0)
+    frame = Frame.of(points.mean(axis=0), mean)
+    return stacked(cKDTree(frame.uv(points)), frame.height(points), rho)
+
+
 def groups(seeds: np.ndarray, rho: float) -> list[np.ndarray]:
     """Seed index arrays of the groups linked within 2 rho."""
     from scipy.sparse import coo_matrix

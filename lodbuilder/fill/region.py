@@ -65,6 +65,8 @@ class Region:
     #: enclosed only once cut from a channel of surface within rho of the input (kept only when
     #: a fillable gap)
     opened: bool = False
+    #: enclosed only along the surface (the seeds' own sheet, in the steeper cone)
+    along: bool = False
 
     @property
     def normal(self) -> np.ndarray:

@@ -171,6 +171,11 @@ class HeightField:
     ) -> None:
         if inner is None:
             inner = np.ones(uv.shape[0], dtype=bool)
+        #: the whole ring, over the plane (``ring_uv``) and its heights (scan units)
+        self.ring_uv, self.ring_h = uv, h
+        near = h[inner] if inner.any() else h
+        #: the heights the inner ring spans (scan units)
+        self.inner_heights = (float(near.min()), float(near.max())) if near.size else (0.0, 0.0)
         if uv.shape[0] > MAX_FIT_POINTS:
             keep = np.linspace(0, uv.shape[0] - 1, MAX_FIT_POINTS).round().astype(np.int64)
             uv, h, inner = uv[keep], h[keep], inner[keep]
@@ -233,6 +238,14 @@ class HeightField:
             return float("inf")
         e = np.concatenate(err)
         return float(np.sqrt(np.mean(e * e)))
+
+    def overshoot(self, heights: np.ndarray) -> float:
+        """How far ``heights`` (scan units) leave the range of the inner ring's heights
+        (:attr:`inner_heights`): 0 where they stay within it."""
+        if heights.size == 0:
+            return 0.0
+        lo, hi = self.inner_heights
+        return float(max(0.0, heights.max() - hi, lo - heights.min()))
 
     def __call__(self, uv: np.ndarray) -> np.ndarray:
         if uv.shape[0] == 0:
