@@ -347,9 +347,9 @@ def test_balanced_tile_points():
     from lodbuilder.build.tiled import plan as P
 
     assert P.balanced_tile_points(21_560_000, 1, 3_000_000) == 3_000_000  # one worker: what fits
-    # 16 workers: about 4 tiles each (the k-d split halves: 64 tiles), below what fits
-    assert P.balanced_tile_points(21_560_000, 16, 600_000) == 387_407 == math.ceil(1.15 * 21_560_000 / 64)
-    assert P.balanced_tile_points(21_560_000, 16, 300_000) == 300_000  # the memory budget decides
+    # 16 workers: about 8 tiles each (the k-d split halves: 128 tiles), below what fits
+    assert P.balanced_tile_points(21_560_000, 16, 600_000) == 193_704 == math.ceil(1.15 * 21_560_000 / 128)
+    assert P.balanced_tile_points(21_560_000, 16, 150_000) == 150_000  # the memory budget decides
     assert P.balanced_tile_points(1_000_000, 16, 600_000) == P.BALANCED_MIN_POINTS  # not below the floor
     assert P.balanced_tile_points(1_000_000, 16, 50_000) == 50_000
 
@@ -361,7 +361,7 @@ def test_tiles_are_sized_for_the_workers_the_build_runs_with(tmp_path, monkeypat
     from lodbuilder.build.tiled import plan as P
 
     monkeypatch.setattr(P, "needs_tiling", lambda *a, **k: True)
-    monkeypatch.setattr(P, "BALANCED_MIN_POINTS", 1_000)
+    monkeypatch.setattr(P, "BALANCED_MIN_POINTS", 500)
     pts = wavy(24_000, np.random.default_rng(3))
     np.save(tmp_path / "w.npy", pts)
     lodbuilder.build_archive(tmp_path / "w.npy", tmp_path / "w.h5", workers=workers, max_memory="4GB")
