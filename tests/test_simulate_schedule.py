@@ -22,6 +22,7 @@ from simulate_schedule import (  # noqa: E402
     measured_idle,
     model_from_record,
     predict,
+    reference_seconds,
     simulate,
 )
 
@@ -262,3 +263,20 @@ def test_main_compares_archives(tmp_path, monkeypatch, capsys):
     out = json.loads(capsys.readouterr().out)
     assert [r["workers"] for r in out["runs"]] == [1, 2]
     assert out["runs"][1]["predicted"][0]["slowdown"] == 1.1
+
+
+def test_compare_normalises_records_of_different_loads():
+    """The second record's plan-independent tasks took twice the CPU (a loaded machine): its tasks
+    count half."""
+    a = {"stages": [Stage("order", 0.0, _tasks(4.0, 4.0))]}
+    b = {"stages": [Stage("order", 0.0, _tasks(*[4.0] * 4))]}
+    out = compare([a, b], [2, 4], references=[10.0, 20.0])
+    assert [r["predicted"][0]["wall_seconds"] for r in out["runs"]] == [4.0, 2.0]
+    assert [r["load_scale"] for r in out["runs"]] == [1.0, 0.5]
+    with pytest.raises(ValueError, match="every record needs tasks of read_block"):
+        compare([a, b], [2, 4], references=[10.0, 0.0])
+    rec = _record()
+    rec["tasks"]["rows"] += [["read_block", "read_block.0", None, 0, 0.1, 1.5, 1.25, 11],
+                             ["write_band", "write_band", None, None, 20.0, 2.0, 2.0, 11],
+                             ["read_block", "read_block.9", None, 9, -9.0, 1.0, 1.0, 11]]  # before a resume
+    assert reference_seconds(rec) == 3.25

@@ -307,14 +307,34 @@ def measured_idle(rec: dict[str, Any], workers: int) -> dict[str, Any]:
             "waiting": round(sum(p["waiting"] for p in out.values()), 2)}
 
 
+#: task kinds whose work does not depend on the tile plan (per read block or band of positions):
+#: their CPU seconds in two records of one survey differ by the machine's load alone
+REFERENCE_KINDS = ("read_block", "survey_block", "bucket_block", "write_band", "rank_band", "rank_block")
+
+
+def reference_seconds(rec: dict[str, Any]) -> float:
+    """The CPU seconds of a record's tasks of :data:`REFERENCE_KINDS`."""
+    table = rec.get("tasks") or {"columns": [], "rows": []}
+    rows = [dict(zip(table["columns"], r, strict=True)) for r in table["rows"] if r]
+    return sum(float(r["cpu_seconds"]) for r in rows if r["kind"] in REFERENCE_KINDS and r["start"] >= 0)
+
+
 def compare(models: list[dict[str, Any]], workers: list[int], fifo: bool = False,
-            slowdown: dict[int, float] | None = None) -> dict[str, Any]:
+            slowdown: dict[int, float] | None = None, references: list[float] | None = None) -> dict[str, Any]:
     """Each model (a record planned for its worker count) predicted at its own worker count
     (``workers``, one per model), and the speed-ups over the first: the figure a build planned for
-    W workers gives beside one planned for the first count (the tile plans differ)."""
+    W workers gives beside one planned for the first count (the tile plans differ). With
+    ``references`` (each record's :func:`reference_seconds`), every record's tasks are scaled to
+    the first record's load (records measured at different loads of a shared machine)."""
     if len(models) != len(workers):
         raise ValueError(f"{len(models)} record(s) need as many worker counts, got {len(workers)}")
-    runs = [{"workers": w, **predict(m, [w], fifo, slowdown)} for m, w in zip(models, workers, strict=True)]
+    if references is not None and not all(r > 0 for r in references):
+        raise ValueError(f"every record needs tasks of {', '.join(REFERENCE_KINDS)} to be normalised")
+    runs = []
+    for i, (m, w) in enumerate(zip(models, workers, strict=True)):
+        load = references[0] / references[i] if references else 1.0
+        slow = {w: load * float((slowdown or {}).get(w, 1.0))}
+        runs.append({"workers": w, **predict(m, [w], fifo, slow), **({"load_scale": round(load, 3)} if references else {})})
     first = runs[0]["predicted"][0]["wall_seconds"]
     for r in runs:
         wall = r["predicted"][0]["wall_seconds"]
@@ -352,15 +372,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--slowdown", default=None,
                    help="W:F,...: tasks take F times their recorded seconds on W workers (e.g. 16:1.13, the tree CPU "
                         "growth measured from 4 to 16 workers); none by default")
+    p.add_argument("--normalise", action="store_true",
+                   help="several archives: scale each record's tasks to the first's load (by the CPU seconds of the "
+                        "task kinds that do not depend on the tile plan, REFERENCE_KINDS)")
     p.add_argument("--fifo", action="store_true",
                    help="ready tasks in the order they became ready (the order phase before it started the "
                         "critical path first)")
     args = p.parse_args(argv)
     workers = [int(w) for w in (args.workers or ",".join(map(str, WORKERS))).split(",")]
-    models = [model_from_record(_record(a, args.scan), args.rest, durations=args.durations) for a in args.archive]
+    recs = [_record(a, args.scan) for a in args.archive]
+    models = [model_from_record(r, args.rest, durations=args.durations) for r in recs]
     slow = _slowdown(args.slowdown)
     out = (predict(models[0], workers, args.fifo, slow) if len(models) == 1
-           else compare(models, workers, args.fifo, slow))
+           else compare(models, workers, args.fifo, slow, [reference_seconds(r) for r in recs] if args.normalise else None))
     print(json.dumps(out, indent=1))
     return 0
 
