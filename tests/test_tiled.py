@@ -370,3 +370,40 @@ def test_tiles_are_sized_for_the_workers_the_build_runs_with(tmp_path, monkeypat
     assert tiled["parallel"] == workers
     assert tiled["tile_points_max"] == math.ceil(P.BALANCE_SLACK * len(pts) / (P.TILES_PER_WORKER * workers))
     assert P.TILES_PER_WORKER * workers <= tiled["tiles"] <= 2 * P.TILES_PER_WORKER * workers
+
+
+def test_merge_band_rows():
+    from lodbuilder.build.tiled import plan as P
+
+    most = 1 << 20
+    assert P.merge_band_rows(21_560_000, 1, most) == P.merge_band_rows(21_560_000, 4, most) == most
+    # 16 workers: about 4 bands each (before: bands of at most 1M rows, 22 tasks on 16 workers)
+    assert P.merge_band_rows(21_560_000, 16, most) == 336_875 == math.ceil(21_560_000 / 64)
+    assert P.merge_band_rows(1_000_000, 16, most) == P.MIN_MERGE_BAND_ROWS  # not below the floor
+
+
+def test_merge_bands_are_sized_for_the_workers_and_leave_the_order_as_it_was(tmp_path, monkeypatch):
+    """A build on 4 workers merges in about 4 bands per worker (before: every band of at most
+    merge.BAND_ROWS rows, one band here); the archive is the same as with one band."""
+    from lodbuilder.build.tiled import merge as M
+    from lodbuilder.build.tiled import plan as P
+
+    seen = []
+    orig = M.merge_phase
+
+    def spy(*args, **kw):
+        out = orig(*args, **kw)
+        seen.append(len(out["order"]) - 1)  # (the first piece is the head)
+        return out
+
+    monkeypatch.setattr(M, "merge_phase", spy)
+    f = write_points(tmp_path / "w.ply", wavy(6000, np.random.default_rng(11)))
+    monkeypatch.setattr(P, "MIN_MERGE_BAND_ROWS", 100)
+    lodbuilder.build_archive(f, tmp_path / "many.h5", _tile_points=1500, workers=4)
+    monkeypatch.setattr(P, "MERGE_BANDS_PER_WORKER", 0.01)  # (bands of every row: one band)
+    lodbuilder.build_archive(f, tmp_path / "one.h5", _tile_points=1500, workers=4)
+    assert seen[0] >= 12 and seen[1] == 1, seen
+    with lodbuilder.open_archive(tmp_path / "many.h5") as x, lodbuilder.open_archive(tmp_path / "one.h5") as y:
+        a, b = x.scan(), y.scan()
+        for k in ("source_index", "radius", "parent"):
+            np.testing.assert_array_equal(getattr(a, k)[:], getattr(b, k)[:])

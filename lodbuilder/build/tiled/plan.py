@@ -75,6 +75,23 @@ def balanced_tile_points(n_points: int, parallel: int, fits: int) -> int:
     return min(fits, max(aim, BALANCED_MIN_POINTS))
 
 
+#: bands of the merge per worker (after the serial seam repair every band is a task): on 16
+#: workers the 21.56M survey's bands of at most 1M rows were 22 tasks, two rounds whose second
+#: left 10 workers idle
+MERGE_BANDS_PER_WORKER = 4
+#: rows of a merge band sized for the workers, at least (each band reads every tile's run of it)
+MIN_MERGE_BAND_ROWS = 1 << 17
+
+
+def merge_band_rows(n_points: int, parallel: int, most: int) -> int:
+    """Rows per band of the merge: ``most`` (see :data:`lodbuilder.build.tiled.merge.BAND_ROWS`),
+    or fewer so that there are about MERGE_BANDS_PER_WORKER bands per worker, but not below
+    MIN_MERGE_BAND_ROWS (the merged order is the same whatever the bands)."""
+    if parallel <= 1:
+        return most
+    return min(most, max(MIN_MERGE_BAND_ROWS, math.ceil(n_points / (MERGE_BANDS_PER_WORKER * parallel))))
+
+
 def worker_budget(max_memory: int, parallel: int) -> int:
     """Bytes each of ``parallel`` workers may use once the parent's share is set aside."""
     parent = max(PARENT_MIN, int(PARENT_FRACTION * max_memory))
