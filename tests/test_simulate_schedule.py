@@ -263,6 +263,8 @@ def test_main_compares_archives(tmp_path, monkeypatch, capsys):
     out = json.loads(capsys.readouterr().out)
     assert [r["workers"] for r in out["runs"]] == [1, 2]
     assert out["runs"][1]["predicted"][0]["slowdown"] == 1.1
+    assert out["command"].startswith("python tools/simulate_schedule.py ") and out["commit"] and out["date"]
+    assert out["kind"] == "prediction (not measured)"
 
 
 def test_compare_normalises_records_of_different_loads():

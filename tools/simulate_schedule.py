@@ -59,6 +59,7 @@ import heapq
 import json
 import re
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -385,7 +386,12 @@ def main(argv: list[str] | None = None) -> int:
     slow = _slowdown(args.slowdown)
     out = (predict(models[0], workers, args.fifo, slow) if len(models) == 1
            else compare(models, workers, args.fifo, slow, [reference_seconds(r) for r in recs] if args.normalise else None))
-    print(json.dumps(out, indent=1))
+    from benchdoc import commit
+
+    head = {"tool": "simulate_schedule", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "commit": commit(),
+            "command": " ".join(["python", "tools/simulate_schedule.py", *(sys.argv[1:] if argv is None else argv)]),
+            "records": [str(a) for a in args.archive], "kind": "prediction (not measured)"}
+    print(json.dumps({**head, **out}, indent=1))
     return 0
 
 
