@@ -31,6 +31,13 @@ from .timing import timed_task
 TILE_ROUNDS: tuple[int, float] | None = None
 
 
+def radii(head: np.ndarray, rounds: int, q: float) -> list[float | None]:
+    """The radius each round stops at: the head's last radius / q^p for p = 1 .. ``rounds``, then
+    None (to the end; only that when the head has no finite radius)."""
+    r0 = float(head["r"][-1]) if head.shape[0] and np.isfinite(head["r"][-1]) else None
+    return [None] if r0 is None else [r0 / q**p for p in range(1, rounds + 1)] + [None]
+
+
 def _start(w: Store, t: int, doc: dict[str, Any], head: np.ndarray, hpts: np.ndarray, voxel_size: float,
            band_radius: float, halo: float, max_memory: int | None) -> dict[str, Any]:
     """Tile ``t``'s ordering state: its core, the head points in its core and halo as seeds, and
@@ -64,24 +71,56 @@ def _sources(tiles: dict[int, dict[str, Any]], t: int, nbrs: list[int]) -> tuple
     """The points in tile ``t``'s halo that its neighbours ordered since ``t``'s last round:
     (rows of ``t``'s points, keys)."""
     me = tiles[t]
-    rows, keys = [], []
+    news: list[tuple[np.ndarray, np.ndarray] | None] = []
     for u in nbrs:
-        o = tiles[u]["o"]
-        if o is None or me["halo_g"].size == 0:
+        if tiles[u]["o"] is None or me["halo_g"].size == 0:
+            news.append(None)
             continue
         start = me["seen"].get(u, 0)
-        new = o.order[start:]
-        rad = o.radius[start:]
-        me["seen"][u] = len(o)
-        own = (new < tiles[u]["cpts"].shape[0]) & np.isfinite(rad)
-        g = tiles[u]["core"]["g"][new[own]]
+        me["seen"][u] = len(tiles[u]["o"])
+        news.append(_news(tiles[u], start))
+    return _halo_rows(me, news)
+
+
+def _news(tile: dict[str, Any], start: int, near: tuple[np.ndarray, np.ndarray] | None = None
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """A tile's own points ordered from position ``start`` on (their input ids ``g``, keys); with
+    ``near`` (lower and upper corners of boxes) only those in one of the boxes."""
+    o = tile["o"]
+    new, rad = o.order[start:], o.radius[start:]
+    own = (new < tile["cpts"].shape[0]) & np.isfinite(rad)
+    idx, rad = new[own], rad[own]
+    if near is not None:
+        p = tile["cpts"][idx]
+        keep = np.zeros(idx.size, bool)
+        for lo, hi in zip(*near, strict=True):
+            keep |= np.all((p >= lo) & (p <= hi), axis=1)
+        idx, rad = idx[keep], rad[keep]
+    return tile["core"]["g"][idx], rad
+
+
+def _halo_rows(me: dict[str, Any], news: list[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of tile ``me``'s points and the keys of the neighbours' new points ``news`` (each
+    neighbour's (g, keys), in :func:`_news`'s order; None: not ordered yet) that lie in its halo."""
+    rows, keys = [], []
+    for new in news:
+        if new is None or me["halo_g"].size == 0:
+            continue
+        g, rad = new
         pos = np.minimum(np.searchsorted(me["halo_g"], g), me["halo_g"].size - 1)
         hit = me["halo_g"][pos] == g
         rows.append(me["halo_rows"][pos[hit]])
-        keys.append(rad[own][hit])
+        keys.append(rad[hit])
     if not rows:
         return np.empty(0, np.int64), np.empty(0)
     return np.concatenate(rows), np.concatenate(keys)
+
+
+def _joining(rows: np.ndarray, keys: np.ndarray, rho: float | None) -> Any:
+    """``resume_fastfps``'s sources: in a round every source joins at once (the points the
+    neighbours of a lower colour ordered in this round too: this tile keeps away from them); in
+    the last, the neighbours' points below the last round's radius join at their keys."""
+    return None if rows.size == 0 else rows if rho is not None else (rows, keys)
 
 
 @timed_task
@@ -97,23 +136,67 @@ def order_rounds(work: Store | str, docs: dict[int, dict[str, Any]], nbrs: list[
     head = w.read_array(WL.HEAD_FILE, HEAD)
     hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
     tiles = {t: _start(w, t, doc, head, hpts, voxel_size, band_radius, halo, max_memory) for t, doc in docs.items()}
-    r0 = float(head["r"][-1]) if head.shape[0] and np.isfinite(head["r"][-1]) else None
     seq = sorted(tiles, key=lambda t: colour[t])
     state_bytes = 0
-    for p in range(1, rounds + 2):
-        rho = None if (p > rounds or r0 is None) else r0 / q**p
+    for rho in radii(head, rounds, q):
         for t in seq:
             rows, keys = _sources(tiles, t, nbrs[t])
             state_bytes = max(state_bytes, tiles[t]["state"].nbytes)
-            # in a round every source joins at once (the points the neighbours of a lower colour
-            # ordered in this round too: this tile keeps away from them); in the last, the
-            # neighbours' points below the last round's radius join at their keys
-            src = None if rows.size == 0 else rows if rho is not None else (rows, keys)
-            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=src, bulk=True)
-        if rho is None:
-            break
+            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=_joining(rows, keys, rho), bulk=True)
     out = [_finish(w, tiles[t], hpts, halo) for t in sorted(tiles)]
     return {"tiles": out, "state_bytes": state_bytes, "rounds": rounds, "q": q}
+
+
+#: the tile states this process owns in parallel rounds (:mod:`.affinity`): (build key, tile) -> state
+_LIVE: dict[tuple[str, int], dict[str, Any]] = {}
+
+
+def _head(w: Store) -> tuple[np.ndarray, np.ndarray]:
+    head = w.read_array(WL.HEAD_FILE, HEAD)
+    return head, np.stack([head["x"], head["y"], head["z"]], axis=1)
+
+
+@timed_task
+def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, rho: float | None,
+               news: list[tuple[np.ndarray, np.ndarray] | None]) -> dict[str, Any]:
+    """One round of tile ``t`` in the process that owns its state (kept in ``_LIVE`` under
+    ``key``): started on the first (``doc``: the tile as :func:`order_rounds`'s, with ``args``,
+    its voxel size, band radius, halo and memory, and ``near``, its neighbours' halo boxes), then
+    ordered down to ``rho`` after its neighbours' new points in its halo (``news``: (g, keys) or
+    None per neighbour) join. Returns the points it ordered in this round that lie in a
+    neighbour's halo box (``g``, ``keys``) and the bytes of its state."""
+    from ...sampling.resumable import resume_fastfps
+
+    tile = _LIVE.get((key, t))
+    if tile is None:
+        if doc is None:
+            raise RuntimeError(f"tile {t}'s state of the rounds is not in this worker process (was it restarted?)")
+        w = as_store(work)
+        head, hpts = _head(w)
+        tile = _start(w, t, doc, head, hpts, *doc["args"])
+        tile["near"] = (np.asarray(doc["near"][0], float).reshape(-1, 3), np.asarray(doc["near"][1], float).reshape(-1, 3))
+        _LIVE[(key, t)] = tile
+    rows, keys = _halo_rows(tile, news)
+    n0 = 0 if tile["o"] is None else len(tile["o"])
+    tile["o"] = resume_fastfps(tile["state"], rho=rho, sources=_joining(rows, keys, rho), bulk=True)
+    g, k = _news(tile, n0, tile["near"])
+    return {"tile": t, "g": g, "keys": k, "state_bytes": int(tile["state"].nbytes)}
+
+
+@timed_task
+def round_finish(work: Store | str, t: int, key: str, halo: float) -> dict[str, Any]:
+    """Tile ``t``'s stream and seam points written from its state, which is dropped."""
+    w = as_store(work)
+    tile = _LIVE.pop((key, t))
+    return _finish(w, tile, _head(w)[1], halo)
+
+
+def round_drop(key: str) -> int:
+    """Drop every state of ``key`` this process holds (a failed build); how many."""
+    gone = [k for k in _LIVE if k[0] == key]
+    for k in gone:
+        del _LIVE[k]
+    return len(gone)
 
 
 def _finish(w: Store, tile: dict[str, Any], hpts: np.ndarray, halo: float) -> dict[str, Any]:
