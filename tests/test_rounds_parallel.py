@@ -90,11 +90,22 @@ def test_rounds_that_do_not_fit_the_worker_budget_fall_back_to_one_pass(tmp_path
 
 def test_a_failing_tile_fails_the_build_naming_it(tmp_path, monkeypatch, pts):
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
+    step = rounds.round_step
     monkeypatch.setattr(rounds, "round_step", _failing_step)
     with pytest.raises(BuildError, match=r"ordering of tile 4 of \d+ in round 1 of 7 failed: RuntimeError: "
                                          r"boom in the rounds"):
         _build(tmp_path, pts, "fail")
     assert not (tmp_path / "fail.h5").exists()
+    # the work is kept, with no tile ordering marked done; the resumed build redoes the rounds and
+    # gives the order of a build that did not fail
+    (work,) = (tmp_path / ".fail.h5.parts").glob("*.work")
+    assert (work / "distribute.json").exists() and list(work.glob("order*.json")) == []
+    monkeypatch.setattr(rounds, "round_step", step)
+    resumed = _build(tmp_path, pts, "fail")
+    assert resumed["build"]["tiled"]["rounds"]["used"] is True
+    clean = _build(tmp_path, pts, "clean")
+    np.testing.assert_array_equal(resumed["order"], clean["order"])
+    np.testing.assert_array_equal(resumed["radius"], clean["radius"])
 
 
 def test_owners_balance_each_colour():

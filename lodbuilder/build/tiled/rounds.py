@@ -10,9 +10,14 @@ keys, as timed seeds). A tile of a lower colour is then blind to its neighbours 
 only, not for the whole ordering, and the points of different tiles keep their distance (see
 docs/benchmarks.md, "Seams"); the covering pays for the sources that join early (ratio q).
 
-First step: one task orders every tile and keeps every tile's state in memory (about the memory
-of every tile's ordering at once); an out-of-core build would spill each state between rounds
-(``FastFPSState.nbytes``).
+The build runs the rounds in parallel (:mod:`.affinity`): each tile's state lives in one worker
+process, its *owner*, for all rounds (:func:`round_step`, :func:`round_finish`; the states in
+``_LIVE``), and only each round's new points near a neighbour travel, through the parent.
+:func:`order_rounds` is the same in one task that holds every state (the reference the parallel
+rounds match bit for bit: tests/test_rounds_parallel.py). Memory: a state costs about
+:data:`.affinity.STATE_BYTES_PER_POINT` per point of its tile with its halo, an owner holds all
+its tiles' states at once, and the rounds run only where that fits the worker budget (else one
+pass; the build record's ``tiled.rounds`` says which and why).
 """
 
 from __future__ import annotations
