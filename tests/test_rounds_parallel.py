@@ -55,11 +55,12 @@ def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
     assert tiled["tiles"] >= 8
     assert tiled["rounds"]["used"] is True and tiled["rounds"]["owners"] == 2
     assert len(tiled["rounds"]["owner_state_bytes"]) == 2 and min(tiled["rounds"]["owner_state_bytes"]) > 0
-    steps = [r for r in d["build"]["tasks"]["rows"] if r[0] == "round_step"]
-    assert len(steps) == tiled["tiles"] * (ROUNDS[0] + 1)
-    assert len({r[7] for r in steps}) == 2  # (two owner processes)
-    for t in range(tiled["tiles"]):  # (each tile's steps in one process)
-        assert len({r[7] for r in steps if r[2] == t}) == 1
+    # one task per round, colour and owner of tiles of that colour, in two processes (a tile's
+    # state is only on its owner: a step elsewhere would fail, not start it again)
+    owner, colour = tiled["rounds"]["owner"], tiled["tile_colours"]
+    steps = [r for r in d["build"]["tasks"]["rows"] if r[0] == "round_steps"]
+    assert len(steps) == (ROUNDS[0] + 1) * len({(colour[t], owner[t]) for t in range(tiled["tiles"])})
+    assert len({r[7] for r in steps}) == 2
     # every input point exactly once; every stored radius a true covering radius (brute force)
     n = len(pts)
     assert np.array_equal(np.sort(d["order"]), np.arange(n))
@@ -85,7 +86,7 @@ def test_rounds_that_do_not_fit_the_worker_budget_fall_back_to_one_pass(tmp_path
     assert info["used"] is False
     assert info["reason"].endswith("MiB budget of a worker: one pass instead")
     kinds = {r[0] for r in d["build"]["tasks"]["rows"]}
-    assert "order_tile" in kinds and "round_step" not in kinds
+    assert "order_tile" in kinds and "round_steps" not in kinds
 
 
 def test_a_failing_tile_fails_the_build_naming_it(tmp_path, monkeypatch, pts):

@@ -44,7 +44,7 @@ With ``--workers W`` (> 1) the build runs on W worker processes and the rounds o
 (:mod:`lodbuilder.build.tiled.affinity`): ``order_wall_seconds`` (the order phase's wall time from
 the build record), ``owner_state_bytes`` (each owner's largest sum of its tiles' state bytes),
 ``owner_bytes_estimate`` against ``worker_budget`` (the rule that decides whether the rounds run,
-``rounds_used``) and the CPU seconds of every step (``round_step``, ``round_finish``).
+``rounds_used``) and the CPU seconds of every step (``round_steps``: one task per owner and colour in each round; ``round_finish``).
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 INPUTS = ("autzen", "uniform", "uneven", "fragmented")
 #: the order phase's tasks (one pass; the one-task rounds; the parallel rounds' steps and writes)
-ORDER_TASKS = ("order_tile", "order_rounds", "round_step", "round_finish")
+ORDER_TASKS = ("order_tile", "order_rounds", "round_steps", "round_finish")
 
 
 def make_input(name: str, n: int, d: Path, thin: int, survey: tuple[int, int] = (2, 2)) -> Path:

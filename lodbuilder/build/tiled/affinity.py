@@ -110,6 +110,16 @@ def owners(ex: cf.Executor, parallel: int, key: str) -> Iterator[list[Callable[.
         R.round_drop(key)
 
 
+def _result(fut: Any, name: str, tiles: list[int], n_tiles: int, when: str, what: str = "ordering") -> Any:
+    """A task's result; its failure fails the build naming the tile (that of the exception, else
+    every tile of the task: a worker that died)."""
+    exc = fut.exception()
+    t = getattr(exc, "lodbuilder_tile", None)
+    which = f"tile {t + 1}" if isinstance(t, int) else \
+        f"tile{'s' if len(tiles) > 1 else ''} {', '.join(str(u + 1) for u in tiles)}"
+    return result(fut, name, f"{what} of {which} of {n_tiles}{when}")
+
+
 def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str, Any]], nbrs: list[list[int]],
                colour: list[int], owner: dict[int, int], parallel: int, rounds: int, q: float
                ) -> dict[str, Any]:
@@ -140,15 +150,18 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
     with owners(ex, parallel, key) as submit:
         for p, rho in enumerate(sched, 1):
             for c in colours:
-                futs = {t: submit[owner[t]](R.round_step, work, t, key, docs[t] if p == 1 else None, rho, news(t))
-                        for t in sorted(docs) if colour[t] == c}
-                for t, f in futs.items():
-                    res = result(f, name, f"ordering of tile {t + 1} of {n_tiles} in round {p} of {len(sched)}")
-                    chunks[t].append((res["g"], res["keys"]))
-                    state[t] = res["state_bytes"]
+                mine = {o: [t for t in sorted(docs) if colour[t] == c and owner[t] == o] for o in range(len(peak))}
+                futs = {o: submit[o](R.round_steps, work, key, [(t, docs[t] if p == 1 else None, news(t)) for t in ts],
+                                     rho, R.round_step) for o, ts in mine.items() if ts}
+                for o, f in futs.items():
+                    for res in _result(f, name, mine[o], n_tiles, f" in round {p} of {len(sched)}")["tiles"]:
+                        chunks[res["tile"]].append((res["g"], res["keys"]))
+                        state[res["tile"]] = res["state_bytes"]
                 for o in range(len(peak)):
                     peak[o] = max(peak[o], sum(b for t, b in state.items() if owner[t] == o))
-        futs = {t: submit[owner[t]](R.round_finish, work, t, key, docs[t]["args"][2]) for t in sorted(docs)}
-        out = [result(f, name, f"writing of tile {t + 1} of {n_tiles} after its rounds") for t, f in futs.items()]
+        halo = next(iter(docs.values()))["args"][2]
+        mine = {o: [t for t in sorted(docs) if owner[t] == o] for o in range(len(peak))}
+        futs = {o: submit[o](R.round_finish, work, key, ts, halo) for o, ts in mine.items() if ts}
+        out = [r for o, f in futs.items() for r in _result(f, name, mine[o], n_tiles, " after its rounds", "writing")["tiles"]]
     return {"tiles": out, "owner_state_bytes": peak, "state_bytes": max(state.values(), default=0),
             "rounds": rounds, "q": q}

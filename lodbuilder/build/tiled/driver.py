@@ -302,7 +302,7 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
         pieces = [WL.marker(WL.order_piece(t.index, p)) for t in tiles for p in range(1, passes + 1)]
         files = {k: v for st in stats for k, v in (st.get("files") or {}).items() if not k.startswith("face.")}
         mark(work, "order", {"files": {**{m: work.sum(m) for m in pieces}, **files},
-                             "rounds": None if rounds is None else {k: v for k, v in rounds.items() if k != "owner"}})
+                             "rounds": None if rounds is None else {**rounds, "owner": [rounds["owner"][t.index] for t in tiles]}})
     return by_size, colour, ordered, stats
 
 

@@ -22,6 +22,7 @@ pass; the build record's ``tiled.rounds`` says which and why).
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
@@ -162,6 +163,22 @@ def _head(w: Store) -> tuple[np.ndarray, np.ndarray]:
 
 
 @timed_task
+def round_steps(work: Store | str, key: str, calls: list[tuple[int, dict[str, Any] | None, list[Any]]],
+                rho: float | None, step: Any = None) -> dict[str, Any]:
+    """One round of each tile of ``calls`` ((tile, doc, news) as :func:`round_step` takes them), in
+    the process that owns them, one after the other (``step``: :func:`round_step`); their results.
+    A tile that fails is named on the exception (``lodbuilder_tile``)."""
+    out = []
+    for t, doc, news in calls:
+        try:
+            out.append((step or round_step)(work, t, key, doc, rho, news))
+        except Exception as exc:
+            with contextlib.suppress(Exception):  # (an exception that takes no attributes)
+                exc.lodbuilder_tile = t  # type: ignore[attr-defined]
+            raise
+    return {"tiles": out}
+
+
 def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, rho: float | None,
                news: list[tuple[np.ndarray, np.ndarray] | None]) -> dict[str, Any]:
     """One round of tile ``t`` in the process that owns its state (kept in ``_LIVE`` under
@@ -189,11 +206,19 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
 
 
 @timed_task
-def round_finish(work: Store | str, t: int, key: str, halo: float) -> dict[str, Any]:
-    """Tile ``t``'s stream and seam points written from its state, which is dropped."""
+def round_finish(work: Store | str, key: str, ts: list[int], halo: float) -> dict[str, Any]:
+    """The streams and seam points of tiles ``ts`` written from their states, which are dropped."""
     w = as_store(work)
-    tile = _LIVE.pop((key, t))
-    return _finish(w, tile, _head(w)[1], halo)
+    hpts = _head(w)[1]
+    out = []
+    for t in ts:
+        try:
+            out.append(_finish(w, _LIVE.pop((key, t)), hpts, halo))
+        except Exception as exc:
+            with contextlib.suppress(Exception):
+                exc.lodbuilder_tile = t  # type: ignore[attr-defined]
+            raise
+    return {"tiles": out}
 
 
 def round_drop(key: str) -> int:
