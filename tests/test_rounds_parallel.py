@@ -117,3 +117,19 @@ def test_owners_balance_each_colour():
     assert affinity.owner_bytes(points, owner, 2)[owner[0]] == (
         affinity.STATE_BYTES_PER_POINT * sum(n for t, n in points.items() if owner[t] == owner[0])
         + 800 * 100)
+
+
+def test_dask_workers_own_the_tiles_as_the_pool_does(tmp_path, monkeypatch, pts):
+    pytest.importorskip("dask.distributed")
+    monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
+    pool = _build(tmp_path, pts, "pool")
+    src = tmp_path / "pts.npy"
+    out = tmp_path / "dask.h5"
+    lodbuilder.build_archive(src, out, _tile_points=700, seam_spacing=0, dask_local=2, name="dask")
+    with lodbuilder.open_archive(out) as arc:
+        v = arc.scan("dask")
+        order, radius, build = v.source_index[:], v.radius[:], v.build
+    assert build["tiled"]["rounds"]["used"] is True and build["tiled"]["rounds"]["owners"] == 2
+    assert len({r[7] for r in build["tasks"]["rows"] if r[0] == "round_steps"}) == 2
+    np.testing.assert_array_equal(order, pool["order"])
+    np.testing.assert_array_equal(radius, pool["radius"])
