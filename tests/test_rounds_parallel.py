@@ -55,11 +55,11 @@ def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
     assert tiled["tiles"] >= 8
     assert tiled["rounds"]["used"] is True and tiled["rounds"]["owners"] == 2
     assert len(tiled["rounds"]["owner_state_bytes"]) == 2 and min(tiled["rounds"]["owner_state_bytes"]) > 0
-    # one task per round, colour and owner of tiles of that colour, in two processes (a tile's
-    # state is only on its owner: a step elsewhere would fail, not start it again)
-    owner, colour = tiled["rounds"]["owner"], tiled["tile_colours"]
+    # tasks of a round of one or more tiles of one owner, in two processes (a tile's state is only
+    # on its owner: a step elsewhere would fail, not start it again)
+    assert sorted(set(tiled["rounds"]["owner"])) == [0, 1]
     steps = [r for r in d["build"]["tasks"]["rows"] if r[0] == "round_steps"]
-    assert len(steps) == (ROUNDS[0] + 1) * len({(colour[t], owner[t]) for t in range(tiled["tiles"])})
+    assert 2 * (ROUNDS[0] + 1) <= len(steps) <= tiled["tiles"] * (ROUNDS[0] + 1)
     assert len({r[7] for r in steps}) == 2
     # every input point exactly once; every stored radius a true covering radius (brute force)
     n = len(pts)

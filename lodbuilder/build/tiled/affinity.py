@@ -3,11 +3,12 @@
 The rounds keep every tile's ordering state (:class:`lodbuilder.sampling.resumable.FastFPSState`)
 from round to round. Here each tile has an *owner*, one worker process that starts its state on
 the first round, orders it on in every round and writes its stream at the end; the state never
-leaves that process. The parent runs round by round, colour by colour: the tiles of one colour
-(no two of them neighbours) run at once on their owners, and each returns the points it ordered in
-that round that lie in a neighbour's halo box (input id and key, 16 bytes a point); the parent
-hands them to the neighbours' next steps, in the order in which :func:`.rounds.order_rounds` (one
-task, every state in one process) would see them, so both give the same orders bit for bit.
+leaves that process. Tile t's round p runs once its own round p - 1 and its neighbours' round p
+(a lower colour) or p - 1 (a higher colour) are done, as in :func:`.rounds.order_rounds` (one
+task, every state in one process, round by round and colour by colour); each round returns the
+points it ordered that lie in a neighbour's halo box (input id and key, 16 bytes a point), and
+the parent hands them to the neighbours' rounds that wait for them, so both give the same orders
+bit for bit (:func:`run_rounds`).
 
 Owners: with a process pool, ``parallel`` new single-process pools (the build's pool waits
 meanwhile); with a Dask client, its workers, each task pinned to one by address; otherwise (the
@@ -28,7 +29,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import functools
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -38,7 +38,7 @@ import numpy as np
 from . import layout as WL
 from . import plan as P
 from . import rounds as R
-from .pool import result
+from .pool import bottom_levels, result
 from .store import Store
 from .tasks import HEAD
 
@@ -99,7 +99,7 @@ def owners(ex: cf.Executor, parallel: int, key: str) -> Iterator[list[Callable[.
     if client is not None:
         addrs = sorted(client.scheduler_info().get("workers", {}))
         try:
-            yield [functools.partial(client.submit, workers=[a], allow_other_workers=False, pure=False) for a in addrs]
+            yield [client.get_executor(workers=[a], allow_other_workers=False, pure=False).submit for a in addrs]
         finally:
             with contextlib.suppress(Exception):
                 client.run(R.round_drop, key, workers=addrs)
@@ -125,43 +125,99 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
                ) -> dict[str, Any]:
     """Order the tiles ``docs`` (as :func:`.rounds.order_rounds`'s, with ``args``) in rounds on
     their owners (``owner``: tile -> owner); returns the tiles' results as ``order_rounds`` does,
-    each owner's largest sum of its states' bytes (``owner_state_bytes``) and the largest state."""
+    each owner's largest sum of its states' bytes (``owner_state_bytes``) and the largest state.
+
+    Tile t's round p waits for its own round p - 1 and for its neighbours' round p (those of a
+    lower colour) or p - 1 (a higher colour), and gets their points of those rounds: what
+    ``order_rounds`` gives it, so the orders are the same. Each owner runs the rounds of its tiles
+    as they become ready (those on the longest chain of rounds waiting for them first), in
+    batches, at most :data:`IN_FLIGHT` batches queued at a time."""
     key = uuid.uuid4().hex
     sched = R.radii(work.read_array(WL.HEAD_FILE, HEAD), rounds, q)
-    colours = sorted({colour[t] for t in docs})
-    chunks: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {t: [] for t in docs}
-    seen: dict[tuple[int, int], int] = {}
-    state = dict.fromkeys(docs, 0)
-    peak = [0] * (max(owner.values(), default=0) + 1)
-    n_tiles = len(docs)
-
-    def news(t: int) -> list[tuple[np.ndarray, np.ndarray] | None]:
-        out: list[tuple[np.ndarray, np.ndarray] | None] = []
-        for u in nbrs[t]:
-            if not chunks[u]:
-                out.append(None)  # (not started yet)
-                continue
-            part = chunks[u][seen.get((t, u), 0):]
-            seen[t, u] = len(chunks[u])
-            out.append((np.concatenate([c[0] for c in part]), np.concatenate([c[1] for c in part])) if part
-                       else (np.empty(0, np.int64), np.empty(0)))
-        return out
-
+    n_owners = max(owner.values(), default=0) + 1
+    sc = _Schedule(sched, docs, nbrs, colour, owner, n_owners)
     with owners(ex, parallel, key) as submit:
-        for p, rho in enumerate(sched, 1):
-            for c in colours:
-                mine = {o: [t for t in sorted(docs) if colour[t] == c and owner[t] == o] for o in range(len(peak))}
-                futs = {o: submit[o](R.round_steps, work, key, [(t, docs[t] if p == 1 else None, news(t)) for t in ts],
-                                     rho, R.round_step) for o, ts in mine.items() if ts}
-                for o, f in futs.items():
-                    for res in _result(f, name, mine[o], n_tiles, f" in round {p} of {len(sched)}")["tiles"]:
-                        chunks[res["tile"]].append((res["g"], res["keys"]))
-                        state[res["tile"]] = res["state_bytes"]
-                for o in range(len(peak)):
-                    peak[o] = max(peak[o], sum(b for t, b in state.items() if owner[t] == o))
+        running: dict[Any, tuple[int, list[tuple[int, int]]]] = {}
+        try:
+            while sc.todo or running:
+                for o in range(n_owners):
+                    if sum(1 for v in running.values() if v[0] == o) < IN_FLIGHT and (batch := sc.take(o)):
+                        calls = [(t, docs[t] if p == 1 else None, sc.news(p, t)) for p, t in batch]
+                        rho = sched[batch[0][0] - 1]
+                        running[submit[o](R.round_steps, work, key, calls, rho, R.round_step)] = (o, batch)
+                if not running:
+                    raise RuntimeError("the rounds' schedule is stuck")  # (cannot happen: the colours order it)
+                fin, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                for fut in fin:
+                    o, batch = running.pop(fut)
+                    p = batch[0][0]
+                    res = _result(fut, name, [t for _, t in batch], len(docs), f" in round {p} of {len(sched)}")
+                    sc.record(p, res["tiles"])
+        except BaseException:
+            for f in running:
+                f.cancel()
+            raise
         halo = next(iter(docs.values()))["args"][2]
-        mine = {o: [t for t in sorted(docs) if owner[t] == o] for o in range(len(peak))}
+        mine = {o: [t for t in sorted(docs) if owner[t] == o] for o in range(n_owners)}
         futs = {o: submit[o](R.round_finish, work, key, ts, halo) for o, ts in mine.items() if ts}
-        out = [r for o, f in futs.items() for r in _result(f, name, mine[o], n_tiles, " after its rounds", "writing")["tiles"]]
-    return {"tiles": out, "owner_state_bytes": peak, "state_bytes": max(state.values(), default=0),
-            "rounds": rounds, "q": q}
+        out = [r for o, f in futs.items() for r in _result(f, name, mine[o], len(docs), " after its rounds", "writing")["tiles"]]
+    return {"tiles": sorted(out, key=lambda r: r["tile"]), "owner_state_bytes": sc.peak,
+            "state_bytes": max(sc.state.values(), default=0), "rounds": rounds, "q": q}
+
+
+#: batches of rounds queued on an owner at a time (one running, one waiting: the owner does not
+#: wait for the parent between them)
+IN_FLIGHT = 2
+
+
+class _Schedule:
+    """The rounds of every tile still to run, what each returned, and the owners' state bytes."""
+
+    def __init__(self, sched: list[float | None], docs: dict[int, Any], nbrs: list[list[int]], colour: list[int],
+                 owner: dict[int, int], n_owners: int) -> None:
+        self.nbrs, self.colour, self.owner = nbrs, colour, owner
+        self.todo = {(p, t) for p in range(1, len(sched) + 1) for t in docs}
+        self.state = dict.fromkeys(docs, 0)
+        self.peak = [0] * n_owners
+        self.news_of: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        deps = {x: self.deps(*x) for x in self.todo}
+        self.level = bottom_levels(deps, {(p, t): float(docs[t]["n_points"]) for p, t in self.todo})
+        self.waiting = {x: len(d) for x, d in deps.items()}
+        self.users: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for x, d in deps.items():
+            for y in d:
+                self.users.setdefault(y, []).append(x)
+        self.ready: list[set[tuple[int, int]]] = [set() for _ in range(n_owners)]
+        for x, n in self.waiting.items():
+            if n == 0:
+                self.ready[owner[x[1]]].add(x)
+
+    def deps(self, p: int, t: int) -> list[tuple[int, int]]:
+        d = [(p, u) if self.colour[u] < self.colour[t] else (p - 1, u) for u in self.nbrs[t]]
+        return [x for x in [*d, (p - 1, t)] if x[0] >= 1]
+
+    def take(self, o: int) -> list[tuple[int, int]]:
+        """The ready rounds of owner ``o``'s tiles of one round (the most urgent's), taken off the list."""
+        if not self.ready[o]:
+            return []
+        first = min(self.ready[o], key=lambda x: (-self.level[x], x))
+        batch = sorted((x for x in self.ready[o] if x[0] == first[0]), key=lambda x: (-self.level[x], x))
+        self.ready[o].difference_update(batch)
+        self.todo.difference_update(batch)
+        return batch
+
+    def news(self, p: int, t: int) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """The points in t's halo box that its neighbours ordered since t's last round (see run_rounds)."""
+        return [self.news_of.get((p if self.colour[u] < self.colour[t] else p - 1, u)) for u in self.nbrs[t]]
+
+    def record(self, p: int, results: list[dict[str, Any]]) -> None:
+        for res in results:
+            t = res["tile"]
+            self.news_of[p, t] = (res["g"], res["keys"])
+            self.state[t] = res["state_bytes"]
+            for x in self.users.get((p, t), []):
+                self.waiting[x] -= 1
+                if self.waiting[x] == 0:
+                    self.ready[self.owner[x[1]]].add(x)
+        for o in range(len(self.peak)):
+            self.peak[o] = max(self.peak[o], sum(b for t, b in self.state.items() if self.owner[t] == o))
