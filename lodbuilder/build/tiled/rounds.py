@@ -88,21 +88,25 @@ def _sources(tiles: dict[int, dict[str, Any]], t: int, nbrs: list[int]) -> tuple
     return _halo_rows(me, news)
 
 
-def _news(tile: dict[str, Any], start: int, near: tuple[np.ndarray, np.ndarray] | None = None
-          ) -> tuple[np.ndarray, np.ndarray]:
+def _news(tile: dict[str, Any], start: int, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A tile's own points ordered from position ``start`` on (their input ids ``g``, keys); with
-    ``near`` (lower and upper corners of boxes) only those in one of the boxes."""
+    ``near`` (a mask of its core points) only those it marks."""
     o = tile["o"]
     new, rad = o.order[start:], o.radius[start:]
     own = (new < tile["cpts"].shape[0]) & np.isfinite(rad)
     idx, rad = new[own], rad[own]
     if near is not None:
-        p = tile["cpts"][idx]
-        keep = np.zeros(idx.size, bool)
-        for lo, hi in zip(*near, strict=True):
-            keep |= np.all((p >= lo) & (p <= hi), axis=1)
+        keep = near[idx]
         idx, rad = idx[keep], rad[keep]
     return tile["core"]["g"][idx], rad
+
+
+def _in_boxes(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which points ``p`` lie in one of the boxes (``lo``, ``hi``: their corners, one a row)."""
+    keep = np.zeros(p.shape[0], bool)
+    for a, b in zip(lo, hi, strict=True):
+        keep |= np.all((p >= a) & (p <= b), axis=1)
+    return keep
 
 
 def _halo_rows(me: dict[str, Any], news: list[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray]:
@@ -196,7 +200,8 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
         w = as_store(work)
         head, hpts = _head(w)
         tile = _start(w, t, doc, head, hpts, *doc["args"])
-        tile["near"] = (np.asarray(doc["near"][0], float).reshape(-1, 3), np.asarray(doc["near"][1], float).reshape(-1, 3))
+        tile["near"] = _in_boxes(tile["cpts"], np.asarray(doc["near"][0], float).reshape(-1, 3),
+                                 np.asarray(doc["near"][1], float).reshape(-1, 3))
         _LIVE[(key, t)] = tile
     rows, keys = _halo_rows(tile, news)
     n0 = 0 if tile["o"] is None else len(tile["o"])
