@@ -32,7 +32,8 @@ def _failing_step(work, t, *a, **k):
 
 @pytest.fixture
 def pts():
-    return wavy(6000, np.random.default_rng(3))
+    p = wavy(6000, np.random.default_rng(3))
+    return np.concatenate([p, p[::50]])  # (with exact copies of points: the engine's duplicates)
 
 
 def _build(tmp_path, pts, name, **kw):
@@ -133,3 +134,21 @@ def test_dask_workers_own_the_tiles_as_the_pool_does(tmp_path, monkeypatch, pts)
     assert len({r[7] for r in build["tasks"]["rows"] if r[0] == "round_steps"}) == 2
     np.testing.assert_array_equal(order, pool["order"])
     np.testing.assert_array_equal(radius, pool["radius"])
+
+
+def test_resume_news_gives_the_points_of_each_round():
+    from lodbuilder.sampling.resumable import resume_fastfps, resume_news, start_fastfps
+
+    p = wavy(3000, np.random.default_rng(5))
+    p = np.concatenate([p, p[::10]])  # (3001 is a copy of 10: a seed and its copy, the copies of points)
+    seeds = np.array([0, 10, 3001])
+    a, b = start_fastfps(p, seeds=seeds), start_fastfps(p, seeds=seeds)
+    since, idx, rad = 0, [], []
+    for rho in (0.1, 0.05, 0.02):
+        o = resume_fastfps(a, rho=rho)
+        i, r, since = resume_news(b, since, rho=rho)
+        idx.append(i)
+        rad.append(r)
+    assert len(o) > 500
+    np.testing.assert_array_equal(np.concatenate(idx), o.order[3:])
+    np.testing.assert_array_equal(np.concatenate(rad), o.radius[3:])

@@ -91,8 +91,12 @@ def _sources(tiles: dict[int, dict[str, Any]], t: int, nbrs: list[int]) -> tuple
 def _news(tile: dict[str, Any], start: int, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A tile's own points ordered from position ``start`` on (their input ids ``g``, keys); with
     ``near`` (a mask of its core points) only those it marks."""
-    o = tile["o"]
-    new, rad = o.order[start:], o.radius[start:]
+    return _own(tile, tile["o"].order[start:], tile["o"].radius[start:], near)
+
+
+def _own(tile: dict[str, Any], new: np.ndarray, rad: np.ndarray, near: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Of points ``new`` of a tile's ordering (radii ``rad``), those of its core with a finite radius
+    (and marked in ``near``): (input ids, radii)."""
     own = (new < tile["cpts"].shape[0]) & np.isfinite(rad)
     idx, rad = new[own], rad[own]
     if near is not None:
@@ -191,7 +195,7 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
     ordered down to ``rho`` after its neighbours' new points in its halo (``news``: (g, keys) or
     None per neighbour) join. Returns the points it ordered in this round that lie in a
     neighbour's halo box (``g``, ``keys``) and the bytes of its state."""
-    from ...sampling.resumable import resume_fastfps
+    from ...sampling.resumable import news_start, resume_fastfps, resume_news
 
     tile = _LIVE.get((key, t))
     if tile is None:
@@ -204,10 +208,15 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
                                  np.asarray(doc["near"][1], float).reshape(-1, 3))
         _LIVE[(key, t)] = tile
     rows, keys = _halo_rows(tile, news)
-    n0 = 0 if tile["o"] is None else len(tile["o"])
-    tile["o"] = resume_fastfps(tile["state"], rho=rho, sources=_joining(rows, keys, rho), bulk=True)
-    g, k = _news(tile, n0, tile["near"])
-    return {"tile": t, "g": g, "keys": k, "state_bytes": int(tile["state"].nbytes)}
+    st, since = tile["state"], tile.get("k", 0)
+    if rho is not None:  # (the points of this round only: the whole ordering is not needed yet)
+        new, rad, tile["k"] = resume_news(st, since, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
+        g, k = _own(tile, new, rad, tile["near"])
+    else:  # (the seeds come first; the ordering's positions are the engine's after its copies of seeds)
+        tile["o"] = resume_fastfps(st, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
+        shift = st.seed_arr.shape[0] - news_start(st) if since >= news_start(st) else 0
+        g, k = _news(tile, since + shift, tile["near"])
+    return {"tile": t, "g": g, "keys": k, "state_bytes": int(st.nbytes)}
 
 
 @timed_task
