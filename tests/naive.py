@@ -470,3 +470,23 @@ def naive_cover_pass(xyz: np.ndarray, rank: np.ndarray, core: np.ndarray
         d[better], par[better] = dist[better], rank[i]
     p = np.array(pt, dtype=[("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")]).reshape(-1)
     return np.array(ev_rank, np.int64), np.array(ev_val), p["rank"], p["parent"], p["space"]
+
+
+def naive_hash_collisions(pts: np.ndarray) -> bool:
+    """Whether two rows of ``pts`` share the 64-bit hash of ``_kernels.grid.hash_collisions``
+    (splitmix64's finaliser over x's bits, then y's and z's xored in; -0.0 as 0.0), by sorting."""
+
+    def mix(h: np.ndarray) -> np.ndarray:
+        h ^= h >> np.uint64(30)
+        h *= np.uint64(0xBF58476D1CE4E5B9)
+        h ^= h >> np.uint64(27)
+        h *= np.uint64(0x94D049BB133111EB)
+        h ^= h >> np.uint64(31)
+        return h
+
+    hsh = mix((pts[:, 0] + 0.0).view(np.uint64))
+    for axis in (1, 2):
+        hsh ^= (pts[:, axis] + 0.0).view(np.uint64)
+        mix(hsh)
+    hsh.sort()
+    return bool((hsh[1:] == hsh[:-1]).any())

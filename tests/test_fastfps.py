@@ -761,3 +761,26 @@ def test_default_seed_is_the_point_nearest_the_centroid_lowest_index_first():
         assert default_seed(pts) == d2.index(min(d2))
     sym = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
     assert default_seed(sym) == 0
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(1, 3000), n_copies=st.integers(0, 3), seed=st.integers(0, 2**31 - 1),
+       float32=st.booleans())
+def test_hash_collisions_matches_the_naive_reference(n, n_copies, seed, float32):
+    # the engine's quick duplicate check (a hash set in one pass) against the sorted hashes
+    from naive import naive_hash_collisions
+
+    from lodbuilder._kernels.grid import hash_collisions
+
+    r = np.random.default_rng(seed)
+    pts = r.normal(size=(n, 3)) * r.choice([1e-3, 1.0, 1e5])
+    if float32:
+        pts = pts.astype(np.float32).astype(np.float64)
+    pts[r.random((n, 3)) < 0.05] = 0.0
+    for _ in range(n_copies):  # exact copies, some with -0.0 for 0.0
+        i, j = r.integers(0, n, 2)
+        pts[j] = pts[i]
+        pts[j][pts[j] == 0.0] = -0.0
+    assert hash_collisions(pts) == naive_hash_collisions(pts)
+    if n_copies and len(np.unique(pts + 0.0, axis=0)) < n:
+        assert hash_collisions(pts)

@@ -153,3 +153,15 @@ def test_small_inputs_build_the_band_in_this_thread(monkeypatch):
     monkeypatch.setattr(band, "OVERLAP_MIN_POINTS", len(pts))
     plan_and_build_band(pts, None, None)
     assert "build_band" in started
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_axis_min_and_max_are_numpys_along_the_first_axis(dtype):
+    # (column by column, for speed: the same values, dtype and shape as points.min(axis=0))
+    rng = np.random.default_rng(3)
+    pts = (rng.normal(size=(1001, 3)) * [1e5, 1.0, 1e-3]).astype(dtype)
+    pts[17] = [-0.0, np.float32(3e38), -5e-300]  # signed zero, large, tiny
+    lo, hi = spacing.axis_min(pts), spacing.axis_max(pts)
+    for got, want in ((lo, pts.min(axis=0)), (hi, pts.max(axis=0))):
+        assert got.dtype == want.dtype and got.shape == (3,)
+        assert np.array_equal(got, want)

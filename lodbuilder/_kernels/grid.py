@@ -15,6 +15,7 @@ import numba as nb
 import numpy as np
 
 from . import INLINE, JIT
+from .heaps import f64_bits
 
 MAX_COORD = (1 << 21) - 1  # per axis
 
@@ -533,3 +534,41 @@ def one_sided_cost(keys, foot, u, nin, psep, irad2, side_tol, beta):  # pragma: 
             q2 = dd * dd * irad2[f]
         out[v] = np.float32(1.0 + beta * q2)
     return out
+
+
+@nb.njit(**INLINE)
+def _splitmix(h):  # pragma: no cover - compiled
+    """splitmix64's finaliser (uint64 arithmetic, wrapping)."""
+    h ^= h >> np.uint64(30)
+    h *= np.uint64(0xBF58476D1CE4E5B9)
+    h ^= h >> np.uint64(27)
+    h *= np.uint64(0x94D049BB133111EB)
+    h ^= h >> np.uint64(31)
+    return h
+
+
+@nb.njit(**JIT)
+def hash_collisions(pts):  # pragma: no cover - compiled
+    """Whether two rows of ``pts`` (N, 3) share a 64-bit hash of their coordinates: splitmix64's
+    finaliser over the bits of x, then xor y's bits and mix, then z's (each coordinate + 0.0:
+    -0.0 and 0.0 hash alike). Equal rows always do. An open-addressing set of the hashes (twice
+    as many slots as rows) instead of a sort: one pass."""
+    n = pts.shape[0]
+    size = 2
+    while size < 2 * n:
+        size *= 2
+    mask = np.uint64(size - 1)
+    table = np.empty(size, np.uint64)
+    used = np.zeros(size, np.bool_)
+    for i in range(n):
+        h = _splitmix(f64_bits(pts[i, 0] + 0.0))
+        h = _splitmix(h ^ f64_bits(pts[i, 1] + 0.0))
+        h = _splitmix(h ^ f64_bits(pts[i, 2] + 0.0))
+        j = h & mask
+        while used[j]:
+            if table[j] == h:
+                return True
+            j = (j + np.uint64(1)) & mask
+        used[j] = True
+        table[j] = h
+    return False

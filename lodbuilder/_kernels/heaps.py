@@ -103,6 +103,18 @@ def bits_f32(typingctx, x):  # pragma: no cover - compiled
     return types.float32(types.int64), codegen
 
 
+@intrinsic
+def f64_bits(typingctx, x):  # pragma: no cover - compiled
+    """The bits of a float64 as a uint64."""
+    if x != types.float64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.uint64(types.float64), codegen
+
+
 ITEM_MASK = np.int64(0xFFFFFFFF)
 
 

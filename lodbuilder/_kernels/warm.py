@@ -47,6 +47,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
     return {
         "band": {  # this process, in this order
             "grid.cell_order": (_F64_2, _F64, f),
+            "grid.hash_collisions": (_F64_2,),
             "grid.radix_argsort": (_I64,),
             "grid.kth_neighbour": (_F64_2, _I32, _I64, _F64_2, i),
             "grid.grid_coords": (_F64_2, _I32, _F64, f),
@@ -98,24 +99,63 @@ def fewer_collections() -> Iterator[None]:
     small scan, mostly numba's import and kernel loading). The objects that exist already are
     frozen (never traversed) and the first generation is collected every 10,000 allocations
     instead of 700; everything is back as before afterwards (about 20 MB more at the peak). Nested,
-    the outermost one unfreezes (an inner one only freezes the objects made since)."""
+    the outermost one unfreezes (an inner one only freezes the objects made since; it does not
+    ask for the freeze count, which walks every frozen object: 6 ms a call inside a build)."""
+    global _HELD
     old = gc.get_threshold()
-    outermost = gc.get_freeze_count() == 0
+    outermost = _HELD == 0 and gc.get_freeze_count() == 0
     gc.freeze()
     gc.set_threshold(10_000, 10, 10)
+    _HELD += 1
     try:
         yield
     finally:
+        _HELD -= 1
         gc.set_threshold(*old)
         if outermost:
             gc.unfreeze()
+
+
+_HELD = 0  # fewer_collections blocks open
 
 
 def compile_group(group: str) -> None:
     """Compile (or load from the cache) every kernel of ``group`` for its signature."""
     with fewer_collections():
         for name, sig in signatures(group).items():
-            _dispatcher(name).compile(sig)
+            dispatcher = _dispatcher(name)
+            with _light_refresh(dispatcher):
+                dispatcher.compile(sig)
+
+
+@contextlib.contextmanager
+def _light_refresh(dispatcher: Any) -> Iterator[None]:
+    """numba refreshes its target context before it loads a kernel from the cache: the first
+    refresh of a process imports and installs every implementation numba has (arrays, unicode,
+    random generators, typed containers, ...: about 0.3 CPU-s, 4 % of ``lodbuilder build`` of 1M
+    points), which only compiling needs; running compiled code needs numba's runtime only. Within
+    the block, ``dispatcher``'s cache loads after starting the runtime alone; compiling (when the
+    cache misses) still refreshes in full."""
+    cache: Any = getattr(dispatcher, "_cache", None)
+    load = getattr(cache, "_load_overload", None)
+    guard = getattr(cache, "_guard_against_spurious_io_errors", None)
+    if load is None or guard is None:  # (no cache, or another numba's internals)
+        yield
+        return
+
+    def light_load(sig: Any, target_context: Any) -> Any:
+        from numba.core.runtime import rtsys
+
+        rtsys.initialize(target_context)
+        with guard():
+            return load(sig, target_context)
+        return None  # (the guard swallowed an I/O error: compile instead)
+
+    cache.load_overload = light_load
+    try:
+        yield
+    finally:
+        vars(cache).pop("load_overload", None)
 
 
 def is_cold() -> bool:
@@ -180,6 +220,8 @@ def ensure_compiled(progress: Any = None) -> bool:
     if _WARM:
         return False
     if not is_cold():
+        for group in ("band", "ordering"):  # loaded now, without numba's full refresh (_light_refresh)
+            compile_group(group)
         _WARM = True  # checked once per process: the check reads every kernel's cache index
         return False
     report(progress, MESSAGE, 0, 1)

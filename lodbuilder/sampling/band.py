@@ -73,7 +73,7 @@ from .._resources import cores as _cores
 from .._resources import default_max_memory, release_freed_memory, release_pages
 from ..errors import InputError, MemoryBudgetError
 from .morton import morton_np, unmorton_np
-from .spacing import cells, median_spacing
+from .spacing import axis_max, axis_min, cells, median_spacing
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ def _sheets(
     from .._kernels.sheets import cell_separation
 
     n = points.shape[0]
-    origin = points.min(axis=0) - 2 * h
+    origin = axis_min(points) - 2 * h
     ckeys, perm, u, ostart = cells(points, origin, h)
     del ckeys
     release_pages(points)  # (a scan set aside: read again from its file by the next pass)
@@ -443,10 +443,10 @@ def _grid_origin(points: np.ndarray, h: float, r: float, radius: np.ndarray | No
     ``lattice`` when given: a whole number of voxels from it); refuses a grid too large to index."""
     rmax = r if radius is None else max(r, float(radius.max()))
     margin = math.ceil(rmax / h) + 3
-    origin = points.min(axis=0) - margin * h
+    origin = axis_min(points) - margin * h
     if lattice is not None:
         origin = lattice + h * np.floor((origin - lattice) / h)
-    extent = int(math.ceil(float((points.max(axis=0) - origin).max()) / h)) + margin
+    extent = int(math.ceil(float((axis_max(points) - origin).max()) / h)) + margin
     if extent > MAX_COORD:
         need = h * extent / MAX_COORD
         raise InputError(

@@ -20,6 +20,7 @@ from .._validate import (
 from ..errors import EngineError, InputError
 from ..progress import ProgressCallback, report
 from .ordering import Ordering
+from .spacing import axis_max, axis_min
 
 log = logging.getLogger(__name__)
 
@@ -208,28 +209,15 @@ def _timed_seeds(timed: Any, n: int, weighted: bool) -> tuple[np.ndarray, np.nda
     return idx[srt], keys[srt]
 
 
-def _mix(h: np.ndarray) -> np.ndarray:
-    """splitmix64's finaliser, in place: every input bit moves every output bit. Coordinates read
-    from float32 files have 29 zero bits at the bottom of their float64 mantissa; a plain
-    multiply-and-xor of the three keeps those bits out of the low half of the hash, and a million
-    such points then share hashes (the quick check fell through to the full sort on float32 scans)."""
-    h ^= h >> np.uint64(30)
-    h *= np.uint64(0xBF58476D1CE4E5B9)
-    h ^= h >> np.uint64(27)
-    h *= np.uint64(0x94D049BB133111EB)
-    h ^= h >> np.uint64(31)
-    return h
-
-
 def _hash_collisions(pts: np.ndarray) -> bool:
     """Whether two points share a 64-bit hash of their coordinates (always when two are equal;
-    otherwise about n^2 / 2^65: 3e-8 for a million points)."""
-    hsh = _mix((pts[:, 0] + 0.0).view(np.uint64))  # + 0.0: -0.0 and 0.0 are the same point (a copy)
-    for axis in (1, 2):  # one coordinate at a time: no (N, 3) copy
-        hsh ^= (pts[:, axis] + 0.0).view(np.uint64)
-        _mix(hsh)
-    hsh.sort()
-    return bool((hsh[1:] == hsh[:-1]).any())
+    otherwise about n^2 / 2^65: 3e-8 for a million points); see
+    :func:`lodbuilder._kernels.grid.hash_collisions` (splitmix64's finaliser: coordinates read
+    from float32 files have 29 zero bits at the bottom of their float64 mantissa, and a plain
+    multiply-and-xor would give a million such points shared hashes)."""
+    from .._kernels.grid import hash_collisions
+
+    return bool(hash_collisions(np.ascontiguousarray(pts, dtype=np.float64)))
 
 
 def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -323,7 +311,7 @@ def _engine_band(pts, seed_arr, voxel_size, band_radius, max_memory, progress, c
     distinct points, their extent, the band, its plan, the engine's stats so far)."""
     gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
     m = upts.shape[0]
-    extent = float(np.ptp(upts, axis=0).max())
+    extent = float((axis_max(upts) - axis_min(upts)).max())
     stats: dict[str, Any] = {"engine": "band", "n_points": pts.shape[0], "n_distinct": m}
     band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
     return gid, rep, useeds, m, extent, band, plan, stats
