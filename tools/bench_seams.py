@@ -305,14 +305,23 @@ def state_sizes() -> Iterator[dict[str, Any]]:
         note(state)
         return o
 
+    old_news = resumable.resume_news
+
+    def news(state: Any, *a: Any, **k: Any) -> Any:
+        out = old_news(state, *a, **k)
+        note(state)
+        return out
+
     def inline(*a: Any, **k: Any) -> Any:
         return old_ex(*a, **{**k, "inline": True})
 
     resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor = start, resume, inline
+    resumable.resume_news = news
     try:
         yield out
     finally:
         resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor = old_start, old_resume, old_ex
+        resumable.resume_news = old_news
         if out.get("states_points"):
             out["states_bytes_per_point"] = round(out["states_bytes_peak"] / out["states_points"], 1)
             if "states_bytes_tail_peak" in out:
