@@ -271,6 +271,20 @@ def test_slice_path_imports_nothing_heavy(built, tmp_path):
     assert out.stdout.strip().splitlines()[-1] == "0 []"
 
 
+def test_an_in_memory_build_does_not_load_the_tiled_driver(shared_data, tmp_path):
+    # the tiled package's driver and phases (about 16 modules) load only when a build is tiled
+    code = (
+        "import sys\n"
+        "from lodbuilder.cli.main import main\n"
+        f"rc = main(['build', {str(shared_data / 'bun_zipper_res4.ply')!r}, '-o', {str(tmp_path / 'a.h5')!r},"
+        " '--no-progress'])\n"
+        "print(rc, sorted(m for m in sys.modules if m.startswith('lodbuilder.build.tiled.')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "0 ['lodbuilder.build.tiled.plan', 'lodbuilder.build.tiled.store']"
+
+
 def test_entry_point_runs(built):
     out = subprocess.run(
         [sys.executable, "-m", "lodbuilder.cli.main", "info", str(built)],

@@ -58,7 +58,19 @@ metric). A larger ``seam_alpha`` costs covering at equal size (see ``SEAM_SPACIN
 
 from __future__ import annotations
 
-from .driver import GUARANTEES, SEAM_SPACING, build_tiled
-from .plan import needs_tiling, parse_bytes, tile_capacity
+from typing import Any
 
 __all__ = ["GUARANTEES", "SEAM_SPACING", "build_tiled", "needs_tiling", "parse_bytes", "tile_capacity"]
+
+_FROM = {"GUARANTEES": "driver", "SEAM_SPACING": "driver", "build_tiled": "driver", "needs_tiling": "plan",
+         "parse_bytes": "plan", "tile_capacity": "plan"}
+
+
+def __getattr__(name: str) -> Any:
+    """The package's names loaded with their module when first asked for: an in-memory build,
+    which imports :mod:`.store` and :mod:`.plan` only, does not load the driver and its phases."""
+    if name not in _FROM:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(f".{_FROM[name]}", __name__), name)
