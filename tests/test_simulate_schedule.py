@@ -14,10 +14,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from simulate_schedule import (  # noqa: E402
     Stage,
     Task,
+    bounds,
+    compare,
+    critical_path,
+    main,
     makespan,
     measured_idle,
     model_from_record,
     predict,
+    reference_seconds,
     simulate,
 )
 
@@ -214,3 +219,66 @@ def test_the_radii_do_not_wait_for_the_buckets():
     rec = {"phase_seconds": {"cover": 7.0}, "phase_order": ["cover"], "parent_cpu_seconds": {"cover": 0.0},
            "tasks": {"columns": cols, "rows": rows}}
     assert predict(model_from_record(rec), [16])["predicted"][0]["stages"] == {"cover": 6.0}
+
+
+def test_bounds_name_the_work_and_the_chain_of_each_stage():
+    """A stage's lower bounds: its work over the workers and its longest chain; the order of a
+    chain of 3 + 3 beside four 1 s tasks is bound by the chain on 4 workers, by the work on 1."""
+    tasks = [Task("a", 3.0), Task("b", 3.0, ["a"]), *_tasks(1, 1, 1, 1)]
+    assert critical_path(tasks) == 6.0 and critical_path([]) == 0.0
+    stages = [Stage("read", 2.0), Stage("order", 0.5, tasks)]
+    assert bounds(stages, 4) == {"order": {"work": 2.5, "path": 6.0, "parent": 0.5}}
+    assert bounds(stages, 1)["order"]["work"] == 10.0
+    assert simulate(stages, 4)["order"] == pytest.approx(6.0)
+
+
+def test_slowdown_scales_the_tasks_not_the_parent():
+    stages = [Stage("read", 2.0), Stage("order", 3.0, _tasks(*[4.0] * 4))]
+    assert simulate(stages, 4)["total"] == pytest.approx(6.0)  # 2 + max(3, 4)
+    assert simulate(stages, 4, slowdown=1.5)["total"] == pytest.approx(8.0)  # 2 + 6
+    rows = predict({"stages": stages}, [1, 4], slowdown={4: 1.5})["predicted"]
+    assert [r["wall_seconds"] for r in rows] == [18.0, 8.0]
+    assert rows[1]["slowdown"] == 1.5 and "slowdown" not in rows[0]
+
+
+def test_compare_predicts_each_record_at_its_own_worker_count():
+    """Two plans (few large tiles for 2 workers, more smaller ones for 4): each predicted at its own
+    count, the speed-up over the first."""
+    few = {"stages": [Stage("read", 1.0), Stage("order", 0.0, _tasks(4.0, 4.0))]}
+    many = {"stages": [Stage("read", 1.0), Stage("order", 0.0, _tasks(*[2.0] * 4))]}
+    out = compare([few, many], [2, 4])
+    assert [r["predicted"][0]["wall_seconds"] for r in out["runs"]] == [5.0, 3.0]
+    assert [r["speedup_over_first"] for r in out["runs"]] == [1.0, 1.667]
+    with pytest.raises(ValueError, match=r"2 record\(s\) need as many worker counts, got 1"):
+        compare([few, many], [2])
+
+
+def test_main_compares_archives(tmp_path, monkeypatch, capsys):
+    import json
+
+    import simulate_schedule
+
+    monkeypatch.setattr(simulate_schedule, "_record", lambda path, scan: _record())
+    assert main([str(tmp_path / "a.h5"), str(tmp_path / "b.h5"), "--workers", "1,2", "--slowdown", "2:1.1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [r["workers"] for r in out["runs"]] == [1, 2]
+    assert out["runs"][1]["predicted"][0]["slowdown"] == 1.1
+    assert out["command"].startswith("python tools/simulate_schedule.py ") and out["commit"] and out["date"]
+    assert out["kind"] == "prediction (not measured)"
+
+
+def test_compare_normalises_records_of_different_loads():
+    """The second record's plan-independent tasks took twice the CPU (a loaded machine): its tasks
+    count half."""
+    a = {"stages": [Stage("order", 0.0, _tasks(4.0, 4.0))]}
+    b = {"stages": [Stage("order", 0.0, _tasks(*[4.0] * 4))]}
+    out = compare([a, b], [2, 4], references=[10.0, 20.0])
+    assert [r["predicted"][0]["wall_seconds"] for r in out["runs"]] == [4.0, 2.0]
+    assert [r["load_scale"] for r in out["runs"]] == [1.0, 0.5]
+    with pytest.raises(ValueError, match="every record needs tasks of read_block"):
+        compare([a, b], [2, 4], references=[10.0, 0.0])
+    rec = _record()
+    rec["tasks"]["rows"] += [["read_block", "read_block.0", None, 0, 0.1, 1.5, 1.25, 11],
+                             ["write_band", "write_band", None, None, 20.0, 2.0, 2.0, 11],
+                             ["read_block", "read_block.9", None, 9, -9.0, 1.0, 1.0, 11]]  # before a resume
+    assert reference_seconds(rec) == 3.25

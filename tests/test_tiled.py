@@ -347,9 +347,9 @@ def test_balanced_tile_points():
     from lodbuilder.build.tiled import plan as P
 
     assert P.balanced_tile_points(21_560_000, 1, 3_000_000) == 3_000_000  # one worker: what fits
-    # 16 workers: about 4 tiles each (the k-d split halves: 64 tiles), below what fits
-    assert P.balanced_tile_points(21_560_000, 16, 600_000) == 387_407 == math.ceil(1.15 * 21_560_000 / 64)
-    assert P.balanced_tile_points(21_560_000, 16, 300_000) == 300_000  # the memory budget decides
+    # 16 workers: about 8 tiles each (the k-d split halves: 128 tiles), below what fits
+    assert P.balanced_tile_points(21_560_000, 16, 600_000) == 193_704 == math.ceil(1.15 * 21_560_000 / 128)
+    assert P.balanced_tile_points(21_560_000, 16, 150_000) == 150_000  # the memory budget decides
     assert P.balanced_tile_points(1_000_000, 16, 600_000) == P.BALANCED_MIN_POINTS  # not below the floor
     assert P.balanced_tile_points(1_000_000, 16, 50_000) == 50_000
 
@@ -361,7 +361,7 @@ def test_tiles_are_sized_for_the_workers_the_build_runs_with(tmp_path, monkeypat
     from lodbuilder.build.tiled import plan as P
 
     monkeypatch.setattr(P, "needs_tiling", lambda *a, **k: True)
-    monkeypatch.setattr(P, "BALANCED_MIN_POINTS", 1_000)
+    monkeypatch.setattr(P, "BALANCED_MIN_POINTS", 500)
     pts = wavy(24_000, np.random.default_rng(3))
     np.save(tmp_path / "w.npy", pts)
     lodbuilder.build_archive(tmp_path / "w.npy", tmp_path / "w.h5", workers=workers, max_memory="4GB")
@@ -370,3 +370,40 @@ def test_tiles_are_sized_for_the_workers_the_build_runs_with(tmp_path, monkeypat
     assert tiled["parallel"] == workers
     assert tiled["tile_points_max"] == math.ceil(P.BALANCE_SLACK * len(pts) / (P.TILES_PER_WORKER * workers))
     assert P.TILES_PER_WORKER * workers <= tiled["tiles"] <= 2 * P.TILES_PER_WORKER * workers
+
+
+def test_merge_band_rows():
+    from lodbuilder.build.tiled import plan as P
+
+    most = 1 << 20
+    assert P.merge_band_rows(21_560_000, 1, most) == P.merge_band_rows(21_560_000, 4, most) == most
+    # 16 workers: about 4 bands each (before: bands of at most 1M rows, 22 tasks on 16 workers)
+    assert P.merge_band_rows(21_560_000, 16, most) == 336_875 == math.ceil(21_560_000 / 64)
+    assert P.merge_band_rows(1_000_000, 16, most) == P.MIN_MERGE_BAND_ROWS  # not below the floor
+
+
+def test_merge_bands_are_sized_for_the_workers_and_leave_the_order_as_it_was(tmp_path, monkeypatch):
+    """A build on 4 workers merges in about 4 bands per worker (before: every band of at most
+    merge.BAND_ROWS rows, one band here); the archive is the same as with one band."""
+    from lodbuilder.build.tiled import merge as M
+    from lodbuilder.build.tiled import plan as P
+
+    seen = []
+    orig = M.merge_phase
+
+    def spy(*args, **kw):
+        out = orig(*args, **kw)
+        seen.append(len(out["order"]) - 1)  # (the first piece is the head)
+        return out
+
+    monkeypatch.setattr(M, "merge_phase", spy)
+    f = write_points(tmp_path / "w.ply", wavy(6000, np.random.default_rng(11)))
+    monkeypatch.setattr(P, "MIN_MERGE_BAND_ROWS", 100)
+    lodbuilder.build_archive(f, tmp_path / "many.h5", _tile_points=1500, workers=4)
+    monkeypatch.setattr(P, "MERGE_BANDS_PER_WORKER", 0.01)  # (bands of every row: one band)
+    lodbuilder.build_archive(f, tmp_path / "one.h5", _tile_points=1500, workers=4)
+    assert seen[0] >= 12 and seen[1] == 1, seen
+    with lodbuilder.open_archive(tmp_path / "many.h5") as x, lodbuilder.open_archive(tmp_path / "one.h5") as y:
+        a, b = x.scan(), y.scan()
+        for k in ("source_index", "radius", "parent"):
+            np.testing.assert_array_equal(getattr(a, k)[:], getattr(b, k)[:])

@@ -37,6 +37,14 @@ every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of
 
     python tools/bench_seams.py --n 200000 --tiles 4 16 --seam-spacing 0 0.25 0.5 --decimation 0 54
     python tools/bench_seams.py --n 200000 --tiles 16 --inputs uniform --seam-spacing 0 --rounds 21 --q 1.1
+    python tools/bench_seams.py --n 1000000 --tiles 16 --inputs uniform --seam-spacing 0 --rounds 42 --q 1.05 \
+        --workers 2 --one-pass-too --sample 200000 --no-round-costs
+
+With ``--workers W`` (> 1) the build runs on W worker processes and the rounds on W owners
+(:mod:`lodbuilder.build.tiled.affinity`): ``order_wall_seconds`` (the order phase's wall time from
+the build record), ``owner_state_bytes`` (each owner's largest sum of its tiles' state bytes),
+``owner_bytes_estimate`` against ``worker_budget`` (the rule that decides whether the rounds run,
+``rounds_used``) and the CPU seconds of every step (``round_steps``: one task per owner and colour in each round; ``round_finish``).
 """
 
 from __future__ import annotations
@@ -60,6 +68,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
 INPUTS = ("autzen", "uniform", "uneven", "fragmented")
+#: the order phase's tasks (one pass; the one-task rounds; the parallel rounds' steps and writes)
+ORDER_TASKS = ("order_tile", "order_rounds", "round_steps", "round_finish")
 
 
 def make_input(name: str, n: int, d: Path, thin: int, survey: tuple[int, int] = (2, 2)) -> Path:
@@ -157,15 +167,16 @@ def covering(pts: np.ndarray, order: np.ndarray, k: int) -> float:
 
 
 def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: dict,
-             rounds: tuple[int, float] | None = None) -> dict[str, Any]:
+             rounds: tuple[int, float] | None = None, workers: int = 1) -> dict[str, Any]:
     import lodbuilder
 
-    kw: dict[str, Any] = {"_tile_points": tile_points, "workers": 1}
+    kw: dict[str, Any] = {"_tile_points": tile_points, "workers": workers}
     if seam is not None:
         kw["seam_spacing"] = seam
     out = d / f"t{tile_points}.h5"
     t0 = time.perf_counter()
-    with tile_rounds(rounds), state_sizes() as sizes:
+    sizes: dict[str, Any] = {}
+    with tile_rounds(rounds), (state_sizes() if workers == 1 else contextlib.nullcontext(sizes)) as sizes:
         lodbuilder.build_archive(f, out, **kw)
     seconds = time.perf_counter() - t0
     with lodbuilder.open_archive(out) as arc:
@@ -200,7 +211,8 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
     at = int(lv[np.argmin(cs[lv - 1])])
     halo = float(tiled.get("halo", 0.0))
     merge = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ("seam_repair", "merge_band")]
-    order = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ("order_tile", "order_rounds")]
+    order = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ORDER_TASKS]
+    rinfo = tiled.get("rounds") or {}
     return {"n": n, "tile_points": tile_points, "tiles": tiled.get("tiles"), "head_points": h,
             "coarse_points": tiled.get("coarse_points"), "decimation": round(n / max(int(tiled.get("coarse_points", 1)), 1), 1),
             "halo": round(halo, 6), "tile_boxes": boxes, "head_radius": round(float(tiled.get("head_radius", 0.0)), 6),
@@ -216,6 +228,10 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "merge_seconds": round(sum(r[5] for r in merge), 3) if merge else None,
             "merge_cpu_seconds": round(sum(r[6] for r in merge), 3) if merge else None,
             "order_cpu_seconds": round(sum(r[6] for r in order), 3), "rounds": rounds, **sizes,
+            "workers": workers, "order_wall_seconds": (build.get("phase_seconds") or {}).get("order"),
+            "rounds_used": rinfo.get("used"), "rounds_reason": rinfo.get("reason"),
+            "owner_state_bytes": rinfo.get("owner_state_bytes"),
+            "owner_bytes_estimate": rinfo.get("owner_bytes_estimate"), "worker_budget": rinfo.get("worker_budget"),
             "sweep": sweep}
 
 
@@ -289,14 +305,23 @@ def state_sizes() -> Iterator[dict[str, Any]]:
         note(state)
         return o
 
+    old_news = resumable.resume_news
+
+    def news(state: Any, *a: Any, **k: Any) -> Any:
+        out = old_news(state, *a, **k)
+        note(state)
+        return out
+
     def inline(*a: Any, **k: Any) -> Any:
         return old_ex(*a, **{**k, "inline": True})
 
     resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor = start, resume, inline
+    resumable.resume_news = news
     try:
         yield out
     finally:
         resumable.start_fastfps, resumable.resume_fastfps, runner.make_executor = old_start, old_resume, old_ex
+        resumable.resume_news = old_news
         if out.get("states_points"):
             out["states_bytes_per_point"] = round(out["states_bytes_peak"] / out["states_points"], 1)
             if "states_bytes_tail_peak" in out:
@@ -370,6 +395,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="measure the covering at this many random points (a lower bound; 0: every point) "
                         "and the cross-tile spacing up to the 3 %% level only (for 1M points and more)")
     p.add_argument("--no-round-costs", action="store_true", help="skip round_costs (the one tile alone)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="build on this many workers (the rounds on as many owners, lodbuilder.build.tiled.affinity; "
+                        "1: every task in this process, with every tile state's bytes summed)")
+    p.add_argument("--one-pass-too", action="store_true",
+                   help="with --rounds: also build each case in one pass, alternating (order CPU and wall against it)")
     args = p.parse_args(argv)
     rounds = (args.rounds, args.q) if args.rounds else None
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
@@ -384,11 +414,12 @@ def main(argv: list[str] | None = None) -> int:
             COVER_AT = np.sort(np.random.default_rng(0).choice(n_all, args.sample, replace=False)) if args.sample else None
             for tiles in args.tiles:
                 n_est = n_all
-                for seam, dec in itertools.product(args.seam_spacing, args.decimation):
+                for seam, dec, rr in itertools.product(args.seam_spacing, args.decimation,
+                                                       [None, rounds] if rounds and args.one_pass_too else [rounds]):
                     with coarse_points(n_est // dec if dec else None):
-                        case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref, rounds)
-                    if rounds and not args.no_round_costs:
-                        case["round_costs"] = round_costs(f, case, rounds)
+                        case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref, rr, args.workers)
+                    if rr and not args.no_round_costs:
+                        case["round_costs"] = round_costs(f, case, rr)
                     case = {"input": name, "synthetic": name != "autzen", "decimation_asked": dec, **case,
                             "seconds_in_memory": round(ref["seconds"], 2)}
                     doc["cases"].append(case)

@@ -25,17 +25,31 @@ priority order (list scheduling, largest first as the driver submits them). From
 * ``rest``: seconds of the wall time the record does not cover (start-up, the write phase, the
   archive's commit), serial in the parent.
 
-The prediction assumes that a task takes as long on W workers as it took when measured (no
-contention for memory bandwidth, disk or cores) and that the parent's phases do not change, and it
-replays the record's tiles: a build planned for W workers cuts about 4 W tiles
-(:data:`lodbuilder.build.tiled.plan.TILES_PER_WORKER`), so W workers are best predicted from a
-record whose tiles were planned for W (a build with fewer workers but that tile size), not from
-one with fewer, larger tiles (whose colour chain bounds the order phase);
-durations measured on a loaded 2-core machine make every prediction an estimate, and the
-calibration (the prediction at the measured worker count over the measured wall time) says how far
-to trust it.
+Assumptions (what the prediction does not capture):
+
+* a task takes as long on W workers as it took when recorded: no contention for memory
+  bandwidth, caches, disk or cores. On the lent 16-core machine the tree's CPU grew 13 % from 4
+  to 16 workers (9 % at 8) with the same tasks; ``--slowdown 8:1.09,16:1.13`` replays that
+  growth (every task that much longer, the parent's work not), off by default;
+* the parent's phases take what they took when recorded, and no start-up, commit or transfer
+  cost grows with the workers (a cluster's network is not modelled);
+* it replays the record's tiles: a build planned for W workers cuts about TILES_PER_WORKER x W
+  tiles (:data:`lodbuilder.build.tiled.plan.TILES_PER_WORKER`), so W workers are predicted from a
+  record whose tiles were planned for W (a build with fewer workers but that tile size), not from
+  one with fewer, larger tiles (whose colour chain bounds the order phase). Several archives, each
+  at its own worker count, give the speed-ups between plans (:func:`compare`);
+* durations measured on a loaded 2-core machine make every prediction an estimate: the tasks'
+  CPU seconds (``--durations cpu``) stand for what a free core gives, and a loaded machine's
+  CPU seconds are themselves higher (the same 128-tile build: 328 and 371 task CPU-s at load 0-5
+  and 10); the calibration (the prediction at the measured worker count over the measured wall
+  time) says how far to trust it.
+
+Each predicted row has every stage's lower bounds (:func:`bounds`: work per worker, longest
+chain of dependent tasks, the parent's own work): where a stage's seconds exceed its work per
+worker, the schedule idles.
 
     python tools/simulate_schedule.py ARCHIVE [--scan NAME] [--rest SECONDS] [--workers 1,2,4,8,16] [--fifo]
+    python tools/simulate_schedule.py PLANNED_FOR_4.h5 PLANNED_FOR_16.h5 --workers 4,16 --durations cpu
 """
 
 from __future__ import annotations
@@ -45,6 +59,7 @@ import heapq
 import json
 import re
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -112,23 +127,52 @@ def makespan(tasks: list[Task], workers: int, fifo: bool = False) -> float:
     return now
 
 
-def simulate(stages: list[Stage], workers: int, fifo: bool = False) -> dict[str, float]:
-    """Seconds of each stage and of the whole on ``workers`` workers (``fifo``: see :func:`makespan`)."""
-    out = {s.name: max(s.parent_seconds, makespan(s.tasks, workers, fifo)) for s in stages}
+def _scaled(tasks: list[Task], factor: float) -> list[Task]:
+    return tasks if factor == 1.0 else [Task(t.id, t.seconds * factor, t.deps, t.priority) for t in tasks]
+
+
+def simulate(stages: list[Stage], workers: int, fifo: bool = False, slowdown: float = 1.0) -> dict[str, float]:
+    """Seconds of each stage and of the whole on ``workers`` workers (``fifo``: see :func:`makespan`;
+    ``slowdown``: every task takes that many times its seconds, the parent's work as recorded)."""
+    out = {s.name: max(s.parent_seconds, makespan(_scaled(s.tasks, slowdown), workers, fifo)) for s in stages}
     out["total"] = sum(out.values())
     return out
 
 
-def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKERS, fifo: bool = False
-            ) -> dict[str, Any]:
+def critical_path(tasks: list[Task]) -> float:
+    """The longest chain of dependent tasks' seconds (no number of workers finishes them sooner)."""
+    from lodbuilder.build.tiled.pool import bottom_levels
+
+    ids = {t.id for t in tasks}
+    level = bottom_levels({t.id: [d for d in t.deps if d in ids] for t in tasks}, {t.id: t.seconds for t in tasks})
+    return max(level.values(), default=0.0)
+
+
+def bounds(stages: list[Stage], workers: int, slowdown: float = 1.0) -> dict[str, dict[str, float]]:
+    """Each stage's lower bounds on ``workers`` workers: its tasks' seconds over the workers
+    (``work``), its longest chain of dependent tasks (``path``) and the parent's own work
+    (``parent``). A stage's simulated seconds above the largest of them is the scheduler's idle
+    time; a path above the work is idle that no order of the same tasks removes."""
+    return {s.name: {"work": round(slowdown * sum(t.seconds for t in s.tasks) / workers, 2),
+                     "path": round(slowdown * critical_path(s.tasks), 2), "parent": round(s.parent_seconds, 2)}
+            for s in stages if s.tasks}
+
+
+def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKERS, fifo: bool = False,
+            slowdown: dict[int, float] | None = None) -> dict[str, Any]:
     """Predicted wall seconds and speed-up over 1 worker for each worker count (``model`` from
-    :func:`model_from_record`), with the model's notes (``fifo``: see :func:`makespan`)."""
+    :func:`model_from_record`), with each stage's lower bounds (:func:`bounds`) and the model's
+    notes (``fifo``: see :func:`makespan`; ``slowdown``: worker count -> factor on its tasks'
+    seconds, for tasks that run slower side by side; none by default)."""
     stages = model["stages"]
-    walls = {w: simulate(stages, w, fifo) for w in sorted({1, *workers})}
+    slow = {w: float((slowdown or {}).get(w, 1.0)) for w in sorted({1, *workers})}
+    walls = {w: simulate(stages, w, fifo, slow[w]) for w in slow}
     one = walls[1]["total"]
     rows = [{"workers": w, "wall_seconds": round(walls[w]["total"], 2),
              "speedup_over_1": round(one / walls[w]["total"], 3) if walls[w]["total"] else None,
-             "stages": {k: round(v, 2) for k, v in walls[w].items() if k != "total"}} for w in workers]
+             **({"slowdown": slow[w]} if slow[w] != 1.0 else {}),
+             "stages": {k: round(v, 2) for k, v in walls[w].items() if k != "total"},
+             "bounds": bounds(stages, w, slow[w])} for w in workers]
     serial = sum(s.parent_seconds for s in stages if not s.tasks)
     out = {"predicted": rows, "serial_parent_seconds": round(serial, 2),
            "task_seconds": round(sum(t.seconds for s in stages for t in s.tasks), 2),
@@ -264,26 +308,90 @@ def measured_idle(rec: dict[str, Any], workers: int) -> dict[str, Any]:
             "waiting": round(sum(p["waiting"] for p in out.values()), 2)}
 
 
+#: task kinds whose work does not depend on the tile plan (per read block or band of positions):
+#: their CPU seconds in two records of one survey differ by the machine's load alone
+REFERENCE_KINDS = ("read_block", "survey_block", "bucket_block", "write_band", "rank_band", "rank_block")
+
+
+def reference_seconds(rec: dict[str, Any]) -> float:
+    """The CPU seconds of a record's tasks of :data:`REFERENCE_KINDS`."""
+    table = rec.get("tasks") or {"columns": [], "rows": []}
+    rows = [dict(zip(table["columns"], r, strict=True)) for r in table["rows"] if r]
+    return sum(float(r["cpu_seconds"]) for r in rows if r["kind"] in REFERENCE_KINDS and r["start"] >= 0)
+
+
+def compare(models: list[dict[str, Any]], workers: list[int], fifo: bool = False,
+            slowdown: dict[int, float] | None = None, references: list[float] | None = None) -> dict[str, Any]:
+    """Each model (a record planned for its worker count) predicted at its own worker count
+    (``workers``, one per model), and the speed-ups over the first: the figure a build planned for
+    W workers gives beside one planned for the first count (the tile plans differ). With
+    ``references`` (each record's :func:`reference_seconds`), every record's tasks are scaled to
+    the first record's load (records measured at different loads of a shared machine)."""
+    if len(models) != len(workers):
+        raise ValueError(f"{len(models)} record(s) need as many worker counts, got {len(workers)}")
+    if references is not None and not all(r > 0 for r in references):
+        raise ValueError(f"every record needs tasks of {', '.join(REFERENCE_KINDS)} to be normalised")
+    runs = []
+    for i, (m, w) in enumerate(zip(models, workers, strict=True)):
+        load = references[0] / references[i] if references else 1.0
+        slow = {w: load * float((slowdown or {}).get(w, 1.0))}
+        runs.append({"workers": w, **predict(m, [w], fifo, slow), **({"load_scale": round(load, 3)} if references else {})})
+    first = runs[0]["predicted"][0]["wall_seconds"]
+    for r in runs:
+        wall = r["predicted"][0]["wall_seconds"]
+        r["speedup_over_first"] = round(first / wall, 3) if wall else None
+    return {"runs": runs}
+
+
+def _slowdown(text: str | None) -> dict[int, float]:
+    """``"8:1.09,16:1.13"`` -> {8: 1.09, 16: 1.13}."""
+    out = {}
+    for part in filter(None, (text or "").split(",")):
+        w, _, f = part.partition(":")
+        out[int(w)] = float(f)
+    return out
+
+
+def _record(path: Path, scan: str | None) -> dict[str, Any]:
+    import lodbuilder
+
+    with lodbuilder.open_archive(path) as arc:
+        return dict(arc.scan(scan or arc.scans[0]).build)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    p.add_argument("archive", type=Path, help="an archive with a tiled scan (its build record)")
+    p.add_argument("archive", type=Path, nargs="+",
+                   help="an archive with a tiled scan (its build record); several: each predicted at its own "
+                        "worker count (--workers, one per archive), with the speed-ups over the first")
     p.add_argument("--scan", help="the scan's name (default: the archive's only scan)")
     p.add_argument("--rest", type=float, default=0.0,
                    help="serial seconds not in the record (the run's wall time minus its phases)")
-    p.add_argument("--workers", default=",".join(map(str, WORKERS)), help="worker counts (default 1,2,4,8,16)")
+    p.add_argument("--workers", default=None, help="worker counts (default 1,2,4,8,16)")
     p.add_argument("--durations", choices=("wall", "cpu"), default="wall",
                    help="replay the tasks' wall seconds, or their CPU seconds (a loaded machine's record)")
+    p.add_argument("--slowdown", default=None,
+                   help="W:F,...: tasks take F times their recorded seconds on W workers (e.g. 16:1.13, the tree CPU "
+                        "growth measured from 4 to 16 workers); none by default")
+    p.add_argument("--normalise", action="store_true",
+                   help="several archives: scale each record's tasks to the first's load (by the CPU seconds of the "
+                        "task kinds that do not depend on the tile plan, REFERENCE_KINDS)")
     p.add_argument("--fifo", action="store_true",
                    help="ready tasks in the order they became ready (the order phase before it started the "
                         "critical path first)")
     args = p.parse_args(argv)
-    import lodbuilder
+    workers = [int(w) for w in (args.workers or ",".join(map(str, WORKERS))).split(",")]
+    recs = [_record(a, args.scan) for a in args.archive]
+    models = [model_from_record(r, args.rest, durations=args.durations) for r in recs]
+    slow = _slowdown(args.slowdown)
+    out = (predict(models[0], workers, args.fifo, slow) if len(models) == 1
+           else compare(models, workers, args.fifo, slow, [reference_seconds(r) for r in recs] if args.normalise else None))
+    from benchdoc import commit
 
-    with lodbuilder.open_archive(args.archive) as arc:
-        name = args.scan or arc.scans[0]
-        rec = dict(arc.scan(name).build)
-    model = model_from_record(rec, args.rest, durations=args.durations)
-    print(json.dumps(predict(model, [int(w) for w in args.workers.split(",")], args.fifo), indent=1))
+    head = {"tool": "simulate_schedule", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "commit": commit(),
+            "command": " ".join(["python", "tools/simulate_schedule.py", *(sys.argv[1:] if argv is None else argv)]),
+            "records": [str(a) for a in args.archive], "kind": "prediction (not measured)"}
+    print(json.dumps({**head, **out}, indent=1))
     return 0
 
 

@@ -146,6 +146,39 @@ def resume_fastfps(state: FastFPSState, *, rho: float | None = None, sources: An
     return _result(state, rho)
 
 
+def resume_news(state: FastFPSState, since: int, *, rho: float | None = None, sources: Any = None,
+                bulk: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`resume_fastfps` without the whole ordering (neither assembled nor checked: the
+    ordering it returns later checks every radius): the points ordered from the engine's position
+    ``since`` on that are not seeds, as input indices and with the radii that ordering gives them,
+    and the position to pass next time. The copies of points (exact duplicates) that the complete
+    ordering appends at its end are not among them."""
+    from .precision import promise, rounding_bound, span
+
+    rho = check_positive(rho, "rho")
+    if sources is not None:
+        _bring_in(state, sources)
+    if state.phase == "grid":
+        _grid(state, -1.0 if rho is None else rho / state.h, bulk)
+    if state.phase == "tail" and state.tail["k"] < state.inv.shape[0]:
+        _tail(state, -1.0 if rho is None else rho / state.h)
+    if state.grid is not None:
+        order, radius, k = state.grid[16], state.grid[17], state.k
+    else:
+        order, radius, k = state.tail["order"], state.tail["radius"], int(state.tail["k"])
+    first = max(since, news_start(state))
+    uorder = state.perm[order[first:k]].astype(np.int64)
+    rad = promise(radius[first:k] * state.h, rounding_bound(span(state.extent, state.h, state.r)))
+    return (uorder if state.rep is None else state.rep[uorder]), rad, k
+
+
+def news_start(state: FastFPSState) -> int:
+    """The engine's position of its first point that is not a seed (the seeds come first)."""
+    if state.rep is None or state.gid is None:
+        return int(state.seed_arr.shape[0])
+    return int(np.unique(state.gid[state.seed_arr]).size)
+
+
 def _tail(state: FastFPSState, rho_g: float) -> None:
     """The Euclidean tail from where it stopped (its values and cell heap kept)."""
     from .._kernels.tail import tail_loop, tail_start

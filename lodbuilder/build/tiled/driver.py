@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ...progress import ProgressCallback, TaskCounts, report_tasks
+from . import affinity as A
 from . import layout as WL
 from . import plan as P
 from . import rounds as R
@@ -131,13 +132,37 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     return found
 
 
-def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], nbrs: list[list[int]],
-                  colour: list[int], args: tuple, pieces: dict[str, Any]) -> int:
-    """Every tile ordered in radius rounds by one task (:mod:`.rounds`); its markers as the passes'."""
+def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour: list[int], parallel: int,
+                 worker_budget: int) -> dict[str, Any]:
+    """Whether the tiles are ordered in radius rounds (:mod:`.affinity`): the knob, and every
+    owner's states within the worker budget; the owners and the reason, for the build record."""
     assert R.TILE_ROUNDS is not None
-    docs = {t.index: {**t.to_json(), "core": pieces["core"][t.index], "halo": pieces["halo"][t.index]} for t in tiles}
-    call: tuple = (work, docs, nbrs, colour, *args, *R.TILE_ROUNDS)
-    res = result(ex.submit(R.order_rounds, *call), name, "ordering in rounds")
+    n_owners = min(A.n_owners(ex, parallel), len(tiles))
+    points = {t.index: int(size[t.index]) for t in tiles}
+    owner = A.assign(points, colour, n_owners)
+    need = A.owner_bytes(points, owner, n_owners)
+    info: dict[str, Any] = {"rounds": R.TILE_ROUNDS[0], "q": R.TILE_ROUNDS[1], "owners": n_owners,
+                            "owner_bytes_estimate": need, "worker_budget": worker_budget, "owner": owner}
+    if max(need) > worker_budget:
+        return {**info, "used": False, "reason": f"the states of an owner's tiles need about {max(need) / 2**20:.0f} "
+                f"MiB, over the {worker_budget / 2**20:.0f} MiB budget of a worker: one pass instead"}
+    return {**info, "used": True, "reason": "the states of every owner's tiles fit the worker budget"}
+
+
+def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], nbrs: list[list[int]],
+                  colour: list[int], args: tuple, pieces: dict[str, Any], plan: dict[str, Any], parallel: int) -> int:
+    """Every tile ordered in radius rounds, each tile's state on its owner (:mod:`.affinity`); the
+    markers as the passes' (written once every tile is done: a resume redoes the rounds). Returns
+    how many orderings a resume found done (all or none)."""
+    if _done(work, "order") is not None:
+        return len(tiles)
+    halo = float(args[2])
+    boxes = {t.index: (t.lo - 1.01 * halo, t.hi + 1.01 * halo) for t in tiles}
+    docs = {t.index: {**t.to_json(), "core": pieces["core"][t.index], "halo": pieces["halo"][t.index], "args": args,
+                      "near": ([boxes[u][0].tolist() for u in nbrs[t.index]], [boxes[u][1].tolist() for u in nbrs[t.index]])}
+            for t in tiles}
+    res = A.run_rounds(ex, work, name, docs, nbrs, colour, plan["owner"], parallel, plan["rounds"], plan["q"])
+    plan["owner_state_bytes"] = res["owner_state_bytes"]
     for r in res["tiles"]:
         put_json(work, WL.marker(WL.order_piece(r["tile"], 1)), {**r, "rounds": res["rounds"], "q": res["q"],
                                                                   "state_bytes": res["state_bytes"]})
@@ -178,7 +203,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     clock.lap("order")
 
     # 5. merge the tile orders (one task, streaming), then invert the order (tasks)
-    merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress)
+    merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress, parallel)
     clock.lap("merge")
 
     # 6. exact covering radii and band pieces of every tile, the radii combined, the points bucketed
@@ -191,7 +216,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
               "engine_stats": band_pieces,
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
-                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour,
+                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour, "rounds": (_done(work, "order") or {}).get("rounds"),
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
     info = _write(executor, work, part, name, sp, head["g"][:1], lambda: {**record, **_timings(clock, work, "write")},
                   {"reader": sp.reader, **(provenance or {})}, buckets, radii, progress)
@@ -261,8 +286,12 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
     nbrs = P.tile_neighbours(tiles, float(dist["halo"]))
     colour = P.colour_tiles(nbrs)
-    if R.TILE_ROUNDS is not None and passes == 1:  # (private: radius rounds, see .rounds)
-        ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"])
+    done = _done(work, "order")
+    rounds = (done or {}).get("rounds")
+    if done is None and R.TILE_ROUNDS is not None and passes == 1:  # (private: radius rounds, see .rounds)
+        rounds = _rounds_plan(executor, tiles, size, colour, parallel, int(args[3]))
+    if rounds is not None and rounds["used"]:
+        ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"], rounds, parallel)
     else:
         ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
                                 parallel if parallel > 1 else None)
@@ -272,22 +301,23 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
         # orderings alone) are deleted now, and stay consumed only while every ordering checks out
         pieces = [WL.marker(WL.order_piece(t.index, p)) for t in tiles for p in range(1, passes + 1)]
         files = {k: v for st in stats for k, v in (st.get("files") or {}).items() if not k.startswith("face.")}
-        mark(work, "order", {"files": {**{m: work.sum(m) for m in pieces}, **files}})
+        mark(work, "order", {"files": {**{m: work.sum(m) for m in pieces}, **files},
+                             "rounds": None if rounds is None else {**rounds, "owner": [rounds["owner"][t.index] for t in tiles]}})
     return by_size, colour, ordered, stats
 
 
 def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list[dict[str, Any]], seam_spacing: float,
-           lo: np.ndarray, span: float, progress: ProgressCallback) -> dict[str, Any]:
+           lo: np.ndarray, span: float, progress: ProgressCallback, parallel: int = 1) -> dict[str, Any]:
     """Phase 5: the tile orders merged by descending key with the seam repair (or what a finished
-    merge recorded): the seam points' repair, then bands of keys side by side (see :mod:`.merge`);
-    then the ranks, by tasks (:mod:`.ranks`)."""
-    from .merge import merge_phase
+    merge recorded): the seam points' repair, then bands of keys side by side (see :mod:`.merge`;
+    about :data:`.plan.MERGE_BANDS_PER_WORKER` per worker); then the ranks, by tasks (:mod:`.ranks`)."""
+    from .merge import BAND_ROWS, merge_phase
     from .ranks import ranks_phase
 
     merged = _done(work, "merge")
     if merged is None:
         merged = mark(work, "merge", merge_phase(executor, work, name, sp.n, stats, seam_spacing, lo,
-                                                 span / (1 << 20), progress))
+                                                 span / (1 << 20), progress, P.merge_band_rows(sp.n, parallel, BAND_ROWS)))
     ranks_phase(executor, work, name, sp.n, sp.blocks or [], progress)
     return merged
 

@@ -26,9 +26,14 @@ PARENT_FRACTION = 0.2  # share of the budget the parent keeps (merge buffers, wr
 PARENT_MIN = 600 << 20
 MIN_TILE_POINTS = 2_000
 #: tiles per worker the plan aims for (when the memory budget allows larger tiles): a tile waits
-#: for its neighbours of smaller colours (4-5 colours on a survey), so with about one tile per
-#: worker most workers wait; with several the last tiles of a phase are small beside the phase
-TILES_PER_WORKER = 4
+#: for its neighbours of smaller colours (4-5 colours on a survey), so the order phase lasts at
+#: least a chain of about that many tiles. With C colours and k tiles per worker the chain is about
+#: C / k of the phase's work per worker: at 4 the chain bounded the phase (the k-d split of the
+#: 21.56M-point survey for 16 workers: 64 tiles in 5 colours, a chain of 1.27 x the work per worker;
+#: the recorded 16-worker order phase 15.7 s against 11.5 s of work per worker), at 8 it is
+#: 0.6-0.65 x (128 tiles). Smaller tiles cost more halo and seam work (the serial seam repair and
+#: the join of the band pieces grow with the tile count).
+TILES_PER_WORKER = 8
 #: tiles sized for the workers are at least this large: a smaller tile costs more halo (read,
 #: ordered as timed seeds, covered) and more seams per point (its side shrinks as the square root)
 BALANCED_MIN_POINTS = 100_000
@@ -68,6 +73,23 @@ def balanced_tile_points(n_points: int, parallel: int, fits: int) -> int:
         return fits
     aim = math.ceil(BALANCE_SLACK * n_points / (TILES_PER_WORKER * parallel))
     return min(fits, max(aim, BALANCED_MIN_POINTS))
+
+
+#: bands of the merge per worker (after the serial seam repair every band is a task): on 16
+#: workers the 21.56M survey's bands of at most 1M rows were 22 tasks, two rounds whose second
+#: left 10 workers idle
+MERGE_BANDS_PER_WORKER = 4
+#: rows of a merge band sized for the workers, at least (each band reads every tile's run of it)
+MIN_MERGE_BAND_ROWS = 1 << 17
+
+
+def merge_band_rows(n_points: int, parallel: int, most: int) -> int:
+    """Rows per band of the merge: ``most`` (see :data:`lodbuilder.build.tiled.merge.BAND_ROWS`),
+    or fewer so that there are about MERGE_BANDS_PER_WORKER bands per worker, but not below
+    MIN_MERGE_BAND_ROWS (the merged order is the same whatever the bands)."""
+    if parallel <= 1:
+        return most
+    return min(most, max(MIN_MERGE_BAND_ROWS, math.ceil(n_points / (MERGE_BANDS_PER_WORKER * parallel))))
 
 
 def worker_budget(max_memory: int, parallel: int) -> int:

@@ -10,13 +10,19 @@ keys, as timed seeds). A tile of a lower colour is then blind to its neighbours 
 only, not for the whole ordering, and the points of different tiles keep their distance (see
 docs/benchmarks.md, "Seams"); the covering pays for the sources that join early (ratio q).
 
-First step: one task orders every tile and keeps every tile's state in memory (about the memory
-of every tile's ordering at once); an out-of-core build would spill each state between rounds
-(``FastFPSState.nbytes``).
+The build runs the rounds in parallel (:mod:`.affinity`): each tile's state lives in one worker
+process, its *owner*, for all rounds (:func:`round_step`, :func:`round_finish`; the states in
+``_LIVE``), and only each round's new points near a neighbour travel, through the parent.
+:func:`order_rounds` is the same in one task that holds every state (the reference the parallel
+rounds match bit for bit: tests/test_rounds_parallel.py). Memory: a state costs about
+:data:`.affinity.STATE_BYTES_PER_POINT` per point of its tile with its halo, an owner holds all
+its tiles' states at once, and the rounds run only where that fits the worker budget (else one
+pass; the build record's ``tiled.rounds`` says which and why).
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
@@ -29,6 +35,13 @@ from .timing import timed_task
 
 #: None, or (rounds R, ratio q): order the tiles in radius rounds (set by tools/bench_seams.py)
 TILE_ROUNDS: tuple[int, float] | None = None
+
+
+def radii(head: np.ndarray, rounds: int, q: float) -> list[float | None]:
+    """The radius each round stops at: the head's last radius / q^p for p = 1 .. ``rounds``, then
+    None (to the end; only that when the head has no finite radius)."""
+    r0 = float(head["r"][-1]) if head.shape[0] and np.isfinite(head["r"][-1]) else None
+    return [None] if r0 is None else [r0 / q**p for p in range(1, rounds + 1)] + [None]
 
 
 def _start(w: Store, t: int, doc: dict[str, Any], head: np.ndarray, hpts: np.ndarray, voxel_size: float,
@@ -64,24 +77,64 @@ def _sources(tiles: dict[int, dict[str, Any]], t: int, nbrs: list[int]) -> tuple
     """The points in tile ``t``'s halo that its neighbours ordered since ``t``'s last round:
     (rows of ``t``'s points, keys)."""
     me = tiles[t]
-    rows, keys = [], []
+    news: list[tuple[np.ndarray, np.ndarray] | None] = []
     for u in nbrs:
-        o = tiles[u]["o"]
-        if o is None or me["halo_g"].size == 0:
+        if tiles[u]["o"] is None or me["halo_g"].size == 0:
+            news.append(None)
             continue
         start = me["seen"].get(u, 0)
-        new = o.order[start:]
-        rad = o.radius[start:]
-        me["seen"][u] = len(o)
-        own = (new < tiles[u]["cpts"].shape[0]) & np.isfinite(rad)
-        g = tiles[u]["core"]["g"][new[own]]
+        me["seen"][u] = len(tiles[u]["o"])
+        news.append(_news(tiles[u], start))
+    return _halo_rows(me, news)
+
+
+def _news(tile: dict[str, Any], start: int, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A tile's own points ordered from position ``start`` on (their input ids ``g``, keys); with
+    ``near`` (a mask of its core points) only those it marks."""
+    return _own(tile, tile["o"].order[start:], tile["o"].radius[start:], near)
+
+
+def _own(tile: dict[str, Any], new: np.ndarray, rad: np.ndarray, near: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Of points ``new`` of a tile's ordering (radii ``rad``), those of its core with a finite radius
+    (and marked in ``near``): (input ids, radii)."""
+    own = (new < tile["cpts"].shape[0]) & np.isfinite(rad)
+    idx, rad = new[own], rad[own]
+    if near is not None:
+        keep = near[idx]
+        idx, rad = idx[keep], rad[keep]
+    return tile["core"]["g"][idx], rad
+
+
+def _in_boxes(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which points ``p`` lie in one of the boxes (``lo``, ``hi``: their corners, one a row)."""
+    keep = np.zeros(p.shape[0], bool)
+    for a, b in zip(lo, hi, strict=True):
+        keep |= np.all((p >= a) & (p <= b), axis=1)
+    return keep
+
+
+def _halo_rows(me: dict[str, Any], news: list[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of tile ``me``'s points and the keys of the neighbours' new points ``news`` (each
+    neighbour's (g, keys), in :func:`_news`'s order; None: not ordered yet) that lie in its halo."""
+    rows, keys = [], []
+    for new in news:
+        if new is None or me["halo_g"].size == 0:
+            continue
+        g, rad = new
         pos = np.minimum(np.searchsorted(me["halo_g"], g), me["halo_g"].size - 1)
         hit = me["halo_g"][pos] == g
         rows.append(me["halo_rows"][pos[hit]])
-        keys.append(rad[own][hit])
+        keys.append(rad[hit])
     if not rows:
         return np.empty(0, np.int64), np.empty(0)
     return np.concatenate(rows), np.concatenate(keys)
+
+
+def _joining(rows: np.ndarray, keys: np.ndarray, rho: float | None) -> Any:
+    """``resume_fastfps``'s sources: in a round every source joins at once (the points the
+    neighbours of a lower colour ordered in this round too: this tile keeps away from them); in
+    the last, the neighbours' points below the last round's radius join at their keys."""
+    return None if rows.size == 0 else rows if rho is not None else (rows, keys)
 
 
 @timed_task
@@ -97,23 +150,97 @@ def order_rounds(work: Store | str, docs: dict[int, dict[str, Any]], nbrs: list[
     head = w.read_array(WL.HEAD_FILE, HEAD)
     hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
     tiles = {t: _start(w, t, doc, head, hpts, voxel_size, band_radius, halo, max_memory) for t, doc in docs.items()}
-    r0 = float(head["r"][-1]) if head.shape[0] and np.isfinite(head["r"][-1]) else None
     seq = sorted(tiles, key=lambda t: colour[t])
     state_bytes = 0
-    for p in range(1, rounds + 2):
-        rho = None if (p > rounds or r0 is None) else r0 / q**p
+    for rho in radii(head, rounds, q):
         for t in seq:
             rows, keys = _sources(tiles, t, nbrs[t])
             state_bytes = max(state_bytes, tiles[t]["state"].nbytes)
-            # in a round every source joins at once (the points the neighbours of a lower colour
-            # ordered in this round too: this tile keeps away from them); in the last, the
-            # neighbours' points below the last round's radius join at their keys
-            src = None if rows.size == 0 else rows if rho is not None else (rows, keys)
-            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=src, bulk=True)
-        if rho is None:
-            break
+            tiles[t]["o"] = resume_fastfps(tiles[t]["state"], rho=rho, sources=_joining(rows, keys, rho), bulk=True)
     out = [_finish(w, tiles[t], hpts, halo) for t in sorted(tiles)]
     return {"tiles": out, "state_bytes": state_bytes, "rounds": rounds, "q": q}
+
+
+#: the tile states this process owns in parallel rounds (:mod:`.affinity`): (build key, tile) -> state
+_LIVE: dict[tuple[str, int], dict[str, Any]] = {}
+
+
+def _head(w: Store) -> tuple[np.ndarray, np.ndarray]:
+    head = w.read_array(WL.HEAD_FILE, HEAD)
+    return head, np.stack([head["x"], head["y"], head["z"]], axis=1)
+
+
+@timed_task
+def round_steps(work: Store | str, key: str, calls: list[tuple[int, dict[str, Any] | None, list[Any]]],
+                rho: float | None, step: Any = None) -> dict[str, Any]:
+    """One round of each tile of ``calls`` ((tile, doc, news) as :func:`round_step` takes them), in
+    the process that owns them, one after the other (``step``: :func:`round_step`); their results.
+    A tile that fails is named on the exception (``lodbuilder_tile``)."""
+    out = []
+    for t, doc, news in calls:
+        try:
+            out.append((step or round_step)(work, t, key, doc, rho, news))
+        except Exception as exc:
+            with contextlib.suppress(Exception):  # (an exception that takes no attributes)
+                exc.lodbuilder_tile = t  # type: ignore[attr-defined]
+            raise
+    return {"tiles": out}
+
+
+def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, rho: float | None,
+               news: list[tuple[np.ndarray, np.ndarray] | None]) -> dict[str, Any]:
+    """One round of tile ``t`` in the process that owns its state (kept in ``_LIVE`` under
+    ``key``): started on the first (``doc``: the tile as :func:`order_rounds`'s, with ``args``,
+    its voxel size, band radius, halo and memory, and ``near``, its neighbours' halo boxes), then
+    ordered down to ``rho`` after its neighbours' new points in its halo (``news``: (g, keys) or
+    None per neighbour) join. Returns the points it ordered in this round that lie in a
+    neighbour's halo box (``g``, ``keys``) and the bytes of its state."""
+    from ...sampling.resumable import news_start, resume_fastfps, resume_news
+
+    tile = _LIVE.get((key, t))
+    if tile is None:
+        if doc is None:
+            raise RuntimeError(f"tile {t}'s state of the rounds is not in this worker process (was it restarted?)")
+        w = as_store(work)
+        head, hpts = _head(w)
+        tile = _start(w, t, doc, head, hpts, *doc["args"])
+        tile["near"] = _in_boxes(tile["cpts"], np.asarray(doc["near"][0], float).reshape(-1, 3),
+                                 np.asarray(doc["near"][1], float).reshape(-1, 3))
+        _LIVE[(key, t)] = tile
+    rows, keys = _halo_rows(tile, news)
+    st, since = tile["state"], tile.get("k", 0)
+    if rho is not None:  # (the points of this round only: the whole ordering is not needed yet)
+        new, rad, tile["k"] = resume_news(st, since, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
+        g, k = _own(tile, new, rad, tile["near"])
+    else:  # (the seeds come first; the ordering's positions are the engine's after its copies of seeds)
+        tile["o"] = resume_fastfps(st, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
+        shift = st.seed_arr.shape[0] - news_start(st) if since >= news_start(st) else 0
+        g, k = _news(tile, since + shift, tile["near"])
+    return {"tile": t, "g": g, "keys": k, "state_bytes": int(st.nbytes)}
+
+
+@timed_task
+def round_finish(work: Store | str, key: str, ts: list[int], halo: float) -> dict[str, Any]:
+    """The streams and seam points of tiles ``ts`` written from their states, which are dropped."""
+    w = as_store(work)
+    hpts = _head(w)[1]
+    out = []
+    for t in ts:
+        try:
+            out.append(_finish(w, _LIVE.pop((key, t)), hpts, halo))
+        except Exception as exc:
+            with contextlib.suppress(Exception):
+                exc.lodbuilder_tile = t  # type: ignore[attr-defined]
+            raise
+    return {"tiles": out}
+
+
+def round_drop(key: str) -> int:
+    """Drop every state of ``key`` this process holds (a failed build); how many."""
+    gone = [k for k in _LIVE if k[0] == key]
+    for k in gone:
+        del _LIVE[k]
+    return len(gone)
 
 
 def _finish(w: Store, tile: dict[str, Any], hpts: np.ndarray, halo: float) -> dict[str, Any]:
