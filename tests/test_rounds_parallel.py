@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from naive import prefix_covering_radii
+from rounds_fault import failing_step
 from test_tiled import wavy
 
 import lodbuilder
@@ -21,13 +22,6 @@ def _one_task(ex, work, name, docs, nbrs, colour, owner, parallel, n_rounds, q):
     args = next(iter(docs.values()))["args"]
     res = rounds.order_rounds(work, docs, nbrs, colour, *args, n_rounds, q)
     return {**res, "owner_state_bytes": [0]}
-
-
-def _failing_step(work, t, *a, **k):
-    """A step that fails for tile 3 (pickled by reference: the workers import this module)."""
-    if t == 3:
-        raise RuntimeError("boom in the rounds")
-    return rounds.round_step(work, t, *a, **k)
 
 
 @pytest.fixture
@@ -93,7 +87,7 @@ def test_rounds_that_do_not_fit_the_worker_budget_fall_back_to_one_pass(tmp_path
 def test_a_failing_tile_fails_the_build_naming_it(tmp_path, monkeypatch, pts):
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
     step = rounds.round_step
-    monkeypatch.setattr(rounds, "round_step", _failing_step)
+    monkeypatch.setattr(rounds, "round_step", failing_step)  # (a module the workers import alone)
     with pytest.raises(BuildError, match=r"ordering of tile 4 of \d+ in round 1 of 7 failed: RuntimeError: "
                                          r"boom in the rounds"):
         _build(tmp_path, pts, "fail")
