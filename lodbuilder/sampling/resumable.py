@@ -135,6 +135,12 @@ def resume_fastfps(state: FastFPSState, *, rho: float | None = None, sources: An
     the ordering is no longer the one of :func:`.fastfps.fastfps` with those keys).
     Returns the whole ordering so far (an :class:`Ordering`: its ``stop_radius`` bounds the
     distance of every point not ordered yet)."""
+    rho = _advance(state, rho, sources, bulk)
+    return _result(state, rho)
+
+
+def _advance(state: FastFPSState, rho: float | None, sources: Any, bulk: bool) -> float | None:
+    """Bring in ``sources`` and order on until the next radius is <= ``rho`` (checked; returned)."""
     rho = check_positive(rho, "rho")
     rho_g = -1.0 if rho is None else rho / state.h
     if sources is not None:
@@ -143,7 +149,7 @@ def resume_fastfps(state: FastFPSState, *, rho: float | None = None, sources: An
         _grid(state, rho_g, bulk)
     if state.phase == "tail" and state.tail["k"] < state.inv.shape[0]:
         _tail(state, rho_g)
-    return _result(state, rho)
+    return rho
 
 
 def resume_news(state: FastFPSState, since: int, *, rho: float | None = None, sources: Any = None,
@@ -155,13 +161,7 @@ def resume_news(state: FastFPSState, since: int, *, rho: float | None = None, so
     ordering appends at its end are not among them."""
     from .precision import promise, rounding_bound, span
 
-    rho = check_positive(rho, "rho")
-    if sources is not None:
-        _bring_in(state, sources)
-    if state.phase == "grid":
-        _grid(state, -1.0 if rho is None else rho / state.h, bulk)
-    if state.phase == "tail" and state.tail["k"] < state.inv.shape[0]:
-        _tail(state, -1.0 if rho is None else rho / state.h)
+    _advance(state, rho, sources, bulk)
     if state.grid is not None:
         order, radius, k = state.grid[16], state.grid[17], state.k
     else:

@@ -23,6 +23,7 @@ pass; the build record's ``tiled.rounds`` says which and why).
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -147,8 +148,7 @@ def order_rounds(work: Store | str, docs: dict[int, dict[str, Any]], nbrs: list[
     from ...sampling.resumable import resume_fastfps
 
     w = as_store(work)
-    head = w.read_array(WL.HEAD_FILE, HEAD)
-    hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
+    head, hpts = _head(w)
     tiles = {t: _start(w, t, doc, head, hpts, voxel_size, band_radius, halo, max_memory) for t, doc in docs.items()}
     seq = sorted(tiles, key=lambda t: colour[t])
     state_bytes = 0
@@ -178,13 +178,20 @@ def round_steps(work: Store | str, key: str, calls: list[tuple[int, dict[str, An
     A tile that fails is named on the exception (``lodbuilder_tile``)."""
     out = []
     for t, doc, news in calls:
-        try:
+        with _naming(t):
             out.append((step or round_step)(work, t, key, doc, rho, news))
-        except Exception as exc:
-            with contextlib.suppress(Exception):  # (an exception that takes no attributes)
-                exc.lodbuilder_tile = t  # type: ignore[attr-defined]
-            raise
     return {"tiles": out}
+
+
+@contextlib.contextmanager
+def _naming(t: int) -> Iterator[None]:
+    """An exception raised within names tile ``t`` (``lodbuilder_tile``: the parent's message)."""
+    try:
+        yield
+    except Exception as exc:
+        with contextlib.suppress(Exception):  # (an exception that takes no attributes)
+            exc.lodbuilder_tile = t  # type: ignore[attr-defined]
+        raise
 
 
 def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, rho: float | None,
@@ -226,12 +233,8 @@ def round_finish(work: Store | str, key: str, ts: list[int], halo: float) -> dic
     hpts = _head(w)[1]
     out = []
     for t in ts:
-        try:
+        with _naming(t):
             out.append(_finish(w, _LIVE.pop((key, t)), hpts, halo))
-        except Exception as exc:
-            with contextlib.suppress(Exception):
-                exc.lodbuilder_tile = t  # type: ignore[attr-defined]
-            raise
     return {"tiles": out}
 
 
