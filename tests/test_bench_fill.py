@@ -105,3 +105,121 @@ def test_a_holes_fit_is_that_of_the_gap_with_most_candidates_in_it():
     out = bench_fill.hole_fit(report, np.zeros(3), 1.0, 1.0)
     assert out == {"fit": "thin_plate_spline", "fit_residual_rho": 0.2}
     assert bench_fill.hole_fit(report, np.array([50.0, 0, 0]), 1.0, 1.0) == {}
+
+
+import fill_bounds  # noqa: E402
+
+
+def _truth(points: np.ndarray, keep: np.ndarray, radius: float, distance) -> dict:
+    normals = bench_fill.pca_normals(points)
+    return fill_bounds.truth_errors(points, keep, normals, np.zeros(3), radius, 1.0, distance)
+
+
+def _sphere(radius: float, n: int, seed: int = 0) -> np.ndarray:
+    """n points on the cap z > 0 of a sphere of ``radius`` centred at (0, 0, -radius)."""
+    x = np.random.default_rng(seed).normal(size=(4 * n, 3))
+    x = radius * x / np.linalg.norm(x, axis=1, keepdims=True)
+    x = x[x[:, 2] > 0.7 * radius][:n]
+    return x - np.array([0.0, 0.0, radius])
+
+
+def test_thinned_points_are_step_apart_and_cover_the_rest():
+    x = np.random.default_rng(1).uniform(0, 10, (2000, 2))
+    kept = fill_bounds.thin(x, 0.5)
+    d = np.linalg.norm(x[kept][:, None] - x[kept][None], axis=2)
+    assert d[np.triu_indices(kept.size, 1)].min() >= 0.5
+    assert np.linalg.norm(x[:, None] - x[kept][None], axis=2).min(axis=1).max() <= 0.5
+
+
+def test_on_a_sphere_every_bound_is_near_zero():
+    """A hole of radius 4 (rho 1) at the top of a sphere of radius 20: every surface of the
+    bounds (the local and the quartic truth, the rim quadrics) follows the sphere within 0.05 rho
+    (the sphere is no polynomial: not exactly)."""
+    pts = _sphere(20.0, 20000)
+    keep = np.hypot(pts[:, 0], pts[:, 1]) >= 4.0
+
+    def distance(q):
+        return np.abs(np.linalg.norm(q + np.array([0.0, 0.0, 20.0]), axis=1) - 20.0)
+
+    out = _truth(pts, keep, 4.0, distance)
+    assert set(out) == {
+        "truth_local_max_rho",
+        "truth_quartic_max_rho",
+        "rim_best_max_rho",
+        "rim_cv_max_rho",
+    }
+    assert max(out.values()) < 0.05
+
+
+def test_a_bump_hidden_in_the_hole_is_missed_by_the_rim_only():
+    """A Gaussian bump 1 rho high (sigma 1 rho) in the middle of a hole of radius 4 in a plane:
+    the rim is flat, so every rim fit misses the bump's top by about its height; the truth read
+    at rho resolution follows it within 0.1 rho; the quartic through the hole's true points does
+    not fit so narrow a bump (over 0.25 rho off)."""
+    pts = _grid(lambda u, v: np.exp(-(u * u + v * v) / 2.0))
+    keep = np.hypot(pts[:, 0], pts[:, 1]) >= 4.0
+    fine = _grid(lambda u, v: np.exp(-(u * u + v * v) / 2.0))
+    tree = bench_fill.cKDTree(fine)
+
+    out = _truth(pts, keep, 4.0, lambda q: tree.query(q)[0])
+    assert out["truth_local_max_rho"] < 0.1
+    assert out["truth_quartic_max_rho"] > 0.25
+    assert 0.8 < out["rim_best_max_rho"] < 1.05
+    assert out["rim_cv_max_rho"] >= out["rim_best_max_rho"]
+
+
+def test_a_hole_with_few_removed_points_has_no_bounds():
+    pts = _grid(lambda u, v: 0.0 * u)
+    keep = np.hypot(pts[:, 0], pts[:, 1]) >= 0.15
+    assert _truth(pts, keep, 0.15, lambda q: np.abs(q[:, 2])) == {}
+
+
+def test_the_distribution_counts_filled_holes_over_a_quarter_rho():
+    holes = [
+        {
+            "filled": True,
+            "radius_rho": 2.0,
+            "synthetic_error_max_rho": 0.3,
+            "oracle_plane_max_rho": 0.2,
+        },
+        {
+            "filled": True,
+            "radius_rho": 4.0,
+            "synthetic_error_max_rho": 0.25,
+            "oracle_plane_max_rho": 0.7,
+        },
+        {
+            "filled": True,
+            "radius_rho": 4.9,
+            "synthetic_error_max_rho": 0.9,
+            "oracle_plane_max_rho": 1.2,
+        },
+        {"filled": False, "radius_rho": 3.0, "synthetic_error_max_rho": 0.9},
+        {"filled": True, "radius_rho": 3.0, "synthetic_error_max_rho": None},
+    ]
+    out = fill_bounds.hole_distribution(holes)
+    assert out["all"] == {"filled": 3, "over_0.25": 2}
+    assert out["by_radius"] == {
+        "1.5-2.5 rho": {"filled": 1, "over_0.25": 1},
+        "2.5-3.5 rho": {"filled": 0, "over_0.25": 0},
+        "3.5-5 rho": {"filled": 2, "over_0.25": 1},
+    }
+    assert out["by_sagitta"] == {
+        "0-0.5 rho": {"filled": 1, "over_0.25": 1},
+        "0.5-1 rho": {"filled": 1, "over_0.25": 0},
+        "1-99 rho": {"filled": 1, "over_0.25": 1},
+    }
+
+
+def test_the_refusal_bound_keeps_only_filled_holes_within_a_quarter_rho():
+    holes = [
+        {"filled": True, "synthetic_error_max_rho": 0.2, "truth_local_max_rho": 0.1},
+        {"filled": True, "synthetic_error_max_rho": 0.4, "truth_local_max_rho": 0.3},
+        {"filled": False, "synthetic_error_max_rho": 0.1},
+        {"filled": True, "synthetic_error_max_rho": None},
+    ]
+    out = fill_bounds.refusal_bound(holes)
+    assert out == {
+        "holes_kept_percent": 25.0,
+        "over_0.25": {"truth_local": {"holes": 2, "over": 1, "max": 0.3}},
+    }

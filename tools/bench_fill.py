@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 from benchdoc import load_run, measured, publish, stamp, write_section
+from fill_bounds import hole_distribution, near_mesh, refusal_bound, truth_errors
 from scipy.spatial import cKDTree
 
 HERE = Path(__file__).resolve().parent
@@ -356,6 +357,7 @@ def real_part(
     original = scan.points
     faces = read_faces(scan_path)
     normals = pca_normals(original)
+    tree = cKDTree(original)
     runs = []
     errors = []  # of the synthetic points in the punched balls, every seed
     depths = []  # their distance to the punched scan, in rho
@@ -395,6 +397,7 @@ def real_part(
             s = (np.linalg.norm(syn - c, axis=1) < r + rho) & punched
             nc = normals[np.argmin(np.linalg.norm(original - c, axis=1))]
             cover = coverage(original[m], lev.points, rho, {})["all"]
+            part = near_mesh(original, faces, c, r + 8 * rho)
             per_hole.append(
                 {
                     "radius_rho": round(float(r / rho), 2),
@@ -406,6 +409,16 @@ def real_part(
                     "filled": bool(s.any() and cover <= FOUND_COVER),
                     **oracle_errors(original, faces, normals, np.flatnonzero(m), nc, rho),
                     **hole_fit(filled.report, c, r, rho),
+                    **truth_errors(
+                        original,
+                        keep,
+                        normals,
+                        c,
+                        r,
+                        rho,
+                        lambda q, part=part: surface_distance(q, *part)[0],
+                        tree,
+                    ),
                 }
             )
         runs.append(
@@ -474,6 +487,8 @@ def real_part(
         "synthetic_error_in_balls_every_seed_rho": every,
         "oracle": oracle_summary(holes),
         "refusing_by_fit_residual": refusal_tradeoff(holes),
+        "holes_over_0.25": hole_distribution(holes),
+        "refusal_bound": refusal_bound(holes),
         "runs": runs,
     }
 
@@ -578,6 +593,15 @@ def synthetic_part(
     }
 
 
+#: the bounds of fill_bounds.refusal_bound, as the page names them
+BOUND_NAMES = {
+    "truth_local": "truth at rho resolution (quadric through the original within 1.5 rho)",
+    "truth_quartic": "quartic through the hole's true points",
+    "rim_best": "best rim polynomial (rims 1-4 rho, degree 2-4) chosen knowing the truth",
+    "rim_cv": "the rim polynomial chosen by sector cross-validation",
+}
+
+
 def markdown(result: dict) -> str:
     lines = [
         f"{measured(result)} (2 shared cores: times carry noise).",
@@ -645,6 +669,28 @@ def markdown(result: dict) -> str:
                 + ", ".join(
                     f"{k}: {v['holes_filled_percent']} % / {v['synthetic_error_max_rho']}"
                     for k, v in trade.items()
+                )
+                + ".",
+            ]
+        dist, bound = real.get("holes_over_0.25"), real.get("refusal_bound")
+        if dist and bound:
+            lines += [
+                "",
+                f"Filled holes missed by more than 0.25 rho: {dist['all']['over_0.25']} of "
+                f"{dist['all']['filled']}; by radius: "
+                + ", ".join(
+                    f"{k} {v['over_0.25']} of {v['filled']}" for k, v in dist["by_radius"].items()
+                )
+                + "; by sagitta (plane oracle's error): "
+                + ", ".join(
+                    f"{k} {v['over_0.25']} of {v['filled']}" for k, v in dist["by_sagitta"].items()
+                )
+                + f". A rule refusing exactly those would keep {bound['holes_kept_percent']} % of "
+                "the holes. Holes over 0.25 rho / largest error at points thinned to rho/2 (of "
+                "every hole): "
+                + ", ".join(
+                    f"{BOUND_NAMES[k]} {v['over']} of {v['holes']} / {v['max']}"
+                    for k, v in bound["over_0.25"].items()
                 )
                 + ".",
             ]
