@@ -19,8 +19,10 @@ faces or triangle strips, else to the local plane of the 8 nearest original poin
 p99, mean, by depth in the hole. Synthetic points elsewhere (the scan's own holes, where the
 original has no surface) are counted apart. Beside the fill, per hole, an *oracle*: the plane,
 quadric and cubic fitted by least squares to the REMOVED points themselves, points placed on them
-and measured the same way (:func:`oracle_errors`): where even the cubic through the true surface
-misses 0.25 rho, the hole holds detail that its rim does not show.
+and measured the same way (:func:`oracle_errors`), and the bounds of tools/fill_bounds.py (the
+truth read at rho resolution, the quartic through the hole's true points, rim polynomials): where
+the truth at rho resolution meets 0.25 rho and no smooth fit does, the hole holds detail that its
+rim does not show. Per scan, the filled holes over 0.25 rho by radius and sagitta.
 
 Synthetic part: a *synthetic* wavy sheet of N random points (side 1) with round holes covering 1 %
 of its area, ordered with lodbuilder.fastfps; time of ``fill_level`` at rho (warm, in process) and
@@ -178,8 +180,10 @@ def oracle_errors(original, faces, normals, removed, centre_normal, rho) -> dict
     """What no fill from the rim can beat: for each class of :data:`ORACLE`, the largest error
     (distance to the original surface, in rho) of points placed on the least-squares surface of
     that class fitted to the REMOVED points themselves (those of the hole's face: normal within
-    72 degrees of the centre's), over their plane, at their own places. Where even the cubic
-    through the true surface misses 0.25 rho, the hole holds detail that its rim does not show."""
+    72 degrees of the centre's), over their plane, at their own places (every removed point: more
+    places than a fill's). No bound on a fill: one polynomial over a plane misses a surface that
+    folds over it (a bunny hole: cubic 1.25 rho off, its fill 0.25); fill_bounds.truth_errors
+    gives the bounds, at a fill's density."""
     same = np.abs(normals[removed] @ centre_normal) > 0.3
     x = original[removed[same]]
     if x.shape[0] < 10:
@@ -651,9 +655,10 @@ def markdown(result: dict) -> str:
         if oracle:
             lines += [
                 "",
-                "Oracle (what no fill from the rim can beat: the least-squares surface of each "
-                "class fitted to the removed points themselves, points placed on it): holes "
-                "within 0.25 rho / largest error: "
+                "Oracle (the least-squares surface of each class fitted to the removed points "
+                "themselves, points placed on it at every removed point; a fill beats it where "
+                "the surface folds over the hole's plane): holes within 0.25 rho / largest "
+                "error: "
                 + ", ".join(
                     f"{k} {100 * v['share_within_0.25']:.0f} % / {v['max']}"
                     for k, v in oracle.items()
