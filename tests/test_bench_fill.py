@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
@@ -223,3 +224,26 @@ def test_the_refusal_bound_keeps_only_filled_holes_within_a_quarter_rho():
         "holes_kept_percent": 25.0,
         "over_0.25": {"truth_local": {"holes": 2, "over": 1, "max": 0.3}},
     }
+
+
+def test_distances_to_the_part_of_the_mesh_near_a_hole_are_those_to_the_whole_mesh():
+    """A bumpy grid mesh (spacing 0.25): points within 5 of a centre, up to 1 off the surface,
+    are as far from the faces whose vertices lie within 8 of it as from every face."""
+    pytest.importorskip("point_cloud_utils")
+    g = np.arange(-12.0, 12.001, 0.25)
+    n = g.size
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    verts = np.c_[u, v, np.sin(u) * np.cos(0.7 * v)]
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    faces = np.r_[np.c_[i, i + 1, i + n], np.c_[i + 1, i + n + 1, i + n]]
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-3.5, 3.5, (200, 3))
+    q[:, 2] = np.sin(q[:, 0]) * np.cos(0.7 * q[:, 1]) + rng.uniform(-1, 1, 200)
+    centre = np.array([0.5, -0.5, 0.0])
+    part = fill_bounds.near_mesh(verts, faces, centre, 8.0)
+    assert part[1] is not None and 0 < part[1].shape[0] < faces.shape[0]
+    near, _ = bench_fill.surface_distance(q, *part)
+    full, _ = bench_fill.surface_distance(q, verts, faces)
+    np.testing.assert_allclose(near, full, rtol=0, atol=1e-12)
+    pts, none = fill_bounds.near_mesh(verts, None, centre, 8.0)
+    assert none is None and np.linalg.norm(pts - centre, axis=1).max() < 8.0
