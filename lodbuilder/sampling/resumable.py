@@ -242,8 +242,18 @@ def _bring_in(state: FastFPSState, sources: Any) -> None:
     if not live.any():
         return
     tkey = state.tkey_g[pos:].copy()
-    tkey[slot[live] - pos] = np.minimum(keys[live], _now(state))
-    srt = np.argsort(-tkey, kind="stable")
+    at = slot[live] - pos
+    tkey[at] = np.minimum(keys[live], _now(state))
+    moved = np.zeros(tkey.size, bool)
+    moved[at] = True
+    rest = np.flatnonzero(~moved)
+    if rest.size == 0 or tkey[at].min() > tkey[rest[0]]:
+        # (the usual case: every new key above the others, which stay sorted: the stable sort is
+        # the moved ones sorted among themselves, then the others in their order)
+        mine = np.flatnonzero(moved)
+        srt = np.concatenate([mine[np.argsort(-tkey[mine], kind="stable")], rest])
+    else:
+        srt = np.argsort(-tkey, kind="stable")
     state.tseed_c[pos:] = state.tseed_c[pos:][srt]
     state.tkey_g[pos:] = tkey[srt]
     state.tslot[state.tseed_c[pos:]] = np.arange(pos, state.tseed_c.size, dtype=np.int32)
