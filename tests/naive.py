@@ -490,3 +490,20 @@ def naive_hash_collisions(pts: np.ndarray) -> bool:
         mix(hsh)
     hsh.sort()
     return bool((hsh[1:] == hsh[:-1]).any())
+
+
+def naive_bring_in(tseed: np.ndarray, tkey: np.ndarray, pos: int, seeds: np.ndarray, band_idx: np.ndarray,
+                   keys: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pending timed seeds (``tseed[pos:]``, keys ``tkey[pos:]``, non-increasing) after the
+    band points ``band_idx`` get ``min(keys, now)`` as new keys (those already joined or seeds
+    skipped), re-sorted by key, stably: by one array over every
+    band point, as the first resumable engine did it."""
+    m = int(max(tseed.max(initial=0), seeds.max(initial=0), band_idx.max(initial=0))) + 1
+    where = np.full(m, -1, np.int64)
+    where[tseed[pos:]] = np.arange(tseed.size - pos)
+    at = where[band_idx]
+    live = at >= 0
+    new = tkey[pos:].copy()
+    new[at[live]] = np.minimum(keys[live], now)
+    srt = np.argsort(-new, kind="stable")
+    return np.concatenate([tseed[:pos], tseed[pos:][srt]]), np.concatenate([tkey[:pos], new[srt]])

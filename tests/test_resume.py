@@ -138,3 +138,33 @@ def test_timed_seeds_that_never_join_do_not_trip_the_precision_check(rng):
     out = resume_fastfps(state)
     assert np.array_equal(np.sort(out.order), np.arange(200))
     assert (out.radius[50:] == 0).all() and set(out.order[50:]) == set(later)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31 - 1), calls=st.integers(1, 4))
+def test_bringing_in_sources_matches_the_naive_reference(seed, calls):
+    # sources that joined already, seeds among them, keys above and below the
+    # largest remaining distance: the pending timed seeds and their keys as the naive array gives them
+    from naive import naive_bring_in
+
+    from lodbuilder.sampling.resumable import _bring_in, _now
+
+    rng = np.random.default_rng(seed)
+    pts = jittered_plane(1500, rng)
+    timed = np.flatnonzero(pts[:, 0] < 0.3)
+    state = start_fastfps(pts, seeds=[int(np.flatnonzero(pts[:, 0] >= 0.3)[0])],
+                          timed_seeds=(timed, np.zeros(timed.size)))
+    first = resume_fastfps(state, rho=0.2)
+    for _ in range(calls):
+        idx = rng.choice(timed, size=int(rng.integers(1, 40)), replace=False)
+        if rng.random() < 0.5:
+            idx = np.concatenate([idx, state.perm[state.seeds_c][:1]])  # (a seed: skipped)
+        keys = rng.random(idx.size) * 1.5 * first.stop_radius
+        tseed, tkey = naive_bring_in(state.tseed_c.copy(), state.tkey_g.copy(), int(state.tpos[0]), state.seeds_c,
+                                     state.inv[idx], keys / state.h, _now(state))
+        _bring_in(state, (idx, keys))
+        assert np.array_equal(state.tseed_c, tseed)
+        assert np.array_equal(state.tkey_g, tkey)
+        pend = state.tseed_c[int(state.tpos[0]):]
+        assert np.array_equal(state.tslot[pend], np.arange(int(state.tpos[0]), state.tseed_c.size))
+        resume_fastfps(state, rho=float(rng.random() * first.stop_radius))

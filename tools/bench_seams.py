@@ -10,7 +10,11 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
 * ``cross_spacing_min``: the smallest distance between two points of different tiles (the coarse
   head counts as one more tile) in a level, over the level's stored radius, the worst level from
   the head to 3 % (``..._all``: over every level). Target >= 0.35 (goal 0.5). The in-memory order
-  measured with the same tiles: ``cross_spacing_in_memory``.
+  measured with the same tiles: ``cross_spacing_in_memory``. ``cross_spacing_min_head_in_tiles``:
+  the same as ``cross_spacing_min`` with each head point counted in the tile whose box holds it (a
+  tile orders with the head points in its box and halo as seeds, so a pair of a head point and a
+  point of its tile is no seam: on autzen such pairs are points of the band far apart along it and
+  close in space, which the in-memory order has too).
 * ``cross_new_min_above_halo`` / ``..._below_halo``: the smallest spacing of the pair each level's
   newest point makes with an earlier point of another tile, over the levels whose radius is above
   the halo width (``halo``; a tile sees its neighbours' points only within it) and over the others;
@@ -209,6 +213,10 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
     cs = cross_spacing(e, radius, upto)  # cs[k - 1]: level of size k
     lv = np.arange(max(h, 1), top + 1)
     at = int(lv[np.argmin(cs[lv - 1])])
+    # the same with each head point in the tile whose box holds it (a tile orders with every head
+    # point in its box and halo as a seed: such a pair is no seam)
+    cs_box = cross_spacing(cross_pairs(p_stored, tile_of(p_stored, boxes), radius, upto)[0], radius, upto)
+    at_box = int(lv[np.argmin(cs_box[lv - 1])])
     halo = float(tiled.get("halo", 0.0))
     merge = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ("seam_repair", "merge_band")]
     order = [r for r in (build.get("tasks") or {}).get("rows", []) if r[0] in ORDER_TASKS]
@@ -222,6 +230,8 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "cover_ratio_below_head": max([r[1] for r in sweep if r[0] < h], default=None),
             "cross_spacing_min": round(float(cs[lv - 1].min()), 4), "cross_spacing_min_at": at,
             "cross_spacing_min_all": round(float(np.nanmin(cs[h:])), 4) if COVER_AT is None else None,
+            "cross_spacing_min_head_in_tiles": round(float(cs_box[lv - 1].min()), 4),
+            "cross_spacing_min_head_in_tiles_at": at_box,
             "cross_spacing_in_memory": min(r[2] for r in sweep),
             **seam_profile(e, partner, group, tiled.get("tile_colours", []), radius, halo, lv),
             "spacing_over_radius_min": tiled.get("spacing_over_radius_min"),

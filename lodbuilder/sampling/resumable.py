@@ -72,6 +72,8 @@ class FastFPSState:
     grid: tuple | None = None  # the grid kernels' state (_kernels.march.grid_state)
     phase: str = "grid"
     tail: dict[str, Any] = field(default_factory=dict)
+    #: band index -> its position in ``tseed_c`` (-1: not a timed seed); kept right for the pending ones
+    tslot: np.ndarray = field(default_factory=lambda: np.empty(0, np.int32))
 
     @property
     def k(self) -> int:
@@ -81,7 +83,7 @@ class FastFPSState:
     def nbytes(self) -> int:
         """Bytes held by the state's arrays (the input points included)."""
         arrays: list[Any] = [self.pts, self.gid, self.rep, self.inv, self.perm, self.tseed_c, self.tkey_g,
-                             self.piece, self.psep, self.pnrm, self.foot]
+                             self.piece, self.psep, self.pnrm, self.foot, self.tslot]
         arrays += list(self.grid or ()) + [v for v in self.tail.values() if isinstance(v, np.ndarray)]
         arrays += list(self.tail.get("runs") or ())[:4] + list(self.tail.get("heap", ()))
         total = sum(a.nbytes for a in arrays if isinstance(a, np.ndarray))
@@ -121,6 +123,8 @@ def start_fastfps(
         np.zeros(1, np.int64), piece, int(npiece), psep, pnrm, stats, band, foot,
     )
     state.grid = grid_state(band.u, band.keys, band.cs, m, tseed_c, piece, np.int64(npiece))
+    state.tslot = np.full(m, -1, np.int32)
+    state.tslot[tseed_c] = np.arange(tseed_c.size, dtype=np.int32)
     return state
 
 
@@ -224,25 +228,35 @@ def _bring_in(state: FastFPSState, sources: Any) -> None:
         idx = state.gid[idx]
     band_idx = state.inv[idx]
     pos = int(state.tpos[0])
-    pending = state.tseed_c[pos:]
-    where = np.full(state.inv.shape[0], -1, np.int64)
-    where[pending] = np.arange(pending.size)
-    declared = np.zeros(state.inv.shape[0], bool)
-    declared[state.tseed_c] = True
-    declared[state.seeds_c] = True  # (ordered first: skipped as joined)
-    if not declared[band_idx].all():
-        bad = int(np.flatnonzero(~declared[band_idx])[0])
-        raise InputError(
-            f"sources[{bad}] was not a timed seed at the start; pass every point that may become a source "
-            "in timed_seeds (key 0: not yet)"
-        )
-    at = where[band_idx]
-    live = at >= 0  # (a source that has joined already is skipped)
+    slot = state.tslot[band_idx]  # (a pending timed seed's position in tseed_c; -1: not a timed seed)
+    if (slot < 0).any():
+        odd = slot < 0
+        odd[odd] = ~np.isin(band_idx[odd], state.seeds_c)  # (the seeds are ordered first: skipped as joined)
+        if odd.any():
+            bad = int(np.flatnonzero(odd)[0])
+            raise InputError(
+                f"sources[{bad}] was not a timed seed at the start; pass every point that may become a source "
+                "in timed_seeds (key 0: not yet)"
+            )
+    live = slot >= pos  # (a source that has joined already is skipped)
+    if not live.any():
+        return
     tkey = state.tkey_g[pos:].copy()
-    tkey[at[live]] = np.minimum(keys[live], _now(state))
-    srt = np.argsort(-tkey, kind="stable")
-    state.tseed_c[pos:] = pending[srt]
+    at = slot[live] - pos
+    tkey[at] = np.minimum(keys[live], _now(state))
+    moved = np.zeros(tkey.size, bool)
+    moved[at] = True
+    rest = np.flatnonzero(~moved)
+    if rest.size == 0 or tkey[at].min() > tkey[rest[0]]:
+        # (the usual case: every new key above the others, which stay sorted: the stable sort is
+        # the moved ones sorted among themselves, then the others in their order)
+        mine = np.flatnonzero(moved)
+        srt = np.concatenate([mine[np.argsort(-tkey[mine], kind="stable")], rest])
+    else:
+        srt = np.argsort(-tkey, kind="stable")
+    state.tseed_c[pos:] = state.tseed_c[pos:][srt]
     state.tkey_g[pos:] = tkey[srt]
+    state.tslot[state.tseed_c[pos:]] = np.arange(pos, state.tseed_c.size, dtype=np.int32)
 
 
 def _grid(state: FastFPSState, rho_g: float, bulk: bool) -> None:

@@ -32,7 +32,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .tasks import HEAD, _put_tile, _stream
-from .timing import timed_task
+from .timing import timed_step, timed_task
 
 #: None, or (rounds R, ratio q): order the tiles in radius rounds (set by tools/bench_seams.py)
 TILE_ROUNDS: tuple[int, float] | None = None
@@ -170,7 +170,7 @@ def _head(w: Store) -> tuple[np.ndarray, np.ndarray]:
     return head, np.stack([head["x"], head["y"], head["z"]], axis=1)
 
 
-@timed_task
+@timed_step
 def round_steps(work: Store | str, key: str, calls: list[tuple[int, dict[str, Any] | None, list[Any]]],
                 rho: float | None, step: Any = None) -> dict[str, Any]:
     """One round of each tile of ``calls`` ((tile, doc, news) as :func:`round_step` takes them), in

@@ -65,6 +65,18 @@ def peak_rss() -> int | None:
 
 def timed_task(fn: F) -> F:
     """Decorate a task that returns a dict (see the module)."""
+    return _timed(fn, True)
+
+
+def timed_step(fn: F) -> F:
+    """:func:`timed_task` without giving the freed memory back to the system after the task: for
+    the steps of the radius rounds (:mod:`.rounds`), whose process keeps its tile states and runs
+    the next round at once (a trim per step walks the heap, and the next step faults the pages
+    in again)."""
+    return _timed(fn, False)
+
+
+def _timed(fn: F, trim: bool) -> F:
     params = list(inspect.signature(fn).parameters)
     at = {k: params.index(k) for k in ("t", "b") if k in params}
 
@@ -88,7 +100,8 @@ def timed_task(fn: F) -> F:
             raise
         timing = {"kind": fn.__name__, "start": start, "seconds": time.perf_counter() - t0,
                   "cpu_seconds": time.process_time() - c0, "pid": os.getpid(), "peak_rss": peak_rss()}
-        release_freed_memory()  # (the worker waits for its next task at its own size)
+        if trim:
+            release_freed_memory()  # (the worker waits for its next task at its own size)
         if isinstance(res, dict):
             res["timing"] = timing
         if args:
