@@ -69,6 +69,7 @@ def _arrays(work: Any, band: int, k0: int, k1: int, rows: int, args: dict[str, A
     """The band's datasets as stored (the scan writer's order: source_index, radius, parent,
     points, attributes), checked as the scan writer checks them; and what the parent needs."""
     from ...archive.chunks import check_points, check_rows, encode_exactly
+    from ...sampling.spacing import axis_max, axis_min
 
     n, name, bands = int(args["n"]), args["name"], args["radii_bands"]
     srt = _ordered(work, band, k0, k1, args["fields"], args["pieces"])
@@ -89,7 +90,7 @@ def _arrays(work: Any, band: int, k0: int, k1: int, rows: int, args: dict[str, A
         arrays[f"{L.G_ATTRIBUTES}/{key}"] = np.ascontiguousarray(srt[f"a{i}"])
     tail = np.flatnonzero((rad != 0) | (par != -1))
     gu = g.astype(np.uint64)
-    info = {"lo": pts.min(axis=0).tolist(), "hi": pts.max(axis=0).tolist(), "last_radius": float(rad[-1]),
+    info = {"lo": axis_min(pts).tolist(), "hi": axis_max(pts).tolist(), "last_radius": float(rad[-1]),
             "last_tail": k0 + int(tail[-1]) if tail.size else -1,
             "sums": [int(gu.sum(dtype=np.uint64)), int((gu * gu).sum(dtype=np.uint64))]}
     return arrays, info

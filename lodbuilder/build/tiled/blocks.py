@@ -108,6 +108,7 @@ def read_block(work: Store | str, b: int, source: Any, member: int | None, start
     plan and the split) and its sample; its attributes are not kept (the write reads the input
     again: the returned ``crc`` checks that it reads the same rows)."""
     from ...archive.layout import encode_points
+    from ...sampling.spacing import axis_max, axis_min
 
     stream, pose = source() if callable(source) else source
     step, meta = int(spec["step"]), spec["metadata"]
@@ -120,7 +121,7 @@ def read_block(work: Store | str, b: int, source: Any, member: int | None, start
             out.write(WL.raw_xyz(b), pts)
             crc = rows_sum(crc, pts, rec)
             encodings.add(encode_points(pts, meta)[1])
-            lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+            lo, hi = np.minimum(lo, axis_min(pts)), np.maximum(hi, axis_max(pts))
             samples.append(pts[(-g) % step::step])
             g += pts.shape[0]
         smp = np.concatenate(samples) if samples else np.zeros((0, 3))

@@ -31,7 +31,7 @@ import numpy as np
 from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
-from .tasks import HEAD, _put_tile, _stream
+from .tasks import HEAD, _put_tile, _stream, in_sorted
 from .timing import timed_step, timed_task
 
 #: None, or (rounds R, ratio q): order the tiles in radius rounds (set by tools/bench_seams.py)
@@ -55,12 +55,12 @@ def _start(w: Store, t: int, doc: dict[str, Any], head: np.ndarray, hpts: np.nda
     lo, hi = np.asarray(doc["lo"]), np.asarray(doc["hi"])
     cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
     in_ext = np.all((hpts >= lo - halo) & (hpts <= hi + halo), axis=1)
-    head_in_core = np.isin(head["g"], core["g"])
+    head_in_core, pos_in_core = in_sorted(head["g"], core["g"])  # (core is in input order)
     extra = in_ext & ~head_in_core
-    seeds = np.concatenate([np.searchsorted(core["g"], head["g"][head_in_core]),
+    seeds = np.concatenate([pos_in_core,
                             cpts.shape[0] + np.arange(int(extra.sum()))]).astype(np.int64)
     hrec = tile_records(w, doc["halo"])
-    hrec = hrec[~np.isin(hrec["g"], head["g"])]
+    hrec = hrec[~in_sorted(hrec["g"], np.sort(head["g"]))[0]]
     first = cpts.shape[0] + int(extra.sum())
     pts = np.concatenate([cpts, hpts[extra], np.stack([hrec["x"], hrec["y"], hrec["z"]], axis=1)])
     rows = first + np.arange(hrec.shape[0])
