@@ -103,6 +103,35 @@ def test_timed_seeds_match_the_naive_reference_in_the_tail(n, seed, n_timed):
     assert np.array_equal(o.parent, parent)
 
 
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(200, 900), seed=st.integers(0, 2**31 - 1), weighted=st.booleans(), n_timed=st.integers(0, 12))
+def test_the_tail_over_coarse_cells_matches_the_naive_reference(n, seed, weighted, n_timed):
+    # the hand-over radius raised beyond the cloud: the grid phase orders the seed only and the
+    # tail does the rest on a fine grid (balls of up to about 40 voxels: the coarse cells and
+    # their hash probes, the voxel walk near the end, the heap of cells), with costs and timed
+    # seeds (timed seeds and costs exclude each other); the ordering is then the exact (weighted)
+    # Euclidean one of the naive reference
+    from lodbuilder.sampling import band as band_mod
+
+    r = np.random.default_rng(seed)
+    pts = jittered_plane(n, r)
+    pts[:, 2] = 0.05 * np.sin(4.0 * pts[:, 0])  # not flat: every axis of the coarse cells
+    cost = r.uniform(0.5, 2.0, len(pts)) if weighted else None
+    idx = r.choice(np.arange(1, len(pts)), size=n_timed, replace=False)
+    keys = r.random(idx.size) * 0.5
+    timed = (idx, keys) if n_timed and not weighted else None
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(band_mod, "TAIL_FACTOR", 1e6)
+        mp.setattr(band_mod, "TAIL_FACTOR_THIN", 1e6)
+        o = fastfps(pts, seeds=[0], voxel_size=1.0 / 30, cost=cost, timed_seeds=timed)
+    assert o.stats["grid_points"] == 1
+    order, radius, parent = naive_euclidean_fps(pts, [0], cost=cost, timed=timed)
+    assert np.array_equal(o.order, order)
+    assert (o.radius >= radius).all()
+    np.testing.assert_allclose(o.radius, radius, rtol=1e-9, atol=1e-12)
+    assert np.array_equal(o.parent, parent)
+
+
 def test_timed_seeds_join_at_their_key_and_keep_later_points_away(rng):
     # a plane ordered in its band: the left half's points enter at given keys; every point of the
     # right half chosen after a timed seed joined lies at least (about) its radius from it

@@ -89,23 +89,34 @@ def set_markdown(rows: list[dict], summary: dict) -> list[str]:
     def f(x: object, fmt: str = "{:.2f}") -> str:
         return fmt.format(x) if isinstance(x, float) else ("-" if x is None else str(x))
 
+    def runs(values: list[float]) -> str:
+        return "-" if not values else f"{min(values):.2f}-{max(values):.2f} ({len(values)})"
+
     lines = [
         "",
         "The input set (`--set`; synthetic inputs marked; CPU seconds are the better measure on a loaded "
-        "machine; fpsample's full ordering runs in a forked child of the same process, alternating):",
+        "machine; fpsample's full ordering runs in a forked child of the same process, alternating, then "
+        "again in fresh processes alternating with the runs of the whole `lodbuilder build` process; each "
+        "figure is the smallest of its runs, *runs* give the range of the CPU seconds and their count, "
+        "each ratio is the ratio of the smallest):",
         "",
-        "| input | N | thin points | lodbuilder s | CPU s | fpsample s | CPU s | ratio | CPU ratio "
-        "| build s | build peak RSS B/point |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| input | N | thin points | lodbuilder s | CPU s | fpsample s | CPU s | fpsample CPU runs | ratio "
+        "| CPU ratio | build s | build process CPU s | build process CPU runs | process CPU ratio "
+        "| build peak RSS B/point |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "failed" in r:
-            lines.append(f"| {r['input']} | failed: {r['failed']} | | | | | | | | | |")
+            lines.append(f"| {r['input']} | failed: {r['failed']} | | | | | | | | | | | | | |")
             continue
+        builds = [b["whole_process_cpu_s"] for b in r.get("build_runs", [])]
         lines.append(
             f"| {r['input']} | {r['n']:,} | {r['thin_points']:,} | {f(r['time_s'])} | {f(r['cpu_s'])} | "
-            f"{f(r['fpsample_time_s'])} | {f(r.get('fpsample_cpu_s'))} | {f(r['ratio_to_fpsample'])} | "
+            f"{f(r['fpsample_time_s'])} | {f(r.get('fpsample_cpu_s'))} | "
+            f"{runs([x[1] for x in r.get('fpsample_runs', [])])} | {f(r['ratio_to_fpsample'])} | "
             f"{f(r.get('cpu_ratio_to_fpsample'))} | {f(r.get('build_s'), '{:.1f}')} | "
+            f"{f(r.get('build_process_cpu_s'))} | {runs(builds)} | "
+            f"{f(r.get('build_process_cpu_ratio_to_fpsample'))} | "
             f"{f(r.get('build_peak_rss_bytes_per_point'), '{:.0f}')} |"
         )
     lines += ["", "Summary: " + ", ".join(f"{k} {f(v, '{:.3g}')}" for k, v in summary.items()

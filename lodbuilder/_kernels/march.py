@@ -791,7 +791,30 @@ def _lower_dirty(
                     val[p] = cand
             if val[p] > best:
                 best = val[p]
-        maxheap_decrease(ckey, heap, hpos, cc, best, hn)
+        # maxheap_decrease(ckey, heap, hpos, cc, best, hn) written out: an inlined helper that
+        # takes arrays costs an atomic increment and decrement per array and call (numba's
+        # reference counts), here per dirty cell
+        q = np.int64(hpos[cc])
+        if q < 0:
+            continue
+        it = heap[q]
+        while True:
+            c = 4 * q + 1
+            if c >= hn:
+                break
+            bc = c
+            for c2 in range(c + 1, min(c + 4, hn)):
+                if ckey[c2] > ckey[bc] or (ckey[c2] == ckey[bc] and heap[c2] < heap[bc]):
+                    bc = c2
+            if ckey[bc] < best or (ckey[bc] == best and heap[bc] > it):
+                break
+            ckey[q] = ckey[bc]
+            heap[q] = heap[bc]
+            hpos[heap[q]] = q
+            q = bc
+        ckey[q] = best
+        heap[q] = it
+        hpos[it] = q
 
 
 @nb.njit(**JIT)

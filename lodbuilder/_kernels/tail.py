@@ -11,9 +11,9 @@ import numba as nb
 import numpy as np
 
 from . import INLINE, JIT
-from .grid import hash_find, morton
+from .grid import _slot, morton
 from .march import _chord_ok, _norm
-from .topology import anchor_of, cell_tables
+from .topology import cell_tables
 
 FAR_MARGIN = 1.0 + 1e-12  # a point is skipped before the square root only when surely not nearer
 BOX_SLACK = 1e-6  # grid units: a cell is skipped when its box lies farther than the reach + this
@@ -88,7 +88,7 @@ def euclid_tail(
     ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
     if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
     chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. The ball query
-    is :func:`_lower_around`; ordered points hold -1 in d meanwhile. Timed seeds (``tseed`` by
+    is written out in :func:`tail_loop`; ordered points hold -1 in d meanwhile. Timed seeds (``tseed`` by
     non-increasing ``tkey``, from ``tpos[0]`` on; see :func:`.march.grid_phase`) join as soon as
     the largest distance is at most their key, and the ones left when every point is ordered come
     last. Returns the new count.
@@ -133,24 +133,50 @@ def tail_loop(
 ):  # pragma: no cover - compiled
     """The loop of :func:`euclid_tail` from the heap of :func:`tail_start` (``hn_out[0]`` cells in
     it; the new count is written back): stopping at ``rho_stop`` and going on with the same heap
-    orders as one call does. Returns the new count of ordered points."""
+    orders as one call does. Returns the new count of ordered points.
+
+    The heap's sift, the cell's key and the ball query are written out here, not called:
+    a helper that takes arrays costs an atomic increment and decrement per array and call (numba's
+    reference counts, which LLVM cannot prune around the helper's loops), about 13 per sample."""
     m = ud.shape[0]
     thin = psep.shape[0] == m
     hn = hn_out[0]
     k = k0
+    mask = ridx.shape[0] - 1
     while k < k_max and hn > 0:
         # keys are lazy upper bounds: refresh the top until its stored key is its true key
         top = heap[0]
-        kk = _key(top, cstart, ud)
-        if kk != ckey[0]:
-            if kk < 0.0:
-                hn = _pop(ckey, heap, hn)
+        kk = -1.0  # (_key written out)
+        for p in range(cstart[top], cstart[top + 1]):
+            if ud[p, 3] > kk:
+                kk = ud[p, 3]
+        if kk < 0.0 or kk != ckey[0]:
+            if kk < 0.0:  # no candidate left in the cell (none, or only timed seeds): pop it
+                hn -= 1
+                if hn == 0:
+                    continue
+                kv = ckey[hn]
+                it = heap[hn]
             else:
-                ckey[0] = kk
-                _sift_down(ckey, heap, np.int64(0), hn)
-            continue
-        if kk < 0.0:  # no candidate left in the cell (only timed seeds)
-            hn = _pop(ckey, heap, hn)
+                kv = kk
+                it = top
+            # sift (kv, it) down from the top (_sift_down written out)
+            q = np.int64(0)
+            while True:
+                c = 4 * q + 1
+                if c >= hn:
+                    break
+                best = c
+                for cc in range(c + 1, min(c + 4, hn)):
+                    if ckey[cc] > ckey[best] or (ckey[cc] == ckey[best] and heap[cc] < heap[best]):
+                        best = cc
+                if ckey[best] < kv or (ckey[best] == kv and heap[best] > it):
+                    break
+                ckey[q] = ckey[best]
+                heap[q] = heap[best]
+                q = best
+            ckey[q] = kv
+            heap[q] = it
             continue
         if kk <= rho_stop:
             break
@@ -159,9 +185,17 @@ def tail_loop(
             radius[k] = tkey[tpos[0]]
             tpos[0] += 1
             parent[k] = -1
-            w0 = anchor_of(cs, np.int64(i))
+            lo = np.int64(0)  # the voxel whose point range holds i (anchor_of written out)
+            hi = np.int64(cs.shape[0] - 1)
+            while hi - lo > 1:
+                mid = (lo + hi) >> 1
+                if cs[mid] <= i:
+                    lo = mid
+                else:
+                    hi = mid
+            w0 = lo
         else:
-            w0 = cellv[top]
+            w0 = np.int64(cellv[top])
             i = -1
             for p in range(cstart[top], cstart[top + 1]):
                 if ud[p, 3] == kk:
@@ -173,8 +207,95 @@ def tail_loop(
         order[k] = i
         ud[i, 3] = -1.0
         reach = kk / cmin if weighted else kk
-        _lower_around(i, w0, k, reach, ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep,
-                      pnrm, slope, thin, lab)
+        # lower the values of the points within reach of i. The cells searched: the voxel cells
+        # around i's when the reach is under a voxel (walked through the neighbour table), else the
+        # coarse cells of side 2^j >= the reach (at most 3 a side while the reach is within the
+        # coarse levels); a cell whose box lies beyond the reach is skipped
+        j = 0
+        side = 1.0
+        while j < levels and side < reach:
+            j += 1
+            side *= 2.0
+        ux, uy, uz = ud[i, 0], ud[i, 1], ud[i, 2]
+        x0 = int(np.floor((ux - reach) / side))
+        x1 = int(np.floor((ux + reach) / side))
+        y0 = int(np.floor((uy - reach) / side))
+        y1 = int(np.floor((uy + reach) / side))
+        z0 = int(np.floor((uz - reach) / side))
+        z1 = int(np.floor((uz + reach) / side))
+        fx = int(np.floor(ux))
+        fy = int(np.floor(uy))
+        fz = int(np.floor(uz))
+        lim = reach + BOX_SLACK
+        lim2 = lim * lim
+        for x in range(x0, x1 + 1):
+            gx = _box_gap(ux, x * side, side)
+            for y in range(y0, y1 + 1):
+                gy = _box_gap(uy, y * side, side)
+                for z in range(z0, z1 + 1):
+                    gz = _box_gap(uz, z * side, side)
+                    if gx * gx + gy * gy + gz * gz > lim2:
+                        continue
+                    if j == 0:
+                        # walk from i's cell: steps up first, then down, so that every voxel on
+                        # the way is a corner of one of the two cells (and so exists)
+                        w = w0
+                        dx, dy, dz = x - fx, y - fy, z - fz
+                        if dx > 0 and w >= 0:
+                            w = nbr[w, 1]
+                        if dy > 0 and w >= 0:
+                            w = nbr[w, 3]
+                        if dz > 0 and w >= 0:
+                            w = nbr[w, 5]
+                        if dx < 0 and w >= 0:
+                            w = nbr[w, 0]
+                        if dy < 0 and w >= 0:
+                            w = nbr[w, 2]
+                        if dz < 0 and w >= 0:
+                            w = nbr[w, 4]
+                        if w < 0:
+                            continue
+                        p0 = cs[w]
+                        p1 = cs[w + 1]
+                    else:
+                        if x < 0 or y < 0 or z < 0:
+                            continue
+                        key = (morton(x, y, z) << 3) | j
+                        s = _slot(key, mask)  # (hash_find written out)
+                        run = -1
+                        while True:
+                            r = ridx[s]
+                            if r < 0:
+                                break
+                            if rkey[r] == key:
+                                run = r
+                                break
+                            s = (s + 1) & mask
+                        if run < 0:
+                            continue
+                        p0 = rstart[run]
+                        p1 = rend[run]
+                    for p in range(p0, p1):
+                        dp = ud[p, 3]
+                        if dp < 0.0:
+                            continue  # ordered, or a timed seed
+                        ex = ud[p, 0] - ux
+                        ey = ud[p, 1] - uy
+                        ez = ud[p, 2] - uz
+                        d2 = ex * ex + ey * ey + ez * ez
+                        if not weighted and d2 > dp * dp * FAR_MARGIN:
+                            continue  # surely no nearer (most points of the coarse cells)
+                        dd = np.sqrt(d2)
+                        if thin and not _chord_ok(
+                            ex, ey, ez, dd, psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
+                            pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
+                        ):
+                            continue  # across a gap or a tight fold: not a surface distance
+                        if weighted:
+                            dd *= 0.5 * (pcost[p] + pcost[i])
+                        if dd < dp:
+                            ud[p, 3] = dd
+                            lab[p] = k
         k += 1
     if hn == 0:  # every candidate is ordered: the timed seeds not taken yet come last
         while k < k_max and tpos[0] < tseed.shape[0]:
@@ -190,17 +311,6 @@ def tail_loop(
 
 
 @nb.njit(**INLINE)
-def _pop(hkey, heap, n):  # pragma: no cover - compiled
-    """Remove the top of the heap; returns the new size."""
-    n -= 1
-    if n > 0:
-        hkey[0] = hkey[n]
-        heap[0] = heap[n]
-        _sift_down(hkey, heap, np.int64(0), n)
-    return n
-
-
-@nb.njit(**INLINE)
 def _box_gap(c, lo, side):  # pragma: no cover - compiled
     """How far the coordinate c lies outside [lo, lo + side] (0 inside)."""
     if c < lo:
@@ -208,88 +318,3 @@ def _box_gap(c, lo, side):  # pragma: no cover - compiled
     if c > lo + side:
         return c - lo - side
     return 0.0
-
-
-@nb.njit(**INLINE)
-def _lower_around(i, w0, k, reach, ud, nbr, cs, rkey, ridx, rstart, rend, levels, pcost, weighted, psep, pnrm,
-                  slope, thin, lab):  # pragma: no cover - compiled
-    """Lower the values of the points within ``reach`` of the new sample i (rank k, in the cell of
-    voxel w0). The cells
-    searched: the voxel cells around i's when the reach is under a voxel (walked through the
-    neighbour table), else the coarse cells of side 2^j >= the reach (at most 3 a side while the
-    reach is within the coarse levels); a cell whose box lies beyond the reach is skipped."""
-    j = 0
-    side = 1.0
-    while j < levels and side < reach:
-        j += 1
-        side *= 2.0
-    ux, uy, uz = ud[i, 0], ud[i, 1], ud[i, 2]
-    x0 = int(np.floor((ux - reach) / side))
-    x1 = int(np.floor((ux + reach) / side))
-    y0 = int(np.floor((uy - reach) / side))
-    y1 = int(np.floor((uy + reach) / side))
-    z0 = int(np.floor((uz - reach) / side))
-    z1 = int(np.floor((uz + reach) / side))
-    fx = int(np.floor(ux))
-    fy = int(np.floor(uy))
-    fz = int(np.floor(uz))
-    lim = reach + BOX_SLACK
-    lim2 = lim * lim
-    for x in range(x0, x1 + 1):
-        gx = _box_gap(ux, x * side, side)
-        for y in range(y0, y1 + 1):
-            gy = _box_gap(uy, y * side, side)
-            for z in range(z0, z1 + 1):
-                gz = _box_gap(uz, z * side, side)
-                if gx * gx + gy * gy + gz * gz > lim2:
-                    continue
-                if j == 0:
-                    # walk from i's cell: steps up first, then down, so that every voxel on
-                    # the way is a corner of one of the two cells (and so exists)
-                    w = w0
-                    dx, dy, dz = x - fx, y - fy, z - fz
-                    if dx > 0 and w >= 0:
-                        w = nbr[w, 1]
-                    if dy > 0 and w >= 0:
-                        w = nbr[w, 3]
-                    if dz > 0 and w >= 0:
-                        w = nbr[w, 5]
-                    if dx < 0 and w >= 0:
-                        w = nbr[w, 0]
-                    if dy < 0 and w >= 0:
-                        w = nbr[w, 2]
-                    if dz < 0 and w >= 0:
-                        w = nbr[w, 4]
-                    if w < 0:
-                        continue
-                    p0 = cs[w]
-                    p1 = cs[w + 1]
-                else:
-                    if x < 0 or y < 0 or z < 0:
-                        continue
-                    run = hash_find(ridx, rkey, (morton(x, y, z) << 3) | j)
-                    if run < 0:
-                        continue
-                    p0 = rstart[run]
-                    p1 = rend[run]
-                for p in range(p0, p1):
-                    dp = ud[p, 3]
-                    if dp < 0.0:
-                        continue  # ordered, or a timed seed
-                    ex = ud[p, 0] - ux
-                    ey = ud[p, 1] - uy
-                    ez = ud[p, 2] - uz
-                    d2 = ex * ex + ey * ey + ez * ez
-                    if not weighted and d2 > dp * dp * FAR_MARGIN:
-                        continue  # surely no nearer (most points of the coarse cells)
-                    dd = np.sqrt(d2)
-                    if thin and not _chord_ok(
-                        ex, ey, ez, dd, psep[p], psep[i], pnrm[p, 0], pnrm[p, 1], pnrm[p, 2],
-                        pnrm[i, 0], pnrm[i, 1], pnrm[i, 2], slope,
-                    ):
-                        continue  # across a gap or a tight fold: not a surface distance
-                    if weighted:
-                        dd *= 0.5 * (pcost[p] + pcost[i])
-                    if dd < dp:
-                        ud[p, 3] = dd
-                        lab[p] = k
