@@ -147,7 +147,7 @@ def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch
     marker being written aside: its own files are pruned after it), and no read block's ranks
     once its permutation is done (0.27 x the archive on a one-file survey)."""
     import lodbuilder
-    from lodbuilder.build.tiled import sums
+    from lodbuilder.build.tiled import driver, sums
     from lodbuilder.io import Scan
 
     seen: list[tuple[str, set[str]]] = []
@@ -158,7 +158,10 @@ def test_the_largest_work_files_are_never_on_disk_together(tmp_path, monkeypatch
         (w,) = [p for p in (tmp_path / ".t.h5.parts").glob("*.work")]
         seen.append((name, {p.name for p in w.iterdir()}))
 
+    # the driver holds put_json by name: patch it there too (and import it before patching, else a first
+    # import during the patch would keep the snapshot for every later build of the session)
     monkeypatch.setattr(sums, "put_json", snapshot)
+    monkeypatch.setattr(driver, "put_json", snapshot)
     rng = np.random.default_rng(1)
     g = (np.stack(np.meshgrid(np.arange(140), np.arange(140)), -1).reshape(-1, 2) + rng.uniform(-0.3, 0.3, (19600, 2)))
     pts = np.c_[g / 140, 0.08 * np.sin(4 * np.pi * g[:, 0] / 140)]
