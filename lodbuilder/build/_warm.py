@@ -2,7 +2,7 @@
 
 Importing it makes the server die with the build's process (so a killed build leaves no server
 and, through the workers' own request, no workers), loads the libraries a scan build uses and
-runs one tiny build (and one tiny resumable ordering), so that the compiled kernels are loaded from numba's cache once, in the
+runs one tiny build, so that the compiled kernels are loaded from numba's cache once, in the
 server; every worker forked from it starts warm instead of paying the imports and the cache
 loading again.
 """
@@ -32,13 +32,5 @@ def warm() -> None:
         t = rng.random(400) * 6.283
         pts = np.stack([np.cos(t), np.sin(t), rng.random(400)], axis=1)
         fastfps(pts)
-        # the resumable engine's kernels too (the radius rounds' owners, forked from here, would
-        # each load them from the cache on their first step: about 0.4 CPU-s an owner)
-        from ..sampling.resumable import resume_fastfps, start_fastfps
-
-        state = start_fastfps(pts, timed_seeds=(np.arange(8), np.zeros(8)))
-        resume_fastfps(state, rho=0.3, sources=np.arange(4), bulk=True)
-        resume_fastfps(state, sources=(np.arange(4, 8), np.full(4, 0.01)))
-
 
 warm()

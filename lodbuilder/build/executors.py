@@ -30,6 +30,12 @@ DASK_CONNECT_TIMEOUT = "15s"
 PRELOAD = ["lodbuilder.build.jobs", "lodbuilder.build._warm"]
 
 
+def preload() -> list[str]:
+    """:data:`PRELOAD`, and the radius rounds' warm-up (:mod:`._warm_rounds`) when rounds are on."""
+    rounds = sys.modules.get("lodbuilder.build.tiled.rounds")  # (not imported here: only read)
+    return PRELOAD + (["lodbuilder.build._warm_rounds"] if getattr(rounds, "TILE_ROUNDS", None) else [])
+
+
 def one_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     if isinstance(exc, LodbuilderError):
@@ -72,7 +78,7 @@ def mp_context() -> Any:
     if method == "forkserver":
         # the server imports the build's libraries and loads the compiled kernels once; the
         # workers forked from it start warm (takes effect when the server starts)
-        ctx.set_forkserver_preload(PRELOAD)
+        ctx.set_forkserver_preload(preload())
     return ctx
 
 
@@ -131,7 +137,7 @@ def dask_mp_context() -> Any:
     if ctx.get_start_method() == "forkserver":
         from multiprocessing import forkserver
 
-        ctx.set_forkserver_preload(["distributed", *PRELOAD])  # (takes effect when the server starts)
+        ctx.set_forkserver_preload(["distributed", *preload()])  # (takes effect when the server starts)
         # started here, by the calling thread: the server asks to die with the thread that started
         # it (die_with_parent), and distributed would start it from its event loop's thread, which
         # ends with the cluster (a process pool started after it then found no server)
