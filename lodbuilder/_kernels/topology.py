@@ -8,6 +8,7 @@ import numba as nb
 import numpy as np
 
 from . import INLINE, JIT
+from .grid import BLOCK, BLOCK_BITS, lower_bound, morton, unmorton
 
 
 @nb.njit(**INLINE)
@@ -168,3 +169,134 @@ def cell_tables(cs):  # pragma: no cover - compiled
             cellv[c] = v
             c += 1
     return cellv, cellof
+
+
+@nb.njit(**JIT)
+def band_marchable(u, irad2, rad, ostart, bkey, bstart, cand, cap_limit):  # pragma: no cover - compiled
+    """The voxels :func:`lodbuilder._kernels.grid.band_voxels` keeps for a band of one radius
+    (``rad``, ``irad2 = 1 / rad^2``: scalars, grid units), in the same order, and whether each is
+    marchable, without each voxel's nearest point: what :func:`point_pieces` needs.
+
+    The same blocks, cells, columns and z ranges as band_voxels; a voxel is marchable when some
+    point of a cell in reach has ``e2 * irad2 <= 1`` (band_voxels' ``q2 = min(e2) * irad2 <= 1``:
+    the same test, as a product by a positive constant rounds monotonically), so the search over a
+    cell's points stops at the first such point and skips voxels already found marchable. Returns
+    (keys, marchable as uint8, count); count is -1 when more than ``cap_limit`` voxels would be needed."""
+    ncell = ostart.shape[0] - 1
+    nb3 = BLOCK * BLOCK * BLOCK
+    nblk = bkey.shape[0]
+    ccx = np.empty(ncell, np.int32)
+    ccy = np.empty(ncell, np.int32)
+    ccz = np.empty(ncell, np.int32)
+    for c in range(ncell):
+        p0 = ostart[c]
+        ccx[c] = int(np.floor(u[p0, 0]))
+        ccy[c] = int(np.floor(u[p0, 1]))
+        ccz[c] = int(np.floor(u[p0, 2]))
+    ext = int(np.floor(rad))
+    reach_blocks = (ext + 1 + BLOCK - 1) // BLOCK
+    lut = np.empty(BLOCK, np.int64)
+    for t in range(BLOCK):
+        lut[t] = morton(t, 0, 0)  # (a coordinate's bits spread)
+    rad2 = rad * rad
+    # bit 0: q2 <= 1 (kept), bit 1: a corner of an occupied cell (kept), bit 2: marchable, i.e.
+    # q2 <= 1 once rounded to float32, as build_band's costs test it (a corner a hair beyond r is)
+    mk = np.zeros(nb3, np.uint8)
+    cap = max(1024, 2 * u.shape[0])
+    keys = np.empty(cap, np.int64)
+    mo = np.empty(cap, np.uint8)
+    count = 0
+    for t in range(cand.shape[0]):
+        blk = cand[t]
+        bx, by, bz = unmorton(blk)
+        x0 = bx * BLOCK
+        y0 = by * BLOCK
+        z0 = bz * BLOCK
+        for li in range(nb3):
+            mk[li] = 0
+        touched = False
+        for dx in range(-reach_blocks, reach_blocks + 1):
+            for dy in range(-reach_blocks, reach_blocks + 1):
+                for dz in range(-reach_blocks, reach_blocks + 1):
+                    nx, ny, nz = bx + dx, by + dy, bz + dz
+                    if nx < 0 or ny < 0 or nz < 0:
+                        continue
+                    nk = morton(nx, ny, nz)
+                    jb = lower_bound(bkey, nk)
+                    if jb >= nblk or bkey[jb] != nk:
+                        continue
+                    for c in range(bstart[jb], bstart[jb + 1]):
+                        cx, cy, cz = ccx[c], ccy[c], ccz[c]
+                        if cx + ext + 1 < x0 or cx - ext > x0 + BLOCK - 1:
+                            continue
+                        if cy + ext + 1 < y0 or cy - ext > y0 + BLOCK - 1:
+                            continue
+                        if cz + ext + 1 < z0 or cz - ext > z0 + BLOCK - 1:
+                            continue
+                        p0, p1 = ostart[c], ostart[c + 1]
+                        for x in range(max(cx - ext, x0), min(cx + ext + 1, x0 + BLOCK - 1) + 1):
+                            for y in range(max(cy - ext, y0), min(cy + ext + 1, y0 + BLOCK - 1) + 1):
+                                corner = (x == cx or x == cx + 1) and (y == cy or y == cy + 1)
+                                lxy = lut[x - x0] | (lut[y - y0] << 1)
+                                # a column whose voxels within the cell's reach are all kept and
+                                # marchable already: nothing the cell's points can change but corners
+                                full = True
+                                for z in range(max(cz - ext, z0), min(cz + ext + 1, z0 + BLOCK - 1) + 1):
+                                    if mk[lxy | (lut[z - z0] << 2)] & 1 == 0:
+                                        full = False
+                                        break
+                                if full:
+                                    if corner:
+                                        for z in range(max(cz, z0), min(cz + 1, z0 + BLOCK - 1) + 1):
+                                            mk[lxy | (lut[z - z0] << 2)] |= 2
+                                    continue
+                                zlo = np.inf
+                                zhi = -np.inf
+                                for i in range(p0, p1):
+                                    ex = u[i, 0] - x
+                                    ey = u[i, 1] - y
+                                    rest = rad2 - ex * ex - ey * ey
+                                    if rest >= 0.0:
+                                        w = np.sqrt(rest)
+                                        zlo = min(zlo, u[i, 2] - w)
+                                        zhi = max(zhi, u[i, 2] + w)
+                                za = int(np.ceil(zlo)) if zlo <= zhi else cz + 2
+                                zb = int(np.floor(zhi)) if zlo <= zhi else cz - 1
+                                if corner:
+                                    za = min(za, cz)
+                                    zb = max(zb, cz + 1)
+                                za = max(za, z0)
+                                zb = min(zb, z0 + BLOCK - 1)
+                                for z in range(za, zb + 1):
+                                    li = lxy | (lut[z - z0] << 2)
+                                    touched = True
+                                    if corner and (z == cz or z == cz + 1):
+                                        mk[li] |= 2
+                                    if mk[li] & 1:
+                                        continue
+                                    for i in range(p0, p1):
+                                        ex = u[i, 0] - x
+                                        ey = u[i, 1] - y
+                                        ez = u[i, 2] - z
+                                        q2 = (ex * ex + ey * ey + ez * ez) * irad2
+                                        if q2 <= 1.0:
+                                            mk[li] |= 5
+                                            break
+                                        if np.float32(q2) <= 1.0:
+                                            mk[li] |= 4
+        if not touched:
+            continue
+        base = blk << (3 * BLOCK_BITS)
+        for li in range(nb3):
+            if mk[li] & 3 == 0:
+                continue
+            if count == cap:
+                cap *= 2
+                keys = np.concatenate((keys, np.empty(cap - count, np.int64)))
+                mo = np.concatenate((mo, np.empty(cap - count, np.uint8)))
+            keys[count] = base | li
+            mo[count] = mk[li] >> 2
+            count += 1
+            if count > cap_limit:
+                return keys, mo, -1
+    return keys[:count].copy(), mo[:count].copy(), count

@@ -408,16 +408,8 @@ def build_band(points: np.ndarray, h: float, r: float, max_memory: int | None = 
     from .._kernels.topology import nearest_corners
 
     n = points.shape[0]
-    if n > MAX_POINTS:
-        raise InputError(f"points has {n:,} points; at most {MAX_POINTS:,} can be ordered in one run")
-    if max_memory is None:
-        max_memory = default_max_memory()
-    origin = _grid_origin(points, h, r, radius, lattice)
-    budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
-    cell_keys, perm, u, ostart = cells(points, origin, h)
-    release_pages(points)  # (a scan set aside: the band reads only u from here on)
-    if budget_voxels < ostart.shape[0] - 1:
-        raise _too_big(h, r, max_memory, budget_voxels, ostart.shape[0] - 1)
+    max_memory, origin, budget_voxels, (cell_keys, perm, u, ostart) = _cells(points, h, r, max_memory, radius,
+                                                                             lattice)
     rad = np.full(n, r / h) if radius is None else np.ascontiguousarray(radius[perm] / h, dtype=np.float64)
     bkey, bstart, cand = block_plan(cell_keys, float(rad.max()))
     keys, q2, foot, count = band_voxels(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
@@ -435,6 +427,51 @@ def build_band(points: np.ndarray, h: float, r: float, max_memory: int | None = 
     if normal is not None:
         band.vcost, band.near = one_sided(band, normal, separation, radius, beta)
     return band
+
+
+def _cells(points: np.ndarray, h: float, r: float, max_memory: int | None, radius: np.ndarray | None,
+           lattice: np.ndarray | None) -> tuple[int, np.ndarray, int, tuple[np.ndarray, ...]]:
+    """The start of a band: ``max_memory`` (the default when None), the grid's origin, the voxel
+    budget and the points sorted into cells (:func:`cells`); refuses a band over the budget."""
+    n = points.shape[0]
+    if n > MAX_POINTS:
+        raise InputError(f"points has {n:,} points; at most {MAX_POINTS:,} can be ordered in one run")
+    if max_memory is None:
+        max_memory = default_max_memory()
+    origin = _grid_origin(points, h, r, radius, lattice)
+    budget_voxels = (max_memory - BYTES_PER_POINT * n) // BYTES_PER_VOXEL
+    sorted_cells = cells(points, origin, h)
+    release_pages(points)  # (a scan set aside: the band reads only u from here on)
+    if budget_voxels < sorted_cells[3].shape[0] - 1:
+        raise _too_big(h, r, max_memory, budget_voxels, sorted_cells[3].shape[0] - 1)
+    return max_memory, origin, budget_voxels, sorted_cells
+
+
+def band_pieces(points: np.ndarray, h: float, r: float, max_memory: int | None = None, *,
+                lattice: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """The band piece of every point (input order) and their count: ``point_pieces`` of
+    ``build_band(points, h, r, max_memory, lattice=lattice)`` (the same labels, the same refusals),
+    from which voxels are marchable alone (:func:`lodbuilder._kernels.topology.band_marchable`: no
+    nearest point of each voxel, the search over a cell's points stopped at the first within r)."""
+    from .._kernels.grid import neighbour_table
+    from .._kernels.topology import band_marchable, nearest_corners, point_pieces
+
+    n = points.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64), 0
+    max_memory, _, budget_voxels, (cell_keys, perm, u, ostart) = _cells(points, h, r, max_memory, None, lattice)
+    rad = r / h
+    bkey, bstart, cand = block_plan(cell_keys, rad)
+    keys, march, count = band_marchable(u, 1.0 / (rad * rad), rad, ostart, bkey, bstart, cand, budget_voxels)
+    if count < 0:
+        raise _too_big(h, r, max_memory, budget_voxels, None)
+    cs = ostart[np.append(np.searchsorted(cell_keys, keys), cell_keys.shape[0])]
+    nbr = neighbour_table(keys)
+    vcost = np.where(march != 0, np.float32(1.0), np.float32(np.inf))
+    bpiece, npiece = point_pieces(nbr, cs, nearest_corners(u, nbr, cs, vcost), vcost)
+    piece = np.empty(n, np.int64)
+    piece[perm] = bpiece  # (band order -> point order)
+    return piece, int(npiece)
 
 
 def _grid_origin(points: np.ndarray, h: float, r: float, radius: np.ndarray | None,

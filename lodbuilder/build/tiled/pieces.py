@@ -80,16 +80,9 @@ def _band_pieces(xyz: np.ndarray, h: float, r: float, lattice: np.ndarray, max_m
                  ) -> tuple[np.ndarray, int]:
     """The band piece of every point (and their count) on the grid of the whole scan's band (its
     voxel corners a whole number of voxels from ``lattice``, the whole scan's lowest point)."""
-    from ..._kernels.topology import point_pieces
-    from ...sampling.band import build_band
+    from ...sampling.band import band_pieces
 
-    if xyz.shape[0] == 0:
-        return np.zeros(0, np.int64), 0
-    band = build_band(xyz, h, r, max_memory, lattice=lattice)
-    bpiece, npiece = point_pieces(band.nbr, band.cs, band.near, band.vcost)
-    piece = np.empty(xyz.shape[0], np.int64)
-    piece[band.perm] = bpiece  # (band order -> point order)
-    return piece, int(npiece)
+    return band_pieces(xyz, h, r, max_memory, lattice=lattice)
 
 
 def tile_pieces(work: Any, t: int, own: np.ndarray, own_rank: np.ndarray, borrowed: np.ndarray,
