@@ -247,6 +247,7 @@ def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray,
     """The covering pass of :func:`cover_tile` over ``ext`` (its first ``n_core`` records the
     core) with their ``ranks``: the files written and how many events."""
     from ..._kernels.tiled import cover_pass, stable_argsort
+    from ...sampling.spacing import axis_max, axis_min
 
     is_core = np.zeros(ext.shape[0], bool)
     is_core[:n_core] = True
@@ -261,7 +262,7 @@ def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray,
     pt_parent = np.empty(n_core, np.int64)
     pt_space = np.empty(n_core)
     # cells of about four point spacings (some 16 points of a surface), at most MAX_CELLS of them
-    ext_size = np.ptp(xyz, axis=0) if n else np.ones(3)
+    ext_size = axis_max(xyz) - axis_min(xyz) if n else np.ones(3)  # (np.ptp: the same values, 14 x slower)
     cell = max(4.0 * spacing, float(np.prod(ext_size + 8 * spacing) / MAX_CELLS) ** (1 / 3), 1e-300)
     ne, npt = cover_pass(xyz, ranks, is_core, cell, ev_rank, ev_val, pt_rank, pt_parent, pt_space)
     ev = np.empty(ne, EVENT)

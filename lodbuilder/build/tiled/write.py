@@ -28,7 +28,7 @@ from ...progress import ProgressCallback, report
 from . import layout as WL
 from .store import LocalStore, Store, as_store
 from .timing import timed_task
-from .workdir import ZIP_LEVEL, Spill, opaque_rows, read_rows, segment, unzipped
+from .workdir import BUCKET_ZIP_LEVEL, Spill, opaque_rows, read_rows, segment, unzipped
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 BUCKET_FILES = 16  # bucket files per read block, at most (see bucket_run)
@@ -111,7 +111,7 @@ class _Buckets:
         self.w, self.b, self.n_buckets, self.run = w, b, n_buckets, run
         self.counts = np.zeros(n_buckets, np.int64)
         self.pieces: list[list[list[Any]]] = [[] for _ in range(n_buckets)]
-        self.zc = zstandard.ZstdCompressor(level=ZIP_LEVEL)
+        self.zc = zstandard.ZstdCompressor(level=BUCKET_ZIP_LEVEL)
         self.out: dict[str, Any] = {}
         self.ends: dict[str, int] = {}
 
