@@ -42,7 +42,7 @@ from .store import as_store
 from .sums import done, mark, prune
 from .timing import timed_task
 from .workdir import opaque_rows, segment
-from .write import bucket_records, damaged, record_dtype
+from .write import bucket_parts, damaged, record_dtype
 
 MASK = (1 << 64) - 1
 
@@ -55,13 +55,16 @@ def index_sums(n: int) -> list[int]:
 def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[list[Any]]) -> np.ndarray:
     """The band's bucket: its points' records in stored order, each position filled once."""
     rec = record_dtype(fields)
-    r = bucket_records(as_store(work), pieces, rec)
-    pos = r["pos"] - k0
-    if r.shape[0] != k1 - k0 or (pos.size and (pos.min() < 0 or pos.max() >= k1 - k0)) \
+    parts = bucket_parts(as_store(work), pieces, rec)  # (scattered piece by piece: no copy of the bucket)
+    pos = np.concatenate([p["pos"] for p in parts]) - k0 if parts else np.zeros(0, np.int64)
+    if pos.shape[0] != k1 - k0 or (pos.size and (pos.min() < 0 or pos.max() >= k1 - k0)) \
             or np.bincount(pos, minlength=k1 - k0).max(initial=1) != 1:
-        raise RuntimeError(f"bucket {band} holds {r.shape[0]} rows, not each of positions {k0} to {k1} once")
+        raise RuntimeError(f"bucket {band} holds {pos.shape[0]} rows, not each of positions {k0} to {k1} once")
     srt = np.empty(k1 - k0, rec)
-    opaque_rows(srt)[pos] = opaque_rows(r)
+    out, a = opaque_rows(srt), 0
+    for p in parts:
+        out[pos[a:a + p.shape[0]]] = opaque_rows(p)
+        a += p.shape[0]
     return srt
 
 

@@ -44,6 +44,12 @@ def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
 def bucket_records(store: Store, pieces: list[list[Any]], rec: np.dtype) -> np.ndarray:
     """The records of a bucket from its pieces (``[file, start, end]``: one compressed frame each,
     in block order; a file's frames read in one request)."""
+    parts = bucket_parts(store, pieces, rec)
+    return np.concatenate(parts) if parts else np.zeros(0, rec)
+
+
+def bucket_parts(store: Store, pieces: list[list[Any]], rec: np.dtype) -> list[np.ndarray]:
+    """:func:`bucket_records` piece by piece (not copied into one array)."""
     where: dict[str, list[int]] = {}
     for i, p in enumerate(pieces):
         where.setdefault(p[0], []).append(i)
@@ -52,8 +58,7 @@ def bucket_records(store: Store, pieces: list[list[Any]], rec: np.dtype) -> np.n
         got = store.read_ranges(name, [int(pieces[i][1]) for i in idx], [int(pieces[i][2]) for i in idx])
         for i, data in zip(idx, got, strict=True):
             blobs[i] = data
-    parts = [unzipped(data, rec, p[0]) for data, p in zip(blobs, pieces, strict=True)]
-    return np.concatenate(parts) if parts else np.zeros(0, rec)
+    return [unzipped(data, rec, p[0]) for data, p in zip(blobs, pieces, strict=True)]
 
 
 def bucket_run(n_buckets: int) -> int:
