@@ -12,9 +12,11 @@ bit for bit (:func:`run_rounds`).
 
 Owners: with a process pool, ``parallel`` new single-process pools (the build's pool waits
 meanwhile); with a Dask client, its workers, each task pinned to one by address; otherwise (the
-calling process) one owner, this process. Tiles go to owners largest first, each to the owner with
-the fewest points of the tile's colour so far (then of all colours): a colour's step waits for its
-slowest owner.
+calling process) one owner, this process. Each owner holds a spatial group of tiles of about equal
+points (:func:`groups`), so that most of a tile's neighbours are on its owner: a batch of an owner's
+rounds also runs the rounds that wait only on rounds of the batch, and their points are handed on
+in the owner, not through the parent; only the rounds of tiles along a cut between groups wait for
+another owner's.
 
 Memory: a state holds about :data:`STATE_BYTES_PER_POINT` bytes per point of its tile with its halo
 (201-252 measured on 1M-point builds in 16-66 tiles while a tile is in the grid phase, band
