@@ -43,8 +43,10 @@ def _build(tmp_path, pts, name, **kw):
         return {"order": v.source_index[:], "radius": v.radius[:], "build": v.build}
 
 
-def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
+@pytest.mark.parametrize("groups", [False, True])
+def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts, groups):
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
+    monkeypatch.setattr(affinity, "GROUPS", groups)
     d = _build(tmp_path, pts, "par")
     tiled = d["build"]["tiled"]
     assert tiled["tiles"] >= 8
@@ -148,7 +150,8 @@ def test_resume_news_gives_the_points_of_each_round():
     np.testing.assert_array_equal(np.concatenate(rad), o.radius[3:])
 
 
-def test_owners_hold_spatial_groups_of_tiles():
+def test_owners_hold_spatial_groups_of_tiles(monkeypatch):
+    monkeypatch.setattr(affinity, "GROUPS", True)
     # a 4 x 4 grid of equal tiles: 2 owners take a half each, 4 a quadrant each
     centres = {4 * i + j: [i + 0.5, j + 0.5, 0.0] for i in range(4) for j in range(4)}
     points = dict.fromkeys(centres, 100)
@@ -168,7 +171,8 @@ def test_owners_hold_spatial_groups_of_tiles():
                       .values())) == [0, 1, 2]
 
 
-def test_a_batch_holds_the_rounds_that_wait_only_on_it():
+def test_a_batch_holds_the_rounds_that_wait_only_on_it(monkeypatch):
+    monkeypatch.setattr(affinity, "GROUPS", True)
     # a strip of 4 tiles, colours 0 1 0 1; owner 0 holds tiles 0 and 1, owner 1 tiles 2 and 3
     nbrs = [[1], [0, 2], [1, 3], [2]]
     colour = [0, 1, 0, 1]

@@ -12,8 +12,10 @@ bit for bit (:func:`run_rounds`).
 
 Owners: with a process pool, ``parallel`` new single-process pools (the build's pool waits
 meanwhile); with a Dask client, its workers, each task pinned to one by address; otherwise (the
-calling process) one owner, this process. Each owner holds a spatial group of tiles of about equal
-points (:func:`groups`), so that most of a tile's neighbours are on its owner: a batch of an owner's
+calling process) one owner, this process. Tiles go to owners largest first, each to the owner with
+the fewest points of the tile's colour so far (then of all colours): a colour's step waits for its
+slowest owner. With :data:`GROUPS` each owner holds a spatial group of tiles of about equal points
+(:func:`groups`), so that most of a tile's neighbours are on its owner: a batch of an owner's
 rounds also runs the rounds that wait only on rounds of the batch, and their points are handed on
 in the owner, not through the parent; only the rounds of tiles along a cut between groups wait for
 another owner's.
@@ -46,6 +48,11 @@ from .tasks import HEAD
 
 #: bytes of a tile's rounds state per point of the tile with its halo (see the module)
 STATE_BYTES_PER_POINT = 260
+#: owners hold spatial groups of tiles (:func:`groups`) and a batch holds the rounds that wait only
+#: on it (:meth:`_Schedule.take`); off: owners balanced per colour, batches of ready rounds. Off by
+#: default: measured on 2 workers it saved no order CPU and made the order wall of 64 tiles longer
+#: (docs/benchmarks.md, "Owners holding spatial groups of tiles")
+GROUPS = False
 
 
 def assign(points: dict[int, int], colour: list[int], n_owners: int,
@@ -53,7 +60,7 @@ def assign(points: dict[int, int], colour: list[int], n_owners: int,
     """Each tile's owner (0 .. ``n_owners`` - 1). With ``centres`` (each tile's box centre), spatial
     groups (:func:`groups`); without, largest first, to the owner with the fewest points of the
     tile's colour, then of all."""
-    if centres is not None and n_owners > 1:
+    if centres is not None and n_owners > 1 and GROUPS:
         return groups(points, centres, n_owners)
     per_colour = np.zeros((n_owners, max(colour, default=0) + 1), np.int64)
     total = np.zeros(n_owners, np.int64)
@@ -242,7 +249,7 @@ class _Schedule:
             return []
         p = min(self.ready[o], key=lambda x: (-self.level[x], x))[0]
         inb = {x for x in self.ready[o] if x[0] == p}
-        grew = True
+        grew = GROUPS
         while grew:  # (the rounds of o's tiles of round p whose every pending dependency is in the batch)
             grew = False
             for y in [z for x in inb for z in self.users.get(x, []) if z[0] == p and self.owner[z[1]] == o]:
