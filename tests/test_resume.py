@@ -162,9 +162,22 @@ def test_bringing_in_sources_matches_the_naive_reference(seed, calls):
         keys = rng.random(idx.size) * 1.5 * first.stop_radius
         tseed, tkey = naive_bring_in(state.tseed_c.copy(), state.tkey_g.copy(), int(state.tpos[0]), state.seeds_c,
                                      state.inv[idx], keys / state.h, _now(state))
+        assert _now(state) == _scan_now(state)
         _bring_in(state, (idx, keys))
         assert np.array_equal(state.tseed_c, tseed)
         assert np.array_equal(state.tkey_g, tkey)
         pend = state.tseed_c[int(state.tpos[0]):]
         assert np.array_equal(state.tslot[pend], np.arange(int(state.tpos[0]), state.tseed_c.size))
         resume_fastfps(state, rho=float(rng.random() * first.stop_radius))
+        assert _now(state) == _scan_now(state)
+    resume_fastfps(state)
+    assert _now(state) == _scan_now(state) == 0.0
+
+
+def _scan_now(state):
+    """_now the slow way: every point's value scanned, as fastfps's stop radius is."""
+    from lodbuilder.sampling.fastfps import _stop_radius
+
+    if state.phase == "grid":
+        return _stop_radius(state.grid[5], state.grid[7], state.tseed_c)
+    return _stop_radius(state.tail["ud"][:, 3], state.tail["rank"], state.tseed_c)

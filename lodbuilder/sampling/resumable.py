@@ -31,7 +31,6 @@ from .fastfps import (
     _pieces,
     _points_and_values,
     _prepare,
-    _stop_radius,
     _tail_fields,
     _tail_runs,
     _timed_seeds,
@@ -143,12 +142,12 @@ def resume_fastfps(state: FastFPSState, *, rho: float | None = None, sources: An
     return _result(state, rho)
 
 
-def _advance(state: FastFPSState, rho: float | None, sources: Any, bulk: bool) -> float | None:
+def _advance(state: FastFPSState, rho: float | None, sources: Any, bulk: bool, trusted: bool = False) -> float | None:
     """Bring in ``sources`` and order on until the next radius is <= ``rho`` (checked; returned)."""
     rho = check_positive(rho, "rho")
     rho_g = -1.0 if rho is None else rho / state.h
     if sources is not None:
-        _bring_in(state, sources)
+        _bring_in(state, sources, trusted)
     if state.phase == "grid":
         _grid(state, rho_g, bulk)
     if state.phase == "tail" and state.tail["k"] < state.inv.shape[0]:
@@ -157,15 +156,16 @@ def _advance(state: FastFPSState, rho: float | None, sources: Any, bulk: bool) -
 
 
 def resume_news(state: FastFPSState, since: int, *, rho: float | None = None, sources: Any = None,
-                bulk: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+                bulk: bool = False, _trusted: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`resume_fastfps` without the whole ordering (neither assembled nor checked: the
     ordering it returns later checks every radius): the points ordered from the engine's position
     ``since`` on that are not seeds, as input indices and with the radii that ordering gives them,
     and the position to pass next time. The copies of points (exact duplicates) that the complete
-    ordering appends at its end are not among them."""
+    ordering appends at its end are not among them. ``_trusted``: ``sources`` are indices alone,
+    an int64 array of distinct points in range (the radius rounds' own rows), not checked again."""
     from .precision import promise, rounding_bound, span
 
-    _advance(state, rho, sources, bulk)
+    _advance(state, rho, sources, bulk, _trusted)
     if state.grid is not None:
         order, radius, k = state.grid[16], state.grid[17], state.k
     else:
@@ -203,16 +203,27 @@ def _tail(state: FastFPSState, rho_g: float) -> None:
 
 
 def _now(state: FastFPSState) -> float:
-    """The largest value of a point not ordered (grid units): the radius of the next candidate."""
+    """The largest value of a point not ordered (grid units): the radius of the next candidate.
+    :func:`.fastfps._stop_radius`'s value without its copies: the timed seeds (never candidates)
+    are the points with a slot (``tslot``), and the maximum is taken in place."""
     if state.phase == "grid":
         assert state.grid is not None
-        return _stop_radius(state.grid[5], state.grid[7], state.tseed_c)
-    return _stop_radius(state.tail["ud"][:, 3], state.tail["rank"], state.tseed_c)
+        val, rank = state.grid[5], state.grid[7]
+    else:
+        val, rank = state.tail["ud"][:, 3], state.tail["rank"]
+    left = rank < 0
+    left &= state.tslot < 0
+    top = float(np.max(val, where=left, initial=-np.inf))
+    return 0.0 if top == -np.inf else top
 
 
-def _bring_in(state: FastFPSState, sources: Any) -> None:
-    """Give the pending timed seeds named in ``sources`` their new keys (in place, re-sorted)."""
-    if isinstance(sources, tuple):
+def _bring_in(state: FastFPSState, sources: Any, trusted: bool = False) -> None:
+    """Give the pending timed seeds named in ``sources`` their new keys (in place, re-sorted);
+    ``trusted``: see :func:`resume_news`."""
+    if trusted:
+        idx = sources
+        keys = np.full(idx.size, np.inf)
+    elif isinstance(sources, tuple):
         idx = validate_indices(sources[0], state.pts.shape[0], "sources")
         keys = np.asarray(sources[1], dtype=np.float64).reshape(-1)
         if keys.shape != idx.shape or np.isnan(keys).any() or (keys < 0).any():

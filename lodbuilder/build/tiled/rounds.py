@@ -117,18 +117,14 @@ def _in_boxes(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 def _halo_rows(me: dict[str, Any], news: list[tuple[np.ndarray, np.ndarray] | None]) -> tuple[np.ndarray, np.ndarray]:
     """The rows of tile ``me``'s points and the keys of the neighbours' new points ``news`` (each
     neighbour's (g, keys), in :func:`_news`'s order; None: not ordered yet) that lie in its halo."""
-    rows, keys = [], []
-    for new in news:
-        if new is None or me["halo_g"].size == 0:
-            continue
-        g, rad = new
-        pos = np.minimum(np.searchsorted(me["halo_g"], g), me["halo_g"].size - 1)
-        hit = me["halo_g"][pos] == g
-        rows.append(me["halo_rows"][pos[hit]])
-        keys.append(rad[hit])
-    if not rows:
+    have = [new for new in news if new is not None and new[0].size]
+    if not have or me["halo_g"].size == 0:
         return np.empty(0, np.int64), np.empty(0)
-    return np.concatenate(rows), np.concatenate(keys)
+    g = np.concatenate([new[0] for new in have]) if len(have) > 1 else have[0][0]
+    rad = np.concatenate([new[1] for new in have]) if len(have) > 1 else have[0][1]
+    pos = np.minimum(np.searchsorted(me["halo_g"], g), me["halo_g"].size - 1)
+    hit = me["halo_g"][pos] == g
+    return me["halo_rows"][pos[hit]], rad[hit]
 
 
 def _joining(rows: np.ndarray, keys: np.ndarray, rho: float | None) -> Any:
@@ -175,11 +171,17 @@ def round_steps(work: Store | str, key: str, calls: list[tuple[int, dict[str, An
                 rho: float | None, step: Any = None) -> dict[str, Any]:
     """One round of each tile of ``calls`` ((tile, doc, news) as :func:`round_step` takes them), in
     the process that owns them, one after the other (``step``: :func:`round_step`); their results.
-    A tile that fails is named on the exception (``lodbuilder_tile``)."""
+    A neighbour's entry of ``news`` that is a tile number stands for that tile's points of this
+    round, made by an earlier call of this batch. A tile that fails is named on the exception
+    (``lodbuilder_tile``)."""
     out = []
+    made: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for t, doc, news in calls:
+        news = [made[n] if isinstance(n, int) else n for n in news]
         with _naming(t):
-            out.append((step or round_step)(work, t, key, doc, rho, news))
+            res = (step or round_step)(work, t, key, doc, rho, news)
+        made[t] = (res["g"], res["keys"])
+        out.append(res)
     return {"tiles": out}
 
 
@@ -217,13 +219,24 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
     rows, keys = _halo_rows(tile, news)
     st, since = tile["state"], tile.get("k", 0)
     if rho is not None:  # (the points of this round only: the whole ordering is not needed yet)
-        new, rad, tile["k"] = resume_news(st, since, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
+        new, rad, tile["k"] = resume_news(st, since, rho=rho, sources=_joining(rows, keys, rho), bulk=True,
+                                          _trusted=True)
         g, k = _own(tile, new, rad, tile["near"])
     else:  # (the seeds come first; the ordering's positions are the engine's after its copies of seeds)
         tile["o"] = resume_fastfps(st, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
         shift = st.seed_arr.shape[0] - news_start(st) if since >= news_start(st) else 0
         g, k = _news(tile, since + shift, tile["near"])
-    return {"tile": t, "g": g, "keys": k, "state_bytes": int(st.nbytes)}
+    return {"tile": t, "g": g, "keys": k, "state_bytes": _nbytes(tile)}
+
+
+def _nbytes(tile: dict[str, Any]) -> int:
+    """The bytes of a tile's state, counted again only when its arrays change (a new phase, the
+    tail's heap made): a count walks some forty arrays."""
+    st = tile["state"]
+    at = (st.phase, len(st.tail))
+    if tile.get("nb_at") != at:
+        tile["nb_at"], tile["nb"] = at, int(st.nbytes)
+    return int(tile["nb"])
 
 
 @timed_task
