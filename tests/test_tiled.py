@@ -343,6 +343,46 @@ def test_the_coarse_copy_fits_one_worker(tmp_path):
     assert d["build"]["tiled"]["coarse_points"] <= fits < len(pts) // 8
 
 
+def test_the_coarse_level_orders_on_a_grid_for_the_head_radius(tmp_path):
+    """The coarse task orders the decimated copy on a grid of at least ``voxel_min`` (the driver:
+    the head's estimated last radius / HEAD_RADIUS_VOXELS), not on the copy's own finer grid: the
+    head's radii stay upper bounds of the copy's covering (brute force), its prefixes cover about
+    as well as the own grid's, and a ``voxel_min`` finer than the own grid changes nothing."""
+    from lodbuilder.build.tiled import layout as WL
+    from lodbuilder.build.tiled.store import as_store
+    from lodbuilder.build.tiled.tasks import coarse_task
+    from lodbuilder.sampling.band import choose_parameters
+
+    pts = wavy(40_000, np.random.default_rng(3))
+    rec = np.empty(len(pts), WL.REC)
+    rec["g"] = np.arange(len(pts)) * 7
+    rec["x"], rec["y"], rec["z"] = pts.T
+    w = as_store(tmp_path / "w")
+    w.claim()
+    w.put(WL.DECIMATED, rec)
+    own = choose_parameters(pts, None, None)[0]
+
+    def head(voxel_min):
+        res = coarse_task(w, 200, None, voxel_min)
+        return res, w.read_array(WL.HEAD_FILE, WL.HEAD)
+
+    base, h0 = head(0.0)
+    finer, h1 = head(0.5 * own)
+    assert base["voxel_size"] == finer["voxel_size"] == own
+    np.testing.assert_array_equal(h0, h1)
+    coarse, h2 = head(3 * own)
+    assert coarse["voxel_size"] == 3 * own and coarse["head"] == 200
+    assert np.array_equal(np.unique(h2["g"] % 7), [0])
+    order = h2["g"] // 7
+    assert np.all(np.diff(h2["r"][1:]) <= 0)
+    covering = prefix_covering_radii(pts, order)
+    assert np.all(covering[1:200] <= h2["r"][1:] * (1 + 1e-12))
+    assert covering[200] <= coarse["r_cut"] * (1 + 1e-12)
+    own_covering = prefix_covering_radii(pts, h0["g"] // 7)
+    ratio = [covering[k] / own_covering[k] for k in (25, 50, 100, 200)]
+    assert max(ratio) <= 1.15, np.round(ratio, 3)
+
+
 def test_balanced_tile_points():
     from lodbuilder.build.tiled import plan as P
 

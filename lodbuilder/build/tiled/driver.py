@@ -60,6 +60,13 @@ COARSE_MIN = 2_000
 #: head size: points of the decimated copy's order per point of the head
 HEAD_DECIMATION = 200
 HEAD_MIN = 256
+#: the coarse level's grid: at least the head's estimated last radius over this many voxels (or the
+#: copy's own grid where that is coarser). The head needs radii down to about 11-14 of the copy's
+#: spacings only; on the 21.56M-point survey's copy (698,789 points ordered down to a 3,493-point
+#: head) its own grid is 26.3, this one 69: CPU 7.8-8.1 -> 1.6-1.8 s (load 9, alternated), the
+#: copy's covering by the head's prefixes (16 to 3,493 points) 0.98-1.07 x, mean 1.00 x, the own
+#: grid's, and r_cut 157.3 against 159.0 (see docs/benchmarks.md, out-of-core builds)
+HEAD_RADIUS_VOXELS = 3.0
 #: halo width in units of the coarse level's covering bound: the stored radii are exact wherever the
 #: covering radius is below the halo width (every level but the first few times the head's size)
 HALO_FACTOR = 0.3
@@ -411,7 +418,7 @@ def _plan_record(pl: dict[str, Any], halo: float, head_points: int, coarse: dict
     """The build record's entries of the plan and the coarse level."""
     return {"tile_points_max": int(pl["tile_cap"]), "halo": halo, "coarse_points": int(pl["n_decimated"]),
             "coarse_cell": float(pl["d_cell"]), "head_points": int(head_points),
-            "head_radius": float(coarse["r_cut"])}
+            "head_radius": float(coarse["r_cut"]), "coarse_voxel": float(coarse.get("voxel_size") or 0.0)}
 
 
 def _plan(executor: cf.Executor, work: Store, name: str, sp: Spill, voxel_size: float | None,
@@ -441,14 +448,14 @@ def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, 
     core and halo pieces; returns their markers (coarse, distribute)."""
     coarse = _done(work, "coarse")
     pending: dict[cf.Future, int] = {}
+    # the coarse level's covering radius, estimated from its size
+    m_est = max(1, int(pl["n_decimated"]))
+    head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
+    r_head = float(pl["d_cell"]) * math.sqrt(m_est / head_est)
     if coarse is None:
-        head_size = max(HEAD_MIN, int(pl["n_decimated"]) // HEAD_DECIMATION)
-        pending = submit(executor, [(0, coarse_task, (work, head_size, worker_budget))])
+        pending = submit(executor, [(0, coarse_task, (work, head_est, worker_budget, r_head / HEAD_RADIUS_VOXELS))])
     try:
-        # the halo: a fraction of the coarse level's covering radius, estimated from its size
-        m_est = max(1, int(pl["n_decimated"]))
-        head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
-        halo = HALO_FACTOR * (pl["d_cell"] * math.sqrt(m_est / head_est) + delta)
+        halo = HALO_FACTOR * (r_head + delta)  # (a fraction of it)
         dist = distribute_phase(executor, work, name, sp, pl, halo, progress)
     finally:
         if coarse is None:

@@ -45,8 +45,16 @@ def parameters_task(work: Store | str, n: int, voxel_size: float | None, band_ra
 
 
 @timed_task
-def coarse_task(work: Store | str, size: int, max_memory: int | None) -> dict[str, Any]:
-    """Order the decimated copy down to ``size`` points: the coarse global level (the head)."""
+def coarse_task(work: Store | str, size: int, max_memory: int | None, voxel_min: float = 0.0) -> dict[str, Any]:
+    """Order the decimated copy down to ``size`` points: the coarse global level (the head).
+
+    ``voxel_min``: the ordering's grid is at least this coarse (the driver asks for a fraction of
+    the head's estimated last radius, see :data:`.driver.HEAD_RADIUS_VOXELS`): the head needs radii
+    down to 11-14 of the copy's spacings only, and a grid of the copy's own spacing has several
+    times the voxels (the task's CPU is mostly the band and its marching). Where the
+    copy's automatic grid is that coarse already, it is used as it is (its thin-sheet plan too).
+    Any grid keeps the head's radii upper bounds of the copy's covering radius."""
+    from ...sampling.band import choose_parameters
     from ...sampling.fastfps import fastfps
 
     w = as_store(work)
@@ -54,7 +62,8 @@ def coarse_task(work: Store | str, size: int, max_memory: int | None) -> dict[st
     dec = rec["g"]
     pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
     k = min(size + 1, dec.shape[0])
-    o = fastfps(pts, size=k, max_memory=max_memory)
+    coarser = voxel_min > 0.0 and choose_parameters(pts, None, None)[0] < voxel_min
+    o = fastfps(pts, size=k, max_memory=max_memory, voxel_size=float(voxel_min) if coarser else None)
     h = min(size, len(o))
     head = np.empty(h, HEAD)
     head["g"] = dec[o.order[:h]]
