@@ -27,7 +27,8 @@ from surfaces import (
 
 from lodbuilder import fastfps
 from lodbuilder.datasets import folded_sheet
-from lodbuilder.sampling.band import band_distance, build_band, plan_band, sheet_separation
+from lodbuilder.sampling.band import band_distance, build_band, plan_band
+from lodbuilder.sampling.sheets import sheet_separation
 
 # a rotation that puts a plane at a generic angle to the grid
 _A, _B = 0.5, 0.3

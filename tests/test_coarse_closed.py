@@ -16,14 +16,16 @@ from surfaces import accordion
 from lodbuilder import fastfps
 from lodbuilder.datasets import folded_sheet, torus
 from lodbuilder.sampling.band import (
+    _thin_plan,
+    cells,
+    choose_parameters,
+)
+from lodbuilder.sampling.sheets import (
     NORMAL_RADIUS,
     SEP_CONE,
     SEP_GAP_MIN,
     SHEET_BALL,
-    _sheets,
-    _thin_plan,
-    cells,
-    choose_parameters,
+    measure_sheets,
 )
 
 
@@ -102,7 +104,7 @@ def _plan(points):
 def test_a_coarse_closed_surface_takes_the_plain_band():
     for pts in (coarse_torus(2000, 5.0), ellipsoid(2000, (1.0, 0.1, 0.1))):  # a tube, a cigar
         h, r = choose_parameters(pts, None, None)
-        sep_in, _, _, flat = _sheets(pts, h, r, judge=True)
+        sep_in, _, _, flat = measure_sheets(pts, h, r, judge=True)
         assert np.isfinite(sep_in).mean() > 0.9  # nearly every point has another side within reach
         assert flat is not None and flat < 0.1
         assert _plan(pts).normal is None
@@ -120,7 +122,7 @@ def test_flat_sheets_keep_the_thin_sheet_plan(what):
     else:  # a thin closed shell: a flat ellipsoid about 4 spacings thick in the middle
         pts = ellipsoid(2000, (1.0, 0.6, 0.08))
     h, r = choose_parameters(pts, None, None)
-    _, _, _, flat = _sheets(pts, h, r, judge=True)
+    _, _, _, flat = measure_sheets(pts, h, r, judge=True)
     assert flat is not None and flat > (0.75 if what == "noisy stack" else 0.85), flat
     assert _plan(pts).normal is not None
 

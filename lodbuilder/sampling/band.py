@@ -73,6 +73,7 @@ from .._resources import cores as _cores
 from .._resources import default_max_memory, release_freed_memory, release_pages
 from ..errors import InputError, MemoryBudgetError
 from .morton import morton_np, unmorton_np
+from .sheets import THIN_SHARE, measure_sheets
 from .spacing import axis_max, axis_min, cells, median_spacing
 
 log = logging.getLogger(__name__)
@@ -84,18 +85,11 @@ DEPTH_COST = 0.2
 TAIL_FACTOR = 3.0  # the band ordering hands over to the Euclidean tail below TAIL_FACTOR * r (4 r: unsafe)
 TAIL_FACTOR_THIN = 2.0  # ... below this x r where sheets come close (at 3 r bunnyDouble's levels covered
 # 1.23 x Euclidean FPS from 1 % of N on, 1.09 at 2 r) and on coarse closed surfaces (bun_zipper_res3 1.054)
-SEP_GAP_MIN = 1.5  # in default voxels (3 point spacings): closer layers count as one sheet
-SEP_CONE = 0.8  # the other sheet's cell lies within acos(0.8) = 37 degrees of the normal
-NORMAL_RADIUS = 0.9  # default voxels (1.8 point spacings): the neighbours that give a cell's normal
 THIN_RADIUS_MIN = 1.0  # voxels: the thinnest band radius
 SIDE_TOLERANCE = 0.15  # voxels: how far on the gap side of its nearest point a voxel may lie
 TAIL_PER_SEP = 0.9  # the tail lowers a point only from samples closer than this x its separation
 TAIL_SLOPE = 0.4  # ... and along chords with |sin| <= this to both ends' sheets (arc/chord <= 1.03)
-THIN_SHARE = 25.0  # percent: when this much of the scan is thin, hand over below 0.9 x separation
-SHEET_BALL = 0.7  # x the separation: the thin cells whose normals a thin cell's is compared with
-SHEET_BEND = 0.06  # a thin cell lies on a flat sheet when their mean |cos| is at least 1 - this (~20 deg)
 SHEET_SHARE = 0.6  # a scan THIN_SHARE % thin is a stack of sheets only when this share of it does
-SHEET_SAMPLE = 4096  # thin cells tested (every k-th in cell order)
 BYTES_PER_VOXEL = 96  # while ordering: keys 8, nbr 24, cs 4, T/vlab/stamp/seen/heap/vcost/cellof 36 + slack
 BYTES_PER_POINT = 120
 MAX_COORD = (1 << 21) - 1
@@ -149,56 +143,6 @@ class BandPlan:
     def plain(cls, h: float, r: float) -> BandPlan:
         """The plan without thin parts: one band radius everywhere."""
         return cls(h, r, None, None, None, TAIL_FACTOR * r)
-
-
-def sheet_separation(points: np.ndarray, h: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per point (input order), on a grid of spacing h for a band of radius r: the distance across
-    the gap to the nearer other sheet within reach (inf where there is none), the same on the
-    opposite side, and the unit normal toward the nearer one (float32; zero where there is none)."""
-    sep_in, sep_out, normal, _ = _sheets(points, h, r, judge=False)
-    return sep_in, sep_out, normal
-
-
-def _sheets(
-    points: np.ndarray, h: float, r: float, judge: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float | None]:
-    """:func:`sheet_separation` and, when ``judge`` and at least THIN_SHARE % of the points are
-    thin, the share of the thin cells tested (up to SHEET_SAMPLE) whose normals agree within
-    SHEET_BALL x their separation (:func:`lodbuilder._kernels.sheets.normal_agreement`; None when
-    not judged)."""
-    from .._kernels.sheets import cell_separation
-
-    n = points.shape[0]
-    origin = axis_min(points) - 2 * h
-    ckeys, perm, u, ostart = cells(points, origin, h)
-    del ckeys
-    release_pages(points)  # (a scan set aside: read again from its file by the next pass)
-    sin, sout, nrm = cell_separation(u, ostart, 2 * r / h, SEP_GAP_MIN, SEP_CONE, NORMAL_RADIUS)
-    counts = np.diff(ostart)
-    flat = None
-    if judge and int(counts[np.isfinite(sin)].sum()) >= THIN_SHARE / 100 * n:
-        flat = _flat_share(u, ostart, sin, nrm)
-    del u
-    if not np.isfinite(sin).any():  # nothing thin (most scans): no scatter into point order
-        return np.full(n, np.inf), np.full(n, np.inf), np.zeros((n, 3), dtype=np.float32), flat
-    sep_in = np.empty(n)
-    sep_in[perm] = np.repeat(sin * h, counts)
-    sep_out = np.empty(n)
-    sep_out[perm] = np.repeat(sout * h, counts)
-    normal = np.empty((n, 3), dtype=np.float32)
-    normal[perm] = np.repeat(nrm.astype(np.float32), counts, axis=0)
-    return sep_in, sep_out, normal, flat
-
-
-def _flat_share(u: np.ndarray, ostart: np.ndarray, sin: np.ndarray, nrm: np.ndarray) -> float | None:
-    """The share of the thin cells tested whose normals agree (mean |cos| >= 1 - SHEET_BEND) with
-    those of the thin cells within SHEET_BALL x their separation (None when none could be tested)."""
-    from .._kernels.sheets import normal_agreement
-
-    stride = max(1, int(np.isfinite(sin).sum()) // SHEET_SAMPLE)
-    agree = normal_agreement(u, ostart, sin, nrm, SHEET_BALL, stride)
-    agree = agree[np.isfinite(agree)]
-    return float((agree >= 1.0 - SHEET_BEND).mean()) if agree.size else None
 
 
 def _automatic(points: np.ndarray, voxel_size: float | None, band_radius: float | None) -> bool:
@@ -306,7 +250,7 @@ def _thin_radius(sep_out: np.ndarray, h: float, r: float) -> np.ndarray:
 def _thin_plan(points: np.ndarray, h: float, r: float) -> BandPlan:
     """The plan for grid spacing h and band radius r with the thin parts measured."""
     plain = BandPlan.plain(h, r)
-    sep_in, sep_out, normal, flat = _sheets(points, h, r, judge=True)
+    sep_in, sep_out, normal, flat = measure_sheets(points, h, r, judge=True)
     if not np.isfinite(sep_in).any():
         return plain
     found = int(np.isfinite(sep_in).sum())
