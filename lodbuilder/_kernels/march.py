@@ -413,13 +413,14 @@ def march_round(
             last = hkv[n]
             i = np.int64(0)
             while True:
-                c = 2 * i + 1
+                c = 4 * i + 1  # (a 4-ary heap: see .heaps)
                 if c >= n:
                     break
                 ec = hkv[c]
-                if c + 1 < n and hkv[c + 1] < ec:
-                    c += 1
-                    ec = hkv[c]
+                for cc in range(c + 1, min(c + 4, n)):
+                    if hkv[cc] < ec:
+                        c = cc
+                        ec = hkv[cc]
                 if ec > last:
                     break
                 hkv[i] = ec
