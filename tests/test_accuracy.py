@@ -74,6 +74,34 @@ def test_march_matches_the_naive_marcher(seed, kind):
     np.testing.assert_allclose(dq, ref, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("kind", ["plane", "sphere"])
+def test_corner_cells_match_a_walk_over_the_neighbour_table(kind):
+    """The march skips a voxel's cells by their mask (corner_cells): bit k is set exactly where
+    the k-th cell of corner_voxels exists and holds points (a walk in Python over the table)."""
+    from lodbuilder._kernels.march import corner_cells
+    from lodbuilder._kernels.topology import cell_tables
+
+    rng = np.random.default_rng(5)
+    pts, h = (jittered_plane(625, rng) @ TILT.T, 0.05) if kind == "plane" else (sphere(500, rng), 0.12)
+    band = build_band(pts, h, 2.5 * h)
+    nbr = band.nbr
+    _, cellof = cell_tables(band.cs)
+    cmask = np.full(nbr.shape[0] + 1, 7, np.uint8)
+    corner_cells(nbr, cellof, cmask)
+
+    def down(v, j):
+        return -1 if v < 0 else int(nbr[v, j])
+
+    for v in range(nbr.shape[0]):
+        w2, w4 = down(v, 2), down(v, 0)
+        w6 = down(w4, 2)
+        corners = (v, down(v, 4), w2, down(w2, 4), w4, down(w4, 4), w6, down(w6, 4))
+        bits = sum(1 << k for k, w in enumerate(corners) if w >= 0 and cellof[w] >= 0)
+        assert cmask[v] == bits, v
+    assert cmask[-1] == 7  # (only the voxels' bytes are written)
+    assert 0 < (cmask[:-1] == 0).mean() < 1  # voxels off the surface have empty cells
+
+
 # ---- the band metric against analytic geodesics -------------------------------------------------
 # default parameters: h = 2 point spacings; "R voxels" = the radius (half-width) over h
 

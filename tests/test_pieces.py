@@ -133,3 +133,20 @@ def test_partial_builds_of_a_fragmented_scene_never_understate(tmp_path, how):
     k = np.arange(1, m)
     assert (cover[k] <= radius[k]).all(), int(k[np.argmax(cover[k] - radius[k])])
     assert cover[m] <= stop
+
+
+@pytest.mark.parametrize("npiece", [1, 3, 50, 400])
+def test_first_entries_match_a_sort(npiece):
+    """The ranks at which pieces first enter an ordering (build records): one pass, the same as
+    the positions of the first occurrences found by a stable sort."""
+    from lodbuilder._kernels.pieces import first_entries
+
+    rng = np.random.default_rng(npiece)
+    m = 500
+    piece = rng.integers(0, npiece, m).astype(np.int32)
+    for k in (0, 1, 37, m):
+        order = rng.permutation(m)[:k].astype(np.int32)
+        _, where = np.unique(piece[order], return_index=True)
+        got = first_entries(piece, order, np.int64(npiece))
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, np.sort(where))

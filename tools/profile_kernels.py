@@ -12,6 +12,11 @@ compile too: run it twice).
     python tools/profile_kernels.py ../shared/data/igea.ply
     python tools/profile_kernels.py stack.ply --top 20 --frequency 999
     python tools/profile_kernels.py stack.ply --build     # the whole ``lodbuilder build`` process
+    python tools/profile_kernels.py tile.npz --repeat 5   # a tile as order_tile orders it, 5 times
+
+An ``.npz`` input holds ``points`` and optionally ``seeds``, ``voxel_size``, ``band_radius``,
+``timed_idx`` and ``timed_keys`` (the arguments of one ``fastfps`` call of a tiled build's
+``order_tile``: head points as seeds, the neighbours' halo points as timed seeds).
 """
 
 from __future__ import annotations
@@ -86,21 +91,38 @@ def _write_map(objects: dict[str, bytes]) -> int:
     return len(symbols)
 
 
-def child(path: str) -> None:
-    """In the profiled process: load the kernels, map them, order the points (stats on stdout)."""
+def _input(path: str) -> tuple[Any, dict[str, Any]]:
+    """The points of ``path`` and the keywords of the ``fastfps`` call (an ``.npz``: see above)."""
+    if path.endswith(".npz"):
+        import numpy as np
+
+        z = np.load(path)
+        kw: dict[str, Any] = {k: z[k] for k in ("seeds",) if k in z}
+        kw.update({k: float(z[k]) for k in ("voxel_size", "band_radius") if k in z})
+        if "timed_idx" in z and z["timed_idx"].size:
+            kw["timed_seeds"] = (z["timed_idx"], z["timed_keys"])
+        return z["points"], kw
+    from lodbuilder.io import read_scan
+
+    return read_scan(path).points, {}
+
+
+def child(path: str, repeat: int = 1) -> None:
+    """In the profiled process: load the kernels, map them, order the points ``repeat`` times
+    (stats of the last on stdout)."""
     objects: dict[str, bytes] = {}
     _capture_objects(objects)
     import lodbuilder
     from lodbuilder._kernels.warm import compile_group, ensure_compiled
-    from lodbuilder.io import read_scan
 
     ensure_compiled()
     for group in ("band", "thin", "ordering"):
         compile_group(group)
     mapped = _write_map(objects)
-    pts = read_scan(path).points
+    pts, kw = _input(path)
     c0 = time.process_time()
-    o = lodbuilder.fastfps(pts)
+    for _ in range(repeat):
+        o = lodbuilder.fastfps(pts, **kw)
     stats = {k: v for k, v in o.stats.items() if isinstance(v, (int, float, str))}
     print(json.dumps({"mapped_symbols": mapped, "cpu_s": time.process_time() - c0, "stats": stats}))
 
@@ -143,16 +165,21 @@ def main() -> None:
     ap.add_argument("--frequency", type=int, default=499, help="perf samples per second")
     ap.add_argument("--build", action="store_true",
                     help="profile the whole `lodbuilder build` process of the file instead of the ordering")
+    ap.add_argument("--repeat", type=int, default=1, help="orderings in the profiled process (not with --build)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        (build_child if args.build else child)(args.points)
+        if args.build:
+            build_child(args.points)
+        else:
+            child(args.points, args.repeat)
         return
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "perf.data"
         res = subprocess.run(
             ["perf", "record", "-F", str(args.frequency), "-o", str(data), "--",
-             sys.executable, __file__, "--child", args.points, *(["--build"] if args.build else [])],
+             sys.executable, __file__, "--child", args.points, "--repeat", str(args.repeat),
+             *(["--build"] if args.build else [])],
             capture_output=True, text=True,
         )
         if res.returncode:

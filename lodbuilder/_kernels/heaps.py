@@ -1,7 +1,7 @@
-"""Binary heaps on plain arrays: an indexed min-heap of (float32 key, int32 item) for the marching
-fronts, each entry one int64 (equal keys pop the smaller item first: the order is (key, item),
-not the heap's layout),
-and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for candidates.
+"""Heaps on plain arrays: an indexed 4-ary min-heap of (float32 key, int32 item) for the marching
+fronts (half the levels of a binary heap for the sift of every pop), each entry one int64 (equal
+keys pop the smaller item first: the order is (key, item), not the heap's layout, so the arity
+changes no order), and an indexed 4-ary max-heap (item -> position) whose keys only ever decrease, for candidates.
 Both only ever see keys decrease, so an entry moves up (min-heap) or down (max-heap).
 ``check_minheap``/``check_maxheap`` verify the invariants in O(n); the engine calls them after every
 operation when its debug switch is on (like scikit-fmm's self test)."""
@@ -134,7 +134,7 @@ def iheap_push(hkv, hpos, n, key, item):  # pragma: no cover - compiled
         n += 1
     e = (f32_bits(key) << 32) | np.int64(item)
     while i > 0:
-        p = (i - 1) >> 1
+        p = (i - 1) >> 2
         ep = hkv[p]
         if ep < e:
             break
@@ -157,13 +157,14 @@ def iheap_pop(hkv, hpos, n):  # pragma: no cover - compiled
         last = hkv[n]
         i = np.int64(0)
         while True:
-            c = 2 * i + 1
+            c = 4 * i + 1
             if c >= n:
                 break
-            ec = hkv[c]
-            if c + 1 < n and hkv[c + 1] < ec:
-                c += 1
-                ec = hkv[c]
+            ec = hkv[c]  # the smallest of up to four children
+            for cc in range(c + 1, min(c + 4, n)):
+                if hkv[cc] < ec:
+                    c = cc
+                    ec = hkv[cc]
             if ec > last:
                 break
             hkv[i] = ec
@@ -176,11 +177,11 @@ def iheap_pop(hkv, hpos, n):  # pragma: no cover - compiled
 
 @nb.njit(**JIT)
 def check_minheap(hkv, hpos, n):  # pragma: no cover - compiled
-    """True when the first n entries form a binary min-heap whose positions ``hpos`` agree."""
+    """True when the first n entries form a 4-ary min-heap whose positions ``hpos`` agree."""
     for i in range(n):
         if hpos[hkv[i] & ITEM_MASK] != i:
             return False
-        if i > 0 and hkv[(i - 1) >> 1] > hkv[i]:
+        if i > 0 and hkv[(i - 1) >> 2] > hkv[i]:
             return False
     return True
 

@@ -92,3 +92,20 @@ def refresh_piece(
             continue
         cmark[cell] = stamp
         maxheap_decrease(ckey, heap, hpos, cell, _cell_key(np.int64(cell), cellv, cs, rank, val), hn)
+
+
+@nb.njit(**JIT)
+def first_entries(piece, order, npiece):  # pragma: no cover - compiled
+    """The position in ``order`` at which each piece's first point appears, ascending, for the
+    pieces that appear (``np.sort(np.unique(piece[order], return_index=True)[1])`` in one pass:
+    no sort of the N labels)."""
+    seen = np.zeros(npiece, np.bool_)
+    out = np.empty(min(npiece, order.shape[0]), np.int64)
+    n = 0
+    for k in range(order.shape[0]):
+        c = piece[order[k]]
+        if not seen[c]:
+            seen[c] = True
+            out[n] = k
+            n += 1
+    return out[:n]

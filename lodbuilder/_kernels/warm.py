@@ -57,6 +57,7 @@ def _prototypes() -> dict[str, dict[str, tuple[Any, ...]]]:
             "topology.nearest_corners": (_F64_2, _I32_2, _I32, _F32),
             "topology.point_pieces": (_I32_2, _I32, _U8, _F32),
             "grid.coarse_runs": (_I64, _I32, i),
+            "pieces.first_entries": (_I32, _I32, i),
             "tail.euclid_tail": (
                 _F64_2, _I32_2, _I32, _I64, _I32, _I32, _I32, i, _F64, b, f, _F32, _F32_2, f,
                 _I32, _I32, _I32, _F64, _I32, i, i, f, _I32, _F64, _I64,
