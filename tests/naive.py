@@ -507,3 +507,13 @@ def naive_bring_in(tseed: np.ndarray, tkey: np.ndarray, pos: int, seeds: np.ndar
     new[at[live]] = np.minimum(keys[live], now)
     srt = np.argsort(-new, kind="stable")
     return np.concatenate([tseed[:pos], tseed[pos:][srt]]), np.concatenate([tkey[:pos], new[srt]])
+
+
+def naive_band_radii(cur: np.ndarray, events: list[tuple[np.ndarray, np.ndarray]], k0: int, k1: int) -> np.ndarray:
+    """The largest of the tiles' covering radii at each position ``k0 .. k1``: tile t's value is
+    ``cur[t]`` until its first event, then that of its last event (rank, value) at or before k."""
+    vals = np.repeat(np.asarray(cur, float)[:, None], k1 - k0, axis=1)
+    for t, (ranks, values) in enumerate(events):
+        for r, v in zip(ranks, values, strict=True):
+            vals[t, int(r) - k0:] = v
+    return vals.max(axis=0) if vals.shape[0] else np.full(k1 - k0, -np.inf)

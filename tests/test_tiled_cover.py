@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from naive import naive_cover_pass
+from naive import naive_band_radii, naive_cover_pass
 
 from lodbuilder._kernels import tiled as K
 
@@ -89,3 +89,25 @@ def test_stable_argsort_is_numpys() -> None:
     for top in (1, 2000, 1 << 40):
         key = rng.integers(0, top, 5000).astype(np.int64)
         assert np.array_equal(K.stable_argsort(key), np.argsort(key, kind="stable"))
+
+
+@pytest.mark.parametrize("tiles", [1, 3, 17])
+@pytest.mark.parametrize("share", [0.0, 0.01, 0.5])
+def test_merge_events_is_the_largest_radius_over_the_tiles(tiles: int, share: float) -> None:
+    rng = np.random.default_rng(tiles * 100 + int(share * 100))
+    k0, k1 = 100, 2_100
+    cur = np.where(rng.random(tiles) < 0.3, np.inf, rng.uniform(5, 15, tiles))
+    events = []
+    for _ in range(tiles):
+        m = rng.binomial(k1 - k0, share / tiles)
+        ranks = np.sort(rng.choice(np.arange(k0, k1), m, replace=False))
+        events.append((ranks, np.sort(rng.uniform(0, 10, m))[::-1] + rng.uniform(0, 0.5, m)))  # some rise
+    rank = np.concatenate([r for r, _ in events]).astype(np.int64)
+    value = np.concatenate([v for _, v in events])
+    tile = np.repeat(np.arange(tiles, dtype=np.int64), [r.shape[0] for r, _ in events])
+    by_rank = np.argsort(rank, kind="stable")
+    got, after = np.empty(k1 - k0), cur.copy()
+    K.merge_events(rank[by_rank], tile[by_rank], np.ascontiguousarray(value[by_rank]), after, k0, k1, got)
+    assert np.array_equal(got, naive_band_radii(cur, events, k0, k1))
+    last = [v[-1] if v.shape[0] else c for (_, v), c in zip(events, cur, strict=True)]
+    assert np.array_equal(after, last)

@@ -27,15 +27,15 @@ def _boxes(rng, k):
     return lo, hi
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_split_puts_each_point_in_its_core_and_every_halo_whose_grown_box_holds_it(seed):
+@pytest.mark.parametrize(("seed", "k", "widest"), [(0, 4, 1.5), (1, 4, 1.5), (2, 4, 1.5), (3, 7, 0.5), (4, 3, 6.0)])
+def test_split_puts_each_point_in_its_core_and_every_halo_whose_grown_box_holds_it(seed, k, widest):
     rng = np.random.default_rng(seed)
-    lo, hi = _boxes(rng, 4)
+    lo, hi = _boxes(rng, k)
     pts = rng.uniform([0, 0, 0], [10, 10, 2], (5000, 3))
     own = np.array([int(np.flatnonzero(np.all((p >= lo) & (p <= hi), axis=1))[0]) for p in pts])
-    halo = float(rng.uniform(0.2, 1.5))
+    halo = float(rng.uniform(0.2, widest))
     out, n_core, n_halo = _Collect(), np.zeros(len(lo), np.int64), np.zeros(len(lo), np.int64)
-    _split(out, 3, 1000, pts, own, lo, hi, halo, n_core, n_halo)
+    _split(out, 3, 1000, pts, own, lo, hi, halo, 0.0, n_core, n_halo)
     for t in range(len(lo)):
         want_core = np.flatnonzero(own == t)
         want_halo = [i for i in range(len(pts)) if own[i] != t

@@ -787,36 +787,101 @@ def _tree_set(tree, size, b, value):  # pragma: no cover - compiled
 # ------------------------------------------------------------------------------------ events
 
 @nb.njit(**JIT)
-def merge_events(ev_rank, ev_val, ev_pos, ev_len, ev_done, cur, k0, k1, bound, radius):
-    """Write radius[k - k0] = min(bound, max over tiles of their covering radius at k) for k in
-    [k0, k1). ``ev_*`` (T, B): per tile its events (rank, value) in rank order, read position,
-    length, exhausted flag; ``cur[t]`` the tile's current value (inf before its first event).
+def merge_events(ev_rank, ev_tile, ev_val, cur, k0, k1, radius):  # pragma: no cover - compiled
+    """Write radius[k - k0] = max over tiles of their covering radius at k for k in [k0, k1).
+    ``cur[t]``: tile t's value at k0 (inf before its first event; updated in place); ``ev_rank``,
+    ``ev_tile``, ``ev_val``: the events of every tile in the band (rank in [k0, k1), tile, value),
+    sorted by rank (a tile's own events in their order).
 
-    Returns (k, t): k == k1 when done, else tile t needs more events (k is where to resume)."""  # pragma: no cover
+    The tiles' values are the leaves of a max segment tree: each event updates one leaf, and each run
+    of positions between two events takes the root (O(events log T + k1 - k0), where a scan of every
+    tile at every position took O((k1 - k0) T))."""
     T = cur.shape[0]
-    gmax = -np.inf
+    size = 1
+    while size < T:
+        size *= 2
+    tree = np.full(2 * size, -np.inf)
     for t in range(T):
-        if cur[t] > gmax:
-            gmax = cur[t]
-    for k in range(k0, k1):
-        for t in range(T):
-            while True:
-                if ev_pos[t] >= ev_len[t]:
-                    if not ev_done[t]:
-                        return k, t
-                    break
-                if ev_rank[t, ev_pos[t]] > k:
-                    break
-                v = ev_val[t, ev_pos[t]]
-                old = cur[t]
-                cur[t] = v
-                ev_pos[t] += 1
-                if v > gmax:
-                    gmax = v
-                elif old == gmax and v < old:
-                    gmax = -np.inf
-                    for u in range(T):
-                        if cur[u] > gmax:
-                            gmax = cur[u]
-        radius[k - k0] = min(bound, gmax)
-    return k1, -1
+        tree[size + t] = cur[t]
+    for i in range(size - 1, 0, -1):
+        tree[i] = max(tree[2 * i], tree[2 * i + 1])
+    e, n_ev, k = 0, ev_rank.shape[0], k0
+    while k < k1:
+        while e < n_ev and ev_rank[e] <= k:
+            t = ev_tile[e]
+            cur[t] = ev_val[e]
+            _tree_set(tree, size, t, ev_val[e])
+            e += 1
+        nxt = k1
+        if e < n_ev and ev_rank[e] < k1:
+            nxt = ev_rank[e]
+        g = tree[1]
+        for j in range(k, nxt):
+            radius[j - k0] = g
+        k = nxt
+
+
+# ------------------------------------------------------------------------------------ split
+
+@nb.njit(**JIT)
+def halo_members(pts, own, t_lo, t_hi, halo, reach):  # pragma: no cover - compiled
+    """The points of a block that lie in other tiles' halos: for each tile t, the points i (in
+    increasing order) with ``own[i] != t`` within ``halo`` of their own tile's faces (``pts[i, a] -
+    t_lo[own, a] <= halo`` or ``t_hi[own, a] - pts[i, a] <= halo`` on some axis a) and inside t's box
+    grown by ``halo`` (``t_lo[t] - halo <= pts[i] <= t_hi[t] + halo``).
+
+    Only the tiles whose boxes come within ``reach`` of the point's own tile are tested (``reach``:
+    at least ``halo`` plus how far a point may lie outside its own tile's box). Returns (start,
+    members): tile t's points are ``members[start[t]:start[t + 1]]``."""
+    T, m = t_lo.shape[0], pts.shape[0]
+    nstart = np.zeros(T + 1, np.int64)
+    for p in range(2):  # the tiles near each tile (CSR): count, then fill
+        nlist = np.empty(nstart[T], np.int64)
+        fill = nstart[:T].copy()
+        for a in range(T):
+            for b in range(T):
+                if b == a:
+                    continue
+                close = True
+                for d in range(3):
+                    if t_lo[b, d] > t_hi[a, d] + reach or t_hi[b, d] < t_lo[a, d] - reach:
+                        close = False
+                if close:
+                    if p == 0:
+                        nstart[a + 1] += 1
+                    else:
+                        nlist[fill[a]] = b
+                        fill[a] += 1
+        if p == 0:
+            for a in range(T):
+                nstart[a + 1] += nstart[a]
+    start = np.zeros(T + 1, np.int64)
+    members = np.empty(0, np.int64)
+    for p in range(2):  # count, then fill (each tile's points in increasing order)
+        fill = start[:T].copy()
+        for i in range(m):
+            o = own[i]
+            near = False
+            for d in range(3):
+                if pts[i, d] - t_lo[o, d] <= halo or t_hi[o, d] - pts[i, d] <= halo:
+                    near = True
+            if not near:
+                continue
+            for j in range(nstart[o], nstart[o + 1]):
+                t = nlist[j]
+                inside = True
+                for d in range(3):
+                    if not (pts[i, d] >= t_lo[t, d] - halo and pts[i, d] <= t_hi[t, d] + halo):
+                        inside = False
+                        break
+                if inside:
+                    if p == 0:
+                        start[t + 1] += 1
+                    else:
+                        members[fill[t]] = i
+                        fill[t] += 1
+        if p == 0:
+            for t in range(T):
+                start[t + 1] += start[t]
+            members = np.empty(start[T], np.int64)
+    return start, members

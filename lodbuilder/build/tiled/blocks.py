@@ -146,11 +146,13 @@ def survey_block(work: Store | str, b: int, g0: int, m: int, rows: int, grid: di
     ``d_cell`` (from the grid's corner) its first point (cell key, input index, coordinates)."""
     w = as_store(work)
     gr = Grid(np.asarray(grid["lo"]), float(grid["cell"]), tuple(grid["shape"]))
-    hist = np.zeros(int(np.prod(gr.shape)) if histogram else 0, np.int64)
+    occupied, counts = [], []  # (sparse: a dense histogram of the whole grid per block cost more than the block)
     keys, gs, xyz = [], [], []
     for r0, pts in _xyz_blocks(w, b, m, rows):
         if histogram:
-            hist += np.bincount(gr.index(pts), minlength=hist.shape[0])
+            cells, n_in = np.unique(gr.index(pts), return_counts=True)
+            occupied.append(cells)
+            counts.append(n_in.astype(np.int64))
         c = np.floor((pts - gr.lo) / d_cell).astype(np.int64)
         key = (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
         ukey, first = np.unique(key, return_index=True)
@@ -162,9 +164,20 @@ def survey_block(work: Store | str, b: int, g0: int, m: int, rows: int, grid: di
     key_a, g_a, p_a = key_a[order], g_a[order], p_a[order]
     keep = np.ones(key_a.shape[0], bool)
     keep[1:] = key_a[1:] != key_a[:-1]
-    cells = np.flatnonzero(hist)
-    return {"block": b, "n": m, "cells": cells, "counts": hist[cells], "keys": key_a[keep], "g": g_a[keep],
+    cells, hist = _sparse_sum(occupied, counts)
+    return {"block": b, "n": m, "cells": cells, "counts": hist, "keys": key_a[keep], "g": g_a[keep],
             "xyz": p_a[keep]}
+
+
+def _sparse_sum(cells: list[np.ndarray], counts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The sum of sparse histograms (each: increasing cells, their counts): its occupied cells,
+    increasing, and their counts."""
+    if len(cells) <= 1:
+        return (cells[0], counts[0]) if cells else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    occupied, at = np.unique(np.concatenate(cells), return_inverse=True)
+    total = np.zeros(occupied.shape[0], np.int64)
+    np.add.at(total, at, np.concatenate(counts))
+    return occupied, total
 
 
 def decimated_copy(parts: list[dict[str, Any]]) -> np.ndarray:
@@ -202,7 +215,7 @@ def distribute_block(work: Store | str, b: int, g0: int, m: int, rows: int, tile
     out = _Out(w, True)
     try:
         for r0, pts in _xyz_blocks(w, b, m, rows):
-            _split(out, b, g0 + r0, pts, lookup[gr.index(pts)], t_lo, t_hi, halo, n_core, n_halo)
+            _split(out, b, g0 + r0, pts, lookup[gr.index(pts)], t_lo, t_hi, halo, gr.cell, n_core, n_halo)
         files = out.publish()
     finally:
         out.close()
@@ -210,8 +223,10 @@ def distribute_block(work: Store | str, b: int, g0: int, m: int, rows: int, tile
 
 
 def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: np.ndarray, t_hi: np.ndarray,
-           halo: float, n_core: np.ndarray, n_halo: np.ndarray) -> None:
-    """One chunk of a block into the tiles' core and halo pieces."""
+           halo: float, cell: float, n_core: np.ndarray, n_halo: np.ndarray) -> None:
+    """One chunk of a block into the tiles' core and halo pieces (``cell``: the grid's cell size)."""
+    from ..._kernels.tiled import halo_members
+
     m, n_tiles = pts.shape[0], t_lo.shape[0]
     rec = np.empty(m, REC)
     rec["g"] = np.arange(g0, g0 + m)
@@ -219,30 +234,18 @@ def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: n
     raw = opaque_rows(rec)
     order = np.argsort(own, kind="stable")
     bounds = np.searchsorted(own[order], np.arange(n_tiles + 1))
-    # only a point within the halo width of its own tile's faces can lie in another tile's halo
-    # (the tiles' boxes do not overlap): test those against every tile
-    lo_own, hi_own = t_lo[own], t_hi[own]
-    is_near = np.zeros(m, bool)
-    for a in range(3):  # column by column: NumPy reduces a short axis slowly
-        is_near |= pts[:, a] - lo_own[:, a] <= halo
-        is_near |= hi_own[:, a] - pts[:, a] <= halo
-    near = np.flatnonzero(is_near)
-    # the near points by x: each tile tests only those within its grown box's x range
-    by_x = near[np.argsort(pts[near, 0], kind="stable")]
-    x_near = pts[by_x, 0]
-    los, his = t_lo - halo, t_hi + halo
+    # a point lies in another tile's halo only within the halo width of its own tile's faces (the
+    # tiles' boxes do not overlap); it is tested against the tiles near its own (a point lies at most
+    # a grid cell outside its own tile's box: the grid clamps)
+    start, members = halo_members(pts, np.ascontiguousarray(own, np.int64), t_lo, t_hi, halo, 2 * halo + cell)
     for t in range(n_tiles):
         sel = order[bounds[t]:bounds[t + 1]]
         if sel.size:
             out.write(WL.core(t, b), raw[sel])
             n_core[t] += sel.size
-        cand = by_x[np.searchsorted(x_near, los[t, 0], "left"):np.searchsorted(x_near, his[t, 0], "right")]
-        inside = own[cand] != t
-        for a in (1, 2):
-            inside &= (pts[cand, a] >= los[t, a]) & (pts[cand, a] <= his[t, a])
-        if inside.any():
-            out.write(WL.halo(t, b), raw[np.sort(cand[inside])])
-            n_halo[t] += int(inside.sum())
+        if start[t + 1] > start[t]:
+            out.write(WL.halo(t, b), raw[members[start[t]:start[t + 1]]])
+            n_halo[t] += int(start[t + 1] - start[t])
 
 
 def tile_records(work: Store | Path, names: list[str]) -> np.ndarray:

@@ -37,20 +37,21 @@ EVENT, POINT, HEAD = WL.EVENT, WL.POINT, WL.HEAD
 
 
 def _events(work: Store, n_tiles: int, k0: int, k1: int) -> tuple[np.ndarray, ...]:
-    """Every tile's events in the band as merge_events wants them, and each tile's value at k0."""
+    """Every tile's events in the band as merge_events wants them (rank, tile, value; by rank), and
+    each tile's value at k0."""
+    from ..._kernels.tiled import stable_argsort
+
     evs, cur = [], np.full(n_tiles, np.inf)
     for t in range(n_tiles):
         recs, before = banded_slice(work, WL.cover_events(t), EVENT, k0, k1)
         evs.append(recs)
         if before is not None:
             cur[t] = float(before["value"])
-    m = max([e.shape[0] for e in evs] + [1])
-    ev_rank = np.full((n_tiles, m), np.iinfo(np.int64).max, np.int64)
-    ev_val = np.zeros((n_tiles, m))
-    ev_len = np.zeros(n_tiles, np.int64)
-    for t, e in enumerate(evs):
-        ev_rank[t, : e.shape[0]], ev_val[t, : e.shape[0]], ev_len[t] = e["rank"], e["value"], e.shape[0]
-    return ev_rank, ev_val, ev_len, cur
+    ev = np.concatenate(evs) if evs else np.zeros(0, EVENT)
+    tile = np.repeat(np.arange(n_tiles, dtype=np.int64), [e.shape[0] for e in evs])
+    by_rank = stable_argsort(np.ascontiguousarray(ev["rank"] - k0, np.int64))  # (a tile's own events stay in order)
+    return (np.ascontiguousarray(ev["rank"][by_rank], np.int64), tile[by_rank],
+            np.ascontiguousarray(ev["value"][by_rank], np.float64), cur)
 
 
 @timed_task
@@ -61,10 +62,9 @@ def radii_band(work: Store | str, band: int, k0: int, k1: int, n_tiles: int, del
     w = as_store(work)
     head = w.read_array(WL.HEAD_FILE, HEAD)
     h = head.shape[0]
-    ev_rank, ev_val, ev_len, cur = _events(w, n_tiles, k0, k1)
+    ev_rank, ev_tile, ev_val, cur = _events(w, n_tiles, k0, k1)
     rad = np.empty(k1 - k0)
-    merge_events(ev_rank, ev_val, np.zeros(n_tiles, np.int64), ev_len, np.ones(n_tiles, bool), cur, k0, k1,
-                 np.inf, rad)
+    merge_events(ev_rank, ev_tile, ev_val, cur, k0, k1, rad)
     ks = np.arange(k0, k1)
     inh = ks < h
     # the coarse level's certified bound (radius on the decimated copy + its cell diagonal)
