@@ -266,6 +266,34 @@ def test_seeds_come_first_in_the_given_order(rng):
     check_covering(pts, o, [3, 10, 100])
 
 
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(shape=shapes, n=st.integers(40, 400), seed=st.integers(0, 2**31 - 1), nseeds=st.integers(2, 30))
+def test_many_seeds_marched_together_keep_the_guarantees(shape, n, seed, nseeds):
+    # several seeds are marched as one front (the tiled build's head points in a tile): the seeds
+    # first, then every invariant, the brute-force covering, and a prefix by size is the full order's
+    pts = make(shape, n, seed)
+    n = len(pts)  # (a plane has a few points less)
+    r = np.random.default_rng(seed)
+    seeds = r.choice(n, size=min(nseeds, n - 1), replace=False)
+    o = fastfps(pts, seeds=seeds)
+    assert np.array_equal(o.order[: seeds.size], seeds)
+    assert np.isinf(o.radius[: seeds.size]).all() and (o.parent[: seeds.size] == -1).all()
+    check_invariants(pts, o)
+    check_covering(pts, o, r.integers(seeds.size, n, 6))
+    k = int(r.integers(seeds.size, n + 1))
+    assert np.array_equal(fastfps(pts, seeds=seeds, size=k).order, o.order[:k])
+
+
+def test_the_seeds_are_marched_in_one_round(rng):
+    # one march from all the seeds pops each band voxel at most once; one march per seed re-popped
+    # most voxels about ln(seeds) times (74 % of a survey tile's grid phase)
+    pts = jittered_plane(20_000, rng)
+    seeds = rng.choice(len(pts), size=64, replace=False)
+    o = fastfps(pts, seeds=seeds, size=64)
+    assert np.array_equal(o.order, seeds)
+    assert 0 < o.stats["pops"] <= o.stats["band_voxels"]
+
+
 @pytest.mark.parametrize("n", [1, 2])
 def test_tiny_inputs(n):
     pts = np.arange(3 * n, dtype=float).reshape(n, 3)

@@ -707,6 +707,21 @@ def grid_loop(
         cmin = pcost.min()
     bad = 0
     while k < k_max:
+        if k < nseed and nseed - k > 1 and k_max >= nseed:
+            # the seeds (radius inf, all in the set before any candidate) marched together: one
+            # march over the band instead of one each, which re-pops most voxels about ln(seeds)
+            # times (a tile's 113-132 head seeds: 74 % of its grid phase's pops)
+            nd, pp = _bulk_seeds(
+                k, nseed, seeds, u, keys, nbr, cs, cellv, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+                ts, vlab, dq, val, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent,
+                awake, piece, ctr, cmask, ckey, heap, hpos, hn,
+            )
+            k = np.int64(nseed)
+            pops += pp
+            _lower_dirty(nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn)
+            while hn > 0 and ckey[0] < 0.0:
+                hn = maxheap_pop(ckey, heap, hpos, hn)
+            continue
         if k < nseed:
             i = seeds[k]
             rad = np.inf
@@ -721,11 +736,12 @@ def grid_loop(
             if not timed and (kk < 0.0 or kk <= rho_stop or kk < r_stop):
                 break
             if timed and bulk:
-                k, nd = _bulk_timed(
+                k, nd, pp = _bulk_timed(
                     k, k_max, max(kk, r_stop), rho_stop, tseed, tkey, tpos, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot,
                     pnrm, slope, ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius,
                     parent, awake, piece, ctr, cmask,
                 )
+                pops += pp
                 _lower_dirty(nd, dirty, cellv, cs, rank, dq, val, order, lq, u, weighted, pcost, ckey, heap, hpos, hn)
                 while hn > 0 and ckey[0] < 0.0:
                     hn = maxheap_pop(ckey, heap, hpos, hn)
@@ -844,13 +860,45 @@ def _lower_dirty(
 
 
 @nb.njit(**JIT)
+def _bulk_seeds(
+    k, nseed, seeds, u, keys, nbr, cs, cellv, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+    ts, vlab, dq, val, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake, piece,
+    ctr, cmask, ckey, heap, hpos, hn,
+):  # pragma: no cover - compiled
+    """Order the seeds from position ``k`` on (radius inf, no parent) and march their fronts
+    together (see :func:`grid_loop`); returns the dirty cells' count and the pops."""
+    ns = nseed - k
+    src = np.empty(ns, np.int32)
+    for s in range(ns):
+        i = seeds[k + s]
+        src[s] = i
+        rank[i] = k + s
+        order[k + s] = i
+        radius[k + s] = np.inf
+        parent[k + s] = -1
+        awake[piece[i]] = True
+    for s in range(ns):  # (their cells' keys once every seed is ranked)
+        ci = cellof[anchor_of(cs, np.int64(src[s]))]
+        maxheap_decrease(ckey, heap, hpos, ci, _cell_key(np.int64(ci), cellv, cs, rank, val), hn)
+    # the seeded cells' marks below every other round's, as for the timed seeds (:func:`_bulk_timed`)
+    mark0 = -(np.int64(1) + ctr[4] + ns)
+    ctr[4] += ns
+    nd, pp = march_round(
+        src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+        ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
+        np.float64(SEED_RADIUS), cmask,
+    )
+    return nd, pp
+
+
+@nb.njit(**JIT)
 def _bulk_timed(
     k, k_max, kk, rho_stop, tseed, tkey, tpos, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
     ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake, piece, ctr,
     cmask,
 ):  # pragma: no cover - compiled
     """Order the timed seeds due at once (key >= ``kk``) from position ``k`` on and march their
-    fronts together (see :func:`grid_loop`); returns the new count and the dirty cells' count."""
+    fronts together (see :func:`grid_loop`); returns the new count, the dirty cells' count and the pops."""
     j0 = tpos[0]
     j1 = j0
     while j1 < tseed.shape[0] and tkey[j1] >= kk and tkey[j1] > rho_stop and k + (j1 - j0) < k_max:
@@ -875,8 +923,7 @@ def _bulk_timed(
         ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
         np.float64(SEED_RADIUS), cmask,  # the full seeding ball for sources joining in bulk
     )
-    ctr[3] += pp
-    return k + ns, nd
+    return k + ns, nd, pp
 
 
 @nb.njit(**JIT)
