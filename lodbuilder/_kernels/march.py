@@ -867,27 +867,15 @@ def _bulk_seeds(
 ):  # pragma: no cover - compiled
     """Order the seeds from position ``k`` on (radius inf, no parent) and march their fronts
     together (see :func:`grid_loop`); returns the dirty cells' count and the pops."""
-    ns = nseed - k
-    src = np.empty(ns, np.int32)
-    for s in range(ns):
-        i = seeds[k + s]
-        src[s] = i
-        rank[i] = k + s
-        order[k + s] = i
-        radius[k + s] = np.inf
-        parent[k + s] = -1
-        awake[piece[i]] = True
-    for s in range(ns):  # (their cells' keys once every seed is ranked)
+    src = seeds[k:nseed].astype(np.int32)
+    nd, pp = _join_in_bulk(
+        k, src, np.full(src.shape[0], np.inf), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm,
+        slope, ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake,
+        piece, ctr, cmask,
+    )
+    for s in range(src.shape[0]):  # their cells' keys (the march reads no key, nor val)
         ci = cellof[anchor_of(cs, np.int64(src[s]))]
         maxheap_decrease(ckey, heap, hpos, ci, _cell_key(np.int64(ci), cellv, cs, rank, val), hn)
-    # the seeded cells' marks below every other round's, as for the timed seeds (:func:`_bulk_timed`)
-    mark0 = -(np.int64(1) + ctr[4] + ns)
-    ctr[4] += ns
-    nd, pp = march_round(
-        src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-        ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
-        np.float64(SEED_RADIUS), cmask,
-    )
     return nd, pp
 
 
@@ -903,27 +891,40 @@ def _bulk_timed(
     j1 = j0
     while j1 < tseed.shape[0] and tkey[j1] >= kk and tkey[j1] > rho_stop and k + (j1 - j0) < k_max:
         j1 += 1
-    ns = j1 - j0
-    src = np.empty(ns, np.int32)
+    tpos[0] = j1
+    nd, pp = _join_in_bulk(
+        k, tseed[j0:j1].astype(np.int32), tkey[j0:j1], u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot,
+        pnrm, slope, ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake,
+        piece, ctr, cmask,
+    )
+    return k + (j1 - j0), nd, pp
+
+
+@nb.njit(**JIT)
+def _join_in_bulk(
+    k, src, rad, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent, awake, piece, ctr,
+    cmask,
+):  # pragma: no cover - compiled
+    """Order points ``src`` at positions ``k``, ``k + 1``, ... with radii ``rad`` and no parent, and
+    march their fronts as one (the full seeding ball each); returns the dirty cells' count and the pops."""
+    ns = src.shape[0]
     for s in range(ns):
-        i = tseed[j0 + s]
-        src[s] = i
+        i = src[s]
         rank[i] = k + s
         order[k + s] = i
-        radius[k + s] = tkey[j0 + s]
+        radius[k + s] = rad[s]
         parent[k + s] = -1
         awake[piece[i]] = True
-    tpos[0] = j1
     # the seeded cells' marks: from -(1 + c + ns) to -(2 + c) (c: sources marched in bulk before,
     # ctr[4]), below every single round's mark (>= 1) and the cells' initial -1
     mark0 = -(np.int64(1) + ctr[4] + ns)
     ctr[4] += ns
-    nd, pp = march_round(
+    return march_round(
         src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
-        np.float64(SEED_RADIUS), cmask,  # the full seeding ball for sources joining in bulk
+        np.float64(SEED_RADIUS), cmask,
     )
-    return k + ns, nd, pp
 
 
 @nb.njit(**JIT)
