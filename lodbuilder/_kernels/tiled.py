@@ -824,37 +824,16 @@ def merge_events(ev_rank, ev_tile, ev_val, cur, k0, k1, radius):  # pragma: no c
 # ------------------------------------------------------------------------------------ split
 
 @nb.njit(**JIT)
-def halo_members(pts, own, t_lo, t_hi, halo, reach):  # pragma: no cover - compiled
+def halo_members(pts, own, t_lo, t_hi, halo, nstart, nlist):  # pragma: no cover - compiled
     """The points of a block that lie in other tiles' halos: for each tile t, the points i (in
     increasing order) with ``own[i] != t`` within ``halo`` of their own tile's faces (``pts[i, a] -
     t_lo[own, a] <= halo`` or ``t_hi[own, a] - pts[i, a] <= halo`` on some axis a) and inside t's box
     grown by ``halo`` (``t_lo[t] - halo <= pts[i] <= t_hi[t] + halo``).
 
-    Only the tiles whose boxes come within ``reach`` of the point's own tile are tested (``reach``:
-    at least ``halo`` plus how far a point may lie outside its own tile's box). Returns (start,
-    members): tile t's points are ``members[start[t]:start[t + 1]]``."""
+    Only the tiles near the point's own tile o are tested: ``nlist[nstart[o]:nstart[o + 1]]`` (every
+    other tile whose box comes within ``halo`` plus how far a point may lie outside its own tile's
+    box). Returns (start, members): tile t's points are ``members[start[t]:start[t + 1]]``."""
     T, m = t_lo.shape[0], pts.shape[0]
-    nstart = np.zeros(T + 1, np.int64)
-    for p in range(2):  # the tiles near each tile (CSR): count, then fill
-        nlist = np.empty(nstart[T], np.int64)
-        fill = nstart[:T].copy()
-        for a in range(T):
-            for b in range(T):
-                if b == a:
-                    continue
-                close = True
-                for d in range(3):
-                    if t_lo[b, d] > t_hi[a, d] + reach or t_hi[b, d] < t_lo[a, d] - reach:
-                        close = False
-                if close:
-                    if p == 0:
-                        nstart[a + 1] += 1
-                    else:
-                        nlist[fill[a]] = b
-                        fill[a] += 1
-        if p == 0:
-            for a in range(T):
-                nstart[a + 1] += nstart[a]
     start = np.zeros(T + 1, np.int64)
     members = np.empty(0, np.int64)
     for p in range(2):  # count, then fill (each tile's points in increasing order)

@@ -237,7 +237,9 @@ def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: n
     # a point lies in another tile's halo only within the halo width of its own tile's faces (the
     # tiles' boxes do not overlap); it is tested against the tiles near its own (a point lies at most
     # a grid cell outside its own tile's box: the grid clamps)
-    start, members = halo_members(pts, np.ascontiguousarray(own, np.int64), t_lo, t_hi, halo, 2 * halo + cell)
+    near = _near_tiles(t_lo, t_hi, 2 * halo + cell)
+    start, members = halo_members(pts, np.ascontiguousarray(own, np.int64), t_lo, t_hi, halo,
+                                  np.concatenate([[0], np.cumsum(near.sum(axis=1))]), np.nonzero(near)[1])
     for t in range(n_tiles):
         sel = order[bounds[t]:bounds[t + 1]]
         if sel.size:
@@ -246,6 +248,13 @@ def _split(out: _Out, b: int, g0: int, pts: np.ndarray, own: np.ndarray, t_lo: n
         if start[t + 1] > start[t]:
             out.write(WL.halo(t, b), raw[members[start[t]:start[t + 1]]])
             n_halo[t] += int(start[t + 1] - start[t])
+
+
+def _near_tiles(t_lo: np.ndarray, t_hi: np.ndarray, reach: float) -> np.ndarray:
+    """(T, T) bool: tile b's box comes within ``reach`` of tile a's on every axis (b != a)."""
+    near = np.all((t_lo[None, :] <= t_hi[:, None] + reach) & (t_hi[None, :] >= t_lo[:, None] - reach), axis=2)
+    np.fill_diagonal(near, False)
+    return near
 
 
 def tile_records(work: Store | Path, names: list[str]) -> np.ndarray:
