@@ -43,10 +43,8 @@ def _build(tmp_path, pts, name, **kw):
         return {"order": v.source_index[:], "radius": v.radius[:], "build": v.build}
 
 
-@pytest.mark.parametrize("groups", [False, True])
-def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts, groups):
+def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
-    monkeypatch.setattr(affinity, "GROUPS", groups)
     d = _build(tmp_path, pts, "par")
     tiled = d["build"]["tiled"]
     assert tiled["tiles"] >= 8
@@ -150,42 +148,21 @@ def test_resume_news_gives_the_points_of_each_round():
     np.testing.assert_array_equal(np.concatenate(rad), o.radius[3:])
 
 
-def test_owners_hold_spatial_groups_of_tiles(monkeypatch):
-    monkeypatch.setattr(affinity, "GROUPS", True)
-    # a 4 x 4 grid of equal tiles: 2 owners take a half each, 4 a quadrant each
-    centres = {4 * i + j: [i + 0.5, j + 0.5, 0.0] for i in range(4) for j in range(4)}
-    points = dict.fromkeys(centres, 100)
-    colour = [(i % 2) * 2 + j % 2 for i in range(4) for j in range(4)]
-    two = affinity.assign(points, colour, 2, centres)
-    assert {two[t] for t in centres if centres[t][0] < 2} == {two[0]} and len(set(two.values())) == 2
-    assert {two[t] for t in centres if centres[t][0] > 2} == {two[15]} != {two[0]}
-    four = affinity.assign(points, colour, 4, centres)
-    quad = {t: (int(centres[t][0] > 2), int(centres[t][1] > 2)) for t in centres}
-    assert all((four[a] == four[b]) == (quad[a] == quad[b]) for a in centres for b in centres)
-    # points, not tiles, are split: the large tile's side has fewer tiles
-    points[0] = 700
-    two = affinity.assign(points, colour, 2, centres)
-    assert sum(1 for t in two if two[t] == two[0]) < 8
-    # more owners than tiles on a side: every owner still gets a tile
-    assert sorted(set(affinity.assign({0: 5, 1: 1, 2: 1}, [0, 1, 0], 3, {0: [0, 0, 0], 1: [1, 0, 0], 2: [2, 0, 0]})
-                      .values())) == [0, 1, 2]
-
-
-def test_a_batch_holds_the_rounds_that_wait_only_on_it(monkeypatch):
-    monkeypatch.setattr(affinity, "GROUPS", True)
+def test_a_batch_holds_one_rounds_ready_rounds():
     # a strip of 4 tiles, colours 0 1 0 1; owner 0 holds tiles 0 and 1, owner 1 tiles 2 and 3
     nbrs = [[1], [0, 2], [1, 3], [2]]
     colour = [0, 1, 0, 1]
     docs = {t: {"n_points": 10} for t in range(4)}
     sc = affinity._Schedule([1.0, None], docs, nbrs, colour, {0: 0, 1: 0, 2: 1, 3: 1}, 2)
-    # tile 1 waits for tile 2 (owner 1) too; tile 3 only for tile 2, on its owner
+    # tiles 1 and 3 wait for their neighbours of colour 0 in the same round
     assert sc.take(0) == [(1, 0)]
-    assert sc.take(1) == [(1, 2), (1, 3)]
-    assert sc.news(1, 3, {(1, 2), (1, 3)}) == [2]  # (the owner hands tile 2's points on itself)
+    assert sc.take(1) == [(1, 2)]
+    assert sc.take(0) == [] and sc.take(1) == []
+    sc.record(1, [{"tile": 2, "g": np.arange(1), "keys": np.ones(1), "state_bytes": 1}])
+    assert sc.take(1) == [(1, 3)] and sc.take(0) == []  # (tile 1 still waits for tile 0)
+    assert sc.news(1, 3)[0][0].tolist() == [0]  # tile 2's points of round 1, through the parent
     sc.record(1, [{"tile": 0, "g": np.arange(1), "keys": np.ones(1), "state_bytes": 1}])
-    assert sc.take(0) == []
-    sc.record(1, [{"tile": t, "g": np.arange(1), "keys": np.ones(1), "state_bytes": 1} for t in (2, 3)])
     assert sc.take(0) == [(1, 1)]
-    # one owner: a whole round in one batch, colour by colour
+    # one owner: the ready rounds of a round in one batch, a colour at a time
     sc = affinity._Schedule([1.0, None], docs, nbrs, colour, dict.fromkeys(range(4), 0), 1)
-    assert sc.take(0) == [(1, 0), (1, 2), (1, 1), (1, 3)]
+    assert sc.take(0) == [(1, 0), (1, 2)]

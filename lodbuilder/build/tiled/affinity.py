@@ -14,11 +14,9 @@ Owners: with a process pool, ``parallel`` new single-process pools (the build's 
 meanwhile); with a Dask client, its workers, each task pinned to one by address; otherwise (the
 calling process) one owner, this process. Tiles go to owners largest first, each to the owner with
 the fewest points of the tile's colour so far (then of all colours): a colour's step waits for its
-slowest owner. With :data:`GROUPS` each owner holds a spatial group of tiles of about equal points
-(:func:`groups`), so that most of a tile's neighbours are on its owner: a batch of an owner's
-rounds also runs the rounds that wait only on rounds of the batch, and their points are handed on
-in the owner, not through the parent; only the rounds of tiles along a cut between groups wait for
-another owner's.
+slowest owner. (Owners holding spatial groups of tiles, whose batches also ran the rounds that
+waited only on the batch, were tried and dropped: on 2 workers they saved no order CPU and made
+the order wall of 64 tiles longer; docs/benchmarks.md, "Owners holding spatial groups of tiles".)
 
 Memory: a state holds about :data:`STATE_BYTES_PER_POINT` bytes per point of its tile with its halo
 (201-252 measured on 1M-point builds in 16-66 tiles while a tile is in the grid phase, band
@@ -48,20 +46,11 @@ from .tasks import HEAD
 
 #: bytes of a tile's rounds state per point of the tile with its halo (see the module)
 STATE_BYTES_PER_POINT = 260
-#: owners hold spatial groups of tiles (:func:`groups`) and a batch holds the rounds that wait only
-#: on it (:meth:`_Schedule.take`); off: owners balanced per colour, batches of ready rounds. Off by
-#: default: measured on 2 workers it saved no order CPU and made the order wall of 64 tiles longer
-#: (docs/benchmarks.md, "Owners holding spatial groups of tiles")
-GROUPS = False
 
 
-def assign(points: dict[int, int], colour: list[int], n_owners: int,
-           centres: dict[int, list[float]] | None = None) -> dict[int, int]:
-    """Each tile's owner (0 .. ``n_owners`` - 1). With ``centres`` (each tile's box centre), spatial
-    groups (:func:`groups`); without, largest first, to the owner with the fewest points of the
-    tile's colour, then of all."""
-    if centres is not None and n_owners > 1 and GROUPS:
-        return groups(points, centres, n_owners)
+def assign(points: dict[int, int], colour: list[int], n_owners: int) -> dict[int, int]:
+    """Each tile's owner (0 .. ``n_owners`` - 1): largest first, to the owner with the fewest
+    points of the tile's colour, then of all."""
     per_colour = np.zeros((n_owners, max(colour, default=0) + 1), np.int64)
     total = np.zeros(n_owners, np.int64)
     out = {}
@@ -70,32 +59,6 @@ def assign(points: dict[int, int], colour: list[int], n_owners: int,
         out[t] = o
         per_colour[o, colour[t]] += points[t]
         total[o] += points[t]
-    return out
-
-
-def groups(points: dict[int, int], centres: dict[int, list[float]], n_owners: int) -> dict[int, int]:
-    """Each tile's owner, the owners' tiles spatial groups of about equal points: the tiles cut in
-    two across the axis their centres spread most along, at the cut that best splits their points
-    in proportion to the owners of each side, and so on (recursive bisection). Most neighbours of
-    a tile then have its owner, which runs their rounds one after the other with no hand-off
-    through the parent (:func:`run_rounds`); only the rounds of tiles along a cut wait for
-    another owner's."""
-    out: dict[int, int] = {}
-    todo: list[tuple[list[int], list[int]]] = [(sorted(points), list(range(n_owners)))]
-    while todo:
-        ts, os_ = todo.pop()
-        if len(os_) == 1 or len(ts) <= 1:
-            out.update(dict.fromkeys(ts, os_[0]))
-            continue
-        c = np.array([centres[t] for t in ts], float).reshape(len(ts), -1)
-        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
-        ts = sorted(ts, key=lambda t: (centres[t][axis], t))
-        k = len(os_) // 2
-        cum = np.cumsum([points[t] for t in ts], dtype=np.float64)
-        lo = max(1, min(k, len(ts) - 1))
-        hi = max(lo, len(ts) - (len(os_) - k))
-        cut = lo + int(np.argmin(np.abs(cum[lo - 1:hi] - cum[-1] * k / len(os_))))
-        todo += [(ts[:cut], os_[:k]), (ts[cut:], os_[k:])]
     return out
 
 
@@ -170,10 +133,7 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
     lower colour) or p - 1 (a higher colour), and gets their points of those rounds: what
     ``order_rounds`` gives it, so the orders are the same. Each owner runs the rounds of its tiles
     as they become ready (those on the longest chain of rounds waiting for them first), in
-    batches, at most :data:`IN_FLIGHT` batches queued at a time. A batch also holds the rounds of
-    the owner's tiles that wait only for rounds of the batch (a neighbour of a lower colour in the
-    same round, on the same owner): the owner runs them after those, colour by colour, and hands
-    their points on itself (:func:`.rounds.round_steps`), not through the parent."""
+    batches of one round's ready rounds, at most :data:`IN_FLIGHT` batches queued at a time."""
     key = uuid.uuid4().hex
     sched = R.radii(work.read_array(WL.HEAD_FILE, HEAD), rounds, q)
     n_owners = max(owner.values(), default=0) + 1
@@ -184,8 +144,7 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
             while sc.todo or running:
                 for o in range(n_owners):
                     if sum(1 for v in running.values() if v[0] == o) < IN_FLIGHT and (batch := sc.take(o)):
-                        inb = set(batch)
-                        calls = [(t, docs[t] if p == 1 else None, sc.news(p, t, inb)) for p, t in batch]
+                        calls = [(t, docs[t] if p == 1 else None, sc.news(p, t)) for p, t in batch]
                         rho = sched[batch[0][0] - 1]
                         running[submit[o](R.round_steps, work, key, calls, rho, R.round_step)] = (o, batch)
                 if not running:
@@ -226,7 +185,6 @@ class _Schedule:
         deps = {x: self.deps(*x) for x in self.todo}
         self.level = bottom_levels(deps, {(p, t): float(docs[t]["n_points"]) for p, t in self.todo})
         self.waiting = {x: len(d) for x, d in deps.items()}
-        self.deps_of = deps
         self.users: dict[tuple[int, int], list[tuple[int, int]]] = {}
         for x, d in deps.items():
             for y in d:
@@ -241,37 +199,21 @@ class _Schedule:
         return [x for x in [*d, (p - 1, t)] if x[0] >= 1]
 
     def take(self, o: int) -> list[tuple[int, int]]:
-        """The ready rounds of owner ``o``'s tiles of one round (the most urgent's) and the rounds
-        of its tiles that wait only for those (and for rounds done), taken off the list: by colour
-        (a tile's round after those of its neighbours of a lower colour it waits for), then the
-        most urgent first."""
+        """The ready rounds of owner ``o``'s tiles of one round (the most urgent's), taken off the
+        list: by colour, then the most urgent first."""
         if not self.ready[o]:
             return []
         p = min(self.ready[o], key=lambda x: (-self.level[x], x))[0]
         inb = {x for x in self.ready[o] if x[0] == p}
-        grew = GROUPS
-        while grew:  # (the rounds of o's tiles of round p whose every pending dependency is in the batch)
-            grew = False
-            for y in [z for x in inb for z in self.users.get(x, []) if z[0] == p and self.owner[z[1]] == o]:
-                if y in self.todo and y not in inb and \
-                        sum(d in inb for d in self.deps_of[y]) == self.waiting[y]:
-                    inb.add(y)
-                    grew = True
         batch = sorted(inb, key=lambda x: (self.colour[x[1]], -self.level[x], x))
         self.ready[o].difference_update(batch)
         self.todo.difference_update(batch)
         return batch
 
-    def news(self, p: int, t: int, inb: set[tuple[int, int]] = frozenset()  # type: ignore[assignment]
-             ) -> list[tuple[np.ndarray, np.ndarray] | int | None]:
+    def news(self, p: int, t: int) -> list[tuple[np.ndarray, np.ndarray] | None]:
         """The points in t's halo box that its neighbours ordered since t's last round (see
-        run_rounds); a neighbour whose round is in the same batch ``inb``: its tile (the owner hands
-        them on)."""
-        out: list[tuple[np.ndarray, np.ndarray] | int | None] = []
-        for u in self.nbrs[t]:
-            x = (p if self.colour[u] < self.colour[t] else p - 1, u)
-            out.append(u if x in inb else self.news_of.get(x))
-        return out
+        run_rounds)."""
+        return [self.news_of.get((p if self.colour[u] < self.colour[t] else p - 1, u)) for u in self.nbrs[t]]
 
     def record(self, p: int, results: list[dict[str, Any]]) -> None:
         for res in results:
@@ -280,7 +222,7 @@ class _Schedule:
             self.state[t] = res["state_bytes"]
             for x in self.users.get((p, t), []):
                 self.waiting[x] -= 1
-                if self.waiting[x] == 0 and x in self.todo:  # (not when taken with the rounds it waited for)
+                if self.waiting[x] == 0 and x in self.todo:
                     self.ready[self.owner[x[1]]].add(x)
         for o in range(len(self.peak)):
             self.peak[o] = max(self.peak[o], sum(b for t, b in self.state.items() if self.owner[t] == o))

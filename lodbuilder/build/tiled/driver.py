@@ -146,7 +146,7 @@ def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour:
     assert R.TILE_ROUNDS is not None
     n_owners = min(A.n_owners(ex, parallel), len(tiles))
     points = {t.index: int(size[t.index]) for t in tiles}
-    owner = A.assign(points, colour, n_owners, {t.index: ((t.lo + t.hi) / 2).tolist() for t in tiles})
+    owner = A.assign(points, colour, n_owners)
     need = A.owner_bytes(points, owner, n_owners)
     info: dict[str, Any] = {"rounds": R.TILE_ROUNDS[0], "q": R.TILE_ROUNDS[1], "owners": n_owners,
                             "owner_bytes_estimate": need, "worker_budget": worker_budget, "owner": owner}

@@ -171,17 +171,11 @@ def round_steps(work: Store | str, key: str, calls: list[tuple[int, dict[str, An
                 rho: float | None, step: Any = None) -> dict[str, Any]:
     """One round of each tile of ``calls`` ((tile, doc, news) as :func:`round_step` takes them), in
     the process that owns them, one after the other (``step``: :func:`round_step`); their results.
-    A neighbour's entry of ``news`` that is a tile number stands for that tile's points of this
-    round, made by an earlier call of this batch. A tile that fails is named on the exception
-    (``lodbuilder_tile``)."""
+    A tile that fails is named on the exception (``lodbuilder_tile``)."""
     out = []
-    made: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for t, doc, news in calls:
-        news = [made[n] if isinstance(n, int) else n for n in news]
         with _naming(t):
-            res = (step or round_step)(work, t, key, doc, rho, news)
-        made[t] = (res["g"], res["keys"])
-        out.append(res)
+            out.append((step or round_step)(work, t, key, doc, rho, news))
     return {"tiles": out}
 
 
