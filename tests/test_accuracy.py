@@ -75,6 +75,32 @@ def test_march_matches_the_naive_marcher(seed, kind):
 
 
 @pytest.mark.parametrize("kind", ["plane", "sphere"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fronts_marched_together_stay_apart(kind, seed):
+    # several sources joining at once (a tile's seeds) are marched in one march, their fronts apart:
+    # updates that mixed two fronts where they meet lowered the points there below every source's
+    # own march, 1.6-7 x as much in all (the levels after a tiled build's head covered 1.054 x the
+    # in-memory build, not 1.030)
+    from lodbuilder._kernels.march import multi_source_distance
+
+    rng = np.random.default_rng(seed)
+    pts, h = (jittered_plane(3000, rng), 0.03) if kind == "plane" else (sphere(3000, rng), 0.06)
+    band = build_band(pts, h, 2.5 * h)
+    inv = np.empty(len(pts), np.int32)
+    inv[band.perm] = np.arange(len(pts), dtype=np.int32)
+    src = inv[rng.choice(len(pts), 8, replace=False)].astype(np.int32)
+    args = (band.u, band.keys, band.nbr, band.cs, band.near, band.vcost, np.ones(1), False,
+            np.zeros(1, np.int32), np.zeros((1, 3), np.float32), 0.5)
+    each = np.min([multi_source_distance(*args, src[i:i + 1])[0] for i in range(src.size)], axis=0)
+    mixed = multi_source_distance(*args, src, False)[0]
+    apart = multi_source_distance(*args, src, True)[0]
+    assert (apart[src] == 0).all() and (mixed[src] == 0).all()
+    # how far the points' values fall below the smallest of the sources' own marches, in all
+    below_mixed, below_apart = np.clip(each - mixed, 0, None).sum(), np.clip(each - apart, 0, None).sum()
+    assert below_apart < 0.75 * below_mixed, (below_apart, below_mixed)
+
+
+@pytest.mark.parametrize("kind", ["plane", "sphere"])
 def test_corner_cells_match_a_walk_over_the_neighbour_table(kind):
     """The march skips a voxel's cells by their mask (corner_cells): bit k is set exactly where
     the k-th cell of corner_voxels exists and holds points (a walk in Python over the table)."""

@@ -15,7 +15,7 @@ compile too: run it twice).
     python tools/profile_kernels.py tile.npz --repeat 5   # a tile as order_tile orders it, 5 times
 
 An ``.npz`` input holds ``points`` and optionally ``seeds``, ``voxel_size``, ``band_radius``,
-``timed_idx`` and ``timed_keys`` (the arguments of one ``fastfps`` call of a tiled build's
+``timed_idx``, ``timed_keys`` and ``size`` (the arguments of one ``fastfps`` call of a tiled build's
 ``order_tile``: head points as seeds, the neighbours' halo points as timed seeds).
 """
 
@@ -99,6 +99,7 @@ def _input(path: str) -> tuple[Any, dict[str, Any]]:
         z = np.load(path)
         kw: dict[str, Any] = {k: z[k] for k in ("seeds",) if k in z}
         kw.update({k: float(z[k]) for k in ("voxel_size", "band_radius") if k in z})
+        kw.update({k: int(z[k]) for k in ("size",) if k in z})
         if "timed_idx" in z and z["timed_idx"].size:
             kw["timed_seeds"] = (z["timed_idx"], z["timed_keys"])
         return z["points"], kw

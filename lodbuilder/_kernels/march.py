@@ -375,7 +375,7 @@ def _seed_sample(
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
-    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug, mark0, reach, cmask,
+    ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd, hkv, hpos, scratch, debug, mark0, reach, cmask, apart,
 ):  # pragma: no cover - compiled
     """Propagate the front of sources ``src`` (point indices) labelled ``lab + s`` where it lowers T
     (exact distances within ``reach`` of each source: see :func:`seed_reach`).
@@ -387,6 +387,13 @@ def march_round(
     normals, zero elsewhere; a single row when there is no thin part; ``foot``: each voxel's nearest
     point), a straight distance is exact only along a chord within ``slope`` of both ends' sheets
     (around a tight fold the chord is much shorter than the surface).
+
+    With ``apart`` (several sources joining at once), each source's front is marched apart from the
+    others in the one march: an update reads only the neighbours its own front holds (its label),
+    as one march per source would, and a voxel keeps the smallest of the fronts' values. An update
+    that mixes two fronts where they meet gives values that are neither front's: on a 1M-point sheet
+    in 16 (64) tiles the levels after the head covered 1.054 (1.072) x the in-memory build, against
+    1.030 (1.052) with one march per seed and with the fronts apart.
     """
     trial = np.int32(2 * rnd)
     acc = np.int32(2 * rnd + 1)
@@ -536,9 +543,9 @@ def march_round(
                 nb_ = nbr[m, 2 * ax + 1]
                 ea = T_INF
                 eb = T_INF
-                if na >= 0:
+                if na >= 0 and not (apart and vlab[na] != lv):
                     ea = ts[na]
-                if nb_ >= 0:
+                if nb_ >= 0 and not (apart and vlab[nb_] != lv):
                     eb = ts[nb_]
                 ta = np.float64(_tval(ea))
                 tb = np.float64(_tval(eb))
@@ -555,7 +562,7 @@ def march_round(
                 t2 = np.inf
                 if t1 < np.inf and (e1 & _STAMP) == acc:
                     n2 = nbr[n1, dj]
-                    if n2 >= 0:
+                    if n2 >= 0 and not (apart and vlab[n2] != lv):
                         e2 = ts[n2]
                         if (e2 & _STAMP) == acc:
                             tt = np.float64(_tval(e2))
@@ -792,7 +799,7 @@ def grid_loop(
         nd, pp = march_round(
             src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
             ts, vlab, dq, lq, rank, dstamp, cmark, dirty, nd0, hkv, hpos_v, scratch, debug, np.int64(k + 1),
-            seed_reach(rad, cmin, weighted), cmask,
+            seed_reach(rad, cmin, weighted), cmask, False,
         )
         if pp < 0:
             bad = -1  # debug: a broken heap
@@ -910,7 +917,8 @@ def _join_in_bulk(
     cmask,
 ):  # pragma: no cover - compiled
     """Order points ``src`` at positions ``k``, ``k + 1``, ... with radii ``rad`` and no parent, and
-    march their fronts as one (the full seeding ball each); returns the dirty cells' count and the pops."""
+    march their fronts in one march, apart (the full seeding ball each; see :func:`march_round`);
+    returns the dirty cells' count and the pops."""
     ns = src.shape[0]
     for s in range(ns):
         i = src[s]
@@ -926,15 +934,17 @@ def _join_in_bulk(
     return march_round(
         src, np.int64(k), np.int64(k + 1), u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
         ts, vlab, dq, lq, rank, dstamp, cmark, dirty, np.int64(0), hkv, hpos_v, scratch, False, mark0,
-        np.float64(SEED_RADIUS), cmask,
+        np.float64(SEED_RADIUS), cmask, True,
     )
 
 
 @nb.njit(**JIT)
 def multi_source_distance(
-    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, sources,
+    u, keys, nbr, cs, near, vcost, pcost, weighted, foot, pnrm, slope, sources, apart=False,
 ):  # pragma: no cover - compiled
-    """dq of every point for one march from all ``sources`` at once (for tests and analysis)."""
+    """dq of every point for one march from all ``sources`` at once (for tests and analysis; with
+    ``apart``, the sources' fronts kept apart as when several join an ordering at once: see
+    :func:`march_round`)."""
     m = u.shape[0]
     nv = keys.shape[0]
     cellv, cellof = cell_tables(cs)
@@ -952,7 +962,7 @@ def multi_source_distance(
         np.full(nv, T_INF, np.int64), np.full(nv, -1, np.int32),
         dq, lq, rank, np.full(ncell, -1, np.int32), np.full(ncell, -1, np.int32),
         np.empty(ncell, np.int32), nd0, np.empty(nv, np.int64),
-        np.full(nv, -1, np.int32), seed_scratch(), False, rnd1 * sources.shape[0], np.float64(SEED_RADIUS), cmask,
+        np.full(nv, -1, np.int32), seed_scratch(), False, rnd1 * sources.shape[0], np.float64(SEED_RADIUS), cmask, apart,
     )
     for s in range(sources.shape[0]):
         dq[sources[s]] = 0.0
