@@ -718,9 +718,10 @@ def grid_loop(
             # the seeds (radius inf, all in the set before any candidate) marched together: one
             # march over the band instead of one each, which re-pops most voxels about ln(seeds)
             # times (a tile's 113-132 head seeds: 74 % of its grid phase's pops). Not for a weighted
-            # metric: where two seeds' fronts meet, one march keeps values a little above those of
-            # one march per seed, and the density floor's promise (its first weighted radius at
-            # most rho0) needs the latter's (4.03 against 4.0 in test_adaptive)
+            # metric: where two seeds' fronts meet, one march (their fronts mixed, and apart too)
+            # keeps values a little above those of one march per seed, and the density floor's
+            # promise (its first weighted radius at most rho0) needs the latter's (test_adaptive:
+            # 4.03 against 4.0 with the fronts mixed; apart, it fails as well)
             nd, pp = _bulk_seeds(
                 k, nseed, seeds, u, keys, nbr, cs, cellv, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
                 ts, vlab, dq, val, lq, rank, dstamp, cmark, dirty, hkv, hpos_v, scratch, order, radius, parent,
