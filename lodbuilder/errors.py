@@ -29,6 +29,10 @@ class FormatError(LodbuilderError, ValueError):
     """A scan file is malformed, truncated or lacks what lodbuilder needs (e.g. x/y/z)."""
 
 
+class EmptyScanError(FormatError):
+    """A scan file holds no points (a joint build keeps it as a member with none)."""
+
+
 class UnsupportedFormatError(LodbuilderError, ValueError):
     """No reader or writer is registered for a file's suffix."""
 

@@ -190,3 +190,65 @@ def test_a_file_changed_during_the_build_fails_the_write_by_its_name(survey, tmp
                               "not the rows this build read from it (the file changed during the build); run the "
                               "build again")
     assert keep.read_bytes() == before
+
+
+def _empty_las(path):
+    """A LAZ file with a header and no point (a survey tile over water)."""
+    hdr = laspy.LasHeader(point_format=3, version="1.4")
+    hdr.scales = np.array([0.001, 0.001, 0.001])
+    laspy.LasData(hdr).write(str(path))
+    return path
+
+
+def test_an_empty_tile_file_is_a_member_with_no_points(survey, tmp_path, caplog):
+    """A survey tile with no points (LAZ, or a PLY of 0 vertices) does not fail the survey: it is a
+    member of the joint scan with none, said in the log; the points, their order and radii are
+    those of the survey without it, and every point keeps its own file's scan_id."""
+    import logging
+
+    files, scans = survey
+    empty_laz = _empty_las(tmp_path / "water.laz")
+    empty_ply = tmp_path / "nothing.ply"
+    empty_ply.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                         "property float z\nend_header\n")
+    ref = _read(_build_joint(files[:3], tmp_path / "ref.h5"))
+    with caplog.at_level(logging.WARNING, logger="lodbuilder"):
+        got = _read(_build_joint([files[0], empty_laz, files[1], empty_ply, files[2]], tmp_path / "e.h5"))
+    for key in ("order", "radius", "points"):
+        np.testing.assert_array_equal(got[key], ref[key])
+    members = got["build"]["joint"]["scans"]
+    assert [m["name"] for m in members] == ["tile0", "water", "tile1", "nothing", "tile2"]
+    np.testing.assert_array_equal(got["attrs"]["scan_id"], np.array([0, 2, 4])[ref["attrs"]["scan_id"]])
+    np.testing.assert_array_equal(got["attrs"]["scan_point"], ref["attrs"]["scan_point"])
+    np.testing.assert_array_equal(got["attrs"]["intensity"], ref["attrs"]["intensity"])
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"{empty_laz} holds no points: member 1 of the joint scan 'site', with none",
+        f"{empty_ply} holds no points: member 3 of the joint scan 'site', with none"]
+
+
+def _build_joint(files, out):
+    lodbuilder.build_archive(files, out, joint="site", workers=1, _tile_points=400)
+    return out
+
+
+def test_a_joint_scan_of_empty_files_or_of_one_file_twice_is_refused(survey, tmp_path):
+    """Nothing to build when every input is empty; a file given twice (a glob and the file named
+    again) would store its points twice. One line each; the archive stays as it was."""
+    from lodbuilder.errors import EmptyScanError, InputError
+
+    files, _ = survey
+    a, b = _empty_las(tmp_path / "a.laz"), _empty_las(tmp_path / "b.laz")
+    keep = tmp_path / "t.h5"
+    lodbuilder.build_archive(Scan(points=np.random.default_rng(1).random((300, 3)), name="other"), keep)
+    before = keep.read_bytes()
+    with pytest.raises(EmptyScanError) as exc:
+        lodbuilder.build_archive([a, b], keep, joint="site", workers=1)
+    assert str(exc.value) == "joint scan 'site': none of its 2 inputs holds a point; nothing to build"
+    with pytest.raises(EmptyScanError) as exc:
+        lodbuilder.build_archive([a], keep, joint="site", workers=1)
+    assert str(exc.value) == "joint scan 'site': its input holds no points; nothing to build"
+    with pytest.raises(InputError) as exc:
+        lodbuilder.build_archive([files[0], files[1], files[0]], keep, joint="site", workers=1)
+    assert str(exc.value) == (f"input {files[0]} is given twice (inputs 1 and 3) for the joint scan 'site'; "
+                              "give each file once")
+    assert keep.read_bytes() == before

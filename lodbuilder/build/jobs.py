@@ -30,6 +30,7 @@ from .._resources import (
     map_large_blocks,
     release_pages,
 )
+from ..errors import EmptyScanError
 from ..io.crs import KEY_REPROJECTION
 from ..progress import ProgressCallback
 from .options import BuildOptions
@@ -318,20 +319,40 @@ def tiled_sources(job: ScanJob) -> list[tuple[Any, Any, int | None, Any]]:
     """The streams of a tiled job: ``(stream, pose, member id, reopen)`` for each scan it orders.
     ``reopen`` (a picklable :class:`TiledInput`) opens the same stream again on a worker; None for
     a scan held in memory or read whole (a format that does not stream: the parent hands it out)."""
-    from ..io.stream import open_stream, scan_stream
+    from ..io.stream import scan_stream
 
     crs, override = job.options.crs, job.options.crs_override
     if job.scan is not None:
         scan = read_job_scan(job)  # the in-memory scan with its CRS (reprojected already)
         return [(scan_stream(scan), None, None, None)]
     members = job.members or [{"path": job.path, "scan_index": job.scan_index, "pose": job.pose}]
-    out = [(open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override),
-            m.get("pose"), i if job.members else None) for i, m in enumerate(members)]
-    names = [Path(m["path"]).name for m in members]
-    target = one_crs(out, names, job.options.to_crs)
-    return [(*to_target(s, pose, member, target),
+    out = [(_member_stream(job, m, crs, override), m.get("pose"), i if job.members else None)
+           for i, m in enumerate(members)]
+    kept = [(o, m) for o, m in zip(out, members, strict=True) if o[0].n_points > 0]
+    if not kept:
+        raise EmptyScanError(f"joint scan {job.name!r}: " + ("its input holds no points" if len(members) == 1 else
+                             f"none of its {len(members)} inputs holds a point") + "; nothing to build")
+    for (s, _, i), m in zip(out, members, strict=True):
+        if s.n_points == 0:
+            log.warning("%s holds no points: member %d of the joint scan %r, with none", m["path"], i, job.name)
+    target = one_crs([o for o, _ in kept], [Path(m["path"]).name for _, m in kept], job.options.to_crs)
+    return [(s, pose, member, None) if s.n_points == 0 else
+            (*to_target(s, pose, member, target),
              TiledInput(str(m["path"]), m.get("scan_index"), crs, override, target, pose) if s.streams else None)
             for (s, pose, member), m in zip(out, members, strict=True)]
+
+
+def _member_stream(job: ScanJob, m: dict[str, Any], crs: str | None, override: bool) -> Any:
+    """The stream of one input of a tiled job; a joint scan's input that holds no points (a survey
+    tile over water, say) is a member with none (an empty stream), not a failed build."""
+    from ..io.stream import PointStream, open_stream
+
+    try:
+        return open_stream(m["path"], scan_index=m.get("scan_index"), crs=crs, crs_override=override)
+    except EmptyScanError:
+        if not job.members:
+            raise
+    return PointStream(Path(m["path"]), str(m.get("name")), "empty", 0, {}, {}, False, lambda *_: iter(()))
 
 
 @dataclass(frozen=True)

@@ -227,11 +227,17 @@ def plan_joint(sources: list[ScanSource], archive: Path, options: BuildOptions, 
 
     members: list[dict[str, Any]] = []
     h = hashlib.sha256()
+    seen: dict[tuple[Any, ...], int] = {}
     for i, src in enumerate(sources):
         if src.path is None:
             raise InputError("a joint build orders scan files; save in-memory scans to files first")
         if src.path.resolve() == archive.resolve():
             raise InputError(f"input {src.path} is the archive itself; choose another -o")
+        same = (src.path.resolve(), src.scan_index, None if src.pose is None else str(src.pose.tolist()))
+        if same in seen:  # (a glob and the same file named again: every point would be stored twice)
+            raise InputError(f"input {src.path} is given twice (inputs {seen[same] + 1} and {i + 1}) for the joint "
+                             f"scan {name!r}; give each file once")
+        seen[same] = i
         sha = file_sha256(src.path)
         h.update(sha.encode())
         members.append({"id": i, "name": src.name, "path": os.path.abspath(src.path), "source": src.path.name,

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from .._validate import strict_keywords
-from ..errors import FormatError, InputError, LodbuilderError, ScanFileError
+from ..errors import EmptyScanError, FormatError, InputError, LodbuilderError, ScanFileError
 from ._files import atomic_output, check_input_file, exc_line, library_panic
 from .base import Scan
 from .crs import KEY_UNITS, KEY_WKT, assign_crs, crs_from_user, sidecar
@@ -67,7 +67,7 @@ def _check_scan(p: Path, s: Scan) -> None:
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise FormatError(f"{where}: coordinates have shape {pts.shape}; expected (N, 3)")
     if pts.shape[0] == 0:
-        raise FormatError(f"{where}: holds no points; a scan needs at least one point")
+        raise EmptyScanError(f"{where}: holds no points; a scan needs at least one point")
     if pts.dtype != np.float64 or not pts.flags.c_contiguous:
         s.points = np.ascontiguousarray(pts, dtype=np.float64)
     bad = ~np.isfinite(s.points).all(axis=1)

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FormatError, LodbuilderError
+from ..errors import EmptyScanError, FormatError, LodbuilderError
 from .base import Scan, file_stem
 
 log = logging.getLogger(__name__)
@@ -183,7 +183,7 @@ def _las_stream(p: Path) -> PointStream:
     header = las_header(laspy, p)
     n = header.n_points
     if n == 0:
-        raise FormatError(f"{p}: holds no points; a scan needs at least one point")
+        raise EmptyScanError(f"{p}: holds no points; a scan needs at least one point")
     fields = header.fields
     name = file_stem(p)
 

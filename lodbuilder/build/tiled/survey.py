@@ -44,12 +44,14 @@ READ_TASKS_PER_WORKER = 2
 
 def plan_inputs(sources: list[tuple[Any, ...]], parallel: int, rows: int) -> dict[str, Any]:
     """The read blocks of ``sources`` (``(stream, pose, member, reopen)``) from their headers, and
-    what the scan keeps: its fields (a joint build keeps those every input has, and adds
-    ``scan_id`` and ``scan_point``), metadata and members."""
+    what the scan keeps: its fields (a joint build keeps those every input with points has, and
+    adds ``scan_id`` and ``scan_point``), metadata and members (an input with no points is a
+    member with none: no block)."""
     joint = len(sources) > 1 or sources[0][2] is not None
-    first = sources[0][0]
+    full = [s for s in sources if int(s[0].n_points) > 0] or sources
+    first = full[0][0]
     common = set(first.fields)
-    for s in sources[1:]:
+    for s in full[1:]:
         common &= {k for k, v in s[0].fields.items() if v == first.fields.get(k)}
     names = sorted(common) if joint else list(first.fields)
     fields = {k: [np.dtype(first.fields[k][0]).str, list(first.fields[k][1])] for k in names}
@@ -61,14 +63,14 @@ def plan_inputs(sources: list[tuple[Any, ...]], parallel: int, rows: int) -> dic
     blocks, members, g = [], [], 0
     for i, s in enumerate(sources):
         m = int(s[0].n_points)
-        step = m if s[3] is None else per  # a scan the parent hands out is one block
+        step = max(1, m) if s[3] is None else per  # a scan the parent hands out is one block
         blocks += [[i, a, min(m, a + step), g + a] for a in range(0, m, step)]
         path = getattr(s[0], "path", None)  # (the file a failed task's points came from: see .timing)
         members.append({"id": s[2], "n_points": m, "first": g,
                         "source": Path(path).name if path and Path(path).is_file() else None})
         g += m
     return {"n": n, "fields": fields, "joint": joint, "rows": rows, "step": max(1, n // SAMPLE),
-            "metadata": dict(first.metadata) if not joint else joint_crs(sources),
+            "metadata": dict(first.metadata) if not joint else joint_crs(full),
             "reader": first.reader if not joint else "joint", "members": members, "blocks": blocks}
 
 
