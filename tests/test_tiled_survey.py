@@ -252,3 +252,22 @@ def test_a_joint_scan_of_empty_files_or_of_one_file_twice_is_refused(survey, tmp
     assert str(exc.value) == (f"input {files[0]} is given twice (inputs 1 and 3) for the joint scan 'site'; "
                               "give each file once")
     assert keep.read_bytes() == before
+
+
+def test_a_survey_on_one_las_grid_keeps_integer_coordinates(survey, tmp_path):
+    """Tiles that share a LAS scale keep integer coordinates in the joint scan (they were stored as
+    float64: 24 bytes a point, the 36-file survey's archive 159 MB against 90 MB), exactly; a tile
+    on another grid makes them float64, with the same points."""
+    files, scans = survey
+    other = _las(tmp_path / "fine.laz", scans[2].points, 3)
+    las = laspy.read(str(other))
+    las.change_scaling(scales=[0.0005, 0.0005, 0.0005])
+    las.write(str(other))
+    grid = _read(_build_joint(files[:3], tmp_path / "g.h5"))
+    mixed = _read(_build_joint([files[0], files[1], other], tmp_path / "m.h5"))
+    with lodbuilder.open_archive(tmp_path / "g.h5") as a, lodbuilder.open_archive(tmp_path / "m.h5") as b:
+        assert (a.scan().encoding, b.scan().encoding) == ("int32", "float64")
+        assert a.scan().format_metadata["las_scales"] == [0.001, 0.001, 0.001]
+    merged = np.vstack([s.points for s in scans[:3]])
+    np.testing.assert_array_equal(grid["points"], merged[grid["order"]])
+    np.testing.assert_array_equal(mixed["points"], merged[mixed["order"]])

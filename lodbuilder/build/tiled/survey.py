@@ -70,19 +70,25 @@ def plan_inputs(sources: list[tuple[Any, ...]], parallel: int, rows: int) -> dic
                         "source": Path(path).name if path and Path(path).is_file() else None})
         g += m
     return {"n": n, "fields": fields, "joint": joint, "rows": rows, "step": max(1, n // SAMPLE),
-            "metadata": dict(first.metadata) if not joint else joint_crs(full),
+            "metadata": dict(first.metadata) if not joint else joint_metadata(full),
             "reader": first.reader if not joint else "joint", "members": members, "blocks": blocks}
 
 
-def joint_crs(sources: list[tuple[Any, ...]]) -> dict[str, Any]:
-    """The CRS metadata of a joint scan: the sources' own when they all share one CRS (the build
-    refused them otherwise, or reprojected them to one), else none."""
+def joint_metadata(sources: list[tuple[Any, ...]]) -> dict[str, Any]:
+    """The metadata of a joint scan: the sources' CRS when they all share one (the build refused
+    them otherwise, or reprojected them to one), and their LAS scale when they all share one
+    (with the first one's offset), so that a survey of LAS/LAZ tiles keeps integer coordinates
+    where they are exact on that grid (each block checks: see :func:`.blocks.read_block`)."""
     from ...io.crs import KEY_REPROJECTION, KEY_SOURCE, KEY_UNITS, KEY_WKT
 
     metas = [s[0].metadata for s in sources]
+    out: dict[str, Any] = {}
+    scales = [m.get("las_scales") for m in metas]
+    if scales[0] is not None and metas[0].get("las_offsets") is not None and all(s == scales[0] for s in scales):
+        out = {"las_scales": list(scales[0]), "las_offsets": list(metas[0]["las_offsets"])}
     if not metas[0].get(KEY_WKT) or any(m.get(KEY_WKT) != metas[0][KEY_WKT] for m in metas):
-        return {}
-    out = {k: metas[0][k] for k in (KEY_WKT, KEY_UNITS, KEY_SOURCE) if metas[0].get(k) is not None}
+        return out
+    out.update({k: metas[0][k] for k in (KEY_WKT, KEY_UNITS, KEY_SOURCE) if metas[0].get(k) is not None})
     reps = [m[KEY_REPROJECTION] for m in metas if KEY_REPROJECTION in m]
     if reps:
         out[KEY_REPROJECTION] = reps
