@@ -57,6 +57,25 @@ def test_scans_in_different_crss_are_refused_before_any_work(halves, tmp_path, c
     )
 
 
+@pytest.mark.parametrize("joint", [["--joint"], []], ids=["joint", "collection"])
+def test_one_crs_written_two_ways_is_one_crs(halves, tmp_path, capsys, joint):
+    """Tiles of one survey written by different software: autzen's WKT1 and the same CRS in ESRI
+    WKT (pyproj reads it as EPSG:2994). They were refused as 'different CRSs' with advice to
+    reproject (an identity transform, and float64 coordinates); now one CRS, the first tile's WKT,
+    and a joint scan keeps the tiles' integer coordinates."""
+    a, _, _, right, wkt = halves
+    esri = pyproj.CRS.from_wkt(wkt).to_wkt("WKT1_ESRI")
+    assert esri != wkt
+    b = write_points(tmp_path / "esri.laz", right, crs=esri)
+    rc, out, err = run_cli(capsys, "build", a, b, *joint, "-o", tmp_path / "j.h5", "--no-progress")
+    assert rc == 0, err
+    with lodbuilder.open_archive(tmp_path / "j.h5") as arc:
+        crss = [arc.scan(n).crs for n in arc.scans]
+        assert crss == ([wkt] if joint else [wkt, esri])
+        if joint:
+            assert arc.scan().encoding == "int32"
+
+
 def test_a_scan_without_crs_among_scans_with_one(halves, tmp_path, capsys):
     a, _, _, right, wkt = halves
     bare = write_points(tmp_path / "bare.npy", right)

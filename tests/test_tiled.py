@@ -117,6 +117,9 @@ def test_tiled_and_in_memory_write_the_same_layout(tmp_path, capsys):
     builds = [line.split(", ", 2)[2] for line in out if line.startswith("  build ")]
     assert builds == [f"tiled ({tiles} tiles, seam spacing 0.25: points of different tiles at least 0.2 x the "
                       "level's radius apart)", "engine band"]
+    from lodbuilder.cli.info import _build_line
+
+    assert _build_line({"method": "tiled", "tiled": {"tiles": 1, "seam_alpha": 0.25}}).endswith("tiled (1 tile: no seams)")
 
 
 def test_a_failing_tile_fails_the_scan_and_leaves_the_archive(tmp_path, monkeypatch):

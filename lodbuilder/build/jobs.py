@@ -389,10 +389,10 @@ def one_crs(sources: list[tuple[Any, Any, int | None]], names: list[str], to_crs
 def to_target(stream: Any, pose: Any, member: int | None, target: str | None) -> tuple[Any, Any, int | None]:
     """``(stream, pose, member)`` with the stream wrapped to reproject its chunks to ``target``
     (after its pose, which the wrapper applies) with the transform recorded in its metadata."""
-    from ..io.crs import KEY_WKT, Reprojection, reproject_metadata
+    from ..io.crs import KEY_WKT, Reprojection, reproject_metadata, same_crs
     from ..io.pose import apply_pose
 
-    if target is None or stream.metadata.get(KEY_WKT) == target:
+    if target is None or (stream.metadata.get(KEY_WKT) and same_crs(stream.metadata[KEY_WKT], target)):
         return stream, pose, member
     rep = Reprojection(stream.metadata[KEY_WKT], target)
 

@@ -157,6 +157,8 @@ def _build_line(b: dict) -> str:
     if b.get("method") != "tiled" or not isinstance(tiled, dict):
         return line + f"engine {b.get('engine_stats', {}).get('engine', '?')}"
     alpha = float(tiled.get("seam_alpha", 0.0))
+    if tiled.get("tiles") == 1:
+        return line + "tiled (1 tile: no seams)"
     return line + (f"tiled ({tiled.get('tiles')} tiles, seam spacing {alpha:g}: points of different tiles "
                    f"at least {alpha / (1 + alpha):.2g} x the level's radius apart)")
 

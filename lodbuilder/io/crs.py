@@ -253,8 +253,9 @@ def common_crs(inputs: list[tuple[str, str | None]], to_crs: str | None = None) 
     """The one CRS of scans joined into one ordering (``inputs``: (name, WKT or None) each), or
     ``to_crs`` (WKT) when they are to be reprojected to it.
 
-    Scans in different CRSs are refused naming both, unless ``to_crs`` is given; a scan without a
-    CRS among scans with one is refused (its coordinates cannot be placed), even with ``to_crs``:
+    Scans in different CRSs are refused naming both, unless ``to_crs`` is given (one CRS written
+    two ways is one, :func:`same_crs`: the first scan's WKT is returned); a scan without a CRS
+    among scans with one is refused (its coordinates cannot be placed), even with ``to_crs``:
     ``--crs`` assigns it one."""
     have = [(n, w) for n, w in inputs if w]
     missing = [n for n, w in inputs if not w]
@@ -268,7 +269,7 @@ def common_crs(inputs: list[tuple[str, str | None]], to_crs: str | None = None) 
             raise InputError("--to-crs needs scans with a CRS to reproject from; give them one with --crs")
         return to_crs
     for n, w in have[1:]:
-        if w != have[0][1]:
+        if not same_crs(w, have[0][1]):  # (one CRS written two ways: WKT1 and 2, ESRI and OGC, GeoTIFF keys)
             raise InputError(
                 f"scans {have[0][0]!r} and {n!r} are in different CRSs ({describe_crs(have[0][1])} and "
                 f"{describe_crs(w)}); reproject them to one with --to-crs EPSG:XXXX (needs pyproj), or "

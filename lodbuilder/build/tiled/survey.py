@@ -79,14 +79,14 @@ def joint_metadata(sources: list[tuple[Any, ...]]) -> dict[str, Any]:
     them otherwise, or reprojected them to one), and their LAS scale when they all share one
     (with the first one's offset), so that a survey of LAS/LAZ tiles keeps integer coordinates
     where they are exact on that grid (each block checks: see :func:`.blocks.read_block`)."""
-    from ...io.crs import KEY_REPROJECTION, KEY_SOURCE, KEY_UNITS, KEY_WKT
+    from ...io.crs import KEY_REPROJECTION, KEY_SOURCE, KEY_UNITS, KEY_WKT, same_crs
 
     metas = [s[0].metadata for s in sources]
     out: dict[str, Any] = {}
     scales = [m.get("las_scales") for m in metas]
     if scales[0] is not None and metas[0].get("las_offsets") is not None and all(s == scales[0] for s in scales):
         out = {"las_scales": list(scales[0]), "las_offsets": list(metas[0]["las_offsets"])}
-    if not metas[0].get(KEY_WKT) or any(m.get(KEY_WKT) != metas[0][KEY_WKT] for m in metas):
+    if not metas[0].get(KEY_WKT) or not all(m.get(KEY_WKT) and same_crs(m[KEY_WKT], metas[0][KEY_WKT]) for m in metas):
         return out
     out.update({k: metas[0][k] for k in (KEY_WKT, KEY_UNITS, KEY_SOURCE) if metas[0].get(k) is not None})
     reps = [m[KEY_REPROJECTION] for m in metas if KEY_REPROJECTION in m]
