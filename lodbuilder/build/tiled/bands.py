@@ -52,14 +52,16 @@ def index_sums(n: int) -> list[int]:
     return [(n * (n - 1) // 2) & MASK, ((n - 1) * n * (2 * n - 1) // 6) & MASK]
 
 
-def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[list[Any]]) -> np.ndarray:
-    """The band's bucket: its points' records in stored order, each position filled once."""
-    rec = record_dtype(fields)
+def _ordered(work: Path, band: int, k0: int, k1: int, fields: dict[str, Any], pieces: list[list[Any]],
+             encoding: str) -> np.ndarray:
+    """The band's bucket (its coordinates in ``encoding``): its points' records in stored order,
+    each position filled once."""
+    rec = record_dtype(fields, encoding)
     parts = bucket_parts(as_store(work), pieces, rec)  # (scattered piece by piece: no copy of the bucket)
     pos = np.concatenate([p["pos"] for p in parts]) - k0 if parts else np.zeros(0, np.int64)
     if pos.shape[0] != k1 - k0 or (pos.size and (pos.min() < 0 or pos.max() >= k1 - k0)) \
             or np.bincount(pos, minlength=k1 - k0).max(initial=1) != 1:
-        raise RuntimeError(f"bucket {band} holds {pos.shape[0]} rows, not each of positions {k0} to {k1} once")
+        raise InputError(f"bucket {band} holds {pos.shape[0]} rows, not each of positions {k0} to {k1} once")
     srt = np.empty(k1 - k0, rec)
     out, a = opaque_rows(srt), 0
     for p in parts:
@@ -75,17 +77,18 @@ def _arrays(work: Any, band: int, k0: int, k1: int, rows: int, args: dict[str, A
     from ...sampling.spacing import axis_max, axis_min
 
     n, name, bands = int(args["n"]), args["name"], args["radii_bands"]
-    srt = _ordered(work, band, k0, k1, args["fields"], args["pieces"])
+    xyz = args.get("xyz", "float64")
+    srt = _ordered(work, band, k0, k1, args["fields"], args["pieces"], xyz)
     radius = [(WL.radius(b), a, z) for b, (a, z) in enumerate(bands)]
     g = segment(work, order_files(work), "<i8", k0, k1)
     rad = segment(work, radius, "<f8", k0, k1)
     par = segment(work, [(WL.parent(b), a, z) for b, (a, z) in enumerate(bands)], "<i8", k0, k1)
     last = math.inf if k0 == 0 else float(segment(work, radius, "<f8", k0 - 1, k0)[0])
     where = f"scan {name!r}"
-    pts = np.ascontiguousarray(srt["xyz"])
+    offset, scale = L.metadata_scale(args["metadata"])
+    pts = np.ascontiguousarray(L.decode_points(srt["xyz"], xyz, offset, scale))
     check_points(pts, where, k0)
     check_rows(g, rad, par, n, k0, last, where)
-    offset, scale = L.metadata_scale(args["metadata"])
     enc = [encode_exactly(pts[a:a + rows], args["encoding"], offset, scale, where, k0 + a)
            for a in range(0, k1 - k0, rows)]
     arrays = {L.D_SOURCE_INDEX: g, L.D_RADIUS: rad, L.D_PARENT: par, L.D_POINTS: np.concatenate(enc)}
@@ -141,7 +144,7 @@ def write_phase(ex: Any, work: Any, part: Path, name: str, sp: Any, finish: Call
                          f"{rows}; run the build again with --force")
     bands = [(k0, min(n, k0 + block)) for k0 in range(0, n, block)]
     args = {"name": name, "n": n, "fields": sp.fields, "metadata": sp.metadata, "encoding": sp.encoding,
-            "radii_bands": radii["bands"]}
+            "xyz": buckets.get("xyz", "float64"), "radii_bands": radii["bands"]}
     got = {b: doc for b in range(len(bands)) if (doc := done(work, WL.chunks_piece(b))) is not None}
 
     def call(b: int, spec: Any) -> tuple[int, Any, tuple]:

@@ -32,10 +32,14 @@ from .workdir import BUCKET_ZIP_LEVEL, Spill, opaque_rows, read_rows, segment, u
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 BUCKET_FILES = 16  # bucket files per read block, at most (see bucket_run)
+#: a bucket record's coordinates as the archive stores them (the scan's encoding): the buckets are
+#: the peak of a survey's work files, and float64 made them 1.27-1.54 x an int32 archive
+XYZ = {"float64": "<f8", "float32": "<f4", "int32": "<i4", "int64": "<i8"}
 
 
-def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]]) -> np.dtype:
-    spec: list[Any] = [("pos", "<i8"), ("xyz", "<f8", (3,))]
+def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]], encoding: str = "float64") -> np.dtype:
+    """A bucket record: stored position, coordinates in ``encoding`` (see :data:`XYZ`), attributes."""
+    spec: list[Any] = [("pos", "<i8"), ("xyz", XYZ[encoding], (3,))]
     for i, (_, (dt, shape)) in enumerate(fields.items()):
         spec.append((f"a{i}", dt, tuple(shape)) if shape else (f"a{i}", dt))
     return np.dtype(spec)
@@ -81,22 +85,27 @@ def bucket_block(work: Store | str, b: int, source: Any, member: int | None, sta
     w = as_store(work)
     stream, pose = source() if callable(source) else source
     fields = {k: (v[0], tuple(v[1])) for k, v in spec["fields"].items()}
-    rec = record_dtype(fields)
+    enc, offset, scale = spec["xyz"]
+    rec = record_dtype(fields, enc)
     n_buckets = (n + block - 1) // block
     out = _Buckets(w, b, n_buckets, run)
     sums = [0, 0]
+    stored: np.ndarray | None = np.empty(0)
     try:
         with w.open(WL.rank_file(b)) as fr:
             for pts, at in block_rows(stream, pose, member, start, stop, spec):
                 sums = rows_sum(sums, pts, at)
                 r = np.empty(pts.shape[0], rec)
-                r["xyz"] = pts
+                stored = L.encode_as(pts, enc, offset, scale)  # (the read phase found every row exact)
+                if stored is None:
+                    break  # (not the rows the read read: said below)
+                r["xyz"] = stored
                 if at is not None:  # (None: no field kept)
                     for i in range(len(fields)):
                         r[f"a{i}"] = at[f"a{i}"]
                 r["pos"] = read_rows(fr, np.dtype("<i8"), r.shape[0])
                 out.split(r, block)
-        if sums != [int(x) for x in crc]:
+        if stored is None or sums != [int(x) for x in crc]:
             raise ScanFileError(f"{stream.path}: rows {start} to {stop} are not the rows this build read from it "
                                 "(the file changed during the build); run the build again")
         files = {name: f.commit() for name, f in out.out.items()}
@@ -156,7 +165,8 @@ def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[
     block = band_rows(n, BLOCK)  # the write's bands: whole row groups of the archive
     run = bucket_run((n + block - 1) // block)
     spec = {"fields": {k: [v[0], list(v[1])] for k, v in sp.fields.items()}, "rows": sp.rows,
-            "joint": len(sp.members) > 1 or sp.members[0].get("id") is not None}
+            "joint": len(sp.members) > 1 or sp.members[0].get("id") is not None,
+            "xyz": [sp.encoding, *(None if x is None else x.tolist() for x in L.metadata_scale(sp.metadata))]}
     results: dict[int, dict[str, Any]] = {}
     calls: list[tuple[int, Any, tuple]] = []
     inline: list[tuple[int, Any, tuple]] = []
@@ -186,7 +196,7 @@ def buckets_phase(ex: Any, work: Any, name: str, sp: Spill, sources: list[tuple[
         collect(futs, lambda b: f"the permutation of block {b + 1}", name, n, progress, "permute", record,
                 lambda r: int(np.sum(r["counts"])), sum(int(np.sum(r["counts"])) for r in results.values()))
     doc = bucket_pieces([results[b] for b in range(len(raw))], block)
-    return mark(work, "buckets", doc)
+    return mark(work, "buckets", {**doc, "xyz": sp.encoding})
 
 
 def band_rows(n: int, block: int) -> int:
@@ -232,7 +242,9 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
     from ...archive.scanwriter import ScanWriter
 
     block = int(buckets["block"])
-    rec = record_dtype(fields)
+    enc = buckets.get("xyz", "float64")  # (a work directory of an older lodbuilder: float64)
+    rec = record_dtype(fields, enc)
+    offset, scale = L.metadata_scale(metadata)
     names = list(fields)
     bands = range(len(radii["bands"]))
     frad = [(WL.radius(b), a, z) for b, (a, z) in zip(bands, radii["bands"], strict=True)]
@@ -250,7 +262,8 @@ def _write_buckets(work: Path, part: Path, name: str, n: int, fields: dict[str, 
             del r
             g = _order_block(work, k0, k1)
             rad, par = segment(local, frad, "<f8", k0, k1), segment(local, fpar, "<i8", k0, k1)
-            w.write(srt["xyz"], g, rad, par, attributes={k: srt[f"a{i}"] for i, k in enumerate(names)})
+            w.write(L.decode_points(srt["xyz"], enc, offset, scale), g, rad, par,
+                    attributes={k: srt[f"a{i}"] for i, k in enumerate(names)})
             report(progress, "write", k1, n)
         return w.finish(n_ordered=n, seeds=seeds, build=build, provenance=provenance)
 
