@@ -89,9 +89,12 @@ def _arrays(work: Any, band: int, k0: int, k1: int, rows: int, args: dict[str, A
     pts = np.ascontiguousarray(L.decode_points(srt["xyz"], xyz, offset, scale))
     check_points(pts, where, k0)
     check_rows(g, rad, par, n, k0, last, where)
-    enc = [encode_exactly(pts[a:a + rows], args["encoding"], offset, scale, where, k0 + a)
-           for a in range(0, k1 - k0, rows)]
-    arrays = {L.D_SOURCE_INDEX: g, L.D_RADIUS: rad, L.D_PARENT: par, L.D_POINTS: np.concatenate(enc)}
+    if xyz == args["encoding"]:  # (the buckets hold the stored coordinates already)
+        stored = np.ascontiguousarray(srt["xyz"])
+    else:  # (buckets of an older lodbuilder: float64)
+        stored = np.concatenate([encode_exactly(pts[a:a + rows], args["encoding"], offset, scale, where, k0 + a)
+                                 for a in range(0, k1 - k0, rows)])
+    arrays = {L.D_SOURCE_INDEX: g, L.D_RADIUS: rad, L.D_PARENT: par, L.D_POINTS: stored}
     for i, key in enumerate(args["fields"]):
         arrays[f"{L.G_ATTRIBUTES}/{key}"] = np.ascontiguousarray(srt[f"a{i}"])
     tail = np.flatnonzero((rad != 0) | (par != -1))
