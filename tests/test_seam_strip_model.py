@@ -30,12 +30,17 @@ def test_fps_keys_are_the_distances_to_the_prefix():
 
 def test_a_timed_seed_joins_at_its_key():
     p = sheet(400, "uniform")
-    seed_key = 0.2
-    order, key = fps(p, np.full(400, np.inf), p[:1] + 0.5, np.array([seed_key]), 0.0, 400)
+    seed, seed_key = np.array([[0.5, 0.5, 0.0]]), 0.2  # (on the sheet, not one of its points)
+    order, key = fps(p, np.full(400, np.inf), seed, np.array([seed_key]), 0.0, 400)
     first_after = int(np.argmax(key < seed_key))  # the seed lowers every distance from there on
-    d = _dist(p, order[first_after : first_after + 1], order[:first_after])[0]
-    seed = np.sqrt(((p[order[first_after]] - (p[0] + 0.5)) ** 2).sum())
-    assert key[first_after] == min(d, seed)
+    assert 0 < first_after and np.all(key[first_after:] <= seed_key)
+    nearer_the_seed = 0
+    for j in range(first_after, 400):
+        d = _dist(p, order[j : j + 1], order[:j])[0]
+        to_seed = float(np.sqrt(((p[order[j]] - seed[0]) ** 2).sum()))
+        assert key[j] == min(d, to_seed)
+        nearer_the_seed += to_seed < d
+    assert nearer_the_seed > 0  # (the check above tells a seed that never joined)
 
 
 def _tiles(n=3000, tiles=2, head_points=12):

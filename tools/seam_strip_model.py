@@ -176,30 +176,10 @@ def merge_defer(p: np.ndarray, res: dict[int, tuple], tile: np.ndarray, face: np
 
 def merge_strip(p: np.ndarray, res: dict[int, tuple], face: np.ndarray, head: np.ndarray, width: float,
                 cell: float) -> np.ndarray:
-    """The strip within ``width`` of a shared face ordered again by an exact lazy farthest point
-    sampling (keys: distance to every accepted point; the head's distance bounds them first), the
-    other points at their tile keys."""
-    cells = _Cells(p, cell)
-    for h in head:
-        cells.add(int(h))
-    hd = cKDTree(p[head]).query(p)[0]
-    strip = face < width
-    heap = [(-(hd[i] if strip[i] else k), 0, int(i)) for g, key in res.values() for i, k in zip(g, key, strict=True)]
-    seen = np.zeros(p.shape[0], bool)
-    seen[np.concatenate([head, *[g for g, _ in res.values()]])] = True
-    heap += [(-hd[i], 0, int(i)) for i in np.flatnonzero(strip & ~seen)]
-    heapq.heapify(heap)
-    out = []
-    while heap:
-        nk, _, i = heapq.heappop(heap)
-        if strip[i]:
-            d = min(cells.nearest(p[i], -nk), -nk)
-            if heap and d < -heap[0][0]:
-                heapq.heappush(heap, (-d, 1, i))
-                continue
-        out.append(i)
-        cells.add(i)
-    return np.array(out, np.int64)
+    """The strip within ``width`` of a shared face ordered again (:func:`reorder`; every point of the
+    strip, those its tile left unordered too), the other points at their tile keys."""
+    keys = {int(i): float(k) for g, key in res.values() for i, k in zip(g, key, strict=True)}
+    return np.fromiter(reorder(p, keys, np.setdiff1d(np.flatnonzero(face < width), head), head, cell), np.int64)
 
 
 def reorder(p: np.ndarray, keys: dict[int, float], again: np.ndarray, head: np.ndarray, cell: float
