@@ -32,14 +32,15 @@ from .workdir import BUCKET_ZIP_LEVEL, Spill, opaque_rows, read_rows, segment, u
 
 BLOCK = 1 << 18  # rows per destination bucket (one bucket is in memory at a time)
 BUCKET_FILES = 16  # bucket files per read block, at most (see bucket_run)
-#: a bucket record's coordinates as the archive stores them (the scan's encoding): the buckets are
-#: the peak of a survey's work files, and float64 made them 1.27-1.54 x an int32 archive
-XYZ = {"float64": "<f8", "float32": "<f4", "int32": "<i4", "int64": "<i8"}
 
 
 def record_dtype(fields: dict[str, tuple[str, tuple[int, ...]]], encoding: str = "float64") -> np.dtype:
-    """A bucket record: stored position, coordinates in ``encoding`` (see :data:`XYZ`), attributes."""
-    spec: list[Any] = [("pos", "<i8"), ("xyz", XYZ[encoding], (3,))]
+    """A bucket record: stored position, coordinates as the archive stores them (``encoding``, one of
+    :data:`lodbuilder.archive.layout.ENCODINGS`, each a NumPy dtype's name; the buckets are the peak
+    of a survey's work files, and float64 made them 1.27-1.54 x an int32 archive), attributes."""
+    if encoding not in L.ENCODINGS:
+        raise ValueError(f"unknown coordinate encoding {encoding!r}")
+    spec: list[Any] = [("pos", "<i8"), ("xyz", np.dtype(encoding).newbyteorder("<"), (3,))]
     for i, (_, (dt, shape)) in enumerate(fields.items()):
         spec.append((f"a{i}", dt, tuple(shape)) if shape else (f"a{i}", dt))
     return np.dtype(spec)
