@@ -57,7 +57,7 @@ def build_archive(
     voxel_size: float | None = None, band_radius: float | None = None, seeds: Any = None,
     size: int | None = None, rho: float | None = None, force: bool = False, overwrite: bool = False,
     max_memory: Any = None, joint: bool | str = False, seam_spacing: float | None = None,
-    crs: str | None = None, crs_override: bool = False, to_crs: str | None = None,
+    seam_rounds: bool = False, crs: str | None = None, crs_override: bool = False, to_crs: str | None = None,
     wait: float | None = None, work_dir: str | os.PathLike[str] | None = None, options: BuildOptions | None = None,
     raise_on_failure: bool | None = None, progress: ProgressCallback = None, on_status: Any = None,
     _tile_points: int | None = None, _tile_passes: int | None = None,
@@ -84,8 +84,9 @@ def build_archive(
     seconds (default: until it finishes; 0: not at all), then raises ArchiveBusyError.
 
     What each scan stores is decided by the option keywords ``voxel_size``, ``band_radius``,
-    ``seeds``, ``size``, ``rho``, ``max_memory``, ``seam_spacing``, ``crs``, ``crs_override``, ``to_crs`` and the
-    feature options (``importance``, ``adaptive``, ``density_floor``, ``outlier_threshold``, ...),
+    ``seeds``, ``size``, ``rho``, ``max_memory``, ``seam_spacing``, ``seam_rounds``, ``crs``,
+    ``crs_override``, ``to_crs`` and the feature options (``importance``, ``adaptive``,
+    ``density_floor``, ``outlier_threshold``, ...),
     documented once in :class:`~lodbuilder.build.options.BuildOptions`; or by ``options``, a
     BuildOptions made beforehand (giving both is refused). Scans larger than ``max_memory`` take
     the tiled path (:mod:`lodbuilder.build.tiled`). ``joint=True`` (or a scan name) orders every
@@ -100,7 +101,8 @@ def build_archive(
     from .build.runner import build
 
     given = {"voxel_size": voxel_size, "band_radius": band_radius, "seeds": seeds, "size": size, "rho": rho,
-             "max_memory": max_memory, "seam_spacing": seam_spacing, "crs": crs, "to_crs": to_crs,
+             "max_memory": max_memory, "seam_spacing": seam_spacing,
+             "seam_rounds": None if seam_rounds is False else seam_rounds, "crs": crs, "to_crs": to_crs,
              "tile_points": _tile_points, "tile_passes": _tile_passes,
              **{k: v for k, v in features.items() if v is not None}}
     options = _one_options(options, given, crs_override)

@@ -95,12 +95,10 @@ def test_the_readme_gives_a_real_cluster_the_local_clusters_settings():
                 assert dask.config.get(key) == value, key
 
 
-def test_the_rounds_warm_up_is_preloaded_only_when_rounds_are_on(monkeypatch):
+def test_the_rounds_warm_up_is_preloaded_only_when_rounds_are_on():
     """The forkserver runs the resumable engine's warm-up only for builds with radius rounds (it
     cost every pool build about 0.4 CPU-s before its workers could fork)."""
     from lodbuilder.build import executors
-    from lodbuilder.build.tiled import rounds
 
     assert executors.preload() == executors.PRELOAD
-    monkeypatch.setattr(rounds, "TILE_ROUNDS", (8, 1.25))
-    assert executors.preload() == [*executors.PRELOAD, "lodbuilder.build._warm_rounds"]
+    assert executors.preload(rounds=True) == [*executors.PRELOAD, "lodbuilder.build._warm_rounds"]

@@ -34,7 +34,7 @@ def test_rounds_keep_the_guarantees_and_the_tiles_apart(tmp_path, monkeypatch):
     n = len(pts)
     one, _ = _build(tmp_path, pts, tile_points=1200, name="one", seam_spacing=0)
     monkeypatch.setattr(rounds, "TILE_ROUNDS", (8, 1.25))
-    d, _ = _build(tmp_path, pts, tile_points=1200, name="rounds", seam_spacing=0)
+    d, _ = _build(tmp_path, pts, tile_points=1200, name="rounds", seam_spacing=0, seam_rounds=True)
     tiled = d["build"]["tiled"]
     assert tiled["tiles"] >= 12
     rows = [r for r in d["build"]["tasks"]["rows"] if r[0].startswith(("order_", "round_"))]

@@ -11,7 +11,7 @@ from test_tiled import wavy
 
 import lodbuilder
 from lodbuilder.build.tiled import affinity, rounds
-from lodbuilder.errors import BuildError
+from lodbuilder.errors import BuildError, MemoryBudgetError
 from lodbuilder.io import write_points
 
 ROUNDS = (6, 1.25)
@@ -45,7 +45,7 @@ def _build(tmp_path, pts, name, **kw):
 
 def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
-    d = _build(tmp_path, pts, "par")
+    d = _build(tmp_path, pts, "par", seam_rounds=True)
     tiled = d["build"]["tiled"]
     assert tiled["tiles"] >= 8
     assert tiled["rounds"]["used"] is True and tiled["rounds"]["owners"] == 2
@@ -63,25 +63,31 @@ def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
     assert np.all(cr[1:n] <= d["radius"][1:n] * (1 + 1e-12))
     # the one-task rounds (every state in one process) give the same order and radii
     monkeypatch.setattr(affinity, "run_rounds", _one_task)
-    ref = _build(tmp_path, pts, "par")
+    ref = _build(tmp_path, pts, "par", seam_rounds=True)
     assert [r[0] for r in ref["build"]["tasks"]["rows"] if r[0].startswith(("order_", "round_"))] == ["order_rounds"]
     np.testing.assert_array_equal(d["order"], ref["order"])
     np.testing.assert_array_equal(d["radius"], ref["radius"])
     # and they differ from one pass (the rounds did something)
-    monkeypatch.setattr(rounds, "TILE_ROUNDS", None)
     one = _build(tmp_path, pts, "par")
+    assert one["build"]["tiled"]["rounds"] is None
     assert not np.array_equal(one["order"], d["order"])
 
 
-def test_rounds_that_do_not_fit_the_worker_budget_fall_back_to_one_pass(tmp_path, monkeypatch, pts):
+def test_rounds_that_do_not_fit_the_worker_budget_are_refused(tmp_path, monkeypatch, pts):
+    """Seam rounds asked for and workers too small for the tiles' states: a one-line refusal with
+    the budget that would do, and the archive the build adds to is left as it was."""
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
-    monkeypatch.setattr(affinity, "STATE_BYTES_PER_POINT", 10**9)
-    d = _build(tmp_path, pts, "big")
-    info = d["build"]["tiled"]["rounds"]
-    assert info["used"] is False
-    assert info["reason"].endswith("MiB budget of a worker: one pass instead")
-    kinds = {r[0] for r in d["build"]["tasks"]["rows"]}
-    assert "order_tile" in kinds and "round_steps" not in kinds
+    monkeypatch.setattr(affinity, "STATE_BYTES_PER_POINT", 10**6)
+    src, arc = tmp_path / "pts.npy", tmp_path / "keep.h5"
+    write_points(src, pts)
+    lodbuilder.build_archive(src, arc, name="keep")
+    before = arc.read_bytes()
+    with pytest.raises(MemoryBudgetError, match=r"^seam rounds need about \d+\.\d\d GiB in each of 2 worker\(s\) for "
+                       r"the tiles' ordering states, over the 0\.89 GiB each has of max_memory=3\.00 GiB; give "
+                       r"max_memory of at least \d+ GiB, or build without seam rounds$"):
+        lodbuilder.build_archive(src, arc, _tile_points=700, workers=2, name="big", seam_rounds=True,
+                                 max_memory="3GiB")
+    assert arc.read_bytes() == before
 
 
 def test_a_failing_tile_fails_the_build_naming_it(tmp_path, monkeypatch, pts):
@@ -90,16 +96,16 @@ def test_a_failing_tile_fails_the_build_naming_it(tmp_path, monkeypatch, pts):
     monkeypatch.setattr(rounds, "round_step", failing_step)  # (a module the workers import alone)
     with pytest.raises(BuildError, match=r"ordering of tile 4 of \d+ in round 1 of 7 failed: RuntimeError: "
                                          r"boom in the rounds"):
-        _build(tmp_path, pts, "fail")
+        _build(tmp_path, pts, "fail", seam_rounds=True)
     assert not (tmp_path / "fail.h5").exists()
     # the work is kept, with no tile ordering marked done; the resumed build redoes the rounds and
     # gives the order of a build that did not fail
     (work,) = (tmp_path / ".fail.h5.parts").glob("*.work")
     assert (work / "distribute.json").exists() and list(work.glob("order*.json")) == []
     monkeypatch.setattr(rounds, "round_step", step)
-    resumed = _build(tmp_path, pts, "fail")
+    resumed = _build(tmp_path, pts, "fail", seam_rounds=True)
     assert resumed["build"]["tiled"]["rounds"]["used"] is True
-    clean = _build(tmp_path, pts, "clean")
+    clean = _build(tmp_path, pts, "clean", seam_rounds=True)
     np.testing.assert_array_equal(resumed["order"], clean["order"])
     np.testing.assert_array_equal(resumed["radius"], clean["radius"])
 
@@ -117,10 +123,10 @@ def test_owners_balance_each_colour():
 def test_dask_workers_own_the_tiles_as_the_pool_does(tmp_path, monkeypatch, pts):
     pytest.importorskip("dask.distributed")
     monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
-    pool = _build(tmp_path, pts, "pool")
+    pool = _build(tmp_path, pts, "pool", seam_rounds=True)
     src = tmp_path / "pts.npy"
     out = tmp_path / "dask.h5"
-    lodbuilder.build_archive(src, out, _tile_points=700, seam_spacing=0, dask_local=2, name="dask")
+    lodbuilder.build_archive(src, out, _tile_points=700, seam_spacing=0, dask_local=2, name="dask", seam_rounds=True)
     with lodbuilder.open_archive(out) as arc:
         v = arc.scan("dask")
         order, radius, build = v.source_index[:], v.radius[:], v.build

@@ -28,7 +28,8 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
 * ``order_cpu_seconds``: the CPU seconds of the order phase's tasks (every ``order_tile``, or the one
   ``order_rounds``), from the same table.
 * With ``--rounds R --q Q``: the tiles ordered in R radius rounds of ratio Q
-  (:mod:`lodbuilder.build.tiled.rounds`, private), and ``round_costs``: one tile (the first box and
+  (:mod:`lodbuilder.build.tiled.rounds`; ``--rounds auto``: the build option ``seam_rounds`` as
+  it is, its own R and q), and ``round_costs``: one tile (the first box and
   its halo) ordered alone by :mod:`lodbuilder.sampling.resumable` in those rounds without sources:
   the largest bytes of its state in the grid phase and in the tail, and the CPU seconds (least of
   3) of one ordering (``cpu_one``), of the rounds with the state kept (``cpu_rounds_kept``) and of
@@ -171,16 +172,16 @@ def covering(pts: np.ndarray, order: np.ndarray, k: int) -> float:
 
 
 def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: dict,
-             rounds: tuple[int, float] | None = None, workers: int = 1) -> dict[str, Any]:
+             rounds: tuple[int, float] | str | None = None, workers: int = 1) -> dict[str, Any]:
     import lodbuilder
 
-    kw: dict[str, Any] = {"_tile_points": tile_points, "workers": workers}
+    kw: dict[str, Any] = {"_tile_points": tile_points, "workers": workers, "seam_rounds": rounds is not None}
     if seam is not None:
         kw["seam_spacing"] = seam
     out = d / f"t{tile_points}.h5"
     t0 = time.perf_counter()
     sizes: dict[str, Any] = {}
-    with tile_rounds(rounds), (state_sizes() if workers == 1 else contextlib.nullcontext(sizes)) as sizes:
+    with tile_rounds(None if rounds == "auto" else rounds), (state_sizes() if workers == 1 else contextlib.nullcontext(sizes)) as sizes:
         lodbuilder.build_archive(f, out, **kw)
     seconds = time.perf_counter() - t0
     with lodbuilder.open_archive(out) as arc:
@@ -237,7 +238,8 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "spacing_over_radius_min": tiled.get("spacing_over_radius_min"),
             "merge_seconds": round(sum(r[5] for r in merge), 3) if merge else None,
             "merge_cpu_seconds": round(sum(r[6] for r in merge), 3) if merge else None,
-            "order_cpu_seconds": round(sum(r[6] for r in order), 3), "rounds": rounds, **sizes,
+            "order_cpu_seconds": round(sum(r[6] for r in order), 3),
+            "rounds": [rinfo["rounds"], rinfo["q"]] if rinfo.get("used") else None, **sizes,
             "workers": workers, "order_wall_seconds": (build.get("phase_seconds") or {}).get("order"),
             "rounds_used": rinfo.get("used"), "rounds_reason": rinfo.get("reason"),
             "owner_state_bytes": rinfo.get("owner_state_bytes"),
@@ -396,8 +398,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="build with a decimated copy (the coarse level's input) of about n / D points, as a "
                         "survey's (21.56M points -> 400,000: 54); 0: the library's choice (it asks for n / 8 at "
                         "these sizes and its cell grid gives 1 point in 4-6)")
-    p.add_argument("--rounds", type=int, default=0,
-                   help="order the tiles in this many radius rounds (lodbuilder.build.tiled.rounds; 0: one pass)")
+    p.add_argument("--rounds", default="0",
+                   help="order the tiles in this many radius rounds (lodbuilder.build.tiled.rounds; 0: one pass; "
+                        "auto: the build option seam_rounds, its rounds and ratio)")
     p.add_argument("--q", type=float, default=1.1, help="the rounds' radius ratio")
     p.add_argument("--survey", type=int, nargs=2, default=[2, 2], metavar=("NX", "NY"),
                    help="autzen: NX x NY copies (3 3 with --thin 1: about 1M points)")
@@ -411,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--one-pass-too", action="store_true",
                    help="with --rounds: also build each case in one pass, alternating (order CPU and wall against it)")
     args = p.parse_args(argv)
-    rounds = (args.rounds, args.q) if args.rounds else None
+    rounds = "auto" if args.rounds == "auto" else (int(args.rounds), args.q) if int(args.rounds) else None
     doc = stamp("bench_seams", argv, inputs=", ".join(args.inputs), synthetic=args.inputs != ["autzen"])
     doc["cases"] = []
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
@@ -429,7 +432,7 @@ def main(argv: list[str] | None = None) -> int:
                     with coarse_points(n_est // dec if dec else None):
                         case = one_case(f, d, max(1000, int(1.05 * n_est / tiles)), seam, ref, rr, args.workers)
                     if rr and not args.no_round_costs:
-                        case["round_costs"] = round_costs(f, case, rr)
+                        case["round_costs"] = round_costs(f, case, tuple(case["rounds"]))
                     case = {"input": name, "synthetic": name != "autzen", "decimation_asked": dec, **case,
                             "seconds_in_memory": round(ref["seconds"], 2)}
                     doc["cases"].append(case)

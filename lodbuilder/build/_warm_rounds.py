@@ -1,5 +1,5 @@
-"""Preloaded by the forkserver after :mod:`._warm` when radius rounds are on
-(:data:`.tiled.rounds.TILE_ROUNDS`): one tiny resumable ordering, so that the rounds' owners, forked
+"""Preloaded by the forkserver after :mod:`._warm` for a build with radius rounds (the option
+``seam_rounds``): one tiny resumable ordering, so that the rounds' owners, forked
 from the server, find the resumable engine's kernels loaded (each would load them from numba's cache
 on its first step, inside the order phase: about 0.4 CPU-s an owner). Builds without rounds skip it."""
 

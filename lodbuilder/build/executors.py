@@ -30,10 +30,10 @@ DASK_CONNECT_TIMEOUT = "15s"
 PRELOAD = ["lodbuilder.build.jobs", "lodbuilder.build._warm"]
 
 
-def preload() -> list[str]:
-    """:data:`PRELOAD`, and the radius rounds' warm-up (:mod:`._warm_rounds`) when rounds are on."""
-    rounds = sys.modules.get("lodbuilder.build.tiled.rounds")  # (not imported here: only read)
-    return PRELOAD + (["lodbuilder.build._warm_rounds"] if getattr(rounds, "TILE_ROUNDS", None) else [])
+def preload(rounds: bool = False) -> list[str]:
+    """:data:`PRELOAD`, and the radius rounds' warm-up (:mod:`._warm_rounds`) for a build with
+    ``seam_rounds``."""
+    return PRELOAD + (["lodbuilder.build._warm_rounds"] if rounds else [])
 
 
 def one_line(exc: BaseException) -> str:
@@ -70,7 +70,9 @@ def start_method() -> str:
     return "fork" if main_file is not None and not os.path.isfile(main_file) else "forkserver"
 
 
-def mp_context() -> Any:
+def mp_context(rounds: bool = False) -> Any:
+    """The workers' multiprocessing context (:func:`start_method`); a forkserver not yet started
+    will preload :func:`preload` (``rounds``: with the radius rounds' warm-up)."""
     import multiprocessing
 
     method = start_method()
@@ -78,11 +80,12 @@ def mp_context() -> Any:
     if method == "forkserver":
         # the server imports the build's libraries and loads the compiled kernels once; the
         # workers forked from it start warm (takes effect when the server starts)
-        ctx.set_forkserver_preload(preload())
+        ctx.set_forkserver_preload(preload(rounds))
     return ctx
 
 
-def start_pool_server(workers: int | None, scheduler: str | None = None, dask_local: int | None = None) -> None:
+def start_pool_server(workers: int | None, scheduler: str | None = None, dask_local: int | None = None,
+                      rounds: bool = False) -> None:
     """For a build on a local process pool of ``workers`` (given: a build without workers may run in
     its own process; with a Dask scheduler or cluster: none), start the pool's forkserver now, where
     it is the start method: it imports the build's libraries and loads the compiled kernels (about
@@ -93,7 +96,7 @@ def start_pool_server(workers: int | None, scheduler: str | None = None, dask_lo
         return
     from multiprocessing import forkserver
 
-    mp_context()  # (the preload list)
+    mp_context(rounds)  # (the preload list)
     forkserver.ensure_running()
 
 
@@ -125,7 +128,7 @@ DASK_LOCAL_CONFIG: dict[str, Any] = {
 }
 
 
-def dask_mp_context() -> Any:
+def dask_mp_context(rounds: bool = False) -> Any:
     """The multiprocessing context of distributed's nannies (``distributed.utils.get_mp_context``,
     under the current Dask configuration), with lodbuilder's forkserver preload (:data:`PRELOAD`)
     beside distributed's own: distributed sets its list of modules the first time it is asked, which
@@ -137,7 +140,7 @@ def dask_mp_context() -> Any:
     if ctx.get_start_method() == "forkserver":
         from multiprocessing import forkserver
 
-        ctx.set_forkserver_preload(["distributed", *preload()])  # (takes effect when the server starts)
+        ctx.set_forkserver_preload(["distributed", *preload(rounds)])  # (takes effect when the server starts)
         # started here, by the calling thread: the server asks to die with the thread that started
         # it (die_with_parent), and distributed would start it from its event loop's thread, which
         # ends with the cluster (a process pool started after it then found no server)
@@ -194,9 +197,10 @@ def _plural(n: int) -> str:
 
 @contextlib.contextmanager
 def make_executor(workers: int | None = None, scheduler: str | None = None, dask_local: int | None = None,
-                  *, inline: bool = False) -> Iterator[tuple[cf.Executor, str]]:
+                  *, inline: bool = False, rounds: bool = False) -> Iterator[tuple[cf.Executor, str]]:
     """``(executor, description)``: the calling process (``inline``), a local process pool of
-    ``workers`` (default: one per core), or a Dask client's executor."""
+    ``workers`` (default: one per core), or a Dask client's executor (``rounds``: its workers
+    preload the radius rounds' warm-up, :func:`preload`)."""
     workers = check_workers(workers)
     dask_local = check_workers(dask_local, "dask_local")
     check_scheduler(scheduler)
@@ -207,7 +211,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, dask
             yield InlineExecutor(), "this process"
             return
         n = workers or os.cpu_count() or 1
-        with cf.ProcessPoolExecutor(max_workers=n, mp_context=mp_context(), initializer=die_with_parent) as ex:
+        with cf.ProcessPoolExecutor(max_workers=n, mp_context=mp_context(rounds), initializer=die_with_parent) as ex:
             yield ex, f"process pool ({_plural(n)})"
         return
     try:
@@ -222,14 +226,14 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, dask
     dask_level = dask_logger.level
     dask_logger.setLevel(logging.getLogger("lodbuilder").getEffectiveLevel())
     try:
-        with _dask_client(dask_local, scheduler) as (client, desc):
+        with _dask_client(dask_local, scheduler, rounds) as (client, desc):
             yield client.get_executor(pure=False), desc
     finally:
         dask_logger.setLevel(dask_level)
 
 
 @contextlib.contextmanager
-def _dask_client(dask_local: int | None, scheduler: str | None) -> Iterator[tuple[Any, str]]:
+def _dask_client(dask_local: int | None, scheduler: str | None, rounds: bool = False) -> Iterator[tuple[Any, str]]:
     """A Dask client on a new LocalCluster of ``dask_local`` workers or on ``scheduler``."""
     from dask.distributed import Client, LocalCluster
 
@@ -242,7 +246,7 @@ def _dask_client(dask_local: int | None, scheduler: str | None) -> Iterator[tupl
         # The scheduler's HTTP server always starts (None keeps the default port 8787, and a second
         # build at once warned "Port 8787 is already in use"): any free port instead
         with dask.config.set(DASK_LOCAL_CONFIG | {"distributed.worker.multiprocessing-method": start_method()}):
-            dask_mp_context()
+            dask_mp_context(rounds)
             cluster = LocalCluster(n_workers=dask_local, threads_per_worker=1, processes=True,
                                    dashboard_address=":0", silence_logs=logging.WARNING)
         client = Client(cluster)

@@ -436,7 +436,7 @@ def build_tiled_job(job: ScanJob, executor: Any, parallel: int, progress: Progre
     res = build_tiled(
         sources, Path(job.part), job.name, job.work_store, executor, parallel=parallel,
         max_memory=o.max_memory, voxel_size=o.voxel_size, band_radius=o.band_radius,
-        seam_spacing=o.seam_spacing if o.seam_spacing is not None else SEAM_SPACING,
+        seam_spacing=o.seam_spacing if o.seam_spacing is not None else SEAM_SPACING, seam_rounds=o.seam_rounds,
         tile_points=o.tile_points, passes=o.tile_passes or TILE_PASSES, build=build,
         provenance=prov,
         progress=progress,

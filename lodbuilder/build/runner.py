@@ -324,7 +324,8 @@ def build(
     in_memory = any(s.scan is not None for s in sources)
     if in_memory and (workers is not None or scheduler is not None or dask_local is not None):
         raise InputError("in-memory scans are built in this process; save them to files to use workers or Dask")
-    start_pool_server(workers, scheduler, dask_local)  # (its imports meanwhile: the plan reads the headers)
+    # (its imports meanwhile: the plan reads the headers)
+    start_pool_server(workers, scheduler, dask_local, options.seam_rounds)
     if wait is not None:
         wait = _check_wait(wait)
     result = BuildResult(archive=archive)
@@ -433,7 +434,8 @@ def _run(jobs: list[ScanJob], archive: Path, result: BuildResult, emit: Any, nam
     default = workers is None and scheduler is None and dask_local is None
     inline = in_memory or (len(jobs) == 1 and default and not tiled)
     t_start = time.perf_counter()
-    with make_executor(workers, scheduler, dask_local, inline=inline) as (ex, desc):
+    rounds = any(j.tiled and j.options.seam_rounds for j in jobs)
+    with make_executor(workers, scheduler, dask_local, inline=inline, rounds=rounds) as (ex, desc):
         result.startup_seconds = time.perf_counter() - t_start
         result.executor = desc
         log.info("building %d scan(s) on %s", len(jobs), desc)

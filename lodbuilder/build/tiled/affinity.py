@@ -89,7 +89,7 @@ def owners(ex: cf.Executor, parallel: int, key: str) -> Iterator[list[Callable[.
     if isinstance(ex, cf.ProcessPoolExecutor):
         from ..executors import die_with_parent, mp_context
 
-        pools = [cf.ProcessPoolExecutor(1, mp_context=mp_context(), initializer=die_with_parent)
+        pools = [cf.ProcessPoolExecutor(1, mp_context=mp_context(True), initializer=die_with_parent)
                  for _ in range(max(parallel, 1))]
         try:
             yield [p.submit for p in pools]

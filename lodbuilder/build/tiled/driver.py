@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import MemoryBudgetError
 from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import affinity as A
 from . import layout as WL
@@ -140,20 +141,26 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
 
 
 def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour: list[int], parallel: int,
-                 worker_budget: int) -> dict[str, Any]:
-    """Whether the tiles are ordered in radius rounds (:mod:`.affinity`): the knob, and every
-    owner's states within the worker budget; the owners and the reason, for the build record."""
-    assert R.TILE_ROUNDS is not None
+                 worker_budget: int, schedule: tuple[int, float], budget: int) -> dict[str, Any]:
+    """The radius rounds' plan (:mod:`.affinity`): the owners of the tiles and what their states
+    need, for the build record; refused (MemoryBudgetError) where an owner's states do not fit the
+    worker budget."""
     n_owners = min(A.n_owners(ex, parallel), len(tiles))
     points = {t.index: int(size[t.index]) for t in tiles}
     owner = A.assign(points, colour, n_owners)
     need = A.owner_bytes(points, owner, n_owners)
-    info: dict[str, Any] = {"rounds": R.TILE_ROUNDS[0], "q": R.TILE_ROUNDS[1], "owners": n_owners,
-                            "owner_bytes_estimate": need, "worker_budget": worker_budget, "owner": owner}
     if max(need) > worker_budget:
-        return {**info, "used": False, "reason": f"the states of an owner's tiles need about {max(need) / 2**20:.0f} "
-                f"MiB, over the {worker_budget / 2**20:.0f} MiB budget of a worker: one pass instead"}
-    return {**info, "used": True, "reason": "the states of every owner's tiles fit the worker budget"}
+        # the budget at which every owner's need fits its worker's share (plan.worker_budget inverted)
+        per = max(need) + P.PROCESS_BYTES
+        enough = max(per * parallel / (1 - P.PARENT_FRACTION), per * parallel + P.PARENT_MIN)
+        raise MemoryBudgetError(
+            f"seam rounds need about {max(need) / 2**30:.2f} GiB in each of {n_owners} worker(s) for the tiles' "
+            f"ordering states, over the {worker_budget / 2**30:.2f} GiB each has of max_memory="
+            f"{budget / 2**30:.2f} GiB; give max_memory of at least {math.ceil(enough / 2**30)} GiB, "
+            "or build without seam rounds")
+    return {"rounds": schedule[0], "q": schedule[1], "owners": n_owners, "owner_bytes_estimate": need,
+            "worker_budget": worker_budget, "owner": owner, "used": True,
+            "reason": "seam rounds asked for; the states of every owner's tiles fit the worker budget"}
 
 
 def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], nbrs: list[list[int]],
@@ -178,14 +185,15 @@ def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], 
 
 def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Path | Store, executor: cf.Executor,
                 *, parallel: int = 1, max_memory: int | None = None, voxel_size: float | None = None,
-                band_radius: float | None = None, seam_spacing: float = SEAM_SPACING, tile_points: int | None = None,
-                passes: int = TILE_PASSES, build: dict[str, Any] | None = None,
+                band_radius: float | None = None, seam_spacing: float = SEAM_SPACING, seam_rounds: bool = False,
+                tile_points: int | None = None, passes: int = TILE_PASSES, build: dict[str, Any] | None = None,
                 provenance: dict[str, Any] | None = None, progress: ProgressCallback = None) -> dict[str, Any]:
     """Order one scan (``sources``: ``(stream, pose, member id, reopen)`` of one input, or of each
     input of a joint build; ``reopen`` opens the stream again on a worker, None: the parent reads
     it) tile by tile and write it to the part file ``part``; returns what was built and how long each phase
     took. ``work`` is the work directory or store (:mod:`.store`; kept on failure for a resume,
-    emptied on success)."""
+    emptied on success). ``seam_rounds``: the tiles ordered in radius rounds (:mod:`.rounds`) instead
+    of one pass."""
     budget = P.default_budget() if max_memory is None else int(max_memory)
     work = store = as_store(work)  # (the phases below take the store)
     store.claim()  # the directory made (or checked to be lodbuilder's), the object store's access checked
@@ -205,7 +213,9 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
     # 4. order every tile (on the workers), in passes
     args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
-    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress, parallel)
+    schedule = R.schedule(n, store.read_array(WL.HEAD_FILE, WL.HEAD).shape[0]) if seam_rounds else None
+    by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress, parallel,
+                                             schedule, budget)
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
@@ -282,12 +292,13 @@ def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill,
 
 
 def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
-           args: tuple, progress: ProgressCallback, parallel: int = 1
-           ) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
+           args: tuple, progress: ProgressCallback, parallel: int = 1, schedule: tuple[int, float] | None = None,
+           budget: int = 0) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
     """Phase 4: every tile ordered on the workers, in colour classes and passes, at most
     ``parallel`` at a time (see :func:`_order_passes`; 1: a scheduler whose workers are not
-    counted, every ready ordering submitted at once). Returns the tiles largest first, their
-    colours, how many orderings a resume found done, and each tile's marker."""
+    counted, every ready ordering submitted at once), or in radius rounds of ``schedule`` (R, q)
+    (:mod:`.rounds`). Returns the tiles largest first, their colours, how many orderings a resume
+    found done, and each tile's marker."""
     # the largest tiles first, so that the last task to finish is a small one (fewer idle workers)
     size = np.asarray(dist["n_core"], np.int64) + np.asarray(dist["n_halo"], np.int64)
     by_size = sorted(tiles, key=lambda t: -int(size[t.index]))
@@ -295,8 +306,8 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     colour = P.colour_tiles(nbrs)
     done = _done(work, "order")
     rounds = (done or {}).get("rounds")
-    if done is None and R.TILE_ROUNDS is not None and passes == 1:  # (private: radius rounds, see .rounds)
-        rounds = _rounds_plan(executor, tiles, size, colour, parallel, int(args[3]))
+    if done is None and schedule is not None:
+        rounds = _rounds_plan(executor, tiles, size, colour, parallel, int(args[3]), schedule, budget)
     if rounds is not None and rounds["used"]:
         ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"], rounds, parallel)
     else:

@@ -1,4 +1,5 @@
-"""Radius rounds (issue 19, seams; private, off by default): every tile ordered in rounds.
+"""Radius rounds (issue 19, seams; the build option ``seam_rounds``, off by default): every tile
+ordered in rounds.
 
 Round p (1 .. R) takes every tile, colour by colour, from radius r_head / q^(p - 1) down to
 r_head / q^p (r_head: the head's last radius); round R + 1 to the end. Each tile goes on from where
@@ -16,13 +17,15 @@ process, its *owner*, for all rounds (:func:`round_step`, :func:`round_finish`; 
 :func:`order_rounds` is the same in one task that holds every state (the reference the parallel
 rounds match bit for bit: tests/test_rounds_parallel.py). Memory: a state costs about
 :data:`.affinity.STATE_BYTES_PER_POINT` per point of its tile with its halo, an owner holds all
-its tiles' states at once, and the rounds run only where that fits the worker budget (else one
-pass; the build record's ``tiled.rounds`` says which and why).
+its tiles' states at once, and the rounds run only where that fits the worker budget (else the
+build is refused: the error says what the workers would need; the build record's ``tiled.rounds``
+says how the rounds ran).
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 from typing import Any
 
@@ -34,8 +37,24 @@ from .store import Store, as_store
 from .tasks import HEAD, _put_tile, _stream, in_sorted
 from .timing import timed_step, timed_task
 
-#: None, or (rounds R, ratio q): order the tiles in radius rounds (set by tools/bench_seams.py)
+#: the rounds' radius ratio q: each round orders every tile down to 1 / q of the last one's radius
+#: (the covering pays for the sources that join early, at most this ratio: 1.05, the issue's target)
+Q = 1.05
+#: the rounds go down to about the radius of the level that holds this share of the points
+#: (the issue measures the seams from the head to 3 %; the surface estimate below can be short)
+DEPTH = 0.05
+#: private: (rounds R, ratio q) instead of :func:`schedule`'s (tools/bench_seams.py, tests)
 TILE_ROUNDS: tuple[int, float] | None = None
+
+
+def schedule(n: int, head_points: int) -> tuple[int, float]:
+    """How many rounds R and their ratio q for ``n`` points whose head has ``head_points``: rounds
+    from the head's radius down to about the radius of the level of :data:`DEPTH` x ``n`` points, on
+    a surface (a level's radius falls as the square root of its size): R = ln(DEPTH n / head) / (2 ln q)."""
+    if TILE_ROUNDS is not None:
+        return TILE_ROUNDS
+    depth = DEPTH * n / max(head_points, 1)
+    return max(1, math.ceil(0.5 * math.log(max(depth, 1.0)) / math.log(Q))), Q
 
 
 def radii(head: np.ndarray, rounds: int, q: float) -> list[float | None]:
