@@ -42,3 +42,21 @@ def test_cross_spacing_is_the_brute_force_minimum_over_each_level(seed):
     for k in np.flatnonzero(partner >= 0):  # each partner: an earlier point of another group at that distance
         assert partner[k] < k and group[partner[k]] != group[k]
         assert np.isclose(np.linalg.norm(p[k] - p[partner[k]]), e[k])
+
+
+def test_reference_spread_compares_orders_at_the_case_levels(tmp_path, monkeypatch):
+    import lodbuilder
+    from lodbuilder.io import write_points
+
+    pts = np.random.default_rng(4).random((3000, 3)) * [1, 1, 0.01]
+    f = write_points(tmp_path / "p.npy", pts)
+    ref = {"order": lodbuilder.fastfps(pts).order}
+    case = {"head_points": 40, "sweep": [[20, 1.0, 0.0], [40, 1.0, 0.0], [90, 1.0, 0.0], [200, 1.0, 0.0]]}
+    out = bench_seams.reference_spread(f, ref, case, 2)
+    assert out["levels"] == 3 and len(out["orders"]) == 2
+    assert len({o["start"] for o in out["orders"]}) == 2
+    # an order that is the reference's gives 1 at every level; one that is not, something else
+    monkeypatch.setattr(lodbuilder, "fastfps", lambda p, seeds: type("R", (), {"order": ref["order"]}))
+    same = bench_seams.reference_spread(f, ref, case, 1)
+    assert same["worst"] == 1.0 and same["orders"][0]["best"] == 1.0
+    assert out["worst"] != 1.0 or min(o["best"] for o in out["orders"]) != 1.0

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from clirun import one_line_error
+from clirun import one_line_error, run
 from naive import prefix_covering_radii
 from test_tiled import wavy
 
@@ -47,7 +47,7 @@ def halves(tmp_path):
     return write_points(tmp_path / "a.npy", p[left]), write_points(tmp_path / "b.npy", p[~left]), p[left], p[~left]
 
 
-def test_a_joint_build_with_seam_rounds_records_them_and_keeps_the_guarantees(tmp_path, halves):
+def test_a_joint_build_with_seam_rounds_records_them_and_keeps_the_guarantees(tmp_path, capsys, halves):
     a, b, pa, pb = halves
     lodbuilder.build_archive([a, b], tmp_path / "j.h5", joint="j", seam_rounds=True, workers=2, _tile_points=700)
     with lodbuilder.open_archive(tmp_path / "j.h5") as arc:
@@ -58,6 +58,9 @@ def test_a_joint_build_with_seam_rounds_records_them_and_keeps_the_guarantees(tm
     assert info["used"] is True and info["owners"] == 2
     assert (info["rounds"], info["q"]) == rounds.schedule(len(stored), tiled["head_points"])
     assert {r[0] for r in rows if r[0].startswith(("order_", "round_"))} == {"round_steps", "round_finish"}
+    rc, out, _ = run(capsys, "info", tmp_path / "j.h5")
+    assert rc == 0 and (f"tiled ({tiled['tiles']} tiles, in {info['rounds']} seam rounds of ratio 1.05, seam spacing "
+                        "0.25: points of different tiles at least 0.2 x the level's radius apart)") in out
     # every point once, every stored radius a true covering radius of the whole survey (brute force)
     pts = np.concatenate([pa, pb])
     n = len(pts)

@@ -20,6 +20,9 @@ against the in-memory build of the same points (``lodbuilder.fastfps``):
   the halo width (``halo``; a tile sees its neighbours' points only within it) and over the others;
   ``levels_below_0_35``: the levels where that pair is closer than 0.35 x the radius, by which tile
   had not seen the other (``newest_of_lower_colour``: the newest point's tile ordered first).
+* ``reference_spread`` (``--reference-spread K``): K in-memory orders of each input from random
+  start points against the default in-memory order, at the same levels (head to 3 %): how much
+  two valid farthest point orders differ at one size, the scale ``cover_ratio_worst`` is read on.
 * ``decimation``: points per point of the decimated copy (the coarse level's input; the library asks
   for n / 8 at these sizes, its cell grid gives 1 in 4-6), or with ``--decimation D`` about n / D as
   a survey's (21.56M -> 400,000: 54; the cell grid gives 1 in 25-40 at 200,000 points).
@@ -247,6 +250,26 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "sweep": sweep}
 
 
+def reference_spread(f: Path, ref_cache: dict, case: dict[str, Any], k: int) -> dict[str, Any]:
+    """How far in-memory farthest point orders of the same points differ among themselves: ``k``
+    orders from random start points (``lodbuilder.fastfps(seeds=[s])``), each one's covering over
+    the default in-memory order's at the levels of ``case``'s sweep from its head to 3 %: the worst
+    and best ratio of each (the scale against which a tiled order's ``cover_ratio_worst`` reads)."""
+    import lodbuilder
+    from lodbuilder.io.api import read_scan
+
+    pts = read_scan(f).points
+    levels = [r[0] for r in case["sweep"] if r[0] >= case["head_points"]]
+    ref = {lv: covering(pts, ref_cache["order"], lv) for lv in levels}
+    out = []
+    for s in np.random.default_rng(1).choice(len(pts), k, replace=False):
+        order = lodbuilder.fastfps(pts, seeds=[int(s)]).order
+        r = [covering(pts, order, lv) / ref[lv] for lv in levels]
+        out.append({"start": int(s), "worst": round(max(r), 4), "worst_at": levels[int(np.argmax(r))],
+                    "best": round(min(r), 4), "mean": round(float(np.mean(r)), 4)})
+    return {"levels": len(levels), "orders": out, "worst": max(o["worst"] for o in out)}
+
+
 def cross_min(p: np.ndarray, group: np.ndarray) -> float:
     """The smallest distance between two points of different groups."""
     from scipy.spatial import cKDTree
@@ -411,6 +434,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1,
                    help="build on this many workers (the rounds on as many owners, lodbuilder.build.tiled.affinity; "
                         "1: every task in this process, with every tile state's bytes summed)")
+    p.add_argument("--reference-spread", type=int, default=0, metavar="K",
+                   help="also order each input in memory from K other random start points and measure their "
+                        "covering against the default in-memory order at the same levels (reference_spread)")
     p.add_argument("--one-pass-too", action="store_true",
                    help="with --rounds: also build each case in one pass, alternating (order CPU and wall against it)")
     args = p.parse_args(argv)
@@ -437,6 +463,10 @@ def main(argv: list[str] | None = None) -> int:
                             "seconds_in_memory": round(ref["seconds"], 2)}
                     doc["cases"].append(case)
                     print(json.dumps({k: v for k, v in case.items() if k not in ("sweep", "tile_boxes")}), file=sys.stderr)
+            if args.reference_spread:
+                doc.setdefault("reference_spread", []).append(
+                    {"input": name, **reference_spread(f, ref, case, args.reference_spread)})
+                print(json.dumps(doc["reference_spread"][-1]), file=sys.stderr)
     print(json.dumps(finish(doc), indent=1))
     return 0
 

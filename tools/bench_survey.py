@@ -39,6 +39,9 @@ and, for ``dask-s3``, the S3 server's, which competes with the build for the mac
         --workers 1,2 --executor pool,dask --max-memory 1.5GB
     python tools/bench_survey.py /tmp/sstore/survey_4x4.laz --workers 2 --executor pool,dask-s3
 
+``--seam-rounds``: every build with ``--seam-rounds`` (the tiles in radius rounds; ``rounds``: the
+build record's plan of them, its owners' estimated and measured state bytes).
+
 Timings depend on the machine and its load (the load average before and after each run is in the
 JSON): on a shared machine, compare runs of one invocation only.
 """
@@ -416,12 +419,14 @@ def peaks_by_phase(rec: dict[str, Any], timeline: list[tuple[float, int, dict[st
 
 
 def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
-              interval: float, tile_points: int | None = None, keep: Path | None = None) -> dict[str, Any]:
-    """One measured ``lodbuilder build`` of ``inputs`` (see the module)."""
+              interval: float, tile_points: int | None = None, keep: Path | None = None,
+              build_args: tuple[str, ...] = ()) -> dict[str, Any]:
+    """One measured ``lodbuilder build`` of ``inputs`` (see the module), with ``build_args`` more."""
     where = Path(tempfile.mkdtemp(prefix=f"{executor}{workers}_", dir=base))
     archive = where / "survey.h5"
     ex, ex_env = _executor_args(executor, workers, where)
-    args = ["build", *map(str, inputs), "-o", str(archive), "--max-memory", max_memory, "--no-progress", "--json", *ex]
+    args = ["build", *map(str, inputs), "-o", str(archive), "--max-memory", max_memory, "--no-progress", "--json", *ex,
+            *build_args]
     if joint:
         args += ["--joint", joint]
     env = dict(os.environ, BENCH_SURVEY_RUSAGE=str(where / "rusage.json"), **ex_env)
@@ -476,6 +481,7 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "peak_work_by_phase": peaks_by_phase(rec, sampler.timeline, archive_bytes),
         "phase_seconds": {k: rec["phase_seconds"][k] for k in rec.get("phase_order") or rec.get("phase_seconds", {})},
         "tiles": rec.get("tiled", {}).get("tiles"),
+        "rounds": {k: v for k, v in (rec.get("tiled", {}).get("rounds") or {}).items() if k != "owner"} or None,
         "tasks": task_summary(rec.get("tasks")),
     })
     res["simulation"] = _simulate(rec, wall, workers)
@@ -601,6 +607,7 @@ def main(argv: list[str] | None = None) -> int:
                         "survey of the same files replaces its earlier runs")
     p.add_argument("--keep", type=Path, metavar="DIR",
                    help="keep each run's archive in DIR (as <survey name>_<executor><workers>.h5)")
+    p.add_argument("--seam-rounds", action="store_true", help="build with --seam-rounds (the tiles in radius rounds)")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
@@ -622,7 +629,8 @@ def main(argv: list[str] | None = None) -> int:
         for ex in executors:
             for w in args.workers:
                 sv["runs"].append(run_build([survey], joint, ex, w, args.max_memory, args.work, args.interval,
-                                            args.tile_points, args.keep))
+                                            args.tile_points, args.keep,
+                                            ("--seam-rounds",) if args.seam_rounds else ()))
                 print(json.dumps({k: v for k, v in sv["runs"][-1].items() if not k.startswith("simulation")}),
                       file=sys.stderr)
         sv.update(ratios(sv["runs"]))

@@ -159,7 +159,9 @@ def _build_line(b: dict) -> str:
     alpha = float(tiled.get("seam_alpha", 0.0))
     if tiled.get("tiles") == 1:
         return line + "tiled (1 tile: no seams)"
-    return line + (f"tiled ({tiled.get('tiles')} tiles, seam spacing {alpha:g}: points of different tiles "
+    rounds = tiled.get("rounds") or {}
+    how = f", in {rounds['rounds']} seam rounds of ratio {rounds['q']:g}" if rounds.get("used") else ""
+    return line + (f"tiled ({tiled.get('tiles')} tiles{how}, seam spacing {alpha:g}: points of different tiles "
                    f"at least {alpha / (1 + alpha):.2g} x the level's radius apart)")
 
 

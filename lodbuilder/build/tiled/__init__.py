@@ -17,7 +17,9 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    the cell diagonal" (every point lies within a cell diagonal of the copy); meanwhile tasks cut
    every block into the tiles' core and halo pieces;
 4. **tiles**: each tile's own points are ordered with FastFPS, seeded with the head points in the
-   tile and its halo (tasks);
+   tile and its halo (tasks); with the option ``seam_rounds``, in radius rounds in which neighbouring
+   tiles hand each other their points near a shared face, each tile's state kept on one worker
+   (:mod:`.rounds`, :mod:`.affinity`);
 5. **merge** (tasks): the seam repair of :mod:`lodbuilder.build.tiled.merge` over the tiles' seam
    points alone (one task), then the tile orders merged by descending insertion radius in bands of
    keys side by side (each band a run of every tile's stream); then tasks invert the merged order
