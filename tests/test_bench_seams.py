@@ -60,3 +60,33 @@ def test_reference_spread_compares_orders_at_the_case_levels(tmp_path, monkeypat
     same = bench_seams.reference_spread(f, ref, case, 1)
     assert same["worst"] == 1.0 and same["orders"][0]["best"] == 1.0
     assert out["worst"] != 1.0 or min(o["best"] for o in out["orders"]) != 1.0
+
+
+def test_survey_seams_measures_archives_as_bench_seams_does(tmp_path, capsys):
+    import json
+
+    import survey_seams
+
+    import lodbuilder
+    from lodbuilder.io import write_points
+
+    xy = np.random.default_rng(8).random((5000, 2))
+    pts = np.column_stack([xy, 0.05 * np.sin(6 * xy[:, 0]) * np.cos(5 * xy[:, 1])])  # (a wavy sheet)
+    f = write_points(tmp_path / "p.npy", pts)
+    for name, kw in (("one", {}), ("rounds", {"seam_rounds": True})):
+        lodbuilder.build_archive(f, tmp_path / f"{name}.h5", _tile_points=600, name=name, **kw)
+    assert survey_seams.main([str(tmp_path / "one.h5"), str(tmp_path / "rounds.h5"), "--sample", "1000"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    one, rounds = doc["archives"]
+    assert one["tiles"] >= 8 and one["rounds"] is None and rounds["rounds"]["q"] == 1.05
+    assert one["cover_over_first_worst"] == one["cover_over_first_mean"] == 1.0
+    assert [c[0] for c in one["covering"]] == [c[0] for c in rounds["covering"]]
+    # the spacing is bench_seams' measure over the levels from the head to 3 %, brute force here
+    with lodbuilder.open_archive(tmp_path / "rounds.h5") as arc:
+        v = arc.scan()
+        p, radius, tiled = v.points(), v.radius[:], v.build["tiled"]
+    h, top = tiled["head_points"], max(int(0.03 * len(p)), tiled["head_points"] + 2)
+    group = bench_seams.tile_of(p, tiled["tile_boxes"])
+    group[:h] = -1
+    naive = _naive_cross_spacing(p[:top], group[:top], radius, top)
+    assert rounds["cross_spacing_min"] == round(float(naive[h - 1:top].min()), 4)
