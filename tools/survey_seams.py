@@ -9,6 +9,9 @@ first, with the same measures as bench_seams:
   over the level's stored radius, worst level from the head to 3 % of the points (the head a tile
   of its own); ``cross_spacing_min_head_in_tiles``: each head point in the tile whose box holds it
   (a tile orders with those head points as seeds: no seam). Target >= 0.35 (goal 0.5).
+  ``levels_below_0_35`` and ``cross_new_min_above_halo``/``..._below_halo``: bench_seams' seam profile
+  (the levels whose newest point is closer than 0.35 x the radius to another tile's, by which tile
+  had not seen the other).
 * ``covering``: the covering radius of 24 levels from the head to 3 % at ``--sample`` random points
   of the survey (the same points for every archive; lower bounds of the true radii) and
   ``cover_over_first``: each level's over the first archive's at equal size (worst and mean).
@@ -34,7 +37,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 def measure(path: Path, at: np.ndarray | None, levels: list[int] | None, sample: int) -> dict[str, Any]:
     """The measures of one archive (its one scan); ``at``: the sample points (None: drawn here),
     ``levels``: the level sizes (None: from this archive's head to 3 %)."""
-    from bench_seams import cross_pairs, cross_spacing, tile_of
+    from bench_seams import cross_pairs, cross_spacing, seam_profile, tile_of
     from scipy.spatial import cKDTree
 
     import lodbuilder
@@ -59,9 +62,13 @@ def measure(path: Path, at: np.ndarray | None, levels: list[int] | None, sample:
                            "rounds": {k: tiled["rounds"][k] for k in ("rounds", "q")} if tiled.get("rounds") else None,
                            "seam_alpha": tiled.get("seam_alpha")}
     for key, g in (("cross_spacing_min", group), ("cross_spacing_min_head_in_tiles", in_box)):
-        cs = cross_spacing(cross_pairs(sub, g, radius, top + 1)[0], radius, top + 1)
+        e, partner = cross_pairs(sub, g, radius, top + 1)
+        cs = cross_spacing(e, radius, top + 1)
         out[key] = round(float(cs[lv - 1].min()), 4)
         out[key + "_at"] = int(lv[np.argmin(cs[lv - 1])])
+        if g is group:
+            out |= seam_profile(e, partner, group, tiled.get("tile_colours", []), radius,
+                                float(tiled.get("halo", 0.0)), lv)
     out["covering"] = [[k, float(cKDTree(p[:k]).query(at, workers=-1)[0].max())] for k in levels]
     return out | {"_at": at, "_levels": levels}
 
