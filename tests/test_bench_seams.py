@@ -62,10 +62,10 @@ def test_reference_spread_compares_orders_at_the_case_levels(tmp_path, monkeypat
     assert out["worst"] != 1.0 or min(o["best"] for o in out["orders"]) != 1.0
 
 
-def test_survey_seams_measures_archives_as_bench_seams_does(tmp_path, capsys):
+def test_bench_survey_seams_measures_archives_as_bench_seams_does(tmp_path, capsys):
     import json
 
-    import survey_seams
+    import bench_survey_seams
 
     import lodbuilder
     from lodbuilder.io import write_points
@@ -75,7 +75,7 @@ def test_survey_seams_measures_archives_as_bench_seams_does(tmp_path, capsys):
     f = write_points(tmp_path / "p.npy", pts)
     for name, kw in (("one", {}), ("rounds", {"seam_rounds": True})):
         lodbuilder.build_archive(f, tmp_path / f"{name}.h5", _tile_points=600, name=name, **kw)
-    assert survey_seams.main([str(tmp_path / "one.h5"), str(tmp_path / "rounds.h5"), "--sample", "1000"]) == 0
+    assert bench_survey_seams.main([str(tmp_path / "one.h5"), str(tmp_path / "rounds.h5"), "--sample", "1000"]) == 0
     doc = json.loads(capsys.readouterr().out)
     one, rounds = doc["archives"]
     assert one["tiles"] >= 8 and one["rounds"] is None and rounds["rounds"]["q"] == 1.05

@@ -16,7 +16,7 @@ first, with the same measures as bench_seams:
   of the survey (the same points for every archive; lower bounds of the true radii) and
   ``cover_over_first``: each level's over the first archive's at equal size (worst and mean).
 
-    python tools/survey_seams.py one.h5 rounds.h5 --sample 200000 --synthetic
+    python tools/bench_survey_seams.py one.h5 rounds.h5 --sample 200000 --synthetic
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample", type=int, default=200_000, help="points the covering is measured at")
     ap.add_argument("--synthetic", action="store_true", help="the survey is synthetic (e.g. tools/make_survey.py's)")
     args = ap.parse_args(argv)
-    doc = stamp("survey_seams", argv, inputs=", ".join(map(str, args.archives)), synthetic=args.synthetic)
+    doc = stamp("bench_survey_seams", argv, inputs=", ".join(map(str, args.archives)), synthetic=args.synthetic)
     doc["archives"] = []
     at = levels = first = None
     for a in args.archives:
