@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -180,3 +181,65 @@ def test_named_moments_kill_the_build_and_the_resume_gives_the_same_order(tmp_pa
             got = v.source_index[:], v.radius[:], v.parent[:]
         for a, b in zip(want, got, strict=True):
             np.testing.assert_array_equal(a, b, err_msg=moment)
+
+
+def _running_in_group(pgid):
+    """The processes of process group ``pgid`` that are not zombies (dead, not yet reaped by init)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+ROUNDS_SCRIPT = textwrap.dedent("""
+    import sys
+    import lodbuilder
+    if __name__ == "__main__":
+        lodbuilder.build_archive(sys.argv[1], sys.argv[2], workers=2, _tile_points=int(sys.argv[3]), seam_rounds=True)
+""")
+
+
+def test_a_kill_in_the_seam_rounds_resumes_to_the_same_order(tmp_path):
+    """kill -9 of the build while its tiles are in radius rounds (their states on the owners, no
+    ordering marked done): the owners die with it, and the resumed build does the rounds again and
+    stores exactly the order and radii of a build that was never interrupted."""
+    pts = _sheet(90_000, seed=4)
+    src = write_points(tmp_path / "sheet.npy", pts)
+    clean = tmp_path / "clean.h5"
+    lodbuilder.build_archive(src, clean, workers=2, _tile_points=9_000, seam_rounds=True)
+    archive = tmp_path / "site.h5"
+    script = tmp_path / "run.py"
+    script.write_text(ROUNDS_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(src), str(archive), "9000"],
+                            start_new_session=True, stderr=subprocess.DEVNULL)
+    try:
+        deadline, seen = time.time() + 300, None
+        while time.time() < deadline and proc.poll() is None:
+            w = _work_dir(archive)
+            if w is not None and (w / "distribute.json").exists():
+                seen = seen or time.time()
+                if time.time() - seen > 0.3:  # (the rounds have started: their owners hold the states)
+                    break
+            time.sleep(0.005)
+        w = _work_dir(archive)
+        assert proc.poll() is None and not (w / "order.json").exists(), "the rounds ended before the kill"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    time.sleep(0.5)  # the workers' and owners' parent-death signals
+    assert _running_in_group(proc.pid) == []  # nothing of the build is left running (zombies aside)
+    assert list(w.glob("order*.json")) == []
+    res = lodbuilder.build_archive(src, archive, workers=2, _tile_points=9_000, seam_rounds=True)
+    assert res.scans[0].status == "built"
+    with lodbuilder.open_archive(archive) as a, lodbuilder.open_archive(clean) as b:
+        va, vb = a.scan("sheet"), b.scan("sheet")
+        assert va.build["tiled"]["rounds"]["used"] is True
+        np.testing.assert_array_equal(va.source_index[:], vb.source_index[:])
+        np.testing.assert_array_equal(va.radius[:], vb.radius[:])
