@@ -75,16 +75,27 @@ def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
 
 def test_rounds_that_do_not_fit_the_worker_budget_are_refused(tmp_path, monkeypatch, pts):
     """Seam rounds asked for and workers too small for the tiles' states: a one-line refusal with
-    the budget that would do, and the archive the build adds to is left as it was."""
-    monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
-    monkeypatch.setattr(affinity, "STATE_BYTES_PER_POINT", 10**6)
+    the budget that would do, and the archive the build adds to is left as it was. Where the points
+    alone are too many, before any work (no work directory); else once the tiles are known."""
     src, arc = tmp_path / "pts.npy", tmp_path / "keep.h5"
     write_points(src, pts)
     lodbuilder.build_archive(src, arc, name="keep")
     before = arc.read_bytes()
-    with pytest.raises(MemoryBudgetError, match=r"^seam rounds need about \d+\.\d\d GiB in each of 2 worker\(s\) for "
+    parts = tmp_path / ".keep.h5.parts"
+    monkeypatch.setattr(rounds, "TILE_ROUNDS", ROUNDS)
+    monkeypatch.setattr(affinity, "STATE_BYTES_PER_POINT", 10**6)  # (an owner: half the points' states at least)
+    least = f"{10**6 * -(-len(pts) // 2) / 2**30:.2f}".replace(".", r"\.")
+    with pytest.raises(MemoryBudgetError, match=rf"^seam rounds need at least {least} GiB in each of 2 worker\(s\) for "
                        r"the tiles' ordering states, over the 0\.89 GiB each has of max_memory=3\.00 GiB; give "
-                       r"max_memory of at least \d+ GiB, or build without seam rounds$"):
+                       r"max_memory of at least 8 GiB, or build without seam rounds$"):
+        lodbuilder.build_archive(src, arc, _tile_points=700, workers=2, name="big", seam_rounds=True,
+                                 max_memory="3GiB")
+    assert arc.read_bytes() == before and not list(parts.glob("*.work"))
+    monkeypatch.setattr(affinity, "STATE_BYTES_PER_POINT", 260)
+    monkeypatch.setattr(affinity, "owner_bytes", lambda points, owner, n: [2**31] * n)  # (the tiles' halos)
+    with pytest.raises(MemoryBudgetError, match=r"^seam rounds need about 2\.00 GiB in each of 2 worker\(s\) for "
+                       r"the tiles' ordering states, over the 0\.89 GiB each has of max_memory=3\.00 GiB; give "
+                       r"max_memory of at least 6 GiB, or build without seam rounds$"):
         lodbuilder.build_archive(src, arc, _tile_points=700, workers=2, name="big", seam_rounds=True,
                                  max_memory="3GiB")
     assert arc.read_bytes() == before

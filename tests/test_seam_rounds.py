@@ -4,6 +4,8 @@ schedule are tested in test_rounds_parallel.py and test_resume_tiled.py; here th
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from clirun import one_line_error, run
@@ -75,7 +77,8 @@ def test_seam_rounds_the_workers_cannot_hold_are_refused_on_the_command_line(tmp
     monkeypatch.setattr(affinity, "STATE_BYTES_PER_POINT", 10**7)
     msg = one_line_error(capsys, "build", a, b, "--joint", "j", "--seam-rounds", "--workers", "2", "--max-memory",
                          "2GiB", "-o", tmp_path / "j.h5", "--no-progress")
-    assert msg.startswith("seam rounds need about ") and msg.endswith(
-        " GiB each has of max_memory=2.00 GiB; give max_memory of at least "
-        f"{msg.split('at least ')[1].split(' ')[0]} GiB, or build without seam rounds")
+    least = 10**7 * -(-(len(halves[2]) + len(halves[3])) // 2) / 2**30  # (half the points' states)
+    assert re.fullmatch(rf"seam rounds need at least {least:.2f} GiB in each of 2 worker\(s\) for the tiles' ordering "
+                        r"states, over the 0\.39 GiB each has of max_memory=2\.00 GiB; give max_memory of at least "
+                        r"\d+ GiB, or build without seam rounds", msg), msg
     assert not (tmp_path / "j.h5").exists()

@@ -140,6 +140,19 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     return found
 
 
+def _check_rounds_fit(need: int, how: str, n_owners: int, worker_budget: int, budget: int, parallel: int) -> None:
+    """Refuse seam rounds whose owner needs ``need`` bytes (``how``: "about", or "at least" for the
+    bound known before any work) over ``worker_budget``, naming the budget that would do."""
+    if need <= worker_budget:
+        return
+    per = need + P.PROCESS_BYTES  # the budget at which it fits a worker's share (plan.worker_budget inverted)
+    enough = max(per * parallel / (1 - P.PARENT_FRACTION), per * parallel + P.PARENT_MIN)
+    raise MemoryBudgetError(
+        f"seam rounds need {how} {need / 2**30:.2f} GiB in each of {n_owners} worker(s) for the tiles' ordering "
+        f"states, over the {worker_budget / 2**30:.2f} GiB each has of max_memory={budget / 2**30:.2f} GiB; give "
+        f"max_memory of at least {math.ceil(enough / 2**30)} GiB, or build without seam rounds")
+
+
 def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour: list[int], parallel: int,
                  worker_budget: int, schedule: tuple[int, float], budget: int) -> dict[str, Any]:
     """The radius rounds' plan (:mod:`.affinity`): the owners of the tiles and what their states
@@ -149,15 +162,7 @@ def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour:
     points = {t.index: int(size[t.index]) for t in tiles}
     owner = A.assign(points, colour, n_owners)
     need = A.owner_bytes(points, owner, n_owners)
-    if max(need) > worker_budget:
-        # the budget at which every owner's need fits its worker's share (plan.worker_budget inverted)
-        per = max(need) + P.PROCESS_BYTES
-        enough = max(per * parallel / (1 - P.PARENT_FRACTION), per * parallel + P.PARENT_MIN)
-        raise MemoryBudgetError(
-            f"seam rounds need about {max(need) / 2**30:.2f} GiB in each of {n_owners} worker(s) for the tiles' "
-            f"ordering states, over the {worker_budget / 2**30:.2f} GiB each has of max_memory="
-            f"{budget / 2**30:.2f} GiB; give max_memory of at least {math.ceil(enough / 2**30)} GiB, "
-            "or build without seam rounds")
+    _check_rounds_fit(max(need), "about", n_owners, worker_budget, budget, parallel)
     return {"rounds": schedule[0], "q": schedule[1], "owners": n_owners, "owner_bytes_estimate": need,
             "worker_budget": worker_budget, "owner": owner, "used": True,
             "reason": "seam rounds asked for; the states of every owner's tiles fit the worker budget"}
@@ -195,6 +200,12 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     emptied on success). ``seam_rounds``: the tiles ordered in radius rounds (:mod:`.rounds`) instead
     of one pass."""
     budget = P.default_budget() if max_memory is None else int(max_memory)
+    worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
+    if seam_rounds:  # before any work: the states of the points alone (the tiles' halos come on top)
+        owners = A.n_owners(executor, parallel)
+        n_in = sum(int(s[0].n_points) for s in sources)
+        _check_rounds_fit(A.STATE_BYTES_PER_POINT * -(-n_in // owners), "at least", owners, worker_budget, budget,
+                          parallel)
     work = store = as_store(work)  # (the phases below take the store)
     store.claim()  # the directory made (or checked to be lodbuilder's), the object store's access checked
     clock = _Clock()
@@ -206,7 +217,6 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     delta = float(pl["d_cell"]) * math.sqrt(3.0)  # every point is within a cell diagonal of the copy
 
     # 3. the coarse level (on a worker) while the other workers write the tiles' core and halo pieces
-    worker_budget = max(64 << 20, P.worker_budget(budget, parallel) - P.PROCESS_BYTES)
     coarse, dist = _coarse_and_tiles(executor, work, name, sp, pl, delta, worker_budget, progress)
     halo = float(dist["halo"])
     clock.lap("tiles")
