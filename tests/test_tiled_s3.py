@@ -237,3 +237,19 @@ def test_a_work_store_that_cannot_be_written_fails_before_any_work(s3, source, t
     assert msg.endswith("; check the URL, and the credentials and endpoint in fsspec's configuration (AWS_* or "
                         "FSSPEC_S3_* variables, ~/.config/fsspec)")
     assert "\n" not in msg and not (tmp_path / "n.h5").exists()
+
+
+def test_seam_rounds_on_dask_with_the_work_on_s3_give_the_pool_s_archive(s3, source, tmp_path):
+    """The rounds' owners (Dask workers, each tile's state pinned to one) write their tiles' streams
+    to the object store: the archive is the one the process pool gives with a local work directory."""
+    pool = tmp_path / "pool.h5"
+    lodbuilder.build_archive(source, pool, workers=2, _tile_points=TILE_POINTS, seam_rounds=True)
+    url = f"s3://{BUCKET}/rounds-{uuid.uuid4().hex[:8]}"
+    out = tmp_path / "s3.h5"
+    res = lodbuilder.build_archive(source, out, dask_local=2, work_dir=url, _tile_points=TILE_POINTS,
+                                   seam_rounds=True)
+    assert res.scans[0].status == "built"
+    build = _same_scan(out, pool)
+    assert build["tiled"]["rounds"]["used"] is True and build["tiled"]["rounds"]["owners"] == 2
+    assert _datasets(out) == _datasets(pool)
+    assert _keys(s3, url[len(f"s3://{BUCKET}/"):]) == []
