@@ -17,7 +17,7 @@ from lodbuilder.io import write_points
 ROUNDS = (6, 1.25)
 
 
-def _one_task(ex, work, name, docs, nbrs, colour, owner, parallel, n_rounds, q):
+def _one_task(ex, work, name, docs, nbrs, colour, owner, parallel, n_rounds, q, progress=None):
     """The reference: every tile ordered in one task of this process, every state in it."""
     args = next(iter(docs.values()))["args"]
     res = rounds.order_rounds(work, docs, nbrs, colour, *args, n_rounds, q)

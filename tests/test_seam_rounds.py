@@ -51,7 +51,18 @@ def halves(tmp_path):
 
 def test_a_joint_build_with_seam_rounds_records_them_and_keeps_the_guarantees(tmp_path, capsys, halves):
     a, b, pa, pb = halves
-    lodbuilder.build_archive([a, b], tmp_path / "j.h5", joint="j", seam_rounds=True, workers=2, _tile_points=700)
+    seen = []
+
+    class Progress:
+        def __call__(self, *a):
+            pass
+
+        def tasks(self, stage, counts):
+            if stage == "tiles":
+                seen.append(counts)
+
+    lodbuilder.build_archive([a, b], tmp_path / "j.h5", joint="j", seam_rounds=True, workers=2, _tile_points=700,
+                             progress=Progress())
     with lodbuilder.open_archive(tmp_path / "j.h5") as arc:
         v = arc.scan("j")
         tiled, stored, radius, rows = v.build["tiled"], v.points(), v.radius[:], v.build["tasks"]["rows"]
@@ -60,6 +71,12 @@ def test_a_joint_build_with_seam_rounds_records_them_and_keeps_the_guarantees(tm
     assert info["used"] is True and info["owners"] == 2
     assert (info["rounds"], info["q"]) == rounds.schedule(len(stored), tiled["head_points"])
     assert {r[0] for r in rows if r[0].startswith(("order_", "round_"))} == {"round_steps", "round_finish"}
+    # the order phase tells its tile rounds and the tiles' points ordered so far, to the end
+    n_rounds = tiled["tiles"] * (info["rounds"] + 1)
+    assert {c.unit for c in seen} == {"tile round"} and {c.total for c in seen} == {n_rounds}
+    assert seen[0].done == seen[0].points_done == 0 and seen[-1].done == n_rounds
+    assert seen[-1].points_done == seen[-1].points_total == len(stored)
+    assert all(x.points_done <= y.points_done for x, y in zip(seen, seen[1:]))
     rc, out, _ = run(capsys, "info", tmp_path / "j.h5")
     assert rc == 0 and (f"tiled ({tiled['tiles']} tiles, in {info['rounds']} seam rounds of ratio 1.05, seam spacing "
                         "0.25: points of different tiles at least 0.2 x the level's radius apart)") in out

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ...progress import ProgressCallback, TaskCounts, report_tasks
 from . import layout as WL
 from . import plan as P
 from . import rounds as R
@@ -123,8 +124,8 @@ def _result(fut: Any, name: str, tiles: list[int], n_tiles: int, when: str, what
 
 
 def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str, Any]], nbrs: list[list[int]],
-               colour: list[int], owner: dict[int, int], parallel: int, rounds: int, q: float
-               ) -> dict[str, Any]:
+               colour: list[int], owner: dict[int, int], parallel: int, rounds: int, q: float,
+               progress: ProgressCallback = None) -> dict[str, Any]:
     """Order the tiles ``docs`` (as :func:`.rounds.order_rounds`'s, with ``args``) in rounds on
     their owners (``owner``: tile -> owner); returns the tiles' results as ``order_rounds`` does,
     each owner's largest sum of its states' bytes (``owner_state_bytes``) and the largest state.
@@ -133,13 +134,24 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
     lower colour) or p - 1 (a higher colour), and gets their points of those rounds: what
     ``order_rounds`` gives it, so the orders are the same. Each owner runs the rounds of its tiles
     as they become ready (those on the longest chain of rounds waiting for them first), in
-    batches of one round's ready rounds, at most :data:`IN_FLIGHT` batches queued at a time."""
+    batches of one round's ready rounds, at most :data:`IN_FLIGHT` batches queued at a time.
+    ``progress`` hears the tile rounds done and the tiles' points ordered (stage ``tiles``)."""
     key = uuid.uuid4().hex
     sched = R.radii(work.read_array(WL.HEAD_FILE, HEAD), rounds, q)
     n_owners = max(owner.values(), default=0) + 1
     sc = _Schedule(sched, docs, nbrs, colour, owner, n_owners)
+    ordered = dict.fromkeys(docs, 0)
+    total = len(docs) * len(sched)
+
+    def tell() -> None:
+        report_tasks(progress, "tiles", TaskCounts(total - len(sc.todo) - sum(len(b) for _, b in running.values()),
+                                                   total, sum(ordered.values()),
+                                                   sum(int(d["n_points"]) for d in docs.values()),
+                                                   len(running), unit="tile round"))
+
     with owners(ex, parallel, key) as submit:
         running: dict[Any, tuple[int, list[tuple[int, int]]]] = {}
+        tell()
         try:
             while sc.todo or running:
                 for o in range(n_owners):
@@ -155,6 +167,8 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
                     p = batch[0][0]
                     res = _result(fut, name, [t for _, t in batch], len(docs), f" in round {p} of {len(sched)}")
                     sc.record(p, res["tiles"])
+                    ordered.update((r["tile"], r["ordered"]) for r in res["tiles"])
+                    tell()
         except BaseException:
             for f in running:
                 f.cancel()

@@ -169,7 +169,8 @@ def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour:
 
 
 def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], nbrs: list[list[int]],
-                  colour: list[int], args: tuple, pieces: dict[str, Any], plan: dict[str, Any], parallel: int) -> int:
+                  colour: list[int], args: tuple, pieces: dict[str, Any], plan: dict[str, Any], parallel: int,
+                  progress: ProgressCallback = None) -> int:
     """Every tile ordered in radius rounds, each tile's state on its owner (:mod:`.affinity`); the
     markers as the passes' (written once every tile is done: a resume redoes the rounds). Returns
     how many orderings a resume found done (all or none)."""
@@ -180,7 +181,8 @@ def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], 
     docs = {t.index: {**t.to_json(), "core": pieces["core"][t.index], "halo": pieces["halo"][t.index], "args": args,
                       "near": ([boxes[u][0].tolist() for u in nbrs[t.index]], [boxes[u][1].tolist() for u in nbrs[t.index]])}
             for t in tiles}
-    res = A.run_rounds(ex, work, name, docs, nbrs, colour, plan["owner"], parallel, plan["rounds"], plan["q"])
+    res = A.run_rounds(ex, work, name, docs, nbrs, colour, plan["owner"], parallel, plan["rounds"], plan["q"],
+                       progress)
     plan["owner_state_bytes"] = res["owner_state_bytes"]
     for r in res["tiles"]:
         put_json(work, WL.marker(WL.order_piece(r["tile"], 1)), {**r, "rounds": res["rounds"], "q": res["q"],
@@ -319,7 +321,8 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     if done is None and schedule is not None:
         rounds = _rounds_plan(executor, tiles, size, colour, parallel, int(args[3]), schedule, budget)
     if rounds is not None and rounds["used"]:
-        ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"], rounds, parallel)
+        ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"], rounds, parallel,
+                                progress)
     else:
         ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
                                 parallel if parallel > 1 else None)

@@ -216,7 +216,8 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
     its voxel size, band radius, halo and memory, and ``near``, its neighbours' halo boxes), then
     ordered down to ``rho`` after its neighbours' new points in its halo (``news``: (g, keys) or
     None per neighbour) join. Returns the points it ordered in this round that lie in a
-    neighbour's halo box (``g``, ``keys``) and the bytes of its state."""
+    neighbour's halo box (``g``, ``keys``), the bytes of its state and about how many of its points
+    are ordered so far (``ordered``: positions of the ordering, seeds included, at most its core's)."""
     from ...sampling.resumable import news_start, resume_fastfps, resume_news
 
     tile = _LIVE.get((key, t))
@@ -239,7 +240,8 @@ def round_step(work: Store | str, t: int, key: str, doc: dict[str, Any] | None, 
         tile["o"] = resume_fastfps(st, rho=rho, sources=_joining(rows, keys, rho), bulk=True)
         shift = st.seed_arr.shape[0] - news_start(st) if since >= news_start(st) else 0
         g, k = _news(tile, since + shift, tile["near"])
-    return {"tile": t, "g": g, "keys": k, "state_bytes": _nbytes(tile)}
+    done = tile["cpts"].shape[0] if rho is None else min(int(tile["k"]), tile["cpts"].shape[0])
+    return {"tile": t, "g": g, "keys": k, "state_bytes": _nbytes(tile), "ordered": done}
 
 
 def _nbytes(tile: dict[str, Any]) -> int:
