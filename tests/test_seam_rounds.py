@@ -4,6 +4,7 @@ schedule are tested in test_rounds_parallel.py and test_resume_tiled.py; here th
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import numpy as np
@@ -76,7 +77,7 @@ def test_a_joint_build_with_seam_rounds_records_them_and_keeps_the_guarantees(tm
     assert {c.unit for c in seen} == {"tile round"} and {c.total for c in seen} == {n_rounds}
     assert seen[0].done == seen[0].points_done == 0 and seen[-1].done == n_rounds
     assert seen[-1].points_done == seen[-1].points_total == len(stored)
-    assert all(x.points_done <= y.points_done for x, y in zip(seen, seen[1:]))
+    assert all(x.points_done <= y.points_done for x, y in itertools.pairwise(seen))
     rc, out, _ = run(capsys, "info", tmp_path / "j.h5")
     assert rc == 0 and (f"tiled ({tiled['tiles']} tiles, in {info['rounds']} seam rounds of ratio 1.05, seam spacing "
                         "0.25: points of different tiles at least 0.2 x the level's radius apart)") in out
