@@ -74,7 +74,9 @@ EXECUTORS = ("pool", "dask", "dask-s3")
 BUCKET = "lodbuilder-bench"
 
 #: the child: ``lodbuilder build`` in this process, its own CPU (getrusage) written at exit.
-#: ``BENCH_SURVEY_TILE_POINTS`` (a test knob) orders a small survey tiled in tiles of that many points.
+#: ``BENCH_SURVEY_TILE_POINTS`` (``--tile-points``) orders the survey tiled in tiles of about that many points, as
+#: ``_tile_points`` does: the decimated copy and its head as the plan makes them (it capped the copy at the tile
+#: size too, which made the head of a survey's plan of small tiles some 5 x smaller and its halo twice as wide).
 CHILD = """
 import atexit, json, os, resource, sys
 def _rusage():
@@ -87,7 +89,7 @@ tp = os.environ.get("BENCH_SURVEY_TILE_POINTS")
 if tp:
     from lodbuilder.build.tiled import plan
     plan.needs_tiling = lambda *a, **k: True
-    plan.tile_capacity = lambda *a, **k: int(tp)
+    plan.balanced_tile_points = lambda *a, **k: int(tp)
 from lodbuilder.cli.main import main
 sys.exit(main(sys.argv[1:]))
 """
