@@ -48,7 +48,7 @@ def test_parallel_rounds_give_the_one_task_orders(tmp_path, monkeypatch, pts):
     d = _build(tmp_path, pts, "par", seam_rounds=True)
     tiled = d["build"]["tiled"]
     assert tiled["tiles"] >= 8
-    assert tiled["rounds"]["used"] is True and tiled["rounds"]["owners"] == 2
+    assert tiled["rounds"]["owners"] == 2
     assert len(tiled["rounds"]["owner_state_bytes"]) == 2 and min(tiled["rounds"]["owner_state_bytes"]) > 0
     # tasks of a round of one or more tiles of one owner, in two processes (a tile's state is only
     # on its owner: a step elsewhere would fail, not start it again)
@@ -115,7 +115,7 @@ def test_a_failing_tile_fails_the_build_naming_it(tmp_path, monkeypatch, pts):
     assert (work / "distribute.json").exists() and list(work.glob("order*.json")) == []
     monkeypatch.setattr(rounds, "round_step", step)
     resumed = _build(tmp_path, pts, "fail", seam_rounds=True)
-    assert resumed["build"]["tiled"]["rounds"]["used"] is True
+    assert resumed["build"]["tiled"]["rounds"]["rounds"] == ROUNDS[0]
     clean = _build(tmp_path, pts, "clean", seam_rounds=True)
     np.testing.assert_array_equal(resumed["order"], clean["order"])
     np.testing.assert_array_equal(resumed["radius"], clean["radius"])
@@ -141,7 +141,7 @@ def test_dask_workers_own_the_tiles_as_the_pool_does(tmp_path, monkeypatch, pts)
     with lodbuilder.open_archive(out) as arc:
         v = arc.scan("dask")
         order, radius, build = v.source_index[:], v.radius[:], v.build
-    assert build["tiled"]["rounds"]["used"] is True and build["tiled"]["rounds"]["owners"] == 2
+    assert build["tiled"]["rounds"]["owners"] == 2
     assert len({r[7] for r in build["tasks"]["rows"] if r[0] == "round_steps"}) == 2
     np.testing.assert_array_equal(order, pool["order"])
     np.testing.assert_array_equal(radius, pool["radius"])

@@ -240,6 +240,6 @@ def test_a_kill_in_the_seam_rounds_resumes_to_the_same_order(tmp_path):
     assert res.scans[0].status == "built"
     with lodbuilder.open_archive(archive) as a, lodbuilder.open_archive(clean) as b:
         va, vb = a.scan("sheet"), b.scan("sheet")
-        assert va.build["tiled"]["rounds"]["used"] is True
+        assert va.build["tiled"]["rounds"]["rounds"] == vb.build["tiled"]["rounds"]["rounds"] >= 1
         np.testing.assert_array_equal(va.source_index[:], vb.source_index[:])
         np.testing.assert_array_equal(va.radius[:], vb.radius[:])

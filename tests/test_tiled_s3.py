@@ -250,6 +250,6 @@ def test_seam_rounds_on_dask_with_the_work_on_s3_give_the_pool_s_archive(s3, sou
                                    seam_rounds=True)
     assert res.scans[0].status == "built"
     build = _same_scan(out, pool)
-    assert build["tiled"]["rounds"]["used"] is True and build["tiled"]["rounds"]["owners"] == 2
+    assert build["tiled"]["rounds"]["owners"] == 2
     assert _datasets(out) == _datasets(pool)
     assert _keys(s3, url[len(f"s3://{BUCKET}/"):]) == []

@@ -51,8 +51,8 @@ every ``--thin``-th point), ``uniform`` and ``uneven`` (synthetic wavy sheets of
 With ``--workers W`` (> 1) the build runs on W worker processes and the rounds on W owners
 (:mod:`lodbuilder.build.tiled.affinity`): ``order_wall_seconds`` (the order phase's wall time from
 the build record), ``owner_state_bytes`` (each owner's largest sum of its tiles' state bytes),
-``owner_bytes_estimate`` against ``worker_budget`` (the rule that decides whether the rounds run,
-``rounds_used``) and the CPU seconds of every step (``round_steps``: one task per owner and colour in each round; ``round_finish``).
+``owner_bytes_estimate`` against ``worker_budget`` (the rule that refuses rounds whose states do not fit;
+``rounds_used``: whether the build ordered in rounds) and the CPU seconds of every step (``round_steps``: one task per owner and colour in each round; ``round_finish``).
 """
 
 from __future__ import annotations
@@ -242,9 +242,9 @@ def one_case(f: Path, d: Path, tile_points: int, seam: float | None, ref_cache: 
             "merge_seconds": round(sum(r[5] for r in merge), 3) if merge else None,
             "merge_cpu_seconds": round(sum(r[6] for r in merge), 3) if merge else None,
             "order_cpu_seconds": round(sum(r[6] for r in order), 3),
-            "rounds": [rinfo["rounds"], rinfo["q"]] if rinfo.get("used") else None, **sizes,
+            "rounds": [rinfo["rounds"], rinfo["q"]] if rinfo else None, **sizes,
             "workers": workers, "order_wall_seconds": (build.get("phase_seconds") or {}).get("order"),
-            "rounds_used": rinfo.get("used"), "rounds_reason": rinfo.get("reason"),
+            "rounds_used": bool(rinfo),
             "owner_state_bytes": rinfo.get("owner_state_bytes"),
             "owner_bytes_estimate": rinfo.get("owner_bytes_estimate"), "worker_budget": rinfo.get("worker_budget"),
             "sweep": sweep}

@@ -160,7 +160,7 @@ def _build_line(b: dict) -> str:
     if tiled.get("tiles") == 1:
         return line + "tiled (1 tile: no seams)"
     rounds = tiled.get("rounds") or {}
-    how = f", in {rounds['rounds']} seam rounds of ratio {rounds['q']:g}" if rounds.get("used") else ""
+    how = f", in {rounds['rounds']} seam rounds of ratio {rounds['q']:g}" if rounds else ""
     return line + (f"tiled ({tiled.get('tiles')} tiles{how}, seam spacing {alpha:g}: points of different tiles "
                    f"at least {alpha / (1 + alpha):.2g} x the level's radius apart)")
 

@@ -141,13 +141,12 @@ def run_rounds(ex: cf.Executor, work: Store, name: str, docs: dict[int, dict[str
     n_owners = max(owner.values(), default=0) + 1
     sc = _Schedule(sched, docs, nbrs, colour, owner, n_owners)
     ordered = dict.fromkeys(docs, 0)
-    total = len(docs) * len(sched)
+    total, points = len(docs) * len(sched), sum(int(d["n_points"]) for d in docs.values())
 
     def tell() -> None:
         report_tasks(progress, "tiles", TaskCounts(total - len(sc.todo) - sum(len(b) for _, b in running.values()),
-                                                   total, sum(ordered.values()),
-                                                   sum(int(d["n_points"]) for d in docs.values()),
-                                                   len(running), unit="tile round"))
+                                                   total, sum(ordered.values()), points, len(running),
+                                                   unit="tile round"))
 
     with owners(ex, parallel, key) as submit:
         running: dict[Any, tuple[int, list[tuple[int, int]]]] = {}

@@ -164,8 +164,7 @@ def _rounds_plan(ex: cf.Executor, tiles: list[P.Tile], size: np.ndarray, colour:
     need = A.owner_bytes(points, owner, n_owners)
     _check_rounds_fit(max(need), "about", n_owners, worker_budget, budget, parallel)
     return {"rounds": schedule[0], "q": schedule[1], "owners": n_owners, "owner_bytes_estimate": need,
-            "worker_budget": worker_budget, "owner": owner, "used": True,
-            "reason": "seam rounds asked for; the states of every owner's tiles fit the worker budget"}
+            "worker_budget": worker_budget, "owner": owner}
 
 
 def _order_rounds(ex: cf.Executor, work: Store, name: str, tiles: list[P.Tile], nbrs: list[list[int]],
@@ -320,7 +319,7 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     rounds = (done or {}).get("rounds")
     if done is None and schedule is not None:
         rounds = _rounds_plan(executor, tiles, size, colour, parallel, int(args[3]), schedule, budget)
-    if rounds is not None and rounds["used"]:
+    if rounds is not None:
         ordered = _order_rounds(executor, work, name, tiles, nbrs, colour, args, dist["pieces"], rounds, parallel,
                                 progress)
     else:
