@@ -36,7 +36,7 @@ popped one by one each pop missed the caches (about 2.2 us a pop with 300 fronts
 one, the same voxels marched); in voxel order neighbouring voxels of a front are marched together
 (1.1 us a pop with 300 fronts). A voxel of a batch may read a neighbour of its batch not yet accepted
 (its trial value, an upper bound, as above), so values move a little: 0.1-0.4 % above the
-one-by-one march's on average, at single points up to 4 % below and 5 % above it.
+one-by-one march's on average, at single points up to 4 % below and 6 % above it.
 
 Per-point state: ``dq`` = the smallest T[v] + |u - v| * cost over the marchable corners v of the
 point's cell (or the exact distance near a sample), ``lq`` = the sample that achieved it, and the
