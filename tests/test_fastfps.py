@@ -602,13 +602,15 @@ def test_post_conditions_catch_a_broken_ordering(rng, change, message):
         check_ordering(broken)
 
 
-def test_debug_switch_checks_heaps_and_changes_nothing(rng, monkeypatch):
+@pytest.mark.parametrize("seeds", [None, np.arange(0, 1500, 50)])
+def test_debug_switch_checks_heaps_and_changes_nothing(rng, monkeypatch, seeds):
+    # (30 seeds: marched together, in batches, before the checked samples)
     import lodbuilder.sampling.fastfps as ff
 
     pts = sphere(1500, rng)
-    plain = fastfps(pts)
+    plain = fastfps(pts, seeds=seeds)
     monkeypatch.setattr(ff, "DEBUG", True)
-    checked = fastfps(pts)
+    checked = fastfps(pts, seeds=seeds)
     assert np.array_equal(plain.order, checked.order)
     assert np.array_equal(plain.radius, checked.radius)
 
