@@ -13,8 +13,8 @@ import numpy as np
 from . import INLINE, JIT
 from .grid import _slot, morton
 from .march import _chord_ok, _norm
-from .topology import cell_tables
 
+GROUP_POINTS = 16  # candidates are kept per run of consecutive cells holding this many points (see euclid_tail)
 FAR_MARGIN = 1.0 + 1e-12  # a point is skipped before the square root only when surely not nearer
 BOX_SLACK = 1e-6  # grid units: a cell is skipped when its box lies farther than the reach + this
 # (far above the rounding of coordinates below 2^21, so no point it holds could have been lowered)
@@ -55,14 +55,33 @@ def _sift_down(hkey, heap, i, n):  # pragma: no cover - compiled
 
 @nb.njit(**JIT)
 def _cell_heap(cs, ud):  # pragma: no cover - compiled
-    """The cells' point ranges (cell c holds points cstart[c]:cstart[c + 1]: cells are the voxels
-    that hold points, in voxel order), their voxels and their max-heap by key (keys in heap order)."""
-    cellv, _ = cell_tables(cs)
-    ncell = cellv.shape[0]
+    """The groups' point ranges (group c holds points cstart[c]:cstart[c + 1]: a group is a run of
+    consecutive voxels in voxel order holding GROUP_POINTS points or more, the last one fewer),
+    the first voxel of each that holds a point, and their max-heap by key (keys in heap order)."""
+    nv = cs.shape[0] - 1
+    ncell = 0
+    held = 0
+    for v in range(nv):
+        held += cs[v + 1] - cs[v]
+        if held >= GROUP_POINTS or (v == nv - 1 and held > 0):
+            ncell += 1
+            held = 0
+    cellv = np.empty(ncell, np.int32)
     cstart = np.empty(ncell + 1, np.int32)
-    for c in range(ncell):
-        cstart[c] = cs[cellv[c]]
-    cstart[ncell] = cs[cs.shape[0] - 1]
+    c = 0
+    held = 0
+    first = -1
+    for v in range(nv):
+        if first < 0 and cs[v + 1] > cs[v]:
+            first = v
+        held += cs[v + 1] - cs[v]
+        if held >= GROUP_POINTS or (v == nv - 1 and held > 0):
+            cellv[c] = first
+            cstart[c] = cs[first]
+            c += 1
+            held = 0
+            first = -1
+    cstart[ncell] = cs[nv]
     ckey = np.empty(ncell)
     heap = np.arange(ncell).astype(np.int32)
     for c in range(ncell):
@@ -82,9 +101,12 @@ def euclid_tail(
     ``ud`` holds every point's grid coordinates and, in its last column, its value d: an upper
     bound of the unordered point's distance to the ordered ones, first
     tightened to the exact distance to the point's labelled sample ``order[lab]``. Inserting a
-    point q only lowers points within its value (/ cmin when weighted). Candidates are kept per cell in a
-    max-heap keyed by an upper bound of the cell's largest d, refreshed only when the cell reaches the
-    top (keys only decrease, so a stale key never hides the true maximum). Where sheets come close,
+    point q only lowers points within its value (/ cmin when weighted). Candidates are kept per group
+    of consecutive cells (GROUP_POINTS points: a heap of one entry per cell was larger than the
+    caches, a miss per level of every sift) in a max-heap keyed by an upper bound of the group's
+    largest d, refreshed only when the group reaches the top (keys only decrease, so a stale key
+    never hides the true maximum). Ties go to the smaller group, then the smaller point: the
+    smaller point, as with one entry per cell. Where sheets come close,
     ``psep`` (per point, or one inf for none) bounds the reach: a point is lowered by a sample only
     if they are closer than both their ``psep`` (a fraction of the gap to the other sheet) and the
     chord's sine to both points' sheets (normals ``pnrm``) is at most ``slope``. The ball query
@@ -195,12 +217,14 @@ def tail_loop(
                     hi = mid
             w0 = lo
         else:
-            w0 = np.int64(cellv[top])
             i = -1
             for p in range(cstart[top], cstart[top + 1]):
                 if ud[p, 3] == kk:
                     i = p
                     break
+            w0 = np.int64(cellv[top])  # (the group's first voxel with a point: on to i's)
+            while cs[w0 + 1] <= i:
+                w0 += 1
             radius[k] = kk
             parent[k] = lab[i]
         rank[i] = k
