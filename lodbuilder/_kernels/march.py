@@ -30,13 +30,14 @@ in its inputs, so this only lowers a voxel earlier, and it is updated again when
 accepted); a second-order one only reads a known second neighbour.
 
 Batches: a march of BATCH_SOURCES or more fronts kept apart (a tile's head seeds, timed seeds joining
-at once) pops every entry within BATCH_T of the smallest at once and marches them in voxel order
-(other marches pop one entry at a time, as above). Its fronts take turns all over the band, and
-popped one by one each pop missed the caches (about 2.2 us a pop with 300 fronts against 0.6 with
-one, the same voxels marched); in voxel order neighbouring voxels of a front are marched together
-(1.1 us a pop with 300 fronts). A voxel of a batch may read a neighbour of its batch not yet accepted
-(its trial value, an upper bound, as above), so values move a little: 0.1-0.4 % above the
-one-by-one march's on average, at single points up to 4 % below and 6 % above it.
+at once) keeps its voxels in buckets of width BATCH_T instead of the heap, and marches the lowest
+bucket's voxels at once, in voxel order (other marches pop one entry at a time, as above). Its fronts
+take turns all over the band, and popped one by one each pop missed the caches (about 2.2 us a pop
+with 300 fronts against 0.6 with one, the same voxels marched, on a loaded machine); in voxel order
+neighbouring voxels of a front are marched together (1.1 us a pop with 300 fronts), and a bucket
+costs no heap sift (a further 0.84-1.03 x, 0.9 x typically). A voxel of a batch may read a neighbour
+of its batch not yet accepted (its trial value, an upper bound, as above), so values move a little:
+0.1-0.6 % above the one-by-one march's on average, at single points up to 5 % below and 7 % above it.
 
 Per-point state: ``dq`` = the smallest T[v] + |u - v| * cost over the marchable corners v of the
 point's cell (or the exact distance near a sample), ``lq`` = the sample that achieved it, and the
@@ -58,6 +59,7 @@ from .heaps import (
     check_maxheap,
     check_minheap,
     f32_bits,
+    iheap_pop,
     iheap_push,
     maxheap_build,
     maxheap_decrease,
@@ -75,6 +77,7 @@ NBUCKET = 8 * (HALF + 1) * 2  # eighths of a voxel up to beyond the ball's reach
 BATCH_T = 0.5  # voxels: a march of fronts kept apart pops every entry this close to the smallest at once ...
 BATCH_MAX = 1 << 16  # ... up to this many, and marches them in voxel order (see the module docstring) ...
 BATCH_SOURCES = 16  # ... when it has at least this many fronts (with 3 a batch cost 1.1-1.25 x, with 10 0.85-0.97 x)
+NBUCKETS = 1 << 12  # a batched march's buckets, in a ring: values up to this many batch_t above the lowest
 
 
 _STAMP = np.int64(0xFFFFFFFF)
@@ -384,6 +387,74 @@ def _seed_sample(
     return n, nd
 
 
+_LINK_LOW = np.int64(0xFFFFFFFF)
+
+
+@nb.njit(**INLINE)
+def _bucket_push(bhead, link, hkv, hpos, n, cur, v, t, inv_t):  # pragma: no cover - compiled
+    """Queue voxel ``v`` of value ``t`` (float32) in a batched march: in bucket ``floor(t * inv_t)``
+    (at least ``cur``, the lowest that may hold a voxel) when that is one of the NBUCKETS from
+    ``cur`` on, else in the heap (``hkv``, ``hpos``, size ``n``: the overflow, moved to the buckets
+    as they reach it). Returns (1 when v was not in a bucket before and is now, else 0; the heap's
+    size).
+
+    Each bucket is a doubly linked list of voxels: ``bhead[b % NBUCKETS]`` its first,
+    ``link[v]`` the next (low 32 bits) and the previous (high 32 bits) voxel, each plus one (0:
+    none). ``hpos[v]``: v's position in the heap (>= 0), -1 when v is not queued, -2 while it waits
+    in the batch being marched (its lowered value is read when it is marched: it is not queued
+    again), -3 - k in bucket slot k. A voxel is queued at most once, as in the heap alone."""
+    s = np.int64(hpos[v])
+    if s == -2:
+        return 0, n
+    if s >= 0:
+        return 0, iheap_push(hkv, hpos, n, t, v)  # (lowered in the heap)
+    b = np.int64(np.float64(t) * inv_t)
+    if b < cur:
+        b = cur  # (an update below the current bucket: marched with its next batch)
+    elif b >= cur + NBUCKETS:
+        return 0, iheap_push(hkv, hpos, n, t, v)  # (not in a bucket: one is only ever lowered)
+    code = -3 - (b & (NBUCKETS - 1))
+    if s == code:
+        return 0, n
+    queued = 1
+    if s <= -3:  # moved down from bucket slot -3 - s
+        queued = 0
+        nx = (link[v] & _LINK_LOW) - 1
+        pv = (link[v] >> 32) - 1
+        if pv >= 0:
+            link[pv] = (link[pv] & ~_LINK_LOW) | (nx + 1)
+        else:
+            bhead[-3 - s] = nx
+        if nx >= 0:
+            link[nx] = (link[nx] & _LINK_LOW) | ((pv + 1) << 32)
+    slot = -3 - code
+    nx = bhead[slot]
+    link[v] = nx + 1  # (no previous: the bucket's new first voxel)
+    if nx >= 0:
+        link[nx] = (link[nx] & _LINK_LOW) | ((v + 1) << 32)
+    bhead[slot] = v
+    hpos[v] = code
+    return queued, n
+
+
+@nb.njit(**INLINE)
+def _bucket_take(bhead, link, hpos, cur, batch):  # pragma: no cover - compiled
+    """Move up to ``batch.shape[0]`` voxels of bucket ``cur`` into ``batch`` (their hpos -2);
+    returns how many."""
+    slot = cur & (NBUCKETS - 1)
+    v = bhead[slot]
+    m = 0
+    while v >= 0 and m < batch.shape[0]:
+        batch[m] = v
+        m += 1
+        hpos[v] = -2
+        v = (link[v] & _LINK_LOW) - 1
+    bhead[slot] = v
+    if v >= 0:
+        link[v] = link[v] & _LINK_LOW
+    return m
+
+
 @nb.njit(**JIT)
 def march_round(
     src, lab, rnd, u, keys, nbr, cs, cellof, near, vcost, pcost, weighted, foot, pnrm, slope,
@@ -406,8 +477,9 @@ def march_round(
     as one march per source would, and a voxel keeps the smallest of the fronts' values. An update
     that mixes two fronts where they meet gives values that are neither front's: on a 1M-point sheet
     in 16 (64) tiles the levels after the head covered 1.054 (1.072) x the in-memory build, against
-    1.030 (1.052) with one march per seed and with the fronts apart. Such a march pops its entries
-    in batches of ``batch_t`` (see the module docstring; 0: one at a time, as a single source's).
+    1.030 (1.052) with one march per seed and with the fronts apart. Such a march marches its voxels
+    in buckets of width ``batch_t`` (see the module docstring; 0: one at a time from the heap, as a
+    single source's).
     """
     trial = np.int32(2 * rnd)
     acc = np.int32(2 * rnd + 1)
@@ -421,21 +493,69 @@ def march_round(
             cmark, dirty, nd, hkv, hpos, n, scratch, reach, cmask,
         )
     pops = 0
-    # the voxels popped and not yet marched (a batch: one voxel, or in a batched march every entry
-    # within ``batch_t`` of the smallest, marched in voxel order; see the module docstring)
+    # the voxels popped and not yet marched (a batch: one voxel, or in a batched march the voxels of
+    # the lowest bucket of width ``batch_t``, marched in voxel order; see the module docstring)
     batched = apart and batch_t > 0.0 and src.shape[0] >= BATCH_SOURCES
     batch = np.empty(BATCH_MAX if batched else 1, np.int64)
-    done = np.zeros(ts.shape[0] if batched else 0, np.bool_)  # (a batch may pop a voxel twice)
+    # a batched march's queue: buckets of voxels (see :func:`_bucket_push`) instead of the heap
+    bhead = np.full(NBUCKETS if batched else 0, -1, np.int64)
+    link = np.empty(ts.shape[0] if batched else 0, np.int64)
+    inv_t = 0.0
+    if batched:
+        # buckets of batch_t voxels at the fronts' cost: the sources' mean cost (a weighted march's
+        # values scale with its cost; batch_t units regardless of it batched half the band at
+        # costs of 0.001 and nothing at costs of 1,000)
+        cbar = 1.0
+        if weighted:
+            cbar = 0.0
+            for s in range(src.shape[0]):
+                cbar += pcost[src[s]]
+            cbar /= src.shape[0]
+        inv_t = 1.0 / (batch_t * cbar)
+    cur = np.int64(0)  # the lowest bucket that may hold a voxel
+    nq = 0  # voxels in the buckets (see _bucket_push)
+    if batched and n > 0:
+        # the seeded voxels: from the heap to the buckets at once when the buckets reach them all
+        # (their values are within the seeding's reach; else they move as the buckets reach them)
+        cur = np.int64(np.float64(_tval(hkv[0])) * inv_t)
+        top = 0.0
+        for q in range(n):
+            top = max(top, np.float64(_tval(hkv[q])))
+        if np.int64(top * inv_t) < cur + NBUCKETS:
+            for q in range(n):
+                e = hkv[q]
+                v = np.int64(e & ITEM_MASK)
+                hpos[v] = -1
+                qq, _ = _bucket_push(bhead, link, hkv, hpos, np.int64(0), cur, v, _tval(e), inv_t)
+                nq += qq
+            n = 0
     nbat = 0
     bi = 0
-    while n > 0 or bi < nbat:
+    while True:
         if bi == nbat:
-            if debug and not check_minheap(hkv, hpos, n):
-                return nd, -1  # the front heap is broken (no raise: it would compile exception code)
-            t_end = np.float64(_tval(hkv[0])) + batch_t
-            nbat = 0
             bi = 0
-            while n > 0 and (nbat == 0 or (nbat < batch.shape[0] and np.float64(_tval(hkv[0])) <= t_end)):
+            nbat = 0
+            if batched:
+                if nq == 0:
+                    if n == 0:
+                        break
+                    cur = max(cur, np.int64(np.float64(_tval(hkv[0])) * inv_t))
+                # the heap's voxels that the buckets reach move to them
+                while n > 0 and np.int64(np.float64(_tval(hkv[0])) * inv_t) < cur + NBUCKETS:
+                    t0, v0, n = iheap_pop(hkv, hpos, n)
+                    q, n = _bucket_push(bhead, link, hkv, hpos, n, cur, np.int64(v0), t0, inv_t)
+                    nq += q
+                while bhead[cur & (NBUCKETS - 1)] < 0:
+                    cur += 1
+                nbat = _bucket_take(bhead, link, hpos, cur, batch)
+                nq -= nbat
+                if nbat > 1:
+                    batch[:nbat] = np.sort(batch[:nbat])
+            else:
+                if n == 0:
+                    break
+                if debug and not check_minheap(hkv, hpos, n):
+                    return nd, -1  # the front heap is broken (no raise: it would compile exception code)
                 # the smallest entry (iheap_pop written out: as an inlined helper it cost six
                 # atomic reference counts per pop, 4 % of the grid phase)
                 e0 = hkv[0]
@@ -461,16 +581,12 @@ def march_round(
                         i = c
                     hkv[i] = last
                     hpos[last & ITEM_MASK] = i
-                batch[nbat] = v
-                nbat += 1
-            if nbat > 1:
-                batch[:nbat] = np.sort(batch[:nbat])
+                batch[0] = v
+                nbat = 1
         v = batch[bi]
         bi += 1
         if batched:
-            if done[v]:
-                continue  # popped again: lowered and pushed after its first pop, in its batch
-            done[v] = True
+            hpos[v] = -1  # (marched now: see _bucket_push)
         ev = ts[v]
         ts[v] = (ev & ~_STAMP) | np.int64(acc)
         pops += 1
@@ -617,7 +733,11 @@ def march_round(
             if tn < _tval(em):
                 ts[m] = _packed(tn, trial)
                 vlab[m] = lv
-                n = iheap_push(hkv, hpos, n, tn, m)
+                if batched:
+                    q, n = _bucket_push(bhead, link, hkv, hpos, n, cur, m, tn, inv_t)
+                    nq += q
+                else:
+                    n = iheap_push(hkv, hpos, n, tn, m)
     return nd, pops
 
 
