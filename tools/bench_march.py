@@ -3,8 +3,8 @@
 A seeded ordering (a tile's head seeds, timed seeds joining together) marches all its seeds'
 fronts in one march, kept apart (``lodbuilder._kernels.march``). Popped one entry at a time, the
 fronts take turns all over the band and each pop misses the caches; the kernel pops a march of
-``BATCH_SOURCES`` or more fronts in batches (every entry within ``BATCH_T`` of the smallest,
-marched in voxel order). For each input and each number of fronts S (the first S points of the
+``BATCH_SOURCES`` or more fronts in batches (its voxels queued in buckets of width ``BATCH_T``,
+each bucket's voxels marched at once, in voxel order). For each input and each number of fronts S (the first S points of the
 input's farthest point order, so spread as a head is) this program marches the same fronts both
 ways in one process, alternating, ``--repeat`` times each, and reports CPU microseconds per pop
 (user + system of the process), their medians and ratio, and how the batched values differ from
