@@ -209,6 +209,19 @@ def test_the_radii_and_the_join_wait_for_the_covering():
     assert walls == {"cover": 6.0}  # 4 + max(2, 1 + 0.5), not max(4, 2, 1 + 0.5)
 
 
+def test_the_join_of_the_pairs_waits_for_every_band_of_the_join():
+    """The join runs in bands of input indices (join_band, on every free worker), then one short
+    task joins their pairs (join_task): 2 bands of 2 s on 16 workers and the join's 0.5 s take
+    2.5 s, not 2 (the join beside the bands) nor 4.5 (the bands one after the other)."""
+    cols = ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"]
+    rows = [["join_band", "join_band.0", None, None, 0.0, 2.0, 2.0, 1],
+            ["join_band", "join_band.1", None, None, 2.0, 2.0, 2.0, 1],
+            ["join_task", "join_task", None, None, 4.0, 0.5, 0.5, 1]]
+    rec = {"phase_seconds": {"pieces": 4.5}, "phase_order": ["pieces"], "parent_cpu_seconds": {"pieces": 0.0},
+           "tasks": {"columns": cols, "rows": rows}}
+    assert predict(model_from_record(rec), [16])["predicted"][0]["stages"] == {"pieces": 2.5}
+
+
 def test_the_radii_do_not_wait_for_the_buckets():
     """The buckets are written after the radii (phase permute): a radii task never waits for one
     (a record with both in one phase: the radii's 1 s after the covering's 4, beside the bucket's 6)."""

@@ -170,14 +170,17 @@ def _local_pieces(work, pts, h, r, edges, halo, rank):
     return t
 
 
+@pytest.mark.parametrize("bands", [1, 7])
 @pytest.mark.parametrize("scene_name", ["fragmented 2x2", "fragmented 4x4", "columns"])
-def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, scene_name):
+def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, scene_name, bands):
     """The covering tasks take the points of other tiles from their halo when it is at least the
     pieces' reach wide (a survey's halo is: 41 vs 29.5 on the 4 x 4 survey): each tile's local
     pieces from its own points and its halo, joined, are the whole scan's band pieces, and each
     piece's first rank is the least rank of its points (ranks: a random permutation). The
-    columns' tiles are cut in the middle of every gap: only the halo joins a pair."""
-    from lodbuilder.build.tiled.pieces import join_task, reach
+    columns' tiles are cut in the middle of every gap: only the halo joins a pair. The join runs
+    in one band of input indices or in 7 (each task sees a slice of every tile's shared points)."""
+    from lodbuilder.build.executors import InlineExecutor
+    from lodbuilder.build.tiled.pieces import join_phase, reach
     from lodbuilder.sampling.band import choose_parameters
 
     if scene_name == "columns":
@@ -193,7 +196,8 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, sc
     labels = _band_labels(pts, h, r)
     rank = np.random.default_rng(0).permutation(pts.shape[0])
     n_tiles = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank)
-    joined = join_task(str(tmp_path), n_tiles)
+    joined = join_phase(InlineExecutor(), str(tmp_path), "scan", pts.shape[0], n_tiles, -(-pts.shape[0] // bands))
+    assert len(list(tmp_path.glob("pieces.join.*.bin"))) == bands
     assert joined["pieces"] == np.unique(labels).size >= 10
     first = np.full(labels.max() + 1, pts.shape[0])
     np.minimum.at(first, labels, rank)

@@ -17,8 +17,9 @@ priority order (list scheduling, largest first as the driver submits them). From
 * rounds inside a phase (:data:`AFTER`): the merge's bands (``merge_band``) wait for the seam
   repair (``seam_repair``), the ranks' first round (``rank_band``) for the bands, their second
   round (``rank_block``) for the whole first, the radii's second round (``finish_band``) for the
-  whole first (``radii_band``), the join of the band pieces (``join_task``) for the tiles' pieces
-  (``cover_tile``; ``pieces_tile`` in older records); the write's bands wait for its first band
+  whole first (``radii_band``), the join of the band pieces for the tiles' pieces (``cover_tile``;
+  ``pieces_tile`` in older records): its bands (``join_band``) first, then the join of their pairs
+  (``join_task``; one task over every tile's shared points in older records); the write's bands wait for its first band
   (run alone: it decides the datasets' creation properties). The phases after the order are cover
   -> pieces (the join) -> radii -> permute (the buckets) -> write, each a stage (older records:
   the radii and the buckets inside the cover phase, the join beside them);
@@ -191,7 +192,8 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
 _ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
 #: task kinds that start only when every task of the listed kinds in their phase is done
 AFTER = {"merge_band": ("seam_repair",), "rank_band": ("merge_band",), "rank_block": ("rank_band",),
-         "finish_band": ("radii_band",), "radii_band": ("cover_tile",), "join_task": ("cover_tile", "pieces_tile")}
+         "finish_band": ("radii_band",), "radii_band": ("cover_tile",), "join_band": ("cover_tile", "pieces_tile"),
+         "join_task": ("join_band", "cover_tile", "pieces_tile")}
 #: the write's first band (its task table piece: the first write_band to start) before the others
 FIRST_BAND = "write_band"
 

@@ -24,7 +24,7 @@ from . import affinity as A
 from . import layout as WL
 from . import plan as P
 from . import rounds as R
-from .pieces import finish_join, reach
+from .pieces import join_phase, reach
 from .pool import bottom_levels, collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
@@ -281,7 +281,7 @@ def _covering(executor: cf.Executor, work: Store, name: str, sp: Spill, sources:
     n_tiles = len(by_size)
     covered = _cover(executor, work, name, sp, by_size, dist, pl, worker_budget, progress)
     clock.lap("cover")
-    band_pieces = finish_join(executor, work, name, n_tiles, {})  # (then the tiles' points are deleted)
+    band_pieces = join_phase(executor, work, name, sp.n, n_tiles)  # (then the tiles' points are deleted)
     clock.lap("pieces")
     radii = _radii(executor, work, name, sp.n, n_tiles, delta, progress)
     clock.lap("radii")

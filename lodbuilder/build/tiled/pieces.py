@@ -9,9 +9,14 @@ most ``2 r + h`` apart (``REACH``), so every step of a path through the band fro
 passes between points within that distance. Each tile labels the band of its core and of every
 point of another tile within ``REACH`` of its box (on the whole scan's grid: the in-memory build's
 voxels): every step that starts at one of its core points is in that band, so two of its local pieces
-that the scan's band joins are joined through points of other tiles. The join (:func:`join_task`)
-is a union over (tile, local piece), joined where a point that a tile borrowed from another tile
-lies in the other tile's local piece: the global pieces are exactly the in-memory build's (on
+that the scan's band joins are joined through points of other tiles. The join is a union over
+(tile, local piece), joined where a point that a tile borrowed from another tile lies in the other
+tile's local piece. It runs in bands of input indices, as every later phase does (no task reads
+every tile's shared points: at 21.56M points in 197 tiles one task held 520 MB of them for 1 s, the
+build's longest serial step): each tile writes its shared points sorted by input index in frames
+(:func:`.workdir.put_banded`); a band's task (:func:`join_band`) reads its slice of every tile's
+and keeps the pairs of local pieces that hold one point; one short task (:func:`join_task`) joins
+those pairs, O(pieces + pairs): the global pieces are exactly the in-memory build's (on
 the same grid, voxel size and band radius; an in-memory build that chooses its parameters itself
 may also thin its band near close sheets, which a tiled build does not). The first rank of a
 global piece is the least rank of any point of its local pieces.
@@ -27,9 +32,10 @@ import numpy as np
 from .blocks import tile_records
 from .pool import collect, submit
 from .ranks import gather_ranks
-from .store import as_store
+from .store import Store, as_store
 from .sums import done, mark
 from .timing import timed_task
+from .workdir import BLOCK, banded_slice, get_zipped, put_banded, put_zipped
 
 #: a point a tile shares with another tile (borrowed, or its own near its box), with its local piece
 LINK = np.dtype([("g", "<i8"), ("piece", "<i8")])
@@ -37,6 +43,8 @@ LINK = np.dtype([("g", "<i8"), ("piece", "<i8")])
 REACH_R, REACH_H = 2.0, 2.0
 #: the first ranks kept in the record (as :data:`lodbuilder.sampling.fastfps.PIECE_ENTRIES_MAX`)
 ENTRIES_MAX = 10_000
+#: two local pieces (tile, piece) that hold one point: joined
+PAIR = np.dtype([("t0", "<i8"), ("p0", "<i8"), ("t1", "<i8"), ("p1", "<i8")])
 
 
 def reach(voxel_size: float, band_radius: float) -> float:
@@ -50,6 +58,14 @@ def _links(name: str) -> str:
 
 def _firsts(name: str) -> str:
     return f"{name}.first.i8"
+
+
+def _pairs(band: int) -> str:
+    return f"pieces.join.{band}.bin"
+
+
+def _band_marker(band: int) -> str:
+    return f"joined.{band}"  # (not "pieces.*": a marker's first word names its moment, see layout.moment)
 
 
 def _near_box(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, d: float) -> np.ndarray:
@@ -110,8 +126,9 @@ def tile_pieces(work: Any, t: int, own: np.ndarray, own_rank: np.ndarray, borrow
     shared[: own.shape[0]] = _near_faces(xyz[: own.shape[0]], lo, hi, np.asarray(spec["interior"], bool), d)
     links = np.empty(int(shared.sum()), LINK)
     links["g"], links["piece"] = ext["g"][shared], piece[shared]
+    links = links[np.argsort(links["g"], kind="stable")]  # (by input index, in frames: see join_band)
     name = f"pieces.{t}"
-    return {_links(name): w.put(_links(name), links), _firsts(name): w.put(_firsts(name), first)}
+    return {_links(name): put_banded(w, _links(name), links, BLOCK, key="g"), _firsts(name): w.put(_firsts(name), first)}
 
 
 def borrowed_points(work: Any, halo: np.ndarray, halo_rank: np.ndarray, spec: dict[str, Any]
@@ -126,43 +143,58 @@ def borrowed_points(work: Any, halo: np.ndarray, halo_rank: np.ndarray, spec: di
 
 
 @timed_task
-def join_task(work: str, n_tiles: int) -> dict[str, Any]:
-    """Join the tiles' local pieces (see the module): ``pieces`` (the count of the scan's band
-    pieces) and ``piece_entries`` (the first rank of each, ascending, the first ENTRIES_MAX)."""
+def join_band(work: Store | str, band: int, g0: int, g1: int, n_tiles: int) -> dict[str, Any]:
+    """The pairs of local pieces (tile, piece) that hold one point with input index in
+    ``[g0, g1)``: every tile's shared points of the band (a slice of each tile's links), sorted by
+    input index; a point seen by several tiles joins their pieces in a chain. Writes
+    ``pieces.join.<band>.bin`` (PAIR records, each pair once)."""
+    w = as_store(work)
+    parts = [banded_slice(w, _links(f"pieces.{t}"), LINK, g0, g1, key="g")[0] for t in range(n_tiles)]
+    rec = np.concatenate(parts) if parts else np.zeros(0, LINK)
+    tile = np.repeat(np.arange(n_tiles, dtype=np.int64), [p.shape[0] for p in parts])
+    srt = np.argsort(rec["g"], kind="stable")
+    g, piece, tile = rec["g"][srt], rec["piece"][srt], tile[srt]
+    same = np.flatnonzero(g[1:] == g[:-1])
+    pairs = np.unique(np.stack([tile[same], piece[same], tile[same + 1], piece[same + 1]], axis=1), axis=0)
+    out = np.empty(pairs.shape[0], PAIR)
+    out["t0"], out["p0"], out["t1"], out["p1"] = pairs.T
+    return {"band": band, "pairs": int(out.shape[0]), "files": {_pairs(band): put_zipped(w, _pairs(band), out)}}
+
+
+@timed_task
+def join_task(work: Store | str, n_tiles: int, n_bands: int) -> dict[str, Any]:
+    """Join the tiles' local pieces (see the module) from the bands' pairs (:func:`join_band`):
+    ``pieces`` (the count of the scan's band pieces) and ``piece_entries`` (the first rank of each,
+    ascending, the first ENTRIES_MAX)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    firsts = [as_store(work).read_array(_firsts(f"pieces.{t}"), "<i8") for t in range(n_tiles)]
+    w = as_store(work)
+    firsts = [w.read_array(_firsts(f"pieces.{t}"), "<i8") for t in range(n_tiles)]
     offset = np.cumsum([0, *(f.shape[0] for f in firsts)])
-    links = [as_store(work).read_array(_links(f"pieces.{t}"), LINK) for t in range(n_tiles)]
-    g = np.concatenate([x["g"] for x in links])
-    node = np.concatenate([x["piece"] + offset[t] for t, x in enumerate(links)])
-    srt = np.argsort(g, kind="stable")
-    g, node = g[srt], node[srt]
-    same = np.flatnonzero(g[1:] == g[:-1])  # the same point seen by two tiles: one piece
+    pairs = np.concatenate([get_zipped(w, _pairs(b), PAIR) for b in range(n_bands)] or [np.zeros(0, PAIR)])
     m = int(offset[-1])
-    graph = coo_matrix((np.ones(same.size, np.int8), (node[same], node[same + 1])), shape=(m, m))
+    a, b = offset[pairs["t0"]] + pairs["p0"], offset[pairs["t1"]] + pairs["p1"]
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(m, m))
     count, label = connected_components(graph, directed=False)
     first = np.full(count, np.iinfo(np.int64).max, np.int64)
-    np.minimum.at(first, label, np.concatenate(firsts))
+    np.minimum.at(first, label, np.concatenate(firsts) if firsts else np.zeros(0, np.int64))
     return {"pieces": int(count), "piece_entries": np.sort(first)[:ENTRIES_MAX].tolist()}
 
 
-def start_join(ex: cf.Executor, work: Any, n_tiles: int) -> dict[cf.Future, int]:
-    """Submit the join of the tiles' band pieces (written by their covering tasks, see
-    :func:`tile_pieces`), to run beside the phases after the covering; none when a finished
-    join recorded it."""
-    return {} if done(work, "pieces") is not None else submit(ex, [(0, join_task, (work, n_tiles))])
-
-
-def finish_join(ex: cf.Executor, work: Any, name: str, n_tiles: int, pending: dict[cf.Future, int]
-                ) -> dict[str, Any]:
-    """Wait for the join :func:`start_join` submitted (or submit it, when nothing was pending and
-    no finished join is recorded); returns ``{"pieces", "piece_entries"}`` for the build record's
+def join_phase(ex: cf.Executor, work: Any, name: str, n: int, n_tiles: int, band: int = BLOCK) -> dict[str, Any]:
+    """The join of the tiles' band pieces (written by their covering tasks, see :func:`tile_pieces`):
+    tasks over bands of ``band`` input indices, then the join of their pairs (or what a finished
+    join recorded); returns ``{"pieces", "piece_entries"}`` for the build record's
     ``engine_stats``."""
-    joined = None if pending else done(work, "pieces")
+    joined = done(work, "pieces")
     if joined is None:
-        pending = pending or start_join(ex, work, n_tiles)
-        (joined,) = collect(pending, lambda _: "the join of the pieces", name, 1, None, "pieces")
+        bands = [(g0, min(n, g0 + band)) for g0 in range(0, n, band)]
+        calls = [(b, join_band, (work, b, g0, g1, n_tiles)) for b, (g0, g1) in enumerate(bands)
+                 if done(work, _band_marker(b)) is None]
+        collect(submit(ex, calls), lambda b: "the join of the pieces of points {} to {}".format(*bands[b]), name,
+                len(bands), None, "pieces", lambda res: mark(work, _band_marker(res["band"]), res))
+        (joined,) = collect(submit(ex, [(0, join_task, (work, n_tiles, len(bands)))]), lambda _: "the join of the pieces",
+                            name, 1, None, "pieces")
         mark(work, "pieces", joined)
     return {k: joined[k] for k in ("pieces", "piece_entries")}
