@@ -145,7 +145,8 @@ def _columns() -> np.ndarray:
 
 def _local_pieces(work, pts, h, r, edges, halo, rank):
     """Every tile's local pieces (tiles: the cells of ``edges`` in x and y), from its own points
-    and the other tiles' points within ``halo`` of its box, written to ``work``; the tile count."""
+    and the other tiles' points within ``halo`` of its box, written to ``work``; the tile count and
+    the bands each tile's links touch."""
     from lodbuilder.build.tiled.pieces import borrowed_points, tile_pieces
     from lodbuilder.build.tiled.workdir import REC
 
@@ -155,6 +156,7 @@ def _local_pieces(work, pts, h, r, edges, halo, rank):
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ij = [np.clip(np.searchsorted(edges[a], pts[:, a], "right") - 1, 0, len(edges[a]) - 2) for a in range(2)]
     t = 0
+    touched = []
     for i in range(len(edges[0]) - 1):
         for j in range(len(edges[1]) - 1):
             box_lo = np.array([edges[0][i], edges[1][j], lo[2]])
@@ -165,22 +167,27 @@ def _local_pieces(work, pts, h, r, edges, halo, rank):
             spec = {"lo": box_lo.tolist(), "hi": box_hi.tolist(), "interior": interior, "voxel_size": h, "band_radius": r,
                     "lattice": lo.tolist(), "max_memory": None, "halo": halo, "neighbours": []}
             borrowed, b_rank = borrowed_points(work, rec[near], rank[near], spec)
-            tile_pieces(work, t, rec[own], rank[own], borrowed, b_rank, spec)
+            touched.append(tile_pieces(work, t, rec[own], rank[own], borrowed, b_rank, spec)[1])
             t += 1
-    return t
+    return t, touched
 
 
-@pytest.mark.parametrize("bands", [1, 7])
+@pytest.mark.parametrize("bands", [1, 7, "marked"])
 @pytest.mark.parametrize("scene_name", ["fragmented 2x2", "fragmented 4x4", "columns"])
-def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, scene_name, bands):
+def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, monkeypatch, scene_name, bands):
     """The covering tasks take the points of other tiles from their halo when it is at least the
     pieces' reach wide (a survey's halo is: 41 vs 29.5 on the 4 x 4 survey): each tile's local
     pieces from its own points and its halo, joined, are the whole scan's band pieces, and each
     piece's first rank is the least rank of its points (ranks: a random permutation). The
     columns' tiles are cut in the middle of every gap: only the halo joins a pair. The join runs
-    in one band of input indices or in 7 (each task sees a slice of every tile's shared points)."""
+    in one band of input indices or in 7 (each task sees a slice of every tile's shared points),
+    or in 7 bands of the build's size (patched) where the covering tasks' markers say which tiles'
+    links each band holds (a band's task reads only those)."""
     from lodbuilder.build.executors import InlineExecutor
+    from lodbuilder.build.tiled import layout as WL
+    from lodbuilder.build.tiled import pieces
     from lodbuilder.build.tiled.pieces import join_phase, reach
+    from lodbuilder.build.tiled.sums import put_json
     from lodbuilder.sampling.band import choose_parameters
 
     if scene_name == "columns":
@@ -195,9 +202,21 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, sc
         edges = [np.linspace(pts[:, a].min(), pts[:, a].max(), cuts + 1) for a in range(2)]
     labels = _band_labels(pts, h, r)
     rank = np.random.default_rng(0).permutation(pts.shape[0])
-    n_tiles = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank)
-    joined = join_phase(InlineExecutor(), str(tmp_path), "scan", pts.shape[0], n_tiles, -(-pts.shape[0] // bands))
-    assert len(list(tmp_path.glob("pieces.join.*.bin"))) == bands
+    band = -(-pts.shape[0] // (7 if bands == "marked" else bands))
+    if bands == "marked":
+        monkeypatch.setattr(pieces, "BLOCK", band)
+    n_tiles, touched = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank)
+    reads = []
+    if bands == "marked":
+        for t in range(n_tiles):
+            put_json(tmp_path, WL.marker(WL.cover_piece(t)), {"link_bands": touched[t]})
+        join_band = pieces.join_band
+        monkeypatch.setattr(pieces, "join_band", lambda *a: reads.append(a[-1]) or join_band(*a))
+    joined = join_phase(InlineExecutor(), str(tmp_path), "scan", pts.shape[0], n_tiles, band)
+    assert len(list(tmp_path.glob("pieces.join.*.bin"))) == (7 if bands == "marked" else bands)
+    if bands == "marked":  # (every tile's links in the bands it touches, and only there)
+        assert sorted(t for tiles in reads for t in tiles) == sorted(t for t in range(n_tiles) for _ in touched[t])
+        assert sum(map(len, reads)) < 7 * n_tiles
     assert joined["pieces"] == np.unique(labels).size >= 10
     first = np.full(labels.max() + 1, pts.shape[0])
     np.minimum.at(first, labels, rank)

@@ -29,11 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from . import layout as WL
 from .blocks import tile_records
 from .pool import collect, submit
 from .ranks import gather_ranks
 from .store import Store, as_store
-from .sums import done, mark
+from .sums import done, get_json, mark
 from .timing import timed_task
 from .workdir import BLOCK, banded_slice, get_zipped, put_banded, put_zipped
 
@@ -102,7 +103,7 @@ def _band_pieces(xyz: np.ndarray, h: float, r: float, lattice: np.ndarray, max_m
 
 
 def tile_pieces(work: Any, t: int, own: np.ndarray, own_rank: np.ndarray, borrowed: np.ndarray,
-                borrowed_rank: np.ndarray, spec: dict[str, Any]) -> dict[str, list[int]]:
+                borrowed_rank: np.ndarray, spec: dict[str, Any]) -> tuple[dict[str, list[int]], list[int]]:
     """Label the band pieces of tile ``t``'s own points ``own`` and of the points of other tiles
     ``borrowed`` (records, with their ranks in the merged order): those of them within
     :func:`reach` of its box are kept. ``spec``: the tile's box (``lo``, ``hi``), ``voxel_size``,
@@ -110,7 +111,8 @@ def tile_pieces(work: Any, t: int, own: np.ndarray, own_rank: np.ndarray, borrow
     number of voxels from it) and ``max_memory``. Writes ``pieces.<t>.links.bin`` (LINK records,
     by input index: the borrowed points, and its own points within the reach of its box's faces,
     which other tiles borrow) and ``pieces.<t>.first.i8`` (the least rank in the merged order of
-    each local piece); returns their entries for the task's marker."""
+    each local piece); returns their entries for the task's marker, and the bands of BLOCK input
+    indices its links touch (the join's tasks that read them: :func:`join_phase`)."""
     w = as_store(work)
     lo, hi = np.asarray(spec["lo"], float), np.asarray(spec["hi"], float)
     h, r = float(spec["voxel_size"]), float(spec["band_radius"])
@@ -128,7 +130,8 @@ def tile_pieces(work: Any, t: int, own: np.ndarray, own_rank: np.ndarray, borrow
     links["g"], links["piece"] = ext["g"][shared], piece[shared]
     links = links[np.argsort(links["g"], kind="stable")]  # (by input index, in frames: see join_band)
     name = f"pieces.{t}"
-    return {_links(name): put_banded(w, _links(name), links, BLOCK, key="g"), _firsts(name): w.put(_firsts(name), first)}
+    files = {_links(name): put_banded(w, _links(name), links, BLOCK, key="g"), _firsts(name): w.put(_firsts(name), first)}
+    return files, np.unique(links["g"] // BLOCK).tolist()
 
 
 def borrowed_points(work: Any, halo: np.ndarray, halo_rank: np.ndarray, spec: dict[str, Any]
@@ -143,15 +146,15 @@ def borrowed_points(work: Any, halo: np.ndarray, halo_rank: np.ndarray, spec: di
 
 
 @timed_task
-def join_band(work: Store | str, band: int, g0: int, g1: int, n_tiles: int) -> dict[str, Any]:
+def join_band(work: Store | str, band: int, g0: int, g1: int, tiles: list[int]) -> dict[str, Any]:
     """The pairs of local pieces (tile, piece) that hold one point with input index in
-    ``[g0, g1)``: every tile's shared points of the band (a slice of each tile's links), sorted by
-    input index; a point seen by several tiles joins their pieces in a chain. Writes
-    ``pieces.join.<band>.bin`` (PAIR records, each pair once)."""
+    ``[g0, g1)``: the shared points of the band of ``tiles`` (those whose links it holds: a slice of
+    each one's links), sorted by input index; a point seen by several tiles joins their pieces in a
+    chain. Writes ``pieces.join.<band>.bin`` (PAIR records, each pair once)."""
     w = as_store(work)
-    parts = [banded_slice(w, _links(f"pieces.{t}"), LINK, g0, g1, key="g")[0] for t in range(n_tiles)]
+    parts = [banded_slice(w, _links(f"pieces.{t}"), LINK, g0, g1, key="g")[0] for t in tiles]
     rec = np.concatenate(parts) if parts else np.zeros(0, LINK)
-    tile = np.repeat(np.arange(n_tiles, dtype=np.int64), [p.shape[0] for p in parts])
+    tile = np.repeat(np.asarray(tiles, np.int64), [p.shape[0] for p in parts])
     srt = np.argsort(rec["g"], kind="stable")
     g, piece, tile = rec["g"][srt], rec["piece"][srt], tile[srt]
     same = np.flatnonzero(g[1:] == g[:-1])
@@ -190,7 +193,14 @@ def join_phase(ex: cf.Executor, work: Any, name: str, n: int, n_tiles: int, band
     joined = done(work, "pieces")
     if joined is None:
         bands = [(g0, min(n, g0 + band)) for g0 in range(0, n, band)]
-        calls = [(b, join_band, (work, b, g0, g1, n_tiles)) for b, (g0, g1) in enumerate(bands)
+        # the tiles whose links each band reads (their covering tasks' markers say; all where one
+        # does not, or the bands are not of BLOCK indices)
+        readers: list[list[int]] = [[] for _ in bands]
+        for t in range(n_tiles):
+            touched = (get_json(work, WL.marker(WL.cover_piece(t))) or {}).get("link_bands") if band == BLOCK else None
+            for b in range(len(bands)) if touched is None else touched:
+                readers[b].append(t)
+        calls = [(b, join_band, (work, b, g0, g1, readers[b])) for b, (g0, g1) in enumerate(bands)
                  if done(work, _band_marker(b)) is None]
         collect(submit(ex, calls), lambda b: "the join of the pieces of points {} to {}".format(*bands[b]), name,
                 len(bands), None, "pieces", lambda res: mark(work, _band_marker(res["band"]), res))

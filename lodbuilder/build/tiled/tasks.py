@@ -247,7 +247,9 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
         c = core.shape[0]
         borrowed, b_ranks = borrowed_points(w, halo, ranks[c:], pieces)
         del ext, halo
-        files.update(tile_pieces(w, t, core, ranks[:c], borrowed, b_ranks, pieces))
+        piece_files, link_bands = tile_pieces(w, t, core, ranks[:c], borrowed, b_ranks, pieces)
+        files.update(piece_files)
+        return {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files, "link_bands": link_bands}
     return {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files}
 
 
