@@ -158,7 +158,10 @@ def join_band(work: Store | str, band: int, g0: int, g1: int, tiles: list[int]) 
     srt = np.argsort(rec["g"], kind="stable")
     g, piece, tile = rec["g"][srt], rec["piece"][srt], tile[srt]
     same = np.flatnonzero(g[1:] == g[:-1])
-    pairs = np.unique(np.stack([tile[same], piece[same], tile[same + 1], piece[same + 1]], axis=1), axis=0)
+    pairs = np.stack([tile[same], piece[same], tile[same + 1], piece[same + 1]], axis=1)
+    # each pair once (np.unique(axis=0) compares rows as bytes: 5 x slower than a lexsort here)
+    pairs = pairs[np.lexsort(pairs.T[::-1])]
+    pairs = pairs[np.r_[True, (pairs[1:] != pairs[:-1]).any(axis=1)]] if pairs.shape[0] else pairs
     out = np.empty(pairs.shape[0], PAIR)
     out["t0"], out["p0"], out["t1"], out["p1"] = pairs.T
     return {"band": band, "pairs": int(out.shape[0]), "files": {_pairs(band): put_zipped(w, _pairs(band), out)}}
