@@ -14,8 +14,8 @@ that the scan's band joins are joined through points of other tiles. The join is
 tile's local piece. It runs in bands of input indices, as every later phase does (no task reads
 every tile's shared points: at 21.56M points in 197 tiles one task held 520 MB of them for 1 s, the
 build's longest serial step): each tile writes its shared points sorted by input index in frames
-(:func:`.workdir.put_banded`); a band's task (:func:`join_band`) reads its slice of every tile's
-and keeps the pairs of local pieces that hold one point; one short task (:func:`join_task`) joins
+(:func:`.workdir.put_banded`); a band's task (:func:`join_band`) reads its slice of the links of
+the tiles that touch the band and keeps the pairs of local pieces that hold one point; one short task (:func:`join_task`) joins
 those pairs, O(pieces + pairs): the global pieces are exactly the in-memory build's (on
 the same grid, voxel size and band radius; an in-memory build that chooses its parameters itself
 may also thin its band near close sheets, which a tiled build does not). The first rank of a
