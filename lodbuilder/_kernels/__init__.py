@@ -15,3 +15,8 @@ JIT: dict[str, Any] = dict(cache=True, nogil=True)  # one place for JIT options;
 # and decrements that LLVM cannot remove even after it inlines the helper); copied into the caller
 # at numba's IR level they cost none
 INLINE: dict[str, Any] = dict(JIT, inline="always")
+# numba's np.sort, np.argsort and np.unique are closures of one factory (numba.misc.quicksort):
+# with cache=True, two of them over the same array type compiled in two processes can carry one
+# symbol name, and a process that loads both runs one in place of the other (2026-11-29: the
+# march's np.sort ran as the tiled covering's np.argsort and the covering pass crashed). At most
+# one kernel calls them (tests/test_accuracy.py, test_at_most_one_kernel_uses_numbas_sorts).
