@@ -157,25 +157,12 @@ def test_batched_fronts_at_any_cost_stay_near_the_march_one_voxel_at_a_time(cost
     np.testing.assert_allclose(batched, cost * unweighted, rtol=1e-4)
 
 
-@pytest.mark.parametrize("m", [0, 1, 2, 31, 32, 33, 1000, 65536])
-@pytest.mark.parametrize("top", [10, 1 << 20, 1 << 40])
-def test_the_batch_sort_is_numpys(m, top):
-    """A batched march sorts its batch's voxels with its own radix sort (insertion sort below 33):
-    np.sort's result, in place, the rest of the array untouched."""
-    from lodbuilder._kernels.march import SORT_RADIX, _sort_voxels
-
-    a = np.random.default_rng(m).integers(0, top, 1 << 16).astype(np.int64)
-    b = a.copy()
-    _sort_voxels(b, m, np.empty(1 << 16, np.int64), np.empty(SORT_RADIX + 1, np.int64))
-    assert np.array_equal(b[:m], np.sort(a[:m])) and np.array_equal(b[m:], a[m:])
-
-
 def test_at_most_one_kernel_uses_numbas_sorts():
     """numba's np.sort, np.argsort and np.unique are closures of one factory: the cached code of
     two of them over the same array type can carry one symbol name when two processes compiled
     them, and a process that loads both runs one in place of the other (a fresh clone's test run
     crashed in the tiled covering pass: its argsort ran the march's np.sort). So the kernels call
-    them in one place only (tiled._sort_steps; the march sorts with its own radix sort)."""
+    them in one place only (tiled._sort_steps; the march sorts with tiled.stable_argsort)."""
     import ast
     from pathlib import Path
 

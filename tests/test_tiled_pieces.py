@@ -180,9 +180,9 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, mo
     pieces from its own points and its halo, joined, are the whole scan's band pieces, and each
     piece's first rank is the least rank of its points (ranks: a random permutation). The
     columns' tiles are cut in the middle of every gap: only the halo joins a pair. The join runs
-    in one band of input indices or in 7 (each task sees a slice of every tile's shared points),
-    or in 7 bands of the build's size (patched) where the covering tasks' markers say which tiles'
-    links each band holds (a band's task reads only those)."""
+    in one band of input indices or in 7 (the band's size patched; each task sees a slice of
+    every tile's shared points), or in 7 where the covering tasks' markers say which tiles' links
+    each band holds (a band's task reads only those)."""
     from lodbuilder.build.executors import InlineExecutor
     from lodbuilder.build.tiled import layout as WL
     from lodbuilder.build.tiled import pieces
@@ -202,9 +202,7 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, mo
         edges = [np.linspace(pts[:, a].min(), pts[:, a].max(), cuts + 1) for a in range(2)]
     labels = _band_labels(pts, h, r)
     rank = np.random.default_rng(0).permutation(pts.shape[0])
-    band = -(-pts.shape[0] // (7 if bands == "marked" else bands))
-    if bands == "marked":
-        monkeypatch.setattr(pieces, "BLOCK", band)
+    monkeypatch.setattr(pieces, "BLOCK", -(-pts.shape[0] // (7 if bands == "marked" else bands)))
     n_tiles, touched = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank)
     reads = []
     if bands == "marked":
@@ -212,7 +210,7 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, mo
             put_json(tmp_path, WL.marker(WL.cover_piece(t)), {"link_bands": touched[t]})
         join_band = pieces.join_band
         monkeypatch.setattr(pieces, "join_band", lambda *a: reads.append(a[-1]) or join_band(*a))
-    joined = join_phase(InlineExecutor(), str(tmp_path), "scan", pts.shape[0], n_tiles, band)
+    joined = join_phase(InlineExecutor(), str(tmp_path), "scan", pts.shape[0], n_tiles)
     assert len(list(tmp_path.glob("pieces.join.*.bin"))) == (7 if bands == "marked" else bands)
     if bands == "marked":  # (every tile's links in the bands it touches, and only there)
         assert sorted(t for tiles in reads for t in tiles) == sorted(t for t in range(n_tiles) for _ in touched[t])

@@ -19,4 +19,5 @@ INLINE: dict[str, Any] = dict(JIT, inline="always")
 # with cache=True, two of them over the same array type compiled in two processes can carry one
 # symbol name, and a process that loads both runs one in place of the other (2026-11-29: the
 # march's np.sort ran as the tiled covering's np.argsort and the covering pass crashed). At most
-# one kernel calls them (tests/test_accuracy.py, test_at_most_one_kernel_uses_numbas_sorts).
+# one kernel calls them (tests/test_accuracy.py, test_at_most_one_kernel_uses_numbas_sorts);
+# the others sort with tiled.stable_argsort.

@@ -66,6 +66,7 @@ from .heaps import (
     maxheap_pop,
 )
 from .pieces import piece_tables, refresh_piece
+from .tiled import stable_argsort
 from .topology import _cell_key, anchor_of, cell_tables
 
 SEED_RADIUS = 6.0  # voxels around a new sample that get their exact distance
@@ -387,51 +388,6 @@ def _seed_sample(
     return n, nd
 
 
-SORT_RADIX = 1 << 11  # digits of the batch's radix sort
-
-
-@nb.njit(**JIT)
-def _sort_voxels(a, m, tmp, count):  # pragma: no cover - compiled
-    """Sort ``a[:m]`` (voxel indices, >= 0) ascending in place: insertion sort for a few, else a
-    least-significant-digit radix sort through ``tmp`` (``count``: SORT_RADIX + 1 counters).
-
-    Not np.sort: numba's sorts are closures of one factory (numba.misc.quicksort), and the cached
-    object code of two of them over the same array type (np.sort here, np.argsort in
-    :func:`lodbuilder._kernels.tiled._sort_steps`) can carry one mangled name when compiled in two
-    processes; a process that loaded both then ran this sort in place of that argsort (a fresh
-    clone's test run crashed in the tiled covering pass, 2026-11-29)."""
-    if m <= 32:
-        for t in range(1, m):
-            x = a[t]
-            u = t - 1
-            while u >= 0 and a[u] > x:
-                a[u + 1] = a[u]
-                u -= 1
-            a[u + 1] = x
-        return
-    top = np.int64(0)
-    for i in range(m):
-        top = max(top, a[i])
-    src, dst = a, tmp
-    shift = 0
-    odd = False  # (the sorted values are in tmp)
-    while shift == 0 or (top >> shift) > 0:
-        count[:] = 0
-        for i in range(m):
-            count[((src[i] >> shift) & (SORT_RADIX - 1)) + 1] += 1
-        for d in range(SORT_RADIX):
-            count[d + 1] += count[d]
-        for i in range(m):
-            d = (src[i] >> shift) & (SORT_RADIX - 1)
-            dst[count[d]] = src[i]
-            count[d] += 1
-        src, dst = dst, src
-        shift += 11
-        odd = not odd
-    if odd:
-        a[:m] = tmp[:m]
-
-
 _LINK_LOW = np.int64(0xFFFFFFFF)
 
 
@@ -542,8 +498,6 @@ def march_round(
     # the lowest bucket of width ``batch_t``, marched in voxel order; see the module docstring)
     batched = apart and batch_t > 0.0 and src.shape[0] >= BATCH_SOURCES
     batch = np.empty(BATCH_MAX if batched else 1, np.int64)
-    sort_tmp = np.empty(BATCH_MAX if batched else 0, np.int64)
-    sort_count = np.empty(SORT_RADIX + 1, np.int64)
     # a batched march's queue: buckets of voxels (see :func:`_bucket_push`) instead of the heap
     bhead = np.full(NBUCKETS if batched else 0, -1, np.int64)
     link = np.empty(ts.shape[0] if batched else 0, np.int64)
@@ -597,7 +551,8 @@ def march_round(
                 nbat = _bucket_take(bhead, link, hpos, cur, batch)
                 nq -= nbat
                 if nbat > 1:
-                    _sort_voxels(batch, nbat, sort_tmp, sort_count)
+                    # (not np.sort: see the JIT options in __init__, numba's sorts in one kernel only)
+                    batch[:nbat] = batch[:nbat][stable_argsort(batch[:nbat])]
             else:
                 if n == 0:
                     break

@@ -274,10 +274,10 @@ def _covering(executor: cf.Executor, work: Store, name: str, sp: Spill, sources:
               by_size: list[P.Tile], dist: dict[str, Any], pl: dict[str, Any], delta: float, worker_budget: int,
               clock: _Clock, progress: ProgressCallback) -> tuple[int, dict[str, Any], dict[str, Any], dict[str, Any]]:
     """Phase 6 and the write's first pass; returns (tiles covered before, band pieces, radii, buckets)."""
-    # exact covering radii and band pieces of every tile (on the workers), the pieces joined (tasks over
-    # bands of input indices), the radii combined in bands of positions; then tasks put the points in stored order (the write's first pass:
-    # after the covering files and the tiles' points are deleted, so that the buckets are never on
-    # disk beside them)
+    # exact covering radii and band pieces of every tile (on the workers), the pieces joined (tasks
+    # over bands of input indices), the radii combined in bands of positions; then tasks put the
+    # points in stored order (the write's first pass: after the covering files and the tiles' points
+    # are deleted, so that the buckets are never on disk beside them)
     n_tiles = len(by_size)
     covered = _cover(executor, work, name, sp, by_size, dist, pl, worker_budget, progress)
     clock.lap("cover")
@@ -357,8 +357,8 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
     """Phase 6: the exact covering radii of every tile on the workers; each covering task also
     labels its tile's band pieces (on the scan's grid: its voxel corners a whole number of voxels
     from the scan's lowest point; the neighbours' cores are read only when the halo is narrower
-    than the pieces' reach), which the join (:func:`.pieces.join_phase`) joins next. Returns how many tiles a
-    resume found covered."""
+    than the pieces' reach), which the join (:func:`.pieces.join_phase`) joins next. Returns how
+    many tiles a resume found covered."""
     n_tiles, pieces, spacing = len(by_size), dist["pieces"], float(pl["spacing"])
     spec = {"voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"], "lattice": [float(x) for x in sp.lo],
             "max_memory": worker_budget, "halo": float(dist["halo"])}

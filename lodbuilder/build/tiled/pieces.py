@@ -188,19 +188,18 @@ def join_task(work: Store | str, n_tiles: int, n_bands: int) -> dict[str, Any]:
     return {"pieces": int(count), "piece_entries": np.sort(first)[:ENTRIES_MAX].tolist()}
 
 
-def join_phase(ex: cf.Executor, work: Any, name: str, n: int, n_tiles: int, band: int = BLOCK) -> dict[str, Any]:
+def join_phase(ex: cf.Executor, work: Any, name: str, n: int, n_tiles: int) -> dict[str, Any]:
     """The join of the tiles' band pieces (written by their covering tasks, see :func:`tile_pieces`):
-    tasks over bands of ``band`` input indices, then the join of their pairs (or what a finished
-    join recorded); returns ``{"pieces", "piece_entries"}`` for the build record's
-    ``engine_stats``."""
+    tasks over bands of BLOCK input indices, then the join of their pairs (or what a finished join
+    recorded); returns ``{"pieces", "piece_entries"}`` for the build record's ``engine_stats``."""
     joined = done(work, "pieces")
     if joined is None:
-        bands = [(g0, min(n, g0 + band)) for g0 in range(0, n, band)]
+        bands = [(g0, min(n, g0 + BLOCK)) for g0 in range(0, n, BLOCK)]
         # the tiles whose links each band reads (their covering tasks' markers say; all where one
-        # does not, or the bands are not of BLOCK indices)
+        # does not: a marker of an older build)
         readers: list[list[int]] = [[] for _ in bands]
         for t in range(n_tiles):
-            touched = (get_json(work, WL.marker(WL.cover_piece(t))) or {}).get("link_bands") if band == BLOCK else None
+            touched = (get_json(work, WL.marker(WL.cover_piece(t))) or {}).get("link_bands")
             for b in range(len(bands)) if touched is None else touched:
                 readers[b].append(t)
         calls = [(b, join_band, (work, b, g0, g1, readers[b])) for b, (g0, g1) in enumerate(bands)

@@ -243,14 +243,14 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     ext = np.concatenate([core, halo])
     ranks = gather_ranks(w, ext["g"])
     files, n_events = _cover(w, t, spacing, ext, ranks, core.shape[0])
+    res = {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files}
     if pieces is not None:
         c = core.shape[0]
         borrowed, b_ranks = borrowed_points(w, halo, ranks[c:], pieces)
         del ext, halo
-        piece_files, link_bands = tile_pieces(w, t, core, ranks[:c], borrowed, b_ranks, pieces)
+        piece_files, res["link_bands"] = tile_pieces(w, t, core, ranks[:c], borrowed, b_ranks, pieces)
         files.update(piece_files)
-        return {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files, "link_bands": link_bands}
-    return {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files}
+    return res
 
 
 def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray, n_core: int
