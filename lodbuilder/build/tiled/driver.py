@@ -58,16 +58,28 @@ TILE_PASSES = 1
 #: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface
 COARSE_POINTS = 400_000
 COARSE_MIN = 2_000
-#: head size: points of the decimated copy's order per point of the head
-HEAD_DECIMATION = 200
+#: head size: points of the decimated copy's order per point of the head. Every tile's ordering
+#: starts from the head points in its core and halo (marched as one front, one pop per voxel) and
+#: goes on with one front per new point, each doubling of its points re-popping its voxels about
+#: 0.6 times; a deeper head leaves the tiles fewer doublings, a narrower halo (HALO_FACTOR) and costs
+#: the coarse task little (below its grid's hand-over the copy's order is the Euclidean tail): on the
+#: 21.56M-point survey planned for 16 workers (197 tiles), 200 -> 50 took order_tile 124.8 -> 106.4
+#: CPU-s, the coarse task 1.01 -> 1.04 s, the work files 1.80 -> 1.34 x the archive (docs/benchmarks.md)
+HEAD_DECIMATION = 50
 HEAD_MIN = 256
-#: the coarse level's grid: at least the head's estimated last radius over this many voxels (or the
-#: copy's own grid where that is coarser). The head needs radii down to about 11-14 of the copy's
-#: spacings only; on the 21.56M-point survey's copy (698,789 points ordered down to a 3,493-point
-#: head) its own grid is 26.3, this one 69: CPU 7.8-8.1 -> 1.6-1.8 s (load 9, alternated), the
-#: copy's covering by the head's prefixes (16 to 3,493 points) 0.98-1.07 x, mean 1.00 x, the own
+#: the coarse level's grid: at least the copy's order's estimated radius at one point in
+#: GRID_DECIMATION of the copy (the head's at HEAD_DECIMATION 200, or at HEAD_MIN points where that
+#: is more) over HEAD_RADIUS_VOXELS voxels (or the copy's own grid where that is coarser). The head
+#: needs radii down to about 11-14 of the copy's spacings there; on the 21.56M-point survey's copy
+#: (698,789 points) its own grid is 26.3, this one 69: CPU 7.8-8.1 -> 1.6-1.8 s (load 9, alternated),
+#: the copy's covering by the head's prefixes (16 to 3,493 points) 0.98-1.07 x, mean 1.00 x, the own
 #: grid's, and r_cut 157.3 against 159.0 (see docs/benchmarks.md, out-of-core builds)
+GRID_DECIMATION = 200
 HEAD_RADIUS_VOXELS = 3.0
+#: the covering tasks add the head points within this many times the coarse level's certified
+#: bound (the head's last radius and the copy's cell diagonal) of their tile: the head's levels down
+#: from about a quarter of its size get exact radii (a halo as wide would hold every point)
+HEAD_REACH = 2.0
 #: halo width in units of the coarse level's covering bound: the stored radii are exact wherever the
 #: covering radius is below the halo width (every level but the first few times the head's size)
 HALO_FACTOR = 0.3
@@ -220,6 +232,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     # 3. the coarse level (on a worker) while the other workers write the tiles' core and halo pieces
     coarse, dist = _coarse_and_tiles(executor, work, name, sp, pl, delta, worker_budget, progress)
     halo = float(dist["halo"])
+    head_reach = HEAD_REACH * (float(coarse["r_cut"]) + delta)  # (how far covering tasks take head points)
     clock.lap("tiles")
 
     # 4. order every tile (on the workers), in passes
@@ -236,13 +249,13 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
 
     # 6. exact covering radii and band pieces of every tile, the radii combined, the points bucketed
     resumed["tiles_covered_before"], band_pieces, radii, buckets = _covering(
-        executor, work, name, sp, sources, by_size, dist, pl, delta, worker_budget, clock, progress)
+        executor, work, name, sp, sources, by_size, dist, pl, delta, head_reach, worker_budget, clock, progress)
 
     # 7. write the part file in stored order (bands of positions as tasks; the parent places their chunks)
     head = store.read_array(WL.HEAD_FILE, WL.HEAD)
     record = {**(build or {}), "method": "tiled", "voxel_size": pl["voxel_size"], "band_radius": pl["band_radius"],
               "engine_stats": band_pieces,
-              "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "seam_alpha": seam_spacing,
+              "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "head_reach": head_reach, "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
                         "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour, "rounds": (_done(work, "order") or {}).get("rounds"),
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
@@ -271,15 +284,15 @@ def _read_and_plan(executor: cf.Executor, work: Store, name: str, sources: list[
 
 
 def _covering(executor: cf.Executor, work: Store, name: str, sp: Spill, sources: list[tuple[Any, ...]],
-              by_size: list[P.Tile], dist: dict[str, Any], pl: dict[str, Any], delta: float, worker_budget: int,
-              clock: _Clock, progress: ProgressCallback) -> tuple[int, dict[str, Any], dict[str, Any], dict[str, Any]]:
+              by_size: list[P.Tile], dist: dict[str, Any], pl: dict[str, Any], delta: float, head_reach: float,
+              worker_budget: int, clock: _Clock, progress: ProgressCallback) -> tuple[int, dict[str, Any], dict[str, Any], dict[str, Any]]:
     """Phase 6 and the write's first pass; returns (tiles covered before, band pieces, radii, buckets)."""
     # exact covering radii and band pieces of every tile (on the workers), the pieces joined (tasks
     # over bands of input indices), the radii combined in bands of positions; then tasks put the
     # points in stored order (the write's first pass: after the covering files and the tiles' points
     # are deleted, so that the buckets are never on disk beside them)
     n_tiles = len(by_size)
-    covered = _cover(executor, work, name, sp, by_size, dist, pl, worker_budget, progress)
+    covered = _cover(executor, work, name, sp, by_size, dist, pl, head_reach, worker_budget, progress)
     clock.lap("cover")
     band_pieces = join_phase(executor, work, name, sp.n, n_tiles)  # (then the tiles' points are deleted)
     clock.lap("pieces")
@@ -353,8 +366,9 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
 
 
 def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: list[P.Tile], dist: dict[str, Any],
-           pl: dict[str, Any], worker_budget: int, progress: ProgressCallback) -> int:
-    """Phase 6: the exact covering radii of every tile on the workers; each covering task also
+           pl: dict[str, Any], head_reach: float, worker_budget: int, progress: ProgressCallback) -> int:
+    """Phase 6: the exact covering radii of every tile on the workers (from its core, its halo and
+    the head points within ``head_reach`` of it); each covering task also
     labels its tile's band pieces (on the scan's grid: its voxel corners a whole number of voxels
     from the scan's lowest point; the neighbours' cores are read only when the halo is narrower
     than the pieces' reach), which the join (:func:`.pieces.join_phase`) joins next. Returns how
@@ -371,7 +385,7 @@ def _cover(executor: cf.Executor, work: Store, name: str, sp: Spill, by_size: li
         return {**spec, "lo": t.lo.tolist(), "hi": t.hi.tolist(), "interior": t.interior.tolist(), "neighbours": near}
 
     futs = submit(executor, [(t.index, cover_tile, (work, t.index, spacing, pieces["core"][t.index],
-                                                    pieces["halo"][t.index], band(t))) for t in todo])
+                                                    pieces["halo"][t.index], band(t), head_reach)) for t in todo])
     collect(futs, lambda t: f"covering of tile {t + 1} of {n_tiles}", name, n_tiles, progress, "covering",
             lambda res: put_json(work, WL.marker(WL.cover_piece(res["tile"])), res),
             points=[t.n_points for t in sorted(by_size, key=lambda t: t.index)])
@@ -475,10 +489,11 @@ def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, 
     m_est = max(1, int(pl["n_decimated"]))
     head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
     r_head = float(pl["d_cell"]) * math.sqrt(m_est / head_est)
+    r_grid = float(pl["d_cell"]) * math.sqrt(m_est / max(HEAD_MIN, m_est // GRID_DECIMATION))
     if coarse is None:
-        pending = submit(executor, [(0, coarse_task, (work, head_est, worker_budget, r_head / HEAD_RADIUS_VOXELS))])
+        pending = submit(executor, [(0, coarse_task, (work, head_est, worker_budget, r_grid / HEAD_RADIUS_VOXELS))])
     try:
-        halo = HALO_FACTOR * (r_head + delta)  # (a fraction of it)
+        halo = HALO_FACTOR * (r_grid + delta)  # (a fraction of it)
         dist = distribute_phase(executor, work, name, sp, pl, halo, progress)
     finally:
         if coarse is None:

@@ -49,9 +49,10 @@ def coarse_task(work: Store | str, size: int, max_memory: int | None, voxel_min:
     """Order the decimated copy down to ``size`` points: the coarse global level (the head).
 
     ``voxel_min``: the ordering's grid is at least this coarse (the driver asks for a fraction of
-    the head's estimated last radius, see :data:`.driver.HEAD_RADIUS_VOXELS`): the head needs radii
-    down to 11-14 of the copy's spacings only, and a grid of the copy's own spacing has several
-    times the voxels (the task's CPU is mostly the band and its marching). Where the
+    the copy's estimated radius at one point in 200, see :data:`.driver.HEAD_RADIUS_VOXELS`): the
+    grid phase needs radii down to 11-14 of the copy's spacings only (the deeper head is the
+    Euclidean tail's), and a grid of the copy's own spacing has several times the voxels (the
+    task's CPU is mostly the band and its marching). Where the
     copy's automatic grid is that coarse already, it is used as it is (its thin-sheet plan too).
     Any grid keeps the head's radii upper bounds of the copy's covering radius."""
     from ...sampling.band import choose_parameters
@@ -225,15 +226,17 @@ def _stream(o: Ordering, is_seed: np.ndarray, core: np.ndarray, cpts: np.ndarray
 
 @timed_task
 def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str], halo_pieces: list[str],
-               pieces: dict[str, Any] | None = None) -> dict[str, Any]:
+               pieces: dict[str, Any] | None = None, head_reach: float = 0.0) -> dict[str, Any]:
     """Exact covering radii of tile ``t``'s core in the final order, from its core and halo (their
-    pieces, in block order); with ``pieces`` (see :func:`.pieces.tile_pieces`), the band pieces of
-    the tile too, from the same points and ranks.
+    pieces, in block order) and the head points within ``head_reach`` of the core (:func:`head_near`);
+    with ``pieces`` (see :func:`.pieces.tile_pieces`), the band pieces of the tile too, from the
+    core and halo and their ranks.
 
     Writes ``cover.<t>.ev`` (rank, covering radius of the core by every point of smaller rank,
     whenever it changes) and ``cover.<t>.pt`` (for each core point in rank order: its rank, the
     rank of its nearest earlier point and the distance to it). Both are exact while the distance
-    is below the halo width and upper bounds beyond it."""
+    is below the halo width (below ``head_reach`` while every earlier point is a head point) and
+    upper bounds beyond it."""
     from .pieces import borrowed_points, tile_pieces
     from .ranks import gather_ranks
 
@@ -242,7 +245,9 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
     halo = tile_records(w, halo_pieces)
     ext = np.concatenate([core, halo])
     ranks = gather_ranks(w, ext["g"])
-    files, n_events = _cover(w, t, spacing, ext, ranks, core.shape[0])
+    near, near_ranks = head_near(w, core, ext, head_reach)
+    files, n_events = _cover(w, t, spacing, np.concatenate([ext, near]), np.concatenate([ranks, near_ranks]),
+                             core.shape[0])
     res = {"tile": t, "n_ext": int(ranks.shape[0]), "n_events": n_events, "files": files}
     if pieces is not None:
         c = core.shape[0]
@@ -251,6 +256,31 @@ def cover_tile(work: Store | str, t: int, spacing: float, core_pieces: list[str]
         piece_files, res["link_bands"] = tile_pieces(w, t, core, ranks[:c], borrowed, b_ranks, pieces)
         files.update(piece_files)
     return res
+
+
+def head_near(w: Store, core: np.ndarray, ext: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The head points within ``reach`` of the box of ``core`` that ``ext`` (the core and halo) does
+    not hold, as records, and their ranks (a head point's rank is its place in the head). The halo
+    holds every point within the halo width of the tile; the coarse levels' covering radii are
+    larger, so with the head's own points from farther away the covering of the core by a prefix
+    of the head is exact wherever it is below ``reach`` (else the nearest of them is still an
+    earlier point: an upper bound)."""
+    from ...sampling.spacing import axis_max, axis_min
+
+    if reach <= 0.0 or core.shape[0] == 0:
+        return ext[:0], np.empty(0, np.int64)
+    head = w.read_array(WL.HEAD_FILE, HEAD)
+    hpts = np.stack([head["x"], head["y"], head["z"]], axis=1)
+    cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
+    gap = np.maximum(np.maximum(axis_min(cpts) - hpts, hpts - axis_max(cpts)), 0.0)
+    by_g = np.argsort(head["g"], kind="stable")
+    held, pos = in_sorted(ext["g"], head["g"][by_g])
+    known = np.zeros(head.shape[0], bool)
+    known[by_g[pos]] = True
+    keep = np.flatnonzero((np.einsum("ij,ij->i", gap, gap) <= reach * reach) & ~known)
+    rec = np.zeros(keep.shape[0], ext.dtype)
+    rec["g"], rec["x"], rec["y"], rec["z"] = head["g"][keep], head["x"][keep], head["y"][keep], head["z"][keep]
+    return rec, keep.astype(np.int64)
 
 
 def _cover(w: Store, t: int, spacing: float, ext: np.ndarray, ranks: np.ndarray, n_core: int
