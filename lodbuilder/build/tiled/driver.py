@@ -61,10 +61,12 @@ COARSE_MIN = 2_000
 #: head size: points of the decimated copy's order per point of the head. Every tile's ordering
 #: starts from the head points in its core and halo (marched as one front, one pop per voxel) and
 #: goes on with one front per new point, each doubling of its points re-popping its voxels about
-#: 0.6 times; a deeper head leaves the tiles fewer doublings, a narrower halo (HALO_FACTOR) and costs
-#: the coarse task little (below its grid's hand-over the copy's order is the Euclidean tail): on the
-#: 21.56M-point survey planned for 16 workers (197 tiles), 200 -> 50 took order_tile 124.8 -> 106.4
-#: CPU-s, the coarse task 1.01 -> 1.04 s, the work files 1.80 -> 1.34 x the archive (docs/benchmarks.md)
+#: 0.6 times; a deeper head leaves the tiles fewer doublings and costs the coarse task little (below
+#: its grid's hand-over the copy's order is the Euclidean tail). The halo stays as wide as the head's
+#: at 1 in GRID_DECIMATION (narrower, the first tile levels after the head lose their exact radii: the
+#: joint bunny's 4 mm level 1.11 x its true covering). On the 21.56M-point survey planned for 16
+#: workers (197 tiles), 200 -> 50 took order_tile 124.8 -> 103.6 CPU-s, the coarse task 1.01 -> 1.00 s
+#: (docs/benchmarks.md, "A deeper head")
 HEAD_DECIMATION = 50
 HEAD_MIN = 256
 #: the coarse level's grid: at least the copy's order's estimated radius at one point in
@@ -493,7 +495,7 @@ def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, 
     if coarse is None:
         pending = submit(executor, [(0, coarse_task, (work, head_est, worker_budget, r_grid / HEAD_RADIUS_VOXELS))])
     try:
-        halo = HALO_FACTOR * (r_grid + delta)  # (a fraction of it)
+        halo = HALO_FACTOR * (r_grid + delta)  # (a fraction of it; see HEAD_DECIMATION)
         dist = distribute_phase(executor, work, name, sp, pl, halo, progress)
     finally:
         if coarse is None:
