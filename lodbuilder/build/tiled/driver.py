@@ -82,8 +82,9 @@ HEAD_RADIUS_VOXELS = 3.0
 #: bound (the head's last radius and the copy's cell diagonal) of their tile: the head's levels down
 #: from about a quarter of its size get exact radii (a halo as wide would hold every point)
 HEAD_REACH = 2.0
-#: halo width in units of the coarse level's covering bound: the stored radii are exact wherever the
-#: covering radius is below the halo width (every level but the first few times the head's size)
+#: halo width in units of the copy's estimated covering bound at 1 point in GRID_DECIMATION (its radius
+#: there plus its cell diagonal): the stored radii are exact wherever the covering radius is below the
+#: halo width (every level but the head's, which HEAD_REACH covers, and the first few after it)
 HALO_FACTOR = 0.3
 
 
@@ -490,7 +491,7 @@ def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, 
     # the coarse level's covering radius, estimated from its size
     m_est = max(1, int(pl["n_decimated"]))
     head_est = max(HEAD_MIN, m_est // HEAD_DECIMATION)
-    r_head = float(pl["d_cell"]) * math.sqrt(m_est / head_est)
+    # the copy's order's radius at 1 point in GRID_DECIMATION: its grid and the halo (see HEAD_DECIMATION)
     r_grid = float(pl["d_cell"]) * math.sqrt(m_est / max(HEAD_MIN, m_est // GRID_DECIMATION))
     if coarse is None:
         pending = submit(executor, [(0, coarse_task, (work, head_est, worker_budget, r_grid / HEAD_RADIUS_VOXELS))])
