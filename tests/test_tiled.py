@@ -317,12 +317,12 @@ def test_the_hand_over_from_the_head_to_the_tiles_leaves_no_hole(tmp_path):
     while the tile's later points, ordered as if it were there, left a hole (1.23 x the in-memory
     covering at 364 points of this sheet before; single levels of two valid orders differ by up to
     about 8 %: the head's own levels here 0.92-1.10 x)."""
+    from lodbuilder.build.tiled.driver import HEAD_DECIMATION, HEAD_MIN
+
     rng = np.random.default_rng(0)  # a wavy sheet on a jittered 300 x 300 grid
     g = np.stack(np.meshgrid(np.arange(300), np.arange(300)), -1).reshape(-1, 2).astype(float)
     g = (g + rng.uniform(-0.3, 0.3, g.shape)) / 300
     pts = np.c_[g, 0.08 * np.sin(4 * np.pi * g[:, 0]) * np.cos(4 * np.pi * g[:, 1])]
-    from lodbuilder.build.tiled.driver import HEAD_DECIMATION, HEAD_MIN
-
     ref = lodbuilder.fastfps(pts).order
     d, _ = _build(tmp_path, pts, tile_points=12_000)
     h = d["build"]["tiled"]["head_points"]

@@ -274,7 +274,7 @@ def head_near(w: Store, core: np.ndarray, ext: np.ndarray, reach: float) -> tupl
     cpts = np.stack([core["x"], core["y"], core["z"]], axis=1)
     gap = np.maximum(np.maximum(axis_min(cpts) - hpts, hpts - axis_max(cpts)), 0.0)
     by_g = np.argsort(head["g"], kind="stable")
-    held, pos = in_sorted(ext["g"], head["g"][by_g])
+    _, pos = in_sorted(ext["g"], head["g"][by_g])
     known = np.zeros(head.shape[0], bool)
     known[by_g[pos]] = True
     keep = np.flatnonzero((np.einsum("ij,ij->i", gap, gap) <= reach * reach) & ~known)
