@@ -59,7 +59,7 @@ def bench_doc(tmp_path_factory):
     out = d / "bench.json"
     rc = bench_survey.main([str(d / "one.laz"), str(d / "files"), "--workers", "1,2", "--max-memory", "2GB",
                             "--tile-points", "700", "--no-warm-up", "--work", str(d / "runs"), "--out", str(out),
-                            "--interval", "0.05"])
+                            "--interval", "0.05", "--plan-workers", "16"])
     return rc, json.loads(out.read_text()), d
 
 
@@ -73,7 +73,7 @@ def test_bench_survey_document(bench_doc, capsys):
     assert joint["joint"] == "survey" and joint["input"]["files"] == 2
     assert not any((d / "runs").iterdir())  # every run cleans up after itself
     for sv in doc["surveys"]:
-        assert [(r["executor"], r["workers"]) for r in sv["runs"]] == [("pool", 1), ("pool", 2)]
+        assert [(r["executor"], r["workers"], r["plan_workers"]) for r in sv["runs"]] == [("pool", 1, 16), ("pool", 2, 16)]
         for r in sv["runs"]:
             assert r["rc"] == 0 and r["method"] == "tiled" and r["n_points"] == 4_400
             assert r["points_per_second"] == pytest.approx(4_400 / r["wall_seconds"], rel=0.01, abs=1)

@@ -42,6 +42,13 @@ and, for ``dask-s3``, the S3 server's, which competes with the build for the mac
 ``--seam-rounds``: every build with ``--seam-rounds`` (the tiles in radius rounds; ``rounds``: the
 build record's plan of them, its owners' estimated and measured state bytes).
 
+``--plan-workers W``: each build planned as for W workers while it runs on ``--workers`` (the merge's
+bands of keys, and the tiles unless ``--tile-points`` gives them), so that the simulation's W-worker
+figure replays a W-worker plan; the 21.56M survey as for 16 workers on this 2-core machine:
+
+    python tools/bench_survey.py /work/big/survey_14x14 --workers 2 --max-memory 16GB --no-warm-up \
+        --tile-points 168000 --plan-workers 16 --append
+
 Timings depend on the machine and its load (the load average before and after each run is in the
 JSON): on a shared machine, compare runs of one invocation only.
 """
@@ -77,6 +84,9 @@ BUCKET = "lodbuilder-bench"
 #: ``BENCH_SURVEY_TILE_POINTS`` (``--tile-points``) orders the survey tiled in tiles of about that many points, as
 #: ``_tile_points`` does: the decimated copy and its head as the plan makes them (it capped the copy at the tile
 #: size too, which made the head of a survey's plan of small tiles some 5 x smaller and its halo twice as wide).
+#: ``BENCH_SURVEY_PLAN_WORKERS`` (``--plan-workers W``) plans the build as for W workers while it runs on
+#: ``--workers``: the merge's bands of keys sized for W (``plan.merge_band_rows``) and, without
+#: ``--tile-points``, the tiles too, so that the scheduler simulation's W-worker figure replays a W-worker plan.
 CHILD = """
 import atexit, json, os, resource, sys
 def _rusage():
@@ -90,6 +100,14 @@ if tp:
     from lodbuilder.build.tiled import plan
     plan.needs_tiling = lambda *a, **k: True
     plan.balanced_tile_points = lambda *a, **k: int(tp)
+pw = os.environ.get("BENCH_SURVEY_PLAN_WORKERS")
+if pw:
+    from lodbuilder.build.tiled import plan
+    rows, tiles = plan.merge_band_rows, plan.balanced_tile_points
+    plan.merge_band_rows = lambda n, parallel, most: rows(n, int(pw), most)
+    if not tp:
+        plan.needs_tiling = lambda *a, **k: True
+        plan.balanced_tile_points = lambda n, parallel, fits: tiles(n, int(pw), fits)
 from lodbuilder.cli.main import main
 sys.exit(main(sys.argv[1:]))
 """
@@ -422,7 +440,7 @@ def peaks_by_phase(rec: dict[str, Any], timeline: list[tuple[float, int, dict[st
 
 def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int, max_memory: str, base: Path,
               interval: float, tile_points: int | None = None, keep: Path | None = None,
-              build_args: tuple[str, ...] = ()) -> dict[str, Any]:
+              build_args: tuple[str, ...] = (), plan_workers: int | None = None) -> dict[str, Any]:
     """One measured ``lodbuilder build`` of ``inputs`` (see the module), with ``build_args`` more."""
     where = Path(tempfile.mkdtemp(prefix=f"{executor}{workers}_", dir=base))
     archive = where / "survey.h5"
@@ -435,6 +453,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
     if tile_points:
         env["BENCH_SURVEY_TILE_POINTS"] = str(tile_points)
+    if plan_workers:
+        env["BENCH_SURVEY_PLAN_WORKERS"] = str(plan_workers)
     load_before = os.getloadavg()[0]
     for s3 in _S3:
         s3.counter.reset()
@@ -446,7 +466,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
     out, err = proc.communicate()
     wall = time.perf_counter() - t0
     sampler.stop()
-    res: dict[str, Any] = {"executor": executor, "workers": workers, "max_memory": max_memory,
+    res: dict[str, Any] = {"executor": executor, "workers": workers, "plan_workers": plan_workers or workers,
+                           "max_memory": max_memory,
                            "command": "lodbuilder " + " ".join(args), "rc": proc.returncode,
                            "wall_seconds": round(wall, 2), "load_before": load_before,
                            "bench_process_cpu_seconds": round(time.process_time() - c0, 2),
@@ -611,6 +632,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep each run's archive in DIR (as <survey name>_<executor><workers>.h5)")
     p.add_argument("--seam-rounds", action="store_true", help="build with --seam-rounds (the tiles in radius rounds)")
     p.add_argument("--tile-points", type=int, help=argparse.SUPPRESS)  # test knob: tiles of a small survey
+    p.add_argument("--plan-workers", type=int, metavar="W",
+                   help="plan the build as for W workers (its merge bands, and its tiles unless --tile-points) "
+                        "while it runs on --workers: the simulation's W-worker figure then replays that plan")
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
     if not executors or not set(executors) <= set(EXECUTORS):
@@ -632,7 +656,7 @@ def main(argv: list[str] | None = None) -> int:
             for w in args.workers:
                 sv["runs"].append(run_build([survey], joint, ex, w, args.max_memory, args.work, args.interval,
                                             args.tile_points, args.keep,
-                                            ("--seam-rounds",) if args.seam_rounds else ()))
+                                            ("--seam-rounds",) if args.seam_rounds else (), args.plan_workers))
                 print(json.dumps({k: v for k, v in sv["runs"][-1].items() if not k.startswith("simulation")}),
                       file=sys.stderr)
         sv.update(ratios(sv["runs"]))
