@@ -54,7 +54,7 @@ def _store(tmp_path, pts, head, streams):
 
 
 @pytest.mark.parametrize(("seed", "alpha", "step", "band_rows"),
-                         [(0, 0.25, 0.0, 40), (1, 0.5, 0.0, 8), (2, 1.0, 0.0, 40), (3, 0.5, 0.04, 40), (4, 0.25, 0.0, 8)])
+                         [(0, 0.25, 0.0, 40), (1, 0.5, 0.0, 2), (2, 1.0, 0.0, 40), (3, 0.5, 0.04, 40), (4, 0.25, 0.0, 8)])
 def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, step, band_rows):
     """The merge (the seam repair over the tiles' seam points, then bands of keys side by side; tile
     buffers of 7 rows, an output buffer of 5 and bands of about ``band_rows`` rows: every refill and
@@ -74,7 +74,7 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             s[:, 1] = np.where(np.isfinite(s[:, 1]), np.floor(s[:, 1] / step) * step, np.inf)
     monkeypatch.setattr(M, "BUF", 7)
     monkeypatch.setattr(M.W, "BLOCK", 5)
-    stats = [{"hist": [b.tolist() for b in np.unique(WL.key_bins(s[:, 1]), return_counts=True)],
+    stats = [{"key_hist": [b.tolist() for b in np.unique(WL.hist_bins(s[:, 1]), return_counts=True)],
               "files": {WL.stream(t): [0, 0]}} for t, s in enumerate(streams)]
     for a in (alpha, 0.0):
         (tmp_path / f"a{a}").mkdir()
@@ -93,12 +93,40 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
         assert [(int(x), float(y)) for x, y in zip(d["g"], d["key"], strict=True)] == late
         assert (res["deferred"] > 0) == (a > 0), res  # the case demotes (the test sees that path)
         assert len(res["order"]) > 4  # (several bands)
-        if band_rows == 8:  # (bins of several keys larger than a band)
-            b = WL.key_bins(np.concatenate([s[:, 1] for s in streams]))
+        if band_rows == 2:  # (bins of several keys larger than a band)
+            b = WL.hist_bins(np.concatenate([s[:, 1] for s in streams]))
             assert max(len(np.unique(np.concatenate([s[:, 1] for s in streams])[b == x])) for x in b
                        if (b == x).sum() > band_rows) > 1
         if step:
             assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
+
+
+def test_a_band_of_the_merge_may_take_part_of_a_key_bin():
+    """The merge's bands take whole fine bins (``layout.hist_bins``: 64 an octave, eight inside each
+    key bin that frames the streams), so a key bin holding more rows than a band is several bands
+    (at 21.56M points the fullest key bin held 2.0M rows: one band task of 0.5 s, growing with the
+    survey)."""
+    from lodbuilder.build.tiled import merge as M
+
+    rng = np.random.default_rng(1)
+    x = np.concatenate([10.0 ** rng.uniform(-12, 12, 5000), [1.0, 0.5, 0.75, np.nextafter(1.0, 0.0)]])
+    assert np.array_equal(WL.hist_bins(x) // 8, WL.key_bins(x))  # (nested: a frame never holds part of a fine bin)
+    srt = np.sort(x)
+    assert np.all(np.diff(WL.hist_bins(srt)) >= 0) and np.all(np.diff(WL.key_bins(srt)) >= 0)
+    assert WL.hist_bins(np.array([np.inf]))[0] == WL.BIN_INF and WL.hist_bins(np.array([0.0]))[0] == WL.BIN_ZERO
+    # two tiles' streams whose 12,000 keys all fall in one key bin, [1, 1.09): six fine bins
+    streams = [np.sort(rng.uniform(1.0, 1.09, n))[::-1] for n in (7000, 5000)]
+    assert len(np.unique(WL.key_bins(np.concatenate(streams)))) == 1
+    hists = [[b.tolist() for b in np.unique(WL.hist_bins(k), return_counts=True)] for k in streams]
+    bands = M.plan_bands(hists, [[], []], 2500)
+    assert len(bands) >= 5
+    for t, k in enumerate(streams):  # every row of each stream in exactly one band, in order
+        runs = [(a, z) for rows, _, _ in bands for tt, a, z in rows if tt == t]
+        assert runs[0][0] == 0 and runs[-1][1] == len(k) and all(p[1] == q[0] for p, q in zip(runs, runs[1:], strict=False))
+        for rows, (lo, hi), _ in bands:  # the rows of a band are those whose keys fall in its bins
+            for tt, a, z in rows:
+                if tt == t:
+                    assert lo <= WL.hist_bins(k[a:z]).min() and WL.hist_bins(k[a:z]).max() <= hi
 
 
 def test_the_merge_buffers_stay_within_their_bytes():

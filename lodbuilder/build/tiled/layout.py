@@ -74,21 +74,34 @@ EVENT = np.dtype([("rank", "<i8"), ("value", "<f8")])
 #: a point's rank, parent and spacing as the covering pass finds them
 POINT = np.dtype([("rank", "<i8"), ("parent", "<i8"), ("space", "<f8")])
 
-#: the key bins of :func:`key_bins` for an infinite key and for a key of zero
+#: the bins of :func:`key_bins` and :func:`hist_bins` for an infinite key and for a key of zero
 BIN_INF, BIN_ZERO = 1 << 40, -(1 << 40)
 
 
 def key_bins(key: np.ndarray) -> np.ndarray:
     """The bin of each key (>= 0): eight bins per octave, a larger key never in a smaller bin.
     Exact (binary exponent and the mantissa's top three bits), so every process bins a key alike:
-    a tile's histogram of its stream's keys tells which rows of the stream each band of the
-    merge reads (:mod:`.merge`)."""
+    a tile's stream is framed within these bins (:func:`.workdir.put_stream`)."""
+    return _bins(key, 3)
+
+
+def hist_bins(key: np.ndarray) -> np.ndarray:
+    """:func:`key_bins` split in eight (64 bins per octave; ``hist_bins(k) // 8 == key_bins(k)`` for
+    a finite key above zero): a tile's histogram of its stream's keys in these bins tells which
+    rows of the stream each band of the merge reads (:mod:`.merge`), and a band takes whole bins,
+    so the finest key bin of a survey (2.0M rows, 9 % of the 21.56M-point survey's) is no longer
+    one band of its own."""
+    return _bins(key, 6)
+
+
+def _bins(key: np.ndarray, bits: int) -> np.ndarray:
+    """2^bits bins per octave: the binary exponent and the mantissa's top ``bits`` bits (exact)."""
     k = np.asarray(key, np.float64)
     if k.size and not (k >= 0).all():
         raise RuntimeError("a merge key is negative or NaN")
     inf = np.isinf(k)
     m, e = np.frexp(np.where(inf, 1.0, k))  # k = m * 2**e, m in [0.5, 1)
-    b = e.astype(np.int64) * 8 + np.floor((m - 0.5) * 16).astype(np.int64)
+    b = (e.astype(np.int64) << bits) + np.floor((m - 0.5) * (2 << bits)).astype(np.int64)
     b[inf] = BIN_INF
     b[k == 0] = BIN_ZERO
     return b

@@ -15,11 +15,12 @@ are checked against, so the repair is decided by merging the tiles' seam points 
 :func:`seam_repair`, over ``seam.<t>.bin``: a few per cent of the points), in the same relative
 order as in the whole merge. Its outcome is the list of deferred points with their acceptance keys,
 in merged order (``deferred.bin``). Every other row's place follows from its key alone: the merged
-order is cut into bands of keys (:data:`lodbuilder.build.tiled.layout.key_bins`; the tiles'
+order is cut into bands of keys (:func:`lodbuilder.build.tiled.layout.hist_bins`; the tiles'
 histograms of their keys, in their order markers, size the bands: whole bins, about BAND_ROWS rows
 each), and one task per band (:func:`merge_band`) reads each tile's rows of the band (a contiguous
-run of its stream, located by the histograms; the stream holds input indices and keys, in frames of
-one key bin each, so that a band decompresses its own frames alone: :func:`.workdir.put_stream`)
+run of its stream, located by the histograms; the stream holds input indices and keys, in frames
+within one key bin each, eight fine bins: a band decompresses its own frames and at most one frame
+at each end that it shares with the next band: :func:`.workdir.put_stream`)
 in chunks, leaves out the deferred ones, adds the
 deferred points whose acceptance key falls in the band, and merges them by descending key (ties:
 the lower tile, then the deferred points) in buffers of a bounded size. The order is stored as pieces
@@ -178,10 +179,10 @@ def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell:
     late = key < was  # (an accepted point keeps its key; a deferred one is accepted below it)
     d = np.empty(int(late.sum()), WL.DEFER)
     d["g"], d["key"] = g[late], key[late]
-    bins, counts = np.unique(WL.key_bins(d["key"]), return_counts=True)
+    bins, counts = np.unique(WL.hist_bins(d["key"]), return_counts=True)
     files = {WL.merged(0): W.put_framed(w, WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d)}
     return {"head": int(head.shape[0]), "seam_points": int(g.shape[0]), "deferred": int(d.shape[0]),
-            "hist": [bins.tolist(), counts.tolist()], "files": files}
+            "key_hist": [bins.tolist(), counts.tolist()], "files": files}
 
 
 class _RangeReader:
@@ -204,7 +205,7 @@ class _RangeReader:
             else:
                 assert self.framed is not None
                 s = self.framed.read(self.pos, k)
-                b = WL.key_bins(s["key"][[0, -1]]) if s.shape[0] else None
+                b = WL.hist_bins(s["key"][[0, -1]]) if s.shape[0] else None
                 if s.shape[0] != k or b is None or b[0] > self.bins[1] or b[1] < self.bins[0]:
                     raise RuntimeError(f"{self.name}: rows {self.pos}..{self.end} are not the rows its histogram says")
             self.pos += k
@@ -233,7 +234,7 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
     drop = np.sort(d["g"])
     readers = [_RangeReader(w, WL.stream(t), a, z, drop, bins) for t, a, z in rows]
     if deferred and d.shape[0]:
-        b = WL.key_bins(d["key"])
+        b = WL.hist_bins(d["key"])
         mine = d[(b >= bins[0]) & (b <= bins[1])]
         extra = np.zeros(mine.shape[0], WL.KEYS)
         extra["g"], extra["key"] = mine["g"], mine["key"]
@@ -309,10 +310,11 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         args = (work, len(stats), alpha, lo, min_cell)
         (seams,) = collect(submit(ex, [(0, seam_repair, args)]), lambda _: "the seam repair", name, 1, None, "merge")
         mark(work, WL.SEAMS_PIECE, seams)
-    if any("hist" not in s or WL.stream(t) not in s.get("files", {}) for t, s in enumerate(stats)):
+    if ("key_hist" not in seams
+            or any("key_hist" not in s or WL.stream(t) not in s.get("files", {}) for t, s in enumerate(stats))):
         raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
                          "again with --force")
-    bands = plan_bands([s["hist"] for s in stats], seams["hist"], band_rows)
+    bands = plan_bands([s["key_hist"] for s in stats], seams["key_hist"], band_rows)
     got = {j: d for j in range(1, len(bands) + 1) if (d := done(work, WL.merged_piece(j))) is not None}
     calls = [(j, merge_band, (work, j, *bands[j - 1])) for j in range(1, len(bands) + 1) if j not in got]
     collect(submit(ex, calls), lambda j: f"band {j} of the merge", name, n, progress, "merge",

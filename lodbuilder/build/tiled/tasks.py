@@ -193,10 +193,10 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
                 max_memory=max_memory, timed_seeds=timed)
     stream = _stream(o, is_seed, core, cpts, hpts, lo, hi, interior)
     files, n_seam = _put_tile(w, t, stream, halo, face_out)
-    bins, counts = np.unique(WL.key_bins(stream["key"]), return_counts=True)
+    bins, counts = np.unique(WL.hist_bins(stream["key"]), return_counts=True)
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(stream.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
-            "hist": [bins.tolist(), counts.tolist()],
+            "key_hist": [bins.tolist(), counts.tolist()],
             "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
 
 

@@ -397,8 +397,8 @@ def put_stream(store: Store, name: str, stream: np.ndarray, rows: int = FRAME_RO
     (:func:`.merge.merge_band`): input index and key of each row (:data:`.layout.KEYS`; the seam
     points' coordinates and margins are in ``seam.<t>.bin``), in frames of at most ``rows`` rows
     as :func:`put_framed` writes them, but never across two key bins (:func:`.layout.key_bins`): a
-    band of the merge is whole bins, so it decompresses its own frames only, each once. Returns the
-    file's size and CRC-32."""
+    band of the merge is whole fine bins (:func:`.layout.hist_bins`, eight in a key bin), so it
+    decompresses its own frames and at most one more at each end. Returns the file's size and CRC-32."""
     n = stream.shape[0]
     keys = np.empty(n, WL.KEYS)
     keys["g"], keys["key"] = stream["g"], stream["key"]
