@@ -77,8 +77,10 @@ def balanced_tile_points(n_points: int, parallel: int, fits: int) -> int:
 
 #: bands of the merge per worker (after the serial seam repair every band is a task): on 16
 #: workers the 21.56M survey's bands of at most 1M rows were 22 tasks, two rounds whose second
-#: left 10 workers idle
-MERGE_BANDS_PER_WORKER = 4
+#: left 10 workers idle. A band costs about 0.09 CPU-s besides its rows (it opens every tile's
+#: stream): in whole fine key bins (layout.hist_bins) 4 a worker made 83 bands of that survey, 10.7
+#: CPU-s in all against 6.0 in 32 bands
+MERGE_BANDS_PER_WORKER = 2
 #: rows of a merge band sized for the workers, at least (each band reads every tile's run of it)
 MIN_MERGE_BAND_ROWS = 1 << 17
 
