@@ -443,8 +443,8 @@ def test_merge_band_rows():
 
     most = 1 << 20
     assert P.merge_band_rows(21_560_000, 1, most) == P.merge_band_rows(21_560_000, 4, most) == most
-    # 16 workers: about 4 bands each (before: bands of at most 1M rows, 22 tasks on 16 workers)
-    assert P.merge_band_rows(21_560_000, 16, most) == 336_875 == math.ceil(21_560_000 / 64)
+    # 16 workers: about 2 bands each (before: bands of at most 1M rows, 22 tasks on 16 workers)
+    assert P.merge_band_rows(21_560_000, 16, most) == 673_750 == math.ceil(21_560_000 / 32)
     assert P.merge_band_rows(1_000_000, 16, most) == P.MIN_MERGE_BAND_ROWS  # not below the floor
 
 
