@@ -101,6 +101,23 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
 
 
+def test_a_work_directory_with_the_old_histograms_is_refused(tmp_path):
+    """Order markers from before the fine bins (``hist``, eight bins an octave, not ``key_hist``)
+    would cut the streams at the wrong rows: the merge refuses them with the fix (--force)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lodbuilder.build.tiled import merge as M
+    from lodbuilder.errors import BuildError
+
+    pts, head, streams = _streams(np.random.default_rng(0))
+    w = _store(tmp_path, pts, head, streams)
+    stats = [{"hist": [b.tolist() for b in np.unique(WL.key_bins(s[:, 1]), return_counts=True)],
+              "files": {WL.stream(t): [0, 0]}} for t, s in enumerate(streams)]
+    with ThreadPoolExecutor(1) as ex, pytest.raises(BuildError, match=r"^scan 's': its work directory was left by "
+                                                                      r"an older lodbuilder; run the build again with --force$"):
+        M.merge_phase(ex, w, "s", len(pts), stats, 0.25, np.zeros(3), 1e-6)
+
+
 def test_a_band_of_the_merge_may_take_part_of_a_key_bin():
     """The merge's bands take whole fine bins (``layout.hist_bins``: 64 an octave, eight inside each
     key bin that frames the streams), so a key bin holding more rows than a band is several bands

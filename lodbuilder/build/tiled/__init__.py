@@ -25,9 +25,10 @@ one *block* each (a file, or a range of rows of a big LAS/LAZ, PLY or NPY file; 
    keys side by side (each band a run of every tile's stream); then tasks invert the merged order
    into every point's rank (an external transpose in two rounds: :mod:`.ranks`);
 6. **covering**: for each tile (tasks), the exact Euclidean covering radius of its points by every
-   prefix of the merged order (from the tile, its halo and the head points near it); the stored radius of a prefix is the
-   largest over the tiles, capped by the coarse bound, never increasing: assembled in bands of
-   positions by tasks (:mod:`.radii`; the parent carries two numbers from band to band);
+   prefix of the merged order (from the tile, its halo and the head points near it); the stored
+   radius of a prefix is the largest over the tiles, capped by the coarse bound, never increasing:
+   assembled in bands of positions by tasks (:mod:`.radii`; the parent carries two numbers from
+   band to band);
 7. **write** (tasks): first every raw block split by destination into the write's buckets (after
    the radii, once the covering files and the tiles' points are deleted: the work directory never
    holds the buckets beside them; see :mod:`.layout` for what is deleted when, and which work files
