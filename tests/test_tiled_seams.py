@@ -101,6 +101,50 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
 
 
+def _chains(tkeys, thead, nxt):
+    """The seam grid's cells: key -> the sorted points of its chain."""
+    out = {}
+    for s in np.flatnonzero(tkeys != -1):
+        j, got = thead[s], []
+        while j >= 0:
+            got.append(int(j))
+            j = nxt[j]
+        out[int(tkeys[s])] = sorted(got)
+    return out
+
+
+def test_the_seam_grid_spreads_its_cells_and_rebuilds_as_it_inserts():
+    """The seam repair's hash grid (``_kernels.tiled``): the cells of a row along any axis take
+    distinct slots (a hash that left out the key's high bits put a row along x in one slot: 18-115
+    probes an insertion on a survey's seam points), and its rebuild in slot order indexes every
+    point in its cell as inserting the points one by one does."""
+    from lodbuilder._kernels import tiled as K
+
+    n = 4096
+    mask = K.table_size(n) - 1
+    for axis in range(3):
+        cells = np.zeros((n, 3), np.int64)
+        cells[:, axis] = np.arange(n)
+        slots = {int(K._hash(K.key3(*map(int, c)), mask)) for c in cells}
+        assert len(slots) > 0.7 * n, (axis, len(slots))  # (a random hash: 1 - e^-1/2 = 0.79 of n)
+    rng = np.random.default_rng(5)
+    xyz = rng.random((3000, 3)) * [50.0, 20.0, 2.0]
+    lo = np.zeros(3)
+    size = K.table_size(len(xyz))
+    tables = []
+    for rebuild in (False, True):
+        tkeys, thead, nxt = np.full(size, -1, np.int64), np.full(size, -1, np.int64), np.full(len(xyz), -1, np.int64)
+        if rebuild:
+            tkeys[:5] = 7  # (stale keys: a rebuild starts from an empty table)
+            K.grid_rebuild(tkeys, thead, nxt, xyz, lo, 0.7, size - 1, len(xyz))
+        else:
+            for j in range(len(xyz)):
+                K.grid_insert(tkeys, thead, nxt, xyz, lo, 0.7, size - 1, j)
+        tables.append(_chains(tkeys, thead, nxt))
+    assert tables[0] == tables[1]
+    assert sum(len(v) for v in tables[1].values()) == len(xyz) and len(tables[1]) > 500
+
+
 def test_a_work_directory_with_the_old_histograms_is_refused(tmp_path):
     """Order markers from before the fine bins (``hist``, eight bins an octave, not ``key_hist``)
     would cut the streams at the wrong rows: the merge refuses them with the fix (--force)."""

@@ -179,8 +179,10 @@ def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell:
     names = [WL.seam(t) for t in range(n_tiles)]
     g, key = seam_merge(w, names, head, alpha, lo, min_cell)
     rows = np.concatenate([w.read_array(name, STREAM) for name in names] or [np.zeros(0, STREAM)])
-    srt = np.argsort(rows["g"], kind="stable")
-    was = rows["key"][srt][np.searchsorted(rows["g"][srt], g.astype(np.float64))]
+    # each row's key in the tiles, in merged order: g is a permutation of the rows' input indices
+    # (one point a row), so the rows and the merged points sorted by input index line up
+    was = np.empty(g.shape[0])
+    was[np.argsort(g, kind="stable")] = rows["key"][np.argsort(rows["g"], kind="stable")]
     late = key < was  # (an accepted point keeps its key; a deferred one is accepted below it)
     d = np.empty(int(late.sum()), WL.DEFER)
     d["g"], d["key"] = g[late], key[late]
