@@ -5,6 +5,13 @@ onto the destination (``os.replace``: atomic on POSIX file systems) and fsyncs t
 reader sees the old file or the new one, never a mix; once it returns, the new file survives a
 crash or a power cut; if the process dies before the rename, the destination is untouched and only
 the temporary is left (its name starts with a dot, so the owner's tidy-up finds it).
+
+**Work files** (``durable=False``): a tiled build's work files and markers carry checksums, and a
+resumed build trusts none that does not check out (:mod:`lodbuilder.build.tiled.sums`), so they are
+renamed into place without the two fsyncs. Still atomic for every reader; a killed process loses
+nothing (the bytes are in the system's cache); after a power cut a file may be missing or damaged,
+and the resume does its piece again. (The fsyncs took 1.35 ms each: 2,774 of them, 3.7 s of wall
+time, in the parent alone of a 139 s build of the 21.56M-point survey, one marker per task.)
 """
 
 from __future__ import annotations
@@ -35,11 +42,14 @@ def fsync_dir(directory: Path) -> None:
             os.close(fd)
 
 
-def publish(tmp: Path, path: Path) -> None:
-    """fsync ``tmp``, rename it onto ``path`` and fsync the directory (the atomic step)."""
-    fsync_file(tmp)
+def publish(tmp: Path, path: Path, durable: bool = True) -> None:
+    """fsync ``tmp``, rename it onto ``path`` and fsync the directory (the atomic step); without
+    ``durable``, the rename alone (a work file: see the module)."""
+    if durable:
+        fsync_file(tmp)
     os.replace(tmp, path)
-    fsync_dir(Path(path).parent)
+    if durable:
+        fsync_dir(Path(path).parent)
 
 
 def temporary(path: Path) -> Path:
@@ -48,13 +58,14 @@ def temporary(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
-def replace_with(path: Path, write: Callable[[Path], Any]) -> None:
+def replace_with(path: Path, write: Callable[[Path], Any], durable: bool = True) -> None:
     """Replace the file at ``path`` by what ``write(tmp)`` writes to a temporary beside it,
-    atomically (see the module's guarantee); on any error the temporary is removed."""
+    atomically (see the module's guarantee; ``durable``: see :func:`publish`); on any error the
+    temporary is removed."""
     tmp = temporary(path)
     try:
         write(tmp)
-        publish(tmp, path)
+        publish(tmp, path, durable)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()

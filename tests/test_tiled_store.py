@@ -51,6 +51,27 @@ def test_a_failed_writer_leaves_no_object(store):
     assert store.names() == []
 
 
+def test_local_work_files_are_renamed_into_place_without_the_fsyncs_of_an_archive(tmp_path, monkeypatch):
+    """A work file is atomic but not flushed (its checksum stands in for a power cut: see
+    lodbuilder._atomic); every other file lodbuilder replaces still gets both fsyncs."""
+    import os
+
+    from lodbuilder._atomic import write_bytes
+
+    synced = []
+    monkeypatch.setattr(os, "fsync", synced.append)
+    store = LocalStore(tmp_path)
+    store.put("a.bin", np.arange(3))
+    with store.writer("b.bin") as w:
+        w.write(b"abc")
+    sums.put_json(store, "c.json", {"files": {}})
+    assert synced == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin", "c.json"]  # (no temporaries)
+    assert sums.get_json(store, "c.json") == {"files": {}} and store.get("b.bin") == b"abc"
+    write_bytes(tmp_path / "d.txt", b"x")
+    assert len(synced) == 2  # (the file, then its directory)
+
+
 def test_put_list_delete_and_read_past_the_end(store):
     assert store.put("x.bin", b"12345678") == [8, sums.sum_array(np.frombuffer(b"12345678", np.uint8))[1]]
     store.put("y.bin", np.zeros(3))

@@ -38,8 +38,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
 
 A finished phase or tile task leaves a marker ``<piece>.json`` (:func:`marker`) that lists the files
 it wrote with their size and CRC-32 (:mod:`.sums`); a resumed build trusts a piece only when its
-marker and files check out. Every file is written to a temporary and published
-(:mod:`lodbuilder._atomic`).
+marker and files check out. Every file is written to a temporary and renamed into place, not
+flushed to the device: the checksums stand in (:mod:`lodbuilder._atomic`, work files).
 
 A large file is deleted once every piece that reads it is done (:data:`PRUNE_AFTER`: when the
 marker of the last one is written; a read block's coordinates once the tiles' pieces are written,

@@ -10,8 +10,9 @@ and no writes into the middle of an object: a task writes whole objects (several
 the marker of a finished piece is the last object its task (or the parent) writes, so the resume
 rules of :mod:`.sums` hold on both stores alike.
 
-* :class:`LocalStore`: a directory; objects are written to a temporary and renamed into place
-  (:mod:`lodbuilder._atomic`). The bytes are those the tiled build always wrote.
+* :class:`LocalStore`: a directory; objects are written to a temporary and renamed into place,
+  not flushed to the device (:mod:`lodbuilder._atomic`, work files: their checksums stand in).
+  The bytes are those the tiled build always wrote.
 * :class:`FsspecStore`: a prefix of an fsspec file system. An object is written to a temporary
   file of the worker (``$TMPDIR``) and uploaded on commit (``put_file``: an S3 object appears only
   when its upload completes); byte ranges are ranged GETs, several at once where the file system
@@ -249,7 +250,7 @@ class _LocalWriter(Writer):
     def _publish(self) -> None:
         from ..._atomic import publish
 
-        publish(self.tmp, self.path)
+        publish(self.tmp, self.path, durable=False)
 
     def _discard(self) -> None:
         with contextlib.suppress(OSError):
@@ -295,7 +296,7 @@ class LocalStore(Store):
             with open(tmp, "wb") as f:
                 f.write(data)
 
-        replace_with(self.root / name, write)
+        replace_with(self.root / name, write, durable=False)
         return [_nbytes(data), zlib.crc32(cast(Any, data))]
 
     def get(self, name: str) -> bytes:
