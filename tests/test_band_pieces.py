@@ -80,3 +80,34 @@ def test_band_pieces_refuse_as_the_band_does():
     with pytest.raises(MemoryBudgetError) as got:
         band_pieces(pts.copy(), 0.05, 0.2, 2_000_000)
     assert str(got.value) == str(ref.value)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31), kind=st.integers(0, 2), n=st.integers(20, 300), ratio=st.sampled_from([1.75, 2.5]))
+def test_an_orderings_pieces_on_a_lattice_are_band_pieces(seed, kind, n, ratio):
+    """``fastfps(..., lattice=, pieces=True)``: its band on the given grid, and each point's piece
+    of it as :func:`band_pieces` labels them (the same partition; an exact duplicate its first
+    copy's): what a tiled build's ordering hands its covering task."""
+    from lodbuilder import fastfps
+    from lodbuilder.sampling.band import band_pieces
+
+    pts = _scene(seed, kind, n)
+    pts = np.vstack([pts, pts[: n // 5]])  # (duplicates)
+    lattice = pts.min(axis=0) - np.random.default_rng(seed).random(3) * 3
+    o = fastfps(pts, voxel_size=1.0, band_radius=ratio, lattice=lattice, pieces=True)
+    want, nwant = band_pieces(pts, 1.0, ratio, lattice=lattice)
+    assert o.pieces is not None and o.pieces.dtype == np.int32 and o.stats["pieces"] == nwant
+    pairs = set(zip(o.pieces.tolist(), want.tolist(), strict=True))
+    assert len(pairs) == nwant  # (a bijection of the labels)
+    assert fastfps(pts, voxel_size=1.0, band_radius=ratio).pieces is None
+
+
+def test_an_orderings_lattice_needs_its_grid():
+    from lodbuilder import fastfps
+    from lodbuilder.errors import InputError
+
+    pts = _scene(1, 1, 100)
+    with pytest.raises(InputError, match=r"^lattice places a given grid: pass voxel_size and band_radius with it$"):
+        fastfps(pts, voxel_size=1.0, lattice=[0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match=r"^lattice must be 3 finite coordinates, got shape \(2,\)"):
+        fastfps(pts, voxel_size=1.0, band_radius=2.5, lattice=[0.0, 0.0])

@@ -143,12 +143,16 @@ def _columns() -> np.ndarray:
     return np.vstack([np.c_[np.full(y.size, xi), y, np.zeros(y.size)] for xi in x])
 
 
-def _local_pieces(work, pts, h, r, edges, halo, rank):
+def _local_pieces(work, pts, h, r, edges, halo, rank, ordered=False):
     """Every tile's local pieces (tiles: the cells of ``edges`` in x and y), from its own points
     and the other tiles' points within ``halo`` of its box, written to ``work``; the tile count and
-    the bands each tile's links touch."""
+    for each tile the points it labels whole and the bands its links touch. ``ordered``: each tile's ordering has labelled its core
+    first, in the band of its points and a few of the others' (as head points) on the scan's grid."""
+    from lodbuilder.build.tiled import layout as WL
     from lodbuilder.build.tiled.pieces import borrowed_points, tile_pieces
-    from lodbuilder.build.tiled.workdir import REC
+    from lodbuilder.build.tiled.store import as_store
+    from lodbuilder.build.tiled.workdir import REC, put_zipped
+    from lodbuilder.sampling.band import band_pieces
 
     rec = np.empty(pts.shape[0], REC)
     rec["g"] = np.arange(pts.shape[0])
@@ -166,15 +170,21 @@ def _local_pieces(work, pts, h, r, edges, halo, rank):
             interior = [[i > 0, j > 0, False], [i < len(edges[0]) - 2, j < len(edges[1]) - 2, False]]
             spec = {"lo": box_lo.tolist(), "hi": box_hi.tolist(), "interior": interior, "voxel_size": h, "band_radius": r,
                     "lattice": lo.tolist(), "max_memory": None, "halo": halo, "neighbours": []}
+            if ordered:  # (the head: every 50th point of the scan, those in the box grown by the halo)
+                head = ~own & (np.arange(pts.shape[0]) % 50 == 0) & near
+                core = np.flatnonzero(own)
+                ext = np.concatenate([core, np.flatnonzero(head)])
+                put_zipped(as_store(work), WL.band_labels(t),
+                           band_pieces(pts[ext], h, r, lattice=lo)[0][: core.size].astype("<i4"))
             borrowed, b_rank = borrowed_points(work, rec[near], rank[near], spec)
-            touched.append(tile_pieces(work, t, rec[own], rank[own], borrowed, b_rank, spec)[1])
+            touched.append((int(own.sum() + near.sum()), tile_pieces(work, t, rec[own], rank[own], borrowed, b_rank, spec)[1]))
             t += 1
     return t, touched
 
 
-@pytest.mark.parametrize("bands", [1, 7, "marked"])
+@pytest.mark.parametrize(("bands", "ordered"), [(1, False), (7, False), ("marked", False), (7, True), ("marked", True)])
 @pytest.mark.parametrize("scene_name", ["fragmented 2x2", "fragmented 4x4", "columns"])
-def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, monkeypatch, scene_name, bands):
+def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, monkeypatch, scene_name, bands, ordered):
     """The covering tasks take the points of other tiles from their halo when it is at least the
     pieces' reach wide (a survey's halo is: 41 vs 29.5 on the 4 x 4 survey): each tile's local
     pieces from its own points and its halo, joined, are the whole scan's band pieces, and each
@@ -182,7 +192,9 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, mo
     columns' tiles are cut in the middle of every gap: only the halo joins a pair. The join runs
     in one band of input indices or in 7 (the band's size patched; each task sees a slice of
     every tile's shared points), or in 7 where the covering tasks' markers say which tiles' links
-    each band holds (a band's task reads only those)."""
+    each band holds (a band's task reads only those). ``ordered``: the tiles' orderings labelled
+    their cores (with head points from beyond them), and a covering task labels only the strip
+    near its shared faces and joins the two: the same pieces from fewer points labelled."""
     from lodbuilder.build.executors import InlineExecutor
     from lodbuilder.build.tiled import layout as WL
     from lodbuilder.build.tiled import pieces
@@ -203,17 +215,26 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, mo
     labels = _band_labels(pts, h, r)
     rank = np.random.default_rng(0).permutation(pts.shape[0])
     monkeypatch.setattr(pieces, "BLOCK", -(-pts.shape[0] // (7 if bands == "marked" else bands)))
-    n_tiles, touched = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank)
+    labelled = []
+    band_pieces = pieces._band_pieces
+    monkeypatch.setattr(pieces, "_band_pieces", lambda xyz, *a: labelled.append(len(xyz)) or band_pieces(xyz, *a))
+    n_tiles, touched = _local_pieces(tmp_path, pts, h, r, edges, reach(h, r), rank, ordered)
+    # the covering tasks labelled every point and those they borrow, or (ordered) a strip only
+    whole = sum(n for n, _ in touched)  # (each tile's own points and those it borrows)
+    if ordered:  # (the columns' tiles lie within the reach of their faces: all strip)
+        assert sum(labelled) <= (0.7 if scene_name == "fragmented 2x2" else 1.0) * whole
+    else:
+        assert sum(labelled) == whole
     reads = []
     if bands == "marked":
         for t in range(n_tiles):
-            put_json(tmp_path, WL.marker(WL.cover_piece(t)), {"link_bands": touched[t]})
+            put_json(tmp_path, WL.marker(WL.cover_piece(t)), {"link_bands": touched[t][1]})
         join_band = pieces.join_band
         monkeypatch.setattr(pieces, "join_band", lambda *a: reads.append(a[-1]) or join_band(*a))
     joined = join_phase(InlineExecutor(), str(tmp_path), "scan", pts.shape[0], n_tiles)
     assert len(list(tmp_path.glob("pieces.join.*.bin"))) == (7 if bands == "marked" else bands)
     if bands == "marked":  # (every tile's links in the bands it touches, and only there)
-        assert sorted(t for tiles in reads for t in tiles) == sorted(t for t in range(n_tiles) for _ in touched[t])
+        assert sorted(t for tiles in reads for t in tiles) == sorted(t for t in range(n_tiles) for _ in touched[t][1])
         assert sum(map(len, reads)) < 7 * n_tiles
     assert joined["pieces"] == np.unique(labels).size >= 10
     first = np.full(labels.max() + 1, pts.shape[0])

@@ -164,7 +164,8 @@ OVERLAP_MIN_POINTS = 1_500  # ... down to this: for fewer, starting the thread c
 
 
 def plan_and_build_band(
-    points: np.ndarray, voxel_size: float | None, band_radius: float | None, max_memory: int | None = None
+    points: np.ndarray, voxel_size: float | None, band_radius: float | None, max_memory: int | None = None, *,
+    lattice: np.ndarray | None = None,
 ) -> tuple[Band, BandPlan, int]:
     """:func:`plan_band` then :func:`build_planned_band`, and the count of thin points found (the
     plan returned may have dropped them). With two cores and fewer than OVERLAP_MAX_POINTS points,
@@ -179,7 +180,8 @@ def plan_and_build_band(
     h, r = choose_parameters(points, voxel_size, band_radius)
     if not _automatic(points, voxel_size, band_radius):
         plan = BandPlan.plain(h, r)
-        return build_band(points, h, r, max_memory), plan, 0
+        return build_band(points, h, r, max_memory, lattice=lattice), plan, 0
+    assert lattice is None, "a lattice places a given grid (fastfps checks it)"
     if OVERLAP_MIN_POINTS <= n < OVERLAP_MAX_POINTS and _cores() >= 2:
         from concurrent.futures import ThreadPoolExecutor
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -153,6 +154,8 @@ def fastfps(
     max_memory: int | None = None,
     progress: ProgressCallback = None,
     timed_seeds: Any = None,
+    lattice: Any = None,
+    pieces: bool = False,
 ) -> Ordering:
     """Farthest point ordering of ``points`` under the band (surface) metric.
 
@@ -172,6 +175,10 @@ def fastfps(
             for points another ordering chose at that radius; used by the tiled build for the
             neighbours' points near a tile's faces). They appear in the result with their key as
             radius. Not with ``cost``.
+        lattice: (3,) a point the band grid's voxel corners fall on (a whole number of voxels from
+            it; default: the grid is placed from the points' box), so that orderings of parts of a
+            scan share the scan's grid. With ``voxel_size`` and ``band_radius`` only.
+        pieces: also give each point's connected piece of the band (``Ordering.pieces``).
 
     Returns:
         An :class:`Ordering`.
@@ -183,7 +190,9 @@ def fastfps(
     if max_memory is not None and (not isinstance(max_memory, (int, np.integer)) or max_memory <= 0):
         raise InputError(f"max_memory must be a positive number of bytes, got {max_memory!r}")
     timed = _timed_seeds(timed_seeds, n, c is not None)
-    o = _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress, timed)
+    grid = _lattice(lattice, voxel_size, band_radius)
+    o = _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, c, max_memory, progress, timed, grid,
+                    bool(pieces))
     release_freed_memory(n)  # the band and the kernels' state are gone now
     return check_ordering(o)
 
@@ -207,6 +216,18 @@ def _timed_seeds(timed: Any, n: int, weighted: bool) -> tuple[np.ndarray, np.nda
         )
     srt = np.argsort(-keys, kind="stable")
     return idx[srt], keys[srt]
+
+
+def _lattice(lattice: Any, voxel_size: float | None, band_radius: float | None) -> np.ndarray | None:
+    """The lattice point of :func:`fastfps`, checked (None: none given)."""
+    if lattice is None:
+        return None
+    if voxel_size is None or band_radius is None:
+        raise InputError("lattice places a given grid: pass voxel_size and band_radius with it")
+    a = np.asarray(lattice, dtype=np.float64)
+    if a.shape != (3,) or not np.isfinite(a).all():
+        raise InputError(f"lattice must be 3 finite coordinates, got shape {a.shape}; pass one point (x, y, z)")
+    return a
 
 
 def _hash_collisions(pts: np.ndarray) -> bool:
@@ -247,14 +268,15 @@ def _duplicate_groups(pts: np.ndarray, seeds: np.ndarray) -> tuple[np.ndarray | 
     return gid, rep
 
 
-def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress, timed=None):
+def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_memory, progress, timed=None,
+                lattice=None, want_pieces=False):
     from .._kernels.warm import ensure_compiled
 
     compiled = ensure_compiled(progress)  # a cold numba cache: compile first, and say so
     t0, c0 = time.perf_counter(), time.process_time()
     n = pts.shape[0]
     gid, rep, useeds, m, extent, band, plan, stats = _engine_band(
-        pts, seed_arr, voxel_size, band_radius, max_memory, progress, compiled)
+        pts, seed_arr, voxel_size, band_radius, max_memory, progress, compiled, lattice)
     h, r = plan.h, plan.r
     k_max = m if size is None else min(m, size)
     t1, c1 = time.perf_counter(), time.process_time()
@@ -265,6 +287,7 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     stats["n_timed_seeds"] = int(tseed_c.size)
     vcost, pcost, cmin, cscale = _engine_costs(cost, rep, band)
     piece, npiece = _pieces(band, stats)
+    point_pieces = _input_pieces(piece, band.perm, gid) if want_pieces else None
     psep, pnrm, foot = _tail_fields(band, plan)
     rho_g = -1.0 if rho is None else rho / h
     report(progress, "ordering", 0, k_max)
@@ -303,17 +326,26 @@ def _run_engine(pts, rho, size, seed_arr, voxel_size, band_radius, cost, max_mem
     user_grid = voxel_size is not None or band_radius is not None
     radius, stop, stats["rounding_bound"] = _promised(radius[:k] * h, stop, extent, h, r, user_grid)
     parent = parent[:k].astype(np.int64)  # (the kernels' int32 positions)
-    return _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
+    o = _assemble(pts, gid, rep, seed_arr, uorder, radius, parent, h, r, rho, size, stats, stop)
+    return o if point_pieces is None else dataclasses.replace(o, pieces=point_pieces)
 
 
-def _engine_band(pts, seed_arr, voxel_size, band_radius, max_memory, progress, compiled):
+def _input_pieces(piece: np.ndarray, perm: np.ndarray, gid: np.ndarray | None) -> np.ndarray:
+    """Each input point's band piece (int32) from the pieces in band order (``perm``: band slot ->
+    distinct point; ``gid``: input point -> distinct point, None for the identity)."""
+    out = np.empty(perm.shape[0], np.int32)
+    out[perm] = piece
+    return out if gid is None else out[gid]
+
+
+def _engine_band(pts, seed_arr, voxel_size, band_radius, max_memory, progress, compiled, lattice=None):
     """The band over the distinct points: (group ids, representatives, engine seeds, number of
     distinct points, their extent, the band, its plan, the engine's stats so far)."""
     gid, rep, upts, useeds = _distinct_points(pts, seed_arr)
     m = upts.shape[0]
     extent = float((axis_max(upts) - axis_min(upts)).max())
     stats: dict[str, Any] = {"engine": "band", "n_points": pts.shape[0], "n_distinct": m}
-    band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats)
+    band, plan = _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats, lattice)
     return gid, rep, useeds, m, extent, band, plan, stats
 
 
@@ -385,12 +417,12 @@ def _grid_phase(band, vcost, pcost, weighted, foot, pnrm, seeds_c, k_max, rho_g,
     return out
 
 
-def _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats):
+def _band(upts, voxel_size, band_radius, max_memory, progress, compiled, stats, lattice=None):
     """Plan and build the band of the distinct points; its figures go to ``stats``."""
     from .band import plan_and_build_band
 
     report(progress, "band", 0, 1)
-    band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory)
+    band, plan, found = plan_and_build_band(upts, voxel_size, band_radius, max_memory, lattice=lattice)
     release_freed_memory(stats["n_points"])
     stats["thin_points"] = plan.thin_points
     stats["thin_points_found"] = found

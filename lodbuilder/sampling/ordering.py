@@ -34,6 +34,8 @@ class Ordering:
         stop_radius: covering bound of the whole ordering: 0 when every point is ordered; for an
             ordering stopped early by ``rho`` or ``size``, the next candidate's distance when it
             stopped (an upper bound of every unordered point's distance to the ordered ones).
+        pieces: (N,) int32 with ``fastfps(..., pieces=True)``: each input point's connected piece
+            of the band (0 .. ``stats["pieces"]`` - 1; a duplicate has its first copy's); else None.
     """
 
     order: np.ndarray
@@ -45,6 +47,7 @@ class Ordering:
     n_points: int
     stats: dict[str, Any] = field(default_factory=dict)
     stop_radius: float = 0.0
+    pieces: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.order.shape[0])

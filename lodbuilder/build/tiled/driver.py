@@ -95,7 +95,7 @@ def _done(work: Store, phase: str) -> dict[str, Any] | None:
 
 def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
                   colour: list[int], passes: int, args: tuple, pieces: dict[str, Any], progress: ProgressCallback,
-                  slots: int | None = None) -> int:
+                  slots: int | None = None, lattice: list[float] | None = None) -> int:
     """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
     near-face points of its neighbours as they were last ordered (in pass p for the neighbours of a
     smaller colour, else in pass p - 1). Of the ready tasks, that of the longest chain of orderings
@@ -103,11 +103,14 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     ``slots`` at a time (None: all at once): the executor's queue is first in, first out, and would
     run a task on the critical path that became ready late after all those submitted before it.
     The first colour's tiles see no neighbour in pass 1; each later ordering sees its neighbours'
-    latest (see TILE_PASSES). Returns the number of tile orderings a resume found done."""
+    latest (see TILE_PASSES). ``lattice``: the scan's grid, on which each ordering labels its band
+    pieces for the covering tasks (:func:`.tasks.order_tile`). Returns the number of tile orderings
+    a resume found done."""
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
-            if piece_done(work, WL.order_piece(t.index, p), () if p == passes else (WL.stream(t.index), WL.seam(t.index)))
+            if piece_done(work, WL.order_piece(t.index, p),
+                          () if p == passes else (WL.stream(t.index), WL.seam(t.index), WL.band_labels(t.index)))
             is not None}
     found = len(done)
 
@@ -119,7 +122,7 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
         t = tile.index
         faces = tuple(WL.face(u, q) for q, u in deps(p, t) if u != t)
         doc = {**tile.to_json(), "core": pieces["core"][t], "halo": pieces["halo"][t]}
-        return (work, t, doc, *args, faces, WL.face(t, p))
+        return (work, t, doc, *args, faces, WL.face(t, p), lattice)
 
     todo = [(p, tile) for p in range(1, passes + 1) for tile in by_size if (p, tile.index) not in done]
     running: dict[cf.Future, tuple[int, int]] = {}
@@ -242,7 +245,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     args = (pl["voxel_size"], pl["band_radius"], halo, worker_budget)
     schedule = R.schedule(n, store.read_array(WL.HEAD_FILE, WL.HEAD).shape[0]) if seam_rounds else None
     by_size, colour, ordered, stats = _order(executor, work, name, tiles, dist, passes, args, progress, parallel,
-                                             schedule, budget)
+                                             schedule, budget, [float(x) for x in sp.lo])
     resumed = {"tiles_ordered_before": ordered}
     clock.lap("order")
 
@@ -320,7 +323,7 @@ def _write(executor: cf.Executor, work: Store, part: Path, name: str, sp: Spill,
 
 def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], dist: dict[str, Any], passes: int,
            args: tuple, progress: ProgressCallback, parallel: int = 1, schedule: tuple[int, float] | None = None,
-           budget: int = 0) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
+           budget: int = 0, lattice: list[float] | None = None) -> tuple[list[P.Tile], list[int], int, list[dict[str, Any]]]:
     """Phase 4: every tile ordered on the workers, in colour classes and passes, at most
     ``parallel`` at a time (see :func:`_order_passes`; 1: a scheduler whose workers are not
     counted, every ready ordering submitted at once), or in radius rounds of ``schedule`` (R, q)
@@ -340,7 +343,7 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
                                 progress)
     else:
         ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
-                                parallel if parallel > 1 else None)
+                                parallel if parallel > 1 else None, lattice)
     stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
     if _done(work, "order") is None:
         # every ordering's marker and last files, checked as one: the tiles' face files (read by the

@@ -18,6 +18,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                 seam.<t>.bin        STREAM records (input index, key, position, margin): the rows of tile
                                     t's ordering nearer a shared face than their key
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
+                bandp.<t>.i4        the band piece of each of tile t's core points (int32, core order; zipped):
+                                    its ordering's band on the scan's grid (see pieces.py; not with seam rounds)
     merge       deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
                 merged.<j>.i8       piece j of the merged order (input indices; zipped in frames of rows,
                                     see workdir.put_framed): the head, then band j's
@@ -163,6 +165,11 @@ def stream(t: int) -> str:
 def seam(t: int) -> str:
     """Tile ``t``'s seam points (stream rows nearer a shared face than their key), in stream order."""
     return f"seam.{t}.bin"
+
+
+def band_labels(t: int) -> str:
+    """Tile ``t``'s core points' pieces of its ordering's band (see :mod:`.pieces`)."""
+    return f"bandp.{t}.i4"
 
 
 def merged(j: int) -> str:

@@ -19,7 +19,7 @@ from . import layout as WL
 from .blocks import tile_records
 from .store import Store, as_store
 from .timing import timed_task
-from .workdir import BLOCK, REC, put_banded, put_stream
+from .workdir import BLOCK, REC, put_banded, put_stream, put_zipped
 
 if TYPE_CHECKING:
     from ...sampling.ordering import Ordering
@@ -161,8 +161,8 @@ def _put_tile(w: Store, t: int, stream: np.ndarray, halo: float, face_out: str |
 
 @timed_task
 def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: float, band_radius: float,
-               halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None
-               ) -> dict[str, Any]:
+               halo: float, max_memory: int | None, faces: tuple[str, ...] = (), face_out: str | None = None,
+               lattice: list[float] | None = None) -> dict[str, Any]:
     """FastFPS of tile ``t``: its own points, seeded with the head points in its core and halo, and
     with the halo points its neighbours have ordered (``faces``: their face files) as timed seeds:
     each enters the tile's ordering when the ordering's radius falls to its key, as it entered the
@@ -174,7 +174,10 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     non-increasing), each with its key (its insertion radius in the tile, or its exact distance to
     the head when the tile reaches it from no seed); ``seam.<t>.bin``: those nearer a shared face
     than their key, with their position and margin to the tile's shared faces; and ``face_out``: the
-    (input index, key) of its points within the halo width of a shared face.
+    (input index, key) of its points within the halo width of a shared face. With ``lattice`` (the
+    scan's grid: voxel corners a whole number of voxels from it), the band is on that grid and
+    ``bandp.<t>.i4`` holds each core point's piece of it, for the tile's covering task
+    (:func:`.pieces.tile_pieces`).
     """
     from ...sampling.fastfps import fastfps
 
@@ -190,9 +193,11 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     is_seed = np.zeros(pts.shape[0], bool)
     is_seed[seeds] = True
     o = fastfps(pts, seeds=seeds if seeds.size else None, voxel_size=voxel_size, band_radius=band_radius,
-                max_memory=max_memory, timed_seeds=timed)
+                max_memory=max_memory, timed_seeds=timed, lattice=lattice, pieces=lattice is not None)
     stream = _stream(o, is_seed, core, cpts, hpts, lo, hi, interior)
     files, n_seam = _put_tile(w, t, stream, halo, face_out)
+    if o.pieces is not None:
+        files[WL.band_labels(t)] = put_zipped(w, WL.band_labels(t), o.pieces[: cpts.shape[0]].astype("<i4"))
     bins, counts = np.unique(WL.hist_bins(stream["key"]), return_counts=True)
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(stream.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
