@@ -222,7 +222,9 @@ def plan_joint(sources: list[ScanSource], archive: Path, options: BuildOptions, 
                force: bool = False, overwrite: bool = False):
     """One job ordering every source as one surface (a joint build), placed like any scan."""
     import hashlib
+    from concurrent.futures import ThreadPoolExecutor
 
+    from .._resources import cores
     from ..io import file_sha256
 
     members: list[dict[str, Any]] = []
@@ -238,7 +240,12 @@ def plan_joint(sources: list[ScanSource], archive: Path, options: BuildOptions, 
             raise InputError(f"input {src.path} is given twice (inputs {seen[same] + 1} and {i + 1}) for the joint "
                              f"scan {name!r}; give each file once")
         seen[same] = i
-        sha = file_sha256(src.path)
+    # the files' digests side by side (hashlib lets go of the GIL): a survey's bytes are no serial pass
+    # (196 files, 118 MB: 0.40 s one after another on one core)
+    with ThreadPoolExecutor(max(1, min(len(sources), 2 * cores()))) as pool:
+        shas = list(pool.map(file_sha256, [src.path for src in sources if src.path is not None]))
+    for i, (src, sha) in enumerate(zip(sources, shas, strict=True)):
+        assert src.path is not None  # (checked above)
         h.update(sha.encode())
         members.append({"id": i, "name": src.name, "path": os.path.abspath(src.path), "source": src.path.name,
                         "sha256": sha, "pose": None if src.pose is None else src.pose.tolist(),
