@@ -104,7 +104,29 @@ def check_vlr_counts(path: Path) -> None:
 CHUNK_BYTES_MAX = 256 * 2**20
 
 
-def check_chunk_table(laspy: Any, path: Path) -> None:
+def _laszip_record(f: Any, head: bytes) -> bytes | None:
+    """The record data of the LasZip VLR (user id "laszip encoded", record 22204) of the open
+    LAS file ``f`` whose first bytes are ``head``, from its VLR headers (54 bytes each: reserved,
+    user id, record id, record length, description), None where it has none. (What laspy's
+    header read finds, without building the header: 1.3 of the 2.2 ms a survey tile's open took.)"""
+    import struct
+
+    if len(head) < 104 or head[:4] != b"LASF":
+        return None
+    pos, _, n_vlrs = struct.unpack_from("<HII", head, 94)
+    for _ in range(n_vlrs):  # (check_vlr_counts has bounded the count)
+        f.seek(pos)
+        vlr = f.read(54)
+        if len(vlr) < 54:
+            return None
+        rid, length = struct.unpack_from("<HH", vlr, 18)
+        if vlr[2:18].rstrip(b"\0") == b"laszip encoded" and rid == 22204:
+            return f.read(length)
+        pos += 54 + length
+    return None
+
+
+def check_chunk_table(path: Path) -> None:
     """Refuse a LAZ chunk table that declares more chunks than the file can hold: lazrs
     allocates it whole and aborts the process (SIGABRT) when the allocation fails."""
     import struct
@@ -113,11 +135,11 @@ def check_chunk_table(laspy: Any, path: Path) -> None:
 
     size = path.stat().st_size
     with open(path, "rb") as f:
-        header = laspy.LasHeader.read_from(f)
-        vlr = next((v for v in header.vlrs if type(v).__name__ == "LasZipVlr"), None)
-        if vlr is None:
+        head = f.read(255)
+        record = _laszip_record(f, head)
+        if record is None:
             return  # laspy says what is missing
-        start = int(header.offset_to_point_data)
+        start = struct.unpack_from("<I", head, 96)[0]
         f.seek(start)
         raw = f.read(8)
         at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
@@ -127,9 +149,10 @@ def check_chunk_table(laspy: Any, path: Path) -> None:
             at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
         f.seek(max(0, at))
         raw = f.read(8)
-    lazvlr = lazrs.LazVlr(vlr.record_data)
-    count = int(header.point_count)
-    point_size = int(header.point_format.size)
+    lazvlr = lazrs.LazVlr(record)
+    point_size, count = struct.unpack_from("<HI", head, 105)
+    if head[25] >= 4 and len(head) >= 255:  # (LAS 1.4: the 64-bit count)
+        count = struct.unpack_from("<Q", head, 247)[0]
     if not lazvlr.uses_variable_size_chunks():
         # lazrs' parallel decompressor allocates one whole chunk: a damaged chunk size aborts it too
         chunk_bytes = lazvlr.chunk_size() * point_size
@@ -179,7 +202,7 @@ def las_header(laspy: Any, p: Path) -> LasHeader:
     try:
         check_vlr_counts(p)
         if p.suffix.lower() == ".laz":
-            check_chunk_table(laspy, p)
+            check_chunk_table(p)
         with quiet_laspy(), laspy.open(str(p)) as reader:
             hdr = reader.header
             n = int(hdr.point_count)
