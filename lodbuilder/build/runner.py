@@ -241,7 +241,7 @@ def plan_joint(sources: list[ScanSource], archive: Path, options: BuildOptions, 
                              f"scan {name!r}; give each file once")
         seen[same] = i
     # the files' digests side by side (hashlib lets go of the GIL): a survey's bytes are no serial pass
-    # (196 files, 118 MB: 0.40 s one after another on one core)
+    # (196 files, 118 MB: 0.089 s one after another, 0.057 s on this 2-core machine)
     with ThreadPoolExecutor(max(1, min(len(sources), 2 * cores()))) as pool:
         shas = list(pool.map(file_sha256, [src.path for src in sources if src.path is not None]))
     for i, (src, sha) in enumerate(zip(sources, shas, strict=True)):

@@ -107,8 +107,8 @@ CHUNK_BYTES_MAX = 256 * 2**20
 def _laszip_record(f: Any, head: bytes) -> bytes | None:
     """The record data of the LasZip VLR (user id "laszip encoded", record 22204) of the open
     LAS file ``f`` whose first bytes are ``head``, from its VLR headers (54 bytes each: reserved,
-    user id, record id, record length, description), None where it has none. (What laspy's
-    header read finds, without building the header: 1.3 of the 2.2 ms a survey tile's open took.)"""
+    user id, record id, record length, description), None where it has none: what laspy's
+    header read finds, without building a header (opening a survey tile 0.82 -> 0.57 ms)."""
     import struct
 
     if len(head) < 104 or head[:4] != b"LASF":
