@@ -356,17 +356,34 @@ def test_the_head_levels_get_exact_radii_from_the_head_points_near_each_tile(tmp
 
 
 def test_the_coarse_copy_fits_one_worker(tmp_path):
-    """The decimated copy is ordered by one worker: it is never larger than a tile the budget allows
-    (before: n // 8 points whatever the budget, so a 4M-point survey at --max-memory 1.6GB with 2
-    workers failed with 'the coarse level failed: ... needs more than ... voxels')."""
+    """The decimated copy is ordered by one worker: it is never larger than the worker's budget
+    allows (before: n // 8 points whatever the budget, so a 4M-point survey at --max-memory 1.6GB
+    with 2 workers failed with 'the coarse level failed: ... needs more than ... voxels')."""
     from lodbuilder.build.tiled import plan as P
 
     budget = P.PARENT_MIN + P.PROCESS_BYTES + 2500 * P.TILE_BYTES_PER_POINT
-    fits = P.tile_capacity(budget, 1)
-    assert 2000 <= fits < 3000
-    pts = wavy(32_000, np.random.default_rng(5))
+    fits = P.coarse_capacity(budget, 1)
+    assert 7000 <= fits < 9000 and 2000 <= P.tile_capacity(budget, 1) < 3000
+    pts = wavy(80_000, np.random.default_rng(5))
     d, _ = _build(tmp_path, pts, tile_points=8000, max_memory=budget)
-    assert d["build"]["tiled"]["coarse_points"] <= fits < len(pts) // 8
+    assert fits // 2 <= d["build"]["tiled"]["coarse_points"] <= fits < len(pts) // 8
+
+
+def test_the_coarse_copy_grows_with_the_survey_up_to_what_a_worker_orders():
+    """The copy aims at one point in COARSE_SHARE of the survey (the head's points per tile point,
+    and so the tiles' grid phases, the same at every size), at least COARSE_POINTS, at most half a
+    worker's coarse capacity (the cells overshoot the aim) and an eighth of the survey."""
+    from lodbuilder.build.tiled import plan as P
+    from lodbuilder.build.tiled.driver import COARSE_POINTS, COARSE_SHARE, coarse_target
+
+    gb = 1 << 30
+    cap = P.coarse_capacity(3 * gb, 2)
+    assert coarse_target(21_560_000, 3 * gb, 2) == (COARSE_POINTS, cap)  # (54: the 21.56M survey's stays)
+    assert coarse_target(99_000_000, 3 * gb, 2) == (99_000_000 // COARSE_SHARE, cap)
+    assert coarse_target(10**10, 3 * gb, 2) == (cap // 2, cap)
+    assert coarse_target(10**9, 64 * gb, 2)[0] == 10**9 // COARSE_SHARE  # (a larger budget: the share again)
+    assert coarse_target(1_000_000, 3 * gb, 2)[0] == 125_000
+    assert P.coarse_capacity(3 * gb, 2) > 3 * P.tile_capacity(3 * gb, 2)
 
 
 def test_the_coarse_level_orders_on_a_grid_for_the_head_radius(tmp_path):

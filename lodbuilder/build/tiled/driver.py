@@ -54,8 +54,18 @@ SEAM_SPACING = 0.25
 #: 1 / 2 / 3 passes; with the repair at 0.25 the covering at 1 % is 1.018 after 1 pass, 1.002 after 3
 #: (--quality-passes).
 TILE_PASSES = 1
-#: the decimated copy has at most this many points (its ordering is one task), and at least
-#: COARSE_MIN (or every point): a band around fewer points is too coarse to order a surface
+#: the decimated copy aims at one point in COARSE_SHARE of the survey, at least COARSE_POINTS, at
+#: most half what one worker orders within its budget (:func:`.plan.coarse_capacity`; the cells'
+#: count overshoots the aim by 1.7 x on the surveys of tools/make_survey.py) and an eighth of the
+#: survey; never fewer than COARSE_MIN (or every point): a band around fewer points is too coarse to
+#: order a surface. A copy in proportion to the survey keeps the head's points per tile point, and
+#: with them the tiles' grid phases (which start from the head), the same at every survey size: with
+#: the copy held at 400,000 whatever the size, order_tile took 6.31 us a point of the 21.56M-point
+#: survey and 7.97 of the 99M-point one at --max-memory 3GB (about 440 head points a tile against
+#: 110). 54: the 21.56M survey's copy stays what it was. The coarse task grows with it (1.6 -> 5.2
+#: CPU-s for a copy of 0.69M -> 2.84M points, serial: at 10^10 points the copy is capped by the
+#: worker's memory and the head per tile shrinks again)
+COARSE_SHARE = 54
 COARSE_POINTS = 400_000
 COARSE_MIN = 2_000
 #: head size: points of the decimated copy's order per point of the head. Every tile's ordering
@@ -477,11 +487,17 @@ def _plan(executor: cf.Executor, work: Store, name: str, sp: Spill, voxel_size: 
     pending = submit(executor, [(0, parameters_task, (work, n, voxel_size, band_radius))])
     (params,) = collect(pending, lambda _: "the plan's parameters", name, 1, None, "plan")
     fits = P.tile_capacity(budget, parallel)
-    # the decimated copy is ordered by one worker: no larger than the worker's budget allows
-    m_target = min(COARSE_POINTS, max(fits, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
+    m_target, m_limit = coarse_target(n, budget, parallel)
     return plan_phase(executor, work, name, sp, {k: params[k] for k in ("spacing", "voxel_size", "band_radius")},
-                      max(fits, COARSE_MIN), tile_points or P.balanced_tile_points(n, parallel, fits), m_target,
-                      progress)
+                      m_limit, tile_points or P.balanced_tile_points(n, parallel, fits), m_target, progress)
+
+
+def coarse_target(n: int, budget: int, parallel: int) -> tuple[int, int]:
+    """The decimated copy's aim and its limit for a survey of ``n`` points (see COARSE_SHARE): the
+    copy is ordered by one worker, never larger than the worker's budget allows."""
+    limit = max(P.coarse_capacity(budget, parallel), COARSE_MIN)
+    aim = min(max(COARSE_POINTS, n // COARSE_SHARE), max(limit // 2, COARSE_MIN), max(n // 8, min(n, COARSE_MIN)))
+    return aim, limit
 
 
 def _coarse_and_tiles(executor: cf.Executor, work: Store, name: str, sp: Spill, pl: dict[str, Any],

@@ -21,6 +21,10 @@ from ...errors import InputError
 
 IN_MEMORY_BYTES_PER_POINT = 900  # FastFPS band + ordering + the stored copy (557-870 B/pt measured)
 TILE_BYTES_PER_POINT = 800  # a tile's FastFPS and its stream, with headroom
+#: the coarse task's bytes per point of the decimated copy: its records and coordinates (56) and
+#: the ordering on a grid of the head's scale (63-66 B/pt of peak RSS measured on copies of the
+#: 99M-point survey of 0.69M, 1.91M and 2.84M points; FastFPS's own estimate is 120 B/pt and the band)
+COARSE_BYTES_PER_POINT = 250
 PROCESS_BYTES = 320 << 20  # a worker's own footprint: Python, NumPy, SciPy, h5py, compiled kernels
 PARENT_FRACTION = 0.2  # share of the budget the parent keeps (merge buffers, write blocks)
 PARENT_MIN = 600 << 20
@@ -63,6 +67,12 @@ def tile_capacity(max_memory: int, parallel: int) -> int:
                          f"{(PROCESS_BYTES + MIN_TILE_POINTS * TILE_BYTES_PER_POINT) / 2**20:.0f} MiB at least); give "
                          "more memory or fewer workers")
     return cap
+
+
+def coarse_capacity(max_memory: int, parallel: int) -> int:
+    """Points of the decimated copy that one worker orders within its share of the budget (the
+    coarse grid has far fewer voxels per point than a tile's: about 0.2 against 2-3)."""
+    return max(0, int((worker_budget(max_memory, parallel) - PROCESS_BYTES) / COARSE_BYTES_PER_POINT))
 
 
 def balanced_tile_points(n_points: int, parallel: int, fits: int) -> int:
