@@ -99,6 +99,7 @@ def test_bench_survey_document(bench_doc, capsys):
             assert set(r["cpu_parent_by_phase"]) == set(r["phase_seconds"])
             kinds = r["tasks"]["by_kind"]
             assert kinds["coarse_task"]["tasks"] == 1
+            assert 0 < r["head_points"] < r["coarse_points"] < r["n_points"]
             assert kinds["order_tile"]["tasks"] == kinds["cover_tile"]["tasks"] == r["tiles"] >= 4
             for kind in ("read_block", "survey_block", "distribute_block", "bucket_block", "rank_band", "rank_block",
                          "write_band"):

@@ -504,6 +504,8 @@ def run_build(inputs: list[Path], joint: str | None, executor: str, workers: int
         "peak_work_by_phase": peaks_by_phase(rec, sampler.timeline, archive_bytes),
         "phase_seconds": {k: rec["phase_seconds"][k] for k in rec.get("phase_order") or rec.get("phase_seconds", {})},
         "tiles": rec.get("tiled", {}).get("tiles"),
+        "coarse_points": rec.get("tiled", {}).get("coarse_points"),
+        "head_points": rec.get("tiled", {}).get("head_points"),
         "rounds": {k: v for k, v in (rec.get("tiled", {}).get("rounds") or {}).items() if k != "owner"} or None,
         "tasks": task_summary(rec.get("tasks")),
     })
