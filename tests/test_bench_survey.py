@@ -151,6 +151,15 @@ def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypat
     assert [sv["input"]["paths"] for sv in doc["surveys"]] == [[str(tmp_path / "other.laz")],
                                                                [str(tmp_path / "b" / "s.laz")]]
     assert len(doc["earlier"]) == 1
+    # the same files at other settings (a budget, a plan for other workers) are another record
+    assert bench_survey.main([str(tmp_path / "a" / "s.laz"), *args, "--max-memory", "16GB", "--plan-workers", "16"]) == 0
+    assert bench_survey.main([str(tmp_path / "b" / "s.laz"), *args, "--max-memory", "16GB", "--plan-workers", "16"]) == 0
+    doc = json.loads(out.read_text())
+    assert [(sv["input"]["paths"], sv["settings"]["max_memory"]) for sv in doc["surveys"]] == [
+        ([str(tmp_path / "other.laz")], "3GB"), ([str(tmp_path / "b" / "s.laz")], "3GB"),
+        ([str(tmp_path / "b" / "s.laz")], "16GB")]
+    assert doc["surveys"][-1]["settings"] == {"max_memory": "16GB", "plan_workers": 16, "tile_points": None,
+                                              "seam_rounds": False}
 
 
 def test_the_sampler_walks_a_dear_directory_less_often(tmp_path, monkeypatch):

@@ -604,6 +604,17 @@ def _same_input(desc: dict[str, Any]) -> tuple:
     return (tuple(Path(p).name for p in desc.get("paths", [])), desc.get("files"), desc.get("bytes"))
 
 
+def _same_survey(sv: dict[str, Any]) -> tuple:
+    """What makes two measured surveys the same: their inputs and the builds' settings (the budget,
+    the plan's workers, the tile size, seam rounds; from the first run where a document lacks them):
+    a survey measured as for 16 workers and at --max-memory 3GB keeps both records."""
+    run = (sv.get("runs") or [{}])[0]
+    planned = run.get("plan_workers")
+    settings = sv.get("settings") or {"max_memory": run.get("max_memory"), "tile_points": None, "seam_rounds": False,
+                                      "plan_workers": None if planned == run.get("workers") else planned}
+    return (_same_input(sv["input"]), tuple(sorted(settings.items())))
+
+
 def _commit() -> str:
     return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                           text=True).stdout.strip()
@@ -652,7 +663,9 @@ def main(argv: list[str] | None = None) -> int:
         doc["warm_up_seconds"] = {ex: warm_up(args.work, ex) for ex in executors}
     for survey in args.surveys:
         joint = args.joint if survey.is_dir() else None
-        sv: dict[str, Any] = {"input": describe_inputs([survey]), "joint": joint, "runs": []}
+        sv: dict[str, Any] = {"input": describe_inputs([survey]), "joint": joint, "runs": [],
+                              "settings": {"max_memory": args.max_memory, "plan_workers": args.plan_workers,
+                                           "tile_points": args.tile_points, "seam_rounds": args.seam_rounds}}
         doc["surveys"].append(sv)
         for ex in executors:
             for w in args.workers:
@@ -665,8 +678,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.append and args.out.exists():
         old = json.loads(args.out.read_text())
         doc["earlier"] = [*old.pop("earlier", []), {k: old[k] for k in ("date", "commit", "command") if k in old}]
-        again = {_same_input(sv["input"]) for sv in doc["surveys"]}  # a survey measured again: the new runs
-        doc["surveys"] = [sv for sv in old.get("surveys", []) if _same_input(sv["input"]) not in again] + doc["surveys"]
+        again = {_same_survey(sv) for sv in doc["surveys"]}  # a survey measured again: the new runs
+        doc["surveys"] = [sv for sv in old.get("surveys", []) if _same_survey(sv) not in again] + doc["surveys"]
     for s3 in _S3:
         s3.stop()
     text = json.dumps(doc, indent=1)
