@@ -217,3 +217,20 @@ def test_the_sampler_finds_the_process_tree_by_its_children(monkeypatch):
         for k in kids:
             k.kill()
             k.wait()
+
+
+def test_bench_inputs_writes_one_synthetic_input_and_refuses_other_files(tmp_path, capsys):
+    """tools/bench_inputs.py writes one input of the set as .npy (an input of bench_survey and of any
+    build), through a temporary name; another suffix is refused and nothing is written."""
+    import bench_inputs
+
+    out = tmp_path / "uneven.npy"
+    assert bench_inputs.main(["uneven", "5000", "-o", str(out)]) == 0
+    pts = np.load(out)
+    assert pts.shape == (5000, 3) and pts.dtype == np.float64
+    np.testing.assert_array_equal(pts, bench_inputs.synthetic("uneven", 5000))
+    assert capsys.readouterr().out == f"wrote 5,000 points (uneven, synthetic) to {out}\n"
+    with pytest.raises(SystemExit) as e:
+        bench_inputs.main(["uneven", "5000", "-o", str(tmp_path / "u.ply")])
+    assert e.value.code == 2 and "--output must end in .npy, got" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["uneven.npy"]

@@ -9,6 +9,10 @@ tools/make_survey.py. All synthetic inputs are called synthetic in the report.
               2 x from pole to pole and noise of 0.3 spacing along the normal (a closed scan-like
               surface)
     stack     four parallel sheets 5 point spacings apart joined by folds (an accordion)
+
+Written as an .npy file (an input of any build or benchmark; synthetic):
+
+    python tools/bench_inputs.py uneven 2000000 -o /work/bench_data/uneven_2M.npy
 """
 
 from __future__ import annotations
@@ -122,3 +126,28 @@ def set_markdown(rows: list[dict], summary: dict) -> list[str]:
     lines += ["", "Summary: " + ", ".join(f"{k} {f(v, '{:.3g}')}" for k, v in summary.items()
                                           if not isinstance(v, list)) + "."]
     return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(description="Write one synthetic input of the set as an .npy file (float64 x, y, z)")
+    p.add_argument("kind", choices=SYNTHETIC)
+    p.add_argument("n", type=int, help="about this many points")
+    p.add_argument("-o", "--output", type=Path, required=True, help="the .npy file to write")
+    args = p.parse_args(argv)
+    if args.output.suffix.lower() != ".npy":
+        p.error(f"--output must end in .npy, got {str(args.output)!r}")
+    if args.n < 1000:
+        p.error(f"n must be at least 1000, got {args.n}")
+    pts = np.ascontiguousarray(synthetic(args.kind, args.n), dtype="<f8")
+    tmp = args.output.with_name(args.output.name + ".part")
+    with open(tmp, "wb") as f:
+        np.save(f, pts)
+    tmp.replace(args.output)
+    print(f"wrote {len(pts):,} points ({args.kind}, synthetic) to {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -49,6 +49,13 @@ figure replays a W-worker plan; the 21.56M survey as for 16 workers on this 2-co
     python tools/bench_survey.py /work/big/survey_14x14 --workers 2 --max-memory 16GB --no-warm-up \
         --tile-points 168000 --plan-workers 16 --append
 
+Other inputs at the same settings (``--kind`` says what they are in the record), the synthetic inputs
+of tools/bench_inputs.py and tools/make_fragmented.py built in tiles:
+
+    python tools/bench_inputs.py uneven 2000000 -o /work/bench_data/uneven_2M.npy
+    python tools/bench_survey.py /work/bench_data/uneven_2M.npy --workers 2 --max-memory 1.2GB --append \
+        --kind "synthetic: tools/bench_inputs.py uneven"
+
 Timings depend on the machine and its load (the load average before and after each run is in the
 JSON): on a shared machine, compare runs of one invocation only.
 """
@@ -593,10 +600,14 @@ def ratios(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def describe_inputs(inputs: list[Path]) -> dict[str, Any]:
+#: what the surveys of tools/make_survey.py are (the default --kind)
+SURVEY_KIND = "synthetic survey: the real autzen_trim.laz copied side by side (tools/make_survey.py)"
+
+
+def describe_inputs(inputs: list[Path], kind: str = SURVEY_KIND) -> dict[str, Any]:
     files = [f for p in inputs for f in (sorted(p.iterdir()) if p.is_dir() else [p]) if f.is_file()]
     return {"paths": [str(p) for p in inputs], "files": len(files), "bytes": sum(f.stat().st_size for f in files),
-            "kind": "synthetic survey: the real autzen_trim.laz copied side by side (tools/make_survey.py)"}
+            "kind": kind}
 
 
 def _same_input(desc: dict[str, Any]) -> tuple:
@@ -627,7 +638,8 @@ def _ints(text: str) -> list[int]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("surveys", nargs="+", type=Path,
-                   help="surveys to measure, each a LAS/LAZ file or a directory of them (ordered as one surface)")
+                   help="surveys to measure, each a LAS/LAZ file or a directory of them (ordered as one surface), "
+                        "or any other scan file lodbuilder reads (say what it is with --kind)")
     p.add_argument("--joint", default="survey", help="the scan name of a directory's joint build (default survey)")
     p.add_argument("--workers", type=_ints, default=[1, 2], help="worker counts, comma-separated (default 1,2)")
     p.add_argument("--executor", default="pool",
@@ -648,6 +660,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plan-workers", type=int, metavar="W",
                    help="plan the build as for W workers (its merge bands, and its tiles unless --tile-points) "
                         "while it runs on --workers: the simulation's W-worker figure then replays that plan")
+    p.add_argument("--kind", default=SURVEY_KIND,
+                   help="what the inputs are, for the record (default: the surveys of tools/make_survey.py; say "
+                        "'synthetic' of any generated input)")
     args = p.parse_args(argv)
     executors = [e.strip() for e in args.executor.split(",") if e.strip()]
     if not executors or not set(executors) <= set(EXECUTORS):
@@ -663,7 +678,7 @@ def main(argv: list[str] | None = None) -> int:
         doc["warm_up_seconds"] = {ex: warm_up(args.work, ex) for ex in executors}
     for survey in args.surveys:
         joint = args.joint if survey.is_dir() else None
-        sv: dict[str, Any] = {"input": describe_inputs([survey]), "joint": joint, "runs": [],
+        sv: dict[str, Any] = {"input": describe_inputs([survey], args.kind), "joint": joint, "runs": [],
                               "settings": {"max_memory": args.max_memory, "plan_workers": args.plan_workers,
                                            "tile_points": args.tile_points, "seam_rounds": args.seam_rounds}}
         doc["surveys"].append(sv)
