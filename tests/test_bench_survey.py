@@ -160,6 +160,12 @@ def test_append_replaces_the_runs_of_a_survey_measured_again(tmp_path, monkeypat
         ([str(tmp_path / "b" / "s.laz")], "16GB")]
     assert doc["surveys"][-1]["settings"] == {"max_memory": "16GB", "plan_workers": 16, "tile_points": None,
                                               "seam_rounds": False}
+    # ... and so is a record of other executors (a pool-only run keeps the pool-against-Dask record)
+    monkeypatch.setattr(bench_survey, "run_build", lambda *a, **k: {**run, "executor": a[2]})
+    assert bench_survey.main([str(tmp_path / "b" / "s.laz"), *args, "--executor", "pool,dask"]) == 0
+    doc = json.loads(out.read_text())
+    assert [[r["executor"] for r in sv["runs"]] for sv in doc["surveys"]] == [["pool"], ["pool"], ["pool"],
+                                                                             ["pool", "dask"]]
 
 
 def test_the_sampler_walks_a_dear_directory_less_often(tmp_path, monkeypatch):

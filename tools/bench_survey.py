@@ -616,14 +616,16 @@ def _same_input(desc: dict[str, Any]) -> tuple:
 
 
 def _same_survey(sv: dict[str, Any]) -> tuple:
-    """What makes two measured surveys the same: their inputs and the builds' settings (the budget,
-    the plan's workers, the tile size, seam rounds; from the first run where a document lacks them):
-    a survey measured as for 16 workers and at --max-memory 3GB keeps both records."""
+    """What makes two measured surveys the same: their inputs, the builds' settings (the budget, the
+    plan's workers, the tile size, seam rounds; from the first run where a document lacks them) and
+    the executors measured: a survey measured as for 16 workers and at --max-memory 3GB keeps both
+    records, and a pool-only run does not replace a record of the pool against Dask."""
     run = (sv.get("runs") or [{}])[0]
     planned = run.get("plan_workers")
     settings = sv.get("settings") or {"max_memory": run.get("max_memory"), "tile_points": None, "seam_rounds": False,
                                       "plan_workers": None if planned == run.get("workers") else planned}
-    return (_same_input(sv["input"]), tuple(sorted(settings.items())))
+    executors = sorted({r.get("executor", "pool") for r in sv.get("runs", [])})
+    return (_same_input(sv["input"]), tuple(sorted(settings.items())), tuple(executors))
 
 
 def _commit() -> str:
