@@ -384,6 +384,36 @@ def test_the_coarse_copy_grows_with_the_survey_up_to_what_a_worker_orders():
     assert coarse_target(10**9, 64 * gb, 2)[0] == 10**9 // COARSE_SHARE  # (a larger budget: the share again)
     assert coarse_target(1_000_000, 3 * gb, 2)[0] == 125_000
     assert P.coarse_capacity(3 * gb, 2) > 3 * P.tile_capacity(3 * gb, 2)
+    # the parent gathers the copy: one worker with the whole budget is bounded by the parent's share
+    one = P.coarse_capacity(3 * gb, 1)
+    assert one == int(P.PARENT_COPY_SHARE * P.parent_budget(3 * gb) / P.PARENT_COPY_BYTES_PER_POINT)
+    assert one < (P.worker_budget(3 * gb, 1) - P.PROCESS_BYTES) / P.COARSE_BYTES_PER_POINT
+
+
+def test_the_decimated_copy_is_each_cells_first_point_in_input_order():
+    """The parent's copy from the blocks' representatives (cells shared by blocks, blocks out of
+    input order) against the definition: per cell key the point of the smallest input index, the
+    cells' points in input order."""
+    from lodbuilder.build.tiled.blocks import decimated_copy
+
+    rng = np.random.default_rng(8)
+    parts, rows = [], []
+    for b in rng.permutation(40):
+        m = int(rng.integers(0, 300))
+        g = np.sort(rng.choice(1000, m, replace=False)) + 1000 * int(b)
+        keys = rng.integers(0, 2000, m)
+        keys, first = np.unique(keys, return_index=True)  # (a block's representatives: one a cell)
+        xyz = rng.random((keys.shape[0], 3))
+        parts.append({"keys": keys, "g": g[first], "xyz": xyz})
+        rows += [(int(k), int(gg), *map(float, p)) for k, gg, p in zip(keys, g[first], xyz)]
+    best: dict[int, tuple] = {}
+    for r in rows:
+        if r[0] not in best or r[1] < best[r[0]][1]:
+            best[r[0]] = r
+    want = sorted(best.values(), key=lambda r: r[1])
+    got = decimated_copy(parts)
+    assert got["g"].tolist() == [r[1] for r in want]
+    assert np.stack([got["x"], got["y"], got["z"]], 1).tolist() == [list(r[2:]) for r in want]
 
 
 def test_the_coarse_level_orders_on_a_grid_for_the_head_radius(tmp_path):

@@ -25,6 +25,13 @@ TILE_BYTES_PER_POINT = 800  # a tile's FastFPS and its stream, with headroom
 #: the ordering on a grid of the head's scale (63-66 B/pt of peak RSS measured on copies of the
 #: 99M-point survey of 0.69M, 1.91M and 2.84M points; FastFPS's own estimate is 120 B/pt and the band)
 COARSE_BYTES_PER_POINT = 250
+#: the parent's bytes per representative of the decimated copy while it makes the copy: the survey
+#: tasks' results (key, input index, coordinates: 40) and :func:`.blocks.decimated_copy` (56,
+#: measured with tracemalloc on 3.4M representatives of 900 blocks), with headroom
+PARENT_COPY_BYTES_PER_POINT = 120
+#: the share of the parent's memory the copy may take (the survey's first pass makes about 1.7 x
+#: the copy's aim, and the aim is at most half the limit: about 0.6 of the parent's share at most)
+PARENT_COPY_SHARE = 0.7
 PROCESS_BYTES = 320 << 20  # a worker's own footprint: Python, NumPy, SciPy, h5py, compiled kernels
 PARENT_FRACTION = 0.2  # share of the budget the parent keeps (merge buffers, write blocks)
 PARENT_MIN = 600 << 20
@@ -71,8 +78,11 @@ def tile_capacity(max_memory: int, parallel: int) -> int:
 
 def coarse_capacity(max_memory: int, parallel: int) -> int:
     """Points of the decimated copy that one worker orders within its share of the budget (the
-    coarse grid has far fewer voxels per point than a tile's: about 0.2 against 2-3)."""
-    return max(0, int((worker_budget(max_memory, parallel) - PROCESS_BYTES) / COARSE_BYTES_PER_POINT))
+    coarse grid has far fewer voxels per point than a tile's: about 0.2 against 2-3) and that the
+    parent makes within its own share (it gathers the blocks' representatives)."""
+    worker = (worker_budget(max_memory, parallel) - PROCESS_BYTES) / COARSE_BYTES_PER_POINT
+    parent = PARENT_COPY_SHARE * parent_budget(max_memory) / PARENT_COPY_BYTES_PER_POINT
+    return max(0, int(min(worker, parent)))
 
 
 def balanced_tile_points(n_points: int, parallel: int, fits: int) -> int:
@@ -104,10 +114,14 @@ def merge_band_rows(n_points: int, parallel: int, most: int) -> int:
     return min(most, max(MIN_MERGE_BAND_ROWS, math.ceil(n_points / (MERGE_BANDS_PER_WORKER * parallel))))
 
 
+def parent_budget(max_memory: int) -> int:
+    """Bytes the parent keeps of the budget."""
+    return max(PARENT_MIN, int(PARENT_FRACTION * max_memory))
+
+
 def worker_budget(max_memory: int, parallel: int) -> int:
     """Bytes each of ``parallel`` workers may use once the parent's share is set aside."""
-    parent = max(PARENT_MIN, int(PARENT_FRACTION * max_memory))
-    return int((max_memory - parent) / max(parallel, 1))
+    return int((max_memory - parent_budget(max_memory)) / max(parallel, 1))
 
 
 @dataclass
