@@ -405,7 +405,7 @@ def test_the_decimated_copy_is_each_cells_first_point_in_input_order():
         keys, first = np.unique(keys, return_index=True)  # (a block's representatives: one a cell)
         xyz = rng.random((keys.shape[0], 3))
         parts.append({"keys": keys, "g": g[first], "xyz": xyz})
-        rows += [(int(k), int(gg), *map(float, p)) for k, gg, p in zip(keys, g[first], xyz)]
+        rows += [(int(k), int(gg), *map(float, p)) for k, gg, p in zip(keys, g[first], xyz, strict=True)]
     best: dict[int, tuple] = {}
     for r in rows:
         if r[0] not in best or r[1] < best[r[0]][1]:
