@@ -94,9 +94,22 @@ def validate_indices(values: Any, n: int, name: str) -> np.ndarray:
     arr = arr.astype(np.int64)
     if arr.size and (arr.min() < 0 or arr.max() >= n):
         raise InputError(f"{name} must be indices in [0, {n}), got values from {arr.min()} to {arr.max()}")
-    if np.unique(arr).size != arr.size:
+    if _repeats(arr, n):
         raise InputError(f"{name} contains repeated indices; list each point once")
     return arr
+
+
+def _repeats(arr: np.ndarray, n: int) -> bool:
+    """Whether ``arr`` (indices in [0, n)) holds an index twice: a mask of the n indices where that
+    is not much larger than ``arr`` (no sort: a tile's timed seeds are checked in each ordering),
+    else a sort."""
+    if arr.size < 2:
+        return False
+    if n <= 16 * arr.size:
+        seen = np.zeros(n, bool)
+        seen[arr] = True
+        return int(np.count_nonzero(seen)) != arr.size
+    return bool(np.unique(arr).size != arr.size)
 
 
 # -- keyword arguments ---------------------------------------------------------------------------

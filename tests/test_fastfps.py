@@ -429,6 +429,18 @@ def test_bad_options(kwargs, message):
         fastfps(pts, **kwargs)
 
 
+@pytest.mark.parametrize("n", [5, 40, 10_000])  # (a mask of the indices, or a sort where n is much larger)
+def test_repeated_indices_are_found_either_way(n):
+    from lodbuilder._validate import validate_indices
+
+    rng = np.random.default_rng(n)
+    for size in (1, 2, 3, 5):
+        idx = rng.choice(n, size=size, replace=False)
+        np.testing.assert_array_equal(validate_indices(idx, n, "seeds"), idx)
+        with pytest.raises(InputError, match=r"^seeds contains repeated indices; list each point once$"):
+            validate_indices(np.append(idx, idx[-1]), n, "seeds")
+
+
 def test_import_is_light():
     import subprocess
     import sys

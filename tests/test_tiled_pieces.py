@@ -240,3 +240,28 @@ def test_pieces_from_a_halo_wider_than_the_reach_are_the_whole_band(tmp_path, mo
     first = np.full(labels.max() + 1, pts.shape[0])
     np.minimum.at(first, labels, rank)
     assert joined["piece_entries"] == sorted(first.tolist())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_dense_labels_renumber_as_unique_does(seed):
+    """The strip's labels renumbered without a sort: what np.unique(..., return_inverse=True) gives
+    (the labels that occur, in increasing order), labels no point holds dropped."""
+    from lodbuilder.build.tiled.pieces import dense_labels
+
+    rng = np.random.default_rng(seed)
+    n_labels = int(rng.integers(1, 50))
+    label = rng.choice(rng.choice(n_labels, size=max(1, n_labels // 3), replace=False), size=int(rng.integers(0, 200)))
+    got, k = dense_labels(label, n_labels)
+    held, want = np.unique(label, return_inverse=True)
+    assert k == held.shape[0]
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, want)
+
+
+def test_dense_labels_of_no_points():
+    from lodbuilder.build.tiled.pieces import dense_labels
+
+    got, k = dense_labels(np.zeros(0, np.int64), 0)
+    assert k == 0 and got.shape == (0,)
+    got, k = dense_labels(np.zeros(0, np.int64), 5)
+    assert k == 0 and got.shape == (0,)

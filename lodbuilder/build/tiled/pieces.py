@@ -178,12 +178,22 @@ def _strip_pieces(xyz: np.ndarray, strip: np.ndarray, labels: np.ndarray, h: flo
     own = int(np.searchsorted(sel, c))
     a, b = labels[sel[:own]].astype(np.int64), n_a + s_piece[:own]
     graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(n_a + n_s, n_a + n_s))
-    _, comp = connected_components(graph, directed=False)
+    n_comp, comp = connected_components(graph, directed=False)
     node = np.empty(xyz.shape[0], np.int64)
     node[:c] = labels
     node[sel] = n_a + s_piece
-    held, piece = np.unique(comp[node], return_inverse=True)  # (pieces of the ordering's band with no point here: dropped)
-    return piece.astype(np.int64), int(held.shape[0])
+    return dense_labels(comp[node], int(n_comp))
+
+
+def dense_labels(label: np.ndarray, n_labels: int) -> tuple[np.ndarray, int]:
+    """``label`` (values in ``0 .. n_labels - 1``) renumbered ``0 .. k - 1`` in increasing order of
+    the labels that occur, and ``k``: ``np.unique(label, return_inverse=True)`` in O(n + n_labels)
+    without its sort (3.5 of the 21.56M survey's 36 cover_tile CPU-s in 197 tiles). Labels that no
+    point holds (pieces of the ordering's band with no point here) are dropped."""
+    held = np.zeros(n_labels, bool)
+    held[label] = True
+    new = np.cumsum(held, dtype=np.int64) - 1
+    return new[label], int(new[-1] + 1) if n_labels else 0
 
 
 def borrowed_points(work: Any, halo: np.ndarray, halo_rank: np.ndarray, spec: dict[str, Any]
