@@ -267,7 +267,7 @@ def test_timed_tasks_record_their_own_peak_resident_memory(tmp_path):
     assert {r["kind"]: r["peak_rss"] for r in rows} == {"big_task": big, "small_task": small}
 
 
-#: a task that frees 190 MB of small arrays (glibc's heap) between 2 MB it keeps
+#: a task that frees COUNT small arrays of 64 kB (glibc's heap) between every 100th, which it keeps
 HEAP_TASK = """
 import sys
 import numpy as np
@@ -281,7 +281,7 @@ pinned = []
 
 @timed_task
 def many_small(work, t):
-    parts = [np.ones(8_000) for _ in range(3_000)]
+    parts = [np.ones(8_000) for _ in range(int(sys.argv[2]))]
     pinned.extend(parts[99::100])  # every 100th kept: the freed ones lie between kept blocks
     del parts
     return {}
@@ -293,15 +293,24 @@ print(rss() - before)
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="Linux's /proc")
-def test_a_worker_gives_back_what_its_task_freed(tmp_path):
+@pytest.mark.parametrize("count, trimmed", [(5_000, True), (1_500, False)])
+def test_a_worker_gives_back_what_a_large_task_freed(tmp_path, count, trimmed):
     """Small arrays come from glibc's heap, which keeps them once freed while blocks after them
-    are in use: a worker would hold a task's peak through its next tasks (a fresh process: the
-    heap's layout is this script's own)."""
+    are in use: a worker would hold a large task's peak through its next tasks (a fresh process:
+    the heap's layout is this script's own). A task that grew less than TRIM_GROWTH (1,500 arrays:
+    96 MB) leaves its heap for the next task to reuse."""
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-c", HEAP_TASK, str(tmp_path)], capture_output=True, text=True, check=True)
-    assert int(out.stdout) < 64 << 20
+    from lodbuilder.build.tiled.timing import TRIM_GROWTH
+
+    assert 1_500 * 64_000 < TRIM_GROWTH < 5_000 * 64_000
+    out = subprocess.run([sys.executable, "-c", HEAP_TASK, str(tmp_path), str(count)], capture_output=True,
+                         text=True, check=True)
+    if trimmed:
+        assert int(out.stdout) < 64 << 20
+    else:
+        assert int(out.stdout) > 64 << 20
 
 
 def test_the_cli_prints_task_lines_of_a_joint_build_without_a_terminal(tmp_path, monkeypatch, capsys):
