@@ -115,9 +115,10 @@ def _timed(fn: F, trim: bool) -> F:
             with contextlib.suppress(Exception):  # (an exception that takes no attributes)
                 exc.lodbuilder_task = info  # type: ignore[attr-defined]
             raise
+        peak = peak_rss()
         timing = {"kind": fn.__name__, "start": start, "seconds": time.perf_counter() - t0,
-                  "cpu_seconds": time.process_time() - c0, "pid": os.getpid(), "peak_rss": peak_rss()}
-        if trim and _grew(rss0, timing["peak_rss"]):
+                  "cpu_seconds": time.process_time() - c0, "pid": os.getpid(), "peak_rss": peak}
+        if trim and _grew(rss0, peak):
             release_freed_memory()  # (the worker waits for its next task at its own size)
         if isinstance(res, dict):
             res["timing"] = timing
