@@ -33,12 +33,13 @@ SCRIPT = textwrap.dedent('''
             settings = {k: dask.config.get(k) for k in KEYS}
         return {"warm": "lodbuilder.build._warm" in sys.modules, "settings": settings,
                 "trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
-                "server_trim": [e for e in server_env if e.startswith("MALLOC_TRIM_THRESHOLD_")]}
+                "server_trim": [e for e in server_env if e.startswith("MALLOC_TRIM_THRESHOLD_")],
+                "server_tunables": [e for e in server_env if e.startswith("GLIBC_TUNABLES=")]}
 
     if __name__ == "__main__":
         from lodbuilder.build.executors import make_executor
 
-        before = {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+        before = {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "GLIBC_TUNABLES")}
         with make_executor(dask_local=1) as (ex, _):
             dask = ex.submit(probe).result()
         after = {k: os.environ.get(k) for k in before}
@@ -54,7 +55,7 @@ def test_dask_local_workers_start_warm_in_the_callers_environment(tmp_path):
     script = tmp_path / "probe.py"
     script.write_text(SCRIPT)
     env_clear = {k: v for k, v in __import__("os").environ.items()
-                 if k not in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+                 if k not in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "GLIBC_TUNABLES")}
     run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
                          cwd=tmp_path, env=env_clear)
     assert run.returncode == 0, run.stderr[-3000:]
@@ -64,7 +65,10 @@ def test_dask_local_workers_start_warm_in_the_callers_environment(tmp_path):
     # glibc's allocator as in a pool worker: no fixed trim threshold, in the worker nor its server
     assert got["dask"]["trim"] is None and got["dask"]["server_trim"] == []
     # the caller's environment as it was
-    assert got["after"] == got["before"] == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": None}
+    assert got["after"] == got["before"] == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": None,
+                                             "GLIBC_TUNABLES": None}
+    # the server (and so every worker) with the workers' glibc tunables (WORKER_TUNABLES)
+    assert got["dask"]["server_tunables"] == got["pool"]["server_tunables"] == ["GLIBC_TUNABLES=glibc.malloc.hugetlb=1"]
     # and a process pool started after the cluster works, forked warm from the same server
     assert {k: got["pool"][k] for k in ("warm", "trim", "server_trim")} == {"warm": True, "trim": None,
                                                                           "server_trim": []}
