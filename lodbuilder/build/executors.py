@@ -36,7 +36,7 @@ PRELOAD = ["lodbuilder.build.jobs", "lodbuilder.build._warm"]
 #: :func:`lodbuilder._resources.map_large_blocks`) are advised to the kernel's transparent huge
 #: pages (where it offers them on request, as Linux's default "madvise" mode does): a fault per 2 MiB
 #: instead of per 4 KiB. On the 21.56M-point survey in 197 tiles the tree's page faults went 2.04 M
-#: -> 0.17 M and its system time 17.2 -> 14.8 s (docs/benchmarks.md, "Fewer page faults")
+#: -> 0.17 M and its system time 17.2 -> 14.8 s (docs/benchmarks.md, "Less kernel work between tasks")
 WORKER_TUNABLES = {"glibc.malloc.hugetlb": "1"}
 
 
@@ -143,8 +143,8 @@ def start_pool_server(workers: int | None, scheduler: str | None = None, dask_lo
 #:   had glibc's allocator with a fixed 64 KiB trim threshold, which also turns off its adaptive
 #:   mmap threshold: every array over 128 KiB mapped fresh from the kernel and unmapped when freed
 #:   (page faults: +35 % CPU on a NumPy loop of 1.6 MB arrays). The workers give freed memory back
-#:   after every task themselves (:mod:`.tiled.timing`), so none is set: Dask's workers run in the
-#:   environment the pool's run in.
+#:   themselves after a task that grew (:mod:`.tiled.timing`), so none is set: Dask's workers run in
+#:   the environment the pool's run in (with :data:`WORKER_TUNABLES`).
 #: * ``worker.profile.enabled``: the worker's statistical profiler sampled the task's stack every
 #:   10 ms (for the dashboard; the build records its own task timings): 4 of those 10 %.
 #: * ``admin.tick.interval`` (20 ms: an event-loop health check), ``admin.system-monitor.interval``
