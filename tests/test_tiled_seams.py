@@ -101,6 +101,24 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
 
 
+def test_a_point_demoted_twice_ties_by_its_latest_demotion(tmp_path):
+    """B (tile 1) is demoted by A to key 1, then by C to 0.5; E (tile 1) was demoted to 0.5 between
+    B's two demotions, so at the tied key 0.5 E comes first, as in the naive merge (ties by order
+    of demotion: the latest, not B's first)."""
+    from lodbuilder.build.tiled import merge as M
+
+    pts = np.array([[0.0, 0, 0], [1.0, 0, 0], [1.5, 0, 0], [2.0, 0, 0], [9.0, 9, 9]])  # A, B, C, E, a head point
+    #                 g    key  x    y  z  margin (0: every row a seam point)
+    tile0 = np.array([[0, 10.0, *pts[0], 0.0], [2, 5.0, *pts[2], 0.0]])
+    tile1 = np.array([[1, 9.0, *pts[1], 0.0], [3, 4.0, *pts[3], 0.0]])
+    head = np.array([4])
+    w = _store(tmp_path, pts, head, [tile0, tile1])
+    g, key = M.seam_merge(w, [WL.seam(0), WL.seam(1)], w.read_array(WL.HEAD_FILE, WL.HEAD), 1.0, np.zeros(3), 1e-6)
+    ng, nk = naive_seam_merge([tile0, tile1], pts[head], 1.0)
+    assert g.tolist() == ng.tolist() == [0, 2, 3, 1]
+    assert key.tolist() == nk.tolist() == [10.0, 5.0, 0.5, 0.5]
+
+
 def _chains(tkeys, thead, nxt):
     """The seam grid's cells: key -> the sorted points of its chain."""
     out = {}
