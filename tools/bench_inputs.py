@@ -140,11 +140,15 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--output must end in .npy, got {str(args.output)!r}")
     if args.n < 1000:
         p.error(f"n must be at least 1000, got {args.n}")
+    from lodbuilder._atomic import replace_with
+
     pts = np.ascontiguousarray(synthetic(args.kind, args.n), dtype="<f8")
-    tmp = args.output.with_name(args.output.name + ".part")
-    with open(tmp, "wb") as f:
-        np.save(f, pts)
-    tmp.replace(args.output)
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:  # (a file object: np.save would add .npy to the temporary's name)
+            np.save(f, pts)
+
+    replace_with(args.output, write, durable=False)
     print(f"wrote {len(pts):,} points ({args.kind}, synthetic) to {args.output}")
     return 0
 
