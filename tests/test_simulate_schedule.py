@@ -174,11 +174,13 @@ def test_cpu_durations_replay_cpu_seconds():
 
 
 def test_rounds_inside_a_phase_wait_for_the_earlier_round():
-    """The seam repair, the merge's bands, then the ranks' two rounds; the write's first band, then
-    the others: on many workers each round waits for the one before (a phase is not one bag of
-    independent tasks)."""
+    """The seam links, the seam repair, the merge's bands, then the ranks' two rounds; the write's
+    first band, then the others: on many workers each round waits for the one before (a phase is
+    not one bag of independent tasks)."""
     cols = ["kind", "piece", "tile", "block", "start", "seconds", "cpu_seconds", "pid"]
-    rows = [["seam_repair", "seam_repair", None, None, 0.0, 2.0, 2.0, 1],
+    rows = [["seam_links", "links.0", None, None, 0.0, 0.5, 0.5, 1],
+            ["seam_links", "links.1", None, None, 0.0, 0.5, 0.5, 2],
+            ["seam_repair", "seam_repair", None, None, 0.5, 2.0, 2.0, 1],
             ["merge_band", "merge_band", None, None, 2.0, 1.0, 1.0, 1],
             ["merge_band", "merge_band#2", None, None, 2.0, 1.0, 1.0, 2],
             ["rank_band", "rank_band", None, None, 3.0, 1.0, 1.0, 1],
@@ -191,7 +193,7 @@ def test_rounds_inside_a_phase_wait_for_the_earlier_round():
     rec = {"phase_seconds": {"merge": 10.0, "write": 6.0}, "phase_order": ["merge", "write"],
            "parent_cpu_seconds": {"merge": 0.0, "write": 0.1}, "tasks": {"columns": cols, "rows": rows}}
     walls = predict(model_from_record(rec), [16])["predicted"][0]["stages"]
-    assert walls == {"merge": 4.5, "write": 4.0}  # 2 + 1 + 1 + 0.5 and 2 + 2, not 2 and 2
+    assert walls == {"merge": 5.0, "write": 4.0}  # 0.5 + 2 + 1 + 1 + 0.5 and 2 + 2, not 2 and 2
 
 
 def test_the_radii_and_the_join_wait_for_the_covering():

@@ -165,7 +165,7 @@ def test_named_moments_kill_the_build_and_the_resume_gives_the_same_order(tmp_pa
         want = arc.scan().source_index[:], arc.scan().radius[:], arc.scan().parent[:]
     script = tmp_path / "run.py"
     script.write_text(SCRIPT)
-    for moment in ("inputs", "read", "spill", "split", "coarse", "tile", "order", "seams", "merged", "merge", "ranks",
+    for moment in ("inputs", "read", "spill", "split", "coarse", "tile", "order", "links", "seams", "merged", "merge", "ranks",
                    "rank", "band", "radii", "permute", "buckets", "chunks"):
         archive = tmp_path / f"{moment}.h5"
         env = dict(os.environ, **{WL.FAULT_ENV: moment})

@@ -74,13 +74,16 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             s[:, 1] = np.where(np.isfinite(s[:, 1]), np.floor(s[:, 1] / step) * step, np.inf)
     monkeypatch.setattr(M, "BUF", 7)
     monkeypatch.setattr(M.W, "BLOCK", 5)
+    monkeypatch.setattr(M, "LINK_ROWS", 1)  # (a group of seam links a tile)
     stats = [{"key_hist": [b.tolist() for b in np.unique(WL.hist_bins(s[:, 1]), return_counts=True)],
-              "files": {WL.stream(t): [0, 0]}} for t, s in enumerate(streams)]
+              "files": {WL.stream(t): [0, 0]}, "n_seam": int((s[:, 5] < s[:, 1]).sum())} for t, s in enumerate(streams)]
+    boxes = [(np.array([t, 0.0, 0.0]), np.array([t + 1, 1.0, 0.05])) for t in range(len(streams))]
     for a in (alpha, 0.0):
         (tmp_path / f"a{a}").mkdir()
         w = _store(tmp_path / f"a{a}", pts, head, streams)
         with ThreadPoolExecutor(2) as ex:
-            res = M.merge_phase(ex, w, "s", len(pts), stats, a, np.zeros(3), 1e-6, band_rows=band_rows)
+            res = M.merge_phase(ex, w, "s", len(pts), stats, a, np.zeros(3), 1e-6, band_rows=band_rows,
+                                boxes=None if seed % 2 else boxes)
         d = w.read_array(WL.DEFERRED, WL.DEFER)
         mark(w, "merge", res)  # (the order's pieces are listed there; the streams and deferred points pruned)
         order = segment(w, M.order_files(w), "<i8", 0, len(pts))
@@ -101,6 +104,76 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
             assert np.sum(np.concatenate([s[:, 1] for s in streams]) == 0) > 40  # (a bin of zero keys)
 
 
+def _brute_links(streams, head_xyz, alpha):
+    """The linked seam points by brute force: (tile, row of its seam points) of every seam point
+    within ``alpha`` times the smaller key of another tile's seam point, or within ``alpha`` times
+    its own (finite, positive) key of a head point."""
+    seam = [s[s[:, 5] < s[:, 1]] for s in streams]
+    rows = [(t, r, s[r]) for t, s in enumerate(seam) for r in range(len(s))]
+    out = set()
+    slack = 1 + 1e-9
+    for t, r, p in rows:
+        if not (np.isfinite(p[1]) and p[1] > 0):
+            continue
+        if np.min(np.linalg.norm(head_xyz - p[2:5], axis=1)) <= alpha * p[1] * slack:
+            out.add((t, r))
+        for u, v, q in rows:
+            if u != t and np.linalg.norm(p[2:5] - q[2:5]) <= alpha * min(p[1], q[1]) * slack:
+                out |= {(t, r), (u, v)}
+    return seam, out
+
+
+@pytest.mark.parametrize(("seed", "alpha", "step"), [(5, 0.25, 0.0), (6, 0.5, 0.0), (7, 1.0, 0.0), (8, 0.5, 0.03)])
+def test_the_repair_of_the_linked_seam_points_is_the_repair_of_them_all(tmp_path, seed, alpha, step):
+    """The seam links (one group a tile, each reading the tiles within its reach) find exactly the
+    seam points that meet another tile's or a head point (brute force), fewer than all the seam
+    points; and the repair of those alone defers the same points, at the same keys, in the same
+    order as the repair of every seam point (with keys rounded to steps of ``step``: ties)."""
+    from lodbuilder.build.tiled import merge as M
+
+    rng = np.random.default_rng(seed)
+    pts, head, streams = _streams(rng, n_tiles=4, per_tile=150)
+    if step:
+        for s in streams:
+            s[:, 1] = np.where(np.isfinite(s[:, 1]), np.floor(s[:, 1] / step) * step, np.inf)
+    w = _store(tmp_path, pts, head, streams)
+    stats = [{"key_hist": [b.tolist() for b in np.unique(WL.hist_bins(s[:, 1]), return_counts=True)],
+              "n_seam": int((s[:, 5] < s[:, 1]).sum())} for s in streams]
+    boxes = [(np.array([t, 0.0, 0.0]), np.array([t + 1, 1.0, 0.05])) for t in range(len(streams))]
+    groups = M.link_groups(stats, boxes, alpha, rows=1)
+    assert [g[0] for g in groups] == [[0], [1], [2], [3]]
+    found = set()
+    for j, (mine, reads) in enumerate(groups):
+        M.seam_links(str(tmp_path), j, mine, reads, alpha, np.zeros(3), 1e-6)
+        found |= {(int(t), int(r)) for t, r in w.read_array(WL.links(j), WL.LINK)[["t", "row"]].tolist()}
+    seam, want = _brute_links(streams, pts[head], alpha)
+    assert found == want
+    assert 0 < len(found) < sum(len(s) for s in seam)
+    M.seam_repair(str(tmp_path), len(groups), alpha, np.zeros(3), 1e-6, 0)
+    d = w.read_array(WL.DEFERRED, WL.DEFER)
+    every = [np.rec.fromarrays(s.T, dtype=WL.STREAM) for s in seam]
+    g, key = M.seam_merge(every, w.read_array(WL.HEAD_FILE, WL.HEAD), alpha, np.zeros(3), 1e-6)
+    was = {int(r[0]): r[1] for s in seam for r in s}
+    late = [(int(x), float(k)) for x, k in zip(g, key, strict=True) if k < was[int(x)]]
+    assert len(late) > 0
+    assert [(int(x), float(k)) for x, k in zip(d["g"], d["key"], strict=True)] == late
+
+
+def test_the_seam_links_read_only_the_tiles_within_reach():
+    """A group reads the tiles whose box comes within alpha times its tiles' largest finite key
+    (the infinite keys' bin left out) of one of its tiles: tiles of width 1 in a row, keys up to
+    1.9 and alpha 0.25 reach about 0.48: across a gap of 0.4, not across 0.6 or 1.4."""
+    from lodbuilder.build.tiled import merge as M
+
+    hist = [b.tolist() for b in np.unique(WL.hist_bins(np.array([1.9, 0.5, np.inf])), return_counts=True)]
+    stats = [{"key_hist": hist, "n_seam": 10}] * 4
+    boxes = [(np.array([x, 0.0, 0.0]), np.array([x + 1, 1.0, 1.0])) for x in (0.0, 1.0, 2.4, 4.0)]
+    assert M.link_groups(stats, boxes, 0.25, rows=10) == [([0], [1]), ([1], [0, 2]), ([2], [1]), ([3], [])]
+    assert M.link_groups(stats, boxes, 0.25, rows=20) == [([0, 1], [2]), ([2, 3], [1])]
+    assert M.link_groups(stats, None, 0.25, rows=40) == [([0, 1, 2, 3], [])]
+    assert M.link_groups(stats, boxes, 0.0) == []
+
+
 def test_a_point_demoted_twice_ties_by_its_latest_demotion(tmp_path):
     """B (tile 1) is demoted by A to key 1, then by C to 0.5; E (tile 1) was demoted to 0.5 between
     B's two demotions, so at the tied key 0.5 E comes first, as in the naive merge (ties by order
@@ -113,7 +186,8 @@ def test_a_point_demoted_twice_ties_by_its_latest_demotion(tmp_path):
     tile1 = np.array([[1, 9.0, *pts[1], 0.0], [3, 4.0, *pts[3], 0.0]])
     head = np.array([4])
     w = _store(tmp_path, pts, head, [tile0, tile1])
-    g, key = M.seam_merge(w, [WL.seam(0), WL.seam(1)], w.read_array(WL.HEAD_FILE, WL.HEAD), 1.0, np.zeros(3), 1e-6)
+    g, key = M.seam_merge([w.read_array(WL.seam(t), WL.STREAM) for t in (0, 1)], w.read_array(WL.HEAD_FILE, WL.HEAD),
+                          1.0, np.zeros(3), 1e-6)
     ng, nk = naive_seam_merge([tile0, tile1], pts[head], 1.0)
     assert g.tolist() == ng.tolist() == [0, 2, 3, 1]
     assert key.tolist() == nk.tolist() == [10.0, 5.0, 0.5, 0.5]

@@ -14,8 +14,8 @@ priority order (list scheduling, largest first as the driver submits them). From
   on the previous pass's orderings too when there are several passes), and the ready one with the
   longest chain of orderings waiting for it (its bottom level, from the recorded seconds) starts
   first, as the driver starts them (by the tiles' points);
-* rounds inside a phase (:data:`AFTER`): the merge's bands (``merge_band``) wait for the seam
-  repair (``seam_repair``), the ranks' first round (``rank_band``) for the bands, their second
+* rounds inside a phase (:data:`AFTER`): the seam repair (``seam_repair``) waits for the seam
+  links (``seam_links``), the merge's bands (``merge_band``) for the seam repair, the ranks' first round (``rank_band``) for the bands, their second
   round (``rank_block``) for the whole first, the radii's second round (``finish_band``) for the
   whole first (``radii_band``), the join of the band pieces for the tiles' pieces (``cover_tile``;
   ``pieces_tile`` in older records): its bands (``join_band``) first, then the join of their pairs
@@ -191,7 +191,7 @@ def predict(model: dict[str, Any], workers: list[int] | tuple[int, ...] = WORKER
 
 _ORDER = re.compile(r"^order\.(\d+)\.(\d+)$")
 #: task kinds that start only when every task of the listed kinds in their phase is done
-AFTER = {"merge_band": ("seam_repair",), "rank_band": ("merge_band",), "rank_block": ("rank_band",),
+AFTER = {"seam_repair": ("seam_links",), "merge_band": ("seam_repair",), "rank_band": ("merge_band",), "rank_block": ("rank_band",),
          "finish_band": ("radii_band",), "radii_band": ("cover_tile",), "join_band": ("cover_tile", "pieces_tile"),
          "join_task": ("join_band", "cover_tile", "pieces_tile")}
 #: the write's first band (its task table piece: the first write_band to start) before the others

@@ -285,6 +285,49 @@ def seam_merge(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
 
 
 @nb.njit(**JIT)
+def seam_links(xyz, key, tile, own, alpha, slack, lo, min_cell, tkeys, thead, nxt, linked):  # pragma: no cover
+    """Mark the seam points that can meet another tile's (see lodbuilder.build.tiled.merge).
+
+    ``xyz``/``key``/``tile``: points by descending key (the head's first, key inf, tile -1); each
+    point of ``own`` with a finite key above 0 is compared with every point before it (whose key
+    is at least its own) within ``alpha`` x its key x (1 + ``slack``): both are marked in
+    ``linked`` where their tiles differ. The points before it are kept in the hash grid
+    (``tkeys``/``thead``/``nxt``), whose cells follow the keys down to ``min_cell`` (rebuilt as in
+    :func:`seam_merge`)."""
+    n = xyz.shape[0]
+    mask = tkeys.shape[0] - 1
+    cell = np.inf
+    for i in range(n):
+        k = key[i]
+        if own[i] and np.isfinite(k) and k > 0.0:
+            radius = alpha * k * (1.0 + slack)
+            if k < 0.5 * cell:
+                cell = max(k, min_cell)
+                grid_rebuild(tkeys, thead, nxt, xyz, lo, cell, mask, i)
+            px = xyz[i, 0]
+            py = xyz[i, 1]
+            pz = xyz[i, 2]
+            for cx in range(cell_of(px - radius, lo[0], cell), cell_of(px + radius, lo[0], cell) + 1):
+                for cy in range(cell_of(py - radius, lo[1], cell), cell_of(py + radius, lo[1], cell) + 1):
+                    for cz in range(cell_of(pz - radius, lo[2], cell), cell_of(pz + radius, lo[2], cell) + 1):
+                        s = grid_slot(tkeys, key3(cx, cy, cz), mask)
+                        if tkeys[s] == -1:
+                            continue
+                        j = thead[s]
+                        while j >= 0:
+                            if tile[j] != tile[i]:
+                                dx = xyz[j, 0] - px
+                                dy = xyz[j, 1] - py
+                                dz = xyz[j, 2] - pz
+                                if np.sqrt(dx * dx + dy * dy + dz * dz) <= radius:
+                                    linked[i] = True
+                                    linked[j] = True
+                            j = nxt[j]
+        if cell < np.inf:
+            grid_insert(tkeys, thead, nxt, xyz, lo, cell, mask, i)
+
+
+@nb.njit(**JIT)
 def _tile_sift(theap, n):  # pragma: no cover - compiled
     """The top of the tile heap changed: sift it down (max by key, ties by tile)."""
     i = 0

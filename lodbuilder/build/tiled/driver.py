@@ -260,7 +260,8 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
     clock.lap("order")
 
     # 5. merge the tile orders (one task, streaming), then invert the order (tasks)
-    merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress, parallel)
+    merged = _merge(executor, work, name, sp, stats, seam_spacing, sp.lo, float(pl["span"]), progress, parallel,
+                    [(t.lo, t.hi) for t in tiles])
     clock.lap("merge")
 
     # 6. exact covering radii and band pieces of every tile, the radii combined, the points bucketed
@@ -366,9 +367,11 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
 
 
 def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list[dict[str, Any]], seam_spacing: float,
-           lo: np.ndarray, span: float, progress: ProgressCallback, parallel: int = 1) -> dict[str, Any]:
+           lo: np.ndarray, span: float, progress: ProgressCallback, parallel: int = 1,
+           boxes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, Any]:
     """Phase 5: the tile orders merged by descending key with the seam repair (or what a finished
-    merge recorded): the seam points' repair, then bands of keys side by side (see :mod:`.merge`;
+    merge recorded): the seam points' links (tasks over groups of tiles, ``boxes`` their (lo, hi))
+    and repair, then bands of keys side by side (see :mod:`.merge`;
     about :data:`.plan.MERGE_BANDS_PER_WORKER` per worker); then the ranks, by tasks (:mod:`.ranks`)."""
     from .merge import BAND_ROWS, merge_phase
     from .ranks import ranks_phase
@@ -376,7 +379,8 @@ def _merge(executor: cf.Executor, work: Store, name: str, sp: Spill, stats: list
     merged = _done(work, "merge")
     if merged is None:
         merged = mark(work, "merge", merge_phase(executor, work, name, sp.n, stats, seam_spacing, lo,
-                                                 span / (1 << 20), progress, P.merge_band_rows(sp.n, parallel, BAND_ROWS)))
+                                                 span / (1 << 20), progress, P.merge_band_rows(sp.n, parallel, BAND_ROWS),
+                                                 boxes))
     ranks_phase(executor, work, name, sp.n, sp.blocks or [], progress)
     return merged
 

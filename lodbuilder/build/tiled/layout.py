@@ -20,7 +20,9 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
                 face.<t>.<p>.bin    FACE records: tile t's points near its shared faces after pass p
                 bandp.<t>.i4        the band piece of each of tile t's core points (int32, core order; zipped):
                                     its ordering's band on the scan's grid (see pieces.py; not with seam rounds)
-    merge       deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
+    merge       links.<j>.bin       LINK records: the seam points that group j of tiles found may meet another
+                                    tile's (see merge.py: the only ones the seam repair merges)
+                deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
                 merged.<j>.i8       piece j of the merged order (input indices; zipped in frames of rows,
                                     see workdir.put_framed): the head, then band j's
     ranks       rankp.<k>.bin       band k of the merged order as (input index, position) pairs by read block
@@ -96,6 +98,16 @@ def hist_bins(key: np.ndarray) -> np.ndarray:
     return _bins(key, 6)
 
 
+def hist_ceiling(b: int) -> float:
+    """A key above every key of :func:`hist_bins`'s bin ``b`` (0 for the bin of zero keys, inf for
+    the infinite ones')."""
+    if b == BIN_ZERO:
+        return 0.0
+    if b == BIN_INF:
+        return float("inf")
+    return float(np.ldexp(0.5 + ((b & 63) + 1) / 128, b >> 6))
+
+
 def _bins(key: np.ndarray, bits: int) -> np.ndarray:
     """2^bits bins per octave: the binary exponent and the mantissa's top ``bits`` bits (exact)."""
     k = np.asarray(key, np.float64)
@@ -117,6 +129,8 @@ HEAD_FILE = "head.bin"
 #: the merge's deferred seam points, in merged order: input index, acceptance key
 DEFERRED = "deferred.bin"
 DEFER = np.dtype([("g", "<i8"), ("key", "<f8")])
+#: a seam point the seam repair merges: its tile, its row in the tile's seam file, and that row
+LINK = np.dtype([("t", "<i8"), ("row", "<i8"), *STREAM.descr])
 
 #: the phases, in order; each leaves the marker ``<phase>.json`` when complete
 PHASES = ("inputs", "spill", "plan", "distribute", "coarse", "order", "merge", "ranks", "radii", "buckets")
@@ -183,6 +197,16 @@ def merged_piece(j: int) -> str:
 
 
 SEAMS_PIECE = "seams"
+
+
+def links(j: int) -> str:
+    """Group ``j`` of tiles' seam points that may meet another tile's (see :func:`.merge.seam_links`)."""
+    return f"links.{j}.bin"
+
+
+def links_piece(j: int) -> str:
+    """The piece name of group ``j``'s seam links (a task)."""
+    return f"links.{j}"
 
 
 def face(t: int, p: int) -> str:
@@ -293,11 +317,11 @@ def writing(name: str) -> str:
 #: (those of the prefix whose consumers include the phase): after the spill, the read blocks'
 #: samples (summed into sample.npy); after the plan, sample.npy; after every
 #: tile's ordering (the ``order`` marker: every ordering's marker, stream and seam points), the
-#: face files; after the merge, the tiles' streams and seam points and the deferred points; after the
+#: face files; after the merge, the tiles' streams, seam points and links and the deferred points; after the
 #: split into tiles (the last phase to read them), the read blocks' coordinates; after the pieces
 #: (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "deferred."),
+PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "links.", "deferred."),
                "distribute": ("raw.",), "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
@@ -311,7 +335,7 @@ def consumers(name: str) -> list[str] | None:
     build ends: while they are all done the file is not needed."""
     parts = name.split(".")
     kind, ext = parts[0], parts[-1]
-    if name == DEFERRED or (kind == "seam" and ext == "bin"):
+    if name == DEFERRED or (kind in ("seam", "links") and ext == "bin"):
         return ["merge"]
     if kind == "raw" and ext == "xyz":
         return ["plan", "distribute"]
@@ -339,9 +363,9 @@ def consumers(name: str) -> list[str] | None:
 #: environment variable naming the moment at which a build kills itself (tests only)
 FAULT_ENV = "LODBUILDER_TILED_FAULT"
 #: the named moments: after each phase's marker, after the first tile ordering's marker, after the
-#: seam repair's, and after the first read, split, merged (band of the merge), rank (a read block's
+#: first group's seam links and the seam repair's, and after the first read, split, merged (band of the merge), rank (a read block's
 #: ranks), permute, band (of the radii) and chunks (band of the write) task's markers
-MOMENTS = (*PHASES, "tile", SEAMS_PIECE, "read", "split", "merged", "rank", "permute", "band", "chunks")
+MOMENTS = (*PHASES, "tile", "links", SEAMS_PIECE, "read", "split", "merged", "rank", "permute", "band", "chunks")
 
 
 def moment(name: str) -> None:

@@ -11,10 +11,17 @@ every earlier point of another tile; inside a tile the tile's own farthest point
 points apart.
 
 No process passes over every point. Only seam points take part in the repair and only seam points
-are checked against, so the repair is decided by merging the tiles' seam points alone (one task,
-:func:`seam_repair`, over ``seam.<t>.bin``: a few per cent of the points), in the same relative
-order as in the whole merge. Its outcome is the list of deferred points with their acceptance keys,
-in merged order (``deferred.bin``). Every other row's place follows from its key alone: the merged
+are checked against; and of those only the *linked* ones: two seam points of different tiles meet
+only if they are closer than ``alpha`` times the smaller of their keys (the point checked has the
+smaller key at its check, its key only falls, and the point it meets was accepted at a key at least
+as large), and a point that meets no other tile's seam point and no head point is accepted at its
+key and never found by another's check. So tasks over groups of tiles (:func:`seam_links`, beside
+each other) each read their tiles' seam points (``seam.<t>.bin``) and those of the tiles within
+reach, and keep the linked ones (``links.<j>.bin``: 4,895 of the 21.56M-point survey's 327,926
+seam points in 197 tiles); the repair is decided by merging the linked points alone (one task,
+:func:`seam_repair`), in the same relative order as in the whole merge: the same decisions, the
+same demotions in the same order. Its outcome is the list of deferred points with their
+acceptance keys, in merged order (``deferred.bin``). Every other row's place follows from its key alone: the merged
 order is cut into bands of keys (:func:`lodbuilder.build.tiled.layout.hist_bins`; the tiles'
 histograms of their keys, in their order markers, size the bands: whole bins, about BAND_ROWS rows
 each), and one task per band (:func:`merge_band`) reads each tile's rows of the band (a contiguous
@@ -59,6 +66,14 @@ BUF = 1 << 16  # rows per tile buffer in the seam repair, at most
 BAND_ROWS = 1 << 20
 #: bytes of all the tiles' buffers together (the buffers of 256 tiles at BUF rows were 805 MB)
 BUF_BYTES = 64 << 20
+#: seam rows per task of the seam links, about (whole tiles): 20 tasks for the 21.56M-point survey's
+#: 327,926 seam points in 197 tiles
+LINK_ROWS = 1 << 14
+#: the seam links' slack: a pair a relative 1e-9 farther apart than the check's radius is linked too
+#: (a link too many costs the repair a row, a link missed would change its outcome)
+LINK_SLACK = 1e-9
+_FIELDS: tuple[str, ...] = tuple(STREAM.names or ())
+
 
 
 def buffer_rows(n_tiles: int) -> int:
@@ -67,22 +82,19 @@ def buffer_rows(n_tiles: int) -> int:
     return min(BUF, max(1024, BUF_BYTES // (STREAM.itemsize * max(n_tiles, 1))))
 
 
-class _StreamReader:
-    def __init__(self, store: Store, name: str) -> None:
-        self.f = store.open(name)
-        self.left = (store.size(name) or 0) // STREAM.itemsize
+class _ArrayReader:
+    """Rows of a STREAM array (in memory), as the merge kernel's (m, 6) float64 rows."""
+
+    def __init__(self, rows: np.ndarray) -> None:
+        self.rows, self.pos = rows, 0
 
     def rows_left(self) -> int:
-        return self.left
+        return self.rows.shape[0] - self.pos
 
     def read(self, rows: int) -> np.ndarray:
-        m = min(rows, self.left)
-        a = W.read_rows(self.f, np.dtype("<f8"), 6 * m).reshape(m, 6)
-        self.left -= m
-        return a
-
-    def close(self) -> None:
-        self.f.close()
+        a = self.rows[self.pos:self.pos + rows]
+        self.pos += a.shape[0]
+        return np.stack([a[f] for f in _FIELDS], axis=1) if a.shape[0] else np.zeros((0, 6))
 
 
 def _first_buffers(readers: list[Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
@@ -117,16 +129,16 @@ def _refill(readers: list[Any], t: int, bufs: np.ndarray, bpos: np.ndarray, blen
     return int(tile_heap_refresh(theap, tn, t, float(a[0, 1])) if a.shape[0] else tile_pop(theap, tn))
 
 
-def seam_merge(work: Store, names: list[str], head: np.ndarray, alpha: float, lo: np.ndarray,
+def seam_merge(streams: list[np.ndarray], head: np.ndarray, alpha: float, lo: np.ndarray,
                min_cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """The k-way merge with the seam repair of the streams ``names`` (STREAM rows by descending
-    key; here the tiles' seam points), after the ``head`` (HEAD rows, accepted first): the input
-    index and acceptance key of every stream row, in merged order."""
+    """The k-way merge with the seam repair of ``streams`` (STREAM rows by descending key, one array
+    a tile, tiles in order; here the tiles' linked seam points), after the ``head`` (HEAD rows,
+    accepted first): the input index and acceptance key of every stream row, in merged order."""
     from ..._kernels.tiled import seam_merge as kernel
     from ..._kernels.tiled import table_size
 
-    readers = [_StreamReader(work, name) for name in names]
-    n_rows = sum(r.left for r in readers)
+    readers = [_ArrayReader(s) for s in streams]
+    n_rows = sum(r.rows_left() for r in readers)
     h = head.shape[0]
     cap_acc = h + n_rows + 1
     ax = np.empty((cap_acc, 3))
@@ -141,44 +153,130 @@ def seam_merge(work: Store, names: list[str], head: np.ndarray, alpha: float, lo
     bufs, bpos, blen, theap, tn = _first_buffers(readers)
     out_g, out_key = np.empty(W.BLOCK, np.int64), np.empty(W.BLOCK)
     got_g, got_key = [], []
-    try:
-        while True:
-            if state[4] + 2 * n_rows + 16 > dpool.shape[0]:  # room for the next deferrals
-                grow = dpool.shape[0] * 2
-                dpool = np.concatenate([dpool, np.empty((grow - dpool.shape[0], 6))])
-                dtile = np.concatenate([dtile, np.empty(grow - dtile.shape[0], np.int64)])
-                dheap_key = np.concatenate([dheap_key, np.empty(grow - dheap_key.shape[0])])
-                dheap_item = np.concatenate([dheap_item, np.empty(grow - dheap_item.shape[0], np.int64)])
-            code, t = kernel(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
-                             dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
-            if code in (0, 2):
-                k = int(state[0])
-                got_g.append(out_g[:k].copy())
-                got_key.append(out_key[:k].copy())
-                state[0] = 0.0
-                if code == 0:
-                    break
-                continue
-            tn = _refill(readers, t, bufs, bpos, blen, theap, tn)  # code 1: tile t (at the top) is empty
-    finally:
-        for r in readers:
-            r.close()
+    while True:
+        if state[4] + 2 * n_rows + 16 > dpool.shape[0]:  # room for the next deferrals
+            grow = dpool.shape[0] * 2
+            dpool = np.concatenate([dpool, np.empty((grow - dpool.shape[0], 6))])
+            dtile = np.concatenate([dtile, np.empty(grow - dtile.shape[0], np.int64)])
+            dheap_key = np.concatenate([dheap_key, np.empty(grow - dheap_key.shape[0])])
+            dheap_item = np.concatenate([dheap_item, np.empty(grow - dheap_item.shape[0], np.int64)])
+        code, t = kernel(bufs, bpos, blen, theap, tn, state, ax, atile, tkeys, thead, nxt,
+                         dheap_key, dheap_item, dpool, dtile, lo, alpha, out_g, out_key)
+        if code in (0, 2):
+            k = int(state[0])
+            got_g.append(out_g[:k].copy())
+            got_key.append(out_key[:k].copy())
+            state[0] = 0.0
+            if code == 0:
+                break
+            continue
+        tn = _refill(readers, t, bufs, bpos, blen, theap, tn)  # code 1: tile t (at the top) is empty
     g, key = np.concatenate(got_g), np.concatenate(got_key)
     if g.shape[0] != n_rows:
         raise RuntimeError(f"the seam merge gave {g.shape[0]} of {n_rows} points (tiles inconsistent with the input)")
     return g, key
 
 
+def link_groups(stats: list[dict[str, Any]], boxes: list[tuple[np.ndarray, np.ndarray]] | None, alpha: float,
+                rows: int | None = None) -> list[tuple[list[int], list[int]]]:
+    """The seam links' groups of tiles (``stats``: the tiles' order markers, with their seam rows
+    ``n_seam`` and key histograms; ``boxes``: each tile's (lo, hi), None: every tile may meet every
+    other): consecutive tiles of about ``rows`` (:data:`LINK_ROWS`) seam rows in all, each group with the other tiles
+    whose box comes within ``alpha`` times its tiles' largest finite key of one of its tiles (the
+    only tiles whose seam points its seam points can meet: a point checks within ``alpha`` times its
+    key). None with ``alpha`` 0 (the repair defers nothing)."""
+    n, rows = len(stats), LINK_ROWS if rows is None else rows
+    if alpha <= 0 or n == 0:
+        return []
+    top = [max([WL.hist_ceiling(int(b)) for b in s["key_hist"][0] if b != WL.BIN_INF] or [0.0]) for s in stats]
+    reach = alpha * np.asarray(top) * (1 + LINK_SLACK)
+    if boxes is not None:
+        lo, hi = np.array([b[0] for b in boxes], float), np.array([b[1] for b in boxes], float)
+    groups, first, acc = [], 0, 0
+    for t in range(n):
+        acc += int(stats[t].get("n_seam", 0))
+        if acc >= rows or t == n - 1:
+            mine = list(range(first, t + 1))
+            if boxes is None:
+                near = set(range(n))
+            else:
+                near = set()
+                for u in mine:
+                    gap = np.maximum(np.maximum(lo - hi[u], lo[u] - hi), 0.0)
+                    near.update(np.flatnonzero(np.sqrt((gap * gap).sum(axis=1)) <= reach[u]).tolist())
+            groups.append((mine, sorted(near - set(mine))))
+            first, acc = t + 1, 0
+    return groups
+
+
 @timed_task
-def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell: float) -> dict[str, Any]:
-    """The seam repair (see the module): the tiles' seam points merged after the head; writes the
-    order's first piece (the head) and ``deferred.bin`` (the deferred points and their acceptance
-    keys, in merged order). Returns the piece's marker (with the deferred keys' histogram)."""
+def seam_links(work: str, j: int, tiles: list[int], reads: list[int], alpha: float, lo: np.ndarray,
+               min_cell: float) -> dict[str, Any]:
+    """Group ``j``'s seam links (see the module): of the seam points of ``tiles`` and of ``reads``
+    (the tiles whose points theirs can meet, :func:`link_groups`), those that the seam repair must
+    merge: both points of a pair of different tiles closer than ``alpha`` times the smaller of their
+    keys where the later of the two (by key, then tile, then row: the order every group takes) is in
+    ``tiles`` (so every such pair is found by the group of its later point's tile), and the points of
+    ``tiles`` within ``alpha`` times their key of a head point (a hash grid from ``lo``, cells of at
+    least ``min_cell``: :func:`lodbuilder._kernels.tiled.seam_links`). Writes ``links.<j>.bin``
+    (LINK records: the points' tiles, rows and seam rows)."""
+    from ..._kernels.tiled import seam_links as kernel
+    from ..._kernels.tiled import table_size
+
+    w = as_store(work)
+    every = sorted({*tiles, *reads})
+    seams = [w.read_array(WL.seam(t), STREAM) for t in every]
+    head = w.read_array(WL.HEAD_FILE, HEAD)
+    rows = np.concatenate(seams or [np.zeros(0, STREAM)])
+    tile = np.repeat(np.asarray(every, np.int64), [s.shape[0] for s in seams])
+    row = np.concatenate([np.arange(s.shape[0]) for s in seams] or [np.zeros(0, np.int64)])
+    srt = np.lexsort((row, tile, -rows["key"]))  # (by key, then tile and row: the same in every group)
+    h = head.shape[0]
+    xyz = np.empty((h + srt.shape[0], 3))
+    xyz[:h, 0], xyz[:h, 1], xyz[:h, 2] = head["x"], head["y"], head["z"]
+    xyz[h:, 0], xyz[h:, 1], xyz[h:, 2] = rows["x"][srt], rows["y"][srt], rows["z"][srt]
+    key = np.concatenate([np.full(h, np.inf), rows["key"][srt]])
+    tid = np.concatenate([np.full(h, -1, np.int64), tile[srt]])
+    own = np.concatenate([np.zeros(h, bool), np.isin(tile[srt], tiles)])
+    linked = np.zeros(key.shape[0], bool)
+    size = table_size(key.shape[0])
+    kernel(xyz, key, tid, own, alpha, LINK_SLACK, np.asarray(lo, np.float64), float(min_cell),
+           np.full(size, -1, np.int64), np.full(size, -1, np.int64), np.full(key.shape[0], -1, np.int64), linked)
+    at = srt[linked[h:]]
+    out = np.empty(at.shape[0], WL.LINK)
+    out["t"], out["row"] = tile[at], row[at]
+    for f in _FIELDS:
+        out[f] = rows[f][at]
+    return {"group": j, "seam_rows": int(sum(s.shape[0] for t, s in zip(every, seams, strict=True) if t in tiles)),
+            "links": int(out.shape[0]), "files": {WL.links(j): w.put(WL.links(j), out)}}
+
+
+def _linked_streams(w: Store, n_groups: int) -> list[np.ndarray]:
+    """The groups' linked seam points (each once), as one STREAM array a tile in the tiles' order
+    (each in its seam file's order: its stream's)."""
+    c = np.concatenate([w.read_array(WL.links(j), WL.LINK) for j in range(n_groups)] or [np.zeros(0, WL.LINK)])
+    c = c[np.lexsort((c["row"], c["t"]))]
+    first = np.ones(c.shape[0], bool)
+    first[1:] = (c["t"][1:] != c["t"][:-1]) | (c["row"][1:] != c["row"][:-1])
+    c = c[first]
+    out = np.empty(c.shape[0], STREAM)
+    for f in _FIELDS:
+        out[f] = c[f]
+    return np.split(out, np.flatnonzero(np.diff(c["t"])) + 1) if c.shape[0] else []
+
+
+@timed_task
+def seam_repair(work: str, n_groups: int, alpha: float, lo: np.ndarray, min_cell: float,
+                seam_points: int) -> dict[str, Any]:
+    """The seam repair (see the module): the linked seam points of the ``n_groups`` groups
+    (:func:`seam_links`) merged after the head; writes the order's first piece (the head) and
+    ``deferred.bin`` (the deferred points and their acceptance keys, in merged order). Returns the
+    piece's marker (with the deferred keys' histogram)."""
     w = as_store(work)
     head = w.read_array(WL.HEAD_FILE, HEAD)
-    names = [WL.seam(t) for t in range(n_tiles)]
-    g, key = seam_merge(w, names, head, alpha, lo, min_cell)
-    rows = np.concatenate([w.read_array(name, STREAM) for name in names] or [np.zeros(0, STREAM)])
+    streams = _linked_streams(w, n_groups)
+    g, key = seam_merge(streams, head, alpha, lo, min_cell)
+    rows = np.concatenate(streams or [np.zeros(0, STREAM)])
     # each row's key in the tiles, in merged order: g is a permutation of the rows' input indices
     # (one point a row), so the rows and the merged points sorted by input index line up
     was = np.empty(g.shape[0])
@@ -188,8 +286,8 @@ def seam_repair(work: str, n_tiles: int, alpha: float, lo: np.ndarray, min_cell:
     d["g"], d["key"] = g[late], key[late]
     bins, counts = np.unique(WL.hist_bins(d["key"]), return_counts=True)
     files = {WL.merged(0): W.put_framed(w, WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d)}
-    return {"head": int(head.shape[0]), "seam_points": int(g.shape[0]), "deferred": int(d.shape[0]),
-            "key_hist": [bins.tolist(), counts.tolist()], "files": files}
+    return {"head": int(head.shape[0]), "seam_points": int(seam_points), "seam_links": int(g.shape[0]),
+            "deferred": int(d.shape[0]), "key_hist": [bins.tolist(), counts.tolist()], "files": files}
 
 
 class _RangeReader:
@@ -308,22 +406,34 @@ def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_row
 
 
 def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any]], alpha: float, lo: np.ndarray,
-                min_cell: float, progress: ProgressCallback = None, band_rows: int = BAND_ROWS) -> dict[str, Any]:
-    """The merge as tasks: the seam repair, then the bands side by side (finished pieces a resume
-    finds are not redone). Returns the merge's marker: ``order`` (the pieces of the merged order,
+                min_cell: float, progress: ProgressCallback = None, band_rows: int = BAND_ROWS,
+                boxes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, Any]:
+    """The merge as tasks: the seam links of groups of tiles side by side (``boxes``: the tiles'
+    (lo, hi), see :func:`link_groups`), the seam repair, then the bands side by side (finished
+    pieces a resume finds are not redone). Returns the merge's marker: ``order`` (the pieces of the merged order,
     ``[name, first position, end]``), the counts of seam points and deferred points, and the files."""
     from .pool import collect, submit
     from .sums import done, mark
 
+    def old() -> BuildError:
+        return BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
+                          "again with --force")
+
+    if any("key_hist" not in s or WL.stream(t) not in s.get("files", {}) for t, s in enumerate(stats)):
+        raise old()
     seams = done(work, WL.SEAMS_PIECE)
     if seams is None:
-        args = (work, len(stats), alpha, lo, min_cell)
+        groups = link_groups(stats, boxes, alpha)
+        found = {j for j in range(len(groups)) if done(work, WL.links_piece(j)) is not None}
+        links = [(j, seam_links, (work, j, *groups[j], alpha, lo, min_cell)) for j in range(len(groups)) if j not in found]
+        collect(submit(ex, links), lambda j: f"the seam links of tiles {groups[j][0][0] + 1}-{groups[j][0][-1] + 1}",
+                name, len(groups), None, "merge",
+                lambda r: mark(work, WL.links_piece(r["group"]), r))
+        args = (work, len(groups), alpha, lo, min_cell, sum(int(s.get("n_seam", 0)) for s in stats))
         (seams,) = collect(submit(ex, [(0, seam_repair, args)]), lambda _: "the seam repair", name, 1, None, "merge")
         mark(work, WL.SEAMS_PIECE, seams)
-    if ("key_hist" not in seams
-            or any("key_hist" not in s or WL.stream(t) not in s.get("files", {}) for t, s in enumerate(stats))):
-        raise BuildError(f"scan {name!r}: its work directory was left by an older lodbuilder; run the build "
-                         "again with --force")
+    if "key_hist" not in seams:
+        raise old()
     bands = plan_bands([s["key_hist"] for s in stats], seams["key_hist"], band_rows)
     got = {j: d for j in range(1, len(bands) + 1) if (d := done(work, WL.merged_piece(j))) is not None}
     calls = [(j, merge_band, (work, j, *bands[j - 1])) for j in range(1, len(bands) + 1) if j not in got]
