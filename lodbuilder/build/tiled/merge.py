@@ -17,7 +17,7 @@ smaller key at its check, its key only falls, and the point it meets was accepte
 as large), and a point that meets no other tile's seam point and no head point is accepted at its
 key and never found by another's check. So tasks over groups of tiles (:func:`seam_links`, beside
 each other) each read their tiles' seam points (``seam.<t>.bin``) and those of the tiles within
-reach, and keep the linked ones (``links.<j>.bin``: 4,895 of the 21.56M-point survey's 327,926
+reach, and keep the linked ones (``links.<j>.bin``: 4,939 of the 21.56M-point survey's 327,926
 seam points in 197 tiles); the repair is decided by merging the linked points alone (one task,
 :func:`seam_repair`), in the same relative order as in the whole merge: the same decisions, the
 same demotions in the same order. Its outcome is the list of deferred points with their
