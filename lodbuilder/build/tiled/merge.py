@@ -181,32 +181,38 @@ def link_groups(stats: list[dict[str, Any]], boxes: list[tuple[np.ndarray, np.nd
                 rows: int | None = None) -> list[tuple[list[int], list[int]]]:
     """The seam links' groups of tiles (``stats``: the tiles' order markers, with their seam rows
     ``n_seam`` and key histograms; ``boxes``: each tile's (lo, hi), None: every tile may meet every
-    other): consecutive tiles of about ``rows`` (:data:`LINK_ROWS`) seam rows in all, each group with the other tiles
-    whose box comes within ``alpha`` times its tiles' largest finite key of one of its tiles (the
-    only tiles whose seam points its seam points can meet: a point checks within ``alpha`` times its
-    key). None with ``alpha`` 0 (the repair defers nothing)."""
+    other): consecutive tiles of about ``rows`` (:data:`LINK_ROWS`) seam rows in all (neighbours in
+    the plan's k-d split), each group with the other tiles whose box comes within ``alpha`` times
+    the largest finite key of one of its tiles of that tile's box (the only tiles whose seam points
+    its seam points can meet: a point checks within ``alpha`` times its key; the tiles near the
+    group's bounding box first: O(groups x tiles)). None with ``alpha`` 0 (the repair defers
+    nothing)."""
     n, rows = len(stats), LINK_ROWS if rows is None else rows
     if alpha <= 0 or n == 0:
         return []
-    top = [max([WL.hist_ceiling(int(b)) for b in s["key_hist"][0] if b != WL.BIN_INF] or [0.0]) for s in stats]
+    top = [WL.hist_ceiling(max([b for b in s["key_hist"][0] if b != WL.BIN_INF] or [WL.BIN_ZERO])) for s in stats]
     reach = alpha * np.asarray(top) * (1 + LINK_SLACK)
     if boxes is not None:
         lo, hi = np.array([b[0] for b in boxes], float), np.array([b[1] for b in boxes], float)
-    groups, first, acc = [], 0, 0
-    for t in range(n):
-        acc += int(stats[t].get("n_seam", 0))
-        if acc >= rows or t == n - 1:
-            mine = list(range(first, t + 1))
-            if boxes is None:
-                near = set(range(n))
-            else:
-                near = set()
-                for u in mine:
-                    gap = np.maximum(np.maximum(lo - hi[u], lo[u] - hi), 0.0)
-                    near.update(np.flatnonzero(np.sqrt((gap * gap).sum(axis=1)) <= reach[u]).tolist())
-            groups.append((mine, sorted(near - set(mine))))
-            first, acc = t + 1, 0
+    seam = np.cumsum([int(s.get("n_seam", 0)) for s in stats])
+    groups, first = [], 0
+    while first < n:  # (whole tiles, at least one a group)
+        end = max(first + 1, int(np.searchsorted(seam, (seam[first - 1] if first else 0) + rows)) + 1)
+        mine = list(range(first, min(end, n)))
+        if boxes is None:
+            near = np.arange(n)
+        else:
+            near = _within(lo, hi, lo[first:end].min(axis=0), hi[first:end].max(axis=0), reach[first:end].max())
+            near = np.unique(np.concatenate([near[_within(lo[near], hi[near], lo[u], hi[u], reach[u])] for u in mine]))
+        groups.append((mine, [int(u) for u in near if not first <= u < end]))
+        first = end
     return groups
+
+
+def _within(lo: np.ndarray, hi: np.ndarray, blo: np.ndarray, bhi: np.ndarray, reach: float) -> np.ndarray:
+    """The boxes (``lo``, ``hi``: one a row) that come within ``reach`` of the box ``blo``-``bhi``."""
+    gap = np.maximum(np.maximum(lo - bhi, blo - hi), 0.0)
+    return np.flatnonzero(np.sqrt((gap * gap).sum(axis=1)) <= reach)
 
 
 @timed_task
