@@ -85,6 +85,7 @@ def test_no_seam_repair_keeps_the_covering_guarantee(tmp_path):
     n = len(pts)
     assert np.all(cr[1:n] <= d["radius"][1:n] * (1 + 1e-12))
     assert d["build"]["tiled"]["seam_alpha"] == 0.0 and d["build"]["tiled"]["seam_deferrals"] == 0
+    assert d["build"]["tiled"]["seam_links"] == 0  # (no seam links at alpha 0: no task looks for them)
 
 
 def test_tiled_and_in_memory_write_the_same_layout(tmp_path, capsys):

@@ -433,7 +433,8 @@ def _buckets(executor: cf.Executor, work: Store, name: str, sp: Spill, sources: 
 
 def _merge_record(merged: dict[str, Any], radii: dict[str, Any]) -> dict[str, Any]:
     """The build record's entries of the merge and of the radii."""
-    return {"seam_points": int(merged["seam_points"]), "seam_deferrals": int(merged["deferred"]),
+    return {"seam_points": int(merged["seam_points"]), "seam_links": merged.get("seam_links"),
+            "seam_deferrals": int(merged["deferred"]),
             "spacing_over_radius_min": radii["spacing_over_radius_min"]}
 
 

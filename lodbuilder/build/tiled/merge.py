@@ -454,7 +454,8 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         raise RuntimeError(f"tiled merge placed {k} of {n} points (tiles inconsistent with the input)")
     # (deferred.bin is listed by the seam repair's marker alone: it is deleted with this marker written)
     files = {WL.merged(0): seams["files"][WL.merged(0)], **{f: v for d in got.values() for f, v in d["files"].items()}}
-    return {"deferred": seams["deferred"], "seam_points": seams["seam_points"], "head": seams["head"],
+    return {"deferred": seams["deferred"], "seam_points": seams["seam_points"], "seam_links": seams.get("seam_links"),
+            "head": seams["head"],
             "order": order, "files": files}
 
 
