@@ -80,9 +80,9 @@ _SEALED = re.compile(r'(\{.*?)(, )?"_crc32": "([0-9a-f]{8})"\}', re.S)
 def sealed(doc: dict[str, Any]) -> bytes:
     """A marker's text: a JSON object (the one convention of :mod:`lodbuilder._json`) whose last
     member ``_crc32`` is the CRC-32 of the object's text without it."""
-    from ..._json import dumps
+    from ..._json import fast_dumps
 
-    body = dumps(doc)
+    body = fast_dumps(doc)
     tail = f'"_crc32": "{zlib.crc32(body.encode()):08x}"}}'
     return (body[:-1] + (", " if doc else "") + tail).encode()
 
