@@ -190,7 +190,7 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
     # what is listed but gone was deleted once every piece that reads it was done (layout.PRUNE_AFTER;
     # every band is written, so are their buckets)
     gone = {n for n in set(listed) - files if not (w / n).exists()}  # (the order marker lists the orderings' markers)
-    assert {n.split(".")[0] for n in gone} == {"raw", "stream", "seam", "links", "deferred", "core", "halo", "cover", "radloc",
+    assert {n.split(".")[0] for n in gone} == {"raw", "stream", "seam", "links", "deferred", "dropped", "core", "halo", "cover", "radloc",
                                                "space", "bucket", "face", "sample", "rank"}
     assert all(WL.consumers(n) is not None for n in gone)
 

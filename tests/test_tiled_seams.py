@@ -64,7 +64,7 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
     from concurrent.futures import ThreadPoolExecutor
 
     from lodbuilder.build.tiled import merge as M
-    from lodbuilder.build.tiled.sums import mark
+    from lodbuilder.build.tiled.sums import get_json, mark
     from lodbuilder.build.tiled.workdir import segment
 
     rng = np.random.default_rng(seed)
@@ -96,6 +96,14 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
         assert [(int(x), float(y)) for x, y in zip(d["g"], d["key"], strict=True)] == late
         assert (res["deferred"] > 0) == (a > 0), res  # the case demotes (the test sees that path)
         assert len(res["order"]) > 4  # (several bands)
+        # each band reads its slices of the deferred points, by their acceptance keys and by their
+        # tiles' keys: together every row once, in order
+        seams = get_json(w, WL.marker(WL.SEAMS_PIECE))
+        bands = M.plan_bands([st["key_hist"] for st in stats], seams["key_hist"], band_rows, seams["drop_hist"])
+        for at in (2, 3):
+            cuts = [x for band in bands for x in band[at]]
+            assert cuts[0] == 0 and cuts[-1] == len(d) and cuts == sorted(cuts)
+            assert all(cuts[i] == cuts[i + 1] for i in range(1, len(cuts) - 1, 2))
         if band_rows == 2:  # (bins of several keys larger than a band)
             b = WL.hist_bins(np.concatenate([s[:, 1] for s in streams]))
             assert max(len(np.unique(np.concatenate([s[:, 1] for s in streams])[b == x])) for x in b
@@ -274,9 +282,9 @@ def test_a_band_of_the_merge_may_take_part_of_a_key_bin():
     bands = M.plan_bands(hists, [[], []], 2500)
     assert len(bands) >= 5
     for t, k in enumerate(streams):  # every row of each stream in exactly one band, in order
-        runs = [(a, z) for rows, _, _ in bands for tt, a, z in rows if tt == t]
+        runs = [(a, z) for rows, *_ in bands for tt, a, z in rows if tt == t]
         assert runs[0][0] == 0 and runs[-1][1] == len(k) and all(p[1] == q[0] for p, q in zip(runs, runs[1:], strict=False))
-        for rows, (lo, hi), _ in bands:  # the rows of a band are those whose keys fall in its bins
+        for rows, (lo, hi), *_ in bands:  # the rows of a band are those whose keys fall in its bins
             for tt, a, z in rows:
                 if tt == t:
                     assert lo <= WL.hist_bins(k[a:z]).min() and WL.hist_bins(k[a:z]).max() <= hi

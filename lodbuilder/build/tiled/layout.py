@@ -23,6 +23,8 @@ whole or from the start only, see :class:`.workdir.Zipped`), by the phase that w
     merge       links.<j>.bin       LINK records: the seam points that group j of tiles found may meet another
                                     tile's (see merge.py: the only ones the seam repair merges)
                 deferred.bin        DEFER records: the seam points the repair deferred, in merged order (seams)
+                dropped.bin         DEFER records: the same points with the keys their tiles gave them, by
+                                    descending key (the rows each band of the merge leaves out: a slice)
                 merged.<j>.i8       piece j of the merged order (input indices; zipped in frames of rows,
                                     see workdir.put_framed): the head, then band j's
     ranks       rankp.<k>.bin       band k of the merged order as (input index, position) pairs by read block
@@ -129,6 +131,8 @@ HEAD_FILE = "head.bin"
 #: the merge's deferred seam points, in merged order: input index, acceptance key
 DEFERRED = "deferred.bin"
 DEFER = np.dtype([("g", "<i8"), ("key", "<f8")])
+#: the deferred seam points by their keys in their tiles (descending): input index, that key
+DROPPED = "dropped.bin"
 #: a seam point the seam repair merges: its tile, its row in the tile's seam file, and that row
 LINK = np.dtype([("t", "<i8"), ("row", "<i8"), *STREAM.descr])
 
@@ -317,11 +321,11 @@ def writing(name: str) -> str:
 #: (those of the prefix whose consumers include the phase): after the spill, the read blocks'
 #: samples (summed into sample.npy); after the plan, sample.npy; after every
 #: tile's ordering (the ``order`` marker: every ordering's marker, stream and seam points), the
-#: face files; after the merge, the tiles' streams, seam points and links and the deferred points; after the
+#: face files; after the merge, the tiles' streams, seam points and links and the deferred (and dropped) points; after the
 #: split into tiles (the last phase to read them), the read blocks' coordinates; after the pieces
 #: (the last phase to read a tile's points), the tiles' core and halo;
 #: after the radii, the covering passes' files and the radii's first round
-PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "links.", "deferred."),
+PRUNE_AFTER = {"spill": ("sample.",), "plan": ("sample.",), "order": ("face.",), "merge": ("stream.", "seam.", "links.", "deferred.", "dropped."),
                "distribute": ("raw.",), "pieces": ("core.", "halo."), "radii": ("cover.", "radloc.", "space.")}
 
 
@@ -335,7 +339,7 @@ def consumers(name: str) -> list[str] | None:
     build ends: while they are all done the file is not needed."""
     parts = name.split(".")
     kind, ext = parts[0], parts[-1]
-    if name == DEFERRED or (kind in ("seam", "links") and ext == "bin"):
+    if name in (DEFERRED, DROPPED) or (kind in ("seam", "links") and ext == "bin"):
         return ["merge"]
     if kind == "raw" and ext == "xyz":
         return ["plan", "distribute"]

@@ -21,15 +21,18 @@ reach, and keep the linked ones (``links.<j>.bin``: 4,939 of the 21.56M-point su
 seam points in 197 tiles); the repair is decided by merging the linked points alone (one task,
 :func:`seam_repair`), in the same relative order as in the whole merge: the same decisions, the
 same demotions in the same order. Its outcome is the list of deferred points with their
-acceptance keys, in merged order (``deferred.bin``). Every other row's place follows from its key alone: the merged
+acceptance keys, in merged order (``deferred.bin``: by descending acceptance key), and the same
+points by the keys their tiles gave them (``dropped.bin``, descending); the histograms of both, in
+its marker, give each band its slice of each file. Every other row's place follows from its key alone: the merged
 order is cut into bands of keys (:func:`lodbuilder.build.tiled.layout.hist_bins`; the tiles'
 histograms of their keys, in their order markers, size the bands: whole bins, about BAND_ROWS rows
 each), and one task per band (:func:`merge_band`) reads each tile's rows of the band (a contiguous
 run of its stream, located by the histograms; the stream holds input indices and keys, in frames
 within one key bin each, eight fine bins: a band decompresses its own frames and at most one frame
 at each end that it shares with the next band: :func:`.workdir.put_stream`)
-in chunks, leaves out the deferred ones, adds the
-deferred points whose acceptance key falls in the band, and merges them by descending key (ties:
+in chunks, leaves out the deferred ones (its slice of ``dropped.bin``), adds the deferred points
+whose acceptance key falls in the band (its slice of ``deferred.bin``: no band reads every deferred
+point), and merges them by descending key (ties:
 the lower tile, then the deferred points) in buffers of a bounded size. The order is stored as pieces
 (``merged.<j>.i8``: the head, then each band's input indices) listed with their positions in the
 merge's marker (:func:`order_files`). The bands' tasks run side by side; the result is the order
@@ -290,10 +293,20 @@ def seam_repair(work: str, n_groups: int, alpha: float, lo: np.ndarray, min_cell
     late = key < was  # (an accepted point keeps its key; a deferred one is accepted below it)
     d = np.empty(int(late.sum()), WL.DEFER)
     d["g"], d["key"] = g[late], key[late]
-    bins, counts = np.unique(WL.hist_bins(d["key"]), return_counts=True)
-    files = {WL.merged(0): W.put_framed(w, WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d)}
+    # the same points by the keys their tiles gave them (the bands that leave them out), descending
+    gone = np.empty(d.shape[0], WL.DEFER)
+    gone["g"], gone["key"] = d["g"], was[late]
+    gone = gone[np.lexsort((gone["g"], -gone["key"]))]
+    files = {WL.merged(0): W.put_framed(w, WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d),
+             WL.DROPPED: w.put(WL.DROPPED, gone)}
     return {"head": int(head.shape[0]), "seam_points": int(seam_points), "seam_links": int(g.shape[0]),
-            "deferred": int(d.shape[0]), "key_hist": [bins.tolist(), counts.tolist()], "files": files}
+            "deferred": int(d.shape[0]), "key_hist": _hist(d["key"]), "drop_hist": _hist(gone["key"]), "files": files}
+
+
+def _hist(key: np.ndarray) -> list[list[int]]:
+    """The keys' histogram in :func:`.layout.hist_bins` (bins ascending, counts)."""
+    bins, counts = np.unique(WL.hist_bins(key), return_counts=True)
+    return [bins.tolist(), counts.tolist()]
 
 
 class _RangeReader:
@@ -334,25 +347,30 @@ class _RangeReader:
 
 
 @timed_task
-def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferred: bool) -> dict[str, Any]:
+def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], added: list[int],
+               dropped: list[int]) -> dict[str, Any]:
     """Band ``j`` of the merge (see the module): ``rows`` ``[tile, first, end]`` of the tiles'
-    streams whose keys fall in the bins ``bins`` (lowest, highest), tiles in order; with
-    ``deferred``, the deferred points accepted in those bins after them. A k-way merge by key
-    (ties: the lower tile, then the deferred points) with buffers of a bounded size, whatever the
-    band's rows. Writes ``merged.<j>.i8``."""
+    streams whose keys fall in the bins ``bins`` (lowest, highest), tiles in order, without the
+    deferred points among them (rows ``dropped`` ``[first, end]`` of ``dropped.bin``); then the
+    deferred points accepted in those bins (rows ``added`` of ``deferred.bin``) after them. A k-way
+    merge by key (ties: the lower tile, then the deferred points) with buffers of a bounded size,
+    whatever the band's rows. Writes ``merged.<j>.i8``."""
     from ..._kernels.tiled import seam_merge as kernel
     from ..._kernels.tiled import table_size
 
     w = as_store(work)
-    d = w.read_array(WL.DEFERRED, WL.DEFER)
-    drop = np.sort(d["g"])
+    add = w.read_array(WL.DEFERRED, WL.DEFER, added[0], added[1] - added[0])
+    gone = w.read_array(WL.DROPPED, WL.DEFER, dropped[0], dropped[1] - dropped[0])
+    for name, part in ((WL.DEFERRED, add), (WL.DROPPED, gone)):
+        b = WL.hist_bins(part["key"])
+        if b.size and (b.min() < bins[0] or b.max() > bins[1]):
+            raise RuntimeError(f"{name}: rows {part.shape[0]} of band {j} are not the rows its histogram says")
+    drop = np.sort(gone["g"])
     readers = [_RangeReader(w, WL.stream(t), a, z, drop, bins) for t, a, z in rows]
-    if deferred and d.shape[0]:
-        b = WL.hist_bins(d["key"])
-        mine = d[(b >= bins[0]) & (b <= bins[1])]
-        extra = np.zeros(mine.shape[0], WL.KEYS)
-        extra["g"], extra["key"] = mine["g"], mine["key"]
-        readers.append(_RangeReader(None, WL.DEFERRED, 0, mine.shape[0], np.zeros(0, np.int64), bins, extra))
+    if add.shape[0]:
+        extra = np.zeros(add.shape[0], WL.KEYS)
+        extra["g"], extra["key"] = add["g"], add["key"]
+        readers.append(_RangeReader(None, WL.DEFERRED, 0, add.shape[0], np.zeros(0, np.int64), bins, extra))
     bufs, bpos, blen, theap, tn = _first_buffers(readers)
     one = np.zeros(1, np.int64)  # (no row is a seam point: the seam structures stay empty)
     state = np.array([0.0, 0.0, np.inf, 0.0, 0.0, 1.0])
@@ -380,12 +398,15 @@ def merge_band(work: str, j: int, rows: list[list[int]], bins: list[int], deferr
     return {"band": j, "count": count, "files": files}
 
 
-def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_rows: int
-               ) -> list[tuple[list[list[int]], list[int], bool]]:
-    """The merge's bands from the tiles' key histograms (``[bins, counts]`` each) and the deferred
-    keys' histogram: ``(rows, bins, deferred)`` per band (the arguments of :func:`merge_band`), in
-    merged order; each about ``band_rows`` rows of whole bins (a bin holding more is a band of its
-    own: its task merges in bounded memory, but takes longer)."""
+def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_rows: int,
+               dropped: list[list[int]] | None = None) -> list[tuple[list[list[int]], list[int], list[int], list[int]]]:
+    """The merge's bands from the tiles' key histograms (``[bins, counts]`` each), the deferred
+    points' histogram of their acceptance keys and that of the keys their tiles gave them
+    (``dropped``; none: no deferred point): ``(rows, bins, added, dropped)`` per band (the
+    arguments of :func:`merge_band`: ``added`` and ``dropped`` the band's rows ``[first, end]`` of
+    ``deferred.bin`` and ``dropped.bin``, each by descending key), in merged order; each about
+    ``band_rows`` rows of whole bins (a bin holding more is a band of its own: its task merges in
+    bounded memory, but takes longer)."""
     all_bins = np.unique(np.concatenate([np.asarray(h[0], np.int64) for h in [*hists, deferred]] or [np.zeros(0, np.int64)]))
     desc = all_bins[::-1]
     c = np.zeros((len(hists), desc.shape[0]), np.int64)
@@ -395,7 +416,13 @@ def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_row
     dc[desc.shape[0] - 1 - np.searchsorted(all_bins, np.asarray(deferred[0], np.int64))] = deferred[1]
     above = np.cumsum(c, axis=1) - c  # rows of each tile in the bins before each bin (larger keys)
     total = c.sum(axis=0) + dc
-    bands: list[tuple[list[list[int]], list[int], bool]] = []
+    gc = np.zeros(desc.shape[0], np.int64)  # (the dropped rows' bins are among the tiles')
+    gone = dropped or [[], []]
+    gc[desc.shape[0] - 1 - np.searchsorted(all_bins, np.asarray(gone[0], np.int64))] = gone[1]
+    if gc.sum() != dc.sum() or not np.isin(np.asarray(gone[0], np.int64), all_bins).all():
+        raise RuntimeError("the merge's deferred and dropped points do not match")
+    dstart, gstart = np.cumsum(dc) - dc, np.cumsum(gc) - gc
+    bands: list[tuple[list[list[int]], list[int], list[int], list[int]]] = []
 
     def rows(i0: int, i1: int, tiles: range) -> list[list[int]]:  # bins desc[i0..i1] of these tiles
         return [[t, int(above[t, i0]), int(above[t, i1] + c[t, i1])] for t in tiles if c[t, i0:i1 + 1].sum()]
@@ -406,7 +433,8 @@ def plan_bands(hists: list[list[list[int]]], deferred: list[list[int]], band_row
         while j < desc.shape[0] and acc + total[j] <= band_rows:
             acc += int(total[j])
             j += 1
-        bands.append((rows(i, j - 1, range(len(hists))), [int(desc[j - 1]), int(desc[i])], True))
+        bands.append((rows(i, j - 1, range(len(hists))), [int(desc[j - 1]), int(desc[i])],
+                      [int(dstart[i]), int(dstart[j - 1] + dc[j - 1])], [int(gstart[i]), int(gstart[j - 1] + gc[j - 1])]))
         i = j
     return bands
 
@@ -438,9 +466,9 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         args = (work, len(groups), alpha, lo, min_cell, sum(int(s.get("n_seam", 0)) for s in stats))
         (seams,) = collect(submit(ex, [(0, seam_repair, args)]), lambda _: "the seam repair", name, 1, None, "merge")
         mark(work, WL.SEAMS_PIECE, seams)
-    if "key_hist" not in seams:
+    if "key_hist" not in seams or "drop_hist" not in seams:
         raise old()
-    bands = plan_bands([s["key_hist"] for s in stats], seams["key_hist"], band_rows)
+    bands = plan_bands([s["key_hist"] for s in stats], seams["key_hist"], band_rows, seams["drop_hist"])
     got = {j: d for j in range(1, len(bands) + 1) if (d := done(work, WL.merged_piece(j))) is not None}
     calls = [(j, merge_band, (work, j, *bands[j - 1])) for j in range(1, len(bands) + 1) if j not in got]
     collect(submit(ex, calls), lambda j: f"band {j} of the merge", name, n, progress, "merge",
@@ -452,7 +480,7 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         k += int(got[j]["count"])
     if k != n:
         raise RuntimeError(f"tiled merge placed {k} of {n} points (tiles inconsistent with the input)")
-    # (deferred.bin is listed by the seam repair's marker alone: it is deleted with this marker written)
+    # (deferred.bin and dropped.bin are listed by the seam repair's marker alone: deleted with this marker written)
     files = {WL.merged(0): seams["files"][WL.merged(0)], **{f: v for d in got.values() for f, v in d["files"].items()}}
     return {"deferred": seams["deferred"], "seam_points": seams["seam_points"], "seam_links": seams.get("seam_links"),
             "head": seams["head"],
