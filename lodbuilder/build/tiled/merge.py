@@ -78,7 +78,6 @@ LINK_SLACK = 1e-9
 _FIELDS: tuple[str, ...] = tuple(STREAM.names or ())
 
 
-
 def buffer_rows(n_tiles: int) -> int:
     """Rows of each tile's buffer in the merge: all of them within BUF_BYTES (at least 1,024 rows
     each, at most BUF)."""
@@ -278,9 +277,10 @@ def _linked_streams(w: Store, n_groups: int) -> list[np.ndarray]:
 def seam_repair(work: str, n_groups: int, alpha: float, lo: np.ndarray, min_cell: float,
                 seam_points: int) -> dict[str, Any]:
     """The seam repair (see the module): the linked seam points of the ``n_groups`` groups
-    (:func:`seam_links`) merged after the head; writes the order's first piece (the head) and
-    ``deferred.bin`` (the deferred points and their acceptance keys, in merged order). Returns the
-    piece's marker (with the deferred keys' histogram)."""
+    (:func:`seam_links`) merged after the head; writes the order's first piece (the head),
+    ``deferred.bin`` (the deferred points and their acceptance keys, in merged order) and
+    ``dropped.bin`` (the same points and the keys their tiles gave them, by descending key).
+    Returns the piece's marker (with the histograms of both keys)."""
     w = as_store(work)
     head = w.read_array(WL.HEAD_FILE, HEAD)
     streams = _linked_streams(w, n_groups)
