@@ -167,6 +167,15 @@ def test_the_repair_of_the_linked_seam_points_is_the_repair_of_them_all(tmp_path
     assert [(int(x), float(k)) for x, k in zip(d["g"], d["key"], strict=True)] == late
 
 
+def test_a_bins_ceiling_is_above_its_keys_by_less_than_its_width():
+    """layout.hist_ceiling: above every key of the bin, by at most a 64th of an octave (0 for the
+    bin of zero keys, inf for that of the infinite ones)."""
+    k = 10.0 ** np.random.default_rng(2).uniform(-12, 12, 20_000)
+    c = np.array([WL.hist_ceiling(int(b)) for b in WL.hist_bins(k)])
+    assert np.all(k < c) and np.all(c <= k * (1 + 1 / 64) * (1 + 1e-12))
+    assert WL.hist_ceiling(WL.BIN_ZERO) == 0.0 and WL.hist_ceiling(WL.BIN_INF) == np.inf
+
+
 def test_the_seam_links_read_only_the_tiles_within_reach():
     """A group reads the tiles whose box comes within alpha times its tiles' largest finite key
     (the infinite keys' bin left out) of one of its tiles: tiles of width 1 in a row, keys up to
