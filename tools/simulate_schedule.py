@@ -15,7 +15,8 @@ priority order (list scheduling, largest first as the driver submits them). From
   longest chain of orderings waiting for it (its bottom level, from the recorded seconds) starts
   first, as the driver starts them (by the tiles' points);
 * rounds inside a phase (:data:`AFTER`): the seam repair (``seam_repair``) waits for the seam
-  links (``seam_links``), the merge's bands (``merge_band``) for the seam repair, the ranks' first round (``rank_band``) for the bands, their second
+  links (``seam_links``), the merge's bands (``merge_band``) for the seam repair, the ranks' first
+  round (``rank_band``) for the bands, their second
   round (``rank_block``) for the whole first, the radii's second round (``finish_band``) for the
   whole first (``radii_band``), the join of the band pieces for the tiles' pieces (``cover_tile``;
   ``pieces_tile`` in older records): its bands (``join_band``) first, then the join of their pairs
