@@ -53,6 +53,16 @@ def _store(tmp_path, pts, head, streams):
     return w
 
 
+def _stats(streams):
+    """The tiles' order markers as the merge reads them: key histograms and seam rows."""
+    return [{"key_hist": WL.key_hist(s[:, 1]), "n_seam": int((s[:, 5] < s[:, 1]).sum())} for s in streams]
+
+
+def _boxes(n_tiles):
+    """The boxes of _streams' tiles, side by side along x."""
+    return [(np.array([t, 0.0, 0.0]), np.array([t + 1, 1.0, 0.05])) for t in range(n_tiles)]
+
+
 @pytest.mark.parametrize(("seed", "alpha", "step", "band_rows"),
                          [(0, 0.25, 0.0, 40), (1, 0.5, 0.0, 2), (2, 1.0, 0.0, 40), (3, 0.5, 0.04, 40), (4, 0.25, 0.0, 8)])
 def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, step, band_rows):
@@ -75,9 +85,8 @@ def test_merge_matches_its_naive_reference(tmp_path, monkeypatch, seed, alpha, s
     monkeypatch.setattr(M, "BUF", 7)
     monkeypatch.setattr(M.W, "BLOCK", 5)
     monkeypatch.setattr(M, "LINK_ROWS", 1)  # (a group of seam links a tile)
-    stats = [{"key_hist": [b.tolist() for b in np.unique(WL.hist_bins(s[:, 1]), return_counts=True)],
-              "files": {WL.stream(t): [0, 0]}, "n_seam": int((s[:, 5] < s[:, 1]).sum())} for t, s in enumerate(streams)]
-    boxes = [(np.array([t, 0.0, 0.0]), np.array([t + 1, 1.0, 0.05])) for t in range(len(streams))]
+    stats = [{**st, "files": {WL.stream(t): [0, 0]}} for t, st in enumerate(_stats(streams))]
+    boxes = _boxes(len(streams))
     for a in (alpha, 0.0):
         (tmp_path / f"a{a}").mkdir()
         w = _store(tmp_path / f"a{a}", pts, head, streams)
@@ -145,10 +154,7 @@ def test_the_repair_of_the_linked_seam_points_is_the_repair_of_them_all(tmp_path
         for s in streams:
             s[:, 1] = np.where(np.isfinite(s[:, 1]), np.floor(s[:, 1] / step) * step, np.inf)
     w = _store(tmp_path, pts, head, streams)
-    stats = [{"key_hist": [b.tolist() for b in np.unique(WL.hist_bins(s[:, 1]), return_counts=True)],
-              "n_seam": int((s[:, 5] < s[:, 1]).sum())} for s in streams]
-    boxes = [(np.array([t, 0.0, 0.0]), np.array([t + 1, 1.0, 0.05])) for t in range(len(streams))]
-    groups = M.link_groups(stats, boxes, alpha, rows=1)
+    groups = M.link_groups(_stats(streams), _boxes(len(streams)), alpha, rows=1)
     assert [g[0] for g in groups] == [[0], [1], [2], [3]]
     found = set()
     for j, (mine, reads) in enumerate(groups):
@@ -157,7 +163,7 @@ def test_the_repair_of_the_linked_seam_points_is_the_repair_of_them_all(tmp_path
     seam, want = _brute_links(streams, pts[head], alpha)
     assert found == want
     assert 0 < len(found) < sum(len(s) for s in seam)
-    M.seam_repair(str(tmp_path), len(groups), alpha, np.zeros(3), 1e-6, 0)
+    M.seam_repair(str(tmp_path), len(groups), alpha, np.zeros(3), 1e-6)
     d = w.read_array(WL.DEFERRED, WL.DEFER)
     every = [np.rec.fromarrays(s.T, dtype=WL.STREAM) for s in seam]
     g, key = M.seam_merge(every, w.read_array(WL.HEAD_FILE, WL.HEAD), alpha, np.zeros(3), 1e-6)
@@ -182,8 +188,7 @@ def test_the_seam_links_read_only_the_tiles_within_reach():
     1.9 and alpha 0.25 reach about 0.48: across a gap of 0.4, not across 0.6 or 1.4."""
     from lodbuilder.build.tiled import merge as M
 
-    hist = [b.tolist() for b in np.unique(WL.hist_bins(np.array([1.9, 0.5, np.inf])), return_counts=True)]
-    stats = [{"key_hist": hist, "n_seam": 10}] * 4
+    stats = [{"key_hist": WL.key_hist(np.array([1.9, 0.5, np.inf])), "n_seam": 10}] * 4
     boxes = [(np.array([x, 0.0, 0.0]), np.array([x + 1, 1.0, 1.0])) for x in (0.0, 1.0, 2.4, 4.0)]
     assert M.link_groups(stats, boxes, 0.25, rows=10) == [([0], [1]), ([1], [0, 2]), ([2], [1]), ([3], [])]
     assert M.link_groups(stats, boxes, 0.25, rows=20) == [([0, 1], [2]), ([2, 3], [1])]
@@ -287,7 +292,7 @@ def test_a_band_of_the_merge_may_take_part_of_a_key_bin():
     # two tiles' streams whose 12,000 keys all fall in one key bin, [1, 1.09): six fine bins
     streams = [np.sort(rng.uniform(1.0, 1.09, n))[::-1] for n in (7000, 5000)]
     assert len(np.unique(WL.key_bins(np.concatenate(streams)))) == 1
-    hists = [[b.tolist() for b in np.unique(WL.hist_bins(k), return_counts=True)] for k in streams]
+    hists = [WL.key_hist(k) for k in streams]
     bands = M.plan_bands(hists, [[], []], 2500)
     assert len(bands) >= 5
     for t, k in enumerate(streams):  # every row of each stream in exactly one band, in order

@@ -100,6 +100,12 @@ def hist_bins(key: np.ndarray) -> np.ndarray:
     return _bins(key, 6)
 
 
+def key_hist(key: np.ndarray) -> list[list[int]]:
+    """The keys' histogram in :func:`hist_bins`: ``[bins (ascending), counts]`` (as markers hold it)."""
+    bins, counts = np.unique(hist_bins(key), return_counts=True)
+    return [bins.tolist(), counts.tolist()]
+
+
 def hist_ceiling(b: int) -> float:
     """A key above every key of :func:`hist_bins`'s bin ``b`` (0 for the bin of zero keys, inf for
     the infinite ones')."""

@@ -274,8 +274,7 @@ def _linked_streams(w: Store, n_groups: int) -> list[np.ndarray]:
 
 
 @timed_task
-def seam_repair(work: str, n_groups: int, alpha: float, lo: np.ndarray, min_cell: float,
-                seam_points: int) -> dict[str, Any]:
+def seam_repair(work: str, n_groups: int, alpha: float, lo: np.ndarray, min_cell: float) -> dict[str, Any]:
     """The seam repair (see the module): the linked seam points of the ``n_groups`` groups
     (:func:`seam_links`) merged after the head; writes the order's first piece (the head),
     ``deferred.bin`` (the deferred points and their acceptance keys, in merged order) and
@@ -299,14 +298,8 @@ def seam_repair(work: str, n_groups: int, alpha: float, lo: np.ndarray, min_cell
     gone = gone[np.lexsort((gone["g"], -gone["key"]))]
     files = {WL.merged(0): W.put_framed(w, WL.merged(0), head["g"].astype("<i8")), WL.DEFERRED: w.put(WL.DEFERRED, d),
              WL.DROPPED: w.put(WL.DROPPED, gone)}
-    return {"head": int(head.shape[0]), "seam_points": int(seam_points), "seam_links": int(g.shape[0]),
-            "deferred": int(d.shape[0]), "key_hist": _hist(d["key"]), "drop_hist": _hist(gone["key"]), "files": files}
-
-
-def _hist(key: np.ndarray) -> list[list[int]]:
-    """The keys' histogram in :func:`.layout.hist_bins` (bins ascending, counts)."""
-    bins, counts = np.unique(WL.hist_bins(key), return_counts=True)
-    return [bins.tolist(), counts.tolist()]
+    return {"head": int(head.shape[0]), "seam_links": int(g.shape[0]), "deferred": int(d.shape[0]),
+            "key_hist": WL.key_hist(d["key"]), "drop_hist": WL.key_hist(gone["key"]), "files": files}
 
 
 class _RangeReader:
@@ -463,7 +456,7 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         collect(submit(ex, links), lambda j: f"the seam links of tiles {groups[j][0][0] + 1}-{groups[j][0][-1] + 1}",
                 name, len(groups), None, "merge",
                 lambda r: mark(work, WL.links_piece(r["group"]), r))
-        args = (work, len(groups), alpha, lo, min_cell, sum(int(s.get("n_seam", 0)) for s in stats))
+        args = (work, len(groups), alpha, lo, min_cell)
         (seams,) = collect(submit(ex, [(0, seam_repair, args)]), lambda _: "the seam repair", name, 1, None, "merge")
         mark(work, WL.SEAMS_PIECE, seams)
     if "key_hist" not in seams or "drop_hist" not in seams:
@@ -482,7 +475,8 @@ def merge_phase(ex: Any, work: Any, name: str, n: int, stats: list[dict[str, Any
         raise RuntimeError(f"tiled merge placed {k} of {n} points (tiles inconsistent with the input)")
     # (deferred.bin and dropped.bin are listed by the seam repair's marker alone: deleted with this marker written)
     files = {WL.merged(0): seams["files"][WL.merged(0)], **{f: v for d in got.values() for f, v in d["files"].items()}}
-    return {"deferred": seams["deferred"], "seam_points": seams["seam_points"], "seam_links": seams.get("seam_links"),
+    return {"deferred": seams["deferred"], "seam_points": sum(int(s.get("n_seam", 0)) for s in stats),
+            "seam_links": seams.get("seam_links"),
             "head": seams["head"],
             "order": order, "files": files}
 

@@ -279,9 +279,8 @@ def _finish(w: Store, tile: dict[str, Any], hpts: np.ndarray, halo: float) -> di
     t, o = tile["t"], tile["o"]
     stream = _stream(o, tile["is_seed"], tile["core"], tile["cpts"], hpts, tile["lo"], tile["hi"], tile["interior"])
     files, n_seam = _put_tile(w, t, stream, halo, None)
-    bins, counts = np.unique(WL.hist_bins(stream["key"]), return_counts=True)
     tile["state"] = None
     return {"tile": t, "n_points": int(tile["core"].shape[0]), "n_stream": int(stream.shape[0]),
             "n_seeds": tile["n_seeds"], "n_timed": int(tile["halo_rows"].size), "n_seam": n_seam,
-            "key_hist": [bins.tolist(), counts.tolist()], "band_voxels": int(o.stats.get("band_voxels", 0)),
+            "key_hist": WL.key_hist(stream["key"]), "band_voxels": int(o.stats.get("band_voxels", 0)),
             "files": files}

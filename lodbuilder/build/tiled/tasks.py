@@ -198,10 +198,9 @@ def order_tile(work: Store | str, t: int, tile: dict[str, Any], voxel_size: floa
     files, n_seam = _put_tile(w, t, stream, halo, face_out)
     if o.pieces is not None:
         files[WL.band_labels(t)] = put_zipped(w, WL.band_labels(t), o.pieces[: cpts.shape[0]].astype("<i4"))
-    bins, counts = np.unique(WL.hist_bins(stream["key"]), return_counts=True)
     return {"tile": t, "n_points": int(core.shape[0]), "n_stream": int(stream.shape[0]), "n_seeds": int(seeds.size),
             "n_timed": 0 if timed is None else int(timed[0].size), "n_seam": n_seam,
-            "key_hist": [bins.tolist(), counts.tolist()],
+            "key_hist": WL.key_hist(stream["key"]),
             "band_voxels": int(o.stats.get("band_voxels", 0)), "files": files}
 
 
