@@ -240,3 +240,34 @@ def test_bench_inputs_writes_one_synthetic_input_and_refuses_other_files(tmp_pat
         bench_inputs.main(["uneven", "5000", "-o", str(tmp_path / "u.ply")])
     assert e.value.code == 2 and "--output must end in .npy, got" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["uneven.npy"]
+
+
+def test_between_plans_takes_each_worker_count_from_the_record_planned_for_it():
+    """The 16-worker figure comes from the build planned for 16 workers, the 4-worker one from the
+    build planned for 4 (not from either record's replay at the other count); records with a forced
+    tile size, other inputs or another budget stay apart."""
+    import bench_survey
+
+    def survey(plan, budget="16GB", tile_points=None, paths=("/x/s",), sec=None):
+        sec = sec or {}
+        sim = {w: {"workers": w, "wall_seconds": s} for w, s in sec.items()}
+        run = {"rc": 0, "n_points": 1_600_000, "tiles": 8 * plan,
+               "simulation": {"predicted": [dict(p, wall_seconds=p["wall_seconds"] + 1.0) for p in sim.values()]},
+               "simulation_cpu": {"predicted": list(sim.values())}}
+        return {"input": {"paths": list(paths), "files": 1, "bytes": 10}, "runs": [run],
+                "settings": {"max_memory": budget, "plan_workers": plan, "tile_points": tile_points,
+                             "seam_rounds": False}}
+
+    surveys = [survey(4, sec={4: 4.0, 16: 2.0}), survey(16, sec={4: 3.0, 16: 1.0}),
+               survey(16, tile_points=5, sec={16: 0.5}), survey(16, budget="3GB", sec={16: 0.5}),
+               survey(4, paths=("/y/other",), sec={4: 9.0})]
+    (doc,) = bench_survey.between_plans(surveys)
+    assert doc["max_memory"] == "16GB" and sorted(doc["plans"]) == ["16", "4"]
+    assert doc["plans"]["16"]["predicted_seconds"] == {"wall_durations": 2.0, "cpu_durations": 1.0}
+    assert doc["plans"]["16"]["tiles"] == 128
+    assert doc["plans"]["16"]["speedup_over_4"] == {"wall_durations": 2.5, "cpu_durations": 4.0}
+    assert doc["plans"]["16"]["points_per_second"] == {"wall_durations": 800_000, "cpu_durations": 1_600_000}
+    t = doc["targets"]
+    assert t["speedup_16_over_4"] == {"worst": 2.5, "target_min": 3.4, "met": False}
+    assert t["points_per_second_16"] == {"worst": 800_000, "target_min": 1.5e6, "met": False}
+    assert bench_survey.between_plans(surveys[1:]) == []  # one plan of those inputs: nothing to compare

@@ -44,10 +44,15 @@ build record's plan of them, its owners' estimated and measured state bytes).
 
 ``--plan-workers W``: each build planned as for W workers while it runs on ``--workers`` (the merge's
 bands of keys, and the tiles unless ``--tile-points`` gives them), so that the simulation's W-worker
-figure replays a W-worker plan; the 21.56M survey as for 16 workers on this 2-core machine:
+figure replays a W-worker plan; the 21.56M survey as for 4 and for 16 workers on this 2-core machine
+(128 tiles for 16: ``--tile-points`` would replace the plan's own tile size, and 168,000, the size
+earlier records used, makes 197 tiles, a plan no 16-worker build makes). The 16-worker figure over the
+4-worker one, each from its own record, is the speed-up between the plans:
 
     python tools/bench_survey.py /work/big/survey_14x14 --workers 2 --max-memory 16GB --no-warm-up \
-        --tile-points 168000 --plan-workers 16 --append
+        --plan-workers 4 --append
+    python tools/bench_survey.py /work/big/survey_14x14 --workers 2 --max-memory 16GB --no-warm-up \
+        --plan-workers 16 --append
 
 Other inputs at the same settings (``--kind`` says what they are in the record), the synthetic inputs
 of tools/bench_inputs.py and tools/make_fragmented.py built in tiles:
@@ -83,7 +88,8 @@ OUT = ROOT / "docs" / "bench" / "bench_survey.json"
 
 #: the targets of issue 19 that one machine can check
 TARGETS = {"parent_cpu_share_max": 0.03, "speedup_2_over_1_min": 1.9, "work_over_archive_max": 2.0,
-           "dask_over_pool_max": 1.2, "rss_over_max_memory_max": 1.1}
+           "dask_over_pool_max": 1.2, "rss_over_max_memory_max": 1.1, "speedup_16_over_4_min": 3.4,
+           "points_per_second_16_min": 1.5e6}
 EXECUTORS = ("pool", "dask", "dask-s3")
 BUCKET = "lodbuilder-bench"
 
@@ -569,6 +575,55 @@ def _simulate(rec: dict[str, Any], wall: float, workers: int, parent_cpu: float 
 
 # ------------------------------------------------------------------------------------ the document
 
+def between_plans(surveys: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each worker count predicted from the record of a build planned for it (``--plan-workers``,
+    its own tile size), for the surveys of the same inputs at the same budget: the W-worker figures
+    of the W-worker plans' simulations (from the tasks' wall seconds and from their CPU seconds),
+    points per second, and each plan's speed-up over the plan of the fewest workers, with issue
+    19's targets (16 workers >= 3.4 x faster than 4, >= 1.5 M points/s). A plan's prediction for
+    other worker counts replays tiles no such build cuts (the simulation's caveat)."""
+    groups: dict[tuple, dict[int, dict[str, Any]]] = {}
+    for sv in surveys:
+        st = sv.get("settings") or {}
+        run = next((r for r in sv.get("runs", []) if r.get("rc") == 0 and r.get("simulation")), None)
+        if run is None or not st.get("plan_workers") or st.get("tile_points") or st.get("seam_rounds"):
+            continue
+        w = int(st["plan_workers"])
+        pred = {}
+        for key, label in (("simulation", "wall_durations"), ("simulation_cpu", "cpu_durations")):
+            row = next((p for p in (run.get(key) or {}).get("predicted", []) if p["workers"] == w), None)
+            if row is not None:
+                pred[label] = row["wall_seconds"]
+        if pred:
+            key = (_same_input(sv["input"]), st.get("max_memory"))
+            groups.setdefault(key, {})[w] = {"seconds": pred, "tiles": run.get("tiles"), "n_points": run["n_points"],
+                                             "paths": sv["input"].get("paths")}
+    out = []
+    for (_, budget), plans in groups.items():
+        if len(plans) < 2:
+            continue
+        ws = sorted(plans)
+        first = plans[ws[0]]["seconds"]
+        doc: dict[str, Any] = {"paths": plans[ws[0]]["paths"], "max_memory": budget, "plans": {}}
+        for w in ws:
+            sec = plans[w]["seconds"]
+            doc["plans"][str(w)] = {"tiles": plans[w]["tiles"], "predicted_seconds": sec,
+                                    "points_per_second": {k: round(plans[w]["n_points"] / v) for k, v in sec.items()},
+                                    f"speedup_over_{ws[0]}": {k: round(first[k] / v, 3) for k, v in sec.items()
+                                                              if k in first}}
+        if 4 in plans and 16 in plans:
+            four = plans[4]["seconds"]
+            sp = {k: round(four[k] / v, 3) for k, v in plans[16]["seconds"].items() if k in four}
+            pps = doc["plans"]["16"]["points_per_second"]
+            doc["targets"] = {
+                "speedup_16_over_4": {"worst": min(sp.values()), "target_min": TARGETS["speedup_16_over_4_min"],
+                                      "met": min(sp.values()) >= TARGETS["speedup_16_over_4_min"]},
+                "points_per_second_16": {"worst": min(pps.values()), "target_min": TARGETS["points_per_second_16_min"],
+                                         "met": min(pps.values()) >= TARGETS["points_per_second_16_min"]}}
+        out.append(doc)
+    return out
+
+
 def ratios(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Speed-ups over 1 worker per executor, Dask over the pool at equal workers, and the targets."""
     ok = [r for r in runs if r.get("rc") == 0]
@@ -697,6 +752,7 @@ def main(argv: list[str] | None = None) -> int:
         doc["earlier"] = [*old.pop("earlier", []), {k: old[k] for k in ("date", "commit", "command") if k in old}]
         again = {_same_survey(sv) for sv in doc["surveys"]}  # a survey measured again: the new runs
         doc["surveys"] = [sv for sv in old.get("surveys", []) if _same_survey(sv) not in again] + doc["surveys"]
+    doc["between_plans"] = between_plans(doc["surveys"])
     for s3 in _S3:
         s3.stop()
     text = json.dumps(doc, indent=1)
