@@ -139,3 +139,47 @@ def test_a_later_build_logs_afresh(store):
     st.claim()
     st.log("tasks.8.jsonl", "second build")
     assert st.log_lines("tasks.8") == ["second build"]
+
+
+def test_a_framed_files_index_is_one_suffix_read(store, monkeypatch):
+    """A banded file's index and length are its last bytes: one GET of a suffix range (was a HEAD for
+    the size, then two ranged GETs); an index longer than the first read takes a second one."""
+    from lodbuilder.build.tiled import workdir as WD
+
+    st, counter = store
+    rec = np.dtype([("rank", "<i8"), ("v", "<f8")])
+    recs = np.zeros(5000, rec)
+    recs["rank"] = np.arange(5000)
+    recs["v"] = np.arange(5000) * 0.5
+    WD.put_banded(st, "b.bin", recs, 100)  # (50 frames)
+    counter.take()
+    got, before = WD.banded_slice(st, "b.bin", rec, 1234, 1240)
+    np.testing.assert_array_equal(got, recs[1234:1240])
+    assert before == recs[1233]
+    assert counter.take() == [("GET", True), ("GET", True)]  # the index, then the frames
+    monkeypatch.setattr(WD, "INDEX_READ", 64)  # an index longer than the first read: one more
+    got, _ = WD.banded_slice(st, "b.bin", rec, 0, 3)
+    np.testing.assert_array_equal(got, recs[:3])
+    assert counter.take() == [("GET", True), ("GET", True), ("GET", True)]
+
+
+def test_the_tail_of_an_object(store, tmp_path):
+    """The last bytes of an object, all of it when it is shorter; the same from a local store."""
+    from lodbuilder.build.tiled import workdir as WD
+    from lodbuilder.build.tiled.store import LocalStore
+
+    st, _ = store
+    local = LocalStore(tmp_path)
+    data = np.arange(1000, dtype=np.int64).tobytes()
+    local.put("a.bin", data)
+    for s in (st, local):
+        assert s.tail("a.bin", 16) == data[-16:]
+        assert s.tail("a.bin", 10 ** 6) == data
+        with pytest.raises(FileNotFoundError, match=r"nothing\.bin is missing"):
+            s.tail("nothing.bin", 8)
+        s.put("short.bin", b"abc")  # not a framed file: too short, or an index longer than the file
+        with pytest.raises(OSError, match=r"short\.bin: not a framed work file"):
+            WD.banded_slice(s, "short.bin", np.dtype("<i8"), 0, 1)
+        s.put("long.bin", np.array([7], "<i8").tobytes())
+        with pytest.raises(OSError, match=r"long\.bin: not a framed work file"):
+            WD.banded_slice(s, "long.bin", np.dtype("<i8"), 0, 1)

@@ -158,6 +158,15 @@ class Store:
         """The object's size in bytes, None when it is missing (or is not a plain object)."""
         raise NotImplementedError
 
+    def tail(self, name: str, nbytes: int) -> bytes:
+        """The object's last ``nbytes`` bytes (all of it when it is shorter; FileNotFoundError
+        when it is missing)."""
+        size = self.size(name)
+        if size is None:
+            raise FileNotFoundError(f"{self.url}: {name} is missing")
+        (raw,) = self.read_ranges(name, [max(0, size - nbytes)], [size])
+        return raw
+
     def names(self, prefix: str = "") -> list[str]:
         """The names of the objects whose names start with ``prefix``, sorted."""
         raise NotImplementedError
@@ -453,6 +462,14 @@ class FsspecStore(Store):
         if len(starts) == 1:
             return [self.fs.cat_file(key, start=starts[0], end=ends[0])]
         return cast(list[bytes], self.fs.cat_ranges([key] * len(starts), list(starts), list(ends)))
+
+    def tail(self, name: str, nbytes: int) -> bytes:
+        """One GET of a suffix range (``bytes=-nbytes``: the whole object when it is shorter),
+        without asking the object's size first."""
+        try:
+            return cast(bytes, self.fs.cat_file(self.key(name), start=-max(1, int(nbytes))))
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{self.url}: {name} is missing") from None
 
     def _fresh(self) -> None:
         """Forget fsspec's listings of the store (other processes write into it)."""

@@ -253,6 +253,8 @@ def segment(work: Any, files: list[tuple[str, int, int]], dtype: str, k0: int, k
 #: byte offset and length, records
 FRAME = np.dtype([("first", "<i8"), ("last", "<i8"), ("offset", "<i8"), ("nbytes", "<i8"), ("count", "<i8")])
 FRAME_ROWS = 1 << 16  # records per frame of put_framed()
+#: bytes of a framed file's end read for its index at once (an index of up to 1,638 frames)
+INDEX_READ = 1 << 16
 
 
 def _put_frames(store: Store, name: str, recs: np.ndarray, bounds: list[int], keys: np.ndarray) -> list[int]:
@@ -279,16 +281,17 @@ def _put_frames(store: Store, name: str, recs: np.ndarray, bounds: list[int], ke
 
 
 def _frames_index(store: Store, name: str) -> np.ndarray:
-    size = store.size(name)
-    if size is None:
-        raise FileNotFoundError(f"{store.url}: {name} is missing")
-    (tail,) = store.read_ranges(name, [max(size - 8, 0)], [size])
-    count = int(np.frombuffer(tail, "<i8")[0]) if len(tail) == 8 else -1
-    start = size - 8 - count * FRAME.itemsize
-    if count < 0 or start < 0:
+    """A framed file's index (see :func:`_put_frames`): its end read once (:data:`INDEX_READ`
+    bytes, as one suffix range on an object store: no request for the size first), again only
+    for an index longer than that."""
+    end = store.tail(name, INDEX_READ)
+    count = int(np.frombuffer(end[-8:], "<i8")[0]) if len(end) >= 8 else -1
+    need = 8 + count * FRAME.itemsize
+    if count >= 0 and need > len(end) == INDEX_READ:
+        end = store.tail(name, need)
+    if count < 0 or need > len(end):
         raise OSError(f"{store.url}/{name}: not a framed work file")
-    (raw,) = store.read_ranges(name, [start], [size - 8])
-    return np.frombuffer(raw, FRAME)
+    return np.frombuffer(end[len(end) - need:len(end) - 8], FRAME)
 
 
 def _read_frames(store: Store, name: str, index: np.ndarray, dtype: np.dtype) -> np.ndarray:
