@@ -7,6 +7,7 @@ one an uninterrupted build writes (the damaged piece is done again), and say not
 
 from __future__ import annotations
 
+import re
 import shutil
 import zlib
 from pathlib import Path
@@ -89,11 +90,12 @@ def _after_two_orderings(put_json):
     written = []
 
     def write(store, name, doc):
-        put_json(store, name, doc)
+        sums = put_json(store, name, doc)
         if name.startswith("order."):
             written.append(name)
             if len(written) == 2:
                 raise KeyboardInterrupt
+        return sums
 
     return write
 
@@ -187,12 +189,31 @@ def test_the_markers_hold_a_checksum_of_every_file(stopped):
         assert sum_file(w / name) == listed[name]
     order = (w / "merged.1.i8").read_bytes()
     assert listed["merged.1.i8"] == [len(order), zlib.crc32(order)]
+    # the orderings' markers, listed by the order phase's marker from what the parent wrote
+    orderings = [n for n in listed if n.startswith("order.") and n.endswith(".json")]
+    assert orderings and all(sum_file(w / n) == listed[n] for n in orderings)
     # what is listed but gone was deleted once every piece that reads it was done (layout.PRUNE_AFTER;
     # every band is written, so are their buckets)
     gone = {n for n in set(listed) - files if not (w / n).exists()}  # (the order marker lists the orderings' markers)
     assert {n.split(".")[0] for n in gone} == {"raw", "stream", "seam", "links", "deferred", "dropped", "core", "halo", "cover", "radloc",
                                                "space", "bucket", "face", "sample", "rank"}
     assert all(WL.consumers(n) is not None for n in gone)
+
+
+def test_the_parent_does_not_read_back_the_markers_it_wrote(tmp_path, monkeypatch):
+    """The order phase's marker lists the orderings' markers with the size and CRC-32 of what the
+    parent wrote, and the merge takes their contents from the same: none is read back (on an
+    object store that was three requests a tile, one after another in the parent)."""
+    from lodbuilder.build.tiled import store as S
+
+    read = []
+    get, total = S.LocalStore.get, S.Store.sum
+    monkeypatch.setattr(S.LocalStore, "get", lambda self, name: read.append(name) or get(self, name))
+    monkeypatch.setattr(S.Store, "sum", lambda self, name, *a, **k: read.append(name) or total(self, name, *a, **k))
+    res = _build(tmp_path / "a.h5")
+    assert res.scans[0].method == "tiled"
+    assert read and not [n for n in read if re.fullmatch(r"order\.\d+\.\d+\.json", n)]
+    _same(tmp_path / "a.h5", tmp_path / "a.h5")  # (it opens: a valid archive)
 
 
 def test_force_recovers_from_a_forged_work_directory(stopped, clean):

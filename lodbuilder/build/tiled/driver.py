@@ -28,7 +28,7 @@ from .pieces import join_phase, reach
 from .pool import bottom_levels, collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
-from .sums import get_json, mark, put_json
+from .sums import get_json, mark, put_json, sealed, unseal
 from .survey import distribute_phase, plan_phase, read_phase
 from .tasks import coarse_task, cover_tile, order_tile, parameters_task
 from .timing import task_table
@@ -105,7 +105,8 @@ def _done(work: Store, phase: str) -> dict[str, Any] | None:
 
 def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile], nbrs: list[list[int]],
                   colour: list[int], passes: int, args: tuple, pieces: dict[str, Any], progress: ProgressCallback,
-                  slots: int | None = None, lattice: list[float] | None = None) -> int:
+                  slots: int | None = None, lattice: list[float] | None = None,
+                  written: dict[str, tuple[dict[str, Any], list[int]]] | None = None) -> int:
     """Order every tile ``passes`` times (Gauss-Seidel): in pass p, tile t sees as timed seeds the
     near-face points of its neighbours as they were last ordered (in pass p for the neighbours of a
     smaller colour, else in pass p - 1). Of the ready tasks, that of the longest chain of orderings
@@ -114,8 +115,10 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     run a task on the critical path that became ready late after all those submitted before it.
     The first colour's tiles see no neighbour in pass 1; each later ordering sees its neighbours'
     latest (see TILE_PASSES). ``lattice``: the scan's grid, on which each ordering labels its band
-    pieces for the covering tasks (:func:`.tasks.order_tile`). Returns the number of tile orderings
-    a resume found done."""
+    pieces for the covering tasks (:func:`.tasks.order_tile`). ``written``: filled with the markers
+    this call writes (name -> the marker as read back, its size and CRC-32), which the phase's
+    marker then need not read again (on an object store, three requests a tile in the parent).
+    Returns the number of tile orderings a resume found done."""
     n_tiles = len(by_size)
     # an earlier pass's marker lists the tile's stream as it was then (a later pass replaced it)
     done = {(p, t.index) for p in range(1, passes + 1) for t in by_size
@@ -157,7 +160,9 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
             for fut in fin:
                 p, t = running.pop(fut)
                 res = result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
-                put_json(work, WL.marker(WL.order_piece(t, p)), res)
+                sums = put_json(work, WL.marker(WL.order_piece(t, p)), res)
+                if written is not None:  # (the marker as get_json reads it: its JSON types)
+                    written[WL.marker(WL.order_piece(t, p))] = (unseal(sealed(res).decode()) or {}, sums)
                 WL.moment("tile")
                 done.add((p, t))
                 tell()
@@ -274,7 +279,7 @@ def build_tiled(sources: list[tuple[Any, ...]], part: Path, name: str, work: Pat
               "engine_stats": band_pieces,
               "tiled": {"tiles": n_tiles, **_plan_record(pl, halo, head.shape[0], coarse), "head_reach": head_reach, "seam_alpha": seam_spacing,
                         "passes": passes, "read_blocks": len(sp.blocks or []), **_merge_record(merged, radii), "max_memory": budget, "parallel": parallel,
-                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour, "rounds": (_done(work, "order") or {}).get("rounds"),
+                        "guarantees": GUARANTEES, "resumed": resumed, "tile_colours": colour, "rounds": (get_json(work, WL.marker("order")) or {}).get("rounds"),
                         "tile_boxes": [[*t.lo.tolist(), *t.hi.tolist()] for t in tiles]}}
     info = _write(executor, work, part, name, sp, head["g"][:1], lambda: {**record, **_timings(clock, work, "write")},
                   {"reader": sp.reader, **(provenance or {})}, buckets, radii, progress)
@@ -347,6 +352,7 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
     colour = P.colour_tiles(nbrs)
     done = _done(work, "order")
     rounds = (done or {}).get("rounds")
+    written: dict[str, tuple[dict[str, Any], list[int]]] = {}  # (the orderings' markers this build wrote)
     if done is None and schedule is not None:
         rounds = _rounds_plan(executor, tiles, size, colour, parallel, int(args[3]), schedule, budget)
     if rounds is not None:
@@ -354,14 +360,15 @@ def _order(executor: cf.Executor, work: Store, name: str, tiles: list[P.Tile], d
                                 progress)
     else:
         ordered = _order_passes(executor, work, name, by_size, nbrs, colour, passes, args, dist["pieces"], progress,
-                                parallel if parallel > 1 else None, lattice)
-    stats = [get_json(work, WL.marker(WL.order_piece(t.index, passes))) or {} for t in tiles]
+                                parallel if parallel > 1 else None, lattice, written)
+    stats = [written[m][0] if m in written else get_json(work, m) or {}
+             for m in (WL.marker(WL.order_piece(t.index, passes)) for t in tiles)]
     if _done(work, "order") is None:
         # every ordering's marker and last files, checked as one: the tiles' face files (read by the
         # orderings alone) are deleted now, and stay consumed only while every ordering checks out
         pieces = [WL.marker(WL.order_piece(t.index, p)) for t in tiles for p in range(1, passes + 1)]
         files = {k: v for st in stats for k, v in (st.get("files") or {}).items() if not k.startswith("face.")}
-        mark(work, "order", {"files": {**{m: work.sum(m) for m in pieces}, **files},
+        mark(work, "order", {"files": {**{m: written[m][1] if m in written else work.sum(m) for m in pieces}, **files},
                              "rounds": None if rounds is None else {**rounds, "owner": [rounds["owner"][t.index] for t in tiles]}})
     return by_size, colour, ordered, stats
 

@@ -102,11 +102,12 @@ def unseal(text: str) -> dict[str, Any] | None:
     return doc if isinstance(doc, dict) else None
 
 
-def put_json(work: Store | Path | str, name: str, doc: dict[str, Any]) -> None:
-    """Write the marker object ``name`` of the store ``work`` whole (see :func:`sealed`)."""
+def put_json(work: Store | Path | str, name: str, doc: dict[str, Any]) -> list[int]:
+    """Write the marker object ``name`` of the store ``work`` whole (see :func:`sealed`); returns
+    its size and CRC-32."""
     store = as_store(work)
     store.verified.discard(name)
-    store.put(name, sealed(doc))
+    return store.put(name, sealed(doc))
 
 
 def get_json(work: Store | Path | str, name: str) -> dict[str, Any] | None:
