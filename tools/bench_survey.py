@@ -590,13 +590,13 @@ def between_plans(surveys: list[dict[str, Any]]) -> list[dict[str, Any]]:
             continue
         w = int(st["plan_workers"])
         pred = {}
-        for key, label in (("simulation", "wall_durations"), ("simulation_cpu", "cpu_durations")):
-            row = next((p for p in (run.get(key) or {}).get("predicted", []) if p["workers"] == w), None)
+        for sim, label in (("simulation", "wall_durations"), ("simulation_cpu", "cpu_durations")):
+            row = next((p for p in (run.get(sim) or {}).get("predicted", []) if p["workers"] == w), None)
             if row is not None:
                 pred[label] = row["wall_seconds"]
         if pred:
-            key = (_same_input(sv["input"]), st.get("max_memory"))
-            groups.setdefault(key, {})[w] = {"seconds": pred, "tiles": run.get("tiles"), "n_points": run["n_points"],
+            group = (_same_input(sv["input"]), st.get("max_memory"))
+            groups.setdefault(group, {})[w] = {"seconds": pred, "tiles": run.get("tiles"), "n_points": run["n_points"],
                                              "paths": sv["input"].get("paths")}
     out = []
     for (_, budget), plans in groups.items():
