@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from lodbuilder.build.tiled import sums
-from lodbuilder.build.tiled.store import FsspecStore, LocalStore, as_store, check_work_url
+from lodbuilder.build.tiled.store import FsspecStore, LocalStore, as_store
+from lodbuilder.build.tiled.urls import check_work_url
 from lodbuilder.build.tiled.workdir import MAX_RUN_ROWS, RUN_BYTES, blocks, gather, read_runs
 from lodbuilder.errors import InputError
 

@@ -46,7 +46,7 @@ from .inputs import ScanSource, expand_inputs
 from .jobs import ScanJob, build_one, decide_tiling, job_key, scan_digest
 from .options import BuildOptions
 from .result import BuildResult, CollectionResult, ScanStatus, StatusCallback
-from .tiled.store import check_work_url
+from .tiled.urls import check_work_url
 
 log = logging.getLogger(__name__)
 

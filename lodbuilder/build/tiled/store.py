@@ -38,10 +38,8 @@ from typing import Any, cast
 
 import numpy as np
 
-from ...errors import InputError
+from .urls import is_remote, url_to_fs
 
-#: URL schemes that name a local directory (a LocalStore), not an object store
-LOCAL_SCHEMES = ("", "file", "local")
 #: bytes of the gap between two wanted ranges below which one ranged read takes both (object store)
 REMOTE_GAP = 1 << 20
 #: rows of the gap below which a local read takes both ranges (a seek costs little)
@@ -546,34 +544,6 @@ def _one_request(fs: Any) -> dict[str, Any]:
     return {"max_concurrency": 1} if "max_concurrency" in params else {}
 
 
-def url_to_fs(url: str, **storage_options: Any) -> tuple[Any, str]:
-    """``(fsspec file system, path)`` for a work directory's URL; a one-line error naming the
-    extra to install when fsspec or the scheme's package is missing."""
-    scheme = url.split("://", 1)[0].lower()
-    try:
-        import fsspec.core
-    except ImportError:
-        raise _missing("fsspec", "remote") from None
-    try:
-        return cast(tuple[Any, str], fsspec.core.url_to_fs(url, **storage_options))
-    except ImportError:
-        need, extra = ("s3fs", "s3") if scheme in ("s3", "s3a") else (scheme, "remote")
-        raise _missing(need, extra) from None
-
-
-def _missing(package: str, extra: str) -> Exception:
-    from ...errors import MissingDependencyError
-
-    return MissingDependencyError(f"work files on an object store need {package}, which is not installed; install "
-                                  f"it with: pip install 'lodbuilder[{extra}]'")
-
-
-def is_remote(url: str | os.PathLike[str]) -> bool:
-    """True when ``url`` names an object store (a URL whose scheme is not file://)."""
-    text = os.fspath(url)
-    return "://" in text and text.split("://", 1)[0].lower() not in LOCAL_SCHEMES
-
-
 def as_store(work: Store | str | os.PathLike[str]) -> Store:
     """``work`` as a store: a Store as it is, a URL as an :class:`FsspecStore`, a path as a
     :class:`LocalStore`."""
@@ -585,26 +555,3 @@ def as_store(work: Store | str | os.PathLike[str]) -> Store:
     if text.startswith("file://"):
         text = text[len("file://"):]
     return LocalStore(Path(text))
-
-
-def check_work_url(url: Any) -> str | None:
-    """``url`` (where tiled builds keep their work files; None: beside the archive) checked: a
-    non-empty path (returned absolute: workers may run elsewhere) or URL whose scheme fsspec knows."""
-    if url is None:
-        return None
-    if not isinstance(url, (str, os.PathLike)) or not os.fspath(url).strip():
-        raise InputError(f"work_dir must be a directory or an fsspec URL like s3://BUCKET/PREFIX, got {url!r}")
-    text = os.fspath(url)
-    if is_remote(text):
-        scheme = text.split("://", 1)[0].lower()
-        try:
-            from fsspec.registry import known_implementations
-        except ImportError:
-            raise _missing("fsspec", "remote") from None
-        from fsspec.registry import registry
-
-        if scheme not in known_implementations and scheme not in registry:
-            raise InputError(f"work_dir {text!r}: fsspec knows no file system {scheme!r}; give a directory or a URL "
-                             "like s3://BUCKET/PREFIX")
-        return text
-    return os.path.abspath(text[len("file://"):] if text.startswith("file://") else text)
