@@ -272,7 +272,8 @@ def test_slice_path_imports_nothing_heavy(built, tmp_path):
 
 
 def test_an_in_memory_build_does_not_load_the_tiled_driver(shared_data, tmp_path):
-    # the tiled package's driver and phases (about 16 modules) load only when a build is tiled
+    # the tiled package's driver, phases and work store load only when a build is tiled (the plan
+    # decides that; the work directory's URL is checked before it)
     code = (
         "import sys\n"
         "from lodbuilder.cli.main import main\n"
@@ -282,7 +283,7 @@ def test_an_in_memory_build_does_not_load_the_tiled_driver(shared_data, tmp_path
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip().splitlines()[-1] == "0 ['lodbuilder.build.tiled.plan', 'lodbuilder.build.tiled.store']"
+    assert out.stdout.strip().splitlines()[-1] == "0 ['lodbuilder.build.tiled.plan', 'lodbuilder.build.tiled.urls']"
 
 
 def test_entry_point_runs(built):
