@@ -28,7 +28,7 @@ from .pieces import join_phase, reach
 from .pool import bottom_levels, collect, result, submit
 from .store import Store, as_store
 from .sums import done as piece_done
-from .sums import get_json, mark, put_json, sealed, unseal
+from .sums import get_json, mark, put_json
 from .survey import distribute_phase, plan_phase, read_phase
 from .tasks import coarse_task, cover_tile, order_tile, parameters_task
 from .timing import task_table
@@ -116,7 +116,7 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
     The first colour's tiles see no neighbour in pass 1; each later ordering sees its neighbours'
     latest (see TILE_PASSES). ``lattice``: the scan's grid, on which each ordering labels its band
     pieces for the covering tasks (:func:`.tasks.order_tile`). ``written``: filled with the markers
-    this call writes (name -> the marker as read back, its size and CRC-32), which the phase's
+    this call writes (name -> the task's result it holds, its size and CRC-32), which the phase's
     marker then need not read again (on an object store, three requests a tile in the parent).
     Returns the number of tile orderings a resume found done."""
     n_tiles = len(by_size)
@@ -161,8 +161,8 @@ def _order_passes(ex: cf.Executor, work: Store, name: str, by_size: list[P.Tile]
                 p, t = running.pop(fut)
                 res = result(fut, name, f"ordering of tile {t + 1} of {n_tiles}")
                 sums = put_json(work, WL.marker(WL.order_piece(t, p)), res)
-                if written is not None:  # (the marker as get_json reads it: its JSON types)
-                    written[WL.marker(WL.order_piece(t, p))] = (unseal(sealed(res).decode()) or {}, sums)
+                if written is not None:
+                    written[WL.marker(WL.order_piece(t, p))] = (res, sums)
                 WL.moment("tile")
                 done.add((p, t))
                 tell()
